@@ -1,0 +1,170 @@
+"""Regular grids and the occupancy map sampled on them.
+
+Conventions (the same as ROS map_server): `origin` is the map-frame position of the lower-left
+corner of the lower-left cell; arrays are indexed ``[row, col]`` with row 0 at the *lowest* y
+(unlike an image, whose row 0 is the top: writers flip). Cell ``(i, j)`` has its centre at
+``origin + ((j + 0.5) * resolution, (i + 0.5) * resolution)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FREE: int = 0
+OCCUPIED: int = 1
+UNKNOWN: int = -1
+
+#: The paper's thresholds: free below 0.33, occupied above 0.66, unknown between.
+DEFAULT_THRESHOLDS: tuple[float, float] = (0.33, 0.66)
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    """Geometry of a regular 2-D grid.
+
+    Parameters
+    ----------
+    origin : tuple of float
+        (x, y) of the lower-left corner of the lower-left cell, metres.
+    resolution : float
+        Cell side, metres.
+    shape : tuple of int
+        (rows, cols) = (ny, nx).
+    """
+
+    origin: tuple[float, float]
+    resolution: float
+    shape: tuple[int, int]
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.resolution) and self.resolution > 0):
+            raise ValueError(f"grid resolution must be a positive number, got {self.resolution}")
+        ny, nx = (int(v) for v in self.shape)
+        if ny <= 0 or nx <= 0:
+            raise ValueError(f"grid shape must be positive, got {self.shape}")
+        object.__setattr__(self, "shape", (ny, nx))
+        object.__setattr__(self, "origin", (float(self.origin[0]), float(self.origin[1])))
+        object.__setattr__(self, "resolution", float(self.resolution))
+
+    @classmethod
+    def from_extent(cls, extent: tuple[float, float, float, float], resolution: float) -> GridSpec:
+        """The grid of cells of side `resolution` covering `extent` = (xmin, xmax, ymin, ymax).
+
+        The origin is `(xmin, ymin)`; the grid extends past `xmax` / `ymax` to a whole cell.
+        """
+        xmin, xmax, ymin, ymax = (float(v) for v in extent)
+        if not (xmax > xmin and ymax > ymin):
+            raise ValueError(f"extent must have xmin < xmax and ymin < ymax, got {extent}")
+        if not (math.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"grid resolution must be a positive number, got {resolution}")
+        # Small tolerance so an extent that is a whole number of cells does not gain one.
+        nx = max(1, math.ceil((xmax - xmin) / resolution - 1e-9))
+        ny = max(1, math.ceil((ymax - ymin) / resolution - 1e-9))
+        return cls((xmin, ymin), resolution, (ny, nx))
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) of the grid's outer edges."""
+        x0, y0 = self.origin
+        ny, nx = self.shape
+        return (x0, x0 + nx * self.resolution, y0, y0 + ny * self.resolution)
+
+    def x_centres(self) -> NDArray[np.float64]:
+        """Cell-centre x coordinates, ndarray of shape (nx,)."""
+        return self.origin[0] + (np.arange(self.shape[1]) + 0.5) * self.resolution
+
+    def y_centres(self) -> NDArray[np.float64]:
+        """Cell-centre y coordinates, ndarray of shape (ny,)."""
+        return self.origin[1] + (np.arange(self.shape[0]) + 0.5) * self.resolution
+
+    def centres(self) -> NDArray[np.float64]:
+        """All cell centres, row-major (row 0 = lowest y), ndarray of shape (ny * nx, 2)."""
+        xx, yy = np.meshgrid(self.x_centres(), self.y_centres())
+        return np.column_stack([xx.ravel(), yy.ravel()])
+
+    def index_of(self, points: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]]:
+        """Row and column of the cell holding each point, and whether it is inside the grid.
+
+        Parameters
+        ----------
+        points : ndarray of shape (n, 2)
+
+        Returns
+        -------
+        rows, cols : ndarray of shape (n,)
+        inside : ndarray of bool, shape (n,)
+        """
+        p = np.asarray(points, dtype=float)
+        cols = np.floor((p[:, 0] - self.origin[0]) / self.resolution).astype(np.intp)
+        rows = np.floor((p[:, 1] - self.origin[1]) / self.resolution).astype(np.intp)
+        inside = (rows >= 0) & (rows < self.shape[0]) & (cols >= 0) & (cols < self.shape[1])
+        return rows, cols, inside
+
+
+def ternary(probability: NDArray[np.float64], thresholds: tuple[float, float] = DEFAULT_THRESHOLDS) -> NDArray[np.int8]:
+    """Free / unknown / occupied labels from occupancy probabilities.
+
+    Parameters
+    ----------
+    probability : ndarray of any shape
+    thresholds : (free_below, occupied_above)
+        Probability below the first is FREE (0), above the second OCCUPIED (1), between UNKNOWN (-1).
+
+    Returns
+    -------
+    ndarray of int8, the shape of `probability`
+    """
+    lo, hi = thresholds
+    if not 0.0 <= lo <= hi <= 1.0:
+        raise ValueError(f"thresholds must satisfy 0 <= free <= occupied <= 1, got {thresholds}")
+    p = np.asarray(probability)
+    out = np.full(p.shape, UNKNOWN, dtype=np.int8)
+    out[p < lo] = FREE
+    out[p > hi] = OCCUPIED
+    return out
+
+
+@dataclass
+class OccupancyMap:
+    """A continuous occupancy map sampled on a grid.
+
+    Parameters
+    ----------
+    grid : GridSpec
+    probability : ndarray of shape (ny, nx)
+        Occupancy probability per cell, row 0 at the lowest y.
+    variance : ndarray of shape (ny, nx), optional
+        Latent predictive variance per cell (high where the map knows little).
+    thresholds : (float, float)
+        Free-below and occupied-above thresholds for the ternary map.
+    path : ndarray of shape (k, 2), optional
+        The robot's path (sensor positions), for figures.
+    info : dict
+        What made the map: method, hyperparameters, timings; written into outputs where they can hold it.
+    """
+
+    grid: GridSpec
+    probability: NDArray[np.float64]
+    variance: NDArray[np.float64] | None = None
+    thresholds: tuple[float, float] = DEFAULT_THRESHOLDS
+    path: NDArray[np.float64] | None = None
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.probability = np.asarray(self.probability, dtype=float)
+        if self.probability.shape != self.grid.shape:
+            raise ValueError(f"probability has shape {self.probability.shape}, grid has {self.grid.shape}")
+        if self.variance is not None:
+            self.variance = np.asarray(self.variance, dtype=float)
+            if self.variance.shape != self.grid.shape:
+                raise ValueError(f"variance has shape {self.variance.shape}, grid has {self.grid.shape}")
+        self.thresholds = (float(self.thresholds[0]), float(self.thresholds[1]))
+
+    @property
+    def ternary(self) -> NDArray[np.int8]:
+        """Free (0) / unknown (-1) / occupied (1) per cell, ndarray of shape (ny, nx)."""
+        return ternary(self.probability, self.thresholds)

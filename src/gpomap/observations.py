@@ -1,0 +1,160 @@
+"""From beams to labelled points: free samples along each beam and the hits at their ends.
+
+A beam that returned says two things: the space between the sensor and the end point is free,
+and something is at the end point. A no-return beam (range at or beyond the sensor's maximum)
+says only the first, and only up to where we trust it (`no_return_cap`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.errors import EmptyDataError
+from gpomap.scans import Scan
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Labelled points from a set of scans.
+
+    Attributes
+    ----------
+    points : ndarray of shape (n, 2)
+        Map-frame positions.
+    occupied : ndarray of bool, shape (n,)
+        True for hits, False for free samples.
+    scan_index : ndarray of int, shape (n,)
+        Which scan (position in the input sequence) each point came from.
+    n_invalid : int
+        Readings dropped as NaN, inf or non-positive.
+    n_no_return : int
+        Valid readings at or beyond max range (free space only, never a hit).
+    """
+
+    points: NDArray[np.float64]
+    occupied: NDArray[np.bool_]
+    scan_index: NDArray[np.intp]
+    n_invalid: int = 0
+    n_no_return: int = 0
+
+    @property
+    def n_free(self) -> int:
+        """Number of free points."""
+        return int((~self.occupied).sum())
+
+    @property
+    def n_occupied(self) -> int:
+        """Number of occupied points (hits)."""
+        return int(self.occupied.sum())
+
+    @property
+    def labels(self) -> NDArray[np.float64]:
+        """GP targets: +1 for occupied, -1 for free, ndarray of shape (n,)."""
+        return np.where(self.occupied, 1.0, -1.0)
+
+
+def beam_free_points(
+    origins: NDArray[np.float64],
+    angles: NDArray[np.float64],
+    lengths: NDArray[np.float64],
+    step: float,
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Points every `step` along beams, from `step` out to at most `lengths`.
+
+    Parameters
+    ----------
+    origins : ndarray of shape (b, 2)
+        Beam start points.
+    angles : ndarray of shape (b,)
+        Beam directions in the map frame, radians.
+    lengths : ndarray of shape (b,)
+        How far along each beam free points may go (inclusive).
+    step : float
+        Spacing of the samples along a beam.
+
+    Returns
+    -------
+    points : ndarray of shape (m, 2)
+    beam : ndarray of int, shape (m,)
+        Index of the beam each point lies on.
+    """
+    if not step > 0:
+        raise ValueError(f"free-point step must be positive, got {step}")
+    lengths = np.maximum(np.asarray(lengths, dtype=float), 0.0)
+    # Points at step, 2 step, ..., floor(length / step) * step; a tiny slack keeps a
+    # sample that lands exactly on the limit despite rounding.
+    counts = np.floor(lengths / step + 1e-9).astype(np.intp)
+    total = int(counts.sum())
+    beam = np.repeat(np.arange(lengths.size, dtype=np.intp), counts)
+    # Position of each sample within its beam: 1, 2, ..., count.
+    starts = np.cumsum(counts) - counts
+    k = np.arange(total, dtype=np.intp) - np.repeat(starts, counts) + 1
+    dist = k * step
+    a = np.asarray(angles, dtype=float)[beam]
+    o = np.asarray(origins, dtype=float)[beam]
+    pts = o + dist[:, None] * np.column_stack([np.cos(a), np.sin(a)])
+    return pts, beam
+
+
+def observations_from_scans(
+    scans: Sequence[Scan],
+    free_step: float = 0.2,
+    hit_margin: float | None = None,
+    no_return_cap: float | None = None,
+) -> Observations:
+    """Free and occupied points from scans.
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+    free_step : float
+        Spacing of free samples along each beam, metres.
+    hit_margin : float, optional
+        Free samples stop this far short of a hit, so a free point never sits on the obstacle
+        that stopped the beam. Defaults to half of `free_step`.
+    no_return_cap : float, optional
+        A no-return beam gives free points out to this distance (and no hit). Defaults to the
+        scan's max range; 0 ignores no-return beams.
+
+    Returns
+    -------
+    Observations
+    """
+    if hit_margin is None:
+        hit_margin = 0.5 * free_step
+    pts_all: list[NDArray[np.float64]] = []
+    occ_all: list[NDArray[np.bool_]] = []
+    idx_all: list[NDArray[np.intp]] = []
+    n_invalid = 0
+    n_no_return = 0
+    for i, scan in enumerate(scans):
+        valid = scan.valid()
+        no_ret = scan.no_return()
+        hit = valid & ~no_ret
+        n_invalid += int((~valid).sum())
+        n_no_return += int(no_ret.sum())
+        a = scan.world_angles()
+        cap = scan.max_range if no_return_cap is None else float(no_return_cap)
+        free_len = np.where(hit, scan.ranges - hit_margin, np.minimum(cap, scan.max_range))
+        use = valid & (free_len > 0)
+        origins = np.broadcast_to(scan.pose[:2], (int(use.sum()), 2))
+        fp, _ = beam_free_points(origins, a[use], free_len[use], free_step)
+        hp = scan.endpoints()[hit]
+        pts_all += [fp, hp]
+        occ_all += [np.zeros(len(fp), bool), np.ones(len(hp), bool)]
+        idx_all.append(np.full(len(fp) + len(hp), i, dtype=np.intp))
+    if not pts_all or sum(len(p) for p in pts_all) == 0:
+        raise EmptyDataError(
+            f"no usable readings in {len(scans)} scan(s) ({n_invalid} invalid): nothing to map"
+        )
+    return Observations(
+        points=np.concatenate(pts_all, axis=0),
+        occupied=np.concatenate(occ_all),
+        scan_index=np.concatenate(idx_all),
+        n_invalid=n_invalid,
+        n_no_return=n_no_return,
+    )

@@ -1,0 +1,45 @@
+import numpy as np
+import pytest
+
+from gpomap.errors import EmptyDataError, InputFormatError
+from gpomap.observations import observations_from_scans
+from gpomap.scans import Scan, evenly_spaced, select_scans
+
+
+def test_hit_free_and_no_return_beams():
+    # Beam 0 hits at 1.0 m; beam 1 is a no-return at max range 5; beam 2 is NaN; beam 3 is negative.
+    scan = Scan([1.0, 2.0, 0.0], [0.0, np.pi / 2, 1.0, 2.0], [1.0, 5.0, np.nan, -1.0], 5.0)
+    obs = observations_from_scans([scan], free_step=0.2, no_return_cap=3.0)
+    assert obs.n_invalid == 2
+    assert obs.n_no_return == 1
+    hits = obs.points[obs.occupied]
+    np.testing.assert_allclose(hits, [[2.0, 2.0]])
+    free = obs.points[~obs.occupied]
+    along_x = free[np.isclose(free[:, 1], 2.0)]
+    # Samples at 0.2 .. 0.8: the 0.1 m margin keeps them short of the hit at 1.0.
+    np.testing.assert_allclose(np.sort(along_x[:, 0]) - 1.0, [0.2, 0.4, 0.6, 0.8])
+    along_y = free[np.isclose(free[:, 0], 1.0)]
+    # The no-return beam gives free points up to the cap and no hit.
+    assert along_y[:, 1].max() == pytest.approx(2.0 + 3.0)
+    assert len(along_y) == 15
+
+
+def test_no_usable_readings_is_a_clear_error():
+    scan = Scan([0, 0, 0], [0.0], [np.nan], 5.0)
+    with pytest.raises(EmptyDataError, match="no usable readings"):
+        observations_from_scans([scan])
+
+
+def test_scan_rejects_mismatched_beams():
+    with pytest.raises(InputFormatError, match="2 beam angles but 3 ranges"):
+        Scan([0, 0, 0], [0.0, 1.0], [1.0, 2.0, 3.0], 5.0)
+
+
+def test_paper_subselection_counts():
+    scans = [Scan([i, 0, 0], np.linspace(-np.pi / 2, np.pi / 2, 361), np.ones(361), 80.0) for i in range(395)]
+    chosen = select_scans(scans, 52, 37)
+    assert len(chosen) == 52 and all(s.n_beams == 37 for s in chosen)
+    assert chosen[0].pose[0] == 0 and chosen[-1].pose[0] == 394
+    # Beams symmetric about the heading: first, middle and last kept.
+    np.testing.assert_allclose(chosen[0].angles[[0, 18, 36]], [-np.pi / 2, 0.0, np.pi / 2])
+    assert list(evenly_spaced(5, None)) == [0, 1, 2, 3, 4]
