@@ -1,0 +1,532 @@
+"""ROS map_server maps: a YAML file plus a PGM or PNG image.
+
+The YAML keys (as ROS 1 ``map_server`` and ROS 2 ``nav2_map_server`` read them):
+
+``image``
+    Image file, relative to the YAML's directory (or absolute).
+``resolution``
+    Metres per pixel.
+``origin``
+    ``[x, y, yaw]``: pose of the lower-left pixel's lower-left corner. Only ``yaw = 0`` is supported.
+``occupied_thresh``, ``free_thresh``
+    Pixels with occupancy probability above / below these are occupied / free.
+``negate``
+    0: white is free, black occupied (p = (255 - v) / 255). 1: the reverse (p = v / 255).
+``mode`` (optional)
+    ``trinary`` (default): p > occupied_thresh occupied, p < free_thresh free, otherwise unknown.
+    ``scale``: as trinary at the two ends, but the values between are kept as a graded occupancy;
+    transparent pixels (alpha < 255, PNG only) are unknown.
+    ``raw``: the pixel value *is* the occupancy in percent: v in 0..100 gives p = v / 100, and any other
+    value (map_server writes 255; 101..254 are invalid) is unknown, with probability NaN here. ``negate``
+    is ignored, as map_server ignores it.
+
+Colour images are averaged over their colour channels, as ROS 1 map_server does. Row 0 of an image is
+the top of the map; arrays here have row 0 at the lowest y, so readers and writers flip.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from gpomap.errors import InputFormatError
+from gpomap.grid import FREE, OCCUPIED, GridSpec, OccupancyMap
+from gpomap.io.atomic import atomic_write_group
+
+__all__ = ["RosMap", "read_rosmap", "write_rosmap", "read_map_image"]
+
+MODES = ("trinary", "scale", "raw")
+REQUIRED_KEYS = ("image", "resolution", "origin", "occupied_thresh", "free_thresh", "negate")
+
+#: Pixel values map_saver writes in trinary mode (negate 0).
+PIXEL_OCCUPIED = 0
+PIXEL_FREE = 254
+PIXEL_UNKNOWN = 205
+
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# Only yaw exactly 0 is supported; this tolerance forgives "-0.000000" and float noise.
+_YAW_TOLERANCE = 1e-9
+
+
+@dataclass
+class RosMap:
+    """A ROS map_server map as map_server interprets it.
+
+    Parameters
+    ----------
+    grid : GridSpec
+        Geometry: origin = lower-left corner, pixel side = resolution, shape = (rows, cols).
+    probability : ndarray of float64, shape (ny, nx)
+        Occupancy probability per pixel before thresholding, row 0 at the lowest y:
+        ``(255 - v) / 255`` (negate 0) or ``v / 255`` (negate 1); in raw mode ``v / 100``, and NaN
+        where the pixel is unknown.
+    free : ndarray of bool, shape (ny, nx)
+        Known free: ``probability < free_thresh`` (and not transparent / not raw-unknown).
+    occupied : ndarray of bool, shape (ny, nx)
+        Known occupied: ``probability > occupied_thresh`` (and not transparent / not raw-unknown).
+    unknown : ndarray of bool, shape (ny, nx)
+        Unknown to map_server: between the thresholds in trinary mode, transparent pixels in scale
+        mode, values outside 0..100 in raw mode.
+    pixels : ndarray of uint8, shape (ny, nx)
+        The grey values read from the image (colour averaged), flipped to row 0 = lowest y.
+    occupied_thresh, free_thresh : float
+        The YAML's thresholds.
+    negate : bool
+        The YAML's ``negate``.
+    mode : {"trinary", "scale", "raw"}
+        The YAML's ``mode`` ("trinary" when absent).
+    yaw : float
+        Third element of ``origin``, radians; always 0 since rotated maps are rejected.
+    yaml_path, image_path : Path
+        Where the map was read from.
+    """
+
+    grid: GridSpec
+    probability: NDArray[np.float64]
+    free: NDArray[np.bool_]
+    occupied: NDArray[np.bool_]
+    unknown: NDArray[np.bool_]
+    pixels: NDArray[np.uint8]
+    occupied_thresh: float
+    free_thresh: float
+    negate: bool
+    mode: str
+    yaw: float
+    yaml_path: Path
+    image_path: Path
+
+    @property
+    def ternary(self) -> NDArray[np.int8]:
+        """Free (0) / unknown (-1) / occupied (1) per pixel, ndarray of int8, shape (ny, nx).
+
+        Scale-mode pixels between the thresholds are neither known free nor known occupied: unknown.
+        """
+        out = np.full(self.grid.shape, -1, dtype=np.int8)
+        out[self.free] = FREE
+        out[self.occupied] = OCCUPIED
+        return out
+
+    def to_occupancy_map(self) -> OccupancyMap:
+        """This map as an :class:`~gpomap.grid.OccupancyMap` (thresholds = the YAML's).
+
+        Probability is NaN where the map is unknown outside trinary mode (raw values outside 0..100,
+        transparent scale pixels), so that the OccupancyMap's ternary labels are those of map_server.
+        """
+        p = self.probability.copy()
+        if self.mode != "trinary":
+            p[self.unknown] = np.nan
+        info = {"source": "ros_map_server", "yaml": str(self.yaml_path), "mode": self.mode}
+        return OccupancyMap(self.grid, p, thresholds=(self.free_thresh, self.occupied_thresh), info=info)
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading images
+
+
+def _describe_magic(head: bytes) -> str:
+    """Say what kind of file starts with `head`, for error messages."""
+    known = {
+        b"P1": "a plain PBM (bitmap) file",
+        b"P4": "a binary PBM (bitmap) file",
+        b"P3": "a plain PPM (colour) file",
+        b"P6": "a binary PPM (colour) file",
+        b"P7": "a PAM file",
+        b"\xff\xd8\xff": "a JPEG file",
+        b"GIF8": "a GIF file",
+        b"BM": "a BMP file",
+        b"II*\x00": "a TIFF file",
+        b"MM\x00*": "a TIFF file",
+        b"%PDF": "a PDF file",
+    }
+    for magic, what in known.items():
+        if head.startswith(magic):
+            return what
+    if not head:
+        return "an empty file"
+    return f"a file starting with bytes {head[:8]!r}"
+
+
+def _pgm_tokens(data: bytes, start: int, count: int, path: str) -> tuple[list[int], int]:
+    """Read `count` whitespace-separated integers from a PGM header, skipping ``#`` comments.
+
+    Returns the integers and the offset just past the last one.
+    """
+    values: list[int] = []
+    i, n = start, len(data)
+    while len(values) < count:
+        while i < n and data[i : i + 1].isspace():
+            i += 1
+        if i < n and data[i : i + 1] == b"#":
+            while i < n and data[i : i + 1] not in (b"\n", b"\r"):
+                i += 1
+            continue
+        j = i
+        while j < n and not data[j : j + 1].isspace() and data[j : j + 1] != b"#":
+            j += 1
+        if j == i:
+            raise InputFormatError("PGM header ends early (expected width, height and maxval)", path=path)
+        word = data[i:j]
+        if not word.isdigit():
+            line = data.count(b"\n", 0, i) + 1
+            raise InputFormatError(f"PGM header: expected a number, found {word[:20]!r}", path=path, line=line)
+        values.append(int(word))
+        i = j
+    return values, i
+
+
+def _read_pgm(data: bytes, path: str) -> NDArray[np.uint8]:
+    """Decode an 8-bit PGM (P5 binary or P2 ASCII); ndarray of uint8, shape (height, width), row 0 = top."""
+    magic = data[:2]
+    (width, height, maxval), end = _pgm_tokens(data, 2, 3, path)
+    if width <= 0 or height <= 0:
+        raise InputFormatError(f"PGM size must be positive, got {width} x {height}", path=path)
+    if not 0 < maxval <= 255:
+        raise InputFormatError(f"only 8-bit PGM images are supported (maxval 1..255), got maxval {maxval}", path=path)
+    count = width * height
+    if magic == b"P5":
+        # Exactly one whitespace byte separates maxval from the raster.
+        raster = data[end + 1 : end + 1 + count]
+        if len(raster) < count:
+            raise InputFormatError(
+                f"PGM raster is truncated: {len(raster)} bytes for {width} x {height} = {count} pixels", path=path
+            )
+        pixels = np.frombuffer(raster, dtype=np.uint8).reshape(height, width)
+    else:
+        words = data[end:].split()
+        if len(words) < count:
+            raise InputFormatError(f"plain PGM has {len(words)} values for {width} x {height} = {count} pixels", path=path)
+        try:
+            values = np.array([int(w) for w in words[:count]], dtype=np.int64)
+        except ValueError:
+            raise InputFormatError("plain PGM raster holds a value that is not an integer", path=path) from None
+        if values.min() < 0 or values.max() > maxval:
+            raise InputFormatError(f"plain PGM value outside 0..{maxval}", path=path)
+        pixels = values.astype(np.uint8).reshape(height, width)
+    if maxval != 255:
+        # Stretch to 0..255, as image loaders do, so thresholds mean the same thing.
+        pixels = np.rint(pixels.astype(np.float64) * (255.0 / maxval)).astype(np.uint8)
+    return pixels
+
+
+def _read_png(path: str) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None]:
+    """Decode a PNG to grey values (colour channels averaged) and a transparency mask (or None)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            img.load()
+            if img.mode in ("I", "I;16", "I;16B", "I;16L", "F"):
+                raise InputFormatError(f"only 8-bit PNG images are supported, got Pillow mode {img.mode!r}", path=path)
+            if img.mode == "P":
+                img = img.convert("RGBA" if "transparency" in img.info else "RGB")
+            elif img.mode not in ("L", "LA", "RGB", "RGBA"):
+                img = img.convert("RGBA" if "A" in img.mode else "L")
+            arr = np.asarray(img)
+            mode = img.mode
+    except InputFormatError:
+        raise
+    except Exception as exc:  # Pillow raises several types for corrupt files
+        raise InputFormatError(f"cannot decode PNG image: {exc}", path=path) from exc
+    if arr.ndim == 2:
+        return arr.astype(np.uint8), None
+    has_alpha = mode in ("LA", "RGBA")
+    colour = arr[..., :-1] if has_alpha else arr
+    grey = np.rint(colour.astype(np.float64).mean(axis=-1)).astype(np.uint8)
+    transparent = arr[..., -1] < 255 if has_alpha else None
+    return grey, transparent
+
+
+def read_map_image(image_path: str | os.PathLike[str]) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None]:
+    """Read a map image (8-bit PGM P5/P2, or PNG) as it is stored: row 0 = top of the map.
+
+    Parameters
+    ----------
+    image_path : str or path-like
+
+    Returns
+    -------
+    pixels : ndarray of uint8, shape (height, width)
+        Grey values, colour channels averaged.
+    transparent : ndarray of bool, shape (height, width), or None
+        Pixels with alpha < 255, for PNGs with an alpha channel; None otherwise.
+
+    Raises
+    ------
+    InputFormatError
+        The file is missing, is neither a PGM nor a PNG (the message says what it is), or is malformed.
+    """
+    path = str(image_path)
+    try:
+        data = Path(path).read_bytes()
+    except FileNotFoundError:
+        raise InputFormatError("map image not found", path=path) from None
+    except IsADirectoryError:
+        raise InputFormatError("map image is a directory, not a file", path=path) from None
+    if data[:2] in (b"P5", b"P2"):
+        return _read_pgm(data, path), None
+    if data.startswith(_PNG_MAGIC):
+        return _read_png(path)
+    raise InputFormatError(f"map image must be a PGM (P5 or P2) or PNG file, found {_describe_magic(data[:16])}", path=path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading the YAML
+
+
+def _key_lines(text: str) -> dict[str, int]:
+    """1-based line of each top-level key in a YAML mapping, for error messages."""
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return {}
+    if not isinstance(node, yaml.MappingNode):
+        return {}
+    return {str(k.value): k.start_mark.line + 1 for k, _ in node.value}
+
+
+def _number(config: dict[str, Any], key: str, path: str, lines: dict[str, int]) -> float:
+    """A finite number from `config[key]`; numeric strings are accepted (PyYAML reads ``1e-3`` as a string)."""
+    value = config[key]
+    if isinstance(value, bool):
+        value = None  # ``yes`` is not a number
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        number = math.nan
+    if not math.isfinite(number):
+        raise InputFormatError(f"'{key}' must be a finite number, got {config[key]!r}", path=path, line=lines.get(key))
+    return number
+
+
+def read_rosmap(yaml_path: str | os.PathLike[str]) -> RosMap:
+    """Read a ROS map_server map (YAML + PGM/PNG image).
+
+    Parameters
+    ----------
+    yaml_path : str or path-like
+        The map's YAML file. Its ``image`` is looked up relative to the YAML's directory.
+
+    Returns
+    -------
+    RosMap
+        Arrays flipped so that row 0 is the lowest y.
+
+    Raises
+    ------
+    InputFormatError
+        The YAML is missing, unparsable or not a mapping; a required key is missing (the message names
+        it); a value is invalid (resolution not a positive number, thresholds outside 0..1, unknown
+        mode, origin not ``[x, y, yaw]``); the origin has a non-zero yaw (rotated maps are not
+        supported); the image is missing or not an 8-bit PGM / PNG.
+    """
+    path = str(yaml_path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputFormatError("map YAML file not found", path=path) from None
+    except UnicodeDecodeError:
+        raise InputFormatError("map YAML file is not UTF-8 text (is it the image rather than the YAML?)", path=path) from None
+    try:
+        config = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = mark.line + 1 if mark is not None else None
+        raise InputFormatError(f"invalid YAML: {getattr(exc, 'problem', None) or exc}", path=path, line=line) from None
+    if not isinstance(config, dict):
+        raise InputFormatError(
+            f"map YAML must be a mapping of keys (image, resolution, origin, ...), got {type(config).__name__}", path=path
+        )
+    lines = _key_lines(text)
+    for key in REQUIRED_KEYS:
+        if key not in config:
+            raise InputFormatError(f"map YAML is missing the required key '{key}'", path=path)
+
+    resolution = _number(config, "resolution", path, lines)
+    if resolution <= 0:
+        raise InputFormatError(f"'resolution' must be positive, got {config['resolution']!r}", path=path, line=lines.get("resolution"))
+
+    origin = config["origin"]
+    if not isinstance(origin, (list, tuple)) or len(origin) != 3:
+        raise InputFormatError(f"'origin' must be a list [x, y, yaw], got {origin!r}", path=path, line=lines.get("origin"))
+    x0, y0, yaw = (_number({"origin": v}, "origin", path, lines) for v in origin)
+    if abs(yaw) > _YAW_TOLERANCE:
+        raise InputFormatError(
+            f"'origin' has yaw {yaw} rad (its third element): rotated maps are not supported, only yaw 0",
+            path=path,
+            line=lines.get("origin"),
+        )
+
+    occ_th = _number(config, "occupied_thresh", path, lines)
+    free_th = _number(config, "free_thresh", path, lines)
+    for key, value in (("occupied_thresh", occ_th), ("free_thresh", free_th)):
+        if not 0.0 <= value <= 1.0:
+            raise InputFormatError(f"'{key}' must be between 0 and 1, got {value}", path=path, line=lines.get(key))
+    if free_th > occ_th:
+        raise InputFormatError(
+            f"'free_thresh' ({free_th}) must not exceed 'occupied_thresh' ({occ_th})", path=path, line=lines.get("free_thresh")
+        )
+
+    negate_raw = config["negate"]
+    if isinstance(negate_raw, bool) or negate_raw in (0, 1):
+        negate = bool(negate_raw)
+    else:
+        raise InputFormatError(f"'negate' must be 0 or 1, got {negate_raw!r}", path=path, line=lines.get("negate"))
+
+    mode = config.get("mode", "trinary")
+    if mode not in MODES:
+        raise InputFormatError(f"'mode' must be one of {', '.join(MODES)}, got {mode!r}", path=path, line=lines.get("mode"))
+
+    image = config["image"]
+    if not isinstance(image, str) or not image.strip():
+        raise InputFormatError(f"'image' must be a file name, got {image!r}", path=path, line=lines.get("image"))
+    image_path = Path(image)
+    if not image_path.is_absolute():
+        image_path = Path(path).parent / image_path
+    if not image_path.is_file():
+        raise InputFormatError(
+            f"image file {image!r} named by 'image' not found (looked for {image_path})", path=path, line=lines.get("image")
+        )
+
+    top_down, transparent = read_map_image(image_path)
+    pixels = np.flipud(top_down).copy()
+    transparent = None if transparent is None else np.flipud(transparent).copy()
+    v = pixels.astype(np.float64)
+
+    if mode == "raw":
+        unknown = pixels > 100
+        probability = np.where(unknown, np.nan, v / 100.0)
+        free = (v / 100.0 < free_th) & ~unknown
+        occupied = (v / 100.0 > occ_th) & ~unknown
+    else:
+        probability = v / 255.0 if negate else (255.0 - v) / 255.0
+        hidden = transparent if (mode == "scale" and transparent is not None) else np.zeros(pixels.shape, dtype=bool)
+        free = (probability < free_th) & ~hidden
+        occupied = (probability > occ_th) & ~hidden
+        unknown = ~(free | occupied) if mode == "trinary" else hidden
+
+    grid = GridSpec((x0, y0), resolution, pixels.shape)
+    return RosMap(
+        grid=grid,
+        probability=probability,
+        free=free,
+        occupied=occupied,
+        unknown=unknown,
+        pixels=pixels,
+        occupied_thresh=occ_th,
+        free_thresh=free_th,
+        negate=negate,
+        mode=mode,
+        yaw=float(yaw),
+        yaml_path=Path(path),
+        image_path=image_path,
+    )
+
+
+# --------------------------------------------------------------------------------------------------
+# Writing
+
+
+def _yaml_float(x: float) -> str:
+    """Shortest text that reads back as exactly `x`, and that YAML 1.1 (PyYAML) reads as a float."""
+    text = repr(float(x))
+    if "e" in text:
+        mantissa, exponent = text.split("e")
+        if "." not in mantissa:
+            mantissa += ".0"  # YAML 1.1 reads "1e-05" as a string, "1.0e-05" as a float
+        text = f"{mantissa}e{exponent}"
+    return text
+
+
+def _trinary_thresholds(thresholds: tuple[float, float]) -> tuple[float, float]:
+    """Thresholds for the YAML that decode 0 / 254 / 205 back to occupied / free / unknown.
+
+    The map's own thresholds are kept when they already do; otherwise they are moved just enough:
+    free_thresh must lie in (1/255, 50/255] (254 is free, 205 is not) and occupied_thresh in
+    [50/255, 1) (0 is occupied, 205 is not).
+    """
+    lo, hi = thresholds
+    free_th = min(max(lo, 0.01), 0.196)
+    occ_th = max(min(hi, 0.99), 0.197)
+    return free_th, occ_th
+
+
+def write_rosmap(
+    occupancy_map: OccupancyMap,
+    yaml_path: str | os.PathLike[str],
+    mode: str = "trinary",
+) -> tuple[Path, Path]:
+    """Write a map as a ROS map_server YAML + binary PGM (P5), both atomically, as one group.
+
+    Parameters
+    ----------
+    occupancy_map : OccupancyMap
+        The map; its grid gives resolution and origin (yaw 0), its probability (ny, nx) the pixels.
+    yaml_path : str or path-like
+        The YAML to write. The image goes beside it with the same stem: ``map.yaml`` -> ``map.pgm``.
+    mode : {"trinary", "scale"}
+        ``trinary``: the map's ternary labels as 0 (occupied), 254 (free), 205 (unknown), the values
+        ROS map_saver writes; the YAML's thresholds are the map's, moved only if needed so that
+        map_server decodes these three values back to the same labels (see Notes).
+        ``scale``: the probability as ``v = round(255 * (1 - p))`` (negate 0), and the map's
+        thresholds in the YAML; NaN probabilities are written as the midpoint of the thresholds, a
+        value map_server reads as neither free nor occupied.
+
+    Returns
+    -------
+    yaml_path, image_path : Path
+
+    Notes
+    -----
+    Value 205 means p = 50/255 = 0.196 to map_server, so in trinary mode ``free_thresh`` is capped
+    at 0.196 and ``occupied_thresh`` raised to at least 0.197; with the paper's (0.33, 0.66) the
+    YAML holds (0.196, 0.66). The map's own thresholds are recorded in a YAML comment.
+
+    Reading the result with :func:`read_rosmap` gives back the grid geometry exactly, and the ternary
+    labels exactly (trinary) or the probability to within 1/510 (scale).
+    """
+    if mode not in ("trinary", "scale"):
+        raise ValueError(f"write_rosmap mode must be 'trinary' or 'scale', got {mode!r}")
+    yaml_path = Path(yaml_path)
+    if yaml_path.suffix == ".pgm":
+        raise ValueError(f"yaml_path must be the YAML file, got the image name {yaml_path}")
+    image_path = yaml_path.with_suffix(".pgm")
+    grid = occupancy_map.grid
+
+    if mode == "trinary":
+        labels = occupancy_map.ternary
+        image = np.full(grid.shape, PIXEL_UNKNOWN, dtype=np.uint8)
+        image[labels == FREE] = PIXEL_FREE
+        image[labels == OCCUPIED] = PIXEL_OCCUPIED
+        free_th, occ_th = _trinary_thresholds(occupancy_map.thresholds)
+    else:
+        free_th, occ_th = occupancy_map.thresholds
+        p = np.asarray(occupancy_map.probability, dtype=np.float64)
+        p = np.where(np.isfinite(p), np.clip(p, 0.0, 1.0), 0.5 * (free_th + occ_th))
+        image = np.rint(255.0 * (1.0 - p)).astype(np.uint8)
+
+    ny, nx = grid.shape
+    header = f"P5\n# CREATOR: gpomap {grid.resolution:.3f} m/pix\n{nx} {ny}\n255\n".encode("ascii")
+    lo, hi = occupancy_map.thresholds
+    text = (
+        f"# gpomap map, {mode} mode; map thresholds (free below, occupied above): {lo}, {hi}\n"
+        f"image: {image_path.name}\n"
+        f"mode: {mode}\n"
+        f"resolution: {_yaml_float(grid.resolution)}\n"
+        f"origin: [{_yaml_float(grid.origin[0])}, {_yaml_float(grid.origin[1])}, 0.0]\n"
+        f"negate: 0\n"
+        f"occupied_thresh: {_yaml_float(occ_th)}\n"
+        f"free_thresh: {_yaml_float(free_th)}\n"
+    )
+    # The image is renamed first, so the YAML never names an image that is not complete.
+    with atomic_write_group([image_path, yaml_path], mode=["wb", "w"]) as (f_img, f_yaml):
+        f_img.write(header)
+        f_img.write(np.ascontiguousarray(np.flipud(image)).tobytes())
+        f_yaml.write(text)
+    return yaml_path, image_path
