@@ -1,0 +1,218 @@
+"""Figures: the paper's three-panel map view and the input/cell-tree view.
+
+Everything draws on :class:`matplotlib.figure.Figure` objects rendered with the Agg canvas, never
+through ``pyplot``: no window is opened, no global backend is switched and no figure is kept alive by
+a figure manager, so the functions are safe on headless machines and in long-running processes.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import PatchCollection
+from matplotlib.colors import BoundaryNorm, ListedColormap
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+from numpy.typing import ArrayLike, NDArray
+
+from gpomap.grid import OccupancyMap
+from gpomap.io.atomic import atomic_write
+
+__all__ = ["plot_map", "plot_inputs", "save_figure", "PROBABILITY_CMAP", "VARIANCE_CMAP"]
+
+#: Diverging blue (free) to red (occupied), white at p = 0.5, like the paper's probability maps.
+PROBABILITY_CMAP = "RdBu_r"
+#: Blue where the map is sure (low variance) to red where it knows little.
+VARIANCE_CMAP = "RdYlBu_r"
+# Ternary colours in label order UNKNOWN (-1), FREE (0), OCCUPIED (1).
+_TERNARY_CMAP = ListedColormap(["#9e9e9e", "#ffffff", "#000000"], name="gpomap_ternary")
+_TERNARY_NORM = BoundaryNorm([-1.5, -0.5, 0.5, 1.5], _TERNARY_CMAP.N)
+_PATH_COLOUR = "#19b219"
+_FREE_COLOUR = "#2ca02c"
+_HIT_COLOUR = "#d62728"
+
+
+def _new_figure(width: float, height: float) -> Figure:
+    fig = Figure(figsize=(width, height), layout="constrained")
+    FigureCanvasAgg(fig)  # attaches itself as fig.canvas
+    return fig
+
+
+def _colorbar(fig: Figure, ax, mappable, label: str):  # noqa: ANN001, ANN202 - matplotlib types
+    """A colour bar in an inset beside `ax`, so that ``fig.axes`` holds only the panels."""
+    cax = ax.inset_axes([1.03, 0.0, 0.045, 1.0])
+    cbar = fig.colorbar(mappable, cax=cax)
+    cbar.set_label(label)
+    return cbar
+
+
+def _draw_path(ax, path: NDArray[np.float64], legend: bool) -> None:  # noqa: ANN001
+    ax.plot(path[:, 0], path[:, 1], "-", color=_PATH_COLOUR, lw=1.3, label="robot path" if legend else None)
+    ax.plot(path[0, 0], path[0, 1], "o", color=_PATH_COLOUR, ms=5, mec="k", mew=0.6, label="start" if legend else None)
+
+
+def plot_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str] | None = None, title: str | None = None) -> Figure:
+    """The paper's three panels side by side: probability, latent variance, ternary map.
+
+    Parameters
+    ----------
+    occupancy_map : OccupancyMap
+        Probability and (optional) variance of shape (ny, nx) on its grid; ``path`` of shape (k, 2)
+        is drawn on every panel when set.
+    path : str or path-like, optional
+        When given, the figure is also written there as a PNG (atomically).
+    title : str, optional
+        Figure title.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        ``fig.axes`` holds exactly the three panels (probability, variance, ternary); their colour
+        bars are inset axes of the panels. Axes are in metres with equal aspect.
+    """
+    m = occupancy_map
+    grid = m.grid
+    ny, nx = grid.shape
+    extent = grid.extent
+    # Panel size follows the map's aspect ratio, within limits that keep labels readable.
+    aspect = min(max(ny / nx, 0.4), 2.5)
+    panel = 4.0
+    fig = _new_figure(3 * (panel + 1.1), panel * aspect + (0.9 if title else 0.6))
+    axes = fig.subplots(1, 3, sharex=True, sharey=True)
+
+    imshow = {"extent": extent, "origin": "lower", "interpolation": "nearest", "aspect": "equal"}
+    im = axes[0].imshow(m.probability, cmap=PROBABILITY_CMAP, vmin=0.0, vmax=1.0, **imshow)
+    _colorbar(fig, axes[0], im, "occupancy probability")
+    axes[0].set_title("probability")
+
+    if m.variance is not None:
+        var = m.variance
+        finite = var[np.isfinite(var)]
+        vmax = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
+        im = axes[1].imshow(var, cmap=VARIANCE_CMAP, vmin=0.0, vmax=vmax, **imshow)
+        _colorbar(fig, axes[1], im, "latent variance")
+    else:
+        # Keep the panel (and the three-panel layout) but say why it is empty.
+        axes[1].imshow(np.full(grid.shape, np.nan), **imshow)
+        axes[1].text(0.5, 0.5, "no variance", transform=axes[1].transAxes, ha="center", va="center", color="0.4")
+    axes[1].set_title("latent variance")
+
+    im = axes[2].imshow(m.ternary, cmap=_TERNARY_CMAP, norm=_TERNARY_NORM, **imshow)
+    cbar = _colorbar(fig, axes[2], im, "")
+    cbar.set_ticks([-1, 0, 1], labels=["unknown", "free", "occupied"])
+    axes[2].set_title(f"ternary (free < {m.thresholds[0]:g}, occupied > {m.thresholds[1]:g})")
+
+    for i, ax in enumerate(axes):
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+        ax.set_xlabel("x [m]")
+        if m.path is not None and len(m.path):
+            _draw_path(ax, np.asarray(m.path, dtype=float), legend=i == 0)
+    axes[0].set_ylabel("y [m]")
+    if m.path is not None and len(m.path):
+        axes[0].legend(loc="upper right", fontsize="small", framealpha=0.8)
+    if title:
+        fig.suptitle(title)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
+
+
+def plot_inputs(
+    observations_points: ArrayLike,
+    occupied_mask: ArrayLike,
+    boxes: ArrayLike | None = None,
+    box_labels: ArrayLike | None = None,
+    path: str | os.PathLike[str] | None = None,
+) -> Figure:
+    """Training inputs: free points green, hits red, and optionally the cells (boxes) of the tree.
+
+    Parameters
+    ----------
+    observations_points : array_like of shape (n, 2)
+        Observation positions, metres.
+    occupied_mask : array_like of bool, shape (n,)
+        True for hits (occupied), False for free samples.
+    boxes : array_like of shape (m, 2, 2), optional
+        Rectangles ``[[xmin, ymin], [xmax, ymax]]``, such as the area supports of the paper's
+        Fig. 3 / Fig. 5.
+    box_labels : array_like of shape (m,), optional
+        +1 (occupied: red) or -1 (free: green) per box; other values or no labels draw grey boxes.
+    path : str or path-like, optional
+        When given, the figure is also written there as a PNG (atomically).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        One axes, metres, equal aspect.
+    """
+    pts = np.asarray(observations_points, dtype=float).reshape(-1, 2)
+    occ = np.asarray(occupied_mask, dtype=bool).reshape(-1)
+    if occ.shape[0] != pts.shape[0]:
+        raise ValueError(f"{pts.shape[0]} points but {occ.shape[0]} occupied flags")
+    fig = _new_figure(6.4, 5.6)
+    ax = fig.subplots()
+
+    # Marker area shrinks with the point count so that dense scans stay readable.
+    size = float(np.clip(3000.0 / max(len(pts), 1), 0.3, 16.0))
+    if boxes is not None:
+        b = np.asarray(boxes, dtype=float).reshape(-1, 2, 2)
+        labels = np.zeros(len(b)) if box_labels is None else np.asarray(box_labels).reshape(-1)
+        if labels.shape[0] != b.shape[0]:
+            raise ValueError(f"{b.shape[0]} boxes but {labels.shape[0]} box labels")
+        colours = np.where(labels > 0, _HIT_COLOUR, np.where(labels < 0, _FREE_COLOUR, "0.45"))
+        rects = [Rectangle((lo[0], lo[1]), hi[0] - lo[0], hi[1] - lo[1]) for lo, hi in b]
+        faces = [(*_rgb(c), 0.12) for c in colours]
+        ax.add_collection(PatchCollection(rects, facecolors=faces, edgecolors=list(colours), linewidths=1.2, zorder=1))
+        if len(b):
+            ax.update_datalim(b.reshape(-1, 2))
+        # Legend proxies: a PatchCollection has no per-class legend entries of its own.
+        for sign, colour, name in ((1, _HIT_COLOUR, "occupied cells"), (-1, _FREE_COLOUR, "free cells")):
+            count = int(np.count_nonzero(labels > 0 if sign > 0 else labels < 0))
+            if count:
+                ax.add_patch(Rectangle((np.nan, np.nan), 0, 0, fc=(*_rgb(colour), 0.12), ec=colour, label=f"{name} ({count})"))
+    ax.scatter(pts[~occ, 0], pts[~occ, 1], s=size, c=_FREE_COLOUR, lw=0, label=f"free ({int((~occ).sum())})", zorder=2, rasterized=True)
+    ax.scatter(pts[occ, 0], pts[occ, 1], s=size * 1.5, c=_HIT_COLOUR, lw=0, label=f"hits ({int(occ.sum())})", zorder=3, rasterized=True)
+    ax.autoscale_view()
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.legend(loc="upper right", fontsize="small", markerscale=max(1.0, 4.0 / np.sqrt(size)), framealpha=0.85)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
+
+
+def _rgb(colour: str) -> tuple[float, float, float]:
+    from matplotlib.colors import to_rgb
+
+    return to_rgb(colour)
+
+
+def save_figure(fig: Figure, path: str | os.PathLike[str], dpi: int = 150) -> Path:
+    """Write `fig` as a PNG, atomically (the old file stays if rendering fails).
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+    path : str or path-like
+    dpi : int
+
+    Returns
+    -------
+    Path
+        `path`.
+    """
+    if not isinstance(fig.canvas, FigureCanvasAgg):
+        FigureCanvasAgg(fig)
+    # Render to memory first: a failing render then never even creates the temporary file.
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi)
+    target = Path(path)
+    with atomic_write(target, "wb") as f:
+        f.write(buffer.getvalue())
+    return target

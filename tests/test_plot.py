@@ -1,0 +1,87 @@
+import numpy as np
+import pytest
+from PIL import Image
+
+from gpomap.grid import GridSpec, OccupancyMap
+from gpomap.plot import plot_inputs, plot_map, save_figure
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def _map(with_variance=True, with_path=True):
+    grid = GridSpec((-1.0, -0.5), 0.1, (12, 20))
+    xs, ys = np.meshgrid(grid.x_centres(), grid.y_centres())
+    p = np.clip(0.5 + 0.5 * np.sin(3 * xs) * np.cos(2 * ys), 0, 1)
+    t = np.linspace(0, np.pi, 10)
+    return OccupancyMap(
+        grid,
+        p,
+        variance=np.abs(xs) if with_variance else None,
+        path=np.c_[0.5 * np.cos(t), 0.3 * np.sin(t)] if with_path else None,
+    )
+
+
+def _assert_png(path):
+    assert path.exists()
+    assert path.read_bytes()[:8] == PNG_MAGIC
+    with Image.open(path) as img:
+        img.verify()
+
+
+def test_plot_map_three_panels_and_png(tmp_path):
+    out = tmp_path / "map.png"
+    fig = plot_map(_map(), path=out, title="test map")
+    assert len(fig.axes) == 3
+    assert [ax.get_title() for ax in fig.axes][:2] == ["probability", "latent variance"]
+    for ax in fig.axes:
+        # Axes in metres: the grid's extent, origin lower.
+        assert ax.get_xlim() == pytest.approx((-1.0, 1.0))
+        assert ax.get_ylim() == pytest.approx((-0.5, 0.7))
+        assert ax.child_axes, "each panel has its colour bar"
+        assert len(ax.get_lines()) == 2  # the robot path and its start marker
+    assert fig.axes[0].images[0].get_array().shape == (12, 20)
+    _assert_png(out)
+
+
+def test_plot_map_without_variance_or_path(tmp_path):
+    fig = plot_map(_map(with_variance=False, with_path=False))
+    assert len(fig.axes) == 3
+    assert not fig.axes[0].get_lines()
+    out = save_figure(fig, tmp_path / "nested.png")
+    _assert_png(out)
+
+
+def test_plot_inputs_with_boxes(tmp_path):
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 4, (200, 2))
+    occ = pts[:, 0] > 3
+    boxes = np.array([[[0, 0], [2, 2]], [[3, 0], [4, 4]]])
+    out = tmp_path / "inputs.png"
+    fig = plot_inputs(pts, occ, boxes=boxes, box_labels=[-1, 1], path=out)
+    assert len(fig.axes) == 1
+    labels = fig.axes[0].get_legend_handles_labels()[1]
+    n_hits = int(occ.sum())
+    assert labels == ["occupied cells (1)", "free cells (1)", f"free ({200 - n_hits})", f"hits ({n_hits})"]
+    _assert_png(out)
+
+
+def test_plot_inputs_rejects_mismatch():
+    with pytest.raises(ValueError, match="3 points but 2 occupied flags"):
+        plot_inputs(np.zeros((3, 2)), [True, False])
+    with pytest.raises(ValueError, match="1 boxes but 2 box labels"):
+        plot_inputs(np.zeros((1, 2)), [True], boxes=np.zeros((1, 2, 2)), box_labels=[1, -1])
+
+
+def test_save_figure_failure_keeps_old_png(tmp_path, monkeypatch):
+    out = tmp_path / "fig.png"
+    fig = plot_map(_map(), path=out)
+    before = out.read_bytes()
+
+    def broken_savefig(*args, **kwargs):
+        raise RuntimeError("render failed")
+
+    monkeypatch.setattr(fig, "savefig", broken_savefig)
+    with pytest.raises(RuntimeError, match="render failed"):
+        save_figure(fig, out)
+    assert out.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["fig.png"]
