@@ -1,0 +1,189 @@
+"""Tests of the CARMEN log reader: shared data sets, conventions and malformed input."""
+
+from __future__ import annotations
+
+import gzip
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpomap.errors import GpomapError, InputFormatError
+from gpomap.io import describe, read_scans
+from gpomap.io.carmen import beam_angles, read_carmen
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+# (file, scans, beams, message type) as the data README gives them.
+CARMEN_FILES = [
+    ("intel/intel-corrected.log.gz", 910, 180, "FLASER"),
+    ("belgioioso/belgioioso-corrected.log.gz", 395, 361, "FLASER"),
+    ("fr079/freiburg-079-corrected.log.gz", 4791, 360, "FLASER"),
+    ("csail-robotlaser1/csail.log.gz", 686, 361, "ROBOTLASER1"),
+]
+
+
+def _need(rel: str) -> Path:
+    path = DATA / rel
+    if not path.exists():
+        pytest.skip(f"shared data file {path} not found (expected ../shared/data beside the project)")
+    return path
+
+
+def _flaser(ranges: list[float], pose=(1.0, 2.0, 0.5), stamp: float = 10.0) -> str:
+    r = " ".join(f"{v:g}" for v in ranges)
+    x, y, t = pose
+    return f"FLASER {len(ranges)} {r} {x} {y} {t} {x} {y} {t} {stamp} host {stamp}"
+
+
+@pytest.mark.parametrize("rel,n_scans,n_beams,kind", CARMEN_FILES)
+def test_shared_logs_load_with_readme_counts(rel: str, n_scans: int, n_beams: int, kind: str) -> None:
+    scans = read_scans(_need(rel))
+    assert len(scans) == n_scans
+    assert {s.n_beams for s in scans} == {n_beams}
+    assert {s.meta["message"] for s in scans} == {kind}
+    # The SICK no-return codes are at or above max range in every file, so no hit lies there.
+    for s in scans:
+        assert s.max_range <= 81.83
+        hit = s.valid() & ~s.no_return()
+        assert not np.any(s.ranges[hit] >= 81.0)
+        assert np.all(np.hypot(*(s.hits() - s.pose[:2]).T) < s.max_range)
+    assert sum(int(s.no_return().sum()) for s in scans) > 0
+
+
+def test_max_range_rules() -> None:
+    # FR079 has PARAM robot_front_laser_max 80.99; Intel has none (80 m default).
+    assert read_carmen(_need("fr079/freiburg-079-corrected.log.gz"))[0].max_range == pytest.approx(80.99)
+    intel = _need("intel/intel-corrected.log.gz")
+    assert read_carmen(intel)[0].max_range == pytest.approx(80.0)
+    assert read_carmen(intel, max_range=30.0)[0].max_range == 30.0
+
+
+def test_time_stamps_kept_only_when_usable() -> None:
+    assert all(s.time is None for s in read_carmen(_need("belgioioso/belgioioso-corrected.log.gz")))
+    intel = read_carmen(_need("intel/intel-corrected.log.gz"))
+    assert intel[0].time == pytest.approx(32.9068)
+
+
+def test_beam_angle_conventions() -> None:
+    a = beam_angles(180)
+    assert a[0] == pytest.approx(-math.pi / 2)
+    assert a[1] - a[0] == pytest.approx(math.pi / 180)
+    assert beam_angles(361)[-1] == pytest.approx(math.pi / 2)
+    assert beam_angles(360)[1] - beam_angles(360)[0] == pytest.approx(math.pi / 360)
+    lin = beam_angles(180, "linspace")
+    assert lin[-1] == pytest.approx(math.pi / 2)
+    with pytest.raises(ValueError, match="convention"):
+        beam_angles(10, "bogus")
+
+
+def test_small_flaser_file_geometry_and_skipped_lines(tmp_path: Path) -> None:
+    ranges = [1.0] * 180
+    ranges[90] = 81.91  # no-return code
+    ranges[91] = 0.0  # invalid
+    text = "\n".join(
+        [
+            "# comment",
+            "## another",
+            "PARAM robot_frontlaser_offset -0.04 nohost 0",
+            "PARAM robot_front_laser_max 80.99 nohost 0",
+            "ODOM 0 0 0 0 0 0 0 host 0",
+            "NEFF 12.5",
+            "WHATEVER 1 2 3",
+            _flaser(ranges, pose=(1.0, 2.0, 0.0), stamp=1.0),
+            _flaser([2.0] * 180, pose=(1.5, 2.0, math.pi / 2), stamp=2.0),
+        ]
+    )
+    path = tmp_path / "small.log"
+    path.write_text(text + "\n")
+    scans = read_carmen(path)
+    assert len(scans) == 2
+    s0, s1 = scans
+    assert s0.meta["line"] == 8 and s1.meta["line"] == 9
+    assert s0.time == 1.0 and s1.time == 2.0
+    assert s0.max_range == pytest.approx(80.99)
+    assert s0.no_return()[90] and not s0.valid()[91]
+    assert len(s0.hits()) == 178
+    # Beam 0 points to the robot's right (-pi/2) at 1 m.
+    np.testing.assert_allclose(s0.hits()[0], [1.0, 1.0], atol=1e-12)
+    # Default: the pose is the laser pose; the PARAM offset is recorded, applied on request.
+    np.testing.assert_allclose(s1.pose, [1.5, 2.0, math.pi / 2])
+    assert s1.meta["frontlaser_offset_param"] == pytest.approx(-0.04)
+    moved = read_carmen(path, laser_offset="param")[1]
+    np.testing.assert_allclose(moved.pose, [1.5, 1.96, math.pi / 2], atol=1e-12)
+
+
+def test_gzipped_small_file(tmp_path: Path) -> None:
+    path = tmp_path / "small.log.gz"
+    with gzip.open(path, "wt") as f:
+        f.write(_flaser([3.0] * 360, pose=(0.0, 0.0, 0.0)) + "\n")
+    scans = read_scans(path)
+    assert len(scans) == 1 and scans[0].n_beams == 360
+    # Beam 180 of 360 (pi/360 steps) points straight ahead.
+    np.testing.assert_allclose(scans[0].hits()[180], [3.0, 0.0], atol=1e-12)
+
+
+def test_robotlaser1_uses_laser_pose(tmp_path: Path) -> None:
+    n, m = 3, 1
+    line = (
+        f"ROBOTLASER1 0 -0.5 1.0 0.5 4.0 0.01 0 {n} 5.0 1.0 2.0 {m} 7.0 "
+        "1.0 1.0 0.0 0.0 0.0 0.0 0 0 0 0 0 123.5 host 1.0"
+    )
+    path = tmp_path / "r1.log"
+    path.write_text(line + "\n")
+    (s,) = read_carmen(path)
+    np.testing.assert_allclose(s.pose, [1.0, 1.0, 0.0])
+    np.testing.assert_allclose(s.angles, [-0.5, 0.0, 0.5])
+    assert s.max_range == 4.0 and s.no_return().tolist() == [True, False, False]
+    np.testing.assert_allclose(s.hits()[0], [2.0, 1.0])
+
+
+def test_describe_small_file(tmp_path: Path) -> None:
+    path = tmp_path / "d.clf"
+    path.write_text(_flaser([1.0] * 180, stamp=1.0) + "\n" + _flaser([81.83] * 180, stamp=3.0) + "\n")
+    info = describe(path)
+    assert info["format"] == "carmen"
+    assert info["n_scans"] == 2 and info["beams_per_scan"] == 180
+    assert info["time_span"] == pytest.approx(2.0)
+
+
+# --- malformed input: one test each --------------------------------------------------------
+
+
+def test_truncated_line(tmp_path: Path) -> None:
+    path = tmp_path / "bad.log"
+    good = _flaser([1.0] * 180)
+    path.write_text(good + "\n" + good[: len(good) // 2] + "\n")
+    with pytest.raises(InputFormatError, match=r"bad\.log, line 2: truncated FLASER line: \d+ fields, expected 191"):
+        read_carmen(path)
+
+
+def test_wrong_field_count(tmp_path: Path) -> None:
+    path = tmp_path / "bad.log"
+    path.write_text(_flaser([1.0] * 180) + " extra\n")
+    with pytest.raises(
+        InputFormatError, match=r"line 1: wrong field count in FLASER line: 192 fields, expected 191 \(n \+ 11"
+    ):
+        read_carmen(path)
+
+
+def test_non_numeric_field(tmp_path: Path) -> None:
+    path = tmp_path / "bad.log"
+    path.write_text("# header\n" + _flaser([1.0] * 180).replace(" 1 1 1 ", " 1 oops 1 ", 1) + "\n")
+    with pytest.raises(InputFormatError, match=r"line 2: non-numeric field \d+ 'oops'; expected a number"):
+        read_carmen(path)
+
+
+def test_empty_file(tmp_path: Path) -> None:
+    path = tmp_path / "empty.log"
+    path.write_text("")
+    with pytest.raises(InputFormatError, match=r"empty\.log: empty file"):
+        read_carmen(path)
+
+
+def test_file_without_laser_lines(tmp_path: Path) -> None:
+    path = tmp_path / "nolaser.log"
+    path.write_text("PARAM a 1 nohost 0\nODOM 0 0 0 0 0 0 0 host 0\n")
+    with pytest.raises(GpomapError, match="no laser lines in 2 lines; expected FLASER or ROBOTLASER1"):
+        read_carmen(path)
