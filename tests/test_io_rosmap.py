@@ -260,3 +260,13 @@ def test_interrupted_write_keeps_previous_files(tmp_path, monkeypatch, failing_c
         write_rosmap(other, yaml_path)
     assert (yaml_path.read_bytes(), image_path.read_bytes()) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.pgm", "map.yaml"]
+
+
+@pytest.mark.skipif(not TURTLEBOT.exists(), reason=f"shared data missing: {TURTLEBOT}")
+def test_turtlebot_rewrite_is_identical_in_pixels(tmp_path):
+    original = read_rosmap(TURTLEBOT)
+    write_rosmap(original.to_occupancy_map(), tmp_path / "copy.yaml")
+    copy = read_rosmap(tmp_path / "copy.yaml")
+    assert copy.grid == original.grid
+    assert (copy.free_thresh, copy.occupied_thresh) == (0.196, 0.65)
+    np.testing.assert_array_equal(copy.pixels, original.pixels)
