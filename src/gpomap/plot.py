@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PatchCollection
-from matplotlib.colors import BoundaryNorm, ListedColormap
+from matplotlib.colors import BoundaryNorm, ListedColormap, to_rgb
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from numpy.typing import ArrayLike, NDArray
@@ -166,7 +166,7 @@ def plot_inputs(
             raise ValueError(f"{b.shape[0]} boxes but {labels.shape[0]} box labels")
         colours = np.where(labels > 0, _HIT_COLOUR, np.where(labels < 0, _FREE_COLOUR, "0.45"))
         rects = [Rectangle((lo[0], lo[1]), hi[0] - lo[0], hi[1] - lo[1]) for lo, hi in b]
-        faces = [(*_rgb(c), 0.12) for c in colours]
+        faces = [(*to_rgb(c), 0.12) for c in colours]
         ax.add_collection(PatchCollection(rects, facecolors=faces, edgecolors=list(colours), linewidths=1.2, zorder=1))
         if len(b):
             ax.update_datalim(b.reshape(-1, 2))
@@ -174,7 +174,7 @@ def plot_inputs(
         for sign, colour, name in ((1, _HIT_COLOUR, "occupied cells"), (-1, _FREE_COLOUR, "free cells")):
             count = int(np.count_nonzero(labels > 0 if sign > 0 else labels < 0))
             if count:
-                ax.add_patch(Rectangle((np.nan, np.nan), 0, 0, fc=(*_rgb(colour), 0.12), ec=colour, label=f"{name} ({count})"))
+                ax.add_patch(Rectangle((np.nan, np.nan), 0, 0, fc=(*to_rgb(colour), 0.12), ec=colour, label=f"{name} ({count})"))
     ax.scatter(pts[~occ, 0], pts[~occ, 1], s=size, c=_FREE_COLOUR, lw=0, label=f"free ({int((~occ).sum())})", zorder=2, rasterized=True)
     ax.scatter(pts[occ, 0], pts[occ, 1], s=size * 1.5, c=_HIT_COLOUR, lw=0, label=f"hits ({int(occ.sum())})", zorder=3, rasterized=True)
     ax.autoscale_view()
@@ -185,12 +185,6 @@ def plot_inputs(
     if path is not None:
         save_figure(fig, path)
     return fig
-
-
-def _rgb(colour: str) -> tuple[float, float, float]:
-    from matplotlib.colors import to_rgb
-
-    return to_rgb(colour)
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str], dpi: int = 150) -> Path:
