@@ -65,9 +65,13 @@ def _read_csv(path: Path) -> Observations:
                 x, y = float(row[ix]), float(row[iy])
             except ValueError:
                 bad = row[ix] if not _is_float(row[ix]) else row[iy]
-                raise InputFormatError(f"non-numeric coordinate {bad.strip()!r}; expected a number", path=spath, line=line) from None
+                raise InputFormatError(
+                    f"non-numeric coordinate {bad.strip()!r}; expected a number", path=spath, line=line
+                ) from None
             if not (np.isfinite(x) and np.isfinite(y)):
-                raise InputFormatError(f"non-finite coordinate ({x}, {y}); expected finite numbers", path=spath, line=line)
+                raise InputFormatError(
+                    f"non-finite coordinate ({x}, {y}); expected finite numbers", path=spath, line=line
+                )
             label = row[io].strip().lower()
             if label in _TRUE:
                 occ.append(True)

@@ -131,7 +131,7 @@ def _floats(tokens: list[str], path: str, line: int, first_field: int) -> list[f
                 raise InputFormatError(
                     f"non-numeric field {first_field + k} {t!r}; expected a number", path=path, line=line
                 ) from None
-        raise  # pragma: no cover - map(float) failed but every token converts
+        raise InputFormatError("non-numeric field; expected numbers", path=path, line=line) from None
 
 
 def _count(tokens: list[str], index: int, what: str, path: str, line: int) -> int:
@@ -351,10 +351,7 @@ def read_carmen(
 
 def is_carmen_text(head: bytes) -> bool:
     """Whether the first bytes of a (decompressed) file look like a CARMEN log."""
-    try:
-        text = head.decode("utf-8", errors="replace")
-    except Exception:  # pragma: no cover - decode with errors="replace" does not raise
-        return False
+    text = head.decode("utf-8", errors="replace")
     for line in io.StringIO(text):
         word = line.split(maxsplit=1)[0] if line.strip() else ""
         if not word:
