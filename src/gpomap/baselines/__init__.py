@@ -1,0 +1,1 @@
+"""Baseline mappers the paper compares MSK-GPOM against: occupancy grid, GPOM, GPOMIK."""

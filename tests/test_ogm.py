@@ -1,0 +1,131 @@
+import numpy as np
+import pytest
+
+import gpomap.baselines.ogm as ogm
+from gpomap.baselines.ogm import OccupancyGridMapper, traverse
+from gpomap.errors import NotFittedError
+from gpomap.grid import GridSpec, OccupancyMap
+from gpomap.scans import Scan
+from gpomap.simulate import World, paper_room_scans, simulate_scans
+
+
+def brute_force_cells(grid, start, end, n=300_001):
+    # Fine enough to catch the small corner clips of these beams (checked at 2e6 samples too).
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    pts = start + t * (end - start)
+    r, c, inside = grid.index_of(pts)
+    return set(zip(r[inside].tolist(), c[inside].tolist()))
+
+
+def test_traversal_matches_fine_sampling_on_random_beams():
+    grid = GridSpec((-1.0, -2.0), 0.25, (40, 40))
+    rng = np.random.default_rng(42)
+    starts = rng.uniform([-1, -2], [9, 8], size=(40, 2))
+    ends = rng.uniform([-3, -4], [11, 10], size=(40, 2))  # some leave the grid
+    beam, rows, cols = traverse(grid, starts, ends)
+    assert np.all(np.diff(beam) >= 0)
+    for i in range(40):
+        got = list(zip(rows[beam == i].tolist(), cols[beam == i].tolist()))
+        assert len(got) == len(set(got)), "a beam visited a cell twice"
+        assert set(got) == brute_force_cells(grid, starts[i], ends[i])
+
+
+def test_traversal_is_ordered_and_connected():
+    grid = GridSpec((0.0, 0.0), 1.0, (10, 10))
+    beam, rows, cols = traverse(grid, [[9.3, 0.2]], [[0.4, 8.9]])
+    steps = np.abs(np.diff(rows)) + np.abs(np.diff(cols))
+    assert np.all(steps == 1)  # 4-connected: one cell at a time
+    assert (rows[0], cols[0]) == (0, 9) and (rows[-1], cols[-1]) == (8, 0)
+
+
+def test_diagonal_through_grid_corners_visits_only_the_diagonal():
+    grid = GridSpec((0.0, 0.0), 1.0, (5, 5))
+    _, rows, cols = traverse(grid, [[0.5, 0.5]], [[3.5, 3.5]])
+    assert list(zip(rows, cols)) == [(0, 0), (1, 1), (2, 2), (3, 3)]
+    # A beam along a grid line, and a start exactly on a line heading back across it.
+    _, rows, cols = traverse(grid, [[2.0, 0.5]], [[0.5, 0.5]])
+    assert list(zip(rows, cols)) == [(0, 1), (0, 0)]
+
+
+def test_traversal_in_chunks_matches_one_pass(monkeypatch):
+    grid = GridSpec((0.0, 0.0), 0.1, (100, 100))
+    rng = np.random.default_rng(1)
+    s, e = rng.uniform(0, 10, (200, 2)), rng.uniform(0, 10, (200, 2))
+    whole = traverse(grid, s, e)
+    monkeypatch.setattr(ogm, "_ENTRIES_PER_CHUNK", 50)
+    for a, b in zip(whole, traverse(grid, s, e)):
+        np.testing.assert_array_equal(a, b)
+
+
+def wall_world():
+    # A wall at x = 5 (cells of 1 m: the hit cell is column 5), the sensor in column 0.
+    return World(segments=[(5.0, -10.0, 5.0, 10.0)])
+
+
+def test_hit_cell_occupied_and_traversed_cells_free():
+    scans = simulate_scans(wall_world(), np.tile([0.5, 0.5, 0.0], (20, 1)), 1, fov=0.1, max_range=30.0)
+    m = OccupancyGridMapper(resolution=1.0, extent=(0.0, 8.0, 0.0, 2.0)).fit(scans)
+    assert m.hits_[0, 5] == 20 and m.hits_.sum() == 20
+    p = m.predict_proba([[5.5, 0.5], [2.5, 0.5], [0.5, 0.5], [4.5, 0.5]])
+    assert p[0] == pytest.approx(1 / (1 + np.exp(-4.0)))  # clamped at l_max
+    np.testing.assert_allclose(p[1:], 1 / (1 + np.exp(4.0)))  # clamped at l_min
+    np.testing.assert_array_equal(m.observed_[0], [20, 20, 20, 20, 20, 20, 0, 0])
+    # Beyond the wall and in the other row: never observed, exactly 0.5.
+    assert m.predict_proba([[6.5, 0.5], [2.5, 1.5], [100.0, 0.0]]).tolist() == [0.5, 0.5, 0.5]
+
+
+def test_one_scan_updates_by_hand():
+    scan = Scan([0.5, 0.5, 0.0], [0.0], [2.0], 10.0)  # hit at (2.5, 0.5): cells 0, 1 free
+    m = OccupancyGridMapper(resolution=1.0, extent=(0.0, 4.0, 0.0, 1.0), l_occ=0.85, l_free=-0.4).fit([scan])
+    np.testing.assert_allclose(m.log_odds_[0], [-0.4, -0.4, 0.85, 0.0])
+
+
+def test_no_return_beam_never_marks_occupied():
+    scan = Scan([0.5, 0.5, 0.0], [0.0, np.pi / 2], [10.0, 10.0], 10.0)
+    m = OccupancyGridMapper(resolution=1.0, extent=(0.0, 20.0, 0.0, 20.0), max_range_free=4.0).fit([scan])
+    assert m.hits_.sum() == 0 and (m.log_odds_ <= 0).all()
+    # Free up to the cap: cells 0..4 along x (the 4 m cap ends at x = 4.5), nothing further.
+    np.testing.assert_array_equal(m.observed_[0, :7], [2, 1, 1, 1, 1, 0, 0])  # both beams start in cell 0
+
+
+def test_unobserved_and_grid_map():
+    scans = paper_room_scans()
+    m = OccupancyGridMapper(resolution=0.25).fit(scans)
+    gm = m.grid_map()
+    assert isinstance(gm, OccupancyMap) and gm.grid == m.grid_
+    never = m.observed_ == 0
+    assert never.any() and (~never).any()
+    assert np.all(gm.probability[never] == 0.5)
+    np.testing.assert_allclose(gm.variance, gm.probability * (1 - gm.probability))
+    p, v = m.predict(m.grid_.centres())
+    np.testing.assert_allclose(p, gm.probability.ravel())
+    np.testing.assert_allclose(v, p * (1 - p))
+    # The default extent covers every pose and hit, with a margin.
+    xmin, xmax, ymin, ymax = m.grid_.extent
+    assert xmin < 0 and ymin < 0 and xmax > 20 and ymax > 16
+
+
+def test_paper_room_map_agrees_with_truth():
+    from gpomap.simulate import paper_room
+
+    world, poses = paper_room()
+    scans = simulate_scans(world, poses, 360, max_range=30.0)
+    m = OccupancyGridMapper(resolution=0.2).fit(scans)
+    # Walls lie on grid lines here, so a hit may mark the cell on either side: occupied cells
+    # are judged against thick walls, free cells against thin ones.
+    near_wall = world.true_grid(m.grid_, wall_thickness=2.5 * m.grid_.resolution)
+    on_wall = world.true_grid(m.grid_, wall_thickness=0.1 * m.grid_.resolution)
+    p = m.grid_map().probability
+    seen = m.observed_ > 0
+    occ = (p > 0.66) & seen
+    free = (p < 0.33) & seen
+    assert occ.sum() > 300 and free.sum() > 5000
+    assert near_wall[occ].all()
+    assert (~on_wall[free]).mean() > 0.99
+
+
+def test_not_fitted_and_bad_parameters():
+    with pytest.raises(NotFittedError):
+        OccupancyGridMapper().predict_proba([[0.0, 0.0]])
+    with pytest.raises(ValueError, match="l_min"):
+        OccupancyGridMapper(l_min=1.0).fit(paper_room_scans())
