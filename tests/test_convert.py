@@ -1,0 +1,172 @@
+"""Tests of gpomap.convert: occupancy grids to continuous GP maps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from gpomap.convert import ConversionResult, convert_grid, grid_to_observations, output_grid
+from gpomap.errors import EmptyDataError, InputFormatError
+from gpomap.grid import FREE, OCCUPIED, UNKNOWN, GridSpec, OccupancyMap
+from gpomap.io.npz import save_map
+from gpomap.io.rosmap import read_rosmap, write_rosmap
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+TURTLEBOT = DATA / "turtlebot3-world-map" / "map.yaml"
+
+
+def _labels_to_map(labels: np.ndarray, origin=(0.0, 0.0), resolution=0.05) -> OccupancyMap:
+    """An OccupancyMap whose ternary labels are `labels` (FREE / OCCUPIED / UNKNOWN), shape (ny, nx)."""
+    p = np.where(labels == OCCUPIED, 1.0, np.where(labels == FREE, 0.0, np.nan))
+    return OccupancyMap(GridSpec(origin, resolution, labels.shape), p)
+
+
+def _wall_map(origin=(0.0, 0.0), resolution=0.05, n=40, thickness=3) -> OccupancyMap:
+    """n x n pixels: a vertical wall (columns 19.. for n = 40) in the middle, free on both sides, an
+    unknown strip along the bottom."""
+    labels = np.full((n, n), FREE, dtype=np.int8)
+    labels[:, n // 2 - 1 : n // 2 - 1 + thickness] = OCCUPIED
+    labels[:3, :] = UNKNOWN  # a strip the map never saw
+    return _labels_to_map(labels, origin, resolution)
+
+
+@pytest.fixture(scope="module")
+def wall_result() -> ConversionResult:
+    return convert_grid(_wall_map())
+
+
+def test_observations_are_known_pixel_centres():
+    labels = np.array([[FREE, UNKNOWN, OCCUPIED], [UNKNOWN, FREE, FREE]], dtype=np.int8)
+    obs = grid_to_observations(_labels_to_map(labels, origin=(-1.0, 2.0), resolution=0.5))
+    np.testing.assert_allclose(obs.points, [[-0.75, 2.25], [0.25, 2.25], [-0.25, 2.75], [0.25, 2.75]])
+    np.testing.assert_array_equal(obs.occupied, [False, True, False, False])
+
+
+def test_round_trip_same_resolution(wall_result):
+    src = _wall_map()
+    out = wall_result.map
+    assert out.grid == src.grid
+    truth = src.ternary
+    known = truth != UNKNOWN
+    assert (out.ternary[known] == truth[known]).mean() > 0.95
+    # The wall stays occupied along its whole length, and the far free space stays free.
+    assert (out.ternary[3:, 19:22] == OCCUPIED).all()
+    assert (out.ternary[3:, :15] == FREE).all() and (out.ternary[3:, 25:] == FREE).all()
+    rep = wall_result.report
+    assert rep["agreement"]["ternary"] > 0.95 and rep["agreement"]["auc"] > 0.99
+    assert rep["pixels"] == {"free": 37 * 37, "occupied": 37 * 3, "unknown": 3 * 40}
+    # Same-label neighbourhoods are merged: far fewer GP inputs than known pixels.
+    assert 0 < rep["cells"]["n"] < 0.25 * (37 * 40)
+    assert set(rep["hyperparameters"]) >= {"length_scale", "noise", "alpha", "beta"}
+    assert rep["timings"]["total"] > 0
+    assert rep["grid"]["edges_coincide"]
+
+
+@pytest.mark.xfail(reason="known weakness: on a perfectly separable synthetic grid the LOO objective "
+                   "is degenerate (alpha, beta unbounded) and a 2-pixel wall can come out 'unknown' (p ~ 0.5)",
+                   strict=False)
+def test_thin_wall_stays_occupied():
+    res = convert_grid(_wall_map(thickness=2))
+    assert (res.map.ternary[3:, 19:21] == OCCUPIED).all()
+
+
+def test_report_agreement_matches_output_map(wall_result):
+    src = _wall_map()
+    known = src.ternary != UNKNOWN
+    expected = (wall_result.map.ternary[known] == src.ternary[known]).mean()
+    assert wall_result.report["agreement"]["ternary"] == pytest.approx(expected)
+
+
+@pytest.mark.parametrize("resolution", [0.025, 0.1])
+def test_origin_and_resolution(resolution):
+    # Origin negative and not a multiple of anything round; 40 px of 0.05 m = 2 m each way.
+    src = _wall_map(origin=(-3.7, -1.35))
+    res = convert_grid(src, resolution=resolution)
+    out = res.map.grid
+    assert out.resolution == resolution
+    assert out.origin == src.grid.origin
+    np.testing.assert_allclose(out.extent, src.grid.extent, atol=1e-12)
+    assert out.shape == (round(2.0 / resolution),) * 2
+    assert res.report["grid"]["edges_coincide"]
+    # The wall is where it was: occupied at its centre line x = -3.7 + 1.025, free 0.5 m away.
+    p = res.model.predict_proba(np.array([[-2.675, -0.5], [-3.175, -0.5], [-2.175, -0.5]]))
+    assert p[0] > 0.66 and p[1] < 0.33 and p[2] < 0.33
+    cols = np.floor((np.array([-2.675, -3.175]) - out.origin[0]) / resolution).astype(int)
+    row = int(np.floor((-0.5 - out.origin[1]) / resolution))
+    assert res.map.ternary[row, cols[0]] == OCCUPIED and res.map.ternary[row, cols[1]] == FREE
+
+
+def test_output_grid_when_resolution_does_not_divide():
+    src = GridSpec((-1.0, 0.5), 0.05, (30, 40))  # 2.0 m x 1.5 m
+    out = output_grid(src, 0.3)
+    assert out.origin == src.origin
+    assert out.shape == (5, 7)  # 1.5 / 0.3 = 5 exactly; 2.0 / 0.3 = 6.67 -> 7 cells
+    assert out.extent[1] > src.extent[1] and out.extent[1] - src.extent[1] < 0.3
+    assert out.extent[3] == pytest.approx(src.extent[3])
+    # Float noise (19.2 / 0.01 = 1920.0000000000002) does not add a cell.
+    assert output_grid(GridSpec((-10.0, -10.0), 0.05, (384, 384)), 0.01).shape == (1920, 1920)
+    explicit = output_grid(src, 0.1, extent=(0.0, 1.0, 1.0, 1.5))
+    assert explicit.origin == (0.0, 1.0) and explicit.shape == (5, 10)
+
+
+def test_rosmap_and_npz_sources(tmp_path, wall_result):
+    src = _wall_map(origin=(-0.5, 0.25))
+    yaml_path, _ = write_rosmap(src, tmp_path / "wall.yaml")
+    npz_path = save_map(src, tmp_path / "wall.npz")
+    from_yaml = convert_grid(yaml_path)
+    from_npz = convert_grid(npz_path)
+    from_rosmap = grid_to_observations(read_rosmap(yaml_path))
+    assert from_yaml.map.grid == src.grid == from_npz.map.grid
+    assert from_rosmap.points.shape[0] == from_yaml.report["pixels"]["free"] + from_yaml.report["pixels"]["occupied"]
+    # The same labels through either file give the same map.
+    np.testing.assert_allclose(from_yaml.map.probability, from_npz.map.probability, atol=1e-9)
+    # Shifting the origin only shifts the map (up to where the optimiser stops in float noise).
+    known = src.ternary != UNKNOWN
+    assert (from_yaml.map.ternary[known] == wall_result.map.ternary[known]).mean() > 0.99
+    with pytest.raises(InputFormatError, match="expected a ROS map YAML"):
+        convert_grid(tmp_path / "wall.pgm")
+
+
+def test_unknown_only_map_is_an_error():
+    labels = np.full((10, 12), UNKNOWN, dtype=np.int8)
+    with pytest.raises(EmptyDataError, match="no known pixels .*all 120 unknown"):
+        convert_grid(_labels_to_map(labels))
+
+
+@pytest.mark.parametrize("value,name", [(FREE, "free"), (OCCUPIED, "occupied")])
+def test_single_class_map_is_an_error(value, name):
+    labels = np.full((10, 12), value, dtype=np.int8)
+    labels[0] = UNKNOWN
+    with pytest.raises(EmptyDataError, match=f"only {name} known pixels .*needs both free and occupied"):
+        convert_grid(_labels_to_map(labels))
+
+
+def test_rotated_origin_is_rejected(tmp_path):
+    yaml_path, _ = write_rosmap(_wall_map(), tmp_path / "map.yaml")
+    config = yaml.safe_load(yaml_path.read_text())
+    config["origin"] = [0.0, 0.0, 0.3]
+    yaml_path.write_text(yaml.safe_dump(config))
+    with pytest.raises(InputFormatError, match="rotated maps are not supported"):
+        convert_grid(yaml_path)
+
+
+def test_model_options_override_defaults():
+    res = convert_grid(_wall_map(), max_cell=0.1, optimise=False, length_scale=0.1)
+    assert res.model.max_cell == 0.1
+    assert res.report["hyperparameters"]["length_scale"] == pytest.approx(0.1)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not TURTLEBOT.exists(), reason="shared TurtleBot3 map not available")
+def test_turtlebot_map_converts():
+    res = convert_grid(TURTLEBOT)
+    rep = res.report
+    assert res.map.grid == read_rosmap(TURTLEBOT).grid
+    assert rep["pixels"]["free"] + rep["pixels"]["occupied"] == 8734
+    assert 200 <= rep["cells"]["n"] <= 2000
+    assert rep["agreement"]["ternary"] > 0.95 and rep["agreement"]["auc"] > 0.99
+    # Far from every known pixel the map stays unknown.
+    assert res.map.ternary[0, 0] == UNKNOWN and res.map.ternary[-1, -1] == UNKNOWN
