@@ -22,7 +22,8 @@ def room():
     scans = paper_room_scans(n_beams=12)
     train, test = holdout_split(len(scans), "every:4", seed=0)
     pts, labels = ev.test_points([scans[i] for i in test], 0.3, seed=0, max_points=300)
-    return [scans[i] for i in train], pts, labels
+    # Every other training scan: a small GP keeps the test fast.
+    return [scans[i] for i in train[::2]], pts, labels
 
 
 @pytest.mark.parametrize("kernel", ["se", "matern32"])
@@ -65,14 +66,14 @@ def test_gpom_high_auc_and_cap(room, kernel):
     from gpomap.metrics import roc_auc
 
     train, pts, labels = room
-    m = GPOM(kernel=kernel, free_step=0.5, max_points=400, seed=3, **FIXED).fit(train)
-    assert m.n_inputs_ == 400
+    m = GPOM(kernel=kernel, free_step=0.5, max_points=250, seed=3, **FIXED).fit(train)
+    assert m.n_inputs_ == 250
     s = m.summary()
-    assert s["subsampled"] and s["max_points"] == 400
+    assert s["subsampled"] and s["max_points"] == 250
     # More hits than half the cap: half the cap of them, the rest free points.
-    assert s["n_occupied_inputs"] == min(s["n_occupied_points"], 200)
+    assert s["n_occupied_inputs"] == min(s["n_occupied_points"], 125)
     assert roc_auc(labels, m.predict_proba(pts)) > 0.9
-    again = GPOM(kernel=kernel, free_step=0.5, max_points=400, seed=3, **FIXED).fit(train)
+    again = GPOM(kernel=kernel, free_step=0.5, max_points=250, seed=3, **FIXED).fit(train)
     np.testing.assert_array_equal(again.kept_, m.kept_)
 
 
