@@ -39,6 +39,12 @@ has no finite optimum (alpha and beta can grow without bound), and where the opt
 decides whether a wall 1, 2 or 4 pixels thick comes out occupied or "unknown" (p ~ 0.5). Real maps
 (TurtleBot3: alpha ~ 4.6) are not separable and do not show it.
 
+Second weakness, measured on the TurtleBot3 map (benchmarks/convert_maps.py): where an occupied
+wall borders unknown space (the outside of a map's outer walls), nothing free counters it and the
+wall bleeds outwards: 99.5 % of unknown pixels 1-2 pixels from known ones and 85 % of those 3-10
+pixels away come out occupied. Beyond 10 pixels (2-3 length scales) the map returns to the prior
+(variance ~1, p ~ 0.48, labelled unknown).
+
 Any of these can be overridden through ``**model_options`` (the :class:`~gpomap.mapping.AreaGPOM`
 constructor arguments). ``free_step``, ``hit_margin`` and ``no_return_cap`` concern laser beams and
 have no effect here.
