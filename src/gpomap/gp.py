@@ -1,0 +1,374 @@
+"""Gaussian process regression over multi-support inputs, with two ways to learn hyperparameters.
+
+The model is zero-mean GP regression on +-1 targets (Rasmussen & Williams, algorithm 2.1) over
+:class:`~gpomap.supports.Supports`, with noise variance ``noise * noise_scale_i`` per input.
+Hyperparameters live in log space and are found with L-BFGS-B from a few seeded starts, with
+analytic gradients, by one of two objectives:
+
+- ``"lml"``: the log marginal likelihood (R&W eq. 5.8, gradient eq. 5.9); the probit squash is
+  then fitted to the leave-one-out moments afterwards.
+- ``"loo"``: the leave-one-out probit predictive probability (probabilistic least-squares
+  classification, R&W section 6.5, eqs. 6.xx), fitted jointly with the squash's alpha and beta.
+  The signal variance is held fixed: scaling signal and noise together leaves the LOO means
+  unchanged and alpha absorbs the scale, so it is not identifiable there.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import LinAlgError, cho_solve, cholesky, lapack, solve_triangular
+from scipy.optimize import minimize
+
+from gpomap.errors import NotFittedError, NumericalError
+from gpomap.kernels.area import AreaKernel
+from gpomap.squash import SQUASH_BOUNDS, ProbitSquash, loo_moments, loo_probit, probit_gradient_in_shift
+from gpomap.supports import Supports
+
+OBJECTIVES = ("loo", "lml")
+NOISE_MODELS = ("constant", "per_count")
+
+
+def robust_cholesky(K: NDArray[np.float64], max_tries: int = 6) -> tuple[NDArray[np.float64], float]:
+    """Lower Cholesky factor of `K`, adding diagonal jitter only if plain factorisation fails.
+
+    Parameters
+    ----------
+    K : ndarray of shape (n, n)
+        Symmetric covariance matrix.
+    max_tries : int
+        Jitter grows tenfold per try, from 1e-10 times the mean diagonal.
+
+    Returns
+    -------
+    L : ndarray of shape (n, n)
+    jitter : float
+        What was added to the diagonal (0 when none was needed).
+
+    Raises
+    ------
+    NumericalError
+        When no jitter in range makes `K` positive definite.
+    """
+    try:
+        return cholesky(K, lower=True, check_finite=False), 0.0
+    except LinAlgError:
+        pass
+    if not np.all(np.isfinite(K)):
+        raise NumericalError("covariance matrix has NaN or inf entries; check the inputs and hyperparameters")
+    scale = float(np.mean(np.diag(K)))
+    jitter = 1e-10 * scale
+    for _ in range(max_tries):
+        try:
+            return cholesky(K + jitter * np.eye(K.shape[0]), lower=True, check_finite=False), jitter
+        except LinAlgError:
+            jitter *= 10.0
+    raise NumericalError(
+        f"covariance matrix is not positive definite even with jitter {jitter / 10:.3g}; "
+        "raise the noise lower bound, or remove duplicate inputs with conflicting labels"
+    )
+
+
+def cholesky_inverse(L: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(L L^T)^-1 from a lower Cholesky factor, ndarray of shape (n, n)."""
+    inv, info = lapack.dpotri(L, lower=1)
+    if info != 0:
+        raise NumericalError(f"inverse from the Cholesky factor failed (LAPACK info {info})")
+    # dpotri fills the lower triangle only.
+    return np.tril(inv) + np.tril(inv, -1).T
+
+
+@dataclass
+class FitReport:
+    """What hyperparameter learning did: the objective, its value, and the time and evaluations spent."""
+
+    objective: str
+    value: float
+    n_evaluations: int
+    seconds: float
+    restarts: list[float] = field(default_factory=list)
+
+
+class SupportGP:
+    """Zero-mean GP over cells and points, with a calibrated probit squash.
+
+    Parameters
+    ----------
+    kernel : AreaKernel
+        Covariance function; its hyperparameters are the starting point of the search.
+    noise : float
+        Noise variance (starting point when optimised).
+    noise_bounds : (float, float)
+        Bounds of the noise variance.
+    noise_model : {"constant", "per_count"}
+        ``"per_count"`` divides the noise of each input by its member count: a cell averaging
+        m observations is m times surer than one point (matches the "mean" normalisation).
+    objective : {"loo", "lml"}
+        Hyperparameter objective (see module docstring).
+    optimise : bool
+        Learn hyperparameters; False keeps the given ones (alpha and beta are still fitted).
+    n_restarts : int
+        Extra random starts (log-uniform within the bounds, seeded) beyond the given one.
+    seed : int
+        Seed of the restarts.
+    max_iter : int
+        Iteration cap of each L-BFGS-B run.
+    hyper_subset : int or None
+        Learn hyperparameters on at most this many inputs: a spatially compact block (the
+        inputs nearest a seeded random one), so the sample keeps the data's density. The final
+        model always uses every input. None uses all inputs.
+    """
+
+    def __init__(
+        self,
+        kernel: AreaKernel,
+        noise: float = 0.1,
+        noise_bounds: tuple[float, float] = (1e-4, 10.0),
+        noise_model: str = "constant",
+        objective: str = "loo",
+        optimise: bool = True,
+        n_restarts: int = 2,
+        seed: int = 0,
+        max_iter: int = 100,
+        hyper_subset: int | None = 600,
+    ) -> None:
+        if objective not in OBJECTIVES:
+            raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
+        if noise_model not in NOISE_MODELS:
+            raise ValueError(f"noise_model must be one of {NOISE_MODELS}, got {noise_model!r}")
+        if not noise > 0:
+            raise ValueError(f"noise variance must be positive, got {noise}")
+        self.kernel = kernel
+        self.noise = float(noise)
+        self.noise_bounds = (float(noise_bounds[0]), float(noise_bounds[1]))
+        self.noise_model = noise_model
+        self.objective = objective
+        self.optimise = optimise
+        self.n_restarts = int(n_restarts)
+        self.seed = int(seed)
+        self.max_iter = int(max_iter)
+        self.hyper_subset = hyper_subset
+        self.squash = ProbitSquash()
+
+    # ----------------------------------------------------------------- objectives
+    def _noise_scale(self, X: Supports) -> NDArray[np.float64]:
+        if self.noise_model == "per_count":
+            return 1.0 / np.maximum(X.counts, 1.0)
+        return np.ones(len(X))
+
+    def _factor(self, theta: NDArray[np.float64], log_noise: float, X: Supports, eval_gradient: bool):
+        kern = self.kernel.clone_with_theta(theta)
+        res = kern(X, eval_gradient=eval_gradient)
+        K, dK = res if eval_gradient else (res, None)
+        nvec = np.exp(log_noise) * self._noise_scale(X)
+        K[np.diag_indices_from(K)] += nvec
+        L, _ = robust_cholesky(K)
+        return L, dK, nvec
+
+    def log_marginal_likelihood(
+        self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: bool = False
+    ) -> float | tuple[float, NDArray[np.float64]]:
+        """Log marginal likelihood at ``params = [log variance, log length_scale, log noise]``.
+
+        Returns
+        -------
+        value : float
+        grad : ndarray of shape (3,), only with `eval_gradient`
+        """
+        L, dK, nvec = self._factor(params[:2], params[2], X, eval_gradient)
+        a = cho_solve((L, True), y, check_finite=False)
+        n = y.size
+        value = -0.5 * y @ a - np.log(np.diag(L)).sum() - 0.5 * n * np.log(2 * np.pi)
+        if not eval_gradient:
+            return float(value)
+        K_inv = cholesky_inverse(L)
+        # R&W eq. 5.9: 0.5 tr((a a^T - K^-1) dK/dtheta_j), without forming a a^T.
+        grad = np.empty(3)
+        for j in range(2):
+            grad[j] = 0.5 * (a @ dK[:, :, j] @ a - np.sum(K_inv * dK[:, :, j]))
+        grad[2] = 0.5 * (np.sum(a * a * nvec) - np.sum(np.diag(K_inv) * nvec))
+        return float(value), grad
+
+    def loo_objective(
+        self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: bool = False
+    ) -> float | tuple[float, NDArray[np.float64]]:
+        """LOO probit log predictive probability at
+        ``params = [log variance, log length_scale, log noise, log alpha, beta / alpha]``.
+
+        Returns
+        -------
+        value : float
+        grad : ndarray of shape (5,), only with `eval_gradient`
+        """
+        L, dK, nvec = self._factor(params[:2], params[2], X, eval_gradient)
+        K_inv = cholesky_inverse(L)
+        a = K_inv @ y
+        d = np.diag(K_inv).copy()
+        mu, var = y - a / d, 1.0 / d
+        alpha, shift = float(np.exp(params[3])), float(params[4])
+        value, g = loo_probit(y, mu, var, alpha, alpha * shift)
+        if not eval_gradient:
+            return value
+        grad = np.empty(5)
+        # R&W eqs. 6.xx: with Z_j = K^-1 dK_j,
+        #   dmu_i = [Z_j a]_i / d_i - a_i [Z_j K^-1]_ii / d_i^2,  dvar_i = [Z_j K^-1]_ii / d_i^2.
+        for j in range(2):
+            Z = K_inv @ dK[:, :, j]
+            zk = np.einsum("ij,ji->i", Z, K_inv)
+            dmu = (Z @ a) / d - a * zk / d**2
+            dvar = zk / d**2
+            grad[j] = g["mu"] @ dmu + g["var"] @ dvar
+        # Noise: dK = diag(nvec), so Z = K^-1 diag(nvec) and [Z K^-1]_ii = sum_k K^-1_ik^2 nvec_k.
+        zk = (K_inv * K_inv) @ nvec
+        dmu = (K_inv @ (nvec * a)) / d - a * zk / d**2
+        grad[2] = g["mu"] @ dmu + g["var"] @ (zk / d**2)
+        grad[3], grad[4] = probit_gradient_in_shift(g, alpha, shift)
+        return value, grad
+
+    # ----------------------------------------------------------------- fitting
+    def fit(self, X: Supports, y: NDArray[np.float64]) -> SupportGP:
+        """Learn hyperparameters (unless ``optimise=False``), factorise, and calibrate the squash.
+
+        Parameters
+        ----------
+        X : Supports
+            n training inputs.
+        y : ndarray of shape (n,)
+            Targets, +1 occupied and -1 free.
+
+        Returns
+        -------
+        self
+        """
+        y = np.asarray(y, dtype=float)
+        if y.shape != (len(X),):
+            raise ValueError(f"y must have shape ({len(X)},), got {y.shape}")
+        self.X_train_ = X
+        self.y_train_ = y
+        t0 = time.perf_counter()
+        self.fit_report_ = None
+        if self.optimise:
+            idx = self.hyperparameter_sample(X)
+            self.fit_report_ = self._optimise(X.subset(idx), y[idx])
+        t1 = time.perf_counter()
+        L, _, _ = self._factor(self.kernel.theta, np.log(self.noise), X, False)
+        self.L_ = L
+        self.alpha_ = cho_solve((L, True), y, check_finite=False)
+        t2 = time.perf_counter()
+        # alpha and beta for the full model: from its own leave-one-out moments.
+        mu, var = loo_moments(cholesky_inverse(L), y)
+        self.squash.fit(y, mu, var)
+        self.timings_ = {"hyperparameters": t1 - t0, "factorisation": t2 - t1, "squash": time.perf_counter() - t2}
+        return self
+
+    def hyperparameter_sample(self, X: Supports) -> NDArray[np.intp]:
+        """Indices of the inputs hyperparameters are learnt on, ndarray of shape (k,).
+
+        All inputs when ``hyper_subset`` is None or not smaller than their number; otherwise the
+        ``hyper_subset`` inputs nearest (by centre) to one chosen with the seed.
+        """
+        n = len(X)
+        if self.hyper_subset is None or n <= self.hyper_subset:
+            return np.arange(n)
+        centres = X.centres
+        rng = np.random.default_rng(self.seed)
+        anchor = centres[rng.integers(n)]
+        dist = np.sum((centres - anchor) ** 2, axis=1)
+        return np.sort(np.argpartition(dist, self.hyper_subset - 1)[: self.hyper_subset])
+
+    def _optimise(self, X: Supports, y: NDArray[np.float64]) -> FitReport:
+        loo = self.objective == "loo"
+        k_bounds = self.kernel.bounds
+        bounds = [tuple(k_bounds[0]), tuple(k_bounds[1]), tuple(np.log(self.noise_bounds))]
+        x0 = [*self.kernel.theta, np.log(self.noise)]
+        free = np.array([True, True, True])
+        if loo:
+            # Signal variance is not identifiable by LOO (see module docstring): hold it.
+            free[0] = False
+            bounds += list(SQUASH_BOUNDS)
+            x0 += [np.log(max(self.squash.alpha, 1e-3)), self.squash.beta / max(self.squash.alpha, 1e-3)]
+            free = np.concatenate([free, [True, True]])
+        x0 = np.asarray(x0, dtype=float)
+        fun = self.loo_objective if loo else self.log_marginal_likelihood
+        n_eval = 0
+
+        def neg(z: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+            nonlocal n_eval
+            n_eval += 1
+            p = x0.copy()
+            p[free] = z
+            try:
+                v, g = fun(X, y, p, eval_gradient=True)
+            except NumericalError:
+                return 1e25, np.zeros(int(free.sum()))
+            return -v, -g[free]
+
+        free_bounds = [b for b, f in zip(bounds, free) if f]
+        rng = np.random.default_rng(self.seed)
+        starts = [x0[free]]
+        for _ in range(self.n_restarts):
+            s = x0[free].copy()
+            # Restart the kernel and noise hyperparameters anywhere in their bounds; alpha and
+            # beta from their defaults.
+            for i, (lo, hi) in enumerate(free_bounds[: 2 if loo else 3]):
+                s[i] = rng.uniform(lo, hi)
+            starts.append(s)
+        t0 = time.perf_counter()
+        best = None
+        values = []
+        for s in starts:
+            res = minimize(neg, s, jac=True, method="L-BFGS-B", bounds=free_bounds, options={"maxiter": self.max_iter})
+            values.append(float(-res.fun))
+            if best is None or res.fun < best.fun:
+                best = res
+        p = x0.copy()
+        p[free] = best.x
+        self.kernel.theta = p[:2]
+        self.noise = float(np.exp(p[2]))
+        if loo:
+            alpha = float(np.exp(p[3]))
+            self.squash = ProbitSquash(alpha, alpha * float(p[4]))
+        return FitReport(self.objective, float(-best.fun), n_eval, time.perf_counter() - t0, values)
+
+    # ----------------------------------------------------------------- prediction
+    def predict_latent(
+        self, X: Supports, return_var: bool = True, chunk_size: int = 4096
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Latent mean and variance at new inputs, in chunks so memory stays bounded.
+
+        Parameters
+        ----------
+        X : Supports
+            m query inputs (points or cells).
+        return_var : bool
+        chunk_size : int
+            Query inputs per chunk.
+
+        Returns
+        -------
+        mean : ndarray of shape (m,)
+        var : ndarray of shape (m,) or None
+            Variance of the latent function (without observation noise).
+        """
+        if not hasattr(self, "L_"):
+            raise NotFittedError("this model is not fitted yet: call fit() first")
+        m = len(X)
+        mean = np.empty(m)
+        var = np.empty(m) if return_var else None
+        for s in range(0, m, chunk_size):
+            part = X.subset(slice(s, min(m, s + chunk_size)))
+            Ks = self.kernel(self.X_train_, part)  # (n, c)
+            mean[s : s + len(part)] = Ks.T @ self.alpha_
+            if return_var:
+                v = solve_triangular(self.L_, Ks, lower=True, check_finite=False)
+                kss = self.kernel.diag(part)
+                var[s : s + len(part)] = np.maximum(kss - np.einsum("ij,ij->j", v, v), 0.0)
+        return mean, var
+
+    def predict_proba(self, X: Supports, chunk_size: int = 4096) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Occupancy probability and latent variance at new inputs, each ndarray of shape (m,)."""
+        mean, var = self.predict_latent(X, True, chunk_size)
+        return self.squash(mean, var), var

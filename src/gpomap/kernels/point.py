@@ -1,0 +1,181 @@
+"""Stationary point kernels with hyperparameters in log space (the scikit-learn convention).
+
+Each kernel has two hyperparameters, the signal variance and the length scale; ``theta`` holds
+their logarithms and ``bounds`` the log bounds. Calling a kernel returns the Gram matrix and, on
+request, its gradient with respect to ``theta``, shape (n, m, 2).
+"""
+
+from __future__ import annotations
+
+import copy
+from abc import ABC, abstractmethod
+
+import numpy as np
+from numpy.typing import NDArray
+
+HYPERPARAMETERS: tuple[str, str] = ("variance", "length_scale")
+
+
+def squared_distances(X: NDArray[np.float64], Y: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Pairwise squared Euclidean distances, ndarray of shape (n, m), never negative.
+
+    Parameters
+    ----------
+    X : ndarray of shape (n, d)
+    Y : ndarray of shape (m, d)
+    """
+    # Per-dimension differences: exact (no cancellation from the |x|^2 + |y|^2 - 2xy expansion)
+    # and cheap for d = 2.
+    d2 = np.zeros((X.shape[0], Y.shape[0]))
+    for k in range(X.shape[1]):
+        diff = X[:, k, None] - Y[None, :, k]
+        d2 += diff * diff
+    return d2
+
+
+class PointKernel(ABC):
+    """A stationary kernel ``variance * profile(r / length_scale)`` on points.
+
+    Parameters
+    ----------
+    variance : float
+        Signal variance, k(x, x).
+    length_scale : float
+        Length scale, in the units of the inputs (metres).
+    variance_bounds, length_scale_bounds : (float, float)
+        Bounds used by the optimiser (in natural units; ``bounds`` gives their logs).
+    """
+
+    name: str = "point"
+
+    def __init__(
+        self,
+        variance: float = 1.0,
+        length_scale: float = 1.0,
+        variance_bounds: tuple[float, float] = (1e-3, 1e3),
+        length_scale_bounds: tuple[float, float] = (1e-2, 1e2),
+    ) -> None:
+        if not (variance > 0 and length_scale > 0):
+            raise ValueError(f"variance and length_scale must be positive, got {variance}, {length_scale}")
+        self.variance = float(variance)
+        self.length_scale = float(length_scale)
+        self.variance_bounds = (float(variance_bounds[0]), float(variance_bounds[1]))
+        self.length_scale_bounds = (float(length_scale_bounds[0]), float(length_scale_bounds[1]))
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(variance={self.variance:.4g}, length_scale={self.length_scale:.4g})"
+
+    @property
+    def theta(self) -> NDArray[np.float64]:
+        """Log hyperparameters [log variance, log length_scale], ndarray of shape (2,)."""
+        return np.log([self.variance, self.length_scale])
+
+    @theta.setter
+    def theta(self, value: NDArray[np.float64]) -> None:
+        self.variance, self.length_scale = (float(v) for v in np.exp(np.asarray(value, dtype=float)))
+
+    @property
+    def bounds(self) -> NDArray[np.float64]:
+        """Log bounds of ``theta``, ndarray of shape (2, 2)."""
+        return np.log([self.variance_bounds, self.length_scale_bounds])
+
+    def clone_with_theta(self, theta: NDArray[np.float64]) -> PointKernel:
+        """A copy of this kernel with hyperparameters `theta`."""
+        k = copy.copy(self)
+        k.theta = theta
+        return k
+
+    @abstractmethod
+    def from_sqdist(
+        self, d2: NDArray[np.float64], eval_gradient: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Kernel values for squared distances `d2` (any shape), and optionally the gradient.
+
+        Returns
+        -------
+        K : ndarray, the shape of `d2`
+        dK : ndarray of shape ``d2.shape + (2,)``, only with `eval_gradient`
+            Derivatives with respect to log variance and log length scale.
+        """
+
+    def __call__(
+        self, X: NDArray[np.float64], Y: NDArray[np.float64] | None = None, eval_gradient: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Gram matrix between point sets.
+
+        Parameters
+        ----------
+        X : ndarray of shape (n, d)
+        Y : ndarray of shape (m, d), optional
+            Defaults to `X`.
+        eval_gradient : bool
+            Also return dK/dtheta, ndarray of shape (n, m, 2).
+
+        Returns
+        -------
+        K : ndarray of shape (n, m)
+        dK : ndarray of shape (n, m, 2), only with `eval_gradient`
+        """
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        Y = X if Y is None else np.atleast_2d(np.asarray(Y, dtype=float))
+        return self.from_sqdist(squared_distances(X, Y), eval_gradient)
+
+    def diag(self, X: NDArray[np.float64]) -> NDArray[np.float64]:
+        """k(x, x) for each row of `X`, ndarray of shape (n,)."""
+        return np.full(np.atleast_2d(X).shape[0], self.variance)
+
+    def cutoff(self, tol: float = 1e-10) -> float:
+        """Distance beyond which the kernel is below `tol` times its variance."""
+        r = self.length_scale
+        while self.from_sqdist(np.array(r * r)) > tol * self.variance:
+            r *= 1.5
+        return r
+
+
+class SquaredExponential(PointKernel):
+    """k(r) = variance * exp(-r^2 / (2 l^2))."""
+
+    name = "se"
+
+    def from_sqdist(self, d2, eval_gradient=False):
+        l2 = self.length_scale**2
+        K = self.variance * np.exp(-0.5 * d2 / l2)
+        if not eval_gradient:
+            return K
+        # d/dlog(variance) = K; d/dlog(l) = K * r^2 / l^2.
+        return K, np.stack([K, K * (d2 / l2)], axis=-1)
+
+
+class Matern32(PointKernel):
+    """k(r) = variance * (1 + sqrt(3) r / l) * exp(-sqrt(3) r / l)."""
+
+    name = "matern32"
+
+    def from_sqdist(self, d2, eval_gradient=False):
+        s = np.sqrt(3.0 * d2) / self.length_scale
+        e = np.exp(-s)
+        K = self.variance * (1.0 + s) * e
+        if not eval_gradient:
+            return K
+        # d/dl of (1 + s) e^-s with ds/dl = -s/l is s^2 e^-s / l; times l for log space.
+        return K, np.stack([K, self.variance * s * s * e], axis=-1)
+
+
+KERNELS: dict[str, type[PointKernel]] = {
+    "se": SquaredExponential,
+    "sqexp": SquaredExponential,
+    "squared_exponential": SquaredExponential,
+    "matern32": Matern32,
+    "matern3": Matern32,
+}
+
+
+def make_point_kernel(name: str | PointKernel, **params: float) -> PointKernel:
+    """A point kernel from its name ("se" or "matern32"), or the kernel itself if given one."""
+    if isinstance(name, PointKernel):
+        return name
+    try:
+        cls = KERNELS[name.lower()]
+    except KeyError:
+        raise ValueError(f"unknown kernel {name!r}; expected one of 'se', 'matern32'") from None
+    return cls(**params)

@@ -1,0 +1,161 @@
+"""Invariants of every kernel, and area kernels against brute-force references."""
+
+import numpy as np
+import pytest
+
+from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
+from gpomap.supports import Supports, concatenate
+from tests import reference
+
+
+def _cells(seed=0, n=6):
+    """A few cells with member points inside their boxes, plus two zero-width points."""
+    rng = np.random.default_rng(seed)
+    lower = rng.uniform(0, 3, (n, 2))
+    upper = lower + rng.uniform(0.2, 1.2, (n, 2))
+    sizes = rng.integers(1, 6, n)
+    members = np.concatenate([rng.uniform(lower[i], upper[i], (sizes[i], 2)) for i in range(n)])
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    cells = Supports(lower, upper, sizes.astype(float), members, offsets)
+    return concatenate([cells, Supports.from_points(rng.uniform(0, 4, (2, 2)))])
+
+
+POINT_KERNELS = [SquaredExponential(1.3, 0.8), Matern32(0.7, 1.1)]
+AREA_KERNELS = [
+    AreaKernel(SquaredExponential(1.3, 0.8), "exact", "mean"),
+    AreaKernel(SquaredExponential(1.3, 0.8), "exact", "sum"),
+    AreaKernel(SquaredExponential(1.3, 0.8), "quadrature", "mean"),
+    AreaKernel(SquaredExponential(1.3, 0.8), "summed", "mean"),
+    AreaKernel(Matern32(0.7, 1.1), "quadrature", "mean"),
+    AreaKernel(Matern32(0.7, 1.1), "quadrature", "sum", quadrature_order=4),
+    AreaKernel(Matern32(0.7, 1.1), "summed", "mean"),
+    AreaKernel(Matern32(0.7, 1.1), "summed", "sum"),
+]
+ALL = [(k, "points") for k in POINT_KERNELS] + [(k, "cells") for k in AREA_KERNELS]
+IDS = [repr(k) for k, _ in ALL]
+
+
+def _inputs(kind, seed=0):
+    if kind == "points":
+        return np.random.default_rng(seed).uniform(0, 3, (7, 2))
+    return _cells(seed)
+
+
+@pytest.mark.parametrize("kernel,kind", ALL, ids=IDS)
+def test_gradient_matches_finite_differences(kernel, kind):
+    X = _inputs(kind)
+    K, dK = kernel(X, eval_gradient=True)
+    theta = kernel.theta
+    eps = 1e-6
+    for j in range(theta.size):
+        up, down = theta.copy(), theta.copy()
+        up[j] += eps
+        down[j] -= eps
+        fd = (kernel.clone_with_theta(up)(X) - kernel.clone_with_theta(down)(X)) / (2 * eps)
+        np.testing.assert_allclose(dK[:, :, j], fd, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.parametrize("kernel,kind", ALL, ids=IDS)
+def test_gram_is_symmetric_psd_and_consistent(kernel, kind):
+    X = _inputs(kind)
+    K = kernel(X)
+    np.testing.assert_allclose(K, kernel(X, X), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(K, K.T, rtol=0, atol=1e-14)
+    assert np.linalg.eigvalsh(K).min() > -1e-10 * np.abs(K).max()
+    np.testing.assert_allclose(kernel.diag(X), np.diag(K), rtol=1e-10)
+
+
+@pytest.mark.parametrize("kernel,kind", ALL, ids=IDS)
+def test_cross_covariance_is_the_transpose(kernel, kind):
+    X, Y = _inputs(kind, 0), _inputs(kind, 1)
+    np.testing.assert_allclose(kernel(X, Y), kernel(Y, X).T, rtol=1e-12, atol=1e-14)
+
+
+def test_point_kernels_by_hand():
+    x, y = np.array([[0.0, 0.0]]), np.array([[3.0, 4.0]])  # distance 5
+    assert SquaredExponential(2.0, 5.0)(x, y)[0, 0] == pytest.approx(2.0 * np.exp(-0.5))
+    s = np.sqrt(3.0)
+    assert Matern32(2.0, 5.0)(x, y)[0, 0] == pytest.approx(2.0 * (1 + s) * np.exp(-s))
+
+
+BOX_PAIRS = [
+    # (lower_a, upper_a, lower_b, upper_b): disjoint, overlapping, identical, point-box, thin box
+    ((0.0, 0.0), (1.0, 0.5), (1.5, -0.5), (2.5, 0.7)),
+    ((0.0, 0.0), (1.0, 1.0), (0.5, 0.3), (1.4, 1.2)),
+    ((0.2, 0.1), (0.9, 0.6), (0.2, 0.1), (0.9, 0.6)),
+    ((0.4, 0.4), (0.4, 0.4), (0.0, 0.0), (1.0, 0.8)),
+    ((0.0, 0.0), (2.0, 0.0), (0.5, 0.5), (1.0, 1.5)),
+]
+
+
+@pytest.mark.parametrize("pair", BOX_PAIRS)
+def test_exact_se_matches_brute_force_integration(pair):
+    base = SquaredExponential(1.0, 0.7)
+    la, ua, lb, ub = (np.array(v, float)[None, :] for v in pair)
+    exact = AreaKernel(base, "exact")(Supports.from_boxes(la, ua), Supports.from_boxes(lb, ub))[0, 0]
+    brute = reference.box_average(base, la[0], ua[0], lb[0], ub[0], n=50)
+    assert exact == pytest.approx(brute, rel=5e-4)
+
+
+@pytest.mark.parametrize("pair", BOX_PAIRS)
+@pytest.mark.parametrize("base", [SquaredExponential(1.0, 0.7), Matern32(1.0, 0.9)], ids=["se", "matern32"])
+def test_quadrature_matches_brute_force_integration(pair, base):
+    la, ua, lb, ub = (np.array(v, float)[None, :] for v in pair)
+    A, B = Supports.from_boxes(la, ua), Supports.from_boxes(lb, ub)
+    brute = reference.box_average(base, la[0], ua[0], lb[0], ub[0], n=50)
+    # The default rule is close; a higher order converges (Matern 3/2 is not smooth at r = 0,
+    # so boxes that overlap converge more slowly).
+    assert AreaKernel(base, "quadrature", quadrature_order=3)(A, B)[0, 0] == pytest.approx(brute, rel=2e-2)
+    assert AreaKernel(base, "quadrature", quadrature_order=10)(A, B)[0, 0] == pytest.approx(brute, rel=1e-3)
+
+
+@pytest.mark.parametrize("base", [SquaredExponential(1.3, 0.8), Matern32(0.7, 1.1)], ids=["se", "matern32"])
+def test_summed_kernel_equals_explicit_double_loop(base):
+    X = _cells(3)
+    K_sum = AreaKernel(base, "summed", "sum")(X)
+    K_mean = AreaKernel(base, "summed", "mean")(X)
+    off = X.member_offsets
+    for i in range(len(X)):
+        for j in range(len(X)):
+            mi = X.member_points[off[i] : off[i + 1]]
+            mj = X.member_points[off[j] : off[j + 1]]
+            loops = reference.summed_by_loops(base, mi, mj)
+            assert K_sum[i, j] == pytest.approx(loops, rel=1e-10)
+            assert K_mean[i, j] == pytest.approx(loops / (len(mi) * len(mj)), rel=1e-10)
+
+
+@pytest.mark.parametrize("method", ["exact", "quadrature"])
+def test_cell_shrunk_to_a_point_gives_the_point_kernel(method):
+    base = SquaredExponential(1.1, 0.6)
+    rng = np.random.default_rng(5)
+    p = rng.uniform(0, 2, (1, 2))
+    q = rng.uniform(0, 2, (4, 2))
+    kernel = AreaKernel(base, method)
+    for half in [1e-2, 1e-3, 1e-5]:
+        cell = Supports.from_boxes(p - half, p + half)
+        np.testing.assert_allclose(kernel(cell, Supports.from_points(q)), base(p, q), rtol=2 * half / 0.6 + 1e-9)
+    # And exactly zero width takes the point formula.
+    np.testing.assert_allclose(kernel(Supports.from_points(p), Supports.from_points(q)), base(p, q), rtol=1e-12)
+
+
+def test_matern_quadrature_shrinks_to_point_kernel():
+    base = Matern32(1.0, 0.9)
+    p, q = np.array([[0.3, 0.2]]), np.array([[1.5, -0.4], [2.0, 2.0]])
+    cell = Supports.from_boxes(p - 1e-4, p + 1e-4)
+    np.testing.assert_allclose(AreaKernel(base, "quadrature")(cell, Supports.from_points(q)), base(p, q), rtol=1e-5)
+
+
+def test_mixed_inputs_follow_eq_14():
+    """K over [cells; points] is the block matrix of cell-cell, cell-point and point-point parts."""
+    kernel = AreaKernel(SquaredExponential(1.0, 0.9), "exact")
+    cells = Supports.from_boxes(np.array([[0.0, 0.0], [2.0, 1.0]]), np.array([[1.0, 1.0], [3.0, 1.5]]))
+    pts = Supports.from_points(np.array([[0.5, 2.0], [2.5, 0.0], [1.0, 1.0]]))
+    K = kernel(concatenate([cells, pts]))
+    np.testing.assert_allclose(K[:2, :2], kernel(cells))
+    np.testing.assert_allclose(K[:2, 2:], kernel(cells, pts))
+    np.testing.assert_allclose(K[2:, 2:], kernel.base(pts.lower))
+
+
+def test_exact_needs_the_squared_exponential():
+    with pytest.raises(ValueError, match="closed form only for the squared exponential"):
+        AreaKernel(Matern32(), "exact")
