@@ -1,0 +1,922 @@
+"""Tiled MSK-GPOM: maps larger than one GP can hold, as many small GPs blended without seams.
+
+One dense GP over every cell of a real log does not fit (tens of thousands of cells, O(N^3)
+time and O(N^2) memory). :class:`TiledGPOM` cuts the plane into square tiles on a fixed grid
+anchored at `origin`, and fits one GP per tile on the cells near it:
+
+1. **Observations once** for the whole log (beams to labelled points).
+2. **Cells per block**: the points of each tile square ("block") get their own cell tree
+   (:func:`gpomap.cells.build_cells` on that block's points). A block's cells therefore depend
+   only on the points inside it, so new data changes the cells of the blocks it falls in and
+   nowhere else; that is what makes ``update`` give exactly the batch answer. The trees are cut
+   at block borders, which costs a few extra cells there and nothing else.
+3. **Hyperparameters once**: the signal variance, length scale, noise, and the squash's alpha and
+   beta are learnt by one :class:`~gpomap.gp.SupportGP` on a compact sample of at most
+   `hyper_sample` cells (the cells nearest the centroid of the block with most cells, i.e. a
+   dense, representative patch), then every tile uses them as they are. With
+   ``per_tile_hyperparameters=True`` each tile learns its own instead.
+4. **One GP per tile**, fitted on the cells whose boxes meet the tile grown by `overlap` on each
+   side. Tiles are independent tasks run in this process, in a local process pool, or on a Dask
+   distributed cluster (:func:`fit_tile_task` and :func:`predict_tile_task` are plain picklable
+   functions of arrays and settings).
+5. **Blending**: a query point is predicted by every tile whose blend region (the core grown by
+   `blend` / 2) holds it, with weights that are products of 1-D smoothstep tapers, zero at the
+   edge of the blend region and summing to one (a partition of unity); the calibrated latent
+   moments ``alpha m + beta`` and ``alpha^2 v`` are averaged with those weights and then
+   squashed, so neither probability nor variance jumps at a tile border.
+
+A map whose data fall in one block is exactly the plain :class:`~gpomap.mapping.AreaGPOM`
+(same cells, same hyperparameters, same GP).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import ctypes
+import math
+import multiprocessing
+import os
+import resource
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import cho_solve, solve_triangular
+from scipy.special import ndtr
+
+from gpomap.cells import build_cells
+from gpomap.errors import EmptyDataError, GpomapError, NotFittedError
+from gpomap.gp import SupportGP, robust_cholesky
+from gpomap.grid import GridSpec, OccupancyMap, ternary
+from gpomap.kernels.area import AreaKernel
+from gpomap.kernels.point import make_point_kernel
+from gpomap.mapping import AreaGPOM
+from gpomap.observations import Observations, observations_from_scans
+from gpomap.scans import Scan
+from gpomap.squash import ProbitSquash
+from gpomap.supports import Supports
+
+# Block keys pack (ix, iy) into one int64 so grouping millions of points is one argsort.
+_KEY_OFFSET = 1 << 30
+_KEY_BASE = 1 << 31
+
+HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
+
+
+# --------------------------------------------------------------------------- tasks (picklable)
+@dataclass
+class TileState:
+    """A fitted tile: its training cells, Cholesky factor and hyperparameters.
+
+    Attributes
+    ----------
+    key : (int, int)
+        Tile index (ix, iy) on the tile grid.
+    lower, upper : ndarray of shape (n, 2)
+        Boxes of the n training cells.
+    counts : ndarray of shape (n,)
+        Member points per cell.
+    member_points : ndarray of shape (m, 2) or None
+        Only kept for the ``"summed"`` area kernel, which needs them.
+    member_offsets : ndarray of int, shape (n + 1,) or None
+    L : ndarray of shape (n, n)
+        Lower Cholesky factor of K + noise.
+    weights : ndarray of shape (n,)
+        (K + noise)^-1 y.
+    hyperparameters : dict
+        variance, length_scale, noise, alpha, beta used by this tile.
+    seconds : float
+        Time the fit took on its worker.
+    """
+
+    key: tuple[int, int]
+    lower: NDArray[np.float64]
+    upper: NDArray[np.float64]
+    counts: NDArray[np.float64]
+    member_points: NDArray[np.float64] | None
+    member_offsets: NDArray[np.intp] | None
+    L: NDArray[np.float64]
+    weights: NDArray[np.float64]
+    hyperparameters: dict[str, float]
+    seconds: float
+
+    def supports(self) -> Supports:
+        """The training cells as GP inputs."""
+        return Supports(self.lower, self.upper, self.counts, self.member_points, self.member_offsets)
+
+    @property
+    def n_cells(self) -> int:
+        """Number of training cells."""
+        return int(self.counts.size)
+
+
+def _area_kernel(settings: dict[str, Any], variance: float, length_scale: float) -> AreaKernel:
+    base = make_point_kernel(
+        settings["kernel"], variance=variance, length_scale=length_scale, length_scale_bounds=settings["length_scale_bounds"]
+    )
+    kern = AreaKernel(base, settings["area"], settings["normalisation"], settings["quadrature_order"])
+    # Same path as SupportGP's factorisation (clone from log theta), so a one-tile map matches
+    # AreaGPOM to the last bits.
+    return kern.clone_with_theta(kern.theta)
+
+
+def _noise_vector(settings: dict[str, Any], noise: float, counts: NDArray[np.float64]) -> NDArray[np.float64]:
+    scale = 1.0 / np.maximum(counts, 1.0) if settings["noise_model"] == "per_count" else np.ones(counts.size)
+    return np.exp(np.log(noise)) * scale
+
+
+def fit_tile_task(payload: dict[str, Any]) -> TileState:
+    """Fit one tile's GP (a top-level function so process pools and Dask can ship it).
+
+    Parameters
+    ----------
+    payload : dict
+        ``key`` (ix, iy); ``lower``, ``upper`` (n, 2); ``counts``, ``labels`` (n,);
+        ``member_points`` (m, 2) and ``member_offsets`` (n + 1,) or None; ``settings`` (dict of
+        kernel and learning options); ``hyperparameters`` (dict of variance, length_scale, noise,
+        alpha, beta: used as they are, or as the start when ``settings["per_tile"]``).
+
+    Returns
+    -------
+    TileState
+    """
+    t0 = time.perf_counter()
+    st = payload["settings"]
+    hyp = dict(payload["hyperparameters"])
+    X = Supports(payload["lower"], payload["upper"], payload["counts"], payload["member_points"], payload["member_offsets"])
+    y = np.asarray(payload["labels"], dtype=float)
+    kern = _area_kernel(st, hyp["variance"], hyp["length_scale"])
+    if st["per_tile"]:
+        gp = SupportGP(
+            kern,
+            noise=hyp["noise"],
+            noise_bounds=st["noise_bounds"],
+            noise_model=st["noise_model"],
+            objective=st["objective"],
+            optimise=True,
+            n_restarts=st["n_restarts"],
+            seed=st["seed"],
+            hyper_subset=st["hyper_subset"],
+        )
+        gp.squash = ProbitSquash(hyp["alpha"], hyp["beta"])
+        gp.fit(X, y)
+        L, weights = gp.L_, gp.alpha_
+        hyp = {
+            "variance": gp.kernel.base.variance,
+            "length_scale": gp.kernel.base.length_scale,
+            "noise": gp.noise,
+            "alpha": gp.squash.alpha,
+            "beta": gp.squash.beta,
+        }
+    else:
+        # Fixed hyperparameters: one factorisation, no leave-one-out pass (alpha and beta are
+        # global), which halves the work of SupportGP.fit.
+        K = kern(X)
+        K[np.diag_indices_from(K)] += _noise_vector(st, hyp["noise"], X.counts)
+        L, _ = robust_cholesky(K)
+        weights = cho_solve((L, True), y, check_finite=False)
+    return TileState(
+        key=tuple(payload["key"]),
+        lower=X.lower,
+        upper=X.upper,
+        counts=X.counts,
+        member_points=X.member_points if st["area"] == "summed" else None,
+        member_offsets=X.member_offsets if st["area"] == "summed" else None,
+        L=L,
+        weights=weights,
+        hyperparameters={k: float(v) for k, v in hyp.items()},
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def predict_tile_task(
+    state: TileState, settings: dict[str, Any], points: NDArray[np.float64], chunk_size: int = 4096
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Latent mean and variance of one tile's GP at points (top-level, picklable).
+
+    Parameters
+    ----------
+    state : TileState
+    settings : dict
+        Kernel settings (as for :func:`fit_tile_task`).
+    points : ndarray of shape (m, 2)
+    chunk_size : int
+        Query points per block, bounding memory at ``n * chunk_size``.
+
+    Returns
+    -------
+    mean, var : ndarray of shape (m,)
+    """
+    hyp = state.hyperparameters
+    kern = _area_kernel(settings, hyp["variance"], hyp["length_scale"])
+    X = state.supports()
+    Q = Supports.from_points(np.asarray(points, dtype=float).reshape(-1, 2))
+    m = len(Q)
+    mean = np.empty(m)
+    var = np.empty(m)
+    for s in range(0, m, chunk_size):
+        part = Q.subset(slice(s, min(m, s + chunk_size)))
+        Ks = kern(X, part)
+        mean[s : s + len(part)] = Ks.T @ state.weights
+        v = solve_triangular(state.L, Ks, lower=True, check_finite=False)
+        var[s : s + len(part)] = np.maximum(kern.diag(part) - np.einsum("ij,ij->j", v, v), 0.0)
+    return mean, var
+
+
+def _limit_blas_threads(n: int) -> None:
+    """Best-effort: cap OpenBLAS threads in this process (workers share 2 cores badly)."""
+    try:
+        maps = open("/proc/self/maps").read()
+    except OSError:
+        return
+    libs = {tok for line in maps.splitlines() for tok in line.split() if "openblas" in tok and tok.endswith(".so")}
+    for path in libs:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for name in ("openblas_set_num_threads", "scipy_openblas_set_num_threads", "scipy_openblas_set_num_threads64_", "openblas_set_num_threads64_"):
+            fn = getattr(lib, name, None)
+            if fn is not None:
+                fn(int(n))
+
+
+def _worker_init(blas_threads: int) -> None:
+    _limit_blas_threads(blas_threads)
+
+
+# --------------------------------------------------------------------------- helpers
+def _smoothstep(t: NDArray[np.float64]) -> NDArray[np.float64]:
+    t = np.clip(t, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def taper(x: NDArray[np.float64], a: float, b: float, half: float) -> NDArray[np.float64]:
+    """1-D partition-of-unity weight of the core interval [a, b].
+
+    Rises from 0 at ``a - half`` to 1 at ``a + half`` and falls back to 0 from ``b - half`` to
+    ``b + half`` (smoothstep, C1). With neighbouring cores sharing an edge and ``2 half <= b - a``
+    the weights of neighbours sum to exactly one, since s(t) + s(1 - t) = 1.
+
+    Parameters
+    ----------
+    x : ndarray of shape (m,)
+    a, b : float
+    half : float
+        Half-width of the ramp, > 0.
+
+    Returns
+    -------
+    ndarray of shape (m,)
+    """
+    return _smoothstep((x - (a - half)) / (2 * half)) * _smoothstep(((b + half) - x) / (2 * half))
+
+
+def _peak_rss_mb() -> dict[str, float]:
+    # ru_maxrss is in KiB on Linux; children covers pool workers that have been reaped.
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    return {"self_mb": round(own, 1), "children_mb": round(kids, 1)}
+
+
+@dataclass
+class _BlockCells:
+    """The cells of one block (tile square), in tree order."""
+
+    lower: NDArray[np.float64]
+    upper: NDArray[np.float64]
+    counts: NDArray[np.float64]
+    occupied: NDArray[np.bool_]
+    n_ambiguous: int
+    member_points: NDArray[np.float64] | None
+    member_offsets: NDArray[np.intp] | None
+
+
+# --------------------------------------------------------------------------- estimator
+class TiledGPOM:
+    """MSK-GPOM over tiles, for maps larger than one GP can hold.
+
+    Parameters
+    ----------
+    tile_size : float
+        Side of the square tiles (and of the cell-tree blocks), metres.
+    overlap : float, optional
+        Each tile's GP sees the cells meeting its square grown by this much on every side.
+        Default 2.5 learnt length scales (about where the SE kernel has decayed to 4 %), at
+        most `tile_size`.
+    blend : float, optional
+        Width of the blending ramp across each tile border, centred on the border; at most
+        `overlap` (so a tile only predicts where it has at least ``overlap - blend / 2`` of data
+        beyond) and at most `tile_size`. Default `overlap`.
+    origin : (float, float)
+        Corner of tile (0, 0); the tile grid is fixed so incremental updates line up.
+    n_workers : int, optional
+        Local worker processes; 1 runs in this process without a pool; default the CPU count.
+    scheduler : str or distributed.Client, optional
+        A Dask distributed scheduler address ("tcp://...") or client; tiles then run there.
+    hyper_sample : int
+        Most cells of the compact sample hyperparameters are learnt on.
+    per_tile_hyperparameters : bool
+        Learn hyperparameters in every tile (each on at most ``hyper_subset`` of its cells).
+    blas_threads : int
+        BLAS threads per local worker process.
+    **options
+        :class:`~gpomap.mapping.AreaGPOM` options (kernel, free_step, min_cell, max_cell,
+        length_scale, noise, optimise, ...). ``optimise=False`` keeps the given variance,
+        length scale and noise; alpha and beta are then still fitted once on the sample.
+    """
+
+    def __init__(
+        self,
+        tile_size: float = 10.0,
+        overlap: float | None = None,
+        blend: float | None = None,
+        origin: tuple[float, float] = (0.0, 0.0),
+        n_workers: int | None = None,
+        scheduler: Any = None,
+        hyper_sample: int = 800,
+        per_tile_hyperparameters: bool = False,
+        blas_threads: int = 1,
+        **options: Any,
+    ) -> None:
+        if not tile_size > 0:
+            raise ValueError(f"tile_size must be positive, got {tile_size}")
+        self.tile_size = float(tile_size)
+        self.overlap = overlap
+        self.blend = blend
+        self.origin = (float(origin[0]), float(origin[1]))
+        self.n_workers = n_workers
+        self.scheduler = scheduler
+        self.hyper_sample = int(hyper_sample)
+        self.per_tile_hyperparameters = bool(per_tile_hyperparameters)
+        self.blas_threads = int(blas_threads)
+        # AreaGPOM validates the options and holds their defaults.
+        self.base = AreaGPOM(**options)
+        self.options = dict(options)
+
+    def __repr__(self) -> str:
+        return f"TiledGPOM(tile_size={self.tile_size}, overlap={self.overlap}, {self.base!r})"
+
+    # ------------------------------------------------------------------ settings
+    def _settings(self) -> dict[str, Any]:
+        b = self.base
+        return {
+            "kernel": b.kernel,
+            "area": b.area_method,
+            "normalisation": b.normalisation,
+            "quadrature_order": b.quadrature_order,
+            "length_scale_bounds": b.length_scale_bounds,
+            "noise_bounds": b.noise_bounds,
+            "noise_model": b.noise_model,
+            "objective": b.objective,
+            "n_restarts": b.n_restarts,
+            "seed": b.seed,
+            "hyper_subset": b.hyper_subset,
+            "per_tile": self.per_tile_hyperparameters,
+        }
+
+    @property
+    def n_workers_(self) -> int:
+        """Local worker processes used."""
+        return int(self.n_workers) if self.n_workers is not None else max(1, os.cpu_count() or 1)
+
+    # ------------------------------------------------------------------ geometry
+    def _block_keys(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
+        ij = np.floor((points - np.asarray(self.origin)) / self.tile_size).astype(np.int64)
+        return (ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET)
+
+    @staticmethod
+    def _decode(key: int) -> tuple[int, int]:
+        return int(key // _KEY_BASE - _KEY_OFFSET), int(key % _KEY_BASE - _KEY_OFFSET)
+
+    @staticmethod
+    def _encode(ix: int, iy: int) -> int:
+        return (ix + _KEY_OFFSET) * _KEY_BASE + (iy + _KEY_OFFSET)
+
+    def _core(self, key: tuple[int, int]) -> tuple[float, float, float, float]:
+        x0 = self.origin[0] + key[0] * self.tile_size
+        y0 = self.origin[1] + key[1] * self.tile_size
+        return x0, x0 + self.tile_size, y0, y0 + self.tile_size
+
+    # ------------------------------------------------------------------ cells
+    def _build_block(self, idx: NDArray[np.intp]) -> _BlockCells:
+        b = self.base
+        c = build_cells(self._points[idx], self._occupied[idx], b.min_cell, b.max_cell, b.cell_box)
+        summed = b.area_method == "summed"
+        return _BlockCells(
+            lower=c.lower,
+            upper=c.upper,
+            counts=c.counts.astype(float),
+            occupied=c.occupied,
+            n_ambiguous=int(c.ambiguous.sum()),
+            member_points=c.points[c.member_order] if summed else None,
+            member_offsets=c.member_offsets if summed else None,
+        )
+
+    def _build_blocks(self, keys: Sequence[int] | None = None) -> None:
+        """(Re)build the cell trees of the given blocks (all when None)."""
+        if keys is None:
+            order = np.argsort(self._keys, kind="stable")  # stable: keeps observation order per block
+            sk = self._keys[order]
+            cuts = np.flatnonzero(np.diff(sk)) + 1
+            self._blocks = {}
+            for grp in np.split(order, cuts):
+                self._blocks[int(self._keys[grp[0]])] = self._build_block(grp)
+            return
+        for k in keys:
+            self._blocks[int(k)] = self._build_block(np.flatnonzero(self._keys == k))
+
+    def _reach(self) -> int:
+        return max(1, math.ceil(self.overlap_ / self.tile_size - 1e-12))
+
+    def _gather(self, tile: tuple[int, int]) -> dict[str, Any] | None:
+        """The cells meeting the tile's grown square, in canonical (block key, tree) order."""
+        x0, x1, y0, y1 = self._core(tile)
+        o = self.overlap_
+        r = self._reach()
+        parts = []
+        for ix in range(tile[0] - r, tile[0] + r + 1):
+            for iy in range(tile[1] - r, tile[1] + r + 1):
+                bc = self._blocks.get(self._encode(ix, iy))
+                if bc is None:
+                    continue
+                keep = (
+                    (bc.lower[:, 0] <= x1 + o) & (bc.upper[:, 0] >= x0 - o) & (bc.lower[:, 1] <= y1 + o) & (bc.upper[:, 1] >= y0 - o)
+                )
+                if keep.any():
+                    parts.append((self._encode(ix, iy), bc, np.flatnonzero(keep)))
+        if not parts:
+            return None
+        parts.sort(key=lambda p: p[0])
+        out: dict[str, Any] = {
+            "lower": np.concatenate([bc.lower[k] for _, bc, k in parts]),
+            "upper": np.concatenate([bc.upper[k] for _, bc, k in parts]),
+            "counts": np.concatenate([bc.counts[k] for _, bc, k in parts]),
+            "labels": np.concatenate([np.where(bc.occupied[k], 1.0, -1.0) for _, bc, k in parts]),
+            "member_points": None,
+            "member_offsets": None,
+        }
+        if self.base.area_method == "summed":
+            sup = [Supports(bc.lower, bc.upper, bc.counts, bc.member_points, bc.member_offsets).subset(k) for _, bc, k in parts]
+            from gpomap.supports import concatenate
+
+            s = concatenate(sup)
+            out["member_points"], out["member_offsets"] = s.member_points, s.member_offsets
+        return out
+
+    def _all_cells(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], list[tuple[int, NDArray[np.intp]]]]:
+        keys = sorted(self._blocks)
+        lo = np.concatenate([self._blocks[k].lower for k in keys])
+        hi = np.concatenate([self._blocks[k].upper for k in keys])
+        cnt = np.concatenate([self._blocks[k].counts for k in keys])
+        lab = np.concatenate([np.where(self._blocks[k].occupied, 1.0, -1.0) for k in keys])
+        return lo, hi, cnt, lab, keys
+
+    # ------------------------------------------------------------------ hyperparameters
+    def _learn_hyperparameters(self) -> dict[str, Any]:
+        """Learn all five hyperparameters once, on a compact sample round the densest block."""
+        b = self.base
+        keys = sorted(self._blocks)
+        dense = max(keys, key=lambda k: len(self._blocks[k].counts))
+        bc = self._blocks[dense]
+        anchor = 0.5 * (bc.lower + bc.upper).mean(axis=0)
+        lo, hi, cnt, lab, _ = self._all_cells()
+        n = lab.size
+        if n <= self.hyper_sample:
+            idx = np.arange(n)
+        else:
+            d = np.sum((0.5 * (lo + hi) - anchor) ** 2, axis=1)
+            idx = np.sort(np.argpartition(d, self.hyper_sample - 1)[: self.hyper_sample])
+        if b.area_method == "summed":
+            blocks = [self._blocks[k] for k in keys]
+            from gpomap.supports import concatenate
+
+            X = concatenate([Supports(c.lower, c.upper, c.counts, c.member_points, c.member_offsets) for c in blocks]).subset(idx)
+        else:
+            X = Supports(lo[idx], hi[idx], cnt[idx])
+        gp = SupportGP(
+            b.make_kernel(),
+            noise=b.noise,
+            noise_bounds=b.noise_bounds,
+            noise_model=b.noise_model,
+            objective=b.objective,
+            optimise=b.optimise,
+            n_restarts=b.n_restarts,
+            seed=b.seed,
+            hyper_subset=None,
+        )
+        gp.fit(X, lab[idx])
+        hyp = {
+            "variance": float(gp.kernel.base.variance),
+            "length_scale": float(gp.kernel.base.length_scale),
+            "noise": float(gp.noise),
+            "alpha": float(gp.squash.alpha),
+            "beta": float(gp.squash.beta),
+        }
+        r = np.sqrt(np.max(np.sum((0.5 * (lo[idx] + hi[idx]) - anchor) ** 2, axis=1)))
+        self.hyper_source_ = {
+            "how": "learnt" if b.optimise else "given (alpha, beta fitted)",
+            "sample_cells": int(idx.size),
+            "sample_centre": [round(float(anchor[0]), 2), round(float(anchor[1]), 2)],
+            "sample_radius_m": round(float(r), 2),
+            "evaluations": gp.fit_report_.n_evaluations if gp.fit_report_ is not None else 0,
+        }
+        return hyp
+
+    # ------------------------------------------------------------------ task running
+    def _run(self, fn: Callable[..., Any], jobs: list[tuple[tuple[int, int], tuple[Any, ...]]], what: str) -> dict[tuple[int, int], Any]:
+        """Run ``fn(*args)`` for every (tile, args); each failed task is retried once.
+
+        Raises
+        ------
+        GpomapError
+            Naming every tile whose task failed twice.
+        """
+        if not jobs:
+            return {}
+        if self.scheduler is not None:
+            runner = self._run_dask
+        elif self.n_workers_ <= 1 or len(jobs) == 1:
+            runner = self._run_inprocess
+        else:
+            runner = self._run_pool
+        results, failed = runner(fn, jobs)
+        if failed:
+            retry = [j for j in jobs if j[0] in failed]
+            more, failed2 = runner(fn, retry)
+            results.update(more)
+            if failed2:
+                names = ", ".join(f"tile {k} ({type(e).__name__}: {e})" for k, e in failed2.items())
+                raise GpomapError(f"{what} failed twice (retried once) for {len(failed2)} tile(s): {names}")
+        return results
+
+    @staticmethod
+    def _run_inprocess(fn, jobs):
+        results, failed = {}, {}
+        for key, args in jobs:
+            try:
+                results[key] = fn(*args)
+            except Exception as e:  # noqa: BLE001 - reported per tile after the retry
+                failed[key] = e
+        return results, failed
+
+    def _run_pool(self, fn, jobs):
+        results, failed = {}, {}
+        ctx = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
+        workers = min(self.n_workers_, len(jobs))
+        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(self.blas_threads,)) as pool:
+            futs = {pool.submit(fn, *args): key for key, args in jobs}
+            for f in cf.as_completed(futs):
+                key = futs[f]
+                try:
+                    results[key] = f.result()
+                except Exception as e:  # noqa: BLE001 - a dead worker breaks the pool: retried
+                    failed[key] = e
+        return results, failed
+
+    def _run_dask(self, fn, jobs):
+        from distributed import Client, as_completed
+
+        own = not isinstance(self.scheduler, Client)
+        client = Client(self.scheduler, set_as_default=False) if own else self.scheduler
+        results, failed = {}, {}
+        try:
+            tag = uuid.uuid4().hex[:8]
+            futs = {}
+            for key, args in jobs:
+                f = client.submit(fn, *args, key=f"gpomap-{fn.__name__}-{key[0]}_{key[1]}-{tag}", pure=False)
+                futs[f] = key
+            for f in as_completed(list(futs)):
+                key = futs[f]
+                try:
+                    results[key] = f.result()
+                except Exception as e:  # noqa: BLE001 - KilledWorker and friends: retried
+                    failed[key] = e
+                f.release()
+        finally:
+            if own:
+                client.close()
+        return results, failed
+
+    # ------------------------------------------------------------------ fitting
+    def _observations(self, scans: Sequence[Scan]) -> Observations:
+        b = self.base
+        return observations_from_scans(scans, b.free_step, b.hit_margin, b.no_return_cap)
+
+    def _fit_jobs(self, tiles: Sequence[tuple[int, int]]) -> tuple[list, dict[tuple[int, int], dict[str, Any]]]:
+        settings = self._settings()
+        jobs, gathered = [], {}
+        for t in tiles:
+            g = self._gather(t)
+            if g is None:
+                continue
+            gathered[t] = g
+            jobs.append((t, ({"key": t, **g, "settings": settings, "hyperparameters": self.hyperparameters_},)))
+        return jobs, gathered
+
+    def fit(self, data: Sequence[Scan] | Observations, hyperparameters: dict[str, float] | None = None) -> TiledGPOM:
+        """Build the tiled map from scans (or labelled points).
+
+        Parameters
+        ----------
+        data : sequence of Scan, or Observations
+        hyperparameters : dict, optional
+            variance, length_scale, noise, alpha and beta to use as they are (no learning).
+
+        Returns
+        -------
+        self
+        """
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        t = t0
+        obs = data if isinstance(data, Observations) else self._observations(data)
+        if obs.n_occupied == 0 or obs.n_free == 0:
+            raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
+        self._points = np.asarray(obs.points, dtype=float)
+        self._occupied = np.asarray(obs.occupied, dtype=bool)
+        self._n_scans = int(obs.scan_index.max()) + 1 if obs.scan_index.size else 0
+        self._n_invalid, self._n_no_return = obs.n_invalid, obs.n_no_return
+        self.path_ = None if isinstance(data, Observations) else np.array([s.pose[:2] for s in data])
+        timings["observations"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        self._keys = self._block_keys(self._points)
+        self._build_blocks()
+        timings["cells"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        if hyperparameters is not None:
+            missing = [n for n in HYPER_NAMES if n not in hyperparameters]
+            if missing:
+                raise ValueError(f"hyperparameters must give {HYPER_NAMES}; missing {missing}")
+            self.hyperparameters_ = {n: float(hyperparameters[n]) for n in HYPER_NAMES}
+            self.hyper_source_ = {"how": "given to fit()"}
+        else:
+            self.hyperparameters_ = self._learn_hyperparameters()
+        timings["hyperparameters"] = time.perf_counter() - t
+        self._set_geometry()
+
+        t = time.perf_counter()
+        tiles = [self._decode(k) for k in sorted(self._blocks)]
+        jobs, gathered = self._fit_jobs(tiles)
+        self.tiles_: dict[tuple[int, int], TileState] = self._run(fit_tile_task, jobs, "tile fit")
+        self._signatures = {t: self._signature(g) for t, g in gathered.items()}
+        timings["tile_fits"] = time.perf_counter() - t
+        timings["total_fit"] = time.perf_counter() - t0
+        self.timings_ = timings
+        self.last_refit_: list[tuple[int, int]] = sorted(self.tiles_)
+        return self
+
+    def _set_geometry(self) -> None:
+        ls = self.hyperparameters_["length_scale"]
+        o = 2.5 * ls if self.overlap is None else float(self.overlap)
+        self.overlap_ = float(min(max(o, 1e-9), self.tile_size))
+        w = self.overlap_ if self.blend is None else float(self.blend)
+        if not 0 < w <= min(self.overlap_, self.tile_size) + 1e-12:
+            raise ValueError(f"blend must be in (0, min(overlap, tile_size)] = (0, {min(self.overlap_, self.tile_size)}], got {w}")
+        self.blend_ = float(w)
+
+    @staticmethod
+    def _signature(g: dict[str, Any]) -> tuple[bytes, ...]:
+        return (g["lower"].tobytes(), g["upper"].tobytes(), g["counts"].tobytes(), g["labels"].tobytes())
+
+    def update(self, scans: Sequence[Scan]) -> TiledGPOM:
+        """Add scans: rebuild the cells of the blocks they touch and refit only the tiles whose
+        cell sets changed, with the hyperparameters kept fixed.
+
+        For fixed hyperparameters the result equals ``fit(old + new)`` (cells depend only on their
+        own block's points, and a tile's GP only on its cell set).
+
+        Parameters
+        ----------
+        scans : sequence of Scan
+
+        Returns
+        -------
+        self
+        """
+        if not hasattr(self, "tiles_"):
+            return self.fit(scans)
+        t0 = time.perf_counter()
+        obs = self._observations(scans)
+        self._points = np.concatenate([self._points, obs.points])
+        self._occupied = np.concatenate([self._occupied, obs.occupied])
+        new_keys = self._block_keys(obs.points)
+        self._keys = np.concatenate([self._keys, new_keys])
+        self._n_scans += len(scans)
+        self._n_invalid += obs.n_invalid
+        self._n_no_return += obs.n_no_return
+        path = np.array([s.pose[:2] for s in scans]).reshape(-1, 2)
+        self.path_ = path if self.path_ is None else np.concatenate([self.path_, path])
+        changed = np.unique(new_keys)
+        self._build_blocks(changed.tolist())
+        t1 = time.perf_counter()
+        r = self._reach()
+        candidates = set()
+        for k in changed:
+            ix, iy = self._decode(int(k))
+            for dx in range(-r, r + 1):
+                for dy in range(-r, r + 1):
+                    if self._encode(ix + dx, iy + dy) in self._blocks:
+                        candidates.add((ix + dx, iy + dy))
+        jobs, gathered = self._fit_jobs(sorted(candidates))
+        todo = [j for j in jobs if self._signatures.get(j[0]) != self._signature(gathered[j[0]])]
+        self.tiles_.update(self._run(fit_tile_task, todo, "tile fit"))
+        for key, _ in todo:
+            self._signatures[key] = self._signature(gathered[key])
+        self.last_refit_ = sorted(k for k, _ in todo)
+        self.timings_["update_cells"] = t1 - t0
+        self.timings_["update_tile_fits"] = time.perf_counter() - t1
+        return self
+
+    # ------------------------------------------------------------------ prediction
+    def _check_fitted(self) -> None:
+        if not hasattr(self, "tiles_"):
+            raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit() first")
+
+    def _blend_region(self, key: tuple[int, int]) -> tuple[float, float, float, float]:
+        x0, x1, y0, y1 = self._core(key)
+        h = 0.5 * self.blend_
+        return x0 - h, x1 + h, y0 - h, y1 + h
+
+    def _predict_blended(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Blended probability, latent mean and latent variance at points, each (m,)."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        m = pts.shape[0]
+        h = 0.5 * self.blend_
+        settings = self._settings()
+        chunk = self.base.chunk_size
+        # Per tile: which points it predicts and with what weight.
+        members: dict[tuple[int, int], tuple[NDArray[np.intp], NDArray[np.float64]]] = {}
+        wsum = np.zeros(m)
+        for key in sorted(self.tiles_):
+            bx0, bx1, by0, by1 = self._blend_region(key)
+            idx = np.flatnonzero((pts[:, 0] > bx0) & (pts[:, 0] < bx1) & (pts[:, 1] > by0) & (pts[:, 1] < by1))
+            if idx.size == 0:
+                continue
+            x0, x1, y0, y1 = self._core(key)
+            w = taper(pts[idx, 0], x0, x1, h) * taper(pts[idx, 1], y0, y1, h)
+            nz = w > 0
+            if nz.any():
+                members[key] = (idx[nz], w[nz])
+                np.add.at(wsum, idx[nz], w[nz])
+        # Points no tile reaches (blocks without data): the tile whose core is nearest, alone.
+        orphans = np.flatnonzero(wsum <= 0)
+        if orphans.size:
+            keys = sorted(self.tiles_)
+            cores = np.array([self._core(k) for k in keys])
+            op = pts[orphans]
+            dx = np.maximum(np.maximum(cores[None, :, 0] - op[:, None, 0], op[:, None, 0] - cores[None, :, 1]), 0.0)
+            dy = np.maximum(np.maximum(cores[None, :, 2] - op[:, None, 1], op[:, None, 1] - cores[None, :, 3]), 0.0)
+            nearest = np.argmin(dx * dx + dy * dy, axis=1)
+            for j in np.unique(nearest):
+                sel = orphans[nearest == j]
+                key = keys[int(j)]
+                if key in members:
+                    idx, w = members[key]
+                    members[key] = (np.concatenate([idx, sel]), np.concatenate([w, np.ones(sel.size)]))
+                else:
+                    members[key] = (sel, np.ones(sel.size))
+                wsum[sel] = 1.0
+        jobs = [(key, (self.tiles_[key], settings, pts[idx], chunk)) for key, (idx, _) in members.items()]
+        res = self._run(predict_tile_task, jobs, "tile prediction")
+        num = np.zeros(m)
+        den = np.zeros(m)
+        lat_m = np.zeros(m)
+        lat_v = np.zeros(m)
+        for key, (idx, w) in members.items():
+            mu, var = res[key]
+            hp = self.tiles_[key].hyperparameters
+            a, b = hp["alpha"], hp["beta"]
+            # Blend the calibrated latent moments so per-tile alpha and beta blend too; with
+            # global alpha and beta this is exactly squash(blended mean, blended variance).
+            np.add.at(num, idx, w * (a * mu + b))
+            np.add.at(den, idx, w * (a * a * var))
+            np.add.at(lat_m, idx, w * mu)
+            np.add.at(lat_v, idx, w * var)
+        num /= wsum
+        den /= wsum
+        p = ndtr(num / np.sqrt(1.0 + den))
+        return p, lat_m / wsum, lat_v / wsum
+
+    def predict(self, points: NDArray[np.float64], return_var: bool = False):
+        """Blended latent mean (and variance) at points.
+
+        Parameters
+        ----------
+        points : ndarray of shape (m, 2)
+        return_var : bool
+
+        Returns
+        -------
+        mean : ndarray of shape (m,)
+        var : ndarray of shape (m,), only with `return_var`
+        """
+        self._check_fitted()
+        _, mu, var = self._predict_blended(points)
+        return (mu, var) if return_var else mu
+
+    def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
+        """Occupancy probability at points, blended across tiles.
+
+        Parameters
+        ----------
+        points : ndarray of shape (m, 2)
+        return_var : bool
+            Also return the blended latent variance.
+
+        Returns
+        -------
+        probability : ndarray of shape (m,)
+        var : ndarray of shape (m,), only with `return_var`
+        """
+        self._check_fitted()
+        t = time.perf_counter()
+        p, _, var = self._predict_blended(points)
+        self.timings_["prediction"] = time.perf_counter() - t
+        return (p, var) if return_var else p
+
+    def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
+        """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
+        return ternary(self.predict_proba(points), self.base.thresholds)
+
+    def grid(self, resolution: float, extent: tuple[float, float, float, float] | None = None) -> OccupancyMap:
+        """The map sampled at grid-cell centres; each tile predicts only the grid cells it covers.
+
+        Parameters
+        ----------
+        resolution : float
+            Grid cell side, metres.
+        extent : (xmin, xmax, ymin, ymax), optional
+            Defaults to the bounding box of the observations.
+
+        Returns
+        -------
+        OccupancyMap
+        """
+        self._check_fitted()
+        if extent is None:
+            lo, hi = self._points.min(axis=0), self._points.max(axis=0)
+            extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+        spec = GridSpec.from_extent(extent, resolution)
+        t = time.perf_counter()
+        p, _, var = self._predict_blended(spec.centres())
+        self.timings_["grid"] = time.perf_counter() - t
+        return OccupancyMap(
+            grid=spec,
+            probability=p.reshape(spec.shape),
+            variance=var.reshape(spec.shape),
+            thresholds=self.base.thresholds,
+            path=self.path_,
+            info=self.summary(),
+        )
+
+    # ------------------------------------------------------------------ reporting
+    @property
+    def n_inputs_(self) -> int:
+        """Number of cells over the whole map (each counted once)."""
+        self._check_fitted()
+        return int(sum(len(b.counts) for b in self._blocks.values()))
+
+    def summary(self) -> dict[str, Any]:
+        """Tiles, cells per tile, hyperparameters and where they came from, stage timings, peak memory."""
+        self._check_fitted()
+        per = np.array([s.n_cells for s in self.tiles_.values()])
+        secs = np.array([s.seconds for s in self.tiles_.values()])
+        out: dict[str, Any] = {
+            "method": "tiled-msk-gpom",
+            "kernel": make_point_kernel(self.base.kernel).name,
+            "area": self.base.area_method,
+            "tile_size": self.tile_size,
+            "overlap": self.overlap_,
+            "blend": self.blend_,
+            "n_tiles": len(self.tiles_),
+            "n_cells": self.n_inputs_,
+            "n_ambiguous_cells": int(sum(b.n_ambiguous for b in self._blocks.values())),
+            "cells_per_tile": {"min": int(per.min()), "median": float(np.median(per)), "max": int(per.max())},
+            "tile_fit_seconds": {"min": float(secs.min()), "median": float(np.median(secs)), "max": float(secs.max()), "sum": float(secs.sum())},
+            "n_points": int(self._points.shape[0]),
+            "n_occupied_points": int(self._occupied.sum()),
+            "n_scans": self._n_scans,
+            "n_invalid_readings": self._n_invalid,
+            "n_no_return_readings": self._n_no_return,
+            "hyperparameters": dict(self.hyperparameters_),
+            "hyperparameter_source": dict(self.hyper_source_),
+            "timings": dict(self.timings_),
+            "peak_memory": _peak_rss_mb(),
+            "executor": "dask" if self.scheduler is not None else ("in-process" if self.n_workers_ <= 1 else f"process pool x{self.n_workers_}"),
+        }
+        if self.per_tile_hyperparameters:
+            out["per_tile_hyperparameters"] = {
+                n: {"min": float(np.min(v)), "median": float(np.median(v)), "max": float(np.max(v))}
+                for n in HYPER_NAMES
+                for v in [[s.hyperparameters[n] for s in self.tiles_.values()]]
+            }
+        return out

@@ -1,0 +1,159 @@
+"""TiledGPOM: seamless blending, one-tile equivalence, incremental = batch, executors, failures."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import gpomap.tiles as tiles
+from gpomap.errors import GpomapError
+from gpomap.mapping import AreaGPOM
+from gpomap.simulate import World, paper_room_scans, simulate_scans
+from gpomap.tiles import TiledGPOM, taper
+
+# Fixed hyperparameters keep the tests fast and the comparisons exact.
+OPTS = dict(kernel="se", free_step=0.5, min_cell=0.5, max_cell=3.0, optimise=False, length_scale=1.0, noise=0.1)
+MARKER_ENV = "GPOMAP_TEST_DIE_MARKER"
+_REAL_FIT = tiles.fit_tile_task
+
+
+@pytest.fixture(scope="module")
+def room():
+    return paper_room_scans()
+
+
+def _corridor_scans():
+    # Two long walls along x with a post, crossing the tile border at x = 6.
+    world = World(segments=[(0.0, 0.0, 12.0, 0.0), (0.0, 3.0, 12.0, 3.0)], obstacles=[[(7.5, 1.2), (8.0, 1.2), (8.0, 1.7), (7.5, 1.7)]])
+    xs = np.linspace(0.5, 11.5, 12)
+    poses = np.column_stack([xs, np.full_like(xs, 1.5), np.zeros_like(xs)])
+    return simulate_scans(world, poses, 72, max_range=8.0, seed=0)
+
+
+def test_taper_is_partition_of_unity():
+    x = np.linspace(-3.0, 13.0, 1601)
+    total = sum(taper(x, a, a + 4.0, 1.0) for a in np.arange(-8.0, 16.0, 4.0))
+    assert np.allclose(total, 1.0)
+
+
+def test_single_tile_equals_area_gpom(room):
+    plain = AreaGPOM(**OPTS).fit(room)
+    tiled = TiledGPOM(tile_size=50.0, origin=(-1.0, -1.0), n_workers=1, hyper_sample=10**6, **OPTS).fit(room)
+    assert len(tiled.tiles_) == 1
+    assert tiled.hyperparameters_ == pytest.approx(plain.hyperparameters_, rel=1e-12)
+    a, b = plain.grid(0.25), tiled.grid(0.25)
+    np.testing.assert_allclose(b.probability, a.probability, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.variance, a.variance, rtol=0, atol=1e-12)
+
+
+def _max_jump_ratio(values: np.ndarray, border_step: int, k: int = 5) -> float:
+    d = np.abs(np.diff(values))
+    neighbours = np.concatenate([d[border_step - k : border_step], d[border_step + 1 : border_step + 1 + k]])
+    return float(d[border_step] / (neighbours.max() + 1e-12))
+
+
+def test_blending_has_no_seam():
+    scans = _corridor_scans()
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS).fit(scans)
+    assert len(model.tiles_) >= 2
+    x = np.linspace(4.0, 8.0, 401) + 0.005  # 1 cm steps; the border x = 6 falls inside one step
+    border = int(np.searchsorted(x, 6.0)) - 1
+    for y in (0.0, 0.1, 1.5, 2.9):  # on a wall, near it, in the free corridor, near the other wall
+        pts = np.column_stack([x, np.full_like(x, y)])
+        p, var = model.predict_proba(pts, return_var=True)
+        assert _max_jump_ratio(p, border) < 2.0, y
+        assert _max_jump_ratio(var, border) < 2.0, y
+    # A hard switch between tiles with a short overlap does jump: the check above sees seams.
+    hard = TiledGPOM(tile_size=6.0, overlap=1.0, blend=1e-6, n_workers=1, **OPTS).fit(scans, hyperparameters=model.hyperparameters_)
+    p_hard = hard.predict_proba(np.column_stack([x, np.full_like(x, 0.1)]))
+    assert _max_jump_ratio(p_hard, border) > 5.0
+
+
+def test_update_equals_batch(room):
+    a, b = room[:14], room[14:]
+    inc = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS)
+    inc.update(a)  # fit
+    n_before = len(inc.tiles_)
+    inc.update(b)
+    assert 0 < len(inc.last_refit_) <= len(inc.tiles_)
+    batch = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS).fit(room, hyperparameters=inc.hyperparameters_)
+    assert sorted(batch.tiles_) == sorted(inc.tiles_)
+    extent = (0.0, 20.0, 0.0, 16.0)
+    gi, gb = inc.grid(0.25, extent), batch.grid(0.25, extent)
+    np.testing.assert_allclose(gi.probability, gb.probability, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(gi.variance, gb.variance, rtol=0, atol=1e-10)
+    # One more scan touches only the tiles round it.
+    inc.update(room[-1:])
+    assert len(inc.last_refit_) < len(inc.tiles_)
+    assert n_before <= len(inc.tiles_)
+
+
+def _dying_fit(payload):
+    """Kill the worker process the first time tile (1, 1) is fitted (marker file records it)."""
+    marker = Path(os.environ[MARKER_ENV])
+    if tuple(payload["key"]) == (1, 1) and not marker.exists():
+        marker.write_text("died")
+        os._exit(17)
+    return _REAL_FIT(payload)
+
+
+def _always_failing_fit(payload):
+    if tuple(payload["key"]) == (1, 1):
+        raise RuntimeError("disk on fire")
+    return _REAL_FIT(payload)
+
+
+@pytest.fixture(scope="module")
+def reference(room):
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS).fit(room)
+    return model.hyperparameters_, model.grid(0.25, (0.0, 20.0, 0.0, 16.0))
+
+
+def _same(grid_a, grid_b):
+    np.testing.assert_allclose(grid_a.probability, grid_b.probability, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(grid_a.variance, grid_b.variance, rtol=0, atol=1e-10)
+
+
+def test_process_pool_matches_in_process(room, reference):
+    hyp, ref = reference
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
+
+
+def test_dead_worker_is_retried(room, reference, tmp_path, monkeypatch):
+    hyp, ref = reference
+    marker = tmp_path / "died"
+    monkeypatch.setenv(MARKER_ENV, str(marker))
+    monkeypatch.setattr(tiles, "fit_tile_task", _dying_fit)
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    assert marker.exists()  # a worker really died
+    assert (1, 1) in model.tiles_
+    _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
+
+
+@pytest.mark.parametrize("n_workers", [1, 2])
+def test_failing_tile_raises_naming_it(room, reference, monkeypatch, n_workers):
+    hyp, _ = reference
+    monkeypatch.setattr(tiles, "fit_tile_task", _always_failing_fit)
+    with pytest.raises(GpomapError, match=r"tile \(1, 1\).*disk on fire"):
+        TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=n_workers, **OPTS).fit(room, hyperparameters=hyp)
+
+
+def test_dask_local_cluster_matches_in_process(room, reference, tmp_path, monkeypatch):
+    distributed = pytest.importorskip("distributed")
+    hyp, ref = reference
+    marker = tmp_path / "died"
+    monkeypatch.setenv(MARKER_ENV, str(marker))  # before the workers start, so they see it
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as cluster, distributed.Client(cluster) as client:
+        by_address = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=cluster.scheduler_address, **OPTS)
+        _same(by_address.fit(room, hyperparameters=hyp).grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
+        # A worker dies mid-run: Dask (or our one retry) reruns the tile; nothing goes missing.
+        monkeypatch.setattr(tiles, "fit_tile_task", _dying_fit)
+        model = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=client, **OPTS).fit(room, hyperparameters=hyp)
+        assert marker.exists()
+        _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
