@@ -130,10 +130,10 @@ class SupportGP:
         noise_model: str = "constant",
         objective: str = "loo",
         optimise: bool = True,
-        n_restarts: int = 2,
+        n_restarts: int = 1,
         seed: int = 0,
         max_iter: int = 100,
-        hyper_subset: int | None = 600,
+        hyper_subset: int | None = 300,
     ) -> None:
         if objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
@@ -320,7 +320,7 @@ class SupportGP:
         best = None
         values = []
         for s in starts:
-            res = minimize(neg, s, jac=True, method="L-BFGS-B", bounds=free_bounds, options={"maxiter": self.max_iter})
+            res = minimize(neg, s, jac=True, method="L-BFGS-B", bounds=free_bounds, options={"maxiter": self.max_iter, "ftol": 1e-7})
             values.append(float(-res.fun))
             if best is None or res.fun < best.fun:
                 best = res

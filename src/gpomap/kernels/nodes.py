@@ -121,10 +121,10 @@ def weighted_gram(
     K : ndarray of shape (n, m)
     dK : ndarray of shape (n, m, 2) or None
     """
+    symmetric = A is B
     n, m = len(A), len(B)
     K = np.empty((n, m))
     dK = np.empty((n, m, 2)) if eval_gradient else None
-    b_starts = B.offsets[:-1]
     n_b = B.nodes.shape[0]
     start = 0
     while start < n:
@@ -133,17 +133,25 @@ def weighted_gram(
         stop = int(np.searchsorted(A.offsets, limit, side="right")) - 1
         stop = min(max(stop, start + 1), n)
         a = A.slice(start, stop)
-        d2 = squared_distances(a.nodes, B.nodes)
+        # For K(A, A) only the columns from this block on are needed: the rest is the
+        # transpose of blocks already done.
+        first = start if symmetric else 0
+        b = B.slice(first, m)
+        d2 = squared_distances(a.nodes, b.nodes)
         res = kernel.from_sqdist(d2, eval_gradient)
         kp, dkp = (res if eval_gradient else (res, None))
         wa = a.weights[:, None]
-        a_starts = a.offsets[:-1]
+        a_starts, b_starts = a.offsets[:-1], b.offsets[:-1]
         # Weighted sums over B's nodes per input of B, then over A's nodes per input of A.
-        kb = np.add.reduceat(kp * B.weights[None, :], b_starts, axis=1)
-        K[start:stop] = np.add.reduceat(kb * wa, a_starts, axis=0)
+        kb = np.add.reduceat(kp * b.weights[None, :], b_starts, axis=1)
+        K[start:stop, first:] = np.add.reduceat(kb * wa, a_starts, axis=0)
         if eval_gradient:
-            db = np.add.reduceat(dkp * B.weights[None, :, None], b_starts, axis=1)
-            dK[start:stop] = np.add.reduceat(db * wa[:, :, None], a_starts, axis=0)
+            db = np.add.reduceat(dkp * b.weights[None, :, None], b_starts, axis=1)
+            dK[start:stop, first:] = np.add.reduceat(db * wa[:, :, None], a_starts, axis=0)
+        if symmetric:
+            K[stop:, start:stop] = K[start:stop, stop:].T
+            if eval_gradient:
+                dK[stop:, start:stop] = dK[start:stop, stop:].transpose(1, 0, 2)
         start = stop
     return K, dK
 

@@ -1,0 +1,456 @@
+"""The ``gpomap`` command: a thin layer over the library.
+
+Each subcommand parses its options, calls library functions, prints a short summary, and turns
+errors into one line on stderr (``gpomap: error: ...``) with a non-zero exit code. ``--debug``
+shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from gpomap import __version__
+from gpomap.errors import GpomapError
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+
+
+# --------------------------------------------------------------------------- parsing helpers
+def _extent(text: str) -> tuple[float, float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"extent must be XMIN,XMAX,YMIN,YMAX in metres, got {text!r}") from None
+    if len(values) != 4 or not (values[0] < values[1] and values[2] < values[3]):
+        raise argparse.ArgumentTypeError(f"extent must be XMIN,XMAX,YMIN,YMAX with XMIN<XMAX and YMIN<YMAX, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def _pair(text: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two numbers FREE,OCCUPIED, got {text!r}") from None
+    if not 0 <= lo <= hi <= 1:
+        raise argparse.ArgumentTypeError(f"thresholds must satisfy 0 <= FREE <= OCCUPIED <= 1, got {text!r}")
+    return lo, hi
+
+
+def _scan_range(text: str) -> tuple[int | None, int | None]:
+    parts = text.split(":")
+    try:
+        if len(parts) != 2:
+            raise ValueError
+        return tuple(int(p) if p else None for p in parts)  # type: ignore[return-value]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"range must be FIRST:LAST (scan indices, LAST excluded), got {text!r}") from None
+
+
+def _positive(kind: type) -> Any:
+    def parse(text: str) -> Any:
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
+        if v <= 0:
+            raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+        return v
+
+    return parse
+
+
+def _status(args: argparse.Namespace, message: str) -> None:
+    if not getattr(args, "quiet", False):
+        print(message, file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------- shared options
+def _add_reader_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("reading the input")
+    g.add_argument("--angles", choices=["gmapping", "linspace"], default="gmapping",
+                   help="CARMEN FLASER beam-angle convention (default: %(default)s)")
+    g.add_argument("--max-range", type=_positive(float), help="sensor max range in metres (readings at or above it are no-return)")
+    g.add_argument("--topic", help="ROS bag: sensor_msgs/LaserScan topic (default: the only one)")
+    g.add_argument("--fixed-frame", help="ROS bag: fixed frame of the poses, from /tf (default: odom)")
+    g.add_argument("--odom-topic", help="ROS bag: take poses from this nav_msgs/Odometry topic instead of /tf")
+    g.add_argument("--time-offset", type=float, default=0.0, help="ROS bag: seconds added to scan stamps before the pose lookup")
+
+
+def _reader_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
+    from gpomap.io import detect_format
+
+    fmt = detect_format(path)
+    if fmt == "carmen":
+        opts: dict[str, Any] = {"angles": args.angles}
+    else:
+        opts = {"topic": args.topic, "fixed_frame": args.fixed_frame, "odom_topic": args.odom_topic, "time_offset": args.time_offset}
+    if args.max_range is not None:
+        opts["max_range"] = args.max_range
+    return opts
+
+
+def _add_selection_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("selecting data")
+    g.add_argument("--range", dest="scan_range", type=_scan_range, metavar="FIRST:LAST",
+                   help="use only this window of consecutive scans (LAST excluded)")
+    g.add_argument("--scans", type=_positive(int), metavar="N", help="thin to N evenly spaced scans")
+    g.add_argument("--beams", type=_positive(int), metavar="M", help="keep M evenly spaced beams per scan")
+
+
+def _add_model_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("the model")
+    g.add_argument("--kernel", choices=["matern32", "se"], default="matern32", help="point kernel (default: %(default)s)")
+    g.add_argument("--area", choices=["exact", "quadrature", "summed"],
+                   help="area-kernel computation (default: exact for se, quadrature for matern32)")
+    g.add_argument("--normalisation", choices=["mean", "sum"], default="mean", help="area-kernel normalisation (default: %(default)s)")
+    g.add_argument("--objective", choices=["loo", "lml"], default="loo", help="hyperparameter objective (default: %(default)s)")
+    g.add_argument("--free-step", type=_positive(float), default=0.2, help="free-point spacing along beams, m (default: %(default)s)")
+    g.add_argument("--min-cell", type=_positive(float), default=0.5, help="smallest cell side, m (default: %(default)s)")
+    g.add_argument("--max-cell", type=_positive(float), default=3.0, help="largest pure cell side, m (default: %(default)s)")
+    g.add_argument("--length-scale", type=_positive(float), help="fix the length scale (m) instead of learning it")
+    g.add_argument("--seed", type=int, default=0, help="seed of restarts and samples (default: %(default)s)")
+
+
+def _model_options(args: argparse.Namespace) -> dict[str, Any]:
+    opts: dict[str, Any] = {
+        "kernel": args.kernel,
+        "area": args.area,
+        "normalisation": args.normalisation,
+        "objective": args.objective,
+        "free_step": args.free_step,
+        "min_cell": args.min_cell,
+        "max_cell": args.max_cell,
+        "seed": args.seed,
+    }
+    if args.length_scale is not None:
+        opts["length_scale"] = args.length_scale
+        opts["optimise"] = False
+    if opts["min_cell"] > opts["max_cell"]:
+        raise GpomapError(f"--min-cell ({args.min_cell}) must not exceed --max-cell ({args.max_cell})")
+    return opts
+
+
+def _add_output_options(p: argparse.ArgumentParser, default_resolution: float | None) -> None:
+    g = p.add_argument_group("the output")
+    g.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="directory for map.yaml, map.pgm, map.npz, map.png")
+    g.add_argument("--resolution", type=_positive(float), default=default_resolution,
+                   help="grid cell side of the written map, m" + (" (default: %(default)s)" if default_resolution else ""))
+    g.add_argument("--extent", type=_extent, metavar="XMIN,XMAX,YMIN,YMAX", help="region of the written map (default: the data's)")
+    g.add_argument("--thresholds", type=_pair, default=(0.33, 0.66), metavar="FREE,OCCUPIED",
+                   help="ternary-map thresholds (default: 0.33,0.66)")
+    g.add_argument("--pgm-mode", choices=["trinary", "scale"], default="trinary",
+                   help="map_server image: ternary map or probability grey levels (default: %(default)s)")
+
+
+def _print_summary(summary: dict[str, Any], files: Sequence[Path]) -> None:
+    hp = summary.get("hyperparameters", {})
+    t = summary.get("timings", {})
+    lines = []
+    if "n_scans" in summary:
+        lines.append(f"scans        {summary['n_scans']}")
+    lines.append(f"points       {summary.get('n_free_points', 0)} free, {summary.get('n_occupied_points', 0)} occupied"
+                 f" ({summary.get('n_no_return_readings', 0)} no-return, {summary.get('n_invalid_readings', 0)} invalid readings)")
+    lines.append(f"cells        {summary.get('n_cells')} ({summary.get('n_ambiguous_cells', 0)} from ambiguous min-size cells)")
+    lines.append(f"model        {summary.get('kernel')} kernel, {summary.get('area')} area kernel, {summary.get('normalisation')} normalisation, "
+                 f"{summary.get('objective')} objective")
+    lines.append("hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()))
+    lines.append("timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in t.items()) + f"; total {sum(t.values()):.2f}")
+    lines += [f"wrote        {f}" for f in files]
+    print("\n".join(lines))
+
+
+# --------------------------------------------------------------------------- subcommands
+def _fit_and_write(args: argparse.Namespace, data: Any, n_scans: int | None, title: str) -> int:
+    from gpomap.io.export import write_map_outputs
+    from gpomap.mapping import AreaGPOM
+
+    opts = _model_options(args)
+    model = AreaGPOM(thresholds=args.thresholds, **opts)
+    _status(args, f"fitting MSK-GPOM ({args.kernel})...")
+    model.fit(data)
+    _status(args, f"  {model.n_inputs_} cells, hyperparameters learnt in {model.timings_['hyperparameters']:.2f} s")
+    _status(args, f"predicting the map at {args.resolution} m...")
+    occupancy_map = model.grid(args.resolution, args.extent)
+    ny, nx = occupancy_map.grid.shape
+    _status(args, f"  {nx} x {ny} cells in {model.timings_['prediction']:.2f} s; writing {args.output}/")
+    files = write_map_outputs(occupancy_map, args.output, pgm_mode=args.pgm_mode, title=title)
+    summary = model.summary()
+    if n_scans is not None:
+        summary = {"n_scans": n_scans, **summary}
+    _print_summary(summary, files)
+    return EXIT_OK
+
+
+def _load_scans(args: argparse.Namespace) -> list:
+    from gpomap.io import read_scans
+    from gpomap.scans import select_scans
+
+    scans = read_scans(args.input, **_reader_options(args, args.input))
+    if args.scan_range is not None:
+        first, last = args.scan_range
+        scans = scans[slice(first, last)]
+        if not scans:
+            raise GpomapError(f"--range {first}:{last} selects no scans from {args.input} ({len(scans)} scans)")
+    return select_scans(scans, args.scans, args.beams)
+
+
+def cmd_map(args: argparse.Namespace) -> int:
+    path = Path(args.input)
+    if path.suffix.lower() in (".csv", ".npz"):
+        from gpomap.io import read_points
+
+        _status(args, f"reading labelled points from {path}...")
+        return _fit_and_write(args, read_points(path), None, f"gpomap: {path.name}")
+    _status(args, f"reading scans from {path}...")
+    scans = _load_scans(args)
+    _status(args, f"  {len(scans)} scans of {scans[0].n_beams} beams")
+    return _fit_and_write(args, scans, len(scans), f"gpomap: {path.name}")
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from gpomap.plot import plot_inputs, save_figure
+    from gpomap.simulate import paper_room_scans
+
+    scans = paper_room_scans()
+    _status(args, f"simulated the paper's synthetic room: {len(scans)} poses x {scans[0].n_beams} beams over 360 degrees")
+    code = _fit_and_write(args, scans, len(scans), "gpomap demo: the paper's synthetic room")
+    # The cell tree as a figure too (the paper's Fig. 5a), rebuilt cheaply from the same data.
+    from gpomap.cells import build_cells
+    from gpomap.observations import observations_from_scans
+
+    obs = observations_from_scans(scans, args.free_step)
+    cells = build_cells(obs.points, obs.occupied, args.min_cell, args.max_cell)
+    fig = plot_inputs(obs.points, obs.occupied, boxes=cells.boxes, box_labels=cells.labels)
+    path = save_figure(fig, Path(args.output) / "cells.png")
+    print(f"wrote        {path}")
+    return code
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from gpomap.io import describe
+
+    info = describe(args.input, **_reader_options(args, args.input))
+    if args.json:
+        print(json.dumps(info, indent=2, default=str))
+        return EXIT_OK
+    for key, value in info.items():
+        if isinstance(value, (tuple, list)) and value and all(isinstance(v, float) for v in value):
+            value = ", ".join(f"{v:.3f}" for v in value)
+        print(f"{key:<16}{value}")
+    return EXIT_OK
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from gpomap.evaluation import evaluate
+
+    if args.demo == (args.input is not None):
+        raise GpomapError("give either INPUT or --demo")
+    if args.demo:
+        from gpomap.simulate import paper_room_scans
+
+        scans, source = paper_room_scans(), "demo: the paper's synthetic room"
+    else:
+        from gpomap.io import read_scans
+
+        scans, source = read_scans(args.input, **_reader_options(args, args.input)), args.input
+    _status(args, f"evaluating {args.method} on {source} ({len(scans)} scans)...")
+    options: dict[str, Any] = {}
+    if args.method in ("msk", "gpom"):
+        options["free_step"] = args.free_step
+    if args.method == "msk":
+        options.update(min_cell=args.min_cell, max_cell=args.max_cell, objective=args.objective)
+        if args.area:
+            options["area"] = args.area
+    result = evaluate(
+        scans,
+        method=args.method,
+        kernel=args.kernel,
+        holdout=args.holdout,
+        n_scans=args.scans,
+        n_beams=args.beams,
+        scan_range=args.scan_range,
+        seed=args.seed,
+        resolution=args.resolution,
+        **options,
+    )
+    result["settings"]["input"] = source
+    if args.json:
+        print(json.dumps(result, default=str))
+        return EXIT_OK
+    s = result["seconds"]
+    print(f"method        {args.method} ({args.kernel})" if args.method != "ogm" else "method        ogm")
+    print(f"data          {source}: {result['n_train_scans']} training scans, {result['n_test_scans']} held-out scans ({args.holdout})")
+    print(f"inputs        {result['n_inputs']}")
+    print(f"test points   {result['n_test_points']} (balanced)")
+    print(f"ROC AUC       {result['auc']:.4f}")
+    print(f"FPR@TPR=95%   {100 * result['fpr_at_tpr95']:.2f} %")
+    print(f"log loss      {result['log_loss']:.4f}")
+    print("seconds       " + ", ".join(f"{k} {v:.3f}" for k, v in s.items()))
+    return EXIT_OK
+
+
+def cmd_convert(args: argparse.Namespace) -> int:
+    from gpomap.convert import convert_grid
+    from gpomap.io.export import write_map_outputs
+
+    _status(args, f"converting {args.input}...")
+    options: dict[str, Any] = {"thresholds": args.thresholds}
+    if args.kernel:
+        options["kernel"] = args.kernel
+    result = convert_grid(args.input, resolution=args.resolution, extent=args.extent, **options)
+    files = write_map_outputs(result.map, args.output, pgm_mode=args.pgm_mode, title=f"gpomap convert: {Path(args.input).name}")
+    r = result.report
+    print(json.dumps(r, indent=2, default=str) if args.json else _convert_text(r))
+    for f in files:
+        print(f"wrote        {f}")
+    return EXIT_OK
+
+
+def _convert_text(report: dict[str, Any]) -> str:
+    px, cells, agree = report["pixels"], report["cells"], report["agreement"]
+    hp = report["hyperparameters"]
+    return "\n".join(
+        [
+            f"pixels       {px.get('free')} free, {px.get('occupied')} occupied, {px.get('unknown')} unknown",
+            f"cells        {cells.get('n')}",
+            "hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()),
+            f"agreement    {100 * agree['overall']:.2f} % of known pixels keep their label (AUC {agree['auc']:.4f})",
+            "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in report["timings"].items()),
+        ]
+    )
+
+
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    from gpomap.benchmark import run_paper_benchmark
+
+    if not args.paper:
+        raise GpomapError("choose a benchmark: --paper (the paper's Tables II and III)")
+    result = run_paper_benchmark(args.output, quick=args.quick, seed=args.seed, progress=lambda m: _status(args, m))
+    table = Path(args.output) / "tables.md"
+    if table.exists():
+        print(table.read_text())
+    return EXIT_OK if result is not None else EXIT_ERROR
+
+
+# --------------------------------------------------------------------------- the parser
+EPILOG_MAP = """examples:
+  gpomap map ../shared/data/intel/intel-corrected.log.gz -o intel-map --scans 200 --beams 90
+  gpomap map robot1.bag --topic /base_scan --fixed-frame odom --time-offset 0.1 -o arena --resolution 0.05
+  gpomap map points.csv -o out --kernel se      (CSV with header x,y,occupied)
+"""
+EPILOG_EVALUATE = """examples:
+  gpomap evaluate --demo --method msk --kernel se
+  gpomap evaluate ../shared/data/belgioioso/belgioioso-corrected.log.gz --method gpomik --scans 52 --beams 37 --json
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``gpomap`` command."""
+    parser = argparse.ArgumentParser(
+        prog="gpomap",
+        description="Continuous occupancy maps from laser scans or occupancy grids with area-kernel Gaussian processes (MSK-GPOM).",
+        epilog="Run 'gpomap COMMAND --help' for a command's options. Start with 'gpomap demo -o demo-output'.",
+    )
+    parser.add_argument("--version", action="version", version=f"gpomap {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    fmt = argparse.RawDescriptionHelpFormatter
+
+    p = sub.add_parser("map", help="map a CARMEN log, ROS bag or labelled points", epilog=EPILOG_MAP, formatter_class=fmt,
+                       description="Fit MSK-GPOM to range data and write map.yaml/.pgm (ROS map_server), map.npz and map.png.")
+    p.add_argument("input", help="CARMEN log (.log, .gz), ROS bag (.bag, ROS2 directory, .db3, .mcap), or points (.csv, .npz)")
+    _add_reader_options(p)
+    _add_selection_options(p)
+    _add_model_options(p)
+    _add_output_options(p, 0.1)
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=cmd_map)
+
+    p = sub.add_parser("demo", help="map the paper's synthetic room (built-in simulator)", formatter_class=fmt,
+                       description="The paper's synthetic room: 31 poses x 36 noiseless beams, mapped end to end.",
+                       epilog="example:\n  gpomap demo -o demo-output")
+    _add_model_options(p)
+    _add_output_options(p, 0.5)
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("info", help="what a range-data file holds", formatter_class=fmt,
+                       description="Format, scans, beams, extent and max range of a CARMEN log or ROS bag.",
+                       epilog="example:\n  gpomap info ../shared/data/fr079/freiburg-079-corrected.log.gz")
+    p.add_argument("input")
+    _add_reader_options(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("evaluate", help="score a method on held-out scans", epilog=EPILOG_EVALUATE, formatter_class=fmt,
+                       description="Fit a method on training scans and report ROC AUC, FPR at TPR=95 %%, log loss and "
+                       "stage timings on held-out scans (never trained on).")
+    p.add_argument("input", nargs="?", help="CARMEN log or ROS bag (or --demo)")
+    p.add_argument("--demo", action="store_true", help="use the built-in synthetic room")
+    p.add_argument("--method", choices=["msk", "gpomik", "gpom", "ogm"], default="msk", help="(default: %(default)s)")
+    p.add_argument("--holdout", default="every:5", metavar="every:K|blocks:LEN",
+                   help="held-out scans: every K-th, or blocks of LEN consecutive scans (default: %(default)s)")
+    p.add_argument("--resolution", type=_positive(float), default=0.1, help="OGM cell side, m (default: %(default)s)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    _add_reader_options(p)
+    _add_selection_options(p)
+    _add_model_options(p)
+    p.set_defaults(kernel="se")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("convert", help="turn an occupancy grid into a continuous GP map", formatter_class=fmt,
+                       description="Read a ROS map_server map (or a gpomap .npz), merge its known pixels into cells, fit "
+                       "the GP and write the continuous map at any resolution.",
+                       epilog="examples:\n  gpomap convert ../shared/data/turtlebot3-world-map/map.yaml -o tb3 --resolution 0.025")
+    p.add_argument("input", help="map.yaml (ROS map_server) or map.npz")
+    p.add_argument("--kernel", choices=["se", "matern32"], help="point kernel (default: se, measured best for grids)")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    _add_output_options(p, None)
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=cmd_convert)
+
+    p = sub.add_parser("benchmark", help="reproduce the paper's Tables II and III", formatter_class=fmt,
+                       description="Run every method on the synthetic room and on Belgioioso; write tables.md, ROC curves and map figures.",
+                       epilog="example:\n  gpomap benchmark --paper -o paper-results")
+    p.add_argument("--paper", action="store_true", help="the paper's two experiments")
+    p.add_argument("-o", "--output", required=True, metavar="OUTDIR")
+    p.add_argument("--quick", action="store_true", help="a small, fast version (smoke test)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=cmd_benchmark)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``gpomap`` command; returns the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return EXIT_USAGE
+    try:
+        return args.func(args)
+    except (GpomapError, OSError, ValueError) as exc:
+        if args.debug:
+            raise
+        message = str(exc)
+        if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in message:
+            message = f"{exc.filename}: {message}"
+        print(f"gpomap: error: {message}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print("gpomap: interrupted; no partial output was written", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
