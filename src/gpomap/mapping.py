@@ -94,7 +94,7 @@ class AreaGPOM:
         noise: float = 0.1,
         length_scale_bounds: tuple[float, float] = (0.05, 20.0),
         noise_bounds: tuple[float, float] = (1e-4, 10.0),
-        noise_model: str = "constant",
+        noise_model: str = "per_count",
         objective: str = "loo",
         optimise: bool = True,
         n_restarts: int = 1,

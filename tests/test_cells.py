@@ -1,0 +1,69 @@
+"""The cell tree: partition, purity, size thresholds, ambiguous cells."""
+
+import numpy as np
+import pytest
+
+from gpomap.cells import build_cells
+from gpomap.errors import EmptyDataError
+from gpomap.observations import observations_from_scans
+from gpomap.simulate import paper_room_scans
+
+
+@pytest.fixture(scope="module")
+def room():
+    obs = observations_from_scans(paper_room_scans(), free_step=0.2)
+    return obs, build_cells(obs.points, obs.occupied, min_cell=0.5, max_cell=3.0)
+
+
+def test_every_point_in_exactly_one_cell(room):
+    obs, cells = room
+    order = np.sort(cells.member_order)
+    np.testing.assert_array_equal(order, np.arange(len(obs.points)))
+    owner = cells.cell_of_point()
+    for i in range(0, len(cells), 37):
+        np.testing.assert_array_equal(np.flatnonzero(owner == i), np.sort(cells.member_order[cells.member_offsets[i]:cells.member_offsets[i + 1]]))
+
+
+def test_cells_are_pure_and_hold_their_points(room):
+    obs, cells = room
+    for i in range(len(cells)):
+        idx = cells.member_order[cells.member_offsets[i]:cells.member_offsets[i + 1]]
+        assert idx.size > 0, "empty cells are dropped"
+        assert np.all(obs.occupied[idx] == cells.occupied[i])
+        pts = obs.points[idx]
+        assert np.all(pts >= cells.lower[i] - 1e-12) and np.all(pts <= cells.upper[i] + 1e-12)
+
+
+def test_size_thresholds(room):
+    _, cells = room
+    side = (cells.node_upper - cells.node_lower).max(axis=1)
+    assert side.max() <= 3.0 + 1e-9, "pure cells above max_cell split on"
+    # Only cells that stopped on size may be ambiguous, and those are below min_cell.
+    assert np.all(side[cells.ambiguous] < 0.5)
+    # A min-size cell holding both classes becomes two cells over the same node, one per class.
+    amb = np.flatnonzero(cells.ambiguous)
+    assert amb.size > 0 and amb.size % 2 == 0
+    pairs = cells.node_lower[amb].round(9)
+    _, counts = np.unique(pairs, axis=0, return_counts=True)
+    assert np.all(counts == 2)
+
+
+def test_hand_made_case():
+    # Four free points on the left, two hits on the right of a 4 x 1 box: one split separates them.
+    pts = np.array([[0.0, 0.0], [0.5, 1.0], [1.0, 0.5], [1.5, 0.2], [3.0, 0.5], [4.0, 1.0]])
+    occ = np.array([False, False, False, False, True, True])
+    cells = build_cells(pts, occ, min_cell=0.1, max_cell=10.0)
+    assert len(cells) == 2
+    left = int(np.argmin(cells.lower[:, 0]))
+    np.testing.assert_allclose(cells.lower[left], [0.0, 0.0])
+    np.testing.assert_allclose(cells.upper[left], [2.0, 1.0])
+    assert not cells.occupied[left] and cells.occupied[1 - left]
+    tight = build_cells(pts, occ, min_cell=0.1, max_cell=10.0, box="tight")
+    np.testing.assert_allclose(tight.upper[np.argmin(tight.lower[:, 0])], [1.5, 1.0])
+
+
+def test_bad_arguments():
+    with pytest.raises(EmptyDataError):
+        build_cells(np.zeros((0, 2)), np.zeros(0, bool))
+    with pytest.raises(ValueError, match="min_cell <= max_cell"):
+        build_cells(np.zeros((2, 2)), np.zeros(2, bool), min_cell=2.0, max_cell=1.0)

@@ -1,0 +1,112 @@
+"""The GP core: objectives and their gradients, optimisation, leave-one-out moments, Cholesky."""
+
+import numpy as np
+import pytest
+
+from gpomap.errors import NumericalError
+from gpomap.gp import SupportGP, robust_cholesky
+from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
+from gpomap.squash import ProbitSquash, loo_moments, loo_probit
+from gpomap.supports import Supports
+
+
+def _data(seed=0, n=25):
+    rng = np.random.default_rng(seed)
+    lower = rng.uniform(0, 5, (n, 2))
+    upper = lower + rng.uniform(0.1, 1.0, (n, 2))
+    y = np.where(lower[:, 0] + 0.3 * rng.normal(size=n) > 2.5, 1.0, -1.0)
+    return Supports.from_boxes(lower, upper, rng.integers(1, 30, n).astype(float)), y
+
+
+def _fd(f, x, eps=1e-6):
+    g = np.empty_like(x)
+    for j in range(x.size):
+        up, down = x.copy(), x.copy()
+        up[j] += eps
+        down[j] -= eps
+        g[j] = (f(up) - f(down)) / (2 * eps)
+    return g
+
+
+KERNELS = [AreaKernel(SquaredExponential(1.2, 0.9), "exact"), AreaKernel(Matern32(0.8, 1.3), "quadrature")]
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=["se-exact", "matern-quadrature"])
+@pytest.mark.parametrize("noise_model", ["constant", "per_count"])
+def test_lml_gradient_matches_finite_differences(kernel, noise_model):
+    X, y = _data()
+    gp = SupportGP(kernel, noise_model=noise_model)
+    params = np.array([np.log(1.2), np.log(0.9), np.log(0.05)])
+    _, grad = gp.log_marginal_likelihood(X, y, params, eval_gradient=True)
+    np.testing.assert_allclose(grad, _fd(lambda p: gp.log_marginal_likelihood(X, y, p), params), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=["se-exact", "matern-quadrature"])
+@pytest.mark.parametrize("noise_model", ["constant", "per_count"])
+def test_loo_gradient_matches_finite_differences(kernel, noise_model):
+    X, y = _data(1)
+    gp = SupportGP(kernel, noise_model=noise_model)
+    params = np.array([0.0, np.log(1.1), np.log(0.2), np.log(1.7), -0.3])
+    _, grad = gp.loo_objective(X, y, params, eval_gradient=True)
+    np.testing.assert_allclose(grad, _fd(lambda p: gp.loo_objective(X, y, p), params), rtol=1e-5, atol=1e-6)
+
+
+def test_lml_by_hand_for_one_input():
+    # One point with k = 2 and noise 0.5: y ~ N(0, 2.5).
+    X = Supports.from_points(np.array([[0.0, 0.0]]))
+    gp = SupportGP(AreaKernel(SquaredExponential(2.0, 1.0), "exact"))
+    value = gp.log_marginal_likelihood(X, np.array([1.0]), np.log([2.0, 1.0, 0.5]))
+    assert value == pytest.approx(-0.5 * 1 / 2.5 - 0.5 * np.log(2.5) - 0.5 * np.log(2 * np.pi))
+
+
+@pytest.mark.parametrize("objective", ["lml", "loo"])
+def test_optimisation_improves_its_objective(objective):
+    X, y = _data(2, 40)
+    kernel = AreaKernel(SquaredExponential(1.0, 3.0), "exact")
+    gp = SupportGP(kernel, noise=1.0, objective=objective, n_restarts=1)
+    if objective == "lml":
+        start = gp.log_marginal_likelihood(X, y, np.array([0.0, np.log(3.0), 0.0]))
+    else:
+        start = gp.loo_objective(X, y, np.array([0.0, np.log(3.0), 0.0, 0.0, 0.0]))
+    gp.fit(X, y)
+    assert gp.fit_report_.value > start + 1.0
+    assert gp.fit_report_.n_evaluations > 2
+
+
+def test_loo_moments_equal_refitting_without_the_point():
+    X, y = _data(3, 15)
+    kernel = AreaKernel(Matern32(1.0, 1.2), "quadrature")
+    noise = 0.3
+    K = kernel(X) + noise * np.eye(len(X))
+    mu, var = loo_moments(np.linalg.inv(K), y)
+    for i in range(len(X)):
+        keep = np.delete(np.arange(len(X)), i)
+        Kk = K[np.ix_(keep, keep)]
+        k = K[keep, i]
+        assert mu[i] == pytest.approx(k @ np.linalg.solve(Kk, y[keep]), rel=1e-8)
+        assert var[i] == pytest.approx(K[i, i] - k @ np.linalg.solve(Kk, k), rel=1e-8)
+
+
+def test_squash_fit_raises_the_loo_probability():
+    rng = np.random.default_rng(4)
+    y = np.where(rng.random(200) < 0.4, 1.0, -1.0)
+    mu = 0.6 * y + 0.5 * rng.normal(size=200) - 0.2
+    var = rng.uniform(0.05, 0.3, 200)
+    before = loo_probit(y, mu, var, 1.0, 0.0)[0]
+    sq = ProbitSquash().fit(y, mu, var)
+    assert loo_probit(y, mu, var, sq.alpha, sq.beta)[0] > before
+    # The squash itself by hand: Phi((2 * 0.5 + 0.1) / sqrt(1 + 4 * 0.21)).
+    from scipy.stats import norm
+
+    assert ProbitSquash(2.0, 0.1)(0.5, 0.21) == pytest.approx(norm.cdf(1.1 / np.sqrt(1.84)))
+
+
+def test_robust_cholesky_adds_jitter_only_when_needed():
+    A = np.array([[2.0, 1.0], [1.0, 2.0]])
+    L, jitter = robust_cholesky(A)
+    assert jitter == 0.0 and np.allclose(L @ L.T, A)
+    singular = np.ones((3, 3))
+    L, jitter = robust_cholesky(singular)
+    assert jitter > 0 and np.allclose(L @ L.T, singular, atol=1e-6)
+    with pytest.raises(NumericalError, match="not positive definite"):
+        robust_cholesky(-np.eye(2))

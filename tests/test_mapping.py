@@ -1,0 +1,97 @@
+"""The MSK-GPOM estimator end to end on the simulated room, whose true map is known."""
+
+import numpy as np
+import pytest
+
+from gpomap.errors import EmptyDataError, NotFittedError
+from gpomap.grid import FREE, OCCUPIED
+from gpomap.mapping import AreaGPOM
+from gpomap.metrics import roc_auc
+from gpomap.observations import observations_from_scans
+from gpomap.scans import Scan
+from gpomap.simulate import paper_room, paper_room_scans, simulate_scans
+
+
+@pytest.fixture(scope="module")
+def room():
+    world, poses = paper_room()
+    rng = np.random.default_rng(7)
+    # Held-out data: other poses (the training path jittered), more beams; never trained on.
+    test_poses = poses.copy()
+    test_poses[:, :2] += rng.normal(0, 0.3, (len(poses), 2))
+    test_poses = test_poses[world.distance_to_walls(test_poses[:, :2]) > 0.5]
+    test = observations_from_scans(simulate_scans(world, test_poses, 90), free_step=0.2)
+    occ = np.flatnonzero(test.occupied)
+    free = rng.choice(np.flatnonzero(~test.occupied), occ.size, replace=False)
+    sel = np.concatenate([occ, free])
+    return world, paper_room_scans(), test.points[sel], test.occupied[sel]
+
+
+@pytest.fixture(scope="module", params=["se", "matern32"])
+def fitted(request, room):
+    _, scans, _, _ = room
+    return AreaGPOM(kernel=request.param).fit(scans)
+
+
+def test_held_out_auc_is_high(fitted, room):
+    _, _, points, labels = room
+    # Measured 0.98 for both kernels with the defaults; chance is 0.5, the paper 0.93-0.94.
+    assert roc_auc(labels, fitted.predict_proba(points)) > 0.95
+
+
+def test_map_is_right_at_the_walls_and_in_open_space(fitted, room):
+    world, scans, _, _ = room
+    rng = np.random.default_rng(3)
+    walls = world.walls
+    t = rng.random(400)
+    seg = walls[rng.integers(len(walls), size=400)]
+    on_wall = seg[:, :2] + t[:, None] * (seg[:, 2:] - seg[:, :2])
+    # Only wall points the robot saw: near some training hit.
+    hits = np.concatenate([s.hits() for s in scans])
+    seen = np.min(np.linalg.norm(on_wall[:, None] - hits[None], axis=2), axis=1) < 0.25
+    p_wall = fitted.predict_proba(on_wall[seen])
+    assert np.mean(p_wall > 0.5) > 0.8
+    # Open floor at least a metre from every wall, inside the room.
+    grid = rng.uniform([0.5, 0.5], [19.5, 15.5], (2000, 2))
+    open_floor = grid[(world.distance_to_walls(grid) > 1.0) & ~world.inside_obstacle(grid)]
+    assert np.mean(fitted.predict_proba(open_floor) < 0.5) > 0.95
+
+
+def test_grid_and_ternary(fitted):
+    m = fitted.grid(0.5)
+    assert m.grid.shape == (32, 40)
+    assert np.all((m.probability >= 0) & (m.probability <= 1))
+    assert np.all(m.variance >= 0)
+    assert (m.ternary == FREE).sum() > (m.ternary == OCCUPIED).sum() > 0
+    p, v = fitted.predict_proba(m.grid.centres()[:50], return_var=True)
+    np.testing.assert_allclose(p, m.probability.ravel()[:50])
+    mean, var = fitted.predict(m.grid.centres()[:50], return_var=True)
+    np.testing.assert_allclose(var, v)
+    summary = fitted.summary()
+    assert summary["n_cells"] == fitted.n_inputs_ > 100
+    assert set(summary["hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta"}
+    assert {"observations", "cells", "hyperparameters", "squash", "prediction"} <= set(summary["timings"])
+
+
+def test_fixed_hyperparameters_are_kept():
+    m = AreaGPOM(kernel="se", length_scale=0.7, noise=0.05, optimise=False).fit(paper_room_scans())
+    assert m.hyperparameters_["length_scale"] == 0.7 and m.hyperparameters_["noise"] == 0.05
+    assert m.gp_.fit_report_ is None
+
+
+def test_errors_are_clear():
+    with pytest.raises(NotFittedError, match="call fit"):
+        AreaGPOM().predict_proba(np.zeros((1, 2)))
+    only_free = [Scan([0, 0, 0], [0.0, 1.0], [5.0, 5.0], 5.0)]
+    with pytest.raises(EmptyDataError, match="need both free and occupied"):
+        AreaGPOM().fit(only_free)
+    with pytest.raises(ValueError, match="shape"):
+        AreaGPOM(kernel="se", optimise=False).fit(paper_room_scans()).predict(np.zeros(3))
+
+
+def test_get_and_set_params():
+    m = AreaGPOM(kernel="se", min_cell=0.3)
+    assert m.get_params()["min_cell"] == 0.3
+    assert m.set_params(max_cell=2.0).max_cell == 2.0
+    with pytest.raises(ValueError, match="unknown parameter"):
+        m.set_params(bogus=1)
