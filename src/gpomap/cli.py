@@ -322,8 +322,8 @@ def _convert_text(report: dict[str, Any]) -> str:
             f"pixels       {px.get('free')} free, {px.get('occupied')} occupied, {px.get('unknown')} unknown",
             f"cells        {cells.get('n')}",
             "hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()),
-            f"agreement    {100 * agree['overall']:.2f} % of known pixels keep their label (AUC {agree['auc']:.4f})",
-            "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in report["timings"].items()),
+            f"agreement    {100 * agree['ternary']:.2f} % of known pixels keep their label (AUC {agree['auc']:.4f})",
+            "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in report["timings"].items() if isinstance(v, float)),
         ]
     )
 

@@ -1,0 +1,111 @@
+"""The gpomap command, run as a subprocess: outputs, summaries, exit codes and error messages."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+INTEL = DATA / "intel" / "intel-corrected.log.gz"
+TB3 = DATA / "turtlebot3-world-map" / "map.yaml"
+
+
+def gpomap(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "gpomap.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def test_help_everywhere():
+    top = gpomap("--help")
+    assert top.returncode == 0 and "map" in top.stdout and "demo" in top.stdout
+    for cmd in ["map", "demo", "info", "evaluate", "convert", "benchmark"]:
+        r = gpomap(cmd, "--help")
+        assert r.returncode == 0, cmd
+        assert "example" in r.stdout, cmd
+
+
+def test_demo_writes_every_output(tmp_path):
+    r = gpomap("demo", "-o", tmp_path / "out", "--kernel", "se")
+    assert r.returncode == 0, r.stderr
+    for name in ["map.yaml", "map.pgm", "map.npz", "map.png", "cells.png"]:
+        assert (tmp_path / "out" / name).stat().st_size > 0, name
+    assert "cells" in r.stdout and "hyperparams" in r.stdout and "timings" in r.stdout
+    from gpomap.io.npz import load_map
+    from gpomap.io.rosmap import read_rosmap
+
+    m = load_map(tmp_path / "out" / "map.npz")
+    assert m.grid.shape == (32, 40) and m.grid.resolution == 0.5
+    ros = read_rosmap(tmp_path / "out" / "map.yaml")
+    np.testing.assert_array_equal(ros.occupied, m.ternary == 1)
+
+
+@pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log not present")
+def test_map_and_info_on_a_real_log(tmp_path):
+    info = gpomap("info", INTEL, "--json")
+    assert info.returncode == 0, info.stderr
+    d = json.loads(info.stdout)
+    assert d["format"] == "carmen" and d["n_scans"] == 910
+    r = gpomap("map", INTEL, "-o", tmp_path, "--range", "0:120", "--scans", "30", "--beams", "45", "--kernel", "se", "--resolution", "0.2")
+    assert r.returncode == 0, r.stderr
+    assert "scans        30" in r.stdout
+    assert (tmp_path / "map.pgm").read_bytes().startswith(b"P5")
+
+
+def test_bad_input_is_one_clear_line(tmp_path):
+    missing = gpomap("map", tmp_path / "nope.log", "-o", tmp_path / "out")
+    assert missing.returncode == 1
+    last = missing.stderr.strip().splitlines()[-1]
+    assert last.startswith("gpomap: error:") and "nope.log" in last
+    assert "Traceback" not in missing.stderr
+    assert not (tmp_path / "out").exists()
+
+    log = tmp_path / "bad.log"
+    log.write_text("FLASER 3 1.0 2.0 x 0 0 0 0 0 0 1.0 host 1.0\n")
+    bad = gpomap("map", log, "-o", tmp_path / "out2")
+    assert bad.returncode == 1
+    assert "bad.log, line 1: non-numeric field" in bad.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "out2" / "map.yaml").exists()
+
+    usage = gpomap("map", log, "-o", tmp_path, "--extent", "1,0,0,1")
+    assert usage.returncode == 2 and "XMIN<XMAX" in usage.stderr
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    r = gpomap("--debug", "info", tmp_path / "nope.log")
+    assert r.returncode != 0 and "Traceback" in r.stderr
+
+
+def test_evaluate_demo_json():
+    r = gpomap("evaluate", "--demo", "--method", "ogm", "--json")
+    assert r.returncode == 0, r.stderr
+    d = json.loads(r.stdout)
+    for key in ["auc", "fpr_at_tpr95", "log_loss", "seconds", "n_inputs", "settings"]:
+        assert key in d
+    assert 0.5 < d["auc"] <= 1.0
+    assert gpomap("evaluate", "--method", "msk").returncode == 1
+
+
+def test_points_csv_input(tmp_path):
+    from gpomap.io import write_points
+    from gpomap.observations import observations_from_scans
+    from gpomap.simulate import paper_room_scans
+
+    write_points(tmp_path / "pts.csv", observations_from_scans(paper_room_scans()[:8], free_step=0.5))
+    r = gpomap("map", tmp_path / "pts.csv", "-o", tmp_path / "out", "--kernel", "se", "--resolution", "0.5")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "out" / "map.npz").exists()
+
+
+@pytest.mark.skipif(not TB3.exists(), reason="shared TurtleBot3 map not present")
+def test_convert_writes_the_same_outputs(tmp_path):
+    r = gpomap("convert", TB3, "-o", tmp_path, "--resolution", "0.1")
+    assert r.returncode == 0, r.stderr
+    assert "agreement" in r.stdout
+    from gpomap.io.rosmap import read_rosmap
+
+    out = read_rosmap(tmp_path / "map.yaml")
+    src = read_rosmap(TB3)
+    assert out.grid.origin == src.grid.origin and out.grid.resolution == 0.1
+    assert out.grid.extent == pytest.approx(src.grid.extent)
