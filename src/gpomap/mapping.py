@@ -97,7 +97,7 @@ class AreaGPOM:
         noise_model: str = "per_count",
         objective: str = "loo",
         optimise: bool = True,
-        n_restarts: int = 1,
+        n_restarts: int = 0,
         hyper_subset: int | None = 300,
         seed: int = 0,
         quadrature_order: int = 2,

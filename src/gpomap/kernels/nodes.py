@@ -137,23 +137,43 @@ def weighted_gram(
         # transpose of blocks already done.
         first = start if symmetric else 0
         b = B.slice(first, m)
-        d2 = squared_distances(a.nodes, b.nodes)
-        res = kernel.from_sqdist(d2, eval_gradient)
-        kp, dkp = (res if eval_gradient else (res, None))
-        wa = a.weights[:, None]
-        a_starts, b_starts = a.offsets[:-1], b.offsets[:-1]
-        # Weighted sums over B's nodes per input of B, then over A's nodes per input of A.
-        kb = np.add.reduceat(kp * b.weights[None, :], b_starts, axis=1)
-        K[start:stop, first:] = np.add.reduceat(kb * wa, a_starts, axis=0)
+        kp, dkp = kernel.values(squared_distances(a.nodes, b.nodes), eval_gradient)
+        K[start:stop, first:] = _reduce(kp, a, b)
         if eval_gradient:
-            db = np.add.reduceat(dkp * b.weights[None, :, None], b_starts, axis=1)
-            dK[start:stop, first:] = np.add.reduceat(db * wa[:, :, None], a_starts, axis=0)
+            # d/dlog(variance) of a variance-scaled kernel is the kernel itself.
+            dK[start:stop, first:, 1] = _reduce(dkp, a, b)
         if symmetric:
             K[stop:, start:stop] = K[start:stop, stop:].T
             if eval_gradient:
-                dK[stop:, start:stop] = dK[start:stop, stop:].transpose(1, 0, 2)
+                dK[stop:, start:stop, 1] = dK[start:stop, stop:, 1].T
         start = stop
+    if eval_gradient:
+        dK[:, :, 0] = K
     return K, dK
+
+
+def _uniform_size(nodes: NodeSet) -> int | None:
+    """The node count shared by every input, or None when counts differ."""
+    sizes = np.diff(nodes.offsets)
+    return int(sizes[0]) if sizes.size and np.all(sizes == sizes[0]) else None
+
+
+def _reduce(kp: NDArray[np.float64], a: NodeSet, b: NodeSet) -> NDArray[np.float64]:
+    """Weighted sums of node-pair values per pair of inputs: ``W_a kp W_b^T``, shape (n_a, n_b)."""
+    qa, qb = _uniform_size(a), _uniform_size(b)
+    if qa is not None and qb is not None:
+        # Every input has the same number of nodes (quadrature over boxes): two small matrix
+        # products on reshaped views beat segment sums.
+        na, nb = len(a), len(b)
+        wa, wb = a.weights.reshape(na, qa), b.weights.reshape(nb, qb)
+        if np.all(wa == wa[0]) and np.all(wb == wb[0]):
+            # One rule for every box: matrix-vector products.
+            t = kp.reshape(na * qa * nb, qb) @ wb[0]
+            return wa[0] @ t.reshape(na, qa, nb)
+        t = (kp.reshape(na * qa, nb, qb) * wb[None]).sum(axis=2)
+        return (t.reshape(na, qa, nb) * wa[:, :, None]).sum(axis=1)
+    kb = np.add.reduceat(kp * b.weights[None, :], b.offsets[:-1], axis=1)
+    return np.add.reduceat(kb * a.weights[:, None], a.offsets[:-1], axis=0)
 
 
 def weighted_self(kernel: PointKernel, A: NodeSet, max_block: int = 4_000_000) -> NDArray[np.float64]:
@@ -177,7 +197,7 @@ def weighted_self(kernel: PointKernel, A: NodeSet, max_block: int = 4_000_000) -
         p = first + within // rep
         q = first + within % rep
         diff = A.nodes[p] - A.nodes[q]
-        k = kernel.from_sqdist(np.sum(diff * diff, axis=1))
+        k, _ = kernel.values(np.sum(diff * diff, axis=1))
         out[start:stop] = np.bincount(owner, weights=k * A.weights[p] * A.weights[q], minlength=stop - start)
         start = stop
     return out

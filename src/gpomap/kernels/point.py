@@ -86,6 +86,18 @@ class PointKernel(ABC):
         return k
 
     @abstractmethod
+    def values(
+        self, d2: NDArray[np.float64], eval_gradient: bool = False
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Kernel values for squared distances `d2` (any shape), and their derivative with
+        respect to log length scale (the one with respect to log variance is the value itself).
+
+        Returns
+        -------
+        K : ndarray, the shape of `d2`
+        dK_dlog_length_scale : ndarray, the shape of `d2`, or None without `eval_gradient`
+        """
+
     def from_sqdist(
         self, d2: NDArray[np.float64], eval_gradient: bool = False
     ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -97,6 +109,10 @@ class PointKernel(ABC):
         dK : ndarray of shape ``d2.shape + (2,)``, only with `eval_gradient`
             Derivatives with respect to log variance and log length scale.
         """
+        K, dl = self.values(d2, eval_gradient)
+        if not eval_gradient:
+            return K
+        return K, np.stack([K, dl], axis=-1)
 
     def __call__(
         self, X: NDArray[np.float64], Y: NDArray[np.float64] | None = None, eval_gradient: bool = False
@@ -127,7 +143,7 @@ class PointKernel(ABC):
     def cutoff(self, tol: float = 1e-10) -> float:
         """Distance beyond which the kernel is below `tol` times its variance."""
         r = self.length_scale
-        while self.from_sqdist(np.array(r * r)) > tol * self.variance:
+        while self.values(np.array(r * r))[0] > tol * self.variance:
             r *= 1.5
         return r
 
@@ -137,13 +153,11 @@ class SquaredExponential(PointKernel):
 
     name = "se"
 
-    def from_sqdist(self, d2, eval_gradient=False):
+    def values(self, d2, eval_gradient=False):
         l2 = self.length_scale**2
         K = self.variance * np.exp(-0.5 * d2 / l2)
-        if not eval_gradient:
-            return K
-        # d/dlog(variance) = K; d/dlog(l) = K * r^2 / l^2.
-        return K, np.stack([K, K * (d2 / l2)], axis=-1)
+        # d/dlog(l) = K * r^2 / l^2.
+        return K, (K * (d2 / l2) if eval_gradient else None)
 
 
 class Matern32(PointKernel):
@@ -151,14 +165,12 @@ class Matern32(PointKernel):
 
     name = "matern32"
 
-    def from_sqdist(self, d2, eval_gradient=False):
+    def values(self, d2, eval_gradient=False):
         s = np.sqrt(3.0 * d2) / self.length_scale
         e = np.exp(-s)
         K = self.variance * (1.0 + s) * e
-        if not eval_gradient:
-            return K
         # d/dl of (1 + s) e^-s with ds/dl = -s/l is s^2 e^-s / l; times l for log space.
-        return K, np.stack([K, self.variance * s * s * e], axis=-1)
+        return K, (self.variance * s * s * e if eval_gradient else None)
 
 
 KERNELS: dict[str, type[PointKernel]] = {
