@@ -157,3 +157,13 @@ def test_dask_local_cluster_matches_in_process(room, reference, tmp_path, monkey
         model = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=client, **OPTS).fit(room, hyperparameters=hyp)
         assert marker.exists()
         _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
+
+
+def test_per_tile_hyperparameters_run_and_are_reported(room):
+    model = TiledGPOM(tile_size=10.0, overlap=2.5, n_workers=1, per_tile_hyperparameters=True, hyper_sample=300, **{**OPTS, "optimise": True, "n_restarts": 0})
+    model.fit(room)
+    s = model.summary()
+    assert s["n_tiles"] == len(model.tiles_) >= 2
+    assert set(s["per_tile_hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta"}
+    p = model.predict_proba(np.array([[3.0, 3.0], [10.0, 8.0]]))
+    assert np.all((p >= 0) & (p <= 1))
