@@ -160,7 +160,8 @@ def test_dask_local_cluster_matches_in_process(room, reference, tmp_path, monkey
 
 
 def test_per_tile_hyperparameters_run_and_are_reported(room):
-    model = TiledGPOM(tile_size=10.0, overlap=2.5, n_workers=1, per_tile_hyperparameters=True, hyper_sample=300, **{**OPTS, "optimise": True, "n_restarts": 0})
+    opts = {**OPTS, "optimise": True, "n_restarts": 0, "hyper_subset": 60, "free_step": 1.0}
+    model = TiledGPOM(tile_size=12.0, overlap=2.0, n_workers=2, per_tile_hyperparameters=True, hyper_sample=60, **opts)
     model.fit(room)
     s = model.summary()
     assert s["n_tiles"] == len(model.tiles_) >= 2
