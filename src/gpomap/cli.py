@@ -138,6 +138,18 @@ def _model_options(args: argparse.Namespace) -> dict[str, Any]:
     return opts
 
 
+def _add_tiling_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("large maps (tiles of local GPs, blended without seams)")
+    g.add_argument("--max-cells", type=_positive(int), default=3000,
+                   help="above this many cells the map is built in tiles automatically (default: %(default)s)")
+    g.add_argument("--tiles", action="store_true", help="always build the map in tiles")
+    g.add_argument("--tile-size", type=_positive(float), default=10.0, help="tile side, m (default: %(default)s)")
+    g.add_argument("--workers", type=_positive(int), help="local worker processes for tiles (default: the CPU count)")
+    g.add_argument("--scheduler", metavar="ADDRESS", help="run tiles on this Dask distributed scheduler (tcp://host:port)")
+    g.add_argument("--chunk-scans", type=_positive(int), metavar="K",
+                   help="map incrementally, K scans at a time, rewriting the map after each chunk (implies --tiles)")
+
+
 def _add_output_options(p: argparse.ArgumentParser, default_resolution: float | None) -> None:
     g = p.add_argument_group("the output")
     g.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="directory for map.yaml, map.pgm, map.npz, map.png")
@@ -196,23 +208,111 @@ def _load_scans(args: argparse.Namespace) -> list:
     scans = read_scans(args.input, **_reader_options(args, args.input))
     if args.scan_range is not None:
         first, last = args.scan_range
+        n_all = len(scans)
         scans = scans[slice(first, last)]
         if not scans:
-            raise GpomapError(f"--range {first}:{last} selects no scans from {args.input} ({len(scans)} scans)")
+            raise GpomapError(f"--range {first}:{last} selects no scans from {args.input}, which has {n_all} scans")
     return select_scans(scans, args.scans, args.beams)
 
 
 def cmd_map(args: argparse.Namespace) -> int:
     path = Path(args.input)
+    title = f"gpomap: {path.name}"
     if path.suffix.lower() in (".csv", ".npz"):
         from gpomap.io import read_points
 
         _status(args, f"reading labelled points from {path}...")
-        return _fit_and_write(args, read_points(path), None, f"gpomap: {path.name}")
-    _status(args, f"reading scans from {path}...")
-    scans = _load_scans(args)
-    _status(args, f"  {len(scans)} scans of {scans[0].n_beams} beams")
-    return _fit_and_write(args, scans, len(scans), f"gpomap: {path.name}")
+        data, n_scans = read_points(path), None
+    else:
+        _status(args, f"reading scans from {path}...")
+        data = _load_scans(args)
+        n_scans = len(data)
+        _status(args, f"  {n_scans} scans of {data[0].n_beams} beams")
+    if args.chunk_scans is not None:
+        if n_scans is None:
+            raise GpomapError("--chunk-scans needs scans (a CARMEN log or ROS bag), not labelled points")
+        return _map_in_chunks(args, data, title)
+    if args.tiles or _too_many_cells(args, data):
+        return _fit_tiled_and_write(args, data, n_scans, title)
+    return _fit_and_write(args, data, n_scans, title)
+
+
+def _too_many_cells(args: argparse.Namespace, data: Any) -> bool:
+    """Whether one GP would hold more cells than ``--max-cells`` (then tiles are used, and said)."""
+    from gpomap.cells import build_cells
+    from gpomap.observations import Observations, observations_from_scans
+
+    obs = data if isinstance(data, Observations) else observations_from_scans(data, args.free_step)
+    n_cells = len(build_cells(obs.points, obs.occupied, args.min_cell, args.max_cell))
+    if n_cells > args.max_cells:
+        _status(args, f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
+                      f"mapping in tiles of {args.tile_size:g} m")
+        return True
+    return False
+
+
+def _tiled_model(args: argparse.Namespace) -> Any:
+    from gpomap.tiles import TiledGPOM
+
+    return TiledGPOM(tile_size=args.tile_size, n_workers=args.workers, scheduler=args.scheduler,
+                     thresholds=args.thresholds, **_model_options(args))
+
+
+def _write_tiled(args: argparse.Namespace, model: Any, title: str) -> list[Path]:
+    from gpomap.io.export import write_map_outputs
+
+    t = time.perf_counter()
+    occupancy_map = model.grid(args.resolution, args.extent)
+    ny, nx = occupancy_map.grid.shape
+    _status(args, f"  {nx} x {ny} cells predicted in {time.perf_counter() - t:.2f} s; writing {args.output}/")
+    return write_map_outputs(occupancy_map, args.output, pgm_mode=args.pgm_mode, title=title)
+
+
+def _print_tiled_summary(summary: dict[str, Any], files: Sequence[Path]) -> None:
+    per = summary["cells_per_tile"]
+    lines = [
+        f"scans        {summary['n_scans']}",
+        f"points       {summary['n_points'] - summary['n_occupied_points']} free, {summary['n_occupied_points']} occupied",
+        f"tiles        {summary['n_tiles']} of {summary['tile_size']:g} m (overlap {summary['overlap']:.2f} m), "
+        f"{summary['n_cells']} cells, {per['min']}/{per['median']:.0f}/{per['max']} per tile (min/median/max), {summary['executor']}",
+        f"model        {summary['kernel']} kernel, {summary['area']} area kernel",
+        "hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
+        + f" ({summary['hyperparameter_source'].get('how', '')})",
+        "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
+        "peak memory  " + ", ".join(f"{k} {v:.0f} MB" for k, v in summary["peak_memory"].items()),
+    ]
+    lines += [f"wrote        {f}" for f in files]
+    print("\n".join(lines))
+
+
+def _fit_tiled_and_write(args: argparse.Namespace, data: Any, n_scans: int | None, title: str) -> int:
+    model = _tiled_model(args)
+    _status(args, f"fitting tiled MSK-GPOM ({args.kernel})...")
+    model.fit(data)
+    _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
+    files = _write_tiled(args, model, title)
+    _print_tiled_summary(model.summary(), files)
+    return EXIT_OK
+
+
+def _map_in_chunks(args: argparse.Namespace, scans: list, title: str) -> int:
+    """Fit the first K scans, then add K at a time with ``update``, rewriting the map each time."""
+    model = _tiled_model(args)
+    k = args.chunk_scans
+    files: list[Path] = []
+    for start in range(0, len(scans), k):
+        chunk = scans[start : start + k]
+        t = time.perf_counter()
+        if start == 0:
+            model.fit(chunk)
+            refit = len(model.tiles_)
+        else:
+            model.update(chunk)
+            refit = len(model.last_refit_)
+        _status(args, f"scans {start}..{start + len(chunk) - 1}: {refit} tile(s) fitted in {time.perf_counter() - t:.2f} s")
+        files = _write_tiled(args, model, f"{title} ({start + len(chunk)} of {len(scans)} scans)")
+    _print_tiled_summary(model.summary(), files)
+    return EXIT_OK
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -345,6 +445,9 @@ EPILOG_MAP = """examples:
   gpomap map ../shared/data/intel/intel-corrected.log.gz -o intel-map --scans 200 --beams 90
   gpomap map robot1.bag --topic /base_scan --fixed-frame odom --time-offset 0.1 -o arena --resolution 0.05
   gpomap map points.csv -o out --kernel se      (CSV with header x,y,occupied)
+  gpomap map fr079.log.gz -o fr079 --tiles --workers 2 --free-step 0.3
+  gpomap map intel.log.gz -o intel --chunk-scans 100      (the map grows as scans come)
+  gpomap map intel.log.gz -o intel --tiles --scheduler tcp://127.0.0.1:8786
 """
 EPILOG_EVALUATE = """examples:
   gpomap evaluate --demo --method msk --kernel se
@@ -371,6 +474,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_selection_options(p)
     _add_model_options(p)
     _add_output_options(p, 0.1)
+    _add_tiling_options(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_map)
 
