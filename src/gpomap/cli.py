@@ -113,6 +113,8 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--normalisation", choices=["mean", "sum"], default="mean", help="area-kernel normalisation (default: %(default)s)")
     g.add_argument("--objective", choices=["loo", "lml"], default="loo", help="hyperparameter objective (default: %(default)s)")
     g.add_argument("--free-step", type=_positive(float), default=0.2, help="free-point spacing along beams, m (default: %(default)s)")
+    g.add_argument("--no-return-cap", type=float, metavar="M",
+                   help="free points along no-return beams reach M metres (default: the max range; 0 ignores such beams)")
     g.add_argument("--min-cell", type=_positive(float), default=0.5, help="smallest cell side, m (default: %(default)s)")
     g.add_argument("--max-cell", type=_positive(float), default=3.0, help="largest pure cell side, m (default: %(default)s)")
     g.add_argument("--length-scale", type=_positive(float), help="fix the length scale (m) instead of learning it")
@@ -126,6 +128,7 @@ def _model_options(args: argparse.Namespace) -> dict[str, Any]:
         "normalisation": args.normalisation,
         "objective": args.objective,
         "free_step": args.free_step,
+        "no_return_cap": args.no_return_cap,
         "min_cell": args.min_cell,
         "max_cell": args.max_cell,
         "seed": args.seed,
@@ -242,7 +245,7 @@ def _too_many_cells(args: argparse.Namespace, data: Any) -> bool:
     from gpomap.cells import build_cells
     from gpomap.observations import Observations, observations_from_scans
 
-    obs = data if isinstance(data, Observations) else observations_from_scans(data, args.free_step)
+    obs = data if isinstance(data, Observations) else observations_from_scans(data, args.free_step, no_return_cap=args.no_return_cap)
     n_cells = len(build_cells(obs.points, obs.occupied, args.min_cell, args.max_cell))
     if n_cells > args.max_cells:
         _status(args, f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
