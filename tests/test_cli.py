@@ -109,3 +109,21 @@ def test_convert_writes_the_same_outputs(tmp_path):
     src = read_rosmap(TB3)
     assert out.grid.origin == src.grid.origin and out.grid.resolution == 0.1
     assert out.grid.extent == pytest.approx(src.grid.extent)
+
+
+@pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log not present")
+def test_tiles_automatically_and_in_chunks(tmp_path):
+    common = ["--range", "0:60", "--scans", "20", "--beams", "45", "--kernel", "se", "--no-return-cap", "5",
+              "--tile-size", "5", "--workers", "1", "--resolution", "0.2"]
+    auto = gpomap("map", INTEL, "-o", tmp_path / "auto", "--max-cells", "50", *common)
+    assert auto.returncode == 0, auto.stderr
+    assert "more than one GP should hold (--max-cells 50): mapping in tiles" in auto.stderr
+    assert "tiles " in auto.stdout and (tmp_path / "auto" / "map.yaml").exists()
+
+    chunks = gpomap("map", INTEL, "-o", tmp_path / "chunks", "--chunk-scans", "10", *common)
+    assert chunks.returncode == 0, chunks.stderr
+    assert "scans 0..9:" in chunks.stderr and "scans 10..19:" in chunks.stderr
+    from gpomap.io.npz import load_map
+
+    a, b = load_map(tmp_path / "auto" / "map.npz"), load_map(tmp_path / "chunks" / "map.npz")
+    assert a.grid == b.grid
