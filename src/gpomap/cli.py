@@ -113,8 +113,8 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--normalisation", choices=["mean", "sum"], default="mean", help="area-kernel normalisation (default: %(default)s)")
     g.add_argument("--objective", choices=["loo", "lml"], default="loo", help="hyperparameter objective (default: %(default)s)")
     g.add_argument("--free-step", type=_positive(float), default=0.2, help="free-point spacing along beams, m (default: %(default)s)")
-    g.add_argument("--no-return-cap", type=float, metavar="M",
-                   help="free points along no-return beams reach M metres (default: the max range; 0 ignores such beams)")
+    g.add_argument("--no-return-cap", type=float, default=10.0, metavar="M",
+                   help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)")
     g.add_argument("--min-cell", type=_positive(float), default=0.5, help="smallest cell side, m (default: %(default)s)")
     g.add_argument("--max-cell", type=_positive(float), default=3.0, help="largest pure cell side, m (default: %(default)s)")
     g.add_argument("--length-scale", type=_positive(float), help="fix the length scale (m) instead of learning it")

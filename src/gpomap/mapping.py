@@ -46,8 +46,12 @@ class AreaGPOM:
         Spacing of free points along beams, metres.
     hit_margin : float, optional
         Free points stop this short of a hit (default half of `free_step`).
-    no_return_cap : float, optional
-        Free points along a no-return beam go this far (default the sensor's max range).
+    no_return_cap : float or None
+        Free points along a no-return beam go this far (never beyond the max range; None: to the
+        max range). 10 m by default: the SICK logs record no-return as 80 m, and trusting free
+        space that far filled a 160 m square around the Intel lab (a 14 GB, 10-minute run instead
+        of 1 GB and 37 s); on Belgioioso it measured as well or better (Matern 3/2: AUC 0.897
+        against 0.890 uncapped).
     min_cell, max_cell : float
         Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`).
     cell_box : {"node", "tight"}
@@ -85,7 +89,7 @@ class AreaGPOM:
         normalisation: str = "mean",
         free_step: float = 0.2,
         hit_margin: float | None = None,
-        no_return_cap: float | None = None,
+        no_return_cap: float | None = 10.0,
         min_cell: float = 0.5,
         max_cell: float = 3.0,
         cell_box: str = "node",

@@ -200,7 +200,8 @@ class GPOM(GPBaseline):
     hit_margin : float, optional
         Free points stop this short of a hit (default half of `free_step`).
     no_return_cap : float, optional
-        Free points along a no-return beam go this far (default the sensor's max range).
+        Free points along a no-return beam go this far (10 m by default, as MSK-GPOM; None: the
+        sensor's max range).
     max_points : int, optional
         Most GP inputs. Above it, a seeded random subsample is kept: all hits if they are at most
         half the cap (otherwise half the cap of them, at random), free points for the rest.
@@ -219,7 +220,7 @@ class GPOM(GPBaseline):
         kernel: str = "matern32",
         free_step: float = 0.2,
         hit_margin: float | None = None,
-        no_return_cap: float | None = None,
+        no_return_cap: float | None = 10.0,
         max_points: int | None = 2000,
         seed: int = 0,
         variance: float = 1.0,

@@ -33,7 +33,7 @@ DEFAULT_RULES: dict[str, tuple[int, float]] = {"se": (4, 1.0), "matern32": (3, 2
 def beam_segments(
     scans: Sequence[Scan],
     hit_margin: float = 0.1,
-    no_return_cap: float | None = None,
+    no_return_cap: float | None = 10.0,
     n_beams_per_scan: int | None = None,
 ) -> tuple[Segments, Segments, dict[str, int]]:
     """Free segments and hit points of a set of scans.
@@ -44,7 +44,8 @@ def beam_segments(
     hit_margin : float
         A free segment stops this short of its hit; beams shorter than the margin give a hit only.
     no_return_cap : float, optional
-        A no-return beam is free up to this distance (default the scan's max range); 0 drops them.
+        A no-return beam is free up to this distance (10 m by default, as MSK-GPOM; None: the
+        scan's max range); 0 drops them.
     n_beams_per_scan : int, optional
         Keep this many evenly spaced beams per scan (all by default).
 
@@ -111,7 +112,7 @@ class GPOMIK(GPBaseline):
         kernel: str = "matern32",
         n_beams_per_scan: int | None = None,
         hit_margin: float = 0.1,
-        no_return_cap: float | None = None,
+        no_return_cap: float | None = 10.0,
         normalisation: str = "mean",
         order: int | None = None,
         max_panel: float | None = None,

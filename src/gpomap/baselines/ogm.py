@@ -149,7 +149,8 @@ class OccupancyGridMapper:
         Clamping bounds of the log-odds, applied after each scan.
     max_range_free : float, optional
         No-return beams (range at or beyond the sensor's max range) clear free space only up to
-        this distance; default: the range they recorded. They never mark a cell occupied.
+        this distance (10 m by default, as the GP methods; None: the range they recorded). They
+        never mark a cell occupied.
 
     Attributes
     ----------
@@ -172,7 +173,7 @@ class OccupancyGridMapper:
         l_free: float = -0.4,
         l_min: float = -4.0,
         l_max: float = 4.0,
-        max_range_free: float | None = None,
+        max_range_free: float | None = 10.0,
     ) -> None:
         self.resolution = resolution
         self.extent = extent
