@@ -8,7 +8,7 @@ analytic gradients, by one of two objectives:
 - ``"lml"``: the log marginal likelihood (R&W eq. 5.8, gradient eq. 5.9); the probit squash is
   then fitted to the leave-one-out moments afterwards.
 - ``"loo"``: the leave-one-out probit predictive probability (probabilistic least-squares
-  classification, R&W section 6.5, eqs. 6.xx), fitted jointly with the squash's alpha and beta.
+  classification, R&W sections 5.4.2 and 6.5), fitted jointly with the squash's alpha and beta.
   The signal variance is held fixed: scaling signal and noise together leaves the LOO means
   unchanged and alpha absorbs the scale, so it is not identifiable there.
 """
@@ -213,7 +213,7 @@ class SupportGP:
         if not eval_gradient:
             return value
         grad = np.empty(5)
-        # R&W eqs. 6.xx: with Z_j = K^-1 dK_j,
+        # R&W section 5.4.2: with Z_j = K^-1 dK_j,
         #   dmu_i = [Z_j a]_i / d_i - a_i [Z_j K^-1]_ii / d_i^2,  dvar_i = [Z_j K^-1]_ii / d_i^2.
         for j in range(2):
             Z = K_inv @ dK[:, :, j]
