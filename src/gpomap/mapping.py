@@ -12,7 +12,6 @@ calibrated. Afterwards the map can be asked anywhere: ``predict_proba(points)``,
 
 from __future__ import annotations
 
-import inspect
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -21,9 +20,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.cells import Cells, build_cells
-from gpomap.errors import EmptyDataError, NotFittedError
+from gpomap.errors import EmptyDataError
+from gpomap.estimator import GPMapEstimator
 from gpomap.gp import SupportGP
-from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
+from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.observations import Observations, observations_from_scans
@@ -31,7 +31,7 @@ from gpomap.scans import Scan
 from gpomap.supports import Supports
 
 
-class AreaGPOM:
+class AreaGPOM(GPMapEstimator):
     """Continuous occupancy mapping with a GP over cells (MSK-GPOM).
 
     Parameters
@@ -132,21 +132,6 @@ class AreaGPOM:
         self.thresholds = thresholds
         self.chunk_size = chunk_size
 
-    # scikit-learn's parameter protocol, so the estimator clones and grid-searches.
-    def get_params(self, deep: bool = True) -> dict[str, Any]:
-        """The constructor arguments, by name."""
-        names = [p for p in inspect.signature(type(self).__init__).parameters if p != "self"]
-        return {n: getattr(self, n) for n in names}
-
-    def set_params(self, **params: Any) -> AreaGPOM:
-        """Set constructor arguments by name; returns self."""
-        valid = self.get_params()
-        for k, v in params.items():
-            if k not in valid:
-                raise ValueError(f"unknown parameter {k!r} for {type(self).__name__}")
-            setattr(self, k, v)
-        return self
-
     def __repr__(self) -> str:
         return f"{type(self).__name__}(kernel={self.kernel!r}, area={self.area_method!r}, min_cell={self.min_cell}, max_cell={self.max_cell})"
 
@@ -190,32 +175,19 @@ class AreaGPOM:
         t = time.perf_counter()
         cells = build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
         timings["cells"] = time.perf_counter() - t
-        gp = SupportGP(
-            self.make_kernel(),
-            noise=self.noise,
-            noise_bounds=self.noise_bounds,
-            noise_model=self.noise_model,
-            objective=self.objective,
-            optimise=self.optimise,
-            n_restarts=self.n_restarts,
-            seed=self.seed,
-            hyper_subset=self.hyper_subset,
-        )
+        gp = self._make_gp(self.make_kernel())
         gp.fit(cells.to_supports(), cells.labels)
         timings.update(gp.timings_)
         self.observations_: Observations = obs
         self.cells_: Cells = cells
         self.gp_: SupportGP = gp
         self.timings_: dict[str, float] = timings
+        self.extent_points_ = obs.points
         if not isinstance(data, Observations):
             self.path_ = np.array([s.pose[:2] for s in data])
         else:
             self.path_ = None
         return self
-
-    def _check_fitted(self) -> None:
-        if not hasattr(self, "gp_"):
-            raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit() first")
 
     @property
     def n_inputs_(self) -> int:
@@ -223,92 +195,8 @@ class AreaGPOM:
         self._check_fitted()
         return len(self.cells_)
 
-    @property
-    def hyperparameters_(self) -> dict[str, float]:
-        """Learnt hyperparameters: signal variance, length scale, noise, alpha and beta."""
-        self._check_fitted()
-        gp = self.gp_
-        return {
-            "variance": gp.kernel.base.variance,
-            "length_scale": gp.kernel.base.length_scale,
-            "noise": gp.noise,
-            "alpha": gp.squash.alpha,
-            "beta": gp.squash.beta,
-        }
-
-    # ----------------------------------------------------------------- prediction
-    def predict(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Latent GP mean (and variance) at points.
-
-        Parameters
-        ----------
-        points : ndarray of shape (m, 2)
-        return_var : bool
-
-        Returns
-        -------
-        mean : ndarray of shape (m,)
-        var : ndarray of shape (m,), only with `return_var`
-        """
-        self._check_fitted()
-        t = time.perf_counter()
-        mean, var = self.gp_.predict_latent(Supports.from_points(_as_points(points)), return_var, self.chunk_size)
-        self.timings_["prediction"] = time.perf_counter() - t
-        return (mean, var) if return_var else mean
-
-    def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
-        """Occupancy probability at points (eq. 15).
-
-        Parameters
-        ----------
-        points : ndarray of shape (m, 2)
-        return_var : bool
-            Also return the latent variance.
-
-        Returns
-        -------
-        probability : ndarray of shape (m,)
-        var : ndarray of shape (m,), only with `return_var`
-        """
-        mean, var = self.predict(points, return_var=True)
-        p = self.gp_.squash(mean, var)
-        return (p, var) if return_var else p
-
-    def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
-        """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
-        return ternary(self.predict_proba(points), self.thresholds)
-
-    def grid(self, resolution: float, extent: tuple[float, float, float, float] | None = None) -> OccupancyMap:
-        """The map sampled at cell centres of a regular grid.
-
-        Parameters
-        ----------
-        resolution : float
-            Grid cell side, metres.
-        extent : (xmin, xmax, ymin, ymax), optional
-            Defaults to the bounding box of the observations.
-
-        Returns
-        -------
-        OccupancyMap
-        """
-        self._check_fitted()
-        if extent is None:
-            lo = self.observations_.points.min(axis=0)
-            hi = self.observations_.points.max(axis=0)
-            extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
-        spec = GridSpec.from_extent(extent, resolution)
-        p, var = self.predict_proba(spec.centres(), return_var=True)
-        return OccupancyMap(
-            grid=spec,
-            probability=p.reshape(spec.shape),
-            variance=var.reshape(spec.shape),
-            thresholds=self.thresholds,
-            path=self.path_,
-            info=self.summary(),
-        )
+    def _queries(self, points: NDArray[np.float64]) -> Supports:
+        return Supports.from_points(points)
 
     def summary(self) -> dict[str, Any]:
         """What was fitted: settings, data sizes, hyperparameters and stage timings."""
@@ -330,9 +218,3 @@ class AreaGPOM:
             "timings": dict(self.timings_),
         }
 
-
-def _as_points(points: NDArray[np.float64]) -> NDArray[np.float64]:
-    p = np.asarray(points, dtype=float)
-    if p.ndim != 2 or p.shape[1] != 2:
-        raise ValueError(f"points must have shape (m, 2), got {p.shape}")
-    return p

@@ -6,13 +6,12 @@ squash) is the one MSK-GPOM uses, so the comparison isolates the choice of input
 O(n^3) in the points, so ``max_points`` caps them (a seeded random subsample; see
 :meth:`GPOM.fit`).
 
-:class:`GPBaseline` holds what GPOM and GPOMIK share: the estimator protocol of
+:class:`gpomap.estimator.GPMapEstimator` gives it the estimator protocol of
 :class:`gpomap.mapping.AreaGPOM` (``predict``, ``predict_proba``, ``grid``, ``summary``...).
 """
 
 from __future__ import annotations
 
-import inspect
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -20,9 +19,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.errors import EmptyDataError, NotFittedError
-from gpomap.gp import SupportGP
-from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
+from gpomap.errors import EmptyDataError
+from gpomap.estimator import GPMapEstimator
+from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.observations import Observations, observations_from_scans
@@ -30,165 +29,7 @@ from gpomap.scans import Scan
 from gpomap.supports import Supports
 
 
-def as_points(points: NDArray[np.float64]) -> NDArray[np.float64]:
-    """`points` as a float ndarray of shape (m, 2), or a ValueError saying what was wrong."""
-    p = np.asarray(points, dtype=float)
-    if p.ndim != 2 or p.shape[1] != 2:
-        raise ValueError(f"points must have shape (m, 2), got {p.shape}")
-    return p
-
-
-class GPBaseline:
-    """What the GP baselines share: parameters protocol, prediction, grid and summary.
-
-    Subclasses set ``gp_`` (a fitted :class:`SupportGP`), ``timings_``, ``extent_points_``
-    (points whose bounding box is the default grid extent), ``path_`` and ``n_inputs_``, and
-    implement :meth:`_queries` (query points as the GP's input type) and :meth:`_summary_extra`.
-    """
-
-    method_name = "gp"
-    chunk_size: int = 4096
-    thresholds: tuple[float, float] = DEFAULT_THRESHOLDS
-
-    def get_params(self, deep: bool = True) -> dict[str, Any]:
-        """The constructor arguments, by name."""
-        names = [p for p in inspect.signature(type(self).__init__).parameters if p != "self"]
-        return {n: getattr(self, n) for n in names}
-
-    def set_params(self, **params: Any) -> GPBaseline:
-        """Set constructor arguments by name; returns self."""
-        valid = self.get_params()
-        for k, v in params.items():
-            if k not in valid:
-                raise ValueError(f"unknown parameter {k!r} for {type(self).__name__}")
-            setattr(self, k, v)
-        return self
-
-    def _check_fitted(self) -> None:
-        if not hasattr(self, "gp_"):
-            raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit() first")
-
-    def _make_gp(self, kernel: Any) -> SupportGP:
-        return SupportGP(
-            kernel,
-            noise=self.noise,
-            noise_bounds=self.noise_bounds,
-            noise_model=self.noise_model,
-            objective=self.objective,
-            optimise=self.optimise,
-            n_restarts=self.n_restarts,
-            seed=self.seed,
-        )
-
-    def _queries(self, points: NDArray[np.float64]) -> Any:
-        raise NotImplementedError
-
-    def _summary_extra(self) -> dict[str, Any]:
-        return {}
-
-    @property
-    def hyperparameters_(self) -> dict[str, float]:
-        """Learnt hyperparameters: signal variance, length scale, noise, alpha and beta."""
-        self._check_fitted()
-        gp = self.gp_
-        return {
-            "variance": gp.kernel.base.variance,
-            "length_scale": gp.kernel.base.length_scale,
-            "noise": gp.noise,
-            "alpha": gp.squash.alpha,
-            "beta": gp.squash.beta,
-        }
-
-    def predict(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Latent GP mean (and variance) at points.
-
-        Parameters
-        ----------
-        points : ndarray of shape (m, 2)
-        return_var : bool
-
-        Returns
-        -------
-        mean : ndarray of shape (m,)
-        var : ndarray of shape (m,), only with `return_var`
-        """
-        self._check_fitted()
-        t = time.perf_counter()
-        mean, var = self.gp_.predict_latent(self._queries(as_points(points)), return_var, self.chunk_size)
-        self.timings_["prediction"] = time.perf_counter() - t
-        return (mean, var) if return_var else mean
-
-    def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
-        """Occupancy probability at points (the calibrated probit of the latent GP).
-
-        Parameters
-        ----------
-        points : ndarray of shape (m, 2)
-        return_var : bool
-            Also return the latent variance.
-
-        Returns
-        -------
-        probability : ndarray of shape (m,)
-        var : ndarray of shape (m,), only with `return_var`
-        """
-        mean, var = self.predict(points, return_var=True)
-        p = self.gp_.squash(mean, var)
-        return (p, var) if return_var else p
-
-    def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
-        """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
-        return ternary(self.predict_proba(points), self.thresholds)
-
-    def grid(self, resolution: float, extent: tuple[float, float, float, float] | None = None) -> OccupancyMap:
-        """The map sampled at cell centres of a regular grid.
-
-        Parameters
-        ----------
-        resolution : float
-            Grid cell side, metres.
-        extent : (xmin, xmax, ymin, ymax), optional
-            Defaults to the bounding box of the training inputs.
-
-        Returns
-        -------
-        OccupancyMap
-        """
-        self._check_fitted()
-        if extent is None:
-            lo = self.extent_points_.min(axis=0)
-            hi = self.extent_points_.max(axis=0)
-            extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
-        spec = GridSpec.from_extent(extent, resolution)
-        p, var = self.predict_proba(spec.centres(), return_var=True)
-        return OccupancyMap(
-            grid=spec,
-            probability=p.reshape(spec.shape),
-            variance=var.reshape(spec.shape),
-            thresholds=self.thresholds,
-            path=self.path_,
-            info=self.summary(),
-        )
-
-    def summary(self) -> dict[str, Any]:
-        """What was fitted: settings, data sizes, hyperparameters and stage timings."""
-        self._check_fitted()
-        out = {
-            "method": self.method_name,
-            "kernel": make_point_kernel(self.kernel).name,
-            "objective": self.objective,
-            "noise_model": self.noise_model,
-            "n_inputs": self.n_inputs_,
-        }
-        out.update(self._summary_extra())
-        out["hyperparameters"] = self.hyperparameters_
-        out["timings"] = dict(self.timings_)
-        return out
-
-
-class GPOM(GPBaseline):
+class GPOM(GPMapEstimator):
     """GP occupancy map on point inputs (free samples and hits).
 
     Parameters

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.baselines.gpom import GPBaseline
 from gpomap.errors import EmptyDataError
+from gpomap.estimator import GPMapEstimator
 from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.line import LineKernel, Segments, concatenate_segments
 from gpomap.kernels.point import make_point_kernel
@@ -81,7 +81,7 @@ def beam_segments(
     return free, hit_pts, {"n_beams": n_beams, "n_invalid": n_invalid, "n_no_return": n_no_return}
 
 
-class GPOMIK(GPBaseline):
+class GPOMIK(GPMapEstimator):
     """GP occupancy map with integral kernels over beams (GPOMIK).
 
     Parameters

@@ -51,7 +51,7 @@ from numpy.typing import NDArray
 from scipy.special import erf
 
 from gpomap.kernels.nodes import NodeSet, weighted_gram, weighted_self
-from gpomap.kernels.point import PointKernel, SquaredExponential, make_point_kernel, squared_distances
+from gpomap.kernels.point import PointKernel, SquaredExponential, make_point_kernel
 
 NORMALISATIONS = ("mean", "sum")
 
