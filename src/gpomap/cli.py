@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -116,7 +117,7 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-return-cap", type=float, default=10.0, metavar="M",
                    help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)")
     g.add_argument("--min-cell", type=_positive(float), default=0.5, help="smallest cell side, m (default: %(default)s)")
-    g.add_argument("--max-cell", type=_positive(float), default=3.0, help="largest pure cell side, m (default: %(default)s)")
+    g.add_argument("--max-cell", type=_positive(float), default=1.0, help="largest pure cell side, m (default: %(default)s)")
     g.add_argument("--length-scale", type=_positive(float), help="fix the length scale (m) instead of learning it")
     g.add_argument("--seed", type=int, default=0, help="seed of restarts and samples (default: %(default)s)")
 
@@ -153,7 +154,7 @@ def _add_tiling_options(p: argparse.ArgumentParser) -> None:
                    help="map incrementally, K scans at a time, rewriting the map after each chunk (implies --tiles)")
 
 
-def _add_output_options(p: argparse.ArgumentParser, default_resolution: float | None) -> None:
+def _add_output_options(p: argparse.ArgumentParser, default_resolution: float | None, supersample: bool = True) -> None:
     g = p.add_argument_group("the output")
     g.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="directory for map.yaml, map.pgm, map.npz, map.png")
     g.add_argument("--resolution", type=_positive(float), default=default_resolution,
@@ -161,6 +162,10 @@ def _add_output_options(p: argparse.ArgumentParser, default_resolution: float | 
     g.add_argument("--extent", type=_extent, metavar="XMIN,XMAX,YMIN,YMAX", help="region of the written map (default: the data's)")
     g.add_argument("--thresholds", type=_pair, default=(0.33, 0.66), metavar="FREE,OCCUPIED",
                    help="ternary-map thresholds (default: 0.33,0.66)")
+    if supersample:
+        g.add_argument("--supersample", type=_positive(int), metavar="K",
+                       help="sample K x K points per map cell and keep the most occupied (default: enough for "
+                       "samples half a min-cell apart, at most 4; single-GP maps only)")
     g.add_argument("--pgm-mode", choices=["trinary", "scale"], default="trinary",
                    help="map_server image: ternary map or probability grey levels (default: %(default)s)")
 
@@ -192,8 +197,9 @@ def _fit_and_write(args: argparse.Namespace, data: Any, n_scans: int | None, tit
     _status(args, f"fitting MSK-GPOM ({args.kernel})...")
     model.fit(data)
     _status(args, f"  {model.n_inputs_} cells, hyperparameters learnt in {model.timings_['hyperparameters']:.2f} s")
-    _status(args, f"predicting the map at {args.resolution} m...")
-    occupancy_map = model.grid(args.resolution, args.extent)
+    k = args.supersample or min(4, max(1, math.ceil(args.resolution / (0.5 * args.min_cell) - 1e-9)))
+    _status(args, f"predicting the map at {args.resolution} m ({k} x {k} samples per cell)...")
+    occupancy_map = model.grid(args.resolution, args.extent, supersample=k)
     ny, nx = occupancy_map.grid.shape
     _status(args, f"  {nx} x {ny} cells in {model.timings_['prediction']:.2f} s; writing {args.output}/")
     files = write_map_outputs(occupancy_map, args.output, pgm_mode=args.pgm_mode, title=title)
@@ -521,7 +527,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", help="map.yaml (ROS map_server) or map.npz")
     p.add_argument("--kernel", choices=["se", "matern32"], help="point kernel (default: se, measured best for grids)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
-    _add_output_options(p, None)
+    _add_output_options(p, None, supersample=False)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_convert)
 

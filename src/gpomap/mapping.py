@@ -53,7 +53,11 @@ class AreaGPOM(GPMapEstimator):
         of 1 GB and 37 s); on Belgioioso it measured as well or better (Matern 3/2: AUC 0.897
         against 0.890 uncapped).
     min_cell, max_cell : float
-        Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`).
+        Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`). ``max_cell`` is 1 m by
+        default: with mean normalisation a cell much larger than the length scale has a small
+        prior variance and says little about the points inside it, which left the middle of
+        3 m free cells uncertain. Held-out AUC with 1 m against 3 m: synthetic room 0.996 / 0.998
+        against 0.982 / 0.982 (SE / Matern 3/2), Belgioioso 0.919 / 0.924 against 0.861 / 0.890.
     cell_box : {"node", "tight"}
         Each cell's box: the tree node ("node") or its points' bounding box ("tight").
     variance, length_scale, noise : float
@@ -91,7 +95,7 @@ class AreaGPOM(GPMapEstimator):
         hit_margin: float | None = None,
         no_return_cap: float | None = 10.0,
         min_cell: float = 0.5,
-        max_cell: float = 3.0,
+        max_cell: float = 1.0,
         cell_box: str = "node",
         variance: float = 1.0,
         length_scale: float = 1.0,
