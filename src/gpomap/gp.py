@@ -116,6 +116,9 @@ class SupportGP:
         Seed of the restarts.
     max_iter : int
         Iteration cap of each L-BFGS-B run.
+    prior_std : float or None
+        Standard deviation, in log space, of a weak log-normal prior on the length scale and the
+        noise centred on their starting values (added to either objective); None: no prior.
     hyper_subset : int or None
         Learn hyperparameters on at most this many inputs: a spatially compact block (the
         inputs nearest a seeded random one), so the sample keeps the data's density. The final
@@ -134,6 +137,7 @@ class SupportGP:
         seed: int = 0,
         max_iter: int = 100,
         hyper_subset: int | None = 300,
+        prior_std: float | None = 1.0,
     ) -> None:
         if objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
@@ -151,6 +155,7 @@ class SupportGP:
         self.seed = int(seed)
         self.max_iter = int(max_iter)
         self.hyper_subset = hyper_subset
+        self.prior_std = prior_std
         self.squash = ProbitSquash()
 
     # ----------------------------------------------------------------- objectives
@@ -304,6 +309,14 @@ class SupportGP:
                 v, g = fun(X, y, p, eval_gradient=True)
             except NumericalError:
                 return 1e25, np.zeros(int(free.sum()))
+            if self.prior_std is not None:
+                # A weak log-normal prior on length scale and noise, centred on the starting
+                # values: where the data pin them down it hardly moves them; where the objective
+                # is flat (separable cells) it keeps them from drifting to their bounds.
+                d = (p[1:3] - x0[1:3]) / self.prior_std
+                v = v - 0.5 * float(d @ d)
+                g = g.copy()
+                g[1:3] -= d / self.prior_std
             return -v, -g[free]
 
         free_bounds = [b for b, f in zip(bounds, free) if f]
