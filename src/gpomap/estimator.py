@@ -70,6 +70,7 @@ class GPMapEstimator:
             seed=self.seed,
             # Only MSK-GPOM samples cells for its hyperparameters; the baselines use every input.
             hyper_subset=getattr(self, "hyper_subset", None),
+            prior_std=getattr(self, "prior_std", 1.0),
         )
 
     def _queries(self, points: NDArray[np.float64]) -> Any:

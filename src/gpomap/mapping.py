@@ -65,7 +65,8 @@ class AreaGPOM(GPMapEstimator):
     length_scale_bounds, noise_bounds : (float, float)
         Bounds of the hyperparameter search.
     noise_model : {"constant", "per_count"}
-        Noise per cell: one level for all, or divided by the cell's member count.
+        Noise per cell: one level for all, or divided by the cell's member count (default: a cell
+        averaging m points is m times surer than one; synthetic room SE AUC 0.98 against 0.88).
     objective : {"loo", "lml"}
         Hyperparameter objective: leave-one-out probit predictive probability (default; the
         marginal likelihood collapses on real cells, see the docs) or log marginal likelihood.
@@ -75,6 +76,9 @@ class AreaGPOM(GPMapEstimator):
         Extra seeded starts of the hyperparameter search.
     hyper_subset : int or None
         Learn hyperparameters on a compact block of at most this many cells (None: all).
+    prior_std : float or None
+        Width (log space) of the weak prior keeping length scale and noise near their starting
+        values where the objective is flat; None: no prior.
     seed : int
         Seed of those starts.
     quadrature_order : int
@@ -107,6 +111,7 @@ class AreaGPOM(GPMapEstimator):
         optimise: bool = True,
         n_restarts: int = 0,
         hyper_subset: int | None = 300,
+        prior_std: float | None = 1.0,
         seed: int = 0,
         quadrature_order: int = 2,
         thresholds: tuple[float, float] = DEFAULT_THRESHOLDS,
@@ -131,6 +136,7 @@ class AreaGPOM(GPMapEstimator):
         self.optimise = optimise
         self.n_restarts = n_restarts
         self.hyper_subset = hyper_subset
+        self.prior_std = prior_std
         self.seed = seed
         self.quadrature_order = quadrature_order
         self.thresholds = thresholds
