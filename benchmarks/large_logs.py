@@ -16,12 +16,15 @@ import resource
 import subprocess
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-INTEL = "/work/shared/data/intel/intel-corrected.log.gz"
-FR079 = "/work/shared/data/fr079/freiburg-079-corrected.log.gz"
+# The shared data sits beside the project: ../shared/data from the repository's root.
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+INTEL = str(DATA / "intel" / "intel-corrected.log.gz")
+FR079 = str(DATA / "fr079" / "freiburg-079-corrected.log.gz")
 
 CASES: dict[str, dict[str, Any]] = {
     "intel": {"log": INTEL, "fraction": 1.0, "holdout": "blocks:20"},
