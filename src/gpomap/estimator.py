@@ -14,10 +14,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.errors import NotFittedError
+from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
 from gpomap.kernels.point import make_point_kernel
+from gpomap.observations import Observations, observations_from_scans
 
 
 def as_points(points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -72,6 +73,19 @@ class GPMapEstimator:
             hyper_subset=getattr(self, "hyper_subset", None),
             prior_std=getattr(self, "prior_std", 1.0),
         )
+
+    def _observations(self, data: Any) -> Observations:
+        """Labelled points from scans (this estimator's ``free_step``, ``hit_margin`` and
+        ``no_return_cap``), or `data` itself when it already is; both classes are required."""
+        if isinstance(data, Observations):
+            obs = data
+        else:
+            obs = observations_from_scans(data, self.free_step, self.hit_margin, self.no_return_cap)
+        if obs.n_occupied == 0 or obs.n_free == 0:
+            raise EmptyDataError(
+                f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied"
+            )
+        return obs
 
     def _queries(self, points: NDArray[np.float64]) -> Any:
         raise NotImplementedError

@@ -20,13 +20,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.cells import Cells, build_cells
-from gpomap.errors import EmptyDataError
 from gpomap.estimator import GPMapEstimator
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
-from gpomap.observations import Observations, observations_from_scans
+from gpomap.observations import Observations
 from gpomap.scans import Scan
 from gpomap.supports import Supports
 
@@ -173,15 +172,8 @@ class AreaGPOM(GPMapEstimator):
         """
         timings: dict[str, float] = {}
         t = time.perf_counter()
-        if isinstance(data, Observations):
-            obs = data
-        else:
-            obs = observations_from_scans(data, self.free_step, self.hit_margin, self.no_return_cap)
+        obs = self._observations(data)
         timings["observations"] = time.perf_counter() - t
-        if obs.n_occupied == 0 or obs.n_free == 0:
-            raise EmptyDataError(
-                f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied"
-            )
         t = time.perf_counter()
         cells = build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
         timings["cells"] = time.perf_counter() - t

@@ -19,12 +19,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.errors import EmptyDataError
 from gpomap.estimator import GPMapEstimator
 from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
-from gpomap.observations import Observations, observations_from_scans
+from gpomap.observations import Observations
 from gpomap.scans import Scan
 from gpomap.supports import Supports
 
@@ -139,14 +138,7 @@ class GPOM(GPMapEstimator):
         """
         timings: dict[str, float] = {}
         t = time.perf_counter()
-        if isinstance(data, Observations):
-            obs = data
-        else:
-            obs = observations_from_scans(data, self.free_step, self.hit_margin, self.no_return_cap)
-        if obs.n_occupied == 0 or obs.n_free == 0:
-            raise EmptyDataError(
-                f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied"
-            )
+        obs = self._observations(data)
         keep = self.subsample(obs.occupied)
         X = Supports.from_points(obs.points[keep])
         y = obs.labels[keep]
