@@ -6,7 +6,7 @@ import pytest
 from gpomap.errors import NumericalError
 from gpomap.gp import SupportGP, robust_cholesky
 from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
-from gpomap.squash import ProbitSquash, loo_moments, loo_probit
+from gpomap.squash import ProbitSquash, class_weights, loo_moments, loo_probit
 from gpomap.supports import Supports
 
 
@@ -85,6 +85,36 @@ def test_loo_moments_equal_refitting_without_the_point():
         k = K[keep, i]
         assert mu[i] == pytest.approx(k @ np.linalg.solve(Kk, y[keep]), rel=1e-8)
         assert var[i] == pytest.approx(K[i, i] - k @ np.linalg.solve(Kk, k), rel=1e-8)
+
+
+def test_balanced_class_weights_by_hand():
+    y = np.array([1.0, -1.0, -1.0, -1.0])
+    # n / (2 n_class): 4 / 2 for the one hit, 4 / 6 for each free input; both classes sum to 2.
+    assert class_weights(y) == pytest.approx([2.0, 2 / 3, 2 / 3, 2 / 3])
+    assert class_weights(y, None) is None
+    assert class_weights(-np.ones(3)) is None  # one class: nothing to balance
+    with pytest.raises(ValueError, match="class_weight"):
+        class_weights(y, "auto")
+
+
+def test_weighted_loo_probit_and_its_gradient():
+    from scipy.stats import norm
+
+    rng = np.random.default_rng(5)
+    y = np.where(rng.random(30) < 0.3, 1.0, -1.0)
+    mu, var, w = rng.normal(size=30), rng.uniform(0.1, 0.5, 30), class_weights(y)
+    value, g = loo_probit(y, mu, var, 1.7, -0.3, w)
+    by_hand = np.sum(w * norm.logcdf(y * (1.7 * mu - 0.3) / np.sqrt(1 + 1.7**2 * var)))
+    assert value == pytest.approx(by_hand, rel=1e-10)
+    h = 1e-6
+    for name, step in [("alpha", (h, 0)), ("beta", (0, h))]:
+        up = loo_probit(y, mu, var, 1.7 + step[0], -0.3 + step[1], w)[0]
+        down = loo_probit(y, mu, var, 1.7 - step[0], -0.3 - step[1], w)[0]
+        assert g[name] == pytest.approx((up - down) / (2 * h), rel=1e-5)
+    e = np.zeros(30)
+    e[3] = h
+    assert g["mu"][3] == pytest.approx((loo_probit(y, mu + e, var, 1.7, -0.3, w)[0] - loo_probit(y, mu - e, var, 1.7, -0.3, w)[0]) / (2 * h), rel=1e-5)
+    assert g["var"][3] == pytest.approx((loo_probit(y, mu, var + e, 1.7, -0.3, w)[0] - loo_probit(y, mu, var - e, 1.7, -0.3, w)[0]) / (2 * h), rel=1e-5)
 
 
 def test_squash_fit_raises_the_loo_probability():

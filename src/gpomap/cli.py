@@ -113,6 +113,8 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
                    help="area-kernel computation (default: exact for se, quadrature for matern32)")
     g.add_argument("--normalisation", choices=["mean", "sum"], default="mean", help="area-kernel normalisation (default: %(default)s)")
     g.add_argument("--objective", choices=["loo", "lml"], default="loo", help="hyperparameter objective (default: %(default)s)")
+    g.add_argument("--class-weight", choices=["balanced", "none"], default="balanced",
+                   help="weigh free and occupied cells equally in the leave-one-out fit, or each cell once (default: %(default)s)")
     g.add_argument("--free-step", type=_positive(float), default=0.2, help="free-point spacing along beams, m (default: %(default)s)")
     g.add_argument("--no-return-cap", type=float, default=10.0, metavar="M",
                    help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)")
@@ -128,6 +130,7 @@ def _model_options(args: argparse.Namespace) -> dict[str, Any]:
         "area": args.area,
         "normalisation": args.normalisation,
         "objective": args.objective,
+        "class_weight": None if args.class_weight == "none" else args.class_weight,
         "free_step": args.free_step,
         "no_return_cap": args.no_return_cap,
         "min_cell": args.min_cell,
@@ -375,7 +378,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.method in ("msk", "gpom"):
         options["free_step"] = args.free_step
     if args.method == "msk":
-        options.update(min_cell=args.min_cell, max_cell=args.max_cell, objective=args.objective)
+        options.update(min_cell=args.min_cell, max_cell=args.max_cell, objective=args.objective,
+                       class_weight=None if args.class_weight == "none" else args.class_weight)
         if args.area:
             options["area"] = args.area
     result = evaluate(

@@ -72,6 +72,7 @@ class GPMapEstimator:
             # Only MSK-GPOM samples cells for its hyperparameters; the baselines use every input.
             hyper_subset=getattr(self, "hyper_subset", None),
             prior_std=getattr(self, "prior_std", 1.0),
+            class_weight=getattr(self, "class_weight", "balanced"),
         )
 
     def _observations(self, data: Any) -> Observations:

@@ -25,7 +25,7 @@ from scipy.optimize import minimize
 
 from gpomap.errors import NotFittedError, NumericalError
 from gpomap.kernels.area import AreaKernel
-from gpomap.squash import SQUASH_BOUNDS, ProbitSquash, loo_moments, loo_probit, probit_gradient_in_shift
+from gpomap.squash import SQUASH_BOUNDS, ProbitSquash, class_weights, loo_moments, loo_probit, probit_gradient_in_shift
 from gpomap.supports import Supports
 
 OBJECTIVES = ("loo", "lml")
@@ -123,6 +123,10 @@ class SupportGP:
         Learn hyperparameters on at most this many inputs: a spatially compact block (the
         inputs nearest a seeded random one), so the sample keeps the data's density. The final
         model always uses every input. None uses all inputs.
+    class_weight : {"balanced", None}
+        Weighting of the leave-one-out terms (in the "loo" objective and the squash fit):
+        "balanced" gives free and occupied inputs the same total weight (see
+        :func:`gpomap.squash.class_weights`); None counts every input once.
     """
 
     def __init__(
@@ -138,6 +142,7 @@ class SupportGP:
         max_iter: int = 100,
         hyper_subset: int | None = 300,
         prior_std: float | None = 1.0,
+        class_weight: str | None = "balanced",
     ) -> None:
         if objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
@@ -156,6 +161,8 @@ class SupportGP:
         self.max_iter = int(max_iter)
         self.hyper_subset = hyper_subset
         self.prior_std = prior_std
+        class_weights(np.array([1.0, -1.0]), class_weight)  # validates the name early
+        self.class_weight = class_weight
         self.squash = ProbitSquash()
 
     # ----------------------------------------------------------------- objectives
@@ -214,7 +221,7 @@ class SupportGP:
         d = np.diag(K_inv).copy()
         mu, var = y - a / d, 1.0 / d
         alpha, shift = float(np.exp(params[3])), float(params[4])
-        value, g = loo_probit(y, mu, var, alpha, alpha * shift)
+        value, g = loo_probit(y, mu, var, alpha, alpha * shift, class_weights(y, self.class_weight))
         if not eval_gradient:
             return value
         grad = np.empty(5)
@@ -265,7 +272,7 @@ class SupportGP:
         t2 = time.perf_counter()
         # alpha and beta for the full model: from its own leave-one-out moments.
         mu, var = loo_moments(cholesky_inverse(L), y)
-        self.squash.fit(y, mu, var)
+        self.squash.fit(y, mu, var, class_weights(y, self.class_weight))
         self.timings_ = {"hyperparameters": t1 - t0, "factorisation": t2 - t1, "squash": time.perf_counter() - t2}
         return self
 

@@ -78,6 +78,12 @@ class AreaGPOM(GPMapEstimator):
     prior_std : float or None
         Width (log space) of the weak prior keeping length scale and noise near their starting
         values where the objective is flat; None: no prior.
+    class_weight : {"balanced", None}
+        Weighting of free and occupied cells in the leave-one-out objective and the squash fit.
+        "balanced" (default) weighs both classes equally: free cells outnumber occupied ones
+        several times over, and unweighted the search can settle on maps that call everything
+        free (held-out AUC, unweighted against balanced: Belgioioso whole log 0.920 / 0.925
+        against 0.943 / 0.946 (SE / Matern 3/2), an Intel window 0.31 against 0.79).
     seed : int
         Seed of those starts.
     quadrature_order : int
@@ -111,6 +117,7 @@ class AreaGPOM(GPMapEstimator):
         n_restarts: int = 0,
         hyper_subset: int | None = 300,
         prior_std: float | None = 1.0,
+        class_weight: str | None = "balanced",
         seed: int = 0,
         quadrature_order: int = 2,
         thresholds: tuple[float, float] = DEFAULT_THRESHOLDS,
@@ -136,6 +143,7 @@ class AreaGPOM(GPMapEstimator):
         self.n_restarts = n_restarts
         self.hyper_subset = hyper_subset
         self.prior_std = prior_std
+        self.class_weight = class_weight
         self.seed = seed
         self.quadrature_order = quadrature_order
         self.thresholds = thresholds

@@ -161,6 +161,8 @@ def fit_tile_task(payload: dict[str, Any]) -> TileState:
             n_restarts=st["n_restarts"],
             seed=st["seed"],
             hyper_subset=st["hyper_subset"],
+            prior_std=st["prior_std"],
+            class_weight=st["class_weight"],
         )
         gp.squash = ProbitSquash(hyp["alpha"], hyp["beta"])
         gp.fit(X, y)
@@ -376,6 +378,8 @@ class TiledGPOM:
             "n_restarts": b.n_restarts,
             "seed": b.seed,
             "hyper_subset": b.hyper_subset,
+            "prior_std": b.prior_std,
+            "class_weight": b.class_weight,
             "per_tile": self.per_tile_hyperparameters,
         }
 
@@ -512,6 +516,8 @@ class TiledGPOM:
             n_restarts=b.n_restarts,
             seed=b.seed,
             hyper_subset=None,
+            prior_std=b.prior_std,
+            class_weight=b.class_weight,
         )
         gp.fit(X, lab[idx])
         hyp = {
