@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from gpomap.evaluation import _n_inputs, _parse_range, holdout_split, make_model, score_against_truth, test_points
+from gpomap.evaluation import holdout_split, make_model, n_inputs, scan_window, score_against_truth, test_points
 from gpomap.io.atomic import atomic_write
 from gpomap.metrics import fpr_at_tpr, log_loss, roc_auc, roc_curve
 from gpomap.scans import Scan, select_scans
@@ -82,7 +82,7 @@ def _belgioioso(path: Path, seed: int, quick: bool, scan_range: str | None = Non
     from gpomap.io import read_scans
 
     scans = read_scans(path)
-    scans = scans[_parse_range(scan_range, len(scans))]
+    scans = scans[scan_window(scan_range)]
     train, test = holdout_split(len(scans), "every:5", seed)
     n_scans, n_beams = (20, 19) if quick else (52, 37)
     return select_scans([scans[i] for i in train], n_scans, n_beams), [scans[i] for i in test], 0.1, None
@@ -168,7 +168,7 @@ def run_paper_benchmark(
                 row = {
                     "experiment": name, "method": method, "kernel": kernel, "seconds": fit_s + pred_s,
                     "fit_seconds": fit_s, "predict_seconds": pred_s, "auc": roc_auc(labels, p), "fpr_at_tpr95": fpr_at_tpr(labels, p, 0.95),
-                    "log_loss": log_loss(labels, p), "n_inputs": _n_inputs(model),
+                    "log_loss": log_loss(labels, p), "n_inputs": n_inputs(model),
                     "n_train_scans": len(train), "n_test_points": int(labels.size),
                     "roc": (fpr, tpr),
                 }

@@ -139,7 +139,8 @@ def test_points(
 test_points.__test__ = False  # type: ignore[attr-defined]
 
 
-def _parse_range(scan_range: str | tuple[int | None, int | None] | None, n: int) -> slice:
+def scan_window(scan_range: str | tuple[int | None, int | None] | None) -> slice:
+    """The slice of a log that `scan_range` ("FIRST:LAST", a pair, or None) names."""
     if scan_range is None:
         return slice(None)
     if isinstance(scan_range, str):
@@ -184,7 +185,8 @@ def make_model(method: str, kernel: str = "se", seed: int = 0, resolution: float
     raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
 
 
-def _n_inputs(model: Any) -> int:
+def n_inputs(model: Any) -> int:
+    """GP inputs of a fitted model (cells, beams or points); for a grid, the cells it observed."""
     if hasattr(model, "n_inputs_"):
         return int(model.n_inputs_)
     # Occupancy grid: the cells it observed are its "inputs".
@@ -247,7 +249,7 @@ def evaluate(
     t_all = time.perf_counter()
     seconds: dict[str, float] = {}
     t = time.perf_counter()
-    window = list(scans)[_parse_range(scan_range, len(scans))]
+    window = list(scans)[scan_window(scan_range)]
     train_idx, test_idx = holdout_split(len(window), holdout, seed)
     train = select_scans([window[i] for i in train_idx], n_scans, n_beams)
     test = [window[i] for i in test_idx]
@@ -274,7 +276,7 @@ def evaluate(
         "fpr_at_tpr95": fpr_at_tpr(labels, prob, 0.95),
         "log_loss": log_loss(labels, prob),
         "seconds": seconds,
-        "n_inputs": _n_inputs(model),
+        "n_inputs": n_inputs(model),
         "n_train_scans": len(train),
         "n_test_scans": len(test),
         "n_test_points": int(labels.size),
