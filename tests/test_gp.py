@@ -140,3 +140,21 @@ def test_robust_cholesky_adds_jitter_only_when_needed():
     assert jitter > 0 and np.allclose(L @ L.T, singular, atol=1e-6)
     with pytest.raises(NumericalError, match="not positive definite"):
         robust_cholesky(-np.eye(2))
+
+
+@pytest.mark.parametrize("kernel", [SquaredExponential(1.0, 0.4), Matern32(1.0, 0.3)], ids=["se", "matern32"])
+def test_local_prediction_equals_dense(kernel):
+    # A 40 m strip of cells and a short length scale: each block of queries sees a few metres of
+    # the map, so local prediction is taken, and must agree with the dense solve.
+    rng = np.random.default_rng(6)
+    lo = np.column_stack([rng.uniform(0, 40, 500), rng.uniform(0, 4, 500)])
+    X = Supports.from_boxes(lo, lo + rng.uniform(0.1, 0.5, (500, 2)), rng.integers(1, 20, 500).astype(float))
+    y = np.where(np.sin(lo[:, 0]) > 0.3, 1.0, -1.0)
+    area = "exact" if isinstance(kernel, SquaredExponential) else "quadrature"
+    gp = SupportGP(AreaKernel(kernel, area), noise=0.05, noise_model="per_count", optimise=False).fit(X, y)
+    Q = Supports.from_points(np.column_stack([rng.uniform(-1, 41, 3000), rng.uniform(-1, 5, 3000)]))
+    assert gp._local_blocks(Q, 4096) is not None
+    mean, var = gp.predict_latent(Q, local=True)
+    dense_mean, dense_var = gp.predict_latent(Q, local=False)
+    np.testing.assert_allclose(mean, dense_mean, atol=1e-9)
+    np.testing.assert_allclose(var, dense_var, atol=1e-9)

@@ -85,6 +85,15 @@ def test_fixed_hyperparameters_are_kept():
     assert m.gp_.fit_report_ is None
 
 
+def test_free_clearance_applies_to_scans_not_to_given_points():
+    scans = paper_room_scans()
+    m = AreaGPOM(kernel="se", length_scale=0.7, optimise=False, free_clearance=0.3)
+    from_scans = m.fit(scans).observations_
+    given = observations_from_scans(scans, free_step=0.2, no_return_cap=10.0)
+    assert from_scans.n_cleared > 0 and from_scans.n_free + from_scans.n_cleared == given.n_free
+    assert m.fit(given).observations_.n_free == given.n_free
+
+
 def test_errors_are_clear():
     with pytest.raises(NotFittedError, match="call fit"):
         AreaGPOM().predict_proba(np.zeros((1, 2)))

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from gpomap.errors import EmptyDataError, InputFormatError
-from gpomap.observations import observations_from_scans
+from gpomap.observations import free_near_hits, observations_from_scans
 from gpomap.scans import Scan, evenly_spaced, select_scans
 
 
@@ -22,6 +22,28 @@ def test_hit_free_and_no_return_beams():
     # The no-return beam gives free points up to the cap and no hit.
     assert along_y[:, 1].max() == pytest.approx(2.0 + 3.0)
     assert len(along_y) == 15
+
+
+def test_free_near_hits_by_hand():
+    pts = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.29], [0.5, 0.0], [0.0, 0.31]])
+    occ = np.array([True, False, False, False, False])
+    np.testing.assert_array_equal(free_near_hits(pts, occ, 0.3), [False, True, True, False, False])
+    assert not free_near_hits(pts, occ, 0.0).any()
+    assert not free_near_hits(pts, np.zeros(5, bool), 0.3).any()
+
+
+def test_free_clearance_drops_samples_of_a_beam_grazing_a_wall():
+    # Beam 0 hits a wall at x = 2 head on; beam 1 runs along the wall 0.1 m from it, to a far
+    # hit at y = 3. Only beam 1's samples beside beam 0's hit and its own last ones are near a hit.
+    scan = Scan([0.0, 0.0, 0.0], [0.0, np.arctan2(3.0, 1.9)], [2.0, np.hypot(1.9, 3.0)], 10.0)
+    kept = observations_from_scans([scan], free_step=0.2, free_clearance=0.3)
+    every = observations_from_scans([scan], free_step=0.2)
+    dropped = free_near_hits(every.points, every.occupied, 0.3)
+    assert kept.n_cleared == int(dropped.sum()) > 0
+    np.testing.assert_array_equal(kept.points, every.points[~dropped])
+    hits = every.points[every.occupied]
+    free = kept.points[~kept.occupied]
+    assert np.min(np.linalg.norm(free[:, None] - hits[None], axis=2)) >= 0.3
 
 
 def test_no_usable_readings_is_a_clear_error():

@@ -116,6 +116,8 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--class-weight", choices=["balanced", "none"], default="balanced",
                    help="weigh free and occupied cells equally in the leave-one-out fit, or each cell once (default: %(default)s)")
     g.add_argument("--free-step", type=_positive(float), default=0.2, help="free-point spacing along beams, m (default: %(default)s)")
+    g.add_argument("--free-clearance", type=float, default=0.3, metavar="M",
+                   help="drop free points closer than M metres to a hit (beams grazing walls; default: %(default)s; 0 keeps all)")
     g.add_argument("--no-return-cap", type=float, default=10.0, metavar="M",
                    help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)")
     g.add_argument("--min-cell", type=_positive(float), default=0.5, help="smallest cell side, m (default: %(default)s)")
@@ -132,6 +134,7 @@ def _model_options(args: argparse.Namespace) -> dict[str, Any]:
         "objective": args.objective,
         "class_weight": None if args.class_weight == "none" else args.class_weight,
         "free_step": args.free_step,
+        "free_clearance": args.free_clearance,
         "no_return_cap": args.no_return_cap,
         "min_cell": args.min_cell,
         "max_cell": args.max_cell,
@@ -252,9 +255,9 @@ def cmd_map(args: argparse.Namespace) -> int:
 def _too_many_cells(args: argparse.Namespace, data: Any) -> bool:
     """Whether one GP would hold more cells than ``--max-cells`` (then tiles are used, and said)."""
     from gpomap.cells import build_cells
-    from gpomap.observations import Observations, observations_from_scans
+    from gpomap.mapping import AreaGPOM
 
-    obs = data if isinstance(data, Observations) else observations_from_scans(data, args.free_step, no_return_cap=args.no_return_cap)
+    obs = AreaGPOM(**_model_options(args)).make_observations(data)
     n_cells = len(build_cells(obs.points, obs.occupied, args.min_cell, args.max_cell))
     if n_cells > args.max_cells:
         _status(args, f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
@@ -336,9 +339,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
     code = _fit_and_write(args, scans, len(scans), "gpomap demo: the paper's synthetic room")
     # The cell tree as a figure too (the paper's Fig. 5a), rebuilt cheaply from the same data.
     from gpomap.cells import build_cells
-    from gpomap.observations import observations_from_scans
+    from gpomap.mapping import AreaGPOM
 
-    obs = observations_from_scans(scans, args.free_step)
+    obs = AreaGPOM(**_model_options(args)).make_observations(scans)
     cells = build_cells(obs.points, obs.occupied, args.min_cell, args.max_cell)
     fig = plot_inputs(obs.points, obs.occupied, boxes=cells.boxes, box_labels=cells.labels)
     path = save_figure(fig, Path(args.output) / "cells.png")
@@ -378,7 +381,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.method in ("msk", "gpom"):
         options["free_step"] = args.free_step
     if args.method == "msk":
-        options.update(min_cell=args.min_cell, max_cell=args.max_cell, objective=args.objective,
+        options.update(min_cell=args.min_cell, max_cell=args.max_cell, objective=args.objective, free_clearance=args.free_clearance,
                        class_weight=None if args.class_weight == "none" else args.class_weight)
         if args.area:
             options["area"] = args.area

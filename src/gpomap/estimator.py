@@ -75,13 +75,16 @@ class GPMapEstimator:
             class_weight=getattr(self, "class_weight", "balanced"),
         )
 
-    def _observations(self, data: Any) -> Observations:
-        """Labelled points from scans (this estimator's ``free_step``, ``hit_margin`` and
-        ``no_return_cap``), or `data` itself when it already is; both classes are required."""
+    def make_observations(self, data: Any) -> Observations:
+        """Labelled points from scans (this estimator's ``free_step``, ``hit_margin``,
+        ``no_return_cap`` and ``free_clearance``), or `data` itself when it already is (given
+        points are taken as they are); both classes are required."""
         if isinstance(data, Observations):
             obs = data
         else:
-            obs = observations_from_scans(data, self.free_step, self.hit_margin, self.no_return_cap)
+            obs = observations_from_scans(
+                data, self.free_step, self.hit_margin, self.no_return_cap, getattr(self, "free_clearance", 0.0)
+            )
         if obs.n_occupied == 0 or obs.n_free == 0:
             raise EmptyDataError(
                 f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied"

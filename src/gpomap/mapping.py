@@ -51,6 +51,12 @@ class AreaGPOM(GPMapEstimator):
         space that far filled a 160 m square around the Intel lab (a 14 GB, 10-minute run instead
         of 1 GB and 37 s); on Belgioioso it measured as well or better (Matern 3/2: AUC 0.897
         against 0.890 uncapped).
+    free_clearance : float
+        Free points closer than this (metres) to any hit are dropped, so beams grazing a wall do
+        not mark the wall free (see :func:`gpomap.observations.free_near_hits`); applies to scans,
+        not to labelled points given to ``fit``. 0.3 m by default, chosen on Intel and CSAIL
+        (scans 300-364, every 5th held out, 37 beams): held-out AUC 0.856 / 0.836 with none, 0.959 /
+        0.954 at 0.2 m, 0.970 / 0.963 at 0.3 m, 0.942 / 0.955 at 0.5 m.
     min_cell, max_cell : float
         Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`). ``max_cell`` is 1 m by
         default: with mean normalisation a cell much larger than the length scale has a small
@@ -103,6 +109,7 @@ class AreaGPOM(GPMapEstimator):
         free_step: float = 0.2,
         hit_margin: float | None = None,
         no_return_cap: float | None = 10.0,
+        free_clearance: float = 0.3,
         min_cell: float = 0.5,
         max_cell: float = 1.0,
         cell_box: str = "node",
@@ -129,6 +136,7 @@ class AreaGPOM(GPMapEstimator):
         self.free_step = free_step
         self.hit_margin = hit_margin
         self.no_return_cap = no_return_cap
+        self.free_clearance = free_clearance
         self.min_cell = min_cell
         self.max_cell = max_cell
         self.cell_box = cell_box
@@ -180,7 +188,7 @@ class AreaGPOM(GPMapEstimator):
         """
         timings: dict[str, float] = {}
         t = time.perf_counter()
-        obs = self._observations(data)
+        obs = self.make_observations(data)
         timings["observations"] = time.perf_counter() - t
         t = time.perf_counter()
         cells = build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
@@ -222,6 +230,7 @@ class AreaGPOM(GPMapEstimator):
             "n_occupied_points": obs.n_occupied,
             "n_invalid_readings": obs.n_invalid,
             "n_no_return_readings": obs.n_no_return,
+            "n_free_points_cleared": obs.n_cleared,
             "n_cells": len(self.cells_),
             "n_ambiguous_cells": int(self.cells_.ambiguous.sum()),
             "hyperparameters": self.hyperparameters_,

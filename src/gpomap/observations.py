@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from gpomap.errors import EmptyDataError
 from gpomap.scans import Scan
@@ -33,6 +34,8 @@ class Observations:
         Readings dropped as NaN, inf or non-positive.
     n_no_return : int
         Valid readings at or beyond max range (free space only, never a hit).
+    n_cleared : int
+        Free samples dropped for lying too close to a hit (``free_clearance``).
     """
 
     points: NDArray[np.float64]
@@ -40,6 +43,7 @@ class Observations:
     scan_index: NDArray[np.intp]
     n_invalid: int = 0
     n_no_return: int = 0
+    n_cleared: int = 0
 
     @property
     def n_free(self) -> int:
@@ -100,11 +104,36 @@ def beam_free_points(
     return pts, beam
 
 
+def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], clearance: float) -> NDArray[np.bool_]:
+    """Which points are free and closer than `clearance` to a hit, ndarray of bool, shape (n,).
+
+    A beam that grazes a wall at a shallow angle leaves free samples centimetres from the wall's
+    surface; taken as evidence they mark the wall itself free, and a later scan's hit on that wall
+    is then predicted free with confidence. Space this close to a surface is what the range and
+    pose errors blur anyway, so such samples are better dropped than trusted.
+
+    Parameters
+    ----------
+    points : ndarray of shape (n, 2)
+    occupied : ndarray of bool, shape (n,)
+    clearance : float
+        Metres; 0 marks nothing.
+    """
+    out = np.zeros(occupied.shape, dtype=bool)
+    if clearance <= 0 or not occupied.any() or occupied.all():
+        return out
+    free = np.flatnonzero(~occupied)
+    dist, _ = cKDTree(points[occupied]).query(points[free], distance_upper_bound=clearance)
+    out[free[dist < clearance]] = True
+    return out
+
+
 def observations_from_scans(
     scans: Sequence[Scan],
     free_step: float = 0.2,
     hit_margin: float | None = None,
     no_return_cap: float | None = None,
+    free_clearance: float = 0.0,
 ) -> Observations:
     """Free and occupied points from scans.
 
@@ -119,6 +148,9 @@ def observations_from_scans(
     no_return_cap : float, optional
         A no-return beam gives free points out to this distance (and no hit). Defaults to the
         scan's max range; 0 ignores no-return beams.
+    free_clearance : float
+        Free samples closer than this to any hit of these scans are dropped (see
+        :func:`free_near_hits`); 0 keeps them all.
 
     Returns
     -------
@@ -151,10 +183,13 @@ def observations_from_scans(
         raise EmptyDataError(
             f"no usable readings in {len(scans)} scan(s) ({n_invalid} invalid): nothing to map"
         )
+    points, occupied, scan_index = np.concatenate(pts_all, axis=0), np.concatenate(occ_all), np.concatenate(idx_all)
+    keep = ~free_near_hits(points, occupied, free_clearance)
     return Observations(
-        points=np.concatenate(pts_all, axis=0),
-        occupied=np.concatenate(occ_all),
-        scan_index=np.concatenate(idx_all),
+        points=points[keep],
+        occupied=occupied[keep],
+        scan_index=scan_index[keep],
         n_invalid=n_invalid,
         n_no_return=n_no_return,
+        n_cleared=int(keep.size - keep.sum()),
     )

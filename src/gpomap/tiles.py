@@ -55,7 +55,7 @@ from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.mapping import AreaGPOM
-from gpomap.observations import Observations, observations_from_scans
+from gpomap.observations import Observations, free_near_hits, observations_from_scans
 from gpomap.scans import Scan
 from gpomap.squash import ProbitSquash
 from gpomap.supports import Supports
@@ -409,6 +409,7 @@ class TiledGPOM:
     # ------------------------------------------------------------------ cells
     def _build_block(self, idx: NDArray[np.intp]) -> _BlockCells:
         b = self.base
+        idx = idx[~free_near_hits(self._points[idx], self._occupied[idx], self._clearance)]
         c = build_cells(self._points[idx], self._occupied[idx], b.min_cell, b.max_cell, b.cell_box)
         summed = b.area_method == "summed"
         return _BlockCells(
@@ -614,6 +615,8 @@ class TiledGPOM:
 
     # ------------------------------------------------------------------ fitting
     def _observations(self, scans: Sequence[Scan]) -> Observations:
+        # No free_clearance here: it is applied per block when the cells are built, so a hit
+        # that arrives in a later update clears the free points near it just as a batch fit would.
         b = self.base
         return observations_from_scans(scans, b.free_step, b.hit_margin, b.no_return_cap)
 
@@ -647,6 +650,8 @@ class TiledGPOM:
         obs = data if isinstance(data, Observations) else self._observations(data)
         if obs.n_occupied == 0 or obs.n_free == 0:
             raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
+        # As in AreaGPOM: the clearance applies to points sampled from scans, not to given points.
+        self._clearance = 0.0 if isinstance(data, Observations) else float(self.base.free_clearance)
         self._points = np.asarray(obs.points, dtype=float)
         self._occupied = np.asarray(obs.occupied, dtype=bool)
         self._n_scans = int(obs.scan_index.max()) + 1 if obs.scan_index.size else 0

@@ -138,7 +138,7 @@ class GPOM(GPMapEstimator):
         """
         timings: dict[str, float] = {}
         t = time.perf_counter()
-        obs = self._observations(data)
+        obs = self.make_observations(data)
         keep = self.subsample(obs.occupied)
         X = Supports.from_points(obs.points[keep])
         y = obs.labels[keep]
