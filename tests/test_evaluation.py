@@ -75,7 +75,7 @@ def test_evaluate_returns_documented_keys(method):
     if method == "gpom":
         opts.update(max_points=300, free_step=0.5)
     if method == "msk":
-        opts.update(min_cell=1.0)
+        opts.update(min_cell=1.0, max_cell=1.0)
     res = ev.evaluate(
         scans, method=method, kernel="se", holdout="every:4", n_scans=10, n_beams=12, scan_range="0:24",
         seed=0, max_test_points=100, return_roc=True, resolution=0.25, **opts,

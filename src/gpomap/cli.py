@@ -121,7 +121,7 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-return-cap", type=float, default=10.0, metavar="M",
                    help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)")
     g.add_argument("--min-cell", type=_positive(float), default=0.5, help="smallest cell side, m (default: %(default)s)")
-    g.add_argument("--max-cell", type=_positive(float), default=1.0, help="largest pure cell side, m (default: %(default)s)")
+    g.add_argument("--max-cell", type=_positive(float), default=0.5, help="largest pure cell side, m (default: %(default)s)")
     g.add_argument("--length-scale", type=_positive(float), help="fix the length scale (m) instead of learning it")
     g.add_argument("--seed", type=int, default=0, help="seed of restarts and samples (default: %(default)s)")
 
