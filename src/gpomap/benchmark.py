@@ -169,7 +169,7 @@ def run_paper_benchmark(
                     "experiment": name, "method": method, "kernel": kernel, "seconds": fit_s + pred_s,
                     "fit_seconds": fit_s, "predict_seconds": pred_s, "auc": roc_auc(labels, p), "fpr_at_tpr95": fpr_at_tpr(labels, p, 0.95),
                     "log_loss": log_loss(labels, p), "n_inputs": n_inputs(model),
-                    "n_train_scans": len(train), "n_test_points": int(labels.size),
+                    "n_train_scans": len(train), "n_test_scans": len(test), "n_test_points": int(labels.size),
                     "roc": (fpr, tpr),
                 }
                 if world is not None:
@@ -221,6 +221,8 @@ def _write_tables(rows: list[dict[str, Any]], path: Path, quick: bool) -> None:
             continue
         truth = experiment == "synthetic"
         lines += ["", f"## {TITLES[experiment]}", "",
+                  f"Training: {sub[0]['n_train_scans']} scans. Test: {sub[0]['n_test_points']} balanced points from "
+                  f"{sub[0]['n_test_scans']} held-out scans.", "",
                   "| method | kernel | inputs | fit (s) | predict (s) | time (s) | vs GPOMIK | AUC | FPR at TPR 95 % | log loss |"
                   + (" AUC vs true room (grid) |" if truth else "") + " paper time (s) | paper AUC | paper FPR |",
                   "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if truth else "") + "---|---|---|"]
