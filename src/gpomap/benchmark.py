@@ -175,7 +175,7 @@ def run_paper_benchmark(
                 if world is not None:
                     row["truth_auc"] = score_against_truth(model, world, resolution)["auc"]
                 rows.append(row)
-                say(f"{name:<11}{LABELS[method]:<9}{kernel:<9} AUC {row['auc']:.4f}  FPR95 {100 * row['fpr_at_tpr95']:5.1f} %  {row['seconds']:7.2f} s")
+                say(f"{name:<17}{LABELS[method]:<9}{kernel:<9} AUC {row['auc']:.4f}  FPR95 {100 * row['fpr_at_tpr95']:5.1f} %  {row['seconds']:7.2f} s")
                 if method in ("msk", "gpomik"):
                     grid_map = model.grid(resolution) if method == "gpomik" else model.grid(resolution, supersample=2)
                     maps.setdefault(kernel, {})[method] = grid_map
