@@ -168,3 +168,19 @@ def test_per_tile_hyperparameters_run_and_are_reported(room):
     assert set(s["per_tile_hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta"}
     p = model.predict_proba(np.array([[3.0, 3.0], [10.0, 8.0]]))
     assert np.all((p >= 0) & (p <= 1))
+
+
+def test_area_gpom_for_tiles_only_above_max_cells():
+    from gpomap.mapping import AreaGPOM
+    from gpomap.simulate import paper_room_scans
+    from gpomap.tiles import TiledGPOM, area_gpom_for, count_cells
+
+    scans = paper_room_scans(n_beams=12)[:10]
+    n = count_cells(scans, kernel="se", max_cell=1.0)
+    assert n == len(AreaGPOM(kernel="se", max_cell=1.0, optimise=False).fit(scans).cells_)
+    one, counted = area_gpom_for(scans, n, kernel="se", max_cell=1.0)
+    assert isinstance(one, AreaGPOM) and counted == n
+    tiled, _ = area_gpom_for(scans, n - 1, {"tile_size": 5.0, "n_workers": 1}, kernel="se", max_cell=1.0)
+    assert isinstance(tiled, TiledGPOM) and tiled.tile_size == 5.0 and tiled.base.max_cell == 1.0
+    never, uncounted = area_gpom_for(scans, None)
+    assert isinstance(never, AreaGPOM) and uncounted is None

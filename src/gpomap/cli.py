@@ -254,11 +254,9 @@ def cmd_map(args: argparse.Namespace) -> int:
 
 def _too_many_cells(args: argparse.Namespace, data: Any) -> bool:
     """Whether one GP would hold more cells than ``--max-cells`` (then tiles are used, and said)."""
-    from gpomap.cells import build_cells
-    from gpomap.mapping import AreaGPOM
+    from gpomap.tiles import count_cells
 
-    obs = AreaGPOM(**_model_options(args)).make_observations(data)
-    n_cells = len(build_cells(obs.points, obs.occupied, args.min_cell, args.max_cell))
+    n_cells = count_cells(data, **_model_options(args))
     if n_cells > args.max_cells:
         _status(args, f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
                       f"mapping in tiles of {args.tile_size:g} m")

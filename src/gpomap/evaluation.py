@@ -185,6 +185,26 @@ def make_model(method: str, kernel: str = "se", seed: int = 0, resolution: float
     raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
 
 
+def make_model_for(
+    train: Sequence[Scan],
+    method: str,
+    kernel: str = "se",
+    seed: int = 0,
+    resolution: float = 0.1,
+    max_cells: int | None = 3000,
+    n_workers: int | None = None,
+    **options: Any,
+) -> Any:
+    """:func:`make_model`, except that "msk" is built in tiles when `train` gives more than
+    `max_cells` cells (:func:`gpomap.tiles.area_gpom_for`), as ``gpomap map`` does."""
+    if method != "msk":
+        return make_model(method, kernel, seed, resolution, **options)
+    from gpomap.tiles import area_gpom_for
+
+    model, _ = area_gpom_for(train, max_cells, {"n_workers": n_workers}, kernel=kernel, seed=seed, **options)
+    return model
+
+
 def n_inputs(model: Any) -> int:
     """GP inputs of a fitted model (cells, beams or points); for a grid, the cells it observed."""
     if hasattr(model, "n_inputs_"):
@@ -206,6 +226,8 @@ def evaluate(
     test_free_step: float = 0.2,
     max_test_points: int | None = None,
     return_roc: bool = False,
+    max_cells: int | None = 3000,
+    n_workers: int | None = None,
     **method_options: Any,
 ) -> dict[str, Any]:
     """Fit a method on training scans and score it on held-out scans.
@@ -233,6 +255,11 @@ def evaluate(
         Cap on test points (half each class).
     return_roc : bool
         Also return the ROC curve as ``roc = {"fpr": [...], "tpr": [...]}``.
+    max_cells : int or None
+        "msk" only: above this many cells the map is built in tiles, as ``gpomap map`` does
+        (:func:`gpomap.tiles.area_gpom_for`); None: always one GP.
+    n_workers : int, optional
+        Worker processes for tiles (default: the CPU count).
     **method_options
         Passed to the method's constructor.
 
@@ -258,8 +285,8 @@ def evaluate(
     points, labels = test_points(test, test_free_step, seed, max_test_points)
     seconds["test_points"] = time.perf_counter() - t
 
-    model = make_model(method, kernel, seed, resolution, **method_options)
     t = time.perf_counter()
+    model = make_model_for(train, method, kernel, seed, resolution, max_cells, n_workers, **method_options)
     model.fit(train)
     seconds["fit"] = time.perf_counter() - t
     t = time.perf_counter()
@@ -292,6 +319,7 @@ def evaluate(
             "resolution": resolution,
             "test_free_step": test_free_step,
             "max_test_points": max_test_points,
+            "tiles": len(model.tiles_) if hasattr(model, "tiles_") else None,
             "test_scan_indices": [int(i) for i in test_idx],
             "method_options": _jsonable(method_options),
         },
