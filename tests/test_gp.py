@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gpomap.errors import NumericalError
-from gpomap.gp import SupportGP, robust_cholesky
+from gpomap.gp import SupportGP, inverse_diagonal, robust_cholesky
 from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
 from gpomap.squash import ProbitSquash, class_weights, loo_moments, loo_probit
 from gpomap.supports import Supports
@@ -158,3 +158,10 @@ def test_local_prediction_equals_dense(kernel):
     dense_mean, dense_var = gp.predict_latent(Q, local=False)
     np.testing.assert_allclose(mean, dense_mean, atol=1e-9)
     np.testing.assert_allclose(var, dense_var, atol=1e-9)
+
+
+def test_inverse_diagonal_matches_the_inverse():
+    rng = np.random.default_rng(8)
+    A = rng.normal(size=(40, 40))
+    K = A @ A.T + 40 * np.eye(40)
+    np.testing.assert_allclose(inverse_diagonal(np.linalg.cholesky(K)), np.diag(np.linalg.inv(K)), rtol=1e-10)

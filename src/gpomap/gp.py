@@ -25,7 +25,7 @@ from scipy.optimize import minimize
 
 from gpomap.errors import NotFittedError, NumericalError
 from gpomap.kernels.area import AreaKernel
-from gpomap.squash import SQUASH_BOUNDS, ProbitSquash, class_weights, loo_moments, loo_probit, probit_gradient_in_shift
+from gpomap.squash import SQUASH_BOUNDS, ProbitSquash, class_weights, loo_probit, probit_gradient_in_shift
 from gpomap.supports import Supports
 
 OBJECTIVES = ("loo", "lml")
@@ -79,6 +79,17 @@ def cholesky_inverse(L: NDArray[np.float64]) -> NDArray[np.float64]:
         raise NumericalError(f"inverse from the Cholesky factor failed (LAPACK info {info})")
     # dpotri fills the lower triangle only.
     return np.tril(inv) + np.tril(inv, -1).T
+
+
+def inverse_diagonal(L: NDArray[np.float64]) -> NDArray[np.float64]:
+    """diag((L L^T)^-1) from a lower Cholesky factor, ndarray of shape (n,).
+
+    The squared column norms of L^-1: one triangular inverse, half the work of the full inverse.
+    """
+    L_inv, info = lapack.dtrtri(L, lower=1)
+    if info != 0:
+        raise NumericalError(f"triangular inverse of the Cholesky factor failed (LAPACK info {info})")
+    return np.einsum("ij,ij->j", L_inv, L_inv)
 
 
 #: Local prediction treats covariances below this fraction of the signal variance as zero.
@@ -275,9 +286,10 @@ class SupportGP:
         self.alpha_ = cho_solve((L, True), y, check_finite=False)
         t2 = time.perf_counter()
         # alpha and beta for the full model: from its own leave-one-out moments.
-        # K^-1 gives the leave-one-out moments, and is kept for local prediction.
-        self.K_inv_ = cholesky_inverse(L)
-        mu, var = loo_moments(self.K_inv_, y)
+        # Leave-one-out moments (R&W eq. 5.12) need only K^-1 y and diag(K^-1).
+        d = inverse_diagonal(L)
+        mu, var = y - self.alpha_ / d, 1.0 / d
+        self.K_inv_: NDArray[np.float64] | None = None  # formed on first local prediction
         self.squash.fit(y, mu, var, class_weights(y, self.class_weight))
         self.timings_ = {"hyperparameters": t1 - t0, "factorisation": t2 - t1, "squash": time.perf_counter() - t2}
         return self
@@ -436,8 +448,10 @@ class SupportGP:
                 blocks.append((q, near))
                 work += near.size * near.size * (q.size + near.size)
             start += int(size)
-        # Dense costs about n^2 per query; local |J|^2 per query plus taking (K^-1)_JJ per block.
-        if work > 0.5 * n * n * len(X):
+        # Dense costs about n^2 per query; local |J|^2 per query plus taking (K^-1)_JJ per block,
+        # and forming K^-1 (about n^3) the first time.
+        setup = n**3 if self.K_inv_ is None else 0
+        if work + setup > 0.5 * n * n * len(X):
             return None
         return blocks
 
@@ -445,6 +459,8 @@ class SupportGP:
         self, X: Supports, blocks: list[tuple[NDArray[np.intp], NDArray[np.intp]]]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Mean and variance block by block: k_J^T a_J and k** - k_J^T (K^-1)_JJ k_J."""
+        if self.K_inv_ is None:
+            self.K_inv_ = cholesky_inverse(self.L_)
         mean = np.zeros(len(X))
         var = np.empty(len(X))
         for q, near in blocks:
