@@ -159,3 +159,10 @@ def test_mixed_inputs_follow_eq_14():
 def test_exact_needs_the_squared_exponential():
     with pytest.raises(ValueError, match="closed form only for the squared exponential"):
         AreaKernel(Matern32(), "exact")
+
+
+@pytest.mark.parametrize("kernel", [SquaredExponential(2.0, 0.7), Matern32(0.5, 1.3)], ids=["se", "matern32"])
+def test_cutoff_is_where_the_kernel_falls_below_the_tolerance(kernel):
+    r = kernel.cutoff(1e-9)
+    assert kernel.values(np.array(r * r))[0] <= 1e-9 * kernel.variance
+    assert kernel.values(np.array((0.99 * r) ** 2))[0] > 1e-9 * kernel.variance

@@ -141,11 +141,18 @@ class PointKernel(ABC):
         return np.full(np.atleast_2d(X).shape[0], self.variance)
 
     def cutoff(self, tol: float = 1e-10) -> float:
-        """Distance beyond which the kernel is below `tol` times its variance."""
-        r = self.length_scale
-        while self.values(np.array(r * r))[0] > tol * self.variance:
-            r *= 1.5
-        return r
+        """Distance beyond which the kernel is below `tol` times its variance (to 0.1 %)."""
+        def above(r: float) -> bool:
+            return bool(self.values(np.array(r * r))[0] > tol * self.variance)
+
+        lo, hi = 0.0, self.length_scale
+        while above(hi):
+            lo, hi = hi, 2.0 * hi
+        # Both profiles decrease with distance: bisect down to a 0.1 % bracket, keep the far end.
+        while hi - lo > 1e-3 * hi:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if above(mid) else (lo, mid)
+        return hi
 
 
 class SquaredExponential(PointKernel):
