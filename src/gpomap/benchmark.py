@@ -78,10 +78,7 @@ def _synthetic(seed: int) -> Experiment:
     return paper_room_scans(), simulate_scans(world, test_poses, 90), 0.5, world
 
 
-def _belgioioso(path: Path, seed: int, quick: bool, scan_range: str | None = None) -> Experiment:
-    from gpomap.io import read_scans
-
-    scans = read_scans(path)
+def _belgioioso(scans: list[Scan], seed: int, quick: bool, scan_range: str | None = None) -> Experiment:
     scans = scans[scan_window(scan_range)]
     train, test = holdout_split(len(scans), "every:5", seed)
     n_scans, n_beams = (20, 19) if quick else (52, 37)
@@ -142,10 +139,19 @@ def run_paper_benchmark(
     unknown = sorted(set(experiments) - set(EXPERIMENTS))
     if unknown:
         raise ValueError(f"unknown experiment(s) {unknown}; expected some of {EXPERIMENTS}")
+    log: list[list[Scan]] = []  # the Belgioioso log, read once for both of its experiments
+
+    def belgioioso_scans() -> list[Scan]:
+        from gpomap.io import read_scans
+
+        if not log:
+            log.append(read_scans(Path(belgioioso_path)))
+        return log[0]
+
     loaders: dict[str, Callable[[], Experiment]] = {
         "synthetic": lambda: _synthetic(seed),
-        "belgioioso": lambda: _belgioioso(Path(belgioioso_path), seed, quick),
-        "belgioioso-rooms": lambda: _belgioioso(Path(belgioioso_path), seed, quick, ROOMS_RANGE),
+        "belgioioso": lambda: _belgioioso(belgioioso_scans(), seed, quick),
+        "belgioioso-rooms": lambda: _belgioioso(belgioioso_scans(), seed, quick, ROOMS_RANGE),
     }
     rows: list[dict[str, Any]] = []
     for name in [e for e in EXPERIMENTS if e in experiments]:

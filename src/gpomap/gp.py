@@ -25,7 +25,7 @@ from scipy.optimize import minimize
 
 from gpomap.errors import NotFittedError, NumericalError
 from gpomap.kernels.area import AreaKernel
-from gpomap.squash import SQUASH_BOUNDS, ProbitSquash, class_weights, loo_probit, probit_gradient_in_shift
+from gpomap.squash import CLASS_WEIGHTS, SQUASH_BOUNDS, ProbitSquash, class_weights, loo_probit, probit_gradient_in_shift
 from gpomap.supports import Supports
 
 OBJECTIVES = ("loo", "lml")
@@ -176,7 +176,8 @@ class SupportGP:
         self.max_iter = int(max_iter)
         self.hyper_subset = hyper_subset
         self.prior_std = prior_std
-        class_weights(np.array([1.0, -1.0]), class_weight)  # validates the name early
+        if class_weight not in CLASS_WEIGHTS:
+            raise ValueError(f"class_weight must be one of {CLASS_WEIGHTS}, got {class_weight!r}")
         self.class_weight = class_weight
         self.squash = ProbitSquash()
 
