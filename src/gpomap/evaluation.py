@@ -29,6 +29,7 @@ from gpomap.grid import GridSpec
 from gpomap.metrics import fpr_at_tpr, log_loss, roc_auc, roc_curve
 from gpomap.observations import observations_from_scans
 from gpomap.scans import Scan, select_scans
+from gpomap.tiles import DEFAULT_MAX_CELLS, area_gpom_for
 
 METHODS = ("msk", "gpomik", "gpom", "ogm")
 
@@ -191,7 +192,7 @@ def make_model_for(
     kernel: str = "se",
     seed: int = 0,
     resolution: float = 0.1,
-    max_cells: int | None = 3000,
+    max_cells: int | None = DEFAULT_MAX_CELLS,
     n_workers: int | None = None,
     **options: Any,
 ) -> Any:
@@ -199,8 +200,6 @@ def make_model_for(
     `max_cells` cells (:func:`gpomap.tiles.area_gpom_for`), as ``gpomap map`` does."""
     if method != "msk":
         return make_model(method, kernel, seed, resolution, **options)
-    from gpomap.tiles import area_gpom_for
-
     model, _ = area_gpom_for(train, max_cells, {"n_workers": n_workers}, kernel=kernel, seed=seed, **options)
     return model
 
@@ -226,7 +225,7 @@ def evaluate(
     test_free_step: float = 0.2,
     max_test_points: int | None = None,
     return_roc: bool = False,
-    max_cells: int | None = 3000,
+    max_cells: int | None = DEFAULT_MAX_CELLS,
     n_workers: int | None = None,
     **method_options: Any,
 ) -> dict[str, Any]:
