@@ -133,12 +133,12 @@ def run_paper_benchmark(
     """
     from gpomap.plot import plot_map, save_figure
 
+    unknown = sorted(set(experiments) - set(EXPERIMENTS))
+    if unknown:
+        raise ValueError(f"unknown experiment(s) {', '.join(unknown)}; expected some of {', '.join(EXPERIMENTS)}")
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     say = progress or (lambda _m: None)
-    unknown = sorted(set(experiments) - set(EXPERIMENTS))
-    if unknown:
-        raise ValueError(f"unknown experiment(s) {unknown}; expected some of {EXPERIMENTS}")
     log: list[list[Scan]] = []  # the Belgioioso log, read once for both of its experiments
 
     def belgioioso_scans() -> list[Scan]:
