@@ -1,0 +1,98 @@
+"""Progress of long stages: a bar with an estimate on a terminal, plain lines otherwise, or nothing.
+
+Every stage that can take more than a few seconds (tiled fit, grid prediction, reading a large
+log) reports through :func:`progress`, so a user can tell a slow run from a hung one. The mode is
+set once per process by the command line (``--quiet``) or by the API user:
+
+- ``"auto"`` (default): a tqdm bar when stderr is a terminal, else one line per ~10 % step;
+- ``"lines"``: always line-based (logs, CI);
+- ``"quiet"``: nothing.
+
+tqdm is imported only when a bar is shown, so ``gpomap --help`` stays light.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Literal
+
+__all__ = ["Progress", "progress", "set_progress_mode", "get_progress_mode"]
+
+Mode = Literal["auto", "lines", "quiet"]
+_MODES: tuple[Mode, ...] = ("auto", "lines", "quiet")
+_mode: Mode = "auto"
+
+
+def set_progress_mode(mode: Mode) -> None:
+    """Choose how progress is shown for the rest of the process (see the module docstring)."""
+    global _mode
+    if mode not in _MODES:
+        raise ValueError(f"progress mode must be one of {_MODES}, got {mode!r}")
+    _mode = mode
+
+
+def get_progress_mode() -> Mode:
+    """The current progress mode."""
+    return _mode
+
+
+class Progress:
+    """A counter of finished work items with an estimate of the time left.
+
+    Parameters
+    ----------
+    total : int
+        Number of items the stage will finish.
+    desc : str
+        What the stage does, shown before the count ("fitting tiles").
+    unit : str
+        Name of one item ("tile", "row", "scan").
+    """
+
+    def __init__(self, total: int, desc: str, unit: str = "item") -> None:
+        self.total = max(int(total), 0)
+        self.desc = desc
+        self.unit = unit
+        self.n = 0
+        self._t0 = time.perf_counter()
+        self._next_line = 0.1
+        self._bar = None
+        self._mode = _mode
+        if self._mode == "auto" and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=self.total, desc=desc, unit=unit, leave=False, file=sys.stderr)
+        elif self._mode == "auto":
+            self._mode = "lines"
+
+    def update(self, n: int = 1) -> None:
+        """Mark `n` more items done."""
+        self.n += n
+        if self._bar is not None:
+            self._bar.update(n)
+        elif self._mode == "lines" and self.total > 0 and self.n / self.total >= self._next_line and self.n < self.total:
+            elapsed = time.perf_counter() - self._t0
+            left = elapsed * (self.total - self.n) / self.n
+            print(f"  {self.desc}: {self.n}/{self.total} {self.unit}s, {elapsed:.0f} s elapsed, ~{left:.0f} s left",
+                  file=sys.stderr, flush=True)
+            while self._next_line <= self.n / self.total:
+                self._next_line += 0.1
+
+    def close(self) -> None:
+        """End the stage (removes the bar; line mode prints nothing more)."""
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
+@contextmanager
+def progress(total: int, desc: str, unit: str = "item") -> Iterator[Progress]:
+    """Report progress of a stage of `total` items: ``with progress(n, "fitting tiles") as bar: bar.update()``."""
+    bar = Progress(total, desc, unit)
+    try:
+        yield bar
+    finally:
+        bar.close()
