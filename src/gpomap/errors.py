@@ -46,3 +46,7 @@ class NumericalError(GpomapError, ArithmeticError):
 
 class EmptyDataError(GpomapError, ValueError):
     """There is nothing to learn from: no valid observations, or only one class."""
+
+
+class DistributedError(GpomapError, RuntimeError):
+    """A Dask distributed scheduler could not be reached, or had no workers left to run the tiles."""
