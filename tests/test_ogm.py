@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 import gpomap.baselines.ogm as ogm
-from gpomap.baselines.ogm import OccupancyGridMapper, traverse
+from gpomap.baselines.ogm import L_HIT, L_MAX, L_MIN, L_MISS, OccupancyGridMapper, traverse
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
 from gpomap.scans import Scan
@@ -67,11 +67,82 @@ def test_hit_cell_occupied_and_traversed_cells_free():
     m = OccupancyGridMapper(resolution=1.0, extent=(0.0, 8.0, 0.0, 2.0)).fit(scans)
     assert m.hits_[0, 5] == 20 and m.hits_.sum() == 20
     p = m.predict_proba([[5.5, 0.5], [2.5, 0.5], [0.5, 0.5], [4.5, 0.5]])
-    assert p[0] == pytest.approx(1 / (1 + np.exp(-4.0)))  # clamped at l_max
-    np.testing.assert_allclose(p[1:], 1 / (1 + np.exp(4.0)))  # clamped at l_min
+    assert p[0] == pytest.approx(0.971)  # clamped at OctoMap's upper bound
+    np.testing.assert_allclose(p[1:], 0.1192)  # and at its lower one
     np.testing.assert_array_equal(m.observed_[0], [20, 20, 20, 20, 20, 20, 0, 0])
     # Beyond the wall and in the other row: never observed, exactly 0.5.
     assert m.predict_proba([[6.5, 0.5], [2.5, 1.5], [100.0, 0.0]]).tolist() == [0.5, 0.5, 0.5]
+
+
+def test_octomap_default_constants():
+    # OccupancyOcTreeBase's constructor: setProbHit(0.7), setProbMiss(0.4), clamping 0.1192 / 0.971.
+    assert L_HIT == pytest.approx(np.log(0.7 / 0.3)) == pytest.approx(0.8473, abs=1e-4)
+    assert L_MISS == pytest.approx(-0.4055, abs=1e-4)
+    assert L_MIN == pytest.approx(-2.0000, abs=1e-4) and L_MAX == pytest.approx(3.5110, abs=1e-4)
+    m = OccupancyGridMapper()
+    assert (m.l_occ, m.l_free, m.l_min, m.l_max, m.max_range_free) == (L_HIT, L_MISS, L_MIN, L_MAX, 10.0)
+
+
+def test_hand_computed_ray_through_a_small_grid():
+    # From (0.5, 0.5) to (3.5, 2.5), slope 2/3, 1 m cells. The line crosses x = 1 at y = 0.83,
+    # y = 1 at x = 1.25, x = 2 at y = 1.5, y = 2 at x = 2.75, x = 3 at y = 2.17: cells (row, col)
+    # (0,0) (0,1) (1,1) (1,2) (2,2) (2,3), the last holding the end point.
+    grid = GridSpec((0.0, 0.0), 1.0, (4, 4))
+    _, rows, cols = traverse(grid, [[0.5, 0.5]], [[3.5, 2.5]])
+    assert list(zip(rows.tolist(), cols.tolist())) == [(0, 0), (0, 1), (1, 1), (1, 2), (2, 2), (2, 3)]
+    scan = Scan([0.5, 0.5, 0.0], [np.arctan2(2.0, 3.0)], [np.hypot(3.0, 2.0)], 10.0)
+    m = OccupancyGridMapper(1.0, (0.0, 4.0, 0.0, 4.0)).fit([scan])
+    expected = np.zeros((4, 4))
+    expected[[0, 0, 1, 1, 2], [0, 1, 1, 2, 2]] = L_MISS
+    expected[2, 3] = L_HIT
+    np.testing.assert_allclose(m.log_odds_, expected)
+
+
+def test_clamping_by_hand():
+    # Ten scans hitting cell 2 (log-odds would be 8.47, clamped at 3.51), then two scans passing
+    # through cell 2 to cell 3: 3.51 - 2 * 0.405 = 2.70, not 8.47 - 0.81. Cells 0, 1: twelve
+    # misses, clamped at -2.0.
+    hit2 = Scan([0.5, 0.5, 0.0], [0.0], [2.0], 10.0)
+    hit3 = Scan([0.5, 0.5, 0.0], [0.0], [3.0], 10.0)
+    m = OccupancyGridMapper(1.0, (0.0, 4.0, 0.0, 1.0)).fit([hit2] * 10 + [hit3] * 2)
+    np.testing.assert_allclose(m.log_odds_[0], [L_MIN, L_MIN, L_MAX + 2 * L_MISS, 2 * L_HIT])
+    assert m.log_odds_[0, 2] == pytest.approx(2.701, abs=1e-3)
+
+
+def test_one_update_per_cell_per_scan_and_a_hit_wins():
+    # One scan, three beams from (0.5, 0.5) along +x: ranges 1.0, 3.0 and 3.0 (cells 0..1, 0..3,
+    # 0..3), plus one ending in cell 2 (range 2.0) while the others cross it.
+    scan = Scan([0.5, 0.5, 0.0], [0.0, 0.0, 0.0, 0.0], [1.0, 3.0, 3.0, 2.0], 10.0)
+    m = OccupancyGridMapper(1.0, (0.0, 5.0, 0.0, 1.0)).fit([scan])
+    # Log-odds (OctoMap): cell 0 one miss (not four), cell 1 hit by beam 0 and crossed by three:
+    # a hit wins; cell 2 likewise; cell 3 one hit (two beams end there); cell 4 unseen.
+    np.testing.assert_allclose(m.log_odds_[0], [L_MISS, L_HIT, L_HIT, L_HIT, 0.0])
+    np.testing.assert_array_equal(m.observed_[0], [1, 1, 1, 1, 0])
+    # Counting, per beam (GMapping): cell 0 four misses; cell 1 one hit, three misses; cell 2
+    # one hit, two misses; cell 3 two hits.
+    c = OccupancyGridMapper(1.0, (0.0, 5.0, 0.0, 1.0), "counting").fit([scan])
+    np.testing.assert_array_equal(c.hits_[0], [0, 1, 1, 2, 0])
+    np.testing.assert_array_equal(c.misses_[0], [4, 3, 2, 0, 0])
+    np.testing.assert_allclose(c.predict_proba([[x + 0.5, 0.5] for x in range(5)]),
+                               [1 / 6, 2 / 6, 2 / 5, 3 / 4, 0.5])
+    # Counting once per scan: the same sets as the log-odds grid.
+    s = OccupancyGridMapper(1.0, (0.0, 5.0, 0.0, 1.0), "counting", update="scan").fit([scan])
+    np.testing.assert_array_equal(s.hits_[0], [0, 1, 1, 1, 0])
+    np.testing.assert_array_equal(s.misses_[0], [1, 0, 0, 0, 0])
+    # Log-odds per beam instead: cell 0 four misses, cell 1 a hit and three misses.
+    b = OccupancyGridMapper(1.0, (0.0, 5.0, 0.0, 1.0), update="beam").fit([scan])
+    np.testing.assert_allclose(b.log_odds_[0, :2], [4 * L_MISS, L_HIT + 3 * L_MISS])
+
+
+def test_counting_and_logodds_agree_on_streamed_chunks(monkeypatch):
+    scans = paper_room_scans(n_beams=36)
+    for kw in [{}, {"sensor_model": "counting"}, {"update": "beam"}]:
+        whole = OccupancyGridMapper(0.25, **kw).fit(scans)
+        monkeypatch.setattr(ogm, "_ENTRIES_PER_CHUNK", 500)
+        parts = OccupancyGridMapper(0.25, **kw).fit(scans)
+        monkeypatch.undo()
+        np.testing.assert_allclose(parts.log_odds_, whole.log_odds_)
+        np.testing.assert_array_equal(parts.hits_, whole.hits_)
 
 
 def test_one_scan_updates_by_hand():
@@ -85,7 +156,11 @@ def test_no_return_beam_never_marks_occupied():
     m = OccupancyGridMapper(resolution=1.0, extent=(0.0, 20.0, 0.0, 20.0), max_range_free=4.0).fit([scan])
     assert m.hits_.sum() == 0 and (m.log_odds_ <= 0).all()
     # Free up to the cap: cells 0..4 along x (the 4 m cap ends at x = 4.5), nothing further.
-    np.testing.assert_array_equal(m.observed_[0, :7], [2, 1, 1, 1, 1, 0, 0])  # both beams start in cell 0
+    # Both beams start in cell 0: once per scan for log-odds, once per beam for counting.
+    np.testing.assert_array_equal(m.observed_[0, :7], [1, 1, 1, 1, 1, 0, 0])
+    c = OccupancyGridMapper(1.0, (0.0, 20.0, 0.0, 20.0), "counting", max_range_free=4.0).fit([scan])
+    np.testing.assert_array_equal(c.misses_[0, :7], [2, 1, 1, 1, 1, 0, 0])
+    assert c.hits_.sum() == 0
 
 
 def test_unobserved_and_grid_map():
@@ -129,3 +204,5 @@ def test_not_fitted_and_bad_parameters():
         OccupancyGridMapper().predict_proba([[0.0, 0.0]])
     with pytest.raises(ValueError, match="l_min"):
         OccupancyGridMapper(l_min=1.0).fit(paper_room_scans())
+    with pytest.raises(ValueError, match="sensor_model"):
+        OccupancyGridMapper(sensor_model="bayes").fit(paper_room_scans())

@@ -1,14 +1,30 @@
-"""The classic log-odds occupancy grid with an inverse sensor model and exact ray traversal.
+"""Occupancy grids with exact ray traversal: the two models users know.
 
-Each beam updates the cells it crosses: the cell holding its end point gets the occupied
-log-odds increment ``l_occ`` (if the beam returned), every other cell it passes through gets the
-free increment ``l_free`` once. Cells are the exact set the segment passes through
-(Amanatides & Woo 1987). Log-odds are clamped to ``[l_min, l_max]`` after each scan, so a cell
-can change its mind when the world does.
+- **log-odds** (OctoMap's sensor model and defaults): each scan adds ``l_occ`` = logit(0.7) =
+  +0.85 to the cells holding its hits and ``l_free`` = logit(0.4) = -0.405 to every other cell its
+  beams cross, **once per cell per scan** (a cell crossed by ten beams of one scan gets one miss),
+  and a cell that is both a hit and crossed in the same scan counts as a hit only ("a hit wins").
+  Log-odds are clamped to [logit(0.1192), logit(0.971)] = [-2.00, 3.51] after each update, so a cell
+  can change its mind when the world does. This is ``OccupancyOcTreeBase::insertPointCloud``
+  (``computeUpdate`` builds the scan's free and occupied key sets and erases occupied keys from the
+  free set; ``updateNode`` then adds the log-odds with clamping).
+- **counting** (the reflection / counting model of Burgard et al. and GMapping's
+  ``PointAccumulator``): ``p = (hits + 1) / (hits + misses + 2)``, the posterior mean of a cell's
+  hit rate under a uniform prior. As in GMapping's ``registerScan``, hits and misses are counted
+  **per beam** (every beam crossing a cell adds a miss, every beam ending in it a hit); per scan
+  (``update="scan"``, with hits winning as above) is available too.
+
+Both: the cells a beam crosses are the exact set its segment passes through (Amanatides & Woo
+1987); the cell holding a returned beam's end point gets the hit and every other cell it crosses a
+miss; a no-return beam only gives misses, up to ``max_range_free`` (10 m, as the GP methods'
+no-return cap) and never a hit. Cells never observed have probability exactly 0.5. Everything is
+vectorised over beams; the only Python loop is over scans, for the clamped log-odds sum (clamping
+makes it order-dependent).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -17,6 +33,16 @@ from numpy.typing import ArrayLike, NDArray
 from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
 from gpomap.scans import Scan
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+#: OctoMap's defaults (OccupancyOcTreeBase constructor): hit 0.7, miss 0.4, clamping 0.1192 / 0.971.
+P_HIT, P_MISS, P_CLAMP_MIN, P_CLAMP_MAX = 0.7, 0.4, 0.1192, 0.971
+L_HIT, L_MISS, L_MIN, L_MAX = _logit(P_HIT), _logit(P_MISS), _logit(P_CLAMP_MIN), _logit(P_CLAMP_MAX)
+SENSOR_MODELS = ("logodds", "counting")
 
 # Traversal entries (grid-line crossings) handled per chunk: bounds temporary memory.
 _ENTRIES_PER_CHUNK: int = 1 << 22
@@ -131,7 +157,7 @@ def _traverse_chunk(
 
 
 class OccupancyGridMapper:
-    """Log-odds occupancy grid mapping.
+    """Occupancy grid mapping: OctoMap's log-odds model or the counting model.
 
     Parameters
     ----------
@@ -141,26 +167,30 @@ class OccupancyGridMapper:
         The grid to map on. Default: the box round the sensor positions and beam end points
         (no-return beams capped as below) plus a margin of three cells, with the origin snapped
         to a multiple of `resolution`.
-    l_occ : float
-        Log-odds added to the cell holding a beam's end point.
-    l_free : float
-        Log-odds added to each cell a beam passes through before its end cell.
+    sensor_model : {"logodds", "counting"}
+        See the module docstring.
+    l_occ, l_free : float
+        Log-odds added for a hit and for a miss ("logodds"; OctoMap's +0.847 and -0.405).
     l_min, l_max : float
-        Clamping bounds of the log-odds, applied after each scan.
+        Clamping bounds of the log-odds ("logodds"; OctoMap's -2.000 and 3.511).
     max_range_free : float, optional
-        No-return beams (range at or beyond the sensor's max range) clear free space only up to
-        this distance (10 m by default, as the GP methods; None: the range they recorded). They
-        never mark a cell occupied.
+        No-return beams (range at or beyond the sensor's max range) give misses only up to this
+        distance (10 m by default, as the GP methods; None: the range they recorded). They
+        never give a hit.
+    update : {"scan", "beam"}, optional
+        Count each cell once per scan (a hit winning over a miss) or once per beam crossing it.
+        Default: "scan" for "logodds" (OctoMap), "beam" for "counting" (GMapping).
 
     Attributes
     ----------
     grid_ : GridSpec
     log_odds_ : ndarray of shape (ny, nx)
-        Accumulated, clamped log-odds; 0 where never observed.
+        "logodds": accumulated, clamped log-odds; "counting": the log-odds of the counting
+        probability. 0 where never observed.
     observed_ : ndarray of int, shape (ny, nx)
-        Number of beam updates (free or occupied) each cell received; 0 = never observed.
-    hits_ : ndarray of int, shape (ny, nx)
-        Number of occupied updates (beam end points) each cell received.
+        Number of updates (hits + misses) each cell received; 0 = never observed.
+    hits_, misses_ : ndarray of int, shape (ny, nx)
+        Number of hit and miss updates each cell received.
     path_ : ndarray of shape (k, 2)
         Sensor positions of the fitted scans.
     """
@@ -169,19 +199,31 @@ class OccupancyGridMapper:
         self,
         resolution: float = 0.1,
         extent: tuple[float, float, float, float] | GridSpec | None = None,
-        l_occ: float = 0.85,
-        l_free: float = -0.4,
-        l_min: float = -4.0,
-        l_max: float = 4.0,
+        sensor_model: str = "logodds",
+        l_occ: float = L_HIT,
+        l_free: float = L_MISS,
+        l_min: float = L_MIN,
+        l_max: float = L_MAX,
         max_range_free: float | None = 10.0,
+        update: str | None = None,
     ) -> None:
         self.resolution = resolution
         self.extent = extent
+        self.sensor_model = sensor_model
         self.l_occ = l_occ
         self.l_free = l_free
         self.l_min = l_min
         self.l_max = l_max
         self.max_range_free = max_range_free
+        self.update = update
+
+    def __repr__(self) -> str:
+        return f"OccupancyGridMapper(resolution={self.resolution}, sensor_model={self.sensor_model!r}, update={self._update_mode()!r})"
+
+    def _update_mode(self) -> str:
+        if self.update is not None:
+            return self.update
+        return "scan" if self.sensor_model == "logodds" else "beam"
 
     # -- fitting ---------------------------------------------------------------------------
 
@@ -222,6 +264,10 @@ class OccupancyGridMapper:
         -------
         self
         """
+        if self.sensor_model not in SENSOR_MODELS:
+            raise ValueError(f"sensor_model must be one of {SENSOR_MODELS}, got {self.sensor_model!r}")
+        if self._update_mode() not in ("scan", "beam"):
+            raise ValueError(f"update must be 'scan' or 'beam', got {self.update!r}")
         if not self.l_min <= 0 <= self.l_max:
             raise ValueError(f"need l_min <= 0 <= l_max, got {self.l_min}, {self.l_max}")
         if len(scans) == 0:
@@ -239,8 +285,8 @@ class OccupancyGridMapper:
         ncell = ny * nx
 
         log_odds = np.zeros(ncell)
-        observed = np.zeros(ncell, dtype=np.int64)
         hits = np.zeros(ncell, dtype=np.int64)
+        misses = np.zeros(ncell, dtype=np.int64)
         # Stream the beams in batches of whole scans, so memory stays bounded for long logs.
         u0 = (starts - grid.origin) / grid.resolution
         u1 = (ends - grid.origin) / grid.resolution
@@ -254,16 +300,19 @@ class OccupancyGridMapper:
             hi = int(scan_start[np.searchsorted(scan_start, hi, side="right") - 1])
             if hi <= lo:
                 hi = int(scan_start[np.searchsorted(scan_start, lo, side="right")])
-            self._update(grid, starts[lo:hi], ends[lo:hi], hit[lo:hi], scan_of[lo:hi], log_odds, observed, hits)
+            self._apply(grid, starts[lo:hi], ends[lo:hi], hit[lo:hi], scan_of[lo:hi], log_odds, hits, misses)
             lo = hi
-        self.observed_ = observed.reshape(ny, nx)
+        if self.sensor_model == "counting":
+            log_odds = np.log((hits + 1.0) / (misses + 1.0))  # logit of (h + 1) / (h + m + 2)
         self.hits_ = hits.reshape(ny, nx)
+        self.misses_ = misses.reshape(ny, nx)
+        self.observed_ = self.hits_ + self.misses_
         self.grid_ = grid
         self.log_odds_ = log_odds.reshape(ny, nx)
         self.path_ = np.array([s.pose[:2] for s in scans])
         return self
 
-    def _update(
+    def _apply(
         self,
         grid: GridSpec,
         starts: NDArray[np.float64],
@@ -271,36 +320,70 @@ class OccupancyGridMapper:
         hit: NDArray[np.bool_],
         scan_of: NDArray[np.intp],
         log_odds: NDArray[np.float64],
-        observed: NDArray[np.int64],
         hits: NDArray[np.int64],
+        misses: NDArray[np.int64],
     ) -> None:
         """Apply the beams of a batch of whole scans to the flat grid arrays, in place."""
         nx = grid.shape[1]
+        ncell = hits.size
         beam, rows, cols = traverse(grid, starts, ends)
         flat = rows * nx + cols
         # The hit cell is the one holding the end point (as GridSpec.index_of, so a query at a
-        # hit lands on the cell it marked); every other traversed cell is free, once per beam.
+        # hit lands on the cell it marked); every other cell the beam crosses is a miss.
         hr, hc, hin = grid.index_of(ends)
         hit_cell = np.where(hit & hin, hr * nx + hc, -1)
-        is_free = flat != hit_cell[beam]
-        free_cell, free_scan = flat[is_free], scan_of[beam[is_free]]
-        occ_beam = np.flatnonzero(hit_cell >= 0)
-        occ_cell, occ_scan = hit_cell[occ_beam], scan_of[occ_beam]
-        np.add.at(observed, free_cell, 1)
-        np.add.at(observed, occ_cell, 1)
-        np.add.at(hits, occ_cell, 1)
-        # Both lists are ordered by scan: apply scan after scan, clamping after each. The clamp
-        # makes the order matter, so the updates cannot be one global sum.
-        scans = np.arange(scan_of[0], scan_of[-1] + 2)
-        fcut = np.searchsorted(free_scan, scans)
-        ocut = np.searchsorted(occ_scan, scans)
+        is_miss = flat != hit_cell[beam]
+        miss_cell, miss_scan = flat[is_miss], scan_of[beam[is_miss]]
+        hit_beam = np.flatnonzero(hit_cell >= 0)
+        hit_cell, hit_scan = hit_cell[hit_beam], scan_of[hit_beam]
+        if self._update_mode() == "beam":
+            hits += np.bincount(hit_cell, minlength=ncell)
+            misses += np.bincount(miss_cell, minlength=ncell)
+            if self.sensor_model == "logodds":
+                self._clamped_sum(log_odds, miss_scan, miss_cell, hit_scan, hit_cell, unique=False)
+            return
+        # Once per cell per scan: the scan's distinct (scan, cell) keys, hits removed from misses.
+        hkey = np.unique(hit_scan.astype(np.int64) * ncell + hit_cell)
+        mkey = np.unique(miss_scan.astype(np.int64) * ncell + miss_cell)
+        mkey = mkey[~np.isin(mkey, hkey, assume_unique=True)]
+        hits += np.bincount(hkey % ncell, minlength=ncell)
+        misses += np.bincount(mkey % ncell, minlength=ncell)
+        if self.sensor_model == "logodds":
+            self._clamped_sum(log_odds, mkey // ncell, mkey % ncell, hkey // ncell, hkey % ncell, unique=True)
+
+    def _clamped_sum(
+        self,
+        log_odds: NDArray[np.float64],
+        miss_scan: NDArray[np.integer],
+        miss_cell: NDArray[np.integer],
+        hit_scan: NDArray[np.integer],
+        hit_cell: NDArray[np.integer],
+        unique: bool,
+    ) -> None:
+        """Add the log-odds scan after scan (both lists sorted by scan), clamping after each.
+
+        The clamp makes the order matter, so the updates cannot be one global sum. With `unique`
+        a cell appears at most once per scan in each list (and never in both), and OctoMap clamps
+        after every single update, which is then the same as clamping after the scan.
+        """
+        first = int(min(miss_scan[:1].min(initial=2**62), hit_scan[:1].min(initial=2**62)))
+        last = int(max(miss_scan[-1:].max(initial=-1), hit_scan[-1:].max(initial=-1)))
+        if last < first:
+            return
+        scans = np.arange(first, last + 2)
+        mcut = np.searchsorted(miss_scan, scans)
+        hcut = np.searchsorted(hit_scan, scans)
         for i in range(len(scans) - 1):
-            fc = free_cell[fcut[i] : fcut[i + 1]]
-            oc = occ_cell[ocut[i] : ocut[i + 1]]
-            np.add.at(log_odds, fc, self.l_free)
-            np.add.at(log_odds, oc, self.l_occ)
-            touched = np.concatenate([fc, oc])
-            log_odds[touched] = np.clip(log_odds[touched], self.l_min, self.l_max)
+            mc = miss_cell[mcut[i] : mcut[i + 1]]
+            hc = hit_cell[hcut[i] : hcut[i + 1]]
+            if unique:
+                log_odds[mc] = np.clip(log_odds[mc] + self.l_free, self.l_min, self.l_max)
+                log_odds[hc] = np.clip(log_odds[hc] + self.l_occ, self.l_min, self.l_max)
+            else:
+                np.add.at(log_odds, mc, self.l_free)
+                np.add.at(log_odds, hc, self.l_occ)
+                touched = np.concatenate([mc, hc])
+                log_odds[touched] = np.clip(log_odds[touched], self.l_min, self.l_max)
 
     # -- prediction ------------------------------------------------------------------------
 
@@ -322,7 +405,8 @@ class OccupancyGridMapper:
         Returns
         -------
         ndarray of shape (n,)
-            ``1 / (1 + exp(-log_odds))``; exactly 0.5 in cells never observed and outside the grid.
+            ``1 / (1 + exp(-log_odds))`` ("logodds") or ``(h + 1) / (h + m + 2)`` ("counting");
+            exactly 0.5 in cells never observed and outside the grid.
         """
         self._check_fitted()
         p = np.asarray(points, dtype=float).reshape(-1, 2)
@@ -361,8 +445,9 @@ class OccupancyGridMapper:
         self._check_fitted()
         p = self._probability_grid()
         info = {
-            "method": "ogm",
+            "method": f"ogm-{self.sensor_model}",
             "resolution": self.grid_.resolution,
+            "update": self._update_mode(),
             "l_occ": self.l_occ,
             "l_free": self.l_free,
             "l_min": self.l_min,
@@ -370,3 +455,16 @@ class OccupancyGridMapper:
             "max_range_free": self.max_range_free,
         }
         return OccupancyMap(self.grid_, p, variance=p * (1 - p), path=self.path_, info=info)
+
+    def grid(self, resolution: float | None = None, extent: tuple[float, float, float, float] | None = None) -> OccupancyMap:
+        """The map a user gets: the fitted grid itself (`resolution` and `extent` must match or be None).
+
+        A grid has no finer map than its own cells, so unlike the GP estimators it is not
+        resampled; this is here so every method answers ``grid(...)``.
+        """
+        self._check_fitted()
+        if resolution is not None and not math.isclose(resolution, self.grid_.resolution):
+            raise ValueError(f"this grid has {self.grid_.resolution} m cells; cannot give {resolution} m")
+        if extent is not None:
+            raise ValueError("an occupancy grid is written on its own extent; fit it with extent=... instead")
+        return self.grid_map()
