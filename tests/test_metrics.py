@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from gpomap.errors import EmptyDataError
-from gpomap.metrics import fpr_at_tpr, log_loss, roc_auc, roc_curve
+from gpomap.metrics import expected_calibration_error, fpr_at_tpr, iou, log_loss, reliability_bins, roc_auc, roc_curve
 
 
 def mann_whitney(labels, scores):
@@ -82,7 +82,7 @@ def test_log_loss_by_hand():
     assert log_loss(y, p) == pytest.approx(expected)
     # Confident mistakes are capped at -log(eps).
     assert log_loss([True], [0.0], eps=1e-6) == pytest.approx(-np.log(1e-6))
-    assert log_loss([1, 0], [1.0, 0.0]) == pytest.approx(0.0, abs=1e-9)
+    assert log_loss([1, 0], [1.0, 0.0]) == pytest.approx(-np.log(1 - 1e-6))
     with pytest.raises(ValueError, match="probabilities"):
         log_loss([True], [1.5])
 
@@ -92,3 +92,49 @@ def test_mismatched_lengths_and_bad_labels():
         roc_auc([True, False], [0.1])
     with pytest.raises(ValueError, match="boolean or 0/1"):
         roc_auc([2, 0], [0.1, 0.2])
+
+
+def test_log_loss_clips_at_1e6_by_default():
+    # A grid's hard 0 for an occupied point costs -log(1e-6) = 13.8 nats, not 27.6 (1e-12).
+    assert log_loss([True, False], [0.0, 0.0]) == pytest.approx(-np.log(1e-6) / 2)
+    assert log_loss([True], [1 - 1e-9]) == pytest.approx(-np.log(1 - 1e-6))
+
+
+def test_ece_on_a_tiny_set_by_hand():
+    # Bins of 0.1. Points: 0.05 (free), 0.15 (occupied), 0.15 (free), 0.95 (occupied), 1.0 (free).
+    # Bin 0: mean p 0.05, 0 of 1 occupied -> |0 - 0.05| = 0.05, weight 1/5.
+    # Bin 1: mean p 0.15, 1 of 2 -> |0.5 - 0.15| = 0.35, weight 2/5.
+    # Bin 9 (holds p = 1): mean p 0.975, 1 of 2 -> 0.475, weight 2/5.
+    y = [False, True, False, True, False]
+    p = [0.05, 0.15, 0.15, 0.95, 1.0]
+    expected = (0.05 + 2 * 0.35 + 2 * 0.475) / 5
+    assert expected_calibration_error(y, p) == pytest.approx(expected)
+    mean_p, frac, counts = reliability_bins(y, p)
+    np.testing.assert_array_equal(counts, [1, 2, 0, 0, 0, 0, 0, 0, 0, 2])
+    np.testing.assert_allclose(mean_p[[0, 1, 9]], [0.05, 0.15, 0.975])
+    np.testing.assert_allclose(frac[[0, 1, 9]], [0.0, 0.5, 0.5])
+    assert np.isnan(frac[2])
+    # Perfectly calibrated: half of the 0.5s are occupied.
+    assert expected_calibration_error([True, False], [0.5, 0.5]) == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="probabilities"):
+        expected_calibration_error([True], [1.2])
+
+
+def test_ece_against_brute_force():
+    rng = np.random.default_rng(3)
+    p = rng.random(500)
+    y = rng.random(500) < p**2
+    total = 0.0
+    for k in range(10):
+        lo, hi = k / 10, (k + 1) / 10
+        sel = (p >= lo) & ((p < hi) if k < 9 else (p <= hi))
+        if sel.any():
+            total += sel.sum() * abs(y[sel].mean() - p[sel].mean())
+    assert expected_calibration_error(y, p) == pytest.approx(total / 500)
+
+
+def test_iou_by_hand():
+    a = np.array([[1, 1, 0], [0, 1, 0]], bool)
+    b = np.array([[1, 0, 0], [0, 1, 1]], bool)
+    assert iou(a, b) == pytest.approx(2 / 4)
+    assert np.isnan(iou(np.zeros(3, bool), np.zeros(3, bool)))

@@ -1,4 +1,5 @@
-"""Scores for occupancy predictions: ROC curve, its area, FPR at a target TPR, log loss.
+"""Scores for occupancy predictions: ROC curve, its area, FPR at a target TPR, log loss,
+calibration (expected calibration error and the reliability diagram's bins) and IoU.
 
 Labels are booleans (True = occupied = the positive class); scores are anything that ranks
 points by how occupied they look (probabilities, latent means). Only numpy is used.
@@ -117,7 +118,12 @@ def fpr_at_tpr(labels: ArrayLike, scores: ArrayLike, tpr: float = 0.95) -> float
     return float(fpr[tprs >= tpr - 1e-12].min())
 
 
-def log_loss(labels: ArrayLike, probs: ArrayLike, eps: float = 1e-12) -> float:
+#: Probabilities are clipped to [LOG_LOSS_EPS, 1 - LOG_LOSS_EPS] by :func:`log_loss`: a grid's
+#: hard 0 / 1 (or a GP's 1e-15) would otherwise dominate the mean with one confident mistake.
+LOG_LOSS_EPS = 1e-6
+
+
+def log_loss(labels: ArrayLike, probs: ArrayLike, eps: float = LOG_LOSS_EPS) -> float:
     """Mean negative log-likelihood of the labels under the predicted probabilities.
 
     Parameters
@@ -140,3 +146,87 @@ def log_loss(labels: ArrayLike, probs: ArrayLike, eps: float = 1e-12) -> float:
         raise ValueError("probabilities must lie in [0, 1]")
     p = np.clip(p, eps, 1 - eps)
     return float(-np.mean(np.where(y, np.log(p), np.log1p(-p))))
+
+
+def _check_probs(labels: ArrayLike, probs: ArrayLike) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    y, p = _check(labels, probs, need_both=False)
+    if y.size == 0:
+        raise EmptyDataError("calibration needs at least one label")
+    if ((p < 0) | (p > 1)).any():
+        raise ValueError("probabilities must lie in [0, 1]")
+    return y, p
+
+
+def reliability_bins(
+    labels: ArrayLike, probs: ArrayLike, n_bins: int = 10
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
+    """The reliability diagram's bins: equal-width probability bins, what was predicted and seen.
+
+    Bin k holds ``k / n_bins <= p < (k + 1) / n_bins``; the last bin also holds p = 1.
+
+    Parameters
+    ----------
+    labels : array_like of bool, shape (n,)
+    probs : array_like of shape (n,)
+        Predicted probability of the positive class, in [0, 1].
+    n_bins : int
+
+    Returns
+    -------
+    mean_prob : ndarray of shape (n_bins,)
+        Mean predicted probability in each bin (NaN where empty).
+    frac_pos : ndarray of shape (n_bins,)
+        Fraction of positives in each bin (NaN where empty).
+    counts : ndarray of int, shape (n_bins,)
+    """
+    y, p = _check_probs(labels, probs)
+    if n_bins < 1:
+        raise ValueError(f"n_bins must be >= 1, got {n_bins}")
+    b = np.minimum((p * n_bins).astype(np.intp), n_bins - 1)
+    counts = np.bincount(b, minlength=n_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_prob = np.bincount(b, weights=p, minlength=n_bins) / counts
+        frac_pos = np.bincount(b, weights=y.astype(float), minlength=n_bins) / counts
+    return mean_prob, frac_pos, counts
+
+
+def expected_calibration_error(labels: ArrayLike, probs: ArrayLike, n_bins: int = 10) -> float:
+    """Expected calibration error with equal-width bins.
+
+    ``sum_k (n_k / n) |frac_pos_k - mean_prob_k|`` over the bins of :func:`reliability_bins`:
+    how far, on average over the points, the predicted probability is from the frequency of
+    occupied points among those given a similar probability.
+
+    Parameters
+    ----------
+    labels : array_like of bool, shape (n,)
+    probs : array_like of shape (n,)
+    n_bins : int
+
+    Returns
+    -------
+    float in [0, 1]
+    """
+    mean_prob, frac_pos, counts = reliability_bins(labels, probs, n_bins)
+    full = counts > 0
+    return float(np.sum(counts[full] * np.abs(frac_pos[full] - mean_prob[full])) / counts.sum())
+
+
+def iou(predicted: ArrayLike, truth: ArrayLike) -> float:
+    """Intersection over union of two boolean masks (the occupied class).
+
+    Parameters
+    ----------
+    predicted, truth : array_like of bool, same shape
+
+    Returns
+    -------
+    float in [0, 1]
+        ``|predicted & truth| / |predicted | truth|``; NaN if both are empty.
+    """
+    a = np.asarray(predicted, dtype=bool)
+    b = np.asarray(truth, dtype=bool)
+    if a.shape != b.shape:
+        raise ValueError(f"masks must have the same shape, got {a.shape} and {b.shape}")
+    union = int((a | b).sum())
+    return float((a & b).sum() / union) if union else float("nan")
