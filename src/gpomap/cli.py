@@ -161,6 +161,8 @@ def _add_tiling_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--tile-size", type=_positive(float), default=10.0, help="tile side, m (default: %(default)s)")
     g.add_argument("--workers", type=_positive(int), help="local worker processes for tiles (default: the CPU count)")
     g.add_argument("--scheduler", metavar="ADDRESS", help="run tiles on this Dask distributed scheduler (tcp://host:port)")
+    g.add_argument("--scheduler-timeout", type=_positive(float), default=60.0, metavar="SECONDS",
+                   help="give up when the scheduler does not answer, or has no workers, for this long (default: %(default)s)")
     g.add_argument("--chunk-scans", type=_positive(int), metavar="K",
                    help="map incrementally, K scans at a time, rewriting the map after each chunk (implies --tiles)")
 
@@ -273,7 +275,7 @@ def _tiled_model(args: argparse.Namespace) -> Any:
     from gpomap.tiles import TiledGPOM
 
     return TiledGPOM(tile_size=args.tile_size, n_workers=args.workers, scheduler=args.scheduler,
-                     thresholds=args.thresholds, **_model_options(args))
+                     scheduler_timeout=args.scheduler_timeout, thresholds=args.thresholds, **_model_options(args))
 
 
 def _write_tiled(args: argparse.Namespace, model: Any, title: str) -> list[Path]:

@@ -32,14 +32,14 @@ A map whose data fall in one block is exactly the plain :class:`~gpomap.mapping.
 from __future__ import annotations
 
 import concurrent.futures as cf
-import ctypes
 import math
 import multiprocessing
 import os
 import resource
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -49,13 +49,14 @@ from scipy.linalg import cho_solve, solve_triangular
 from scipy.special import ndtr
 
 from gpomap.cells import build_cells
-from gpomap.errors import EmptyDataError, GpomapError, NotFittedError
+from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.gp import SupportGP, robust_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.mapping import AreaGPOM
 from gpomap.observations import Observations, free_near_hits, observations_from_scans
+from gpomap.progress import Progress, progress
 from gpomap.scans import Scan
 from gpomap.squash import ProbitSquash
 from gpomap.supports import Supports
@@ -65,6 +66,10 @@ _KEY_OFFSET = 1 << 30
 _KEY_BASE = 1 << 31
 
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
+
+#: Seconds to wait for a Dask scheduler to answer, and for workers when none is connected
+#: (``gpomap map --scheduler-timeout``).
+DEFAULT_SCHEDULER_TIMEOUT = 60.0
 
 
 # --------------------------------------------------------------------------- tasks (picklable)
@@ -230,25 +235,29 @@ def predict_tile_task(
 
 
 def _limit_blas_threads(n: int) -> None:
-    """Best-effort: cap OpenBLAS threads in this process (workers share 2 cores badly)."""
+    """Cap the BLAS (and OpenMP) threads of this process at `n` for the rest of its life.
+
+    Pool workers call it on start so that ``workers x threads`` never exceeds the cores. Best
+    effort: without threadpoolctl the libraries keep their own defaults.
+    """
     try:
-        maps = open("/proc/self/maps").read()
-    except OSError:
+        from threadpoolctl import threadpool_limits
+    except ImportError:
         return
-    libs = {tok for line in maps.splitlines() for tok in line.split() if "openblas" in tok and tok.endswith(".so")}
-    for path in libs:
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for name in ("openblas_set_num_threads", "scipy_openblas_set_num_threads", "scipy_openblas_set_num_threads64_", "openblas_set_num_threads64_"):
-            fn = getattr(lib, name, None)
-            if fn is not None:
-                fn(int(n))
+    threadpool_limits(limits=max(1, int(n)))  # not used as a context: the limit must stay
 
 
 def _worker_init(blas_threads: int) -> None:
+    """Initialiser of the local pool's worker processes."""
     _limit_blas_threads(blas_threads)
+
+
+def _cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
 # --------------------------------------------------------------------------- helpers
@@ -319,13 +328,20 @@ class TiledGPOM:
     n_workers : int, optional
         Local worker processes; 1 runs in this process without a pool; default the CPU count.
     scheduler : str or distributed.Client, optional
-        A Dask distributed scheduler address ("tcp://...") or client; tiles then run there.
+        A Dask distributed scheduler address ("tcp://...") or client; tiles then run there. An
+        address is connected to at the start of ``fit``, ``update`` and prediction (before the
+        local work) and closed at their end; a client given is used as it is and left open.
+    scheduler_timeout : float
+        Seconds to wait for the scheduler to answer, and for a worker to be connected: when
+        none has been for this long while tiles are left, :class:`~gpomap.errors.DistributedError`
+        is raised (never a hang). A tile whose worker dies is recomputed on another worker.
     hyper_sample : int
         Most cells of the compact sample hyperparameters are learnt on.
     per_tile_hyperparameters : bool
         Learn hyperparameters in every tile (each on at most ``hyper_subset`` of its cells).
-    blas_threads : int
-        BLAS threads per local worker process.
+    blas_threads : int, optional
+        BLAS threads per local worker process; default the cores divided among the workers (at
+        least 1), so the pool never runs more threads than there are cores.
     **options
         :class:`~gpomap.mapping.AreaGPOM` options (kernel, free_step, min_cell, max_cell,
         length_scale, noise, optimise, ...). ``optimise=False`` keeps the given variance,
@@ -342,7 +358,8 @@ class TiledGPOM:
         scheduler: Any = None,
         hyper_sample: int = 800,
         per_tile_hyperparameters: bool = False,
-        blas_threads: int = 1,
+        blas_threads: int | None = None,
+        scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
         **options: Any,
     ) -> None:
         if not tile_size > 0:
@@ -355,7 +372,11 @@ class TiledGPOM:
         self.scheduler = scheduler
         self.hyper_sample = int(hyper_sample)
         self.per_tile_hyperparameters = bool(per_tile_hyperparameters)
-        self.blas_threads = int(blas_threads)
+        self.blas_threads = None if blas_threads is None else int(blas_threads)
+        if not scheduler_timeout > 0:
+            raise ValueError(f"scheduler_timeout must be positive seconds, got {scheduler_timeout}")
+        self.scheduler_timeout = float(scheduler_timeout)
+        self._client: Any = None  # the distributed.Client of the stage running, if any
         # AreaGPOM validates the options and holds their defaults.
         self.base = AreaGPOM(**options)
         self.options = dict(options)
@@ -539,13 +560,76 @@ class TiledGPOM:
         return hyp
 
     # ------------------------------------------------------------------ task running
-    def _run(self, fn: Callable[..., Any], jobs: list[tuple[tuple[int, int], tuple[Any, ...]]], what: str) -> dict[tuple[int, int], Any]:
+    def _scheduler_address(self) -> str:
+        s = self.scheduler
+        return str(s) if isinstance(s, str) else str(getattr(getattr(s, "scheduler", None), "address", s))
+
+    @contextmanager
+    def _connected(self) -> Iterator[None]:
+        """Hold a Dask client for one stage (fit, update, prediction) when a scheduler is set.
+
+        Connecting first, before the stage's local work, makes a wrong or unreachable address fail
+        within `scheduler_timeout` instead of after it. Nested stages share the outer client.
+        """
+        if self.scheduler is None or self._client is not None:
+            yield
+            return
+        try:
+            from distributed import Client
+        except ImportError as e:
+            raise DistributedError(
+                "running tiles on a Dask scheduler needs dask distributed: pip install 'gpomap[distributed]'"
+            ) from e
+        if isinstance(self.scheduler, Client):
+            self._client = self.scheduler
+            try:
+                yield
+            finally:
+                self._client = None  # the caller's client: theirs to close
+            return
+        addr = self._scheduler_address()
+        try:
+            # Never the default client: this one is only ours, passed explicitly everywhere.
+            client = Client(addr, timeout=self.scheduler_timeout, set_as_default=False)
+        except (OSError, TimeoutError, ValueError, TypeError) as e:
+            raise DistributedError(
+                f"could not connect to the Dask scheduler at {addr} within {self.scheduler_timeout:g} s "
+                f"({type(e).__name__}: {e}); check that a scheduler runs there ('dask scheduler'), or allow "
+                "longer with --scheduler-timeout (scheduler_timeout)"
+            ) from e
+        self._client = client
+        try:
+            yield
+        finally:
+            self._client = None
+            client.close()
+
+    def _run(
+        self, fn: Callable[..., Any], jobs: list[tuple[tuple[int, int], tuple[Any, ...]]], what: str, desc: str
+    ) -> dict[tuple[int, int], Any]:
         """Run ``fn(*args)`` for every (tile, args); each failed task is retried once.
+
+        Parameters
+        ----------
+        fn : callable
+            A top-level (picklable) task function.
+        jobs : list of ((ix, iy), args)
+        what : str
+            The stage, for error messages ("tile fit").
+        desc : str
+            The stage, for progress ("fitting tiles").
+
+        Returns
+        -------
+        dict
+            Tile key to ``fn``'s result, for every job.
 
         Raises
         ------
         GpomapError
             Naming every tile whose task failed twice.
+        DistributedError
+            When the scheduler had no workers for `scheduler_timeout` seconds.
         """
         if not jobs:
             return {}
@@ -555,63 +639,117 @@ class TiledGPOM:
             runner = self._run_inprocess
         else:
             runner = self._run_pool
-        results, failed = runner(fn, jobs)
-        if failed:
-            retry = [j for j in jobs if j[0] in failed]
-            more, failed2 = runner(fn, retry)
-            results.update(more)
-            if failed2:
-                names = ", ".join(f"tile {k} ({type(e).__name__}: {e})" for k, e in failed2.items())
-                raise GpomapError(f"{what} failed twice (retried once) for {len(failed2)} tile(s): {names}")
+        with self._connected(), progress(len(jobs), desc, unit="tile") as bar:
+            results, failed = runner(fn, jobs, bar, what)
+            if failed:
+                retry = [j for j in jobs if j[0] in failed]
+                more, failed2 = runner(fn, retry, bar, what)
+                results.update(more)
+                if failed2:
+                    names = ", ".join(f"tile {k} ({type(e).__name__}: {e})" for k, e in failed2.items())
+                    raise GpomapError(f"{what} failed twice (retried once) for {len(failed2)} tile(s): {names}")
         return results
 
     @staticmethod
-    def _run_inprocess(fn, jobs):
+    def _run_inprocess(fn, jobs, bar: Progress, what: str):
         results, failed = {}, {}
         for key, args in jobs:
             try:
                 results[key] = fn(*args)
+                bar.update()
             except Exception as e:  # noqa: BLE001 - reported per tile after the retry
                 failed[key] = e
         return results, failed
 
-    def _run_pool(self, fn, jobs):
+    def _run_pool(self, fn, jobs, bar: Progress, what: str):
         results, failed = {}, {}
         ctx = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
         workers = min(self.n_workers_, len(jobs))
-        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(self.blas_threads,)) as pool:
+        threads = self.blas_threads if self.blas_threads is not None else max(1, _cores() // workers)
+        with cf.ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(threads,)) as pool:
             futs = {pool.submit(fn, *args): key for key, args in jobs}
             for f in cf.as_completed(futs):
                 key = futs[f]
                 try:
                     results[key] = f.result()
+                    bar.update()
                 except Exception as e:  # noqa: BLE001 - a dead worker breaks the pool: retried
                     failed[key] = e
         return results, failed
 
-    def _run_dask(self, fn, jobs):
-        from distributed import Client, as_completed
+    def _run_dask(self, fn, jobs, bar: Progress, what: str):
+        """Run the jobs on the scheduler of ``self._client`` (see :meth:`_connected`).
 
-        own = not isinstance(self.scheduler, Client)
-        client = Client(self.scheduler, set_as_default=False) if own else self.scheduler
+        A task whose worker dies is rescheduled by the scheduler itself onto another worker (same
+        function, same arguments, so the same result); the tasks are not given ``retries=``,
+        since exceptions they raise already get the one retry of :meth:`_run`.
+        """
+        from distributed import as_completed
+
+        client = self._client
+        self._check_client(client, what, len(jobs), len(jobs))
+        tag = uuid.uuid4().hex[:8]
+        futs = {}
+        for key, args in jobs:
+            f = client.submit(fn, *args, key=f"gpomap-{fn.__name__}-{key[0]}_{key[1]}-{tag}", pure=False)
+            futs[f] = key
+        # as_completed takes the event loop of the futures' client; without it, it looks for a
+        # default client and fails with "No clients found".
+        pending = as_completed(list(futs), loop=client.loop)
         results, failed = {}, {}
+        timeout = self.scheduler_timeout
+        alive = time.monotonic()  # last time a worker was seen or a task finished
+        next_check = alive
         try:
-            tag = uuid.uuid4().hex[:8]
-            futs = {}
-            for key, args in jobs:
-                f = client.submit(fn, *args, key=f"gpomap-{fn.__name__}-{key[0]}_{key[1]}-{tag}", pure=False)
-                futs[f] = key
-            for f in as_completed(list(futs)):
-                key = futs[f]
-                try:
-                    results[key] = f.result()
-                except Exception as e:  # noqa: BLE001 - KilledWorker and friends: retried
-                    failed[key] = e
-                f.release()
+            while not pending.is_empty():
+                done = pending.next_batch(block=False)
+                for f in done:
+                    key = futs[f]
+                    try:
+                        results[key] = f.result()
+                        bar.update()
+                    except Exception as e:  # noqa: BLE001 - KilledWorker and friends: retried
+                        failed[key] = e
+                    f.release()
+                now = time.monotonic()
+                if done:
+                    alive = now
+                    continue
+                if now >= next_check:
+                    next_check = now + min(1.0, timeout / 5)
+                    self._check_client(client, what, len(jobs) - len(results) - len(failed), len(jobs))
+                    if self._n_dask_workers(client) > 0:
+                        alive = now
+                    elif now - alive > timeout:
+                        left = len(jobs) - len(results) - len(failed)
+                        raise DistributedError(
+                            f"{what}: no Dask worker has been connected to the scheduler at {self._scheduler_address()} "
+                            f"for {timeout:g} s, with {left} of {len(jobs)} tile(s) left; start workers "
+                            f"('dask worker {self._scheduler_address()}'), or allow longer with --scheduler-timeout "
+                            "(scheduler_timeout)"
+                        )
+                time.sleep(0.05)
         finally:
-            if own:
-                client.close()
+            unfinished = [f for f in futs if not f.done()]
+            if unfinished:  # stopped early: drop our tasks from the cluster
+                client.cancel(unfinished)
         return results, failed
+
+    def _check_client(self, client: Any, what: str, left: int, total: int) -> None:
+        """Raise DistributedError once the client has given up on its scheduler."""
+        if client.status in ("closing", "closed"):
+            raise DistributedError(
+                f"{what}: lost the connection to the Dask scheduler at {self._scheduler_address()}, with {left} of "
+                f"{total} tile(s) left; check that the scheduler still runs, then run again"
+            )
+
+    @staticmethod
+    def _n_dask_workers(client: Any) -> int:
+        """Workers connected to the client's scheduler (0 when the scheduler does not answer)."""
+        try:
+            return len(client.scheduler_info(n_workers=-1)["workers"])
+        except Exception:  # noqa: BLE001 - a lost scheduler counts as no workers
+            return 0
 
     # ------------------------------------------------------------------ fitting
     def _observations(self, scans: Sequence[Scan]) -> Observations:
@@ -643,7 +781,17 @@ class TiledGPOM:
         Returns
         -------
         self
+
+        Raises
+        ------
+        DistributedError
+            With a `scheduler`: it cannot be reached (checked first, before any local work), or
+            it had no workers for `scheduler_timeout` seconds.
         """
+        with self._connected():
+            return self._fit(data, hyperparameters)
+
+    def _fit(self, data: Sequence[Scan] | Observations, hyperparameters: dict[str, float] | None) -> TiledGPOM:
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         t = t0
@@ -679,7 +827,7 @@ class TiledGPOM:
         t = time.perf_counter()
         tiles = [self._decode(k) for k in sorted(self._blocks)]
         jobs, gathered = self._fit_jobs(tiles)
-        self.tiles_: dict[tuple[int, int], TileState] = self._run(fit_tile_task, jobs, "tile fit")
+        self.tiles_: dict[tuple[int, int], TileState] = self._run(fit_tile_task, jobs, "tile fit", "fitting tiles")
         self._signatures = {t: self._signature(g) for t, g in gathered.items()}
         timings["tile_fits"] = time.perf_counter() - t
         timings["total_fit"] = time.perf_counter() - t0
@@ -715,8 +863,10 @@ class TiledGPOM:
         -------
         self
         """
-        if not hasattr(self, "tiles_"):
-            return self.fit(scans)
+        with self._connected():
+            return self._fit(scans, None) if not hasattr(self, "tiles_") else self._update(scans)
+
+    def _update(self, scans: Sequence[Scan]) -> TiledGPOM:
         t0 = time.perf_counter()
         obs = self._observations(scans)
         self._points = np.concatenate([self._points, obs.points])
@@ -741,7 +891,7 @@ class TiledGPOM:
                         candidates.add((ix + dx, iy + dy))
         jobs, gathered = self._fit_jobs(sorted(candidates))
         todo = [j for j in jobs if self._signatures.get(j[0]) != self._signature(gathered[j[0]])]
-        self.tiles_.update(self._run(fit_tile_task, todo, "tile fit"))
+        self.tiles_.update(self._run(fit_tile_task, todo, "tile fit", "refitting tiles"))
         for key, _ in todo:
             self._signatures[key] = self._signature(gathered[key])
         self.last_refit_ = sorted(k for k, _ in todo)
@@ -801,7 +951,7 @@ class TiledGPOM:
                     members[key] = (sel, np.ones(sel.size))
                 wsum[sel] = 1.0
         jobs = [(key, (self.tiles_[key], settings, pts[idx], chunk)) for key, (idx, _) in members.items()]
-        res = self._run(predict_tile_task, jobs, "tile prediction")
+        res = self._run(predict_tile_task, jobs, "tile prediction", "predicting tiles")
         num = np.zeros(m)
         den = np.zeros(m)
         lat_m = np.zeros(m)
