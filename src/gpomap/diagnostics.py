@@ -1,0 +1,245 @@
+"""Honest reports: what a fitted map's numbers say about how far it can be trusted.
+
+A fit can finish without error and still be poor: a hyperparameter that ran to the edge of its
+search (the data did not pin it down, or wanted a value the search does not allow), a probit
+slope at its cap (the classes separate perfectly and the map turns hard 0 / 1), a map whose
+probability away from the data is far from 0.5 (unexplored space then looks free or occupied
+instead of unknown), or a map that is almost all one class. The command line prints these as
+``warning: ...`` lines after a fit; :func:`fit_warnings` is the one entry point.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "BOUND_TOLERANCE",
+    "ONE_CLASS_FRACTION",
+    "PRIOR_BAND",
+    "at_bounds",
+    "fit_warnings",
+    "hyperparameter_source",
+    "hyperparameter_warnings",
+    "map_warnings",
+    "prior_probability",
+    "search_bounds",
+]
+
+#: A value within this fraction of a bound counts as at the bound (5 %: L-BFGS-B stops a little
+#: inside a bound it is pushing against).
+BOUND_TOLERANCE = 0.05
+#: The probability far from the data should be within this band (0.5 +- 0.1): "unknown".
+PRIOR_BAND = (0.4, 0.6)
+#: Above this fraction of known cells in one class the map is reported as almost all one class.
+ONE_CLASS_FRACTION = 0.95
+
+_WHY = {
+    "length_scale": "the data did not pin the length scale down",
+    "noise": "the data did not pin the noise down",
+    "variance": "the data did not pin the signal variance down",
+    "alpha": "the classes separate so cleanly that the probit slope is capped and the map turns hard 0 / 1",
+    "shift": "the free/occupied boundary of the probit (beta / alpha) ran to its limit",
+}
+
+
+def _base_estimator(model: Any) -> Any:
+    """The AreaGPOM holding the settings: the model itself, or a TiledGPOM's ``base``."""
+    return getattr(model, "base", model)
+
+
+def search_bounds(model: Any) -> dict[str, tuple[float, float]]:
+    """Bounds of the hyperparameter search of a (fitted or not) AreaGPOM or TiledGPOM.
+
+    Parameters
+    ----------
+    model : AreaGPOM or TiledGPOM
+
+    Returns
+    -------
+    dict
+        ``name -> (low, high)`` for the hyperparameters the fit searched: length scale and noise
+        when they are learnt (the signal variance too with the marginal-likelihood objective),
+        and always the probit's alpha and shift = beta / alpha.
+    """
+    from gpomap.squash import SQUASH_BOUNDS
+
+    base = _base_estimator(model)
+    bounds: dict[str, tuple[float, float]] = {}
+    if getattr(base, "optimise", True):
+        kernel = base.make_kernel().base
+        bounds["length_scale"] = tuple(float(v) for v in kernel.length_scale_bounds)  # type: ignore[assignment]
+        bounds["noise"] = tuple(float(v) for v in base.noise_bounds)  # type: ignore[assignment]
+        if getattr(base, "objective", "loo") == "lml":
+            bounds["variance"] = tuple(float(v) for v in kernel.variance_bounds)  # type: ignore[assignment]
+    (log_alpha_lo, log_alpha_hi), shift = SQUASH_BOUNDS
+    bounds["alpha"] = (float(math.exp(log_alpha_lo)), float(math.exp(log_alpha_hi)))
+    bounds["shift"] = (float(shift[0]), float(shift[1]))
+    return bounds
+
+
+def _values(hyperparameters: Mapping[str, float]) -> dict[str, float]:
+    values = {k: float(v) for k, v in hyperparameters.items()}
+    if "alpha" in values and "beta" in values and values["alpha"] > 0:
+        values["shift"] = values["beta"] / values["alpha"]
+    return values
+
+
+def at_bounds(
+    hyperparameters: Mapping[str, float],
+    bounds: Mapping[str, tuple[float, float]],
+    tolerance: float = BOUND_TOLERANCE,
+) -> dict[str, tuple[float, str, float]]:
+    """The hyperparameters that sit at (within `tolerance` of) a bound of their search.
+
+    Parameters
+    ----------
+    hyperparameters : mapping
+        ``variance``, ``length_scale``, ``noise``, ``alpha``, ``beta`` (as ``hyperparameters_``).
+    bounds : mapping
+        ``name -> (low, high)`` (see :func:`search_bounds`); ``shift`` is beta / alpha.
+    tolerance : float
+        Positive bounds (scales) compare by ratio: at the upper bound when ``value >= high /
+        (1 + tolerance)``; the shift, which may be negative, when within ``tolerance * |bound|``.
+
+    Returns
+    -------
+    dict
+        ``name -> (value, "lower" or "upper", bound)``.
+    """
+    values = _values(hyperparameters)
+    found: dict[str, tuple[float, str, float]] = {}
+    for name, (lo, hi) in bounds.items():
+        if name not in values:
+            continue
+        v = values[name]
+        if name != "shift" and lo > 0:
+            if v <= lo * (1 + tolerance):
+                found[name] = (v, "lower", lo)
+            elif v >= hi / (1 + tolerance):
+                found[name] = (v, "upper", hi)
+        else:
+            if v <= lo + tolerance * abs(lo):
+                found[name] = (v, "lower", lo)
+            elif v >= hi - tolerance * abs(hi):
+                found[name] = (v, "upper", hi)
+    return found
+
+
+def prior_probability(hyperparameters: Mapping[str, float]) -> float:
+    """The map's probability far from every observation: ``Phi(beta / sqrt(1 + alpha^2 variance))``.
+
+    There the latent GP has mean 0 and its prior variance (the signal variance), and the probit
+    squash turns that into this probability; 0.5 means "unknown".
+    """
+    alpha, beta = float(hyperparameters["alpha"]), float(hyperparameters["beta"])
+    variance = float(hyperparameters.get("variance", 1.0))
+    z = beta / math.sqrt(1.0 + alpha * alpha * variance)
+    return 0.5 * math.erfc(-z / math.sqrt(2.0))
+
+
+def hyperparameter_warnings(
+    hyperparameters: Mapping[str, float],
+    bounds: Mapping[str, tuple[float, float]],
+    tolerance: float = BOUND_TOLERANCE,
+) -> list[str]:
+    """Warnings about hyperparameters at their bounds and about the probability far from data.
+
+    Parameters
+    ----------
+    hyperparameters : mapping
+        As ``hyperparameters_``.
+    bounds : mapping
+        As :func:`search_bounds` returns.
+    tolerance : float
+        See :func:`at_bounds`.
+
+    Returns
+    -------
+    list of str
+        One sentence per finding (no "warning:" prefix); empty when all is well.
+    """
+    out = []
+    for name, (v, side, bound) in at_bounds(hyperparameters, bounds, tolerance).items():
+        label = "beta / alpha" if name == "shift" else name
+        cap = " (its cap)" if name == "alpha" and side == "upper" else ""
+        out.append(f"{label} {v:.4g} is at the {side} bound {bound:.4g} of its search{cap}: {_WHY.get(name, 'check the fit')}")
+    if "alpha" in hyperparameters and "beta" in hyperparameters:
+        p0 = prior_probability(hyperparameters)
+        if not PRIOR_BAND[0] <= p0 <= PRIOR_BAND[1]:
+            looks = "occupied" if p0 > 0.5 else "free"
+            out.append(
+                f"far from the data the map's probability is {p0:.2f}, not about 0.5 (alpha {float(hyperparameters['alpha']):.4g}, "
+                f"beta {float(hyperparameters['beta']):.4g}): unexplored space will look {looks} rather than unknown"
+            )
+    return out
+
+
+def map_warnings(ternary: NDArray[np.integer], fraction: float = ONE_CLASS_FRACTION) -> list[str]:
+    """Warnings about the written map's classes.
+
+    Parameters
+    ----------
+    ternary : ndarray of int
+        0 free, 1 occupied, -1 unknown.
+    fraction : float
+        More than this fraction of the known cells in one class is reported.
+
+    Returns
+    -------
+    list of str
+    """
+    t = np.asarray(ternary)
+    known = int(np.count_nonzero(t >= 0))
+    if t.size == 0:
+        return []
+    if known == 0:
+        return [f"no cell of the {t.size}-cell map is known (all between the thresholds): the map says nothing"]
+    n_occ = int(np.count_nonzero(t == 1))
+    for name, n in (("occupied", n_occ), ("free", known - n_occ)):
+        if n > fraction * known:
+            return [f"the map is almost all one class: {100 * n / known:.1f} % of its {known} known cells are {name}"]
+    return []
+
+
+def hyperparameter_source(model: Any, tolerance: float = BOUND_TOLERANCE) -> str:
+    """How the model's hyperparameters came about, for the summary line.
+
+    Returns
+    -------
+    str
+        ``"learnt"``, ``"at bound: length_scale, alpha"`` (learnt, but some sit at a bound), or
+        ``"given (alpha, beta fitted)"``.
+    """
+    found = at_bounds(model.hyperparameters_, search_bounds(model), tolerance)
+    names = ["beta / alpha" if n == "shift" else n for n in found]
+    if names:
+        return "at bound: " + ", ".join(names)
+    return "learnt" if getattr(_base_estimator(model), "optimise", True) else "given (alpha, beta fitted)"
+
+
+def fit_warnings(model: Any, occupancy_map: Any = None, tolerance: float = BOUND_TOLERANCE) -> list[str]:
+    """Every warning about a fitted AreaGPOM or TiledGPOM (and the map it wrote, if given).
+
+    Parameters
+    ----------
+    model : AreaGPOM or TiledGPOM
+        Fitted.
+    occupancy_map : OccupancyMap, optional
+        The map written from it; checked for being almost all one class.
+    tolerance : float
+        See :func:`at_bounds`.
+
+    Returns
+    -------
+    list of str
+        One sentence per finding, without a prefix.
+    """
+    out = hyperparameter_warnings(model.hyperparameters_, search_bounds(model), tolerance)
+    if occupancy_map is not None:
+        out += map_warnings(occupancy_map.ternary)
+    return out

@@ -1,0 +1,253 @@
+"""Memory estimates and limits, checked before any expensive work starts.
+
+A map request that cannot fit in memory should be refused in a second, with the numbers and the
+options that change them, not after a long fit and a ``MemoryError``. The command line (and any
+caller) estimates what a run needs from cheap facts known up front — the grid's extent and
+resolution, the number of cells per GP — and compares it with a limit, by default half of the
+machine's physical memory (:data:`DEFAULT_MEMORY_FRACTION`).
+
+The estimates are deliberately simple upper-bound-ish sums of the large arrays (every constant
+below says what it counts). They decide between "fine" and "hopeless", so a factor of two does
+not matter; orders of magnitude do: a log with one pose at 1e9 m asks for a grid of 1e16 cells.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.errors import GpomapError
+
+__all__ = [
+    "BYTES_PER_MAP_CELL",
+    "BYTES_PER_SAMPLE",
+    "DEFAULT_MEMORY_FRACTION",
+    "FIT_MATRICES",
+    "MemoryLimitError",
+    "check_memory",
+    "memory_limit",
+    "default_memory_limit",
+    "fit_memory",
+    "format_bytes",
+    "grid_memory",
+    "grid_shape",
+    "largest_tile_cells",
+    "points_extent",
+    "prediction_chunk_memory",
+    "total_memory",
+]
+
+#: Fraction of the physical memory a run may plan to use by default (``--memory-limit``).
+DEFAULT_MEMORY_FRACTION = 0.5
+
+#: Bytes per cell of a written map: probability and variance (float64, 8 + 8), the ternary map
+#: and the PGM image (1 + 1), their copies while the NPZ is compressed (8 + 8), and the figure's
+#: three panels, each normalised to float64 and coloured before resampling (3 x 24).
+BYTES_PER_MAP_CELL = 8 + 8 + 1 + 1 + 8 + 8 + 3 * 24
+
+#: Bytes per prediction sample (``supersample`` K gives K x K per map cell): its coordinates
+#: (2 x 8), latent mean and variance (8 + 8) and probability (8).
+BYTES_PER_SAMPLE = 2 * 8 + 8 + 8 + 8
+
+#: Dense n x n float64 matrices alive at once while one GP over n cells is fitted: the Gram
+#: matrix, its Cholesky factor, the inverse the squash fit and leave-one-out moments use, and one
+#: work array.
+FIT_MATRICES = 4
+
+#: Cross-covariance arrays of one prediction chunk (queries x cells): the kernel block, the
+#: triangular solve and one work array.
+PREDICTION_MATRICES = 3
+
+
+class MemoryLimitError(GpomapError, MemoryError):
+    """A run would need more memory than it is allowed (see :func:`check_memory`)."""
+
+
+def total_memory() -> int | None:
+    """Physical memory of this machine in bytes, or None when it cannot be told.
+
+    Reads ``MemTotal`` from ``/proc/meminfo`` (Linux), else ``SC_PHYS_PAGES * SC_PAGE_SIZE``.
+    """
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemTotal:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        pages, size = os.sysconf("SC_PHYS_PAGES"), os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+    return int(pages) * int(size) if pages > 0 and size > 0 else None
+
+
+def default_memory_limit(fraction: float = DEFAULT_MEMORY_FRACTION) -> int | None:
+    """`fraction` of :func:`total_memory` in bytes (None when the machine's memory is unknown)."""
+    total = total_memory()
+    return None if total is None else int(fraction * total)
+
+
+def format_bytes(n: float) -> str:
+    """`n` bytes as a short decimal figure: ``"1.5 GB"``, ``"320 MB"``, ``"8.0e+07 GB"``."""
+    gb = n / 1e9
+    if gb >= 1e5:
+        return f"{gb:.1e} GB"
+    if gb >= 1:
+        return f"{gb:.1f} GB"
+    return f"{n / 1e6:.0f} MB"
+
+
+def grid_shape(extent: Sequence[float], resolution: float) -> tuple[int, int]:
+    """(ny, nx) of the grid :meth:`gpomap.grid.GridSpec.from_extent` would build, without building it.
+
+    Parameters
+    ----------
+    extent : (xmin, xmax, ymin, ymax)
+        Metres; must be finite.
+    resolution : float
+        Cell side, metres; must be finite and positive.
+
+    Returns
+    -------
+    (int, int)
+        Rows and columns (Python ints: no overflow however absurd the extent).
+    """
+    xmin, xmax, ymin, ymax = (float(v) for v in extent)
+    if not all(math.isfinite(v) for v in (xmin, xmax, ymin, ymax)):
+        raise ValueError(f"extent must be finite, got {tuple(extent)}")
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"grid resolution must be a positive number, got {resolution}")
+    # The same rounding as GridSpec.from_extent: a whole number of cells does not gain one.
+    nx = max(1, math.ceil((xmax - xmin) / resolution - 1e-9))
+    ny = max(1, math.ceil((ymax - ymin) / resolution - 1e-9))
+    return ny, nx
+
+
+def prediction_chunk_memory(n_cells: int, chunk_size: int = 4096) -> int:
+    """Bytes of one prediction chunk's cross-covariance arrays: ``chunk_size x n_cells`` float64 each."""
+    return PREDICTION_MATRICES * int(chunk_size) * int(n_cells) * 8
+
+
+def grid_memory(shape: tuple[int, int], supersample: int = 1, n_cells: int = 0, chunk_size: int = 4096) -> int:
+    """Bytes needed to predict and write a map on a grid of `shape`.
+
+    Parameters
+    ----------
+    shape : (int, int)
+        (ny, nx) of the written grid.
+    supersample : int
+        Samples per cell side (K x K predictions per cell).
+    n_cells : int
+        Cells of the largest GP the prediction solves against (0 leaves the chunk term out).
+    chunk_size : int
+        Query points per prediction chunk.
+
+    Returns
+    -------
+    int
+        ``ny * nx * (BYTES_PER_MAP_CELL + K^2 * BYTES_PER_SAMPLE)`` plus one chunk's arrays.
+    """
+    ny, nx = (int(v) for v in shape)
+    k = int(supersample)
+    return ny * nx * (BYTES_PER_MAP_CELL + k * k * BYTES_PER_SAMPLE) + prediction_chunk_memory(n_cells, chunk_size)
+
+
+def fit_memory(n_cells: int, n_at_once: int = 1) -> int:
+    """Bytes of the dense matrices of `n_at_once` GPs of `n_cells` cells fitted at the same time.
+
+    ``n_at_once * FIT_MATRICES * n_cells^2 * 8``: one GP for a single-GP map, one per worker
+    process for tiles (each holding at most the largest tile's cells).
+    """
+    n = int(n_cells)
+    return int(n_at_once) * FIT_MATRICES * n * n * 8
+
+
+def points_extent(points: NDArray[np.float64]) -> tuple[float, float, float, float]:
+    """Bounding box (xmin, xmax, ymin, ymax) of (m, 2) points: a map's default extent."""
+    p = np.asarray(points, dtype=float)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+
+
+def largest_tile_cells(
+    centres: NDArray[np.float64], tile_size: float, overlap: float, origin: tuple[float, float] = (0.0, 0.0)
+) -> int:
+    """Most cells any one tile's GP sees: cells whose centre lies in a tile grown by `overlap`.
+
+    Parameters
+    ----------
+    centres : ndarray of shape (n, 2)
+        Cell centres.
+    tile_size : float
+        Tile side, metres.
+    overlap : float
+        How far past its square a tile's GP reaches, metres (at most `tile_size`).
+    origin : (float, float)
+        Corner of tile (0, 0).
+
+    Returns
+    -------
+    int
+        An estimate (cells are counted by centre); 0 for no cells.
+    """
+    c = np.asarray(centres, dtype=float).reshape(-1, 2)
+    if c.shape[0] == 0:
+        return 0
+    reach = min(float(overlap), float(tile_size))
+    # Every tile whose grown square holds a centre: the tiles of the centre shifted by -reach..+reach.
+    rel = (c - np.asarray(origin, dtype=float)) / tile_size
+    lo = np.floor(rel - reach / tile_size).astype(np.int64)
+    hi = np.floor(rel + reach / tile_size).astype(np.int64)
+    counts: dict[tuple[int, int], int] = {}
+    # reach <= tile_size: each centre touches at most 3 x 3 tiles.
+    for dx in range(3):
+        for dy in range(3):
+            tx, ty = lo[:, 0] + dx, lo[:, 1] + dy
+            ok = (tx <= hi[:, 0]) & (ty <= hi[:, 1])
+            keys, n = np.unique(np.column_stack([tx[ok], ty[ok]]), axis=0, return_counts=True)
+            for key, m in zip(map(tuple, keys), n):
+                counts[key] = counts.get(key, 0) + int(m)
+    return max(counts.values()) if counts else 0
+
+
+def check_memory(need: int, limit: int | None, what: str, advice: str, limit_source: str = "--memory-limit") -> None:
+    """Refuse a run that would need more than `limit` bytes.
+
+    Parameters
+    ----------
+    need : int
+        Estimated bytes.
+    limit : int or None
+        Allowed bytes; None checks nothing (the machine's memory is unknown and no limit given).
+    what : str
+        What needs the memory, with its numbers ("a 1000 x 1e10 grid at --resolution 0.1 m ...").
+    advice : str
+        The options that would bring it down.
+    limit_source : str
+        How the limit was chosen (see :func:`memory_limit`).
+
+    Raises
+    ------
+    MemoryLimitError
+        When `need` exceeds `limit`.
+    """
+    if limit is not None and need > limit:
+        raise MemoryLimitError(
+            f"{what} would need about {format_bytes(need)} of memory, more than the limit of {format_bytes(limit)}"
+            f" ({limit_source}); {advice}"
+        )
+
+
+def memory_limit(limit_gb: float | None = None) -> tuple[int | None, str]:
+    """The limit in bytes for ``--memory-limit GB`` (None: the default fraction), and how it was chosen."""
+    if limit_gb is not None:
+        return int(limit_gb * 1e9), f"--memory-limit {limit_gb:g}"
+    total = total_memory()
+    if total is None:
+        return None, "no limit (this machine's memory is unknown)"
+    return int(DEFAULT_MEMORY_FRACTION * total), f"{DEFAULT_MEMORY_FRACTION:g} of this machine's {format_bytes(total)}"
