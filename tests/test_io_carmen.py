@@ -53,11 +53,17 @@ def test_shared_logs_load_with_readme_counts(rel: str, n_scans: int, n_beams: in
 
 
 def test_max_range_rules() -> None:
-    # FR079 has PARAM robot_front_laser_max 80.99; Intel has none (80 m default).
-    assert read_carmen(_need("fr079/freiburg-079-corrected.log.gz"))[0].max_range == pytest.approx(80.99)
+    # FR079 has PARAM robot_front_laser_max 80.99, which its 81.91 code agrees with: kept.
+    fr = read_carmen(_need("fr079/freiburg-079-corrected.log.gz"))[0]
+    assert fr.max_range == pytest.approx(80.99)
+    assert fr.meta["no_return"]["source"] == "header" and fr.meta["no_return"]["code"] == [81.91]
+    # Intel has no PARAM: the threshold is its code 81.83 less the 0.01 m tolerance.
     intel = _need("intel/intel-corrected.log.gz")
-    assert read_carmen(intel)[0].max_range == pytest.approx(80.0)
-    assert read_carmen(intel, max_range=30.0)[0].max_range == 30.0
+    s = read_carmen(intel)[0]
+    assert s.max_range == pytest.approx(81.82)
+    assert s.meta["no_return"]["source"] == "data" and s.meta["no_return"]["code"] == [81.83]
+    user = read_carmen(intel, max_range=30.0)[0]
+    assert user.max_range == 30.0 and user.meta["no_return"]["source"] == "user"
 
 
 def test_time_stamps_kept_only_when_usable() -> None:

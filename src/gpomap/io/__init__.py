@@ -8,6 +8,7 @@ pre-processing are read by :func:`read_points` (:mod:`gpomap.io.arrays`); they a
 from __future__ import annotations
 
 import os
+import stat
 import zlib
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,6 +19,7 @@ import numpy as np
 from gpomap.errors import InputFormatError
 from gpomap.io.arrays import read_points, write_points
 from gpomap.io.carmen import is_carmen_text, read_carmen
+from gpomap.io.checks import file_kind, regular_file
 from gpomap.io.rosbag import load_rosbag, read_rosbag
 from gpomap.scans import Scan
 
@@ -37,8 +39,11 @@ _ROS2_SUFFIXES = (".db3", ".mcap")
 
 
 def _head(path: Path, size: int = 65536) -> bytes:
-    with path.open("rb") as f:
-        head = f.read(size)
+    try:
+        with path.open("rb") as f:
+            head = f.read(size)
+    except OSError as exc:
+        raise InputFormatError(f"cannot read the file ({exc})", path=str(path)) from None
     if head[:2] == b"\x1f\x8b":
         # Decompress just the start: enough to see the first message names.
         try:
@@ -60,13 +65,22 @@ def detect_format(path: str | os.PathLike[str]) -> str:
         Missing path, or a format none of the readers knows.
     """
     p = Path(path)
-    if not p.exists():
-        raise InputFormatError("no such file or directory", path=str(p))
-    if p.is_dir():
-        if (p / "metadata.yaml").exists():
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        raise InputFormatError("no such file or directory", path=str(p)) from None
+    except (OSError, ValueError) as exc:
+        raise InputFormatError(f"cannot examine the path ({exc})", path=str(p)) from None
+    if stat.S_ISDIR(mode):
+        if (p / "metadata.yaml").is_file():
             return "rosbag2"
         raise InputFormatError("directory without metadata.yaml; expected a ROS2 bag directory", path=str(p))
-    head = _head(p)
+    if not stat.S_ISREG(mode):
+        # Opening a FIFO would block, reading a device might never end.
+        raise InputFormatError(
+            f"is {file_kind(mode)}, not a regular file; expected a CARMEN log or a ROS bag", path=str(p)
+        )
+    head = _head(regular_file(p))
     if head.startswith(b"#ROSBAG"):
         return "rosbag1"
     if head.startswith(b"SQLite format 3") or head.startswith(b"\x89MCAP"):
@@ -138,7 +152,12 @@ def describe(path: str | os.PathLike[str], **options: Any) -> dict[str, Any]:
         ``path``, ``format``, ``n_scans``, ``beams_per_scan`` and ``max_range`` (a number, or the
         sorted distinct values when scans differ), ``n_beams``, ``n_hits``, ``n_no_return``,
         ``n_invalid``, ``pose_extent`` and ``hit_extent`` ((xmin, xmax, ymin, ymax), metres),
-        ``time_span`` (seconds; None without usable stamps) and, for bags, ``n_dropped``.
+        ``time_span`` (seconds; None without usable stamps) and, for bags, ``n_dropped``; then the
+        no-return decision: ``no_return_code`` (the code value(s) found in the data, or None),
+        ``no_return_source`` (``"user"``, ``"header"``, ``"data"`` or ``"none found"``; see
+        :mod:`gpomap.io.noreturn`), ``no_return`` (the full decision, or a list of them when
+        message types differ) and ``notes`` (lines saying what was decided, contradictions
+        between the file's header and the data first).
     """
     fmt = detect_format(path)
     extra: dict[str, Any] = {}
@@ -167,4 +186,26 @@ def describe(path: str | os.PathLike[str], **options: Any) -> dict[str, Any]:
         "time_span": float(max(times) - min(times)) if len(times) == len(scans) and times else None,
     }
     info.update(extra)
+    info.update(_no_return_report(scans))
     return info
+
+
+def _no_return_report(scans: Sequence[Scan]) -> dict[str, Any]:
+    """The readers' no-return decisions (shared dicts in ``Scan.meta``), for :func:`describe`."""
+    decisions: list[dict[str, Any]] = []
+    seen: set[int] = set()
+    for s in scans:
+        d = s.meta.get("no_return")
+        if isinstance(d, dict) and id(d) not in seen:
+            seen.add(id(d))
+            decisions.append(d)
+    codes = [d["code"] for d in decisions]
+    sources = sorted({str(d["source"]) for d in decisions})
+    contradictions = [d["contradiction"] for d in decisions if d.get("contradiction")]
+    notes = contradictions + [n for d in decisions for n in d.get("notes", []) if n not in contradictions]
+    return {
+        "no_return_code": codes[0] if len(codes) == 1 else (codes or None),
+        "no_return_source": sources[0] if len(sources) == 1 else (sources or None),
+        "no_return": decisions[0] if len(decisions) == 1 else (decisions or None),
+        "notes": notes,
+    }

@@ -25,6 +25,13 @@ pass ``laser_offset="param"`` to apply it (for raw logs whose poses are robot po
 Scan order is line order. Time stamps (``ipc_timestamp`` / ``timestamp``) go to ``Scan.time``
 only where they look usable: finite, not all equal and almost never repeated (Belgioioso's, printed
 to 6 significant digits, are all the same number and are dropped).
+
+No-return. The threshold (``Scan.max_range``) is decided per message type from the readings
+(:mod:`gpomap.io.noreturn`): the shared logs all carry a SICK code (81.83 in Intel, 81.91 in
+Belgioioso, FR079 and CSAIL), and keep the header's 80.99 / 80 m where they have one since the data
+agree with it; a log whose code is 50 m and has no PARAM no longer turns every no-return into a
+hit, and ``PARAM robot_front_laser_max 10`` in a log with real returns out to 50 m is overruled
+(and the contradiction reported in ``Scan.meta["no_return"]``).
 """
 
 from __future__ import annotations
@@ -33,7 +40,8 @@ import gzip
 import io
 import math
 import os
-from collections.abc import Iterable
+import zlib
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,13 +49,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import InputFormatError
+from gpomap.io.checks import regular_file
+from gpomap.io.noreturn import NoReturnDecision, decide_max_range
 from gpomap.scans import Scan
 
-__all__ = ["read_carmen", "beam_angles", "is_carmen_text", "DEFAULT_MAX_RANGE", "LASER_MESSAGES"]
+__all__ = ["read_carmen", "beam_angles", "is_carmen_text", "LASER_MESSAGES", "MAX_LINE_BYTES", "MAX_BEAMS"]
 
-#: Max range assumed when neither the caller nor the log gives one: the SICK LMS range (its
-#: no-return codes 81.83 / 81.91 then fall at or above it).
-DEFAULT_MAX_RANGE = 80.0
+#: Longest line read, bytes: a 1,081-beam ROBOTLASER1 line with remissions is about 20 kB.
+MAX_LINE_BYTES = 1 << 20
+
+#: Largest beam or remission count accepted in a line (a count is checked before the line length).
+MAX_BEAMS = 100_000
 
 #: Message types this reader turns into scans.
 LASER_MESSAGES = ("FLASER", "ROBOTLASER1")
@@ -91,7 +103,7 @@ class _Laser:
 
     line: int
     kind: str
-    ranges: list[float]
+    ranges: NDArray[np.float64]
     pose: tuple[float, float, float]
     laser_pose_given: bool
     time: float
@@ -99,28 +111,74 @@ class _Laser:
     max_range: float | None = None
 
 
-def _open_text(path: Path) -> list[str]:
-    """All lines of a plain or gzipped text file (gzip detected by its magic bytes)."""
+@dataclass
+class _Parsed:
+    """What one pass over a log gives."""
+
+    lasers: list[_Laser]
+    # PARAM name -> (value text, 1-based line); the last one in the file wins.
+    params: dict[str, tuple[str, int]]
+    n_lines: int
+    any_text: bool
+    # First line that is not text (NUL bytes or not UTF-8), for the "no laser lines" message.
+    binary_line: int | None
+
+
+def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
+    """(1-based number, raw bytes) of each line of a plain or gzipped file, read as a stream.
+
+    Gzip is recognised by its magic bytes. A line longer than :data:`MAX_LINE_BYTES` is refused,
+    so a file without line breaks cannot fill the memory.
+    """
+    spath = str(path)
+    with path.open("rb") as raw:
+        gzipped = raw.read(2) == b"\x1f\x8b"
+    number = 0
     try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputFormatError("no such file", path=str(path)) from None
-    except IsADirectoryError:
-        raise InputFormatError("is a directory, expected a CARMEN log file", path=str(path)) from None
-    if raw[:2] == b"\x1f\x8b":
-        try:
-            raw = gzip.decompress(raw)
-        except (EOFError, OSError, gzip.BadGzipFile) as exc:
-            raise InputFormatError(f"corrupt or truncated gzip data ({exc})", path=str(path)) from None
+        with (gzip.open(path, "rb") if gzipped else path.open("rb")) as f:
+            while True:
+                line = f.readline(MAX_LINE_BYTES + 1)
+                if not line:
+                    return
+                number += 1
+                if len(line) > MAX_LINE_BYTES:
+                    raise InputFormatError(
+                        f"line longer than {MAX_LINE_BYTES} bytes; expected a text log with one message a line",
+                        path=spath,
+                        line=number,
+                    )
+                yield number, line
+    except (EOFError, OSError, zlib.error) as exc:
+        # gzip.BadGzipFile is an OSError; EOFError is a truncated stream.
+        raise InputFormatError(
+            f"corrupt or truncated {'gzip data' if gzipped else 'file'} ({exc})", path=spath, line=number + 1
+        ) from None
+
+
+def _decode(raw: bytes) -> str:
+    # Host names in old logs may be Latin-1; numeric fields with such bytes fail as non-numeric.
     try:
-        text = raw.decode("utf-8")
+        return raw.decode("utf-8")
     except UnicodeDecodeError:
-        text = raw.decode("latin-1")
-    return text.splitlines()
+        return raw.decode("latin-1")
+
+
+def _is_binary(raw: bytes) -> bool:
+    if b"\x00" in raw:
+        return True
+    try:
+        raw.decode("utf-8")
+    except UnicodeDecodeError:
+        return True
+    return False
 
 
 def _floats(tokens: list[str], path: str, line: int, first_field: int) -> list[float]:
-    """Convert tokens to floats, naming the first bad field (1-based, counting the message name)."""
+    """Convert tokens to floats, naming the first bad field (1-based, counting the message name).
+
+    ``nan``, ``inf`` and numbers too large for a float (``1e400``, 5,000 digits) are converted as
+    Python does (to NaN / inf); callers check the fields that must be finite.
+    """
     try:
         return list(map(float, tokens))
     except ValueError:
@@ -128,10 +186,20 @@ def _floats(tokens: list[str], path: str, line: int, first_field: int) -> list[f
             try:
                 float(t)
             except ValueError:
+                shown = t if len(t) <= 40 else t[:40] + "..."
                 raise InputFormatError(
-                    f"non-numeric field {first_field + k} {t!r}; expected a number", path=path, line=line
+                    f"non-numeric field {first_field + k} {shown!r}; expected a number", path=path, line=line
                 ) from None
         raise InputFormatError("non-numeric field; expected numbers", path=path, line=line) from None
+
+
+def _finite(values: Iterable[float], names: Iterable[str], first_field: int, kind: str, path: str, line: int) -> None:
+    """Refuse NaN / inf in fields that must be finite (poses, beam geometry)."""
+    for k, (v, name) in enumerate(zip(values, names)):
+        if not math.isfinite(v):
+            raise InputFormatError(
+                f"{kind} field {first_field + k} ({name}) is {v}; expected a finite number", path=path, line=line
+            )
 
 
 def _count(tokens: list[str], index: int, what: str, path: str, line: int) -> int:
@@ -141,19 +209,22 @@ def _count(tokens: list[str], index: int, what: str, path: str, line: int) -> in
         raise InputFormatError(
             f"truncated {kind} line: it ends before the {what} (field {index + 1})", path=path, line=line
         )
+    text = tokens[index]
+    shown = text if len(text) <= 40 else text[:40] + "..."
     try:
-        value = float(tokens[index])
+        value = float(text)
     except ValueError:
         raise InputFormatError(
-            f"non-numeric field {index + 1} {tokens[index]!r}; expected the {what} (an integer)",
-            path=path,
-            line=line,
+            f"non-numeric field {index + 1} {shown!r}; expected the {what} (an integer)", path=path, line=line
         ) from None
-    if value != int(value) or value < 0:
+    # NaN, inf and 1e400 fail the first test (int() of them would raise ValueError / OverflowError).
+    if not math.isfinite(value) or value < 0 or value != int(value):
         raise InputFormatError(
-            f"field {index + 1} is {tokens[index]!r}; expected the {what} (a non-negative integer)",
-            path=path,
-            line=line,
+            f"field {index + 1} is {shown!r}; expected the {what} (a non-negative integer)", path=path, line=line
+        )
+    if value > MAX_BEAMS:
+        raise InputFormatError(
+            f"field {index + 1} is {shown!r}; expected the {what}, at most {MAX_BEAMS}", path=path, line=line
         )
     return int(value)
 
@@ -180,7 +251,8 @@ def _parse_flaser(tokens: list[str], path: str, line: int) -> _Laser:
     stamp = _floats([tokens[n + 8]], path, line, first_field=n + 9)[0]
     # Pose from the end of the line (odom_x, odom_y, odom_theta): the robot pose.
     pose = (values[n + 3], values[n + 4], values[n + 5])
-    return _Laser(line, "FLASER", values[:n], pose, laser_pose_given=False, time=stamp)
+    _finite(pose, ("odom_x", "odom_y", "odom_theta"), n + 6, "FLASER", path, line)
+    return _Laser(line, "FLASER", np.array(values[:n], dtype=float), pose, laser_pose_given=False, time=stamp)
 
 
 def _parse_robotlaser1(tokens: list[str], path: str, line: int) -> _Laser:
@@ -189,19 +261,30 @@ def _parse_robotlaser1(tokens: list[str], path: str, line: int) -> _Laser:
     _check_length(tokens, n + m + 24, f"n + m + 24 with n = {n}, m = {m}", path, line)
     head = _floats(tokens[2:8], path, line, first_field=3)
     start, _fov, res, max_range = head[0], head[1], head[2], head[3]
+    _finite((start,), ("start_angle",), 3, "ROBOTLASER1", path, line)
+    _finite((res,), ("angular_res",), 5, "ROBOTLASER1", path, line)
     ranges = _floats(tokens[9 : 9 + n], path, line, first_field=10)
     tail_at = 10 + n + m
     tail = _floats(tokens[tail_at : tail_at + 12], path, line, first_field=tail_at + 1)
+    _finite(tail[:3], ("laser_x", "laser_y", "laser_theta"), tail_at + 1, "ROBOTLASER1", path, line)
     angles = start + res * np.arange(n, dtype=float)
+    if not np.isfinite(angles).all():
+        raise InputFormatError(
+            f"ROBOTLASER1 start_angle {start} and angular_res {res} give non-finite beam angles; "
+            "expected angles in radians",
+            path=path,
+            line=line,
+        )
     return _Laser(
         line,
         "ROBOTLASER1",
-        ranges,
+        np.array(ranges, dtype=float),
         (tail[0], tail[1], tail[2]),  # laser pose: rays start here
         laser_pose_given=True,
         time=tail[11],
         angles=angles,
-        max_range=max_range if max_range > 0 else None,
+        # A non-positive or non-finite field states no max range.
+        max_range=max_range if math.isfinite(max_range) and max_range > 0 else None,
     )
 
 
@@ -215,34 +298,74 @@ def _usable_times(stamps: NDArray[np.float64]) -> bool:
     return bool(stamps.max() > stamps.min() and repeated <= _MAX_REPEATED_STAMPS * (stamps.size - 1))
 
 
-def _parse_lines(lines: Iterable[str], path: str) -> tuple[list[_Laser], dict[str, str]]:
-    """Laser lines and the PARAM values of a CARMEN log."""
+def _parse_file(path: Path) -> _Parsed:
+    """Laser lines and PARAM values of a CARMEN log, in one streaming pass."""
+    spath = str(path)
     lasers: list[_Laser] = []
-    params: dict[str, str] = {}
-    for i, text in enumerate(lines, start=1):
-        # Cheap first-token test: most lines of a log are skipped ODOM / NEFF lines.
-        if text.startswith("FLASER"):
-            tokens = text.split()
+    params: dict[str, tuple[str, int]] = {}
+    n_lines = 0
+    any_text = False
+    binary_line: int | None = None
+    for i, raw in _lines(path):
+        n_lines = i
+        # Cheap first-token test on the bytes: most lines of a log are skipped ODOM / NEFF lines.
+        if raw.startswith(b"FLASER"):
+            tokens = _decode(raw).split()
             if tokens[0] == "FLASER":
-                lasers.append(_parse_flaser(tokens, path, i))
-        elif text.startswith("ROBOTLASER1"):
-            tokens = text.split()
+                lasers.append(_parse_flaser(tokens, spath, i))
+                continue
+        elif raw.startswith(b"ROBOTLASER1"):
+            tokens = _decode(raw).split()
             if tokens[0] == "ROBOTLASER1":
-                lasers.append(_parse_robotlaser1(tokens, path, i))
-        elif text.startswith("PARAM"):
-            tokens = text.split()
+                lasers.append(_parse_robotlaser1(tokens, spath, i))
+                continue
+        elif raw.startswith(b"PARAM"):
+            tokens = _decode(raw).split()
             if len(tokens) >= 3 and tokens[0] == "PARAM":
-                params[tokens[1]] = tokens[2]
-    return lasers, params
+                params[tokens[1]] = (tokens[2], i)
+        if binary_line is None and _is_binary(raw):
+            binary_line = i
+        if not any_text and raw.strip():
+            any_text = True
+    return _Parsed(lasers, params, n_lines, any_text or bool(lasers), binary_line)
 
 
-def _param_float(params: dict[str, str], name: str, path: str) -> float | None:
+def _param_float(params: dict[str, tuple[str, int]], name: str, path: str, positive: bool = False) -> float | None:
     if name not in params:
         return None
+    text, line = params[name]
     try:
-        return float(params[name])
+        value = float(text)
     except ValueError:
-        raise InputFormatError(f"PARAM {name} is {params[name]!r}; expected a number", path=path) from None
+        value = math.nan
+    if not math.isfinite(value) or (positive and value <= 0):
+        shown = text if len(text) <= 40 else text[:40] + "..."
+        expected = "a positive number (metres)" if positive else "a finite number"
+        raise InputFormatError(f"PARAM {name} is {shown!r}; expected {expected}", path=path, line=line)
+    return value
+
+
+def _decide(lasers: list[_Laser], kind: str, param_max: float | None, max_range: float | None) -> NoReturnDecision:
+    """The no-return threshold of all `kind` lines of a log (one laser: one decision)."""
+    ranges = np.concatenate([las.ranges for las in lasers]) if lasers else np.empty(0)
+    header: float | None = None
+    name: str | None = None
+    notes: list[str] = []
+    if kind == "ROBOTLASER1":
+        fields = [las.max_range for las in lasers if las.max_range is not None]
+        if fields:
+            values, counts = np.unique(np.asarray(fields), return_counts=True)
+            header, name = float(values[np.argmax(counts)]), "ROBOTLASER1 max_range"
+            if len(values) > 1:
+                notes.append(
+                    f"ROBOTLASER1 max_range differs between lines ({', '.join(f'{v:g}' for v in values[:5])}); "
+                    f"compared the most common, {header:g} m, with the data"
+                )
+    if header is None and param_max is not None:
+        header, name = param_max, "PARAM robot_front_laser_max"
+    decision = decide_max_range(ranges, header, name, user=max_range)
+    decision.notes.extend(notes)
+    return decision
 
 
 def read_carmen(
@@ -253,6 +376,9 @@ def read_carmen(
 ) -> list[Scan]:
     """Read the laser scans of a CARMEN log (plain text or gzip).
 
+    The file is read as a stream, one line at a time (gzip too), so memory grows with the scans
+    kept, not with the ``ODOM`` and other lines skipped.
+
     Parameters
     ----------
     path : path-like
@@ -261,10 +387,12 @@ def read_carmen(
         Beam-angle convention for ``FLASER`` lines, which carry no angles (see
         :func:`beam_angles`). ``ROBOTLASER1`` lines carry their own start angle and resolution.
     max_range : float, optional
-        Sensor maximum range, metres; readings at or above it become no-return beams. Default:
-        ``PARAM robot_front_laser_max`` if the log has it (80.99 in Belgioioso and FR079), else the
-        ``max_range`` field of ``ROBOTLASER1`` lines, else 80 m (:data:`DEFAULT_MAX_RANGE`). Either
-        way the SICK no-return codes 81.83 / 81.91 m become no-return beams.
+        No-return threshold, metres: readings at or above it become no-return beams; always wins.
+        Default: decided from the data (:func:`gpomap.io.noreturn.decide_max_range`), separately
+        for the ``FLASER`` and the ``ROBOTLASER1`` lines: the header value (the ``max_range``
+        field of ``ROBOTLASER1`` lines, else ``PARAM robot_front_laser_max``, 80.99 in
+        Belgioioso and FR079) when the readings agree with it, else the no-return code found in
+        the readings (81.83 in Intel, which has no PARAM), else no reading is no-return.
     laser_offset : float or "param", optional
         Distance of the laser ahead of the ``FLASER`` pose along its heading, metres. Default 0:
         in corrected logs the pose already is the laser pose (see the module notes, measured).
@@ -274,27 +402,38 @@ def read_carmen(
     -------
     list of Scan
         In line order. ``Scan.meta`` holds ``line`` (1-based), ``message``, ``robot_pose``
-        (ndarray of shape (3,), the pose read from the line) and ``frontlaser_offset_param``.
+        (ndarray of shape (3,), the pose read from the line), ``frontlaser_offset_param`` and
+        ``no_return`` (the decision as a dict, shared by the scans of one message type: see
+        :meth:`gpomap.io.noreturn.NoReturnDecision.as_dict`).
 
     Raises
     ------
     InputFormatError
-        Missing or empty file, no laser lines, truncated line, wrong field count, non-numeric
-        field; the message names the file and the 1-based line.
+        Missing, empty or non-regular file (directory, FIFO, device), corrupt gzip, no laser
+        lines, truncated line, wrong field count, non-numeric field, NaN or inf in a pose or in
+        the beam geometry, impossible beam count, non-numeric PARAM value; the message names the
+        file and the 1-based line.
     """
-    p = Path(path)
+    if max_range is not None and not (math.isfinite(max_range) and max_range > 0):
+        raise ValueError(f"max_range must be a positive finite number of metres, got {max_range!r}")
+    p = regular_file(path, "CARMEN log")
     spath = str(p)
-    lines = _open_text(p)
-    if not any(t.strip() for t in lines):
+    parsed = _parse_file(p)
+    lasers = parsed.lasers
+    if not parsed.any_text:
         raise InputFormatError("empty file; expected a CARMEN log with FLASER or ROBOTLASER1 lines", path=spath)
-    lasers, params = _parse_lines(lines, spath)
     if not lasers:
+        binary = (
+            f" (line {parsed.binary_line} is binary data, not text)" if parsed.binary_line is not None else ""
+        )
         raise InputFormatError(
-            f"no laser lines in {len(lines)} lines; expected FLASER or ROBOTLASER1 messages", path=spath
+            f"no laser lines in {parsed.n_lines} lines{binary}; expected FLASER or ROBOTLASER1 messages",
+            path=spath,
+            line=parsed.binary_line,
         )
 
-    param_max = _param_float(params, "robot_front_laser_max", spath)
-    param_offset = _param_float(params, "robot_frontlaser_offset", spath)
+    param_max = _param_float(parsed.params, "robot_front_laser_max", spath, positive=True)
+    param_offset = _param_float(parsed.params, "robot_frontlaser_offset", spath)
     if laser_offset is None:
         offset = 0.0
     elif laser_offset == "param":
@@ -307,6 +446,15 @@ def read_carmen(
     stamps = np.array([las.time for las in lasers])
     keep_time = _usable_times(stamps)
 
+    decisions: dict[str, tuple[float, dict]] = {}
+    for kind in LASER_MESSAGES:
+        group = [las for las in lasers if las.kind == kind]
+        if group:
+            d = _decide(group, kind, param_max, max_range)
+            info = d.as_dict()
+            info["message"] = kind
+            decisions[kind] = (d.max_range, info)
+
     angle_cache: dict[int, NDArray[np.float64]] = {}
     scans: list[Scan] = []
     for las in lasers:
@@ -317,14 +465,7 @@ def read_carmen(
             if n not in angle_cache:
                 angle_cache[n] = beam_angles(n, angles)
             beam = angle_cache[n]
-        if max_range is not None:
-            mr = float(max_range)
-        elif param_max is not None:
-            mr = param_max
-        elif las.max_range is not None:
-            mr = las.max_range
-        else:
-            mr = DEFAULT_MAX_RANGE
+        mr, info = decisions[las.kind]
         robot = np.array(las.pose, dtype=float)
         if las.laser_pose_given or offset == 0.0:
             sensor = robot
@@ -335,7 +476,7 @@ def read_carmen(
             Scan(
                 pose=sensor,
                 angles=beam,
-                ranges=np.asarray(las.ranges, dtype=float),
+                ranges=las.ranges,
                 max_range=mr,
                 time=las.time if keep_time else None,
                 meta={
@@ -343,6 +484,7 @@ def read_carmen(
                     "message": las.kind,
                     "robot_pose": robot,
                     "frontlaser_offset_param": param_offset,
+                    "no_return": info,
                 },
             )
         )

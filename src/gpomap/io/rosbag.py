@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -38,6 +39,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import GpomapError, InputFormatError
+from gpomap.io.checks import file_kind, regular_file
+from gpomap.io.noreturn import decide_max_range
 from gpomap.scans import Scan
 
 __all__ = ["read_rosbag", "load_rosbag", "RosbagScans", "STAGE_TIME_OFFSET", "yaw_from_quaternion"]
@@ -202,6 +205,18 @@ class _Tree:
             ok &= m
         return pose, ok
 
+    def path_edges(self, fixed: str, target: str) -> list[_Edge]:
+        """The edges between `fixed` and `target` (through their common ancestor)."""
+        up = self.chain(target)
+        common = next((f for f in self.chain(fixed) if f in up), None)
+        edges = []
+        for start in (fixed, target):
+            for f in self.chain(start):
+                if f == common:
+                    break
+                edges.append(self.edges[f])
+        return edges
+
     def lookup(self, fixed: str, target: str, t: NDArray[np.float64], path: str) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """Pose of `target` in `fixed` at times `t` (k,): poses (k, 3) and in-range mask (k,)."""
         known = self.frames()
@@ -227,9 +242,20 @@ class _Tree:
 
 def _bag_paths(path: Path) -> list[Path]:
     """What AnyReader opens: the .bag file, or the ROS2 bag directory."""
-    if not path.exists():
-        raise InputFormatError("no such file or directory", path=str(path))
-    if path.is_file() and path.suffix.lower() in (".db3", ".mcap"):
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise InputFormatError("no such file or directory", path=str(path)) from None
+    except (OSError, ValueError) as exc:
+        raise InputFormatError(f"cannot examine the path ({exc})", path=str(path)) from None
+    if stat.S_ISDIR(mode):
+        if not (path / "metadata.yaml").is_file():
+            raise InputFormatError("directory without metadata.yaml; expected a ROS2 bag directory", path=str(path))
+        return [path]
+    if not stat.S_ISREG(mode):
+        raise InputFormatError(f"is {file_kind(mode)}, not a regular file; expected a ROS bag", path=str(path))
+    regular_file(path, "ROS bag")
+    if path.suffix.lower() in (".db3", ".mcap"):
         if not (path.parent / "metadata.yaml").exists():
             raise InputFormatError(
                 "ROS2 storage file without metadata.yaml beside it; expected a ROS2 bag directory",
@@ -276,7 +302,10 @@ def load_rosbag(
         Seconds added to each scan stamp before the pose lookup (0.1 for Stage bags, see
         :data:`STAGE_TIME_OFFSET`).
     max_range : float, optional
-        Overrides the messages' ``range_max``.
+        No-return threshold, metres; always wins. Default: decided over all kept scans
+        (:func:`gpomap.io.noreturn.decide_max_range`): the messages' ``range_max`` (the most
+        common value) when the readings agree with it, else the no-return code found in the
+        readings, else none. The decision is in each ``Scan.meta["no_return"]``.
 
     Returns
     -------
@@ -285,8 +314,11 @@ def load_rosbag(
     Raises
     ------
     InputFormatError
-        Missing file, unknown or ambiguous topic (lists the topics), unknown frame (lists the tf
-        frames), no scans with a pose.
+        Missing file, not a regular file or ROS2 bag directory, unreadable or corrupt bag,
+        unknown or ambiguous topic (lists the topics with their types), no /tf and no odometry
+        topic (lists the topics and names the Odometry topics to pass as `odom_topic`), unknown
+        frame (lists the tf frames), no scans with a pose (gives the time ranges of the
+        transforms and the tf frames), non-finite beam angles.
     """
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
@@ -317,64 +349,84 @@ def load_rosbag(
                 path=spath,
             )
         odom_conns = []
+        odom_topics = sorted({c.topic for c in conns if c.msgtype == _ODOMETRY})
+        odom_hint = f"; use --odom-topic NAME (odom_topic=) with {', '.join(odom_topics)}" if odom_topics else ""
         if odom_topic is not None:
             odom_conns = [c for c in conns if c.topic == odom_topic and c.msgtype == _ODOMETRY]
             if not odom_conns:
                 raise InputFormatError(
-                    f"unknown Odometry topic {odom_topic!r}; topics in the bag: {_topics_text(conns)}", path=spath
+                    f"unknown Odometry topic {odom_topic!r}; Odometry topics: {', '.join(odom_topics) or '(none)'}; "
+                    f"topics in the bag: {_topics_text(conns)}",
+                    path=spath,
                 )
 
-        tree = _Tree()
         tf_conns = [c for c in conns if c.topic in _TF_TOPICS]
-        for c, _, raw in reader.messages(connections=tf_conns):
-            msg = reader.deserialize(raw, c.msgtype)
-            static = c.topic.lstrip("/") == "tf_static"
-            for tr in msg.transforms:
-                tree.add(
-                    _frame(tr.header.frame_id),
-                    _frame(tr.child_frame_id),
-                    _stamp(tr.header.stamp),
-                    _transform_2d(tr.transform),
-                    static,
-                )
-
-        if odom_conns:
-            odom_parent = odom_child = None
-            odom_edge: _Edge | None = None
-            for c, _, raw in reader.messages(connections=odom_conns):
-                msg = reader.deserialize(raw, c.msgtype)
-                if odom_edge is None:
-                    odom_parent, odom_child = _frame(msg.header.frame_id), _frame(msg.child_frame_id)
-                    odom_edge = _Edge(odom_parent, odom_child, static=False)
-                pose = msg.pose.pose
-                q = pose.orientation
-                odom_edge.add(
-                    _stamp(msg.header.stamp),
-                    (float(pose.position.x), float(pose.position.y), yaw_from_quaternion(q.x, q.y, q.z, q.w)),
-                )
-            if odom_edge is None:
-                raise InputFormatError(f"no messages on Odometry topic {odom_topic!r}", path=spath)
-            # Odometry replaces whatever tf said about the odometry child frame.
-            tree.edges[odom_edge.child] = odom_edge
-            if fixed_frame is None:
-                fixed_frame = odom_parent
-
-        fixed = _frame(fixed_frame if fixed_frame is not None else "odom")
-
+        if not tf_conns and not odom_conns:
+            # Nothing to take poses from; reader.messages(connections=[]) would read every message.
+            raise InputFormatError(
+                f"no /tf or /tf_static messages to take the scan poses from{odom_hint}; "
+                f"topics in the bag: {_topics_text(conns)}",
+                path=spath,
+            )
+        tree = _Tree()
+        odom_edge: _Edge | None = None
+        odom_parent = None
         stamps: list[float] = []
         frames: list[str] = []
         ranges: list[NDArray[np.float64]] = []
         geometry: list[tuple[float, float, int, float, float]] = []
-        for c, _, raw in reader.messages(connections=[c for c in scan_conns if c.topic == topic]):
-            msg = reader.deserialize(raw, c.msgtype)
-            stamps.append(_stamp(msg.header.stamp))
-            frames.append(_frame(msg.header.frame_id))
-            ranges.append(np.asarray(msg.ranges, dtype=float))
-            geometry.append(
-                (float(msg.angle_min), float(msg.angle_increment), len(msg.ranges), float(msg.range_min), float(msg.range_max))
-            )
+        where = "opening the bag"
+        try:
+            if tf_conns:
+                where = "reading /tf"
+                for c, _, raw in reader.messages(connections=tf_conns):
+                    msg = reader.deserialize(raw, c.msgtype)
+                    static = c.topic.lstrip("/") == "tf_static"
+                    for tr in msg.transforms:
+                        tree.add(
+                            _frame(tr.header.frame_id),
+                            _frame(tr.child_frame_id),
+                            _stamp(tr.header.stamp),
+                            _transform_2d(tr.transform),
+                            static,
+                        )
+            if odom_conns:
+                where = f"reading {odom_topic}"
+                for c, _, raw in reader.messages(connections=odom_conns):
+                    msg = reader.deserialize(raw, c.msgtype)
+                    if odom_edge is None:
+                        odom_parent = _frame(msg.header.frame_id)
+                        odom_edge = _Edge(odom_parent, _frame(msg.child_frame_id), static=False)
+                    pose = msg.pose.pose
+                    q = pose.orientation
+                    odom_edge.add(
+                        _stamp(msg.header.stamp),
+                        (float(pose.position.x), float(pose.position.y), yaw_from_quaternion(q.x, q.y, q.z, q.w)),
+                    )
+            where = f"reading {topic}"
+            for c, _, raw in reader.messages(connections=[c for c in scan_conns if c.topic == topic]):
+                msg = reader.deserialize(raw, c.msgtype)
+                stamps.append(_stamp(msg.header.stamp))
+                frames.append(_frame(msg.header.frame_id))
+                ranges.append(np.asarray(msg.ranges, dtype=float))
+                geometry.append(
+                    (float(msg.angle_min), float(msg.angle_increment), len(msg.ranges), float(msg.range_min), float(msg.range_max))
+                )
+        except GpomapError:
+            raise
+        except Exception as exc:  # rosbags and its deserialisers raise many types on corrupt data
+            raise InputFormatError(f"corrupt bag while {where} ({type(exc).__name__}: {exc})", path=spath) from None
     finally:
         reader.close()
+
+    if odom_conns:
+        if odom_edge is None:
+            raise InputFormatError(f"no messages on Odometry topic {odom_topic!r}", path=spath)
+        # Odometry replaces whatever tf said about the odometry child frame.
+        tree.edges[odom_edge.child] = odom_edge
+        if fixed_frame is None:
+            fixed_frame = odom_parent
+    fixed = _frame(fixed_frame if fixed_frame is not None else "odom")
 
     if not stamps:
         raise InputFormatError(f"no LaserScan messages on topic {topic!r}", path=spath)
@@ -398,32 +450,64 @@ def load_rosbag(
     for lf in sorted(set(frames)):
         sel = frame_arr == lf
         poses[sel], ok[sel] = tree.lookup(fixed, lf, t[sel], spath)
+    # A NaN quaternion or translation in the bag gives a pose no scan can use.
+    ok &= np.isfinite(poses).all(axis=1)
 
     order = np.argsort(np.asarray(stamps), kind="stable")
-    scans: list[Scan] = []
-    for i in order:
-        if not ok[i]:
-            continue
-        a0, da, n, rmin, rmax = geometry[i]
-        r = ranges[i]
+    kept = [int(i) for i in order if ok[i]]
+    beams: dict[int, NDArray[np.float64]] = {}
+    for i in kept:
+        a0, da, n, rmin, _ = geometry[i]
         # ROS: readings below range_min are not measurements.
-        r = np.where(r < rmin, np.nan, r)
-        scans.append(
-            Scan(
-                pose=poses[i],
-                angles=a0 + da * np.arange(n, dtype=float),
-                ranges=r,
-                max_range=float(max_range) if max_range is not None else rmax,
-                time=stamps[i],
-                meta={"frame_id": frames[i], "topic": topic},
+        ranges[i] = np.where(ranges[i] < rmin, np.nan, ranges[i])
+        beams[i] = a0 + da * np.arange(n, dtype=float)
+        if not np.isfinite(beams[i]).all():
+            raise InputFormatError(
+                f"LaserScan on {topic} at stamp {stamps[i]:.9g} s has non-finite beam angles "
+                f"(angle_min {a0}, angle_increment {da}); expected radians",
+                path=spath,
             )
+    decision = None
+    if kept:
+        header_values = [geometry[i][4] for i in kept if math.isfinite(geometry[i][4]) and geometry[i][4] > 0]
+        header = None
+        if header_values:
+            values, counts = np.unique(np.asarray(header_values), return_counts=True)
+            header = float(values[np.argmax(counts)])
+        decision = decide_max_range(np.concatenate([ranges[i] for i in kept]), header, "LaserScan range_max", user=max_range)
+        if header_values and len(values) > 1:
+            decision.notes.append(
+                f"LaserScan range_max differs between messages ({', '.join(f'{v:g}' for v in values[:5])}); "
+                f"compared the most common, {header:g} m, with the data"
+            )
+    info = decision.as_dict() if decision is not None else {}
+    if info:
+        info["topic"] = topic
+    scans = [
+        Scan(
+            pose=poses[i],
+            angles=beams[i],
+            ranges=ranges[i],
+            max_range=decision.max_range,  # type: ignore[union-attr]
+            time=stamps[i],
+            meta={"frame_id": frames[i], "topic": topic, "no_return": info},
         )
+        for i in kept
+    ]
     n_dropped = int((~ok).sum())
     if not scans:
-        pose_src = f"odometry topic {odom_topic!r}" if odom_conns else f"tf ({fixed!r} -> {frames[0]!r})"
+        lf = frames[0]
+        pose_src = f"odometry topic {odom_topic!r}" if odom_conns else f"tf ({fixed!r} -> {lf!r})"
+        spans = [
+            f"{e.parent} -> {e.child}: {e.t[0]:.9g} .. {e.t[-1]:.9g} s"
+            for e in tree.path_edges(fixed, lf)
+            if not e.static and len(e.t) > 1
+        ]
         raise InputFormatError(
-            f"no scans left: all {len(stamps)} scan stamps (with time_offset {time_offset:g} s) lie outside "
-            f"the time range of the poses from {pose_src}",
+            f"no scans left: all {len(stamps)} scan stamps ({min(stamps):.9g} .. {max(stamps):.9g} s, with "
+            f"time_offset {time_offset:g} s) lie outside the time range of the poses from {pose_src}"
+            f" ({'; '.join(spans) or 'no moving transforms'}), or the poses are not finite; "
+            f"is {fixed!r} the right fixed frame? tf frames: {', '.join(tree.frames())}",
             path=spath,
         )
     return RosbagScans(
