@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import csv
 import os
-import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import InputFormatError
+from gpomap.io.checks import load_npz, regular_file
 from gpomap.observations import Observations
 
 __all__ = ["read_points", "write_points"]
@@ -35,8 +36,36 @@ def _observations(points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> O
 
 def _read_csv(path: Path) -> Observations:
     spath = str(path)
-    with path.open(newline="") as f:
+    state: dict[str, Any] = {}
+    try:
+        return _read_csv_rows(path, spath, state)
+    except UnicodeDecodeError:
+        raise InputFormatError(
+            "not UTF-8 text; expected a CSV file with a header x,y,occupied", path=spath, line=_first_non_utf8_line(path)
+        ) from None
+    except csv.Error as exc:
+        # NUL bytes, a field above the csv module's size limit, an unclosed quote.
+        reader = state.get("reader")
+        line = reader.line_num if reader is not None else None
+        raise InputFormatError(f"malformed CSV ({exc}); expected x,y,occupied rows", path=spath, line=line) from None
+
+
+def _first_non_utf8_line(path: Path) -> int | None:
+    """1-based number of the first line that is not UTF-8, read line by line."""
+    with path.open("rb") as f:
+        for number, raw in enumerate(f, start=1):
+            try:
+                raw.decode("utf-8")
+            except UnicodeDecodeError:
+                return number
+    return None
+
+
+def _read_csv_rows(path: Path, spath: str, state: dict[str, Any]) -> Observations:
+    """The CSV reader proper; `state["reader"]` is the csv reader, for csv.Error messages."""
+    with path.open(newline="", encoding="utf-8") as f:
         rows = csv.reader(f)
+        state["reader"] = rows
         header = next(rows, None)
         while header is not None and not any(h.strip() for h in header):
             header = next(rows, None)
@@ -97,29 +126,34 @@ def _is_float(text: str) -> bool:
 
 def _read_npz(path: Path) -> Observations:
     spath = str(path)
-    try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise InputFormatError(f"not a readable .npz file ({exc})", path=spath) from None
-    with data:
-        missing = [k for k in ("points", "occupied") if k not in data.files]
-        if missing:
-            raise InputFormatError(
-                f"missing array(s) {', '.join(missing)} (has {sorted(data.files)}); expected 'points' and 'occupied'",
-                path=spath,
-            )
-        points, occupied = data["points"], data["occupied"]
+    data = load_npz(path, "points .npz file")
+    missing = [k for k in ("points", "occupied") if k not in data]
+    if missing:
+        raise InputFormatError(
+            f"missing array(s) {', '.join(missing)} (has {sorted(data)}); expected 'points' and 'occupied'",
+            path=spath,
+        )
+    points, occupied = data["points"], data["occupied"]
     if points.ndim != 2 or points.shape[1] != 2:
         raise InputFormatError(f"'points' has shape {points.shape}; expected (n, 2)", path=spath)
     if occupied.shape != (points.shape[0],):
         raise InputFormatError(
             f"'occupied' has shape {occupied.shape}; expected ({points.shape[0]},) to match 'points'", path=spath
         )
-    if not (np.issubdtype(points.dtype, np.number) and np.isfinite(points).all()):
-        raise InputFormatError("'points' must hold finite numbers", path=spath)
+    real = np.issubdtype(points.dtype, np.integer) or np.issubdtype(points.dtype, np.floating)
+    if not real:
+        raise InputFormatError(f"'points' has dtype {points.dtype}; expected real numbers (float or int)", path=spath)
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        raise InputFormatError(
+            f"'points' row {bad} is {points[bad].tolist()}; expected finite numbers ({int((~finite).sum())} rows are not)",
+            path=spath,
+        )
     if occupied.dtype != bool:
-        if not np.issubdtype(occupied.dtype, np.number) or not np.isin(occupied, (0, 1)).all():
-            raise InputFormatError("'occupied' must be boolean or 0/1", path=spath)
+        real = np.issubdtype(occupied.dtype, np.integer) or np.issubdtype(occupied.dtype, np.floating)
+        if not real or not np.isin(occupied, (0, 1)).all():
+            raise InputFormatError(f"'occupied' (dtype {occupied.dtype}) must be boolean or 0/1", path=spath)
     return _observations(points.astype(float), occupied.astype(bool))
 
 
@@ -141,9 +175,7 @@ def read_points(path: str | os.PathLike[str]) -> Observations:
     InputFormatError
         Missing file or column / array, non-numeric value (CSV: with its line), bad shape.
     """
-    p = Path(path)
-    if not p.is_file():
-        raise InputFormatError("no such file", path=str(p))
+    p = regular_file(path, "points file (CSV or NPZ)")
     if p.suffix.lower() == ".npz":
         return _read_npz(p)
     return _read_csv(p)

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +30,7 @@ import numpy as np
 from gpomap.errors import InputFormatError
 from gpomap.grid import GridSpec, OccupancyMap
 from gpomap.io.atomic import atomic_write
+from gpomap.io.checks import load_npz, regular_file
 
 __all__ = ["save_map", "load_map"]
 
@@ -101,6 +101,14 @@ def _shape_error(key: str, expected: str, got: tuple[int, ...], path: str) -> In
     return InputFormatError(f"array '{key}' must have shape {expected}, got {got}", path=path)
 
 
+def _real(data: dict[str, np.ndarray], key: str, path: str) -> np.ndarray:
+    """`data[key]` as float64, refusing strings, complex numbers and other non-real dtypes."""
+    a = data[key]
+    if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer) or a.dtype == bool):
+        raise InputFormatError(f"array '{key}' has dtype {a.dtype}; expected real numbers", path=path)
+    return np.asarray(a, dtype=np.float64)
+
+
 def load_map(path: str | os.PathLike[str]) -> OccupancyMap:
     """Read a map written by :func:`save_map`.
 
@@ -121,43 +129,41 @@ def load_map(path: str | os.PathLike[str]) -> OccupancyMap:
         origin not (2,), path not (k, 2)); resolution or thresholds are invalid; info is not JSON.
     """
     name = str(path)
+    p = regular_file(path, "gpomap .npz map file")
     try:
-        with open(name, "rb") as f:
+        with p.open("rb") as f:
             head = f.read(8)
-    except FileNotFoundError:
-        raise InputFormatError("map file not found", path=name) from None
-    # Check the zip signature first: np.load would try to unpickle anything else, and say so.
+    except OSError as exc:
+        raise InputFormatError(f"cannot read the map file ({exc})", path=name) from None
+    # Check the zip signature first, to say what the file is instead.
     if not head.startswith(b"PK"):
         found = "a single-array .npy file" if head.startswith(b"\x93NUMPY") else f"a file starting with {head!r}"
         raise InputFormatError(f"not a NumPy .npz map file (a zip archive): found {found}", path=name)
-    try:
-        archive = np.load(name, allow_pickle=False)
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
-        raise InputFormatError(f"not a readable NumPy .npz map file ({exc})", path=name) from None
-    with archive:
-        try:
-            data = {key: archive[key] for key in archive.files}
-        except ValueError as exc:  # object arrays need pickles, refused on purpose
-            raise InputFormatError(f"map file holds an array that cannot be read safely: {exc}", path=name) from None
+    data = load_npz(p, "NumPy .npz map file")
     missing = [k for k in REQUIRED if k not in data]
     if missing:
         raise InputFormatError(f"map file is missing the required array(s) {', '.join(map(repr, missing))}", path=name)
     if "format" in data and str(data["format"]) != FORMAT:
         raise InputFormatError(f"not a gpomap map file: format is {str(data['format'])!r}", path=name)
-    version = int(data["version"]) if "version" in data else VERSION
+    version = VERSION
+    if "version" in data:
+        v = data["version"]
+        if v.shape != () or not np.issubdtype(v.dtype, np.integer):
+            raise InputFormatError(f"array 'version' must be one integer, got {v.dtype} of shape {v.shape}", path=name)
+        version = int(v)
     if version > VERSION:
         raise InputFormatError(f"map file version {version} is newer than this gpomap reads ({VERSION})", path=name)
 
-    probability = np.asarray(data["probability"], dtype=np.float64)
+    probability = _real(data, "probability", name)
     if probability.ndim != 2:
         raise _shape_error("probability", "(ny, nx)", probability.shape, name)
-    origin = np.asarray(data["origin"], dtype=np.float64)
+    origin = _real(data, "origin", name)
     if origin.shape != (2,):
         raise _shape_error("origin", "(2,)", origin.shape, name)
-    resolution = np.asarray(data["resolution"], dtype=np.float64)
+    resolution = _real(data, "resolution", name)
     if resolution.size != 1:
         raise _shape_error("resolution", "() (one number)", resolution.shape, name)
-    thresholds = np.asarray(data["thresholds"], dtype=np.float64)
+    thresholds = _real(data, "thresholds", name)
     if thresholds.shape != (2,):
         raise _shape_error("thresholds", "(2,)", thresholds.shape, name)
     for key in ("variance", "ternary"):
@@ -165,24 +171,24 @@ def load_map(path: str | os.PathLike[str]) -> OccupancyMap:
             raise _shape_error(key, f"{probability.shape} (the probability's)", data[key].shape, name)
     robot_path = None
     if "path" in data:
-        robot_path = np.asarray(data["path"], dtype=np.float64)
+        robot_path = _real(data, "path", name)
         if robot_path.ndim != 2 or robot_path.shape[1] != 2:
             raise _shape_error("path", "(k, 2)", robot_path.shape, name)
     info: dict[str, Any] = {}
     if "info" in data:
         try:
             info = json.loads(str(data["info"]))
-        except json.JSONDecodeError as exc:
-            raise InputFormatError(f"array 'info' is not valid JSON: {exc}", path=name) from None
+        except (ValueError, RecursionError) as exc:  # JSONDecodeError is a ValueError
+            raise InputFormatError(f"array 'info' is not valid JSON: {str(exc)[:200]}", path=name) from None
         if not isinstance(info, dict):
             raise InputFormatError(f"array 'info' must hold a JSON object, got {type(info).__name__}", path=name)
 
     try:
         grid = GridSpec((origin[0], origin[1]), float(resolution.reshape(())), probability.shape)
-        variance = np.asarray(data["variance"], dtype=np.float64) if "variance" in data else None
+        variance = _real(data, "variance", name) if "variance" in data else None
         lo, hi = (float(t) for t in thresholds)
         if not 0.0 <= lo <= hi <= 1.0:
             raise ValueError(f"thresholds must satisfy 0 <= free <= occupied <= 1, got ({lo}, {hi})")
         return OccupancyMap(grid, probability, variance=variance, thresholds=(lo, hi), path=robot_path, info=info)
-    except ValueError as exc:
+    except (ValueError, TypeError) as exc:
         raise InputFormatError(str(exc), path=name) from None

@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import math
 import os
+import struct
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,8 +41,19 @@ from numpy.typing import NDArray
 from gpomap.errors import InputFormatError
 from gpomap.grid import FREE, OCCUPIED, GridSpec, OccupancyMap
 from gpomap.io.atomic import atomic_write_group
+from gpomap.io.checks import regular_file
 
-__all__ = ["RosMap", "read_rosmap", "write_rosmap", "read_map_image"]
+__all__ = ["RosMap", "read_rosmap", "write_rosmap", "read_map_image", "MAX_PIXELS", "MAX_YAML_BYTES"]
+
+#: Largest map image read, pixels (width x height), checked from the image header before decoding:
+#: a 20000 x 20000 image would need gigabytes once converted to probabilities.
+MAX_PIXELS = 200_000_000
+#: Plain (ASCII, P2) PGMs cost tens of bytes a pixel while parsed: a lower limit.
+MAX_PLAIN_PIXELS = 20_000_000
+#: Largest map YAML read, bytes (real ones are a few hundred).
+MAX_YAML_BYTES = 1 << 20
+# Deepest nesting of [ / { accepted in the YAML before parsing (PyYAML recurses per level).
+_MAX_YAML_DEPTH = 50
 
 MODES = ("trinary", "scale", "raw")
 REQUIRED_KEYS = ("image", "resolution", "origin", "occupied_thresh", "free_thresh", "negate")
@@ -51,6 +64,8 @@ PIXEL_FREE = 254
 PIXEL_UNKNOWN = 205
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+# A PGM header (with comments) must fit in this many bytes.
+_HEADER_BYTES = 65536
 # Only yaw exactly 0 is supported; this tolerance forgives "-0.000000" and float noise.
 _YAW_TOLERANCE = 1e-9
 
@@ -173,12 +188,30 @@ def _pgm_tokens(data: bytes, start: int, count: int, path: str) -> tuple[list[in
         if j == i:
             raise InputFormatError("PGM header ends early (expected width, height and maxval)", path=path)
         word = data[i:j]
-        if not word.isdigit():
+        if not word.isdigit() or len(word) > 12:
             line = data.count(b"\n", 0, i) + 1
             raise InputFormatError(f"PGM header: expected a number, found {word[:20]!r}", path=path, line=line)
         values.append(int(word))
         i = j
     return values, i
+
+
+def _check_size(width: int, height: int, limit: int, path: str) -> None:
+    """Refuse an image larger than `limit` pixels, from its header, before decoding it."""
+    if width * height > limit:
+        raise InputFormatError(
+            f"map image is {width} x {height} = {width * height:,} pixels; at most {limit:,} are read "
+            "(the size comes from the image header)",
+            path=path,
+        )
+
+
+def _png_size(head: bytes, path: str) -> tuple[int, int]:
+    """Width and height from a PNG's IHDR chunk (bytes 16..24)."""
+    if len(head) < 24 or head[12:16] != b"IHDR":
+        raise InputFormatError("PNG file without an IHDR header chunk (truncated or corrupt)", path=path)
+    width, height = struct.unpack(">II", head[16:24])
+    return int(width), int(height)
 
 
 def _read_pgm(data: bytes, path: str) -> NDArray[np.uint8]:
@@ -190,6 +223,7 @@ def _read_pgm(data: bytes, path: str) -> NDArray[np.uint8]:
     if not 0 < maxval <= 255:
         raise InputFormatError(f"only 8-bit PGM images are supported (maxval 1..255), got maxval {maxval}", path=path)
     count = width * height
+    _check_size(width, height, MAX_PIXELS if magic == b"P5" else MAX_PLAIN_PIXELS, path)
     if magic == b"P5":
         # Exactly one whitespace byte separates maxval from the raster.
         raster = data[end + 1 : end + 1 + count]
@@ -220,7 +254,11 @@ def _read_png(path: str) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None]:
     from PIL import Image
 
     try:
-        with Image.open(path) as img:
+        # The size was checked against MAX_PIXELS already; Pillow's own bomb warning adds nothing.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            img_file = Image.open(path)
+        with img_file as img:
             img.load()
             if img.mode in ("I", "I;16", "I;16B", "I;16L", "F"):
                 raise InputFormatError(f"only 8-bit PNG images are supported, got Pillow mode {img.mode!r}", path=path)
@@ -232,8 +270,10 @@ def _read_png(path: str) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None]:
             mode = img.mode
     except InputFormatError:
         raise
+    except Image.DecompressionBombError as exc:
+        raise InputFormatError(f"PNG image refused as too large by Pillow ({exc})", path=path) from None
     except Exception as exc:  # Pillow raises several types for corrupt files
-        raise InputFormatError(f"cannot decode PNG image: {exc}", path=path) from exc
+        raise InputFormatError(f"cannot decode PNG image: {exc}", path=path) from None
     if arr.ndim == 2:
         return arr.astype(np.uint8), None
     has_alpha = mode in ("LA", "RGBA")
@@ -263,28 +303,90 @@ def read_map_image(image_path: str | os.PathLike[str]) -> tuple[NDArray[np.uint8
         The file is missing, is neither a PGM nor a PNG (the message says what it is), or is malformed.
     """
     path = str(image_path)
+    p = regular_file(path, "map image (PGM or PNG)")
     try:
-        data = Path(path).read_bytes()
-    except FileNotFoundError:
-        raise InputFormatError("map image not found", path=path) from None
-    except IsADirectoryError:
-        raise InputFormatError("map image is a directory, not a file", path=path) from None
+        with p.open("rb") as f:
+            head = f.read(_HEADER_BYTES)
+            if head[:2] in (b"P5", b"P2"):
+                # Size from the header first: the raster is read only if it is not absurd.
+                width, height = _pgm_size(head, path)
+                _check_size(width, height, MAX_PIXELS if head[:2] == b"P5" else MAX_PLAIN_PIXELS, path)
+                data = head + f.read()
+            else:
+                data = head
+    except OSError as exc:
+        raise InputFormatError(f"cannot read the map image ({exc})", path=path) from None
     if data[:2] in (b"P5", b"P2"):
         return _read_pgm(data, path), None
     if data.startswith(_PNG_MAGIC):
+        _check_size(*_png_size(data, path), MAX_PIXELS, path)
         return _read_png(path)
     raise InputFormatError(f"map image must be a PGM (P5 or P2) or PNG file, found {_describe_magic(data[:16])}", path=path)
+
+
+def _pgm_size(head: bytes, path: str) -> tuple[int, int]:
+    """Width and height from the first bytes of a PGM, so the header can be checked alone."""
+    try:
+        (width, height, _), _ = _pgm_tokens(head, 2, 3, path)
+    except InputFormatError:
+        if len(head) >= _HEADER_BYTES:
+            raise InputFormatError(
+                f"PGM header (width, height, maxval) not complete within its first {_HEADER_BYTES} bytes", path=path
+            ) from None
+        raise
+    return width, height
 
 
 # --------------------------------------------------------------------------------------------------
 # Reading the YAML
 
 
+def _read_yaml_text(path: str) -> str:
+    """The map YAML's text, refused when too large, too deeply nested or not UTF-8."""
+    p = Path(path)
+    try:
+        regular_file(p, "map YAML file")
+    except InputFormatError as exc:
+        if not p.exists():
+            raise InputFormatError("map YAML file not found", path=path) from None
+        raise exc from None
+    try:
+        size = p.stat().st_size
+        if size > MAX_YAML_BYTES:
+            raise InputFormatError(
+                f"map YAML is {size:,} bytes; expected a small text file (at most {MAX_YAML_BYTES:,} bytes)", path=path
+            )
+        raw = p.read_bytes()[: MAX_YAML_BYTES + 1]
+    except OSError as exc:
+        raise InputFormatError(f"cannot read the map YAML ({exc})", path=path) from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise InputFormatError(
+            "map YAML file is not UTF-8 text (is it the image rather than the YAML?)", path=path, line=line
+        ) from None
+    depth = deepest = 0
+    for ch in text:
+        # Flow collections nest by brackets; block nesting by indentation is bounded by the size.
+        if ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    if deepest > _MAX_YAML_DEPTH:
+        raise InputFormatError(
+            f"map YAML nests {deepest} levels of [ ] / {{ }}; expected a flat mapping (at most {_MAX_YAML_DEPTH})",
+            path=path,
+        )
+    return text
+
+
 def _key_lines(text: str) -> dict[str, int]:
     """1-based line of each top-level key in a YAML mapping, for error messages."""
     try:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError:
+    except (yaml.YAMLError, RecursionError, ValueError):
         return {}
     if not isinstance(node, yaml.MappingNode):
         return {}
@@ -298,10 +400,12 @@ def _number(config: dict[str, Any], key: str, path: str, lines: dict[str, int]) 
         value = None  # ``yes`` is not a number
     try:
         number = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an int of 400 digits
         number = math.nan
     if not math.isfinite(number):
-        raise InputFormatError(f"'{key}' must be a finite number, got {config[key]!r}", path=path, line=lines.get(key))
+        shown = repr(config[key])
+        shown = shown if len(shown) <= 40 else shown[:40] + "..."
+        raise InputFormatError(f"'{key}' must be a finite number, got {shown}", path=path, line=lines.get(key))
     return number
 
 
@@ -327,18 +431,16 @@ def read_rosmap(yaml_path: str | os.PathLike[str]) -> RosMap:
         supported); the image is missing or not an 8-bit PGM / PNG.
     """
     path = str(yaml_path)
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputFormatError("map YAML file not found", path=path) from None
-    except UnicodeDecodeError:
-        raise InputFormatError("map YAML file is not UTF-8 text (is it the image rather than the YAML?)", path=path) from None
+    text = _read_yaml_text(path)
     try:
         config = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = mark.line + 1 if mark is not None else None
         raise InputFormatError(f"invalid YAML: {getattr(exc, 'problem', None) or exc}", path=path, line=line) from None
+    except (RecursionError, ValueError, OverflowError) as exc:
+        # ValueError: PyYAML's int() of a 5,000-digit number; RecursionError: deep nesting.
+        raise InputFormatError(f"YAML cannot be read ({type(exc).__name__}: {str(exc)[:200]})", path=path) from None
     if not isinstance(config, dict):
         raise InputFormatError(
             f"map YAML must be a mapping of keys (image, resolution, origin, ...), got {type(config).__name__}", path=path
@@ -389,9 +491,20 @@ def read_rosmap(yaml_path: str | os.PathLike[str]) -> RosMap:
     image_path = Path(image)
     if not image_path.is_absolute():
         image_path = Path(path).parent / image_path
-    if not image_path.is_file():
+    shown = image if len(image) <= 80 else image[:80] + "..."
+    try:
+        found = image_path.is_file()
+    except (OSError, ValueError) as exc:  # name too long, NUL byte
         raise InputFormatError(
-            f"image file {image!r} named by 'image' not found (looked for {image_path})", path=path, line=lines.get("image")
+            f"image file {shown!r} named by 'image' cannot be looked up ({type(exc).__name__}: {str(exc)[:80]})",
+            path=path,
+            line=lines.get("image"),
+        ) from None
+    if not found and image_path.exists():
+        regular_file(image_path, "map image (PGM or PNG)")  # says what it is instead
+    if not found:
+        raise InputFormatError(
+            f"image file {shown!r} named by 'image' not found (looked for {image_path})", path=path, line=lines.get("image")
         )
 
     top_down, transparent = read_map_image(image_path)
@@ -411,7 +524,10 @@ def read_rosmap(yaml_path: str | os.PathLike[str]) -> RosMap:
         occupied = (probability > occ_th) & ~hidden
         unknown = ~(free | occupied) if mode == "trinary" else hidden
 
-    grid = GridSpec((x0, y0), resolution, pixels.shape)
+    try:
+        grid = GridSpec((x0, y0), resolution, pixels.shape)
+    except ValueError as exc:  # e.g. a resolution so small the extent underflows
+        raise InputFormatError(f"map geometry is unusable: {exc}", path=path) from None
     return RosMap(
         grid=grid,
         probability=probability,
