@@ -361,10 +361,25 @@ def cmd_info(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(info, indent=2, default=str))
         return EXIT_OK
+    no_return = info.pop("no_return", None)
+    notes = info.pop("notes", [])
+    for key in ("no_return_code", "no_return_source"):
+        info.pop(key, None)
     for key, value in info.items():
         if isinstance(value, (tuple, list)) and value and all(isinstance(v, float) for v in value):
             value = ", ".join(f"{v:.3f}" for v in value)
         print(f"{key:<16}{value}")
+    # The no-return decision, one block per laser (message type): code, count, how decided.
+    for d in no_return if isinstance(no_return, list) else [no_return] if no_return else []:
+        label = f" ({d['message']})" if "message" in d else ""
+        code = ", ".join(f"{c:g}" for c in d["code"]) + " m" if d["code"] else "none found in the data"
+        print(f"{'no-return code':<16}{code}{label}")
+        print(f"{'no-return count':<16}{d['n_no_return']} of {d['n_readings']} readings (>= {d['max_range']:g} m)")
+        print(f"{'decided by':<16}{d['source']}" + (f" ({d['header']['name']} {d['header']['value']:g})" if d["header"] else ""))
+        if d["contradiction"]:
+            print(f"{'contradiction':<16}{d['contradiction']}")
+    for note in notes:
+        print(f"{'note':<16}{note}")
     return EXIT_OK
 
 
