@@ -92,3 +92,56 @@ def test_npz_missing_array_and_bad_shapes(tmp_path: Path) -> None:
 def test_missing_file(tmp_path: Path) -> None:
     with pytest.raises(InputFormatError, match="no such file"):
         read_points(tmp_path / "none.csv")
+
+
+# --- hostile input ------------------------------------------------------------------------------
+
+
+def test_csv_invalid_utf8_nul_and_non_finite(tmp_path):
+    from gpomap.io.arrays import read_points
+
+    p = tmp_path / "bad.csv"
+    p.write_bytes(b"x,y,occupied\n1,2,1\n3,\xff\xfe,0\n")
+    with pytest.raises(InputFormatError, match=r"bad\.csv, line 3: not UTF-8 text"):
+        read_points(p)
+    p.write_bytes(b"x,y,occupied\n1,2\x00,1\n")
+    with pytest.raises(InputFormatError, match=r"bad\.csv, line 2: non-numeric coordinate '2\\x00'"):
+        read_points(p)
+    p.write_text('x,y,occupied\n1,2,1\n"' + "7" * 200_000 + '",1,1\n')  # above csv's field size limit
+    with pytest.raises(InputFormatError, match=r"bad\.csv, line 3: malformed CSV \(field larger than field limit"):
+        read_points(p)
+    for value in ("nan", "inf", "1e400", "9" * 5000):
+        p.write_text(f"x,y,occupied\n1,2,1\n{value},2,0\n")
+        with pytest.raises(InputFormatError, match=r"bad\.csv, line 3: non-finite coordinate"):
+            read_points(p)
+
+
+def test_npz_object_complex_truncated_and_lying_headers(tmp_path):
+    import io
+    import zipfile
+
+    from gpomap.io.arrays import read_points
+
+    p = tmp_path / "bad.npz"
+    np.savez(p, points=np.array([[1, 2]], dtype=object), occupied=np.array([1]))
+    with pytest.raises(InputFormatError, match=r"bad\.npz: array 'points' holds Python objects"):
+        read_points(p)
+    np.savez(p, points=np.array([[1 + 1j, 2]]), occupied=np.array([1]))
+    with pytest.raises(InputFormatError, match=r"'points' has dtype complex128; expected real numbers"):
+        read_points(p)
+    np.savez(p, points=np.array([[1.0, np.nan]]), occupied=np.array([1]))
+    with pytest.raises(InputFormatError, match=r"'points' row 0 is \[1.0, nan\]; expected finite"):
+        read_points(p)
+    np.savez(p, points=np.zeros((100, 2)), occupied=np.zeros(100, dtype=bool))
+    data = p.read_bytes()
+    p.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputFormatError, match=r"bad\.npz: not a readable points \.npz file"):
+        read_points(p)
+    # A 128-byte .npy header announcing a terabyte must not be allocated.
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, {"descr": "<f8", "fortran_order": False, "shape": (10**11, 2)})
+    with zipfile.ZipFile(p, "w") as z:
+        z.writestr("points.npy", buf.getvalue() + bytes(64))
+        z.writestr("occupied.npy", buf.getvalue())
+    with pytest.raises(InputFormatError, match=r"array 'points' announces shape \(100000000000, 2\)"):
+        read_points(p)

@@ -193,3 +193,97 @@ def test_file_without_laser_lines(tmp_path: Path) -> None:
     path.write_text("PARAM a 1 nohost 0\nODOM 0 0 0 0 0 0 0 host 0\n")
     with pytest.raises(GpomapError, match="no laser lines in 2 lines; expected FLASER or ROBOTLASER1"):
         read_carmen(path)
+
+
+# --- hostile input: only InputFormatError, naming file and line ---------------------------------
+
+
+@pytest.mark.parametrize(
+    "count,expected",
+    [("inf", "'inf'; expected the number of readings"), ("nan", "'nan'"), ("1e400", "'1e400'"),
+     ("1e18", "at most 100000"), ("9" * 5000, "expected the number of readings"), ("-3", "non-negative"),
+     ("2.5", "non-negative integer")],
+    ids=["inf", "nan", "1e400", "huge", "5000-digits", "negative", "fraction"],
+)
+def test_bad_beam_count(tmp_path: Path, count: str, expected: str) -> None:
+    path = tmp_path / "bad.log"
+    path.write_text(_flaser([1.0] * 180) + "\n" + f"FLASER {count} 1 2 3 0 0 0 0 0 0 1 host 1\n")
+    with pytest.raises(InputFormatError, match=rf"bad\.log, line 2: field 2 is .*{expected}") as info:
+        read_carmen(path)
+    assert len(str(info.value)) < 300  # a 5,000-digit field is shortened in the message
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf", "1e400"])
+def test_non_finite_pose(tmp_path: Path, value: str) -> None:
+    path = tmp_path / "pose.log"
+    tokens = _flaser([1.0] * 180).split()
+    tokens[180 + 5] = value  # odom_x, the pose read
+    path.write_text(" ".join(tokens) + "\n")
+    with pytest.raises(InputFormatError, match=r"pose\.log, line 1: FLASER field 186 \(odom_x\) is .*expected a finite number"):
+        read_carmen(path)
+
+
+def test_non_finite_ranges_are_invalid_readings(tmp_path: Path) -> None:
+    path = tmp_path / "r.log"
+    path.write_text(_flaser([1.0] * 177 + [math.nan, math.inf, 7.0]).replace(" 7 ", " 1e400 ") + "\n")
+    (s,) = read_carmen(path)
+    # nan, inf and 1e400 (read as inf) are invalid readings, not errors and not hits.
+    assert s.valid().sum() == 177 and len(s.hits()) == 177
+    assert not s.valid()[177:].any()
+
+
+def test_robotlaser1_non_finite_geometry(tmp_path: Path) -> None:
+    path = tmp_path / "r1.log"
+    path.write_text("ROBOTLASER1 0 nan 1.0 0.5 4.0 0.01 0 3 5.0 1.0 2.0 0 1.0 1.0 0.0 0.0 0.0 0.0 0 0 0 0 0 123.5 host 1.0\n")
+    with pytest.raises(InputFormatError, match=r"line 1: ROBOTLASER1 field 3 \(start_angle\) is nan"):
+        read_carmen(path)
+    path.write_text("ROBOTLASER1 0 0 1.0 1e308 4.0 0.01 0 3 5.0 1.0 2.0 0 1.0 1.0 0.0 0.0 0.0 0.0 0 0 0 0 0 123.5 host 1.0\n")
+    with pytest.raises(InputFormatError, match=r"line 1: .*non-finite beam angles"):
+        read_carmen(path)
+
+
+def test_binary_garbage_and_invalid_utf8(tmp_path: Path) -> None:
+    path = tmp_path / "garbage.log"
+    path.write_bytes(b"\x00\x01\xfe\xff" * 100 + b"\n" + bytes(range(11, 256)) + b"\n")
+    with pytest.raises(InputFormatError, match=r"garbage\.log, line 1: no laser lines in 2 lines \(line 1 is binary data"):
+        read_carmen(path)
+    path.write_bytes((_flaser([1.0] * 180) + "\n").encode() + b"FLASER 180 \xff\xfe " + b"1 " * 188 + b"\n")
+    with pytest.raises(InputFormatError, match=r"line 2: .*non-numeric field"):
+        read_carmen(path)
+
+
+def test_overlong_line_is_refused_without_reading_it_all(tmp_path: Path) -> None:
+    path = tmp_path / "long.log.gz"
+    with gzip.open(path, "wb") as f:
+        f.write(b"# x\n" + b"7" * (2 << 20))  # no newline for 2 MB
+    with pytest.raises(InputFormatError, match=r"long\.log\.gz, line 2: line longer than 1048576 bytes"):
+        read_carmen(path)
+
+
+def test_truncated_gzip(tmp_path: Path) -> None:
+    path = tmp_path / "cut.log.gz"
+    data = gzip.compress(("\n".join(_flaser([1.0] * 180) for _ in range(50)) + "\n").encode())
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputFormatError, match=r"cut\.log\.gz, line \d+: corrupt or truncated gzip data"):
+        read_carmen(path)
+
+
+def test_bad_param_value_names_the_line(tmp_path: Path) -> None:
+    path = tmp_path / "p.log"
+    path.write_text("PARAM robot_front_laser_max nan nohost 0\n" + _flaser([1.0] * 180) + "\n")
+    with pytest.raises(InputFormatError, match=r"p\.log, line 1: PARAM robot_front_laser_max is 'nan'; expected a positive"):
+        read_carmen(path)
+
+
+def test_directory_and_fifo_refused_before_opening(tmp_path: Path) -> None:
+    import os
+
+    with pytest.raises(InputFormatError, match="is a directory, not a regular file"):
+        read_carmen(tmp_path)
+    fifo = tmp_path / "pipe.log"
+    os.mkfifo(fifo)
+    # Opening a FIFO without a writer would block: the reader must refuse it from stat alone.
+    with pytest.raises(InputFormatError, match=r"pipe\.log: is a FIFO \(named pipe\), not a regular file"):
+        read_scans(fifo)
+    with pytest.raises(InputFormatError, match="FIFO"):
+        read_carmen(fifo)

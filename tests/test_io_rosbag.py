@@ -243,3 +243,68 @@ def test_missing_bag(tmp_path: Path) -> None:
 def test_yaw_from_quaternion() -> None:
     for yaw in (-3.0, -1.0, 0.0, 0.5, 3.1):
         assert yaw_from_quaternion(0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)) == pytest.approx(yaw)
+
+
+# --- bags the poses cannot come from ----------------------------------------------------------
+
+
+def _write_tfless_bag(path: Path, with_odom: bool) -> Path:
+    """A ROS1 bag with /scan (and optionally /odom) but no /tf at all."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    types = store.types
+    with Writer(path) as writer:
+        scan = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=store)
+        odom = writer.add_connection("/wheel_odom", "nav_msgs/msg/Odometry", typestore=store) if with_odom else None
+        for k, t in enumerate((0.0, 0.5, 1.0)):
+            writer.write(scan, k * 10 + 1, store.serialize_ros1(_scan(types, t, "laser", [1.0, 4.0, 2.0]), "sensor_msgs/msg/LaserScan"))
+            if odom is not None:
+                writer.write(odom, k * 10 + 2, store.serialize_ros1(_odometry(types, t, t, 0.0), "nav_msgs/msg/Odometry"))
+    return path
+
+
+def test_bag_without_tf_lists_topics(tmp_path: Path) -> None:
+    path = _write_tfless_bag(tmp_path / "notf.bag", with_odom=False)
+    with pytest.raises(
+        InputFormatError,
+        match=r"notf\.bag: no /tf or /tf_static messages to take the scan poses from; "
+        r"topics in the bag: /scan \(sensor_msgs/msg/LaserScan\)$",
+    ):
+        read_rosbag(path)
+
+
+def test_bag_without_tf_names_the_odometry_topic(tmp_path: Path) -> None:
+    path = _write_tfless_bag(tmp_path / "odom.bag", with_odom=True)
+    with pytest.raises(InputFormatError, match=r"use --odom-topic NAME \(odom_topic=\) with /wheel_odom; topics in the bag: .*nav_msgs/msg/Odometry"):
+        read_rosbag(path)
+    with pytest.raises(InputFormatError, match=r"unknown Odometry topic '/odom'; Odometry topics: /wheel_odom; topics in the bag"):
+        read_rosbag(path, odom_topic="/odom")
+    # With the right topic, the laser sits at the odometry's child frame.
+    with pytest.warns(UserWarning, match="laser frame 'laser' not in tf"):
+        scans = read_rosbag(path, odom_topic="/wheel_odom")
+    assert [s.pose[0] for s in scans] == pytest.approx([0.0, 0.5, 1.0])
+
+
+def test_fixed_frame_outside_the_poses_lists_frames_and_time_ranges(tmp_path: Path) -> None:
+    path = _write_bag(tmp_path / "t.bag")
+    with pytest.raises(InputFormatError, match=r"lie outside .*odom -> base_link: 0 \.\. 2 s.*tf frames: base_link, laser, odom"):
+        load_rosbag(path, time_offset=100.0)
+    with pytest.raises(InputFormatError, match=r"unknown fixed frame 'map'; known tf frames: base_link, laser, odom"):
+        load_rosbag(path, fixed_frame="map")
+
+
+def test_bag_that_is_not_a_regular_file(tmp_path: Path) -> None:
+    import os
+
+    fifo = tmp_path / "pipe.bag"
+    os.mkfifo(fifo)
+    with pytest.raises(InputFormatError, match=r"pipe\.bag: is a FIFO \(named pipe\), not a regular file"):
+        read_rosbag(fifo)
+    with pytest.raises(InputFormatError, match="directory without metadata.yaml"):
+        read_rosbag(tmp_path)
+    junk = tmp_path / "junk.bag"
+    junk.write_bytes(b"#ROSBAG V2.0\n" + bytes(200))
+    with pytest.raises(InputFormatError, match=r"junk\.bag: cannot open as a ROS bag"):
+        read_rosbag(junk)

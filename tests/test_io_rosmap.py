@@ -270,3 +270,72 @@ def test_turtlebot_rewrite_is_identical_in_pixels(tmp_path):
     assert copy.grid == original.grid
     assert (copy.free_thresh, copy.occupied_thresh) == (0.196, 0.65)
     np.testing.assert_array_equal(copy.pixels, original.pixels)
+
+
+# ------------------------------------------------------------------ hostile input
+
+
+def _yaml_with(tmp_path, key, text):
+    """The small valid map, with `key`'s line replaced by raw YAML `text`."""
+    path, _ = _write_map(tmp_path)
+    lines = [f"{key}: {text}" if line.startswith(f"{key}:") else line for line in path.read_text().splitlines()]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    "value", ["1e400", "1.0e+400", ".nan", ".inf", "-0.1", "9" * 5000, "9" * 400, "[0.1]"],
+    ids=["1e400", "1.0e+400", "nan", "inf", "negative", "5000-digits", "400-digits", "list"],
+)
+def test_bad_resolution(tmp_path, value):
+    path = _yaml_with(tmp_path, "resolution", value)
+    with pytest.raises(InputFormatError, match=r"map\.yaml(, line \d+)?: .*resolution") as info:
+        read_rosmap(path)
+    assert len(str(info.value)) < 400
+
+
+def test_yaml_limits(tmp_path):
+    path, _ = _write_map(tmp_path)
+    path.write_text(path.read_text() + "# " + "x" * (1 << 20) + "\n")
+    with pytest.raises(InputFormatError, match=r"map YAML is [\d,]+ bytes; expected a small text file \(at most 1,048,576"):
+        read_rosmap(path)
+    path.write_text("image: map.pgm\nextra: " + "[" * 5000 + "]" * 5000 + "\n")
+    with pytest.raises(InputFormatError, match=r"map YAML nests 5000 levels"):
+        read_rosmap(path)
+    path.write_bytes(b"image: \xff\xfe\n")
+    with pytest.raises(InputFormatError, match=r"map\.yaml, line 1: map YAML file is not UTF-8"):
+        read_rosmap(path)
+
+
+@pytest.mark.parametrize("name", ["a" * 300, "x\0y.pgm", "dir"])
+def test_image_name_that_cannot_be_opened(tmp_path, name):
+    (tmp_path / "dir").mkdir()
+    path = _yaml_with(tmp_path, "image", yaml.safe_dump(name).splitlines()[0])
+    with pytest.raises(InputFormatError, match=r"map\.yaml.*(cannot be looked up|not found|is a directory)") as info:
+        read_rosmap(path)
+    assert len(str(info.value)) < 500
+
+
+def test_absurd_image_size_refused_from_the_header(tmp_path):
+    # 20000 x 20000 announced by a 30-byte file: refused before any raster is read.
+    (tmp_path / "big.pgm").write_bytes(b"P5\n20000 20000\n255\n" + bytes(10))
+    with pytest.raises(InputFormatError, match=r"big\.pgm: map image is 20000 x 20000 = 400,000,000 pixels; at most 200,000,000"):
+        read_map_image(tmp_path / "big.pgm")
+    (tmp_path / "big2.pgm").write_bytes(b"P2\n5000 5000\n255\n0 0 0\n")
+    with pytest.raises(InputFormatError, match=r"25,000,000 pixels; at most 20,000,000"):
+        read_map_image(tmp_path / "big2.pgm")
+    png = b"\x89PNG\r\n\x1a\n" + b"\x00\x00\x00\x0dIHDR" + (30000).to_bytes(4, "big") * 2 + b"\x08\x00\x00\x00\x00"
+    (tmp_path / "big.png").write_bytes(png)
+    with pytest.raises(InputFormatError, match=r"big\.png: map image is 30000 x 30000 = 900,000,000 pixels"):
+        read_map_image(tmp_path / "big.png")
+    (tmp_path / "huge.pgm").write_bytes(b"P5\n" + b"9" * 5000 + b" 2\n255\n")
+    with pytest.raises(InputFormatError, match=r"huge\.pgm.*PGM header: expected a number"):
+        read_map_image(tmp_path / "huge.pgm")
+
+
+def test_pillow_bomb_becomes_input_format_error(tmp_path):
+    # 15000 x 13000 = 195 M pixels: under our limit, over Pillow's own (2 x 89 M).
+    png = b"\x89PNG\r\n\x1a\n" + b"\x00\x00\x00\x0dIHDR" + (15000).to_bytes(4, "big") + (13000).to_bytes(4, "big")
+    (tmp_path / "bomb.png").write_bytes(png + b"\x08\x00\x00\x00\x00" + b"\x00" * 4 + b"\x00\x00\x00\x00IEND\xaeB`\x82")
+    with pytest.raises(InputFormatError, match=r"bomb\.png: (PNG image refused as too large by Pillow|cannot decode PNG)"):
+        read_map_image(tmp_path / "bomb.png")

@@ -267,7 +267,8 @@ def _parse_robotlaser1(tokens: list[str], path: str, line: int) -> _Laser:
     tail_at = 10 + n + m
     tail = _floats(tokens[tail_at : tail_at + 12], path, line, first_field=tail_at + 1)
     _finite(tail[:3], ("laser_x", "laser_y", "laser_theta"), tail_at + 1, "ROBOTLASER1", path, line)
-    angles = start + res * np.arange(n, dtype=float)
+    with np.errstate(over="ignore", invalid="ignore"):  # overflow is reported just below
+        angles = start + res * np.arange(n, dtype=float)
     if not np.isfinite(angles).all():
         raise InputFormatError(
             f"ROBOTLASER1 start_angle {start} and angular_res {res} give non-finite beam angles; "

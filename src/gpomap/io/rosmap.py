@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import struct
 import warnings
 from dataclasses import dataclass
@@ -41,7 +42,7 @@ from numpy.typing import NDArray
 from gpomap.errors import InputFormatError
 from gpomap.grid import FREE, OCCUPIED, GridSpec, OccupancyMap
 from gpomap.io.atomic import atomic_write_group
-from gpomap.io.checks import regular_file
+from gpomap.io.checks import file_kind, regular_file
 
 __all__ = ["RosMap", "read_rosmap", "write_rosmap", "read_map_image", "MAX_PIXELS", "MAX_YAML_BYTES"]
 
@@ -52,6 +53,8 @@ MAX_PIXELS = 200_000_000
 MAX_PLAIN_PIXELS = 20_000_000
 #: Largest map YAML read, bytes (real ones are a few hundred).
 MAX_YAML_BYTES = 1 << 20
+# Longest run of digits accepted in the YAML (PyYAML's int() of 5,000 digits raises ValueError).
+_MAX_DIGITS = 100
 # Deepest nesting of [ / { accepted in the YAML before parsing (PyYAML recurses per level).
 _MAX_YAML_DEPTH = 50
 
@@ -366,6 +369,15 @@ def _read_yaml_text(path: str) -> str:
         raise InputFormatError(
             "map YAML file is not UTF-8 text (is it the image rather than the YAML?)", path=path, line=line
         ) from None
+    long_number = re.search(r"\d{%d,}" % _MAX_DIGITS, text)
+    if long_number:
+        line = text.count("\n", 0, long_number.start()) + 1
+        key = text.splitlines()[line - 1].split(":", 1)[0].strip()[:40]
+        raise InputFormatError(
+            f"'{key}' holds a number of {len(long_number.group())} digits; expected an ordinary number",
+            path=path,
+            line=line,
+        )
     depth = deepest = 0
     for ch in text:
         # Flow collections nest by brackets; block nesting by indentation is bounded by the size.
@@ -501,7 +513,10 @@ def read_rosmap(yaml_path: str | os.PathLike[str]) -> RosMap:
             line=lines.get("image"),
         ) from None
     if not found and image_path.exists():
-        regular_file(image_path, "map image (PGM or PNG)")  # says what it is instead
+        kind = file_kind(os.stat(image_path).st_mode)
+        raise InputFormatError(
+            f"image {shown!r} named by 'image' is {kind}; expected a PGM or PNG file", path=path, line=lines.get("image")
+        )
     if not found:
         raise InputFormatError(
             f"image file {shown!r} named by 'image' not found (looked for {image_path})", path=path, line=lines.get("image")
