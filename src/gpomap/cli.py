@@ -8,11 +8,17 @@ shows the traceback instead.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import math
+import os
+import signal
 import sys
+import threading
 import time
-from collections.abc import Sequence
+import warnings
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +36,8 @@ def _extent(text: str) -> tuple[float, float, float, float]:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"extent must be XMIN,XMAX,YMIN,YMAX in metres, got {text!r}") from None
+    if not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"extent must be four finite numbers XMIN,XMAX,YMIN,YMAX, got {text!r}")
     if len(values) != 4 or not (values[0] < values[1] and values[2] < values[3]):
         raise argparse.ArgumentTypeError(f"extent must be XMIN,XMAX,YMIN,YMAX with XMIN<XMAX and YMIN<YMAX, got {text!r}")
     return values  # type: ignore[return-value]
@@ -40,7 +48,8 @@ def _pair(text: str) -> tuple[float, float]:
         lo, hi = (float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected two numbers FREE,OCCUPIED, got {text!r}") from None
-    if not 0 <= lo <= hi <= 1:
+    # Written out so that nan (for which every comparison is false) is refused too.
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi <= 1):
         raise argparse.ArgumentTypeError(f"thresholds must satisfy 0 <= FREE <= OCCUPIED <= 1, got {text!r}")
     return lo, hi
 
@@ -55,17 +64,60 @@ def _scan_range(text: str) -> tuple[int | None, int | None]:
         raise argparse.ArgumentTypeError(f"range must be FIRST:LAST (scan indices, LAST excluded), got {text!r}") from None
 
 
-def _positive(kind: type) -> Any:
+def _number(kind: type, low: float | None = None, strict: bool = True) -> Any:
+    """An argparse type: a finite `kind` (int or float), above `low` (or at least `low` if not `strict`).
+
+    nan and inf are refused: ``float("nan") <= 0`` is false, so a plain sign test lets nan through.
+    """
+    if low is None:
+        expected = "a finite number"
+    elif low == 0:
+        expected = "a positive number" if strict else "a number >= 0"
+    else:
+        expected = f"a number {'>' if strict else '>='} {low:g}"
+    if kind is int:
+        expected = expected.replace("number", "integer")
+
     def parse(text: str) -> Any:
         try:
             v = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}") from None
-        if v <= 0:
-            raise argparse.ArgumentTypeError(f"expected a positive number, got {text!r}")
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+        if not math.isfinite(v) or (low is not None and (v <= low if strict else v < low)):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
         return v
 
     return parse
+
+
+def _positive(kind: type) -> Any:
+    """An argparse type: a finite number > 0."""
+    return _number(kind, 0.0)
+
+
+def _non_negative(kind: type) -> Any:
+    """An argparse type: a finite number >= 0."""
+    return _number(kind, 0.0, strict=False)
+
+
+class _LibraryDefault:
+    """The default of an :class:`~gpomap.mapping.AreaGPOM` argument, stated in one place: the library.
+
+    Looked up only when shown or used (importing the model pulls in SciPy, and ``gpomap --help``
+    should stay fast); :func:`main` replaces it by its value after parsing.
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    @property
+    def value(self) -> Any:
+        from gpomap.mapping import AreaGPOM
+
+        return inspect.signature(AreaGPOM).parameters[self.name].default
+
+    def __str__(self) -> str:
+        return str(self.value)
 
 
 def _status(args: argparse.Namespace, message: str) -> None:
@@ -82,7 +134,7 @@ def _add_reader_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--topic", help="ROS bag: sensor_msgs/LaserScan topic (default: the only one)")
     g.add_argument("--fixed-frame", help="ROS bag: fixed frame of the poses, from /tf (default: odom)")
     g.add_argument("--odom-topic", help="ROS bag: take poses from this nav_msgs/Odometry topic instead of /tf")
-    g.add_argument("--time-offset", type=float, default=0.0, help="ROS bag: seconds added to scan stamps before the pose lookup")
+    g.add_argument("--time-offset", type=_number(float), default=0.0, help="ROS bag: seconds added to scan stamps before the pose lookup")
 
 
 def _reader_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
@@ -108,7 +160,7 @@ def _add_selection_options(p: argparse.ArgumentParser) -> None:
 
 def _add_model_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("the model")
-    g.add_argument("--kernel", choices=["matern32", "se"], default="matern32", help="point kernel (default: %(default)s)")
+    g.add_argument("--kernel", choices=["matern32", "se"], default=_LibraryDefault("kernel"), help="point kernel (default: %(default)s)")
     g.add_argument("--area", choices=["exact", "quadrature", "summed"],
                    help="area-kernel computation (default: exact for se, quadrature for matern32)")
     g.add_argument("--normalisation", choices=["mean", "sum"], default="mean", help="area-kernel normalisation (default: %(default)s)")
@@ -116,9 +168,9 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--class-weight", choices=["balanced", "none"], default="balanced",
                    help="weigh free and occupied cells equally in the leave-one-out fit, or each cell once (default: %(default)s)")
     g.add_argument("--free-step", type=_positive(float), default=0.2, help="free-point spacing along beams, m (default: %(default)s)")
-    g.add_argument("--free-clearance", type=float, default=0.3, metavar="M",
+    g.add_argument("--free-clearance", type=_non_negative(float), default=0.3, metavar="M",
                    help="drop free points closer than M metres to a hit (beams grazing walls; default: %(default)s; 0 keeps all)")
-    g.add_argument("--no-return-cap", type=float, default=10.0, metavar="M",
+    g.add_argument("--no-return-cap", type=_non_negative(float), default=10.0, metavar="M",
                    help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)")
     g.add_argument("--min-cell", type=_positive(float), default=0.5, help="smallest cell side, m (default: %(default)s)")
     g.add_argument("--max-cell", type=_positive(float), default=0.5, help="largest pure cell side, m (default: %(default)s)")
@@ -181,9 +233,11 @@ def _add_output_options(p: argparse.ArgumentParser, default_resolution: float | 
                        "samples half a min-cell apart, at most 4; single-GP maps only)")
     g.add_argument("--pgm-mode", choices=["trinary", "scale"], default="trinary",
                    help="map_server image: ternary map or probability grey levels (default: %(default)s)")
+    g.add_argument("--memory-limit", type=_positive(float), metavar="GB",
+                   help="refuse, before fitting, a run estimated to need more memory than this (default: half of this machine's)")
 
 
-def _print_summary(summary: dict[str, Any], files: Sequence[Path]) -> None:
+def _print_summary(summary: dict[str, Any], files: Sequence[Path], source: str = "learnt") -> None:
     hp = summary.get("hyperparameters", {})
     t = summary.get("timings", {})
     lines = []
@@ -194,15 +248,134 @@ def _print_summary(summary: dict[str, Any], files: Sequence[Path]) -> None:
     lines.append(f"cells        {summary.get('n_cells')} ({summary.get('n_ambiguous_cells', 0)} from ambiguous min-size cells)")
     lines.append(f"model        {summary.get('kernel')} kernel, {summary.get('area')} area kernel, {summary.get('normalisation')} normalisation, "
                  f"{summary.get('objective')} objective")
-    lines.append("hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()))
+    lines.append("hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()) + f" ({source})")
     lines.append("timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in t.items()) + f"; total {sum(t.values()):.2f}")
     lines += [f"wrote        {f}" for f in files]
     print("\n".join(lines))
 
 
+# --------------------------------------------------------------------------- checks before any work
+def _check_before_work(args: argparse.Namespace) -> None:
+    """The cheap checks, run before anything is read or fitted: the output directory, option pairs."""
+    from gpomap.io.atomic import check_output_dir, recover_output_dir
+
+    if getattr(args, "min_cell", None) is not None and args.min_cell > args.max_cell:
+        raise GpomapError(f"--min-cell ({args.min_cell}) must not exceed --max-cell ({args.max_cell})")
+    if getattr(args, "output", None) is not None:
+        check_output_dir(args.output, "-o")
+        # A run killed earlier (SIGKILL) may have left its staging directory: finish or remove it.
+        for note in recover_output_dir(args.output):
+            _status(args, f"  {note}")
+
+
+_GRID_ADVICE = "use a coarser --resolution, a smaller --extent, or a larger --memory-limit GB if the machine has the memory"
+
+
+def _check_grid_memory(args: argparse.Namespace, shape: tuple[int, int], extent: Sequence[float], supersample: int,
+                       n_cells: int) -> None:
+    from gpomap.resources import check_memory, grid_memory, memory_limit
+
+    limit, source = memory_limit(args.memory_limit)
+    ny, nx = shape
+    xmin, xmax, ymin, ymax = extent
+    origin = "--extent" if args.extent is not None else "the data's extent"
+    what = (f"a {nx} x {ny} grid ({nx * ny:.3g} cells) at --resolution {args.resolution:g} m over x {xmin:.6g}..{xmax:.6g}, "
+            f"y {ymin:.6g}..{ymax:.6g} m ({origin})")
+    check_memory(grid_memory(shape, supersample, n_cells), limit, what, _GRID_ADVICE, source)
+
+
+def _check_fit_memory(args: argparse.Namespace, n_cells: int, n_at_once: int, where: str) -> None:
+    from gpomap.resources import check_memory, fit_memory, memory_limit
+
+    limit, source = memory_limit(args.memory_limit)
+    what = f"fitting {n_at_once} GP(s) of {n_cells} cells at once ({where})"
+    advice = "use a larger --min-cell, smaller --max-cells or --tile-size, fewer --workers, or a larger --memory-limit GB"
+    check_memory(fit_memory(n_cells, n_at_once), limit, what, advice, source)
+
+
+def _supersample(args: argparse.Namespace) -> int:
+    """Samples per cell side of a single-GP map: given, or enough for samples half a min-cell apart (at most 4)."""
+    return args.supersample or min(4, max(1, math.ceil(args.resolution / (0.5 * args.min_cell) - 1e-9)))
+
+
+def _plan_map(args: argparse.Namespace, data: Any) -> bool:
+    """Check the run's memory before fitting; returns whether the map is built in tiles.
+
+    Cheap steps only: the labelled points (for the grid's extent) and the cell tree (for the GP
+    sizes), both a small fraction of a fit.
+    """
+    from gpomap.cells import build_cells
+    from gpomap.mapping import AreaGPOM
+    from gpomap.resources import grid_shape, largest_tile_cells, points_extent
+
+    opts = _model_options(args)
+    base = AreaGPOM(**opts)
+    obs = base.make_observations(data)
+    extent = args.extent if args.extent is not None else points_extent(obs.points)
+    shape = grid_shape(extent, args.resolution)
+    tiled = bool(args.tiles or args.chunk_scans is not None)
+    # The grid first: it needs no cells, and an absurd extent is refused before the tree is built.
+    _check_grid_memory(args, shape, extent, 1 if tiled else _supersample(args), 0)
+    cells = build_cells(obs.points, obs.occupied, base.min_cell, base.max_cell, base.cell_box)
+    n_cells = len(cells)
+    if not tiled and n_cells > args.max_cells:
+        _status(args, f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
+                      f"mapping in tiles of {args.tile_size:g} m")
+        tiled = True
+    if tiled:
+        # A tile's GP reaches past its square by the overlap: 2.5 length scales by default (the
+        # starting one; the learnt one is not known yet), at most a tile.
+        overlap = min(args.tile_size, 2.5 * base.length_scale)
+        per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper), args.tile_size, overlap)
+        n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
+        _check_fit_memory(args, per_tile, n_at_once, f"the largest of the tiles of {args.tile_size:g} m")
+    else:
+        _check_fit_memory(args, n_cells, 1, "one GP over the whole map")
+        _check_grid_memory(args, shape, extent, _supersample(args), n_cells)
+    return tiled
+
+
+# --------------------------------------------------------------------------- writing outputs
+class _Run:
+    """What this process has written (for a true message on interrupt)."""
+
+    outdir: str | None = None
+    sets: list[Any] = []
+
+
+@contextmanager
+def _outputs(args: argparse.Namespace) -> Iterator[Any]:
+    """One set of outputs in ``args.output``, put in place together at the end of the block."""
+    from gpomap.io.atomic import output_set
+
+    _Run.outdir = args.output
+    with output_set(args.output) as outputs:
+        _Run.sets.append(outputs)
+        yield outputs
+
+
+def _warn(message: str) -> None:
+    """A one-line warning on stderr."""
+    print("warning: " + " ".join(str(message).split()), file=sys.stderr, flush=True)
+
+
+def _report_fit(model: Any, occupancy_map: Any) -> None:
+    """Print what the fit's numbers say about the map's trustworthiness (see gpomap.diagnostics)."""
+    from gpomap.diagnostics import fit_warnings
+
+    for message in fit_warnings(model, occupancy_map):
+        _warn(message)
+
+
 # --------------------------------------------------------------------------- subcommands
-def _fit_and_write(args: argparse.Namespace, data: Any, n_scans: int | None, title: str) -> int:
-    from gpomap.io.export import write_map_outputs
+def _fit_and_write(args: argparse.Namespace, data: Any, n_scans: int | None, title: str,
+                   outputs: Any) -> tuple[Any, dict[str, Any], list[Path]]:
+    """Fit one GP, predict the grid and write the map files into the output set.
+
+    Returns the model, its summary and the files' final paths (printed once the set is in place).
+    """
+    from gpomap.diagnostics import hyperparameter_source
+    from gpomap.io.export import write_map_files
     from gpomap.mapping import AreaGPOM
 
     opts = _model_options(args)
@@ -210,17 +383,18 @@ def _fit_and_write(args: argparse.Namespace, data: Any, n_scans: int | None, tit
     _status(args, f"fitting MSK-GPOM ({args.kernel})...")
     model.fit(data)
     _status(args, f"  {model.n_inputs_} cells, hyperparameters learnt in {model.timings_['hyperparameters']:.2f} s")
-    k = args.supersample or min(4, max(1, math.ceil(args.resolution / (0.5 * args.min_cell) - 1e-9)))
+    k = _supersample(args)
     _status(args, f"predicting the map at {args.resolution} m ({k} x {k} samples per cell)...")
     occupancy_map = model.grid(args.resolution, args.extent, supersample=k)
     ny, nx = occupancy_map.grid.shape
     _status(args, f"  {nx} x {ny} cells in {model.timings_['prediction']:.2f} s; writing {args.output}/")
-    files = write_map_outputs(occupancy_map, args.output, pgm_mode=args.pgm_mode, title=title)
+    staged = write_map_files(occupancy_map, outputs.path, pgm_mode=args.pgm_mode, title=title)
+    _report_fit(model, occupancy_map)
     summary = model.summary()
     if n_scans is not None:
         summary = {"n_scans": n_scans, **summary}
-    _print_summary(summary, files)
-    return EXIT_OK
+    summary["hyperparameter_source"] = hyperparameter_source(model)
+    return model, summary, [outputs.final(f) for f in staged]
 
 
 def _load_scans(args: argparse.Namespace) -> list:
@@ -238,6 +412,7 @@ def _load_scans(args: argparse.Namespace) -> list:
 
 
 def cmd_map(args: argparse.Namespace) -> int:
+    _check_before_work(args)
     path = Path(args.input)
     title = f"gpomap: {path.name}"
     if path.suffix.lower() in (".csv", ".npz"):
@@ -250,25 +425,17 @@ def cmd_map(args: argparse.Namespace) -> int:
         data = _load_scans(args)
         n_scans = len(data)
         _status(args, f"  {n_scans} scans of {data[0].n_beams} beams")
+    if args.chunk_scans is not None and n_scans is None:
+        raise GpomapError("--chunk-scans needs scans (a CARMEN log or ROS bag), not labelled points")
+    tiled = _plan_map(args, data)
     if args.chunk_scans is not None:
-        if n_scans is None:
-            raise GpomapError("--chunk-scans needs scans (a CARMEN log or ROS bag), not labelled points")
         return _map_in_chunks(args, data, title)
-    if args.tiles or _too_many_cells(args, data):
+    if tiled:
         return _fit_tiled_and_write(args, data, n_scans, title)
-    return _fit_and_write(args, data, n_scans, title)
-
-
-def _too_many_cells(args: argparse.Namespace, data: Any) -> bool:
-    """Whether one GP would hold more cells than ``--max-cells`` (then tiles are used, and said)."""
-    from gpomap.tiles import count_cells
-
-    n_cells = count_cells(data, **_model_options(args))
-    if n_cells > args.max_cells:
-        _status(args, f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
-                      f"mapping in tiles of {args.tile_size:g} m")
-        return True
-    return False
+    with _outputs(args) as outputs:
+        _, summary, files = _fit_and_write(args, data, n_scans, title, outputs)
+    _print_summary(summary, files, summary["hyperparameter_source"])
+    return EXIT_OK
 
 
 def _tiled_model(args: argparse.Namespace) -> Any:
@@ -279,16 +446,20 @@ def _tiled_model(args: argparse.Namespace) -> Any:
 
 
 def _write_tiled(args: argparse.Namespace, model: Any, title: str) -> list[Path]:
-    from gpomap.io.export import write_map_outputs
+    """Predict the tiled model's grid and replace the output set with it; returns the files written."""
+    from gpomap.io.export import write_map_files
 
     t = time.perf_counter()
     occupancy_map = model.grid(args.resolution, args.extent)
     ny, nx = occupancy_map.grid.shape
     _status(args, f"  {nx} x {ny} cells predicted in {time.perf_counter() - t:.2f} s; writing {args.output}/")
-    return write_map_outputs(occupancy_map, args.output, pgm_mode=args.pgm_mode, title=title)
+    with _outputs(args) as outputs:
+        staged = write_map_files(occupancy_map, outputs.path, pgm_mode=args.pgm_mode, title=title)
+    _report_fit(model, occupancy_map)
+    return [outputs.final(f) for f in staged]
 
 
-def _print_tiled_summary(summary: dict[str, Any], files: Sequence[Path]) -> None:
+def _print_tiled_summary(summary: dict[str, Any], files: Sequence[Path], source: str | None = None) -> None:
     per = summary["cells_per_tile"]
     lines = [
         f"scans        {summary['n_scans']}",
@@ -297,7 +468,7 @@ def _print_tiled_summary(summary: dict[str, Any], files: Sequence[Path]) -> None
         f"{summary['n_cells']} cells, {per['min']}/{per['median']:.0f}/{per['max']} per tile (min/median/max), {summary['executor']}",
         f"model        {summary['kernel']} kernel, {summary['area']} area kernel",
         "hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
-        + f" ({summary['hyperparameter_source'].get('how', '')})",
+        + f" ({source or summary['hyperparameter_source'].get('how', '')})",
         "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
         "peak memory  " + ", ".join(f"{k} {v:.0f} MB" for k, v in summary["peak_memory"].items()),
     ]
@@ -311,8 +482,16 @@ def _fit_tiled_and_write(args: argparse.Namespace, data: Any, n_scans: int | Non
     model.fit(data)
     _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
     files = _write_tiled(args, model, title)
-    _print_tiled_summary(model.summary(), files)
+    _print_tiled_summary(model.summary(), files, _tiled_source(model))
     return EXIT_OK
+
+
+def _tiled_source(model: Any) -> str | None:
+    """"at bound: ..." when a learnt hyperparameter sits at a bound, else None (the model's own words)."""
+    from gpomap.diagnostics import hyperparameter_source
+
+    source = hyperparameter_source(model)
+    return source if source.startswith("at bound") else None
 
 
 def _map_in_chunks(args: argparse.Namespace, scans: list, title: str) -> int:
@@ -331,27 +510,29 @@ def _map_in_chunks(args: argparse.Namespace, scans: list, title: str) -> int:
             refit = len(model.last_refit_)
         _status(args, f"scans {start}..{start + len(chunk) - 1}: {refit} tile(s) fitted in {time.perf_counter() - t:.2f} s")
         files = _write_tiled(args, model, f"{title} ({start + len(chunk)} of {len(scans)} scans)")
-    _print_tiled_summary(model.summary(), files)
+    _print_tiled_summary(model.summary(), files, _tiled_source(model))
     return EXIT_OK
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from gpomap.io.atomic import file_written
     from gpomap.plot import plot_inputs, save_figure
     from gpomap.simulate import paper_room_scans
 
+    _check_before_work(args)
     scans = paper_room_scans()
     _status(args, f"simulated the paper's synthetic room: {len(scans)} poses x {scans[0].n_beams} beams over 360 degrees")
-    code = _fit_and_write(args, scans, len(scans), "gpomap demo: the paper's synthetic room")
-    # The cell tree as a figure too (the paper's Fig. 5a), rebuilt cheaply from the same data.
-    from gpomap.cells import build_cells
-    from gpomap.mapping import AreaGPOM
-
-    obs = AreaGPOM(**_model_options(args)).make_observations(scans)
-    cells = build_cells(obs.points, obs.occupied, args.min_cell, args.max_cell)
-    fig = plot_inputs(obs.points, obs.occupied, boxes=cells.boxes, box_labels=cells.labels)
-    path = save_figure(fig, Path(args.output) / "cells.png")
-    print(f"wrote        {path}")
-    return code
+    args.tiles, args.chunk_scans, args.max_cells = False, None, math.inf  # the demo is one GP
+    _plan_map(args, scans)
+    with _outputs(args) as outputs:
+        model, summary, files = _fit_and_write(args, scans, len(scans), "gpomap demo: the paper's synthetic room", outputs)
+        # The cell tree as a figure too (the paper's Fig. 5a), in the same set of outputs.
+        cells = model.cells_
+        fig = plot_inputs(model.observations_.points, model.observations_.occupied, boxes=cells.boxes, box_labels=cells.labels)
+        files.append(outputs.final(save_figure(fig, outputs.path / "cells.png")))
+        file_written()
+    _print_summary(summary, files, summary["hyperparameter_source"])
+    return EXIT_OK
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -434,15 +615,29 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from gpomap.convert import convert_grid
-    from gpomap.io.export import write_map_outputs
+    from gpomap.convert import convert_grid, grid_to_observations, load_grid, model_defaults, output_grid
+    from gpomap.io.export import write_map_files
+    from gpomap.tiles import count_cells
 
+    _check_before_work(args)
     _status(args, f"converting {args.input}...")
     options: dict[str, Any] = {"thresholds": args.thresholds}
     if args.kernel:
         options["kernel"] = args.kernel
-    result = convert_grid(args.input, resolution=args.resolution, extent=args.extent, **options)
-    files = write_map_outputs(result.map, args.output, pgm_mode=args.pgm_mode, title=f"gpomap convert: {Path(args.input).name}")
+    # Read once, check the memory the output grid and the GP need, then convert what was read.
+    source = load_grid(args.input)
+    spec = output_grid(source.grid, args.resolution, args.extent)
+    if args.resolution is None:
+        args.resolution = spec.resolution  # the source's pixel size (named in the messages)
+    _check_grid_memory(args, spec.shape, spec.extent, 1, 0)
+    n_cells = count_cells(grid_to_observations(source), **{**model_defaults(source.grid.resolution), **options})
+    _check_fit_memory(args, n_cells, 1, f"one GP over the cells of {args.input}")
+    _check_grid_memory(args, spec.shape, spec.extent, 1, n_cells)
+    result = convert_grid(source, resolution=args.resolution, extent=args.extent, **options)
+    with _outputs(args) as outputs:
+        staged = write_map_files(result.map, outputs.path, pgm_mode=args.pgm_mode, title=f"gpomap convert: {Path(args.input).name}")
+    files = [outputs.final(f) for f in staged]
+    _report_fit(result.model, result.map)
     r = result.report
     print(json.dumps(r, indent=2, default=str) if args.json else _convert_text(r))
     for f in files:
@@ -473,10 +668,13 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     unknown = sorted(set(methods) - {"msk", "gpomik", "gpom", "ogm"})
     if unknown:
         raise GpomapError(f"--methods: unknown method(s) {', '.join(unknown)}; expected msk, gpomik, gpom, ogm")
+    _check_before_work(args)
     # run_paper_benchmark refuses unknown experiments with a ValueError, reported as one line.
     experiments = tuple(e.strip() for e in args.experiments.split(",") if e.strip())
-    result = run_paper_benchmark(args.output, methods=methods, experiments=experiments, quick=args.quick, seed=args.seed,
-                                 progress=lambda m: _status(args, m))
+    # Tables, ROC curves and maps are one set: they replace the previous run's together.
+    with _outputs(args) as outputs:
+        result = run_paper_benchmark(outputs.path, methods=methods, experiments=experiments, quick=args.quick, seed=args.seed,
+                                     progress=lambda m: _status(args, m))
     table = Path(args.output) / "tables.md"
     if table.exists():
         print(table.read_text())
@@ -535,10 +733,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input")
     _add_reader_options(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("evaluate", help="score a method on held-out scans", epilog=EPILOG_EVALUATE, formatter_class=fmt,
-                       description="Fit a method on training scans and report ROC AUC, FPR at TPR=95 %%, log loss and "
+                       description="Fit a method on training scans and report ROC AUC, FPR at TPR=95 %, log loss and "
                        "stage timings on held-out scans (never trained on).")
     p.add_argument("input", nargs="?", help="CARMEN log or ROS bag (or --demo)")
     p.add_argument("--demo", action="store_true", help="use the built-in synthetic room")
@@ -550,7 +749,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reader_options(p)
     _add_selection_options(p)
     _add_model_options(p)
-    p.set_defaults(kernel="se")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_evaluate)
 
@@ -582,15 +780,54 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, turned into the same clean path as Ctrl-C (staging removed, previous outputs kept)."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    raise _Terminated()
+
+
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: Any = None, line: str | None = None) -> None:
+    """Python warnings (a library's, a reader's) as one ``warning: ...`` line, without a source path."""
+    _warn(str(message))
+
+
+def _resolve_library_defaults(args: argparse.Namespace) -> None:
+    for name, value in vars(args).items():
+        if isinstance(value, _LibraryDefault):
+            setattr(args, name, value.value)
+
+
+def _where_outputs_stand() -> str:
+    """What the output directory holds now, for a message that must be true."""
+    if _Run.outdir is None:
+        return "nothing was written"
+    if any(s.committed for s in _Run.sets):
+        return f"{_Run.outdir} holds the last complete set of outputs this run wrote"
+    return f"the previous outputs in {_Run.outdir} are unchanged"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``gpomap`` command; returns the exit code."""
+    from gpomap.progress import set_progress_mode
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
         parser.print_help()
         return EXIT_USAGE
+    _resolve_library_defaults(args)
+    set_progress_mode("quiet" if getattr(args, "quiet", False) else "auto")
+    _Run.outdir, _Run.sets = None, []
+    # Signal handlers can only be installed from the main thread (main() may be called from others).
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous_sigterm = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return args.func(args)
     except (GpomapError, OSError, ValueError) as exc:
         if args.debug:
             raise
@@ -599,9 +836,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             message = f"{exc.filename}: {message}"
         print(f"gpomap: error: {message}", file=sys.stderr)
         return EXIT_ERROR
-    except KeyboardInterrupt:
-        print("gpomap: interrupted; no partial output was written", file=sys.stderr)
-        return 130
+    except MemoryError:
+        if args.debug:
+            raise
+        print(f"gpomap: error: out of memory ({_where_outputs_stand()}); use a coarser --resolution or a smaller --extent, "
+              "or a lower --memory-limit GB so that such a run is refused before it starts", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt as exc:
+        print(f"gpomap: interrupted{' (SIGTERM)' if isinstance(exc, _Terminated) else ''}; {_where_outputs_stand()}",
+              file=sys.stderr)
+        return 128 + (signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT)
+    finally:
+        if previous_sigterm is not None:
+            signal.signal(signal.SIGTERM, previous_sigterm)
 
 
 if __name__ == "__main__":

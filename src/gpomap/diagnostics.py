@@ -114,8 +114,8 @@ def at_bounds(
     values = _values(hyperparameters)
     found: dict[str, tuple[float, str, float]] = {}
     for name, (lo, hi) in bounds.items():
-        if name not in values:
-            continue
+        if name not in values or not hi > lo:
+            continue  # not searched (a bound pair that pins the value, or no value)
         v = values[name]
         if name != "shift" and lo > 0:
             if v <= lo * (1 + tolerance):

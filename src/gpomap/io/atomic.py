@@ -412,7 +412,10 @@ class OutputSet:
         self.files: list[Path] = []
         recover_output_dir(self.outdir)
         inside = not self._can_stage_beside()
-        self.outdir.mkdir(parents=True, exist_ok=True)
+        if inside:
+            self.outdir.mkdir(parents=True, exist_ok=True)
+        # Otherwise the output directory is created only by the commit: a run that fails leaves
+        # no empty directory behind.
         place = self.outdir if inside else self.outdir.absolute().parent
         prefix = _staging_prefix(self.outdir, inside)
         for _ in range(100):
@@ -428,6 +431,8 @@ class OutputSet:
 
     def _can_stage_beside(self) -> bool:
         parent = self.outdir.absolute().parent
+        if not parent.is_dir():
+            parent.mkdir(parents=True, exist_ok=True)
         if not os.access(parent, os.W_OK | os.X_OK):
             return False
         if self.outdir.exists():
@@ -461,6 +466,7 @@ class OutputSet:
             # From here on the staging directory is needed to finish (by the next run if this one
             # dies): discard() keeps it.
             self._journaled = True
+            self.outdir.mkdir(parents=True, exist_ok=True)
             _roll_forward(self.path, self.outdir)
             self.committed = True
             _remove_tree(self.path)

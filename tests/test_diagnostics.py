@@ -1,0 +1,89 @@
+"""Honest reports: hyperparameters at their bounds, alpha at its cap, probability away from data, one-class maps."""
+
+import math
+
+import numpy as np
+import pytest
+
+from gpomap import diagnostics as d
+from gpomap.mapping import AreaGPOM
+
+BOUNDS = {"length_scale": (0.05, 20.0), "noise": (1e-4, 10.0), "alpha": (1e-3, 30.0), "shift": (-5.0, 5.0)}
+
+
+def hp(**kw):
+    base = {"variance": 1.0, "length_scale": 0.5, "noise": 0.1, "alpha": 2.0, "beta": 0.0}
+    return {**base, **kw}
+
+
+def test_nothing_to_say_about_a_healthy_fit():
+    assert d.at_bounds(hp(), BOUNDS) == {}
+    assert d.hyperparameter_warnings(hp(), BOUNDS) == []
+
+
+def test_values_at_or_near_bounds():
+    found = d.at_bounds(hp(length_scale=19.5, noise=1.04e-4, alpha=29.0, beta=-4.9 * 29.0), BOUNDS)
+    assert found == {"length_scale": (19.5, "upper", 20.0), "noise": (1.04e-4, "lower", 1e-4),
+                     "alpha": (29.0, "upper", 30.0), "shift": (pytest.approx(-4.9), "lower", -5.0)}
+    # 5 % is the tolerance: 19 m is more than 5 % below 20 m (20 / 1.05 = 19.05).
+    assert d.at_bounds(hp(length_scale=19.0), BOUNDS) == {}
+    assert d.at_bounds(hp(length_scale=19.1), BOUNDS)["length_scale"][1] == "upper"
+    # A bound pair that pins a value (not searched) is never reported.
+    assert d.at_bounds(hp(), {"shift": (0.0, 0.0)}) == {}
+
+
+def test_warning_sentences():
+    w = d.hyperparameter_warnings(hp(alpha=30.0, length_scale=0.05), BOUNDS)
+    assert any(s.startswith("alpha 30 is at the upper bound 30 of its search (its cap)") for s in w)
+    assert any(s.startswith("length_scale 0.05 is at the lower bound 0.05") for s in w)
+
+
+def test_prior_probability_by_hand():
+    # Phi(beta / sqrt(1 + alpha^2 v)): beta 1, alpha 0, v 1 -> Phi(1) = 0.8413.
+    assert d.prior_probability(hp(alpha=0.0, beta=1.0)) == pytest.approx(0.841345, abs=1e-6)
+    # alpha 3, beta 1.5, v 0.25: 1.5 / sqrt(1 + 2.25) = 0.832050 -> Phi = 0.797310.
+    assert d.prior_probability(hp(alpha=3.0, beta=1.5, variance=0.25)) == pytest.approx(0.797310, abs=1e-6)
+    assert d.prior_probability(hp(beta=0.0)) == 0.5
+    # alpha 1, beta -1, v 0: Phi(-1) = 0.16.
+    w = d.hyperparameter_warnings(hp(alpha=1.0, beta=-1.0, variance=0.0), BOUNDS)
+    assert w == ["far from the data the map's probability is 0.16, not about 0.5 (alpha 1, beta -1): unexplored space "
+                 "will look free rather than unknown"]
+    # 0.5 +- 0.1 passes: Phi(0.25) = 0.599.
+    assert d.hyperparameter_warnings(hp(alpha=1.0, beta=0.25, variance=0.0), BOUNDS) == []
+
+
+def test_map_classes():
+    t = np.zeros((10, 10), dtype=np.int8)
+    t[5:, :] = -1
+    t[0, 0] = 1  # 49 of 50 free: 98 %
+    assert d.map_warnings(t) == ["the map is almost all one class: 98.0 % of its 50 known cells are free"]
+    t[0, :5] = 1  # 45 of 50 free: 90 %
+    assert d.map_warnings(t) == []
+    assert d.map_warnings(np.full((3, 3), -1)) == ["no cell of the 9-cell map is known (all between the thresholds): the map says nothing"]
+
+
+def test_search_bounds_follow_the_estimator():
+    model = AreaGPOM(length_scale_bounds=(0.1, 5.0), noise_bounds=(1e-3, 1.0))
+    b = d.search_bounds(model)
+    assert b["length_scale"] == (0.1, 5.0) and b["noise"] == (1e-3, 1.0)
+    assert b["alpha"][1] == pytest.approx(30.0)
+    # A fixed length scale is not searched: nothing to be "at bound".
+    assert "length_scale" not in d.search_bounds(AreaGPOM(optimise=False))
+
+
+def test_a_real_tiny_fit():
+    from gpomap.simulate import paper_room_scans
+
+    scans = paper_room_scans()[:4]
+    model = AreaGPOM(kernel="se", min_cell=1.0, max_cell=2.0, free_step=0.5, hyper_subset=100,
+                     length_scale_bounds=(0.05, 0.3)).fit(scans)
+    hyper = model.hyperparameters_
+    warnings = d.fit_warnings(model, model.grid(1.0))
+    found = d.at_bounds(hyper, d.search_bounds(model))
+    # The room's length scale (~0.7 m) is above this search's 0.3 m: it must run to the bound and be said so.
+    assert found["length_scale"][1] == "upper"
+    assert any(w.startswith("length_scale") and "upper bound 0.3" in w for w in warnings)
+    assert d.hyperparameter_source(model).startswith("at bound: length_scale")
+    p0 = d.prior_probability(hyper)
+    assert (any("far from the data" in w for w in warnings)) == (not 0.4 <= p0 <= 0.6)
+    assert math.isfinite(p0)

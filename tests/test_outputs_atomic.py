@@ -1,0 +1,219 @@
+"""A run's outputs are one set: replaced together, or left as they were (errors, SIGINT, SIGTERM, SIGKILL)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpomap.io import atomic
+from gpomap.io.atomic import JOURNAL, MANIFEST, output_set, recover_output_dir
+
+SET = ["map.npz", "map.pgm", "map.png", "map.yaml"]
+
+
+def snapshot(directory: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(directory.iterdir())}
+
+
+def staging_dirs(out: Path) -> list[str]:
+    """Staging directories of `out`: beside it, or inside it."""
+    beside = [p.name for p in out.parent.glob(f".{out.name}.gpomap-staging-*")]
+    inside = [p.name for p in out.glob(".gpomap-staging-*")] if out.is_dir() else []
+    return sorted(beside + inside)
+
+
+def write(o, **files):
+    for name, text in files.items():
+        (o.path / name).write_text(text)
+
+
+def test_set_replaces_gpomap_files_and_keeps_the_users(tmp_path):
+    out = tmp_path / "out"
+    with output_set(out) as o:
+        write(o, **{"map.yaml": "1", "map.png": "1", "cells.png": "1"})
+    (out / "notes.txt").write_text("mine")
+    with output_set(out) as o:
+        write(o, **{"map.yaml": "2", "map.png": "2"})
+    # cells.png belonged to the previous set: removed; the user's notes stay.
+    assert sorted(p.name for p in out.iterdir()) == [MANIFEST, "map.png", "map.yaml", "notes.txt"]
+    assert (out / "map.yaml").read_text() == "2" and (out / "notes.txt").read_text() == "mine"
+    assert json.loads((out / MANIFEST).read_text())["files"] == ["map.png", "map.yaml"]
+    assert o.files == [out / "map.png", out / "map.yaml"]
+    assert staging_dirs(out) == []
+
+
+def test_an_error_leaves_the_previous_set_and_no_staging(tmp_path):
+    out = tmp_path / "out"
+    with output_set(out) as o:
+        write(o, **{"map.yaml": "old", "map.pgm": "old"})
+    before = snapshot(out)
+    with pytest.raises(KeyboardInterrupt):
+        with output_set(out) as o:
+            write(o, **{"map.yaml": "new"})
+            raise KeyboardInterrupt
+    assert snapshot(out) == before
+    assert staging_dirs(out) == []
+
+
+def test_a_failed_first_run_creates_no_directory(tmp_path):
+    with pytest.raises(ValueError):
+        with output_set(tmp_path / "never"):
+            raise ValueError("bad input")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_recovery_finishes_a_commit_that_was_cut_short(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    with output_set(out) as o:
+        write(o, **{"a.txt": "old", "b.yaml": "old", "stale.txt": "old"})
+    # A commit that dies after its first rename (as SIGKILL would) leaves a journal behind.
+    real = atomic._roll_forward
+    calls = []
+
+    def first_rename_only(staging, target):
+        journal = json.loads((staging / JOURNAL).read_text())
+        name = journal["files"][0]
+        os.replace(staging / name, target / name)
+        calls.append(name)
+        raise OSError("killed")
+
+    monkeypatch.setattr(atomic, "_roll_forward", first_rename_only)
+    monkeypatch.setattr(atomic, "_pid_alive", lambda pid: False)
+    with pytest.raises(OSError, match="killed"):
+        with output_set(out) as o:
+            write(o, **{"a.txt": "new", "b.yaml": "new"})
+    assert calls == ["a.txt"] and (out / "b.yaml").read_text() == "old"  # a mix, for now
+    monkeypatch.setattr(atomic, "_roll_forward", real)
+    notes = recover_output_dir(out)
+    assert len(notes) == 1 and "completed" in notes[0]
+    assert snapshot(out) == {MANIFEST: (out / MANIFEST).read_bytes(), "a.txt": b"new", "b.yaml": b"new"}
+    assert staging_dirs(out) == []
+
+
+def test_recovery_removes_a_dead_runs_staging_and_keeps_a_live_ones(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    out.mkdir()
+    host = atomic._host()
+    dead = tmp_path / f".out.gpomap-staging-{host}-999999999-abcd"
+    live = tmp_path / f".out.gpomap-staging-{host}-{os.getppid()}-abcd"
+    for d in (dead, live):
+        d.mkdir()
+        (d / "map.yaml").write_text("half")
+    recover_output_dir(out)
+    assert not dead.exists() and live.exists()
+    assert list(out.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- real signals
+HELPER = """
+import sys
+import numpy as np
+from gpomap.grid import GridSpec, OccupancyMap
+from gpomap.io.export import write_map_outputs
+
+res = float(sys.argv[2])
+spec = GridSpec((0.0, 0.0), res, (int(8 / res), int(10 / res)))
+p = np.linspace(0, 1, spec.shape[0] * spec.shape[1]).reshape(spec.shape)
+write_map_outputs(OccupancyMap(spec, p, variance=np.ones(spec.shape)), sys.argv[1], title="r" + sys.argv[2])
+print("done", flush=True)
+"""
+
+
+def previous_set(out: Path) -> dict[str, bytes]:
+    from gpomap.grid import GridSpec, OccupancyMap
+    from gpomap.io.export import write_map_outputs
+
+    spec = GridSpec((0.0, 0.0), 1.0, (8, 10))
+    write_map_outputs(OccupancyMap(spec, np.full(spec.shape, 0.2), variance=np.ones(spec.shape)), out, title="previous")
+    (out / "notes.txt").write_text("the user's")
+    return snapshot(out)
+
+
+def start(args, env_extra):
+    env = {**os.environ, **env_extra}
+    return subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+
+
+def wait_for(condition, proc, timeout=60.0):
+    t0 = time.monotonic()
+    while not condition():
+        if proc.poll() is not None:
+            raise AssertionError(f"the run ended before the moment to signal it: {proc.communicate()}")
+        if time.monotonic() - t0 > timeout:
+            proc.kill()
+            raise AssertionError("timed out waiting for the run to reach the moment to signal it")
+        time.sleep(0.02)
+
+
+def staged_file(out: Path, name: str):
+    return lambda: any((d / name).exists() for d in out.parent.glob(f".{out.name}.gpomap-staging-*"))
+
+
+def test_signals_mid_write_leave_the_previous_set_byte_for_byte(tmp_path):
+    """SIGINT and SIGTERM to ``gpomap map`` while it writes; SIGKILL to a writer, mid-write and mid-commit."""
+    points = tmp_path / "pts.csv"
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(0, 6, size=(300, 2))
+    occ = (xy[:, 0] > 4.5).astype(int)
+    points.write_text("x,y,occupied\n" + "".join(f"{x:.3f},{y:.3f},{o}\n" for (x, y), o in zip(xy, occ)))
+    runs = {}
+    for name in ["sigint", "sigterm", "sigkill", "commit"]:
+        out = tmp_path / name
+        runs[name] = [out, previous_set(out)]
+    slow = {atomic.WRITE_DELAY_ENV: "1.0"}
+    cli = ["-m", "gpomap.cli", "map", str(points), "--length-scale", "1", "--resolution", "0.5", "--min-cell", "1",
+           "--max-cell", "2", "-o"]
+    procs = {
+        "sigint": start([*cli, str(runs["sigint"][0])], slow),
+        "sigterm": start([*cli, str(runs["sigterm"][0])], slow),
+        "sigkill": start(["-c", HELPER, str(runs["sigkill"][0]), "0.5"], slow),
+        "commit": start(["-c", HELPER, str(runs["commit"][0]), "0.5"], {atomic.COMMIT_DELAY_ENV: "1.0"}),
+    }
+    sig = {"sigint": signal.SIGINT, "sigterm": signal.SIGTERM, "sigkill": signal.SIGKILL, "commit": signal.SIGKILL}
+    for name, proc in procs.items():
+        out = runs[name][0]
+        if name == "commit":
+            # Killed between the renames of the commit: map.npz (first in order) is already new.
+            old_npz = runs[name][1]["map.npz"]
+            wait_for(lambda: (out / "map.npz").read_bytes() != old_npz, proc)
+        else:
+            wait_for(staged_file(out, "map.npz"), proc)  # map.yaml and map.pgm written, the rest not
+        proc.send_signal(sig[name])
+    results = {name: (proc.wait(timeout=60), *proc.communicate()) for name, proc in procs.items()}
+
+    for name in ["sigint", "sigterm"]:
+        code, stdout, stderr = results[name]
+        out, before = runs[name]
+        assert code == 128 + sig[name], (name, stderr)
+        assert f"interrupted{' (SIGTERM)' if name == 'sigterm' else ''}; the previous outputs in {out} are unchanged" in stderr
+        assert "Traceback" not in stderr
+        assert snapshot(out) == before, name
+        assert staging_dirs(out) == [], name
+
+    # SIGKILL mid-write: the directory itself was never touched; the next run clears the leftover.
+    out, before = runs["sigkill"]
+    assert results["sigkill"][0] == -signal.SIGKILL
+    assert snapshot(out) == before
+    assert len(staging_dirs(out)) == 1
+    recover_output_dir(out)
+    assert snapshot(out) == before and staging_dirs(out) == []
+
+    # SIGKILL mid-commit: a mix for now, completed by the next run into the new set, whole.
+    out, before = runs["commit"]
+    assert results["commit"][0] == -signal.SIGKILL
+    recover_output_dir(out)
+    after = snapshot(out)
+    assert sorted(after) == sorted([MANIFEST, "notes.txt", *SET])
+    assert after["notes.txt"] == before["notes.txt"]
+    assert all(after[n] != before[n] for n in SET)
+    from gpomap.io.npz import load_map
+    from gpomap.io.rosmap import read_rosmap
+
+    assert load_map(out / "map.npz").grid.resolution == 0.5 and read_rosmap(out / "map.yaml").grid.resolution == 0.5
+    assert staging_dirs(out) == []
