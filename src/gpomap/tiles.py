@@ -694,8 +694,10 @@ class TiledGPOM:
             f = client.submit(fn, *args, key=f"gpomap-{fn.__name__}-{key[0]}_{key[1]}-{tag}", pure=False)
             futs[f] = key
         # as_completed takes the event loop of the futures' client; without it, it looks for a
-        # default client and fails with "No clients found".
-        pending = as_completed(list(futs), loop=client.loop)
+        # default client and fails with "No clients found". It also fetches the results in the
+        # background: a result lost with its worker before we fetched it is recomputed there,
+        # while this loop keeps watching for workers (a blocking f.result() would hang).
+        pending = as_completed(list(futs), loop=client.loop, with_results=True, raise_errors=False)
         results, failed = {}, {}
         timeout = self.scheduler_timeout
         alive = time.monotonic()  # last time a worker was seen or a task finished
@@ -703,13 +705,15 @@ class TiledGPOM:
         try:
             while not pending.is_empty():
                 done = pending.next_batch(block=False)
-                for f in done:
+                for f, res in done:
                     key = futs[f]
-                    try:
-                        results[key] = f.result()
+                    if f.status == "finished":
+                        results[key] = res
                         bar.update()
-                    except Exception as e:  # noqa: BLE001 - KilledWorker and friends: retried
-                        failed[key] = e
+                    elif f.status == "error":  # res is (type, exception, traceback): retried
+                        failed[key] = res[1]
+                    else:  # cancelled (the scheduler forgot it): retried
+                        failed[key] = res if isinstance(res, BaseException) else RuntimeError(f"task {f.key} {f.status}")
                     f.release()
                 now = time.monotonic()
                 if done:
@@ -730,6 +734,7 @@ class TiledGPOM:
                         )
                 time.sleep(0.05)
         finally:
+            pending.clear()
             unfinished = [f for f in futs if not f.done()]
             if unfinished:  # stopped early: drop our tasks from the cluster
                 client.cancel(unfinished)

@@ -1,0 +1,277 @@
+"""Tiles on a real Dask cluster: a scheduler and workers started as separate processes.
+
+Nothing here makes a default ``distributed.Client`` in the test process: gpomap must pass its own
+client everywhere (the bug this file guards against failed with "No clients found" exactly
+then). The tests start ``dask scheduler`` and ``--no-nanny`` workers from this venv (no nanny, so
+killing the process we started really kills the worker and nothing restarts it), and fixtures
+kill every process they started, whatever happens. Starting a process costs seconds of imports
+on a busy machine, so one scheduler with two workers serves the tests that need workers, and
+the tests that must lose every worker get a scheduler of their own.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("distributed", reason="dask[distributed] is not installed: pip install 'gpomap[distributed]'")
+
+import gpomap.tiles as tiles  # noqa: E402 - only once distributed is known to be there
+from gpomap.cli import EXIT_ERROR, EXIT_OK, main  # noqa: E402
+
+LOG = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "intel" / "intel-corrected.log.gz"
+# 30 Intel scans in 4 m tiles: 36 tiles of 14-416 cells, about a second of tile fits; the
+# hyperparameters are fixed (--length-scale) so the runs stay short and exactly comparable.
+MAP_ARGS = ["--range", "0:30", "--beams", "90", "--kernel", "se", "--length-scale", "1.0", "--free-step", "0.5",
+            "--tiles", "--tile-size", "4", "--resolution", "0.25"]
+STARTUP_SECONDS = 60.0  # most a process may take to come up on a busy 2-core machine
+
+
+class Cluster:
+    """A ``dask scheduler`` and ``dask worker`` processes on localhost, started from this venv."""
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.procs: list[subprocess.Popen] = []
+        self.workers: list[subprocess.Popen] = []
+        self.address = ""
+        # One BLAS thread per process: the machine's two cores are shared.
+        self.env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+    def start_scheduler(self) -> None:
+        """Start the scheduler on a free port and wait for its address."""
+        file = self.folder / "scheduler.json"
+        self._start([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
+                     "--no-dashboard", "--dashboard-address", "127.0.0.1:0", "--scheduler-file", str(file),
+                     # Safety net should the test process itself be killed before its clean-up.
+                     "--idle-timeout", "300"], "scheduler")
+        self.address = self._wait(lambda: file.exists() and json.loads(file.read_text() or "{}").get("address"), "scheduler")
+
+    def _start(self, cmd: list[str], name: str) -> subprocess.Popen:
+        log = open(self.folder / f"{name}.log", "w")
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=self.folder, env=self.env)
+        log.close()  # the child holds its own copy
+        proc.log = self.folder / f"{name}.log"  # type: ignore[attr-defined]
+        self.procs.append(proc)
+        return proc
+
+    def _wait(self, ready, what: str, proc: subprocess.Popen | None = None):
+        deadline = time.monotonic() + STARTUP_SECONDS
+        while time.monotonic() < deadline:
+            try:
+                value = ready()
+            except (OSError, ValueError):  # the file is being written
+                value = None
+            if value:
+                return value
+            p = proc or self.procs[0]
+            if p.poll() is not None:
+                pytest.fail(f"{what} exited with {p.returncode}:\n{p.log.read_text()}")
+            time.sleep(0.1)
+        pytest.fail(f"{what} did not start within {STARTUP_SECONDS:g} s")
+
+    def add_workers(self, n: int) -> None:
+        """Start `n` single-threaded workers together and wait until each has registered."""
+        started = []
+        for _ in range(n):
+            name = f"worker{len(self.workers)}"
+            proc = self._start([sys.executable, "-m", "distributed.cli.dask_worker", self.address, "--nthreads", "1",
+                                "--nworkers", "1", "--no-nanny", "--no-dashboard", "--host", "127.0.0.1",
+                                "--name", name, "--death-timeout", "60"], name)
+            self.workers.append(proc)
+            started.append((name, proc))
+        for name, proc in started:
+            self._wait(lambda proc=proc: "Registered to" in proc.log.read_text(), name, proc)
+
+    def kill_worker(self, i: int) -> None:
+        """SIGKILL worker i (no goodbye to the scheduler, as when a machine dies)."""
+        w = self.workers[i]
+        w.send_signal(signal.SIGKILL)
+        w.wait(10)
+
+    def close(self) -> None:
+        for p in reversed(self.procs):
+            if p.poll() is None:
+                p.kill()
+        for p in self.procs:
+            try:
+                p.wait(10)
+            except subprocess.TimeoutExpired:  # pragma: no cover - kill -9 does not fail
+                pass
+
+
+@contextmanager
+def _cluster(folder: Path, n_workers: int) -> Iterator[Cluster]:
+    c = Cluster(folder)
+    try:
+        c.start_scheduler()
+        c.add_workers(n_workers)
+        yield c
+    finally:
+        c.close()  # also when starting failed half-way
+
+
+@pytest.fixture(scope="module")
+def shared_cluster(tmp_path_factory) -> Iterator[Cluster]:
+    """A scheduler with two workers, for the tests that lose at most one of them."""
+    with _cluster(tmp_path_factory.mktemp("cluster"), 2) as c:
+        yield c
+
+
+@pytest.fixture
+def lone_cluster(tmp_path) -> Iterator[Cluster]:
+    """A scheduler of its own with one worker, for a test that kills it."""
+    with _cluster(tmp_path, 1) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> dict[str, np.ndarray]:
+    """The same map built in this process (no pool, no cluster)."""
+    out = tmp_path_factory.mktemp("reference")
+    assert main(["map", str(LOG), "-o", str(out), "--workers", "1", "-q", *MAP_ARGS]) == EXIT_OK
+    return dict(np.load(out / "map.npz"))
+
+
+# The library on the built-in simulator: 20 tiles of 4 m, fixed hyperparameters.
+ROOM_OPTS = dict(tile_size=4.0, overlap=2.0, kernel="se", free_step=0.5, min_cell=0.5, max_cell=3.0, optimise=False,
+                 length_scale=1.0, noise=0.1)
+
+
+@pytest.fixture(scope="module")
+def room() -> list:
+    from gpomap.simulate import paper_room_scans
+
+    return paper_room_scans()
+
+
+@pytest.fixture(scope="module")
+def room_reference(room):
+    """Hyperparameters and map of the room, tiles fitted in this process."""
+    model = tiles.TiledGPOM(n_workers=1, **ROOM_OPTS).fit(room)
+    return model.hyperparameters_, model.grid(0.25), len(model.tiles_)
+
+
+def _assert_same_map(out: Path, reference: dict[str, np.ndarray]) -> None:
+    got = np.load(out / "map.npz")
+    assert got["probability"].shape == reference["probability"].shape
+    np.testing.assert_allclose(got["probability"], reference["probability"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got["variance"], reference["variance"], rtol=0, atol=1e-9)
+    assert not np.isnan(got["probability"]).any()  # no tile missing
+
+
+@contextmanager
+def _on_first_tile_done(monkeypatch, action) -> Iterator[list[str]]:
+    """Call `action()` once, when the first tile fit has come back (through the progress hook)."""
+    real = tiles.progress
+    fired: list[str] = []
+
+    @contextmanager
+    def hooked(total, desc, unit="item"):
+        with real(total, desc, unit) as bar:
+            update = bar.update
+
+            def update_then_act(n: int = 1) -> None:
+                update(n)
+                if desc == "fitting tiles" and not fired:
+                    fired.append(f"{bar.n}/{total}")
+                    action()
+
+            bar.update = update_then_act
+            yield bar
+
+    monkeypatch.setattr(tiles, "progress", hooked)
+    yield fired
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def progress_lines() -> Iterator[None]:
+    """Progress as plain lines for one test (the mode is global to the process)."""
+    from gpomap.progress import get_progress_mode, set_progress_mode
+
+    before = get_progress_mode()
+    set_progress_mode("lines")
+    try:
+        yield
+    finally:
+        set_progress_mode(before)
+
+
+def test_cli_map_on_scheduler_matches_in_process(shared_cluster, reference, tmp_path, capsys, progress_lines):
+    out = tmp_path / "dask"
+    code = main(["map", str(LOG), "-o", str(out), "--scheduler", shared_cluster.address, *MAP_ARGS])
+    printed = capsys.readouterr()
+    assert code == EXIT_OK, printed.err
+    assert "dask" in printed.out  # the summary names the executor
+    assert re.search(r"fitting tiles: \d+/36 tiles", printed.err)  # progress reported
+    _assert_same_map(out, reference)
+
+
+def test_dead_worker_tiles_are_recomputed(shared_cluster, room, room_reference, monkeypatch):
+    hyp, ref, n_tiles = room_reference
+    cluster = shared_cluster
+    assert all(w.poll() is None for w in cluster.workers)  # both alive: this is the test that kills one
+    model = tiles.TiledGPOM(scheduler=cluster.address, scheduler_timeout=30.0, **ROOM_OPTS)
+    with _on_first_tile_done(monkeypatch, lambda: cluster.kill_worker(0)) as fired:
+        model.fit(room, hyperparameters=hyp)
+    assert fired and fired[0] != f"{n_tiles}/{n_tiles}"  # killed while tiles were left
+    assert cluster.workers[0].poll() is not None and cluster.workers[1].poll() is None
+    assert sorted(model.tiles_) == sorted(model.last_refit_) and len(model.tiles_) == n_tiles
+    got = model.grid(0.25)  # on the one worker left
+    np.testing.assert_allclose(got.probability, ref.probability, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(got.variance, ref.variance, rtol=0, atol=1e-9)
+
+
+def test_no_workers_left_is_a_clear_error(lone_cluster, room, tmp_path, monkeypatch, capsys):
+    from gpomap.errors import DistributedError
+
+    cluster = lone_cluster
+    out = tmp_path / "dask"
+    with _on_first_tile_done(monkeypatch, lambda: cluster.kill_worker(0)) as fired:
+        code = main(["map", str(LOG), "-o", str(out), "--scheduler", cluster.address, "--scheduler-timeout", "2",
+                     "-q", *MAP_ARGS])
+    err = capsys.readouterr().err
+    assert fired
+    assert code == EXIT_ERROR
+    m = re.search(r"no Dask worker .* for 2 s, with (\d+) of (\d+) tile\(s\) left", err)
+    assert m, err
+    assert 0 < int(m.group(1)) < int(m.group(2))
+    assert cluster.address in err and "--scheduler-timeout" in err
+    assert not (out / "map.npz").exists()  # no map with tiles missing
+    # The same scheduler, now without any worker from the start: the library raises the same.
+    model = tiles.TiledGPOM(scheduler=cluster.address, scheduler_timeout=1.0, **ROOM_OPTS)
+    with pytest.raises(DistributedError, match=r"no Dask worker .* with (\d+) of \1 tile\(s\) left"):
+        model.fit(room[:8])
+
+
+def test_unreachable_scheduler_fails_before_local_work(tmp_path, monkeypatch, capsys):
+    address = f"tcp://127.0.0.1:{_free_port()}"  # nothing listens there
+    built: list[bool] = []
+    real_build = tiles.TiledGPOM._build_blocks
+    monkeypatch.setattr(tiles.TiledGPOM, "_build_blocks", lambda self, *a: built.append(True) or real_build(self, *a))
+    out = tmp_path / "never"
+    code = main(["map", str(LOG), "-o", str(out), "--scheduler", address, "--scheduler-timeout", "1", "-q", *MAP_ARGS])
+    err = capsys.readouterr().err
+    assert code == EXIT_ERROR
+    assert f"could not connect to the Dask scheduler at {address} within 1 s" in err
+    assert "--scheduler-timeout" in err
+    assert not built  # the cells were never built: the address was checked first
+    assert not (out / "map.npz").exists()
