@@ -68,20 +68,27 @@ def test_no_return_beams_give_free_points_only():
     assert d.max() < 1e-12  # every occupied test point is a real hit of the scan that returned
 
 
-@pytest.mark.parametrize("method", ["msk", "gpomik", "gpom", "ogm"])
+@pytest.mark.parametrize("method", ["msk", "gpomik", "gpom", "ogm", "ogm-counting"])
 def test_evaluate_returns_documented_keys(method):
     scans = paper_room_scans(n_beams=12)
-    opts = {} if method == "ogm" else dict(FAST_GP)
+    opts = {} if method.startswith("ogm") else dict(FAST_GP)
     if method == "gpom":
         opts.update(max_points=300, free_step=0.5)
     if method == "msk":
         opts.update(min_cell=1.0, max_cell=1.0)
     res = ev.evaluate(
         scans, method=method, kernel="se", holdout="every:4", n_scans=10, n_beams=12, scan_range="0:24",
-        seed=0, max_test_points=100, return_roc=True, resolution=0.25, **opts,
+        seed=0, max_test_points=100, return_roc=True, resolution=0.25, grid_resolution=0.5, **opts,
     )
-    for key in ("auc", "fpr_at_tpr95", "log_loss", "seconds", "n_inputs", "n_test_points", "settings", "roc"):
+    for key in ("auc", "fpr_at_tpr95", "log_loss", "seconds", "cpu_seconds", "n_inputs", "n_test_points", "settings",
+                "roc", "points", "grid", "far", "peak_rss_mb"):
         assert key in res
+    for kind in ("points", "grid"):
+        for key in ("auc", "boundary_auc", "observed_auc", "unobserved_auc", "fpr_at_tpr95", "log_loss", "ece", "reliability"):
+            assert key in res[kind]
+        assert res[kind]["n_observed"] + res[kind]["n_unobserved"] == 100
+    if method.startswith("ogm"):
+        assert res["grid"]["auc"] == res["points"]["auc"]  # a grid's written map is itself
     assert res["seconds"]["total"] >= res["seconds"]["fit"] > 0
     assert res["n_test_points"] == 100 and res["n_train_scans"] == 10
     assert res["settings"]["scan_range"] == "0:24" and res["settings"]["n_scans_in_range"] == 24
@@ -99,3 +106,106 @@ def test_score_against_truth_on_the_room():
     assert out["auc"] > 0.7 and out["n_occupied_cells"] > 0
     out2 = ev.score_against_truth(model, world, GridSpec.from_extent(world.bounds, 0.5))
     assert out2["auc"] == pytest.approx(out["auc"])
+
+
+def test_protocol_points_on_a_hand_built_scan():
+    from gpomap.scans import Scan
+
+    # Beam 0 along +x returns at 1.0 m: free at 0.1, ..., 0.9 (0.1 m short), a hit at (1, 0).
+    # Beam 1 along +y returns at 0.15 m: stopping 0.1 short leaves 0.05 m, no free point.
+    # Beam 2 along -x is a no-return (81.83 m, SICK's code): free 0.1 ... 10.0 m, no hit.
+    scan = Scan([0.0, 0.0, 0.0], [0.0, np.pi / 2, np.pi], [1.0, 0.15, 81.83], max_range=80.0)
+    obs = ev.protocol_points([scan])
+    hits = obs.points[obs.occupied]
+    np.testing.assert_allclose(hits, [[1.0, 0.0], [0.0, 0.15]], atol=1e-12)
+    free = obs.points[~obs.occupied]
+    on_x = free[free[:, 0] > 0]
+    np.testing.assert_allclose(on_x[:, 0], np.arange(1, 10) / 10)
+    np.testing.assert_allclose(on_x[:, 1], 0.0, atol=1e-12)
+    back = free[free[:, 0] < 0]
+    np.testing.assert_allclose(-back[:, 0], np.arange(1, 101) / 10)
+    assert len(free) == 9 + 100  # nothing along beam 1
+    # A sensor whose max range is below the cap (Stage's 5 m): no-return free to 5 m.
+    short = Scan([0.0, 0.0, 0.0], [0.0], [5.0], max_range=5.0)
+    obs = ev.protocol_points([short])
+    assert obs.n_occupied == 0 and obs.points[:, 0].max() == pytest.approx(5.0)
+    # Balanced: two hits, so two free points, from the pool above.
+    p, y = ev.test_points([scan], seed=3)
+    assert y.sum() == 2 and y.size == 4
+
+
+def test_the_two_protocol_splits():
+    train, test = ev.holdout_split(1000, ev.resolve_split("every"), seed=4)
+    assert np.all(np.diff(test) == 10) and len(test) == 100
+    train, test = ev.holdout_split(1000, ev.resolve_split("blocks"), seed=4)
+    runs = np.split(test, np.flatnonzero(np.diff(test) > 1) + 1)
+    starts = np.array([r[0] for r in runs])
+    # Blocks of 40 consecutive scans, one in five held out: 200 scans from one block to the next.
+    assert all(len(r) == 40 for r in runs[1:-1]) and np.all(np.diff(starts) == 200)
+    assert len(runs[0]) <= 40 and len(runs[-1]) <= 40
+    assert 160 <= len(test) <= 240
+    assert ev.resolve_split("every:3") == "every:3"
+
+
+def test_boundary_selection_by_hand():
+    hits = np.array([[0.0, 0.0], [10.0, 0.0]])
+    pts = np.array([[0.3, 0.39], [0.5, 0.11], [0.0, 0.0], [9.6, 0.0], [5.0, 0.0]])
+    # Distances to the nearest hit: 0.492 (in), 0.512 (out), 0 (in), 0.4 (in), 5 (out).
+    np.testing.assert_array_equal(ev.near(pts, hits, 0.5), [True, False, True, True, False])
+    assert not ev.near(pts, hits[:0], 0.5).any()
+
+
+def test_score_subsets_and_one_class_subsets():
+    y = np.array([True, True, False, False, True, False])
+    p = np.array([0.9, 0.4, 0.6, 0.1, 0.8, 0.2])
+    sub = np.array([True, True, True, True, False, False])
+    only_pos = np.array([True, True, False, False, False, False])
+    out = ev.score(y, p, {"sub": sub, "pos": only_pos})
+    # Subset (0.9 P, 0.4 P, 0.6 N, 0.1 N): pairs P>N: 0.9 beats both, 0.4 beats 0.1: 3 of 4.
+    assert out["sub_auc"] == pytest.approx(0.75) and out["n_sub"] == 4
+    assert out["pos_auc"] is None and out["n_pos"] == 2
+    assert out["log_loss"] == pytest.approx(-np.mean(np.log([0.9, 0.4, 0.4, 0.9, 0.8, 0.8])))
+    assert sum(out["reliability"]["counts"]) == 6
+
+
+def test_reference_grid_and_far_field_by_hand():
+    from gpomap.scans import Scan
+
+    # One beam along +x from the origin, returning at 2 m: the counting grid observes the cells
+    # from x = 0 to 2 along y = 0 (0.05 m cells).
+    scan = Scan([0.0, 0.0, 0.0], [0.0], [2.0], max_range=80.0)
+    ref = ev.reference_grid([scan])
+    obs = ev.observed_at(ref, np.array([[1.0, 0.01], [1.0, 0.2], [2.01, 0.0], [30.0, 0.0]]))
+    np.testing.assert_array_equal(obs, [True, False, True, False])
+    far = ev.FarField.from_reference(ref)
+    d = far.distance_at(np.array([[1.0, 6.0], [1.0, 0.0], [500.0, 0.0]]))
+    assert d[0] == pytest.approx(6.0, abs=0.4) and d[1] == 0.0 and d[2] == np.inf
+    pts = far.far_points()
+    assert len(pts) > 0
+    # Every far lattice point is more than 5 m from the beam's segment (to a lattice cell).
+    dist_to_segment = np.hypot(pts[:, 0] - np.clip(pts[:, 0], 0.0, 2.0), pts[:, 1])
+    assert dist_to_segment.min() > ev.FAR_DISTANCE - 0.4
+
+
+def test_truth_from_plan_by_hand():
+    # 4 x 4 pixels of 0.25 m from (-1, 0): on a 0.5 m grid, 2 x 2 cells. The occupied pixel is
+    # image row 0 (the top), column 3 (the right): the top-right cell, grid row 1, column 1.
+    img = np.zeros((4, 4), bool)
+    img[0, 3] = True
+    t = ev.Truth.from_plan(img, (-1.0, 0.0), (0.25, 0.25), 0.5)
+    assert t.grid.shape == (2, 2) and t.grid.origin == (-1.0, 0.0)
+    np.testing.assert_array_equal(t.occupied, [[False, False], [False, True]])
+    assert t.known.all()
+    out = ev.score_truth(t, np.array([0.1, 0.2, 0.3, 0.7]))
+    assert out["auc"] == 1.0 and out["iou"] == 1.0 and out["n_occupied_cells"] == 1
+
+
+def test_evaluate_against_truth_scores_the_room():
+    world, _ = paper_room()
+    res = ev.evaluate(paper_room_scans(n_beams=36), method="ogm-counting", holdout="every:4", resolution=0.25,
+                      truth=ev.Truth.from_world(world, 0.25), max_test_points=400)
+    for kind in ("points", "grid"):
+        t = res["truth"][kind]
+        assert 0.5 < t["auc"] <= 1.0 and 0.0 < t["iou"] <= 1.0 and t["n_observed_cells"] > 0
+    # The grid knows nothing far from the data: exactly 0.5 there.
+    assert res["far"]["lattice"]["points"]["mean"] == 0.5 and res["far"]["lattice"]["points"]["std"] == 0.0

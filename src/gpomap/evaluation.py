@@ -1,40 +1,80 @@
-"""The evaluation protocol: hold out scans, test on their hits and free space, score and time.
+"""The evaluation protocol: hold out scans, test on their hits and free space, score what users get.
 
 1. ``scan_range`` (a ``"FIRST:LAST"`` window, Python slice semantics: LAST excluded) picks the
-   part of the log to use.
-2. :func:`holdout_split` holds out scans, never trained on: every K-th scan (``"every:K"``) or
-   blocks of consecutive scans (``"blocks:LEN"`` or ``"blocks:LEN:K"``), as Hilbert maps does.
-3. The training scans are thinned to ``n_scans`` evenly spaced scans of ``n_beams`` evenly
-   spaced beams (:func:`gpomap.scans.select_scans`); the test scans are used whole.
-4. :func:`test_points`: the held-out hits (occupied) and free points along the held-out beams,
-   classes balanced by seeded subsampling.
-5. :func:`evaluate` fits a method, predicts at the test points and reports ROC AUC, FPR at
-   95 % TPR, log loss and the wall time of each stage.
-
-On simulated worlds :func:`score_against_truth` also scores a fitted map against the true
-geometry on a grid.
+   part of the log to use, and ``scan_step`` thins it (every k-th scan) before anything else.
+2. :func:`holdout_split` holds out scans, never trained on. The protocol's two splits
+   (:data:`SPLITS`): ``"blocks"`` = ``"blocks:40:5"``, blocks of 40 consecutive scans with every
+   5th block held out (whole stretches of the trajectory unseen, as Hilbert maps does), and
+   ``"every"`` = ``"every:10"``, every 10th scan held out. Any ``"every:K"`` /
+   ``"blocks:LEN[:K]"`` works too.
+3. The training scans may be thinned to ``n_scans`` scans of ``n_beams`` beams
+   (:func:`gpomap.scans.select_scans`); the test scans are used whole.
+4. :func:`test_points`: every held-out hit (occupied) and free points every 0.1 m along each
+   held-out beam up to 0.1 m short of its hit, with **no** clearance round hits (the GP methods
+   drop free samples near walls when they train; the test does not, so a map that blurs walls
+   pays for it); no-return beams give free points to the 10 m cap. Classes are balanced by seeded
+   subsampling, and every method is scored on the same points.
+5. :func:`run_method` fits a method and scores two predictions at those points: the exact-point
+   one (``model.predict_proba(points)``) and the **written grid** (what ``gpomap map`` writes:
+   ``model.grid(resolution)`` at the output resolution, 0.05 m by default, then a cell lookup of
+   each point; an occupancy grid's written map is its own grid). Scores (:func:`score`): ROC
+   AUC, boundary AUC (test points within 0.5 m of a held-out hit: wall sharpness), AUC on the
+   points in cells the reference grid observed (cells any training beam crossed, from the
+   counting grid at 0.05 m) and on the rest, FPR at TPR 95 %, log loss (probabilities clipped at
+   1e-6), expected calibration error (10 equal-width bins) and the reliability diagram's bins.
+   Also what the map says far from all data (> 5 m from any cell a training beam crossed), and,
+   where a true map exists (:class:`Truth`), AUC and occupied-class IoU against it on its grid.
+6. :func:`evaluate` does all of it for one method.
 """
 
 from __future__ import annotations
 
+import math
+import resource
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import EmptyDataError
-from gpomap.grid import GridSpec
-from gpomap.metrics import fpr_at_tpr, log_loss, roc_auc, roc_curve
+from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap
+from gpomap.metrics import expected_calibration_error, fpr_at_tpr, iou, log_loss, reliability_bins, roc_auc, roc_curve
 from gpomap.observations import observations_from_scans
 from gpomap.scans import Scan, select_scans
 from gpomap.tiles import DEFAULT_MAX_CELLS, area_gpom_for
 
-METHODS = ("msk", "gpomik", "gpom", "ogm")
+#: "ogm" is the log-odds grid (OctoMap's model); "ogm-counting" the counting grid.
+METHODS = ("msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting")
+GRID_METHODS = ("ogm", "ogm-logodds", "ogm-counting")
 
 #: Fraction held out by "blocks:LEN" without K: one block in five.
 DEFAULT_BLOCK_PERIOD = 5
+#: The protocol's two splits, by name.
+SPLITS = {"blocks": "blocks:40:5", "every": "every:10"}
+#: Test points: free every TEST_FREE_STEP along a held-out beam, stopping TEST_HIT_MARGIN short.
+TEST_FREE_STEP = 0.1
+TEST_HIT_MARGIN = 0.1
+#: No-return beams: free to this distance (never beyond the sensor's max range), never a hit.
+NO_RETURN_CAP = 10.0
+#: Boundary test points: within this distance (m) of a held-out hit.
+BOUNDARY_RADIUS = 0.5
+#: The reference grid telling observed cells from unobserved ones (counting grid, metres).
+REFERENCE_RESOLUTION = 0.05
+#: The written map's resolution (m) unless told otherwise.
+GRID_RESOLUTION = 0.05
+#: "Far from all data": farther than this (m) from any cell a training beam crossed.
+FAR_DISTANCE = 5.0
+#: Far-field lattice spacing (m) and most lattice points predicted.
+FAR_LATTICE = 0.25
+FAR_MAX_POINTS = 2000
+
+
+def resolve_split(split: str) -> str:
+    """The hold-out spec a split name stands for ("blocks", "every"); other specs unchanged."""
+    return SPLITS.get(str(split), str(split))
 
 
 def _parse_holdout(holdout: str) -> tuple[str, int, int]:
@@ -95,12 +135,30 @@ def holdout_split(n_scans: int, holdout: str = "every:5", seed: int = 0) -> tupl
     return np.flatnonzero(~test), np.flatnonzero(test)
 
 
+def protocol_points(
+    scans: Sequence[Scan],
+    free_step: float = TEST_FREE_STEP,
+    hit_margin: float | None = TEST_HIT_MARGIN,
+    no_return_cap: float | None = NO_RETURN_CAP,
+) -> Any:
+    """Every candidate test point of held-out scans, before balancing (see :func:`test_points`).
+
+    Returns
+    -------
+    gpomap.observations.Observations
+        Hits (occupied) and free points every `free_step` from `free_step` out to `hit_margin`
+        short of each hit (no-return beams: to `no_return_cap`); no clearance round hits.
+    """
+    return observations_from_scans(scans, free_step, hit_margin, no_return_cap, free_clearance=0.0)
+
+
 def test_points(
     scans: Sequence[Scan],
-    free_step: float = 0.2,
+    free_step: float = TEST_FREE_STEP,
     seed: int = 0,
     max_points: int | None = None,
-    hit_margin: float | None = None,
+    hit_margin: float | None = TEST_HIT_MARGIN,
+    no_return_cap: float | None = NO_RETURN_CAP,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Labelled test points from held-out scans, classes balanced.
 
@@ -109,14 +167,17 @@ def test_points(
     scans : sequence of Scan
         The held-out scans.
     free_step : float
-        Spacing of free points along the beams (stopping half a step short of each hit).
-        No-return beams give free points only.
+        Spacing of free points along the beams (0.1 m: the protocol).
     seed : int
         Seed of the subsampling.
     max_points : int, optional
         Most test points in all (half each class).
     hit_margin : float, optional
-        Free points stop this short of a hit (default half of `free_step`).
+        Free points stop this short of a hit (0.1 m: the protocol; None: half of `free_step`).
+        No clearance round other hits: a free point next to a wall stays a test point.
+    no_return_cap : float, optional
+        No-return beams give free points out to this distance (and never beyond the sensor's
+        max range), never a hit. None: the max range.
 
     Returns
     -------
@@ -124,7 +185,7 @@ def test_points(
     labels : ndarray of bool, shape (m,)
         True for occupied (a hit); m / 2 of each class.
     """
-    obs = observations_from_scans(scans, free_step, hit_margin)
+    obs = protocol_points(scans, free_step, hit_margin, no_return_cap)
     occ, free = np.flatnonzero(obs.occupied), np.flatnonzero(~obs.occupied)
     n = min(occ.size, free.size)
     if max_points is not None:
@@ -138,6 +199,23 @@ def test_points(
 
 # Not a pytest test despite its name (the protocol's term).
 test_points.__test__ = False  # type: ignore[attr-defined]
+
+
+def near(points: NDArray[np.float64], targets: NDArray[np.float64], radius: float) -> NDArray[np.bool_]:
+    """Which points lie within `radius` of any target, ndarray of bool, shape (n,).
+
+    Parameters
+    ----------
+    points : ndarray of shape (n, 2)
+    targets : ndarray of shape (t, 2)
+    radius : float
+    """
+    from scipy.spatial import cKDTree
+
+    if len(targets) == 0:
+        return np.zeros(len(points), dtype=bool)
+    d, _ = cKDTree(targets).query(points, distance_upper_bound=radius)
+    return d <= radius
 
 
 def scan_window(scan_range: str | tuple[int | None, int | None] | None) -> slice:
@@ -154,42 +232,45 @@ def scan_window(scan_range: str | tuple[int | None, int | None] | None) -> slice
     return slice(first, last)
 
 
-def make_model(method: str, kernel: str = "se", seed: int = 0, resolution: float = 0.1, **options: Any) -> Any:
+def make_model(method: str, kernel: str | None = None, seed: int = 0, resolution: float = 0.1, **options: Any) -> Any:
     """The estimator `method` names, with `options` passed to its constructor.
 
     Parameters
     ----------
-    method : {"msk", "gpomik", "gpom", "ogm"}
-    kernel : {"se", "matern32"}
-        Ignored by "ogm".
+    method : {"msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting"}
+        "ogm" is "ogm-logodds".
+    kernel : {"se", "matern32"}, optional
+        Point kernel of the GP methods (default: each method's own default). Ignored by the grids.
     seed : int
-        Ignored by "ogm".
+        Ignored by the grids.
     resolution : float
-        Cell side of "ogm" (the GP methods predict anywhere).
+        Cell side of the grids (the GP methods predict anywhere).
     """
+    gp_opts = dict(options, seed=seed, **({"kernel": kernel} if kernel is not None else {}))
     if method == "msk":
         from gpomap.mapping import AreaGPOM
 
-        return AreaGPOM(kernel=kernel, seed=seed, **options)
+        return AreaGPOM(**gp_opts)
     if method == "gpomik":
         from gpomap.baselines.gpomik import GPOMIK
 
-        return GPOMIK(kernel=kernel, seed=seed, **options)
+        return GPOMIK(**gp_opts)
     if method == "gpom":
         from gpomap.baselines.gpom import GPOM
 
-        return GPOM(kernel=kernel, seed=seed, **options)
-    if method == "ogm":
+        return GPOM(**gp_opts)
+    if method in GRID_METHODS:
         from gpomap.baselines.ogm import OccupancyGridMapper
 
-        return OccupancyGridMapper(resolution=resolution, **options)
+        model = "counting" if method == "ogm-counting" else "logodds"
+        return OccupancyGridMapper(resolution=resolution, sensor_model=model, **options)
     raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
 
 
 def make_model_for(
     train: Sequence[Scan],
     method: str,
-    kernel: str = "se",
+    kernel: str | None = None,
     seed: int = 0,
     resolution: float = 0.1,
     max_cells: int | None = DEFAULT_MAX_CELLS,
@@ -200,7 +281,8 @@ def make_model_for(
     `max_cells` cells (:func:`gpomap.tiles.area_gpom_for`), as ``gpomap map`` does."""
     if method != "msk":
         return make_model(method, kernel, seed, resolution, **options)
-    model, _ = area_gpom_for(train, max_cells, {"n_workers": n_workers}, kernel=kernel, seed=seed, **options)
+    gp_opts = dict(options, seed=seed, **({"kernel": kernel} if kernel is not None else {}))
+    model, _ = area_gpom_for(train, max_cells, {"n_workers": n_workers}, **gp_opts)
     return model
 
 
@@ -212,122 +294,529 @@ def n_inputs(model: Any) -> int:
     return int((model.observed_ > 0).sum())
 
 
-def evaluate(
+def written_grid(model: Any, resolution: float = GRID_RESOLUTION) -> OccupancyMap:
+    """The map ``gpomap map`` writes for a fitted model, at `resolution` over the data's extent.
+
+    One MSK-GPOM GP: ``grid(resolution, supersample=k)`` with the CLI's k (samples half a
+    min-cell apart, at most 4); tiles and the GP baselines: ``grid(resolution)``; an occupancy
+    grid: its own grid (it has no finer map to give).
+    """
+    from gpomap.baselines.ogm import OccupancyGridMapper
+    from gpomap.mapping import AreaGPOM
+
+    if isinstance(model, OccupancyGridMapper):
+        return model.grid_map()
+    if isinstance(model, AreaGPOM):
+        k = min(4, max(1, math.ceil(resolution / (0.5 * model.min_cell) - 1e-9)))
+        return model.grid(resolution, supersample=k)
+    return model.grid(resolution)
+
+
+def lookup(occupancy_map: OccupancyMap, points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Probability of the written map's cell holding each point (0.5 outside the map), shape (n,)."""
+    rows, cols, inside = occupancy_map.grid.index_of(np.asarray(points, dtype=float).reshape(-1, 2))
+    out = np.full(len(rows), 0.5)
+    out[inside] = occupancy_map.probability[rows[inside], cols[inside]]
+    return out
+
+
+def reference_grid(train: Sequence[Scan], resolution: float = REFERENCE_RESOLUTION) -> Any:
+    """The counting grid of the training scans: which cells any training beam crossed."""
+    from gpomap.baselines.ogm import OccupancyGridMapper
+
+    return OccupancyGridMapper(resolution, sensor_model="counting", max_range_free=NO_RETURN_CAP).fit(train)
+
+
+def observed_at(reference: Any, points: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Whether each point lies in a cell the reference grid observed, shape (n,)."""
+    rows, cols, inside = reference.grid_.index_of(np.asarray(points, dtype=float).reshape(-1, 2))
+    out = np.zeros(len(rows), dtype=bool)
+    out[inside] = reference.observed_[rows[inside], cols[inside]] > 0
+    return out
+
+
+@dataclass(frozen=True)
+class FarField:
+    """Distance to the data on a coarse lattice round it.
+
+    Attributes
+    ----------
+    grid : GridSpec
+        The lattice: the reference grid's box padded by ``2 * FAR_DISTANCE``, cells of FAR_LATTICE.
+    distance : ndarray of shape (ny, nx)
+        Distance (m) from each lattice cell centre to the nearest lattice cell holding an
+        observed reference cell (exact to about one lattice cell).
+    """
+
+    grid: GridSpec
+    distance: NDArray[np.float64]
+
+    @classmethod
+    def from_reference(cls, reference: Any, spacing: float = FAR_LATTICE, pad: float = 2 * FAR_DISTANCE) -> FarField:
+        """The lattice round a fitted reference grid (see :func:`reference_grid`)."""
+        from scipy.ndimage import distance_transform_edt
+
+        x0, x1, y0, y1 = reference.grid_.extent
+        grid = GridSpec.from_extent((x0 - pad, x1 + pad, y0 - pad, y1 + pad), spacing)
+        seen = np.zeros(grid.shape, dtype=bool)
+        r, c = np.nonzero(reference.observed_ > 0)
+        centres = np.column_stack(reference.grid_.origin) + (np.column_stack([c, r]) + 0.5) * reference.grid_.resolution
+        rr, cc, inside = grid.index_of(centres)
+        seen[rr[inside], cc[inside]] = True
+        return cls(grid, distance_transform_edt(~seen) * spacing)
+
+    def distance_at(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Distance to the data of each point (inf outside the lattice), shape (n,)."""
+        rows, cols, inside = self.grid.index_of(np.asarray(points, dtype=float).reshape(-1, 2))
+        out = np.full(len(rows), np.inf)
+        out[inside] = self.distance[rows[inside], cols[inside]]
+        return out
+
+    def far_points(self, distance: float = FAR_DISTANCE, max_points: int = FAR_MAX_POINTS, seed: int = 0) -> NDArray[np.float64]:
+        """Lattice cell centres farther than `distance` from the data, at most `max_points` (seeded)."""
+        idx = np.flatnonzero(self.distance.ravel() > distance)
+        if idx.size > max_points:
+            idx = np.sort(np.random.default_rng(seed).choice(idx, max_points, replace=False))
+        return self.grid.centres()[idx]
+
+
+@dataclass(frozen=True)
+class Truth:
+    """A true occupancy map on a grid.
+
+    Attributes
+    ----------
+    grid : GridSpec
+    occupied : ndarray of bool, shape (ny, nx)
+    known : ndarray of bool, shape (ny, nx)
+        Cells to score (all of them by default).
+    """
+
+    grid: GridSpec
+    occupied: NDArray[np.bool_]
+    known: NDArray[np.bool_] | None = None
+
+    @classmethod
+    def from_world(cls, world: Any, resolution: float = GRID_RESOLUTION, wall_thickness: float | None = None) -> Truth:
+        """A simulated world's true grid over its bounds (:meth:`gpomap.simulate.World.true_grid`)."""
+        grid = GridSpec.from_extent(world.bounds, resolution)
+        return cls(grid, world.true_grid(grid, wall_thickness))
+
+    @classmethod
+    def from_plan(
+        cls, occupied_pixels: NDArray[np.bool_], lower_left: tuple[float, float], pixel_size: tuple[float, float],
+        resolution: float = GRID_RESOLUTION,
+    ) -> Truth:
+        """A floor-plan bitmap resampled to `resolution`: a cell is occupied if any pixel in it is.
+
+        Parameters
+        ----------
+        occupied_pixels : ndarray of bool, shape (h, w)
+            Row 0 at the top (image order).
+        lower_left : (x, y)
+            Map-frame position of the bitmap's lower-left corner.
+        pixel_size : (sx, sy)
+            Pixel width and height, metres.
+        resolution : float
+        """
+        h, w = occupied_pixels.shape
+        x0, y0 = lower_left
+        grid = GridSpec.from_extent((x0, x0 + w * pixel_size[0], y0, y0 + h * pixel_size[1]), resolution)
+        rows, cols = np.indices((h, w))
+        centres = np.column_stack([x0 + (cols.ravel() + 0.5) * pixel_size[0], y0 + (h - rows.ravel() - 0.5) * pixel_size[1]])
+        r, c, inside = grid.index_of(centres)
+        occ = np.zeros(grid.shape, dtype=bool)
+        hit = inside & occupied_pixels.ravel()
+        occ[r[hit], c[hit]] = True
+        known = np.zeros(grid.shape, dtype=bool)
+        known[r[inside], c[inside]] = True
+        return cls(grid, occ, known)
+
+
+def score_truth(
+    truth: Truth, prob: NDArray[np.float64], observed: NDArray[np.bool_] | None = None,
+    threshold: float = DEFAULT_THRESHOLDS[1],
+) -> dict[str, Any]:
+    """Score probabilities at the truth grid's cell centres against it.
+
+    Parameters
+    ----------
+    truth : Truth
+    prob : ndarray of shape (ny * nx,)
+        Predicted occupancy at ``truth.grid.centres()``.
+    observed : ndarray of bool, shape (ny * nx,), optional
+        Cells the training data observed: also scored alone.
+    threshold : float
+        Occupied above this (the ternary map's threshold, 0.66): the IoU's predicted class.
+
+    Returns
+    -------
+    dict
+        ``auc``, ``iou``, ``observed_auc``, ``observed_iou`` (None without `observed`),
+        ``n_cells``, ``n_occupied_cells``.
+    """
+    known = np.ones(truth.occupied.size, bool) if truth.known is None else truth.known.ravel()
+    y = truth.occupied.ravel()
+    out: dict[str, Any] = {
+        "auc": _auc_or_none(y[known], prob[known]),
+        "iou": iou(prob[known] > threshold, y[known]),
+        "n_cells": int(known.sum()),
+        "n_occupied_cells": int(y[known].sum()),
+        "observed_auc": None,
+        "observed_iou": None,
+    }
+    if observed is not None:
+        sel = known & observed
+        out["observed_auc"] = _auc_or_none(y[sel], prob[sel])
+        out["observed_iou"] = iou(prob[sel] > threshold, y[sel])
+        out["n_observed_cells"] = int(sel.sum())
+    return out
+
+
+def _auc_or_none(labels: NDArray[np.bool_], prob: NDArray[np.float64]) -> float | None:
+    """ROC AUC, or None where a subset holds only one class (JSON null, '-' in tables)."""
+    if labels.size == 0 or labels.all() or not labels.any():
+        return None
+    return roc_auc(labels, prob)
+
+
+def score(labels: NDArray[np.bool_], prob: NDArray[np.float64], masks: dict[str, NDArray[np.bool_]] | None = None,
+          n_bins: int = 10) -> dict[str, Any]:
+    """Every protocol metric of one prediction at the test points.
+
+    Parameters
+    ----------
+    labels : ndarray of bool, shape (n,)
+    prob : ndarray of shape (n,)
+        Predicted occupancy probabilities (clipped to [0, 1] first).
+    masks : dict of str to ndarray of bool, shape (n,), optional
+        Subsets scored alone by AUC, as ``<name>_auc`` with ``n_<name>`` (e.g. "boundary",
+        "observed", "unobserved"); None where a subset lacks a class.
+    n_bins : int
+        Bins of the expected calibration error and the reliability diagram.
+
+    Returns
+    -------
+    dict
+        ``auc``, ``fpr_at_tpr95``, ``log_loss``, ``ece``, the subset AUCs, and ``reliability``
+        (``mean_prob``, ``frac_pos``, ``counts`` per bin; empty bins None).
+    """
+    p = np.clip(np.asarray(prob, dtype=float), 0.0, 1.0)
+    mean_p, frac, counts = reliability_bins(labels, p, n_bins)
+    out: dict[str, Any] = {
+        "auc": roc_auc(labels, p),
+        "fpr_at_tpr95": fpr_at_tpr(labels, p, 0.95),
+        "log_loss": log_loss(labels, p),
+        "ece": expected_calibration_error(labels, p, n_bins),
+    }
+    for name, m in (masks or {}).items():
+        out[f"{name}_auc"] = _auc_or_none(labels[m], p[m])
+        out[f"n_{name}"] = int(m.sum())
+    out["reliability"] = {
+        "mean_prob": [None if np.isnan(v) else float(v) for v in mean_p],
+        "frac_pos": [None if np.isnan(v) else float(v) for v in frac],
+        "counts": counts.tolist(),
+    }
+    return out
+
+
+def _spread(values: NDArray[np.float64]) -> dict[str, Any]:
+    """Count, mean and standard deviation (None when empty)."""
+    if values.size == 0:
+        return {"n": 0, "mean": None, "std": None}
+    return {"n": int(values.size), "mean": float(values.mean()), "std": float(values.std())}
+
+
+def _clock() -> tuple[float, float]:
+    """Wall time and CPU time of this process and its reaped children (tile workers), seconds."""
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.perf_counter(), time.process_time() + ch.ru_utime + ch.ru_stime
+
+
+def peak_rss_mb() -> dict[str, float]:
+    """Peak resident memory so far (MB) of this process and of its largest reaped child."""
+    kb = 1024.0  # Linux reports ru_maxrss in KB
+    return {
+        "self": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / kb,
+        "children": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / kb,
+    }
+
+
+@dataclass
+class EvalData:
+    """One split of one log, ready to score any method on (see :func:`prepare`).
+
+    Attributes
+    ----------
+    train, test : list of Scan
+        Training scans (thinned as asked) and held-out scans (whole).
+    points : ndarray of shape (n, 2)
+    labels : ndarray of bool, shape (n,)
+        The balanced test points and their classes.
+    masks : dict of str to ndarray of bool, shape (n,)
+        "boundary" (within BOUNDARY_RADIUS of a held-out hit), "observed" and "unobserved" (the
+        reference grid's cells).
+    far_test : ndarray of bool, shape (n,)
+        Test points farther than FAR_DISTANCE from every cell a training beam crossed.
+    far_points : ndarray of shape (f, 2)
+        Lattice points that far from the data.
+    reference : OccupancyGridMapper
+        The counting grid of the training scans at REFERENCE_RESOLUTION.
+    truth : Truth or None
+    truth_observed : ndarray of bool, shape (ny * nx,) or None
+        Truth cells the reference grid observed.
+    settings, seconds : dict
+    """
+
+    train: list[Scan]
+    test: list[Scan]
+    points: NDArray[np.float64]
+    labels: NDArray[np.bool_]
+    masks: dict[str, NDArray[np.bool_]]
+    far_test: NDArray[np.bool_]
+    far_points: NDArray[np.float64]
+    reference: Any
+    truth: Truth | None = None
+    truth_observed: NDArray[np.bool_] | None = None
+    settings: dict[str, Any] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def prepare(
     scans: Sequence[Scan],
-    method: str = "msk",
-    kernel: str = "se",
-    holdout: str = "every:5",
+    holdout: str = "every",
+    scan_range: str | tuple[int | None, int | None] | None = None,
+    scan_step: int = 1,
     n_scans: int | None = None,
     n_beams: int | None = None,
-    scan_range: str | tuple[int | None, int | None] | None = None,
     seed: int = 0,
-    resolution: float = 0.1,
-    test_free_step: float = 0.2,
+    test_free_step: float = TEST_FREE_STEP,
     max_test_points: int | None = None,
-    return_roc: bool = False,
-    max_cells: int | None = DEFAULT_MAX_CELLS,
-    n_workers: int | None = None,
-    **method_options: Any,
-) -> dict[str, Any]:
-    """Fit a method on training scans and score it on held-out scans.
+    truth: Truth | None = None,
+) -> EvalData:
+    """Split a log, make the test points and everything scored about them, once for all methods.
 
     Parameters
     ----------
     scans : sequence of Scan
         The whole log.
-    method : {"msk", "gpomik", "gpom", "ogm"}
-    kernel : {"se", "matern32"}
-        Point kernel of the GP methods.
     holdout : str
-        See :func:`holdout_split`.
-    n_scans, n_beams : int, optional
-        Thin the training scans to this many evenly spaced scans of this many evenly spaced beams.
+        A split name ("blocks", "every": :data:`SPLITS`) or spec (see :func:`holdout_split`).
     scan_range : "FIRST:LAST" or (first, last), optional
-        Window of the log to use (Python slice: LAST excluded), applied before the split.
+        Window of the log (Python slice), applied first.
+    scan_step : int
+        Keep every `scan_step`-th scan of the window (before the split).
+    n_scans, n_beams : int, optional
+        Thin the training scans to this many evenly spaced scans of this many beams.
     seed : int
-        Seeds the split, the test-point subsample and the method.
-    resolution : float
-        Cell side of the occupancy grid ("ogm").
+        Seeds the split and the test-point subsample.
     test_free_step : float
-        Spacing of free test points along held-out beams.
+        Spacing of free test points (0.1 m: the protocol).
     max_test_points : int, optional
-        Cap on test points (half each class).
-    return_roc : bool
-        Also return the ROC curve as ``roc = {"fpr": [...], "tpr": [...]}``.
+        Cap on test points (half each class), seeded subsample.
+    truth : Truth, optional
+        True map to score against.
+
+    Returns
+    -------
+    EvalData
+    """
+    spec = resolve_split(holdout)
+    seconds: dict[str, float] = {}
+    t = time.perf_counter()
+    if scan_step < 1:
+        raise ValueError(f"scan_step must be >= 1, got {scan_step}")
+    window = list(scans)[scan_window(scan_range)][::scan_step]
+    train_idx, test_idx = holdout_split(len(window), spec, seed)
+    train = select_scans([window[i] for i in train_idx], n_scans, n_beams)
+    test = [window[i] for i in test_idx]
+    seconds["split"] = time.perf_counter() - t
+    t = time.perf_counter()
+    points, labels = test_points(test, test_free_step, seed, max_test_points)
+    hits = np.concatenate([s.hits() for s in test])
+    seconds["test_points"] = time.perf_counter() - t
+    t = time.perf_counter()
+    reference = reference_grid(train)
+    observed = observed_at(reference, points)
+    far = FarField.from_reference(reference)
+    masks = {"boundary": near(points, hits, BOUNDARY_RADIUS), "observed": observed, "unobserved": ~observed}
+    truth_observed = observed_at(reference, truth.grid.centres()) if truth is not None else None
+    seconds["reference"] = time.perf_counter() - t
+    settings = {
+        "holdout": spec,
+        "scan_range": scan_range if scan_range is None or isinstance(scan_range, str) else list(scan_range),
+        "scan_step": scan_step,
+        "n_scans_in_range": len(window),
+        "n_scans": n_scans,
+        "n_beams": n_beams,
+        "seed": seed,
+        "test_free_step": test_free_step,
+        "test_hit_margin": TEST_HIT_MARGIN,
+        "no_return_cap": NO_RETURN_CAP,
+        "max_test_points": max_test_points,
+        "test_scan_indices": [int(i) for i in test_idx],
+    }
+    return EvalData(train, test, points, labels, masks, far.distance_at(points) > FAR_DISTANCE, far.far_points(seed=seed),
+                    reference, truth, truth_observed, settings, seconds)
+
+
+def run_method(
+    data: EvalData,
+    method: str = "msk",
+    kernel: str | None = None,
+    seed: int = 0,
+    resolution: float = 0.1,
+    grid_resolution: float = GRID_RESOLUTION,
+    max_cells: int | None = DEFAULT_MAX_CELLS,
+    n_workers: int | None = None,
+    return_roc: bool = False,
+    score_grid: bool = True,
+    **method_options: Any,
+) -> dict[str, Any]:
+    """Fit one method on ``data.train`` and score its exact-point and written-grid predictions.
+
+    Parameters
+    ----------
+    data : EvalData
+    method : {"msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting"}
+    kernel : {"se", "matern32"}, optional
+        Point kernel of the GP methods (default: the library's).
+    seed : int
+        Seeds the method.
+    resolution : float
+        Cell side of the occupancy grids.
+    grid_resolution : float
+        Resolution of the written map of the GP methods (0.05 m).
     max_cells : int or None
-        "msk" only: above this many cells the map is built in tiles, as ``gpomap map`` does
-        (:func:`gpomap.tiles.area_gpom_for`); None: always one GP.
+        "msk": above this many cells the map is built in tiles, as ``gpomap map`` does.
     n_workers : int, optional
         Worker processes for tiles (default: the CPU count).
+    return_roc : bool
+        Also return the exact-point ROC curve as ``roc = {"fpr": [...], "tpr": [...]}``.
+    score_grid : bool
+        Also build and score the written grid.
     **method_options
         Passed to the method's constructor.
 
     Returns
     -------
     dict
-        JSON-serialisable: ``auc``, ``fpr_at_tpr95``, ``log_loss``, ``seconds`` (``total``,
-        ``split``, ``test_points``, ``fit``, ``predict`` and the model's own stages, e.g.
-        ``observations``, ``cells``, ``hyperparameters``, ``squash``), ``n_inputs`` (GP inputs;
-        for "ogm" the cells observed), ``n_train_scans``, ``n_test_scans``, ``n_test_points``,
-        ``hyperparameters`` (GP methods), ``settings`` (every setting used) and, with
-        `return_roc`, ``roc``.
+        JSON-serialisable: ``points`` and ``grid`` (each :func:`score`'s dict, ``grid`` None
+        without `score_grid`), ``auc``, ``fpr_at_tpr95``, ``log_loss`` (the exact-point ones),
+        ``far`` (mean and spread of the predictions far from the data: at far test points and on
+        the far lattice, for both predictions), ``truth`` (:func:`score_truth` of both, or None),
+        ``seconds`` and ``cpu_seconds`` (``fit``, ``predict``, ``grid``; the model's own stages),
+        ``peak_rss_mb`` (this process's peak so far), ``n_inputs``, ``n_train_scans``,
+        ``n_test_scans``, ``n_test_points``, ``hyperparameters`` (GP methods), ``settings``.
     """
-    t_all = time.perf_counter()
     seconds: dict[str, float] = {}
-    t = time.perf_counter()
-    window = list(scans)[scan_window(scan_range)]
-    train_idx, test_idx = holdout_split(len(window), holdout, seed)
-    train = select_scans([window[i] for i in train_idx], n_scans, n_beams)
-    test = [window[i] for i in test_idx]
-    seconds["split"] = time.perf_counter() - t
-    t = time.perf_counter()
-    points, labels = test_points(test, test_free_step, seed, max_test_points)
-    seconds["test_points"] = time.perf_counter() - t
-
-    t = time.perf_counter()
-    model = make_model_for(train, method, kernel, seed, resolution, max_cells, n_workers, **method_options)
-    model.fit(train)
-    seconds["fit"] = time.perf_counter() - t
-    t = time.perf_counter()
-    prob = np.asarray(model.predict_proba(points), dtype=float)
-    seconds["predict"] = time.perf_counter() - t
+    cpu: dict[str, float] = {}
+    w0, c0 = _clock()
+    model = make_model_for(data.train, method, kernel, seed, resolution, max_cells, n_workers, **method_options)
+    model.fit(data.train)
+    w1, c1 = _clock()
+    prob = np.asarray(model.predict_proba(data.points), dtype=float)
+    w2, c2 = _clock()
+    seconds["fit"], cpu["fit"] = w1 - w0, c1 - c0
+    seconds["predict"], cpu["predict"] = w2 - w1, c2 - c1
     for stage, value in getattr(model, "timings_", {}).items():
-        if stage != "prediction":
+        if stage != "prediction" and isinstance(value, (int, float)):
             seconds[stage] = float(value)
-    seconds["total"] = time.perf_counter() - t_all
+    points_score = score(data.labels, prob, data.masks)
+    far_lattice = np.asarray(model.predict_proba(data.far_points), dtype=float) if len(data.far_points) else np.zeros(0)
+    far = {"test_points": {"points": _spread(prob[data.far_test])}, "lattice": {"points": _spread(far_lattice)}}
+    truth_out: dict[str, Any] | None = None
+    if data.truth is not None:
+        centres = data.truth.grid.centres()
+        truth_out = {"points": score_truth(data.truth, np.asarray(model.predict_proba(centres), dtype=float), data.truth_observed)}
 
+    grid_score = None
+    written_shape = None
+    if score_grid:
+        w3, c3 = _clock()
+        occupancy_map = written_grid(model, grid_resolution)
+        w4, c4 = _clock()
+        seconds["grid"], cpu["grid"] = w4 - w3, c4 - c3
+        written_shape = list(occupancy_map.grid.shape)
+        gprob = lookup(occupancy_map, data.points)
+        grid_score = score(data.labels, gprob, data.masks)
+        far["test_points"]["grid"] = _spread(gprob[data.far_test])
+        far["lattice"]["grid"] = _spread(lookup(occupancy_map, data.far_points))
+        if data.truth is not None and truth_out is not None:
+            truth_out["grid"] = score_truth(data.truth, lookup(occupancy_map, data.truth.grid.centres()), data.truth_observed)
+        del occupancy_map
+
+    is_grid = method in GRID_METHODS
     result: dict[str, Any] = {
         "method": method,
-        "auc": roc_auc(labels, prob),
-        "fpr_at_tpr95": fpr_at_tpr(labels, prob, 0.95),
-        "log_loss": log_loss(labels, prob),
+        "auc": points_score["auc"],
+        "fpr_at_tpr95": points_score["fpr_at_tpr95"],
+        "log_loss": points_score["log_loss"],
+        "points": points_score,
+        "grid": grid_score,
+        "far": far,
+        "truth": truth_out,
         "seconds": seconds,
+        "cpu_seconds": cpu,
+        "peak_rss_mb": peak_rss_mb(),
         "n_inputs": n_inputs(model),
-        "n_train_scans": len(train),
-        "n_test_scans": len(test),
-        "n_test_points": int(labels.size),
+        "n_train_scans": len(data.train),
+        "n_test_scans": len(data.test),
+        "n_test_points": int(data.labels.size),
         "settings": {
+            **data.settings,
             "method": method,
-            "kernel": kernel if method != "ogm" else None,
-            "holdout": holdout,
-            "n_scans": n_scans,
-            "n_beams": n_beams,
-            "scan_range": scan_range if scan_range is None or isinstance(scan_range, str) else list(scan_range),
-            "n_scans_in_range": len(window),
-            "seed": seed,
-            "resolution": resolution,
-            "test_free_step": test_free_step,
-            "max_test_points": max_test_points,
+            "kernel": None if is_grid else getattr(model, "kernel", getattr(getattr(model, "base", None), "kernel", kernel)),
+            "resolution": resolution if is_grid else None,
+            "grid_resolution": (resolution if is_grid else grid_resolution) if score_grid else None,
+            "written_grid_shape": written_shape,
             "tiles": len(model.tiles_) if hasattr(model, "tiles_") else None,
-            "test_scan_indices": [int(i) for i in test_idx],
             "method_options": _jsonable(method_options),
         },
     }
     if hasattr(model, "hyperparameters_"):
         result["hyperparameters"] = {k: float(v) for k, v in model.hyperparameters_.items()}
     if return_roc:
-        fpr, tpr, _ = roc_curve(labels, prob)
+        fpr, tpr, _ = roc_curve(data.labels, prob)
         result["roc"] = {"fpr": fpr.tolist(), "tpr": tpr.tolist()}
+    return result
+
+
+def evaluate(
+    scans: Sequence[Scan],
+    method: str = "msk",
+    kernel: str | None = None,
+    holdout: str = "every",
+    n_scans: int | None = None,
+    n_beams: int | None = None,
+    scan_range: str | tuple[int | None, int | None] | None = None,
+    seed: int = 0,
+    resolution: float = 0.1,
+    test_free_step: float = TEST_FREE_STEP,
+    max_test_points: int | None = None,
+    return_roc: bool = False,
+    max_cells: int | None = DEFAULT_MAX_CELLS,
+    n_workers: int | None = None,
+    grid_resolution: float = GRID_RESOLUTION,
+    scan_step: int = 1,
+    truth: Truth | None = None,
+    score_grid: bool = True,
+    **method_options: Any,
+) -> dict[str, Any]:
+    """Fit a method on training scans and score it on held-out scans (:func:`prepare` then
+    :func:`run_method`; see them for the parameters).
+
+    Returns
+    -------
+    dict
+        :func:`run_method`'s, with ``seconds`` also holding ``split``, ``test_points``,
+        ``reference`` and ``total``.
+    """
+    t = time.perf_counter()
+    data = prepare(scans, holdout, scan_range, scan_step, n_scans, n_beams, seed, test_free_step, max_test_points, truth)
+    result = run_method(data, method, kernel, seed, resolution, grid_resolution, max_cells, n_workers, return_roc,
+                        score_grid, **method_options)
+    result["seconds"] = {**data.seconds, **result["seconds"], "total": time.perf_counter() - t}
     return result
 
 

@@ -1,0 +1,323 @@
+"""Map quality on every shared log: MSK-GPOM as ``gpomap map`` builds it against the standard grids.
+
+For each log and each of the protocol's two splits (``blocks``: blocks of 40 consecutive scans,
+every 5th held out; ``every``: every 10th scan held out), every method is fitted on the training
+scans only and scored on the same balanced test points from the held-out scans
+(:mod:`gpomap.evaluation`): its exact-point predictions and its written map (``grid(0.05)`` then
+a cell lookup; a grid's written map is itself). Methods:
+
+- ``msk``: MSK-GPOM with the library's defaults, built exactly as ``gpomap map`` builds it (one
+  GP up to 3,000 cells, tiles beyond: :func:`gpomap.tiles.area_gpom_for`);
+- ``ogm-logodds-0.05``, ``ogm-logodds-0.1``: OctoMap's log-odds grid at 0.05 and 0.1 m;
+- ``ogm-counting-0.05``: the counting grid at 0.05 m.
+
+Logs: Intel, FR079 (every 3rd of its 4,791 scans: the whole log at full rate is 5x the others'
+size), CSAIL, Belgioioso, the Stage arena bag (also scored against its true floor plan) and a
+simulated tour of the synthetic room of :mod:`gpomap.simulate` (also scored against its true
+geometry). Each method runs in a forked child process so its peak memory is its own (reported
+as the child's peak RSS, which starts from the parent's, and the tile workers' peak).
+
+Run from the repository root::
+
+    .venv/bin/python benchmarks/quality.py                    # everything (hours on 2 cores)
+    .venv/bin/python benchmarks/quality.py --quick            # a smoke run: a few scans per log
+    .venv/bin/python benchmarks/quality.py --logs intel,room --splits every --json out.json
+
+In each table '*' marks the best value of a metric among the rows of that log and split
+(exact points and written grids together). An occupancy grid's exact-point prediction is a
+lookup in its own grid, which is also its written map: one row ("own grid").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import subprocess
+import sys
+import time
+import traceback
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpomap.evaluation import EvalData, Truth, prepare, resolve_split, run_method
+
+DATA = Path("..") / "shared" / "data"
+LOGS: dict[str, dict[str, Any]] = {
+    "intel": {"path": DATA / "intel" / "intel-corrected.log.gz", "title": "Intel Research Lab"},
+    "fr079": {"path": DATA / "fr079" / "freiburg-079-corrected.log.gz", "scan_step": 3,
+              "title": "Freiburg 079 (every 3rd scan)"},
+    "csail": {"path": DATA / "csail-robotlaser1" / "csail.log.gz", "title": "MIT CSAIL"},
+    "belgioioso": {"path": DATA / "belgioioso" / "belgioioso-corrected.log.gz", "title": "Belgioioso castle"},
+    "stage-arena": {"path": DATA / "stage-arena" / "robot1.bag", "title": "Stage arena (true plan)"},
+    "room": {"path": None, "title": "synthetic room, 400 scans x 180 beams, 2 cm noise (true geometry)"},
+}
+SPLIT_NAMES = ("blocks", "every")
+#: name: (evaluation method, grid cell side or None)
+METHODS: dict[str, tuple[str, float | None]] = {
+    "msk": ("msk", None),
+    "ogm-logodds-0.05": ("ogm-logodds", 0.05),
+    "ogm-logodds-0.1": ("ogm-logodds", 0.1),
+    "ogm-counting-0.05": ("ogm-counting", 0.05),
+}
+LABELS = {"msk": "MSK-GPOM", "ogm-logodds-0.05": "OGM log-odds 0.05", "ogm-logodds-0.1": "OGM log-odds 0.1",
+          "ogm-counting-0.05": "OGM counting 0.05"}
+#: Test points per log and split (a seeded, balanced subsample; the same for every method).
+MAX_TEST_POINTS = 20000
+GRID_RESOLUTION = 0.05
+#: The room's truth grid (20 x 16 m): 0.1 m keeps its 32,000 predictions per method affordable.
+ROOM_TRUTH_RESOLUTION = 0.1
+QUICK = {"scan_range": "0:120", "n_scans": 30, "n_beams": 90, "max_test_points": 2000, "grid_resolution": 0.2}
+
+# metric key, column title, higher is better
+COLUMNS = [("auc", "AUC", True), ("boundary_auc", "bnd AUC", True), ("observed_auc", "obs AUC", True),
+           ("unobserved_auc", "unobs AUC", True), ("fpr_at_tpr95", "FPR95", False), ("log_loss", "log loss", False),
+           ("ece", "ECE", False)]
+TRUTH_COLUMNS = [("auc", "truth AUC", True), ("iou", "truth IoU", True)]
+
+
+# ------------------------------------------------------------------------------ data
+def _stage_truth(resolution: float) -> Truth:
+    from PIL import Image
+
+    img = np.asarray(Image.open(DATA / "stage-arena" / "mrl_arena.pgm"))
+    # The data README: Stage stretches the 406 x 460 bitmap to 4.06 m x 4.55 m centred at (1, 1).
+    return Truth.from_plan(img < 128, (-1.03, -1.275), (0.0100, 0.009891), resolution)
+
+
+def _room(seed: int = 0) -> tuple[list, Truth]:
+    from gpomap.simulate import paper_room, simulate_scans
+
+    world, poses = paper_room()
+    # 400 poses along the paper's 31-pose tour (evenly by arc length), heading along the path.
+    xy = poses[:, :2]
+    arc = np.r_[0.0, np.cumsum(np.hypot(*np.diff(xy, axis=0).T))]
+    s = np.linspace(0.0, arc[-1], 400)
+    dense = np.column_stack([np.interp(s, arc, xy[:, 0]), np.interp(s, arc, xy[:, 1])])
+    step = np.gradient(dense, axis=0)
+    dense = np.column_stack([dense, np.arctan2(step[:, 1], step[:, 0])])
+    scans = simulate_scans(world, dense, 180, noise_std=0.02, seed=seed)
+    return scans, Truth.from_world(world, ROOM_TRUTH_RESOLUTION)
+
+
+def load(name: str, quick: bool) -> tuple[list, Truth | None]:
+    """The scans of a log and its true map (None for real logs)."""
+    spec = LOGS[name]
+    if name == "room":
+        scans, truth = _room()
+        return scans, (_room_truth_quick() if quick else truth)
+    if name == "stage-arena":
+        from gpomap.io.rosbag import STAGE_TIME_OFFSET, read_rosbag
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the last scan has no later pose and is dropped, with a warning
+            scans = read_rosbag(spec["path"], time_offset=STAGE_TIME_OFFSET)
+        return scans, _stage_truth(QUICK["grid_resolution"] if quick else GRID_RESOLUTION)
+    from gpomap.io import read_scans
+
+    return read_scans(spec["path"]), None
+
+
+def _room_truth_quick() -> Truth:
+    from gpomap.simulate import paper_room
+
+    return Truth.from_world(paper_room()[0], QUICK["grid_resolution"])
+
+
+# ------------------------------------------------------------------------------ running
+def _rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _child(conn: Any, data: EvalData, method: str, resolution: float | None, grid_resolution: float, seed: int) -> None:
+    try:
+        start = _rss_mb()
+        res = run_method(data, method, seed=seed, resolution=resolution or 0.1, grid_resolution=grid_resolution)
+        res["rss_at_start_mb"] = start
+        conn.send(("ok", res))
+    except BaseException:  # report any failure to the parent instead of dying silently
+        conn.send(("error", traceback.format_exc()))
+    finally:
+        conn.close()
+
+
+def run_one(data: EvalData, name: str, grid_resolution: float, seed: int) -> dict[str, Any]:
+    """One method on one split, in a forked child process (its own peak memory)."""
+    method, resolution = METHODS[name]
+    ctx = mp.get_context("fork")
+    parent, child = ctx.Pipe(duplex=False)
+    t = time.perf_counter()
+    proc = ctx.Process(target=_child, args=(child, data, method, resolution, grid_resolution, seed))
+    proc.start()
+    child.close()
+    status, payload = parent.recv()
+    proc.join()
+    if status != "ok":
+        raise RuntimeError(f"{name} failed:\n{payload}")
+    payload["name"] = name
+    payload["wall_in_child"] = time.perf_counter() - t
+    return payload
+
+
+# ------------------------------------------------------------------------------ tables
+def _fmt(v: Any, pct: bool = False) -> str:
+    if v is None or (isinstance(v, float) and np.isnan(v)):
+        return "-"
+    return f"{100 * v:.1f} %" if pct else f"{v:.3f}"
+
+
+def table(rows: list[dict[str, Any]], has_truth: bool) -> list[str]:
+    """Markdown table of one log and split: two lines (points, grid) per method, best marked '*'."""
+    lines_data = []
+    for r in rows:
+        for kind in ("points", "grid"):
+            s = r[kind]
+            # A grid's written map is itself (the same numbers): one row, "own grid".
+            if s is None or (kind == "grid" and r["name"] != "msk"):
+                continue
+            far = r["far"]["lattice"].get(kind, {})
+            truth = (r.get("truth") or {}).get(kind) or {}
+            lines_data.append((r, kind, s, far, truth))
+    cols = COLUMNS + (TRUTH_COLUMNS if has_truth else [])
+    best: dict[str, float] = {}
+    for key, _, higher in COLUMNS:
+        vals = [s[key] for _, _, s, _, _ in lines_data if s.get(key) is not None]
+        if vals:
+            best[key] = max(vals) if higher else min(vals)
+    for key, _, higher in TRUTH_COLUMNS if has_truth else []:
+        vals = [t[key] for *_, t in lines_data if t.get(key) is not None and not np.isnan(t[key])]
+        if vals:
+            best["truth_" + key] = max(vals) if higher else min(vals)
+    head = ["method", "map"] + [c[1] for c in cols] + ["far p (mean ± sd)", "fit s (wall/CPU)", "predict s", "grid s", "peak MB"]
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r, kind, s, far, truth in lines_data:
+        own = r["name"] != "msk"
+        cells = [LABELS[r["name"]], "own grid" if own else ("points" if kind == "points" else f"grid {r['settings']['grid_resolution']:g}")]
+        for key, _, _ in COLUMNS:
+            v = s.get(key)
+            mark = "*" if v is not None and key in best and np.isclose(v, best[key], rtol=0, atol=5e-4) else ""
+            cells.append(_fmt(v, key == "fpr_at_tpr95") + mark)
+        if has_truth:
+            for key, _, _ in TRUTH_COLUMNS:
+                v = truth.get(key)
+                mark = "*" if v is not None and ("truth_" + key) in best and np.isclose(v, best["truth_" + key], atol=5e-4) else ""
+                cells.append(_fmt(v) + mark)
+        cells.append(f"{far['mean']:.3f} ± {far['std']:.3f}" if far.get("n") else "-")
+        sec, cpu = r["seconds"], r["cpu_seconds"]
+        if kind == "points":
+            cells += [f"{sec['fit']:.1f} / {cpu['fit']:.1f}", f"{sec['predict']:.2f}", "", ""]
+        else:
+            cells += ["", "", f"{sec.get('grid', 0):.1f} / {cpu.get('grid', 0):.1f}", ""]
+        if kind == "points":
+            pk = r["peak_rss_mb"]
+            cells[-1] = f"{pk['self']:.0f} (+{pk['children']:.0f} workers; {r['rss_at_start_mb']:.0f} at start)"
+        out.append("| " + " | ".join(cells) + " |")
+    return out
+
+
+def reliability_figure(results: list[dict[str, Any]], log: str, path: Path) -> None:
+    """Reliability diagrams of one log: a panel per split, a curve per method and prediction."""
+    from matplotlib.figure import Figure
+
+    from gpomap.plot import save_figure
+
+    splits = [s for s in SPLIT_NAMES if any(r["log"] == log and r["split"] == s for r in results)]
+    if not splits:
+        return
+    fig = Figure(figsize=(5.2 * len(splits), 4.6), layout="constrained")
+    colours = {"msk": "tab:blue", "ogm-logodds-0.05": "tab:red", "ogm-logodds-0.1": "tab:orange", "ogm-counting-0.05": "tab:green"}
+    for i, split in enumerate(splits):
+        ax = fig.add_subplot(1, len(splits), i + 1)
+        ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="calibrated")
+        for r in results:
+            if r["log"] != log or r["split"] != split:
+                continue
+            for kind, ls in (("points", "-"), ("grid", ":")):
+                if r[kind] is None or (kind == "grid" and r["name"] != "msk"):
+                    continue  # a grid's written map is itself: one curve
+                rel = r[kind]["reliability"]
+                x = [m for m, c in zip(rel["mean_prob"], rel["counts"]) if c]
+                y = [f for f, c in zip(rel["frac_pos"], rel["counts"]) if c]
+                ax.plot(x, y, ls, marker="o", ms=3, color=colours[r["name"]],
+                        label=f"{LABELS[r['name']]}{' grid' if kind == 'grid' else ''} (ECE {r[kind]['ece']:.3f})")
+        ax.set(xlabel="predicted occupancy probability", ylabel="fraction occupied", xlim=(0, 1), ylim=(0, 1),
+               title=f"{LOGS[log]['title']}: {resolve_split(split)}")
+        ax.legend(loc="upper left", fontsize=7)
+    save_figure(fig, path)
+
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--logs", default=",".join(LOGS), help="comma-separated (default: %(default)s)")
+    ap.add_argument("--splits", default=",".join(SPLIT_NAMES), help="comma-separated (default: %(default)s)")
+    ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated (default: %(default)s)")
+    ap.add_argument("--quick", action="store_true",
+                    help=f"smoke run: scans {QUICK['scan_range']} of each log, {QUICK['n_scans']} training scans of "
+                    f"{QUICK['n_beams']} beams, {QUICK['max_test_points']} test points, written grids at {QUICK['grid_resolution']} m")
+    ap.add_argument("--max-test-points", type=int, default=MAX_TEST_POINTS)
+    ap.add_argument("--figures", type=Path, help="write reliability diagrams reliability-<log>.png here")
+    ap.add_argument("--json", type=Path, metavar="OUT", help="write every result (without the models) as JSON")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    logs, splits, methods = (a.split(",") for a in (args.logs, args.splits, args.methods))
+    for given, known, what in ((logs, LOGS, "log"), (methods, METHODS, "method")):
+        bad = sorted(set(given) - set(known))
+        if bad:
+            ap.error(f"unknown {what}(s) {', '.join(bad)}; expected some of {', '.join(known)}")
+    grid_res = QUICK["grid_resolution"] if args.quick else GRID_RESOLUTION
+    print(f"# Map quality (commit {_commit()}, {os.cpu_count()} CPUs; {' '.join(['benchmarks/quality.py'] + (argv or sys.argv[1:]))})")
+    print(f"Written grids at {grid_res} m; at most {QUICK['max_test_points'] if args.quick else args.max_test_points} "
+          "balanced test points per log and split; far p = predictions on lattice points > 5 m from any training beam.",
+          flush=True)
+    results: list[dict[str, Any]] = []
+    for log in logs:
+        spec = LOGS[log]
+        if spec["path"] is not None and not Path(spec["path"]).exists():
+            print(f"\nskipping {log}: {spec['path']} not found", flush=True)
+            continue
+        t = time.perf_counter()
+        scans, truth = load(log, args.quick)
+        read_s = time.perf_counter() - t
+        for split in splits:
+            kw: dict[str, Any] = {"scan_step": spec.get("scan_step", 1), "seed": args.seed, "truth": truth,
+                                  "max_test_points": args.max_test_points}
+            if args.quick:
+                kw.update(scan_range=QUICK["scan_range"], n_scans=QUICK["n_scans"], n_beams=QUICK["n_beams"],
+                          max_test_points=QUICK["max_test_points"])
+            data = prepare(scans, split, **kw)
+            rows = []
+            for name in methods:
+                r = run_one(data, name, grid_res, args.seed)
+                r.update(log=log, split=split)
+                rows.append(r)
+                results.append(r)
+            m = data.masks
+            print(f"\n## {spec['title']}: {resolve_split(split)} ({len(scans)} scans in the log, read in {read_s:.1f} s)\n")
+            print(f"Training {len(data.train)} scans, {len(data.test)} held out; {data.labels.size} test points "
+                  f"({int(m['boundary'].sum())} boundary, {int(m['observed'].sum())} in observed cells, "
+                  f"{int(m['unobserved'].sum())} not; {int(data.far_test.sum())} > 5 m from the data); MSK-GPOM "
+                  + (f"in {rows[0]['settings']['tiles']} tiles, " if methods[0] == "msk" and rows[0]["settings"]["tiles"] else "")
+                  + (f"{rows[0]['n_inputs']} cells.\n" if methods[0] == "msk" else "\n"))
+            print("\n".join(table(rows, truth is not None)), flush=True)
+        if args.figures:
+            args.figures.mkdir(parents=True, exist_ok=True)
+            reliability_figure(results, log, args.figures / f"reliability-{log}.png")
+    if args.json:
+        args.json.write_text(json.dumps(results, default=str, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
