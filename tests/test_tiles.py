@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -147,9 +148,10 @@ def test_dask_local_cluster_matches_in_process(room, reference, tmp_path, monkey
     hyp, ref = reference
     marker = tmp_path / "died"
     monkeypatch.setenv(MARKER_ENV, str(marker))  # before the workers start, so they see it
+    # Not the default client: gpomap must use the client it is given (or makes) explicitly.
     with distributed.LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-    ) as cluster, distributed.Client(cluster) as client:
+    ) as cluster, distributed.Client(cluster, set_as_default=False) as client:
         by_address = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=cluster.scheduler_address, **OPTS)
         _same(by_address.fit(room, hyperparameters=hyp).grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
         # A worker dies mid-run: Dask (or our one retry) reruns the tile; nothing goes missing.
@@ -157,6 +159,57 @@ def test_dask_local_cluster_matches_in_process(room, reference, tmp_path, monkey
         model = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=client, **OPTS).fit(room, hyperparameters=hyp)
         assert marker.exists()
         _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
+
+
+@pytest.fixture
+def progress_mode():
+    """Set the (process-wide) progress mode for one test, restored afterwards."""
+    from gpomap.progress import get_progress_mode, set_progress_mode
+
+    before = get_progress_mode()
+    yield set_progress_mode
+    set_progress_mode(before)
+
+
+@pytest.mark.parametrize("n_workers", [1, 2])
+def test_progress_of_fit_update_and_grid(room, reference, progress_mode, capsys, n_workers):
+    hyp, _ = reference
+    progress_mode("lines")
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=n_workers, **OPTS).fit(room[:12], hyperparameters=hyp)
+    assert re.search(rf"fitting tiles: \d+/{len(model.tiles_)} tiles", capsys.readouterr().err)
+    model.update(room[12:24])
+    assert len(model.last_refit_) > 1  # one tile would be done at once, with no line before the end
+    assert re.search(rf"refitting tiles: \d+/{len(model.last_refit_)} tiles", capsys.readouterr().err)
+    model.grid(0.5)
+    assert re.search(r"predicting tiles: \d+/\d+ tiles", capsys.readouterr().err)
+    progress_mode("quiet")
+    model.update(room[24:])
+    model.grid(0.5)
+    assert len(model.last_refit_) > 1
+    assert capsys.readouterr() == ("", "")  # nothing printed at all
+
+
+def _blas_threads_fit(payload):
+    """The real fit, with the BLAS thread count of the process it ran in added to the state."""
+    from threadpoolctl import threadpool_info
+
+    state = _REAL_FIT(payload)
+    state.hyperparameters["blas_threads"] = max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+    return state
+
+
+def test_pool_workers_share_the_cores_for_blas(room, reference, monkeypatch):
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    hyp, _ = reference
+    monkeypatch.setattr(tiles, "fit_tile_task", _blas_threads_fit)
+    monkeypatch.setattr(tiles, "_cores", lambda: 4)  # as if on 4 cores: 2 workers get 2 threads each
+    before = threadpoolctl.threadpool_info()
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {2}
+    monkeypatch.setattr(tiles, "_cores", lambda: 2)
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {1}
+    assert threadpoolctl.threadpool_info() == before  # this process keeps its own
 
 
 def test_per_tile_hyperparameters_run_and_are_reported(room):
