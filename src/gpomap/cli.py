@@ -565,14 +565,16 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from gpomap.evaluation import evaluate
+    from gpomap.evaluation import GRID_METHODS, Truth, evaluate, resolve_split
 
     if args.demo == (args.input is not None):
         raise GpomapError("give either INPUT or --demo")
+    truth = None
     if args.demo:
-        from gpomap.simulate import paper_room_scans
+        from gpomap.simulate import paper_room, paper_room_scans
 
         scans, source = paper_room_scans(), "demo: the paper's synthetic room"
+        truth = Truth.from_world(paper_room()[0], args.grid_resolution)
     else:
         from gpomap.io import read_scans
 
@@ -582,36 +584,69 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.method in ("msk", "gpom"):
         options["free_step"] = args.free_step
     if args.method == "msk":
-        options.update(min_cell=args.min_cell, max_cell=args.max_cell, objective=args.objective, free_clearance=args.free_clearance,
-                       class_weight=_class_weight(args))
-        if args.area:
-            options["area"] = args.area
+        # The map `gpomap map` would build from the same options (tiles above --max-cells).
+        options = {k: v for k, v in _model_options(args).items() if k not in ("kernel", "seed")}
     result = evaluate(
         scans,
         method=args.method,
-        kernel=args.kernel,
-        holdout=args.holdout,
+        kernel=None if args.method in GRID_METHODS else args.kernel,
+        holdout=args.split,
         n_scans=args.scans,
         n_beams=args.beams,
         scan_range=args.scan_range,
+        scan_step=args.scan_step,
         seed=args.seed,
         resolution=args.resolution,
+        grid_resolution=args.grid_resolution,
+        max_test_points=args.test_points,
+        max_cells=args.max_cells,
+        n_workers=args.workers,
+        truth=truth,
+        score_grid=not args.no_grid,
         **options,
     )
     result["settings"]["input"] = source
     if args.json:
         print(json.dumps(result, default=str))
         return EXIT_OK
-    s = result["seconds"]
-    print(f"method        {args.method} ({args.kernel})" if args.method != "ogm" else "method        ogm")
-    print(f"data          {source}: {result['n_train_scans']} training scans, {result['n_test_scans']} held-out scans ({args.holdout})")
-    print(f"inputs        {result['n_inputs']}")
-    print(f"test points   {result['n_test_points']} (balanced)")
-    print(f"ROC AUC       {result['auc']:.4f}")
-    print(f"FPR@TPR=95%   {100 * result['fpr_at_tpr95']:.2f} %")
-    print(f"log loss      {result['log_loss']:.4f}")
-    print("seconds       " + ", ".join(f"{k} {v:.3f}" for k, v in s.items()))
+    _print_evaluation(args, result, source, resolve_split(args.split))
     return EXIT_OK
+
+
+def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: str, split: str) -> None:
+    """The metrics of ``gpomap evaluate``: exact-point and written-grid predictions side by side."""
+    st = result["settings"]
+    pts, grd = result["points"], result["grid"]
+    grid_label = f"grid {st['grid_resolution']:g} m" if grd else "grid -"
+    print(f"method        {args.method}" + (f" ({st['kernel']})" if st.get("kernel") else f" ({st['resolution']:g} m cells)"))
+    print(f"data          {source}: {result['n_train_scans']} training scans, {result['n_test_scans']} held-out scans ({split})")
+    print(f"inputs        {result['n_inputs']}" + (f" in {st['tiles']} tiles" if st.get("tiles") else ""))
+    print(f"test points   {result['n_test_points']} (balanced): {pts['n_boundary']} within 0.5 m of a held-out hit, "
+          f"{pts['n_observed']} in observed cells, {pts['n_unobserved']} not")
+
+    def fmt(v: Any, pct: bool = False) -> str:
+        if v is None:
+            return "-"
+        return f"{100 * v:.2f} %" if pct else f"{v:.4f}"
+
+    print(f"{'':<16}{'points':>12}{grid_label:>14}")
+    rows = [("ROC AUC", "auc", False), ("boundary AUC", "boundary_auc", False), ("observed AUC", "observed_auc", False),
+            ("unobserved AUC", "unobserved_auc", False), ("FPR@TPR=95%", "fpr_at_tpr95", True), ("log loss", "log_loss", False),
+            ("ECE (10 bins)", "ece", False)]
+    for name, key, pct in rows:
+        print(f"{name:<16}{fmt(pts[key], pct):>12}{fmt(grd[key], pct) if grd else '-':>14}")
+    for where, label in (("test_points", "far test pts"), ("lattice", "far lattice")):
+        f = result["far"][where]
+        cells = [f"{f[k]['mean']:.3f} +- {f[k]['std']:.3f} (n {f[k]['n']})" if f.get(k) and f[k]["n"] else "-"
+                 for k in ("points", "grid")]
+        print(f"{label:<16}" + "   ".join(cells) + "   (> 5 m from any training beam: mean +- std)")
+    if result.get("truth"):
+        for k, t in result["truth"].items():
+            print(f"truth ({k:<6})  AUC {fmt(t['auc'])}, occupied IoU {fmt(t['iou'])} on {t['n_cells']} cells; "
+                  f"observed cells AUC {fmt(t['observed_auc'])}, IoU {fmt(t['observed_iou'])}")
+    print("seconds       " + ", ".join(f"{k} {v:.3f}" for k, v in result["seconds"].items()))
+    print("cpu seconds   " + ", ".join(f"{k} {v:.3f}" for k, v in result["cpu_seconds"].items()))
+    print("peak memory   " + ", ".join(f"{k} {v:.0f} MB" for k, v in result["peak_rss_mb"].items()))
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
@@ -737,14 +772,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_info)
 
     p = sub.add_parser("evaluate", help="score a method on held-out scans", epilog=EPILOG_EVALUATE, formatter_class=fmt,
-                       description="Fit a method on training scans and report ROC AUC, FPR at TPR=95 %, log loss and "
-                       "stage timings on held-out scans (never trained on).")
+                       description="Fit a method on training scans and score it on held-out scans (never trained on): "
+                       "ROC AUC, boundary AUC, AUC in observed and unobserved cells, FPR at TPR=95 %, log loss and "
+                       "calibration, for the exact-point predictions and for the written map, with stage timings.")
     p.add_argument("input", nargs="?", help="CARMEN log or ROS bag (or --demo)")
-    p.add_argument("--demo", action="store_true", help="use the built-in synthetic room")
-    p.add_argument("--method", choices=["msk", "gpomik", "gpom", "ogm"], default="msk", help="(default: %(default)s)")
-    p.add_argument("--holdout", default="every:5", metavar="every:K|blocks:LEN",
-                   help="held-out scans: every K-th, or blocks of LEN consecutive scans (default: %(default)s)")
-    p.add_argument("--resolution", type=_positive(float), default=0.1, help="OGM cell side, m (default: %(default)s)")
+    p.add_argument("--demo", action="store_true", help="use the built-in synthetic room (scored against its true geometry too)")
+    p.add_argument("--method", choices=["msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting"], default="msk",
+                   help="ogm = ogm-logodds, OctoMap's model; ogm-counting: (hits+1)/(hits+misses+2) (default: %(default)s)")
+    p.add_argument("--split", "--holdout", dest="split", default="every", metavar="blocks|every|every:K|blocks:LEN[:K]",
+                   help="held-out scans: 'blocks' = blocks of 40 consecutive scans, every 5th held out; 'every' = every "
+                   "10th scan; or any every:K / blocks:LEN[:K] (default: %(default)s)")
+    p.add_argument("--resolution", type=_positive(float), default=0.1, help="occupancy-grid cell side, m (default: %(default)s)")
+    p.add_argument("--grid-resolution", type=_positive(float), default=0.05,
+                   help="resolution of the written map scored for the GP methods, m (default: %(default)s)")
+    p.add_argument("--no-grid", action="store_true", help="score the exact-point predictions only")
+    p.add_argument("--scan-step", type=_positive(int), default=1, metavar="K", help="use every K-th scan of the log (default: all)")
+    p.add_argument("--test-points", type=_positive(int), metavar="N", help="at most N test points (balanced, seeded subsample)")
+    p.add_argument("--max-cells", type=_positive(int), default=3000,
+                   help="msk: above this many cells the map is built in tiles, as gpomap map does (default: %(default)s)")
+    p.add_argument("--workers", type=_positive(int), help="worker processes for tiles (default: the CPU count)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_reader_options(p)
     _add_selection_options(p)
