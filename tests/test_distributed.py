@@ -3,10 +3,10 @@
 Nothing here makes a default ``distributed.Client`` in the test process: gpomap must pass its own
 client everywhere (the bug this file guards against failed with "No clients found" exactly
 then). The tests start ``dask scheduler`` and ``--no-nanny`` workers from this venv (no nanny, so
-killing the process we started really kills the worker and nothing restarts it), and fixtures
-kill every process they started, whatever happens. Starting a process costs seconds of imports
-on a busy machine, so one scheduler with two workers serves the tests that need workers, and
-the tests that must lose every worker get a scheduler of their own.
+killing the process we started really kills the worker and nothing restarts it), and the fixture
+kills every process it started, whatever happens. Starting a process costs seconds of imports
+on a busy machine, so one scheduler serves every test; each test first starts the workers it
+needs (none when the tests run in file order: the previous test left them).
 """
 
 from __future__ import annotations
@@ -32,10 +32,10 @@ import gpomap.tiles as tiles  # noqa: E402 - only once distributed is known to b
 from gpomap.cli import EXIT_ERROR, EXIT_OK, main  # noqa: E402
 
 LOG = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "intel" / "intel-corrected.log.gz"
-# 30 Intel scans in 4 m tiles: 36 tiles of 14-416 cells, about a second of tile fits; the
+# 20 Intel scans in 4 m tiles: 25 tiles of 29-339 cells, half a second of tile fits; the
 # hyperparameters are fixed (--length-scale) so the runs stay short and exactly comparable.
-MAP_ARGS = ["--range", "0:30", "--beams", "90", "--kernel", "se", "--length-scale", "1.0", "--free-step", "0.5",
-            "--tiles", "--tile-size", "4", "--resolution", "0.25"]
+MAP_ARGS = ["--range", "0:20", "--beams", "90", "--kernel", "se", "--length-scale", "1.0", "--free-step", "0.5",
+            "--tiles", "--tile-size", "4", "--resolution", "0.5"]
 STARTUP_SECONDS = 60.0  # most a process may take to come up on a busy 2-core machine
 
 
@@ -95,11 +95,20 @@ class Cluster:
         for name, proc in started:
             self._wait(lambda proc=proc: "Registered to" in proc.log.read_text(), name, proc)
 
-    def kill_worker(self, i: int) -> None:
-        """SIGKILL worker i (no goodbye to the scheduler, as when a machine dies)."""
-        w = self.workers[i]
-        w.send_signal(signal.SIGKILL)
-        w.wait(10)
+    def alive(self) -> list[subprocess.Popen]:
+        """The workers still running."""
+        return [w for w in self.workers if w.poll() is None]
+
+    def ensure_workers(self, n: int) -> list[subprocess.Popen]:
+        """At least `n` workers running (starting the missing ones); returns the running ones."""
+        self.add_workers(max(0, n - len(self.alive())))
+        return self.alive()
+
+    @staticmethod
+    def kill(worker: subprocess.Popen) -> None:
+        """SIGKILL a worker (no goodbye to the scheduler, as when a machine dies)."""
+        worker.send_signal(signal.SIGKILL)
+        worker.wait(10)
 
     def close(self) -> None:
         for p in reversed(self.procs):
@@ -112,29 +121,15 @@ class Cluster:
                 pass
 
 
-@contextmanager
-def _cluster(folder: Path, n_workers: int) -> Iterator[Cluster]:
-    c = Cluster(folder)
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory) -> Iterator[Cluster]:
+    """A scheduler (workers are started by the tests); every process is killed at the end."""
+    c = Cluster(tmp_path_factory.mktemp("cluster"))
     try:
         c.start_scheduler()
-        c.add_workers(n_workers)
         yield c
     finally:
         c.close()  # also when starting failed half-way
-
-
-@pytest.fixture(scope="module")
-def shared_cluster(tmp_path_factory) -> Iterator[Cluster]:
-    """A scheduler with two workers, for the tests that lose at most one of them."""
-    with _cluster(tmp_path_factory.mktemp("cluster"), 2) as c:
-        yield c
-
-
-@pytest.fixture
-def lone_cluster(tmp_path) -> Iterator[Cluster]:
-    """A scheduler of its own with one worker, for a test that kills it."""
-    with _cluster(tmp_path, 1) as c:
-        yield c
 
 
 @pytest.fixture(scope="module")
@@ -215,37 +210,37 @@ def progress_lines() -> Iterator[None]:
         set_progress_mode(before)
 
 
-def test_cli_map_on_scheduler_matches_in_process(shared_cluster, reference, tmp_path, capsys, progress_lines):
+def test_cli_map_on_scheduler_matches_in_process(cluster, reference, tmp_path, capsys, progress_lines):
+    cluster.ensure_workers(2)
     out = tmp_path / "dask"
-    code = main(["map", str(LOG), "-o", str(out), "--scheduler", shared_cluster.address, *MAP_ARGS])
+    code = main(["map", str(LOG), "-o", str(out), "--scheduler", cluster.address, *MAP_ARGS])
     printed = capsys.readouterr()
     assert code == EXIT_OK, printed.err
     assert "dask" in printed.out  # the summary names the executor
-    assert re.search(r"fitting tiles: \d+/36 tiles", printed.err)  # progress reported
+    assert re.search(r"fitting tiles: \d+/25 tiles", printed.err)  # progress reported
     _assert_same_map(out, reference)
 
 
-def test_dead_worker_tiles_are_recomputed(shared_cluster, room, room_reference, monkeypatch):
+def test_dead_worker_tiles_are_recomputed(cluster, room, room_reference, monkeypatch):
     hyp, ref, n_tiles = room_reference
-    cluster = shared_cluster
-    assert all(w.poll() is None for w in cluster.workers)  # both alive: this is the test that kills one
+    victim, survivor, *_ = cluster.ensure_workers(2)
     model = tiles.TiledGPOM(scheduler=cluster.address, scheduler_timeout=30.0, **ROOM_OPTS)
-    with _on_first_tile_done(monkeypatch, lambda: cluster.kill_worker(0)) as fired:
+    with _on_first_tile_done(monkeypatch, lambda: cluster.kill(victim)) as fired:
         model.fit(room, hyperparameters=hyp)
     assert fired and fired[0] != f"{n_tiles}/{n_tiles}"  # killed while tiles were left
-    assert cluster.workers[0].poll() is not None and cluster.workers[1].poll() is None
+    assert victim.poll() is not None and survivor.poll() is None
     assert sorted(model.tiles_) == sorted(model.last_refit_) and len(model.tiles_) == n_tiles
     got = model.grid(0.25)  # on the one worker left
     np.testing.assert_allclose(got.probability, ref.probability, rtol=0, atol=1e-9)
     np.testing.assert_allclose(got.variance, ref.variance, rtol=0, atol=1e-9)
 
 
-def test_no_workers_left_is_a_clear_error(lone_cluster, room, tmp_path, monkeypatch, capsys):
+def test_no_workers_left_is_a_clear_error(cluster, room, tmp_path, monkeypatch, capsys):
     from gpomap.errors import DistributedError
 
-    cluster = lone_cluster
+    workers = cluster.ensure_workers(1)
     out = tmp_path / "dask"
-    with _on_first_tile_done(monkeypatch, lambda: cluster.kill_worker(0)) as fired:
+    with _on_first_tile_done(monkeypatch, lambda: [cluster.kill(w) for w in workers]) as fired:
         code = main(["map", str(LOG), "-o", str(out), "--scheduler", cluster.address, "--scheduler-timeout", "2",
                      "-q", *MAP_ARGS])
     err = capsys.readouterr().err
