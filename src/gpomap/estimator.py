@@ -145,6 +145,26 @@ class GPMapEstimator:
         probability : ndarray of shape (m,)
         var : ndarray of shape (m,), only with `return_var`
         """
+        pts = as_points(points)
+        p, var = self.predict_proba_gp(pts, return_var=True)
+        evidence = getattr(self, "evidence_", None)
+        if evidence is not None:
+            p = evidence.proba(pts, p)
+        return (p, var) if return_var else p
+
+    def predict_proba_gp(self, points: NDArray[np.float64], return_var: bool = False):
+        """The GP's own probability at points (the calibrated probit, before any ray evidence).
+
+        Parameters
+        ----------
+        points : ndarray of shape (m, 2)
+        return_var : bool
+
+        Returns
+        -------
+        probability : ndarray of shape (m,)
+        var : ndarray of shape (m,), only with `return_var`
+        """
         mean, var = self.predict(points, return_var=True)
         p = self.gp_.squash(mean, var)
         return (p, var) if return_var else p
@@ -184,12 +204,17 @@ class GPMapEstimator:
         spec = GridSpec.from_extent(extent, resolution)
         k = int(supersample)
         fine = GridSpec(spec.origin, spec.resolution / k, (spec.shape[0] * k, spec.shape[1] * k))
-        p, var = self.predict_proba(fine.centres(), return_var=True)
+        p, var = self.predict_proba_gp(fine.centres(), return_var=True)
         # Fine row-major (ny*k, nx*k) -> (ny, k, nx, k): one k x k block per output cell.
         blocks = (spec.shape[0], k, spec.shape[1], k)
+        probability = p.reshape(blocks).max(axis=(1, 3))
+        evidence = getattr(self, "evidence_", None)
+        if evidence is not None:
+            # The counts of the written grid's own cells, so its walls are as sharp as its cells.
+            probability = evidence.grid_proba(spec, probability)
         return OccupancyMap(
             grid=spec,
-            probability=p.reshape(blocks).max(axis=(1, 3)),
+            probability=probability,
             variance=var.reshape(blocks).mean(axis=(1, 3)),
             thresholds=self.thresholds,
             path=self.path_,

@@ -13,7 +13,7 @@ calibrated. Afterwards the map can be asked anywhere: ``predict_proba(points)``,
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from gpomap.cells import Cells, build_cells
 from gpomap.estimator import GPMapEstimator
+from gpomap.fusion import EvidenceLayer
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.area import AreaKernel
@@ -102,6 +103,17 @@ class AreaGPOM(GPMapEstimator):
         Free-below and occupied-above probabilities of the ternary map.
     chunk_size : int
         Query points per prediction chunk.
+    ray_evidence : bool
+        Update the GP's probability with each fine cell's ray counts (see :mod:`gpomap.fusion`):
+        scans that ended a beam in the cell and scans that crossed it, weighed by a calibration
+        fitted on the map's own scans, one held out at a time. Only for scans (labelled points
+        carry no rays). True by default: where the robot has data the map is then as sharp as an
+        occupancy grid and its probabilities are calibrated, and elsewhere it is the GP's.
+    evidence_resolution : float
+        Side of the fine cells of exact-point predictions, metres (a written grid counts on its
+        own cells).
+    calibration_scans : int
+        Scans held out in turn to fit the evidence calibration.
     """
 
     def __init__(
@@ -132,6 +144,9 @@ class AreaGPOM(GPMapEstimator):
         quadrature_order: int = 2,
         thresholds: tuple[float, float] = DEFAULT_THRESHOLDS,
         chunk_size: int = 4096,
+        ray_evidence: bool = True,
+        evidence_resolution: float = 0.05,
+        calibration_scans: int = 25,
     ) -> None:
         self.kernel = kernel
         self.area = area
@@ -159,6 +174,9 @@ class AreaGPOM(GPMapEstimator):
         self.quadrature_order = quadrature_order
         self.thresholds = thresholds
         self.chunk_size = chunk_size
+        self.ray_evidence = ray_evidence
+        self.evidence_resolution = evidence_resolution
+        self.calibration_scans = calibration_scans
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(kernel={self.kernel!r}, area={self.area_method!r}, min_cell={self.min_cell}, max_cell={self.max_cell})"
@@ -208,7 +226,20 @@ class AreaGPOM(GPMapEstimator):
             self.path_ = np.array([s.pose[:2] for s in data])
         else:
             self.path_ = None
+        t = time.perf_counter()
+        self.evidence_ = self.make_evidence(data, self.predict_proba_gp)
+        timings["evidence"] = time.perf_counter() - t
         return self
+
+    def make_evidence(
+        self, data: Sequence[Scan] | Observations, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]
+    ) -> EvidenceLayer | None:
+        """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off)."""
+        if not self.ray_evidence or isinstance(data, Observations):
+            return None
+        return EvidenceLayer(
+            data, self.evidence_resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed
+        )
 
     @property
     def n_inputs_(self) -> int:
@@ -237,6 +268,7 @@ class AreaGPOM(GPMapEstimator):
             "n_cells": len(self.cells_),
             "n_ambiguous_cells": int(self.cells_.ambiguous.sum()),
             "hyperparameters": self.hyperparameters_,
+            "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
             "timings": dict(self.timings_),
         }
 

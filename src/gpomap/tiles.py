@@ -50,6 +50,7 @@ from scipy.special import ndtr
 
 from gpomap.cells import build_cells
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
+from gpomap.fusion import EvidenceLayer
 from gpomap.gp import SupportGP, robust_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
@@ -835,10 +836,21 @@ class TiledGPOM:
         self.tiles_: dict[tuple[int, int], TileState] = self._run(fit_tile_task, jobs, "tile fit", "fitting tiles")
         self._signatures = {t: self._signature(g) for t, g in gathered.items()}
         timings["tile_fits"] = time.perf_counter() - t
+        t = time.perf_counter()
+        self.timings_ = timings
+        self._scans: list[Scan] | None = None if isinstance(data, Observations) else list(data)
+        self.evidence_ = self._make_evidence()
+        timings["evidence"] = time.perf_counter() - t
         timings["total_fit"] = time.perf_counter() - t0
         self.timings_ = timings
         self.last_refit_: list[tuple[int, int]] = sorted(self.tiles_)
         return self
+
+    def _make_evidence(self) -> EvidenceLayer | None:
+        """Ray counts over every scan so far, calibrated against the tiles' GP (see AreaGPOM)."""
+        if self._scans is None:
+            return None
+        return self.base.make_evidence(self._scans, self.predict_proba_gp)
 
     def _set_geometry(self) -> None:
         ls = self.hyperparameters_["length_scale"]
@@ -902,6 +914,11 @@ class TiledGPOM:
         self.last_refit_ = sorted(k for k, _ in todo)
         self.timings_["update_cells"] = t1 - t0
         self.timings_["update_tile_fits"] = time.perf_counter() - t1
+        if self._scans is not None:
+            t2 = time.perf_counter()
+            self._scans.extend(scans)
+            self.evidence_ = self._make_evidence()
+            self.timings_["update_evidence"] = time.perf_counter() - t2
         return self
 
     # ------------------------------------------------------------------ prediction
@@ -1007,6 +1024,24 @@ class TiledGPOM:
         probability : ndarray of shape (m,)
         var : ndarray of shape (m,), only with `return_var`
         """
+        p, var = self.predict_proba_gp(points, return_var=True)
+        if self.evidence_ is not None:
+            p = self.evidence_.proba(np.asarray(points, dtype=float).reshape(-1, 2), p)
+        return (p, var) if return_var else p
+
+    def predict_proba_gp(self, points: NDArray[np.float64], return_var: bool = False):
+        """The tiles' blended GP probability at points, before any ray evidence.
+
+        Parameters
+        ----------
+        points : ndarray of shape (m, 2)
+        return_var : bool
+
+        Returns
+        -------
+        probability : ndarray of shape (m,)
+        var : ndarray of shape (m,), only with `return_var`
+        """
         self._check_fitted()
         t = time.perf_counter()
         p, _, var = self._predict_blended(points)
@@ -1038,10 +1073,13 @@ class TiledGPOM:
         spec = GridSpec.from_extent(extent, resolution)
         t = time.perf_counter()
         p, _, var = self._predict_blended(spec.centres())
+        probability = p.reshape(spec.shape)
+        if self.evidence_ is not None:
+            probability = self.evidence_.grid_proba(spec, probability)
         self.timings_["grid"] = time.perf_counter() - t
         return OccupancyMap(
             grid=spec,
-            probability=p.reshape(spec.shape),
+            probability=probability,
             variance=var.reshape(spec.shape),
             thresholds=self.base.thresholds,
             path=self.path_,
@@ -1079,6 +1117,7 @@ class TiledGPOM:
             "n_no_return_readings": self._n_no_return,
             "hyperparameters": dict(self.hyperparameters_),
             "hyperparameter_source": dict(self.hyper_source_),
+            "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
             "timings": dict(self.timings_),
             "peak_memory": _peak_rss_mb(),
             "executor": "dask" if self.scheduler is not None else ("in-process" if self.n_workers_ <= 1 else f"process pool x{self.n_workers_}"),

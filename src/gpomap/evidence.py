@@ -1,0 +1,148 @@
+"""Ray evidence: how many scans saw each fine cell free and how many ended a beam in it.
+
+The GP over cells is a smooth prior over the whole map; what it cannot keep is the count of beams
+that crossed a particular 5 cm cell, which is what makes a plain occupancy grid sharp where the
+robot has data. :class:`RayEvidence` keeps the beams and counts, on any grid, the scans that
+ended a beam in each cell (hits) and the scans that crossed it without ending there (misses). As
+in OctoMap, a scan updates a cell once, and a hit wins over a miss of the same scan.
+:mod:`gpomap.fusion` combines these counts with the GP's probability.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.grid import GridSpec
+from gpomap.raycast import traverse
+from gpomap.scans import Scan
+
+# Traversal entries handled per batch of scans: bounds the temporary memory (~24 bytes each).
+_ENTRIES_PER_BATCH: int = 1 << 22
+
+
+@dataclass(frozen=True)
+class RayEvidence:
+    """The beams of a set of scans, ready to be counted on any grid.
+
+    Attributes
+    ----------
+    starts, ends : ndarray of shape (b, 2)
+        Sensor position and end point of each usable beam (no-return beams end at the cap).
+    hit : ndarray of bool, shape (b,)
+        Whether the beam returned (its end cell is a hit); False for no-return beams.
+    scan : ndarray of int, shape (b,)
+        Index of the scan each beam belongs to, non-decreasing.
+    """
+
+    starts: NDArray[np.float64]
+    ends: NDArray[np.float64]
+    hit: NDArray[np.bool_]
+    scan: NDArray[np.intp]
+
+    @classmethod
+    def from_scans(cls, scans: Sequence[Scan], no_return_cap: float | None = 10.0) -> RayEvidence:
+        """Collect the usable beams of `scans`.
+
+        Parameters
+        ----------
+        scans : sequence of Scan
+        no_return_cap : float or None
+            No-return beams clear free space this far (None: to the recorded range); they never
+            give a hit.
+        """
+        starts, ends, hit, scan = [], [], [], []
+        for i, s in enumerate(scans):
+            valid = s.valid()
+            no_ret = s.no_return()
+            length = s.ranges
+            if no_return_cap is not None:
+                length = np.where(no_ret, np.minimum(length, no_return_cap), length)
+            a = s.world_angles()[valid]
+            n = int(valid.sum())
+            starts.append(np.broadcast_to(s.pose[:2], (n, 2)))
+            ends.append(s.pose[:2] + length[valid][:, None] * np.column_stack([np.cos(a), np.sin(a)]))
+            hit.append(~no_ret[valid])
+            scan.append(np.full(n, i, dtype=np.intp))
+        if not starts:
+            empty = np.zeros((0, 2))
+            return cls(empty, empty.copy(), np.zeros(0, bool), np.zeros(0, np.intp))
+        return cls(np.concatenate(starts), np.concatenate(ends), np.concatenate(hit), np.concatenate(scan))
+
+    @property
+    def n_scans(self) -> int:
+        """Number of scans the beams came from."""
+        return int(self.scan[-1]) + 1 if self.scan.size else 0
+
+    def extent(self) -> tuple[float, float, float, float]:
+        """(xmin, xmax, ymin, ymax) of every beam's start and end."""
+        pts = np.concatenate([self.starts, self.ends])
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+
+    def counts(self, grid: GridSpec, scans: NDArray[np.intp] | None = None) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+        """Hits and misses per cell of `grid`, one update per cell per scan, a hit winning.
+
+        Parameters
+        ----------
+        grid : GridSpec
+        scans : ndarray of int, optional
+            Count only these scans (default: all).
+
+        Returns
+        -------
+        hits, misses : ndarray of int32, shape grid.shape
+        """
+        ny, nx = grid.shape
+        hits = np.zeros(ny * nx, dtype=np.int32)
+        misses = np.zeros(ny * nx, dtype=np.int32)
+        select = np.ones(self.scan.size, bool) if scans is None else np.isin(self.scan, scans)
+        idx = np.flatnonzero(select)
+        if idx.size == 0:
+            return hits.reshape(ny, nx), misses.reshape(ny, nx)
+        # Batches of whole scans whose traversals stay under the entry budget.
+        cells_per_beam = np.abs(np.floor(self.ends[idx] / grid.resolution) - np.floor(self.starts[idx] / grid.resolution)).sum(axis=1) + 2
+        cost = np.cumsum(cells_per_beam)
+        scan_of = self.scan[idx]
+        lo = 0
+        while lo < idx.size:
+            base = cost[lo - 1] if lo > 0 else 0.0
+            hi = max(lo + 1, int(np.searchsorted(cost, base + _ENTRIES_PER_BATCH, side="right")))
+            if hi < idx.size:
+                # Round down to a scan boundary, keeping at least one whole scan.
+                boundary = int(np.searchsorted(scan_of, scan_of[hi], side="left"))
+                hi = boundary if boundary > lo else int(np.searchsorted(scan_of, scan_of[lo], side="right"))
+            self._accumulate(grid, idx[lo:hi], hits, misses)
+            lo = hi
+        return hits.reshape(ny, nx), misses.reshape(ny, nx)
+
+    def _accumulate(self, grid: GridSpec, beams: NDArray[np.intp], hits: NDArray[np.int32], misses: NDArray[np.int32]) -> None:
+        ny, nx = grid.shape
+        ncell = ny * nx
+        b, rows, cols = traverse(grid, self.starts[beams], self.ends[beams])
+        scan = self.scan[beams]
+        crossed = np.unique(scan[b].astype(np.int64) * ncell + rows * nx + cols)
+        er, ec, inside = grid.index_of(self.ends[beams])
+        ended = inside & self.hit[beams]
+        hit_keys = np.unique(scan[ended].astype(np.int64) * ncell + er[ended] * nx + ec[ended])
+        # A scan that ended a beam in a cell counts a hit there, not also a miss.
+        miss_keys = crossed[~np.isin(crossed, hit_keys, assume_unique=True)]
+        hits += np.bincount(hit_keys % ncell, minlength=ncell).astype(np.int32)
+        misses += np.bincount(miss_keys % ncell, minlength=ncell).astype(np.int32)
+
+
+def lattice_grid(extent: tuple[float, float, float, float], resolution: float, margin: float = 0.0) -> GridSpec:
+    """The grid of cells ``[k r, (k + 1) r)`` covering `extent` (plus `margin`), r = `resolution`.
+
+    Cells on this lattice are the same whatever the extent, so counts taken on grids of two
+    extents agree cell by cell.
+    """
+    xmin, xmax, ymin, ymax = extent
+    x0 = np.floor((xmin - margin) / resolution) * resolution
+    y0 = np.floor((ymin - margin) / resolution) * resolution
+    nx = int(np.floor((xmax + margin - x0) / resolution)) + 1
+    ny = int(np.floor((ymax + margin - y0) / resolution)) + 1
+    return GridSpec((float(x0), float(y0)), resolution, (ny, nx))

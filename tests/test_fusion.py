@@ -1,0 +1,142 @@
+"""Ray evidence (hit and miss counts per cell) and its fusion with the GP's probability."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpomap.evidence import RayEvidence, lattice_grid
+from gpomap.fusion import EvidenceCalibration, calibration_points, fit_calibration
+from gpomap.grid import GridSpec
+from gpomap.mapping import AreaGPOM
+from gpomap.scans import Scan
+from gpomap.simulate import paper_room_scans
+
+
+def _scan(x: float, y: float, angles: list[float], ranges: list[float], max_range: float = 5.0) -> Scan:
+    return Scan(pose=np.array([x, y, 0.0]), angles=np.array(angles), ranges=np.array(ranges), max_range=max_range)
+
+
+GRID = GridSpec((0.0, 0.0), 0.1, (3, 20))
+
+
+def test_counts_along_one_beam_by_hand() -> None:
+    # From the centre of cell (1, 0) along +x to x = 1.05: crosses cells 0..9 of row 1, ends in 10.
+    s = _scan(0.05, 0.15, [0.0], [1.0])
+    hits, misses = RayEvidence.from_scans([s]).counts(GRID)
+    assert hits.sum() == 1 and hits[1, 10] == 1
+    assert misses[1, :10].tolist() == [1] * 10 and misses.sum() == 10
+
+
+def test_one_update_per_cell_per_scan_and_hit_wins() -> None:
+    # Two beams of one scan: one ends in cell (1, 5), the other passes through it to cell 12.
+    s = _scan(0.05, 0.15, [0.0, 0.0], [0.5, 1.2])
+    hits, misses = RayEvidence.from_scans([s]).counts(GRID)
+    assert hits[1, 5] == 1 and misses[1, 5] == 0  # the hit wins over the same scan's miss
+    assert hits[1, 12] == 1
+    assert misses[1, 0:5].tolist() == [1] * 5  # crossed by both beams, counted once
+    # The same scan twice: every count doubles.
+    h2, m2 = RayEvidence.from_scans([s, s]).counts(GRID)
+    np.testing.assert_array_equal(h2, 2 * hits)
+    np.testing.assert_array_equal(m2, 2 * misses)
+
+
+def test_no_return_beam_gives_misses_to_the_cap_and_no_hit() -> None:
+    s = _scan(0.05, 0.15, [0.0], [5.0], max_range=5.0)
+    hits, misses = RayEvidence.from_scans([s], no_return_cap=0.7).counts(GRID)
+    assert hits.sum() == 0
+    assert misses[1, :8].tolist() == [1] * 8 and misses.sum() == 8
+
+
+def test_counts_add_over_scans_and_batches(monkeypatch: pytest.MonkeyPatch) -> None:
+    scans = paper_room_scans()[:6]
+    ev = RayEvidence.from_scans(scans)
+    grid = lattice_grid(ev.extent(), 0.05, margin=0.05)
+    hits, misses = ev.counts(grid)
+    parts = [ev.counts(grid, scans=np.array([k])) for k in range(len(scans))]
+    np.testing.assert_array_equal(hits, sum(p[0] for p in parts))
+    np.testing.assert_array_equal(misses, sum(p[1] for p in parts))
+    # Tiny batches (one scan each) give the same counts as one batch.
+    import gpomap.evidence as evidence
+
+    monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", 1)
+    h1, m1 = ev.counts(grid)
+    np.testing.assert_array_equal(h1, hits)
+    np.testing.assert_array_equal(m1, misses)
+
+
+def test_lattice_cells_do_not_depend_on_the_extent() -> None:
+    a = lattice_grid((0.12, 3.0, -1.0, 2.0), 0.05)
+    b = lattice_grid((-2.0, 3.0, -1.3, 2.0), 0.05)
+    for g in (a, b):
+        k = np.array(g.origin) / 0.05
+        np.testing.assert_allclose(k, np.round(k), atol=1e-9)
+
+
+def test_calibration_formula_by_hand() -> None:
+    cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0, temperature=1.0)
+    # (2 * 1 + 2 * 0.5) / (2 * 1 + 1 + 2) = 0.6
+    assert cal(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.6)
+    # No counts: the GP's probability; temperature 2 squares the odds.
+    assert cal(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(0.8)
+    hot = EvidenceCalibration(1.0, 2.0, 2.0)
+    assert hot(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(16 / 17)
+
+
+def test_calibration_points_follow_the_protocol() -> None:
+    s = _scan(0.0, 0.0, [0.0, np.pi / 2], [1.0, 5.0], max_range=5.0)
+    pts, occ = calibration_points(s, step=0.1, no_return_cap=0.5)
+    free = pts[~occ]
+    # Returned beam: free at 0.1 .. 0.9 (0.1 short of the hit), and the hit at 1.0.
+    along_x = np.sort(free[np.abs(free[:, 1]) < 1e-9, 0])
+    np.testing.assert_allclose(along_x, np.arange(1, 10) * 0.1)
+    np.testing.assert_allclose(pts[occ], [[1.0, 0.0]], atol=1e-12)
+    # No-return beam: free to the cap, no hit.
+    along_y = np.sort(free[np.abs(free[:, 0]) < 1e-9, 1])
+    np.testing.assert_allclose(along_y, np.arange(1, 6) * 0.1)
+
+
+def test_leave_one_scan_out_removes_the_scans_own_counts() -> None:
+    # Two scans from different poses; the calibration points of scan 0 must see scan 1's counts only.
+    a = _scan(0.05, 0.15, [0.0], [1.0])
+    b = _scan(0.05, 0.25, [0.0], [1.5])
+    ev = RayEvidence.from_scans([a, b])
+    seen = {}
+
+    def predict_gp(points: np.ndarray) -> np.ndarray:
+        seen["points"] = points
+        return np.full(len(points), 0.5)
+
+    cal, report = fit_calibration([a, b], ev, GRID, predict_gp, n_scans=2, step=0.1)
+    assert report["n_points"] > 0
+    # With only the other scan's counts, each scan's hit cell has no hit: a leaked count would
+    # make hits certain and drive the log loss to near zero.
+    assert report["log_loss"] > 0.3
+
+
+def test_fused_map_is_sharper_than_the_gp_and_half_far_away() -> None:
+    scans = paper_room_scans()
+    model = AreaGPOM(kernel="se").fit(scans[::2])
+    test = scans[1::2]
+    pts, occ = [], []
+    for s in test:
+        p, o = calibration_points(s, step=0.1)
+        pts.append(p)
+        occ.append(o)
+    P, Y = np.concatenate(pts), np.concatenate(occ)
+    from gpomap.metrics import roc_auc
+
+    fused = roc_auc(Y, model.predict_proba(P))
+    gp = roc_auc(Y, model.predict_proba_gp(P))
+    assert fused > gp
+    # Far from every observation: no counts, zero latent mean, p = 0.5.
+    assert model.predict_proba(np.array([[1e4, 1e4]]))[0] == pytest.approx(0.5, abs=1e-9)
+
+
+def test_written_grid_uses_its_own_cells_counts() -> None:
+    scans = paper_room_scans()
+    model = AreaGPOM(kernel="se").fit(scans)
+    om = model.grid(0.25)
+    hits, misses = model.evidence_.evidence.counts(om.grid)
+    p_gp = model.predict_proba_gp(om.grid.centres()).reshape(om.grid.shape)
+    np.testing.assert_allclose(om.probability, model.evidence_.calibration(p_gp, hits, misses), atol=1e-12)
