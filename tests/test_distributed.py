@@ -140,7 +140,7 @@ def reference(tmp_path_factory) -> dict[str, np.ndarray]:
     return dict(np.load(out / "map.npz"))
 
 
-# The library on the built-in simulator: 20 tiles of 4 m, fixed hyperparameters.
+# The library on the built-in simulator: 35 tiles of 4 m (8-107 cells), fixed hyperparameters.
 ROOM_OPTS = dict(tile_size=4.0, overlap=2.0, kernel="se", free_step=0.5, min_cell=0.5, max_cell=3.0, optimise=False,
                  length_scale=1.0, noise=0.1)
 
