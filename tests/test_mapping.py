@@ -69,8 +69,11 @@ def test_grid_and_ternary(fitted):
     assert np.all((m.probability >= 0) & (m.probability <= 1))
     assert np.all(m.variance >= 0)
     assert (m.ternary == FREE).sum() > (m.ternary == OCCUPIED).sum() > 0
-    p, v = fitted.predict_proba(m.grid.centres()[:50], return_var=True)
-    np.testing.assert_allclose(p, m.probability.ravel()[:50])
+    # The grid is the GP at the cell centres updated by each grid cell's own ray counts.
+    p, v = fitted.predict_proba_gp(m.grid.centres()[:50], return_var=True)
+    hits, misses = fitted.evidence_.grid_counts(m.grid)
+    fused = fitted.evidence_.calibration(p, hits.ravel()[:50], misses.ravel()[:50])
+    np.testing.assert_allclose(fused, m.probability.ravel()[:50])
     mean, var = fitted.predict(m.grid.centres()[:50], return_var=True)
     np.testing.assert_allclose(var, v)
     summary = fitted.summary()

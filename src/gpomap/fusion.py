@@ -172,7 +172,7 @@ def fit_calibration(
 
     def loss(theta: NDArray[np.float64]) -> float:
         cal = EvidenceCalibration(*np.exp(theta))
-        p = cal(p_gp, h, m)
+        p = np.clip(cal(p_gp, h, m), 1e-12, 1 - 1e-12)
         return float(-np.mean(np.where(occ, np.log(p), np.log1p(-p))))
 
     x0 = np.log([default.hit_weight, default.prior_weight, default.temperature])
