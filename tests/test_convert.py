@@ -169,3 +169,42 @@ def test_turtlebot_map_converts():
     assert rep["agreement"]["ternary"] > 0.95 and rep["agreement"]["auc"] > 0.99
     # Far from every known pixel the map stays unknown.
     assert res.map.ternary[0, 0] == UNKNOWN and res.map.ternary[-1, -1] == UNKNOWN
+
+
+def _thin_wall_plan(n=100):
+    """A fine truth (n x n pixels of 0.01 m): 2-pixel walls at offsets that do not line up with a
+    5-pixel coarse grid, a solid block, free elsewhere."""
+    fine = np.zeros((n, n), dtype=bool)
+    fine[:, 0:2] = fine[:, -2:] = fine[0:2, :] = fine[-2:, :] = True  # outer walls
+    fine[20:80, 33:35] = True  # vertical wall inside coarse column 6 (fine 30..34)
+    fine[61:63, 10:60] = True  # horizontal wall inside coarse row 12 (fine 60..64)
+    fine[25:40, 70:85] = True  # a solid block
+    return fine
+
+
+def test_finer_resolution_beats_nearest_neighbour_upsampling():
+    # A coarse pixel is occupied if any of its 5 x 5 fine pixels is; the continuous map sampled at
+    # the fine resolution ranks the true fine occupancy better than nearest-neighbour and bilinear
+    # up-sampling of the coarse grid (measured: AUC 0.966 against 0.919 and 0.956).
+    from scipy import ndimage
+
+    from gpomap.metrics import roc_auc
+
+    fine = _thin_wall_plan()
+    k = 5
+    coarse = fine.reshape(20, k, 20, k).any(axis=(1, 3))
+    src = OccupancyMap(GridSpec((0.0, 0.0), 0.05, coarse.shape), coarse.astype(float))
+    res = convert_grid(src, resolution=0.01)
+    assert res.map.grid.shape == fine.shape
+    nearest = np.kron(coarse, np.ones((k, k))).astype(float)
+    auc_gp = roc_auc(fine.ravel(), res.map.probability.ravel())
+    auc_nn = roc_auc(fine.ravel(), nearest.ravel())
+    bilinear = ndimage.zoom(coarse.astype(float), k, order=1, grid_mode=True, mode="nearest")
+    auc_bl = roc_auc(fine.ravel(), bilinear.ravel())
+    assert auc_gp > auc_nn + 0.02 and auc_gp > auc_bl + 0.003, (auc_gp, auc_nn, auc_bl)
+    # The cells cover their pixels' footprints: every box edge lies on the coarse pixel lattice.
+    cells = res.model.cells_
+    for edge in (cells.lower, cells.upper):
+        np.testing.assert_allclose(edge / 0.05, np.round(edge / 0.05), atol=1e-9)
+    # Far inside free space the map is free, at the block's centre occupied.
+    assert res.map.probability[50, 50] < 0.2 and res.map.probability[32, 77] > 0.8

@@ -3,8 +3,9 @@
 A grid (a ROS map_server map, or an :class:`~gpomap.grid.OccupancyMap` such as one read from an
 ``.npz``) already says which pixels are free and which occupied. Each known pixel becomes one
 labelled point at its centre; unknown pixels are not evidence and give no point. The cell tree then
-merges neighbourhoods of same-label pixels into larger cells, the MSK-GPOM model is fitted on those
-cells, and the continuous map is sampled back onto a grid at any resolution.
+merges neighbourhoods of same-label pixels into larger cells, each covering its pixels' squares,
+the MSK-GPOM model is fitted on those cells, and the continuous map is sampled back onto a grid at
+any resolution.
 
     >>> result = convert_grid("map.yaml", resolution=0.01)      # doctest: +SKIP
     >>> write_rosmap(result.map, "map_fine.yaml")               # doctest: +SKIP
@@ -18,50 +19,69 @@ written at 0.01 m, 0.025 m or 0.1 m, 0.2 m for a 384-pixel map, ...) the outer e
 Otherwise the grid gets as many whole cells as are needed to cover the source, so its top and right
 edges lie up to one output cell beyond the source's (they are never cropped short of it).
 
-Defaults (measured on the TurtleBot3 world map, 384 x 384 pixels of 0.05 m, 8,734 known pixels)
---------------------------------------------------------------------------------------------------
-- squared-exponential kernel with the exact closed-form area kernel: 98.4 % of known pixels keep
-  their label in 1 s of fitting, against 98.2 % in 22 s (and 37 s of prediction) for Matern 3/2
-  with quadrature;
-- cells with "tight" boxes (the bounding box of their own pixel centres), so a cell never claims
-  the unknown pixels around it: 98.4 % (occupied pixels 92 %) against 97.3 % (86 %) with the
-  tree's node boxes. Boxes widened to the pixels' full footprints measured the same (98.3 %);
+Defaults (measured with benchmarks/convert_maps.py; see docs/convert.md)
+-------------------------------------------------------------------------
+- cells cover their pixels' full footprints (:class:`GridGPOM`: the tree's "tight" box of pixel
+  centres widened by half a source pixel): a pixel is an area observation, not a point at its
+  centre. Converting the Stage arena plan down-sampled to 0.05 m back to 0.01 m, footprints and
+  ``max_cell`` = 4 pixels give ROC AUC 0.9922 against the fine plan (centre boxes and 8 pixels:
+  0.9775; bilinear up-sampling 0.9885, nearest 0.9770) and occupied IoU (p > 0.5) 0.345 (0.257;
+  bilinear 0.379). On the TurtleBot3 map (384 x 384 pixels of 0.05 m, 8,734 known) 99.0 % of
+  known pixels keep their label (98.7 % before), free 99.7 % (99.0 %), occupied 92.2 % (96.0 %:
+  alpha settles at 6.4 instead of the cap of 30, so a few wall pixels fall to p 0.5-0.66);
+- ``max_cell`` = 4 pixels: with footprints the learnt length scale is 1-3 pixels, and free cells
+  of 8 x 8 pixels (much larger than it) constrain only their average: the map rang inside them
+  (bands of p > 0.5 parallel to walls, arena IoU 0.319). 2 pixels: IoU 0.365, AUC 0.9885, at 2.5x
+  the cells and twice the time;
 - ``min_cell`` = 1.2 pixels: a single pixel stops splitting, so a mixed 2 x 2 block is the smallest
-  ambiguous cell; ``max_cell`` = 8 pixels: free space is merged into cells of up to 8 x 8 pixels
-  (884 cells from 8,734 pixels). 5 pixels gave 1,299 cells and 98.7 %; 20 pixels 824 cells and
-  91 %: cells much larger than the length scale (~4 pixels) average away what lies inside them;
-- length scale started at 3 pixels and bounded to 1..50 pixels (the estimator's defaults are in
-  metres for laser data); the default ``objective="loo"`` (``"lml"``: 97.7 %, occupied 84 %); no
-  restarts: two extra starts found the same optimum at 5x the time.
+  ambiguous cell;
+- squared-exponential kernel with the exact closed-form area kernel (measured earlier with centre
+  boxes on TurtleBot3: 98.4 % of known pixels in 1 s of fitting, against 98.2 % in 22 s for
+  Matern 3/2 with quadrature);
+- length scale started at 3 pixels and bounded to 1..50 pixels. A lower bound of 2 pixels was no
+  better: arena 0.1 m AUC 0.9781 / IoU 0.177 against 0.9759 / 0.190; 0.05 m with 8-pixel cells
+  0.9780 / 0.257 against 0.9900 / 0.319. The default ``objective="loo"``; no restarts.
+
+Occupied-class IoU at p > 0.5 stays below interpolation's: with labels +-1, a zero prior mean and
+beta held at 0, p > 0.5 exactly where the latent mean is positive, whatever alpha; between an
+occupied pixel and its free neighbour the mean crosses 0 near their shared edge, so the p > 0.5 band
+is about one coarse pixel wide, as interpolation's, while a thin wall is narrower. (The ternary
+"occupied", p > 0.66, is narrower: arena IoU 0.412.) Free supports along each wall pixel's edges
+moved the crossing inside the pixel but made the SE map ring in the larger free cells (IoU 0.265).
+At 0.1 m -> 0.01 m (10 x 10 fine pixels per coarse one) the map is below bilinear in AUC too
+(0.9759 against 0.9817).
 
 Known weakness: on a perfectly separable grid (a clean synthetic map) the leave-one-out objective
 has no finite optimum (alpha and beta can grow without bound), and where the optimiser stops
 decides whether a wall 1, 2 or 4 pixels thick comes out occupied or "unknown" (p ~ 0.5). Real maps
-(TurtleBot3: alpha ~ 4.6) are not separable and do not show it.
+(TurtleBot3: alpha ~ 6.4) are not separable and do not show it.
 
 Second weakness, measured on the TurtleBot3 map (benchmarks/convert_maps.py): where an occupied
 wall borders unknown space (the outside of a map's outer walls), nothing free counters it and the
-wall bleeds outwards: 99.5 % of unknown pixels 1-2 pixels from known ones and 85 % of those 3-10
-pixels away come out occupied. Beyond 10 pixels (2-3 length scales) the map returns to the prior
-(variance ~1, p ~ 0.48, labelled unknown).
+wall bleeds outwards: 99.3 % of unknown pixels 1-2 pixels from known ones and 98.9 % of those 3-10
+pixels away come out occupied, 15 % of those 11-20 pixels away (mean p 0.57). Farther the map is
+the prior (variance 1, p = 0.5, labelled unknown).
 
-Any of these can be overridden through ``**model_options`` (the :class:`~gpomap.mapping.AreaGPOM`
-constructor arguments). ``free_step``, ``hit_margin`` and ``no_return_cap`` concern laser beams and
+Any of these can be overridden through ``**model_options`` (the :class:`GridGPOM` constructor
+arguments: those of :class:`~gpomap.mapping.AreaGPOM` and ``pixel_pad``; ``pixel_pad=0`` gives the
+centre boxes of before). ``free_step``, ``hit_margin`` and ``no_return_cap`` concern laser beams and
 have no effect here.
 """
 
 from __future__ import annotations
 
+import inspect
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Union
 
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.cells import Cells, build_cells
 from gpomap.errors import EmptyDataError, InputFormatError
 from gpomap.grid import FREE, OCCUPIED, UNKNOWN, GridSpec, OccupancyMap, ternary
 from gpomap.io.npz import load_map
@@ -71,13 +91,16 @@ from gpomap.mapping import AreaGPOM
 from gpomap.metrics import roc_auc
 from gpomap.observations import Observations
 
-__all__ = ["ConversionResult", "grid_to_observations", "convert_grid", "output_grid", "load_grid", "model_defaults"]
+__all__ = ["ConversionResult", "GridGPOM", "grid_to_observations", "convert_grid", "output_grid", "load_grid", "model_defaults"]
 
 GridSource = Union[RosMap, OccupancyMap, str, "os.PathLike[str]"]
 
 #: Cell-tree sizes in source pixels (see the module docstring for the measurements behind them).
 MIN_CELL_PIXELS = 1.2
-MAX_CELL_PIXELS = 8.0
+MAX_CELL_PIXELS = 4.0
+#: Each cell box is widened by this many source pixels on every side: half a pixel turns the
+#: bounding box of the cell's pixel centres into the union of its pixels' footprints.
+FOOTPRINT_PIXELS = 0.5
 #: Starting length scale and its search bounds, in source pixels.
 LENGTH_SCALE_PIXELS = 3.0
 LENGTH_SCALE_BOUNDS_PIXELS = (1.0, 50.0)
@@ -238,6 +261,57 @@ def output_grid(
     return GridSpec((xmin, ymin), res, (ny, nx))
 
 
+class GridGPOM(AreaGPOM):
+    """:class:`~gpomap.mapping.AreaGPOM` whose cells cover their pixels' full footprints.
+
+    A grid pixel is an area observation: a free pixel says its whole square is free, an occupied
+    one that something within its square is occupied. The cell tree runs on pixel centres as for
+    any labelled points; each cell's box is then widened by `pixel_pad` metres on every side, so
+    a cell of pixels covers those pixels' squares (with ``cell_box="tight"``) rather than the
+    bounding box of their centres (a single pixel would be a point, a run of pixels a segment).
+
+    Parameters
+    ----------
+    pixel_pad : float
+        Widening of every cell box, metres (half the source pixel for footprints; 0: the plain
+        :class:`~gpomap.mapping.AreaGPOM`).
+    **options
+        :class:`~gpomap.mapping.AreaGPOM` arguments.
+    """
+
+    def __init__(self, pixel_pad: float = 0.0, **options: Any) -> None:
+        super().__init__(**options)
+        self.pixel_pad = float(pixel_pad)
+
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        """The constructor arguments, by name (AreaGPOM's and ``pixel_pad``)."""
+        names = [n for n in inspect.signature(AreaGPOM.__init__).parameters if n != "self"]
+        return {"pixel_pad": self.pixel_pad, **{n: getattr(self, n) for n in names}}
+
+    def fit(self, data: Observations) -> GridGPOM:  # type: ignore[override]
+        """Build the map from labelled pixel centres (see the class docstring)."""
+        timings: dict[str, float] = {}
+        t = time.perf_counter()
+        obs = self.make_observations(data)
+        timings["observations"] = time.perf_counter() - t
+        t = time.perf_counter()
+        cells = build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
+        if self.pixel_pad > 0:
+            cells = replace(cells, lower=cells.lower - self.pixel_pad, upper=cells.upper + self.pixel_pad)
+        timings["cells"] = time.perf_counter() - t
+        gp = self._make_gp(self.make_kernel())
+        gp.fit(cells.to_supports(), cells.labels)
+        timings.update(gp.timings_)
+        self.observations_: Observations = obs
+        self.cells_: Cells = cells
+        self.gp_ = gp
+        self.timings_ = timings
+        self.extent_points_ = obs.points
+        self.path_ = None
+        self.evidence_ = self.make_evidence(data, self.predict_proba_gp)
+        return self
+
+
 def model_defaults(resolution: float) -> dict[str, Any]:
     """AreaGPOM settings for a grid of pixel side `resolution` (see the module docstring).
 
@@ -249,10 +323,12 @@ def model_defaults(resolution: float) -> dict[str, Any]:
     Returns
     -------
     dict
-        Constructor arguments of :class:`~gpomap.mapping.AreaGPOM`.
+        Constructor arguments of :class:`GridGPOM` (those of :class:`~gpomap.mapping.AreaGPOM`
+        and ``pixel_pad``).
     """
     r = float(resolution)
     return {
+        "pixel_pad": FOOTPRINT_PIXELS * r,
         "kernel": "se",
         "cell_box": "tight",
         "min_cell": MIN_CELL_PIXELS * r,
@@ -346,7 +422,7 @@ def convert_grid(
 
     options = model_defaults(src.resolution)
     options.update(model_options)
-    model = AreaGPOM(**options)
+    model = GridGPOM(**options)
     t = time.perf_counter()
     model.fit(obs)
     t_fit = time.perf_counter() - t
@@ -354,8 +430,10 @@ def convert_grid(
 
     spec = output_grid(src, resolution, extent)
     t = time.perf_counter()
-    # Every cell box lies within the known pixel centres' bounding box ("node" and "tight" alike).
-    support_box = (obs.points.min(axis=0), obs.points.max(axis=0))
+    # Every cell box lies within the known pixel centres' bounding box ("node" and "tight" alike),
+    # widened by the footprint padding.
+    pad = model.pixel_pad
+    support_box = (obs.points.min(axis=0) - pad, obs.points.max(axis=0) + pad)
     prob, var = _predict_on(model, spec, support_box)
     t_pred = time.perf_counter() - t
 
