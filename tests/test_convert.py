@@ -208,3 +208,16 @@ def test_finer_resolution_beats_nearest_neighbour_upsampling():
         np.testing.assert_allclose(edge / 0.05, np.round(edge / 0.05), atol=1e-9)
     # Far inside free space the map is free, at the block's centre occupied.
     assert res.map.probability[50, 50] < 0.2 and res.map.probability[32, 77] > 0.8
+
+
+def test_model_defaults_are_area_gpom_arguments():
+    # The CLI counts cells with AreaGPOM(**model_defaults(...)); the footprint padding is
+    # convert_grid's own option, and pixel_pad=0 gives boxes round the pixel centres.
+    from gpomap.convert import model_defaults
+    from gpomap.mapping import AreaGPOM
+
+    AreaGPOM(**model_defaults(0.05))
+    res = convert_grid(_wall_map(), pixel_pad=0.0, optimise=False, length_scale=0.15)
+    assert res.model.pixel_pad == 0.0
+    single = res.model.cells_.upper - res.model.cells_.lower
+    assert (single.min(axis=1) == 0.0).any()  # a one-pixel-wide cell is a segment without padding

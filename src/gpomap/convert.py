@@ -323,12 +323,11 @@ def model_defaults(resolution: float) -> dict[str, Any]:
     Returns
     -------
     dict
-        Constructor arguments of :class:`GridGPOM` (those of :class:`~gpomap.mapping.AreaGPOM`
-        and ``pixel_pad``).
+        Constructor arguments of :class:`~gpomap.mapping.AreaGPOM` (``convert_grid`` adds
+        ``pixel_pad`` = :data:`FOOTPRINT_PIXELS` pixels for :class:`GridGPOM`).
     """
     r = float(resolution)
     return {
-        "pixel_pad": FOOTPRINT_PIXELS * r,
         "kernel": "se",
         "cell_box": "tight",
         "min_cell": MIN_CELL_PIXELS * r,
@@ -394,7 +393,8 @@ def convert_grid(
         Output region; default the source's extent, with its origin. See :func:`output_grid` for
         when the outer edges coincide with the source's.
     **model_options
-        :class:`~gpomap.mapping.AreaGPOM` arguments, overriding :func:`model_defaults` (which are
+        :class:`GridGPOM` arguments (those of :class:`~gpomap.mapping.AreaGPOM`, and
+        ``pixel_pad``, default half a source pixel), overriding :func:`model_defaults` (which are
         relative to the source's pixel size).
 
     Returns
@@ -421,6 +421,7 @@ def convert_grid(
     labels = _labels(grid_map)
 
     options = model_defaults(src.resolution)
+    options["pixel_pad"] = FOOTPRINT_PIXELS * src.resolution
     options.update(model_options)
     model = GridGPOM(**options)
     t = time.perf_counter()
