@@ -47,7 +47,7 @@ def run_case(name: str, args: argparse.Namespace) -> dict[str, Any]:
     case = CASES[name]
     t = time.perf_counter()
     scans = read_carmen(case["log"])
-    scans = scans[: max(2, int(round(case["fraction"] * len(scans))))]
+    scans = scans[: max(2, round(case["fraction"] * len(scans)))]
     read_s = time.perf_counter() - t
     train, test = scans, []
     if case["holdout"]:
@@ -107,7 +107,7 @@ def run_case(name: str, args: argparse.Namespace) -> dict[str, Any]:
         rows, cols, inside = ogm.grid_.index_of(pts)
         seen = np.zeros(len(pts), bool)
         seen[inside] = ogm.observed_[rows[inside], cols[inside]] > 0
-        out["test_points"] = int(len(pts))
+        out["test_points"] = len(pts)
         out["test_unseen_by_ogm"] = float(1.0 - seen.mean())
         out["auc_gp_on_ogm_unseen"] = roc_auc(lab[~seen], p[~seen]) if lab[~seen].any() and (~lab[~seen]).any() else None
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -121,7 +121,10 @@ def _fmt(v: Any, spec: str) -> str:
 
 def print_table(results: list[dict[str, Any]]) -> None:
     """One line per case: data sizes, time per stage, peak memory, AUC."""
-    head = f"{'case':<10} {'scans':>5} {'points':>9} {'cells':>6} {'tiles':>5} {'cells/tile min/med/max':>22} {'fit s':>7} {'grid s':>7} {'peak MB':>8} {'wrk MB':>7} {'AUC GP':>7} {'AUC OGM':>7}"
+    head = (
+        f"{'case':<10} {'scans':>5} {'points':>9} {'cells':>6} {'tiles':>5} {'cells/tile min/med/max':>22} "
+        f"{'fit s':>7} {'grid s':>7} {'peak MB':>8} {'wrk MB':>7} {'AUC GP':>7} {'AUC OGM':>7}"
+    )
     print(head)
     print("-" * len(head))
     for r in results:
@@ -134,11 +137,16 @@ def print_table(results: list[dict[str, Any]]) -> None:
         )
     print()
     for r in results:
-        print(f"{r['case']}: stages {r['stages']}; hyperparameters {r['hyperparameters']} ({r['hyper_source']}); overlap {r['overlap']} m; grid {r['grid_shape']}")
+        print(
+            f"{r['case']}: stages {r['stages']}; hyperparameters {r['hyperparameters']} ({r['hyper_source']}); "
+            f"overlap {r['overlap']} m; grid {r['grid_shape']}"
+        )
         if "auc_gp" in r:
             print(
-                f"  held out: {r['test_points']} test points, {100 * r['test_unseen_by_ogm']:.1f} % in cells the OGM never observed "
-                f"(GP AUC there {_fmt(r['auc_gp_on_ogm_unseen'], '.4f')}); OGM fit {r['ogm_s']:.1f} s; GP test prediction {r['predict_test_s']:.1f} s"
+                f"  held out: {r['test_points']} test points, "
+                f"{100 * r['test_unseen_by_ogm']:.1f} % in cells the OGM never observed "
+                f"(GP AUC there {_fmt(r['auc_gp_on_ogm_unseen'], '.4f')}); "
+                f"OGM fit {r['ogm_s']:.1f} s; GP test prediction {r['predict_test_s']:.1f} s"
             )
 
 
@@ -167,9 +175,9 @@ def main(argv: list[str] | None = None) -> None:
         return
     names = [n for g in args.cases.split(",") for n in GROUPS.get(g, [g])]
     results = []
-    passthrough = [
-        f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items() if k not in ("cases", "one", "learn")
-    ] + ([] if args.learn else ["--fixed"])
+    passthrough = [f"--{k.replace('_', '-')}={v}" for k, v in vars(args).items() if k not in ("cases", "one", "learn")] + (
+        [] if args.learn else ["--fixed"]
+    )
     for name in names:
         proc = subprocess.run([sys.executable, __file__, "--one", name, *passthrough], capture_output=True, text=True)
         line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT ")]

@@ -67,8 +67,10 @@ def main() -> None:
         row += "".join(f"{timings.get(s, 0.0):>10.3f}" for s in stages)
         row += f"{total:>9.2f}{roc_auc(labels, p):>8.4f}{100 * fpr_at_tpr(labels, p):>7.2f}%  {paper[kernel]}"
         print(row, flush=True)
-    print(f"\n{len(scans)} poses x {scans[0].n_beams} beams; {len(points)} balanced test points; grid 0.5; "
-          f"best of {args.repeat}; {args.threads} BLAS thread(s)")
+    print(
+        f"\n{len(scans)} poses x {scans[0].n_beams} beams; {len(points)} balanced test points; grid 0.5; "
+        f"best of {args.repeat}; {args.threads} BLAS thread(s)"
+    )
 
 
 if __name__ == "__main__":

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gpomap import evaluation as ev
 from gpomap.baselines.gpom import GPOM
 from gpomap.baselines.gpomik import GPOMIK, beam_segments
 from gpomap.errors import NotFittedError
 from gpomap.evaluation import holdout_split
-from gpomap import evaluation as ev
 from gpomap.scans import Scan
 from gpomap.simulate import paper_room_scans
 

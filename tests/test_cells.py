@@ -21,13 +21,15 @@ def test_every_point_in_exactly_one_cell(room):
     np.testing.assert_array_equal(order, np.arange(len(obs.points)))
     owner = cells.cell_of_point()
     for i in range(0, len(cells), 37):
-        np.testing.assert_array_equal(np.flatnonzero(owner == i), np.sort(cells.member_order[cells.member_offsets[i]:cells.member_offsets[i + 1]]))
+        np.testing.assert_array_equal(
+            np.flatnonzero(owner == i), np.sort(cells.member_order[cells.member_offsets[i] : cells.member_offsets[i + 1]])
+        )
 
 
 def test_cells_are_pure_and_hold_their_points(room):
     obs, cells = room
     for i in range(len(cells)):
-        idx = cells.member_order[cells.member_offsets[i]:cells.member_offsets[i + 1]]
+        idx = cells.member_order[cells.member_offsets[i] : cells.member_offsets[i + 1]]
         assert idx.size > 0, "empty cells are dropped"
         assert np.all(obs.occupied[idx] == cells.occupied[i])
         pts = obs.points[idx]

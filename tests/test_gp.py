@@ -113,8 +113,12 @@ def test_weighted_loo_probit_and_its_gradient():
         assert g[name] == pytest.approx((up - down) / (2 * h), rel=1e-5)
     e = np.zeros(30)
     e[3] = h
-    assert g["mu"][3] == pytest.approx((loo_probit(y, mu + e, var, 1.7, -0.3, w)[0] - loo_probit(y, mu - e, var, 1.7, -0.3, w)[0]) / (2 * h), rel=1e-5)
-    assert g["var"][3] == pytest.approx((loo_probit(y, mu, var + e, 1.7, -0.3, w)[0] - loo_probit(y, mu, var - e, 1.7, -0.3, w)[0]) / (2 * h), rel=1e-5)
+    assert g["mu"][3] == pytest.approx(
+        (loo_probit(y, mu + e, var, 1.7, -0.3, w)[0] - loo_probit(y, mu - e, var, 1.7, -0.3, w)[0]) / (2 * h), rel=1e-5
+    )
+    assert g["var"][3] == pytest.approx(
+        (loo_probit(y, mu, var + e, 1.7, -0.3, w)[0] - loo_probit(y, mu, var - e, 1.7, -0.3, w)[0]) / (2 * h), rel=1e-5
+    )
 
 
 def test_squash_fit_raises_the_loo_probability():

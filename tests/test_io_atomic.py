@@ -32,19 +32,17 @@ def test_replaces_existing_file(tmp_path):
 def test_exception_leaves_old_file_and_no_temp(tmp_path):
     target = tmp_path / "out.bin"
     target.write_bytes(b"previous good file")
-    with pytest.raises(RuntimeError, match="boom"):
-        with atomic_write(target) as f:
-            f.write(b"half of the new")
-            raise RuntimeError("boom")
+    with pytest.raises(RuntimeError, match="boom"), atomic_write(target) as f:
+        f.write(b"half of the new")
+        raise RuntimeError("boom")
     assert target.read_bytes() == b"previous good file"
     assert _leftovers(tmp_path) == []
 
 
 def test_exception_when_target_absent_creates_nothing(tmp_path):
-    with pytest.raises(KeyError):
-        with atomic_write(tmp_path / "never.bin") as f:
-            f.write(b"x")
-            raise KeyError("x")
+    with pytest.raises(KeyError), atomic_write(tmp_path / "never.bin") as f:
+        f.write(b"x")
+        raise KeyError("x")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -57,9 +55,8 @@ def test_failing_fsync_keeps_old_file(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(atomic.os, "fsync", broken_fsync)
-    with pytest.raises(OSError, match="disk full"):
-        with atomic_write(target) as f:
-            f.write(b"new")
+    with pytest.raises(OSError, match="disk full"), atomic_write(target) as f:
+        f.write(b"new")
     assert target.read_bytes() == b"old"
     assert _leftovers(tmp_path) == []
 
@@ -68,11 +65,10 @@ def test_group_failure_in_second_file_leaves_all_old(tmp_path):
     a, b = tmp_path / "map.pgm", tmp_path / "map.yaml"
     a.write_bytes(b"old image")
     b.write_text("old yaml")
-    with pytest.raises(ValueError, match="midway"):
-        with atomic_write_group([a, b], mode=["wb", "w"]) as (fa, fb):
-            fa.write(b"new image, complete")
-            fb.write("new yaml, half")
-            raise ValueError("midway")
+    with pytest.raises(ValueError, match="midway"), atomic_write_group([a, b], mode=["wb", "w"]) as (fa, fb):
+        fa.write(b"new image, complete")
+        fb.write("new yaml, half")
+        raise ValueError("midway")
     assert a.read_bytes() == b"old image"
     assert b.read_text() == "old yaml"
     assert _leftovers(tmp_path) == []
@@ -100,23 +96,19 @@ def test_group_rename_failure_cleans_temps(tmp_path, monkeypatch):
         real_replace(src, dst)
 
     monkeypatch.setattr(atomic.os, "replace", replace_once)
-    with pytest.raises(OSError, match="rename failed"):
-        with atomic_write_group([a, b]) as (fa, fb):
-            fa.write(b"1")
-            fb.write(b"2")
+    with pytest.raises(OSError, match="rename failed"), atomic_write_group([a, b]) as (fa, fb):
+        fa.write(b"1")
+        fb.write(b"2")
     assert _leftovers(tmp_path) == []
 
 
 def test_bad_arguments(tmp_path):
-    with pytest.raises(ValueError, match="modes"):
-        with atomic_write(tmp_path / "x", mode="ab"):
-            pass
-    with pytest.raises(ValueError, match="same file twice"):
-        with atomic_write_group([tmp_path / "x", tmp_path / "x"]):
-            pass
-    with pytest.raises(IsADirectoryError):
-        with atomic_write(tmp_path):
-            pass
+    with pytest.raises(ValueError, match="modes"), atomic_write(tmp_path / "x", mode="ab"):
+        pass
+    with pytest.raises(ValueError, match="same file twice"), atomic_write_group([tmp_path / "x", tmp_path / "x"]):
+        pass
+    with pytest.raises(IsADirectoryError), atomic_write(tmp_path):
+        pass
     assert _leftovers(tmp_path) == []
 
 

@@ -132,10 +132,7 @@ def test_gzipped_small_file(tmp_path: Path) -> None:
 
 def test_robotlaser1_uses_laser_pose(tmp_path: Path) -> None:
     n, m = 3, 1
-    line = (
-        f"ROBOTLASER1 0 -0.5 1.0 0.5 4.0 0.01 0 {n} 5.0 1.0 2.0 {m} 7.0 "
-        "1.0 1.0 0.0 0.0 0.0 0.0 0 0 0 0 0 123.5 host 1.0"
-    )
+    line = f"ROBOTLASER1 0 -0.5 1.0 0.5 4.0 0.01 0 {n} 5.0 1.0 2.0 {m} 7.0 1.0 1.0 0.0 0.0 0.0 0.0 0 0 0 0 0 123.5 host 1.0"
     path = tmp_path / "r1.log"
     path.write_text(line + "\n")
     (s,) = read_carmen(path)
@@ -168,9 +165,7 @@ def test_truncated_line(tmp_path: Path) -> None:
 def test_wrong_field_count(tmp_path: Path) -> None:
     path = tmp_path / "bad.log"
     path.write_text(_flaser([1.0] * 180) + " extra\n")
-    with pytest.raises(
-        InputFormatError, match=r"line 1: wrong field count in FLASER line: 192 fields, expected 191 \(n \+ 11"
-    ):
+    with pytest.raises(InputFormatError, match=r"line 1: wrong field count in FLASER line: 192 fields, expected 191 \(n \+ 11"):
         read_carmen(path)
 
 
@@ -200,9 +195,15 @@ def test_file_without_laser_lines(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     "count,expected",
-    [("inf", "'inf'; expected the number of readings"), ("nan", "'nan'"), ("1e400", "'1e400'"),
-     ("1e18", "at most 100000"), ("9" * 5000, "expected the number of readings"), ("-3", "non-negative"),
-     ("2.5", "non-negative integer")],
+    [
+        ("inf", "'inf'; expected the number of readings"),
+        ("nan", "'nan'"),
+        ("1e400", "'1e400'"),
+        ("1e18", "at most 100000"),
+        ("9" * 5000, "expected the number of readings"),
+        ("-3", "non-negative"),
+        ("2.5", "non-negative integer"),
+    ],
     ids=["inf", "nan", "1e400", "huge", "5000-digits", "negative", "fraction"],
 )
 def test_bad_beam_count(tmp_path: Path, count: str, expected: str) -> None:

@@ -64,7 +64,7 @@ def test_unserialisable_info_is_a_clear_error(tmp_path):
 def test_missing_required_array(tmp_path):
     good = save_map(_full_map(), tmp_path / "good.npz")
     bad = _rewrite(good, tmp_path / "bad.npz", drop=("resolution",))
-    with pytest.raises(InputFormatError, match="missing the required array.*'resolution'"):
+    with pytest.raises(InputFormatError, match=r"missing the required array.*'resolution'"):
         load_map(bad)
 
 
@@ -91,10 +91,10 @@ def test_bad_resolution(tmp_path):
 
 def test_not_an_npz(tmp_path):
     (tmp_path / "x.npz").write_text("hello")
-    with pytest.raises(InputFormatError, match="not a NumPy .npz map file.*found a file starting with b'hello'"):
+    with pytest.raises(InputFormatError, match=r"not a NumPy \.npz map file.*found a file starting with b'hello'"):
         load_map(tmp_path / "x.npz")
     np.save(tmp_path / "y.npy", np.zeros(3))
-    with pytest.raises(InputFormatError, match="single-array .npy"):
+    with pytest.raises(InputFormatError, match=r"single-array \.npy"):
         load_map(tmp_path / "y.npy")
     with pytest.raises(InputFormatError, match="not found"):
         load_map(tmp_path / "missing.npz")

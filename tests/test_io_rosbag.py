@@ -94,8 +94,8 @@ def _quat(types, yaw: float):
 
 
 def _header(types, t: float, frame: str):
-    sec = int(math.floor(t))
-    stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9)))
+    sec = math.floor(t)
+    stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=round((t - sec) * 1e9))
     header = types["std_msgs/msg/Header"]
     if "seq" in header.__dataclass_fields__:  # ROS1 headers have a sequence number
         return header(seq=0, stamp=stamp, frame_id=frame)
@@ -106,9 +106,7 @@ def _tf(types, t: float, parent: str, child: str, x: float, y: float, yaw: float
     tr = types["geometry_msgs/msg/Transform"](
         translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=0.0), rotation=_quat(types, yaw)
     )
-    ts = types["geometry_msgs/msg/TransformStamped"](
-        header=_header(types, t, parent), child_frame_id=child, transform=tr
-    )
+    ts = types["geometry_msgs/msg/TransformStamped"](header=_header(types, t, parent), child_frame_id=child, transform=tr)
     return types["tf2_msgs/msg/TFMessage"](transforms=[ts])
 
 
@@ -259,7 +257,9 @@ def _write_tfless_bag(path: Path, with_odom: bool) -> Path:
         scan = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=store)
         odom = writer.add_connection("/wheel_odom", "nav_msgs/msg/Odometry", typestore=store) if with_odom else None
         for k, t in enumerate((0.0, 0.5, 1.0)):
-            writer.write(scan, k * 10 + 1, store.serialize_ros1(_scan(types, t, "laser", [1.0, 4.0, 2.0]), "sensor_msgs/msg/LaserScan"))
+            writer.write(
+                scan, k * 10 + 1, store.serialize_ros1(_scan(types, t, "laser", [1.0, 4.0, 2.0]), "sensor_msgs/msg/LaserScan")
+            )
             if odom is not None:
                 writer.write(odom, k * 10 + 2, store.serialize_ros1(_odometry(types, t, t, 0.0), "nav_msgs/msg/Odometry"))
     return path
@@ -277,9 +277,14 @@ def test_bag_without_tf_lists_topics(tmp_path: Path) -> None:
 
 def test_bag_without_tf_names_the_odometry_topic(tmp_path: Path) -> None:
     path = _write_tfless_bag(tmp_path / "odom.bag", with_odom=True)
-    with pytest.raises(InputFormatError, match=r"use --odom-topic NAME \(odom_topic=\) with /wheel_odom; topics in the bag: .*nav_msgs/msg/Odometry"):
+    with pytest.raises(
+        InputFormatError,
+        match=r"use --odom-topic NAME \(odom_topic=\) with /wheel_odom; topics in the bag: .*nav_msgs/msg/Odometry",
+    ):
         read_rosbag(path)
-    with pytest.raises(InputFormatError, match=r"unknown Odometry topic '/odom'; Odometry topics: /wheel_odom; topics in the bag"):
+    with pytest.raises(
+        InputFormatError, match=r"unknown Odometry topic '/odom'; Odometry topics: /wheel_odom; topics in the bag"
+    ):
         read_rosbag(path, odom_topic="/odom")
     # With the right topic, the laser sits at the odometry's child frame.
     with pytest.warns(UserWarning, match="laser frame 'laser' not in tf"):
@@ -302,7 +307,7 @@ def test_bag_that_is_not_a_regular_file(tmp_path: Path) -> None:
     os.mkfifo(fifo)
     with pytest.raises(InputFormatError, match=r"pipe\.bag: is a FIFO \(named pipe\), not a regular file"):
         read_rosbag(fifo)
-    with pytest.raises(InputFormatError, match="directory without metadata.yaml"):
+    with pytest.raises(InputFormatError, match=r"directory without metadata\.yaml"):
         read_rosbag(tmp_path)
     junk = tmp_path / "junk.bag"
     junk.write_bytes(b"#ROSBAG V2.0\n" + bytes(200))

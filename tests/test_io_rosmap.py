@@ -63,7 +63,7 @@ def test_turtlebot_map():
 
 
 def test_small_pgm_orientation_and_labels(tmp_path):
-    path, pixels = _write_map(tmp_path)
+    path, _ = _write_map(tmp_path)
     m = read_rosmap(path)
     assert m.grid == GridSpec((1.5, -2.0), 0.1, (3, 4))
     # Image top row (occupied) is the map's highest row.
@@ -131,14 +131,14 @@ def test_missing_key(tmp_path):
 def test_yaml_not_a_mapping(tmp_path):
     path = tmp_path / "map.yaml"
     path.write_text("- image: map.pgm\n- resolution: 0.05\n")
-    with pytest.raises(InputFormatError, match="must be a mapping.*got list"):
+    with pytest.raises(InputFormatError, match=r"must be a mapping.*got list"):
         read_rosmap(path)
 
 
 def test_image_not_pgm_or_png(tmp_path):
     path, _ = _write_map(tmp_path, image_name="map.jpg")
     (tmp_path / "map.jpg").write_bytes(b"\xff\xd8\xff\xe0\x00\x10JFIF\x00")
-    with pytest.raises(InputFormatError, match="must be a PGM .* or PNG file, found a JPEG file"):
+    with pytest.raises(InputFormatError, match=r"must be a PGM .* or PNG file, found a JPEG file"):
         read_rosmap(path)
 
 
@@ -158,12 +158,12 @@ def test_rotated_origin(tmp_path):
 def test_missing_image(tmp_path):
     path, _ = _write_map(tmp_path)
     (tmp_path / "map.pgm").unlink()
-    with pytest.raises(InputFormatError, match="image file 'map.pgm' named by 'image' not found"):
+    with pytest.raises(InputFormatError, match=r"image file 'map\.pgm' named by 'image' not found"):
         read_rosmap(path)
 
 
 @pytest.mark.parametrize("value", [0, -0.05, "abc", ".nan"])
-def test_bad_resolution(tmp_path, value):
+def test_bad_resolution_value(tmp_path, value):
     path, _ = _write_map(tmp_path)
     path.write_text(path.read_text().replace("resolution: 0.1", f"resolution: {value}"))
     with pytest.raises(InputFormatError, match="'resolution' must be"):
@@ -284,7 +284,8 @@ def _yaml_with(tmp_path, key, text):
 
 
 @pytest.mark.parametrize(
-    "value", ["1e400", "1.0e+400", ".nan", ".inf", "-0.1", "9" * 5000, "9" * 400, "[0.1]"],
+    "value",
+    ["1e400", "1.0e+400", ".nan", ".inf", "-0.1", "9" * 5000, "9" * 400, "[0.1]"],
     ids=["1e400", "1.0e+400", "nan", "inf", "negative", "5000-digits", "400-digits", "list"],
 )
 def test_bad_resolution(tmp_path, value):

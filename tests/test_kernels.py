@@ -44,7 +44,7 @@ def _inputs(kind, seed=0):
 @pytest.mark.parametrize("kernel,kind", ALL, ids=IDS)
 def test_gradient_matches_finite_differences(kernel, kind):
     X = _inputs(kind)
-    K, dK = kernel(X, eval_gradient=True)
+    _, dK = kernel(X, eval_gradient=True)
     theta = kernel.theta
     eps = 1e-6
     for j in range(theta.size):

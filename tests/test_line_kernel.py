@@ -41,6 +41,7 @@ def inputs() -> Segments:
 
 def brute(kernel: LineKernel, X: Segments, i: int, j: int) -> float:
     """The line kernel by adaptive 2-D (or 1-D) quadrature of the point kernel."""
+
     def x(k, u):
         return X.starts[k] + u * (X.ends[k] - X.starts[k])
 

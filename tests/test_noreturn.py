@@ -187,7 +187,7 @@ def _write_scan_bag(path: Path, ranges: np.ndarray, range_max: float) -> Path:
     def header(t: float, frame: str):
         sec = int(t)
         return T["std_msgs/msg/Header"](
-            seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9))), frame_id=frame
+            seq=0, stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=round((t - sec) * 1e9)), frame_id=frame
         )
 
     scans = ranges.reshape(-1, N_BEAMS)
@@ -201,7 +201,9 @@ def _write_scan_bag(path: Path, ranges: np.ndarray, range_max: float) -> Path:
                 rotation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
             )
             msg = T["tf2_msgs/msg/TFMessage"](
-                transforms=[T["geometry_msgs/msg/TransformStamped"](header=header(t, "odom"), child_frame_id="laser", transform=tr)]
+                transforms=[
+                    T["geometry_msgs/msg/TransformStamped"](header=header(t, "odom"), child_frame_id="laser", transform=tr)
+                ]
             )
             w.write(tf, int(t * 1e9) + 1, store.serialize_ros1(msg, "tf2_msgs/msg/TFMessage"))
             if k < len(scans):

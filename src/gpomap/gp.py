@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -189,12 +190,29 @@ class SupportGP:
 
     def _factor(self, theta: NDArray[np.float64], log_noise: float, X: Supports, eval_gradient: bool):
         kern = self.kernel.clone_with_theta(theta)
-        res = kern(X, eval_gradient=eval_gradient)
-        K, dK = res if eval_gradient else (res, None)
+        if eval_gradient:
+            K, dK = kern(X, eval_gradient=True)
+        else:
+            K, dK = kern(X), None
         nvec = np.exp(log_noise) * self._noise_scale(X)
         K[np.diag_indices_from(K)] += nvec
         L, _ = robust_cholesky(K)
         return L, dK, nvec
+
+    @overload
+    def log_marginal_likelihood(
+        self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: Literal[False] = False
+    ) -> float: ...
+
+    @overload
+    def log_marginal_likelihood(
+        self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: Literal[True]
+    ) -> tuple[float, NDArray[np.float64]]: ...
+
+    @overload
+    def log_marginal_likelihood(
+        self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: bool = False
+    ) -> float | tuple[float, NDArray[np.float64]]: ...
 
     def log_marginal_likelihood(
         self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: bool = False
@@ -219,6 +237,21 @@ class SupportGP:
             grad[j] = 0.5 * (a @ dK[:, :, j] @ a - np.sum(K_inv * dK[:, :, j]))
         grad[2] = 0.5 * (np.sum(a * a * nvec) - np.sum(np.diag(K_inv) * nvec))
         return float(value), grad
+
+    @overload
+    def loo_objective(
+        self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: Literal[False] = False
+    ) -> float: ...
+
+    @overload
+    def loo_objective(
+        self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: Literal[True]
+    ) -> tuple[float, NDArray[np.float64]]: ...
+
+    @overload
+    def loo_objective(
+        self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: bool = False
+    ) -> float | tuple[float, NDArray[np.float64]]: ...
 
     def loo_objective(
         self, X: Supports, y: NDArray[np.float64], params: NDArray[np.float64], eval_gradient: bool = False
@@ -314,15 +347,15 @@ class SupportGP:
         loo = self.objective == "loo"
         k_bounds = self.kernel.bounds
         bounds = [tuple(k_bounds[0]), tuple(k_bounds[1]), tuple(np.log(self.noise_bounds))]
-        x0 = [*self.kernel.theta, np.log(self.noise)]
+        x0_list = [*self.kernel.theta, np.log(self.noise)]
         free = np.array([True, True, True])
         if loo:
             # Signal variance is not identifiable by LOO (see module docstring): hold it.
             free[0] = False
             bounds += list(SQUASH_BOUNDS)
-            x0 += [np.log(max(self.squash.alpha, 1e-3)), self.squash.beta / max(self.squash.alpha, 1e-3)]
+            x0_list += [np.log(max(self.squash.alpha, 1e-3)), self.squash.beta / max(self.squash.alpha, 1e-3)]
             free = np.concatenate([free, [True, True]])
-        x0 = np.asarray(x0, dtype=float)
+        x0 = np.asarray(x0_list, dtype=float)
         fun = self.loo_objective if loo else self.log_marginal_likelihood
         n_eval = 0
 
@@ -359,10 +392,13 @@ class SupportGP:
         best = None
         values = []
         for s in starts:
-            res = minimize(neg, s, jac=True, method="L-BFGS-B", bounds=free_bounds, options={"maxiter": self.max_iter, "ftol": 1e-7})
+            res = minimize(
+                neg, s, jac=True, method="L-BFGS-B", bounds=free_bounds, options={"maxiter": self.max_iter, "ftol": 1e-7}
+            )
             values.append(float(-res.fun))
             if best is None or res.fun < best.fun:
                 best = res
+        assert best is not None  # there is always the given start
         p = x0.copy()
         p[free] = best.x
         self.kernel.theta = p[:2]
@@ -410,7 +446,7 @@ class SupportGP:
             part = X.subset(slice(s, min(m, s + chunk_size)))
             Ks = self.kernel(self.X_train_, part)  # (n, c)
             mean[s : s + len(part)] = Ks.T @ self.alpha_
-            if return_var:
+            if var is not None:
                 v = solve_triangular(self.L_, Ks, lower=True, check_finite=False)
                 kss = self.kernel.diag(part)
                 var[s : s + len(part)] = np.maximum(kss - np.einsum("ij,ij->j", v, v), 0.0)
@@ -478,4 +514,5 @@ class SupportGP:
     def predict_proba(self, X: Supports, chunk_size: int = 4096) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Occupancy probability and latent variance at new inputs, each ndarray of shape (m,)."""
         mean, var = self.predict_latent(X, True, chunk_size)
+        assert var is not None  # asked for with return_var=True
         return self.squash(mean, var), var

@@ -75,11 +75,11 @@ class GridSpec:
 
     def x_centres(self) -> NDArray[np.float64]:
         """Cell-centre x coordinates, ndarray of shape (nx,)."""
-        return self.origin[0] + (np.arange(self.shape[1]) + 0.5) * self.resolution
+        return self.origin[0] + (np.arange(self.shape[1], dtype=np.float64) + 0.5) * self.resolution
 
     def y_centres(self) -> NDArray[np.float64]:
         """Cell-centre y coordinates, ndarray of shape (ny,)."""
-        return self.origin[1] + (np.arange(self.shape[0]) + 0.5) * self.resolution
+        return self.origin[1] + (np.arange(self.shape[0], dtype=np.float64) + 0.5) * self.resolution
 
     def centres(self) -> NDArray[np.float64]:
         """All cell centres, row-major (row 0 = lowest y), ndarray of shape (ny * nx, 2)."""

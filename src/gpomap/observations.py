@@ -180,9 +180,7 @@ def observations_from_scans(
         occ_all += [np.zeros(len(fp), bool), np.ones(len(hp), bool)]
         idx_all.append(np.full(len(fp) + len(hp), i, dtype=np.intp))
     if not pts_all or sum(len(p) for p in pts_all) == 0:
-        raise EmptyDataError(
-            f"no usable readings in {len(scans)} scan(s) ({n_invalid} invalid): nothing to map"
-        )
+        raise EmptyDataError(f"no usable readings in {len(scans)} scan(s) ({n_invalid} invalid): nothing to map")
     points, occupied, scan_index = np.concatenate(pts_all, axis=0), np.concatenate(occ_all), np.concatenate(idx_all)
     keep = ~free_near_hits(points, occupied, free_clearance)
     return Observations(

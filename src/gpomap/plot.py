@@ -42,7 +42,7 @@ def _new_figure(width: float, height: float) -> Figure:
     return fig
 
 
-def _colorbar(fig: Figure, ax, mappable, label: str):  # noqa: ANN001, ANN202 - matplotlib types
+def _colorbar(fig: Figure, ax, mappable, label: str):
     """A colour bar in an inset beside `ax`, so that ``fig.axes`` holds only the panels."""
     cax = ax.inset_axes([1.03, 0.0, 0.045, 1.0])
     cbar = fig.colorbar(mappable, cax=cax)
@@ -50,7 +50,7 @@ def _colorbar(fig: Figure, ax, mappable, label: str):  # noqa: ANN001, ANN202 - 
     return cbar
 
 
-def _draw_path(ax, path: NDArray[np.float64], legend: bool) -> None:  # noqa: ANN001
+def _draw_path(ax, path: NDArray[np.float64], legend: bool) -> None:
     ax.plot(path[:, 0], path[:, 1], "-", color=_PATH_COLOUR, lw=1.3, label="robot path" if legend else None)
     ax.plot(path[0, 0], path[0, 1], "o", color=_PATH_COLOUR, ms=5, mec="k", mew=0.6, label="start" if legend else None)
 
@@ -175,8 +175,12 @@ def plot_inputs(
             count = int(np.count_nonzero(labels > 0 if sign > 0 else labels < 0))
             if count:
                 ax.add_patch(Rectangle((np.nan, np.nan), 0, 0, fc=(*to_rgb(colour), 0.12), ec=colour, label=f"{name} ({count})"))
-    ax.scatter(pts[~occ, 0], pts[~occ, 1], s=size, c=_FREE_COLOUR, lw=0, label=f"free ({int((~occ).sum())})", zorder=2, rasterized=True)
-    ax.scatter(pts[occ, 0], pts[occ, 1], s=size * 1.5, c=_HIT_COLOUR, lw=0, label=f"hits ({int(occ.sum())})", zorder=3, rasterized=True)
+    ax.scatter(
+        pts[~occ, 0], pts[~occ, 1], s=size, c=_FREE_COLOUR, lw=0, label=f"free ({int((~occ).sum())})", zorder=2, rasterized=True
+    )
+    ax.scatter(
+        pts[occ, 0], pts[occ, 1], s=size * 1.5, c=_HIT_COLOUR, lw=0, label=f"hits ({int(occ.sum())})", zorder=3, rasterized=True
+    )
     ax.autoscale_view()
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x [m]")

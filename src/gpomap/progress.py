@@ -76,8 +76,11 @@ class Progress:
         elif self._mode == "lines" and self.total > 0 and self.n / self.total >= self._next_line and self.n < self.total:
             elapsed = time.perf_counter() - self._t0
             left = elapsed * (self.total - self.n) / self.n
-            print(f"  {self.desc}: {self.n}/{self.total} {self.unit}s, {elapsed:.0f} s elapsed, ~{left:.0f} s left",
-                  file=sys.stderr, flush=True)
+            print(
+                f"  {self.desc}: {self.n}/{self.total} {self.unit}s, {elapsed:.0f} s elapsed, ~{left:.0f} s left",
+                file=sys.stderr,
+                flush=True,
+            )
             while self._next_line <= self.n / self.total:
                 self._next_line += 0.1
 

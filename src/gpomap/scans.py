@@ -49,9 +49,7 @@ class Scan:
         if pose.shape != (3,):
             raise InputFormatError(f"scan pose must have 3 values (x, y, theta), got {pose.size}")
         if angles.shape != ranges.shape:
-            raise InputFormatError(
-                f"scan has {angles.size} beam angles but {ranges.size} ranges; expected equal counts"
-            )
+            raise InputFormatError(f"scan has {angles.size} beam angles but {ranges.size} ranges; expected equal counts")
         if not np.isfinite(pose).all():
             raise InputFormatError(f"scan pose must be finite, got {pose.tolist()}")
         if not (np.isfinite(self.max_range) and self.max_range > 0):

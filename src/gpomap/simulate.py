@@ -162,9 +162,7 @@ class World:
             # vertex on the ray is counted once) whose crossing lies to the right of the point.
             straddle = (v0[None, :, 1] > y) != (v1[None, :, 1] > y)
             with np.errstate(divide="ignore", invalid="ignore"):
-                xc = v0[None, :, 0] + (y - v0[None, :, 1]) * (v1[None, :, 0] - v0[None, :, 0]) / (
-                    v1[None, :, 1] - v0[None, :, 1]
-                )
+                xc = v0[None, :, 0] + (y - v0[None, :, 1]) * (v1[None, :, 0] - v0[None, :, 0]) / (v1[None, :, 1] - v0[None, :, 1])
             crossings = (straddle & (x < xc)).sum(axis=1)
             inside |= crossings % 2 == 1
         return inside
@@ -340,7 +338,11 @@ def paper_room() -> tuple[World, NDArray[np.float64]]:
     poses : ndarray of shape (31, 3)
         (x, y, theta), heading along the path.
     """
-    world = World(segments=_ROOM_WALLS, obstacles=_ROOM_BOXES, outlines=[_ROOM_OUTLINE])
+    world = World(
+        segments=np.asarray(_ROOM_WALLS, dtype=float),
+        obstacles=tuple(np.asarray(box, dtype=float) for box in _ROOM_BOXES),
+        outlines=(np.asarray(_ROOM_OUTLINE, dtype=float),),
+    )
     return world, _sample_path(_ROOM_WAYPOINTS, 31)
 
 

@@ -70,7 +70,9 @@ class Supports:
         return cls(p, p, np.ones(p.shape[0]), p, np.arange(p.shape[0] + 1, dtype=np.intp))
 
     @classmethod
-    def from_boxes(cls, lower: NDArray[np.float64], upper: NDArray[np.float64], counts: NDArray[np.float64] | None = None) -> Supports:
+    def from_boxes(
+        cls, lower: NDArray[np.float64], upper: NDArray[np.float64], counts: NDArray[np.float64] | None = None
+    ) -> Supports:
         """Box inputs without member points (for the exact and quadrature area kernels).
 
         Parameters
@@ -113,9 +115,9 @@ class Supports:
     def subset(self, index: NDArray[np.intp] | slice) -> Supports:
         """The inputs at `index` (an integer array or a slice), members included."""
         idx = np.arange(len(self))[index]
-        if not self.has_members:
+        off, members = self.member_offsets, self.member_points
+        if off is None or members is None:  # no members (the two are set together)
             return Supports(self.lower[idx], self.upper[idx], self.counts[idx])
-        off = self.member_offsets
         sizes = off[idx + 1] - off[idx]
         starts = off[idx]
         take = np.repeat(starts - np.concatenate([[0], np.cumsum(sizes)[:-1]]), sizes) + np.arange(int(sizes.sum()))
@@ -123,7 +125,7 @@ class Supports:
             self.lower[idx],
             self.upper[idx],
             self.counts[idx],
-            self.member_points[take],
+            members[take],
             np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp),
         )
 
@@ -135,11 +137,15 @@ def concatenate(parts: Sequence[Supports]) -> Supports:
     lower = np.concatenate([p.lower for p in parts])
     upper = np.concatenate([p.upper for p in parts])
     counts = np.concatenate([p.counts for p in parts])
-    if not all(p.has_members for p in parts):
+    members = [(p.member_points, p.member_offsets) for p in parts]
+    if any(pts is None or off is None for pts, off in members):
         return Supports(lower, upper, counts)
+    points: list[NDArray[np.float64]] = []
     offsets = [np.zeros(1, dtype=np.intp)]
     base = 0
-    for p in parts:
-        offsets.append(p.member_offsets[1:] + base)
-        base += int(p.member_offsets[-1])
-    return Supports(lower, upper, counts, np.concatenate([p.member_points for p in parts]), np.concatenate(offsets))
+    for pts, off in members:
+        assert pts is not None and off is not None  # checked above
+        points.append(pts)
+        offsets.append(off[1:] + base)
+        base += int(off[-1])
+    return Supports(lower, upper, counts, np.concatenate(points), np.concatenate(offsets))

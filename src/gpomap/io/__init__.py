@@ -77,9 +77,7 @@ def detect_format(path: str | os.PathLike[str]) -> str:
         raise InputFormatError("directory without metadata.yaml; expected a ROS2 bag directory", path=str(p))
     if not stat.S_ISREG(mode):
         # Opening a FIFO would block, reading a device might never end.
-        raise InputFormatError(
-            f"is {file_kind(mode)}, not a regular file; expected a CARMEN log or a ROS bag", path=str(p)
-        )
+        raise InputFormatError(f"is {file_kind(mode)}, not a regular file; expected a CARMEN log or a ROS bag", path=str(p))
     head = _head(regular_file(p))
     if head.startswith(b"#ROSBAG"):
         return "rosbag1"

@@ -87,9 +87,7 @@ def _read_csv_rows(path: Path, spath: str, state: dict[str, Any]) -> Observation
             if not any(v.strip() for v in row):
                 continue
             if len(row) != len(names):
-                raise InputFormatError(
-                    f"{len(row)} fields, expected {len(names)} as in the header", path=spath, line=line
-                )
+                raise InputFormatError(f"{len(row)} fields, expected {len(names)} as in the header", path=spath, line=line)
             try:
                 x, y = float(row[ix]), float(row[iy])
             except ValueError:
@@ -98,18 +96,14 @@ def _read_csv_rows(path: Path, spath: str, state: dict[str, Any]) -> Observation
                     f"non-numeric coordinate {bad.strip()!r}; expected a number", path=spath, line=line
                 ) from None
             if not (np.isfinite(x) and np.isfinite(y)):
-                raise InputFormatError(
-                    f"non-finite coordinate ({x}, {y}); expected finite numbers", path=spath, line=line
-                )
+                raise InputFormatError(f"non-finite coordinate ({x}, {y}); expected finite numbers", path=spath, line=line)
             label = row[io].strip().lower()
             if label in _TRUE:
                 occ.append(True)
             elif label in _FALSE:
                 occ.append(False)
             else:
-                raise InputFormatError(
-                    f"occupied value {row[io].strip()!r}; expected 0/1 or true/false", path=spath, line=line
-                )
+                raise InputFormatError(f"occupied value {row[io].strip()!r}; expected 0/1 or true/false", path=spath, line=line)
             xy.append((x, y))
     if not xy:
         raise InputFormatError("no data rows after the header; expected at least one point", path=spath)

@@ -135,7 +135,7 @@ def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
         gzipped = raw.read(2) == b"\x1f\x8b"
     number = 0
     try:
-        with (gzip.open(path, "rb") if gzipped else path.open("rb")) as f:
+        with gzip.open(path, "rb") if gzipped else path.open("rb") as f:
             while True:
                 line = f.readline(MAX_LINE_BYTES + 1)
                 if not line:
@@ -206,9 +206,7 @@ def _count(tokens: list[str], index: int, what: str, path: str, line: int) -> in
     """Read an integer count at `index`, or raise a truncation / format error."""
     kind = tokens[0]
     if len(tokens) <= index:
-        raise InputFormatError(
-            f"truncated {kind} line: it ends before the {what} (field {index + 1})", path=path, line=line
-        )
+        raise InputFormatError(f"truncated {kind} line: it ends before the {what} (field {index + 1})", path=path, line=line)
     text = tokens[index]
     shown = text if len(text) <= 40 else text[:40] + "..."
     try:
@@ -223,18 +221,14 @@ def _count(tokens: list[str], index: int, what: str, path: str, line: int) -> in
             f"field {index + 1} is {shown!r}; expected the {what} (a non-negative integer)", path=path, line=line
         )
     if value > MAX_BEAMS:
-        raise InputFormatError(
-            f"field {index + 1} is {shown!r}; expected the {what}, at most {MAX_BEAMS}", path=path, line=line
-        )
+        raise InputFormatError(f"field {index + 1} is {shown!r}; expected the {what}, at most {MAX_BEAMS}", path=path, line=line)
     return int(value)
 
 
 def _check_length(tokens: list[str], expected: int, formula: str, path: str, line: int) -> None:
     got = len(tokens)
     if got < expected:
-        raise InputFormatError(
-            f"truncated {tokens[0]} line: {got} fields, expected {expected} ({formula})", path=path, line=line
-        )
+        raise InputFormatError(f"truncated {tokens[0]} line: {got} fields, expected {expected} ({formula})", path=path, line=line)
     if got > expected:
         raise InputFormatError(
             f"wrong field count in {tokens[0]} line: {got} fields, expected {expected} ({formula})",
@@ -271,8 +265,7 @@ def _parse_robotlaser1(tokens: list[str], path: str, line: int) -> _Laser:
         angles = start + res * np.arange(n, dtype=float)
     if not np.isfinite(angles).all():
         raise InputFormatError(
-            f"ROBOTLASER1 start_angle {start} and angular_res {res} give non-finite beam angles; "
-            "expected angles in radians",
+            f"ROBOTLASER1 start_angle {start} and angular_res {res} give non-finite beam angles; expected angles in radians",
             path=path,
             line=line,
         )
@@ -424,9 +417,7 @@ def read_carmen(
     if not parsed.any_text:
         raise InputFormatError("empty file; expected a CARMEN log with FLASER or ROBOTLASER1 lines", path=spath)
     if not lasers:
-        binary = (
-            f" (line {parsed.binary_line} is binary data, not text)" if parsed.binary_line is not None else ""
-        )
+        binary = f" (line {parsed.binary_line} is binary data, not text)" if parsed.binary_line is not None else ""
         raise InputFormatError(
             f"no laser lines in {parsed.n_lines} lines{binary}; expected FLASER or ROBOTLASER1 messages",
             path=spath,

@@ -127,13 +127,22 @@ def load_npz(path: str | os.PathLike[str], what: str = ".npz file") -> dict[str,
                     arrays[key] = fmt.read_array(f, allow_pickle=False)
     except InputFormatError:
         raise
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error,
-            NotImplementedError, KeyError, TypeError, SyntaxError, RuntimeError) as exc:
+    except (
+        ValueError,
+        OSError,
+        EOFError,
+        zipfile.BadZipFile,
+        zipfile.LargeZipFile,
+        zlib.error,
+        NotImplementedError,
+        KeyError,
+        TypeError,
+        SyntaxError,
+        RuntimeError,
+    ) as exc:
         # read_magic / read_array_header raise ValueError; a bad CRC or cut stream BadZipFile /
         # EOFError / zlib.error; an unsupported compression NotImplementedError; the encryption
         # flag RuntimeError ("password required").
         where = "" if member == "(archive)" else f" (member {member!r})"
-        raise InputFormatError(
-            f"not a readable {what}{where}: {type(exc).__name__}: {str(exc)[:200]}", path=spath
-        ) from None
+        raise InputFormatError(f"not a readable {what}{where}: {type(exc).__name__}: {str(exc)[:200]}", path=spath) from None
     return arrays

@@ -254,7 +254,9 @@ def decide_max_range(
         notes.append(f"max range {_fmt(threshold)} m given by the caller (--max-range); {found}")
         n, how = _disagreement(r, threshold, data_threshold)
         if code is not None and n >= _MIN_COUNT:
-            contradiction = f"the given max range {_fmt(threshold)} m disagrees with the data ({n} {how} it); the given value wins"
+            contradiction = (
+                f"the given max range {_fmt(threshold)} m disagrees with the data ({n} {how} it); the given value wins"
+            )
     elif header is not None:
         n, how = _disagreement(r, header, data_threshold)
         limit = _MIN_COUNT if header > data_threshold else max(_MIN_COUNT, int(np.ceil(_MIN_FRACTION * r.size)))
@@ -269,9 +271,10 @@ def decide_max_range(
             threshold = data_threshold
             source = "data" if code is not None else "none found"
             share = 100.0 * n / max(r.size, 1)
-            contradiction = (
-                f"{name} is {_fmt(header)} m but the data has {n} {how} it ({share:.3g} % of {r.size} readings); "
-                + (f"using the code found in the data ({found})" if code is not None else f"the data wins: {found}, no reading is no-return")
+            contradiction = f"{name} is {_fmt(header)} m but the data has {n} {how} it ({share:.3g} % of {r.size} readings); " + (
+                f"using the code found in the data ({found})"
+                if code is not None
+                else f"the data wins: {found}, no reading is no-return"
             )
             notes.append(contradiction)
     elif code is not None:

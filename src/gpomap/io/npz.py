@@ -77,7 +77,8 @@ def save_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str]) -> Path:
         info_json = json.dumps(m.info, default=_json_default, allow_nan=True)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"map info cannot be saved as JSON: {exc}") from exc
-    arrays: dict[str, np.ndarray] = {
+    # Values typed Any: NumPy's stub checks **arrays against savez_compressed's `allow_pickle: bool`.
+    arrays: dict[str, Any] = {
         "format": np.array(FORMAT),
         "version": np.array(VERSION, dtype=np.int64),
         "probability": np.asarray(m.probability, dtype=np.float64),

@@ -34,6 +34,7 @@ import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -104,9 +105,7 @@ def _wrap(a: NDArray[np.float64]) -> NDArray[np.float64]:
 def _compose(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
     """Pose `b` (expressed in frame `a`) in `a`'s parent frame; arrays of shape (k, 3)."""
     c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack(
-        [a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1], a[:, 2] + b[:, 2]]
-    )
+    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1], a[:, 2] + b[:, 2]])
 
 
 def _inverse(a: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -222,15 +221,12 @@ class _Tree:
         known = self.frames()
         for name, what in ((fixed, "fixed frame"), (target, "laser frame")):
             if name not in known:
-                raise InputFormatError(
-                    f"unknown {what} {name!r}; known tf frames: {', '.join(known) or '(none)'}", path=path
-                )
+                raise InputFormatError(f"unknown {what} {name!r}; known tf frames: {', '.join(known) or '(none)'}", path=path)
         up = self.chain(target)
         common = next((f for f in self.chain(fixed) if f in up), None)
         if common is None:
             raise InputFormatError(
-                f"no tf path from {fixed!r} to {target!r}: they are in different trees; "
-                f"known tf frames: {', '.join(known)}",
+                f"no tf path from {fixed!r} to {target!r}: they are in different trees; known tf frames: {', '.join(known)}",
                 path=path,
             )
         a, ok_a = self._down(common, fixed, t)
@@ -364,8 +360,7 @@ def load_rosbag(
         if not tf_conns and not odom_conns:
             # Nothing to take poses from; reader.messages(connections=[]) would read every message.
             raise InputFormatError(
-                f"no /tf or /tf_static messages to take the scan poses from{odom_hint}; "
-                f"topics in the bag: {_topics_text(conns)}",
+                f"no /tf or /tf_static messages to take the scan poses from{odom_hint}; topics in the bag: {_topics_text(conns)}",
                 path=spath,
             )
         tree = _Tree()
@@ -380,7 +375,8 @@ def load_rosbag(
             if tf_conns:
                 where = "reading /tf"
                 for c, _, raw in reader.messages(connections=tf_conns):
-                    msg = reader.deserialize(raw, c.msgtype)
+                    # Message classes are built from the bag's definitions at run time: no static type.
+                    msg: Any = reader.deserialize(raw, c.msgtype)
                     static = c.topic.lstrip("/") == "tf_static"
                     for tr in msg.transforms:
                         tree.add(
@@ -410,7 +406,13 @@ def load_rosbag(
                 frames.append(_frame(msg.header.frame_id))
                 ranges.append(np.asarray(msg.ranges, dtype=float))
                 geometry.append(
-                    (float(msg.angle_min), float(msg.angle_increment), len(msg.ranges), float(msg.range_min), float(msg.range_max))
+                    (
+                        float(msg.angle_min),
+                        float(msg.angle_increment),
+                        len(msg.ranges),
+                        float(msg.range_min),
+                        float(msg.range_max),
+                    )
                 )
         except GpomapError:
             raise
@@ -437,9 +439,7 @@ def load_rosbag(
         child = odom_edge.child  # type: ignore[union-attr]
         for lf in sorted(set(frames)):
             if lf != child and lf not in tree.frames():
-                warnings.warn(
-                    f"{spath}: laser frame {lf!r} not in tf; assuming it coincides with {child!r}", stacklevel=2
-                )
+                warnings.warn(f"{spath}: laser frame {lf!r} not in tf; assuming it coincides with {child!r}", stacklevel=2)
                 tree.add(child, lf, 0.0, (0.0, 0.0, 0.0), static=True)
     tree.finish()
 

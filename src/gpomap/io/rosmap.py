@@ -261,7 +261,8 @@ def _read_png(path: str) -> tuple[NDArray[np.uint8], NDArray[np.bool_] | None]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", Image.DecompressionBombWarning)
             img_file = Image.open(path)
-        with img_file as img:
+        with img_file:
+            img: Image.Image = img_file
             img.load()
             if img.mode in ("I", "I;16", "I;16B", "I;16L", "F"):
                 raise InputFormatError(f"only 8-bit PNG images are supported, got Pillow mode {img.mode!r}", path=path)
@@ -369,7 +370,7 @@ def _read_yaml_text(path: str) -> str:
         raise InputFormatError(
             "map YAML file is not UTF-8 text (is it the image rather than the YAML?)", path=path, line=line
         ) from None
-    long_number = re.search(r"\d{%d,}" % _MAX_DIGITS, text)
+    long_number = re.search(rf"\d{{{_MAX_DIGITS},}}", text)
     if long_number:
         line = text.count("\n", 0, long_number.start()) + 1
         key = text.splitlines()[line - 1].split(":", 1)[0].strip()[:40]
@@ -411,7 +412,7 @@ def _number(config: dict[str, Any], key: str, path: str, lines: dict[str, int]) 
     if isinstance(value, bool):
         value = None  # ``yes`` is not a number
     try:
-        number = float(value)  # type: ignore[arg-type]
+        number = float(value)
     except (TypeError, ValueError, OverflowError):  # OverflowError: an int of 400 digits
         number = math.nan
     if not math.isfinite(number):
@@ -464,7 +465,9 @@ def read_rosmap(yaml_path: str | os.PathLike[str]) -> RosMap:
 
     resolution = _number(config, "resolution", path, lines)
     if resolution <= 0:
-        raise InputFormatError(f"'resolution' must be positive, got {config['resolution']!r}", path=path, line=lines.get("resolution"))
+        raise InputFormatError(
+            f"'resolution' must be positive, got {config['resolution']!r}", path=path, line=lines.get("resolution")
+        )
 
     origin = config["origin"]
     if not isinstance(origin, (list, tuple)) or len(origin) != 3:

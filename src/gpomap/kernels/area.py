@@ -16,6 +16,7 @@ paper's sums (eq. 13 is count_A * count_B times the mean over member pairs).
 from __future__ import annotations
 
 import copy
+from typing import Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -99,6 +100,19 @@ class AreaKernel:
             return member_nodes(supports)
         return quadrature_nodes(supports, self.quadrature_order)
 
+    @overload
+    def __call__(self, A: Supports, B: Supports | None = None, eval_gradient: Literal[False] = False) -> NDArray[np.float64]: ...
+
+    @overload
+    def __call__(
+        self, A: Supports, B: Supports | None = None, *, eval_gradient: Literal[True]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def __call__(
+        self, A: Supports, B: Supports | None = None, eval_gradient: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
     def __call__(
         self, A: Supports, B: Supports | None = None, eval_gradient: bool = False
     ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -119,7 +133,8 @@ class AreaKernel:
         dK : ndarray of shape (n, m, 2), only with `eval_gradient`
         """
         same = B is None
-        B = A if same else B
+        if B is None:
+            B = A
         if self.method == "exact":
             K, dK = self._exact(A, B, eval_gradient)
         else:
@@ -149,7 +164,7 @@ class AreaKernel:
                 A.lower[s:e], A.upper[s:e], B.lower, B.upper, self.base.variance, self.base.length_scale, eval_gradient
             )
             K[s:e] = k
-            if eval_gradient:
+            if dK is not None:
                 dK[s:e] = dk
         return K, dK
 

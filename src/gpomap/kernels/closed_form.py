@@ -88,7 +88,7 @@ def interval_average(
                 continue
             f, df = _block(a_lo[ia], a_hi[ia], apt, b_lo[ib], b_hi[ib], bpt, l, eval_gradient)
             F[np.ix_(ia, ib)] = f
-            if eval_gradient:
+            if dF is not None:
                 dF[np.ix_(ia, ib)] = df
     return F, dF
 
@@ -147,7 +147,7 @@ def se_box_average(
     """
     d = a_lower.shape[1]
     factors = []
-    dfactors = []
+    dfactors: list[NDArray[np.float64]] = []
     for k in range(d):
         # Cells from the tree share their sides and grid points share their coordinates, so
         # each dimension has far fewer distinct intervals than inputs: evaluate the erf terms
@@ -157,7 +157,8 @@ def se_box_average(
         f, df = interval_average(ua[:, 0], ua[:, 1], ub[:, 0], ub[:, 1], length_scale, eval_gradient)
         ia, ib = ia.reshape(-1), ib.reshape(-1)
         factors.append(f[np.ix_(ia, ib)])
-        dfactors.append(df[np.ix_(ia, ib)] if eval_gradient else None)
+        if df is not None:
+            dfactors.append(df[np.ix_(ia, ib)])
     K = variance * np.prod(factors, axis=0) if d > 1 else variance * factors[0]
     if not eval_gradient:
         return K, None
@@ -172,7 +173,9 @@ def se_box_average(
     return K, np.stack([K, variance * dl], axis=-1)
 
 
-def se_box_self_average(lower: NDArray[np.float64], upper: NDArray[np.float64], variance: float, length_scale: float) -> NDArray[np.float64]:
+def se_box_self_average(
+    lower: NDArray[np.float64], upper: NDArray[np.float64], variance: float, length_scale: float
+) -> NDArray[np.float64]:
     """The SE kernel averaged over each box against itself, ndarray of shape (n,).
 
     Parameters

@@ -45,6 +45,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -136,6 +137,7 @@ class Segments:
     def subset(self, index: NDArray[np.intp] | slice | Sequence[int]) -> Segments:
         """The inputs at `index` (an integer array, a boolean mask or a slice)."""
         idx = np.arange(len(self))[index]
+        assert self.counts is not None  # __post_init__ fills it in
         return Segments(self.starts[idx], self.ends[idx], self.counts[idx])
 
 
@@ -257,7 +259,7 @@ def se_point_segment(
     l = float(length_scale)
     vec = ends - starts
     L = np.hypot(vec[..., 0], vec[..., 1])
-    short = L < POINT_LENGTH * l
+    short = POINT_LENGTH * l > L
     Ls = np.where(short, 1.0, L)
     dx, dy = vec[..., 0] / Ls, vec[..., 1] / Ls
     # Short segments: measure from the midpoint, with zero length, so the formula below becomes
@@ -411,10 +413,7 @@ class LineKernel:
         self.max_block = int(max_block)
 
     def __repr__(self) -> str:
-        return (
-            f"LineKernel({self.base!r}, normalisation={self.normalisation!r}, order={self.order}, "
-            f"max_panel={self.max_panel})"
-        )
+        return f"LineKernel({self.base!r}, normalisation={self.normalisation!r}, order={self.order}, max_panel={self.max_panel})"
 
     @property
     def closed_form(self) -> bool:
@@ -450,6 +449,19 @@ class LineKernel:
         L = X.lengths
         return np.where(X.is_point, 1.0, L)
 
+    @overload
+    def __call__(self, A: Segments, B: Segments | None = None, eval_gradient: Literal[False] = False) -> NDArray[np.float64]: ...
+
+    @overload
+    def __call__(
+        self, A: Segments, B: Segments | None = None, *, eval_gradient: Literal[True]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def __call__(
+        self, A: Segments, B: Segments | None = None, eval_gradient: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
     def __call__(
         self, A: Segments, B: Segments | None = None, eval_gradient: bool = False
     ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -481,12 +493,12 @@ class LineKernel:
             if same:
                 # Symmetric by construction; remove the rounding asymmetry.
                 K = 0.5 * (K + K.T)
-                if eval_gradient:
+                if dK is not None:
                     dK = 0.5 * (dK + dK.transpose(1, 0, 2))
         if self.normalisation == "sum":
             scale = np.outer(self._weights(A), self._weights(B))
             K = K * scale
-            if eval_gradient:
+            if dK is not None:
                 dK = dK * scale[:, :, None]
         return (K, dK) if eval_gradient else K
 
@@ -504,8 +516,8 @@ class LineKernel:
         rows = max(1, int(self.max_block // max(1.0, m * per_pair)))
         for start in range(0, n, rows):
             stop = min(n, start + rows)
-            ia, jb = np.meshgrid(np.arange(start, stop), np.arange(m), indexing="ij")
-            ia, jb = ia.ravel(), jb.ravel()
+            grid_a, grid_b = np.meshgrid(np.arange(start, stop), np.arange(m), indexing="ij")
+            ia, jb = grid_a.ravel(), grid_b.ravel()
             if same:
                 # Upper triangle only; the lower one is its mirror.
                 keep = jb >= ia
@@ -529,10 +541,11 @@ class LineKernel:
                 g, dg = se_point_segment(nodes.nodes[node], segs.starts[seg], segs.ends[seg], l, eval_gradient)
                 w = nodes.weights[node]
                 f[sel] = np.bincount(pair, weights=g * w, minlength=sel.size)
-                if eval_gradient:
+                if df is not None:
+                    assert dg is not None  # returned when eval_gradient is set
                     df[sel] = np.bincount(pair, weights=dg * w, minlength=sel.size)
             F[ia, jb] = f
-            if eval_gradient:
+            if dF is not None:
                 dF[ia, jb] = df
             # Parallel pairs of proper segments: exact closed form (the diagonal among them).
             ra, cb = self._parallel_pairs(A.subset(slice(start, stop)), B, l)
@@ -543,15 +556,15 @@ class LineKernel:
             if ra.size:
                 g, dg = se_parallel_pairs(A.starts[ra], A.ends[ra], B.starts[cb], B.ends[cb], l, eval_gradient)
                 F[ra, cb] = g
-                if eval_gradient:
+                if dF is not None:
                     dF[ra, cb] = dg
         if same:
             iu = np.triu_indices(n, 1)
             F[iu[1], iu[0]] = F[iu]
-            if eval_gradient:
+            if dF is not None:
                 dF[iu[1], iu[0]] = dF[iu]
         K = var * F
-        if not eval_gradient:
+        if dF is None:
             return K, None
         return K, np.stack([K, var * dF], axis=-1)
 
@@ -576,7 +589,7 @@ class LineKernel:
             L = A.lengths
             # A segment against itself: the interval formula 2 G2(L) / L^2 (1 for a point).
             with np.errstate(divide="ignore", invalid="ignore"):
-                f = np.where(L < POINT_LENGTH * l, 1.0, 2.0 * _g2(L, l) / np.where(L > 0, L, 1.0) ** 2)
+                f = np.where(POINT_LENGTH * l > L, 1.0, 2.0 * _g2(L, l) / np.where(L > 0, L, 1.0) ** 2)
             d = self.base.variance * f
         else:
             d = weighted_self(self.base, self.nodes(A), self.max_block)

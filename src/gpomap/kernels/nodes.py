@@ -49,13 +49,13 @@ class NodeSet:
 
 def member_nodes(supports: Supports) -> NodeSet:
     """Nodes at each input's member points with equal weights (the summed kernel)."""
-    if not supports.has_members:
+    points, off = supports.member_points, supports.member_offsets
+    if points is None or off is None:
         raise ValueError("the summed area kernel needs the member points of each input")
-    off = supports.member_offsets
     sizes = np.diff(off)
     if np.any(sizes == 0):
         raise ValueError("every input needs at least one member point for the summed area kernel")
-    return NodeSet(supports.member_points, np.repeat(1.0 / sizes, sizes), off)
+    return NodeSet(points, np.repeat(1.0 / sizes, sizes), off)
 
 
 def quadrature_nodes(supports: Supports, order: int) -> NodeSet:
@@ -139,15 +139,16 @@ def weighted_gram(
         b = B.slice(first, m)
         kp, dkp = kernel.values(squared_distances(a.nodes, b.nodes), eval_gradient)
         K[start:stop, first:] = _reduce(kp, a, b)
-        if eval_gradient:
+        if dK is not None:
+            assert dkp is not None  # values() returns the derivative when asked for it
             # d/dlog(variance) of a variance-scaled kernel is the kernel itself.
             dK[start:stop, first:, 1] = _reduce(dkp, a, b)
         if symmetric:
             K[stop:, start:stop] = K[start:stop, stop:].T
-            if eval_gradient:
+            if dK is not None:
                 dK[stop:, start:stop, 1] = dK[start:stop, stop:, 1].T
         start = stop
-    if eval_gradient:
+    if dK is not None:
         dK[:, :, 0] = K
     return K, dK
 

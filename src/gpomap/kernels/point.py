@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 from abc import ABC, abstractmethod
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -112,6 +113,7 @@ class PointKernel(ABC):
         K, dl = self.values(d2, eval_gradient)
         if not eval_gradient:
             return K
+        assert dl is not None  # values() returns the derivative when asked for it
         return K, np.stack([K, dl], axis=-1)
 
     def __call__(
@@ -142,6 +144,7 @@ class PointKernel(ABC):
 
     def cutoff(self, tol: float = 1e-10) -> float:
         """Distance beyond which the kernel is below `tol` times its variance (to 0.1 %)."""
+
         def above(r: float) -> bool:
             return bool(self.values(np.array(r * r))[0] > tol * self.variance)
 
@@ -189,7 +192,7 @@ KERNELS: dict[str, type[PointKernel]] = {
 }
 
 
-def make_point_kernel(name: str | PointKernel, **params: float) -> PointKernel:
+def make_point_kernel(name: str | PointKernel, **params: Any) -> PointKernel:
     """A point kernel from its name ("se" or "matern32"), or the kernel itself if given one."""
     if isinstance(name, PointKernel):
         return name
