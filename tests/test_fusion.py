@@ -74,13 +74,13 @@ def test_lattice_cells_do_not_depend_on_the_extent() -> None:
 
 
 def test_calibration_formula_by_hand() -> None:
-    cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0, temperature=1.0)
+    cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0)
     # (2 * 1 + 2 * 0.5) / (2 * 1 + 1 + 2) = 0.6
     assert cal(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.6)
-    # No counts: the GP's probability; temperature 2 squares the odds.
+    # No counts: the GP's probability.
     assert cal(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(0.8)
-    hot = EvidenceCalibration(1.0, 2.0, 2.0)
-    assert hot(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(16 / 17)
+    # The defaults are the counting grid with the GP in place of its prior 1/2: (3 + 1) / (3 + 5 + 2).
+    assert EvidenceCalibration()(np.array([0.5]), np.array([3]), np.array([5]))[0] == pytest.approx(0.4)
 
 
 def test_calibration_points_follow_the_protocol() -> None:
