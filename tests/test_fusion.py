@@ -140,3 +140,16 @@ def test_written_grid_uses_its_own_cells_counts() -> None:
     hits, misses = model.evidence_.evidence.counts(om.grid)
     p_gp = model.predict_proba_gp(om.grid.centres()).reshape(om.grid.shape)
     np.testing.assert_allclose(om.probability, model.evidence_.calibration(p_gp, hits, misses), atol=1e-12)
+
+
+def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
+    # Scan 0 at x = 0.05 sees a hit at x = 1.05 (a person); the robot then drives through it.
+    first = _scan(0.05, 0.15, [0.0], [1.0])
+    path = [_scan(0.05 + 0.25 * k, 0.15, [np.pi / 2], [0.1]) for k in range(1, 7)]
+    scans = [first, *path]
+    ev = RayEvidence.from_scans(scans)
+    passes = ev.path_passes(GRID)
+    assert passes[1, :16].min() >= 1 and passes[1, 16:].sum() == 0
+    # A long jump between poses is not a path.
+    jump = RayEvidence.from_scans([first, _scan(1.8, 0.15, [0.0], [0.1])])
+    assert jump.path_passes(GRID).sum() == 0

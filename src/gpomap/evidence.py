@@ -4,14 +4,15 @@ The GP over cells is a smooth prior over the whole map; what it cannot keep is t
 that crossed a particular 5 cm cell, which is what makes a plain occupancy grid sharp where the
 robot has data. :class:`RayEvidence` keeps the beams and counts, on any grid, the scans that
 ended a beam in each cell (hits) and the scans that crossed it without ending there (misses). As
-in OctoMap, a scan updates a cell once, and a hit wins over a miss of the same scan.
+in OctoMap, a scan updates a cell once, and a hit wins over a miss of the same scan. It also keeps
+the robot's own path: space the robot drove through was free when it did.
 :mod:`gpomap.fusion` combines these counts with the GP's probability.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -19,6 +20,10 @@ from numpy.typing import NDArray
 from gpomap.grid import GridSpec
 from gpomap.raycast import traverse
 from gpomap.scans import Scan
+
+#: Longest step between consecutive scans' poses taken as the robot driving (metres); longer
+#: steps are jumps in the log (a new session, a relocalisation), not a path.
+MAX_PATH_STEP: float = 1.0
 
 # Traversal entries handled per batch of scans: bounds the temporary memory (~24 bytes each).
 _ENTRIES_PER_BATCH: int = 1 << 22
@@ -36,12 +41,16 @@ class RayEvidence:
         Whether the beam returned (its end cell is a hit); False for no-return beams.
     scan : ndarray of int, shape (b,)
         Index of the scan each beam belongs to, non-decreasing.
+    path : ndarray of shape (k, 4)
+        The robot's own path between consecutive scans, as segments (x0, y0, x1, y1); steps
+        longer than :data:`MAX_PATH_STEP` (a jump in the log) are left out.
     """
 
     starts: NDArray[np.float64]
     ends: NDArray[np.float64]
     hit: NDArray[np.bool_]
     scan: NDArray[np.intp]
+    path: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)))
 
     @classmethod
     def from_scans(cls, scans: Sequence[Scan], no_return_cap: float | None = 10.0) -> RayEvidence:
@@ -70,7 +79,16 @@ class RayEvidence:
         if not starts:
             empty = np.zeros((0, 2))
             return cls(empty, empty.copy(), np.zeros(0, bool), np.zeros(0, np.intp))
-        return cls(np.concatenate(starts), np.concatenate(ends), np.concatenate(hit), np.concatenate(scan))
+        poses = np.array([s.pose[:2] for s in scans], dtype=float)
+        steps = np.column_stack([poses[:-1], poses[1:]])
+        steps = steps[np.hypot(steps[:, 2] - steps[:, 0], steps[:, 3] - steps[:, 1]) <= MAX_PATH_STEP]
+        return cls(np.concatenate(starts), np.concatenate(ends), np.concatenate(hit), np.concatenate(scan), steps)
+
+    def path_passes(self, grid: GridSpec) -> NDArray[np.int32]:
+        """How many steps of the robot's path crossed each cell of `grid`, shape grid.shape."""
+        ny, nx = grid.shape
+        _, rows, cols = traverse(grid, self.path[:, :2], self.path[:, 2:])
+        return np.bincount(rows * nx + cols, minlength=ny * nx).astype(np.int32).reshape(ny, nx)
 
     @property
     def n_scans(self) -> int:

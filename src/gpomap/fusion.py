@@ -9,6 +9,10 @@ is a hit worth ``hit_weight`` observations, every scan that crossed it a miss. I
 Where no beam went, p = p_gp; where many did, the counts decide and walls are as sharp as the
 cells; the GP carries the map across gaps, and far from all data it returns its prior, 0.5.
 
+The robot's own path is evidence too: the robot's body passed there, so each step of the path
+through a cell counts as ``hit_weight`` misses, as sure as a beam's end. A stray hit on the path
+(a person walking by, a pose error) then cannot make the robot's own corridor an obstacle.
+
 Calibration. The two weights are fitted on the map's own data, never on a test set: for a
 sample of the training scans, the scan's own beams are removed from the counts (leave one scan
 out, exact because counts add over scans), and its hits and free points along its beams
@@ -208,27 +212,33 @@ class EvidenceLayer:
 
         self.evidence = RayEvidence.from_scans(scans, no_return_cap)
         self.lattice = lattice_grid(self.evidence.extent(), resolution, margin=resolution)
-        self._hits, self._misses = self.evidence.counts(self.lattice)
+        self._hits, misses = self.evidence.counts(self.lattice)
         self.calibration, self.report = fit_calibration(
             scans, self.evidence, self.lattice, predict_gp, calibration_scans, 2 * resolution, no_return_cap, seed
         )
-        self._grid_cache: tuple[GridSpec, NDArray[np.int32], NDArray[np.int32]] | None = None
+        self._misses = self._with_path(misses, self.lattice)
+        self._grid_cache: tuple[GridSpec, NDArray[np.int32], NDArray[np.float64]] | None = None
 
-    def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
-        """Hits and misses of the fine cell holding each point (0 outside the counted area)."""
+    def _with_path(self, misses: NDArray[np.int32], grid: GridSpec) -> NDArray[np.float64]:
+        """Misses plus ``hit_weight`` for every step of the robot's path through the cell."""
+        return misses + self.calibration.hit_weight * self.evidence.path_passes(grid)
+
+    def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
+        """Hits and misses (path included) of the fine cell holding each point (0 outside the counted area)."""
         r, c, inside = self.lattice.index_of(points)
         r, c = np.where(inside, r, 0), np.where(inside, c, 0)
-        return np.where(inside, self._hits[r, c], 0), np.where(inside, self._misses[r, c], 0)
+        return np.where(inside, self._hits[r, c], 0), np.where(inside, self._misses[r, c], 0.0)
 
     def proba(self, points: NDArray[np.float64], p_gp: NDArray[np.float64]) -> NDArray[np.float64]:
         """Probability at points, ndarray of shape (m,), from the GP's probability there."""
         h, m = self.counts_at(points)
         return self.calibration(p_gp, h, m)
 
-    def grid_counts(self, grid: GridSpec) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
-        """Hits and misses per cell of `grid` (counted on that grid's own cells; the last is cached)."""
+    def grid_counts(self, grid: GridSpec) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
+        """Hits and misses (path included) per cell of `grid`, counted on that grid's own cells (the last is cached)."""
         if self._grid_cache is None or self._grid_cache[0] != grid:
-            self._grid_cache = (grid, *self.evidence.counts(grid))
+            hits, misses = self.evidence.counts(grid)
+            self._grid_cache = (grid, hits, self._with_path(misses, grid))
         return self._grid_cache[1], self._grid_cache[2]
 
     def grid_proba(self, grid: GridSpec, p_gp: NDArray[np.float64]) -> NDArray[np.float64]:
