@@ -107,7 +107,7 @@ def test_leave_one_scan_out_removes_the_scans_own_counts() -> None:
         seen["points"] = points
         return np.full(len(points), 0.5)
 
-    cal, report = fit_calibration([a, b], ev, GRID, predict_gp, n_scans=2, step=0.1)
+    _, report = fit_calibration([a, b], ev, GRID, predict_gp, n_scans=2, step=0.1)
     assert report["n_points"] > 0
     # With only the other scan's counts, each scan's hit cell has no hit: a leaked count would
     # make hits certain and drive the log loss to near zero.

@@ -74,7 +74,7 @@ def test_grid_and_ternary(fitted):
     hits, misses = fitted.evidence_.grid_counts(m.grid)
     fused = fitted.evidence_.calibration(p, hits.ravel()[:50], misses.ravel()[:50])
     np.testing.assert_allclose(fused, m.probability.ravel()[:50])
-    mean, var = fitted.predict(m.grid.centres()[:50], return_var=True)
+    _, var = fitted.predict(m.grid.centres()[:50], return_var=True)
     np.testing.assert_allclose(var, v)
     summary = fitted.summary()
     assert summary["n_cells"] == fitted.n_inputs_ > 100

@@ -40,6 +40,28 @@ class GPMapEstimator:
     method_name = "gp"
     chunk_size: int = 4096
     thresholds: tuple[float, float] = DEFAULT_THRESHOLDS
+    # Settings every subclass takes in its constructor, declared for the code shared here.
+    kernel: str
+    free_step: float
+    hit_margin: float | None
+    no_return_cap: float | None
+    noise: float
+    noise_bounds: tuple[float, float]
+    noise_model: str
+    objective: str
+    optimise: bool
+    n_restarts: int
+    seed: int
+    # What a subclass's fit sets.
+    gp_: SupportGP
+    timings_: dict[str, float]
+    extent_points_: NDArray[np.float64]
+    path_: NDArray[np.float64] | None
+
+    @property
+    def n_inputs_(self) -> int:
+        """Number of GP inputs (defined by each subclass)."""
+        raise NotImplementedError
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """The constructor arguments, by name."""
@@ -86,9 +108,7 @@ class GPMapEstimator:
                 data, self.free_step, self.hit_margin, self.no_return_cap, getattr(self, "free_clearance", 0.0)
             )
         if obs.n_occupied == 0 or obs.n_free == 0:
-            raise EmptyDataError(
-                f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied"
-            )
+            raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
         return obs
 
     def _queries(self, points: NDArray[np.float64]) -> Any:
@@ -129,7 +149,10 @@ class GPMapEstimator:
         t = time.perf_counter()
         mean, var = self.gp_.predict_latent(self._queries(as_points(points)), return_var, self.chunk_size)
         self.timings_["prediction"] = time.perf_counter() - t
-        return (mean, var) if return_var else mean
+        if not return_var:
+            return mean
+        assert var is not None  # predict_latent returns it when asked
+        return mean, var
 
     def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
         """Occupancy probability at points (the calibrated probit of the latent GP).

@@ -122,7 +122,9 @@ class RayEvidence:
         if idx.size == 0:
             return hits.reshape(ny, nx), misses.reshape(ny, nx)
         # Batches of whole scans whose traversals stay under the entry budget.
-        cells_per_beam = np.abs(np.floor(self.ends[idx] / grid.resolution) - np.floor(self.starts[idx] / grid.resolution)).sum(axis=1) + 2
+        cells_per_beam = (
+            np.abs(np.floor(self.ends[idx] / grid.resolution) - np.floor(self.starts[idx] / grid.resolution)).sum(axis=1) + 2
+        )
         cost = np.cumsum(cells_per_beam)
         scan_of = self.scan[idx]
         lo = 0

@@ -179,7 +179,8 @@ class AreaGPOM(GPMapEstimator):
         self.calibration_scans = calibration_scans
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(kernel={self.kernel!r}, area={self.area_method!r}, min_cell={self.min_cell}, max_cell={self.max_cell})"
+        name = type(self).__name__
+        return f"{name}(kernel={self.kernel!r}, area={self.area_method!r}, min_cell={self.min_cell}, max_cell={self.max_cell})"
 
     @property
     def area_method(self) -> str:
@@ -237,9 +238,7 @@ class AreaGPOM(GPMapEstimator):
         """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off)."""
         if not self.ray_evidence or isinstance(data, Observations):
             return None
-        return EvidenceLayer(
-            data, self.evidence_resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed
-        )
+        return EvidenceLayer(data, self.evidence_resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed)
 
     @property
     def n_inputs_(self) -> int:
@@ -271,4 +270,3 @@ class AreaGPOM(GPMapEstimator):
             "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
             "timings": dict(self.timings_),
         }
-

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +24,7 @@ from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.line import LineKernel, Segments, concatenate_segments
 from gpomap.kernels.point import make_point_kernel
 from gpomap.scans import Scan, evenly_spaced
+from gpomap.supports import Supports
 
 #: Default quadrature per kernel: (nodes per panel, longest panel in metres). The SE needs GL
 #: along one segment only (the other is closed form); Matern along both, so fewer nodes.
@@ -107,6 +108,8 @@ class GPOMIK(GPMapEstimator):
 
     method_name = "gpomik"
 
+    hit_margin: float
+
     def __init__(
         self,
         kernel: str = "matern32",
@@ -187,7 +190,9 @@ class GPOMIK(GPMapEstimator):
         y = np.concatenate([-np.ones(len(free)), np.ones(len(hits))])
         timings["observations"] = time.perf_counter() - t
         gp = self._make_gp(self.make_kernel())
-        gp.fit(X, y)
+        # Segments offer what SupportGP uses of its inputs (len, counts, subset); GPOMIK never
+        # samples inputs for its hyperparameters, which would need cell centres.
+        gp.fit(cast("Supports", X), y)
         timings.update(gp.timings_)
         self.segments_ = free
         self.hits_ = hits
