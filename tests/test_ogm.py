@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 
 import gpomap.baselines.ogm as ogm
-from gpomap.baselines.ogm import L_HIT, L_MAX, L_MIN, L_MISS, OccupancyGridMapper, traverse
+import gpomap.raycast as raycast
+from gpomap.baselines.ogm import L_HIT, L_MAX, L_MIN, L_MISS, OccupancyGridMapper
+from gpomap.raycast import traverse
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
 from gpomap.scans import Scan
@@ -52,7 +54,7 @@ def test_traversal_in_chunks_matches_one_pass(monkeypatch):
     rng = np.random.default_rng(1)
     s, e = rng.uniform(0, 10, (200, 2)), rng.uniform(0, 10, (200, 2))
     whole = traverse(grid, s, e)
-    monkeypatch.setattr(ogm, "_ENTRIES_PER_CHUNK", 50)
+    monkeypatch.setattr(raycast, "ENTRIES_PER_CHUNK", 50)
     for a, b in zip(whole, traverse(grid, s, e)):
         np.testing.assert_array_equal(a, b)
 
@@ -138,7 +140,8 @@ def test_counting_and_logodds_agree_on_streamed_chunks(monkeypatch):
     scans = paper_room_scans(n_beams=36)
     for kw in [{}, {"sensor_model": "counting"}, {"update": "beam"}]:
         whole = OccupancyGridMapper(0.25, **kw).fit(scans)
-        monkeypatch.setattr(ogm, "_ENTRIES_PER_CHUNK", 500)
+        monkeypatch.setattr(ogm, "ENTRIES_PER_CHUNK", 500)
+        monkeypatch.setattr(raycast, "ENTRIES_PER_CHUNK", 500)
         parts = OccupancyGridMapper(0.25, **kw).fit(scans)
         monkeypatch.undo()
         np.testing.assert_allclose(parts.log_odds_, whole.log_odds_)
