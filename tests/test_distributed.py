@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 pytest.importorskip("distributed", reason="dask[distributed] is not installed: pip install 'gpomap[distributed]'")
 
@@ -136,7 +137,10 @@ def cluster(tmp_path_factory) -> Iterator[Cluster]:
 def reference(tmp_path_factory) -> dict[str, np.ndarray]:
     """The same map built in this process (no pool, no cluster)."""
     out = tmp_path_factory.mktemp("reference")
-    assert main(["map", str(LOG), "-o", str(out), "--workers", "1", "-q", *MAP_ARGS]) == EXIT_OK
+    # One BLAS thread as in the workers: the same arithmetic, so the same map to the last bit
+    # (other thread counts move the ray-evidence calibration on top of the GP by ~1e-7).
+    with threadpool_limits(1):
+        assert main(["map", str(LOG), "-o", str(out), "--workers", "1", "-q", *MAP_ARGS]) == EXIT_OK
     return dict(np.load(out / "map.npz"))
 
 
@@ -155,8 +159,9 @@ def room() -> list:
 @pytest.fixture(scope="module")
 def room_reference(room):
     """Hyperparameters and map of the room, tiles fitted in this process."""
-    model = tiles.TiledGPOM(n_workers=1, **ROOM_OPTS).fit(room)
-    return model.hyperparameters_, model.grid(0.25), len(model.tiles_)
+    with threadpool_limits(1):  # as in the workers (see `reference`)
+        model = tiles.TiledGPOM(n_workers=1, **ROOM_OPTS).fit(room)
+        return model.hyperparameters_, model.grid(0.25), len(model.tiles_)
 
 
 def _assert_same_map(out: Path, reference: dict[str, np.ndarray]) -> None:
@@ -213,7 +218,8 @@ def progress_lines() -> Iterator[None]:
 def test_cli_map_on_scheduler_matches_in_process(cluster, reference, tmp_path, capsys, progress_lines):
     cluster.ensure_workers(2)
     out = tmp_path / "dask"
-    code = main(["map", str(LOG), "-o", str(out), "--scheduler", cluster.address, *MAP_ARGS])
+    with threadpool_limits(1):  # this process fits alpha and beta and the evidence: as for `reference`
+        code = main(["map", str(LOG), "-o", str(out), "--scheduler", cluster.address, *MAP_ARGS])
     printed = capsys.readouterr()
     assert code == EXIT_OK, printed.err
     assert "dask" in printed.out  # the summary names the executor
