@@ -90,9 +90,7 @@ def bench_turtlebot(path: Path) -> dict[str, float]:
         f"{rep['cells']['n']} cells ({rep['cells']['occupied']} occupied, {rep['cells']['ambiguous']} ambiguous)"
     )
     hp = rep["hyperparameters"]
-    print(
-        "hyperparameters: " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items())
-    )
+    print("hyperparameters: " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()))
     ag = rep["agreement"]
     _table(
         "(a) agreement with the input on known pixels",
@@ -172,7 +170,7 @@ def bench_arena(path: Path, coarse_resolutions: list[float]) -> None:
     ny, nx = truth.shape
     rows = []
     for coarse_res in coarse_resolutions:
-        k = int(round(coarse_res / ARENA_RESOLUTION))
+        k = round(coarse_res / ARENA_RESOLUTION)
         if not np.isclose(k * ARENA_RESOLUTION, coarse_res):
             raise SystemExit(f"coarse resolution {coarse_res} is not a whole number of 0.01 m pixels")
         cy, cx = -(-ny // k), -(-nx // k)

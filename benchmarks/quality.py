@@ -49,8 +49,7 @@ from gpomap.evaluation import EvalData, Truth, prepare, resolve_split, run_metho
 DATA = Path("..") / "shared" / "data"
 LOGS: dict[str, dict[str, Any]] = {
     "intel": {"path": DATA / "intel" / "intel-corrected.log.gz", "title": "Intel Research Lab"},
-    "fr079": {"path": DATA / "fr079" / "freiburg-079-corrected.log.gz", "scan_step": 3,
-              "title": "Freiburg 079 (every 3rd scan)"},
+    "fr079": {"path": DATA / "fr079" / "freiburg-079-corrected.log.gz", "scan_step": 3, "title": "Freiburg 079 (every 3rd scan)"},
     "csail": {"path": DATA / "csail-robotlaser1" / "csail.log.gz", "title": "MIT CSAIL"},
     "belgioioso": {"path": DATA / "belgioioso" / "belgioioso-corrected.log.gz", "title": "Belgioioso castle"},
     "stage-arena": {"path": DATA / "stage-arena" / "robot1.bag", "title": "Stage arena (true plan)"},
@@ -64,8 +63,12 @@ METHODS: dict[str, tuple[str, float | None]] = {
     "ogm-logodds-0.1": ("ogm-logodds", 0.1),
     "ogm-counting-0.05": ("ogm-counting", 0.05),
 }
-LABELS = {"msk": "MSK-GPOM", "ogm-logodds-0.05": "OGM log-odds 0.05", "ogm-logodds-0.1": "OGM log-odds 0.1",
-          "ogm-counting-0.05": "OGM counting 0.05"}
+LABELS = {
+    "msk": "MSK-GPOM",
+    "ogm-logodds-0.05": "OGM log-odds 0.05",
+    "ogm-logodds-0.1": "OGM log-odds 0.1",
+    "ogm-counting-0.05": "OGM counting 0.05",
+}
 #: Test points per log and split (a seeded, balanced subsample; the same for every method).
 MAX_TEST_POINTS = 20000
 GRID_RESOLUTION = 0.05
@@ -74,9 +77,15 @@ ROOM_TRUTH_RESOLUTION = 0.1
 QUICK = {"scan_range": "0:120", "n_scans": 30, "n_beams": 90, "max_test_points": 2000, "grid_resolution": 0.2}
 
 # metric key, column title, higher is better
-COLUMNS = [("auc", "AUC", True), ("boundary_auc", "bnd AUC", True), ("observed_auc", "obs AUC", True),
-           ("unobserved_auc", "unobs AUC", True), ("fpr_at_tpr95", "FPR95", False), ("log_loss", "log loss", False),
-           ("ece", "ECE", False)]
+COLUMNS = [
+    ("auc", "AUC", True),
+    ("boundary_auc", "bnd AUC", True),
+    ("observed_auc", "obs AUC", True),
+    ("unobserved_auc", "unobs AUC", True),
+    ("fpr_at_tpr95", "FPR95", False),
+    ("log_loss", "log loss", False),
+    ("ece", "ECE", False),
+]
 TRUTH_COLUMNS = [("auc", "truth AUC", True), ("iou", "truth IoU", True)]
 
 
@@ -197,7 +206,10 @@ def table(rows: list[dict[str, Any]], has_truth: bool) -> list[str]:
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r, kind, s, far, truth in lines_data:
         own = r["name"] != "msk"
-        cells = [LABELS[r["name"]], "own grid" if own else ("points" if kind == "points" else f"grid {r['settings']['grid_resolution']:g}")]
+        cells = [
+            LABELS[r["name"]],
+            "own grid" if own else ("points" if kind == "points" else f"grid {r['settings']['grid_resolution']:g}"),
+        ]
         for key, _, _ in COLUMNS:
             v = s.get(key)
             mark = "*" if v is not None and key in best and np.isclose(v, best[key], rtol=0, atol=5e-4) else ""
@@ -205,7 +217,9 @@ def table(rows: list[dict[str, Any]], has_truth: bool) -> list[str]:
         if has_truth:
             for key, _, _ in TRUTH_COLUMNS:
                 v = truth.get(key)
-                mark = "*" if v is not None and ("truth_" + key) in best and np.isclose(v, best["truth_" + key], atol=5e-4) else ""
+                mark = (
+                    "*" if v is not None and ("truth_" + key) in best and np.isclose(v, best["truth_" + key], atol=5e-4) else ""
+                )
                 cells.append(_fmt(v) + mark)
         cells.append(f"{far['mean']:.3f} ± {far['std']:.3f}" if far.get("n") else "-")
         sec, cpu = r["seconds"], r["cpu_seconds"]
@@ -230,7 +244,12 @@ def reliability_figure(results: list[dict[str, Any]], log: str, path: Path) -> N
     if not splits:
         return
     fig = Figure(figsize=(5.2 * len(splits), 4.6), layout="constrained")
-    colours = {"msk": "tab:blue", "ogm-logodds-0.05": "tab:red", "ogm-logodds-0.1": "tab:orange", "ogm-counting-0.05": "tab:green"}
+    colours = {
+        "msk": "tab:blue",
+        "ogm-logodds-0.05": "tab:red",
+        "ogm-logodds-0.1": "tab:orange",
+        "ogm-counting-0.05": "tab:green",
+    }
     for i, split in enumerate(splits):
         ax = fig.add_subplot(1, len(splits), i + 1)
         ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="calibrated")
@@ -243,10 +262,22 @@ def reliability_figure(results: list[dict[str, Any]], log: str, path: Path) -> N
                 rel = r[kind]["reliability"]
                 x = [m for m, c in zip(rel["mean_prob"], rel["counts"]) if c]
                 y = [f for f, c in zip(rel["frac_pos"], rel["counts"]) if c]
-                ax.plot(x, y, ls, marker="o", ms=3, color=colours[r["name"]],
-                        label=f"{LABELS[r['name']]}{' grid' if kind == 'grid' else ''} (ECE {r[kind]['ece']:.3f})")
-        ax.set(xlabel="predicted occupancy probability", ylabel="fraction occupied", xlim=(0, 1), ylim=(0, 1),
-               title=f"{LOGS[log]['title']}: {resolve_split(split)}")
+                ax.plot(
+                    x,
+                    y,
+                    ls,
+                    marker="o",
+                    ms=3,
+                    color=colours[r["name"]],
+                    label=f"{LABELS[r['name']]}{' grid' if kind == 'grid' else ''} (ECE {r[kind]['ece']:.3f})",
+                )
+        ax.set(
+            xlabel="predicted occupancy probability",
+            ylabel="fraction occupied",
+            xlim=(0, 1),
+            ylim=(0, 1),
+            title=f"{LOGS[log]['title']}: {resolve_split(split)}",
+        )
         ax.legend(loc="upper left", fontsize=7)
     save_figure(fig, path)
 
@@ -263,9 +294,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--logs", default=",".join(LOGS), help="comma-separated (default: %(default)s)")
     ap.add_argument("--splits", default=",".join(SPLIT_NAMES), help="comma-separated (default: %(default)s)")
     ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated (default: %(default)s)")
-    ap.add_argument("--quick", action="store_true",
-                    help=f"smoke run: scans {QUICK['scan_range']} of each log, {QUICK['n_scans']} training scans of "
-                    f"{QUICK['n_beams']} beams, {QUICK['max_test_points']} test points, written grids at {QUICK['grid_resolution']} m")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"smoke run: scans {QUICK['scan_range']} of each log, {QUICK['n_scans']} training scans of "
+        f"{QUICK['n_beams']} beams, {QUICK['max_test_points']} test points, written grids at {QUICK['grid_resolution']} m",
+    )
     ap.add_argument("--max-test-points", type=int, default=MAX_TEST_POINTS)
     ap.add_argument("--figures", type=Path, help="write reliability diagrams reliability-<log>.png here")
     ap.add_argument("--json", type=Path, metavar="OUT", help="write every result (without the models) as JSON")
@@ -277,10 +311,14 @@ def main(argv: list[str] | None = None) -> int:
         if bad:
             ap.error(f"unknown {what}(s) {', '.join(bad)}; expected some of {', '.join(known)}")
     grid_res = QUICK["grid_resolution"] if args.quick else GRID_RESOLUTION
-    print(f"# Map quality (commit {_commit()}, {os.cpu_count()} CPUs; {' '.join(['benchmarks/quality.py'] + (argv or sys.argv[1:]))})")
-    print(f"Written grids at {grid_res} m; at most {QUICK['max_test_points'] if args.quick else args.max_test_points} "
-          "balanced test points per log and split; far p = predictions on lattice points > 5 m from any training beam.",
-          flush=True)
+    print(
+        f"# Map quality (commit {_commit()}, {os.cpu_count()} CPUs; {' '.join(['benchmarks/quality.py'] + (argv or sys.argv[1:]))})"
+    )
+    print(
+        f"Written grids at {grid_res} m; at most {QUICK['max_test_points'] if args.quick else args.max_test_points} "
+        "balanced test points per log and split; far p = predictions on lattice points > 5 m from any training beam.",
+        flush=True,
+    )
     results: list[dict[str, Any]] = []
     for log in logs:
         spec = LOGS[log]
@@ -291,11 +329,19 @@ def main(argv: list[str] | None = None) -> int:
         scans, truth = load(log, args.quick)
         read_s = time.perf_counter() - t
         for split in splits:
-            kw: dict[str, Any] = {"scan_step": spec.get("scan_step", 1), "seed": args.seed, "truth": truth,
-                                  "max_test_points": args.max_test_points}
+            kw: dict[str, Any] = {
+                "scan_step": spec.get("scan_step", 1),
+                "seed": args.seed,
+                "truth": truth,
+                "max_test_points": args.max_test_points,
+            }
             if args.quick:
-                kw.update(scan_range=QUICK["scan_range"], n_scans=QUICK["n_scans"], n_beams=QUICK["n_beams"],
-                          max_test_points=QUICK["max_test_points"])
+                kw.update(
+                    scan_range=QUICK["scan_range"],
+                    n_scans=QUICK["n_scans"],
+                    n_beams=QUICK["n_beams"],
+                    max_test_points=QUICK["max_test_points"],
+                )
             data = prepare(scans, split, **kw)
             rows = []
             for name in methods:
@@ -305,11 +351,13 @@ def main(argv: list[str] | None = None) -> int:
                 results.append(r)
             m = data.masks
             print(f"\n## {spec['title']}: {resolve_split(split)} ({len(scans)} scans in the log, read in {read_s:.1f} s)\n")
-            print(f"Training {len(data.train)} scans, {len(data.test)} held out; {data.labels.size} test points "
-                  f"({int(m['boundary'].sum())} boundary, {int(m['observed'].sum())} in observed cells, "
-                  f"{int(m['unobserved'].sum())} not; {int(data.far_test.sum())} > 5 m from the data); MSK-GPOM "
-                  + (f"in {rows[0]['settings']['tiles']} tiles, " if methods[0] == "msk" and rows[0]["settings"]["tiles"] else "")
-                  + (f"{rows[0]['n_inputs']} cells.\n" if methods[0] == "msk" else "\n"))
+            print(
+                f"Training {len(data.train)} scans, {len(data.test)} held out; {data.labels.size} test points "
+                f"({int(m['boundary'].sum())} boundary, {int(m['observed'].sum())} in observed cells, "
+                f"{int(m['unobserved'].sum())} not; {int(data.far_test.sum())} > 5 m from the data); MSK-GPOM "
+                + (f"in {rows[0]['settings']['tiles']} tiles, " if methods[0] == "msk" and rows[0]["settings"]["tiles"] else "")
+                + (f"{rows[0]['n_inputs']} cells.\n" if methods[0] == "msk" else "\n")
+            )
             print("\n".join(table(rows, truth is not None)), flush=True)
         if args.figures:
             args.figures.mkdir(parents=True, exist_ok=True)

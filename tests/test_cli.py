@@ -14,7 +14,9 @@ TB3 = DATA / "turtlebot3-world-map" / "map.yaml"
 
 
 def gpomap(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "gpomap.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "gpomap.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600
+    )
 
 
 def test_help_everywhere():
@@ -47,7 +49,24 @@ def test_map_and_info_on_a_real_log(tmp_path):
     assert info.returncode == 0, info.stderr
     d = json.loads(info.stdout)
     assert d["format"] == "carmen" and d["n_scans"] == 910
-    r = gpomap("map", INTEL, "-o", tmp_path, "--range", "0:120", "--scans", "30", "--beams", "45", "--kernel", "se", "--resolution", "0.2", "--no-return-cap", "5")
+    r = gpomap(
+        "map",
+        INTEL,
+        "-o",
+        tmp_path,
+        "--range",
+        "0:120",
+        "--scans",
+        "30",
+        "--beams",
+        "45",
+        "--kernel",
+        "se",
+        "--resolution",
+        "0.2",
+        "--no-return-cap",
+        "5",
+    )
     assert r.returncode == 0, r.stderr
     assert "scans        30" in r.stdout
     assert (tmp_path / "map.pgm").read_bytes().startswith(b"P5")
@@ -113,8 +132,24 @@ def test_convert_writes_the_same_outputs(tmp_path):
 
 @pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log not present")
 def test_tiles_automatically_and_in_chunks(tmp_path):
-    common = ["--range", "0:60", "--scans", "20", "--beams", "45", "--kernel", "se", "--no-return-cap", "5",
-              "--tile-size", "5", "--workers", "1", "--resolution", "0.2"]
+    common = [
+        "--range",
+        "0:60",
+        "--scans",
+        "20",
+        "--beams",
+        "45",
+        "--kernel",
+        "se",
+        "--no-return-cap",
+        "5",
+        "--tile-size",
+        "5",
+        "--workers",
+        "1",
+        "--resolution",
+        "0.2",
+    ]
     auto = gpomap("map", INTEL, "-o", tmp_path / "auto", "--max-cells", "50", *common)
     assert auto.returncode == 0, auto.stderr
     assert "more than one GP should hold (--max-cells 50): mapping in tiles" in auto.stderr

@@ -1,7 +1,6 @@
 """Checks before work: options, the output directory and the memory a run needs, refused up front."""
 
 import math
-import os
 import subprocess
 import sys
 import textwrap
@@ -31,15 +30,27 @@ def run_main(argv, capsys):
 # --------------------------------------------------------------------------- options
 @pytest.mark.parametrize(
     "option, value",
-    [("--resolution", "nan"), ("--resolution", "inf"), ("--resolution", "0"), ("--resolution", "-1"),
-     ("--free-step", "nan"), ("--tile-size", "inf"), ("--extent", "0,nan,0,1"), ("--extent", "-inf,1,0,1"),
-     ("--thresholds", "nan,0.6"), ("--memory-limit", "nan"), ("--no-return-cap", "-1"), ("--free-clearance", "inf"),
-     ("--time-offset", "nan"), ("--max-cells", "0")],
+    [
+        ("--resolution", "nan"),
+        ("--resolution", "inf"),
+        ("--resolution", "0"),
+        ("--resolution", "-1"),
+        ("--free-step", "nan"),
+        ("--tile-size", "inf"),
+        ("--extent", "0,nan,0,1"),
+        ("--extent", "-inf,1,0,1"),
+        ("--thresholds", "nan,0.6"),
+        ("--memory-limit", "nan"),
+        ("--no-return-cap", "-1"),
+        ("--free-clearance", "inf"),
+        ("--time-offset", "nan"),
+        ("--max-cells", "0"),
+    ],
 )
 def test_bad_numbers_are_usage_errors_before_anything_is_read(tmp_path, capsys, option, value):
     code, _, err = run_main(["map", tmp_path / "does-not-exist.log", "-o", tmp_path / "out", f"{option}={value}"], capsys)
     assert code == 2
-    assert option in err and "expected" in err or "must" in err
+    assert (option in err and "expected" in err) or "must" in err
     assert "does-not-exist" not in err  # the input was never opened
     assert not (tmp_path / "out").exists()
 
@@ -47,7 +58,13 @@ def test_bad_numbers_are_usage_errors_before_anything_is_read(tmp_path, capsys, 
 def test_number_type_edges():
     positive, non_negative = cli._positive(float), cli._non_negative(float)
     assert positive("1e-9") == 1e-9 and non_negative("0") == 0.0 and cli._number(float)("-3") == -3.0
-    for parse, text in [(positive, "0"), (non_negative, "-0.1"), (positive, "nan"), (cli._number(float), "inf"), (cli._positive(int), "1.5")]:
+    for parse, text in [
+        (positive, "0"),
+        (non_negative, "-0.1"),
+        (positive, "nan"),
+        (cli._number(float), "inf"),
+        (cli._positive(int), "1.5"),
+    ]:
         with pytest.raises(Exception, match="expected"):
             parse(text)
 
@@ -118,7 +135,10 @@ def test_largest_tile_cells_by_hand():
 def test_check_memory_and_limits(monkeypatch):
     resources.check_memory(10, 10, "x", "y")  # at the limit: fine
     resources.check_memory(10**20, None, "x", "y")  # no limit known: nothing checked
-    with pytest.raises(MemoryLimitError, match=r"a grid would need about 2\.0 GB of memory, more than the limit of 1\.0 GB \(--memory-limit 1\); smaller"):
+    with pytest.raises(
+        MemoryLimitError,
+        match=r"a grid would need about 2\.0 GB of memory, more than the limit of 1\.0 GB \(--memory-limit 1\); smaller",
+    ):
         resources.check_memory(2 * 10**9, 10**9, "a grid", "smaller", "--memory-limit 1")
     total = resources.total_memory()
     assert total is None or total > 2**26
@@ -143,8 +163,12 @@ def test_a_pose_at_1e9_m_is_refused_in_seconds(tmp_path):
     lines[5][2 + n] = lines[5][5 + n] = "1e9"  # laser and odometry x
     log = tmp_path / "far.log"
     log.write_text("".join(" ".join(f) + "\n" for f in lines))
-    r = subprocess.run([sys.executable, "-m", "gpomap.cli", "map", str(log), "-o", str(tmp_path / "out"), "--beams", "30"],
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "gpomap.cli", "map", str(log), "-o", str(tmp_path / "out"), "--beams", "30"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode == 1, r.stderr
     last = r.stderr.strip().splitlines()[-1]
     assert last.startswith("gpomap: error: a 10000000")
@@ -184,7 +208,7 @@ def _with_func(parser, func):
 # --------------------------------------------------------------------------- warnings, quiet, imports
 def test_python_warnings_become_one_line(tmp_path, capsys, monkeypatch):
     def warns(args):
-        warnings.warn(f"{tmp_path}/x.bag: dropped 1 of 3 scans\noutside the pose time range", UserWarning)
+        warnings.warn(f"{tmp_path}/x.bag: dropped 1 of 3 scans\noutside the pose time range", UserWarning, stacklevel=2)
         return 0
 
     parser = cli.build_parser
@@ -199,7 +223,9 @@ def test_quiet_sets_the_progress_mode(tmp_path, capsys, monkeypatch):
 
     seen = []
     parser = cli.build_parser
-    monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), lambda a: seen.append(progress.get_progress_mode()) or 0))
+    monkeypatch.setattr(
+        cli, "build_parser", lambda: _with_func(parser(), lambda a: seen.append(progress.get_progress_mode()) or 0)
+    )
     for argv in (["info", "x", "-q"], ["map", "x", "-o", tmp_path, "--quiet"], ["evaluate", "--demo", "-q"], ["info", "x"]):
         run_main(argv, capsys)
     assert seen == ["quiet", "quiet", "quiet", "auto"]

@@ -131,7 +131,7 @@ def test_rosmap_and_npz_sources(tmp_path, wall_result):
 
 def test_unknown_only_map_is_an_error():
     labels = np.full((10, 12), UNKNOWN, dtype=np.int8)
-    with pytest.raises(EmptyDataError, match="no known pixels .*all 120 unknown"):
+    with pytest.raises(EmptyDataError, match=r"no known pixels .*all 120 unknown"):
         convert_grid(_labels_to_map(labels))
 
 

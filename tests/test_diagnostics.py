@@ -23,8 +23,12 @@ def test_nothing_to_say_about_a_healthy_fit():
 
 def test_values_at_or_near_bounds():
     found = d.at_bounds(hp(length_scale=19.5, noise=1.04e-4, alpha=29.0, beta=-4.9 * 29.0), BOUNDS)
-    assert found == {"length_scale": (19.5, "upper", 20.0), "noise": (1.04e-4, "lower", 1e-4),
-                     "alpha": (29.0, "upper", 30.0), "shift": (pytest.approx(-4.9), "lower", -5.0)}
+    assert found == {
+        "length_scale": (19.5, "upper", 20.0),
+        "noise": (1.04e-4, "lower", 1e-4),
+        "alpha": (29.0, "upper", 30.0),
+        "shift": (pytest.approx(-4.9), "lower", -5.0),
+    }
     # 5 % is the tolerance: 19 m is more than 5 % below 20 m (20 / 1.05 = 19.05).
     assert d.at_bounds(hp(length_scale=19.0), BOUNDS) == {}
     assert d.at_bounds(hp(length_scale=19.1), BOUNDS)["length_scale"][1] == "upper"
@@ -46,8 +50,10 @@ def test_prior_probability_by_hand():
     assert d.prior_probability(hp(beta=0.0)) == 0.5
     # alpha 1, beta -1, v 0: Phi(-1) = 0.16.
     w = d.hyperparameter_warnings(hp(alpha=1.0, beta=-1.0, variance=0.0), BOUNDS)
-    assert w == ["far from the data the map's probability is 0.16, not about 0.5 (alpha 1, beta -1): unexplored space "
-                 "will look free rather than unknown"]
+    assert w == [
+        "far from the data the map's probability is 0.16, not about 0.5 (alpha 1, beta -1): unexplored space "
+        "will look free rather than unknown"
+    ]
     # 0.5 +- 0.1 passes: Phi(0.25) = 0.599.
     assert d.hyperparameter_warnings(hp(alpha=1.0, beta=0.25, variance=0.0), BOUNDS) == []
 
@@ -59,7 +65,9 @@ def test_map_classes():
     assert d.map_warnings(t) == ["the map is almost all one class: 98.0 % of its 50 known cells are free"]
     t[0, :5] = 1  # 45 of 50 free: 90 %
     assert d.map_warnings(t) == []
-    assert d.map_warnings(np.full((3, 3), -1)) == ["no cell of the 9-cell map is known (all between the thresholds): the map says nothing"]
+    assert d.map_warnings(np.full((3, 3), -1)) == [
+        "no cell of the 9-cell map is known (all between the thresholds): the map says nothing"
+    ]
 
 
 def test_search_bounds_follow_the_estimator():
@@ -75,8 +83,9 @@ def test_a_real_tiny_fit():
     from gpomap.simulate import paper_room_scans
 
     scans = paper_room_scans()[:4]
-    model = AreaGPOM(kernel="se", min_cell=1.0, max_cell=2.0, free_step=0.5, hyper_subset=100,
-                     length_scale_bounds=(0.05, 0.3)).fit(scans)
+    model = AreaGPOM(
+        kernel="se", min_cell=1.0, max_cell=2.0, free_step=0.5, hyper_subset=100, length_scale_bounds=(0.05, 0.3)
+    ).fit(scans)
     hyper = model.hyperparameters_
     warnings = d.fit_warnings(model, model.grid(1.0))
     found = d.at_bounds(hyper, d.search_bounds(model))

@@ -27,9 +27,9 @@ def test_split_never_leaks(holdout, seed, n):
 
 
 def test_split_fractions_and_blocks():
-    train, test = ev.holdout_split(100, "every:5", 3)
+    _, test = ev.holdout_split(100, "every:5", 3)
     assert len(test) == 20 and np.all(np.diff(test) == 5)
-    train, test = ev.holdout_split(200, "blocks:10", 3)
+    _train, test = ev.holdout_split(200, "blocks:10", 3)
     assert 0.1 <= len(test) / 200 <= 0.3
     # Held-out scans come in runs of consecutive indices (blocks), at most LEN long.
     runs = np.split(test, np.flatnonzero(np.diff(test) > 1) + 1)
@@ -46,9 +46,9 @@ def test_test_points_balanced_and_seeded():
     scans = paper_room_scans(n_beams=12)[:4]
     p, y = ev.test_points(scans, 0.3, seed=1)
     assert p.shape == (y.size, 2) and y.sum() * 2 == y.size
-    p2, y2 = ev.test_points(scans, 0.3, seed=1)
+    p2, _y2 = ev.test_points(scans, 0.3, seed=1)
     np.testing.assert_array_equal(p, p2)
-    p3, y3 = ev.test_points(scans, 0.3, seed=1, max_points=20)
+    _p3, y3 = ev.test_points(scans, 0.3, seed=1, max_points=20)
     assert y3.size == 20 and y3.sum() == 10
     # Hits are the held-out beams' end points.
     hits = np.concatenate([s.hits() for s in scans])
@@ -77,11 +77,35 @@ def test_evaluate_returns_documented_keys(method):
     if method == "msk":
         opts.update(min_cell=1.0, max_cell=1.0)
     res = ev.evaluate(
-        scans, method=method, kernel="se", holdout="every:4", n_scans=10, n_beams=12, scan_range="0:24",
-        seed=0, max_test_points=100, return_roc=True, resolution=0.25, grid_resolution=0.5, **opts,
+        scans,
+        method=method,
+        kernel="se",
+        holdout="every:4",
+        n_scans=10,
+        n_beams=12,
+        scan_range="0:24",
+        seed=0,
+        max_test_points=100,
+        return_roc=True,
+        resolution=0.25,
+        grid_resolution=0.5,
+        **opts,
     )
-    for key in ("auc", "fpr_at_tpr95", "log_loss", "seconds", "cpu_seconds", "n_inputs", "n_test_points", "settings",
-                "roc", "points", "grid", "far", "peak_rss_mb"):
+    for key in (
+        "auc",
+        "fpr_at_tpr95",
+        "log_loss",
+        "seconds",
+        "cpu_seconds",
+        "n_inputs",
+        "n_test_points",
+        "settings",
+        "roc",
+        "points",
+        "grid",
+        "far",
+        "peak_rss_mb",
+    ):
         assert key in res
     for kind in ("points", "grid"):
         for key in ("auc", "boundary_auc", "observed_auc", "unobserved_auc", "fpr_at_tpr95", "log_loss", "ece", "reliability"):
@@ -130,14 +154,14 @@ def test_protocol_points_on_a_hand_built_scan():
     obs = ev.protocol_points([short])
     assert obs.n_occupied == 0 and obs.points[:, 0].max() == pytest.approx(5.0)
     # Balanced: two hits, so two free points, from the pool above.
-    p, y = ev.test_points([scan], seed=3)
+    _p, y = ev.test_points([scan], seed=3)
     assert y.sum() == 2 and y.size == 4
 
 
 def test_the_two_protocol_splits():
-    train, test = ev.holdout_split(1000, ev.resolve_split("every"), seed=4)
+    _, test = ev.holdout_split(1000, ev.resolve_split("every"), seed=4)
     assert np.all(np.diff(test) == 10) and len(test) == 100
-    train, test = ev.holdout_split(1000, ev.resolve_split("blocks"), seed=4)
+    _train, test = ev.holdout_split(1000, ev.resolve_split("blocks"), seed=4)
     runs = np.split(test, np.flatnonzero(np.diff(test) > 1) + 1)
     starts = np.array([r[0] for r in runs])
     # Blocks of 40 consecutive scans, one in five held out: 200 scans from one block to the next.
@@ -202,8 +226,14 @@ def test_truth_from_plan_by_hand():
 
 def test_evaluate_against_truth_scores_the_room():
     world, _ = paper_room()
-    res = ev.evaluate(paper_room_scans(n_beams=36), method="ogm-counting", holdout="every:4", resolution=0.25,
-                      truth=ev.Truth.from_world(world, 0.25), max_test_points=400)
+    res = ev.evaluate(
+        paper_room_scans(n_beams=36),
+        method="ogm-counting",
+        holdout="every:4",
+        resolution=0.25,
+        truth=ev.Truth.from_world(world, 0.25),
+        max_test_points=400,
+    )
     for kind in ("points", "grid"):
         t = res["truth"][kind]
         assert 0.5 < t["auc"] <= 1.0 and 0.0 < t["iou"] <= 1.0 and t["n_observed_cells"] > 0

@@ -4,9 +4,9 @@ import pytest
 import gpomap.baselines.ogm as ogm
 import gpomap.raycast as raycast
 from gpomap.baselines.ogm import L_HIT, L_MAX, L_MIN, L_MISS, OccupancyGridMapper
-from gpomap.raycast import traverse
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
+from gpomap.raycast import traverse
 from gpomap.scans import Scan
 from gpomap.simulate import World, paper_room_scans, simulate_scans
 
@@ -34,7 +34,7 @@ def test_traversal_matches_fine_sampling_on_random_beams():
 
 def test_traversal_is_ordered_and_connected():
     grid = GridSpec((0.0, 0.0), 1.0, (10, 10))
-    beam, rows, cols = traverse(grid, [[9.3, 0.2]], [[0.4, 8.9]])
+    _beam, rows, cols = traverse(grid, [[9.3, 0.2]], [[0.4, 8.9]])
     steps = np.abs(np.diff(rows)) + np.abs(np.diff(cols))
     assert np.all(steps == 1)  # 4-connected: one cell at a time
     assert (rows[0], cols[0]) == (0, 9) and (rows[-1], cols[-1]) == (8, 0)
@@ -79,8 +79,8 @@ def test_hit_cell_occupied_and_traversed_cells_free():
 def test_octomap_default_constants():
     # OccupancyOcTreeBase's constructor: setProbHit(0.7), setProbMiss(0.4), clamping 0.1192 / 0.971.
     assert L_HIT == pytest.approx(np.log(0.7 / 0.3)) == pytest.approx(0.8473, abs=1e-4)
-    assert L_MISS == pytest.approx(-0.4055, abs=1e-4)
-    assert L_MIN == pytest.approx(-2.0000, abs=1e-4) and L_MAX == pytest.approx(3.5110, abs=1e-4)
+    assert pytest.approx(-0.4055, abs=1e-4) == L_MISS
+    assert pytest.approx(-2.0000, abs=1e-4) == L_MIN and pytest.approx(3.5110, abs=1e-4) == L_MAX
     m = OccupancyGridMapper()
     assert (m.l_occ, m.l_free, m.l_min, m.l_max, m.max_range_free) == (L_HIT, L_MISS, L_MIN, L_MAX, 10.0)
 
@@ -125,8 +125,7 @@ def test_one_update_per_cell_per_scan_and_a_hit_wins():
     c = OccupancyGridMapper(1.0, (0.0, 5.0, 0.0, 1.0), "counting").fit([scan])
     np.testing.assert_array_equal(c.hits_[0], [0, 1, 1, 2, 0])
     np.testing.assert_array_equal(c.misses_[0], [4, 3, 2, 0, 0])
-    np.testing.assert_allclose(c.predict_proba([[x + 0.5, 0.5] for x in range(5)]),
-                               [1 / 6, 2 / 6, 2 / 5, 3 / 4, 0.5])
+    np.testing.assert_allclose(c.predict_proba([[x + 0.5, 0.5] for x in range(5)]), [1 / 6, 2 / 6, 2 / 5, 3 / 4, 0.5])
     # Counting once per scan: the same sets as the log-odds grid.
     s = OccupancyGridMapper(1.0, (0.0, 5.0, 0.0, 1.0), "counting", update="scan").fit([scan])
     np.testing.assert_array_equal(s.hits_[0], [0, 1, 1, 1, 0])

@@ -53,18 +53,16 @@ def test_an_error_leaves_the_previous_set_and_no_staging(tmp_path):
     with output_set(out) as o:
         write(o, **{"map.yaml": "old", "map.pgm": "old"})
     before = snapshot(out)
-    with pytest.raises(KeyboardInterrupt):
-        with output_set(out) as o:
-            write(o, **{"map.yaml": "new"})
-            raise KeyboardInterrupt
+    with pytest.raises(KeyboardInterrupt), output_set(out) as o:
+        write(o, **{"map.yaml": "new"})
+        raise KeyboardInterrupt
     assert snapshot(out) == before
     assert staging_dirs(out) == []
 
 
 def test_a_failed_first_run_creates_no_directory(tmp_path):
-    with pytest.raises(ValueError):
-        with output_set(tmp_path / "never"):
-            raise ValueError("bad input")
+    with pytest.raises(ValueError), output_set(tmp_path / "never"):
+        raise ValueError("bad input")
     assert list(tmp_path.iterdir()) == []
 
 
@@ -85,9 +83,8 @@ def test_recovery_finishes_a_commit_that_was_cut_short(tmp_path, monkeypatch):
 
     monkeypatch.setattr(atomic, "_roll_forward", first_rename_only)
     monkeypatch.setattr(atomic, "_pid_alive", lambda pid: False)
-    with pytest.raises(OSError, match="killed"):
-        with output_set(out) as o:
-            write(o, **{"a.txt": "new", "b.yaml": "new"})
+    with pytest.raises(OSError, match="killed"), output_set(out) as o:
+        write(o, **{"a.txt": "new", "b.yaml": "new"})
     assert calls == ["a.txt"] and (out / "b.yaml").read_text() == "old"  # a mix, for now
     monkeypatch.setattr(atomic, "_roll_forward", real)
     notes = recover_output_dir(out)
@@ -167,8 +164,21 @@ def test_signals_mid_write_leave_the_previous_set_byte_for_byte(tmp_path):
         out = tmp_path / name
         runs[name] = [out, previous_set(out)]
     slow = {atomic.WRITE_DELAY_ENV: "1.0"}
-    cli = ["-m", "gpomap.cli", "map", str(points), "--length-scale", "1", "--resolution", "0.5", "--min-cell", "1",
-           "--max-cell", "2", "-o"]
+    cli = [
+        "-m",
+        "gpomap.cli",
+        "map",
+        str(points),
+        "--length-scale",
+        "1",
+        "--resolution",
+        "0.5",
+        "--min-cell",
+        "1",
+        "--max-cell",
+        "2",
+        "-o",
+    ]
     procs = {
         "sigint": start([*cli, str(runs["sigint"][0])], slow),
         "sigterm": start([*cli, str(runs["sigterm"][0])], slow),
@@ -181,14 +191,14 @@ def test_signals_mid_write_leave_the_previous_set_byte_for_byte(tmp_path):
         if name == "commit":
             # Killed between the renames of the commit: map.npz (first in order) is already new.
             old_npz = runs[name][1]["map.npz"]
-            wait_for(lambda: (out / "map.npz").read_bytes() != old_npz, proc)
+            wait_for(lambda out=out, old_npz=old_npz: (out / "map.npz").read_bytes() != old_npz, proc)
         else:
             wait_for(staged_file(out, "map.npz"), proc)  # map.yaml and map.pgm written, the rest not
         proc.send_signal(sig[name])
     results = {name: (proc.wait(timeout=60), *proc.communicate()) for name, proc in procs.items()}
 
     for name in ["sigint", "sigterm"]:
-        code, stdout, stderr = results[name]
+        code, _stdout, stderr = results[name]
         out, before = runs[name]
         assert code == 128 + sig[name], (name, stderr)
         assert f"interrupted{' (SIGTERM)' if name == 'sigterm' else ''}; the previous outputs in {out} are unchanged" in stderr

@@ -59,7 +59,7 @@ TITLES = {
     "synthetic": "Table II: synthetic room (31 poses x 36 beams, grid 0.5)",
     "belgioioso": "Table III (whole log): Belgioioso, 52 poses x 37 beams from the whole log, every 5th scan held out",
     "belgioioso-rooms": f"Table III (two rooms, the paper's setting): Belgioioso scans {ROOMS_RANGE}, every 5th held out, "
-                        "52 poses x 37 beams",
+    "52 poses x 37 beams",
 }
 
 
@@ -162,28 +162,41 @@ def run_paper_benchmark(
         points, labels = test_points(test, free_step=0.2, seed=seed, max_points=2000 if quick else 20000)
         maps: dict[str, dict[str, Any]] = {}
         for method in methods:
-            for kernel in (kernels if method != "ogm" else ("-",)):
+            for kernel in kernels if method != "ogm" else ("-",):
                 t0 = time.perf_counter()
                 # MSK-GPOM as `gpomap map` runs it: in tiles above 3,000 cells (the whole log).
-                model = make_model_for(train, method, kernel if kernel != "-" else "se", seed, resolution, **_options(method, quick))
+                model = make_model_for(
+                    train, method, kernel if kernel != "-" else "se", seed, resolution, **_options(method, quick)
+                )
                 model.fit(train)
                 fit_s = time.perf_counter() - t0
                 t1 = time.perf_counter()
                 p = np.clip(model.predict_proba(points), 0.0, 1.0)
                 pred_s = time.perf_counter() - t1
                 fpr, tpr, _ = roc_curve(labels, p)
-                row = {
-                    "experiment": name, "method": method, "kernel": kernel, "seconds": fit_s + pred_s,
-                    "fit_seconds": fit_s, "predict_seconds": pred_s, "auc": roc_auc(labels, p), "fpr_at_tpr95": fpr_at_tpr(labels, p, 0.95),
-                    "log_loss": log_loss(labels, p), "n_inputs": n_inputs(model),
-                    "n_train_scans": len(train), "n_test_scans": len(test), "n_test_points": int(labels.size),
+                row: dict[str, Any] = {
+                    "experiment": name,
+                    "method": method,
+                    "kernel": kernel,
+                    "seconds": fit_s + pred_s,
+                    "fit_seconds": fit_s,
+                    "predict_seconds": pred_s,
+                    "auc": roc_auc(labels, p),
+                    "fpr_at_tpr95": fpr_at_tpr(labels, p, 0.95),
+                    "log_loss": log_loss(labels, p),
+                    "n_inputs": n_inputs(model),
+                    "n_train_scans": len(train),
+                    "n_test_scans": len(test),
+                    "n_test_points": int(labels.size),
                     "tiles": len(model.tiles_) if hasattr(model, "tiles_") else None,
                     "roc": (fpr, tpr),
                 }
                 if world is not None:
                     row["truth_auc"] = score_against_truth(model, world, resolution)["auc"]
                 rows.append(row)
-                say(f"{name:<17}{LABELS[method]:<9}{kernel:<9} AUC {row['auc']:.4f}  FPR95 {100 * row['fpr_at_tpr95']:5.1f} %  {row['seconds']:7.2f} s")
+                say(
+                    f"{name:<17}{LABELS[method]:<9}{kernel:<9} AUC {row['auc']:.4f}  FPR95 {100 * row['fpr_at_tpr95']:5.1f} %  {row['seconds']:7.2f} s"
+                )
                 if method in ("msk", "gpomik"):
                     # Supersampled where one GP predicts (its cells are coarser than the grid).
                     one_gp = method == "msk" and row["tiles"] is None
@@ -212,39 +225,55 @@ def _write_roc(rows: list[dict[str, Any]], experiment: str, kernels: Sequence[st
                 fpr, tpr = r["roc"]
                 ax.step(fpr, tpr, where="post", color=colours[r["method"]], label=f"{LABELS[r['method']]} (AUC {r['auc']:.3f})")
         ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="no discrimination")
-        ax.set(xlabel="False positive rate", ylabel="True positive rate", xlim=(0, 1), ylim=(0, 1.01),
-               title=f"{experiment}: {'squared exponential' if kernel == 'se' else 'Matern 3/2'}")
+        ax.set(
+            xlabel="False positive rate",
+            ylabel="True positive rate",
+            xlim=(0, 1),
+            ylim=(0, 1.01),
+            title=f"{experiment}: {'squared exponential' if kernel == 'se' else 'Matern 3/2'}",
+        )
         ax.legend(loc="lower right", fontsize=8)
     save_figure(fig, path)
 
 
 def _write_tables(rows: list[dict[str, Any]], path: Path, quick: bool) -> None:
     lines = ["# The paper's Tables II and III, reproduced", ""]
-    lines.append(f"Settings: MSK-GPOM with gpomap's defaults; GPOMIK on {GPOMIK_BEAMS} beams per scan; GPOM on at most "
-                 f"{GPOM_POINTS} points; OGM at the map resolution; test points balanced, never trained on"
-                 + (" (quick run: smaller data)." if quick else ".")
-                 + f" Times are wall seconds on {os.cpu_count()} core(s): fit, prediction at the test points, and their sum;"
-                 " 'vs GPOMIK' is GPOMIK's total over this row's.")
+    lines.append(
+        f"Settings: MSK-GPOM with gpomap's defaults; GPOMIK on {GPOMIK_BEAMS} beams per scan; GPOM on at most "
+        f"{GPOM_POINTS} points; OGM at the map resolution; test points balanced, never trained on"
+        + (" (quick run: smaller data)." if quick else ".")
+        + f" Times are wall seconds on {os.cpu_count()} core(s): fit, prediction at the test points, and their sum;"
+        " 'vs GPOMIK' is GPOMIK's total over this row's."
+    )
     for experiment in EXPERIMENTS:
         sub = [r for r in rows if r["experiment"] == experiment]
         if not sub:
             continue
         truth = experiment == "synthetic"
-        lines += ["", f"## {TITLES[experiment]}", "",
-                  f"Training: {sub[0]['n_train_scans']} scans. Test: {sub[0]['n_test_points']} balanced points from "
-                  f"{sub[0]['n_test_scans']} held-out scans.", "",
-                  "| method | kernel | inputs | fit (s) | predict (s) | time (s) | vs GPOMIK | AUC | FPR at TPR 95 % | log loss |"
-                  + (" AUC vs true room (grid) |" if truth else "") + " paper time (s) | paper AUC | paper FPR |",
-                  "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if truth else "") + "---|---|---|"]
+        lines += [
+            "",
+            f"## {TITLES[experiment]}",
+            "",
+            f"Training: {sub[0]['n_train_scans']} scans. Test: {sub[0]['n_test_points']} balanced points from "
+            f"{sub[0]['n_test_scans']} held-out scans.",
+            "",
+            "| method | kernel | inputs | fit (s) | predict (s) | time (s) | vs GPOMIK | AUC | FPR at TPR 95 % | log loss |"
+            + (" AUC vs true room (grid) |" if truth else "")
+            + " paper time (s) | paper AUC | paper FPR |",
+            "|---|---|---|---|---|---|---|---|---|---|" + ("---|" if truth else "") + "---|---|---|",
+        ]
         for r in sub:
             pt = PAPER.get((experiment, r["method"], r["kernel"]))
             paper = f"{pt[0]:.2f} | {pt[1]:.4f} | {pt[2]:.2f} %" if pt else "- | - | -"
             ik = [g for g in sub if g["method"] == "gpomik" and g["kernel"] == r["kernel"]]
             speed = f"{ik[0]['seconds'] / r['seconds']:.1f}x" if ik and r["method"] != "gpomik" else "-"
             inputs = f"{r['n_inputs']} in {r['tiles']} tiles" if r["tiles"] else f"{r['n_inputs']}"
-            lines.append(f"| {LABELS[r['method']]} | {r['kernel']} | {inputs} | {r['fit_seconds']:.2f} | "
-                         f"{r['predict_seconds']:.2f} | {r['seconds']:.2f} | {speed} | {r['auc']:.4f} | "
-                         f"{100 * r['fpr_at_tpr95']:.2f} % | {r['log_loss']:.3f} | "
-                         + (f"{r['truth_auc']:.4f} | " if truth else "") + f"{paper} |")
+            lines.append(
+                f"| {LABELS[r['method']]} | {r['kernel']} | {inputs} | {r['fit_seconds']:.2f} | "
+                f"{r['predict_seconds']:.2f} | {r['seconds']:.2f} | {speed} | {r['auc']:.4f} | "
+                f"{100 * r['fpr_at_tpr95']:.2f} % | {r['log_loss']:.3f} | "
+                + (f"{r['truth_auc']:.4f} | " if truth else "")
+                + f"{paper} |"
+            )
     with atomic_write(path, "w") as f:
         f.write("\n".join(lines) + "\n")

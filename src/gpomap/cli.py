@@ -20,7 +20,7 @@ import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from gpomap import __version__
 from gpomap.errors import GpomapError
@@ -40,7 +40,7 @@ def _extent(text: str) -> tuple[float, float, float, float]:
         raise argparse.ArgumentTypeError(f"extent must be four finite numbers XMIN,XMAX,YMIN,YMAX, got {text!r}")
     if len(values) != 4 or not (values[0] < values[1] and values[2] < values[3]):
         raise argparse.ArgumentTypeError(f"extent must be XMIN,XMAX,YMIN,YMAX with XMIN<XMAX and YMIN<YMAX, got {text!r}")
-    return values  # type: ignore[return-value]
+    return values[0], values[1], values[2], values[3]
 
 
 def _pair(text: str) -> tuple[float, float]:
@@ -128,13 +128,21 @@ def _status(args: argparse.Namespace, message: str) -> None:
 # --------------------------------------------------------------------------- shared options
 def _add_reader_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("reading the input")
-    g.add_argument("--angles", choices=["gmapping", "linspace"], default="gmapping",
-                   help="CARMEN FLASER beam-angle convention (default: %(default)s)")
-    g.add_argument("--max-range", type=_positive(float), help="sensor max range in metres (readings at or above it are no-return)")
+    g.add_argument(
+        "--angles",
+        choices=["gmapping", "linspace"],
+        default="gmapping",
+        help="CARMEN FLASER beam-angle convention (default: %(default)s)",
+    )
+    g.add_argument(
+        "--max-range", type=_positive(float), help="sensor max range in metres (readings at or above it are no-return)"
+    )
     g.add_argument("--topic", help="ROS bag: sensor_msgs/LaserScan topic (default: the only one)")
     g.add_argument("--fixed-frame", help="ROS bag: fixed frame of the poses, from /tf (default: odom)")
     g.add_argument("--odom-topic", help="ROS bag: take poses from this nav_msgs/Odometry topic instead of /tf")
-    g.add_argument("--time-offset", type=_number(float), default=0.0, help="ROS bag: seconds added to scan stamps before the pose lookup")
+    g.add_argument(
+        "--time-offset", type=_number(float), default=0.0, help="ROS bag: seconds added to scan stamps before the pose lookup"
+    )
 
 
 def _reader_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
@@ -144,7 +152,12 @@ def _reader_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
     if fmt == "carmen":
         opts: dict[str, Any] = {"angles": args.angles}
     else:
-        opts = {"topic": args.topic, "fixed_frame": args.fixed_frame, "odom_topic": args.odom_topic, "time_offset": args.time_offset}
+        opts = {
+            "topic": args.topic,
+            "fixed_frame": args.fixed_frame,
+            "odom_topic": args.odom_topic,
+            "time_offset": args.time_offset,
+        }
     if args.max_range is not None:
         opts["max_range"] = args.max_range
     return opts
@@ -152,26 +165,54 @@ def _reader_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
 
 def _add_selection_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("selecting data")
-    g.add_argument("--range", dest="scan_range", type=_scan_range, metavar="FIRST:LAST",
-                   help="use only this window of consecutive scans (LAST excluded)")
+    g.add_argument(
+        "--range",
+        dest="scan_range",
+        type=_scan_range,
+        metavar="FIRST:LAST",
+        help="use only this window of consecutive scans (LAST excluded)",
+    )
     g.add_argument("--scans", type=_positive(int), metavar="N", help="thin to N evenly spaced scans")
     g.add_argument("--beams", type=_positive(int), metavar="M", help="keep M evenly spaced beams per scan")
 
 
 def _add_model_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("the model")
-    g.add_argument("--kernel", choices=["matern32", "se"], default=_LibraryDefault("kernel"), help="point kernel (default: %(default)s)")
-    g.add_argument("--area", choices=["exact", "quadrature", "summed"],
-                   help="area-kernel computation (default: exact for se, quadrature for matern32)")
-    g.add_argument("--normalisation", choices=["mean", "sum"], default="mean", help="area-kernel normalisation (default: %(default)s)")
+    g.add_argument(
+        "--kernel", choices=["matern32", "se"], default=_LibraryDefault("kernel"), help="point kernel (default: %(default)s)"
+    )
+    g.add_argument(
+        "--area",
+        choices=["exact", "quadrature", "summed"],
+        help="area-kernel computation (default: exact for se, quadrature for matern32)",
+    )
+    g.add_argument(
+        "--normalisation", choices=["mean", "sum"], default="mean", help="area-kernel normalisation (default: %(default)s)"
+    )
     g.add_argument("--objective", choices=["loo", "lml"], default="loo", help="hyperparameter objective (default: %(default)s)")
-    g.add_argument("--class-weight", choices=["balanced", "none"], default="balanced",
-                   help="weigh free and occupied cells equally in the leave-one-out fit, or each cell once (default: %(default)s)")
-    g.add_argument("--free-step", type=_positive(float), default=0.2, help="free-point spacing along beams, m (default: %(default)s)")
-    g.add_argument("--free-clearance", type=_non_negative(float), default=0.3, metavar="M",
-                   help="drop free points closer than M metres to a hit (beams grazing walls; default: %(default)s; 0 keeps all)")
-    g.add_argument("--no-return-cap", type=_non_negative(float), default=10.0, metavar="M",
-                   help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)")
+    g.add_argument(
+        "--class-weight",
+        choices=["balanced", "none"],
+        default="balanced",
+        help="weigh free and occupied cells equally in the leave-one-out fit, or each cell once (default: %(default)s)",
+    )
+    g.add_argument(
+        "--free-step", type=_positive(float), default=0.2, help="free-point spacing along beams, m (default: %(default)s)"
+    )
+    g.add_argument(
+        "--free-clearance",
+        type=_non_negative(float),
+        default=0.3,
+        metavar="M",
+        help="drop free points closer than M metres to a hit (beams grazing walls; default: %(default)s; 0 keeps all)",
+    )
+    g.add_argument(
+        "--no-return-cap",
+        type=_non_negative(float),
+        default=10.0,
+        metavar="M",
+        help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)",
+    )
     g.add_argument("--min-cell", type=_positive(float), default=0.5, help="smallest cell side, m (default: %(default)s)")
     g.add_argument("--max-cell", type=_positive(float), default=0.5, help="largest pure cell side, m (default: %(default)s)")
     g.add_argument("--length-scale", type=_positive(float), help="fix the length scale (m) instead of learning it")
@@ -207,34 +248,70 @@ def _model_options(args: argparse.Namespace) -> dict[str, Any]:
 
 def _add_tiling_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("large maps (tiles of local GPs, blended without seams)")
-    g.add_argument("--max-cells", type=_positive(int), default=3000,
-                   help="above this many cells the map is built in tiles automatically (default: %(default)s)")
+    g.add_argument(
+        "--max-cells",
+        type=_positive(int),
+        default=3000,
+        help="above this many cells the map is built in tiles automatically (default: %(default)s)",
+    )
     g.add_argument("--tiles", action="store_true", help="always build the map in tiles")
     g.add_argument("--tile-size", type=_positive(float), default=10.0, help="tile side, m (default: %(default)s)")
     g.add_argument("--workers", type=_positive(int), help="local worker processes for tiles (default: the CPU count)")
     g.add_argument("--scheduler", metavar="ADDRESS", help="run tiles on this Dask distributed scheduler (tcp://host:port)")
-    g.add_argument("--scheduler-timeout", type=_positive(float), default=60.0, metavar="SECONDS",
-                   help="give up when the scheduler does not answer, or has no workers, for this long (default: %(default)s)")
-    g.add_argument("--chunk-scans", type=_positive(int), metavar="K",
-                   help="map incrementally, K scans at a time, rewriting the map after each chunk (implies --tiles)")
+    g.add_argument(
+        "--scheduler-timeout",
+        type=_positive(float),
+        default=60.0,
+        metavar="SECONDS",
+        help="give up when the scheduler does not answer, or has no workers, for this long (default: %(default)s)",
+    )
+    g.add_argument(
+        "--chunk-scans",
+        type=_positive(int),
+        metavar="K",
+        help="map incrementally, K scans at a time, rewriting the map after each chunk (implies --tiles)",
+    )
 
 
 def _add_output_options(p: argparse.ArgumentParser, default_resolution: float | None, supersample: bool = True) -> None:
     g = p.add_argument_group("the output")
     g.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="directory for map.yaml, map.pgm, map.npz, map.png")
-    g.add_argument("--resolution", type=_positive(float), default=default_resolution,
-                   help="grid cell side of the written map, m" + (" (default: %(default)s)" if default_resolution else ""))
-    g.add_argument("--extent", type=_extent, metavar="XMIN,XMAX,YMIN,YMAX", help="region of the written map (default: the data's)")
-    g.add_argument("--thresholds", type=_pair, default=(0.33, 0.66), metavar="FREE,OCCUPIED",
-                   help="ternary-map thresholds (default: 0.33,0.66)")
+    g.add_argument(
+        "--resolution",
+        type=_positive(float),
+        default=default_resolution,
+        help="grid cell side of the written map, m" + (" (default: %(default)s)" if default_resolution else ""),
+    )
+    g.add_argument(
+        "--extent", type=_extent, metavar="XMIN,XMAX,YMIN,YMAX", help="region of the written map (default: the data's)"
+    )
+    g.add_argument(
+        "--thresholds",
+        type=_pair,
+        default=(0.33, 0.66),
+        metavar="FREE,OCCUPIED",
+        help="ternary-map thresholds (default: 0.33,0.66)",
+    )
     if supersample:
-        g.add_argument("--supersample", type=_positive(int), metavar="K",
-                       help="sample K x K points per map cell and keep the most occupied (default: enough for "
-                       "samples half a min-cell apart, at most 4; single-GP maps only)")
-    g.add_argument("--pgm-mode", choices=["trinary", "scale"], default="trinary",
-                   help="map_server image: ternary map or probability grey levels (default: %(default)s)")
-    g.add_argument("--memory-limit", type=_positive(float), metavar="GB",
-                   help="refuse, before fitting, a run estimated to need more memory than this (default: half of this machine's)")
+        g.add_argument(
+            "--supersample",
+            type=_positive(int),
+            metavar="K",
+            help="sample K x K points per map cell and keep the most occupied (default: enough for "
+            "samples half a min-cell apart, at most 4; single-GP maps only)",
+        )
+    g.add_argument(
+        "--pgm-mode",
+        choices=["trinary", "scale"],
+        default="trinary",
+        help="map_server image: ternary map or probability grey levels (default: %(default)s)",
+    )
+    g.add_argument(
+        "--memory-limit",
+        type=_positive(float),
+        metavar="GB",
+        help="refuse, before fitting, a run estimated to need more memory than this (default: half of this machine's)",
+    )
 
 
 def _print_summary(summary: dict[str, Any], files: Sequence[Path], source: str = "learnt") -> None:
@@ -243,11 +320,15 @@ def _print_summary(summary: dict[str, Any], files: Sequence[Path], source: str =
     lines = []
     if "n_scans" in summary:
         lines.append(f"scans        {summary['n_scans']}")
-    lines.append(f"points       {summary.get('n_free_points', 0)} free, {summary.get('n_occupied_points', 0)} occupied"
-                 f" ({summary.get('n_no_return_readings', 0)} no-return, {summary.get('n_invalid_readings', 0)} invalid readings)")
+    lines.append(
+        f"points       {summary.get('n_free_points', 0)} free, {summary.get('n_occupied_points', 0)} occupied"
+        f" ({summary.get('n_no_return_readings', 0)} no-return, {summary.get('n_invalid_readings', 0)} invalid readings)"
+    )
     lines.append(f"cells        {summary.get('n_cells')} ({summary.get('n_ambiguous_cells', 0)} from ambiguous min-size cells)")
-    lines.append(f"model        {summary.get('kernel')} kernel, {summary.get('area')} area kernel, {summary.get('normalisation')} normalisation, "
-                 f"{summary.get('objective')} objective")
+    lines.append(
+        f"model        {summary.get('kernel')} kernel, {summary.get('area')} area kernel, {summary.get('normalisation')} normalisation, "
+        f"{summary.get('objective')} objective"
+    )
     lines.append("hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()) + f" ({source})")
     lines.append("timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in t.items()) + f"; total {sum(t.values()):.2f}")
     lines += [f"wrote        {f}" for f in files]
@@ -271,16 +352,19 @@ def _check_before_work(args: argparse.Namespace) -> None:
 _GRID_ADVICE = "use a coarser --resolution, a smaller --extent, or a larger --memory-limit GB if the machine has the memory"
 
 
-def _check_grid_memory(args: argparse.Namespace, shape: tuple[int, int], extent: Sequence[float], supersample: int,
-                       n_cells: int) -> None:
+def _check_grid_memory(
+    args: argparse.Namespace, shape: tuple[int, int], extent: Sequence[float], supersample: int, n_cells: int
+) -> None:
     from gpomap.resources import check_memory, grid_memory, memory_limit
 
     limit, source = memory_limit(args.memory_limit)
     ny, nx = shape
     xmin, xmax, ymin, ymax = extent
     origin = "--extent" if args.extent is not None else "the data's extent"
-    what = (f"a {nx} x {ny} grid ({nx * ny:.3g} cells) at --resolution {args.resolution:g} m over x {xmin:.6g}..{xmax:.6g}, "
-            f"y {ymin:.6g}..{ymax:.6g} m ({origin})")
+    what = (
+        f"a {nx} x {ny} grid ({nx * ny:.3g} cells) at --resolution {args.resolution:g} m over x {xmin:.6g}..{xmax:.6g}, "
+        f"y {ymin:.6g}..{ymax:.6g} m ({origin})"
+    )
     check_memory(grid_memory(shape, supersample, n_cells), limit, what, _GRID_ADVICE, source)
 
 
@@ -319,8 +403,11 @@ def _plan_map(args: argparse.Namespace, data: Any) -> bool:
     cells = build_cells(obs.points, obs.occupied, base.min_cell, base.max_cell, base.cell_box)
     n_cells = len(cells)
     if not tiled and n_cells > args.max_cells:
-        _status(args, f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
-                      f"mapping in tiles of {args.tile_size:g} m")
+        _status(
+            args,
+            f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
+            f"mapping in tiles of {args.tile_size:g} m",
+        )
         tiled = True
     if tiled:
         # A tile's GP reaches past its square by the overlap: 2.5 length scales by default (the
@@ -340,7 +427,7 @@ class _Run:
     """What this process has written (for a true message on interrupt)."""
 
     outdir: str | None = None
-    sets: list[Any] = []
+    sets: ClassVar[list[Any]] = []
 
 
 @contextmanager
@@ -368,8 +455,9 @@ def _report_fit(model: Any, occupancy_map: Any) -> None:
 
 
 # --------------------------------------------------------------------------- subcommands
-def _fit_and_write(args: argparse.Namespace, data: Any, n_scans: int | None, title: str,
-                   outputs: Any) -> tuple[Any, dict[str, Any], list[Path]]:
+def _fit_and_write(
+    args: argparse.Namespace, data: Any, n_scans: int | None, title: str, outputs: Any
+) -> tuple[Any, dict[str, Any], list[Path]]:
     """Fit one GP, predict the grid and write the map files into the output set.
 
     Returns the model, its summary and the files' final paths (printed once the set is in place).
@@ -419,7 +507,8 @@ def cmd_map(args: argparse.Namespace) -> int:
         from gpomap.io import read_points
 
         _status(args, f"reading labelled points from {path}...")
-        data, n_scans = read_points(path), None
+        data: Any = read_points(path)
+        n_scans: int | None = None
     else:
         _status(args, f"reading scans from {path}...")
         data = _load_scans(args)
@@ -441,8 +530,14 @@ def cmd_map(args: argparse.Namespace) -> int:
 def _tiled_model(args: argparse.Namespace) -> Any:
     from gpomap.tiles import TiledGPOM
 
-    return TiledGPOM(tile_size=args.tile_size, n_workers=args.workers, scheduler=args.scheduler,
-                     scheduler_timeout=args.scheduler_timeout, thresholds=args.thresholds, **_model_options(args))
+    return TiledGPOM(
+        tile_size=args.tile_size,
+        n_workers=args.workers,
+        scheduler=args.scheduler,
+        scheduler_timeout=args.scheduler_timeout,
+        thresholds=args.thresholds,
+        **_model_options(args),
+    )
 
 
 def _write_tiled(args: argparse.Namespace, model: Any, title: str) -> list[Path]:
@@ -467,7 +562,8 @@ def _print_tiled_summary(summary: dict[str, Any], files: Sequence[Path], source:
         f"tiles        {summary['n_tiles']} of {summary['tile_size']:g} m (overlap {summary['overlap']:.2f} m), "
         f"{summary['n_cells']} cells, {per['min']}/{per['median']:.0f}/{per['max']} per tile (min/median/max), {summary['executor']}",
         f"model        {summary['kernel']} kernel, {summary['area']} area kernel",
-        "hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
+        "hyperparams  "
+        + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
         + f" ({source or summary['hyperparameter_source'].get('how', '')})",
         "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
         "peak memory  " + ", ".join(f"{k} {v:.0f} MB" for k, v in summary["peak_memory"].items()),
@@ -487,7 +583,7 @@ def _fit_tiled_and_write(args: argparse.Namespace, data: Any, n_scans: int | Non
 
 
 def _tiled_source(model: Any) -> str | None:
-    """"at bound: ..." when a learnt hyperparameter sits at a bound, else None (the model's own words)."""
+    """ "at bound: ..." when a learnt hyperparameter sits at a bound, else None (the model's own words)."""
     from gpomap.diagnostics import hyperparameter_source
 
     source = hyperparameter_source(model)
@@ -621,8 +717,10 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
     print(f"method        {args.method}" + (f" ({st['kernel']})" if st.get("kernel") else f" ({st['resolution']:g} m cells)"))
     print(f"data          {source}: {result['n_train_scans']} training scans, {result['n_test_scans']} held-out scans ({split})")
     print(f"inputs        {result['n_inputs']}" + (f" in {st['tiles']} tiles" if st.get("tiles") else ""))
-    print(f"test points   {result['n_test_points']} (balanced): {pts['n_boundary']} within 0.5 m of a held-out hit, "
-          f"{pts['n_observed']} in observed cells, {pts['n_unobserved']} not")
+    print(
+        f"test points   {result['n_test_points']} (balanced): {pts['n_boundary']} within 0.5 m of a held-out hit, "
+        f"{pts['n_observed']} in observed cells, {pts['n_unobserved']} not"
+    )
 
     def fmt(v: Any, pct: bool = False) -> str:
         if v is None:
@@ -630,20 +728,30 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
         return f"{100 * v:.2f} %" if pct else f"{v:.4f}"
 
     print(f"{'':<16}{'points':>12}{grid_label:>14}")
-    rows = [("ROC AUC", "auc", False), ("boundary AUC", "boundary_auc", False), ("observed AUC", "observed_auc", False),
-            ("unobserved AUC", "unobserved_auc", False), ("FPR@TPR=95%", "fpr_at_tpr95", True), ("log loss", "log_loss", False),
-            ("ECE (10 bins)", "ece", False)]
+    rows = [
+        ("ROC AUC", "auc", False),
+        ("boundary AUC", "boundary_auc", False),
+        ("observed AUC", "observed_auc", False),
+        ("unobserved AUC", "unobserved_auc", False),
+        ("FPR@TPR=95%", "fpr_at_tpr95", True),
+        ("log loss", "log_loss", False),
+        ("ECE (10 bins)", "ece", False),
+    ]
     for name, key, pct in rows:
         print(f"{name:<16}{fmt(pts[key], pct):>12}{fmt(grd[key], pct) if grd else '-':>14}")
     for where, label in (("test_points", "far test pts"), ("lattice", "far lattice")):
         f = result["far"][where]
-        cells = [f"{f[k]['mean']:.3f} +- {f[k]['std']:.3f} (n {f[k]['n']})" if f.get(k) and f[k]["n"] else "-"
-                 for k in ("points", "grid")]
+        cells = [
+            f"{f[k]['mean']:.3f} +- {f[k]['std']:.3f} (n {f[k]['n']})" if f.get(k) and f[k]["n"] else "-"
+            for k in ("points", "grid")
+        ]
         print(f"{label:<16}" + "   ".join(cells) + "   (> 5 m from any training beam: mean +- std)")
     if result.get("truth"):
         for k, t in result["truth"].items():
-            print(f"truth ({k:<6})  AUC {fmt(t['auc'])}, occupied IoU {fmt(t['iou'])} on {t['n_cells']} cells; "
-                  f"observed cells AUC {fmt(t['observed_auc'])}, IoU {fmt(t['observed_iou'])}")
+            print(
+                f"truth ({k:<6})  AUC {fmt(t['auc'])}, occupied IoU {fmt(t['iou'])} on {t['n_cells']} cells; "
+                f"observed cells AUC {fmt(t['observed_auc'])}, IoU {fmt(t['observed_iou'])}"
+            )
     print("seconds       " + ", ".join(f"{k} {v:.3f}" for k, v in result["seconds"].items()))
     print("cpu seconds   " + ", ".join(f"{k} {v:.3f}" for k, v in result["cpu_seconds"].items()))
     print("peak memory   " + ", ".join(f"{k} {v:.0f} MB" for k, v in result["peak_rss_mb"].items()))
@@ -670,7 +778,9 @@ def cmd_convert(args: argparse.Namespace) -> int:
     _check_grid_memory(args, spec.shape, spec.extent, 1, n_cells)
     result = convert_grid(source, resolution=args.resolution, extent=args.extent, **options)
     with _outputs(args) as outputs:
-        staged = write_map_files(result.map, outputs.path, pgm_mode=args.pgm_mode, title=f"gpomap convert: {Path(args.input).name}")
+        staged = write_map_files(
+            result.map, outputs.path, pgm_mode=args.pgm_mode, title=f"gpomap convert: {Path(args.input).name}"
+        )
     files = [outputs.final(f) for f in staged]
     _report_fit(result.model, result.map)
     r = result.report
@@ -708,8 +818,14 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     experiments = tuple(e.strip() for e in args.experiments.split(",") if e.strip())
     # Tables, ROC curves and maps are one set: they replace the previous run's together.
     with _outputs(args) as outputs:
-        result = run_paper_benchmark(outputs.path, methods=methods, experiments=experiments, quick=args.quick, seed=args.seed,
-                                     progress=lambda m: _status(args, m))
+        result = run_paper_benchmark(
+            outputs.path,
+            methods=methods,
+            experiments=experiments,
+            quick=args.quick,
+            seed=args.seed,
+            progress=lambda m: _status(args, m),
+        )
     table = Path(args.output) / "tables.md"
     if table.exists():
         print(table.read_text())
@@ -743,8 +859,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     fmt = argparse.RawDescriptionHelpFormatter
 
-    p = sub.add_parser("map", help="map a CARMEN log, ROS bag or labelled points", epilog=EPILOG_MAP, formatter_class=fmt,
-                       description="Fit MSK-GPOM to range data and write map.yaml/.pgm (ROS map_server), map.npz and map.png.")
+    p = sub.add_parser(
+        "map",
+        help="map a CARMEN log, ROS bag or labelled points",
+        epilog=EPILOG_MAP,
+        formatter_class=fmt,
+        description="Fit MSK-GPOM to range data and write map.yaml/.pgm (ROS map_server), map.npz and map.png.",
+    )
     p.add_argument("input", help="CARMEN log (.log, .gz), ROS bag (.bag, ROS2 directory, .db3, .mcap), or points (.csv, .npz)")
     _add_reader_options(p)
     _add_selection_options(p)
@@ -754,42 +875,75 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_map)
 
-    p = sub.add_parser("demo", help="map the paper's synthetic room (built-in simulator)", formatter_class=fmt,
-                       description="The paper's synthetic room: 31 poses x 36 noiseless beams, mapped end to end.",
-                       epilog="example:\n  gpomap demo -o demo-output")
+    p = sub.add_parser(
+        "demo",
+        help="map the paper's synthetic room (built-in simulator)",
+        formatter_class=fmt,
+        description="The paper's synthetic room: 31 poses x 36 noiseless beams, mapped end to end.",
+        epilog="example:\n  gpomap demo -o demo-output",
+    )
     _add_model_options(p)
     _add_output_options(p, 0.5)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_demo)
 
-    p = sub.add_parser("info", help="what a range-data file holds", formatter_class=fmt,
-                       description="Format, scans, beams, extent and max range of a CARMEN log or ROS bag.",
-                       epilog="example:\n  gpomap info ../shared/data/fr079/freiburg-079-corrected.log.gz")
+    p = sub.add_parser(
+        "info",
+        help="what a range-data file holds",
+        formatter_class=fmt,
+        description="Format, scans, beams, extent and max range of a CARMEN log or ROS bag.",
+        epilog="example:\n  gpomap info ../shared/data/fr079/freiburg-079-corrected.log.gz",
+    )
     p.add_argument("input")
     _add_reader_options(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_info)
 
-    p = sub.add_parser("evaluate", help="score a method on held-out scans", epilog=EPILOG_EVALUATE, formatter_class=fmt,
-                       description="Fit a method on training scans and score it on held-out scans (never trained on): "
-                       "ROC AUC, boundary AUC, AUC in observed and unobserved cells, FPR at TPR=95 %, log loss and "
-                       "calibration, for the exact-point predictions and for the written map, with stage timings.")
+    p = sub.add_parser(
+        "evaluate",
+        help="score a method on held-out scans",
+        epilog=EPILOG_EVALUATE,
+        formatter_class=fmt,
+        description="Fit a method on training scans and score it on held-out scans (never trained on): "
+        "ROC AUC, boundary AUC, AUC in observed and unobserved cells, FPR at TPR=95 %, log loss and "
+        "calibration, for the exact-point predictions and for the written map, with stage timings.",
+    )
     p.add_argument("input", nargs="?", help="CARMEN log or ROS bag (or --demo)")
     p.add_argument("--demo", action="store_true", help="use the built-in synthetic room (scored against its true geometry too)")
-    p.add_argument("--method", choices=["msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting"], default="msk",
-                   help="ogm = ogm-logodds, OctoMap's model; ogm-counting: (hits+1)/(hits+misses+2) (default: %(default)s)")
-    p.add_argument("--split", "--holdout", dest="split", default="every", metavar="blocks|every|every:K|blocks:LEN[:K]",
-                   help="held-out scans: 'blocks' = blocks of 40 consecutive scans, every 5th held out; 'every' = every "
-                   "10th scan; or any every:K / blocks:LEN[:K] (default: %(default)s)")
+    p.add_argument(
+        "--method",
+        choices=["msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting"],
+        default="msk",
+        help="ogm = ogm-logodds, OctoMap's model; ogm-counting: (hits+1)/(hits+misses+2) (default: %(default)s)",
+    )
+    p.add_argument(
+        "--split",
+        "--holdout",
+        dest="split",
+        default="every",
+        metavar="blocks|every|every:K|blocks:LEN[:K]",
+        help="held-out scans: 'blocks' = blocks of 40 consecutive scans, every 5th held out; 'every' = every "
+        "10th scan; or any every:K / blocks:LEN[:K] (default: %(default)s)",
+    )
     p.add_argument("--resolution", type=_positive(float), default=0.1, help="occupancy-grid cell side, m (default: %(default)s)")
-    p.add_argument("--grid-resolution", type=_positive(float), default=0.05,
-                   help="resolution of the written map scored for the GP methods, m (default: %(default)s)")
+    p.add_argument(
+        "--grid-resolution",
+        type=_positive(float),
+        default=0.05,
+        help="resolution of the written map scored for the GP methods, m (default: %(default)s)",
+    )
     p.add_argument("--no-grid", action="store_true", help="score the exact-point predictions only")
-    p.add_argument("--scan-step", type=_positive(int), default=1, metavar="K", help="use every K-th scan of the log (default: all)")
+    p.add_argument(
+        "--scan-step", type=_positive(int), default=1, metavar="K", help="use every K-th scan of the log (default: all)"
+    )
     p.add_argument("--test-points", type=_positive(int), metavar="N", help="at most N test points (balanced, seeded subsample)")
-    p.add_argument("--max-cells", type=_positive(int), default=3000,
-                   help="msk: above this many cells the map is built in tiles, as gpomap map does (default: %(default)s)")
+    p.add_argument(
+        "--max-cells",
+        type=_positive(int),
+        default=3000,
+        help="msk: above this many cells the map is built in tiles, as gpomap map does (default: %(default)s)",
+    )
     p.add_argument("--workers", type=_positive(int), help="worker processes for tiles (default: the CPU count)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_reader_options(p)
@@ -798,10 +952,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_evaluate)
 
-    p = sub.add_parser("convert", help="turn an occupancy grid into a continuous GP map", formatter_class=fmt,
-                       description="Read a ROS map_server map (or a gpomap .npz), merge its known pixels into cells, fit "
-                       "the GP and write the continuous map at any resolution.",
-                       epilog="examples:\n  gpomap convert ../shared/data/turtlebot3-world-map/map.yaml -o tb3 --resolution 0.025")
+    p = sub.add_parser(
+        "convert",
+        help="turn an occupancy grid into a continuous GP map",
+        formatter_class=fmt,
+        description="Read a ROS map_server map (or a gpomap .npz), merge its known pixels into cells, fit "
+        "the GP and write the continuous map at any resolution.",
+        epilog="examples:\n  gpomap convert ../shared/data/turtlebot3-world-map/map.yaml -o tb3 --resolution 0.025",
+    )
     p.add_argument("input", help="map.yaml (ROS map_server) or map.npz")
     p.add_argument("--kernel", choices=["se", "matern32"], help="point kernel (default: se, measured best for grids)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -809,17 +967,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_convert)
 
-    p = sub.add_parser("benchmark", help="reproduce the paper's Tables II and III", formatter_class=fmt,
-                       description="Run every method on the synthetic room and on Belgioioso (the whole log, and the paper's "
-                                   "two rooms); write tables.md, ROC curves and map figures.",
-                       epilog="examples:\n  gpomap benchmark --paper -o paper-results\n"
-                              "  gpomap benchmark --paper -o rooms --experiments belgioioso-rooms --methods msk,ogm")
+    p = sub.add_parser(
+        "benchmark",
+        help="reproduce the paper's Tables II and III",
+        formatter_class=fmt,
+        description="Run every method on the synthetic room and on Belgioioso (the whole log, and the paper's "
+        "two rooms); write tables.md, ROC curves and map figures.",
+        epilog="examples:\n  gpomap benchmark --paper -o paper-results\n"
+        "  gpomap benchmark --paper -o rooms --experiments belgioioso-rooms --methods msk,ogm",
+    )
     p.add_argument("--paper", action="store_true", help="the paper's two experiments")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR")
     p.add_argument("--quick", action="store_true", help="a small, fast version (smoke test)")
     p.add_argument("--methods", default="msk,gpomik,gpom,ogm", help="comma-separated methods (default: %(default)s)")
-    p.add_argument("--experiments", default="synthetic,belgioioso,belgioioso-rooms",
-                   help="comma-separated experiments (default: %(default)s)")
+    p.add_argument(
+        "--experiments",
+        default="synthetic,belgioioso,belgioioso-rooms",
+        help="comma-separated experiments (default: %(default)s)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_benchmark)
@@ -834,8 +999,9 @@ def _on_sigterm(signum: int, frame: Any) -> None:
     raise _Terminated()
 
 
-def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
-                  file: Any = None, line: str | None = None) -> None:
+def _show_warning(
+    message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None, line: str | None = None
+) -> None:
     """Python warnings (a library's, a reader's) as one ``warning: ...`` line, without a source path."""
     _warn(str(message))
 
@@ -885,12 +1051,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     except MemoryError:
         if args.debug:
             raise
-        print(f"gpomap: error: out of memory ({_where_outputs_stand()}); use a coarser --resolution or a smaller --extent, "
-              "or a lower --memory-limit GB so that such a run is refused before it starts", file=sys.stderr)
+        print(
+            f"gpomap: error: out of memory ({_where_outputs_stand()}); use a coarser --resolution or a smaller --extent, "
+            "or a lower --memory-limit GB so that such a run is refused before it starts",
+            file=sys.stderr,
+        )
         return EXIT_ERROR
     except KeyboardInterrupt as exc:
-        print(f"gpomap: interrupted{' (SIGTERM)' if isinstance(exc, _Terminated) else ''}; {_where_outputs_stand()}",
-              file=sys.stderr)
+        print(
+            f"gpomap: interrupted{' (SIGTERM)' if isinstance(exc, _Terminated) else ''}; {_where_outputs_stand()}",
+            file=sys.stderr,
+        )
         return 128 + (signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT)
     finally:
         if previous_sigterm is not None:

@@ -439,10 +439,8 @@ def convert_grid(
     t_pred = time.perf_counter() - t
 
     t = time.perf_counter()
-    if spec == src:
-        p_known = prob[labels != UNKNOWN]  # same row-major order as the observations
-    else:
-        p_known = model.predict_proba(obs.points)
+    # On the source grid itself the known pixels are in the observations' row-major order.
+    p_known = prob[labels != UNKNOWN] if spec == src else model.predict_proba(obs.points)
     agreement = _agreement(p_known, obs.occupied, model.thresholds)
     t_agree = time.perf_counter() - t
 

@@ -404,7 +404,10 @@ class Truth:
 
     @classmethod
     def from_plan(
-        cls, occupied_pixels: NDArray[np.bool_], lower_left: tuple[float, float], pixel_size: tuple[float, float],
+        cls,
+        occupied_pixels: NDArray[np.bool_],
+        lower_left: tuple[float, float],
+        pixel_size: tuple[float, float],
         resolution: float = GRID_RESOLUTION,
     ) -> Truth:
         """A floor-plan bitmap resampled to `resolution`: a cell is occupied if any pixel in it is.
@@ -434,7 +437,9 @@ class Truth:
 
 
 def score_truth(
-    truth: Truth, prob: NDArray[np.float64], observed: NDArray[np.bool_] | None = None,
+    truth: Truth,
+    prob: NDArray[np.float64],
+    observed: NDArray[np.bool_] | None = None,
     threshold: float = DEFAULT_THRESHOLDS[1],
 ) -> dict[str, Any]:
     """Score probabilities at the truth grid's cell centres against it.
@@ -480,8 +485,9 @@ def _auc_or_none(labels: NDArray[np.bool_], prob: NDArray[np.float64]) -> float 
     return roc_auc(labels, prob)
 
 
-def score(labels: NDArray[np.bool_], prob: NDArray[np.float64], masks: dict[str, NDArray[np.bool_]] | None = None,
-          n_bins: int = 10) -> dict[str, Any]:
+def score(
+    labels: NDArray[np.bool_], prob: NDArray[np.float64], masks: dict[str, NDArray[np.bool_]] | None = None, n_bins: int = 10
+) -> dict[str, Any]:
     """Every protocol metric of one prediction at the test points.
 
     Parameters
@@ -656,8 +662,20 @@ def prepare(
         "max_test_points": max_test_points,
         "test_scan_indices": [int(i) for i in test_idx],
     }
-    return EvalData(train, test, points, labels, masks, far.distance_at(points) > FAR_DISTANCE, far.far_points(seed=seed),
-                    reference, truth, truth_observed, settings, seconds)
+    return EvalData(
+        train,
+        test,
+        points,
+        labels,
+        masks,
+        far.distance_at(points) > FAR_DISTANCE,
+        far.far_points(seed=seed),
+        reference,
+        truth,
+        truth_observed,
+        settings,
+        seconds,
+    )
 
 
 def run_method(
@@ -728,7 +746,9 @@ def run_method(
     truth_out: dict[str, Any] | None = None
     if data.truth is not None:
         centres = data.truth.grid.centres()
-        truth_out = {"points": score_truth(data.truth, np.asarray(model.predict_proba(centres), dtype=float), data.truth_observed)}
+        truth_out = {
+            "points": score_truth(data.truth, np.asarray(model.predict_proba(centres), dtype=float), data.truth_observed)
+        }
 
     grid_score = None
     written_shape = None
@@ -814,8 +834,9 @@ def evaluate(
     """
     t = time.perf_counter()
     data = prepare(scans, holdout, scan_range, scan_step, n_scans, n_beams, seed, test_free_step, max_test_points, truth)
-    result = run_method(data, method, kernel, seed, resolution, grid_resolution, max_cells, n_workers, return_roc,
-                        score_grid, **method_options)
+    result = run_method(
+        data, method, kernel, seed, resolution, grid_resolution, max_cells, n_workers, return_roc, score_grid, **method_options
+    )
     result["seconds"] = {**data.seconds, **result["seconds"], "total": time.perf_counter() - t}
     return result
 

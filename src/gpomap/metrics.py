@@ -27,9 +27,7 @@ def _check(labels: ArrayLike, scores: ArrayLike, need_both: bool = True) -> tupl
     if need_both:
         n_pos = int(y.sum())
         if n_pos == 0 or n_pos == y.size:
-            raise EmptyDataError(
-                f"ROC needs both classes, got {n_pos} positive and {y.size - n_pos} negative labels"
-            )
+            raise EmptyDataError(f"ROC needs both classes, got {n_pos} positive and {y.size - n_pos} negative labels")
     return y, s
 
 

@@ -45,6 +45,7 @@ P_HIT, P_MISS, P_CLAMP_MIN, P_CLAMP_MAX = 0.7, 0.4, 0.1192, 0.971
 L_HIT, L_MISS, L_MIN, L_MAX = _logit(P_HIT), _logit(P_MISS), _logit(P_CLAMP_MIN), _logit(P_CLAMP_MAX)
 SENSOR_MODELS = ("logodds", "counting")
 
+
 class OccupancyGridMapper:
     """Occupancy grid mapping: OctoMap's log-odds model or the counting model.
 
@@ -116,7 +117,9 @@ class OccupancyGridMapper:
 
     # -- fitting ---------------------------------------------------------------------------
 
-    def _beams(self, scans: Sequence[Scan]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.intp]]:
+    def _beams(
+        self, scans: Sequence[Scan]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.intp]]:
         """Starts, ends, hit flags and scan index of every usable beam, all scans stacked."""
         starts, ends, hit, scan_of = [], [], [], []
         for i, s in enumerate(scans):
@@ -304,7 +307,9 @@ class OccupancyGridMapper:
         out[inside] = self._probability_grid()[rows[inside], cols[inside]]
         return out
 
-    def predict(self, points: ArrayLike, return_var: bool = True) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def predict(
+        self, points: ArrayLike, return_var: bool = True
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Occupancy probability and a variance-like uncertainty.
 
         Parameters

@@ -16,7 +16,7 @@ from __future__ import annotations
 import os
 import secrets
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import IO, Any
 
@@ -54,10 +54,8 @@ def _fsync_dir(directory: Path) -> None:
 
 
 def _remove_quietly(path: Path) -> None:
-    try:
+    with suppress(FileNotFoundError):
         os.unlink(path)
-    except FileNotFoundError:
-        pass
 
 
 class _Pending:
@@ -88,10 +86,8 @@ class _Pending:
 
     def discard(self) -> None:
         """Close and remove the temporary file; the target is not touched."""
-        try:
+        with suppress(Exception):
             self.file.close()
-        except Exception:  # noqa: BLE001 - the original error matters more than a failed close
-            pass
         _remove_quietly(self.tmp)
 
 
@@ -366,7 +362,7 @@ def recover_output_dir(outdir: str | os.PathLike[str]) -> list[str]:
             continue
         for staging in entries:
             # NAME.gpomap-staging-HOST-PID-HEX
-            parts = staging.name[len(prefix):].rsplit("-", 2)
+            parts = staging.name[len(prefix) :].rsplit("-", 2)
             if len(parts) != 3 or parts[0] != host or not parts[1].isdigit():
                 continue  # another machine's run (shared file system), or not ours
             if _pid_alive(int(parts[1])) and int(parts[1]) != os.getpid():
@@ -501,12 +497,12 @@ def _signals_held() -> Iterator[None]:
     def hold(signum: int, frame: Any) -> None:
         caught.append(signum)
 
-    previous = {s: signal.signal(s, hold) for s in (signal.SIGINT, signal.SIGTERM)}
+    previous: dict[int, Any] = {s: signal.signal(s, hold) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+        for sig, old in previous.items():
+            signal.signal(sig, old)
         for s in dict.fromkeys(caught):
             handler = previous[s]
             if callable(handler):
