@@ -20,7 +20,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import numpy as np
@@ -29,14 +29,29 @@ from threadpoolctl import threadpool_limits
 
 pytest.importorskip("distributed", reason="dask[distributed] is not installed: pip install 'gpomap[distributed]'")
 
-import gpomap.tiles as tiles  # noqa: E402 - only once distributed is known to be there
-from gpomap.cli import EXIT_ERROR, EXIT_OK, main  # noqa: E402
+import gpomap.tiles as tiles
+from gpomap.cli import EXIT_ERROR, EXIT_OK, main
 
 LOG = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "intel" / "intel-corrected.log.gz"
 # 20 Intel scans in 4 m tiles: 25 tiles of 29-339 cells, half a second of tile fits; the
 # hyperparameters are fixed (--length-scale) so the runs stay short and exactly comparable.
-MAP_ARGS = ["--range", "0:20", "--beams", "90", "--kernel", "se", "--length-scale", "1.0", "--free-step", "0.5",
-            "--tiles", "--tile-size", "4", "--resolution", "0.5"]
+MAP_ARGS = [
+    "--range",
+    "0:20",
+    "--beams",
+    "90",
+    "--kernel",
+    "se",
+    "--length-scale",
+    "1.0",
+    "--free-step",
+    "0.5",
+    "--tiles",
+    "--tile-size",
+    "4",
+    "--resolution",
+    "0.5",
+]
 STARTUP_SECONDS = 60.0  # most a process may take to come up on a busy 2-core machine
 
 
@@ -54,16 +69,31 @@ class Cluster:
     def start_scheduler(self) -> None:
         """Start the scheduler on a free port and wait for its address."""
         file = self.folder / "scheduler.json"
-        self._start([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
-                     "--no-dashboard", "--dashboard-address", "127.0.0.1:0", "--scheduler-file", str(file),
-                     # Safety net should the test process itself be killed before its clean-up.
-                     "--idle-timeout", "300"], "scheduler")
+        self._start(
+            [
+                sys.executable,
+                "-m",
+                "distributed.cli.dask_scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--dashboard-address",
+                "127.0.0.1:0",
+                "--scheduler-file",
+                str(file),
+                # Safety net should the test process itself be killed before its clean-up.
+                "--idle-timeout",
+                "300",
+            ],
+            "scheduler",
+        )
         self.address = self._wait(lambda: file.exists() and json.loads(file.read_text() or "{}").get("address"), "scheduler")
 
     def _start(self, cmd: list[str], name: str) -> subprocess.Popen:
-        log = open(self.folder / f"{name}.log", "w")
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=self.folder, env=self.env)
-        log.close()  # the child holds its own copy
+        with open(self.folder / f"{name}.log", "w") as log:  # the child keeps its own copy
+            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=self.folder, env=self.env)
         proc.log = self.folder / f"{name}.log"  # type: ignore[attr-defined]
         self.procs.append(proc)
         return proc
@@ -88,9 +118,27 @@ class Cluster:
         started = []
         for _ in range(n):
             name = f"worker{len(self.workers)}"
-            proc = self._start([sys.executable, "-m", "distributed.cli.dask_worker", self.address, "--nthreads", "1",
-                                "--nworkers", "1", "--no-nanny", "--no-dashboard", "--host", "127.0.0.1",
-                                "--name", name, "--death-timeout", "60"], name)
+            proc = self._start(
+                [
+                    sys.executable,
+                    "-m",
+                    "distributed.cli.dask_worker",
+                    self.address,
+                    "--nthreads",
+                    "1",
+                    "--nworkers",
+                    "1",
+                    "--no-nanny",
+                    "--no-dashboard",
+                    "--host",
+                    "127.0.0.1",
+                    "--name",
+                    name,
+                    "--death-timeout",
+                    "60",
+                ],
+                name,
+            )
             self.workers.append(proc)
             started.append((name, proc))
         for name, proc in started:
@@ -116,10 +164,8 @@ class Cluster:
             if p.poll() is None:
                 p.kill()
         for p in self.procs:
-            try:
+            with suppress(subprocess.TimeoutExpired):  # kill -9 does not fail; never hang here
                 p.wait(10)
-            except subprocess.TimeoutExpired:  # pragma: no cover - kill -9 does not fail
-                pass
 
 
 @pytest.fixture(scope="module")
@@ -145,8 +191,17 @@ def reference(tmp_path_factory) -> dict[str, np.ndarray]:
 
 
 # The library on the built-in simulator: 35 tiles of 4 m (8-107 cells), fixed hyperparameters.
-ROOM_OPTS = dict(tile_size=4.0, overlap=2.0, kernel="se", free_step=0.5, min_cell=0.5, max_cell=3.0, optimise=False,
-                 length_scale=1.0, noise=0.1)
+ROOM_OPTS = dict(
+    tile_size=4.0,
+    overlap=2.0,
+    kernel="se",
+    free_step=0.5,
+    min_cell=0.5,
+    max_cell=3.0,
+    optimise=False,
+    length_scale=1.0,
+    noise=0.1,
+)
 
 
 @pytest.fixture(scope="module")
@@ -247,8 +302,9 @@ def test_no_workers_left_is_a_clear_error(cluster, room, tmp_path, monkeypatch, 
     workers = cluster.ensure_workers(1)
     out = tmp_path / "dask"
     with _on_first_tile_done(monkeypatch, lambda: [cluster.kill(w) for w in workers]) as fired:
-        code = main(["map", str(LOG), "-o", str(out), "--scheduler", cluster.address, "--scheduler-timeout", "2",
-                     "-q", *MAP_ARGS])
+        code = main(
+            ["map", str(LOG), "-o", str(out), "--scheduler", cluster.address, "--scheduler-timeout", "2", "-q", *MAP_ARGS]
+        )
     err = capsys.readouterr().err
     assert fired
     assert code == EXIT_ERROR

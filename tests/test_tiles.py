@@ -29,7 +29,9 @@ def room():
 
 def _corridor_scans():
     # Two long walls along x with a post, crossing the tile border at x = 6.
-    world = World(segments=[(0.0, 0.0, 12.0, 0.0), (0.0, 3.0, 12.0, 3.0)], obstacles=[[(7.5, 1.2), (8.0, 1.2), (8.0, 1.7), (7.5, 1.7)]])
+    world = World(
+        segments=[(0.0, 0.0, 12.0, 0.0), (0.0, 3.0, 12.0, 3.0)], obstacles=[[(7.5, 1.2), (8.0, 1.2), (8.0, 1.7), (7.5, 1.7)]]
+    )
     xs = np.linspace(0.5, 11.5, 12)
     poses = np.column_stack([xs, np.full_like(xs, 1.5), np.zeros_like(xs)])
     return simulate_scans(world, poses, 72, max_range=8.0, seed=0)
@@ -70,7 +72,9 @@ def test_blending_has_no_seam():
         assert _max_jump_ratio(p, border) < 2.0, y
         assert _max_jump_ratio(var, border) < 2.0, y
     # A hard switch between tiles with a short overlap does jump: the check above sees seams.
-    hard = TiledGPOM(tile_size=6.0, overlap=1.0, blend=1e-6, n_workers=1, **OPTS).fit(scans, hyperparameters=model.hyperparameters_)
+    hard = TiledGPOM(tile_size=6.0, overlap=1.0, blend=1e-6, n_workers=1, **OPTS).fit(
+        scans, hyperparameters=model.hyperparameters_
+    )
     p_hard = hard.predict_proba_gp(np.column_stack([x, np.full_like(x, 0.1)]))
     assert _max_jump_ratio(p_hard, border) > 5.0
 
@@ -155,9 +159,12 @@ def test_dask_local_cluster_matches_in_process(room, reference, tmp_path, monkey
     marker = tmp_path / "died"
     monkeypatch.setenv(MARKER_ENV, str(marker))  # before the workers start, so they see it
     # Not the default client: gpomap must use the client it is given (or makes) explicitly.
-    with distributed.LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
-    ) as cluster, distributed.Client(cluster, set_as_default=False) as client:
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster, set_as_default=False) as client,
+    ):
         by_address = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=cluster.scheduler_address, **OPTS)
         _same(by_address.fit(room, hyperparameters=hyp).grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
         # A worker dies mid-run: Dask (or our one retry) reruns the tile; nothing goes missing.

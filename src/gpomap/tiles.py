@@ -50,9 +50,9 @@ from scipy.special import ndtr
 
 from gpomap.cells import build_cells
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
-from gpomap.fusion import EvidenceLayer
+from gpomap.fusion import EvidenceLayer, gp_sampling_factor
 from gpomap.gp import SupportGP, robust_cholesky
-from gpomap.grid import GridSpec, OccupancyMap, ternary
+from gpomap.grid import GridSpec, OccupancyMap, coarse_grid, interpolate_to, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.mapping import AreaGPOM
@@ -658,7 +658,7 @@ class TiledGPOM:
             try:
                 results[key] = fn(*args)
                 bar.update()
-            except Exception as e:  # noqa: BLE001 - reported per tile after the retry
+            except Exception as e:  # reported per tile after the retry
                 failed[key] = e
         return results, failed
 
@@ -674,7 +674,7 @@ class TiledGPOM:
                 try:
                     results[key] = f.result()
                     bar.update()
-                except Exception as e:  # noqa: BLE001 - a dead worker breaks the pool: retried
+                except Exception as e:  # a dead worker breaks the pool: retried
                     failed[key] = e
         return results, failed
 
@@ -754,7 +754,7 @@ class TiledGPOM:
         """Workers connected to the client's scheduler (0 when the scheduler does not answer)."""
         try:
             return len(client.scheduler_info(n_workers=-1)["workers"])
-        except Exception:  # noqa: BLE001 - a lost scheduler counts as no workers
+        except Exception:  # a lost scheduler counts as no workers
             return 0
 
     # ------------------------------------------------------------------ fitting
@@ -1072,15 +1072,18 @@ class TiledGPOM:
             extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
         spec = GridSpec.from_extent(extent, resolution)
         t = time.perf_counter()
-        p, _, var = self._predict_blended(spec.centres())
-        probability = p.reshape(spec.shape)
+        # With ray counts the GP under them is sampled more coarsely (gpomap.fusion.gp_sampling_factor).
+        factor = 1 if self.evidence_ is None else gp_sampling_factor(self.hyperparameters_["length_scale"], resolution)
+        coarse = coarse_grid(spec, factor)
+        p, _, var = self._predict_blended(coarse.centres())
+        probability = interpolate_to(p, coarse, spec)
         if self.evidence_ is not None:
             probability = self.evidence_.grid_proba(spec, probability)
         self.timings_["grid"] = time.perf_counter() - t
         return OccupancyMap(
             grid=spec,
             probability=probability,
-            variance=var.reshape(spec.shape),
+            variance=interpolate_to(var, coarse, spec),
             thresholds=self.base.thresholds,
             path=self.path_,
             info=self.summary(),
