@@ -472,7 +472,10 @@ class TiledGPOM:
                 if bc is None:
                     continue
                 keep = (
-                    (bc.lower[:, 0] <= x1 + o) & (bc.upper[:, 0] >= x0 - o) & (bc.lower[:, 1] <= y1 + o) & (bc.upper[:, 1] >= y0 - o)
+                    (bc.lower[:, 0] <= x1 + o)
+                    & (bc.upper[:, 0] >= x0 - o)
+                    & (bc.lower[:, 1] <= y1 + o)
+                    & (bc.upper[:, 1] >= y0 - o)
                 )
                 if keep.any():
                     parts.append((self._encode(ix, iy), bc, np.flatnonzero(keep)))
@@ -495,7 +498,9 @@ class TiledGPOM:
             out["member_points"], out["member_offsets"] = s.member_points, s.member_offsets
         return out
 
-    def _all_cells(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], list[tuple[int, NDArray[np.intp]]]]:
+    def _all_cells(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], list[int]]:
         keys = sorted(self._blocks)
         lo = np.concatenate([self._blocks[k].lower for k in keys])
         hi = np.concatenate([self._blocks[k].upper for k in keys])
@@ -858,7 +863,9 @@ class TiledGPOM:
         self.overlap_ = float(min(max(o, 1e-9), self.tile_size))
         w = self.overlap_ if self.blend is None else float(self.blend)
         if not 0 < w <= min(self.overlap_, self.tile_size) + 1e-12:
-            raise ValueError(f"blend must be in (0, min(overlap, tile_size)] = (0, {min(self.overlap_, self.tile_size)}], got {w}")
+            raise ValueError(
+                f"blend must be in (0, min(overlap, tile_size)] = (0, {min(self.overlap_, self.tile_size)}], got {w}"
+            )
         self.blend_ = float(w)
 
     @staticmethod
@@ -1112,7 +1119,12 @@ class TiledGPOM:
             "n_cells": self.n_inputs_,
             "n_ambiguous_cells": int(sum(b.n_ambiguous for b in self._blocks.values())),
             "cells_per_tile": {"min": int(per.min()), "median": float(np.median(per)), "max": int(per.max())},
-            "tile_fit_seconds": {"min": float(secs.min()), "median": float(np.median(secs)), "max": float(secs.max()), "sum": float(secs.sum())},
+            "tile_fit_seconds": {
+                "min": float(secs.min()),
+                "median": float(np.median(secs)),
+                "max": float(secs.max()),
+                "sum": float(secs.sum()),
+            },
             "n_points": int(self._points.shape[0]),
             "n_occupied_points": int(self._occupied.sum()),
             "n_scans": self._n_scans,
@@ -1123,7 +1135,9 @@ class TiledGPOM:
             "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
             "timings": dict(self.timings_),
             "peak_memory": _peak_rss_mb(),
-            "executor": "dask" if self.scheduler is not None else ("in-process" if self.n_workers_ <= 1 else f"process pool x{self.n_workers_}"),
+            "executor": "dask"
+            if self.scheduler is not None
+            else ("in-process" if self.n_workers_ <= 1 else f"process pool x{self.n_workers_}"),
         }
         if self.per_tile_hyperparameters:
             out["per_tile_hyperparameters"] = {
