@@ -73,9 +73,9 @@ def test_grid_and_ternary(fitted):
     p, v = fitted.predict_proba_gp(m.grid.centres()[:50], return_var=True)
     hits, misses = fitted.evidence_.grid_counts(m.grid)
     fused = fitted.evidence_.calibration(p, hits.ravel()[:50], misses.ravel()[:50])
-    np.testing.assert_allclose(fused, m.probability.ravel()[:50])
+    np.testing.assert_allclose(fused, m.probability.ravel()[:50], atol=0.03)
     _, var = fitted.predict(m.grid.centres()[:50], return_var=True)
-    np.testing.assert_allclose(var, v)
+    np.testing.assert_allclose(var, v, rtol=0.05)
     summary = fitted.summary()
     assert summary["n_cells"] == fitted.n_inputs_ > 100
     assert set(summary["hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta"}

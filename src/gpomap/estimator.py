@@ -15,8 +15,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import EmptyDataError, NotFittedError
+from gpomap.fusion import gp_sampling_factor
 from gpomap.gp import SupportGP
-from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
+from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, coarse_grid, interpolate_to, ternary
 from gpomap.kernels.point import make_point_kernel
 from gpomap.observations import Observations, observations_from_scans
 
@@ -225,19 +226,28 @@ class GPMapEstimator:
             hi = self.extent_points_.max(axis=0)
             extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
         spec = GridSpec.from_extent(extent, resolution)
+        evidence = getattr(self, "evidence_", None)
+        if evidence is not None:
+            # The counts give each cell its detail; the smooth GP under them is sampled more
+            # coarsely and interpolated (see gpomap.fusion.gp_sampling_factor).
+            coarse = coarse_grid(spec, gp_sampling_factor(self.gp_.kernel.base.length_scale, spec.resolution))
+            p_coarse, var_coarse = self.predict_proba_gp(coarse.centres(), return_var=True)
+            return OccupancyMap(
+                grid=spec,
+                probability=evidence.grid_proba(spec, interpolate_to(p_coarse, coarse, spec)),
+                variance=interpolate_to(var_coarse, coarse, spec),
+                thresholds=self.thresholds,
+                path=self.path_,
+                info=self.summary(),
+            )
         k = int(supersample)
         fine = GridSpec(spec.origin, spec.resolution / k, (spec.shape[0] * k, spec.shape[1] * k))
         p, var = self.predict_proba_gp(fine.centres(), return_var=True)
         # Fine row-major (ny*k, nx*k) -> (ny, k, nx, k): one k x k block per output cell.
         blocks = (spec.shape[0], k, spec.shape[1], k)
-        probability = p.reshape(blocks).max(axis=(1, 3))
-        evidence = getattr(self, "evidence_", None)
-        if evidence is not None:
-            # The counts of the written grid's own cells, so its walls are as sharp as its cells.
-            probability = evidence.grid_proba(spec, probability)
         return OccupancyMap(
             grid=spec,
-            probability=probability,
+            probability=p.reshape(blocks).max(axis=(1, 3)),
             variance=var.reshape(blocks).mean(axis=(1, 3)),
             thresholds=self.thresholds,
             path=self.path_,

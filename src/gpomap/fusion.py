@@ -45,6 +45,20 @@ from gpomap.scans import Scan
 #: Probabilities are kept this far from 0 and 1 before taking logits.
 _EPS = 1e-6
 
+#: Where ray counts give a written grid its detail, the GP under them is sampled this many times
+#: per length scale (at most :data:`MAX_GP_STEP_CELLS` output cells apart) and interpolated
+#: bilinearly: a GP varies little within a third of its length scale, and its prediction is the
+#: costly part of a fine grid.
+GP_SAMPLES_PER_LENGTH_SCALE: int = 3
+MAX_GP_STEP_CELLS: int = 4
+
+
+def gp_sampling_factor(length_scale: float, resolution: float) -> int:
+    """Output cells between GP samples of a written grid, from 1 (every cell) to :data:`MAX_GP_STEP_CELLS`."""
+    step = length_scale / GP_SAMPLES_PER_LENGTH_SCALE
+    return int(min(MAX_GP_STEP_CELLS, max(1, np.floor(step / resolution + 1e-9))))
+
+
 #: Search bounds (log space) of the hit weight and the prior weight.
 CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = ((np.log(0.1), np.log(1e3)), (np.log(0.1), np.log(1e2)))
 

@@ -168,3 +168,39 @@ class OccupancyMap:
     def ternary(self) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) per cell, ndarray of shape (ny, nx)."""
         return ternary(self.probability, self.thresholds)
+
+
+def coarse_grid(grid: GridSpec, factor: int) -> GridSpec:
+    """A grid of cells `factor` times larger whose cell centres span `grid`'s, one cell beyond each edge.
+
+    Values sampled at its centres can be interpolated to every centre of `grid` (see
+    :func:`interpolate_to`) without extrapolating.
+    """
+    if factor <= 1:
+        return grid
+    step = grid.resolution * factor
+    fine_x, fine_y = grid.x_centres(), grid.y_centres()
+    nx = math.ceil((fine_x[-1] - fine_x[0]) / step) + 3
+    ny = math.ceil((fine_y[-1] - fine_y[0]) / step) + 3
+    return GridSpec((fine_x[0] - 1.5 * step, fine_y[0] - 1.5 * step), step, (ny, nx))
+
+
+def interpolate_to(values: NDArray[np.float64], coarse: GridSpec, fine: GridSpec) -> NDArray[np.float64]:
+    """Bilinear interpolation of per-cell `values` on `coarse` to the cell centres of `fine`.
+
+    Parameters
+    ----------
+    values : ndarray of shape coarse.shape
+    coarse, fine : GridSpec
+
+    Returns
+    -------
+    ndarray of shape fine.shape
+    """
+    from scipy.interpolate import RegularGridInterpolator
+
+    if coarse == fine:
+        return np.asarray(values).reshape(fine.shape)
+    interp = RegularGridInterpolator((coarse.y_centres(), coarse.x_centres()), np.asarray(values).reshape(coarse.shape))
+    yy, xx = np.meshgrid(fine.y_centres(), fine.x_centres(), indexing="ij")
+    return interp(np.column_stack([yy.ravel(), xx.ravel()])).reshape(fine.shape)
