@@ -217,6 +217,19 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--max-cell", type=_positive(float), default=0.5, help="largest pure cell side, m (default: %(default)s)")
     g.add_argument("--length-scale", type=_positive(float), help="fix the length scale (m) instead of learning it")
     g.add_argument("--seed", type=int, default=0, help="seed of restarts and samples (default: %(default)s)")
+    g.add_argument(
+        "--no-ray-evidence",
+        dest="ray_evidence",
+        action="store_false",
+        help="the GP alone, without each fine cell's hit and miss counts on top (see gpomap.fusion)",
+    )
+    g.add_argument(
+        "--evidence-resolution",
+        type=_positive(float),
+        default=_LibraryDefault("evidence_resolution"),
+        metavar="M",
+        help="fine cells whose ray counts update exact-point predictions, m (default: %(default)s; a written map counts on its own cells)",
+    )
 
 
 def _class_weight(args: argparse.Namespace) -> str | None:
@@ -237,6 +250,8 @@ def _model_options(args: argparse.Namespace) -> dict[str, Any]:
         "min_cell": args.min_cell,
         "max_cell": args.max_cell,
         "seed": args.seed,
+        "ray_evidence": args.ray_evidence,
+        "evidence_resolution": args.evidence_resolution,
     }
     if args.length_scale is not None:
         opts["length_scale"] = args.length_scale
