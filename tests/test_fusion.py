@@ -174,5 +174,5 @@ def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
     passes = ev.path_passes(GRID)
     assert passes[1, :16].min() >= 1 and passes[1, 16:].sum() == 0
     # A long jump between poses is not a path.
-    jump = RayEvidence.from_scans([first, _scan(1.8, 0.15, [0.0], [0.1])])
+    jump = RayEvidence.from_scans([first, _scan(1.9, 0.15, [0.0], [0.1])])
     assert jump.path_passes(GRID).sum() == 0
