@@ -81,7 +81,7 @@ from typing import Any, Union
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.cells import Cells, build_cells
+from gpomap.cells import Cells
 from gpomap.errors import EmptyDataError, InputFormatError
 from gpomap.grid import FREE, OCCUPIED, UNKNOWN, GridSpec, OccupancyMap, ternary
 from gpomap.io.npz import load_map
@@ -288,28 +288,12 @@ class GridGPOM(AreaGPOM):
         names = [n for n in inspect.signature(AreaGPOM.__init__).parameters if n != "self"]
         return {"pixel_pad": self.pixel_pad, **{n: getattr(self, n) for n in names}}
 
-    def fit(self, data: Observations) -> GridGPOM:  # type: ignore[override]
-        """Build the map from labelled pixel centres (see the class docstring)."""
-        timings: dict[str, float] = {}
-        t = time.perf_counter()
-        obs = self.make_observations(data)
-        timings["observations"] = time.perf_counter() - t
-        t = time.perf_counter()
-        cells = build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
+    def make_cells(self, obs: Observations) -> Cells:
+        """The cell tree over the pixel centres, each box widened to its pixels' full squares."""
+        cells = super().make_cells(obs)
         if self.pixel_pad > 0:
             cells = replace(cells, lower=cells.lower - self.pixel_pad, upper=cells.upper + self.pixel_pad)
-        timings["cells"] = time.perf_counter() - t
-        gp = self._make_gp(self.make_kernel())
-        gp.fit(cells.to_supports(), cells.labels)
-        timings.update(gp.timings_)
-        self.observations_: Observations = obs
-        self.cells_: Cells = cells
-        self.gp_ = gp
-        self.timings_ = timings
-        self.extent_points_ = obs.points
-        self.path_ = None
-        self.evidence_ = self.make_evidence(data, self.predict_proba_gp)
-        return self
+        return cells
 
 
 def model_defaults(resolution: float) -> dict[str, Any]:

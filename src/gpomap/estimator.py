@@ -15,9 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import EmptyDataError, NotFittedError
-from gpomap.fusion import gp_sampling_factor
 from gpomap.gp import SupportGP
-from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, coarse_grid, interpolate_to, ternary
+from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
 from gpomap.kernels.point import make_point_kernel
 from gpomap.observations import Observations, observations_from_scans
 
@@ -228,14 +227,13 @@ class GPMapEstimator:
         spec = GridSpec.from_extent(extent, resolution)
         evidence = getattr(self, "evidence_", None)
         if evidence is not None:
-            # The counts give each cell its detail; the smooth GP under them is sampled more
-            # coarsely and interpolated (see gpomap.fusion.gp_sampling_factor).
-            coarse = coarse_grid(spec, gp_sampling_factor(self.gp_.kernel.base.length_scale, spec.resolution))
-            p_coarse, var_coarse = self.predict_proba_gp(coarse.centres(), return_var=True)
+            probability, variance = evidence.written_grid(
+                spec, self.gp_.kernel.base.length_scale, lambda pts: self.predict_proba_gp(pts, return_var=True)
+            )
             return OccupancyMap(
                 grid=spec,
-                probability=evidence.grid_proba(spec, interpolate_to(p_coarse, coarse, spec)),
-                variance=interpolate_to(var_coarse, coarse, spec),
+                probability=probability,
+                variance=variance,
                 thresholds=self.thresholds,
                 path=self.path_,
                 info=self.summary(),

@@ -44,7 +44,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 
 from gpomap.evidence import RayEvidence
-from gpomap.grid import GridSpec
+from gpomap.grid import GridSpec, coarse_grid, interpolate_to
 from gpomap.observations import beam_free_points
 from gpomap.scans import Scan
 
@@ -265,6 +265,29 @@ class EvidenceLayer:
         """Probability per cell of `grid`, shape grid.shape, from the GP's probability per cell."""
         h, m = self.grid_counts(grid)
         return self.calibration(np.asarray(p_gp).reshape(grid.shape), h, m)
+
+    def written_grid(
+        self,
+        grid: GridSpec,
+        length_scale: float,
+        predict_gp: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]],
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Probability and latent variance per cell of `grid`, each of shape grid.shape.
+
+        The counts give each cell its detail; the smooth GP under them is sampled more coarsely
+        (:func:`gp_sampling_factor`) and interpolated bilinearly.
+
+        Parameters
+        ----------
+        grid : GridSpec
+        length_scale : float
+            The GP's length scale, metres.
+        predict_gp : callable
+            Points of shape (m, 2) to the GP's probability and latent variance, each (m,).
+        """
+        coarse = coarse_grid(grid, gp_sampling_factor(length_scale, grid.resolution))
+        p, var = predict_gp(coarse.centres())
+        return self.grid_proba(grid, interpolate_to(p, coarse, grid)), interpolate_to(var, coarse, grid)
 
     def summary(self) -> dict[str, float]:
         """The calibration and how it was fitted."""

@@ -213,7 +213,7 @@ class AreaGPOM(GPMapEstimator):
         obs = self.make_observations(data)
         timings["observations"] = time.perf_counter() - t
         t = time.perf_counter()
-        cells = build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
+        cells = self.make_cells(obs)
         timings["cells"] = time.perf_counter() - t
         gp = self._make_gp(self.make_kernel())
         gp.fit(cells.to_supports(), cells.labels)
@@ -231,6 +231,10 @@ class AreaGPOM(GPMapEstimator):
         self.evidence_ = self.make_evidence(data, self.predict_proba_gp)
         timings["evidence"] = time.perf_counter() - t
         return self
+
+    def make_cells(self, obs: Observations) -> Cells:
+        """The GP's inputs: the cell tree over `obs` with these settings."""
+        return build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
 
     def make_evidence(
         self, data: Sequence[Scan] | Observations, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]

@@ -50,9 +50,9 @@ from scipy.special import ndtr
 
 from gpomap.cells import build_cells
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
-from gpomap.fusion import EvidenceLayer, gp_sampling_factor
+from gpomap.fusion import EvidenceLayer
 from gpomap.gp import SupportGP, robust_cholesky
-from gpomap.grid import GridSpec, OccupancyMap, coarse_grid, interpolate_to, ternary
+from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.mapping import AreaGPOM
@@ -1079,18 +1079,18 @@ class TiledGPOM:
             extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
         spec = GridSpec.from_extent(extent, resolution)
         t = time.perf_counter()
-        # With ray counts the GP under them is sampled more coarsely (gpomap.fusion.gp_sampling_factor).
-        factor = 1 if self.evidence_ is None else gp_sampling_factor(self.hyperparameters_["length_scale"], resolution)
-        coarse = coarse_grid(spec, factor)
-        p, _, var = self._predict_blended(coarse.centres())
-        probability = interpolate_to(p, coarse, spec)
         if self.evidence_ is not None:
-            probability = self.evidence_.grid_proba(spec, probability)
+            probability, variance = self.evidence_.written_grid(
+                spec, self.hyperparameters_["length_scale"], lambda pts: self._predict_blended(pts)[0::2]
+            )
+        else:
+            p, _, var = self._predict_blended(spec.centres())
+            probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)
         self.timings_["grid"] = time.perf_counter() - t
         return OccupancyMap(
             grid=spec,
             probability=probability,
-            variance=interpolate_to(var, coarse, spec),
+            variance=variance,
             thresholds=self.base.thresholds,
             path=self.path_,
             info=self.summary(),
@@ -1158,7 +1158,7 @@ def count_cells(data: Sequence[Scan] | Observations, **options: Any) -> int:
     """How many cells an :class:`AreaGPOM` with these options would build from `data`."""
     model = AreaGPOM(**options)
     obs = model.make_observations(data)
-    return len(build_cells(obs.points, obs.occupied, model.min_cell, model.max_cell, model.cell_box))
+    return len(model.make_cells(obs))
 
 
 def area_gpom_for(
