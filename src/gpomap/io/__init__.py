@@ -8,7 +8,6 @@ pre-processing are read by :func:`read_points` (:mod:`gpomap.io.arrays`); they a
 from __future__ import annotations
 
 import os
-import stat
 import zlib
 from collections.abc import Sequence
 from pathlib import Path
@@ -19,7 +18,7 @@ import numpy as np
 from gpomap.errors import InputFormatError
 from gpomap.io.arrays import read_points, write_points
 from gpomap.io.carmen import is_carmen_text, read_carmen
-from gpomap.io.checks import file_kind, regular_file
+from gpomap.io.checks import ros2_bag_directory
 from gpomap.io.rosbag import load_rosbag, read_rosbag
 from gpomap.scans import Scan
 
@@ -65,20 +64,9 @@ def detect_format(path: str | os.PathLike[str]) -> str:
         Missing path, or a format none of the readers knows.
     """
     p = Path(path)
-    try:
-        mode = os.stat(p).st_mode
-    except FileNotFoundError:
-        raise InputFormatError("no such file or directory", path=str(p)) from None
-    except (OSError, ValueError) as exc:
-        raise InputFormatError(f"cannot examine the path ({exc})", path=str(p)) from None
-    if stat.S_ISDIR(mode):
-        if (p / "metadata.yaml").is_file():
-            return "rosbag2"
-        raise InputFormatError("directory without metadata.yaml; expected a ROS2 bag directory", path=str(p))
-    if not stat.S_ISREG(mode):
-        # Opening a FIFO would block, reading a device might never end.
-        raise InputFormatError(f"is {file_kind(mode)}, not a regular file; expected a CARMEN log or a ROS bag", path=str(p))
-    head = _head(regular_file(p))
+    if ros2_bag_directory(p, "CARMEN log or a ROS bag"):
+        return "rosbag2"
+    head = _head(p)
     if head.startswith(b"#ROSBAG"):
         return "rosbag1"
     if head.startswith(b"SQLite format 3") or head.startswith(b"\x89MCAP"):

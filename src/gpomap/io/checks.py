@@ -17,7 +17,7 @@ import numpy as np
 
 from gpomap.errors import InputFormatError
 
-__all__ = ["regular_file", "file_kind", "load_npz", "MAX_NPZ_ARRAY_BYTES"]
+__all__ = ["regular_file", "ros2_bag_directory", "file_kind", "load_npz", "MAX_NPZ_ARRAY_BYTES"]
 
 
 def file_kind(mode: int) -> str:
@@ -62,6 +62,38 @@ def regular_file(path: str | os.PathLike[str], what: str = "input file") -> Path
     if not stat.S_ISREG(st.st_mode):
         raise InputFormatError(f"is {file_kind(st.st_mode)}, not a regular file; expected a {what}", path=str(p))
     return p
+
+
+def ros2_bag_directory(path: str | os.PathLike[str], what: str) -> bool:
+    """Whether `path` is a ROS2 bag directory; anything else must be a regular file.
+
+    Parameters
+    ----------
+    path : path-like
+    what : str
+        What the path should be, for the message (``"ROS bag"``, ...).
+
+    Raises
+    ------
+    InputFormatError
+        The path does not exist or cannot be examined, is a directory without ``metadata.yaml``,
+        or is a FIFO, device or socket.
+    """
+    p = Path(path)
+    try:
+        mode = os.stat(p).st_mode
+    except FileNotFoundError:
+        raise InputFormatError("no such file or directory", path=str(p)) from None
+    except (OSError, ValueError) as exc:
+        raise InputFormatError(f"cannot examine the path ({exc})", path=str(p)) from None
+    if stat.S_ISDIR(mode):
+        if (p / "metadata.yaml").is_file():
+            return True
+        raise InputFormatError("directory without metadata.yaml; expected a ROS2 bag directory", path=str(p))
+    if not stat.S_ISREG(mode):
+        # Opening a FIFO would block, reading a device might never end.
+        raise InputFormatError(f"is {file_kind(mode)}, not a regular file; expected a {what}", path=str(p))
+    return False
 
 
 #: Largest array read from an ``.npz`` member, bytes, checked from the member's header before the

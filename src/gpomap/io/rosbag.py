@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import math
 import os
-import stat
 import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -40,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import GpomapError, InputFormatError
-from gpomap.io.checks import file_kind, regular_file
+from gpomap.io.checks import ros2_bag_directory
 from gpomap.io.noreturn import decide_max_range
 from gpomap.scans import Scan
 
@@ -238,19 +237,8 @@ class _Tree:
 
 def _bag_paths(path: Path) -> list[Path]:
     """What AnyReader opens: the .bag file, or the ROS2 bag directory."""
-    try:
-        mode = os.stat(path).st_mode
-    except FileNotFoundError:
-        raise InputFormatError("no such file or directory", path=str(path)) from None
-    except (OSError, ValueError) as exc:
-        raise InputFormatError(f"cannot examine the path ({exc})", path=str(path)) from None
-    if stat.S_ISDIR(mode):
-        if not (path / "metadata.yaml").is_file():
-            raise InputFormatError("directory without metadata.yaml; expected a ROS2 bag directory", path=str(path))
+    if ros2_bag_directory(path, "ROS bag"):
         return [path]
-    if not stat.S_ISREG(mode):
-        raise InputFormatError(f"is {file_kind(mode)}, not a regular file; expected a ROS bag", path=str(path))
-    regular_file(path, "ROS bag")
     if path.suffix.lower() in (".db3", ".mcap"):
         if not (path.parent / "metadata.yaml").exists():
             raise InputFormatError(
