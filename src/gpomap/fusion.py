@@ -133,6 +133,7 @@ def fit_calibration(
     step: float = 0.1,
     no_return_cap: float | None = 10.0,
     seed: int = 0,
+    counts: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None,
 ) -> tuple[EvidenceCalibration, dict[str, float]]:
     """Fit the hit weight and the prior weight by leave-one-scan-out log likelihood.
 
@@ -152,6 +153,8 @@ def fit_calibration(
     no_return_cap : float or None
     seed : int
         Seed of the class-balancing subsample.
+    counts : (hits, misses), optional
+        ``evidence.counts(grid)`` when the caller has it already.
 
     Returns
     -------
@@ -160,7 +163,7 @@ def fit_calibration(
         ``"n_points"`` used and the balanced ``"log_loss"`` before (the counting grid's weights)
         and after the fit.
     """
-    hits, misses = evidence.counts(grid)
+    hits, misses = evidence.counts(grid) if counts is None else counts
     picked = np.unique(np.linspace(0, len(scans) - 1, min(n_scans, len(scans))).round().astype(np.intp))
     pts_all, occ_all, h_all, m_all = [], [], [], []
     for k in picked:
@@ -234,7 +237,15 @@ class EvidenceLayer:
         self.lattice = lattice_grid(self.evidence.extent(), resolution, margin=resolution)
         self._hits, misses = self.evidence.counts(self.lattice)
         self.calibration, self.report = fit_calibration(
-            scans, self.evidence, self.lattice, predict_gp, calibration_scans, 2 * resolution, no_return_cap, seed
+            scans,
+            self.evidence,
+            self.lattice,
+            predict_gp,
+            calibration_scans,
+            2 * resolution,
+            no_return_cap,
+            seed,
+            counts=(self._hits, misses),
         )
         self._misses = self._with_path(misses, self.lattice)
         self._grid_cache: tuple[GridSpec, NDArray[np.int32], NDArray[np.float64]] | None = None
