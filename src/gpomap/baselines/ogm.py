@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gpomap.errors import EmptyDataError, NotFittedError
+from gpomap.evidence import RayEvidence
 from gpomap.grid import GridSpec, OccupancyMap
 from gpomap.raycast import ENTRIES_PER_CHUNK, traverse
 from gpomap.scans import Scan
@@ -117,26 +118,6 @@ class OccupancyGridMapper:
 
     # -- fitting ---------------------------------------------------------------------------
 
-    def _beams(
-        self, scans: Sequence[Scan]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.intp]]:
-        """Starts, ends, hit flags and scan index of every usable beam, all scans stacked."""
-        starts, ends, hit, scan_of = [], [], [], []
-        for i, s in enumerate(scans):
-            valid = s.valid()
-            no_ret = s.no_return()
-            length = s.ranges.copy()
-            if self.max_range_free is not None:
-                length = np.where(no_ret, np.minimum(length, self.max_range_free), length)
-            a = s.world_angles()[valid]
-            length = length[valid]
-            n = int(valid.sum())
-            starts.append(np.broadcast_to(s.pose[:2], (n, 2)))
-            ends.append(s.pose[:2] + length[:, None] * np.column_stack([np.cos(a), np.sin(a)]))
-            hit.append(~no_ret[valid])
-            scan_of.append(np.full(n, i, dtype=np.intp))
-        return (np.concatenate(starts), np.concatenate(ends), np.concatenate(hit), np.concatenate(scan_of))
-
     def _default_grid(self, starts: NDArray[np.float64], ends: NDArray[np.float64]) -> GridSpec:
         pts = np.concatenate([starts, ends])
         res = float(self.resolution)
@@ -164,7 +145,8 @@ class OccupancyGridMapper:
             raise ValueError(f"need l_min <= 0 <= l_max, got {self.l_min}, {self.l_max}")
         if len(scans) == 0:
             raise EmptyDataError("no scans to map")
-        starts, ends, hit, scan_of = self._beams(scans)
+        beams = RayEvidence.from_scans(scans, self.max_range_free)
+        starts, ends, hit, scan_of = beams.starts, beams.ends, beams.hit, beams.scan
         if len(starts) == 0:
             raise EmptyDataError(f"no usable readings in {len(scans)} scan(s): nothing to map")
         if isinstance(self.extent, GridSpec):
