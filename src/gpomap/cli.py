@@ -1003,6 +1003,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_benchmark)
+
+    # Its own module (the replay loop and its options): gpomap.apps.stream.
+    from gpomap.apps.stream import add_parser as add_stream_parser
+
+    add_stream_parser(sub)
     return parser
 
 

@@ -1,0 +1,1 @@
+"""Subcommands of the ``gpomap`` command that live in their own module (``gpomap stream``)."""

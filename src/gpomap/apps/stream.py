@@ -1,0 +1,323 @@
+"""``gpomap stream INPUT -o OUTDIR``: replay a recorded log through the streaming mapper.
+
+The scans of a CARMEN log or a ROS bag go to :class:`gpomap.streaming.StreamingGPOM` one at a
+time, paced by their time stamps (``--rate 1`` real time, ``--rate 2`` twice as fast, ``--rate 0``
+as fast as possible), as a robot would deliver them. Every ``--every`` seconds of wall time the
+current map replaces the previous set of outputs in OUTDIR as a whole
+(:func:`gpomap.io.atomic.output_set`), so OUTDIR always holds a complete map; the last one is
+written when the log ends. Ctrl-C (or SIGTERM) stops the replay between two steps: the summary so
+far is printed and OUTDIR keeps the last complete map.
+
+:func:`replay` is the loop, free of the command line; :func:`add_parser` and :func:`cmd_stream`
+are the subcommand (registered in :mod:`gpomap.cli`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.errors import GpomapError
+from gpomap.scans import Scan
+
+__all__ = ["ReplayResult", "replay_times", "replay", "add_parser", "cmd_stream"]
+
+
+@dataclass
+class ReplayResult:
+    """What a replay did.
+
+    Attributes
+    ----------
+    n_scans : int
+        Scans given to the mapper.
+    latency : list of float
+        Seconds each ``add_scan`` took, in scan order.
+    writes : list of float
+        Seconds each map write took (grid prediction, which refits the dirty tiles, and the files).
+    wall : float
+        Seconds from the first scan to the end (or the interrupt).
+    lag : float
+        Most seconds the replay fell behind the recording (0 with ``rate=0``).
+    interrupted : bool
+        Whether Ctrl-C / SIGTERM stopped it.
+    files : list of Path
+        The files of the last map written.
+    """
+
+    n_scans: int = 0
+    latency: list[float] = field(default_factory=list)
+    writes: list[float] = field(default_factory=list)
+    wall: float = 0.0
+    lag: float = 0.0
+    interrupted: bool = False
+    files: list[Path] = field(default_factory=list)
+
+    def latency_ms(self) -> dict[str, float]:
+        """Median, 95th percentile and maximum of the per-scan latency, milliseconds."""
+        lat = np.asarray(self.latency, dtype=float) * 1e3
+        if not lat.size:
+            return {"median": math.nan, "p95": math.nan, "max": math.nan}
+        return {"median": float(np.median(lat)), "p95": float(np.percentile(lat, 95)), "max": float(lat.max())}
+
+
+def replay_times(scans: Sequence[Scan], rate: float, source: str = "input") -> NDArray[np.float64]:
+    """Seconds after the start at which each scan is due: its recorded time divided by `rate`.
+
+    Time stamps that step back (a few in the Intel log) are held at the latest one so far: the
+    scan is then due at once, never before the one recorded ahead of it.
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+    rate : float
+        Replay speed (1 real time); 0 means as fast as possible (every scan due at 0).
+    source : str
+        The input's name, for the error message.
+
+    Returns
+    -------
+    ndarray of shape (n,)
+
+    Raises
+    ------
+    GpomapError
+        `rate` > 0 and some scans have no (finite) time stamp.
+    """
+    n = len(scans)
+    if rate == 0 or n == 0:
+        return np.zeros(n)
+    missing = [i for i, s in enumerate(scans) if s.time is None or not math.isfinite(s.time)]
+    if missing:
+        raise GpomapError(
+            f"{source}: {len(missing)} of {n} scans have no time stamp (first: scan {missing[0]}), "
+            "so they cannot be replayed as recorded; use --rate 0 (as fast as possible)"
+        )
+    t = np.maximum.accumulate(np.array([float(s.time) for s in scans]))  # type: ignore[arg-type]
+    return (t - t[0]) / rate
+
+
+def replay(
+    scans: Sequence[Scan],
+    mapper: Any,
+    rate: float,
+    every: float,
+    write: Callable[[int], list[Path]],
+    progress: Callable[[str], None] | None = None,
+    source: str = "input",
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+    result: ReplayResult | None = None,
+) -> ReplayResult:
+    """Feed `scans` to `mapper` as recorded and write the map every `every` seconds.
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+    mapper : StreamingGPOM
+        Anything with ``add_scan(scan)`` and ``ready_``.
+    rate : float
+        Replay speed: 1 real time, 0 as fast as possible.
+    every : float
+        Wall-clock seconds between map writes (0: after every scan once the mapper is ready).
+    write : callable
+        ``write(n_scans_so_far)`` writes the current map and returns its files; called only when
+        the mapper is ready, and once more at the end.
+    progress : callable, optional
+        Receives one status line per write.
+    source : str
+        The input's name, for messages.
+    clock, sleep : callable
+        Monotonic seconds and a sleep (tests may pass their own).
+    result : ReplayResult, optional
+        Filled as the replay goes, so a caller that catches the KeyboardInterrupt (re-raised
+        here) still has the numbers so far.
+
+    Returns
+    -------
+    ReplayResult
+    """
+    due = replay_times(scans, rate, source)
+    result = ReplayResult() if result is None else result
+    start = clock()
+    next_write = start + every
+
+    def do_write() -> None:
+        t = time.perf_counter()
+        result.files = write(result.n_scans)
+        result.writes.append(time.perf_counter() - t)
+        if progress is not None:
+            lat = result.latency_ms()
+            behind = f", {result.lag:.1f} s behind the recording at most" if rate > 0 else ""
+            progress(
+                f"  scan {result.n_scans}/{len(scans)}: add_scan median {lat['median']:.1f} ms, p95 {lat['p95']:.1f} ms; "
+                f"map written in {result.writes[-1]:.2f} s{behind}"
+            )
+
+    try:
+        for i, scan in enumerate(scans):
+            if rate > 0:
+                wait = start + due[i] - clock()
+                if wait > 0:
+                    sleep(wait)
+                else:
+                    result.lag = max(result.lag, -wait)
+            t = time.perf_counter()
+            mapper.add_scan(scan)
+            result.latency.append(time.perf_counter() - t)
+            result.n_scans = i + 1
+            if progress is not None and not mapper.ready_ and i == 0:
+                progress("  warming up: the first map comes once the hyperparameters are learnt")
+            if mapper.ready_ and clock() >= next_write:
+                do_write()
+                next_write = clock() + every
+        if not mapper.ready_:
+            raise GpomapError(
+                f"{source}: {len(scans)} scans were not enough to learn the hyperparameters; "
+                "use a smaller --warmup or a longer log"
+            )
+        do_write()
+    except KeyboardInterrupt:
+        result.interrupted = True
+        raise
+    finally:
+        result.wall = clock() - start
+    return result
+
+
+# --------------------------------------------------------------------------- the subcommand
+EPILOG = """examples:
+  gpomap stream ../shared/data/intel/intel-corrected.log.gz -o intel-live --rate 0 --every 5
+  gpomap stream robot1.bag --topic /base_scan --time-offset 0.1 -o arena-live --rate 1 --resolution 0.05
+"""
+
+
+def add_parser(sub: Any) -> argparse.ArgumentParser:
+    """Register ``gpomap stream`` on the subparsers of :func:`gpomap.cli.build_parser`."""
+    from gpomap import cli
+
+    p: argparse.ArgumentParser = sub.add_parser(
+        "stream",
+        help="replay a log or bag through the streaming mapper, writing the map as it grows",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Replay a CARMEN log or ROS bag as recorded (or as fast as possible), one scan at a time, "
+        "into the streaming mapper; write map.yaml/.pgm, map.npz and map.png every --every seconds as one set; "
+        "print progress and the per-scan latency. Ctrl-C stops it, leaving the last complete map.",
+    )
+    p.add_argument("input", help="CARMEN log (.log, .gz) or ROS bag (.bag, ROS2 directory, .db3, .mcap)")
+    g = p.add_argument_group("the replay")
+    g.add_argument(
+        "--rate",
+        type=cli._non_negative(float),
+        default=1.0,
+        help="replay speed from the scans' time stamps: 1 real time, 0 as fast as possible (default: %(default)s)",
+    )
+    g.add_argument(
+        "--every",
+        type=cli._non_negative(float),
+        default=10.0,
+        metavar="SECONDS",
+        help="write the map every SECONDS of wall time, and at the end (default: %(default)s; 0: after every scan)",
+    )
+    g.add_argument(
+        "--warmup",
+        type=cli._positive(int),
+        default=30,
+        metavar="N",
+        help="scans seen before the hyperparameters are learnt and the first map is written (default: %(default)s)",
+    )
+    g.add_argument("--tile-size", type=cli._positive(float), default=10.0, help="tile side, m (default: %(default)s)")
+    g.add_argument(
+        "--workers", type=cli._positive(int), default=1, help="worker processes refitting tiles (default: %(default)s)"
+    )
+    cli._add_reader_options(p)
+    cli._add_selection_options(p)
+    cli._add_model_options(p)
+    cli._add_output_options(p, 0.1, supersample=False)
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=cmd_stream)
+    return p
+
+
+def _observation_extent(scans: Sequence[Scan], no_return_cap: float) -> tuple[float, float, float, float]:
+    """Bounding box of the sensor positions and beam ends (no-return beams cut at the cap): the map's largest extent."""
+    pts = [np.array([s.pose[:2] for s in scans])]
+    for s in scans:
+        valid = s.valid()
+        r = np.where(s.no_return(), np.minimum(s.ranges, no_return_cap), s.ranges)[valid]
+        a = s.world_angles()[valid]
+        pts.append(s.pose[:2] + r[:, None] * np.column_stack([np.cos(a), np.sin(a)]))
+    allp = np.concatenate(pts)
+    return (float(allp[:, 0].min()), float(allp[:, 0].max()), float(allp[:, 1].min()), float(allp[:, 1].max()))
+
+
+def cmd_stream(args: argparse.Namespace) -> int:
+    """Run ``gpomap stream``."""
+    from gpomap import cli
+    from gpomap.io.export import write_map_files
+    from gpomap.resources import grid_shape
+    from gpomap.streaming import StreamingGPOM
+
+    cli._check_before_work(args)
+    cli._status(args, f"reading scans from {args.input}...")
+    scans = cli._load_scans(args)
+    cli._status(args, f"  {len(scans)} scans of {scans[0].n_beams} beams")
+    due = replay_times(scans, args.rate, args.input)
+    if args.rate > 0:
+        cli._status(args, f"  replaying {due[-1] * args.rate:.1f} s of recording at rate {args.rate:g}: {due[-1]:.1f} s")
+    # The largest map this replay can write, checked against the memory limit before any work.
+    extent = args.extent if args.extent is not None else _observation_extent(scans, args.no_return_cap)
+    cli._check_grid_memory(args, grid_shape(extent, args.resolution), extent, 1, 0)
+    mapper = StreamingGPOM(
+        warmup_scans=args.warmup,
+        tile_size=args.tile_size,
+        n_workers=args.workers,
+        thresholds=args.thresholds,
+        **cli._model_options(args),
+    )
+    title = f"gpomap stream: {Path(args.input).name}"
+
+    def write(n: int) -> list[Path]:
+        occupancy_map = mapper.grid(args.resolution, args.extent)
+        with cli._outputs(args) as outputs:
+            staged = write_map_files(
+                occupancy_map, outputs.path, pgm_mode=args.pgm_mode, title=f"{title} ({n} of {len(scans)} scans)"
+            )
+        return [outputs.final(f) for f in staged]
+
+    result = ReplayResult()
+    try:
+        replay(scans, mapper, args.rate, args.every, write, lambda m: cli._status(args, m), args.input, result=result)
+    except KeyboardInterrupt:
+        _print_summary(args, mapper, result, len(scans))
+        raise
+    _print_summary(args, mapper, result, len(scans))
+    return cli.EXIT_OK
+
+
+def _print_summary(args: argparse.Namespace, mapper: Any, result: ReplayResult, n_total: int) -> None:
+    lat = result.latency_ms()
+    rate = "as fast as possible" if args.rate == 0 else f"at rate {args.rate:g}"
+    lines = [
+        f"scans        {result.n_scans} of {n_total}" + (" (interrupted)" if result.interrupted else ""),
+        f"replay       {rate}: {result.wall:.2f} s wall, {result.n_scans / result.wall if result.wall > 0 else math.nan:.1f} scans/s"
+        + (f", at most {result.lag:.2f} s behind the recording" if args.rate > 0 else ""),
+        f"latency      add_scan median {lat['median']:.2f} ms, p95 {lat['p95']:.2f} ms, max {lat['max']:.2f} ms",
+    ]
+    if result.writes:
+        w = np.asarray(result.writes)
+        lines.append(f"maps         {w.size} written (median {np.median(w):.2f} s, max {w.max():.2f} s each, refits included)")
+    if getattr(mapper, "ready_", False):
+        hp = mapper.hyperparameters_
+        lines.append("hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()))
+    lines += [f"wrote        {f}" for f in result.files]
+    print("\n".join(lines), flush=True)
