@@ -1,7 +1,8 @@
 """The cell tree: free and occupied points grouped into axis-aligned rectangular cells.
 
 One box is put round all points and split at the midpoint of its longest side, recursively
-(the paper's Fig. 3). A box stops splitting when it holds only one class ("pure") and is no longer
+(the paper's Fig. 3). Nothing in the tree depends on the dimension: over 3-D points the boxes
+are cuboids and the tree is octree-like (a cube splits into eight after three levels). A box stops splitting when it holds only one class ("pure") and is no longer
 than `max_cell`, or when its longest side is below `min_cell`. Empty boxes are dropped. A box that
 reached `min_cell` still holding both classes is *ambiguous*: it is kept as two cells, one over its
 hits and one over its free points, so neither class's evidence is lost or averaged away.
@@ -28,9 +29,9 @@ class Cells:
 
     Attributes
     ----------
-    lower, upper : ndarray of shape (n, 2)
+    lower, upper : ndarray of shape (n, d)
         The box of each cell (its GP support).
-    node_lower, node_upper : ndarray of shape (n, 2)
+    node_lower, node_upper : ndarray of shape (n, d)
         The tree node each cell came from (equal to the box for ``box="node"``).
     occupied : ndarray of bool, shape (n,)
         Cell label: True for occupied cells, False for free.
@@ -40,7 +41,7 @@ class Cells:
         Members of cell ``i`` are ``points[member_order[member_offsets[i]:member_offsets[i + 1]]]``.
     member_order : ndarray of int, shape (m,)
         Indices into the observation points, grouped by cell.
-    points : ndarray of shape (m, 2)
+    points : ndarray of shape (m, d)
         The observation points the cells were built from.
     """
 
@@ -69,11 +70,11 @@ class Cells:
 
     @property
     def boxes(self) -> NDArray[np.float64]:
-        """Boxes as ndarray of shape (n, 2, 2): ``[[xmin, ymin], [xmax, ymax]]`` per cell."""
+        """Boxes as ndarray of shape (n, 2, d): ``[[xmin, ymin, ...], [xmax, ymax, ...]]`` per cell."""
         return np.stack([self.lower, self.upper], axis=1)
 
     def members(self, i: int) -> NDArray[np.float64]:
-        """Member points of cell `i`, ndarray of shape (m_i, 2)."""
+        """Member points of cell `i`, ndarray of shape (m_i, d)."""
         return self.points[self.member_order[self.member_offsets[i] : self.member_offsets[i + 1]]]
 
     def cell_of_point(self) -> NDArray[np.intp]:
@@ -104,7 +105,8 @@ def build_cells(
 
     Parameters
     ----------
-    points : ndarray of shape (m, 2)
+    points : ndarray of shape (m, d)
+        Any dimension d >= 1 (planar points, 3-D cloud samples).
     occupied : ndarray of bool, shape (m,)
     min_cell : float
         A box whose longest side is below this stops splitting, pure or not.
@@ -121,8 +123,8 @@ def build_cells(
     """
     pts = np.asarray(points, dtype=float)
     occ = np.asarray(occupied, dtype=bool)
-    if pts.ndim != 2 or pts.shape[1] != 2 or occ.shape != (pts.shape[0],):
-        raise ValueError(f"points must have shape (m, 2) and occupied (m,), got {pts.shape} and {occ.shape}")
+    if pts.ndim != 2 or pts.shape[1] < 1 or occ.shape != (pts.shape[0],):
+        raise ValueError(f"points must have shape (m, d) and occupied (m,), got {pts.shape} and {occ.shape}")
     if pts.shape[0] == 0:
         raise EmptyDataError("no points to build cells from")
     if not (min_cell > 0 and max_cell >= min_cell):
@@ -132,7 +134,7 @@ def build_cells(
 
     lo0 = pts.min(axis=0)
     hi0 = pts.max(axis=0)
-    # A degenerate root (all points on a line) still needs an area to split.
+    # A degenerate root (all points on a line or a plane) still needs an extent to split.
     hi0 = np.maximum(hi0, lo0 + 1e-9)
 
     out_lo: list[NDArray[np.float64]] = []

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import inspect
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -18,14 +18,18 @@ from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
 from gpomap.kernels.point import make_point_kernel
+from gpomap.lattice import extent_bounds
 from gpomap.observations import Observations, observations_from_scans
 
+if TYPE_CHECKING:
+    from gpomap.voxels import VoxelMap
 
-def as_points(points: NDArray[np.float64]) -> NDArray[np.float64]:
-    """`points` as a float ndarray of shape (m, 2), or a ValueError saying what was wrong."""
+
+def as_points(points: NDArray[np.float64], dim: int = 2) -> NDArray[np.float64]:
+    """`points` as a float ndarray of shape (m, dim), or a ValueError saying what was wrong."""
     p = np.asarray(points, dtype=float)
-    if p.ndim != 2 or p.shape[1] != 2:
-        raise ValueError(f"points must have shape (m, 2), got {p.shape}")
+    if p.ndim != 2 or p.shape[1] != dim:
+        raise ValueError(f"points must have shape (m, {dim}) for this {dim}-D map, got {p.shape}")
     return p
 
 
@@ -62,6 +66,12 @@ class GPMapEstimator:
     def n_inputs_(self) -> int:
         """Number of GP inputs (defined by each subclass)."""
         raise NotImplementedError
+
+    @property
+    def dim_(self) -> int:
+        """Dimension of the fitted map: 2 for planar scans, 3 for point clouds."""
+        self._check_fitted()
+        return int(self.extent_points_.shape[1])
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """The constructor arguments, by name."""
@@ -137,7 +147,8 @@ class GPMapEstimator:
 
         Parameters
         ----------
-        points : ndarray of shape (m, 2)
+        points : ndarray of shape (m, d)
+            d the map's dimension (:attr:`dim_`).
         return_var : bool
 
         Returns
@@ -147,7 +158,7 @@ class GPMapEstimator:
         """
         self._check_fitted()
         t = time.perf_counter()
-        mean, var = self.gp_.predict_latent(self._queries(as_points(points)), return_var, self.chunk_size)
+        mean, var = self.gp_.predict_latent(self._queries(as_points(points, self.dim_)), return_var, self.chunk_size)
         self.timings_["prediction"] = time.perf_counter() - t
         if not return_var:
             return mean
@@ -159,7 +170,8 @@ class GPMapEstimator:
 
         Parameters
         ----------
-        points : ndarray of shape (m, 2)
+        points : ndarray of shape (m, d)
+            d the map's dimension (:attr:`dim_`).
         return_var : bool
             Also return the latent variance.
 
@@ -168,7 +180,7 @@ class GPMapEstimator:
         probability : ndarray of shape (m,)
         var : ndarray of shape (m,), only with `return_var`
         """
-        pts = as_points(points)
+        pts = as_points(points, self.dim_)
         p, var = self.predict_proba_gp(pts, return_var=True)
         evidence = getattr(self, "evidence_", None)
         if evidence is not None:
@@ -180,7 +192,7 @@ class GPMapEstimator:
 
         Parameters
         ----------
-        points : ndarray of shape (m, 2)
+        points : ndarray of shape (m, d)
         return_var : bool
 
         Returns
@@ -196,17 +208,15 @@ class GPMapEstimator:
         """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
         return ternary(self.predict_proba(points), self.thresholds)
 
-    def grid(
-        self, resolution: float, extent: tuple[float, float, float, float] | None = None, supersample: int = 1
-    ) -> OccupancyMap:
-        """The map sampled on a regular grid.
+    def grid(self, resolution: float, extent: tuple[float, ...] | None = None, supersample: int = 1) -> Any:
+        """The map sampled on a regular grid: an OccupancyMap in 2-D, a VoxelMap (:meth:`voxels`) in 3-D.
 
         Parameters
         ----------
         resolution : float
             Grid cell side, metres.
         extent : (xmin, xmax, ymin, ymax), optional
-            Defaults to the bounding box of the training inputs.
+            Defaults to the bounding box of the training inputs ((..., zmin, zmax) in 3-D).
         supersample : int
             Samples per cell side. 1 samples each cell's centre. K > 1 samples K x K points
             spread over the cell and keeps the largest probability (a cell is as occupied as its
@@ -215,16 +225,20 @@ class GPMapEstimator:
 
         Returns
         -------
-        OccupancyMap
+        OccupancyMap, or VoxelMap for a 3-D map
         """
         self._check_fitted()
+        if self.dim_ == 3:
+            if supersample != 1:
+                raise ValueError("supersample is for 2-D maps; a voxel map samples each voxel's centre")
+            return self.voxels(resolution, extent)
         if supersample < 1:
             raise ValueError(f"supersample must be a positive integer, got {supersample}")
         if extent is None:
             lo = self.extent_points_.min(axis=0)
             hi = self.extent_points_.max(axis=0)
             extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
-        spec = GridSpec.from_extent(extent, resolution)
+        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution)
         evidence = getattr(self, "evidence_", None)
         if evidence is not None:
             probability, variance = evidence.written_grid(
@@ -251,6 +265,43 @@ class GPMapEstimator:
             path=self.path_,
             info=self.summary(),
         )
+
+    def voxels(self, resolution: float, extent: tuple[float, ...] | None = None) -> VoxelMap:
+        """A 3-D map sampled on a voxel grid.
+
+        Parameters
+        ----------
+        resolution : float
+            Voxel side, metres.
+        extent : (xmin, xmax, ymin, ymax, zmin, zmax), optional
+            Defaults to the bounding box of the training inputs. The voxel faces are put on
+            multiples of `resolution`, where OctoMap puts its own.
+
+        Returns
+        -------
+        VoxelMap
+            Probability and latent variance per voxel, each of shape (nz, ny, nx). With ray
+            evidence, each voxel's own hit and miss counts update the GP's probability there.
+        """
+        from gpomap.voxels import VoxelMap, VoxelSpec
+
+        self._check_fitted()
+        if self.dim_ != 3:
+            raise ValueError(f"voxels() is for 3-D maps; this map is {self.dim_}-D: use grid()")
+        if extent is None:
+            lo, hi = self.extent_points_.min(axis=0), self.extent_points_.max(axis=0)
+        else:
+            lo, hi = extent_bounds(extent)
+        spec = VoxelSpec.from_extent(lo, hi, resolution)
+        evidence = getattr(self, "evidence_", None)
+        if evidence is not None:
+            probability, variance = evidence.written_grid(
+                spec, self.gp_.kernel.base.length_scale, lambda pts: self.predict_proba_gp(pts, return_var=True)
+            )
+        else:
+            p, var = self.predict_proba_gp(spec.centres(), return_var=True)
+            probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)
+        return VoxelMap(spec, probability, variance, thresholds=self.thresholds, info=self.summary())
 
     def summary(self) -> dict[str, Any]:
         """What was fitted: settings, data sizes, hyperparameters and stage timings."""

@@ -7,19 +7,21 @@ ended a beam in each cell (hits) and the scans that crossed it without ending th
 in OctoMap, a scan updates a cell once, and a hit wins over a miss of the same scan. It also keeps
 the robot's own path: space the robot drove through was free when it did.
 :mod:`gpomap.fusion` combines these counts with the GP's probability.
+
+The rays of 3-D point clouds are counted the same way on a voxel lattice
+(:class:`~gpomap.lattice.Lattice`): every array here has the data's own dimension d.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.grid import GridSpec
+from gpomap.lattice import AnyGrid, bounds_extent, extent_bounds, flat_index, grid_size, make_grid
+from gpomap.observations import Rays, ScanData, sensor_positions
 from gpomap.raycast import traverse
-from gpomap.scans import Scan
 
 #: Longest step between consecutive scans' poses taken as the robot driving (metres); longer
 #: steps are jumps in the log (a new session, a relocalisation), not a path. Logs thinned by
@@ -37,15 +39,16 @@ class RayEvidence:
 
     Attributes
     ----------
-    starts, ends : ndarray of shape (b, 2)
+    starts, ends : ndarray of shape (b, d)
         Sensor position and end point of each usable beam (no-return beams end at the cap).
     hit : ndarray of bool, shape (b,)
         Whether the beam returned (its end cell is a hit); False for no-return beams.
     scan : ndarray of int, shape (b,)
         Index of the scan each beam belongs to, non-decreasing.
-    path : ndarray of shape (k, 4)
-        The robot's own path between consecutive scans, as segments (x0, y0, x1, y1); steps
-        longer than :data:`MAX_PATH_STEP` (a jump in the log) are left out.
+    path : ndarray of shape (k, 2 d)
+        The robot's own path between consecutive scans, as segments (x0, y0, x1, y1) (in 3-D
+        (x0, y0, z0, x1, y1, z1)); steps longer than :data:`MAX_PATH_STEP` (a jump in the log)
+        are left out.
     """
 
     starts: NDArray[np.float64]
@@ -55,60 +58,66 @@ class RayEvidence:
     path: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)))
 
     @classmethod
-    def from_scans(cls, scans: Sequence[Scan], no_return_cap: float | None = 10.0) -> RayEvidence:
-        """Collect the usable beams of `scans`.
+    def from_scans(cls, scans: ScanData, no_return_cap: float | None = 10.0) -> RayEvidence:
+        """Collect the usable beams of planar scans or the rays of point clouds.
 
         Parameters
         ----------
-        scans : sequence of Scan
+        scans : sequence of Scan, or sequence of CloudScan
         no_return_cap : float or None
             No-return beams clear free space this far (None: to the recorded range); they never
             give a hit.
         """
         starts, ends, hit, scan = [], [], [], []
         for i, s in enumerate(scans):
-            valid = s.valid()
-            no_ret = s.no_return()
-            length = s.ranges
+            rays = Rays.of(s)
+            length = rays.lengths
             if no_return_cap is not None:
-                length = np.where(no_ret, np.minimum(length, no_return_cap), length)
-            a = s.world_angles()[valid]
-            n = int(valid.sum())
-            starts.append(np.broadcast_to(s.pose[:2], (n, 2)))
-            ends.append(s.pose[:2] + length[valid][:, None] * np.column_stack([np.cos(a), np.sin(a)]))
-            hit.append(~no_ret[valid])
+                length = np.where(rays.hit, length, np.minimum(length, no_return_cap))
+            n = rays.hit.size
+            starts.append(np.broadcast_to(rays.origin, (n, rays.origin.size)))
+            # Uncapped rays keep their recorded endpoints exactly.
+            ends.append(np.where((length == rays.lengths)[:, None], rays.ends, rays.origin + length[:, None] * rays.directions))
+            hit.append(rays.hit)
             scan.append(np.full(n, i, dtype=np.intp))
         if not starts:
             empty = np.zeros((0, 2))
             return cls(empty, empty.copy(), np.zeros(0, bool), np.zeros(0, np.intp))
-        poses = np.array([s.pose[:2] for s in scans], dtype=float)
+        poses = sensor_positions(scans)
+        d = poses.shape[1]
         steps = np.column_stack([poses[:-1], poses[1:]])
-        steps = steps[np.hypot(steps[:, 2] - steps[:, 0], steps[:, 3] - steps[:, 1]) <= MAX_PATH_STEP]
+        steps = steps[np.sqrt(((steps[:, d:] - steps[:, :d]) ** 2).sum(axis=1)) <= MAX_PATH_STEP]
         return cls(np.concatenate(starts), np.concatenate(ends), np.concatenate(hit), np.concatenate(scan), steps)
 
-    def path_passes(self, grid: GridSpec) -> NDArray[np.int32]:
+    @property
+    def dim(self) -> int:
+        """Number of spatial dimensions of the rays."""
+        return int(self.starts.shape[1])
+
+    def path_passes(self, grid: AnyGrid) -> NDArray[np.int32]:
         """How many steps of the robot's path crossed each cell of `grid`, shape grid.shape."""
-        ny, nx = grid.shape
-        _, rows, cols = traverse(grid, self.path[:, :2], self.path[:, 2:])
-        return np.bincount(rows * nx + cols, minlength=ny * nx).astype(np.int32).reshape(ny, nx)
+        d = self.dim
+        _, *idx = traverse(grid, self.path[:, :d].reshape(-1, d), self.path[:, d:].reshape(-1, d))
+        flat = np.ravel_multi_index(tuple(idx), grid.shape)
+        return np.bincount(flat, minlength=grid_size(grid)).astype(np.int32).reshape(grid.shape)
 
     @property
     def n_scans(self) -> int:
         """Number of scans the beams came from."""
         return int(self.scan[-1]) + 1 if self.scan.size else 0
 
-    def extent(self) -> tuple[float, float, float, float]:
-        """(xmin, xmax, ymin, ymax) of every beam's start and end."""
+    def extent(self) -> tuple[float, ...]:
+        """(xmin, xmax, ymin, ymax) of every beam's start and end ((..., zmin, zmax) in 3-D)."""
         pts = np.concatenate([self.starts, self.ends])
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+        return bounds_extent(pts.min(axis=0), pts.max(axis=0))
 
-    def counts(self, grid: GridSpec, scans: NDArray[np.intp] | None = None) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    def counts(self, grid: AnyGrid, scans: NDArray[np.intp] | None = None) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
         """Hits and misses per cell of `grid`, one update per cell per scan, a hit winning.
 
         Parameters
         ----------
-        grid : GridSpec
+        grid : GridSpec or Lattice
+            Of the rays' dimension.
         scans : ndarray of int, optional
             Count only these scans (default: all).
 
@@ -116,13 +125,12 @@ class RayEvidence:
         -------
         hits, misses : ndarray of int32, shape grid.shape
         """
-        ny, nx = grid.shape
-        hits = np.zeros(ny * nx, dtype=np.int32)
-        misses = np.zeros(ny * nx, dtype=np.int32)
+        hits = np.zeros(grid_size(grid), dtype=np.int32)
+        misses = np.zeros(grid_size(grid), dtype=np.int32)
         select = np.ones(self.scan.size, bool) if scans is None else np.isin(self.scan, scans)
         idx = np.flatnonzero(select)
         if idx.size == 0:
-            return hits.reshape(ny, nx), misses.reshape(ny, nx)
+            return hits.reshape(grid.shape), misses.reshape(grid.shape)
         # Batches of whole scans whose traversals stay under the entry budget.
         cells_per_beam = (
             np.abs(np.floor(self.ends[idx] / grid.resolution) - np.floor(self.starts[idx] / grid.resolution)).sum(axis=1) + 2
@@ -139,17 +147,16 @@ class RayEvidence:
                 hi = boundary if boundary > lo else int(np.searchsorted(scan_of, scan_of[lo], side="right"))
             self._accumulate(grid, idx[lo:hi], hits, misses)
             lo = hi
-        return hits.reshape(ny, nx), misses.reshape(ny, nx)
+        return hits.reshape(grid.shape), misses.reshape(grid.shape)
 
-    def _accumulate(self, grid: GridSpec, beams: NDArray[np.intp], hits: NDArray[np.int32], misses: NDArray[np.int32]) -> None:
-        ny, nx = grid.shape
-        ncell = ny * nx
-        b, rows, cols = traverse(grid, self.starts[beams], self.ends[beams])
+    def _accumulate(self, grid: AnyGrid, beams: NDArray[np.intp], hits: NDArray[np.int32], misses: NDArray[np.int32]) -> None:
+        ncell = grid_size(grid)
+        b, *idx = traverse(grid, self.starts[beams], self.ends[beams])
         scan = self.scan[beams]
-        crossed = _unique(scan[b].astype(np.int64) * ncell + rows * nx + cols)
-        er, ec, inside = grid.index_of(self.ends[beams])
+        crossed = _unique(scan[b].astype(np.int64) * ncell + np.ravel_multi_index(tuple(idx), grid.shape))
+        end_cell, inside = flat_index(grid, self.ends[beams])
         ended = inside & self.hit[beams]
-        hit_keys = _unique(scan[ended].astype(np.int64) * ncell + er[ended] * nx + ec[ended])
+        hit_keys = _unique(scan[ended].astype(np.int64) * ncell + end_cell[ended])
         # A scan that ended a beam in a cell counts a hit there, not also a miss.
         miss_keys = crossed[~np.isin(crossed, hit_keys, assume_unique=True)]
         hits += np.bincount(hit_keys % ncell, minlength=ncell).astype(np.int32)
@@ -165,15 +172,14 @@ def _unique(keys: NDArray[np.int64]) -> NDArray[np.int64]:
     return s[np.concatenate([[True], s[1:] != s[:-1]])]
 
 
-def lattice_grid(extent: tuple[float, float, float, float], resolution: float, margin: float = 0.0) -> GridSpec:
+def lattice_grid(extent: tuple[float, ...], resolution: float, margin: float = 0.0) -> AnyGrid:
     """The grid of cells ``[k r, (k + 1) r)`` covering `extent` (plus `margin`), r = `resolution`.
 
     Cells on this lattice are the same whatever the extent, so counts taken on grids of two
-    extents agree cell by cell.
+    extents agree cell by cell. A 4-value extent (xmin, xmax, ymin, ymax) gives a
+    :class:`~gpomap.grid.GridSpec`, a 6-value one a 3-D :class:`~gpomap.lattice.Lattice`.
     """
-    xmin, xmax, ymin, ymax = extent
-    x0 = np.floor((xmin - margin) / resolution) * resolution
-    y0 = np.floor((ymin - margin) / resolution) * resolution
-    nx = int(np.floor((xmax + margin - x0) / resolution)) + 1
-    ny = int(np.floor((ymax + margin - y0) / resolution)) + 1
-    return GridSpec((float(x0), float(y0)), resolution, (ny, nx))
+    lo, hi = extent_bounds(extent)
+    origin = np.floor((lo - margin) / resolution) * resolution
+    counts = np.floor((hi + margin - origin) / resolution).astype(int) + 1
+    return make_grid(origin, resolution, counts)

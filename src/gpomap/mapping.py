@@ -13,7 +13,7 @@ calibrated. Afterwards the map can be asked anywhere: ``predict_proba(points)``,
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -26,8 +26,7 @@ from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
-from gpomap.observations import Observations
-from gpomap.scans import Scan
+from gpomap.observations import Observations, ScanData, data_dim, sensor_positions
 from gpomap.supports import Supports
 
 
@@ -112,6 +111,9 @@ class AreaGPOM(GPMapEstimator):
     evidence_resolution : float
         Side of the fine cells of exact-point predictions, metres (a written grid counts on its
         own cells).
+    evidence_resolution_3d : float
+        The same for 3-D maps (voxels). 0.1 m, OctoMap's resolution on the la3dm scans: a 3-D
+        lidar's rays are sparse, and at 5 cm few voxels would be crossed by more than one scan.
     calibration_scans : int
         Scans held out in turn to fit the evidence calibration.
     """
@@ -147,6 +149,7 @@ class AreaGPOM(GPMapEstimator):
         ray_evidence: bool = True,
         evidence_resolution: float = 0.05,
         calibration_scans: int = 25,
+        evidence_resolution_3d: float = 0.1,
     ) -> None:
         self.kernel = kernel
         self.area = area
@@ -177,6 +180,7 @@ class AreaGPOM(GPMapEstimator):
         self.ray_evidence = ray_evidence
         self.evidence_resolution = evidence_resolution
         self.calibration_scans = calibration_scans
+        self.evidence_resolution_3d = evidence_resolution_3d
 
     def __repr__(self) -> str:
         name = type(self).__name__
@@ -197,12 +201,14 @@ class AreaGPOM(GPMapEstimator):
         return AreaKernel(base, self.area_method, self.normalisation, self.quadrature_order)
 
     # ----------------------------------------------------------------- fitting
-    def fit(self, data: Sequence[Scan] | Observations) -> AreaGPOM:
-        """Build the map from scans (or from labelled points).
+    def fit(self, data: ScanData | Observations) -> AreaGPOM:
+        """Build the map from planar scans (a 2-D map), point clouds (a 3-D map) or labelled points.
 
         Parameters
         ----------
-        data : sequence of Scan, or Observations
+        data : sequence of Scan, sequence of CloudScan, or Observations
+            The map's dimension is the data's: :class:`~gpomap.clouds.CloudScan` rays give
+            3-D observations, cells over 3-D boxes and a voxel map from :meth:`grid`.
 
         Returns
         -------
@@ -223,10 +229,7 @@ class AreaGPOM(GPMapEstimator):
         self.gp_: SupportGP = gp
         self.timings_: dict[str, float] = timings
         self.extent_points_ = obs.points
-        if not isinstance(data, Observations):
-            self.path_ = np.array([s.pose[:2] for s in data])
-        else:
-            self.path_ = None
+        self.path_ = None if isinstance(data, Observations) else sensor_positions(data)
         t = time.perf_counter()
         self.evidence_ = self.make_evidence(data, self.predict_proba_gp)
         timings["evidence"] = time.perf_counter() - t
@@ -237,12 +240,13 @@ class AreaGPOM(GPMapEstimator):
         return build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
 
     def make_evidence(
-        self, data: Sequence[Scan] | Observations, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]
+        self, data: ScanData | Observations, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]
     ) -> EvidenceLayer | None:
         """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off)."""
         if not self.ray_evidence or isinstance(data, Observations):
             return None
-        return EvidenceLayer(data, self.evidence_resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed)
+        resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
+        return EvidenceLayer(data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed)
 
     @property
     def n_inputs_(self) -> int:

@@ -3,6 +3,10 @@
 A beam that returned says two things: the space between the sensor and the end point is free,
 and something is at the end point. A no-return beam (range at or beyond the sensor's maximum)
 says only the first, and only up to where we trust it (`no_return_cap`).
+
+The same holds for the rays of a 3-D point cloud (:class:`~gpomap.clouds.CloudScan`): one ray
+from the sensor origin to each endpoint, a hit or a no-return ray. Planar scans and clouds go
+through one sampler (:func:`ray_free_points`), in their own dimension.
 """
 
 from __future__ import annotations
@@ -14,8 +18,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
 from gpomap.scans import Scan
+
+#: What the map is made from: planar scans (2-D) or point clouds (3-D).
+ScanData = Sequence[Scan] | Sequence[CloudScan]
 
 
 @dataclass(frozen=True)
@@ -24,14 +32,15 @@ class Observations:
 
     Attributes
     ----------
-    points : ndarray of shape (n, 2)
-        Map-frame positions.
+    points : ndarray of shape (n, d)
+        Map-frame positions (d = 2 for planar scans, 3 for point clouds).
     occupied : ndarray of bool, shape (n,)
         True for hits, False for free samples.
     scan_index : ndarray of int, shape (n,)
         Which scan (position in the input sequence) each point came from.
     n_invalid : int
-        Readings dropped as NaN, inf or non-positive.
+        Readings dropped as NaN, inf or non-positive (rays with a non-finite endpoint, or one
+        at the sensor origin, for clouds).
     n_no_return : int
         Valid readings at or beyond max range (free space only, never a hit).
     n_cleared : int
@@ -44,6 +53,11 @@ class Observations:
     n_invalid: int = 0
     n_no_return: int = 0
     n_cleared: int = 0
+
+    @property
+    def dim(self) -> int:
+        """Number of spatial dimensions of the points."""
+        return int(self.points.shape[1])
 
     @property
     def n_free(self) -> int:
@@ -67,7 +81,7 @@ def beam_free_points(
     lengths: NDArray[np.float64],
     step: float,
 ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-    """Points every `step` along beams, from `step` out to at most `lengths`.
+    """Points every `step` along planar beams, from `step` out to at most `lengths`.
 
     Parameters
     ----------
@@ -86,6 +100,35 @@ def beam_free_points(
     beam : ndarray of int, shape (m,)
         Index of the beam each point lies on.
     """
+    a = np.asarray(angles, dtype=float)
+    return ray_free_points(origins, np.column_stack([np.cos(a), np.sin(a)]), lengths, step)
+
+
+def ray_free_points(
+    origins: NDArray[np.float64],
+    directions: NDArray[np.float64],
+    lengths: NDArray[np.float64],
+    step: float,
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Points every `step` along rays in any dimension, from `step` out to at most `lengths`.
+
+    Parameters
+    ----------
+    origins : ndarray of shape (b, d)
+        Ray start points.
+    directions : ndarray of shape (b, d)
+        Unit direction of each ray.
+    lengths : ndarray of shape (b,)
+        How far along each ray free points may go (inclusive).
+    step : float
+        Spacing of the samples along a ray.
+
+    Returns
+    -------
+    points : ndarray of shape (m, d)
+    ray : ndarray of int, shape (m,)
+        Index of the ray each point lies on.
+    """
     if not step > 0:
         raise ValueError(f"free-point step must be positive, got {step}")
     lengths = np.maximum(np.asarray(lengths, dtype=float), 0.0)
@@ -93,15 +136,14 @@ def beam_free_points(
     # sample that lands exactly on the limit despite rounding.
     counts = np.floor(lengths / step + 1e-9).astype(np.intp)
     total = int(counts.sum())
-    beam = np.repeat(np.arange(lengths.size, dtype=np.intp), counts)
-    # Position of each sample within its beam: 1, 2, ..., count.
+    ray = np.repeat(np.arange(lengths.size, dtype=np.intp), counts)
+    # Position of each sample within its ray: 1, 2, ..., count.
     starts = np.cumsum(counts) - counts
     k = np.arange(total, dtype=np.intp) - np.repeat(starts, counts) + 1
     dist = k * step
-    a = np.asarray(angles, dtype=float)[beam]
-    o = np.asarray(origins, dtype=float)[beam]
-    pts = o + dist[:, None] * np.column_stack([np.cos(a), np.sin(a)])
-    return pts, beam
+    u = np.asarray(directions, dtype=float)[ray]
+    o = np.asarray(origins, dtype=float)[ray]
+    return o + dist[:, None] * u, ray
 
 
 def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], clearance: float) -> NDArray[np.bool_]:
@@ -114,7 +156,8 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
 
     Parameters
     ----------
-    points : ndarray of shape (n, 2)
+    points : ndarray of shape (n, d)
+        Any dimension (planar points, or 3-D cloud samples).
     occupied : ndarray of bool, shape (n,)
     clearance : float
         Metres; 0 marks nothing.
@@ -128,18 +171,77 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     return out
 
 
+@dataclass(frozen=True)
+class Rays:
+    """The usable rays of one scan, in its own dimension, ready to be sampled.
+
+    Attributes
+    ----------
+    origin : ndarray of shape (d,)
+        Sensor position.
+    directions : ndarray of shape (b, d)
+        Unit direction of each valid ray.
+    lengths : ndarray of shape (b,)
+        Distance to each ray's endpoint (a no-return ray's recorded range).
+    ends : ndarray of shape (b, d)
+        Each ray's endpoint.
+    hit : ndarray of bool, shape (b,)
+        True where the ray ended on a surface, False for a no-return ray.
+    no_return_limit : float
+        Farthest a no-return ray is trusted by default (the planar scan's max range; infinite
+        for a cloud, whose no-return endpoints the reader placed at the sensor's range).
+    n_invalid : int
+        Readings that gave no ray.
+    """
+
+    origin: NDArray[np.float64]
+    directions: NDArray[np.float64]
+    lengths: NDArray[np.float64]
+    ends: NDArray[np.float64]
+    hit: NDArray[np.bool_]
+    no_return_limit: float
+    n_invalid: int
+
+    @classmethod
+    def of(cls, scan: Scan | CloudScan) -> Rays:
+        """The rays of a planar scan or of a point cloud."""
+        if isinstance(scan, CloudScan):
+            valid = scan.valid()
+            vec = scan.points[valid] - scan.origin
+            length = np.sqrt((vec * vec).sum(axis=1))
+            return cls(scan.origin, vec / length[:, None], length, scan.points[valid], scan.hit[valid], np.inf, int((~valid).sum()))
+        valid = scan.valid()
+        a = scan.world_angles()[valid]
+        # Directions from the angles (not from the endpoints) keep the planar samples exact.
+        return cls(
+            scan.pose[:2],
+            np.column_stack([np.cos(a), np.sin(a)]),
+            scan.ranges[valid],
+            scan.endpoints()[valid],
+            ~scan.no_return()[valid],
+            scan.max_range,
+            int((~valid).sum()),
+        )
+
+    def free_lengths(self, hit_margin: float, no_return_cap: float | None) -> NDArray[np.float64]:
+        """How far along each ray free space is taken: `hit_margin` short of a hit; a no-return
+        ray to `no_return_cap` (None: to its default limit), never beyond its recorded range."""
+        cap = self.no_return_limit if no_return_cap is None else float(no_return_cap)
+        return np.where(self.hit, self.lengths - hit_margin, np.minimum(np.minimum(cap, self.no_return_limit), self.lengths))
+
+
 def observations_from_scans(
-    scans: Sequence[Scan],
+    scans: ScanData,
     free_step: float = 0.2,
     hit_margin: float | None = None,
     no_return_cap: float | None = None,
     free_clearance: float = 0.0,
 ) -> Observations:
-    """Free and occupied points from scans.
+    """Free and occupied points from planar scans (2-D points) or point clouds (3-D points).
 
     Parameters
     ----------
-    scans : sequence of Scan
+    scans : sequence of Scan, or sequence of CloudScan
     free_step : float
         Spacing of free samples along each beam, metres.
     hit_margin : float, optional
@@ -147,7 +249,7 @@ def observations_from_scans(
         that stopped the beam. Defaults to half of `free_step`.
     no_return_cap : float, optional
         A no-return beam gives free points out to this distance (and no hit). Defaults to the
-        scan's max range; 0 ignores no-return beams.
+        scan's max range (a cloud's no-return rays: to their endpoints); 0 ignores no-return beams.
     free_clearance : float
         Free samples closer than this to any hit of these scans are dropped (see
         :func:`free_near_hits`); 0 keeps them all.
@@ -164,18 +266,14 @@ def observations_from_scans(
     n_invalid = 0
     n_no_return = 0
     for i, scan in enumerate(scans):
-        valid = scan.valid()
-        no_ret = scan.no_return()
-        hit = valid & ~no_ret
-        n_invalid += int((~valid).sum())
-        n_no_return += int(no_ret.sum())
-        a = scan.world_angles()
-        cap = scan.max_range if no_return_cap is None else float(no_return_cap)
-        free_len = np.where(hit, scan.ranges - hit_margin, np.minimum(cap, scan.max_range))
-        use = valid & (free_len > 0)
-        origins = np.broadcast_to(scan.pose[:2], (int(use.sum()), 2))
-        fp, _ = beam_free_points(origins, a[use], free_len[use], free_step)
-        hp = scan.endpoints()[hit]
+        rays = Rays.of(scan)
+        n_invalid += rays.n_invalid
+        n_no_return += int((~rays.hit).sum())
+        free_len = rays.free_lengths(hit_margin, no_return_cap)
+        use = free_len > 0
+        origins = np.broadcast_to(rays.origin, (int(use.sum()), rays.origin.size))
+        fp, _ = ray_free_points(origins, rays.directions[use], free_len[use], free_step)
+        hp = rays.ends[rays.hit]
         pts_all += [fp, hp]
         occ_all += [np.zeros(len(fp), bool), np.ones(len(hp), bool)]
         idx_all.append(np.full(len(fp) + len(hp), i, dtype=np.intp))
@@ -191,3 +289,13 @@ def observations_from_scans(
         n_no_return=n_no_return,
         n_cleared=int(keep.size - keep.sum()),
     )
+
+
+def sensor_positions(scans: ScanData) -> NDArray[np.float64]:
+    """Where the sensor was for each scan, ndarray of shape (k, d): a planar pose's (x, y), a cloud's origin."""
+    return np.array([s.origin if isinstance(s, CloudScan) else s.pose[:2] for s in scans], dtype=float)
+
+
+def data_dim(scans: ScanData) -> int:
+    """Dimension of the map `scans` make: 3 for point clouds, 2 for planar scans."""
+    return 3 if any(isinstance(s, CloudScan) for s in scans[:1]) else 2

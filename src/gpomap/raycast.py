@@ -1,7 +1,7 @@
-"""Exact ray traversal of grid cells (Amanatides & Woo), for every beam at once.
+"""Exact ray traversal of grid cells (Amanatides & Woo), for every beam at once, in any dimension.
 
 Shared by the occupancy grids (:mod:`gpomap.baselines.ogm`) and the ray evidence of the GP map
-(:mod:`gpomap.evidence`).
+(:mod:`gpomap.evidence`), on 2-D grids and 3-D voxel lattices alike.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from gpomap.grid import GridSpec
+from gpomap.lattice import AnyGrid, grid_dim
 
 __all__ = ["ENTRIES_PER_CHUNK", "traverse"]
 
@@ -40,86 +40,95 @@ def _line_crossings(u0: NDArray[np.float64], u1: NDArray[np.float64]) -> tuple[N
     return seg, t
 
 
-def traverse(grid: GridSpec, starts: ArrayLike, ends: ArrayLike) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+def traverse(grid: AnyGrid, starts: ArrayLike, ends: ArrayLike) -> tuple[NDArray[np.intp], ...]:
     """Every grid cell each segment passes through, in order from start to end.
 
     This is the Amanatides & Woo traversal done for all segments at once. Their algorithm steps
-    to whichever grid line, x or y, comes next along the ray; the cells it visits are the
-    intervals between the segment's grid-line crossings taken in increasing order. We list each
-    segment's x and y crossings (each already in travel order), merge the two lists exactly
-    (no sort: a merge position is an index plus a count from ``searchsorted``), and take the
-    cell holding the midpoint of each interval. Where a segment passes exactly through a grid
-    corner the interval between the two crossings has zero length and is dropped, so the
-    diagonal neighbour is visited and the side neighbours are not.
+    to whichever grid line (plane in 3-D), x, y or z, comes next along the ray; the cells it
+    visits are the intervals between the segment's grid-line crossings taken in increasing order.
+    We list each segment's crossings per axis (each already in travel order), merge the lists
+    exactly, one axis after another (no sort: a merge position is an index plus a count from
+    ``searchsorted``), and take the cell holding the midpoint of each interval. Where a segment
+    passes exactly through a grid corner (or edge) the interval between the crossings has zero
+    length and is dropped, so the diagonal neighbour is visited and the side neighbours are not.
 
     Parameters
     ----------
-    grid : GridSpec
-    starts, ends : array_like of shape (b, 2)
-        Segment end points in the map frame.
+    grid : GridSpec or Lattice
+    starts, ends : array_like of shape (b, d)
+        Segment end points in the map frame, d the grid's dimension.
 
     Returns
     -------
     beam : ndarray of int, shape (m,)
         Segment index of each visited cell (non-decreasing).
-    rows, cols : ndarray of int, shape (m,)
-        The visited cells, in order along each segment. Cells outside the grid are left out;
-        the cells of one segment are distinct.
+    index : d ndarrays of int, shape (m,)
+        The visited cells' array indices, x last (rows, cols in 2-D; iz, iy, ix in 3-D), in
+        order along each segment. Cells outside the grid are left out; the cells of one segment
+        are distinct.
     """
-    p0 = (np.asarray(starts, dtype=float).reshape(-1, 2) - grid.origin) / grid.resolution
-    p1 = (np.asarray(ends, dtype=float).reshape(-1, 2) - grid.origin) / grid.resolution
+    d = grid_dim(grid)
+    origin = np.asarray(grid.origin, dtype=float)
+    p0 = (np.asarray(starts, dtype=float).reshape(-1, d) - origin) / grid.resolution
+    p1 = (np.asarray(ends, dtype=float).reshape(-1, d) - origin) / grid.resolution
     b = len(p0)
     # Crossings per segment (an upper bound), to cut the work into chunks of bounded memory.
     cost = np.cumsum(np.abs(np.floor(p1) - np.floor(p0)).sum(axis=1) + 2)
-    out_b, out_r, out_c = [], [], []
+    out: list[tuple[NDArray[np.intp], ...]] = []
     lo = 0
     while lo < b:
         base = cost[lo - 1] if lo > 0 else 0.0
         hi = max(lo + 1, int(np.searchsorted(cost, base + ENTRIES_PER_CHUNK, side="right")))
-        bb, rr, cc = _traverse_chunk(p0[lo:hi], p1[lo:hi], grid.shape)
-        out_b.append(bb + lo)
-        out_r.append(rr)
-        out_c.append(cc)
+        seg, *idx = _traverse_chunk(p0[lo:hi], p1[lo:hi], grid.shape)
+        out.append((seg + lo, *idx))
         lo = hi
-    if not out_b:
-        empty = np.zeros(0, dtype=np.intp)
-        return empty, empty.copy(), empty.copy()
-    return np.concatenate(out_b), np.concatenate(out_r), np.concatenate(out_c)
+    if not out:
+        return tuple(np.zeros(0, dtype=np.intp) for _ in range(d + 1))
+    return tuple(np.concatenate([part[j] for part in out]) for j in range(d + 1))
 
 
-def _traverse_chunk(
-    p0: NDArray[np.float64], p1: NDArray[np.float64], shape: tuple[int, int]
-) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
-    b = len(p0)
-    sx, tx = _line_crossings(p0[:, 0], p1[:, 0])
-    sy, ty = _line_crossings(p0[:, 1], p1[:, 1])
-    # Merge the x and y crossings by (segment, t). Keys 4 seg + 2 t stay inside a segment's own
-    # range [4 seg, 4 seg + 2] whatever the rounding, and both key arrays are sorted, so the
-    # positions below are an exact merge (ties: x first).
-    kx, ky = 4.0 * sx + 2.0 * tx, 4.0 * sy + 2.0 * ty
-    nx_, ny_ = kx.size, ky.size
-    pos_x = np.arange(nx_) + np.searchsorted(ky, kx, side="left")
-    pos_y = np.arange(ny_) + np.searchsorted(kx, ky, side="right")
-    n_cross = np.bincount(sx, minlength=b) + np.bincount(sy, minlength=b)
+def _merge(
+    seg_a: NDArray[np.intp], t_a: NDArray[np.float64], seg_b: NDArray[np.intp], t_b: NDArray[np.float64]
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Two crossing lists, each sorted by (segment, t), merged into one (ties: `a` first)."""
+    # Keys 4 seg + 2 t stay inside a segment's own range [4 seg, 4 seg + 2] whatever the
+    # rounding, and both key arrays are sorted, so the positions below are an exact merge.
+    ka, kb = 4.0 * seg_a + 2.0 * t_a, 4.0 * seg_b + 2.0 * t_b
+    pos_a = np.arange(ka.size) + np.searchsorted(kb, ka, side="left")
+    pos_b = np.arange(kb.size) + np.searchsorted(ka, kb, side="right")
+    seg = np.empty(ka.size + kb.size, dtype=np.intp)
+    t = np.empty(ka.size + kb.size)
+    seg[pos_a], seg[pos_b] = seg_a, seg_b
+    t[pos_a], t[pos_b] = t_a, t_b
+    return seg, t
+
+
+def _traverse_chunk(p0: NDArray[np.float64], p1: NDArray[np.float64], shape: tuple[int, ...]) -> tuple[NDArray[np.intp], ...]:
+    b, d = p0.shape
+    seg_c, t_c = _line_crossings(p0[:, 0], p1[:, 0])
+    for k in range(1, d):
+        seg_c, t_c = _merge(seg_c, t_c, *_line_crossings(p0[:, k], p1[:, k]))
+    n_cross = np.bincount(seg_c, minlength=b)
     # Full per-segment sequences [0, crossings..., 1]: each segment gains two entries.
     first = np.cumsum(n_cross + 2) - (n_cross + 2)
-    t = np.empty(nx_ + ny_ + 2 * b)
+    t = np.empty(seg_c.size + 2 * b)
     t[first] = 0.0
     t[first + n_cross + 1] = 1.0
-    t[pos_x + 2 * sx + 1] = tx
-    t[pos_y + 2 * sy + 1] = ty
+    t[np.arange(seg_c.size) + 2 * seg_c + 1] = t_c
     seg = np.repeat(np.arange(b, dtype=np.intp), n_cross + 2)
     # Intervals between consecutive entries of the same segment.
     same = seg[1:] == seg[:-1]
     dt = t[1:] - t[:-1]
-    length = np.hypot(*(p1 - p0).T)[seg[:-1]]
-    # Drop zero-length intervals (x and y lines crossed at once, at a grid corner), but keep the
+    length = np.sqrt(((p1 - p0) ** 2).sum(axis=1))[seg[:-1]]
+    # Drop zero-length intervals (two lines crossed at once, at a grid corner), but keep the
     # single [0, 1] interval of a zero-length segment so it still visits its own cell.
     keep = same & ((dt * length > 1e-9) | (length == 0))
     s = seg[:-1][keep]
     tm = 0.5 * (t[:-1][keep] + t[1:][keep])
     mid = p0[s] + tm[:, None] * (p1[s] - p0[s])
-    cols = np.floor(mid[:, 0]).astype(np.intp)
-    rows = np.floor(mid[:, 1]).astype(np.intp)
-    inside = (rows >= 0) & (rows < shape[0]) & (cols >= 0) & (cols < shape[1])
-    return s[inside], rows[inside], cols[inside]
+    # Array order is coordinate order reversed (x last).
+    idx = [np.floor(mid[:, k]).astype(np.intp) for k in reversed(range(d))]
+    inside = np.ones(s.size, dtype=bool)
+    for i, n in zip(idx, shape, strict=True):
+        inside &= (i >= 0) & (i < n)
+    return (s[inside], *(i[inside] for i in idx))

@@ -15,7 +15,8 @@
   (``update="scan"``, with hits winning as above) is available too.
 
 Both: the cells a beam crosses are the exact set its segment passes through (Amanatides & Woo
-1987); the cell holding a returned beam's end point gets the hit and every other cell it crosses a
+1987, in 2-D grids and 3-D voxel lattices alike: fitted on point clouds the grid is the 3-D grid
+baseline, an OctoMap at its finest level without the tree); the cell holding a returned beam's end point gets the hit and every other cell it crosses a
 miss; a no-return beam only gives misses, up to ``max_range_free`` (10 m, as the GP methods'
 no-return cap) and never a hit. Cells never observed have probability exactly 0.5. Everything is
 vectorised over beams; the only Python loop is over scans, for the clamped log-odds sum (clamping
@@ -25,7 +26,7 @@ makes it order-dependent).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -33,8 +34,9 @@ from numpy.typing import ArrayLike, NDArray
 from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.evidence import RayEvidence
 from gpomap.grid import GridSpec, OccupancyMap
+from gpomap.lattice import AnyGrid, Lattice, bounds_extent, flat_index, grid_from_extent, grid_size
+from gpomap.observations import ScanData, sensor_positions
 from gpomap.raycast import ENTRIES_PER_CHUNK, traverse
-from gpomap.scans import Scan
 
 
 def _logit(p: float) -> float:
@@ -55,9 +57,10 @@ class OccupancyGridMapper:
     resolution : float
         Cell side, metres.
     extent : (xmin, xmax, ymin, ymax) or GridSpec, optional
-        The grid to map on. Default: the box round the sensor positions and beam end points
-        (no-return beams capped as below) plus a margin of three cells, with the origin snapped
-        to a multiple of `resolution`.
+        The grid to map on ((xmin, xmax, ymin, ymax, zmin, zmax) or a 3-D lattice for point
+        clouds). Default: the box round the sensor positions and beam end points (no-return
+        beams capped as below) plus a margin of three cells, with the origin snapped to a
+        multiple of `resolution`.
     sensor_model : {"logodds", "counting"}
         See the module docstring.
     l_occ, l_free : float
@@ -74,22 +77,22 @@ class OccupancyGridMapper:
 
     Attributes
     ----------
-    grid_ : GridSpec
-    log_odds_ : ndarray of shape (ny, nx)
+    grid_ : GridSpec, or a 3-D lattice (voxels) for point clouds
+    log_odds_ : ndarray of shape grid_.shape, (ny, nx) or (nz, ny, nx)
         "logodds": accumulated, clamped log-odds; "counting": the log-odds of the counting
         probability. 0 where never observed.
-    observed_ : ndarray of int, shape (ny, nx)
+    observed_ : ndarray of int, shape grid_.shape
         Number of updates (hits + misses) each cell received; 0 = never observed.
-    hits_, misses_ : ndarray of int, shape (ny, nx)
+    hits_, misses_ : ndarray of int, shape grid_.shape
         Number of hit and miss updates each cell received.
-    path_ : ndarray of shape (k, 2)
+    path_ : ndarray of shape (k, d)
         Sensor positions of the fitted scans.
     """
 
     def __init__(
         self,
         resolution: float = 0.1,
-        extent: tuple[float, float, float, float] | GridSpec | None = None,
+        extent: tuple[float, ...] | AnyGrid | None = None,
         sensor_model: str = "logodds",
         l_occ: float = L_HIT,
         l_free: float = L_MISS,
@@ -118,20 +121,20 @@ class OccupancyGridMapper:
 
     # -- fitting ---------------------------------------------------------------------------
 
-    def _default_grid(self, starts: NDArray[np.float64], ends: NDArray[np.float64]) -> GridSpec:
+    def _default_grid(self, starts: NDArray[np.float64], ends: NDArray[np.float64]) -> AnyGrid:
         pts = np.concatenate([starts, ends])
         res = float(self.resolution)
         margin = 3 * res
         lo = np.floor((pts.min(axis=0) - margin) / res) * res
         hi = pts.max(axis=0) + margin
-        return GridSpec.from_extent((lo[0], hi[0], lo[1], hi[1]), res)
+        return grid_from_extent(bounds_extent(lo, hi), res)
 
-    def fit(self, scans: Sequence[Scan]) -> OccupancyGridMapper:
-        """Build the grid from scans, in the order given.
+    def fit(self, scans: ScanData) -> OccupancyGridMapper:
+        """Build the grid from planar scans (a 2-D grid) or point clouds (a 3-D grid), in the order given.
 
         Parameters
         ----------
-        scans : sequence of Scan
+        scans : sequence of Scan, or sequence of CloudScan
 
         Returns
         -------
@@ -149,14 +152,13 @@ class OccupancyGridMapper:
         starts, ends, hit, scan_of = beams.starts, beams.ends, beams.hit, beams.scan
         if len(starts) == 0:
             raise EmptyDataError(f"no usable readings in {len(scans)} scan(s): nothing to map")
-        if isinstance(self.extent, GridSpec):
-            grid = self.extent
-        elif self.extent is not None:
-            grid = GridSpec.from_extent(self.extent, self.resolution)
-        else:
+        if self.extent is None:
             grid = self._default_grid(starts, ends)
-        ny, nx = grid.shape
-        ncell = ny * nx
+        elif isinstance(self.extent, GridSpec | Lattice) or hasattr(self.extent, "index_of"):
+            grid = self.extent  # a grid given as it is (a GridSpec, a Lattice or a VoxelSpec)
+        else:
+            grid = grid_from_extent(tuple(self.extent), self.resolution)
+        ncell = grid_size(grid)
 
         log_odds = np.zeros(ncell)
         hits = np.zeros(ncell, dtype=np.int64)
@@ -178,17 +180,17 @@ class OccupancyGridMapper:
             lo = hi
         if self.sensor_model == "counting":
             log_odds = np.log((hits + 1.0) / (misses + 1.0))  # logit of (h + 1) / (h + m + 2)
-        self.hits_ = hits.reshape(ny, nx)
-        self.misses_ = misses.reshape(ny, nx)
+        self.hits_ = hits.reshape(grid.shape)
+        self.misses_ = misses.reshape(grid.shape)
         self.observed_ = self.hits_ + self.misses_
         self.grid_ = grid
-        self.log_odds_ = log_odds.reshape(ny, nx)
-        self.path_ = np.array([s.pose[:2] for s in scans])
+        self.log_odds_ = log_odds.reshape(grid.shape)
+        self.path_ = sensor_positions(scans)
         return self
 
     def _apply(
         self,
-        grid: GridSpec,
+        grid: AnyGrid,
         starts: NDArray[np.float64],
         ends: NDArray[np.float64],
         hit: NDArray[np.bool_],
@@ -198,14 +200,13 @@ class OccupancyGridMapper:
         misses: NDArray[np.int64],
     ) -> None:
         """Apply the beams of a batch of whole scans to the flat grid arrays, in place."""
-        nx = grid.shape[1]
         ncell = hits.size
-        beam, rows, cols = traverse(grid, starts, ends)
-        flat = rows * nx + cols
+        beam, *idx = traverse(grid, starts, ends)
+        flat = np.ravel_multi_index(tuple(idx), grid.shape)
         # The hit cell is the one holding the end point (as GridSpec.index_of, so a query at a
         # hit lands on the cell it marked); every other cell the beam crosses is a miss.
-        hr, hc, hin = grid.index_of(ends)
-        hit_cell = np.where(hit & hin, hr * nx + hc, -1)
+        end_cell, hin = flat_index(grid, ends)
+        hit_cell = np.where(hit & hin, end_cell, -1)
         is_miss = flat != hit_cell[beam]
         miss_cell, miss_scan = flat[is_miss], scan_of[beam[is_miss]]
         hit_beam = np.flatnonzero(hit_cell >= 0)
@@ -274,7 +275,8 @@ class OccupancyGridMapper:
 
         Parameters
         ----------
-        points : array_like of shape (n, 2)
+        points : array_like of shape (n, d)
+            d the grid's dimension (2, or 3 for a grid fitted on point clouds).
 
         Returns
         -------
@@ -283,10 +285,10 @@ class OccupancyGridMapper:
             exactly 0.5 in cells never observed and outside the grid.
         """
         self._check_fitted()
-        p = np.asarray(points, dtype=float).reshape(-1, 2)
-        rows, cols, inside = self.grid_.index_of(p)
+        p = np.asarray(points, dtype=float).reshape(-1, len(self.grid_.shape))
+        cell, inside = flat_index(self.grid_, p)
         out = np.full(len(p), 0.5)
-        out[inside] = self._probability_grid()[rows[inside], cols[inside]]
+        out[inside] = self._probability_grid().reshape(-1)[cell[inside]]
         return out
 
     def predict(
@@ -296,7 +298,7 @@ class OccupancyGridMapper:
 
         Parameters
         ----------
-        points : array_like of shape (n, 2)
+        points : array_like of shape (n, d)
         return_var : bool
             Also return ``p (1 - p)``: the variance of a Bernoulli occupancy with probability p.
             It is not a posterior variance as a GP gives (a grid has none), but it is largest
@@ -312,8 +314,8 @@ class OccupancyGridMapper:
         p = self.predict_proba(points)
         return (p, p * (1 - p)) if return_var else p
 
-    def grid_map(self) -> OccupancyMap:
-        """The fitted grid as an :class:`~gpomap.grid.OccupancyMap`.
+    def grid_map(self) -> Any:
+        """The fitted grid as an :class:`~gpomap.grid.OccupancyMap` (a :class:`~gpomap.voxels.VoxelMap` in 3-D).
 
         Probability 0.5 (unknown in the ternary map) where never observed; the variance layer is
         ``p (1 - p)`` as in :meth:`predict`.
@@ -330,9 +332,14 @@ class OccupancyGridMapper:
             "l_max": self.l_max,
             "max_range_free": self.max_range_free,
         }
+        if not isinstance(self.grid_, GridSpec):
+            from gpomap.voxels import VoxelMap, VoxelSpec
+
+            spec = VoxelSpec((self.grid_.origin[0], self.grid_.origin[1], self.grid_.origin[2]), self.grid_.resolution, self.grid_.shape)
+            return VoxelMap(spec, p, variance=p * (1 - p), info=info)
         return OccupancyMap(self.grid_, p, variance=p * (1 - p), path=self.path_, info=info)
 
-    def grid(self, resolution: float | None = None, extent: tuple[float, float, float, float] | None = None) -> OccupancyMap:
+    def grid(self, resolution: float | None = None, extent: tuple[float, ...] | None = None) -> Any:
         """The map a user gets: the fitted grid itself (`resolution` and `extent` must match or be None).
 
         A grid has no finer map than its own cells, so unlike the GP estimators it is not
