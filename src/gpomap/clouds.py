@@ -87,3 +87,38 @@ def clouds_extent(clouds: Sequence[CloudScan]) -> tuple[NDArray[np.float64], NDA
     if allp.size == 0:
         raise InputFormatError("no valid 3-D points to take an extent of")
     return allp.min(axis=0), allp.max(axis=0)
+
+
+def cloud_from_points(
+    origin: NDArray[np.float64],
+    points: NDArray[np.float64],
+    max_range: float | None = None,
+    time: float | None = None,
+    meta: dict | None = None,
+) -> CloudScan:
+    """A cloud of hits from `origin`; points beyond `max_range` become no-return rays ending at it.
+
+    Parameters
+    ----------
+    origin : ndarray of shape (3,)
+    points : ndarray of shape (n, 3)
+        Map frame; non-finite rows stay (invalid rays).
+    max_range : float, optional
+    time : float, optional
+    meta : dict, optional
+
+    Returns
+    -------
+    CloudScan
+    """
+    origin = np.asarray(origin, dtype=float)
+    points = np.array(points, dtype=float)
+    hit = np.ones(len(points), dtype=bool)
+    if max_range is not None:
+        d = points - origin
+        with np.errstate(invalid="ignore"):
+            r = np.linalg.norm(d, axis=1)
+            far = r > max_range
+        points[far] = origin + d[far] * (max_range / r[far])[:, None]
+        hit[far] = False
+    return CloudScan(origin, points, hit, max_range=max_range, time=time, meta=meta or {})

@@ -1,7 +1,9 @@
 """ROS bag reader: ``sensor_msgs/LaserScan`` messages with 2-D poses from tf or odometry.
 
 Works for ROS1 bags and ROS2 bags (directory, ``.db3`` or ``.mcap``) through
-``rosbags.highlevel.AnyReader``.
+``rosbags.highlevel.AnyReader``. The tf tree (:class:`TfTree`) holds full 3-D transforms; the
+LaserScan poses are their projections to (x, y, yaw), and :mod:`gpomap.io.pointcloud2` uses the
+same tree for 3-D clouds.
 
 Poses. By default the sensor pose of each scan is the transform from `fixed_frame` (``odom``)
 to the scan's ``header.frame_id``, composed along the tf tree (``/tf`` and ``/tf_static``) and
@@ -97,41 +99,89 @@ def _stamp(t: object) -> float:
     return float(t.sec) + 1e-9 * float(t.nanosec)  # type: ignore[attr-defined]
 
 
-def _wrap(a: NDArray[np.float64]) -> NDArray[np.float64]:
-    return (a + np.pi) % (2 * np.pi) - np.pi
+# Transforms in the tf tree are 3-D, rows of (x, y, z, qx, qy, qz, qw) (ROS's quaternion order),
+# so the same tree serves LaserScan (projected to x, y, yaw at the end) and PointCloud2.
+
+
+def _qmul(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Hamilton products of quaternions (k, 4) in (x, y, z, w) order."""
+    ax, ay, az, aw = a.T
+    bx, by, bz, bw = b.T
+    return np.column_stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ]
+    )
+
+
+def _rotate(q: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Vectors (k, 3) rotated by unit quaternions (k, 4)."""
+    u, w = q[:, :3], q[:, 3:]
+    t = 2.0 * np.cross(u, v)
+    return v + w * t + np.cross(u, t)
 
 
 def _compose(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Pose `b` (expressed in frame `a`) in `a`'s parent frame; arrays of shape (k, 3)."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([a[:, 0] + c * b[:, 0] - s * b[:, 1], a[:, 1] + s * b[:, 0] + c * b[:, 1], a[:, 2] + b[:, 2]])
+    """Pose `b` (expressed in frame `a`) in `a`'s parent frame; arrays of shape (k, 7)."""
+    return np.column_stack([a[:, :3] + _rotate(a[:, 3:], b[:, :3]), _qmul(a[:, 3:], b[:, 3:])])
 
 
 def _inverse(a: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Inverse 2-D transforms, shape (k, 3)."""
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    return np.column_stack([-(c * a[:, 0] + s * a[:, 1]), -(-s * a[:, 0] + c * a[:, 1]), -a[:, 2]])
+    """Inverse transforms, shape (k, 7)."""
+    q = a[:, 3:] * np.array([-1.0, -1.0, -1.0, 1.0])
+    return np.column_stack([-_rotate(q, a[:, :3]), q])
+
+
+def _slerp(q0: NDArray[np.float64], q1: NDArray[np.float64], f: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Spherical interpolation along the shorter arc between unit quaternions (k, 4), by f (k,)."""
+    dot = np.sum(q0 * q1, axis=1)
+    q1 = np.where(dot[:, None] < 0, -q1, q1)
+    dot = np.clip(np.abs(dot), -1.0, 1.0)
+    theta = np.arccos(dot)
+    small = theta < 1e-9
+    s = np.where(small, 1.0, np.sin(theta))
+    w0 = np.where(small, 1.0 - f, np.sin((1.0 - f) * theta) / s)
+    w1 = np.where(small, f, np.sin(f * theta) / s)
+    q = w0[:, None] * q0 + w1[:, None] * q1
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def planar(pose: NDArray[np.float64]) -> NDArray[np.float64]:
+    """3-D transforms (k, 7) projected to (x, y, yaw), shape (k, 3)."""
+    x, y, z, w = pose[:, 3], pose[:, 4], pose[:, 5], pose[:, 6]
+    return np.column_stack([pose[:, 0], pose[:, 1], np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))])
+
+
+def _planar_transform(x: float, y: float, yaw: float) -> tuple[float, ...]:
+    """The 3-D transform (7 values) of a planar pose."""
+    return (x, y, 0.0, 0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
 
 
 class _Edge:
-    """Time series of one parent -> child transform, 2-D."""
+    """Time series of one parent -> child transform (rows of x, y, z, qx, qy, qz, qw)."""
 
     def __init__(self, parent: str, child: str, static: bool) -> None:
         self.parent = parent
         self.child = child
         self.static = static
         self._t: list[float] = []
-        self._p: list[tuple[float, float, float]] = []
+        self._p: list[tuple[float, ...]] = []
         self.t: NDArray[np.float64] = np.empty(0)
-        self.p: NDArray[np.float64] = np.empty((0, 3))
+        self.p: NDArray[np.float64] = np.empty((0, 7))
 
-    def add(self, t: float, pose: tuple[float, float, float]) -> None:
+    def add(self, t: float, pose: tuple[float, ...]) -> None:
         self._t.append(t)
         self._p.append(pose)
 
     def finish(self) -> None:
         t = np.asarray(self._t, dtype=float)
-        p = np.asarray(self._p, dtype=float).reshape(-1, 3)
+        p = np.asarray(self._p, dtype=float).reshape(-1, 7)
+        norm = np.linalg.norm(p[:, 3:], axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            p[:, 3:] = p[:, 3:] / norm  # a zero quaternion becomes NaN: that pose is unusable
         order = np.argsort(t, kind="stable")
         t, p = t[order], p[order]
         # Keep the last of equal stamps, so interpolation never divides by zero.
@@ -142,7 +192,7 @@ class _Edge:
             self.static = True
 
     def at(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        """Interpolated transforms at times `t` (k,): poses (k, 3) and a mask of times in range."""
+        """Interpolated transforms at times `t` (k,): poses (k, 7) and a mask of times in range."""
         if self.static or len(self.t) == 1:
             return np.repeat(self.p[-1:], len(t), axis=0), np.ones(len(t), dtype=bool)
         ok = (t >= self.t[0] - _TIME_TOL) & (t <= self.t[-1] + _TIME_TOL)
@@ -150,18 +200,17 @@ class _Edge:
         t0, t1 = self.t[i], self.t[i + 1]
         f = np.clip((t - t0) / (t1 - t0), 0.0, 1.0)
         p0, p1 = self.p[i], self.p[i + 1]
-        xy = p0[:, :2] + f[:, None] * (p1[:, :2] - p0[:, :2])
-        yaw = p0[:, 2] + f * _wrap(p1[:, 2] - p0[:, 2])
-        return np.column_stack([xy, yaw]), ok
+        xyz = p0[:, :3] + f[:, None] * (p1[:, :3] - p0[:, :3])
+        return np.column_stack([xyz, _slerp(p0[:, 3:], p1[:, 3:], f)]), ok
 
 
-class _Tree:
-    """A tf tree: each child frame has one parent edge."""
+class TfTree:
+    """A tf tree: each child frame has one parent edge; transforms are rows of (x, y, z, qx, qy, qz, qw)."""
 
     def __init__(self) -> None:
         self.edges: dict[str, _Edge] = {}
 
-    def add(self, parent: str, child: str, t: float, pose: tuple[float, float, float], static: bool) -> None:
+    def add(self, parent: str, child: str, t: float, pose: tuple[float, ...], static: bool) -> None:
         edge = self.edges.get(child)
         if edge is None:
             edge = self.edges[child] = _Edge(parent, child, static)
@@ -192,8 +241,8 @@ class _Tree:
         return out
 
     def _down(self, ancestor: str, frame: str, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        """Pose of `frame` in `ancestor` at times `t`."""
-        pose = np.zeros((len(t), 3))
+        """Pose of `frame` in `ancestor` at times `t`, shape (k, 7)."""
+        pose = np.tile([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], (len(t), 1))
         ok = np.ones(len(t), dtype=bool)
         for f in self.chain(frame):
             if f == ancestor:
@@ -216,7 +265,7 @@ class _Tree:
         return edges
 
     def lookup(self, fixed: str, target: str, t: NDArray[np.float64], path: str) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        """Pose of `target` in `fixed` at times `t` (k,): poses (k, 3) and in-range mask (k,)."""
+        """Pose of `target` in `fixed` at times `t` (k,): 3-D transforms (k, 7) and in-range mask (k,)."""
         known = self.frames()
         for name, what in ((fixed, "fixed frame"), (target, "laser frame")):
             if name not in known:
@@ -230,9 +279,7 @@ class _Tree:
             )
         a, ok_a = self._down(common, fixed, t)
         b, ok_b = self._down(common, target, t)
-        pose = _compose(_inverse(a), b)
-        pose[:, 2] = _wrap(pose[:, 2])
-        return pose, ok_a & ok_b
+        return _compose(_inverse(a), b), ok_a & ok_b
 
 
 def _bag_paths(path: Path) -> list[Path]:
@@ -254,10 +301,35 @@ def _topics_text(connections: Iterable[object]) -> str:
     return ", ".join(items) or "(none)"
 
 
-def _transform_2d(tr: object) -> tuple[float, float, float]:
+def _transform(tr: object) -> tuple[float, ...]:
+    """A geometry_msgs/Transform as (x, y, z, qx, qy, qz, qw)."""
     q = tr.rotation  # type: ignore[attr-defined]
     v = tr.translation  # type: ignore[attr-defined]
-    return (float(v.x), float(v.y), yaw_from_quaternion(q.x, q.y, q.z, q.w))
+    return (float(v.x), float(v.y), float(v.z), float(q.x), float(q.y), float(q.z), float(q.w))
+
+
+def read_tf(reader: Any, connections: list[Any], tree: TfTree) -> None:
+    """Add every transform of the /tf and /tf_static `connections` of an open AnyReader to `tree`."""
+    for c, _, raw in reader.messages(connections=connections):
+        msg: Any = reader.deserialize(raw, c.msgtype)
+        static = c.topic.lstrip("/") == "tf_static"
+        for tr in msg.transforms:
+            tree.add(_frame(tr.header.frame_id), _frame(tr.child_frame_id), _stamp(tr.header.stamp), _transform(tr.transform), static)
+
+
+def open_bag(path: Path) -> Any:
+    """An open ``rosbags.highlevel.AnyReader`` on a ROS1 or ROS2 bag; InputFormatError if it cannot be opened."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        reader = AnyReader(_bag_paths(path), default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except GpomapError:
+        raise
+    except Exception as exc:  # rosbags raises its own error types for unreadable bags
+        raise InputFormatError(f"cannot open as a ROS bag ({exc})", path=str(path)) from None
+    return reader
 
 
 def load_rosbag(
@@ -304,18 +376,9 @@ def load_rosbag(
         frame (lists the tf frames), no scans with a pose (gives the time ranges of the
         transforms and the tf frames), non-finite beam angles.
     """
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
     p = Path(path)
     spath = str(p)
-    try:
-        reader = AnyReader(_bag_paths(p), default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-        reader.open()
-    except GpomapError:
-        raise
-    except Exception as exc:  # rosbags raises its own error types for unreadable bags
-        raise InputFormatError(f"cannot open as a ROS bag ({exc})", path=spath) from None
+    reader = open_bag(p)
     try:
         conns = reader.connections
         scan_conns = [c for c in conns if c.msgtype == _LASERSCAN]
@@ -351,7 +414,7 @@ def load_rosbag(
                 f"no /tf or /tf_static messages to take the scan poses from{odom_hint}; topics in the bag: {_topics_text(conns)}",
                 path=spath,
             )
-        tree = _Tree()
+        tree = TfTree()
         odom_edge: _Edge | None = None
         odom_parent = None
         stamps: list[float] = []
@@ -362,22 +425,12 @@ def load_rosbag(
         try:
             if tf_conns:
                 where = "reading /tf"
-                for c, _, raw in reader.messages(connections=tf_conns):
-                    # Message classes are built from the bag's definitions at run time: no static type.
-                    msg: Any = reader.deserialize(raw, c.msgtype)
-                    static = c.topic.lstrip("/") == "tf_static"
-                    for tr in msg.transforms:
-                        tree.add(
-                            _frame(tr.header.frame_id),
-                            _frame(tr.child_frame_id),
-                            _stamp(tr.header.stamp),
-                            _transform_2d(tr.transform),
-                            static,
-                        )
+                read_tf(reader, tf_conns, tree)
             if odom_conns:
                 where = f"reading {odom_topic}"
                 for c, _, raw in reader.messages(connections=odom_conns):
-                    msg = reader.deserialize(raw, c.msgtype)
+                    # Message classes are built from the bag's definitions at run time: no static type.
+                    msg: Any = reader.deserialize(raw, c.msgtype)
                     if odom_edge is None:
                         odom_parent = _frame(msg.header.frame_id)
                         odom_edge = _Edge(odom_parent, _frame(msg.child_frame_id), static=False)
@@ -385,7 +438,7 @@ def load_rosbag(
                     q = pose.orientation
                     odom_edge.add(
                         _stamp(msg.header.stamp),
-                        (float(pose.position.x), float(pose.position.y), yaw_from_quaternion(q.x, q.y, q.z, q.w)),
+                        (float(pose.position.x), float(pose.position.y), float(pose.position.z), q.x, q.y, q.z, q.w),
                     )
             where = f"reading {topic}"
             for c, _, raw in reader.messages(connections=[c for c in scan_conns if c.topic == topic]):
@@ -428,7 +481,7 @@ def load_rosbag(
         for lf in sorted(set(frames)):
             if lf != child and lf not in tree.frames():
                 warnings.warn(f"{spath}: laser frame {lf!r} not in tf; assuming it coincides with {child!r}", stacklevel=2)
-                tree.add(child, lf, 0.0, (0.0, 0.0, 0.0), static=True)
+                tree.add(child, lf, 0.0, _planar_transform(0.0, 0.0, 0.0), static=True)
     tree.finish()
 
     t = np.asarray(stamps) + float(time_offset)
@@ -437,7 +490,8 @@ def load_rosbag(
     frame_arr = np.asarray(frames)
     for lf in sorted(set(frames)):
         sel = frame_arr == lf
-        poses[sel], ok[sel] = tree.lookup(fixed, lf, t[sel], spath)
+        transforms, ok[sel] = tree.lookup(fixed, lf, t[sel], spath)
+        poses[sel] = planar(transforms)
     # A NaN quaternion or translation in the bag gives a pose no scan can use.
     ok &= np.isfinite(poses).all(axis=1)
 
