@@ -7,12 +7,17 @@ from gpomap.cells import build_cells
 from gpomap.errors import EmptyDataError
 from gpomap.observations import observations_from_scans
 from gpomap.simulate import paper_room_scans
+from tests.world3d import ORIGINS, lidar_clouds
 
 
-@pytest.fixture(scope="module")
-def room():
-    obs = observations_from_scans(paper_room_scans(), free_step=0.2)
-    return obs, build_cells(obs.points, obs.occupied, min_cell=0.5, max_cell=3.0)
+@pytest.fixture(scope="module", params=[2, 3], ids=["2d", "3d"])
+def room(request):
+    # The paper's room from planar scans, and a 3-D room from lidar clouds (cuboid cells).
+    data = paper_room_scans() if request.param == 2 else lidar_clouds(ORIGINS, n_rays=400)
+    obs = observations_from_scans(data, free_step=0.2)
+    cells = build_cells(obs.points, obs.occupied, min_cell=0.5, max_cell=3.0)
+    assert cells.lower.shape == (len(cells), request.param)
+    return obs, cells
 
 
 def test_every_point_in_exactly_one_cell(room):
@@ -62,6 +67,19 @@ def test_hand_made_case():
     assert not cells.occupied[left] and cells.occupied[1 - left]
     tight = build_cells(pts, occ, min_cell=0.1, max_cell=10.0, box="tight")
     np.testing.assert_allclose(tight.upper[np.argmin(tight.lower[:, 0])], [1.5, 1.0])
+
+
+def test_hand_made_case_in_3d():
+    # Free points low, hits high in a 1 x 1 x 4 column: the longest axis (z) is split once.
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 0.5], [0.5, 0.2, 1.5], [0.3, 0.9, 3.0], [1.0, 0.0, 4.0]])
+    occ = np.array([False, False, False, True, True])
+    cells = build_cells(pts, occ, min_cell=0.1, max_cell=10.0)
+    assert len(cells) == 2
+    low = int(np.argmin(cells.lower[:, 2]))
+    np.testing.assert_allclose(cells.lower[low], [0.0, 0.0, 0.0])
+    np.testing.assert_allclose(cells.upper[low], [1.0, 1.0, 2.0])
+    np.testing.assert_allclose(cells.lower[1 - low], [0.0, 0.0, 2.0])
+    assert not cells.occupied[low] and cells.occupied[1 - low]
 
 
 def test_bad_arguments():

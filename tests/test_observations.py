@@ -1,9 +1,13 @@
 import numpy as np
 import pytest
 
+import time
+
+from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError, InputFormatError
-from gpomap.observations import free_near_hits, observations_from_scans
+from gpomap.observations import free_near_hits, observations_from_scans, sensor_positions
 from gpomap.scans import Scan, evenly_spaced, select_scans
+from tests.world3d import ORIGINS, lidar_clouds
 
 
 def test_hit_free_and_no_return_beams():
@@ -24,12 +28,62 @@ def test_hit_free_and_no_return_beams():
     assert len(along_y) == 15
 
 
+def test_cloud_hit_and_no_return_rays():
+    # From (1, 2, 3): a hit 1 m up, a no-return ray 5 m along x, a NaN point and one at the origin.
+    origin = np.array([1.0, 2.0, 3.0])
+    pts = origin + np.array([[0.0, 0.0, 1.0], [5.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    cloud = CloudScan(origin, pts, hit=[True, False, True, True], max_range=5.0)
+    obs = observations_from_scans([cloud], free_step=0.2, no_return_cap=3.0)
+    assert obs.dim == 3 and obs.n_invalid == 2 and obs.n_no_return == 1
+    np.testing.assert_allclose(obs.points[obs.occupied], [[1.0, 2.0, 4.0]])
+    free = obs.points[~obs.occupied]
+    up = free[np.isclose(free[:, 0], 1.0)]
+    # Samples at 0.2 .. 0.8 above the origin: the 0.1 m margin keeps them short of the hit.
+    np.testing.assert_allclose(np.sort(up[:, 2]) - 3.0, [0.2, 0.4, 0.6, 0.8])
+    np.testing.assert_allclose(up[:, :2], np.tile([1.0, 2.0], (4, 1)))
+    along_x = free[np.isclose(free[:, 2], 3.0)]
+    # The no-return ray: free points to the 3 m cap, never a hit; with no cap, to its endpoint.
+    assert len(along_x) == 15 and along_x[:, 0].max() == pytest.approx(4.0)
+    uncapped = observations_from_scans([cloud], free_step=0.2)
+    assert (~uncapped.occupied).sum() == 4 + 25
+    assert observations_from_scans([cloud], free_step=0.2, no_return_cap=0.0).n_free == 4
+    np.testing.assert_allclose(sensor_positions([cloud, cloud]), [origin, origin])
+
+
+def test_cloud_observations_lie_on_their_rays():
+    clouds = lidar_clouds(ORIGINS[:2], n_rays=50)
+    obs = observations_from_scans(clouds, free_step=0.25)
+    for i, c in enumerate(clouds):
+        mine = obs.points[obs.scan_index == i]
+        # Every point is on one of the cloud's rays (zero distance to the line), within its length.
+        d = c.points - c.origin
+        u = d / np.linalg.norm(d, axis=1, keepdims=True)
+        rel = mine - c.origin
+        along = rel @ u.T  # (m, rays)
+        off = np.linalg.norm(rel[:, None, :] - along[:, :, None] * u[None], axis=2)
+        ray = np.argmin(off, axis=1)
+        assert off[np.arange(len(mine)), ray].max() < 1e-9
+        assert np.all(along[np.arange(len(mine)), ray] <= np.linalg.norm(d, axis=1)[ray] + 1e-9)
+
+
+def test_twelve_lidar_clouds_are_sampled_in_well_under_a_second():
+    clouds = lidar_clouds(np.tile(ORIGINS, (2, 1)), n_rays=3500, max_range=8.0)
+    observations_from_scans(clouds[:1], free_step=0.2)  # warm-up
+    t = time.perf_counter()
+    obs = observations_from_scans(clouds, free_step=0.2)
+    assert time.perf_counter() - t < 0.5
+    assert obs.n_occupied == sum(int(c.hit.sum()) for c in clouds) and obs.n_free > 100_000
+
+
 def test_free_near_hits_by_hand():
     pts = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, 0.29], [0.5, 0.0], [0.0, 0.31]])
     occ = np.array([True, False, False, False, False])
     np.testing.assert_array_equal(free_near_hits(pts, occ, 0.3), [False, True, True, False, False])
     assert not free_near_hits(pts, occ, 0.0).any()
     assert not free_near_hits(pts, np.zeros(5, bool), 0.3).any()
+    # The same in 3-D, the offsets along z: distance is Euclidean in every dimension.
+    pts3 = np.array([[0.0, 0.0, 0.0], [0.1, 0.1, 0.1], [0.0, 0.0, 0.29], [0.2, 0.2, 0.2], [0.0, 0.0, 0.31]])
+    np.testing.assert_array_equal(free_near_hits(pts3, occ, 0.3), [False, True, True, False, False])
 
 
 def test_free_clearance_drops_samples_of_a_beam_grazing_a_wall():

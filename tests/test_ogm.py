@@ -6,6 +6,7 @@ import gpomap.raycast as raycast
 from gpomap.baselines.ogm import L_HIT, L_MAX, L_MIN, L_MISS, OccupancyGridMapper
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
+from gpomap.lattice import Lattice
 from gpomap.raycast import traverse
 from gpomap.scans import Scan
 from gpomap.simulate import World, paper_room_scans, simulate_scans
@@ -15,29 +16,39 @@ def brute_force_cells(grid, start, end, n=300_001):
     # Fine enough to catch the small corner clips of these beams (checked at 2e6 samples too).
     t = np.linspace(0.0, 1.0, n)[:, None]
     pts = start + t * (end - start)
-    r, c, inside = grid.index_of(pts)
-    return set(zip(r[inside].tolist(), c[inside].tolist()))
+    *idx, inside = grid.index_of(pts)
+    return set(zip(*(i[inside].tolist() for i in idx)))
 
 
-def test_traversal_matches_fine_sampling_on_random_beams():
-    grid = GridSpec((-1.0, -2.0), 0.25, (40, 40))
+# The same traversal on a 2-D grid and on a 3-D voxel lattice (arrays indexed x last in both).
+GRIDS = {
+    2: GridSpec((-1.0, -2.0), 0.25, (40, 40)),
+    3: Lattice((-1.0, -2.0, 0.0), 0.25, (12, 40, 40)),
+}
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_traversal_matches_fine_sampling_on_random_beams(dim):
+    grid = GRIDS[dim]
     rng = np.random.default_rng(42)
-    starts = rng.uniform([-1, -2], [9, 8], size=(40, 2))
-    ends = rng.uniform([-3, -4], [11, 10], size=(40, 2))  # some leave the grid
-    beam, rows, cols = traverse(grid, starts, ends)
-    assert np.all(np.diff(beam) >= 0)
+    starts = rng.uniform([-1, -2, 0][:dim], [9, 8, 3][:dim], size=(40, dim))
+    ends = rng.uniform([-3, -4, -1][:dim], [11, 10, 4][:dim], size=(40, dim))  # some leave the grid
+    beam, *idx = traverse(grid, starts, ends)
+    assert len(idx) == dim and np.all(np.diff(beam) >= 0)
     for i in range(40):
-        got = list(zip(rows[beam == i].tolist(), cols[beam == i].tolist()))
+        got = list(zip(*(j[beam == i].tolist() for j in idx)))
         assert len(got) == len(set(got)), "a beam visited a cell twice"
         assert set(got) == brute_force_cells(grid, starts[i], ends[i])
 
 
-def test_traversal_is_ordered_and_connected():
-    grid = GridSpec((0.0, 0.0), 1.0, (10, 10))
-    _beam, rows, cols = traverse(grid, [[9.3, 0.2]], [[0.4, 8.9]])
-    steps = np.abs(np.diff(rows)) + np.abs(np.diff(cols))
-    assert np.all(steps == 1)  # 4-connected: one cell at a time
-    assert (rows[0], cols[0]) == (0, 9) and (rows[-1], cols[-1]) == (8, 0)
+@pytest.mark.parametrize("dim", [2, 3])
+def test_traversal_is_ordered_and_connected(dim):
+    grid = GridSpec((0.0, 0.0), 1.0, (10, 10)) if dim == 2 else Lattice((0.0, 0.0, 0.0), 1.0, (10, 10, 10))
+    start, end = [9.3, 0.2, 0.6][:dim], [0.4, 8.9, 7.3][:dim]
+    _beam, *idx = traverse(grid, [start], [end])
+    cells = np.column_stack(idx)
+    assert np.all(np.abs(np.diff(cells, axis=0)).sum(axis=1) == 1)  # face-connected: one cell at a time
+    assert tuple(cells[0]) == tuple(int(v) for v in start[::-1]) and tuple(cells[-1]) == tuple(int(v) for v in end[::-1])
 
 
 def test_diagonal_through_grid_corners_visits_only_the_diagonal():
@@ -47,12 +58,19 @@ def test_diagonal_through_grid_corners_visits_only_the_diagonal():
     # A beam along a grid line, and a start exactly on a line heading back across it.
     _, rows, cols = traverse(grid, [[2.0, 0.5]], [[0.5, 0.5]])
     assert list(zip(rows, cols)) == [(0, 1), (0, 0)]
+    # In 3-D: through the voxel corners, and through the edges of a plane diagonal (z fixed).
+    cube = Lattice((0.0, 0.0, 0.0), 1.0, (5, 5, 5))
+    _, iz, iy, ix = traverse(cube, [[0.5, 0.5, 0.5]], [[3.5, 3.5, 3.5]])
+    assert list(zip(iz, iy, ix)) == [(0, 0, 0), (1, 1, 1), (2, 2, 2), (3, 3, 3)]
+    _, iz, iy, ix = traverse(cube, [[0.5, 0.5, 2.5]], [[2.5, 2.5, 2.5]])
+    assert list(zip(iz, iy, ix)) == [(2, 0, 0), (2, 1, 1), (2, 2, 2)]
 
 
-def test_traversal_in_chunks_matches_one_pass(monkeypatch):
-    grid = GridSpec((0.0, 0.0), 0.1, (100, 100))
+@pytest.mark.parametrize("dim", [2, 3])
+def test_traversal_in_chunks_matches_one_pass(monkeypatch, dim):
+    grid = GridSpec((0.0, 0.0), 0.1, (100, 100)) if dim == 2 else Lattice((0.0, 0.0, 0.0), 0.1, (30, 100, 100))
     rng = np.random.default_rng(1)
-    s, e = rng.uniform(0, 10, (200, 2)), rng.uniform(0, 10, (200, 2))
+    s, e = rng.uniform(0, [10, 10, 3][:dim], (200, dim)), rng.uniform(0, [10, 10, 3][:dim], (200, dim))
     whole = traverse(grid, s, e)
     monkeypatch.setattr(raycast, "ENTRIES_PER_CHUNK", 50)
     for a, b in zip(whole, traverse(grid, s, e)):
