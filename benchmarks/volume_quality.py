@@ -1,0 +1,269 @@
+"""3-D map quality: held-out rays of the la3dm worlds, and a simulated lidar inside geb079.bt.
+
+Protocol (issue 13, item 6):
+
+- la3dm ``sim_structured`` and ``sim_unstructured``: 12 scans each, 8 m max range (the datasets'
+  yaml); every 4th scan is held out (scans 4, 8 and 12). Test points come from the held-out rays:
+  each hit is occupied; free points every 0.1 m from the sensor to 0.1 m short of the hit; a
+  no-return ray (longer than 8 m) is free along its whole 8 m. Classes are balanced by seeded
+  subsampling, and every method is scored on the same points.
+- geb079 (the FR-079 corridor octree, 0.08 m): a 3-D lidar (360 x 16 beams, +-15 degrees, 10 m)
+  is simulated at poses along the corridor by casting rays against the octree (pyoctomap
+  ``castRay``, unknown voxels passed through); every 4th pose is held out. Test points along the
+  held-out rays, as above, are labelled by the octree itself (its occupied / free leaf there;
+  points in unknown space are dropped), so the truth is the map the lidar saw, not the rays.
+
+Methods: OctoMap through pyoctomap at 0.1 m on the training scans (:class:`OctoMapBaseline`);
+the shipped OctoMap predictions (``sim_structured_octomap.csv``, the only one shipped; 0.1 m voxels,
+the voxel holding each point; made by the
+la3dm authors from *all* 12 scans, so it saw the test scans: a reference, not a competitor);
+and any 3-D gpomap model given by a factory (``fit(clouds)``, ``predict_proba(points)``), by
+default :class:`gpomap.mapping.AreaGPOM` when it takes clouds.
+
+Metrics (:func:`gpomap.evaluation.score`): ROC AUC, boundary AUC (test points within 0.5 m of a
+held-out hit), log loss, ECE; fit and predict wall times and the peak resident memory of the
+process after each method.
+
+Run from the repository's root::
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/volume_quality.py [--max-test 20000] [--no-gpomap] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from gpomap.baselines.octomap import OctoMapBaseline
+from gpomap.clouds import CloudScan
+from gpomap.evaluation import BOUNDARY_RADIUS, TEST_FREE_STEP, TEST_HIT_MARGIN, near, score
+from gpomap.io import read_clouds
+from gpomap.io.octomap import load_pyoctomap_tree
+
+DATA = Path("../shared/data")
+WORLDS = ("sim_structured", "sim_unstructured")
+HOLDOUT_PERIOD = 4
+
+
+def holdout(n: int, period: int = HOLDOUT_PERIOD) -> tuple[list[int], list[int]]:
+    """Training and held-out indices: every `period`-th scan (the 4th, 8th, ...) is held out."""
+    test = [i for i in range(n) if i % period == period - 1]
+    return [i for i in range(n) if i not in test], test
+
+
+def ray_points(clouds: Sequence[CloudScan], step: float = TEST_FREE_STEP, margin: float = TEST_HIT_MARGIN) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Candidate test points of held-out clouds: hits (True) and free points along each ray (False).
+
+    Free points lie every `step` from `step` out to `margin` short of a hit, or out to the end
+    of a no-return ray. Returns points (m, 3) and labels (m,).
+    """
+    pts, lab = [], []
+    for c in clouds:
+        v = c.valid()
+        end, hit = c.points[v], c.hit[v]
+        d = end - c.origin
+        r = np.linalg.norm(d, axis=1)
+        u = d / r[:, None]
+        reach = np.where(hit, r - margin, r)
+        n = np.maximum(np.floor(reach / step + 1e-9).astype(int), 0)
+        ray = np.repeat(np.arange(len(r)), n)
+        k = np.concatenate([np.arange(1, m + 1) for m in n]) if n.sum() else np.zeros(0)
+        pts += [end[hit], c.origin + u[ray] * (k * step)[:, None]]
+        lab += [np.ones(int(hit.sum()), bool), np.zeros(len(ray), bool)]
+    return np.concatenate(pts), np.concatenate(lab)
+
+
+def balance(points: NDArray[np.float64], labels: NDArray[np.bool_], max_points: int | None, seed: int = 0) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Equal numbers of each class (at most `max_points` in all), seeded."""
+    occ, free = np.flatnonzero(labels), np.flatnonzero(~labels)
+    n = min(len(occ), len(free), (max_points // 2) if max_points else len(labels))
+    rng = np.random.default_rng(seed)
+    keep = np.sort(np.concatenate([rng.choice(occ, n, replace=False), rng.choice(free, n, replace=False)]))
+    return points[keep], labels[keep]
+
+
+class CsvVoxels:
+    """The shipped OctoMap predictions (x y z p per 0.1 m voxel centre), looked up by voxel."""
+
+    def __init__(self, path: Path, resolution: float = 0.1) -> None:
+        data = np.loadtxt(path, delimiter=",")
+        self.resolution = resolution
+        keys = self._keys(data[:, :3])
+        order = np.argsort(keys)
+        self.keys, self.p = keys[order], data[order, 3]
+
+    def _keys(self, xyz: NDArray[np.float64]) -> NDArray[np.int64]:
+        k = np.floor(xyz / self.resolution).astype(np.int64) + (1 << 20)
+        return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+
+    def fit(self, clouds: Sequence[CloudScan]) -> CsvVoxels:
+        return self  # already made, from all scans
+
+    def predict_proba(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        k = self._keys(points)
+        i = np.clip(np.searchsorted(self.keys, k), 0, len(self.keys) - 1)
+        return np.where(self.keys[i] == k, self.p[i], 0.5)
+
+
+def _peak_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run(dataset: str, name: str, model: Any, train: Sequence[CloudScan], points: NDArray[np.float64], labels: NDArray[np.bool_], boundary: NDArray[np.bool_]) -> dict[str, Any]:
+    """Fit, predict and score one method; errors are reported, not raised."""
+    row: dict[str, Any] = {"dataset": dataset, "method": name}
+    try:
+        t0 = time.perf_counter()
+        model.fit(train)
+        t1 = time.perf_counter()
+        p = np.asarray(model.predict_proba(points), dtype=float)
+        t2 = time.perf_counter()
+    except Exception as exc:  # a method that cannot run here is a row saying why
+        row["error"] = f"{type(exc).__name__}: {str(exc)[:120]}"
+        return row
+    s = score(labels, p, {"boundary": boundary})
+    row.update(fit_s=t1 - t0, predict_s=t2 - t1, auc=s["auc"], boundary_auc=s["boundary_auc"], log_loss=s["log_loss"], ece=s["ece"], peak_mb=_peak_mb())
+    return row
+
+
+def la3dm_case(world: str, max_test: int | None, factories: dict[str, Callable[[], Any]]) -> list[dict[str, Any]]:
+    folder = DATA / "la3dm-sim" / world
+    config = yaml.safe_load((folder / f"{world}.yaml").read_text())
+    clouds = read_clouds(folder, max_range=float(config["max_range"]))
+    tr, te = holdout(len(clouds))
+    train = [clouds[i] for i in tr]
+    test = [clouds[i] for i in te]
+    pts, lab = balance(*ray_points(test), max_test)
+    hits = np.concatenate([c.points[c.valid() & c.hit] for c in test])
+    boundary = near(pts, hits, BOUNDARY_RADIUS)
+    rows = [run(world, "octomap (pyoctomap 0.1 m)", OctoMapBaseline(0.1, max_range=float(config["max_range"])), train, pts, lab, boundary)]
+    csv = folder / f"{world}_octomap.csv"
+    if csv.exists():  # shipped for sim_structured only
+        rows.append(run(world, "octomap csv (all scans)", CsvVoxels(csv), train, pts, lab, boundary))
+    for name, make in factories.items():
+        rows.append(run(world, name, make(), train, pts, lab, boundary))
+    for r in rows:
+        r["n_test"] = len(lab)
+    return rows
+
+
+def corridor_poses(tree: Any, n: int = 12, height: float = 1.0) -> NDArray[np.float64]:
+    """Sensor positions along geb079's corridor: free voxels near its centre line at `height`."""
+    lo, hi = np.array(tree.getMetricMin()), np.array(tree.getMetricMax())
+    poses = []
+    for x in np.linspace(lo[0] + 2.0, hi[0] - 2.0, 4 * n):
+        best = None
+        for y in np.arange(lo[1] + 0.5, hi[1] - 0.5, 0.2):
+            node = tree.search(np.array([x, y, height]))
+            if node is not None and node.getOccupancy() < 0.5:
+                # The free cell farthest from any occupied one along y, by probing sideways.
+                clear = sum(1 for dy in (-0.6, -0.3, 0.3, 0.6) if (m := tree.search(np.array([x, y + dy, height]))) is not None and m.getOccupancy() < 0.5)
+                if best is None or clear > best[0] or (clear == best[0] and abs(y) < abs(best[1])):
+                    best = (clear, y)
+        if best is not None and best[0] == 4:
+            poses.append([x, best[1], height])
+    poses_arr = np.array(poses)
+    idx = np.linspace(0, len(poses_arr) - 1, min(n, len(poses_arr))).round().astype(int)
+    return poses_arr[idx]
+
+
+def simulate_lidar(tree: Any, origin: NDArray[np.float64], n_az: int = 360, n_el: int = 16, fov: float = 15.0, max_range: float = 10.0) -> CloudScan:
+    """One 3-D lidar sweep cast against the octree: hits on the entry face of the first occupied voxel."""
+    az = np.linspace(-np.pi, np.pi, n_az, endpoint=False)
+    el = np.radians(np.linspace(-fov, fov, n_el))
+    a, e = np.meshgrid(az, el)
+    dirs = np.column_stack([(np.cos(e) * np.cos(a)).ravel(), (np.cos(e) * np.sin(a)).ravel(), np.sin(e).ravel()])
+    half = tree.getResolution() / 2
+    ends, hits = np.empty_like(dirs), np.zeros(len(dirs), bool)
+    end = np.zeros(3)
+    for i, d in enumerate(dirs):
+        if tree.castRay(origin, d, end, True, max_range):
+            # Where the ray enters the hit voxel (slab method), a hair inside it.
+            with np.errstate(divide="ignore"):
+                t = np.maximum.reduce(np.minimum((end - half - origin) / d, (end + half - origin) / d))
+            ends[i] = origin + d * (max(float(t), 0.0) + 1e-3)
+            hits[i] = np.linalg.norm(ends[i] - origin) <= max_range
+        if not hits[i]:
+            ends[i] = origin + d * max_range
+    return CloudScan(origin, ends, hits, max_range=max_range)
+
+
+def geb079_case(max_test: int | None, factories: dict[str, Callable[[], Any]]) -> list[dict[str, Any]]:
+    tree, _, _ = load_pyoctomap_tree(DATA / "octomap" / "geb079.bt")
+    poses = corridor_poses(tree)
+    clouds = [simulate_lidar(tree, p) for p in poses]
+    tr, te = holdout(len(clouds))
+    train = [clouds[i] for i in tr]
+    test = [clouds[i] for i in te]
+    pts, _ = ray_points(test)
+    # Truth: the octree's own leaf at each point; points in unknown space are dropped.
+    truth = np.full(len(pts), -1)
+    for i, q in enumerate(pts):
+        node = tree.search(q)
+        if node is not None:
+            truth[i] = int(node.getOccupancy() > 0.5)
+    known = truth >= 0
+    pts, lab = balance(pts[known], truth[known] == 1, max_test)
+    hits = np.concatenate([c.points[c.hit] for c in test])
+    boundary = near(pts, hits, BOUNDARY_RADIUS)
+    rows = [run("geb079 (sim lidar)", "octomap (pyoctomap 0.1 m)", OctoMapBaseline(0.1, max_range=10.0), train, pts, lab, boundary)]
+    for name, make in factories.items():
+        rows.append(run("geb079 (sim lidar)", name, make(), train, pts, lab, boundary))
+    for r in rows:
+        r["n_test"] = len(lab)
+        r["n_poses"] = len(poses)
+    return rows
+
+
+def gpomap_factories() -> dict[str, Callable[[], Any]]:
+    """The 3-D gpomap estimator, where the library has one (AreaGPOM fitting clouds)."""
+    from gpomap.mapping import AreaGPOM
+
+    return {"gpomap AreaGPOM": AreaGPOM}
+
+
+def _fmt(v: Any) -> str:
+    return "-" if v is None else f"{v:.4f}" if isinstance(v, float) else str(v)
+
+
+def print_table(rows: list[dict[str, Any]]) -> None:
+    cols = ("dataset", "method", "n_test", "fit_s", "predict_s", "auc", "boundary_auc", "log_loss", "ece", "peak_mb")
+    print(" | ".join(cols))
+    for r in rows:
+        if "error" in r:
+            print(f"{r['dataset']} | {r['method']} | not run: {r['error']}")
+        else:
+            print(" | ".join(_fmt(r.get(c)) for c in cols))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--max-test", type=int, default=20000, help="most test points per case (balanced)")
+    ap.add_argument("--no-gpomap", action="store_true", help="only the OctoMap baselines")
+    ap.add_argument("--no-geb079", action="store_true", help="skip the simulated lidar in geb079.bt")
+    ap.add_argument("--json", type=Path, help="also write the rows as JSON")
+    args = ap.parse_args(argv)
+    factories = {} if args.no_gpomap else gpomap_factories()
+    rows: list[dict[str, Any]] = []
+    for world in WORLDS:
+        rows += la3dm_case(world, args.max_test, factories)
+    if not args.no_geb079:
+        rows += geb079_case(args.max_test, factories)
+    print_table(rows)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
