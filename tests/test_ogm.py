@@ -6,7 +6,7 @@ import gpomap.raycast as raycast
 from gpomap.baselines.ogm import L_HIT, L_MAX, L_MIN, L_MISS, OccupancyGridMapper
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
-from gpomap.lattice import Lattice
+from gpomap.voxels import VoxelSpec
 from gpomap.raycast import traverse
 from gpomap.scans import Scan
 from gpomap.simulate import World, paper_room_scans, simulate_scans
@@ -23,7 +23,7 @@ def brute_force_cells(grid, start, end, n=300_001):
 # The same traversal on a 2-D grid and on a 3-D voxel lattice (arrays indexed x last in both).
 GRIDS = {
     2: GridSpec((-1.0, -2.0), 0.25, (40, 40)),
-    3: Lattice((-1.0, -2.0, 0.0), 0.25, (12, 40, 40)),
+    3: VoxelSpec((-1.0, -2.0, 0.0), 0.25, (12, 40, 40)),
 }
 
 
@@ -43,7 +43,7 @@ def test_traversal_matches_fine_sampling_on_random_beams(dim):
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_traversal_is_ordered_and_connected(dim):
-    grid = GridSpec((0.0, 0.0), 1.0, (10, 10)) if dim == 2 else Lattice((0.0, 0.0, 0.0), 1.0, (10, 10, 10))
+    grid = GridSpec((0.0, 0.0), 1.0, (10, 10)) if dim == 2 else VoxelSpec((0.0, 0.0, 0.0), 1.0, (10, 10, 10))
     start, end = [9.3, 0.2, 0.6][:dim], [0.4, 8.9, 7.3][:dim]
     _beam, *idx = traverse(grid, [start], [end])
     cells = np.column_stack(idx)
@@ -59,7 +59,7 @@ def test_diagonal_through_grid_corners_visits_only_the_diagonal():
     _, rows, cols = traverse(grid, [[2.0, 0.5]], [[0.5, 0.5]])
     assert list(zip(rows, cols)) == [(0, 1), (0, 0)]
     # In 3-D: through the voxel corners, and through the edges of a plane diagonal (z fixed).
-    cube = Lattice((0.0, 0.0, 0.0), 1.0, (5, 5, 5))
+    cube = VoxelSpec((0.0, 0.0, 0.0), 1.0, (5, 5, 5))
     _, iz, iy, ix = traverse(cube, [[0.5, 0.5, 0.5]], [[3.5, 3.5, 3.5]])
     assert list(zip(iz, iy, ix)) == [(0, 0, 0), (1, 1, 1), (2, 2, 2), (3, 3, 3)]
     _, iz, iy, ix = traverse(cube, [[0.5, 0.5, 2.5]], [[2.5, 2.5, 2.5]])
@@ -68,7 +68,7 @@ def test_diagonal_through_grid_corners_visits_only_the_diagonal():
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_traversal_in_chunks_matches_one_pass(monkeypatch, dim):
-    grid = GridSpec((0.0, 0.0), 0.1, (100, 100)) if dim == 2 else Lattice((0.0, 0.0, 0.0), 0.1, (30, 100, 100))
+    grid = GridSpec((0.0, 0.0), 0.1, (100, 100)) if dim == 2 else VoxelSpec((0.0, 0.0, 0.0), 0.1, (30, 100, 100))
     rng = np.random.default_rng(1)
     s, e = rng.uniform(0, [10, 10, 3][:dim], (200, dim)), rng.uniform(0, [10, 10, 3][:dim], (200, dim))
     whole = traverse(grid, s, e)

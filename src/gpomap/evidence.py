@@ -9,7 +9,7 @@ the robot's own path: space the robot drove through was free when it did.
 :mod:`gpomap.fusion` combines these counts with the GP's probability.
 
 The rays of 3-D point clouds are counted the same way on a voxel lattice
-(:class:`~gpomap.lattice.Lattice`): every array here has the data's own dimension d.
+(:class:`~gpomap.voxels.VoxelSpec`): every array here has the data's own dimension d.
 """
 
 from __future__ import annotations
@@ -116,7 +116,7 @@ class RayEvidence:
 
         Parameters
         ----------
-        grid : GridSpec or Lattice
+        grid : GridSpec or VoxelSpec
             Of the rays' dimension.
         scans : ndarray of int, optional
             Count only these scans (default: all).
@@ -177,7 +177,7 @@ def lattice_grid(extent: tuple[float, ...], resolution: float, margin: float = 0
 
     Cells on this lattice are the same whatever the extent, so counts taken on grids of two
     extents agree cell by cell. A 4-value extent (xmin, xmax, ymin, ymax) gives a
-    :class:`~gpomap.grid.GridSpec`, a 6-value one a 3-D :class:`~gpomap.lattice.Lattice`.
+    :class:`~gpomap.grid.GridSpec`, a 6-value one a :class:`~gpomap.voxels.VoxelSpec`.
     """
     lo, hi = extent_bounds(extent)
     origin = np.floor((lo - margin) / resolution) * resolution

@@ -45,8 +45,9 @@ from scipy.optimize import minimize
 
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence
-from gpomap.grid import GridSpec, coarse_grid, interpolate_to
-from gpomap.observations import observations_from_scans
+from gpomap.clouds import CloudScan
+from gpomap.lattice import AnyGrid, coarse, flat_index, grid_centres, interpolate
+from gpomap.observations import data_dim, observations_from_scans
 from gpomap.scans import Scan
 
 #: Probabilities are kept this far from 0 and 1, so log losses stay finite.
@@ -96,13 +97,13 @@ class EvidenceCalibration:
 
 
 def calibration_points(
-    scan: Scan, step: float = 0.1, no_return_cap: float | None = 10.0
+    scan: Scan | CloudScan, step: float = 0.1, no_return_cap: float | None = 10.0
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """A scan's hits and its free points every `step` along each beam up to `step` short of the hit.
 
     Parameters
     ----------
-    scan : Scan
+    scan : Scan or CloudScan
     step : float
         Spacing of the free points, metres.
     no_return_cap : float or None
@@ -110,21 +111,21 @@ def calibration_points(
 
     Returns
     -------
-    points : ndarray of shape (n, 2)
+    points : ndarray of shape (n, d)
     occupied : ndarray of bool, shape (n,)
     """
     try:
         # The evaluation protocol's points: no clearance round hits, as a test would score them.
         obs = observations_from_scans([scan], step, step, no_return_cap, free_clearance=0.0)
     except EmptyDataError:
-        return np.zeros((0, 2)), np.zeros(0, bool)
+        return np.zeros((0, data_dim([scan]))), np.zeros(0, bool)
     return obs.points, obs.occupied
 
 
 def fit_calibration(
     scans: Sequence[Scan],
     evidence: RayEvidence,
-    grid: GridSpec,
+    grid: AnyGrid,
     predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]],
     n_scans: int = 25,
     step: float = 0.1,
@@ -139,7 +140,7 @@ def fit_calibration(
     scans : sequence of Scan
         The scans `evidence` was built from, in the same order.
     evidence : RayEvidence
-    grid : GridSpec
+    grid : GridSpec or VoxelSpec
         The lattice the counts are taken on.
     predict_gp : callable
         Points of shape (m, 2) to the GP's probability, shape (m,).
@@ -168,10 +169,9 @@ def fit_calibration(
         if pts.size == 0:
             continue
         own_h, own_m = evidence.counts(grid, scans=np.array([k]))
-        r, c, inside = grid.index_of(pts)
-        r, c = np.where(inside, r, 0), np.where(inside, c, 0)
-        h = np.where(inside, hits[r, c] - own_h[r, c], 0)
-        m = np.where(inside, misses[r, c] - own_m[r, c], 0)
+        cell, inside = flat_index(grid, pts)
+        h = np.where(inside, hits.reshape(-1)[cell] - own_h.reshape(-1)[cell], 0)
+        m = np.where(inside, misses.reshape(-1)[cell] - own_m.reshape(-1)[cell], 0)
         pts_all.append(pts)
         occ_all.append(occ)
         h_all.append(h)
@@ -245,57 +245,56 @@ class EvidenceLayer:
             counts=(self._hits, misses),
         )
         self._misses = self._with_path(misses, self.lattice)
-        self._grid_cache: tuple[GridSpec, NDArray[np.int32], NDArray[np.float64]] | None = None
+        self._grid_cache: tuple[AnyGrid, NDArray[np.int32], NDArray[np.float64]] | None = None
 
-    def _with_path(self, misses: NDArray[np.int32], grid: GridSpec) -> NDArray[np.float64]:
+    def _with_path(self, misses: NDArray[np.int32], grid: AnyGrid) -> NDArray[np.float64]:
         """Misses plus ``hit_weight`` for every step of the robot's path through the cell."""
         return misses + self.calibration.hit_weight * self.evidence.path_passes(grid)
 
     def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
         """Hits and misses (path included) of the fine cell holding each point (0 outside the counted area)."""
-        r, c, inside = self.lattice.index_of(points)
-        r, c = np.where(inside, r, 0), np.where(inside, c, 0)
-        return np.where(inside, self._hits[r, c], 0), np.where(inside, self._misses[r, c], 0.0)
+        cell, inside = flat_index(self.lattice, points)
+        return np.where(inside, self._hits.reshape(-1)[cell], 0), np.where(inside, self._misses.reshape(-1)[cell], 0.0)
 
     def proba(self, points: NDArray[np.float64], p_gp: NDArray[np.float64]) -> NDArray[np.float64]:
         """Probability at points, ndarray of shape (m,), from the GP's probability there."""
         h, m = self.counts_at(points)
         return self.calibration(p_gp, h, m)
 
-    def grid_counts(self, grid: GridSpec) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
+    def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
         """Hits and misses (path included) per cell of `grid`, counted on that grid's own cells (the last is cached)."""
         if self._grid_cache is None or self._grid_cache[0] != grid:
             hits, misses = self.evidence.counts(grid)
             self._grid_cache = (grid, hits, self._with_path(misses, grid))
         return self._grid_cache[1], self._grid_cache[2]
 
-    def grid_proba(self, grid: GridSpec, p_gp: NDArray[np.float64]) -> NDArray[np.float64]:
+    def grid_proba(self, grid: AnyGrid, p_gp: NDArray[np.float64]) -> NDArray[np.float64]:
         """Probability per cell of `grid`, shape grid.shape, from the GP's probability per cell."""
         h, m = self.grid_counts(grid)
         return self.calibration(np.asarray(p_gp).reshape(grid.shape), h, m)
 
     def written_grid(
         self,
-        grid: GridSpec,
+        grid: AnyGrid,
         length_scale: float,
         predict_gp: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]],
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Probability and latent variance per cell of `grid`, each of shape grid.shape.
 
         The counts give each cell its detail; the smooth GP under them is sampled more coarsely
-        (:func:`gp_sampling_factor`) and interpolated bilinearly.
+        (:func:`gp_sampling_factor`) and interpolated (bi- or trilinearly).
 
         Parameters
         ----------
-        grid : GridSpec
+        grid : GridSpec or VoxelSpec
         length_scale : float
             The GP's length scale, metres.
         predict_gp : callable
             Points of shape (m, 2) to the GP's probability and latent variance, each (m,).
         """
-        coarse = coarse_grid(grid, gp_sampling_factor(length_scale, grid.resolution))
-        p, var = predict_gp(coarse.centres())
-        return self.grid_proba(grid, interpolate_to(p, coarse, grid)), interpolate_to(var, coarse, grid)
+        sampled = coarse(grid, gp_sampling_factor(length_scale, grid.resolution))
+        p, var = predict_gp(grid_centres(sampled))
+        return self.grid_proba(grid, interpolate(p, sampled, grid)), interpolate(var, sampled, grid)
 
     def summary(self) -> dict[str, float]:
         """The calibration and how it was fitted."""

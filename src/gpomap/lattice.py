@@ -1,117 +1,27 @@
-"""Regular grids in any number of dimensions: the 3-D voxel lattice, and what 2-D and 3-D grids share.
+"""What 2-D grids and 3-D voxel grids share, written once for both.
 
-A :class:`Lattice` follows the conventions of the 2-D :class:`~gpomap.grid.GridSpec`, extended by
-one axis: `origin` is the lower corner in coordinate order (x, y, z); arrays are indexed with x
-last, ``[iz, iy, ix]``, as a 2-D grid is ``[row, col]`` = ``[iy, ix]``; cell ``(iz, iy, ix)`` has
-its centre at ``origin + ((ix + 0.5) r, (iy + 0.5) r, (iz + 0.5) r)``. The functions below take
-either kind (:data:`AnyGrid`), so the ray traversal, the ray evidence and its fusion with the GP
-are written once for every dimension.
+The 3-D :class:`~gpomap.voxels.VoxelSpec` follows the conventions of the 2-D
+:class:`~gpomap.grid.GridSpec`, extended by one axis: `origin` is the lower corner in coordinate
+order (x, y, z); arrays are indexed with x last, ``[iz, iy, ix]``, as a 2-D grid is ``[row, col]``
+= ``[iy, ix]``; ``index_of`` returns one index per array axis and an inside mask. The functions
+below take either kind (:data:`AnyGrid`), so the ray traversal, the ray evidence and its fusion
+with the GP are written once for every dimension.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gpomap.grid import GridSpec
+from gpomap.voxels import VoxelSpec
 
 
-@dataclass(frozen=True)
-class Lattice:
-    """Geometry of a regular grid of cubes in d dimensions.
-
-    Parameters
-    ----------
-    origin : tuple of float
-        Lower corner of the lowest cell in coordinate order, (x, y, z), metres.
-    resolution : float
-        Cell side, metres.
-    shape : tuple of int
-        Cells per axis in array order, x last: (nz, ny, nx).
-    """
-
-    origin: tuple[float, ...]
-    resolution: float
-    shape: tuple[int, ...]
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.resolution) and self.resolution > 0):
-            raise ValueError(f"lattice resolution must be a positive number, got {self.resolution}")
-        shape = tuple(int(v) for v in self.shape)
-        origin = tuple(float(v) for v in self.origin)
-        if len(shape) != len(origin) or any(n <= 0 for n in shape):
-            raise ValueError(f"lattice needs one positive size per origin coordinate, got shape {self.shape}, origin {self.origin}")
-        object.__setattr__(self, "shape", shape)
-        object.__setattr__(self, "origin", origin)
-        object.__setattr__(self, "resolution", float(self.resolution))
-
-    @classmethod
-    def from_extent(cls, extent: tuple[float, ...], resolution: float) -> Lattice:
-        """The lattice of cells of side `resolution` covering `extent` = (xmin, xmax, ymin, ymax, ...).
-
-        The origin is the extent's lower corner; the lattice extends past each upper bound to a
-        whole cell.
-        """
-        lo, hi = extent_bounds(extent)
-        if not np.all(hi > lo):
-            raise ValueError(f"extent must have each minimum below its maximum, got {extent}")
-        if not (math.isfinite(resolution) and resolution > 0):
-            raise ValueError(f"lattice resolution must be a positive number, got {resolution}")
-        # Small tolerance so an extent that is a whole number of cells does not gain one.
-        n = [max(1, math.ceil((h - l) / resolution - 1e-9)) for l, h in zip(lo, hi, strict=True)]
-        return cls(tuple(lo), resolution, tuple(reversed(n)))
-
-    @property
-    def dim(self) -> int:
-        """Number of dimensions."""
-        return len(self.shape)
-
-    @property
-    def size(self) -> int:
-        """Number of cells."""
-        return math.prod(self.shape)
-
-    @property
-    def extent(self) -> tuple[float, ...]:
-        """(xmin, xmax, ymin, ymax, ...) of the lattice's outer edges."""
-        counts = tuple(reversed(self.shape))
-        return tuple(v for o, n in zip(self.origin, counts, strict=True) for v in (o, o + n * self.resolution))
-
-    def axis_centres(self, k: int) -> NDArray[np.float64]:
-        """Cell-centre coordinates along coordinate `k` (0 = x), ndarray of shape (n_k,)."""
-        n = self.shape[self.dim - 1 - k]
-        return self.origin[k] + (np.arange(n, dtype=np.float64) + 0.5) * self.resolution
-
-    def centres(self) -> NDArray[np.float64]:
-        """All cell centres in array (row-major, x fastest) order, ndarray of shape (size, d)."""
-        return grid_centres(self)
-
-    def index_of(self, points: ArrayLike) -> tuple[NDArray[np.intp], ...]:
-        """Array index of the cell holding each point, and whether it is inside.
-
-        Parameters
-        ----------
-        points : array_like of shape (n, d)
-
-        Returns
-        -------
-        (iz, iy, ix, inside) : ndarrays of shape (n,)
-            One index per array axis (x last), then a bool mask of points inside the lattice.
-        """
-        p = np.asarray(points, dtype=float).reshape(-1, self.dim)
-        idx = [np.floor((p[:, k] - self.origin[k]) / self.resolution).astype(np.intp) for k in range(self.dim)][::-1]
-        inside = np.ones(p.shape[0], dtype=bool)
-        for i, n in zip(idx, self.shape, strict=True):
-            inside &= (i >= 0) & (i < n)
-        return (*idx, inside)
-
-
-#: A 2-D grid or a lattice of any dimension: both have `origin` (coordinate order), `resolution`,
-#: `shape` (array order, x last) and `index_of`.
-AnyGrid = GridSpec | Lattice
+#: A 2-D grid or a 3-D voxel grid: both have `origin` (coordinate order), `resolution`, `shape`
+#: (array order, x last) and `index_of`.
+AnyGrid = GridSpec | VoxelSpec
 
 
 def extent_bounds(extent: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -136,19 +46,23 @@ def grid_size(grid: AnyGrid) -> int:
 
 
 def make_grid(origin: ArrayLike, resolution: float, counts: ArrayLike) -> AnyGrid:
-    """A grid from its lower corner and cells per coordinate (x first): a GridSpec in 2-D, else a Lattice."""
+    """A grid from its lower corner and cells per coordinate (x first): a GridSpec in 2-D, a VoxelSpec in 3-D."""
     o = tuple(float(v) for v in np.ravel(origin))
     shape = tuple(int(v) for v in np.ravel(counts))[::-1]
     if len(o) == 2:
         return GridSpec((o[0], o[1]), resolution, (shape[0], shape[1]))
-    return Lattice(o, resolution, shape)
+    if len(o) == 3:
+        return VoxelSpec((o[0], o[1], o[2]), resolution, (shape[0], shape[1], shape[2]))
+    raise ValueError(f"grids are 2-D or 3-D, got a {len(o)}-D origin")
 
 
 def grid_from_extent(extent: tuple[float, ...], resolution: float) -> AnyGrid:
-    """The grid of side-`resolution` cells covering `extent` (a GridSpec for 4 values, else a Lattice)."""
+    """The grid of side-`resolution` cells covering `extent` from its lower corner on (a GridSpec for
+    4 values (xmin, xmax, ymin, ymax), a VoxelSpec for 6)."""
     if len(extent) == 4:
         return GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution)
-    return Lattice.from_extent(extent, resolution)
+    lo, hi = extent_bounds(extent)
+    return VoxelSpec.from_extent(lo, hi, resolution, align=False)
 
 
 def flat_index(grid: AnyGrid, points: ArrayLike) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
@@ -193,7 +107,7 @@ def interpolate(values: ArrayLike, source: AnyGrid, target: AnyGrid) -> NDArray[
     Parameters
     ----------
     values : array_like of shape source.shape
-    source, target : GridSpec or Lattice, of one dimension
+    source, target : GridSpec or VoxelSpec, of one dimension
 
     Returns
     -------
@@ -210,3 +124,32 @@ def interpolate(values: ArrayLike, source: AnyGrid, target: AnyGrid) -> NDArray[
     )
     mesh = np.meshgrid(*(_axis_centres(target, k) for k in reversed(range(d))), indexing="ij")
     return interp(np.column_stack([m.ravel() for m in mesh])).reshape(target.shape)
+
+
+def grid_extent(grid: AnyGrid) -> tuple[float, ...]:
+    """(xmin, xmax, ymin, ymax[, zmin, zmax]) of the grid's outer edges."""
+    counts = grid.shape[::-1]
+    return tuple(v for o, n in zip(grid.origin, counts, strict=True) for v in (o, o + n * grid.resolution))
+
+
+def cell_offset(grid: AnyGrid, base: AnyGrid) -> tuple[int, ...]:
+    """Array index on `base` of `grid`'s first cell (both on one cell lattice), one per array axis."""
+    d = grid_dim(grid)
+    return tuple(int(round((grid.origin[k] - base.origin[k]) / base.resolution)) for k in reversed(range(d)))
+
+
+def overlap(offset: tuple[int, ...], shape: tuple[int, ...], base_shape: tuple[int, ...]) -> tuple[tuple[slice, ...], tuple[slice, ...]] | None:
+    """Where a block of `shape` placed at `offset` on an array of `base_shape` overlaps it.
+
+    Returns
+    -------
+    (in_block, in_base) : tuples of slices, one per axis, or None when they do not overlap
+    """
+    block, base = [], []
+    for o, n, m in zip(offset, shape, base_shape, strict=True):
+        lo, hi = max(o, 0), min(o + n, m)
+        if lo >= hi:
+            return None
+        block.append(slice(lo - o, hi - o))
+        base.append(slice(lo, hi))
+    return tuple(block), tuple(base)

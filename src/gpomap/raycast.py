@@ -54,7 +54,7 @@ def traverse(grid: AnyGrid, starts: ArrayLike, ends: ArrayLike) -> tuple[NDArray
 
     Parameters
     ----------
-    grid : GridSpec or Lattice
+    grid : GridSpec or VoxelSpec
     starts, ends : array_like of shape (b, d)
         Segment end points in the map frame, d the grid's dimension.
 

@@ -34,9 +34,10 @@ from numpy.typing import ArrayLike, NDArray
 from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.evidence import RayEvidence
 from gpomap.grid import GridSpec, OccupancyMap
-from gpomap.lattice import AnyGrid, Lattice, bounds_extent, flat_index, grid_from_extent, grid_size
+from gpomap.lattice import AnyGrid, bounds_extent, flat_index, grid_from_extent, grid_size
 from gpomap.observations import ScanData, sensor_positions
 from gpomap.raycast import ENTRIES_PER_CHUNK, traverse
+from gpomap.voxels import VoxelMap, VoxelSpec
 
 
 def _logit(p: float) -> float:
@@ -57,7 +58,7 @@ class OccupancyGridMapper:
     resolution : float
         Cell side, metres.
     extent : (xmin, xmax, ymin, ymax) or GridSpec, optional
-        The grid to map on ((xmin, xmax, ymin, ymax, zmin, zmax) or a 3-D lattice for point
+        The grid to map on ((xmin, xmax, ymin, ymax, zmin, zmax) or a VoxelSpec for point
         clouds). Default: the box round the sensor positions and beam end points (no-return
         beams capped as below) plus a margin of three cells, with the origin snapped to a
         multiple of `resolution`.
@@ -77,7 +78,7 @@ class OccupancyGridMapper:
 
     Attributes
     ----------
-    grid_ : GridSpec, or a 3-D lattice (voxels) for point clouds
+    grid_ : GridSpec, or VoxelSpec for point clouds
     log_odds_ : ndarray of shape grid_.shape, (ny, nx) or (nz, ny, nx)
         "logodds": accumulated, clamped log-odds; "counting": the log-odds of the counting
         probability. 0 where never observed.
@@ -154,8 +155,8 @@ class OccupancyGridMapper:
             raise EmptyDataError(f"no usable readings in {len(scans)} scan(s): nothing to map")
         if self.extent is None:
             grid = self._default_grid(starts, ends)
-        elif isinstance(self.extent, GridSpec | Lattice) or hasattr(self.extent, "index_of"):
-            grid = self.extent  # a grid given as it is (a GridSpec, a Lattice or a VoxelSpec)
+        elif isinstance(self.extent, GridSpec | VoxelSpec):
+            grid = self.extent
         else:
             grid = grid_from_extent(tuple(self.extent), self.resolution)
         ncell = grid_size(grid)
@@ -332,11 +333,8 @@ class OccupancyGridMapper:
             "l_max": self.l_max,
             "max_range_free": self.max_range_free,
         }
-        if not isinstance(self.grid_, GridSpec):
-            from gpomap.voxels import VoxelMap, VoxelSpec
-
-            spec = VoxelSpec((self.grid_.origin[0], self.grid_.origin[1], self.grid_.origin[2]), self.grid_.resolution, self.grid_.shape)
-            return VoxelMap(spec, p, variance=p * (1 - p), info=info)
+        if isinstance(self.grid_, VoxelSpec):
+            return VoxelMap(self.grid_, p, variance=p * (1 - p), info=info)
         return OccupancyMap(self.grid_, p, variance=p * (1 - p), path=self.path_, info=info)
 
     def grid(self, resolution: float | None = None, extent: tuple[float, ...] | None = None) -> Any:
