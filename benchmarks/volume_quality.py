@@ -61,7 +61,9 @@ def holdout(n: int, period: int = HOLDOUT_PERIOD) -> tuple[list[int], list[int]]
     return [i for i in range(n) if i not in test], test
 
 
-def ray_points(clouds: Sequence[CloudScan], step: float = TEST_FREE_STEP, margin: float = TEST_HIT_MARGIN) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+def ray_points(
+    clouds: Sequence[CloudScan], step: float = TEST_FREE_STEP, margin: float = TEST_HIT_MARGIN
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Candidate test points of held-out clouds: hits (True) and free points along each ray (False).
 
     Free points lie every `step` from `step` out to `margin` short of a hit, or out to the end
@@ -70,7 +72,7 @@ def ray_points(clouds: Sequence[CloudScan], step: float = TEST_FREE_STEP, margin
     pts, lab = [], []
     for c in clouds:
         v = c.valid()
-        end, hit = c.points[v], c.hit[v]
+        end, hit = c.points[v], np.asarray(c.hit, dtype=bool)[v]
         d = end - c.origin
         r = np.linalg.norm(d, axis=1)
         u = d / r[:, None]
@@ -83,7 +85,9 @@ def ray_points(clouds: Sequence[CloudScan], step: float = TEST_FREE_STEP, margin
     return np.concatenate(pts), np.concatenate(lab)
 
 
-def balance(points: NDArray[np.float64], labels: NDArray[np.bool_], max_points: int | None, seed: int = 0) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+def balance(
+    points: NDArray[np.float64], labels: NDArray[np.bool_], max_points: int | None, seed: int = 0
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Equal numbers of each class (at most `max_points` in all), seeded."""
     occ, free = np.flatnonzero(labels), np.flatnonzero(~labels)
     n = min(len(occ), len(free), (max_points // 2) if max_points else len(labels))
@@ -119,7 +123,15 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run(dataset: str, name: str, model: Any, train: Sequence[CloudScan], points: NDArray[np.float64], labels: NDArray[np.bool_], boundary: NDArray[np.bool_]) -> dict[str, Any]:
+def run(
+    dataset: str,
+    name: str,
+    model: Any,
+    train: Sequence[CloudScan],
+    points: NDArray[np.float64],
+    labels: NDArray[np.bool_],
+    boundary: NDArray[np.bool_],
+) -> dict[str, Any]:
     """Fit, predict and score one method; errors are reported, not raised."""
     row: dict[str, Any] = {"dataset": dataset, "method": name}
     try:
@@ -132,7 +144,15 @@ def run(dataset: str, name: str, model: Any, train: Sequence[CloudScan], points:
         row["error"] = f"{type(exc).__name__}: {str(exc)[:120]}"
         return row
     s = score(labels, p, {"boundary": boundary})
-    row.update(fit_s=t1 - t0, predict_s=t2 - t1, auc=s["auc"], boundary_auc=s["boundary_auc"], log_loss=s["log_loss"], ece=s["ece"], peak_mb=_peak_mb())
+    row.update(
+        fit_s=t1 - t0,
+        predict_s=t2 - t1,
+        auc=s["auc"],
+        boundary_auc=s["boundary_auc"],
+        log_loss=s["log_loss"],
+        ece=s["ece"],
+        peak_mb=_peak_mb(),
+    )
     return row
 
 
@@ -144,9 +164,19 @@ def la3dm_case(world: str, max_test: int | None, factories: dict[str, Callable[[
     train = [clouds[i] for i in tr]
     test = [clouds[i] for i in te]
     pts, lab = balance(*ray_points(test), max_test)
-    hits = np.concatenate([c.points[c.valid() & c.hit] for c in test])
+    hits = np.concatenate([c.points[c.valid() & np.asarray(c.hit, dtype=bool)] for c in test])
     boundary = near(pts, hits, BOUNDARY_RADIUS)
-    rows = [run(world, "octomap (pyoctomap 0.1 m)", OctoMapBaseline(0.1, max_range=float(config["max_range"])), train, pts, lab, boundary)]
+    rows = [
+        run(
+            world,
+            "octomap (pyoctomap 0.1 m)",
+            OctoMapBaseline(0.1, max_range=float(config["max_range"])),
+            train,
+            pts,
+            lab,
+            boundary,
+        )
+    ]
     csv = folder / f"{world}_octomap.csv"
     if csv.exists():  # shipped for sim_structured only
         rows.append(run(world, "octomap csv (all scans)", CsvVoxels(csv), train, pts, lab, boundary))
@@ -167,7 +197,11 @@ def corridor_poses(tree: Any, n: int = 12, height: float = 1.0) -> NDArray[np.fl
             node = tree.search(np.array([x, y, height]))
             if node is not None and node.getOccupancy() < 0.5:
                 # The free cell farthest from any occupied one along y, by probing sideways.
-                clear = sum(1 for dy in (-0.6, -0.3, 0.3, 0.6) if (m := tree.search(np.array([x, y + dy, height]))) is not None and m.getOccupancy() < 0.5)
+                clear = sum(
+                    1
+                    for dy in (-0.6, -0.3, 0.3, 0.6)
+                    if (m := tree.search(np.array([x, y + dy, height]))) is not None and m.getOccupancy() < 0.5
+                )
                 if best is None or clear > best[0] or (clear == best[0] and abs(y) < abs(best[1])):
                     best = (clear, y)
         if best is not None and best[0] == 4:
@@ -177,7 +211,9 @@ def corridor_poses(tree: Any, n: int = 12, height: float = 1.0) -> NDArray[np.fl
     return poses_arr[idx]
 
 
-def simulate_lidar(tree: Any, origin: NDArray[np.float64], n_az: int = 360, n_el: int = 16, fov: float = 15.0, max_range: float = 10.0) -> CloudScan:
+def simulate_lidar(
+    tree: Any, origin: NDArray[np.float64], n_az: int = 360, n_el: int = 16, fov: float = 15.0, max_range: float = 10.0
+) -> CloudScan:
     """One 3-D lidar sweep cast against the octree: hits on the entry face of the first occupied voxel."""
     az = np.linspace(-np.pi, np.pi, n_az, endpoint=False)
     el = np.radians(np.linspace(-fov, fov, n_el))
@@ -216,7 +252,9 @@ def geb079_case(max_test: int | None, factories: dict[str, Callable[[], Any]]) -
     pts, lab = balance(pts[known], truth[known] == 1, max_test)
     hits = np.concatenate([c.points[c.hit] for c in test])
     boundary = near(pts, hits, BOUNDARY_RADIUS)
-    rows = [run("geb079 (sim lidar)", "octomap (pyoctomap 0.1 m)", OctoMapBaseline(0.1, max_range=10.0), train, pts, lab, boundary)]
+    rows = [
+        run("geb079 (sim lidar)", "octomap (pyoctomap 0.1 m)", OctoMapBaseline(0.1, max_range=10.0), train, pts, lab, boundary)
+    ]
     for name, make in factories.items():
         rows.append(run("geb079 (sim lidar)", name, make(), train, pts, lab, boundary))
     for r in rows:

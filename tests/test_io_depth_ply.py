@@ -54,7 +54,7 @@ def test_bad_depth_inputs(tmp_path):
     with pytest.raises(InputFormatError, match="has 1 lines of numbers; expected 4 lines of 4"):
         read_depth_frames(d)
     (d / "frame-000000.pose.txt").unlink()
-    with pytest.raises(InputFormatError, match="has no pose file frame-000000.pose.txt"):
+    with pytest.raises(InputFormatError, match=r"has no pose file frame-000000\.pose\.txt"):
         read_depth_frames(d)
     (d / "frame-000000.pose.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     Image.fromarray(np.zeros((2, 2), dtype=np.uint8)).save(d / "frame-000000.depth.png")
@@ -85,6 +85,8 @@ def test_ply_needs_a_pose_and_vertices(tmp_path):
         read_clouds(tmp_path / "c.ply")
     with pytest.raises(InputFormatError, match="vertex element has no y, z"):
         read_ply(tmp_path / "c.ply", origin=np.zeros(3))
-    (tmp_path / "c.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 5\nproperty float x\nend_header\n\x00")
+    (tmp_path / "c.ply").write_bytes(
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 5\nproperty float x\nend_header\n\x00"
+    )
     with pytest.raises(InputFormatError, match="cannot read as a PLY file"):
         read_ply(tmp_path / "c.ply", origin=np.zeros(3))

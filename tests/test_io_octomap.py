@@ -81,7 +81,10 @@ def _bt(size: int, data: bytes, res: str = "0.1") -> bytes:
         (_bt(2, b"\x01\x00", res="-1"), r"line 4: res '-1'; expected a positive number"),
         (_bt(2, b"\x01\x00").replace(b"size 2", b"size two"), r"line 3: size 'two'"),
         (b"# Octomap OcTree file\nid ColorOcTree\nsize 1\nres 0.1\ndata\n", r"line 2: tree type 'ColorOcTree'"),
-        (b"# Octomap OcTree file\nsize 3\nres 0.1\ndata\n" + b"\x00\x00\x00\x00\x03", r"corrupt tree: tree data ends after 5 bytes"),
+        (
+            b"# Octomap OcTree file\nsize 3\nres 0.1\ndata\n" + b"\x00\x00\x00\x00\x03",
+            r"corrupt tree: tree data ends after 5 bytes",
+        ),
     ],
 )
 def test_corrupt_trees_are_refused_before_octomap_reads_them(tmp_path, content, message):

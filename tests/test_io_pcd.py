@@ -41,7 +41,11 @@ def test_la3dm_scan_known_values():
 def test_la3dm_directory_in_natural_order():
     clouds = read_clouds(LA3DM)
     assert detect_format(LA3DM) == "pcd-directory"
-    assert [Path(c.meta["path"]).name for c in clouds][:3] == ["sim_structured_1.pcd", "sim_structured_2.pcd", "sim_structured_3.pcd"]
+    assert [Path(c.meta["path"]).name for c in clouds][:3] == [
+        "sim_structured_1.pcd",
+        "sim_structured_2.pcd",
+        "sim_structured_3.pcd",
+    ]
     assert len(clouds) == 12 and all(c.n_points == 3500 for c in clouds)
     np.testing.assert_allclose(clouds[9].origin, [2.99999, 8.00001, 0.0997705])  # sim_structured_10
 
@@ -97,12 +101,20 @@ HEADER = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 
     ("header", "body", "message"),
     [
         (HEADER.replace("FIELDS x y z", "FIELDS x y w"), b"", r"line 2: FIELDS 'x y w' has no 'z'"),
-        (HEADER.replace("VIEWPOINT 0 0 0 1 0 0 0", "VIEWPOINT 0 0 0 2 0 0 0"), b"", r"line 8: VIEWPOINT .*norm 2; expected a unit quaternion"),
+        (
+            HEADER.replace("VIEWPOINT 0 0 0 1 0 0 0", "VIEWPOINT 0 0 0 2 0 0 0"),
+            b"",
+            r"line 8: VIEWPOINT .*norm 2; expected a unit quaternion",
+        ),
         (HEADER.replace("WIDTH 2", "WIDTH 3"), b"", r"line 9: POINTS 2 but WIDTH x HEIGHT = 3 x 1"),
         (HEADER.replace("TYPE F F F", "TYPE F F U"), b"", r"field 'z' is TYPE U"),
         (HEADER.replace("COUNT", "COLOUR"), b"", r"line 5: unknown header key 'COLOUR'"),
         (HEADER.format("binary").format(), b"\x00" * 20, r"binary data is 20 bytes; POINTS 2 x 12 bytes per point needs 24"),
-        (HEADER.format("binary_compressed"), b"\x10\x00\x00\x00\x00\x00\x00\x40", r"announces 16 compressed bytes .* expected 24 uncompressed"),
+        (
+            HEADER.format("binary_compressed"),
+            b"\x10\x00\x00\x00\x00\x00\x00\x40",
+            r"announces 16 compressed bytes .* expected 24 uncompressed",
+        ),
         (HEADER.format("ascii"), b"1 2 3\n4 five 6\n", r"cannot decode the PCD data"),
         (HEADER.format("lzma"), b"", r"line 10: DATA 'lzma'; expected ascii, binary or binary_compressed"),
         ("VERSION 0.7\nFIELDS x y z\n", b"", r"file ends in the header after 2 lines"),

@@ -50,17 +50,16 @@ def _write(path: Path, ros2: bool) -> Path:
     ser = store.serialize_cdr if ros2 else store.serialize_ros1
     pts = np.array([[0.5, 0.0, 0.0], [1.0, 0.0, 2.0], [np.nan, np.nan, np.nan]])
     msgs = [(0.0, "/tf_static", "tf2_msgs/msg/TFMessage", _tilted(types, 0.0))]
-    msgs += [(t, "/tf", "tf2_msgs/msg/TFMessage", _tf(types, t, "odom", "base_link", 2.0 * t, 0.0, t * math.pi / 2)) for t in (0.0, 1.0)]
+    msgs += [
+        (t, "/tf", "tf2_msgs/msg/TFMessage", _tf(types, t, "odom", "base_link", 2.0 * t, 0.0, t * math.pi / 2))
+        for t in (0.0, 1.0)
+    ]
     msgs += [(t, "/points", "sensor_msgs/msg/PointCloud2", _cloud(types, t, "lidar", pts)) for t in (0.5, 2.0)]
     msgs.sort(key=lambda m: m[0])
-    if ros2:
-        from rosbags.rosbag2 import Writer as Writer2
+    from rosbags.rosbag1 import Writer as Writer1
+    from rosbags.rosbag2 import Writer as Writer2
 
-        writer = Writer2(path, version=9)
-    else:
-        from rosbags.rosbag1 import Writer as Writer1
-
-        writer = Writer1(path)
+    writer: Writer1 | Writer2 = Writer2(path, version=9) if ros2 else Writer1(path)
     with writer:
         conns = {}
         for _, topic, msgtype, _m in msgs:

@@ -21,7 +21,7 @@ def test_spherical_scan_known_values():
     np.testing.assert_allclose(cloud.origin, [1.0, 0.0, -0.5])
     # Independent parse: the first point's three float64 after "1 node, 10201 points, int32 3".
     first = struct.unpack_from("<3d", SPHERICAL.read_bytes(), 12)
-    np.testing.assert_allclose(cloud.points[0], np.array(first) + [1.0, 0.0, -0.5])
+    np.testing.assert_allclose(cloud.points[0], np.add(first, [1.0, 0.0, -0.5]))
     assert detect_format(SPHERICAL) == "scangraph"
 
 
@@ -60,5 +60,5 @@ def test_wrong_element_count_and_bad_quaternion(tmp_path):
     with pytest.raises(InputFormatError, match="node 0, point 0: element count 4; expected 3"):
         read_scangraph(path)
     path.write_bytes(struct.pack("<I", 1) + _node(np.zeros((1, 3)), (0, 0, 0), (2.0, 0, 0, 0), 0) + struct.pack("<I", 0))
-    with pytest.raises(InputFormatError, match="node 0's pose: quaternion .* norm 2"):
+    with pytest.raises(InputFormatError, match=r"node 0's pose: quaternion .* norm 2"):
         read_scangraph(path)

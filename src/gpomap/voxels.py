@@ -84,7 +84,7 @@ class VoxelSpec:
         if align:
             lo = np.floor(lo / resolution + 1e-9) * resolution
         n = np.maximum(1, np.ceil((hi - lo) / resolution - 1e-9).astype(int))
-        return cls(tuple(lo), resolution, (int(n[2]), int(n[1]), int(n[0])))  # type: ignore[arg-type]
+        return cls((float(lo[0]), float(lo[1]), float(lo[2])), resolution, (int(n[2]), int(n[1]), int(n[0])))
 
     @property
     def n_voxels(self) -> int:
@@ -106,12 +106,12 @@ class VoxelSpec:
         """Voxel-centre coordinates along ``"x"``, ``"y"`` or ``"z"``, shape (nx,), (ny,) or (nz,)."""
         a = "xyz".index(axis)
         n = self.shape[2 - a]
-        return self.origin[a] + (np.arange(n) + 0.5) * self.resolution
+        return np.asarray(self.origin[a] + (np.arange(n) + 0.5) * self.resolution, dtype=np.float64)
 
     def centres(self) -> NDArray[np.float64]:
         """Every voxel centre, shape (nz * ny * nx, 3), in C order of ``[k, j, i]`` (x fastest)."""
         z, y, x = np.meshgrid(self.axis_centres("z"), self.axis_centres("y"), self.axis_centres("x"), indexing="ij")
-        return np.column_stack([x.ravel(), y.ravel(), z.ravel()])
+        return np.column_stack([x.ravel(), y.ravel(), z.ravel()]).astype(np.float64)
 
     def index_of(self, points: ArrayLike) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]]:
         """Voxel indices of points (n, 3): ``k``, ``j``, ``i`` (n,) each and ``inside`` (n,).
@@ -123,7 +123,7 @@ class VoxelSpec:
             f = np.floor((p - self.lower) / self.resolution)
         nz, ny, nx = self.shape
         size = np.array([nx, ny, nz])
-        inside = np.isfinite(f).all(axis=1) & (f >= 0).all(axis=1) & (f < size).all(axis=1)
+        inside = np.asarray(np.isfinite(f).all(axis=1) & (f >= 0).all(axis=1) & (f < size).all(axis=1), dtype=bool)
         f = np.where(np.isfinite(f), f, 0)
         ijk = np.clip(f, 0, size - 1).astype(np.intp)
         return ijk[:, 2], ijk[:, 1], ijk[:, 0], inside

@@ -63,7 +63,7 @@ class OctoMapBaseline:
         if cloud.max_range is not None:
             return float(cloud.max_range)
         valid = cloud.valid()
-        miss = valid & ~cloud.hit
+        miss = valid & ~np.asarray(cloud.hit, dtype=bool)
         if miss.any():
             return float(np.linalg.norm(cloud.points[miss] - cloud.origin, axis=1).max())
         return -1.0
@@ -90,7 +90,7 @@ class OctoMapBaseline:
         for cloud in clouds:
             valid = cloud.valid()
             pts = cloud.points[valid].copy()
-            hit = cloud.hit[valid]
+            hit = np.asarray(cloud.hit, dtype=bool)[valid]
             max_range = self._range_of(cloud)
             if (~hit).any():
                 d = pts[~hit] - cloud.origin
@@ -100,7 +100,9 @@ class OctoMapBaseline:
                     max_range = reach
                 pts[~hit] = cloud.origin + d * ((reach * (1 + _BEYOND)) / r)[:, None]
             if len(pts):
-                tree.insertPointCloud(np.ascontiguousarray(pts, dtype=np.float64), np.asarray(cloud.origin, dtype=np.float64), max_range)
+                tree.insertPointCloud(
+                    np.ascontiguousarray(pts, dtype=np.float64), np.asarray(cloud.origin, dtype=np.float64), max_range
+                )
                 n_rays += len(pts)
         if n_rays == 0:
             raise EmptyDataError("no valid rays in the clouds to insert into the octree")
@@ -134,7 +136,9 @@ class OctoMapBaseline:
                 out[i] = node.getOccupancy()
         return out
 
-    def predict(self, points: ArrayLike, return_var: bool = True) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def predict(
+        self, points: ArrayLike, return_var: bool = True
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Occupancy probability and ``p (1 - p)`` (a Bernoulli variance, as the grid baselines give).
 
         Parameters

@@ -215,7 +215,10 @@ def read_clouds(
         if poses is not None:
             pose_list = read_pose_list(poses)
             if len(pose_list) != len(files):
-                raise InputFormatError(f"holds {len(pose_list)} poses for {len(files)} {suffix.upper()} files; expected one per file", path=str(poses))
+                raise InputFormatError(
+                    f"holds {len(pose_list)} poses for {len(files)} {suffix.upper()} files; expected one per file",
+                    path=str(poses),
+                )
         elif suffix == "ply":
             raise InputFormatError("PLY files carry no sensor pose; give a poses file (poses=, one pose per file)", path=str(p))
         if suffix == "pcd":
@@ -264,7 +267,8 @@ def _describe_3d(path: Path, fmt: str, **options: Any) -> dict[str, Any]:
     if fmt not in ("rosbag1", "rosbag2"):
         options = {k: v for k, v in options.items() if k not in _BAG_OPTIONS}
     clouds = read_clouds(path, **options)
-    hits = [c.points[c.valid() & c.hit] for c in clouds]
+    flags = [np.asarray(c.hit, dtype=bool) for c in clouds]  # never None once a CloudScan is built
+    hits = [c.points[c.valid() & h] for c, h in zip(clouds, flags)]
     n_hits = int(sum(len(h) for h in hits))
     origins = np.array([c.origin for c in clouds])
     times = [c.time for c in clouds if c.time is not None]
@@ -278,7 +282,7 @@ def _describe_3d(path: Path, fmt: str, **options: Any) -> dict[str, Any]:
         "max_range": _as_number(ranges) if ranges else None,
         "n_points": int(sum(c.n_points for c in clouds)),
         "n_hits": n_hits,
-        "n_no_return": int(sum(int((c.valid() & ~c.hit).sum()) for c in clouds)),
+        "n_no_return": sum(int((c.valid() & ~h).sum()) for c, h in zip(clouds, flags)),
         "n_invalid": int(sum(int((~c.valid()).sum()) for c in clouds)),
         "origin_extent": _box(origins.min(axis=0), origins.max(axis=0)),
         "hit_extent": _box(all_hits.min(axis=0), all_hits.max(axis=0)) if all_hits is not None else None,

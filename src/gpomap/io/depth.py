@@ -65,7 +65,9 @@ def read_intrinsics(path: str | os.PathLike[str]) -> NDArray[np.float64]:
             raise InputFormatError(f"has {len(v)} values; expected 3 (row {row + 1} of K)", path=spath, line=lineno)
         k[row] = v
     if not (np.isfinite(k).all() and k[0, 0] > 0 and k[1, 1] > 0 and np.allclose(k[2], [0, 0, 1]) and k[1, 0] == 0):
-        raise InputFormatError(f"camera matrix {k.tolist()} is not [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0", path=spath)
+        raise InputFormatError(
+            f"camera matrix {k.tolist()} is not [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0", path=spath
+        )
     return k
 
 
@@ -83,7 +85,9 @@ def _load_depth(path: Path) -> NDArray[np.uint16]:
     except (OSError, UnidentifiedImageError, ValueError, Image.DecompressionBombError) as exc:
         raise InputFormatError(f"cannot read as an image ({exc})", path=spath) from None
     if a.ndim != 2 or a.min(initial=0) < 0 or a.max(initial=0) > 65535:
-        raise InputFormatError(f"depth image of shape {a.shape} and range {a.min()}..{a.max()}; expected 16-bit values", path=spath)
+        raise InputFormatError(
+            f"depth image of shape {a.shape} and range {a.min()}..{a.max()}; expected 16-bit values", path=spath
+        )
     return a.astype(np.uint16)
 
 

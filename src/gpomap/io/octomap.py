@@ -95,7 +95,7 @@ class Octree:
     @property
     def n_leaves(self) -> int:
         """Number of leaves."""
-        return int(len(self.sizes))
+        return len(self.sizes)
 
     def extent(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Lower and upper corners (x, y, z) of the box holding every leaf, shape (3,) each."""
@@ -134,12 +134,16 @@ def _parse_header(path: str) -> tuple[str, dict[str, str], int]:
         for lineno in range(2, _MAX_HEADER_LINES):
             raw = f.readline(256)
             if not raw:
-                raise InputFormatError("file ends in the header; expected id, size, res and a 'data' line", path=path, line=lineno)
+                raise InputFormatError(
+                    "file ends in the header; expected id, size, res and a 'data' line", path=path, line=lineno
+                )
             offset += len(raw)
             try:
                 line = raw.decode("ascii").strip()
             except UnicodeDecodeError:
-                raise InputFormatError("header line is not text; expected id, size, res or data", path=path, line=lineno) from None
+                raise InputFormatError(
+                    "header line is not text; expected id, size, res or data", path=path, line=lineno
+                ) from None
             if not line or line.startswith("#"):
                 continue
             key, _, value = line.partition(" ")
@@ -227,13 +231,17 @@ def check_octree_file(path: str | os.PathLike[str]) -> tuple[str, float, int]:
         if size < 0:
             raise ValueError
     except ValueError:
-        raise InputFormatError(f"size {values['size']!r}; expected a non-negative integer", path=spath, line=int(values["line_size"])) from None
+        raise InputFormatError(
+            f"size {values['size']!r}; expected a non-negative integer", path=spath, line=int(values["line_size"])
+        ) from None
     try:
         res = float(values["res"])
         if not (np.isfinite(res) and res > 0):
             raise ValueError
     except ValueError:
-        raise InputFormatError(f"res {values['res']!r}; expected a positive number (metres)", path=spath, line=int(values["line_res"])) from None
+        raise InputFormatError(
+            f"res {values['res']!r}; expected a positive number (metres)", path=spath, line=int(values["line_res"])
+        ) from None
     if size == 0:
         return kind, res, 0
     try:
@@ -357,4 +365,3 @@ def write_octree(voxel_map: VoxelMap, path: str | os.PathLike[str]) -> Path:
     with atomic_write(target, "wb") as f:
         f.write(bytes(data))
     return target
-

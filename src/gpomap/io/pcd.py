@@ -26,7 +26,7 @@ import struct
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.clouds import cloud_from_points
+from gpomap.clouds import CloudScan, cloud_from_points
 from gpomap.errors import InputFormatError
 from gpomap.io.checks import regular_file
 from gpomap.io.poses import pose_from_viewpoint, transform_points
@@ -44,7 +44,7 @@ _MAX_HEADER_LINES = 64
 def is_pcd(head: bytes) -> bool:
     """Whether the start of a file looks like a PCD header."""
     text = head[:512].decode("latin-1")
-    return text.startswith("# .PCD") or text.startswith("VERSION") or "\nFIELDS " in text and "\nDATA " in text
+    return text.startswith("# .PCD") or text.startswith("VERSION") or ("\nFIELDS " in text and "\nDATA " in text)
 
 
 def _header(path: str) -> tuple[dict[str, list[str]], int]:
@@ -60,12 +60,16 @@ def _header(path: str) -> tuple[dict[str, list[str]], int]:
             try:
                 line = raw.decode("ascii").strip()
             except UnicodeDecodeError:
-                raise InputFormatError("header line is not text; expected a PCD header (VERSION, FIELDS, ... DATA)", path=path, line=lineno) from None
+                raise InputFormatError(
+                    "header line is not text; expected a PCD header (VERSION, FIELDS, ... DATA)", path=path, line=lineno
+                ) from None
             if not line or line.startswith("#"):
                 continue
             key, *rest = line.split()
             if key not in PCD_KEYS:
-                raise InputFormatError(f"unknown header key {key!r}; expected one of {', '.join(PCD_KEYS)}", path=path, line=lineno)
+                raise InputFormatError(
+                    f"unknown header key {key!r}; expected one of {', '.join(PCD_KEYS)}", path=path, line=lineno
+                )
             if key in values:
                 raise InputFormatError(f"second {key} line", path=path, line=lineno)
             values[key] = rest
@@ -88,7 +92,9 @@ def _ints(values: dict[str, list[str]], key: str, path: str, n: int | None = Non
     try:
         out = [int(v) for v in values[key]]
     except ValueError:
-        raise InputFormatError(f"{key} values must be integers, got {' '.join(values[key])!r}", path=path, line=_line(values, key)) from None
+        raise InputFormatError(
+            f"{key} values must be integers, got {' '.join(values[key])!r}", path=path, line=_line(values, key)
+        ) from None
     if (n is not None and len(out) != n) or any(v < 0 for v in out):
         want = f"{n} non-negative integers" if n is not None else "non-negative integers"
         raise InputFormatError(f"{key} has {' '.join(values[key])!r}; expected {want}", path=path, line=_line(values, key))
@@ -101,12 +107,16 @@ def _check_header(values: dict[str, list[str]], data_offset: int, path: str) -> 
     n_fields = len(fields)
     for name in ("x", "y", "z"):
         if name not in fields:
-            raise InputFormatError(f"FIELDS {' '.join(fields)!r} has no {name!r}; expected x y z among them", path=path, line=_line(values, "FIELDS"))
+            raise InputFormatError(
+                f"FIELDS {' '.join(fields)!r} has no {name!r}; expected x y z among them", path=path, line=_line(values, "FIELDS")
+            )
     sizes = _ints(values, "SIZE", path, n_fields)
     counts = _ints(values, "COUNT", path, n_fields) if "COUNT" in values else [1] * n_fields
     types = values["TYPE"]
     if len(types) != n_fields or any(t not in ("F", "I", "U") for t in types):
-        raise InputFormatError(f"TYPE {' '.join(types)!r}; expected one of F, I, U per field ({n_fields})", path=path, line=_line(values, "TYPE"))
+        raise InputFormatError(
+            f"TYPE {' '.join(types)!r}; expected one of F, I, U per field ({n_fields})", path=path, line=_line(values, "TYPE")
+        )
     for name in ("x", "y", "z"):
         i = fields.index(name)
         if types[i] != "F" or sizes[i] not in (4, 8) or counts[i] != 1:
@@ -119,25 +129,36 @@ def _check_header(values: dict[str, list[str]], data_offset: int, path: str) -> 
     width = _ints(values, "WIDTH", path, 1)[0]
     height = _ints(values, "HEIGHT", path, 1)[0] if "HEIGHT" in values else 1
     if width * height != n_points:
-        raise InputFormatError(f"POINTS {n_points} but WIDTH x HEIGHT = {width} x {height}; expected equal", path=path, line=_line(values, "POINTS"))
+        raise InputFormatError(
+            f"POINTS {n_points} but WIDTH x HEIGHT = {width} x {height}; expected equal", path=path, line=_line(values, "POINTS")
+        )
     encoding = values["DATA"][0].lower() if values["DATA"] else ""
     if encoding not in _ENCODINGS:
-        raise InputFormatError(f"DATA {' '.join(values['DATA'])!r}; expected ascii, binary or binary_compressed", path=path, line=_line(values, "DATA"))
+        raise InputFormatError(
+            f"DATA {' '.join(values['DATA'])!r}; expected ascii, binary or binary_compressed",
+            path=path,
+            line=_line(values, "DATA"),
+        )
     viewpoint = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
     if "VIEWPOINT" in values:
         try:
             viewpoint = np.array([float(v) for v in values["VIEWPOINT"]])
             pose_from_viewpoint(viewpoint)
         except ValueError as exc:
-            raise InputFormatError(f"VIEWPOINT {' '.join(values['VIEWPOINT'])!r}: {exc}", path=path, line=_line(values, "VIEWPOINT")) from None
+            raise InputFormatError(
+                f"VIEWPOINT {' '.join(values['VIEWPOINT'])!r}: {exc}", path=path, line=_line(values, "VIEWPOINT")
+            ) from None
     row = sum(s * c for s, c in zip(sizes, counts))
     n_bytes = n_points * row
     if n_bytes > MAX_PCD_BYTES:
-        raise InputFormatError(f"POINTS {n_points} of {row} bytes each is {n_bytes:,} bytes; at most {MAX_PCD_BYTES:,} are read", path=path)
+        raise InputFormatError(
+            f"POINTS {n_points} of {row} bytes each is {n_bytes:,} bytes; at most {MAX_PCD_BYTES:,} are read", path=path
+        )
     remaining = os.stat(path).st_size - data_offset
     if encoding == "binary" and remaining < n_bytes:
         raise InputFormatError(
-            f"binary data is {remaining:,} bytes; POINTS {n_points} x {row} bytes per point needs {n_bytes:,} (truncated file?)", path=path
+            f"binary data is {remaining:,} bytes; POINTS {n_points} x {row} bytes per point needs {n_bytes:,} (truncated file?)",
+            path=path,
         )
     if encoding == "binary_compressed" and n_points:
         with open(path, "rb") as f:
@@ -222,4 +243,3 @@ def read_pcd(
         time=time,
         meta={"path": spath, "fields": list(values["FIELDS"]), "encoding": values["DATA"][0].lower(), "viewpoint": viewpoint},
     )
-

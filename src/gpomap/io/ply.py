@@ -60,16 +60,18 @@ def read_ply(
     from plyfile import PlyData
 
     if (pose is None) == (origin is None):
-        raise ValueError("read_ply needs the sensor pose (vertices in the sensor frame) or its origin (vertices in the map frame), not both")
+        raise ValueError(
+            "read_ply needs the sensor pose (vertices in the sensor frame) or its origin (vertices in the map frame), not both"
+        )
     p = regular_file(path, "PLY point cloud")
     spath = str(p)
     try:
         with open(p, "rb") as f:
             ply = PlyData.read(f)
-        vertices = ply["vertex"] if "vertex" in ply else None
-        if vertices is None:
+        if "vertex" not in ply:
             names = ", ".join(e.name for e in ply.elements) or "(none)"
             raise InputFormatError(f"no 'vertex' element (elements: {names}); expected a point cloud", path=spath)
+        vertices = ply["vertex"]
         props = vertices.data.dtype.names or ()
         missing = [k for k in ("x", "y", "z") if k not in props]
         if missing:

@@ -49,14 +49,20 @@ def _xyz(msg: Any, topic: str, path: str) -> NDArray[np.float64]:
     fields = {f.name: f for f in msg.fields}
     missing = [k for k in ("x", "y", "z") if k not in fields]
     if missing:
-        names = ", ".join(fields) or "(none)"
-        raise InputFormatError(f"PointCloud2 on {topic} has no field {', '.join(missing)} (fields: {names}); expected x, y, z", path=path)
+        listed = ", ".join(fields) or "(none)"
+        raise InputFormatError(
+            f"PointCloud2 on {topic} has no field {', '.join(missing)} (fields: {listed}); expected x, y, z", path=path
+        )
     order = ">" if msg.is_bigendian else "<"
-    names, formats, offsets = [], [], []
+    names: list[str] = []
+    formats: list[str] = []
+    offsets: list[int] = []
     for k in ("x", "y", "z"):
         f = fields[k]
         if f.datatype not in _FLOAT_TYPES:
-            raise InputFormatError(f"PointCloud2 on {topic}: field {k!r} has datatype {f.datatype}; expected FLOAT32 (7) or FLOAT64 (8)", path=path)
+            raise InputFormatError(
+                f"PointCloud2 on {topic}: field {k!r} has datatype {f.datatype}; expected FLOAT32 (7) or FLOAT64 (8)", path=path
+            )
         names.append(k)
         formats.append(order + _FLOAT_TYPES[f.datatype])
         offsets.append(int(f.offset))
@@ -67,7 +73,9 @@ def _xyz(msg: Any, topic: str, path: str) -> NDArray[np.float64]:
     if dtype is None or not fits or row < w * step or data.size < h * row:
         raise InputFormatError(
             f"PointCloud2 on {topic}: {data.size} data bytes for height {h}, width {w}, point_step {step}, row_step {row} "
-            "(fields at offsets " + ", ".join(map(str, offsets)) + "); expected height x row_step bytes and fields inside each point",
+            "(fields at offsets "
+            + ", ".join(map(str, offsets))
+            + "); expected height x row_step bytes and fields inside each point",
             path=path,
         )
     rows = data[: h * row].reshape(h, row)[:, : w * step]
@@ -134,7 +142,10 @@ def read_pointcloud2(
             )
         tf_conns = [c for c in conns if c.topic in _TF_TOPICS]
         if not tf_conns:
-            raise InputFormatError(f"no /tf or /tf_static messages to take the cloud poses from; topics in the bag: {_topics_text(conns)}", path=spath)
+            raise InputFormatError(
+                f"no /tf or /tf_static messages to take the cloud poses from; topics in the bag: {_topics_text(conns)}",
+                path=spath,
+            )
         where = "reading /tf"
         try:
             read_tf(reader, tf_conns, tree)
@@ -180,6 +191,12 @@ def read_pointcloud2(
         x, y, z, qx, qy, qz, qw = poses[i]
         m = pose_matrix(quaternion_matrix(qw, qx, qy, qz), np.array([x, y, z]))
         clouds.append(
-            cloud_from_points(m[:3, 3], transform_points(m, points[i]), max_range=max_range, time=stamps[i], meta={"frame_id": frames[i], "topic": topic})
+            cloud_from_points(
+                m[:3, 3],
+                transform_points(m, points[i]),
+                max_range=max_range,
+                time=stamps[i],
+                meta={"frame_id": frames[i], "topic": topic},
+            )
         )
     return clouds

@@ -314,7 +314,9 @@ def read_tf(reader: Any, connections: list[Any], tree: TfTree) -> None:
         msg: Any = reader.deserialize(raw, c.msgtype)
         static = c.topic.lstrip("/") == "tf_static"
         for tr in msg.transforms:
-            tree.add(_frame(tr.header.frame_id), _frame(tr.child_frame_id), _stamp(tr.header.stamp), _transform(tr.transform), static)
+            tree.add(
+                _frame(tr.header.frame_id), _frame(tr.child_frame_id), _stamp(tr.header.stamp), _transform(tr.transform), static
+            )
 
 
 def open_bag(path: Path) -> Any:

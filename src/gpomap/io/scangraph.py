@@ -78,7 +78,9 @@ def read_scangraph(path: str | os.PathLike[str], max_range: float | None = None)
 
     def need(pos: int, n: int, what: str) -> None:
         if pos + n > len(data):
-            raise InputFormatError(f"file ends at byte {len(data):,} inside {what}; expected {n} more bytes at byte {pos:,}", path=spath)
+            raise InputFormatError(
+                f"file ends at byte {len(data):,} inside {what}; expected {n} more bytes at byte {pos:,}", path=spath
+            )
 
     need(0, 4, "the node count")
     (n_nodes,) = struct.unpack_from("<I", data, 0)
@@ -94,13 +96,16 @@ def read_scangraph(path: str | os.PathLike[str], max_range: float | None = None)
         if n_points and (pts["n"] != 3).any():
             bad = int(np.flatnonzero(pts["n"] != 3)[0])
             raise InputFormatError(
-                f"node {node}, point {bad}: element count {int(pts['n'][bad])}; expected 3 (x, y, z) (not a ScanGraph?)", path=spath
+                f"node {node}, point {bad}: element count {int(pts['n'][bad])}; expected 3 (x, y, z) (not a ScanGraph?)",
+                path=spath,
             )
         need(pos, _POSE.size, f"node {node}'s pose")
         n3, tx, ty, tz, n4, qw, qx, qy, qz = _POSE.unpack_from(data, pos)
         pos += _POSE.size
         if n3 != 3 or n4 != 4:
-            raise InputFormatError(f"node {node}'s pose has element counts {n3} and {n4}; expected 3 (translation) and 4 (quaternion)", path=spath)
+            raise InputFormatError(
+                f"node {node}'s pose has element counts {n3} and {n4}; expected 3 (translation) and 4 (quaternion)", path=spath
+            )
         try:
             pose = pose_matrix(quaternion_matrix(qw, qx, qy, qz), np.array([tx, ty, tz]))
         except ValueError as exc:
@@ -112,7 +117,9 @@ def read_scangraph(path: str | os.PathLike[str], max_range: float | None = None)
         pos += 4
         xyz = np.column_stack([pts["x"], pts["y"], pts["z"]])
         clouds.append(
-            cloud_from_points(pose[:3, 3], transform_points(pose, xyz), max_range=max_range, meta={"path": spath, "node": node, "id": node_id})
+            cloud_from_points(
+                pose[:3, 3], transform_points(pose, xyz), max_range=max_range, meta={"path": spath, "node": node, "id": node_id}
+            )
         )
     need(pos, 4, "the edge count")
     if not clouds:

@@ -93,7 +93,8 @@ def load_voxels(path: str | os.PathLike[str]) -> VoxelMap:
         raise InputFormatError(f"array 'origin' must have shape (3,), got {data['origin'].shape}", path=name)
     try:
         info = json.loads(str(data["info"])) if "info" in data else {}
-        spec = VoxelSpec(tuple(data["origin"].astype(float)), float(data["resolution"]), p.shape)  # type: ignore[arg-type]
+        o = data["origin"].astype(float)
+        spec = VoxelSpec((o[0], o[1], o[2]), float(data["resolution"]), (p.shape[0], p.shape[1], p.shape[2]))
         variance = np.asarray(data["variance"], dtype=float) if "variance" in data else None
         lo, hi = (float(t) for t in data["thresholds"])
         return VoxelMap(spec, p, variance=variance, thresholds=(lo, hi), info=info if isinstance(info, dict) else {})
@@ -152,11 +153,14 @@ def plot_slices(voxel_map: VoxelMap, heights: Sequence[float] | None = None, tit
     image = None
     for ax, z in zip(axes[0], zs):
         k = spec.slice_index(z)
-        image = ax.imshow(voxel_map.probability[k], origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="gray_r", vmin=0, vmax=1)
+        image = ax.imshow(
+            voxel_map.probability[k], origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="gray_r", vmin=0, vmax=1
+        )
         ax.set_title(f"z = {spec.axis_centres('z')[k]:.2f} m")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
-    fig.colorbar(image, ax=axes[0].tolist(), label="occupancy probability", shrink=0.8)
+    if image is not None:
+        fig.colorbar(image, ax=axes[0].tolist(), label="occupancy probability", shrink=0.8)
     if title:
         fig.suptitle(title)
     return fig
