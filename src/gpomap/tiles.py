@@ -109,6 +109,7 @@ class TileState:
     weights: NDArray[np.float64]
     hyperparameters: dict[str, float]
     seconds: float
+    jitter: float = 0.0
 
     def supports(self) -> Supports:
         """The training cells as GP inputs."""
@@ -133,6 +134,46 @@ def _area_kernel(settings: dict[str, Any], variance: float, length_scale: float)
 def _noise_vector(settings: dict[str, Any], noise: float, counts: NDArray[np.float64]) -> NDArray[np.float64]:
     scale = 1.0 / np.maximum(counts, 1.0) if settings["noise_model"] == "per_count" else np.ones(counts.size)
     return np.exp(np.log(noise)) * scale
+
+
+def _box_keys(lower: NDArray[np.float64], upper: NDArray[np.float64]) -> list[bytes]:
+    return [row.tobytes() for row in np.ascontiguousarray(np.concatenate([lower, upper], axis=1))]
+
+
+def _gram_reusing(
+    kern: AreaKernel, X: Supports, previous: TileState, settings: dict[str, Any], noise: float
+) -> NDArray[np.float64] | None:
+    """K(X, X), with the entries of cells the previous fit of this tile had copied from it.
+
+    The previous covariance is recovered from its factor (``L L^T`` less its noise and jitter):
+    a few matrix products instead of the kernel's quadrature, which is most of a tile fit. The
+    copied entries carry rounding of about 1e-15 relative; :meth:`TiledGPOM.refresh` with
+    ``exact=True`` refits without them. None when nothing can be reused (a kernel whose entries
+    depend on more than the boxes, other hyperparameters, or no cell in common).
+    """
+    if settings["area"] == "summed" or settings["normalisation"] == "sum" or previous.hyperparameters.get("length_scale") is None:
+        return None
+    old_index = {k: i for i, k in enumerate(_box_keys(previous.lower, previous.upper))}
+    new_keys = _box_keys(X.lower, X.upper)
+    pairs = [(j, old_index[k]) for j, k in enumerate(new_keys) if k in old_index]
+    if len(pairs) < 0.5 * len(new_keys):
+        return None
+    keep_new = np.array([j for j, _ in pairs], dtype=np.intp)
+    keep_old = np.array([i for _, i in pairs], dtype=np.intp)
+    Lk = previous.L[keep_old]
+    K = np.empty((len(X), len(X)))
+    old_diag = _noise_vector(settings, previous.hyperparameters["noise"], previous.counts[keep_old]) + previous.jitter
+    K_old = Lk @ Lk.T
+    K_old[np.diag_indices_from(K_old)] -= old_diag
+    K[np.ix_(keep_new, keep_new)] = K_old
+    fresh = np.setdiff1d(np.arange(len(X)), keep_new)
+    if fresh.size:
+        rows = kern(X.subset(fresh), X)
+        K[fresh, :] = rows
+        K[:, fresh] = rows.T
+        # The fresh-fresh block as the full Gram would give it (symmetrised).
+        K[np.ix_(fresh, fresh)] = kern(X.subset(fresh))
+    return K
 
 
 def fit_tile_task(payload: dict[str, Any]) -> TileState:
@@ -172,7 +213,7 @@ def fit_tile_task(payload: dict[str, Any]) -> TileState:
         )
         gp.squash = ProbitSquash(hyp["alpha"], hyp["beta"])
         gp.fit(X, y)
-        L, weights = gp.L_, gp.alpha_
+        L, weights, jitter = gp.L_, gp.alpha_, 0.0
         hyp = {
             "variance": gp.kernel.base.variance,
             "length_scale": gp.kernel.base.length_scale,
@@ -183,9 +224,15 @@ def fit_tile_task(payload: dict[str, Any]) -> TileState:
     else:
         # Fixed hyperparameters: one factorisation, no leave-one-out pass (alpha and beta are
         # global), which halves the work of SupportGP.fit.
-        K = kern(X)
+        previous = payload.get("previous")
+        same_hyp = previous is not None and all(
+            previous.hyperparameters.get(n) == hyp[n] for n in ("variance", "length_scale", "noise")
+        )
+        K = _gram_reusing(kern, X, previous, st, hyp["noise"]) if previous is not None and same_hyp else None
+        if K is None:
+            K = kern(X)
         K[np.diag_indices_from(K)] += _noise_vector(st, hyp["noise"], X.counts)
-        L, _ = robust_cholesky(K)
+        L, jitter = robust_cholesky(K)
         weights = cho_solve((L, True), y, check_finite=False)
     return TileState(
         key=tuple(payload["key"]),
@@ -198,6 +245,7 @@ def fit_tile_task(payload: dict[str, Any]) -> TileState:
         weights=weights,
         hyperparameters={k: float(v) for k, v in hyp.items()},
         seconds=time.perf_counter() - t0,
+        jitter=jitter,
     )
 
 
@@ -308,6 +356,21 @@ class _BlockCells:
     member_offsets: NDArray[np.intp] | None
 
 
+class _BlockPoints:
+    """The observation points of one block in arrival order; updates append, reads join them once."""
+
+    def __init__(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
+        self._parts = [(points, occupied)]
+
+    def append(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
+        self._parts.append((points, occupied))
+
+    def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        if len(self._parts) > 1:
+            self._parts = [(np.concatenate([p for p, _ in self._parts]), np.concatenate([o for _, o in self._parts]))]
+        return self._parts[0]
+
+
 # --------------------------------------------------------------------------- estimator
 class TiledGPOM:
     """MSK-GPOM over tiles, for maps larger than one GP can hold.
@@ -348,6 +411,14 @@ class TiledGPOM:
         length_scale, noise, optimise, ...). ``optimise=False`` keeps the given variance,
         length scale and noise; alpha and beta are then still fitted once on the sample.
     """
+
+    # Set by fit: the observation points per block, their cell trees, and the points' extent.
+    _block_points: dict[int, _BlockPoints]
+    _blocks: dict[int, _BlockCells]
+    _lower: NDArray[np.float64] | None
+    _upper: NDArray[np.float64] | None
+    _n_points: int
+    _n_occupied_points: int
 
     def __init__(
         self,
@@ -412,7 +483,8 @@ class TiledGPOM:
 
     # ------------------------------------------------------------------ geometry
     def _block_keys(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
-        ij = np.floor((points - np.asarray(self.origin)) / self.tile_size).astype(np.int64)
+        # Tiles are squares in x, y; in 3-D they are columns spanning every height.
+        ij = np.floor((points[:, :2] - np.asarray(self.origin)) / self.tile_size).astype(np.int64)
         return (ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET)
 
     @staticmethod
@@ -429,10 +501,11 @@ class TiledGPOM:
         return x0, x0 + self.tile_size, y0, y0 + self.tile_size
 
     # ------------------------------------------------------------------ cells
-    def _build_block(self, idx: NDArray[np.intp]) -> _BlockCells:
+    def _build_block(self, key: int) -> _BlockCells:
         b = self.base
-        idx = idx[~free_near_hits(self._points[idx], self._occupied[idx], self._clearance)]
-        c = build_cells(self._points[idx], self._occupied[idx], b.min_cell, b.max_cell, b.cell_box)
+        points, occupied = self._block_points[key].arrays()
+        keep = ~free_near_hits(points, occupied, self._clearance)
+        c = build_cells(points[keep], occupied[keep], b.min_cell, b.max_cell, b.cell_box)
         summed = b.area_method == "summed"
         return _BlockCells(
             lower=c.lower,
@@ -444,18 +517,37 @@ class TiledGPOM:
             member_offsets=c.member_offsets if summed else None,
         )
 
+    def _add_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> set[int]:
+        """File points under their blocks (in observation order within each); returns the blocks touched."""
+        keys = self._block_keys(points)
+        order = np.argsort(keys, kind="stable")  # stable: keeps observation order per block
+        sk = keys[order]
+        cuts = np.flatnonzero(np.diff(sk)) + 1
+        touched = set()
+        for grp in np.split(order, cuts):
+            if grp.size == 0:
+                continue
+            k = int(keys[grp[0]])
+            if k in self._block_points:
+                self._block_points[k].append(points[grp], occupied[grp])
+            else:
+                self._block_points[k] = _BlockPoints(points[grp], occupied[grp])
+            touched.add(k)
+        if points.shape[0]:
+            lo, hi = points.min(axis=0), points.max(axis=0)
+            self._lower = lo if self._lower is None else np.minimum(self._lower, lo)
+            self._upper = hi if self._upper is None else np.maximum(self._upper, hi)
+        self._n_points += int(points.shape[0])
+        self._n_occupied_points += int(occupied.sum())
+        return touched
+
     def _build_blocks(self, keys: Sequence[int] | None = None) -> None:
         """(Re)build the cell trees of the given blocks (all when None)."""
         if keys is None:
-            order = np.argsort(self._keys, kind="stable")  # stable: keeps observation order per block
-            sk = self._keys[order]
-            cuts = np.flatnonzero(np.diff(sk)) + 1
             self._blocks = {}
-            for grp in np.split(order, cuts):
-                self._blocks[int(self._keys[grp[0]])] = self._build_block(grp)
-            return
+            keys = list(self._block_points)
         for k in keys:
-            self._blocks[int(k)] = self._build_block(np.flatnonzero(self._keys == k))
+            self._blocks[int(k)] = self._build_block(int(k))
 
     def _reach(self) -> int:
         return max(1, math.ceil(self.overlap_ / self.tile_size - 1e-12))
@@ -769,7 +861,9 @@ class TiledGPOM:
         b = self.base
         return observations_from_scans(scans, b.free_step, b.hit_margin, b.no_return_cap)
 
-    def _fit_jobs(self, tiles: Sequence[tuple[int, int]]) -> tuple[list, dict[tuple[int, int], dict[str, Any]]]:
+    def _fit_jobs(
+        self, tiles: Sequence[tuple[int, int]], reuse: bool = False
+    ) -> tuple[list, dict[tuple[int, int], dict[str, Any]]]:
         settings = self._settings()
         jobs, gathered = [], {}
         for t in tiles:
@@ -777,7 +871,10 @@ class TiledGPOM:
             if g is None:
                 continue
             gathered[t] = g
-            jobs.append((t, ({"key": t, **g, "settings": settings, "hyperparameters": self.hyperparameters_},)))
+            payload = {"key": t, **g, "settings": settings, "hyperparameters": self.hyperparameters_}
+            if reuse and t in self.tiles_:
+                payload["previous"] = self.tiles_[t]
+            jobs.append((t, (payload,)))
         return jobs, gathered
 
     def fit(self, data: Sequence[Scan] | Observations, hyperparameters: dict[str, float] | None = None) -> TiledGPOM:
@@ -811,15 +908,20 @@ class TiledGPOM:
             raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
         # As in AreaGPOM: the clearance applies to points sampled from scans, not to given points.
         self._clearance = 0.0 if isinstance(data, Observations) else float(self.base.free_clearance)
-        self._points = np.asarray(obs.points, dtype=float)
-        self._occupied = np.asarray(obs.occupied, dtype=bool)
+        self._block_points = {}
+        self._blocks = {}
+        self._lower = None
+        self._upper = None
+        self._n_points = self._n_occupied_points = 0
+        self._dim = int(obs.points.shape[1])
+        self._dirty: set[int] = set()
         self._n_scans = int(obs.scan_index.max()) + 1 if obs.scan_index.size else 0
         self._n_invalid, self._n_no_return = obs.n_invalid, obs.n_no_return
         self.path_ = None if isinstance(data, Observations) else np.array([s.pose[:2] for s in data])
         timings["observations"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        self._keys = self._block_keys(self._points)
+        self._add_points(np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool))
         self._build_blocks()
         timings["cells"] = time.perf_counter() - t
 
@@ -849,6 +951,8 @@ class TiledGPOM:
         timings["total_fit"] = time.perf_counter() - t0
         self.timings_ = timings
         self.last_refit_: list[tuple[int, int]] = sorted(self.tiles_)
+        self._stale: dict[tuple[int, int], None] = {}
+        self._reused: set[tuple[int, int]] = set()  # tiles last fitted reusing covariances
         return self
 
     def _make_evidence(self) -> EvidenceLayer | None:
@@ -873,11 +977,11 @@ class TiledGPOM:
         return (g["lower"].tobytes(), g["upper"].tobytes(), g["counts"].tobytes(), g["labels"].tobytes())
 
     def update(self, scans: Sequence[Scan]) -> TiledGPOM:
-        """Add scans: rebuild the cells of the blocks they touch and refit only the tiles whose
-        cell sets changed, with the hyperparameters kept fixed.
+        """Add scans: rebuild the cells of the blocks they touch, refit only the tiles whose cell
+        sets changed (hyperparameters kept fixed), and refit the ray evidence's calibration.
 
         For fixed hyperparameters the result equals ``fit(old + new)`` (cells depend only on their
-        own block's points, and a tile's GP only on its cell set).
+        own block's points, a tile's GP only on its cell set, and the ray counts add over scans).
 
         Parameters
         ----------
@@ -888,45 +992,124 @@ class TiledGPOM:
         self
         """
         with self._connected():
-            return self._fit(scans, None) if not hasattr(self, "tiles_") else self._update(scans)
+            if not hasattr(self, "tiles_"):
+                return self._fit(scans, None)
+            self._absorb(scans)
+            self._refresh(None, exact=True)
+            if self.evidence_ is not None:
+                t = time.perf_counter()
+                self.evidence_.recalibrate(self.predict_proba_gp)
+                self.timings_["update_calibration"] = time.perf_counter() - t
+            return self
 
-    def _update(self, scans: Sequence[Scan]) -> TiledGPOM:
+    def absorb(self, scans: Sequence[Scan]) -> set[tuple[int, int]]:
+        """Take in scans at a cost proportional to them: their points are filed under their
+        blocks and their rays counted, but no cell tree is rebuilt and no tile refitted until
+        :meth:`refresh`. Predictions use the new ray counts at once, over the GP as it was.
+
+        Parameters
+        ----------
+        scans : sequence of Scan
+
+        Returns
+        -------
+        set of (int, int)
+            The blocks waiting for :meth:`refresh` (the new ones and any left before).
+        """
+        self._check_fitted()
+        if not isinstance(self._scans, list):
+            raise ValueError("absorb() needs a map fitted on scans, not on labelled points")
+        self._absorb(scans)
+        return {self._decode(k) for k in self._dirty}
+
+    def _absorb(self, scans: Sequence[Scan]) -> None:
         t0 = time.perf_counter()
-        obs = self._observations(scans)
-        self._points = np.concatenate([self._points, obs.points])
-        self._occupied = np.concatenate([self._occupied, obs.occupied])
-        new_keys = self._block_keys(obs.points)
-        self._keys = np.concatenate([self._keys, new_keys])
+        scans = list(scans)
+        if not scans:
+            return
+        try:
+            obs = self._observations(scans)
+        except EmptyDataError:  # scans with no usable beam add a pose to the path and nothing else
+            obs = None
+        if obs is not None:
+            self._dirty |= self._add_points(np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool))
+            self._n_invalid += obs.n_invalid
+            self._n_no_return += obs.n_no_return
         self._n_scans += len(scans)
-        self._n_invalid += obs.n_invalid
-        self._n_no_return += obs.n_no_return
         path = np.array([s.pose[:2] for s in scans]).reshape(-1, 2)
         self.path_ = path if self.path_ is None else np.concatenate([self.path_, path])
-        changed = np.unique(new_keys)
-        self._build_blocks(changed.tolist())
+        t1 = time.perf_counter()
+        if self._scans is not None:
+            self._scans.extend(scans)
+            if self.evidence_ is not None:
+                self.evidence_.add_scans(scans)
+        self.timings_["absorb_points"] = t1 - t0
+        self.timings_["absorb_evidence"] = time.perf_counter() - t1
+
+    def refresh(self, max_tiles: int | None = None, exact: bool = False) -> list[tuple[int, int]]:
+        """Rebuild the cells of the blocks absorbed since the last refresh and refit the tiles
+        whose cell sets changed.
+
+        Parameters
+        ----------
+        max_tiles : int, optional
+            Refit at most this many tiles now, those waiting longest first; the rest stay
+            waiting for the next call (a bounded cost per call when data arrive faster than
+            tiles can be refitted). Default: all.
+        exact : bool
+            Compute every covariance afresh, and refit the tiles an earlier refresh fitted by
+            reusing covariances. Without it a tile reuses the covariances of the cells it had
+            before (most of a refit's work), which changes its GP by rounding only (~1e-15
+            relative); with it the map is the batch map of the same scans to the last bits.
+
+        Returns
+        -------
+        list of (int, int)
+            The tiles refitted.
+        """
+        self._check_fitted()
+        with self._connected():
+            return self._refresh(max_tiles, exact)
+
+    @property
+    def pending_tiles_(self) -> int:
+        """Work waiting for :meth:`refresh`: blocks absorbed and not yet rebuilt, plus tiles not yet refitted."""
+        return len(self._stale) + len(self._dirty)
+
+    def _refresh(self, max_tiles: int | None, exact: bool) -> list[tuple[int, int]]:
+        t0 = time.perf_counter()
+        changed = sorted(self._dirty)
+        self._build_blocks(changed)
+        self._dirty = set()
         t1 = time.perf_counter()
         r = self._reach()
-        candidates = set()
         for k in changed:
             ix, iy = self._decode(int(k))
             for dx in range(-r, r + 1):
                 for dy in range(-r, r + 1):
-                    if self._encode(ix + dx, iy + dy) in self._blocks:
-                        candidates.add((ix + dx, iy + dy))
-        jobs, gathered = self._fit_jobs(sorted(candidates))
-        todo = [j for j in jobs if self._signatures.get(j[0]) != self._signature(gathered[j[0]])]
+                    t = (ix + dx, iy + dy)
+                    if self._encode(*t) in self._blocks and t not in self._stale:
+                        self._stale[t] = None  # dict as an ordered set: oldest first
+        if exact:
+            for t in self._reused:
+                self._stale.setdefault(t, None)
+        waiting = list(self._stale)
+        take = waiting if max_tiles is None else waiting[: max(0, int(max_tiles))]
+        jobs, gathered = self._fit_jobs(take, reuse=not exact)
+        todo = [j for j in jobs if j[0] in self._reused or self._signatures.get(j[0]) != self._signature(gathered[j[0]])]
         self.tiles_.update(self._run(fit_tile_task, todo, "tile fit", "refitting tiles"))
-        for key, _ in todo:
+        for key, payload in todo:
             self._signatures[key] = self._signature(gathered[key])
+            if "previous" in payload[0]:
+                self._reused.add(key)
+            else:
+                self._reused.discard(key)
+        for t in take:
+            del self._stale[t]
         self.last_refit_ = sorted(k for k, _ in todo)
         self.timings_["update_cells"] = t1 - t0
         self.timings_["update_tile_fits"] = time.perf_counter() - t1
-        if self._scans is not None:
-            t2 = time.perf_counter()
-            self._scans.extend(scans)
-            self.evidence_ = self._make_evidence()
-            self.timings_["update_evidence"] = time.perf_counter() - t2
-        return self
+        return self.last_refit_
 
     # ------------------------------------------------------------------ prediction
     def _check_fitted(self) -> None:
@@ -1075,7 +1258,8 @@ class TiledGPOM:
         """
         self._check_fitted()
         if extent is None:
-            lo, hi = self._points.min(axis=0), self._points.max(axis=0)
+            assert self._lower is not None and self._upper is not None
+            lo, hi = self._lower, self._upper
             extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
         spec = GridSpec.from_extent(extent, resolution)
         t = time.perf_counter()
@@ -1125,8 +1309,8 @@ class TiledGPOM:
                 "max": float(secs.max()),
                 "sum": float(secs.sum()),
             },
-            "n_points": int(self._points.shape[0]),
-            "n_occupied_points": int(self._occupied.sum()),
+            "n_points": self._n_points,
+            "n_occupied_points": self._n_occupied_points,
             "n_scans": self._n_scans,
             "n_invalid_readings": self._n_invalid,
             "n_no_return_readings": self._n_no_return,
