@@ -5,12 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gpomap import lattice
+from gpomap.clouds import CloudScan
 from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.fusion import EvidenceCalibration, calibration_points, fit_calibration, gp_sampling_factor
 from gpomap.grid import GridSpec, coarse_grid, interpolate_to
 from gpomap.mapping import AreaGPOM
 from gpomap.scans import Scan
 from gpomap.simulate import paper_room_scans
+from gpomap.voxels import VoxelSpec
 
 
 def _scan(x: float, y: float, angles: list[float], ranges: list[float], max_range: float = 5.0) -> Scan:
@@ -18,34 +21,53 @@ def _scan(x: float, y: float, angles: list[float], ranges: list[float], max_rang
 
 
 GRID = GridSpec((0.0, 0.0), 0.1, (3, 20))
+# The same row of cells in 3-D: voxels [iz, iy, ix], the rays run along x at y = 0.15, z = 0.25.
+VOXELS = VoxelSpec((0.0, 0.0, 0.0), 0.1, (4, 3, 20))
 
 
-def test_counts_along_one_beam_by_hand() -> None:
-    # From the centre of cell (1, 0) along +x to x = 1.05: crosses cells 0..9 of row 1, ends in 10.
-    s = _scan(0.05, 0.15, [0.0], [1.0])
-    hits, misses = RayEvidence.from_scans([s]).counts(GRID)
-    assert hits.sum() == 1 and hits[1, 10] == 1
-    assert misses[1, :10].tolist() == [1] * 10 and misses.sum() == 10
+def _along_x(dim: int, ranges: list[float], max_range: float = 5.0, y: float = 0.15) -> Scan | CloudScan:
+    """Beams (rays) from the centre of cell 0 along +x: a planar scan, or a cloud at z = 0.25."""
+    if dim == 2:
+        return _scan(0.05, y, [0.0] * len(ranges), ranges, max_range)
+    o = np.array([0.05, y, 0.25])
+    r = np.array(ranges)
+    return CloudScan(o, o + np.column_stack([r, 0 * r, 0 * r]), hit=r < max_range, max_range=max_range)
 
 
-def test_one_update_per_cell_per_scan_and_hit_wins() -> None:
-    # Two beams of one scan: one ends in cell (1, 5), the other passes through it to cell 12.
-    s = _scan(0.05, 0.15, [0.0, 0.0], [0.5, 1.2])
-    hits, misses = RayEvidence.from_scans([s]).counts(GRID)
-    assert hits[1, 5] == 1 and misses[1, 5] == 0  # the hit wins over the same scan's miss
-    assert hits[1, 12] == 1
-    assert misses[1, 0:5].tolist() == [1] * 5  # crossed by both beams, counted once
+def _row(a: np.ndarray, dim: int) -> np.ndarray:
+    """The row of cells the rays run along (y index 1; z index 2 in 3-D)."""
+    return a[1] if dim == 2 else a[2, 1]
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_counts_along_one_beam_by_hand(dim: int) -> None:
+    # From the centre of cell 0 along +x to x = 1.05: crosses cells 0..9 of the row, ends in 10.
+    hits, misses = RayEvidence.from_scans([_along_x(dim, [1.0])]).counts(GRID if dim == 2 else VOXELS)
+    assert hits.sum() == 1 and _row(hits, dim)[10] == 1
+    assert _row(misses, dim)[:10].tolist() == [1] * 10 and misses.sum() == 10
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_one_update_per_cell_per_scan_and_hit_wins(dim: int) -> None:
+    # Two beams of one scan: one ends in cell 5, the other passes through it to cell 12.
+    s = _along_x(dim, [0.5, 1.2])
+    grid = GRID if dim == 2 else VOXELS
+    hits, misses = RayEvidence.from_scans([s]).counts(grid)
+    assert _row(hits, dim)[5] == 1 and _row(misses, dim)[5] == 0  # the hit wins over the same scan's miss
+    assert _row(hits, dim)[12] == 1
+    assert _row(misses, dim)[0:5].tolist() == [1] * 5  # crossed by both beams, counted once
     # The same scan twice: every count doubles.
-    h2, m2 = RayEvidence.from_scans([s, s]).counts(GRID)
+    h2, m2 = RayEvidence.from_scans([s, s]).counts(grid)
     np.testing.assert_array_equal(h2, 2 * hits)
     np.testing.assert_array_equal(m2, 2 * misses)
 
 
-def test_no_return_beam_gives_misses_to_the_cap_and_no_hit() -> None:
-    s = _scan(0.05, 0.15, [0.0], [5.0], max_range=5.0)
-    hits, misses = RayEvidence.from_scans([s], no_return_cap=0.7).counts(GRID)
+@pytest.mark.parametrize("dim", [2, 3])
+def test_no_return_beam_gives_misses_to_the_cap_and_no_hit(dim: int) -> None:
+    s = _along_x(dim, [5.0], max_range=5.0)
+    hits, misses = RayEvidence.from_scans([s], no_return_cap=0.7).counts(GRID if dim == 2 else VOXELS)
     assert hits.sum() == 0
-    assert misses[1, :8].tolist() == [1] * 8 and misses.sum() == 8
+    assert _row(misses, dim)[:8].tolist() == [1] * 8 and misses.sum() == 8
 
 
 def test_counts_add_over_scans_and_batches(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -68,7 +90,9 @@ def test_counts_add_over_scans_and_batches(monkeypatch: pytest.MonkeyPatch) -> N
 def test_lattice_cells_do_not_depend_on_the_extent() -> None:
     a = lattice_grid((0.12, 3.0, -1.0, 2.0), 0.05)
     b = lattice_grid((-2.0, 3.0, -1.3, 2.0), 0.05)
-    for g in (a, b):
+    c = lattice_grid((0.12, 3.0, -1.0, 2.0, 0.33, 1.0), 0.05)
+    assert isinstance(c, VoxelSpec) and c.shape[0] == 14
+    for g in (a, b, c):
         k = np.array(g.origin) / 0.05
         np.testing.assert_allclose(k, np.round(k), atol=1e-9)
 
@@ -96,10 +120,11 @@ def test_calibration_points_follow_the_protocol() -> None:
     np.testing.assert_allclose(along_y, np.arange(1, 6) * 0.1)
 
 
-def test_leave_one_scan_out_removes_the_scans_own_counts() -> None:
+@pytest.mark.parametrize("dim", [2, 3])
+def test_leave_one_scan_out_removes_the_scans_own_counts(dim: int) -> None:
     # Two scans from different poses; the calibration points of scan 0 must see scan 1's counts only.
-    a = _scan(0.05, 0.15, [0.0], [1.0])
-    b = _scan(0.05, 0.25, [0.0], [1.5])
+    a = _along_x(dim, [1.0])
+    b = _along_x(dim, [1.5], y=0.25)
     ev = RayEvidence.from_scans([a, b])
     seen = {}
 
@@ -107,7 +132,7 @@ def test_leave_one_scan_out_removes_the_scans_own_counts() -> None:
         seen["points"] = points
         return np.full(len(points), 0.5)
 
-    _, report = fit_calibration([a, b], ev, GRID, predict_gp, n_scans=2, step=0.1)
+    _, report = fit_calibration([a, b], ev, GRID if dim == 2 else VOXELS, predict_gp, n_scans=2, step=0.1)
     assert report["n_points"] > 0
     # With only the other scan's counts, each scan's hit cell has no hit: a leaked count would
     # make hits certain and drive the log loss to near zero.
@@ -157,12 +182,29 @@ def test_bilinear_interpolation_is_exact_on_a_plane() -> None:
     got = interpolate_to(plane(coarse.centres()).reshape(coarse.shape), coarse, fine)
     np.testing.assert_allclose(got.ravel(), plane(fine.centres()), atol=1e-12)
     assert coarse_grid(fine, 1) == fine
+    # The dimension-free versions: the same in 2-D, and trilinear (exact on a plane) in 3-D.
+    assert lattice.coarse(fine, 4) == coarse
+    np.testing.assert_array_equal(lattice.grid_centres(fine), fine.centres())
+    vox = VoxelSpec((-1.0, 2.0, 0.3), 0.05, (11, 37, 53))
+    big = lattice.coarse(vox, 3)
+    assert isinstance(big, VoxelSpec)
+    plane3 = lambda p: 0.3 + 2.0 * p[:, 0] - 0.7 * p[:, 1] + 1.1 * p[:, 2]  # noqa: E731
+    got3 = lattice.interpolate(plane3(big.centres()).reshape(big.shape), big, vox)
+    np.testing.assert_allclose(got3.ravel(), plane3(vox.centres()), atol=1e-12)
+    np.testing.assert_array_equal(lattice.grid_centres(vox), vox.centres())
 
 
 def test_gp_sampling_factor() -> None:
     assert gp_sampling_factor(0.3, 0.05) == 2  # 0.1 m apart
     assert gp_sampling_factor(0.1, 0.05) == 1
     assert gp_sampling_factor(5.0, 0.05) == 4  # capped
+
+
+def test_path_passes_in_3d_follow_the_sensor() -> None:
+    # A sensor moved along x at y = 0.15, z = 0.25 in 0.25 m steps: its path crosses cells 0..15.
+    clouds = [CloudScan(o, o[None, :] + [0.0, 0.0, 0.1]) for o in (np.array([0.05 + 0.25 * k, 0.15, 0.25]) for k in range(7))]
+    passes = RayEvidence.from_scans(clouds).path_passes(VOXELS)
+    assert _row(passes, 3)[:16].min() >= 1 and passes.sum() == _row(passes, 3).sum() == _row(passes, 3)[:16].sum()
 
 
 def test_path_passes_follow_the_robot_and_skip_jumps() -> None:

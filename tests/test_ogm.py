@@ -6,7 +6,10 @@ import gpomap.raycast as raycast
 from gpomap.baselines.ogm import L_HIT, L_MAX, L_MIN, L_MISS, OccupancyGridMapper
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
-from gpomap.voxels import VoxelSpec
+from gpomap.clouds import CloudScan
+from gpomap.voxels import VoxelMap, VoxelSpec
+from tests.world3d import ORIGINS, lidar_clouds
+from tests.world3d import occupied as room_occupied
 from gpomap.raycast import traverse
 from gpomap.scans import Scan
 from gpomap.simulate import World, paper_room_scans, simulate_scans
@@ -169,6 +172,33 @@ def test_one_scan_updates_by_hand():
     scan = Scan([0.5, 0.5, 0.0], [0.0], [2.0], 10.0)  # hit at (2.5, 0.5): cells 0, 1 free
     m = OccupancyGridMapper(resolution=1.0, extent=(0.0, 4.0, 0.0, 1.0), l_occ=0.85, l_free=-0.4).fit([scan])
     np.testing.assert_allclose(m.log_odds_[0], [-0.4, -0.4, 0.85, 0.0])
+
+
+def test_one_cloud_ray_updates_by_hand():
+    # The 3-D grid baseline: a ray from (0.5, 0.5, 0.5) hitting at x = 2.5 (voxels 0, 1 free),
+    # and a no-return ray up the z axis, free to the 2 m cap (voxels 0..2 of that column).
+    cloud = CloudScan([0.5, 0.5, 0.5], [[2.5, 0.5, 0.5], [0.5, 0.5, 9.0]], hit=[True, False])
+    m = OccupancyGridMapper(1.0, (0.0, 4.0, 0.0, 1.0, 0.0, 4.0), l_occ=0.85, l_free=-0.4, max_range_free=2.0).fit([cloud])
+    assert m.log_odds_.shape == (4, 1, 4)
+    np.testing.assert_allclose(m.log_odds_[0, 0], [-0.4, -0.4, 0.85, 0.0])  # voxel 0 once per scan
+    np.testing.assert_allclose(m.log_odds_[:, 0, 0], [-0.4, -0.4, -0.4, 0.0])
+    assert m.predict_proba([[2.7, 0.2, 0.9], [3.5, 0.5, 0.5]]).tolist() == pytest.approx([1 / (1 + np.exp(-0.85)), 0.5])
+    vm = m.grid_map()
+    assert isinstance(vm, VoxelMap) and vm.spec == m.grid_
+    np.testing.assert_allclose(vm.probability.ravel(), m.predict_proba(m.grid_.centres()))
+
+
+def test_3d_grid_on_lidar_clouds_agrees_with_the_room():
+    clouds = lidar_clouds(ORIGINS, n_rays=1500, max_range=8.0)
+    m = OccupancyGridMapper(resolution=0.2).fit(clouds)
+    p = m.grid_map().probability.ravel()
+    centres = m.grid_.centres()
+    seen = m.observed_.ravel() > 0
+    occ, free = (p > 0.66) & seen, (p < 0.33) & seen
+    assert occ.sum() > 200 and free.sum() > 2000
+    # Occupied voxels lie on the room's surfaces (within a voxel), free ones off them.
+    assert room_occupied(centres[occ], thickness=0.2 + 1e-9).all()
+    assert (~room_occupied(centres[free], thickness=0.0)).mean() > 0.99
 
 
 def test_no_return_beam_never_marks_occupied():
