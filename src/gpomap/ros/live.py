@@ -1,0 +1,213 @@
+"""A live map between a robot's messages and its published grids, free of any middleware.
+
+:class:`LiveMap` holds what a mapping node does between its subscriptions and its publications:
+laser scans wait until the pose of their frame is known at their stamp, then go to the streaming
+mapper (:class:`gpomap.streaming.StreamingGPOM`) in the order they came; the map is sampled as
+the three grid layers on request, and saved in the project's formats. The ROS 1 node
+(:mod:`gpomap.ros.node`) wires it to rospy and tf2; a ROS 2 node would wire the same object to
+rclpy. Every method may be called from any thread: a lock keeps the mapper to one caller at a time.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpomap.errors import InputFormatError
+from gpomap.ros.messages import GridLayers, grid_layers, scan_from_laserscan, stamp_seconds
+
+__all__ = ["LiveMap", "PoseLookup"]
+
+#: ``lookup(frame, seconds)``: the pose (x, y, yaw) of `frame` in the fixed frame at that time,
+#: or None while it is not known (yet).
+PoseLookup = Callable[[str, float], "tuple[float, float, float] | None"]
+
+
+class LiveMap:
+    """Scans in, occupancy grids out: a streaming mapper fed from a robot's messages.
+
+    Parameters
+    ----------
+    mapper : StreamingGPOM
+        The streaming mapper (anything with its ``add_scan``, ``ready_``, ``grid``, ``n_scans_``,
+        ``hyperparameters_`` and ``summary``).
+    resolution : float
+        Cell side of the published and saved grids, metres.
+    extent : (xmin, xmax, ymin, ymax), optional
+        Region of the grids; default the data's (the grid grows with the map).
+    time_offset : float
+        Seconds added to each scan stamp before its pose is looked up (0.1 for Stage bags: see
+        :data:`gpomap.io.rosbag.STAGE_TIME_OFFSET`).
+    max_range : float, optional
+        No-return threshold, metres; default each message's ``range_max``.
+    pose_wait : float
+        Seconds (of the `clock`) a scan may wait for its pose; after that it is dropped and
+        counted in :meth:`status`.
+    source : str
+        The scan topic, for error messages.
+    clock : callable
+        Monotonic seconds (``time.monotonic``); tests pass their own.
+    """
+
+    def __init__(
+        self,
+        mapper: Any,
+        resolution: float,
+        extent: tuple[float, float, float, float] | None = None,
+        time_offset: float = 0.0,
+        max_range: float | None = None,
+        pose_wait: float = 1.0,
+        source: str = "scan",
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not resolution > 0:
+            raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
+        if not pose_wait >= 0:
+            raise ValueError(f"pose_wait must be >= 0 seconds, got {pose_wait}")
+        self.mapper = mapper
+        self.resolution = float(resolution)
+        self.extent = extent
+        self.time_offset = float(time_offset)
+        self.max_range = max_range
+        self.pose_wait = float(pose_wait)
+        self.source = source
+        self.clock = clock
+        self._waiting: deque[tuple[Any, float]] = deque()
+        self._lock = threading.Lock()
+        self.n_received = 0
+        self.n_dropped = 0
+        self.n_rejected = 0
+        self.last_error: str | None = None
+        #: Stamp (seconds) of the newest scan given to the mapper; the published grids carry it.
+        self.stamp: float | None = None
+        self.n_used = 0
+        # The latest scans' add_scan seconds: a bounded window, a robot runs for hours.
+        self._latency: deque[float] = deque(maxlen=1000)
+
+    # ------------------------------------------------------------------ in
+    def receive(self, msg: Any) -> None:
+        """Queue one ``sensor_msgs/LaserScan`` (cheap: called from the subscription's thread)."""
+        self._waiting.append((msg, self.clock()))
+        self.n_received += 1
+
+    def process(self, lookup: PoseLookup, budget: float | None = None) -> int:
+        """Give the mapper the waiting scans whose pose is known, in the order they came.
+
+        A scan whose pose is not known yet stops the queue (those behind it are newer and tf
+        arrives in time order); once it has waited `pose_wait` seconds it is dropped.
+
+        Parameters
+        ----------
+        lookup : PoseLookup
+        budget : float, optional
+            Stop after this many seconds (of the `clock`) even if scans are left, so that a
+            node keeps its publishing rate while it catches up; default: until none is left.
+
+        Returns
+        -------
+        int
+            Scans added to the map.
+        """
+        added = 0
+        stop = None if budget is None else self.clock() + budget
+        with self._lock:
+            while self._waiting and (stop is None or added == 0 or self.clock() < stop):
+                msg, arrived = self._waiting[0]
+                stamp = stamp_seconds(msg.header.stamp)
+                frame = str(msg.header.frame_id).lstrip("/")
+                pose = lookup(frame, stamp + self.time_offset)
+                if pose is None:
+                    if self.clock() - arrived < self.pose_wait:
+                        break
+                    self._waiting.popleft()
+                    self.n_dropped += 1
+                    continue
+                self._waiting.popleft()
+                try:
+                    scan = scan_from_laserscan(msg, pose, self.max_range, source=self.source)
+                except InputFormatError as exc:
+                    # One bad message must not stop a robot's map: count it, keep its reason.
+                    self.n_rejected += 1
+                    self.last_error = str(exc)
+                    continue
+                t = time.perf_counter()
+                self.mapper.add_scan(scan)
+                self._latency.append(time.perf_counter() - t)
+                self.n_used += 1
+                self.stamp = stamp
+                added += 1
+        return added
+
+    # ------------------------------------------------------------------ out
+    @property
+    def ready(self) -> bool:
+        """Whether the mapper has learnt its hyperparameters (before that there is no map)."""
+        return bool(getattr(self.mapper, "ready_", False))
+
+    def _grid(self) -> Any:
+        return self.mapper.grid(self.resolution, self.extent)
+
+    def layers(self) -> GridLayers | None:
+        """The trinary, probability and variance layers of the current map; None before it is ready."""
+        with self._lock:
+            if not self.ready:
+                return None
+            occupancy_map = self._grid()
+            prior = self.mapper.hyperparameters_.get("variance")
+        return grid_layers(occupancy_map, prior)
+
+    def save(self, directory: str | os.PathLike[str], pgm_mode: str = "trinary") -> list[Path]:
+        """Write the current map as one set: ``map.yaml`` + ``map.pgm``, ``map.npz``, ``map.png``.
+
+        Parameters
+        ----------
+        directory : path-like
+            Created if missing; the previous set there is replaced as a whole
+            (:func:`gpomap.io.export.write_map_outputs`).
+        pgm_mode : {"trinary", "scale"}
+
+        Returns
+        -------
+        list of Path
+
+        Raises
+        ------
+        NotFittedError
+            Before the mapper is ready.
+        """
+        from gpomap.errors import NotFittedError
+        from gpomap.io.export import write_map_outputs
+
+        with self._lock:
+            if not self.ready:
+                raise NotFittedError(
+                    f"no map yet: {self.mapper.n_scans_} scans seen, the hyperparameters are learnt after the warm-up scans"
+                )
+            occupancy_map = self._grid()
+        return write_map_outputs(occupancy_map, directory, pgm_mode=pgm_mode, title="gpomap: live map")
+
+    def status(self) -> dict[str, Any]:
+        """Counts, and the latency of the mapper's ``add_scan`` over the latest 1,000 scans (milliseconds)."""
+        lat = np.asarray(self._latency, dtype=float)
+        return {
+            "ready": self.ready,
+            "n_received": self.n_received,
+            "n_used": self.n_used,
+            "n_waiting": len(self._waiting),
+            "n_dropped_no_pose": self.n_dropped,
+            "n_rejected": self.n_rejected,
+            "last_error": self.last_error,
+            "stamp": self.stamp,
+            "latency_ms": {
+                "median": float(np.median(lat) * 1e3) if lat.size else None,
+                "p95": float(np.percentile(lat, 95) * 1e3) if lat.size else None,
+                "max": float(lat.max() * 1e3) if lat.size else None,
+            },
+        }

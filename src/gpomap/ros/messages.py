@@ -1,0 +1,210 @@
+"""Message conversion between ROS and gpomap, free of any ROS library.
+
+The functions take and give plain values and duck-typed messages: anything with the fields of
+``sensor_msgs/LaserScan`` (``angle_min``, ``angle_increment``, ``range_min``, ``range_max``,
+``ranges``) and a stamp with ``secs``/``nsecs`` (ROS 1) or ``sec``/``nanosec`` (ROS 2). The
+same code therefore serves the rospy node, an rclpy node, and tests that read messages out of a
+bag with ``rosbags``.
+
+Grids follow ``nav_msgs/OccupancyGrid``: ``data`` is row-major starting at the cell at
+``info.origin`` (the lower-left corner), x along a row, one signed byte per cell. That is the
+layout of :class:`gpomap.grid.OccupancyMap` arrays (row 0 at the lowest y), so no flip is needed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.errors import InputFormatError
+from gpomap.grid import FREE, OCCUPIED, GridSpec, OccupancyMap
+from gpomap.io.rosbag import yaw_from_quaternion
+from gpomap.scans import Scan
+
+__all__ = [
+    "UNKNOWN_CELL",
+    "GridLayers",
+    "stamp_seconds",
+    "pose_from_transform",
+    "scan_from_laserscan",
+    "grid_layers",
+]
+
+#: ``nav_msgs/OccupancyGrid`` value of a cell whose occupancy is not known.
+UNKNOWN_CELL = -1
+#: map_server's trinary convention: free 0, occupied 100, unknown -1.
+_TRINARY = {FREE: 0, OCCUPIED: 100}
+
+
+def stamp_seconds(stamp: Any) -> float:
+    """Seconds of a ROS 1 (``secs``, ``nsecs``) or ROS 2 (``sec``, ``nanosec``) time stamp.
+
+    Parameters
+    ----------
+    stamp : rospy.Time, builtin_interfaces/Time, or any object with those fields
+
+    Returns
+    -------
+    float
+    """
+    if hasattr(stamp, "secs"):
+        return float(stamp.secs) + 1e-9 * float(stamp.nsecs)
+    if hasattr(stamp, "sec"):
+        return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+    raise InputFormatError(f"time stamp {stamp!r} has neither secs/nsecs (ROS 1) nor sec/nanosec (ROS 2)")
+
+
+def pose_from_transform(translation: Any, rotation: Any) -> tuple[float, float, float]:
+    """The 2-D pose (x, y, yaw) of a ``geometry_msgs/Transform``'s translation and rotation.
+
+    Parameters
+    ----------
+    translation : object with x, y, z
+    rotation : object with x, y, z, w (a unit quaternion)
+
+    Returns
+    -------
+    (float, float, float)
+        x and y in metres, yaw (rotation about z) in radians.
+    """
+    return (
+        float(translation.x),
+        float(translation.y),
+        yaw_from_quaternion(float(rotation.x), float(rotation.y), float(rotation.z), float(rotation.w)),
+    )
+
+
+def scan_from_laserscan(
+    msg: Any, pose: tuple[float, float, float] | NDArray[np.float64], max_range: float | None = None, source: str = "LaserScan"
+) -> Scan:
+    """A :class:`~gpomap.scans.Scan` from a ``sensor_msgs/LaserScan`` and the laser's pose.
+
+    Readings follow REP 117: below ``range_min`` or ``-inf`` (too close) and NaN are invalid;
+    ``+inf`` and readings at or above the no-return threshold are no-return beams (free space
+    along the beam, never a hit).
+
+    Parameters
+    ----------
+    msg : LaserScan-like
+        ``angle_min``, ``angle_increment``, ``range_min``, ``range_max``, ``ranges`` (n,).
+    pose : (x, y, yaw)
+        The laser frame's pose in the map's fixed frame at the scan's stamp.
+    max_range : float, optional
+        No-return threshold, metres; default the message's ``range_max``.
+    source : str
+        Where the message came from (topic name), for error messages.
+
+    Returns
+    -------
+    Scan
+        ``time`` is the header stamp in seconds when the message has a header.
+
+    Raises
+    ------
+    InputFormatError
+        Non-finite angles, a ``range_max`` that is not a positive number (and no `max_range`),
+        or a pose that is not three finite numbers; the message names `source` and the field.
+    """
+    ranges = np.asarray(msg.ranges, dtype=float).reshape(-1)
+    a0, da = float(msg.angle_min), float(msg.angle_increment)
+    if not (math.isfinite(a0) and math.isfinite(da)):
+        raise InputFormatError(f"{source}: angle_min {a0} and angle_increment {da} must be finite (radians)")
+    limit = float(msg.range_max) if max_range is None else float(max_range)
+    if not (math.isfinite(limit) and limit > 0):
+        field = "range_max" if max_range is None else "max_range"
+        raise InputFormatError(f"{source}: {field} must be a positive number of metres, got {limit}")
+    rmin = float(msg.range_min)
+    with np.errstate(invalid="ignore"):
+        # +inf is "nothing within range" (REP 117): a no-return beam at the limit.
+        ranges = np.where(np.isposinf(ranges), limit, ranges)
+        if math.isfinite(rmin):
+            ranges = np.where(ranges < rmin, np.nan, ranges)
+    pose_arr = np.asarray(pose, dtype=float).reshape(-1)
+    if pose_arr.shape != (3,) or not np.isfinite(pose_arr).all():
+        raise InputFormatError(f"{source}: the laser pose must be three finite numbers (x, y, yaw), got {pose_arr.tolist()}")
+    header = getattr(msg, "header", None)
+    time = stamp_seconds(header.stamp) if header is not None else None
+    meta = {"frame_id": str(header.frame_id).lstrip("/")} if header is not None else {}
+    return Scan(
+        pose=pose_arr,
+        angles=a0 + da * np.arange(ranges.size, dtype=float),
+        ranges=ranges,
+        max_range=limit,
+        time=time,
+        meta=meta,
+    )
+
+
+@dataclass(frozen=True)
+class GridLayers:
+    """An occupancy map as the three ``nav_msgs/OccupancyGrid`` layers the node publishes.
+
+    Attributes
+    ----------
+    grid : GridSpec
+        Geometry: ``info.resolution``, ``info.width`` (nx), ``info.height`` (ny), ``info.origin``.
+    trinary : ndarray of int8, shape (ny * nx,)
+        map_server's convention: 0 free, 100 occupied, -1 unknown (the map's thresholds).
+    probability : ndarray of int8, shape (ny * nx,)
+        Occupancy probability in percent, 0..100.
+    variance : ndarray of int8, shape (ny * nx,)
+        Latent variance as a percentage of the prior variance, 0..100 (100 = the map knows
+        nothing there); -1 where the map has no variance.
+    """
+
+    grid: GridSpec
+    trinary: NDArray[np.int8]
+    probability: NDArray[np.int8]
+    variance: NDArray[np.int8]
+
+    @property
+    def width(self) -> int:
+        """Cells along x (``info.width``)."""
+        return self.grid.shape[1]
+
+    @property
+    def height(self) -> int:
+        """Cells along y (``info.height``)."""
+        return self.grid.shape[0]
+
+
+def _percent(values: NDArray[np.float64]) -> NDArray[np.int8]:
+    """Values in [0, 1] as int8 percentages 0..100; NaN becomes unknown (-1)."""
+    v = np.asarray(values, dtype=float).ravel()
+    out = np.full(v.size, UNKNOWN_CELL, dtype=np.int8)
+    ok = np.isfinite(v)
+    out[ok] = np.rint(100.0 * np.clip(v[ok], 0.0, 1.0)).astype(np.int8)
+    return out
+
+
+def grid_layers(occupancy_map: OccupancyMap, prior_variance: float | None = None) -> GridLayers:
+    """The trinary, probability and variance layers of `occupancy_map`, ready for OccupancyGrid ``data``.
+
+    Parameters
+    ----------
+    occupancy_map : OccupancyMap
+        Arrays of shape (ny, nx), row 0 at the lowest y.
+    prior_variance : float, optional
+        The GP's prior (signal) variance: the variance layer is ``variance / prior_variance``
+        in percent. Default the largest variance in the map.
+
+    Returns
+    -------
+    GridLayers
+    """
+    ternary = occupancy_map.ternary.ravel()
+    trinary = np.full(ternary.size, UNKNOWN_CELL, dtype=np.int8)
+    for label, value in _TRINARY.items():
+        trinary[ternary == label] = value
+    probability = _percent(occupancy_map.probability)
+    if occupancy_map.variance is None:
+        variance = np.full(trinary.size, UNKNOWN_CELL, dtype=np.int8)
+    else:
+        var = np.asarray(occupancy_map.variance, dtype=float)
+        scale = prior_variance if prior_variance is not None else (float(np.nanmax(var)) if np.isfinite(var).any() else 1.0)
+        variance = _percent(var / scale if scale > 0 else np.zeros_like(var))
+    return GridLayers(occupancy_map.grid, trinary, probability, variance)
