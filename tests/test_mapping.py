@@ -121,7 +121,7 @@ def room3d():
 
     train = lidar_clouds(ORIGINS, n_rays=300)
     # Held out: other sensor positions, other rays; the protocol's points (hits, free every 0.1 m).
-    test = observations_from_scans(lidar_clouds(ORIGINS[:4] + [0.4, -0.3, 0.2], n_rays=200, seed=9), 0.1, 0.1)
+    test = observations_from_scans(lidar_clouds(ORIGINS[:4] + np.array([0.4, -0.3, 0.2]), n_rays=200, seed=9), 0.1, 0.1)
     rng = np.random.default_rng(3)
     occ = np.flatnonzero(test.occupied)
     free = rng.choice(np.flatnonzero(~test.occupied), occ.size, replace=False)

@@ -1,7 +1,7 @@
+import time
+
 import numpy as np
 import pytest
-
-import time
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError, InputFormatError

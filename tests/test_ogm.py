@@ -4,15 +4,15 @@ import pytest
 import gpomap.baselines.ogm as ogm
 import gpomap.raycast as raycast
 from gpomap.baselines.ogm import L_HIT, L_MAX, L_MIN, L_MISS, OccupancyGridMapper
+from gpomap.clouds import CloudScan
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
-from gpomap.clouds import CloudScan
-from gpomap.voxels import VoxelMap, VoxelSpec
-from tests.world3d import ORIGINS, lidar_clouds
-from tests.world3d import occupied as room_occupied
 from gpomap.raycast import traverse
 from gpomap.scans import Scan
 from gpomap.simulate import World, paper_room_scans, simulate_scans
+from gpomap.voxels import VoxelMap, VoxelSpec
+from tests.world3d import ORIGINS, lidar_clouds
+from tests.world3d import occupied as room_occupied
 
 
 def brute_force_cells(grid, start, end, n=300_001):

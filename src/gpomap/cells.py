@@ -1,11 +1,13 @@
 """The cell tree: free and occupied points grouped into axis-aligned rectangular cells.
 
 One box is put round all points and split at the midpoint of its longest side, recursively
-(the paper's Fig. 3). Nothing in the tree depends on the dimension: over 3-D points the boxes
-are cuboids and the tree is octree-like (a cube splits into eight after three levels). A box stops splitting when it holds only one class ("pure") and is no longer
+(the paper's Fig. 3). A box stops splitting when it holds only one class ("pure") and is no longer
 than `max_cell`, or when its longest side is below `min_cell`. Empty boxes are dropped. A box that
 reached `min_cell` still holding both classes is *ambiguous*: it is kept as two cells, one over its
 hits and one over its free points, so neither class's evidence is lost or averaged away.
+
+Nothing in the tree depends on the dimension: over 3-D points the boxes are cuboids and the
+tree is octree-like (a cube splits into eight after three levels).
 """
 
 from __future__ import annotations

@@ -36,18 +36,18 @@ and a constant chosen on two logs is not a default; it is left at 1.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 
+from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence
-from gpomap.clouds import CloudScan
 from gpomap.lattice import AnyGrid, coarse, flat_index, grid_centres, interpolate
-from gpomap.observations import data_dim, observations_from_scans
+from gpomap.observations import ScanData, data_dim, observations_from_scans
 from gpomap.scans import Scan
 
 #: Probabilities are kept this far from 0 and 1, so log losses stay finite.
@@ -123,7 +123,7 @@ def calibration_points(
 
 
 def fit_calibration(
-    scans: Sequence[Scan],
+    scans: ScanData,
     evidence: RayEvidence,
     grid: AnyGrid,
     predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]],
@@ -207,7 +207,7 @@ class EvidenceLayer:
 
     Parameters
     ----------
-    scans : sequence of Scan
+    scans : sequence of Scan, or sequence of CloudScan
         The scans the GP was fitted on.
     resolution : float
         Side of the fine cells the counts of exact-point predictions are taken on, metres.
@@ -221,7 +221,7 @@ class EvidenceLayer:
 
     def __init__(
         self,
-        scans: Sequence[Scan],
+        scans: ScanData,
         resolution: float,
         predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]],
         no_return_cap: float | None = 10.0,

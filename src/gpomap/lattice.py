@@ -18,7 +18,6 @@ from numpy.typing import ArrayLike, NDArray
 from gpomap.grid import GridSpec
 from gpomap.voxels import VoxelSpec
 
-
 #: A 2-D grid or a 3-D voxel grid: both have `origin` (coordinate order), `resolution`, `shape`
 #: (array order, x last) and `index_of`.
 AnyGrid = GridSpec | VoxelSpec
@@ -135,10 +134,12 @@ def grid_extent(grid: AnyGrid) -> tuple[float, ...]:
 def cell_offset(grid: AnyGrid, base: AnyGrid) -> tuple[int, ...]:
     """Array index on `base` of `grid`'s first cell (both on one cell lattice), one per array axis."""
     d = grid_dim(grid)
-    return tuple(int(round((grid.origin[k] - base.origin[k]) / base.resolution)) for k in reversed(range(d)))
+    return tuple(round((grid.origin[k] - base.origin[k]) / base.resolution) for k in reversed(range(d)))
 
 
-def overlap(offset: tuple[int, ...], shape: tuple[int, ...], base_shape: tuple[int, ...]) -> tuple[tuple[slice, ...], tuple[slice, ...]] | None:
+def overlap(
+    offset: tuple[int, ...], shape: tuple[int, ...], base_shape: tuple[int, ...]
+) -> tuple[tuple[slice, ...], tuple[slice, ...]] | None:
     """Where a block of `shape` placed at `offset` on an array of `base_shape` overlaps it.
 
     Returns

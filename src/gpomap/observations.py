@@ -22,8 +22,8 @@ from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
 from gpomap.scans import Scan
 
-#: What the map is made from: planar scans (2-D) or point clouds (3-D).
-ScanData = Sequence[Scan] | Sequence[CloudScan]
+#: What the map is made from: planar scans (2-D) or point clouds (3-D), one kind at a time.
+ScanData = Sequence[Scan | CloudScan]
 
 
 @dataclass(frozen=True)
@@ -209,7 +209,8 @@ class Rays:
             valid = scan.valid()
             vec = scan.points[valid] - scan.origin
             length = np.sqrt((vec * vec).sum(axis=1))
-            return cls(scan.origin, vec / length[:, None], length, scan.points[valid], scan.hit[valid], np.inf, int((~valid).sum()))
+            hit = np.asarray(scan.hit, dtype=bool)[valid]
+            return cls(scan.origin, vec / length[:, None], length, scan.points[valid], hit, np.inf, int((~valid).sum()))
         valid = scan.valid()
         a = scan.world_angles()[valid]
         # Directions from the angles (not from the endpoints) keep the planar samples exact.
