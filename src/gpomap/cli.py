@@ -1089,4 +1089,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # `python -m gpomap.cli`: run the imported module's main, not this __main__ copy, so that
+    # modules which build their options with gpomap.cli's helpers (gpomap.apps.stream) share its classes.
+    from gpomap.cli import main as _main
+
+    sys.exit(_main())
