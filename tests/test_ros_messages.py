@@ -6,7 +6,10 @@ The LaserScan messages are the Stage arena bag's, deserialised by rosbags (ROS 2
 
 from __future__ import annotations
 
+import importlib.util
 import math
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 from types import SimpleNamespace
@@ -258,3 +261,12 @@ def test_node_settings_defaults_and_values():
 def test_bad_node_parameters_are_refused_naming_them(name, value, match):
     with pytest.raises(GpomapError, match=match):
         settings_from_params(lambda n, default: value if n == name else default)
+
+
+def test_the_node_without_rospy_says_what_to_install():
+    if importlib.util.find_spec("rospy") is not None:
+        pytest.skip("rospy is importable here: the node would start (tests/test_ros_node.py runs it)")
+    r = subprocess.run([sys.executable, "-m", "gpomap.ros"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr.startswith("gpomap-ros: error: the ROS 1 Python packages (rospy, tf2_ros, nav_msgs, sensor_msgs, std_srvs)")
+    assert "apt-get install ros-core python3-rospy" in r.stderr and "--system-site-packages" in r.stderr
