@@ -36,6 +36,7 @@ and a constant chosen on two logs is not a default; it is left at 1.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -45,9 +46,20 @@ from scipy.optimize import minimize
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
-from gpomap.evidence import RayEvidence
-from gpomap.lattice import AnyGrid, coarse, flat_index, grid_centres, interpolate
-from gpomap.observations import ScanData, data_dim, observations_from_scans
+from gpomap.evidence import MAX_PATH_STEP, RayEvidence, lattice_grid
+from gpomap.lattice import (
+    AnyGrid,
+    bounds_extent,
+    cell_offset,
+    coarse,
+    extent_bounds,
+    flat_index,
+    grid_centres,
+    grid_extent,
+    interpolate,
+    overlap,
+)
+from gpomap.observations import ScanData, data_dim, observations_from_scans, sensor_positions
 from gpomap.scans import Scan
 
 #: Probabilities are kept this far from 0 and 1, so log losses stay finite.
@@ -202,8 +214,19 @@ def fit_calibration(
     return fitted, {"n_points": int(occ.size), "log_loss_default": loss(x0), "log_loss": float(res.fun)}
 
 
+#: How far (metres) the counted lattice reaches beyond the beams when scans arrive outside it: the
+#: counts are copied into a larger array then, so a margin keeps that rare as the robot drives on.
+LATTICE_GROWTH: float = 10.0
+
+
 class EvidenceLayer:
     """Ray counts and their calibration, applied on top of a fitted GP map.
+
+    Counts add over scans, so new scans are counted on their own and added in
+    (:meth:`add_scans`, at a cost proportional to the new beams); the calibration is refitted
+    only when asked (:meth:`recalibrate`). Counts taken so equal counts taken at once, except
+    where a beam ends exactly on a cell border, which lattices of different origins may round
+    to either side (seen only in simulated worlds with walls on multiples of the cell side).
 
     Parameters
     ----------
@@ -228,45 +251,177 @@ class EvidenceLayer:
         calibration_scans: int = 25,
         seed: int = 0,
     ) -> None:
-        from gpomap.evidence import lattice_grid
+        self.resolution = float(resolution)
+        self.no_return_cap = no_return_cap
+        self.calibration_scans = int(calibration_scans)
+        self.seed = int(seed)
+        self.calibration = EvidenceCalibration()
+        self.report: dict[str, float] = {}
+        self._scans: list[Scan | CloudScan] = []
+        self._parts: list[RayEvidence] = []
+        self._joined: RayEvidence | None = None
+        self._dim = 2  # of the scans counted (set by add_scans)
+        self.lattice: AnyGrid | None = None
+        self._hits = np.zeros((0, 0), dtype=np.int32)
+        self._beam_misses = np.zeros((0, 0), dtype=np.int32)
+        self._path = np.zeros((0, 0), dtype=np.int32)
+        self._grid_cache: tuple[AnyGrid, NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]] | None = None
+        self.add_scans(scans)
+        self.recalibrate(predict_gp)
 
-        self.evidence = RayEvidence.from_scans(scans, no_return_cap)
-        self.lattice = lattice_grid(self.evidence.extent(), resolution, margin=resolution)
-        self._hits, misses = self.evidence.counts(self.lattice)
+    # ------------------------------------------------------------------ counting
+    @property
+    def n_scans(self) -> int:
+        """Scans counted so far."""
+        return len(self._scans)
+
+    @property
+    def evidence(self) -> RayEvidence:
+        """The beams and path of every scan counted, as one :class:`RayEvidence`."""
+        if self._joined is None:
+            offsets = np.cumsum([0] + [p.n_scans for p in self._parts[:-1]])
+            parts = self._parts
+            self._joined = RayEvidence(
+                np.concatenate([p.starts for p in parts]).reshape(-1, self._dim),
+                np.concatenate([p.ends for p in parts]).reshape(-1, self._dim),
+                np.concatenate([p.hit for p in parts]).astype(bool),
+                np.concatenate([p.scan + o for p, o in zip(parts, offsets)]).astype(np.intp),
+                np.concatenate([p.path for p in parts]).reshape(-1, 2 * self._dim),
+            )
+            self._parts = [self._joined]
+        return self._joined
+
+    def add_scans(self, scans: ScanData) -> None:
+        """Count the beams of `scans` (and the path to them from the last scan) and add them in.
+
+        Parameters
+        ----------
+        scans : sequence of Scan
+            Scans that follow those counted so far, in order.
+        """
+        scans = list(scans)
+        if not scans:
+            return
+        part = RayEvidence.from_scans(scans, self.no_return_cap)
+        d = self._dim = data_dim(scans)
+        if self._scans:
+            # The step from the last scan counted to the first new one is part of the path too.
+            link = sensor_positions([self._scans[-1], scans[0]]).reshape(1, 2 * d)
+            if np.linalg.norm(link[0, d:] - link[0, :d]) <= MAX_PATH_STEP:
+                part = RayEvidence(part.starts, part.ends, part.hit, part.scan, np.concatenate([link, part.path]))
+        pts = np.concatenate([part.starts, part.ends, part.path[:, :d], part.path[:, d:]])
+        if pts.size == 0:
+            self._scans.extend(scans)
+            self._parts.append(part)
+            self._joined = None
+            return
+        local = lattice_grid(bounds_extent(pts.min(axis=0), pts.max(axis=0)), self.resolution, margin=self.resolution)
+        self._cover(local)
+        hits, misses = part.counts(local)
+        passes = part.path_passes(local)
+        assert self.lattice is not None
+        block = self._block(local)
+        self._hits[block] += hits
+        self._beam_misses[block] += misses
+        self._path[block] += passes
+        self._scans.extend(scans)
+        self._parts.append(part)
+        self._joined = None
+        self._grid_cache = None
+
+    def _block(self, grid: AnyGrid) -> tuple[slice, ...]:
+        """The slices of the lattice's arrays that `grid` (on the same cell lattice) covers."""
+        assert self.lattice is not None
+        return tuple(slice(o, o + n) for o, n in zip(cell_offset(grid, self.lattice), grid.shape, strict=True))
+
+    def _cover(self, local: AnyGrid) -> None:
+        """Grow the counted lattice (a copy, with :data:`LATTICE_GROWTH` to spare) to hold `local`."""
+        if self.lattice is None:
+            self.lattice = local
+            self._hits = np.zeros(local.shape, dtype=np.int32)
+            self._beam_misses = np.zeros(local.shape, dtype=np.int32)
+            self._path = np.zeros(local.shape, dtype=np.int32)
+            return
+        offset = cell_offset(local, self.lattice)
+        if all(o >= 0 and o + n <= m for o, n, m in zip(offset, local.shape, self.lattice.shape, strict=True)):
+            return
+        (alo, ahi), (blo, bhi) = extent_bounds(grid_extent(self.lattice)), extent_bounds(grid_extent(local))
+        inner = self.resolution / 2  # the old edges, pulled in half a cell so they stay on the lattice
+        union = bounds_extent(np.minimum(alo + inner, blo), np.maximum(ahi - inner, bhi))
+        grown = lattice_grid(union, self.resolution, margin=LATTICE_GROWTH)
+        old = self.lattice
+        self.lattice = grown
+        block = self._block(old)
+        for name in ("_hits", "_beam_misses", "_path"):
+            arr = np.zeros(grown.shape, dtype=np.int32)
+            arr[block] = getattr(self, name)
+            setattr(self, name, arr)
+
+    def recalibrate(self, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]) -> None:
+        """Refit the hit and prior weights on the scans counted so far (see :func:`fit_calibration`).
+
+        Parameters
+        ----------
+        predict_gp : callable
+            Points of shape (m, 2) to the GP's probability, shape (m,).
+        """
+        if self.lattice is None:
+            self.calibration, self.report = EvidenceCalibration(), {"n_points": 0}
+            return
         self.calibration, self.report = fit_calibration(
-            scans,
+            self._scans,
             self.evidence,
             self.lattice,
             predict_gp,
-            calibration_scans,
-            2 * resolution,
-            no_return_cap,
-            seed,
-            counts=(self._hits, misses),
+            self.calibration_scans,
+            2 * self.resolution,
+            self.no_return_cap,
+            self.seed,
+            counts=(self._hits, self._beam_misses),
         )
-        self._misses = self._with_path(misses, self.lattice)
-        self._grid_cache: tuple[AnyGrid, NDArray[np.int32], NDArray[np.float64]] | None = None
 
-    def _with_path(self, misses: NDArray[np.int32], grid: AnyGrid) -> NDArray[np.float64]:
-        """Misses plus ``hit_weight`` for every step of the robot's path through the cell."""
-        return misses + self.calibration.hit_weight * self.evidence.path_passes(grid)
-
+    # ------------------------------------------------------------------ applying
     def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
         """Hits and misses (path included) of the fine cell holding each point (0 outside the counted area)."""
+        if self.lattice is None:
+            n = np.asarray(points).shape[0]
+            return np.zeros(n, dtype=np.int32), np.zeros(n)
         cell, inside = flat_index(self.lattice, points)
-        return np.where(inside, self._hits.reshape(-1)[cell], 0), np.where(inside, self._misses.reshape(-1)[cell], 0.0)
+        misses = self._beam_misses.reshape(-1)[cell] + self.calibration.hit_weight * self._path.reshape(-1)[cell]
+        return np.where(inside, self._hits.reshape(-1)[cell], 0), np.where(inside, misses, 0.0)
 
     def proba(self, points: NDArray[np.float64], p_gp: NDArray[np.float64]) -> NDArray[np.float64]:
         """Probability at points, ndarray of shape (m,), from the GP's probability there."""
         h, m = self.counts_at(points)
         return self.calibration(p_gp, h, m)
 
+    def _on_lattice(self, grid: AnyGrid) -> bool:
+        """Whether `grid`'s cells are cells of the counted lattice (same side, origin on a corner)."""
+        if self.lattice is None or not math.isclose(grid.resolution, self.resolution, rel_tol=1e-12):
+            return False
+        d = (np.asarray(grid.origin) - np.asarray(self.lattice.origin)) / self.resolution
+        return bool(np.all(np.abs(d - np.round(d)) < 1e-6))
+
+    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+        """Hits, beam misses and path passes per cell of `grid`."""
+        if not self._on_lattice(grid):
+            hits, misses = self.evidence.counts(grid)
+            return hits, misses, self.evidence.path_passes(grid)
+        # The grid's cells are lattice cells: read the running counts (zero beyond them).
+        assert self.lattice is not None
+        out = [np.zeros(grid.shape, dtype=np.int32) for _ in range(3)]
+        where = overlap(cell_offset(grid, self.lattice), grid.shape, self.lattice.shape)
+        if where is not None:
+            for o, a in zip(out, (self._hits, self._beam_misses, self._path), strict=True):
+                o[where[0]] = a[where[1]]
+        return out[0], out[1], out[2]
+
     def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
         """Hits and misses (path included) per cell of `grid`, counted on that grid's own cells (the last is cached)."""
         if self._grid_cache is None or self._grid_cache[0] != grid:
-            hits, misses = self.evidence.counts(grid)
-            self._grid_cache = (grid, hits, self._with_path(misses, grid))
-        return self._grid_cache[1], self._grid_cache[2]
+            self._grid_cache = (grid, *self._raw_grid_counts(grid))
+        _, hits, misses, path = self._grid_cache
+        return hits, misses + self.calibration.hit_weight * path
 
     def grid_proba(self, grid: AnyGrid, p_gp: NDArray[np.float64]) -> NDArray[np.float64]:
         """Probability per cell of `grid`, shape grid.shape, from the GP's probability per cell."""

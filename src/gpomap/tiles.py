@@ -56,7 +56,7 @@ from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.mapping import AreaGPOM
-from gpomap.observations import Observations, free_near_hits, observations_from_scans
+from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
 from gpomap.scans import Scan
 from gpomap.squash import ProbitSquash
@@ -270,7 +270,7 @@ def predict_tile_task(
     hyp = state.hyperparameters
     kern = _area_kernel(settings, hyp["variance"], hyp["length_scale"])
     X = state.supports()
-    Q = Supports.from_points(np.asarray(points, dtype=float).reshape(-1, 2))
+    Q = Supports.from_points(np.asarray(points, dtype=float).reshape(-1, state.lower.shape[1]))
     m = len(Q)
     mean = np.empty(m)
     var = np.empty(m)
@@ -855,7 +855,7 @@ class TiledGPOM:
             return 0
 
     # ------------------------------------------------------------------ fitting
-    def _observations(self, scans: Sequence[Scan]) -> Observations:
+    def _observations(self, scans: ScanData) -> Observations:
         # No free_clearance here: it is applied per block when the cells are built, so a hit
         # that arrives in a later update clears the free points near it just as a batch fit would.
         b = self.base
@@ -877,12 +877,14 @@ class TiledGPOM:
             jobs.append((t, (payload,)))
         return jobs, gathered
 
-    def fit(self, data: Sequence[Scan] | Observations, hyperparameters: dict[str, float] | None = None) -> TiledGPOM:
+    def fit(self, data: ScanData | Observations, hyperparameters: dict[str, float] | None = None) -> TiledGPOM:
         """Build the tiled map from scans (or labelled points).
 
         Parameters
         ----------
-        data : sequence of Scan, or Observations
+        data : sequence of Scan or CloudScan, or Observations
+            Planar scans make a 2-D map; point clouds a 3-D map, tiled in x, y (each tile a
+            column spanning every height).
         hyperparameters : dict, optional
             variance, length_scale, noise, alpha and beta to use as they are (no learning).
 
@@ -899,7 +901,7 @@ class TiledGPOM:
         with self._connected():
             return self._fit(data, hyperparameters)
 
-    def _fit(self, data: Sequence[Scan] | Observations, hyperparameters: dict[str, float] | None) -> TiledGPOM:
+    def _fit(self, data: ScanData | Observations, hyperparameters: dict[str, float] | None) -> TiledGPOM:
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         t = t0
@@ -917,7 +919,7 @@ class TiledGPOM:
         self._dirty: set[int] = set()
         self._n_scans = int(obs.scan_index.max()) + 1 if obs.scan_index.size else 0
         self._n_invalid, self._n_no_return = obs.n_invalid, obs.n_no_return
-        self.path_ = None if isinstance(data, Observations) else np.array([s.pose[:2] for s in data])
+        self.path_ = None if isinstance(data, Observations) else sensor_positions(data)
         timings["observations"] = time.perf_counter() - t
 
         t = time.perf_counter()
@@ -945,7 +947,7 @@ class TiledGPOM:
         timings["tile_fits"] = time.perf_counter() - t
         t = time.perf_counter()
         self.timings_ = timings
-        self._scans: list[Scan] | None = None if isinstance(data, Observations) else list(data)
+        self._scans: list[Any] | None = None if isinstance(data, Observations) else list(data)
         self.evidence_ = self._make_evidence()
         timings["evidence"] = time.perf_counter() - t
         timings["total_fit"] = time.perf_counter() - t0
@@ -1036,7 +1038,7 @@ class TiledGPOM:
             self._n_invalid += obs.n_invalid
             self._n_no_return += obs.n_no_return
         self._n_scans += len(scans)
-        path = np.array([s.pose[:2] for s in scans]).reshape(-1, 2)
+        path = sensor_positions(scans).reshape(-1, self._dim)
         self.path_ = path if self.path_ is None else np.concatenate([self.path_, path])
         t1 = time.perf_counter()
         if self._scans is not None:
@@ -1125,7 +1127,7 @@ class TiledGPOM:
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Blended probability, latent mean and latent variance at points, each (m,)."""
-        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        pts = np.asarray(points, dtype=float).reshape(-1, self._dim)
         m = pts.shape[0]
         h = 0.5 * self.blend_
         settings = self._settings()
@@ -1216,7 +1218,7 @@ class TiledGPOM:
         """
         p, var = self.predict_proba_gp(points, return_var=True)
         if self.evidence_ is not None:
-            p = self.evidence_.proba(np.asarray(points, dtype=float).reshape(-1, 2), p)
+            p = self.evidence_.proba(np.asarray(points, dtype=float).reshape(-1, self._dim), p)
         return (p, var) if return_var else p
 
     def predict_proba_gp(self, points: NDArray[np.float64], return_var: bool = False):
@@ -1242,7 +1244,7 @@ class TiledGPOM:
         """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
         return ternary(self.predict_proba(points), self.base.thresholds)
 
-    def grid(self, resolution: float, extent: tuple[float, float, float, float] | None = None) -> OccupancyMap:
+    def grid(self, resolution: float, extent: tuple[float, ...] | None = None) -> Any:
         """The map sampled at grid-cell centres; each tile predicts only the grid cells it covers.
 
         Parameters
@@ -1250,26 +1252,22 @@ class TiledGPOM:
         resolution : float
             Grid cell side, metres.
         extent : (xmin, xmax, ymin, ymax), optional
-            Defaults to the bounding box of the observations.
+            Defaults to the bounding box of the observations; (..., zmin, zmax) in 3-D.
 
         Returns
         -------
-        OccupancyMap
+        OccupancyMap, or VoxelMap for a 3-D map
         """
         self._check_fitted()
         if extent is None:
             assert self._lower is not None and self._upper is not None
             lo, hi = self._lower, self._upper
-            extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
-        spec = GridSpec.from_extent(extent, resolution)
+            extent = tuple(float(v) for pair in zip(lo, hi) for v in pair)
+        if self._dim == 3:
+            return self._voxels(resolution, extent)
+        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution)
         t = time.perf_counter()
-        if self.evidence_ is not None:
-            probability, variance = self.evidence_.written_grid(
-                spec, self.hyperparameters_["length_scale"], lambda pts: self._predict_blended(pts)[0::2]
-            )
-        else:
-            p, _, var = self._predict_blended(spec.centres())
-            probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)
+        probability, variance = self._sample(spec)
         self.timings_["grid"] = time.perf_counter() - t
         return OccupancyMap(
             grid=spec,
@@ -1279,6 +1277,26 @@ class TiledGPOM:
             path=self.path_,
             info=self.summary(),
         )
+
+    def _sample(self, spec: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Probability and latent variance per cell of a GridSpec or VoxelSpec."""
+        if self.evidence_ is not None:
+            return self.evidence_.written_grid(
+                spec, self.hyperparameters_["length_scale"], lambda pts: self._predict_blended(pts)[0::2]
+            )
+        p, _, var = self._predict_blended(spec.centres())
+        return p.reshape(spec.shape), var.reshape(spec.shape)
+
+    def _voxels(self, resolution: float, extent: tuple[float, ...]) -> Any:
+        from gpomap.lattice import extent_bounds
+        from gpomap.voxels import VoxelMap, VoxelSpec
+
+        lo, hi = extent_bounds(extent)
+        spec = VoxelSpec.from_extent(lo, hi, resolution)
+        t = time.perf_counter()
+        probability, variance = self._sample(spec)
+        self.timings_["grid"] = time.perf_counter() - t
+        return VoxelMap(spec, probability, variance, thresholds=self.base.thresholds, info=self.summary())
 
     # ------------------------------------------------------------------ reporting
     @property
