@@ -69,7 +69,7 @@ class CloudScan:
 
     def valid(self) -> NDArray[np.bool_]:
         """Mask of rays with finite endpoints away from the origin, shape (n,)."""
-        finite = np.isfinite(self.points).all(axis=1)
+        finite: NDArray[np.bool_] = np.asarray(np.isfinite(self.points).all(axis=1))
         with np.errstate(invalid="ignore"):
             away = np.linalg.norm(np.where(finite[:, None], self.points - self.origin, 0.0), axis=1) > 0
         return finite & away
