@@ -8,6 +8,14 @@
 cells to a GP with an area kernel whose hyperparameters are learnt, and the probit squash
 calibrated. Afterwards the map can be asked anywhere: ``predict_proba(points)``,
 ``predict(points, return_var=True)`` for the latent GP, or ``grid(resolution, extent)``.
+
+The same estimator maps in 3-D: fitted on point clouds (:class:`~gpomap.clouds.CloudScan`), the
+rays give 3-D points, the cells are cuboids, the area kernel averages over them, queries are
+(m, 3) points and ``grid`` returns a :class:`~gpomap.voxels.VoxelMap`:
+
+    >>> from gpomap.io import read_clouds
+    >>> clouds = read_clouds("../shared/data/la3dm-sim/sim_structured", max_range=8.0)  # doctest: +SKIP
+    >>> voxels = AreaGPOM(kernel="se").fit(clouds).grid(resolution=0.1)  # doctest: +SKIP
 """
 
 from __future__ import annotations
