@@ -237,6 +237,14 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     )
     g.add_argument("--tile-size", type=cli._positive(float), default=10.0, help="tile side, m (default: %(default)s)")
     g.add_argument(
+        "--max-refits",
+        type=cli._positive(int),
+        default=None,
+        metavar="N",
+        help="refit at most N tiles per map written, oldest first; the rest wait for the next write "
+        "(default: all, every map sees the GP of every scan; the ray counts are always current)",
+    )
+    g.add_argument(
         "--workers", type=cli._positive(int), default=1, help="worker processes refitting tiles (default: %(default)s)"
     )
     cli._add_reader_options(p)
@@ -279,6 +287,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
     cli._check_grid_memory(args, grid_shape(extent, args.resolution), extent, 1, 0)
     mapper = StreamingGPOM(
         warmup_scans=args.warmup,
+        max_refits=args.max_refits,
         tile_size=args.tile_size,
         n_workers=args.workers,
         thresholds=args.thresholds,

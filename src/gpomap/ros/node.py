@@ -55,6 +55,7 @@ class NodeSettings:
     max_range: float | None = None
     pose_wait: float = 1.0
     warmup_scans: int = 30
+    max_refits: int | None = None
     tile_size: float = 10.0
     thresholds: tuple[float, float] = (0.33, 0.66)
     save_directory: str = "gpomap-map"
@@ -92,7 +93,8 @@ def settings_from_params(get: Callable[[str, Any], Any]) -> NodeSettings:
         the data's), ``time_offset`` (s added to scan stamps before the tf lookup, 0),
         ``max_range`` (no-return threshold, default each message's ``range_max``),
         ``pose_wait`` (s a scan waits for its tf before it is dropped, 1.0), ``warmup_scans``
-        (scans before the hyperparameters are learnt and the first map, 30), ``tile_size`` (m,
+        (scans before the hyperparameters are learnt and the first map, 30), ``max_refits``
+        (most tiles refitted per map published, oldest first; default no limit), ``tile_size`` (m,
         10), ``thresholds`` ([free, occupied], 0.33, 0.66), ``save_directory`` (``gpomap-map``),
         ``save_on_shutdown`` (false), ``model`` (a dict of :class:`~gpomap.mapping.AreaGPOM`
         options, e.g. ``{kernel: se, free_step: 0.1}``).
@@ -125,6 +127,9 @@ def settings_from_params(get: Callable[[str, Any], Any]) -> NodeSettings:
     warmup = get("warmup_scans", d.warmup_scans)
     if isinstance(warmup, bool) or not isinstance(warmup, int) or warmup < 1:
         raise GpomapError(f"parameter ~warmup_scans must be an integer >= 1, got {warmup!r}")
+    max_refits = get("max_refits", d.max_refits)
+    if max_refits is not None and (isinstance(max_refits, bool) or not isinstance(max_refits, int) or max_refits < 1):
+        raise GpomapError(f"parameter ~max_refits must be an integer >= 1 (or unset: no limit), got {max_refits!r}")
     save_on_shutdown = get("save_on_shutdown", d.save_on_shutdown)
     if not isinstance(save_on_shutdown, bool):
         raise GpomapError(f"parameter ~save_on_shutdown must be true or false, got {save_on_shutdown!r}")
@@ -138,6 +143,7 @@ def settings_from_params(get: Callable[[str, Any], Any]) -> NodeSettings:
         max_range=_number("max_range", get("max_range", None), 0.0, optional=True),
         pose_wait=float(_number("pose_wait", get("pose_wait", d.pose_wait), 0.0, strict=False) or 0.0),
         warmup_scans=int(warmup),
+        max_refits=max_refits,
         tile_size=float(_number("tile_size", get("tile_size", d.tile_size), 0.0) or d.tile_size),
         thresholds=(lo, hi),
         save_directory=str(get("save_directory", d.save_directory)),
@@ -153,6 +159,7 @@ def make_live_map(settings: NodeSettings, source: str) -> Any:
 
     mapper = StreamingGPOM(
         warmup_scans=settings.warmup_scans,
+        max_refits=settings.max_refits,
         tile_size=settings.tile_size,
         n_workers=1,
         thresholds=settings.thresholds,
