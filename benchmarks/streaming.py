@@ -36,10 +36,11 @@ def _ms(v: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(v) * 1e3, q)) if v else float("nan")
 
 
-def run(name: str, scans: list, refresh_every: int, max_refits: int | None, compare: bool) -> dict:
-    stream = StreamingGPOM(warmup_scans=DEFAULT_WARMUP_SCANS, max_refits=max_refits)
+def run(name: str, scans: list, refresh_every: int, max_refits: int | None, compare: bool, options: dict) -> dict:
+    stream = StreamingGPOM(warmup_scans=DEFAULT_WARMUP_SCANS, max_refits=max_refits, **options)
     add: list[float] = []
     refresh: list[float] = []
+    pending: list[int] = []
     t_start = None
     cpu_start = 0.0
     for i, scan in enumerate(scans):
@@ -56,6 +57,7 @@ def run(name: str, scans: list, refresh_every: int, max_refits: int | None, comp
             t = time.perf_counter()
             stream.refresh()
             refresh.append(time.perf_counter() - t)
+            pending.append(stream.pending_tiles_)
     assert t_start is not None
     wall = time.perf_counter() - t_start
     cpu = time.process_time() - cpu_start
@@ -73,13 +75,15 @@ def run(name: str, scans: list, refresh_every: int, max_refits: int | None, comp
         "refresh_p95_s": _ms(refresh, 95) / 1e3,
         "sustained_rate": len(add) / wall,
         "cpu_per_scan_ms": 1e3 * cpu / max(len(add), 1),
+        "pending_median": float(np.median(pending)) if pending else 0.0,
+        "pending_max": int(max(pending)) if pending else 0,
         "finish_s": finish,
         "tiles": len(stream.model_.tiles_) if stream.model_ is not None else 0,
         "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "max_diff": float("nan"),
     }
     if compare:
-        batch = TiledGPOM(n_workers=1).fit(scans, hyperparameters=stream.hyperparameters_)
+        batch = TiledGPOM(n_workers=1, **options).fit(scans, hyperparameters=stream.hyperparameters_)
         spec = stream.default_grid(0.1)
         a = stream.grid(0.1, spec.extent).probability
         b = batch.grid(0.1, spec.extent).probability
@@ -94,12 +98,14 @@ def main() -> None:
     parser.add_argument("--refresh-every", type=int, default=10, help="refresh the GP every N scans")
     parser.add_argument("--max-refits", type=int, default=None, help="cap on tile refits per refresh")
     parser.add_argument("--compare-batch", action="store_true", help="also fit the batch map and report the difference")
+    parser.add_argument("--tile-size", type=float, default=None, help="tile side, metres (default TiledGPOM's)")
     args = parser.parse_args()
     set_progress_mode("quiet")
     rows = []
     for name in args.log:
         scans = read_scans(LOGS[name])[: args.scans]
-        rows.append(run(name, scans, args.refresh_every, args.max_refits, args.compare_batch))
+        options = {} if args.tile_size is None else {"tile_size": args.tile_size}
+        rows.append(run(name, scans, args.refresh_every, args.max_refits, args.compare_batch, options))
     cols = [
         ("log", "{}"),
         ("scans", "{}"),
@@ -111,12 +117,17 @@ def main() -> None:
         ("refresh_p95_s", "{:.2f}"),
         ("sustained_rate", "{:.1f}"),
         ("cpu_per_scan_ms", "{:.0f}"),
+        ("pending_median", "{:.0f}"),
+        ("pending_max", "{}"),
         ("finish_s", "{:.1f}"),
         ("tiles", "{}"),
         ("peak_mb", "{:.0f}"),
         ("max_diff", "{:.1e}"),
     ]
-    print(f"refresh every {args.refresh_every} scans, max refits {args.max_refits or 'all'}; rates in scans/s")
+    print(
+        f"refresh every {args.refresh_every} scans, max refits {args.max_refits or 'all'}, "
+        f"tile size {args.tile_size or 'default'}; rates in scans/s"
+    )
     print("| " + " | ".join(c for c, _ in cols) + " |")
     print("|" + "---|" * len(cols))
     for r in rows:
