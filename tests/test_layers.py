@@ -23,6 +23,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap",
             "gpomap.errors",
             "gpomap.progress",
+            "gpomap.protocol",
             "gpomap.resources",
             "gpomap.clouds",
             "gpomap.scans",
@@ -42,7 +43,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("maps", ("gpomap.estimator", "gpomap.fusion", "gpomap.mapping", "gpomap.baselines")),
     ("tiling", ("gpomap.tiles", "gpomap.streaming")),
     ("io", ("gpomap.io", "gpomap.plot")),
-    ("apps", ("gpomap.convert", "gpomap.evaluation", "gpomap.benchmark", "gpomap.apps", "gpomap.ros")),
+    ("apps", ("gpomap.convert", "gpomap.convert3d", "gpomap.evaluation", "gpomap.benchmark", "gpomap.apps", "gpomap.ros")),
     ("cli", ("gpomap.cli",)),
 ]
 RANK = {name: i for i, (name, _) in enumerate(LAYERS)}
@@ -56,7 +57,8 @@ def layer_of(module: str) -> str:
     best, depth = None, -1
     for name, prefixes in LAYERS:
         for p in prefixes:
-            if (module == p or module.startswith(p + ".")) and p.count(".") > depth:
+            # The package itself ("gpomap", its __init__) is no prefix: a new module needs a layer.
+            if (module == p or (p != "gpomap" and module.startswith(p + "."))) and p.count(".") > depth:
                 best, depth = name, p.count(".")
     if best is None:
         raise LookupError(f"module {module} is in no layer: add it to LAYERS in {__file__}")
@@ -105,6 +107,8 @@ def _modules() -> list[tuple[str, Path]]:
 def test_every_module_has_a_layer():
     for name, _ in _modules():
         layer_of(name)
+    with pytest.raises(LookupError, match="in no layer"):
+        layer_of("gpomap.newmodule")
 
 
 def test_imports_go_one_way():

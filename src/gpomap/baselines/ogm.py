@@ -337,6 +337,17 @@ class OccupancyGridMapper:
             return VoxelMap(self.grid_, p, variance=p * (1 - p), info=info)
         return OccupancyMap(self.grid_, p, variance=p * (1 - p), path=self.path_, info=info)
 
+    def summary(self) -> dict[str, Any]:
+        """The sensor model, the grid and how much of it the scans observed."""
+        self._check_fitted()
+        return {
+            **self.grid_map().info,
+            "grid_shape": list(self.grid_.shape),
+            "n_scans": int(self.path_.shape[0]),
+            "n_observed_cells": int((self.observed_ > 0).sum()),
+            "n_occupied_cells": int((self._probability_grid() > 0.5).sum()),
+        }
+
     def grid(self, resolution: float | None = None, extent: tuple[float, ...] | None = None) -> Any:
         """The map a user gets: the fitted grid itself (`resolution` and `extent` must match or be None).
 
