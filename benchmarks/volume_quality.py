@@ -17,22 +17,29 @@ Methods: OctoMap through pyoctomap at 0.1 m on the training scans (:class:`OctoM
 the shipped OctoMap predictions (``sim_structured_octomap.csv``, the only one shipped; 0.1 m voxels,
 the voxel holding each point; made by the
 la3dm authors from *all* 12 scans, so it saw the test scans: a reference, not a competitor);
-and any 3-D gpomap model given by a factory (``fit(clouds)``, ``predict_proba(points)``), by
-default :class:`gpomap.mapping.AreaGPOM` when it takes clouds.
+and gpomap's 3-D map as ``gpomap map`` builds it with its defaults
+(:func:`gpomap.apps.map3d.default_model`: the same options, one GP or x, y columns of tiles),
+scored twice: its exact-point predictions, and the voxel grid it writes at the default
+resolution (0.1 m), looked up at each test point. ``--set KEY=VALUE`` changes a model option
+(``min_cell=1.0``, ``kernel=se``) to measure other settings.
 
 Metrics (:func:`gpomap.evaluation.score`): ROC AUC, boundary AUC (test points within 0.5 m of a
-held-out hit), log loss, ECE; fit and predict wall times and the peak resident memory of the
-process after each method.
+held-out hit), log loss, ECE; fit and predict wall times (for the voxel grid, predict is the
+grid's prediction) and the peak resident memory of the process that ran the method (each method
+runs in a forked child, so the number is its own, plus the data read before the fork).
 
 Run from the repository's root::
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/volume_quality.py [--max-test 20000] [--no-gpomap] [--json out.json]
+        [--cases sim_structured,sim_unstructured,geb079] [--set min_cell=1.0 ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import concurrent.futures as cf
 import json
+import multiprocessing
 import resource
 import sys
 import time
@@ -53,6 +60,8 @@ from gpomap.io.octomap import load_pyoctomap_tree
 DATA = Path("../shared/data")
 WORLDS = ("sim_structured", "sim_unstructured")
 HOLDOUT_PERIOD = 4
+#: A method to benchmark: training clouds to an unfitted model and the resolution of its voxel grid (None: none).
+Factory = Callable[[Sequence[CloudScan]], tuple[Any, float | None]]
 
 
 def holdout(n: int, period: int = HOLDOUT_PERIOD) -> tuple[list[int], list[int]]:
@@ -123,7 +132,15 @@ def _peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run(
+def _scored(
+    row: dict[str, Any], labels: NDArray[np.bool_], p: NDArray[np.float64], boundary: NDArray[np.bool_]
+) -> dict[str, Any]:
+    s = score(labels, p, {"boundary": boundary})
+    row.update(auc=s["auc"], boundary_auc=s["boundary_auc"], log_loss=s["log_loss"], ece=s["ece"], peak_mb=_peak_mb())
+    return row
+
+
+def _fit_predict(
     dataset: str,
     name: str,
     model: Any,
@@ -131,8 +148,9 @@ def run(
     points: NDArray[np.float64],
     labels: NDArray[np.bool_],
     boundary: NDArray[np.bool_],
-) -> dict[str, Any]:
-    """Fit, predict and score one method; errors are reported, not raised."""
+    grid_resolution: float | None,
+) -> list[dict[str, Any]]:
+    """Fit, predict and score one method (and its written voxel grid); errors are rows saying why."""
     row: dict[str, Any] = {"dataset": dataset, "method": name}
     try:
         t0 = time.perf_counter()
@@ -142,21 +160,41 @@ def run(
         t2 = time.perf_counter()
     except Exception as exc:  # a method that cannot run here is a row saying why
         row["error"] = f"{type(exc).__name__}: {str(exc)[:120]}"
-        return row
-    s = score(labels, p, {"boundary": boundary})
-    row.update(
-        fit_s=t1 - t0,
-        predict_s=t2 - t1,
-        auc=s["auc"],
-        boundary_auc=s["boundary_auc"],
-        log_loss=s["log_loss"],
-        ece=s["ece"],
-        peak_mb=_peak_mb(),
-    )
-    return row
+        return [row]
+    row.update(fit_s=t1 - t0, predict_s=t2 - t1)
+    rows = [_scored(row, labels, p, boundary)]
+    if grid_resolution is not None:
+        grid_row: dict[str, Any] = {"dataset": dataset, "method": f"{name}, voxel grid {grid_resolution:g} m"}
+        try:
+            t2 = time.perf_counter()
+            voxels = model.grid(grid_resolution)
+            t3 = time.perf_counter()
+            pv = voxels.lookup(points)
+        except Exception as exc:
+            grid_row["error"] = f"{type(exc).__name__}: {str(exc)[:120]}"
+            return [*rows, grid_row]
+        grid_row.update(fit_s=t1 - t0, predict_s=t3 - t2, voxels="x".join(str(n) for n in voxels.spec.shape[::-1]))
+        rows.append(_scored(grid_row, labels, pv, boundary))
+    return rows
 
 
-def la3dm_case(world: str, max_test: int | None, factories: dict[str, Callable[[], Any]]) -> list[dict[str, Any]]:
+def run(
+    dataset: str,
+    name: str,
+    model: Any,
+    train: Sequence[CloudScan],
+    points: NDArray[np.float64],
+    labels: NDArray[np.bool_],
+    boundary: NDArray[np.bool_],
+    grid_resolution: float | None = None,
+) -> list[dict[str, Any]]:
+    """:func:`_fit_predict` in a forked child process, so that its peak memory is its own."""
+    ctx = multiprocessing.get_context("fork")
+    with cf.ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
+        return pool.submit(_fit_predict, dataset, name, model, train, points, labels, boundary, grid_resolution).result()
+
+
+def la3dm_case(world: str, max_test: int | None, factories: dict[str, Factory]) -> list[dict[str, Any]]:
     folder = DATA / "la3dm-sim" / world
     config = yaml.safe_load((folder / f"{world}.yaml").read_text())
     clouds = read_clouds(folder, max_range=float(config["max_range"]))
@@ -166,22 +204,21 @@ def la3dm_case(world: str, max_test: int | None, factories: dict[str, Callable[[
     pts, lab = balance(*ray_points(test), max_test)
     hits = np.concatenate([c.points[c.valid() & np.asarray(c.hit, dtype=bool)] for c in test])
     boundary = near(pts, hits, BOUNDARY_RADIUS)
-    rows = [
-        run(
-            world,
-            "octomap (pyoctomap 0.1 m)",
-            OctoMapBaseline(0.1, max_range=float(config["max_range"])),
-            train,
-            pts,
-            lab,
-            boundary,
-        )
-    ]
+    rows = run(
+        world,
+        "octomap (pyoctomap 0.1 m)",
+        OctoMapBaseline(0.1, max_range=float(config["max_range"])),
+        train,
+        pts,
+        lab,
+        boundary,
+    )
     csv = folder / f"{world}_octomap.csv"
     if csv.exists():  # shipped for sim_structured only
-        rows.append(run(world, "octomap csv (all scans)", CsvVoxels(csv), train, pts, lab, boundary))
+        rows += run(world, "octomap csv (all scans)", CsvVoxels(csv), train, pts, lab, boundary)
     for name, make in factories.items():
-        rows.append(run(world, name, make(), train, pts, lab, boundary))
+        model, resolution = make(train)
+        rows += run(world, name, model, train, pts, lab, boundary, resolution)
     for r in rows:
         r["n_test"] = len(lab)
     return rows
@@ -234,7 +271,7 @@ def simulate_lidar(
     return CloudScan(origin, ends, hits, max_range=max_range)
 
 
-def geb079_case(max_test: int | None, factories: dict[str, Callable[[], Any]]) -> list[dict[str, Any]]:
+def geb079_case(max_test: int | None, factories: dict[str, Factory]) -> list[dict[str, Any]]:
     tree, _, _ = load_pyoctomap_tree(DATA / "octomap" / "geb079.bt")
     poses = corridor_poses(tree)
     clouds = [simulate_lidar(tree, p) for p in poses]
@@ -252,22 +289,39 @@ def geb079_case(max_test: int | None, factories: dict[str, Callable[[], Any]]) -
     pts, lab = balance(pts[known], truth[known] == 1, max_test)
     hits = np.concatenate([c.points[c.hit] for c in test])
     boundary = near(pts, hits, BOUNDARY_RADIUS)
-    rows = [
-        run("geb079 (sim lidar)", "octomap (pyoctomap 0.1 m)", OctoMapBaseline(0.1, max_range=10.0), train, pts, lab, boundary)
-    ]
+    rows = run("geb079 (sim lidar)", "octomap (pyoctomap 0.1 m)", OctoMapBaseline(0.1, max_range=10.0), train, pts, lab, boundary)
     for name, make in factories.items():
-        rows.append(run("geb079 (sim lidar)", name, make(), train, pts, lab, boundary))
+        model, resolution = make(train)
+        rows += run("geb079 (sim lidar)", name, model, train, pts, lab, boundary, resolution)
     for r in rows:
         r["n_test"] = len(lab)
         r["n_poses"] = len(poses)
     return rows
 
 
-def gpomap_factories() -> dict[str, Callable[[], Any]]:
-    """The 3-D gpomap estimator, where the library has one (AreaGPOM fitting clouds)."""
-    from gpomap.mapping import AreaGPOM
+def _value(text: str) -> Any:
+    """A ``--set`` value: a number, true / false / none, or the text itself."""
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    if low == "none":
+        return None
+    try:
+        return float(text) if any(c in text for c in ".e") else int(text)
+    except ValueError:
+        return text
 
-    return {"gpomap AreaGPOM": AreaGPOM}
+
+def gpomap_factories(overrides: dict[str, Any] | None = None) -> dict[str, Factory]:
+    """gpomap's 3-D map as ``gpomap map`` builds it (its defaults, `overrides` on top), and its grid resolution."""
+    from gpomap.apps.map3d import default_model
+
+    label = "gpomap map" + "".join(f" {k}={v}" for k, v in (overrides or {}).items())
+
+    def make(train: Sequence[CloudScan]) -> tuple[Any, float | None]:
+        return default_model(train, **(overrides or {}))
+
+    return {label: make}
 
 
 def _fmt(v: Any) -> str:
@@ -276,12 +330,13 @@ def _fmt(v: Any) -> str:
 
 def print_table(rows: list[dict[str, Any]]) -> None:
     cols = ("dataset", "method", "n_test", "fit_s", "predict_s", "auc", "boundary_auc", "log_loss", "ece", "peak_mb")
-    print(" | ".join(cols))
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
     for r in rows:
         if "error" in r:
-            print(f"{r['dataset']} | {r['method']} | not run: {r['error']}")
+            print(f"| {r['dataset']} | {r['method']} | not run: {r['error']} |" + " |" * (len(cols) - 3))
         else:
-            print(" | ".join(_fmt(r.get(c)) for c in cols))
+            print("| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -290,12 +345,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-gpomap", action="store_true", help="only the OctoMap baselines")
     ap.add_argument("--no-geb079", action="store_true", help="skip the simulated lidar in geb079.bt")
     ap.add_argument("--json", type=Path, help="also write the rows as JSON")
+    ap.add_argument("--cases", default=",".join(WORLDS) + ",geb079", help="comma-separated cases (default: %(default)s)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a gpomap model option (repeatable)")
     args = ap.parse_args(argv)
-    factories = {} if args.no_gpomap else gpomap_factories()
+    overrides = {k: _value(v) for k, _, v in (item.partition("=") for item in args.set)}
+    factories = {} if args.no_gpomap else gpomap_factories(overrides)
+    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     rows: list[dict[str, Any]] = []
     for world in WORLDS:
-        rows += la3dm_case(world, args.max_test, factories)
-    if not args.no_geb079:
+        if world in cases:
+            rows += la3dm_case(world, args.max_test, factories)
+    if "geb079" in cases and not args.no_geb079:
         rows += geb079_case(args.max_test, factories)
     print_table(rows)
     if args.json:

@@ -213,8 +213,19 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
         metavar="M",
         help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)",
     )
-    g.add_argument("--min-cell", type=_positive(float), default=0.5, help="smallest cell side, m (default: %(default)s)")
-    g.add_argument("--max-cell", type=_positive(float), default=0.5, help="largest pure cell side, m (default: %(default)s)")
+    # Library defaults, so that a 3-D map can tell them from values given (gpomap.apps.map3d).
+    g.add_argument(
+        "--min-cell",
+        type=_positive(float),
+        default=_LibraryDefault("min_cell"),
+        help="smallest cell side, m (default: %(default)s)",
+    )
+    g.add_argument(
+        "--max-cell",
+        type=_positive(float),
+        default=_LibraryDefault("max_cell"),
+        help="largest pure cell side, m (default: %(default)s)",
+    )
     g.add_argument("--length-scale", type=_positive(float), help="fix the length scale (m) instead of learning it")
     g.add_argument("--seed", type=int, default=0, help="seed of restarts and samples (default: %(default)s)")
     g.add_argument(
@@ -515,9 +526,15 @@ def _load_scans(args: argparse.Namespace) -> list:
 
 
 def cmd_map(args: argparse.Namespace) -> int:
+    from gpomap.apps import map3d
+
     _check_before_work(args)
     path = Path(args.input)
     title = f"gpomap: {path.name}"
+    # Point clouds and depth frames make a voxel map: gpomap.apps.map3d.
+    if path.suffix.lower() not in (".csv", ".npz") and map3d.is_cloud_input(path):
+        return map3d.cmd_map3d(args)
+    map3d.check_2d_options(args)
     if path.suffix.lower() in (".csv", ".npz"):
         from gpomap.io import read_points
 
@@ -773,11 +790,16 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
+    from gpomap.apps import convert3d, map3d
     from gpomap.convert import convert_grid, grid_to_observations, load_grid, model_defaults, output_grid
     from gpomap.io.export import write_map_files
     from gpomap.tiles import count_cells
 
     _check_before_work(args)
+    # OctoMap trees become voxel maps: gpomap.apps.convert3d.
+    if convert3d.is_octree_input(args.input):
+        return convert3d.cmd_convert3d(args)
+    map3d.check_2d_options(args)
     _status(args, f"converting {args.input}...")
     options: dict[str, Any] = {"thresholds": args.thresholds}
     if args.kernel:
@@ -855,6 +877,8 @@ EPILOG_MAP = """examples:
   gpomap map fr079.log.gz -o fr079 --tiles --workers 2 --free-step 0.3
   gpomap map intel.log.gz -o intel --chunk-scans 100      (the map grows as scans come)
   gpomap map intel.log.gz -o intel --tiles --scheduler tcp://127.0.0.1:8786
+  gpomap map ../shared/data/la3dm-sim/sim_structured -o out3d --max-range 8 --slices 0.5,1.5
+  gpomap map ../shared/data/3dmatch -o frames --stride 4 --resolution 0.05      (depth frames)
 """
 EPILOG_EVALUATE = """examples:
   gpomap evaluate --demo --method msk --kernel se
@@ -879,14 +903,23 @@ def build_parser() -> argparse.ArgumentParser:
         help="map a CARMEN log, ROS bag or labelled points",
         epilog=EPILOG_MAP,
         formatter_class=fmt,
-        description="Fit MSK-GPOM to range data and write map.yaml/.pgm (ROS map_server), map.npz and map.png.",
+        description="Fit MSK-GPOM to range data and write map.yaml/.pgm (ROS map_server), map.npz and map.png; "
+        "from 3-D scans, a voxel map: map.npz, map.bt (OctoMap), map.ply (surface mesh), map-slices.png and map-3d.png.",
     )
-    p.add_argument("input", help="CARMEN log (.log, .gz), ROS bag (.bag, ROS2 directory, .db3, .mcap), or points (.csv, .npz)")
+    p.add_argument(
+        "input",
+        help="CARMEN log (.log, .gz), ROS bag (.bag, ROS2 directory, .db3, .mcap), points (.csv, .npz), "
+        "or 3-D scans: PCD / PLY files or a directory of them, depth frames, an OctoMap ScanGraph, a PointCloud2 bag",
+    )
     _add_reader_options(p)
     _add_selection_options(p)
     _add_model_options(p)
     _add_output_options(p, 0.1)
     _add_tiling_options(p)
+    # The 3-D inputs' own options: gpomap.apps.map3d.
+    from gpomap.apps.map3d import add_cloud_options
+
+    add_cloud_options(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_map)
 
@@ -973,12 +1006,22 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=fmt,
         description="Read a ROS map_server map (or a gpomap .npz), merge its known pixels into cells, fit "
         "the GP and write the continuous map at any resolution.",
-        epilog="examples:\n  gpomap convert ../shared/data/turtlebot3-world-map/map.yaml -o tb3 --resolution 0.025",
+        epilog="examples:\n  gpomap convert ../shared/data/turtlebot3-world-map/map.yaml -o tb3 --resolution 0.025\n"
+        "  gpomap convert ../shared/data/octomap/geb079.bt -o geb --resolution 0.04 --extent 5,6,-1.5,1.5",
     )
-    p.add_argument("input", help="map.yaml (ROS map_server) or map.npz")
+    p.add_argument("input", help="map.yaml (ROS map_server), map.npz, or an OctoMap tree (.bt, .ot)")
     p.add_argument("--kernel", choices=["se", "matern32"], help="point kernel (default: se, measured best for grids)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     _add_output_options(p, None, supersample=False)
+    # Octrees' own options: gpomap.apps.map3d / gpomap.apps.convert3d.
+    from gpomap.apps.map3d import add_output_options as add_3d_output_options
+
+    add_3d_output_options(p).add_argument(
+        "--max-cells",
+        type=_positive(int),
+        default=3000,
+        help="octree: refuse a region whose cell tree has more cells than one GP should hold (default: %(default)s)",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_convert)
 
@@ -1027,9 +1070,11 @@ def _show_warning(
 
 
 def _resolve_library_defaults(args: argparse.Namespace) -> None:
-    for name, value in vars(args).items():
-        if isinstance(value, _LibraryDefault):
-            setattr(args, name, value.value)
+    """Replace each library default by its value; ``args.library_defaults`` names the options left at one."""
+    defaulted = {name for name, value in vars(args).items() if isinstance(value, _LibraryDefault)}
+    for name in defaulted:
+        setattr(args, name, getattr(args, name).value)
+    args.library_defaults = frozenset(defaulted)
 
 
 def _where_outputs_stand() -> str:

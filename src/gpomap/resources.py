@@ -39,6 +39,9 @@ __all__ = [
     "points_extent",
     "prediction_chunk_memory",
     "total_memory",
+    "BYTES_PER_VOXEL",
+    "voxel_grid_memory",
+    "voxel_shape",
 ]
 
 #: Fraction of the physical memory a run may plan to use by default (``--memory-limit``).
@@ -52,6 +55,12 @@ BYTES_PER_MAP_CELL = 8 + 8 + 1 + 1 + 8 + 8 + 3 * 24
 #: Bytes per prediction sample (``supersample`` K gives K x K per map cell): its coordinates
 #: (2 x 8), latent mean and variance (8 + 8) and probability (8).
 BYTES_PER_SAMPLE = 2 * 8 + 8 + 8 + 8
+
+#: Bytes per voxel of a written 3-D map: probability and variance (8 + 8), the ternary layer (1),
+#: their copies while the NPZ is compressed (8 + 8), the voxel centres (3 x 8) and the meshgrid
+#: they are built from (3 x 8) when the octree and the 3-D view are made, the padded copy marching
+#: cubes meshes (8), and the ray counts and interpolated GP of the written grid (8 + 8 + 8).
+BYTES_PER_VOXEL = 8 + 8 + 1 + 8 + 8 + 3 * 8 + 3 * 8 + 8 + 8 + 8 + 8
 
 #: Dense n x n float64 matrices alive at once while one GP over n cells is fitted: the Gram
 #: matrix, its Cholesky factor, the inverse the squash fit and leave-one-out moments use, and one
@@ -155,6 +164,43 @@ def grid_memory(shape: tuple[int, int], supersample: int = 1, n_cells: int = 0, 
     ny, nx = (int(v) for v in shape)
     k = int(supersample)
     return ny * nx * (BYTES_PER_MAP_CELL + k * k * BYTES_PER_SAMPLE) + prediction_chunk_memory(n_cells, chunk_size)
+
+
+def voxel_shape(
+    lower: Sequence[float] | NDArray[np.float64], upper: Sequence[float] | NDArray[np.float64], resolution: float
+) -> tuple[int, int, int]:
+    """(nz, ny, nx) of the grid :meth:`gpomap.voxels.VoxelSpec.from_extent` would build, without building it.
+
+    Parameters
+    ----------
+    lower, upper : sequence of float, length 3
+        Corners (x, y, z), metres; must be finite.
+    resolution : float
+        Voxel side, metres.
+
+    Returns
+    -------
+    (int, int, int)
+        Python ints (no overflow however absurd the extent); the origin is aligned to a multiple of
+        `resolution` as ``from_extent`` aligns it.
+    """
+    lo = [float(v) for v in lower]
+    hi = [float(v) for v in upper]
+    if not all(math.isfinite(v) for v in lo + hi):
+        raise ValueError(f"voxel extent must be finite, got {lo} .. {hi}")
+    if not (math.isfinite(resolution) and resolution > 0):
+        raise ValueError(f"voxel resolution must be a positive number, got {resolution}")
+    n = [max(1, math.ceil((h - math.floor(a / resolution + 1e-9) * resolution) / resolution - 1e-9)) for a, h in zip(lo, hi)]
+    return n[2], n[1], n[0]
+
+
+def voxel_grid_memory(shape: tuple[int, int, int], n_cells: int = 0, chunk_size: int = 4096) -> int:
+    """Bytes needed to predict and write a voxel map of `shape` (nz, ny, nx).
+
+    ``nz * ny * nx * BYTES_PER_VOXEL`` plus one prediction chunk against `n_cells` cells.
+    """
+    nz, ny, nx = (int(v) for v in shape)
+    return nz * ny * nx * BYTES_PER_VOXEL + prediction_chunk_memory(n_cells, chunk_size)
 
 
 def fit_memory(n_cells: int, n_at_once: int = 1) -> int:
