@@ -71,6 +71,9 @@ def test_optimisation_improves_its_objective(objective):
     gp.fit(X, y)
     assert gp.fit_report_.value > start + 1.0
     assert gp.fit_report_.n_evaluations > 2
+    # The learnt length scale is the GP's; the kernel handed in is left as it was.
+    assert kernel.base.length_scale == 3.0 and kernel.base.variance == 1.0
+    assert gp.kernel is not kernel and gp.kernel.base.length_scale != 3.0
 
 
 def test_loo_moments_equal_refitting_without_the_point():

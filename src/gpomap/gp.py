@@ -309,6 +309,8 @@ class SupportGP:
             raise ValueError(f"y must have shape ({len(X)},), got {y.shape}")
         self.X_train_ = X
         self.y_train_ = y
+        # Learn on a copy: the kernel given to the constructor is the caller's, never changed.
+        self.kernel = self.kernel.clone_with_theta(self.kernel.theta)
         t0 = time.perf_counter()
         self.fit_report_ = None
         if self.optimise:
