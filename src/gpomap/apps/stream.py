@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from gpomap.errors import GpomapError
 from gpomap.scans import Scan
+from gpomap.streaming import DEFAULT_TILE_SIZE, DEFAULT_WARMUP_SCANS
 
 __all__ = ["ReplayResult", "replay_times", "replay", "add_parser", "cmd_stream"]
 
@@ -231,11 +232,13 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     g.add_argument(
         "--warmup",
         type=cli._positive(int),
-        default=30,
+        default=DEFAULT_WARMUP_SCANS,
         metavar="N",
         help="scans seen before the hyperparameters are learnt and the first map is written (default: %(default)s)",
     )
-    g.add_argument("--tile-size", type=cli._positive(float), default=10.0, help="tile side, m (default: %(default)s)")
+    g.add_argument(
+        "--tile-size", type=cli._positive(float), default=DEFAULT_TILE_SIZE, help="tile side, m (default: %(default)s)"
+    )
     g.add_argument(
         "--max-refits",
         type=cli._positive(int),

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from gpomap.errors import GpomapError
+from gpomap.streaming import DEFAULT_TILE_SIZE, DEFAULT_WARMUP_SCANS
 
 __all__ = ["NodeSettings", "settings_from_params", "main"]
 
@@ -54,9 +55,9 @@ class NodeSettings:
     time_offset: float = 0.0
     max_range: float | None = None
     pose_wait: float = 1.0
-    warmup_scans: int = 30
+    warmup_scans: int = DEFAULT_WARMUP_SCANS
     max_refits: int | None = None
-    tile_size: float = 10.0
+    tile_size: float = DEFAULT_TILE_SIZE
     thresholds: tuple[float, float] = (0.33, 0.66)
     save_directory: str = "gpomap-map"
     save_on_shutdown: bool = False
@@ -95,7 +96,7 @@ def settings_from_params(get: Callable[[str, Any], Any]) -> NodeSettings:
         ``pose_wait`` (s a scan waits for its tf before it is dropped, 1.0), ``warmup_scans``
         (scans before the hyperparameters are learnt and the first map, 30), ``max_refits``
         (most tiles refitted per map published, oldest first; default no limit), ``tile_size`` (m,
-        10), ``thresholds`` ([free, occupied], 0.33, 0.66), ``save_directory`` (``gpomap-map``),
+        5), ``thresholds`` ([free, occupied], 0.33, 0.66), ``save_directory`` (``gpomap-map``),
         ``save_on_shutdown`` (false), ``model`` (a dict of :class:`~gpomap.mapping.AreaGPOM`
         options, e.g. ``{kernel: se, free_step: 0.1}``).
 
