@@ -299,7 +299,7 @@ def _add_tiling_options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_output_options(p: argparse.ArgumentParser, default_resolution: float | None, supersample: bool = True) -> None:
+def _add_output_options(p: argparse.ArgumentParser, default_resolution: Any, supersample: bool = True) -> None:
     g = p.add_argument_group("the output")
     g.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="directory for map.yaml, map.pgm, map.npz, map.png")
     g.add_argument(
@@ -535,6 +535,8 @@ def cmd_map(args: argparse.Namespace) -> int:
     if path.suffix.lower() not in (".csv", ".npz") and map3d.is_cloud_input(path):
         return map3d.cmd_map3d(args)
     map3d.check_2d_options(args)
+    if "resolution" in getattr(args, "library_defaults", ()):
+        args.resolution = args.evidence_resolution  # the counted cells, also when --evidence-resolution is given
     if path.suffix.lower() in (".csv", ".npz"):
         from gpomap.io import read_points
 
@@ -914,7 +916,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reader_options(p)
     _add_selection_options(p)
     _add_model_options(p)
-    _add_output_options(p, 0.1)
+    # The written map's cells are the ray counts' cells unless asked otherwise: that is the map
+    # the quality benchmark scores (a voxel map's default is gpomap.apps.map3d.DEFAULTS_3D's).
+    _add_output_options(p, _LibraryDefault("evidence_resolution"))
     _add_tiling_options(p)
     # The 3-D inputs' own options: gpomap.apps.map3d.
     from gpomap.apps.map3d import add_cloud_options

@@ -56,8 +56,9 @@ __all__ = [
 #: leaves it unset. Cells of 1 m, not 0.5 m: a cube has 8 times as many cells per volume as a
 #: square has 4, so the 2-D default gave 4,775 cells on la3dm sim_structured's 9 training scans,
 #: tiles, and a fit not done in 15 minutes on this 2-core machine; 1 m gives 1,026 cells, one GP,
-#: and held-out AUC 0.817 (docs/3d.md has the measurements).
-DEFAULTS_3D: dict[str, Any] = {"min_cell": 1.0, "max_cell": 1.0}
+#: and held-out AUC 0.817 (docs/3d.md has the measurements). Voxels of 0.1 m, OctoMap's usual
+#: (a planar map's default is the ray counts' 0.05 m).
+DEFAULTS_3D: dict[str, Any] = {"min_cell": 1.0, "max_cell": 1.0, "resolution": 0.1}
 
 #: Options of ``gpomap map`` that only 2-D inputs take, refused on clouds with this reason.
 _TWO_D_ONLY = {
