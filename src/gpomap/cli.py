@@ -1011,7 +1011,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Read a ROS map_server map (or a gpomap .npz), merge its known pixels into cells, fit "
         "the GP and write the continuous map at any resolution.",
         epilog="examples:\n  gpomap convert ../shared/data/turtlebot3-world-map/map.yaml -o tb3 --resolution 0.025\n"
-        "  gpomap convert ../shared/data/octomap/geb079.bt -o geb --resolution 0.04 --extent 5,6,-1.5,1.5",
+        "  gpomap convert ../shared/data/octomap/geb079.bt -o geb --resolution 0.04 --extent 5,6,-1.5,1.5 --max-cells 5000",
     )
     p.add_argument("input", help="map.yaml (ROS map_server), map.npz, or an OctoMap tree (.bt, .ot)")
     p.add_argument("--kernel", choices=["se", "matern32"], help="point kernel (default: se, measured best for grids)")
