@@ -1080,23 +1080,27 @@ class TiledGPOM:
 
     def _refresh(self, max_tiles: int | None, exact: bool) -> list[tuple[int, int]]:
         t0 = time.perf_counter()
-        changed = sorted(self._dirty)
-        self._build_blocks(changed)
-        self._dirty = set()
-        t1 = time.perf_counter()
         r = self._reach()
-        for k in changed:
+        # Every tile that sees a block absorbed since it was fitted is waiting (oldest first).
+        for k in sorted(self._dirty):
             ix, iy = self._decode(int(k))
             for dx in range(-r, r + 1):
                 for dy in range(-r, r + 1):
                     t = (ix + dx, iy + dy)
-                    if self._encode(*t) in self._blocks and t not in self._stale:
+                    if self._encode(*t) in self._block_points and t not in self._stale:
                         self._stale[t] = None  # dict as an ordered set: oldest first
         if exact:
             for t in self._reused:
                 self._stale.setdefault(t, None)
         waiting = list(self._stale)
         take = waiting if max_tiles is None else waiting[: max(0, int(max_tiles))]
+        # Only the blocks the tiles refitted now gather from are rebuilt, so a capped refresh
+        # rebuilds a bounded number of cell trees too; the rest wait with their tiles.
+        need = {self._encode(t[0] + dx, t[1] + dy) for t in take for dx in range(-r, r + 1) for dy in range(-r, r + 1)}
+        rebuild = sorted(self._dirty & need)
+        self._build_blocks(rebuild)
+        self._dirty -= set(rebuild)
+        t1 = time.perf_counter()
         jobs, gathered = self._fit_jobs(take, reuse=not exact)
         todo = [j for j in jobs if j[0] in self._reused or self._signatures.get(j[0]) != self._signature(gathered[j[0]])]
         self.tiles_.update(self._run(fit_tile_task, todo, "tile fit", "refitting tiles"))
