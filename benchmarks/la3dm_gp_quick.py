@@ -5,13 +5,15 @@ along each held-out ray up to 0.1 m short of its hit, classes balanced (seeded).
 map's exact-point probability, the voxel map it writes (lookup at 0.1 m), and the project's
 occupancy grids on the same scans (OctoMap's log-odds model, and counting) at 0.1 m.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/la3dm_gp_quick.py [--world sim_structured] [--cell 1.0] [--kernel se] [--clearance 0.3]
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/la3dm_gp_quick.py [--world sim_structured] [--cell 1.0] [--kernel se]
+        [--clearance 0.3] [--box node] [--tile-size M]
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from typing import Any
 
 import numpy as np
 
@@ -21,6 +23,7 @@ from gpomap.fusion import calibration_points
 from gpomap.io import read_clouds
 from gpomap.mapping import AreaGPOM
 from gpomap.metrics import roc_auc
+from gpomap.tiles import TiledGPOM
 
 
 def log_loss(occ: np.ndarray, p: np.ndarray) -> float:
@@ -35,6 +38,8 @@ def main() -> None:
     ap.add_argument("--kernel", default="se")
     ap.add_argument("--resolution", type=float, default=0.1)
     ap.add_argument("--clearance", type=float, default=0.3, help="free_clearance of the GP's observations")
+    ap.add_argument("--box", default="node", choices=["node", "tight"], help="cell_box of the cell tree")
+    ap.add_argument("--tile-size", type=float, default=None, help="map in x, y tiles of local GPs (TiledGPOM, one worker)")
     args = ap.parse_args()
     clouds = read_clouds(f"../shared/data/la3dm-sim/{args.world}", max_range=8.0)
     train = [c for i, c in enumerate(clouds) if i % 4 != 3]
@@ -58,8 +63,15 @@ def main() -> None:
         p = model.predict_proba(P)
         rows.append((f"{name} {args.resolution} m", roc_auc(O, p), log_loss(O, p), time.process_time() - t))
 
-    gp = AreaGPOM(kernel=args.kernel, min_cell=args.cell, max_cell=args.cell, free_clearance=args.clearance)
-    obs = gp.make_observations(train)
+    settings = {
+        "kernel": args.kernel,
+        "min_cell": args.cell,
+        "max_cell": args.cell,
+        "free_clearance": args.clearance,
+        "cell_box": args.box,
+    }
+    gp: Any = AreaGPOM(**settings) if args.tile_size is None else TiledGPOM(tile_size=args.tile_size, n_workers=1, **settings)
+    obs = AreaGPOM(**settings).make_observations(train)
     default_cells = build_cells(obs.points, obs.occupied, 0.5, 0.5)
     print(f"observations: {obs.n_free} free, {obs.n_occupied} hits; cells at the 2-D default 0.5 m: {len(default_cells)}")
     t = time.process_time()
