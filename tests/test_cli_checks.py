@@ -171,7 +171,8 @@ def test_a_pose_at_1e9_m_is_refused_in_seconds(tmp_path):
     )
     assert r.returncode == 1, r.stderr
     last = r.stderr.strip().splitlines()[-1]
-    assert last.startswith("gpomap: error: a 10000000")
+    # 1e9 m at the default 0.05 m cells: 2e10 columns.
+    assert last.startswith("gpomap: error: a 20000000")
     for word in ["--resolution", "--extent", "--memory-limit", "GB"]:
         assert word in last
     assert "fitting" not in r.stderr and not (tmp_path / "out").exists()
