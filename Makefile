@@ -21,8 +21,9 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/gpomap demo -o $(DEMO_OUT)
 
+# One pytest worker per core (pytest-xdist), each file on one worker so its fixtures are built once.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 # ruff and mypy come from the `lint` extra, installed on top of the test set-up.
 $(LINT_STAMP): $(STAMP) pyproject.toml
