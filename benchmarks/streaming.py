@@ -83,7 +83,8 @@ def run(name: str, scans: list, refresh_every: int, max_refits: int | None, comp
         "max_diff": float("nan"),
     }
     if compare:
-        batch = TiledGPOM(n_workers=1, **options).fit(scans, hyperparameters=stream.hyperparameters_)
+        # The same settings as the stream's (its tile size included), fitted on every scan at once.
+        batch = TiledGPOM(**stream.options).fit(scans, hyperparameters=stream.hyperparameters_)
         spec = stream.default_grid(0.1)
         a = stream.grid(0.1, spec.extent).probability
         b = batch.grid(0.1, spec.extent).probability
