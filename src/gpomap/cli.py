@@ -283,6 +283,13 @@ def _add_tiling_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--tiles", action="store_true", help="always build the map in tiles")
     g.add_argument("--tile-size", type=_positive(float), default=10.0, help="tile side, m (default: %(default)s)")
     g.add_argument("--workers", type=_positive(int), help="local worker processes for tiles (default: the CPU count)")
+    g.add_argument(
+        "--threads",
+        type=_positive(int),
+        metavar="N",
+        help="BLAS threads of each tile worker (default: the cores divided by the workers, at least 1) and, "
+        "when given, of this process",
+    )
     g.add_argument("--scheduler", metavar="ADDRESS", help="run tiles on this Dask distributed scheduler (tcp://host:port)")
     g.add_argument(
         "--scheduler-timeout",
@@ -525,10 +532,19 @@ def _load_scans(args: argparse.Namespace) -> list:
     return select_scans(scans, args.scans, args.beams)
 
 
+def _limit_threads(args: argparse.Namespace) -> None:
+    """Cap this process's BLAS threads at ``--threads`` (the workers get theirs from TiledGPOM)."""
+    if getattr(args, "threads", None) is not None:
+        from threadpoolctl import threadpool_limits
+
+        threadpool_limits(limits=args.threads)  # for the rest of the run, not as a context
+
+
 def cmd_map(args: argparse.Namespace) -> int:
     from gpomap.apps import map3d
 
     _check_before_work(args)
+    _limit_threads(args)
     path = Path(args.input)
     title = f"gpomap: {path.name}"
     # Point clouds and depth frames make a voxel map: gpomap.apps.map3d.
@@ -567,6 +583,7 @@ def _tiled_model(args: argparse.Namespace) -> Any:
     return TiledGPOM(
         tile_size=args.tile_size,
         n_workers=args.workers,
+        blas_threads=args.threads,
         scheduler=args.scheduler,
         scheduler_timeout=args.scheduler_timeout,
         thresholds=args.thresholds,

@@ -264,6 +264,7 @@ def tile_options(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "tile_size": args.tile_size,
         "n_workers": args.workers,
+        "blas_threads": args.threads,
         "scheduler": args.scheduler,
         "scheduler_timeout": args.scheduler_timeout,
     }
