@@ -38,8 +38,9 @@ DEFAULT_WARMUP_SCANS = 30
 
 #: Tile side of a streaming map, metres: half the batch map's. A refresh refits the tiles round
 #: the new scans, and a tile's fit grows with the cube of its cells, so smaller tiles refit
-#: faster in all (Intel, refresh every 10 scans: median refresh 1.3 s at 5 m against 2.5 s at
-#: 10 m, `benchmarks/streaming.py --tile-size`); much smaller and the overlap dominates.
+#: faster in all (Intel's first 250 scans, refresh every 10: 127 ms of CPU per scan at 5 m
+#: against 184 ms at 10 m, `benchmarks/streaming.py --tile-size`); much smaller and the overlap
+#: dominates.
 DEFAULT_TILE_SIZE = 5.0
 
 #: Change records kept for :meth:`StreamingGPOM.changed_since`; older versions get the whole map.
