@@ -140,18 +140,17 @@ def _box_keys(lower: NDArray[np.float64], upper: NDArray[np.float64]) -> list[by
     return [row.tobytes() for row in np.ascontiguousarray(np.concatenate([lower, upper], axis=1))]
 
 
-def _gram_reusing(
-    kern: AreaKernel, X: Supports, previous: TileState, settings: dict[str, Any], noise: float
-) -> NDArray[np.float64] | None:
+def _gram_reusing(kern: AreaKernel, X: Supports, previous: TileState, settings: dict[str, Any]) -> NDArray[np.float64] | None:
     """K(X, X), with the entries of cells the previous fit of this tile had copied from it.
 
     The previous covariance is recovered from its factor (``L L^T`` less its noise and jitter):
     a few matrix products instead of the kernel's quadrature, which is most of a tile fit. The
     copied entries carry rounding of about 1e-15 relative; :meth:`TiledGPOM.refresh` with
-    ``exact=True`` refits without them. None when nothing can be reused (a kernel whose entries
-    depend on more than the boxes, other hyperparameters, or no cell in common).
+    ``exact=True`` refits without them. The caller checks that the hyperparameters are the same.
+    None when too little can be reused: a kernel whose entries depend on more than the boxes
+    (member points, counts), or fewer than half the cells in common.
     """
-    if settings["area"] == "summed" or settings["normalisation"] == "sum" or previous.hyperparameters.get("length_scale") is None:
+    if settings["area"] == "summed" or settings["normalisation"] == "sum":
         return None
     old_index = {k: i for i, k in enumerate(_box_keys(previous.lower, previous.upper))}
     new_keys = _box_keys(X.lower, X.upper)
@@ -228,7 +227,7 @@ def fit_tile_task(payload: dict[str, Any]) -> TileState:
         same_hyp = previous is not None and all(
             previous.hyperparameters.get(n) == hyp[n] for n in ("variance", "length_scale", "noise")
         )
-        K = _gram_reusing(kern, X, previous, st, hyp["noise"]) if previous is not None and same_hyp else None
+        K = _gram_reusing(kern, X, previous, st) if previous is not None and same_hyp else None
         if K is None:
             K = kern(X)
         K[np.diag_indices_from(K)] += _noise_vector(st, hyp["noise"], X.counts)
