@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from gpomap.clouds import CloudScan, cloud_from_points
 from gpomap.errors import GpomapError, InputFormatError
 from gpomap.io.poses import pose_matrix, quaternion_matrix, transform_points
-from gpomap.io.rosbag import _TF_TOPICS, TfTree, _frame, _stamp, _topics_text, open_bag, read_tf
+from gpomap.io.rosbag import _TF_TOPICS, TfTree, _frame, _stamp, _topics_text, choose_topic, open_bag, read_tf
 
 __all__ = ["read_pointcloud2", "bag_has_pointclouds_only", "POINTCLOUD2"]
 
@@ -130,16 +130,7 @@ def read_pointcloud2(
     points: list[NDArray[np.float64]] = []
     try:
         conns = reader.connections
-        cloud_topics = sorted({c.topic for c in conns if c.msgtype == POINTCLOUD2})
-        if topic is None:
-            if len(cloud_topics) != 1:
-                what = "no PointCloud2 topic" if not cloud_topics else "several PointCloud2 topics, choose one with topic="
-                raise InputFormatError(f"{what}; topics in the bag: {_topics_text(conns)}", path=spath)
-            topic = cloud_topics[0]
-        elif topic not in cloud_topics:
-            raise InputFormatError(
-                f"{topic!r} is not a PointCloud2 topic; PointCloud2 topics: {', '.join(cloud_topics) or '(none)'}", path=spath
-            )
+        topic = choose_topic(conns, POINTCLOUD2, "PointCloud2", topic, spath)
         tf_conns = [c for c in conns if c.topic in _TF_TOPICS]
         if not tf_conns:
             raise InputFormatError(

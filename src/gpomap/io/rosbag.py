@@ -32,7 +32,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -301,6 +301,40 @@ def _topics_text(connections: Iterable[object]) -> str:
     return ", ".join(items) or "(none)"
 
 
+def choose_topic(connections: Sequence[Any], msgtype: str, kind: str, topic: str | None, path: str) -> str:
+    """The topic of `msgtype` messages to read: `topic`, checked, or the bag's only one.
+
+    Parameters
+    ----------
+    connections : sequence of rosbags connections
+    msgtype : str
+        Message type, e.g. ``"sensor_msgs/msg/LaserScan"``.
+    kind : str
+        Its short name in messages, e.g. ``"LaserScan"``.
+    topic : str or None
+    path : str
+        The bag, named in the error.
+
+    Raises
+    ------
+    InputFormatError
+        No such topic, or several and none chosen; the message lists the bag's topics.
+    """
+    topics = sorted({c.topic for c in connections if c.msgtype == msgtype})
+    if topic is None:
+        if len(topics) != 1:
+            what = f"no {kind} topic" if not topics else f"several {kind} topics, choose one with topic="
+            raise InputFormatError(f"{what}; topics in the bag: {_topics_text(connections)}", path=path)
+        return topics[0]
+    if topic not in topics:
+        which = f"is not a {kind} topic" if any(c.topic == topic for c in connections) else "unknown topic"
+        raise InputFormatError(
+            f"{which} {topic!r}; {kind} topics: {', '.join(topics) or '(none)'}; topics in the bag: {_topics_text(connections)}",
+            path=path,
+        )
+    return topic
+
+
 def _transform(tr: object) -> tuple[float, ...]:
     """A geometry_msgs/Transform as (x, y, z, qx, qy, qz, qw)."""
     q = tr.rotation  # type: ignore[attr-defined]
@@ -384,19 +418,7 @@ def load_rosbag(
     try:
         conns = reader.connections
         scan_conns = [c for c in conns if c.msgtype == _LASERSCAN]
-        scan_topics = sorted({c.topic for c in scan_conns})
-        if topic is None:
-            if len(scan_topics) != 1:
-                what = "no LaserScan topic" if not scan_topics else "several LaserScan topics, choose one with topic="
-                raise InputFormatError(f"{what}; topics in the bag: {_topics_text(conns)}", path=spath)
-            topic = scan_topics[0]
-        elif topic not in scan_topics:
-            kind = "is not a LaserScan topic" if any(c.topic == topic for c in conns) else "unknown topic"
-            raise InputFormatError(
-                f"{kind} {topic!r}; LaserScan topics: {', '.join(scan_topics) or '(none)'}; "
-                f"topics in the bag: {_topics_text(conns)}",
-                path=spath,
-            )
+        topic = choose_topic(conns, _LASERSCAN, "LaserScan", topic, spath)
         odom_conns = []
         odom_topics = sorted({c.topic for c in conns if c.msgtype == _ODOMETRY})
         odom_hint = f"; use --odom-topic NAME (odom_topic=) with {', '.join(odom_topics)}" if odom_topics else ""
