@@ -161,3 +161,13 @@ def test_tiles_in_3d_are_columns_and_one_column_is_the_plain_map():
     assert np.median(gap) < 0.02
     vm = cols.grid(0.25)
     assert isinstance(vm, VoxelMap) and vm.probability.shape == vm.spec.shape
+
+
+def test_scan_extent_caps_no_return_beams_by_hand():
+    from gpomap.scans import scan_extent
+
+    # One hit 2 m up, one no-return beam (recorded 30 m, the max range) along +x, from (1, 1).
+    s = Scan(np.array([1.0, 1.0, 0.0]), np.array([0.0, np.pi / 2]), np.array([30.0, 2.0]), 30.0)
+    assert scan_extent([s]) == pytest.approx((1.0, 1.0, 1.0, 3.0))
+    assert scan_extent([s], include_no_return=True) == pytest.approx((1.0, 31.0, 1.0, 3.0))
+    assert scan_extent([s], include_no_return=True, no_return_cap=10.0) == pytest.approx((1.0, 11.0, 1.0, 3.0))

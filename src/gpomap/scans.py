@@ -147,10 +147,25 @@ def select_scans(scans: Sequence[Scan], n_scans: int | None = None, n_beams: int
     return [s.select_beams(evenly_spaced(s.n_beams, n_beams)) for s in chosen]
 
 
-def scan_extent(scans: Sequence[Scan], include_no_return: bool = False) -> tuple[float, float, float, float]:
-    """Bounding box of sensor positions and hits: (xmin, xmax, ymin, ymax)."""
+def scan_extent(
+    scans: Sequence[Scan], include_no_return: bool = False, no_return_cap: float | None = None
+) -> tuple[float, float, float, float]:
+    """Bounding box of sensor positions and hits: (xmin, xmax, ymin, ymax).
+
+    With `include_no_return`, no-return beams' ends count too: at `no_return_cap` metres when it
+    is given and shorter (how far they clear free space), else at their recorded range.
+    """
     pts = [s.pose[None, :2] for s in scans]
     for s in scans:
-        pts.append(s.endpoints()[s.valid()] if include_no_return else s.hits())
+        if not include_no_return:
+            pts.append(s.hits())
+            continue
+        ends = s.endpoints()
+        if no_return_cap is not None:
+            nr = s.no_return()
+            a = s.world_angles()[nr]
+            r = np.minimum(s.ranges[nr], no_return_cap)
+            ends[nr] = s.pose[:2] + r[:, None] * np.column_stack([np.cos(a), np.sin(a)])
+        pts.append(ends[s.valid()])
     allp = np.concatenate(pts, axis=0)
     return (float(allp[:, 0].min()), float(allp[:, 0].max()), float(allp[:, 1].min()), float(allp[:, 1].max()))

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
-from gpomap.scans import Scan
+from gpomap.scans import Scan, scan_extent
 
 if TYPE_CHECKING:  # the engine is imported when a mapper is made: the CLI's --help stays light
     from gpomap.tiles import TiledGPOM
@@ -156,7 +156,7 @@ class StreamingGPOM:
                 self._record_change(self._whole_extent())
             return
         self.model_.absorb(scans)
-        self._record_change(_scans_extent(scans, self.model_.base.no_return_cap))
+        self._record_change(scan_extent(scans, include_no_return=True, no_return_cap=self.model_.base.no_return_cap))
         self._add_seconds.append((time.perf_counter() - t0) / len(scans))
 
     # ------------------------------------------------------------------ keeping the GP current
@@ -334,19 +334,3 @@ class StreamingGPOM:
     def summary(self) -> dict[str, Any]:
         """The model's summary (see :meth:`TiledGPOM.summary`) and the streaming statistics."""
         return {**self._model().summary(), "streaming": self.stats()}
-
-
-def _scans_extent(scans: Sequence[Scan], no_return_cap: float | None) -> Extent:
-    """(xmin, xmax, ymin, ymax) of the scans' poses and beam ends (no-return beams at the cap)."""
-    parts = []
-    for s in scans:
-        valid = s.valid()
-        r = s.ranges
-        if no_return_cap is not None:
-            r = np.where(s.no_return(), np.minimum(r, no_return_cap), r)
-        a = s.world_angles()[valid]
-        parts.append(s.pose[:2] + r[valid][:, None] * np.column_stack([np.cos(a), np.sin(a)]))
-        parts.append(s.pose[None, :2])
-    pts = np.concatenate(parts)
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
-    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])

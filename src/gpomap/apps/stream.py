@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import GpomapError
-from gpomap.scans import Scan
+from gpomap.scans import Scan, scan_extent
 from gpomap.streaming import DEFAULT_TILE_SIZE, DEFAULT_WARMUP_SCANS
 
 __all__ = ["ReplayResult", "replay_times", "replay", "add_parser", "cmd_stream"]
@@ -259,18 +259,6 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     return p
 
 
-def _observation_extent(scans: Sequence[Scan], no_return_cap: float) -> tuple[float, float, float, float]:
-    """Bounding box of the sensor positions and beam ends (no-return beams cut at the cap): the map's largest extent."""
-    pts = [np.array([s.pose[:2] for s in scans])]
-    for s in scans:
-        valid = s.valid()
-        r = np.where(s.no_return(), np.minimum(s.ranges, no_return_cap), s.ranges)[valid]
-        a = s.world_angles()[valid]
-        pts.append(s.pose[:2] + r[:, None] * np.column_stack([np.cos(a), np.sin(a)]))
-    allp = np.concatenate(pts)
-    return (float(allp[:, 0].min()), float(allp[:, 0].max()), float(allp[:, 1].min()), float(allp[:, 1].max()))
-
-
 def cmd_stream(args: argparse.Namespace) -> int:
     """Run ``gpomap stream``."""
     from gpomap import cli
@@ -286,7 +274,9 @@ def cmd_stream(args: argparse.Namespace) -> int:
     if args.rate > 0:
         cli._status(args, f"  replaying {due[-1] * args.rate:.1f} s of recording at rate {args.rate:g}: {due[-1]:.1f} s")
     # The largest map this replay can write, checked against the memory limit before any work.
-    extent = args.extent if args.extent is not None else _observation_extent(scans, args.no_return_cap)
+    extent = (
+        args.extent if args.extent is not None else scan_extent(scans, include_no_return=True, no_return_cap=args.no_return_cap)
+    )
     cli._check_grid_memory(args, grid_shape(extent, args.resolution), extent, 1, 0)
     mapper = StreamingGPOM(
         warmup_scans=args.warmup,
