@@ -33,6 +33,7 @@ from typing import Any, Union
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from gpomap.config import DEFAULT_MAX_CELLS  # most cells of the one GP of a conversion, as for maps
 from gpomap.convert import FOOTPRINT_PIXELS, GridGPOM, _agreement, model_defaults
 from gpomap.errors import EmptyDataError, GpomapError
 from gpomap.io.octomap import Octree, read_octree
@@ -45,8 +46,6 @@ OctreeSource = Union[Octree, str, "os.PathLike[str]"]
 
 #: The training region reaches this many source voxels past the converted region on every side.
 MARGIN_VOXELS = 4
-#: Most cells of the one GP of a conversion (``gpomap.tiles.DEFAULT_MAX_CELLS``, as for maps).
-DEFAULT_MAX_CELLS = 3000
 #: Known voxels scored for the agreement, at most (a seeded sample beyond).
 MAX_CHECK = 200_000
 

@@ -28,10 +28,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.cells import Cells, build_cells
+from gpomap.config import MapConfig
 from gpomap.estimator import GPMapEstimator
 from gpomap.fusion import EvidenceLayer
 from gpomap.gp import SupportGP
-from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.observations import Observations, ScanData, data_dim, sensor_positions
@@ -131,36 +131,36 @@ class AreaGPOM(GPMapEstimator):
 
     def __init__(
         self,
-        kernel: str = "matern32",
-        area: str | None = None,
-        normalisation: str = "mean",
-        free_step: float = 0.2,
-        hit_margin: float | None = None,
-        no_return_cap: float | None = 10.0,
-        free_clearance: float = 0.3,
-        min_cell: float = 0.5,
-        max_cell: float = 0.5,
-        cell_box: str = "node",
-        variance: float = 1.0,
-        length_scale: float = 1.0,
-        noise: float = 0.1,
-        length_scale_bounds: tuple[float, float] = (0.05, 20.0),
-        noise_bounds: tuple[float, float] = (1e-4, 10.0),
-        noise_model: str = "per_count",
-        objective: str = "loo",
-        optimise: bool = True,
-        n_restarts: int = 0,
-        hyper_subset: int | None = 300,
-        prior_std: float | None = 1.0,
-        class_weight: str | None = "balanced",
-        seed: int = 0,
-        quadrature_order: int = 2,
-        thresholds: tuple[float, float] = DEFAULT_THRESHOLDS,
-        chunk_size: int = 4096,
-        ray_evidence: bool = True,
-        evidence_resolution: float = 0.05,
-        calibration_scans: int = 25,
-        evidence_resolution_3d: float = 0.1,
+        kernel: str = MapConfig.kernel,
+        area: str | None = MapConfig.area,
+        normalisation: str = MapConfig.normalisation,
+        free_step: float = MapConfig.free_step,
+        hit_margin: float | None = MapConfig.hit_margin,
+        no_return_cap: float | None = MapConfig.no_return_cap,
+        free_clearance: float = MapConfig.free_clearance,
+        min_cell: float = MapConfig.min_cell,
+        max_cell: float = MapConfig.max_cell,
+        cell_box: str = MapConfig.cell_box,
+        variance: float = MapConfig.variance,
+        length_scale: float = MapConfig.length_scale,
+        noise: float = MapConfig.noise,
+        length_scale_bounds: tuple[float, float] = MapConfig.length_scale_bounds,
+        noise_bounds: tuple[float, float] = MapConfig.noise_bounds,
+        noise_model: str = MapConfig.noise_model,
+        objective: str = MapConfig.objective,
+        optimise: bool = MapConfig.optimise,
+        n_restarts: int = MapConfig.n_restarts,
+        hyper_subset: int | None = MapConfig.hyper_subset,
+        prior_std: float | None = MapConfig.prior_std,
+        class_weight: str | None = MapConfig.class_weight,
+        seed: int = MapConfig.seed,
+        quadrature_order: int = MapConfig.quadrature_order,
+        thresholds: tuple[float, float] = MapConfig.thresholds,
+        chunk_size: int = MapConfig.chunk_size,
+        ray_evidence: bool = MapConfig.ray_evidence,
+        evidence_resolution: float = MapConfig.evidence_resolution,
+        calibration_scans: int = MapConfig.calibration_scans,
+        evidence_resolution_3d: float = MapConfig.evidence_resolution_3d,
     ) -> None:
         self.kernel = kernel
         self.area = area

@@ -49,6 +49,7 @@ from scipy.linalg import cho_solve, solve_triangular
 from scipy.special import ndtr
 
 from gpomap.cells import build_cells
+from gpomap.config import DEFAULT_MAX_CELLS, DEFAULT_SCHEDULER_TIMEOUT, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.fusion import EvidenceLayer
 from gpomap.gp import SupportGP, robust_cholesky
@@ -67,10 +68,6 @@ _KEY_OFFSET = 1 << 30
 _KEY_BASE = 1 << 31
 
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
-
-#: Seconds to wait for a Dask scheduler to answer, and for workers when none is connected
-#: (``gpomap map --scheduler-timeout``).
-DEFAULT_SCHEDULER_TIMEOUT = 60.0
 
 
 # --------------------------------------------------------------------------- tasks (picklable)
@@ -421,7 +418,7 @@ class TiledGPOM:
 
     def __init__(
         self,
-        tile_size: float = 10.0,
+        tile_size: float = TilingConfig.tile_size,
         overlap: float | None = None,
         blend: float | None = None,
         origin: tuple[float, float] = (0.0, 0.0),
@@ -1351,12 +1348,6 @@ class TiledGPOM:
                 for v in [[s.hyperparameters[n] for s in self.tiles_.values()]]
             }
         return out
-
-
-#: Cells one GP holds before a map is built in tiles (``gpomap map --max-cells``): a dense GP over
-#: 3,000 cells factorises in about a second; at 8,000 (Belgioioso's whole log) one Matern 3/2 GP
-#: took 57 s and 2 GB against 14 s for 26 tiles, with the same held-out AUC (0.958).
-DEFAULT_MAX_CELLS = 3000
 
 
 def count_cells(data: Sequence[Scan] | Observations, **options: Any) -> int:

@@ -1,0 +1,145 @@
+"""Every default of a map, stated once: typed, frozen settings for the model and the tiling.
+
+:class:`MapConfig` holds the arguments of :class:`~gpomap.mapping.AreaGPOM` (whose signature
+takes its defaults from here), :class:`TilingConfig` those of :class:`~gpomap.tiles.TiledGPOM`
+and the cell count above which a map is built in tiles. The ``gpomap`` command builds its
+options from these fields (their defaults are the options' defaults, shown in ``--help``) and
+builds one config from the parsed options; the library receives it as keyword arguments
+(:meth:`MapConfig.kwargs`), so a script and the command build the same model:
+
+    >>> config = MapConfig(kernel="se", free_step=0.1)
+    >>> config.free_step, config.max_cell
+    (0.1, 0.5)
+    >>> from gpomap.mapping import AreaGPOM
+    >>> model = AreaGPOM(**config.kwargs())  # doctest: +SKIP
+
+Why each value was chosen is said where it is used (the parameters of
+:class:`~gpomap.mapping.AreaGPOM` and :class:`~gpomap.tiles.TiledGPOM`).
+
+This module imports no SciPy and no model: ``gpomap --help`` reads it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, Self
+
+from gpomap.grid import DEFAULT_THRESHOLDS
+
+__all__ = [
+    "MapConfig",
+    "TilingConfig",
+    "DEFAULT_MAX_CELLS",
+    "DEFAULT_SCHEDULER_TIMEOUT",
+    "DEFAULT_THRESHOLDS",
+    "VOXEL_MAP_DEFAULTS",
+]
+
+#: Cells one GP holds before a map is built in tiles (``gpomap map --max-cells``): a dense GP over
+#: 3,000 cells factorises in about a second; at 8,000 (Belgioioso's whole log) one Matern 3/2 GP
+#: took 57 s and 2 GB against 14 s for 26 tiles, with the same held-out AUC (0.958).
+DEFAULT_MAX_CELLS = 3000
+
+#: Seconds to wait for a Dask scheduler to answer, and for workers when none is connected
+#: (``gpomap map --scheduler-timeout``).
+DEFAULT_SCHEDULER_TIMEOUT = 60.0
+
+#: What a 3-D map (``gpomap map`` on point clouds) uses in place of the defaults measured on 2-D
+#: logs, for the options the user leaves unset. Cells of 1 m, not 0.5 m: a cube has 8 times as many
+#: cells per volume as a square has 4, so the 2-D default gave 4,775 cells on la3dm
+#: sim_structured's 9 training scans, tiles, and a fit not done in 15 minutes on this 2-core
+#: machine; 1 m gives 1,026 cells, one GP, and held-out AUC 0.817 (docs/3d.md has the
+#: measurements). Voxels of 0.1 m, OctoMap's usual (a planar map's default is the ray counts'
+#: cells, :attr:`MapConfig.evidence_resolution`).
+VOXEL_MAP_DEFAULTS: dict[str, float] = {"min_cell": 1.0, "max_cell": 1.0, "resolution": 0.1}
+
+
+class _Config:
+    """What the configs share: keyword arguments for the library, and copies with changes."""
+
+    def kwargs(self) -> dict[str, Any]:
+        """The fields as keyword arguments of the class this config describes, by name."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}  # type: ignore[arg-type]
+
+    def replace(self, **changes: Any) -> Self:
+        """A copy with `changes` (field names) applied; unknown names raise a TypeError."""
+        return dataclasses.replace(self, **changes)  # type: ignore[type-var]
+
+
+@dataclass(frozen=True)
+class MapConfig(_Config):
+    """The settings of one MSK-GPOM map: the arguments of :class:`~gpomap.mapping.AreaGPOM`.
+
+    The fields, their order and their meaning are AreaGPOM's (see its parameters); grouped here
+    as the pipeline runs: beams to points, points to cells, cells to a GP, the GP to a map.
+    """
+
+    # the points: beams to free points and hits
+    free_step: float = 0.2
+    hit_margin: float | None = None
+    no_return_cap: float | None = 10.0
+    free_clearance: float = 0.3
+    # the cells
+    min_cell: float = 0.5
+    max_cell: float = 0.5
+    cell_box: str = "node"
+    # the GP and its hyperparameters
+    kernel: str = "matern32"
+    area: str | None = None
+    normalisation: str = "mean"
+    variance: float = 1.0
+    length_scale: float = 1.0
+    noise: float = 0.1
+    length_scale_bounds: tuple[float, float] = (0.05, 20.0)
+    noise_bounds: tuple[float, float] = (1e-4, 10.0)
+    noise_model: str = "per_count"
+    objective: str = "loo"
+    optimise: bool = True
+    n_restarts: int = 0
+    hyper_subset: int | None = 300
+    prior_std: float | None = 1.0
+    class_weight: str | None = "balanced"
+    seed: int = 0
+    quadrature_order: int = 2
+    # the map: thresholds, prediction chunks, the ray counts on top of the GP
+    thresholds: tuple[float, float] = DEFAULT_THRESHOLDS
+    chunk_size: int = 4096
+    ray_evidence: bool = True
+    evidence_resolution: float = 0.05
+    calibration_scans: int = 25
+    evidence_resolution_3d: float = 0.1
+
+
+@dataclass(frozen=True)
+class TilingConfig(_Config):
+    """How a large map is split: when (`max_cells`) and the arguments of :class:`~gpomap.tiles.TiledGPOM`.
+
+    Attributes
+    ----------
+    max_cells : int or None
+        Above this many cells a map is built in tiles (None: one GP whatever the count).
+    tile_size : float
+        Side of the square tiles, metres.
+    n_workers : int, optional
+        Local worker processes (default: the CPU count).
+    blas_threads : int, optional
+        BLAS threads of each worker (default: the cores divided by the workers, at least 1).
+    scheduler : str, optional
+        Address of a Dask distributed scheduler that runs the tiles instead.
+    scheduler_timeout : float
+        Seconds to wait for the scheduler, and for its workers.
+    """
+
+    max_cells: int | None = DEFAULT_MAX_CELLS
+    tile_size: float = 10.0
+    n_workers: int | None = None
+    blas_threads: int | None = None
+    scheduler: str | None = None
+    scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT
+
+    def kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of :class:`~gpomap.tiles.TiledGPOM` (all but `max_cells`, which decides whether to tile)."""
+        out = super().kwargs()
+        del out["max_cells"]
+        return out
