@@ -191,7 +191,7 @@ def table(rows: list[dict[str, Any]], has_truth: bool) -> list[str]:
                 continue
             far = r["far"]["lattice"].get(kind, {})
             truth = (r.get("truth") or {}).get(kind) or {}
-            lines_data.append((r, kind, s, far, truth))
+            lines_data.append((r, kind, s, {**far, "path": (r.get("path") or {}).get(kind)}, truth))
     cols = COLUMNS + (TRUTH_COLUMNS if has_truth else [])
     best: dict[str, float] = {}
     for key, _, higher in COLUMNS:
@@ -202,7 +202,11 @@ def table(rows: list[dict[str, Any]], has_truth: bool) -> list[str]:
         vals = [t[key] for *_, t in lines_data if t.get(key) is not None and not np.isnan(t[key])]
         if vals:
             best["truth_" + key] = max(vals) if higher else min(vals)
-    head = ["method", "map"] + [c[1] for c in cols] + ["far p (mean ± sd)", "fit s (wall/CPU)", "predict s", "grid s", "peak MB"]
+    head = (
+        ["method", "map"]
+        + [c[1] for c in cols]
+        + ["far p (mean ± sd)", "path occ", "fit s (wall/CPU)", "predict s", "grid s", "peak MB"]
+    )
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r, kind, s, far, truth in lines_data:
         own = r["name"] != "msk"
@@ -222,6 +226,8 @@ def table(rows: list[dict[str, Any]], has_truth: bool) -> list[str]:
                 )
                 cells.append(_fmt(v) + mark)
         cells.append(f"{far['mean']:.3f} ± {far['std']:.3f}" if far.get("n") else "-")
+        path = far["path"]
+        cells.append(f"{path['n_occupied']} / {path['n_cells']}" if path else "-")
         sec, cpu = r["seconds"], r["cpu_seconds"]
         if kind == "points":
             cells += [f"{sec['fit']:.1f} / {cpu['fit']:.1f}", f"{sec['predict']:.2f}", "", ""]
@@ -316,7 +322,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(
         f"Written grids at {grid_res} m; at most {QUICK['max_test_points'] if args.quick else args.max_test_points} "
-        "balanced test points per log and split; far p = predictions on lattice points > 5 m from any training beam.",
+        "balanced test points per log and split; far p = predictions on lattice points > 5 m from any training beam; "
+        "path occ = cells (0.05 m) of the robot's own path (training and held-out poses) the map calls occupied "
+        "(p > 0.66), of all path cells.",
         flush=True,
     )
     results: list[dict[str, Any]] = []

@@ -239,3 +239,22 @@ def test_evaluate_against_truth_scores_the_room():
         assert 0.5 < t["auc"] <= 1.0 and 0.0 < t["iou"] <= 1.0 and t["n_observed_cells"] > 0
     # The grid knows nothing far from the data: exactly 0.5 there.
     assert res["far"]["lattice"]["points"]["mean"] == 0.5 and res["far"]["lattice"]["points"]["std"] == 0.0
+
+
+def test_path_points_and_path_occupied_by_hand():
+    from gpomap.scans import Scan
+
+    # Three poses: a 1 m drive along x, then a 3 m jump (a new session, not a path).
+    scans = [Scan([x, 0.02, 0.0], [0.0], [1.0], max_range=5.0) for x in (0.0, 1.0, 4.0)]
+    pts = ev.path_points(scans, step=0.025)
+    # The poses themselves plus 39 points strictly between 0 and 1 m; nothing between 1 and 4 m.
+    assert len(pts) == 3 + 39
+    assert not np.any((pts[:, 0] > 1.0) & (pts[:, 0] < 4.0))
+    # The map says occupied on [0.5, 0.6) only: path cells 10 and 11 of 0.05 m.
+    prob = np.where((pts[:, 0] >= 0.5) & (pts[:, 0] < 0.6), 0.9, 0.2)
+    out = ev.path_occupied(prob, pts, cell=0.05)
+    # Cells 0..20 along the drive (x = 1.0 falls in cell 20) and cell 80 at the jump's end.
+    assert out["n_cells"] == 22
+    assert out["n_occupied"] == 2
+    # The ternary map's threshold decides: 0.66 exactly is not occupied.
+    assert ev.path_occupied(np.full(len(pts), 0.66), pts)["n_occupied"] == 0

@@ -22,13 +22,15 @@
    points in cells the reference grid observed (cells any training beam crossed, from the
    counting grid at 0.05 m) and on the rest, FPR at TPR 95 %, log loss (probabilities clipped at
    1e-6), expected calibration error (10 equal-width bins) and the reliability diagram's bins.
-   Also what the map says far from all data (> 5 m from any cell a training beam crossed), and,
+   Also what the map says far from all data (> 5 m from any cell a training beam crossed), how
+   many cells of the robot's own path (training and held-out poses) it calls occupied, and,
    where a true map exists (:class:`Truth`), AUC and occupied-class IoU against it on its grid.
 6. :func:`evaluate` does all of it for one method.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 import resource
 import time
@@ -70,6 +72,8 @@ FAR_DISTANCE = 5.0
 #: Far-field lattice spacing (m) and most lattice points predicted.
 FAR_LATTICE = 0.25
 FAR_MAX_POINTS = 2000
+#: The robot's path is checked every this many metres (half the reference cell: no cell skipped).
+PATH_STEP = 0.025
 
 
 def resolve_split(split: str) -> str:
@@ -335,6 +339,55 @@ def observed_at(reference: Any, points: NDArray[np.float64]) -> NDArray[np.bool_
     return out
 
 
+def path_points(scans: Sequence[Scan], step: float = PATH_STEP) -> NDArray[np.float64]:
+    """Points every `step` along the robot's path through `scans` (in log order), shape (n, 2).
+
+    The path joins consecutive scans' sensor positions; steps longer than
+    :data:`gpomap.evidence.MAX_PATH_STEP` are jumps in the log, not driving, and are left out.
+    """
+    from gpomap.evidence import MAX_PATH_STEP
+    from gpomap.observations import sensor_positions
+
+    if len(scans) == 0:
+        return np.zeros((0, 2))
+    poses = sensor_positions(scans)
+    out = [poses]
+    for a, b in itertools.pairwise(poses):
+        length = float(np.hypot(*(b - a)))
+        if 0 < length <= MAX_PATH_STEP:
+            t = np.arange(step, length, step) / length
+            out.append(a + t[:, None] * (b - a))
+    return np.concatenate(out)
+
+
+def path_occupied(prob: NDArray[np.float64], points: NDArray[np.float64], cell: float = REFERENCE_RESOLUTION) -> dict[str, Any]:
+    """How much of the robot's own path a map calls occupied (ternary threshold).
+
+    Parameters
+    ----------
+    prob : ndarray of shape (n,)
+        The map's probability at `points`.
+    points : ndarray of shape (n, 2)
+        :func:`path_points`.
+    cell : float
+        Path points are counted per cell of this side (a lattice from the origin), so a long
+        stretch of path in one cell counts once.
+
+    Returns
+    -------
+    dict
+        ``n_cells`` on the path, ``n_occupied`` of them with a point above the occupied threshold
+        (the robot drove through them: they should be none), ``fraction``.
+    """
+    keys = np.floor(np.asarray(points, dtype=float) / cell).astype(np.int64)
+    _, cell_of = np.unique(keys, axis=0, return_inverse=True)
+    cell_of = cell_of.ravel()
+    n = int(cell_of.max()) + 1 if cell_of.size else 0
+    occupied = np.zeros(n, bool)
+    np.logical_or.at(occupied, cell_of, np.asarray(prob) > DEFAULT_THRESHOLDS[1])
+    return {"n_cells": n, "n_occupied": int(occupied.sum()), "fraction": float(occupied.mean()) if n else 0.0}
+
+
 @dataclass(frozen=True)
 class FarField:
     """Distance to the data on a coarse lattice round it.
@@ -571,6 +624,9 @@ class EvalData:
     truth : Truth or None
     truth_observed : ndarray of bool, shape (ny * nx,) or None
         Truth cells the reference grid observed.
+    path : ndarray of shape (p, 2)
+        Points along the robot's path through the whole window, training and held-out scans
+        (:func:`path_points`).
     settings, seconds : dict
     """
 
@@ -584,6 +640,7 @@ class EvalData:
     reference: Any
     truth: Truth | None = None
     truth_observed: NDArray[np.bool_] | None = None
+    path: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
     settings: dict[str, Any] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
 
@@ -673,6 +730,7 @@ def prepare(
         reference,
         truth,
         truth_observed,
+        path_points(window),
         settings,
         seconds,
     )
@@ -722,7 +780,7 @@ def run_method(
         JSON-serialisable: ``points`` and ``grid`` (each :func:`score`'s dict, ``grid`` None
         without `score_grid`), ``auc``, ``fpr_at_tpr95``, ``log_loss`` (the exact-point ones),
         ``far`` (mean and spread of the predictions far from the data: at far test points and on
-        the far lattice, for both predictions), ``truth`` (:func:`score_truth` of both, or None),
+        the far lattice, for both predictions), ``path`` (:func:`path_occupied` of both), ``truth`` (:func:`score_truth` of both, or None),
         ``seconds`` and ``cpu_seconds`` (``fit``, ``predict``, ``grid``; the model's own stages),
         ``peak_rss_mb`` (this process's peak so far), ``n_inputs``, ``n_train_scans``,
         ``n_test_scans``, ``n_test_points``, ``hyperparameters`` (GP methods), ``settings``.
@@ -743,6 +801,7 @@ def run_method(
     points_score = score(data.labels, prob, data.masks)
     far_lattice = np.asarray(model.predict_proba(data.far_points), dtype=float) if len(data.far_points) else np.zeros(0)
     far = {"test_points": {"points": _spread(prob[data.far_test])}, "lattice": {"points": _spread(far_lattice)}}
+    path = {"points": path_occupied(np.asarray(model.predict_proba(data.path), dtype=float), data.path)}
     truth_out: dict[str, Any] | None = None
     if data.truth is not None:
         centres = data.truth.grid.centres()
@@ -762,6 +821,7 @@ def run_method(
         grid_score = score(data.labels, gprob, data.masks)
         far["test_points"]["grid"] = _spread(gprob[data.far_test])
         far["lattice"]["grid"] = _spread(lookup(occupancy_map, data.far_points))
+        path["grid"] = path_occupied(lookup(occupancy_map, data.path), data.path)
         if data.truth is not None and truth_out is not None:
             truth_out["grid"] = score_truth(data.truth, lookup(occupancy_map, data.truth.grid.centres()), data.truth_observed)
         del occupancy_map
@@ -775,6 +835,7 @@ def run_method(
         "points": points_score,
         "grid": grid_score,
         "far": far,
+        "path": path,
         "truth": truth_out,
         "seconds": seconds,
         "cpu_seconds": cpu,
