@@ -8,6 +8,7 @@ shows the traceback instead.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
 import json
 import math
@@ -17,17 +18,21 @@ import sys
 import threading
 import time
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, ClassVar
 
 from gpomap import __version__
+from gpomap.config import DEFAULT_THRESHOLDS, MapConfig, TilingConfig
 from gpomap.errors import GpomapError
 
 EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_USAGE = 2
+
+#: Cell side of the map ``gpomap demo`` writes, metres (the paper's synthetic room is 10 m across).
+DEMO_RESOLUTION = 0.5
 
 
 # --------------------------------------------------------------------------- parsing helpers
@@ -100,24 +105,61 @@ def _non_negative(kind: type) -> Any:
     return _number(kind, 0.0, strict=False)
 
 
-class _LibraryDefault:
-    """The default of an :class:`~gpomap.mapping.AreaGPOM` argument, stated in one place: the library.
+class _Default:
+    """An option's default, stated in one place: a config field (:mod:`gpomap.config`) or a library module.
 
-    Looked up only when shown or used (importing the model pulls in SciPy, and ``gpomap --help``
-    should stay fast); :func:`main` replaces it by its value after parsing.
+    argparse keeps a default that is not a string as it is, so an option still holding a
+    ``_Default`` after parsing was not given: :func:`main` replaces it by its value and names it
+    in ``args.library_defaults`` (a 3-D map replaces some of them, gpomap.apps.map3d). A default
+    found in a module that imports SciPy is looked up only when shown or used (`lookup`), so that
+    ``gpomap --help`` stays fast.
+
+    Parameters
+    ----------
+    value : object, optional
+        The default itself.
+    lookup : callable, optional
+        Returns the default (instead of `value`).
+    show : callable, optional
+        Formats the value for ``--help`` (default: ``str``).
     """
 
-    def __init__(self, name: str) -> None:
-        self.name = name
+    def __init__(self, value: Any = None, lookup: Callable[[], Any] | None = None, show: Callable[[Any], str] = str) -> None:
+        self._value, self._lookup, self._show = value, lookup, show
 
     @property
     def value(self) -> Any:
-        from gpomap.mapping import AreaGPOM
-
-        return inspect.signature(AreaGPOM).parameters[self.name].default
+        return self._lookup() if self._lookup is not None else self._value
 
     def __str__(self) -> str:
-        return str(self.value)
+        return self._show(self.value)
+
+
+def _signature_default(module: str, name: str, parameter: str) -> _Default:
+    """The default of `parameter` of the function or class `name` in `module`, looked up when needed."""
+
+    def lookup() -> Any:
+        import importlib
+
+        return inspect.signature(getattr(importlib.import_module(module), name)).parameters[parameter].default
+
+    return _Default(lookup=lookup)
+
+
+def _module_default(module: str, name: str, convert: Callable[[Any], Any] | None = None) -> _Default:
+    """The constant `name` of `module` (through `convert`, if given), looked up when needed."""
+
+    def lookup() -> Any:
+        import importlib
+
+        value = getattr(importlib.import_module(module), name)
+        return value if convert is None else convert(value)
+
+    return _Default(lookup=lookup)
+
+
+def _show_pair(pair: tuple[float, float]) -> str:
+    return f"{pair[0]:g},{pair[1]:g}"
 
 
 def _status(args: argparse.Namespace, message: str) -> None:
@@ -131,7 +173,7 @@ def _add_reader_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--angles",
         choices=["gmapping", "linspace"],
-        default="gmapping",
+        default=_signature_default("gpomap.io.carmen", "read_carmen", "angles"),
         help="CARMEN FLASER beam-angle convention (default: %(default)s)",
     )
     g.add_argument(
@@ -141,7 +183,10 @@ def _add_reader_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--fixed-frame", help="ROS bag: fixed frame of the poses, from /tf (default: odom)")
     g.add_argument("--odom-topic", help="ROS bag: take poses from this nav_msgs/Odometry topic instead of /tf")
     g.add_argument(
-        "--time-offset", type=_number(float), default=0.0, help="ROS bag: seconds added to scan stamps before the pose lookup"
+        "--time-offset",
+        type=_number(float),
+        default=_signature_default("gpomap.io.rosbag", "read_rosbag", "time_offset"),
+        help="ROS bag: seconds added to scan stamps before the pose lookup (default: %(default)s)",
     )
 
 
@@ -177,99 +222,112 @@ def _add_selection_options(p: argparse.ArgumentParser) -> None:
 
 
 def _add_model_options(p: argparse.ArgumentParser) -> None:
+    """The options of :class:`~gpomap.config.MapConfig` a user sets, each defaulting to its field (:func:`_map_config`)."""
+    d = MapConfig()
     g = p.add_argument_group("the model")
-    g.add_argument(
-        "--kernel", choices=["matern32", "se"], default=_LibraryDefault("kernel"), help="point kernel (default: %(default)s)"
-    )
+    g.add_argument("--kernel", choices=["matern32", "se"], default=_Default(d.kernel), help="point kernel (default: %(default)s)")
     g.add_argument(
         "--area",
         choices=["exact", "quadrature", "summed"],
+        default=d.area,
         help="area-kernel computation (default: exact for se, quadrature for matern32)",
     )
     g.add_argument(
-        "--normalisation", choices=["mean", "sum"], default="mean", help="area-kernel normalisation (default: %(default)s)"
+        "--normalisation",
+        choices=["mean", "sum"],
+        default=_Default(d.normalisation),
+        help="area-kernel normalisation (default: %(default)s)",
     )
-    g.add_argument("--objective", choices=["loo", "lml"], default="loo", help="hyperparameter objective (default: %(default)s)")
+    g.add_argument(
+        "--objective",
+        choices=["loo", "lml"],
+        default=_Default(d.objective),
+        help="hyperparameter objective (default: %(default)s)",
+    )
     g.add_argument(
         "--class-weight",
         choices=["balanced", "none"],
-        default="balanced",
+        default=_Default(d.class_weight, show=lambda v: str(v).lower()),
         help="weigh free and occupied cells equally in the leave-one-out fit, or each cell once (default: %(default)s)",
     )
     g.add_argument(
-        "--free-step", type=_positive(float), default=0.2, help="free-point spacing along beams, m (default: %(default)s)"
+        "--free-step",
+        type=_positive(float),
+        default=_Default(d.free_step),
+        help="free-point spacing along beams, m (default: %(default)s)",
     )
     g.add_argument(
         "--free-clearance",
         type=_non_negative(float),
-        default=0.3,
+        default=_Default(d.free_clearance),
         metavar="M",
         help="drop free points closer than M metres to a hit (beams grazing walls; default: %(default)s; 0 keeps all)",
     )
     g.add_argument(
         "--no-return-cap",
         type=_non_negative(float),
-        default=10.0,
+        default=_Default(d.no_return_cap),
         metavar="M",
         help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)",
     )
-    # Library defaults, so that a 3-D map can tell them from values given (gpomap.apps.map3d).
     g.add_argument(
-        "--min-cell",
-        type=_positive(float),
-        default=_LibraryDefault("min_cell"),
-        help="smallest cell side, m (default: %(default)s)",
+        "--min-cell", type=_positive(float), default=_Default(d.min_cell), help="smallest cell side, m (default: %(default)s)"
     )
     g.add_argument(
-        "--max-cell",
-        type=_positive(float),
-        default=_LibraryDefault("max_cell"),
-        help="largest pure cell side, m (default: %(default)s)",
+        "--max-cell", type=_positive(float), default=_Default(d.max_cell), help="largest pure cell side, m (default: %(default)s)"
     )
-    g.add_argument("--length-scale", type=_positive(float), help="fix the length scale (m) instead of learning it")
-    g.add_argument("--seed", type=int, default=0, help="seed of restarts and samples (default: %(default)s)")
+    g.add_argument(
+        "--length-scale",
+        type=_positive(float),
+        help=f"fix the length scale (m) instead of learning it (default: learnt, from {d.length_scale:g})",
+    )
+    g.add_argument("--seed", type=int, default=_Default(d.seed), help="seed of restarts and samples (default: %(default)s)")
     g.add_argument(
         "--no-ray-evidence",
         dest="ray_evidence",
         action="store_false",
+        default=_Default(d.ray_evidence),
         help="the GP alone, without each fine cell's hit and miss counts on top (see gpomap.fusion)",
     )
     g.add_argument(
         "--evidence-resolution",
         type=_positive(float),
-        default=_LibraryDefault("evidence_resolution"),
+        default=_Default(d.evidence_resolution),
         metavar="M",
         help="fine cells whose ray counts update exact-point predictions, m (default: %(default)s; a written map counts on its own cells)",
     )
 
 
-def _class_weight(args: argparse.Namespace) -> str | None:
-    """``--class-weight`` as the library takes it ("none" is None)."""
-    return None if args.class_weight == "none" else args.class_weight
+def _map_config(args: argparse.Namespace) -> MapConfig:
+    """The :class:`~gpomap.config.MapConfig` of the parsed options: each field from the option of its name, if any.
+
+    Two options are not their field: ``--class-weight none`` is None, and ``--length-scale``
+    fixes the length scale (``optimise=False``) rather than setting where the search starts.
+    Fields without an option (and options left out, as ``--length-scale`` by default) keep
+    the config's default.
+    """
+    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(MapConfig) if hasattr(args, f.name)}
+    if "class_weight" in given:
+        given["class_weight"] = None if given["class_weight"] == "none" else given["class_weight"]
+    if given.get("length_scale") is not None:
+        given["optimise"] = False
+    else:
+        given.pop("length_scale", None)
+    if "min_cell" in given and "max_cell" in given and given["min_cell"] > given["max_cell"]:
+        raise GpomapError(f"--min-cell ({given['min_cell']}) must not exceed --max-cell ({given['max_cell']})")
+    return MapConfig(**given)
 
 
-def _model_options(args: argparse.Namespace) -> dict[str, Any]:
-    opts: dict[str, Any] = {
-        "kernel": args.kernel,
-        "area": args.area,
-        "normalisation": args.normalisation,
-        "objective": args.objective,
-        "class_weight": _class_weight(args),
-        "free_step": args.free_step,
-        "free_clearance": args.free_clearance,
-        "no_return_cap": args.no_return_cap,
-        "min_cell": args.min_cell,
-        "max_cell": args.max_cell,
-        "seed": args.seed,
-        "ray_evidence": args.ray_evidence,
-        "evidence_resolution": args.evidence_resolution,
-    }
-    if args.length_scale is not None:
-        opts["length_scale"] = args.length_scale
-        opts["optimise"] = False
-    if opts["min_cell"] > opts["max_cell"]:
-        raise GpomapError(f"--min-cell ({args.min_cell}) must not exceed --max-cell ({args.max_cell})")
-    return opts
+def _tiling_config(args: argparse.Namespace) -> TilingConfig:
+    """The :class:`~gpomap.config.TilingConfig` of the tiling options (``--workers`` is ``n_workers``, ``--threads`` ``blas_threads``)."""
+    return TilingConfig(
+        max_cells=args.max_cells,
+        tile_size=args.tile_size,
+        n_workers=args.workers,
+        blas_threads=args.threads,
+        scheduler=args.scheduler,
+        scheduler_timeout=args.scheduler_timeout,
+    )
 
 
 def _add_tiling_options(p: argparse.ArgumentParser) -> None:
@@ -277,11 +335,13 @@ def _add_tiling_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--max-cells",
         type=_positive(int),
-        default=3000,
+        default=_Default(TilingConfig.max_cells),
         help="above this many cells the map is built in tiles automatically (default: %(default)s)",
     )
     g.add_argument("--tiles", action="store_true", help="always build the map in tiles")
-    g.add_argument("--tile-size", type=_positive(float), default=10.0, help="tile side, m (default: %(default)s)")
+    g.add_argument(
+        "--tile-size", type=_positive(float), default=_Default(TilingConfig.tile_size), help="tile side, m (default: %(default)s)"
+    )
     g.add_argument("--workers", type=_positive(int), help="local worker processes for tiles (default: the CPU count)")
     g.add_argument(
         "--threads",
@@ -294,7 +354,7 @@ def _add_tiling_options(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--scheduler-timeout",
         type=_positive(float),
-        default=60.0,
+        default=_Default(TilingConfig.scheduler_timeout),
         metavar="SECONDS",
         help="give up when the scheduler does not answer, or has no workers, for this long (default: %(default)s)",
     )
@@ -321,9 +381,9 @@ def _add_output_options(p: argparse.ArgumentParser, default_resolution: Any, sup
     g.add_argument(
         "--thresholds",
         type=_pair,
-        default=(0.33, 0.66),
+        default=_Default(DEFAULT_THRESHOLDS, show=_show_pair),
         metavar="FREE,OCCUPIED",
-        help="ternary-map thresholds (default: 0.33,0.66)",
+        help="ternary-map thresholds (default: %(default)s)",
     )
     if supersample:
         g.add_argument(
@@ -425,8 +485,7 @@ def _plan_map(args: argparse.Namespace, data: Any) -> bool:
     from gpomap.mapping import AreaGPOM
     from gpomap.resources import grid_shape, largest_tile_cells, points_extent
 
-    opts = _model_options(args)
-    base = AreaGPOM(**opts)
+    base = AreaGPOM(**_map_config(args).kwargs())
     obs = base.make_observations(data)
     extent = args.extent if args.extent is not None else points_extent(obs.points)
     shape = grid_shape(extent, args.resolution)
@@ -497,10 +556,8 @@ def _fit_and_write(
     """
     from gpomap.diagnostics import hyperparameter_source
     from gpomap.io.export import write_map_files
-    from gpomap.mapping import AreaGPOM
 
-    opts = _model_options(args)
-    model = AreaGPOM(thresholds=args.thresholds, **opts)
+    model = _single_model(args)
     _status(args, f"fitting MSK-GPOM ({args.kernel})...")
     model.fit(data)
     _status(args, f"  {model.n_inputs_} cells, hyperparameters learnt in {model.timings_['hyperparameters']:.2f} s")
@@ -577,18 +634,18 @@ def cmd_map(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _single_model(args: argparse.Namespace) -> Any:
+    """The unfitted one-GP map of the parsed options (``gpomap map`` and ``gpomap demo``)."""
+    from gpomap.mapping import AreaGPOM
+
+    return AreaGPOM(**_map_config(args).kwargs())
+
+
 def _tiled_model(args: argparse.Namespace) -> Any:
+    """The unfitted tiled map of the parsed options (``gpomap map`` above ``--max-cells``, with ``--tiles`` or ``--chunk-scans``)."""
     from gpomap.tiles import TiledGPOM
 
-    return TiledGPOM(
-        tile_size=args.tile_size,
-        n_workers=args.workers,
-        blas_threads=args.threads,
-        scheduler=args.scheduler,
-        scheduler_timeout=args.scheduler_timeout,
-        thresholds=args.thresholds,
-        **_model_options(args),
-    )
+    return TiledGPOM(**_tiling_config(args).kwargs(), **_map_config(args).kwargs())
 
 
 def _write_tiled(args: argparse.Namespace, model: Any, title: str) -> list[Path]:
@@ -712,10 +769,11 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from gpomap.evaluation import GRID_METHODS, Truth, evaluate, resolve_split
+    from gpomap.evaluation import Truth, evaluate, resolve_split
 
     if args.demo == (args.input is not None):
         raise GpomapError("give either INPUT or --demo")
+    arguments = _evaluate_arguments(args)  # refuses an option --method does not take, before any reading
     truth = None
     if args.demo:
         from gpomap.simulate import paper_room, paper_room_scans
@@ -727,37 +785,105 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
         scans, source = read_scans(args.input, **_reader_options(args, args.input)), args.input
     _status(args, f"evaluating {args.method} on {source} ({len(scans)} scans)...")
-    options: dict[str, Any] = {}
-    if args.method in ("msk", "gpom"):
-        options["free_step"] = args.free_step
-    if args.method == "msk":
-        # The map `gpomap map` would build from the same options (tiles above --max-cells).
-        options = {k: v for k, v in _model_options(args).items() if k not in ("kernel", "seed")}
-    result = evaluate(
-        scans,
-        method=args.method,
-        kernel=None if args.method in GRID_METHODS else args.kernel,
-        holdout=args.split,
-        n_scans=args.scans,
-        n_beams=args.beams,
-        scan_range=args.scan_range,
-        scan_step=args.scan_step,
-        seed=args.seed,
-        resolution=args.resolution,
-        grid_resolution=args.grid_resolution,
-        max_test_points=args.test_points,
-        max_cells=args.max_cells,
-        n_workers=args.workers,
-        truth=truth,
-        score_grid=not args.no_grid,
-        **options,
-    )
+    result = evaluate(scans, truth=truth, **arguments)
     result["settings"]["input"] = source
     if args.json:
         print(json.dumps(result, default=str))
         return EXIT_OK
     _print_evaluation(args, result, source, resolve_split(args.split))
     return EXIT_OK
+
+
+def _flag(dest: str) -> str:
+    """The command-line spelling of the option stored as `dest`."""
+    return {"ray_evidence": "--no-ray-evidence", "scan_range": "--range", "test_points": "--test-points"}.get(
+        dest, "--" + dest.replace("_", "-")
+    )
+
+
+def _given(args: argparse.Namespace, dests: Sequence[str]) -> list[str]:
+    """Which of `dests` the command line set (a default is a :class:`_Default` or None)."""
+    return [d for d in dests if d not in args.library_defaults and getattr(args, d) is not None]
+
+
+def _model_option_dests() -> tuple[str, ...]:
+    """The dests of :func:`_add_model_options`."""
+    p = argparse.ArgumentParser(add_help=False)
+    _add_model_options(p)
+    return tuple(a.dest for a in p._actions)
+
+
+def _method_options(args: argparse.Namespace) -> dict[str, Any]:
+    """Constructor arguments of ``--method`` from the model options (``gpomap evaluate``).
+
+    MSK-GPOM takes the whole :class:`~gpomap.config.MapConfig` (the map ``gpomap map`` builds);
+    a baseline takes the options given that it has an argument for (its own defaults stand
+    for the rest; ``--no-return-cap`` is the grids' ``max_range_free``); an option given that
+    the method has no use for is refused.
+    """
+    from gpomap.evaluation import GRID_METHODS
+
+    config = _map_config(args)
+    if args.method == "msk":
+        return {k: v for k, v in config.kwargs().items() if k not in ("kernel", "seed")}  # evaluate()'s own arguments
+    # evaluate() passes the seed to every method (and seeds the test points with it), the kernel to the GP methods.
+    own = ("seed",) if args.method in GRID_METHODS else ("seed", "kernel")
+    dests = [d for d in _model_option_dests() if d not in own]
+    if args.method in GRID_METHODS:
+        takes = {"no_return_cap": "max_range_free"}
+    else:
+        from gpomap.baselines.gpom import GPOM
+        from gpomap.baselines.gpomik import GPOMIK
+
+        params = inspect.signature({"gpom": GPOM, "gpomik": GPOMIK}[args.method]).parameters
+        takes = {d: d for d in dests if d in params}
+    given = _given(args, dests)
+    refused = [d for d in given if d not in takes]
+    if refused:
+        raise GpomapError(
+            f"{', '.join(_flag(d) for d in refused)}: not an option of --method {args.method}"
+            + (f" (of the model options it takes {', '.join(_flag(d) for d in takes)})" if takes else "")
+        )
+    options = {takes[d]: getattr(config, d) for d in given}
+    if "length_scale" in options:
+        options["optimise"] = config.optimise  # a given length scale is fixed, as for MSK-GPOM
+    return options
+
+
+def _evaluate_arguments(args: argparse.Namespace) -> dict[str, Any]:
+    """The keyword arguments of :func:`gpomap.evaluation.evaluate` for the parsed options (all but the scans and the truth).
+
+    Raises
+    ------
+    GpomapError
+        An option given that ``--method`` does not take.
+    """
+    from gpomap.evaluation import GRID_METHODS, METHODS
+
+    gp_methods = tuple(m for m in METHODS if m not in GRID_METHODS)
+    # The options only some methods take (refused on the others, not ignored): the grids' cell
+    # side, the GP methods' written map, the tiles of MSK-GPOM.
+    only = {"resolution": GRID_METHODS, "grid_resolution": gp_methods, "max_cells": ("msk",), "workers": ("msk",)}
+    for dest, methods in only.items():
+        if args.method not in methods and _given(args, [dest]):
+            raise GpomapError(f"{_flag(dest)} is for --method {', '.join(methods)}, not {args.method}")
+    return {
+        "method": args.method,
+        "kernel": None if args.method in GRID_METHODS else args.kernel,
+        "holdout": args.split,
+        "n_scans": args.scans,
+        "n_beams": args.beams,
+        "scan_range": args.scan_range,
+        "scan_step": args.scan_step,
+        "seed": args.seed,
+        "resolution": args.resolution,
+        "grid_resolution": args.grid_resolution,
+        "max_test_points": args.test_points,
+        "max_cells": args.max_cells,
+        "n_workers": args.workers,
+        "score_grid": not args.no_grid,
+        **_method_options(args),
+    }
 
 
 def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: str, split: str) -> None:
@@ -819,10 +945,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
     if convert3d.is_octree_input(args.input):
         return convert3d.cmd_convert3d(args)
     map3d.check_2d_options(args)
+    if "max_cells" not in args.library_defaults:
+        raise GpomapError(f"--max-cells is for OctoMap trees; {args.input} is converted as one GP over its cells")
     _status(args, f"converting {args.input}...")
-    options: dict[str, Any] = {"thresholds": args.thresholds}
-    if args.kernel:
-        options["kernel"] = args.kernel
+    options = _convert_options(args)
     # Read once, check the memory the output grid and the GP need, then convert what was read.
     source = load_grid(args.input)
     spec = output_grid(source.grid, args.resolution, args.extent)
@@ -846,6 +972,14 @@ def cmd_convert(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _convert_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The model options of ``gpomap convert`` (the rest are the converter's own, see gpomap.convert.model_defaults)."""
+    options: dict[str, Any] = {"thresholds": args.thresholds}
+    if args.kernel:
+        options["kernel"] = args.kernel
+    return options
+
+
 def _convert_text(report: dict[str, Any]) -> str:
     px, cells, agree = report["pixels"], report["cells"], report["agreement"]
     hp = report["hyperparameters"]
@@ -860,28 +994,29 @@ def _convert_text(report: dict[str, Any]) -> str:
     )
 
 
+def _benchmark_arguments(args: argparse.Namespace) -> dict[str, Any]:
+    """Keyword arguments of :func:`gpomap.benchmark.run_paper_benchmark` (all but the directory and the progress)."""
+    from gpomap.benchmark import METHODS
+
+    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    unknown = sorted(set(methods) - set(METHODS))
+    if unknown:
+        raise GpomapError(f"--methods: unknown method(s) {', '.join(unknown)}; expected {', '.join(METHODS)}")
+    # run_paper_benchmark refuses unknown experiments with a ValueError, reported as one line.
+    experiments = tuple(e.strip() for e in args.experiments.split(",") if e.strip())
+    return {"methods": methods, "experiments": experiments, "quick": args.quick, "seed": args.seed}
+
+
 def cmd_benchmark(args: argparse.Namespace) -> int:
     from gpomap.benchmark import run_paper_benchmark
 
     if not args.paper:
         raise GpomapError("choose a benchmark: --paper (the paper's Tables II and III)")
-    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    unknown = sorted(set(methods) - {"msk", "gpomik", "gpom", "ogm"})
-    if unknown:
-        raise GpomapError(f"--methods: unknown method(s) {', '.join(unknown)}; expected msk, gpomik, gpom, ogm")
+    arguments = _benchmark_arguments(args)
     _check_before_work(args)
-    # run_paper_benchmark refuses unknown experiments with a ValueError, reported as one line.
-    experiments = tuple(e.strip() for e in args.experiments.split(",") if e.strip())
     # Tables, ROC curves and maps are one set: they replace the previous run's together.
     with _outputs(args) as outputs:
-        result = run_paper_benchmark(
-            outputs.path,
-            methods=methods,
-            experiments=experiments,
-            quick=args.quick,
-            seed=args.seed,
-            progress=lambda m: _status(args, m),
-        )
+        result = run_paper_benchmark(outputs.path, progress=lambda m: _status(args, m), **arguments)
     table = Path(args.output) / "tables.md"
     if table.exists():
         print(table.read_text())
@@ -935,7 +1070,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_model_options(p)
     # The written map's cells are the ray counts' cells unless asked otherwise: that is the map
     # the quality benchmark scores (a voxel map's default is gpomap.apps.map3d.DEFAULTS_3D's).
-    _add_output_options(p, _LibraryDefault("evidence_resolution"))
+    _add_output_options(p, _Default(MapConfig.evidence_resolution))
     _add_tiling_options(p)
     # The 3-D inputs' own options: gpomap.apps.map3d.
     from gpomap.apps.map3d import add_cloud_options
@@ -952,7 +1087,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="example:\n  gpomap demo -o demo-output",
     )
     _add_model_options(p)
-    _add_output_options(p, 0.5)
+    _add_output_options(p, _Default(DEMO_RESOLUTION))
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_demo)
 
@@ -990,30 +1125,39 @@ def build_parser() -> argparse.ArgumentParser:
         "--split",
         "--holdout",
         dest="split",
-        default="every",
+        default=_signature_default("gpomap.evaluation", "evaluate", "holdout"),
         metavar="blocks|every|every:K|blocks:LEN[:K]",
         help="held-out scans: 'blocks' = blocks of 40 consecutive scans, every 5th held out; 'every' = every "
         "10th scan; or any every:K / blocks:LEN[:K] (default: %(default)s)",
     )
-    p.add_argument("--resolution", type=_positive(float), default=0.1, help="occupancy-grid cell side, m (default: %(default)s)")
+    p.add_argument(
+        "--resolution",
+        type=_positive(float),
+        default=_signature_default("gpomap.evaluation", "evaluate", "resolution"),
+        help="ogm: occupancy-grid cell side, m (default: %(default)s)",
+    )
     p.add_argument(
         "--grid-resolution",
         type=_positive(float),
-        default=0.05,
+        default=_module_default("gpomap.evaluation", "GRID_RESOLUTION"),
         help="resolution of the written map scored for the GP methods, m (default: %(default)s)",
     )
     p.add_argument("--no-grid", action="store_true", help="score the exact-point predictions only")
     p.add_argument(
-        "--scan-step", type=_positive(int), default=1, metavar="K", help="use every K-th scan of the log (default: all)"
+        "--scan-step",
+        type=_positive(int),
+        default=_signature_default("gpomap.evaluation", "evaluate", "scan_step"),
+        metavar="K",
+        help="use every K-th scan of the log (default: %(default)s)",
     )
     p.add_argument("--test-points", type=_positive(int), metavar="N", help="at most N test points (balanced, seeded subsample)")
     p.add_argument(
         "--max-cells",
         type=_positive(int),
-        default=3000,
+        default=_Default(TilingConfig.max_cells),
         help="msk: above this many cells the map is built in tiles, as gpomap map does (default: %(default)s)",
     )
-    p.add_argument("--workers", type=_positive(int), help="worker processes for tiles (default: the CPU count)")
+    p.add_argument("--workers", type=_positive(int), help="msk: worker processes for tiles (default: the CPU count)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_reader_options(p)
     _add_selection_options(p)
@@ -1040,7 +1184,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_3d_output_options(p).add_argument(
         "--max-cells",
         type=_positive(int),
-        default=3000,
+        default=_Default(TilingConfig.max_cells),
         help="octree: refuse a region whose cell tree has more cells than one GP should hold (default: %(default)s)",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
@@ -1058,13 +1202,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--paper", action="store_true", help="the paper's two experiments")
     p.add_argument("-o", "--output", required=True, metavar="OUTDIR")
     p.add_argument("--quick", action="store_true", help="a small, fast version (smoke test)")
-    p.add_argument("--methods", default="msk,gpomik,gpom,ogm", help="comma-separated methods (default: %(default)s)")
+    p.add_argument(
+        "--methods",
+        default=_module_default("gpomap.benchmark", "METHODS", ",".join),
+        help="comma-separated methods (default: %(default)s)",
+    )
     p.add_argument(
         "--experiments",
-        default="synthetic,belgioioso,belgioioso-rooms",
+        default=_module_default("gpomap.benchmark", "EXPERIMENTS", ",".join),
         help="comma-separated experiments (default: %(default)s)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=_signature_default("gpomap.benchmark", "run_paper_benchmark", "seed"),
+        help="seed of every method (default: %(default)s)",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_benchmark)
 
@@ -1091,8 +1244,8 @@ def _show_warning(
 
 
 def _resolve_library_defaults(args: argparse.Namespace) -> None:
-    """Replace each library default by its value; ``args.library_defaults`` names the options left at one."""
-    defaulted = {name for name, value in vars(args).items() if isinstance(value, _LibraryDefault)}
+    """Replace each :class:`_Default` by its value; ``args.library_defaults`` names the options left at one."""
+    defaulted = {name for name, value in vars(args).items() if isinstance(value, _Default)}
     for name in defaulted:
         setattr(args, name, getattr(args, name).value)
     args.library_defaults = frozenset(defaulted)

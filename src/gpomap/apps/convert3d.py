@@ -55,9 +55,7 @@ def cmd_convert3d(args: argparse.Namespace) -> int:
         check_voxel_memory(args, lo, hi, n_cells)
         cli._status(args, f"  {n_cells} cells; fitting the GP...")
 
-    options: dict[str, Any] = {"thresholds": args.thresholds}
-    if args.kernel:
-        options["kernel"] = args.kernel
+    options = cli._convert_options(args)
     result = convert_octree(tree, args.resolution, lo, hi, max_cells=args.max_cells, before_fit=before_fit, **options)
     cli._Run.outdir = args.output
     files = write_voxel_outputs(result.map, args.output, heights=args.slices, title=f"gpomap convert: {Path(args.input).name}")

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan
+from gpomap.config import VOXEL_MAP_DEFAULTS
 from gpomap.errors import GpomapError
 
 __all__ = [
@@ -52,13 +53,9 @@ __all__ = [
     "cmd_map3d",
 ]
 
-#: Model options whose library default (measured on 2-D logs) a 3-D map replaces when the user
-#: leaves it unset. Cells of 1 m, not 0.5 m: a cube has 8 times as many cells per volume as a
-#: square has 4, so the 2-D default gave 4,775 cells on la3dm sim_structured's 9 training scans,
-#: tiles, and a fit not done in 15 minutes on this 2-core machine; 1 m gives 1,026 cells, one GP,
-#: and held-out AUC 0.817 (docs/3d.md has the measurements). Voxels of 0.1 m, OctoMap's usual
-#: (a planar map's default is the ray counts' 0.05 m).
-DEFAULTS_3D: dict[str, Any] = {"min_cell": 1.0, "max_cell": 1.0, "resolution": 0.1}
+#: Options whose default (measured on 2-D logs) a 3-D map replaces when the user leaves it unset:
+#: :data:`gpomap.config.VOXEL_MAP_DEFAULTS`, where the measurements are quoted.
+DEFAULTS_3D: dict[str, float] = VOXEL_MAP_DEFAULTS
 
 #: Options of ``gpomap map`` that only 2-D inputs take, refused on clouds with this reason.
 _TWO_D_ONLY = {
@@ -260,14 +257,10 @@ def voxel_bounds(
 
 
 def tile_options(args: argparse.Namespace) -> dict[str, Any]:
-    """:class:`~gpomap.tiles.TiledGPOM` arguments from the tiling options."""
-    return {
-        "tile_size": args.tile_size,
-        "n_workers": args.workers,
-        "blas_threads": args.threads,
-        "scheduler": args.scheduler,
-        "scheduler_timeout": args.scheduler_timeout,
-    }
+    """:class:`~gpomap.tiles.TiledGPOM` arguments from the tiling options (:class:`~gpomap.config.TilingConfig`)."""
+    from gpomap import cli
+
+    return cli._tiling_config(args).kwargs()
 
 
 def build_model(
@@ -321,14 +314,8 @@ def model_from_args(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tu
     """:func:`build_model` with the options of a parsed ``gpomap map`` command line."""
     from gpomap import cli
 
-    return build_model(
-        clouds,
-        args.max_cells,
-        tiles=args.tiles,
-        tile_options=tile_options(args),
-        thresholds=args.thresholds,
-        **cli._model_options(args),
-    )
+    tiling = cli._tiling_config(args)
+    return build_model(clouds, tiling.max_cells, tiles=args.tiles, tile_options=tiling.kwargs(), **cli._map_config(args).kwargs())
 
 
 def default_model(clouds: Sequence[CloudScan], **overrides: Any) -> tuple[Any, float]:

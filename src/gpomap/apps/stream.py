@@ -29,7 +29,11 @@ from gpomap.errors import GpomapError
 from gpomap.scans import Scan, scan_extent
 from gpomap.streaming import DEFAULT_TILE_SIZE, DEFAULT_WARMUP_SCANS
 
-__all__ = ["ReplayResult", "replay_times", "replay", "add_parser", "cmd_stream"]
+__all__ = ["ReplayResult", "replay_times", "replay", "add_parser", "mapper_from_args", "cmd_stream", "STREAM_RESOLUTION"]
+
+#: Cell side of the maps ``gpomap stream`` writes by default, metres (``gpomap map`` writes the ray
+#: counts' cells, :attr:`gpomap.config.MapConfig.evidence_resolution`).
+STREAM_RESOLUTION = 0.1
 
 
 @dataclass
@@ -232,12 +236,15 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     g.add_argument(
         "--warmup",
         type=cli._positive(int),
-        default=DEFAULT_WARMUP_SCANS,
+        default=cli._Default(DEFAULT_WARMUP_SCANS),
         metavar="N",
         help="scans seen before the hyperparameters are learnt and the first map is written (default: %(default)s)",
     )
     g.add_argument(
-        "--tile-size", type=cli._positive(float), default=DEFAULT_TILE_SIZE, help="tile side, m (default: %(default)s)"
+        "--tile-size",
+        type=cli._positive(float),
+        default=cli._Default(DEFAULT_TILE_SIZE),
+        help="tile side, m (default: %(default)s)",
     )
     g.add_argument(
         "--max-refits",
@@ -248,15 +255,33 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "(default: all, every map sees the GP of every scan; the ray counts are always current)",
     )
     g.add_argument(
-        "--workers", type=cli._positive(int), default=1, help="worker processes refitting tiles (default: %(default)s)"
+        "--workers",
+        type=cli._positive(int),
+        help="worker processes refitting tiles (default: the mapper's, one: a scan's refits are too small for a pool)",
     )
     cli._add_reader_options(p)
     cli._add_selection_options(p)
     cli._add_model_options(p)
-    cli._add_output_options(p, 0.1, supersample=False)
+    cli._add_output_options(p, cli._Default(STREAM_RESOLUTION), supersample=False)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_stream)
     return p
+
+
+def mapper_from_args(args: argparse.Namespace) -> Any:
+    """The unfitted :class:`~gpomap.streaming.StreamingGPOM` of a parsed ``gpomap stream`` command line."""
+    from gpomap import cli
+    from gpomap.streaming import StreamingGPOM
+
+    # --workers left out keeps the mapper's own default.
+    workers = {} if args.workers is None else {"n_workers": args.workers}
+    return StreamingGPOM(
+        warmup_scans=args.warmup,
+        max_refits=args.max_refits,
+        tile_size=args.tile_size,
+        **workers,
+        **cli._map_config(args).kwargs(),
+    )
 
 
 def cmd_stream(args: argparse.Namespace) -> int:
@@ -264,7 +289,6 @@ def cmd_stream(args: argparse.Namespace) -> int:
     from gpomap import cli
     from gpomap.io.export import write_map_files
     from gpomap.resources import grid_shape
-    from gpomap.streaming import StreamingGPOM
 
     cli._check_before_work(args)
     cli._status(args, f"reading scans from {args.input}...")
@@ -278,14 +302,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
         args.extent if args.extent is not None else scan_extent(scans, include_no_return=True, no_return_cap=args.no_return_cap)
     )
     cli._check_grid_memory(args, grid_shape(extent, args.resolution), extent, 1, 0)
-    mapper = StreamingGPOM(
-        warmup_scans=args.warmup,
-        max_refits=args.max_refits,
-        tile_size=args.tile_size,
-        n_workers=args.workers,
-        thresholds=args.thresholds,
-        **cli._model_options(args),
-    )
+    mapper = mapper_from_args(args)
     title = f"gpomap stream: {Path(args.input).name}"
 
     def write(n: int) -> list[Path]:
