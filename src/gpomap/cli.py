@@ -31,7 +31,7 @@ EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_USAGE = 2
 
-#: Cell side of the map ``gpomap demo`` writes, metres (the paper's synthetic room is 10 m across).
+#: Cell side of the map ``gpomap demo`` writes, metres (the paper's synthetic room is 20 x 16 m: a 40 x 32 grid).
 DEMO_RESOLUTION = 0.5
 
 
@@ -313,6 +313,7 @@ def _map_config(args: argparse.Namespace) -> MapConfig:
         given["optimise"] = False
     else:
         given.pop("length_scale", None)
+    # Also checked before any work (_check_before_work); here for callers that set the values (map3d.default_model).
     if "min_cell" in given and "max_cell" in given and given["min_cell"] > given["max_cell"]:
         raise GpomapError(f"--min-cell ({given['min_cell']}) must not exceed --max-cell ({given['max_cell']})")
     return MapConfig(**given)
