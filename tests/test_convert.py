@@ -58,8 +58,12 @@ def test_round_trip_same_resolution(wall_result):
     rep = wall_result.report
     assert rep["agreement"]["ternary"] > 0.95 and rep["agreement"]["auc"] > 0.99
     assert rep["pixels"] == {"free": 37 * 37, "occupied": 37 * 3, "unknown": 3 * 40}
-    # Same-label neighbourhoods are merged: far fewer GP inputs than known pixels.
-    assert 0 < rep["cells"]["n"] < 0.25 * (37 * 40)
+    # Wall-aware cells: the 9 columns within 3 pixels of the wall (16..24) are one cell per pixel,
+    # one free strip per wall-facing free pixel (columns 18 and 22), one centre point per wall
+    # pixel; the 31 far columns are merged into blocks of at most 4 x 4 pixels.
+    n_far = rep["cells"]["n"] - 9 * 37 - 2 * 37 - 3 * 37
+    assert 31 * 37 / 16 <= n_far < 31 * 37 / 2
+    assert rep["cells"]["occupied"] == 2 * 3 * 37
     assert set(rep["hyperparameters"]) >= {"length_scale", "noise", "alpha", "beta"}
     assert rep["timings"]["total"] > 0
     assert rep["grid"]["edges_coincide"]
@@ -165,7 +169,8 @@ def test_turtlebot_map_converts():
     rep = res.report
     assert res.map.grid == read_rosmap(TURTLEBOT).grid
     assert rep["pixels"]["free"] + rep["pixels"]["occupied"] == 8734
-    assert 200 <= rep["cells"]["n"] <= 2000
+    # Every occupied pixel is a cell and a centre point.
+    assert rep["cells"]["occupied"] == 2 * rep["pixels"]["occupied"]
     assert rep["agreement"]["ternary"] > 0.95 and rep["agreement"]["auc"] > 0.99
     # Far from every known pixel the map stays unknown.
     assert res.map.ternary[0, 0] == UNKNOWN and res.map.ternary[-1, -1] == UNKNOWN
@@ -202,10 +207,15 @@ def test_finer_resolution_beats_nearest_neighbour_upsampling():
     bilinear = ndimage.zoom(coarse.astype(float), k, order=1, grid_mode=True, mode="nearest")
     auc_bl = roc_auc(fine.ravel(), bilinear.ravel())
     assert auc_gp > auc_nn + 0.02 and auc_gp > auc_bl + 0.003, (auc_gp, auc_nn, auc_bl)
-    # The cells cover their pixels' footprints: every box edge lies on the coarse pixel lattice.
+    # The cells cover their pixels' footprints: every box edge lies on the coarse pixel lattice,
+    # except the 0.1-pixel free strips and the occupied centre points.
     cells = res.model.cells_
-    for edge in (cells.lower, cells.upper):
+    side = (cells.upper - cells.lower).min(axis=1)
+    pixel_cells = side > 0.5 * 0.05
+    for edge in (cells.lower[pixel_cells], cells.upper[pixel_cells]):
         np.testing.assert_allclose(edge / 0.05, np.round(edge / 0.05), atol=1e-9)
+    np.testing.assert_allclose(side[~pixel_cells & ~cells.occupied], 0.1 * 0.05)
+    assert (side[~pixel_cells & cells.occupied] == 0.0).all()
     # Far inside free space the map is free, at the block's centre occupied.
     assert res.map.probability[50, 50] < 0.2 and res.map.probability[32, 77] > 0.8
 
@@ -221,3 +231,80 @@ def test_model_defaults_are_area_gpom_arguments():
     assert res.model.pixel_pad == 0.0
     single = res.model.cells_.upper - res.model.cells_.lower
     assert (single.min(axis=1) == 0.0).any()  # a one-pixel-wide cell is a segment without padding
+
+
+def test_grid_cells_single_occupied_pixel():
+    # 5 x 5 free pixels of 1 m round one occupied pixel at (2, 2), centre (2.5, 2.5): every pixel is
+    # within 3 pixels of it, so 25 one-pixel cells; 4 strips 0.1 m wide along the occupied
+    # pixel's edges, inside its free neighbours; one centre point; weights 3 except that point.
+    from gpomap.convert import grid_cells
+
+    xs, ys = np.meshgrid(np.arange(5) + 0.5, np.arange(5) + 0.5)
+    points = np.column_stack([xs.ravel(), ys.ravel()])
+    occupied = np.zeros(25, dtype=bool)
+    occupied[12] = True
+    cells = grid_cells(points, occupied, pixel=1.0, max_cell=4.0)
+    assert len(cells) == 25 + 4 + 1
+    np.testing.assert_allclose(np.sort((cells.upper - cells.lower)[:25].ravel()), 1.0)
+    strips = {tuple(np.round(np.r_[lo, hi], 9)) for lo, hi in zip(cells.lower[25:29], cells.upper[25:29])}
+    assert strips == {(3.0, 2.0, 3.1, 3.0), (1.9, 2.0, 2.0, 3.0), (2.0, 3.0, 3.0, 3.1), (2.0, 1.9, 3.0, 2.0)}
+    assert not cells.occupied[25:29].any()
+    np.testing.assert_allclose(cells.lower[29], [2.5, 2.5])
+    np.testing.assert_allclose(cells.upper[29], [2.5, 2.5])
+    assert cells.occupied[29] and cells.occupied[:25].sum() == 1
+    np.testing.assert_allclose(cells.weight, [3.0] * 29 + [1.0])
+    np.testing.assert_allclose(cells.to_supports().counts, [3.0] * 29 + [1.0])
+
+
+def test_grid_cells_merge_far_free_pixels_but_never_unknown_ones():
+    # 12 x 12 pixels, occupied (0, 0), one unknown pixel at row 8, column 9. With wall_reach 1 the
+    # pixels beyond chessboard distance 1 merge into blocks of at most 4 pixels a side; no cell
+    # covers the unknown pixel, and the pixel cells tile the known pixels exactly.
+    from gpomap.convert import grid_cells
+
+    labels = np.zeros((12, 12), dtype=int)
+    labels[0, 0] = 1
+    keep = np.ones((12, 12), dtype=bool)
+    keep[8, 9] = False
+    rows, cols = np.nonzero(keep)
+    points = np.column_stack([cols + 0.5, rows + 0.5]) * 0.1
+    cells = grid_cells(points, labels[rows, cols] == 1, pixel=0.1, max_cell=0.4, wall_reach=1, edge_strip=0.0, centre_noise=None)
+    side = cells.upper - cells.lower
+    assert side.max() <= 0.4 + 1e-12
+    np.testing.assert_allclose(np.prod(side, axis=1).sum(), 143 * 0.01)
+    np.testing.assert_array_equal(cells.counts, np.round(np.prod(side, axis=1) / 0.01).astype(int))
+    inside = np.all((cells.lower < [0.95, 0.85]) & (cells.upper > [0.95, 0.85]), axis=1)
+    assert not inside.any()
+    assert (side.max(axis=1) > 0.1 + 1e-12).sum() > 0  # some far pixels were merged
+    assert len(cells) < 143 / 2
+
+
+def test_grid_prediction_equals_the_models():
+    # The separable grid prediction (convert._grid_latent) gives the model's own probabilities
+    # and variances at the output cells' centres.
+    res = convert_grid(_wall_map(n=24, thickness=2), resolution=0.02)
+    g = res.map.grid
+    rng = np.random.default_rng(1)
+    iy, ix = rng.integers(0, g.shape[0], 400), rng.integers(0, g.shape[1], 400)
+    pts = np.column_stack([g.x_centres()[ix], g.y_centres()[iy]])
+    p, v = res.model.predict_proba(pts, return_var=True)
+    np.testing.assert_allclose(res.map.probability[iy, ix], p, atol=1e-6)
+    np.testing.assert_allclose(res.map.variance[iy, ix], v, atol=1e-6)
+
+
+def test_upsampled_wall_is_narrower_than_its_coarse_pixels():
+    # A coarse pixel of 0.05 m is occupied if any of its 5 x 5 fine pixels is. Free coarse pixels
+    # are free over their whole squares: at 0.01 m nothing in the free pixels next to the wall (its
+    # one-pixel cells, 3 pixels each side) comes out occupied (p > 0.5). The ternary (p > 0.66)
+    # band of the one-pixel wall is narrower than the pixel (nearest-neighbour's is the pixel), and
+    # its centre line is surely occupied.
+    n = 24
+    labels = np.full((n, n), FREE, dtype=np.int8)
+    labels[:, 11] = OCCUPIED  # the coarse wall: fine columns 55..59
+    res = convert_grid(_labels_to_map(labels), resolution=0.01)
+    p = res.map.probability
+    rows = slice(20, 100)  # away from the wall's ends
+    near_free = np.r_[40:55, 60:75]
+    assert (p[rows][:, near_free] < 0.5).all()
+    assert (p[rows, 56:59] > 0.66).all() and (p[rows, 57] > 0.9).all()
+    assert (p[rows, 55] < 0.66).all() and (p[rows, 59] < 0.66).all()

@@ -21,51 +21,41 @@ edges lie up to one output cell beyond the source's (they are never cropped shor
 
 Defaults (measured with benchmarks/convert_maps.py; see docs/convert.md)
 -------------------------------------------------------------------------
-- cells cover their pixels' full footprints (:class:`GridGPOM`: the tree's "tight" box of pixel
-  centres widened by half a source pixel): a pixel is an area observation, not a point at its
-  centre. Converting the Stage arena plan down-sampled to 0.05 m back to 0.01 m, footprints and
-  ``max_cell`` = 4 pixels give ROC AUC 0.9922 against the fine plan (centre boxes and 8 pixels:
-  0.9775; bilinear up-sampling 0.9885, nearest 0.9770) and occupied IoU (p > 0.5) 0.345 (0.257;
-  bilinear 0.379). On the TurtleBot3 map (384 x 384 pixels of 0.05 m, 8,734 known) 99.0 % of
-  known pixels keep their label (98.7 % before), free 99.7 % (99.0 %), occupied 92.2 % (96.0 %:
-  alpha settles at 6.4 instead of the cap of 30, so a few wall pixels fall to p 0.5-0.66);
-- ``max_cell`` = 4 pixels: with footprints the learnt length scale is 1-3 pixels, and free cells
-  of 8 x 8 pixels (much larger than it) constrain only their average: the map rang inside them
-  (bands of p > 0.5 parallel to walls, arena IoU 0.319). 2 pixels: IoU 0.365, AUC 0.9885, at 2.5x
-  the cells and twice the time;
-- ``min_cell`` = 1.2 pixels: a single pixel stops splitting, so a mixed 2 x 2 block is the smallest
-  ambiguous cell;
-- squared-exponential kernel with the exact closed-form area kernel (measured earlier with centre
-  boxes on TurtleBot3: 98.4 % of known pixels in 1 s of fitting, against 98.2 % in 22 s for
-  Matern 3/2 with quadrature);
-- length scale started at 3 pixels and bounded to 1..50 pixels. A lower bound of 2 pixels was no
-  better: arena 0.1 m AUC 0.9781 / IoU 0.177 against 0.9759 / 0.190; 0.05 m with 8-pixel cells
-  0.9780 / 0.257 against 0.9900 / 0.319. The default ``objective="loo"``; no restarts.
+- wall-aware GP inputs (:func:`grid_cells`): pixels within 3 pixels of an occupied one are cells
+  of their own (each its pixel's square), free pixels farther away are merged into blocks of at
+  most ``max_cell`` = 4 pixels; every free pixel gets a free strip 0.1 pixel wide along each edge
+  it shares with an occupied pixel (a free pixel is free up to its edge), and every occupied pixel
+  a point at its centre, 3 times noisier than a pixel cell (the obstacle most likely sits there).
+  Arena plan down-sampled to 0.05 m and converted to 0.01 m: AUC 0.993, occupied IoU 0.43 at
+  p > 0.5 (bilinear 0.9885 / 0.379); at 0.1 m 0.985 / 0.31 (bilinear 0.9817 / 0.233).
+  TurtleBot3 map: 99.9 % of known pixels keep their label, occupied 100 %. Before (the cell tree
+  with 4-pixel cells over footprints) free cells much larger than the length scale constrained
+  only their average and the map rang inside them (ghost walls), and the 0 crossing sat at the
+  occupied pixels' edges or beyond, so walls came out a coarse pixel wide or wider;
+- ``min_cell`` = 1.2 pixels: used only with ``wall_reach=None`` (the plain cell tree);
+- squared-exponential kernel with the exact closed-form area kernel; on a grid it is a product of
+  per-axis factors, which the prediction on the output grid uses (:func:`_grid_latent`);
+- length scale started at 3 pixels and bounded to 1..50 pixels; the default ``objective="loo"``;
+  no restarts.
 
-Occupied-class IoU at p > 0.5 stays below interpolation's: with labels +-1, a zero prior mean and
-beta held at 0, p > 0.5 exactly where the latent mean is positive, whatever alpha; between an
-occupied pixel and its free neighbour the mean crosses 0 near their shared edge, so the p > 0.5 band
-is about one coarse pixel wide, as interpolation's, while a thin wall is narrower. (The ternary
-"occupied", p > 0.66, is narrower: arena IoU 0.412.) Free supports along each wall pixel's edges
-moved the crossing inside the pixel but made the SE map ring in the larger free cells (IoU 0.265).
-At 0.1 m -> 0.01 m (10 x 10 fine pixels per coarse one) the map is below bilinear in AUC too
-(0.9759 against 0.9817).
+Trade-off: unknown pixels next to the map's walls are no longer painted occupied (the
+outward bleed of before), but small gaps between wall pixels are no longer closed either: the
+learnt length scale is now about one pixel (TurtleBot3: 84 % of unknown pixels between occupied
+ones 1 pixel apart come out occupied, 42 % of those up to 2 apart; before 100 %). The merged far
+free cells are still 4 times the length scale: where they meet the map's edge the SE map can ring
+(a 24 x 24-pixel test map with one wall: spots of p up to 0.57 at the bottom edge, 12 pixels from
+the wall).
 
 Known weakness: on a perfectly separable grid (a clean synthetic map) the leave-one-out objective
 has no finite optimum (alpha and beta can grow without bound), and where the optimiser stops
 decides whether a wall 1, 2 or 4 pixels thick comes out occupied or "unknown" (p ~ 0.5). Real maps
 (TurtleBot3: alpha ~ 6.4) are not separable and do not show it.
 
-Second weakness, measured on the TurtleBot3 map (benchmarks/convert_maps.py): where an occupied
-wall borders unknown space (the outside of a map's outer walls), nothing free counters it and the
-wall bleeds outwards: 99.3 % of unknown pixels 1-2 pixels from known ones and 98.9 % of those 3-10
-pixels away come out occupied, 15 % of those 11-20 pixels away (mean p 0.57). Farther the map is
-the prior (variance 1, p = 0.5, labelled unknown).
-
 Any of these can be overridden through ``**model_options`` (the :class:`GridGPOM` constructor
-arguments: those of :class:`~gpomap.mapping.AreaGPOM` and ``pixel_pad``; ``pixel_pad=0`` gives the
-centre boxes of before). ``free_step``, ``hit_margin`` and ``no_return_cap`` concern laser beams and
-have no effect here.
+arguments: those of :class:`~gpomap.mapping.AreaGPOM`, ``pixel_pad``, ``wall_reach``, ``edge_strip``
+and ``centre_noise``; ``wall_reach=None`` gives the cell tree over footprints of before,
+``pixel_pad=0`` the centre boxes of before that). ``free_step``, ``hit_margin`` and
+``no_return_cap`` concern laser beams and have no effect here.
 """
 
 from __future__ import annotations
@@ -80,18 +70,33 @@ from typing import Any, Union
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from gpomap.cells import Cells
 from gpomap.errors import EmptyDataError, InputFormatError
+from gpomap.gp import LOCAL_TOL, cholesky_inverse
 from gpomap.grid import FREE, OCCUPIED, UNKNOWN, GridSpec, OccupancyMap, ternary
 from gpomap.io.npz import load_map
 from gpomap.io.rosmap import RosMap, read_rosmap
+from gpomap.kernels.area import AreaKernel
+from gpomap.kernels.closed_form import se_box_average
 from gpomap.kernels.point import make_point_kernel
 from gpomap.mapping import AreaGPOM
 from gpomap.metrics import roc_auc
 from gpomap.observations import Observations
+from gpomap.supports import Supports
 
-__all__ = ["ConversionResult", "GridGPOM", "grid_to_observations", "convert_grid", "output_grid", "load_grid", "model_defaults"]
+__all__ = [
+    "ConversionResult",
+    "GridCells",
+    "GridGPOM",
+    "grid_cells",
+    "grid_to_observations",
+    "convert_grid",
+    "output_grid",
+    "load_grid",
+    "model_defaults",
+]
 
 GridSource = Union[RosMap, OccupancyMap, str, "os.PathLike[str]"]
 
@@ -101,6 +106,14 @@ MAX_CELL_PIXELS = 4.0
 #: Each cell box is widened by this many source pixels on every side: half a pixel turns the
 #: bounding box of the cell's pixel centres into the union of its pixels' footprints.
 FOOTPRINT_PIXELS = 0.5
+#: Known pixels within this many pixels (chessboard distance) of an occupied one are cells of their
+#: own; only free pixels farther away are merged into larger cells.
+WALL_REACH_PIXELS = 3
+#: Width, in source pixels, of the free strip put inside a free pixel along each edge it shares
+#: with an occupied pixel.
+EDGE_STRIP_PIXELS = 0.1
+#: Noise of an occupied pixel's centre point relative to a one-pixel cell's.
+CENTRE_NOISE = 3.0
 #: Starting length scale and its search bounds, in source pixels.
 LENGTH_SCALE_PIXELS = 3.0
 LENGTH_SCALE_BOUNDS_PIXELS = (1.0, 50.0)
@@ -261,35 +274,251 @@ def output_grid(
     return GridSpec((xmin, ymin), res, (ny, nx))
 
 
+@dataclass(frozen=True)
+class GridCells(Cells):
+    """:class:`~gpomap.cells.Cells` whose GP inputs carry a noise weight each.
+
+    Attributes
+    ----------
+    weight : ndarray of shape (n,) or None
+        Multiplies each input's member count in :meth:`to_supports`. With the ``"per_count"``
+        noise model an input's noise is the noise level divided by that count, so a weight of w
+        makes the input w times surer (counts below 1 are read as 1 there, so weights are >= 1).
+        None: every weight 1.
+    """
+
+    weight: NDArray[np.float64] | None = None
+
+    def to_supports(self) -> Supports:
+        """The cells as GP inputs, their counts multiplied by :attr:`weight`."""
+        supports = super().to_supports()
+        if self.weight is None:
+            return supports
+        return replace(supports, counts=supports.counts * self.weight)
+
+
+def _extra_inputs(
+    cells: Cells, lower: NDArray[np.float64], upper: NDArray[np.float64], occupied: NDArray[np.bool_], members: NDArray[np.intp]
+) -> Cells:
+    """`cells` followed by one-member inputs with boxes (lower, upper), labels and member indices."""
+    n = lower.shape[0]
+    counts = np.concatenate([cells.counts, np.ones(n, dtype=np.intp)])
+    return Cells(
+        lower=np.vstack([cells.lower, lower]),
+        upper=np.vstack([cells.upper, upper]),
+        node_lower=np.vstack([cells.node_lower, lower]),
+        node_upper=np.vstack([cells.node_upper, upper]),
+        occupied=np.concatenate([cells.occupied, occupied]),
+        ambiguous=np.concatenate([cells.ambiguous, np.zeros(n, dtype=bool)]),
+        member_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.intp),
+        member_order=np.concatenate([cells.member_order, members]).astype(np.intp),
+        points=cells.points,
+    )
+
+
+def grid_cells(
+    points: NDArray[np.float64],
+    occupied: NDArray[np.bool_],
+    pixel: float,
+    max_cell: float,
+    wall_reach: int = WALL_REACH_PIXELS,
+    edge_strip: float = EDGE_STRIP_PIXELS,
+    centre_noise: float | None = CENTRE_NOISE,
+) -> GridCells:
+    """Wall-aware GP inputs for the known pixels of a grid.
+
+    - Every known pixel within `wall_reach` pixels (chessboard distance) of an occupied pixel,
+      occupied ones included, is a cell of its own, covering its square. Free pixels farther away
+      are merged by a quadtree on the pixel lattice into square-ish blocks of at most `max_cell`
+      whose pixels are all known and free. (Cells much larger than the length scale constrain only
+      their average, and the map rang inside them: ghost walls beside real ones.)
+    - A free pixel says its whole square is free, its edges included. Along each edge it shares
+      with an occupied pixel it gets a free strip `edge_strip` pixels wide, so the map turns occupied
+      inside the occupied pixel rather than at (or beyond) its edge.
+    - An occupied pixel says only that something inside its square is occupied. Its obstacle is
+      taken to be most likely at its centre: a point input there, labelled occupied, with
+      `centre_noise` times the noise of a one-pixel cell (every other input's count is multiplied
+      by `centre_noise`, see :class:`GridCells`). Without it the strips pulled thin and diagonal
+      walls' centres down to p ~ 0.5.
+
+    Parameters
+    ----------
+    points : ndarray of shape (m, 2)
+        Known pixel centres, on a lattice of pitch `pixel` (as :func:`grid_to_observations` gives).
+    occupied : ndarray of bool, shape (m,)
+    pixel : float
+        Source pixel side, metres.
+    max_cell : float
+        Largest side of a merged free cell, metres (at least one pixel is used).
+    wall_reach : int
+        Pixels around occupied ones that stay single cells.
+    edge_strip : float
+        Strip width in pixels; 0: no strips.
+    centre_noise : float or None
+        Noise of the centre points relative to a one-pixel cell; None: no centre points.
+
+    Returns
+    -------
+    GridCells
+        The pixel cells first, then the strips (free), then the centre points (occupied). Strips
+        and centre points have their pixel as their single member.
+
+    Raises
+    ------
+    ValueError
+        The points are not on a lattice of pitch `pixel`.
+    """
+    pts = np.asarray(points, dtype=float)
+    occ = np.asarray(occupied, dtype=bool)
+    if pts.ndim != 2 or pts.shape[1] != 2 or occ.shape != (pts.shape[0],) or pts.shape[0] == 0:
+        raise ValueError(f"points must have shape (m, 2) with m > 0 and occupied (m,), got {pts.shape} and {occ.shape}")
+    origin = pts.min(axis=0)
+    f = (pts - origin) / pixel
+    ij = np.rint(f).astype(np.intp)  # (column, row)
+    if np.abs(f - ij).max() > 1e-3:
+        raise ValueError(f"the points are not the centres of a grid of {pixel} m pixels")
+    nx, ny = ij.max(axis=0) + 1
+    index = np.full((ny, nx), -1, dtype=np.intp)
+    index[ij[:, 1], ij[:, 0]] = np.arange(pts.shape[0])
+    occ_grid = np.zeros((ny, nx), dtype=bool)
+    occ_grid[ij[:, 1], ij[:, 0]] = occ
+    known = index >= 0
+    if occ_grid.any():
+        dist = ndimage.distance_transform_cdt(~occ_grid, metric="chessboard")
+        far_free = known & ~occ_grid & (dist > wall_reach)
+    else:
+        far_free = known.copy()
+    max_side = max(1, math.floor(max_cell / pixel + 1e-9))
+
+    half = 0.5 * pixel
+    lower: list[NDArray[np.float64]] = []
+    upper: list[NDArray[np.float64]] = []
+    labels: list[bool] = []
+    members: list[NDArray[np.intp]] = []
+    stack = [(0, int(ny), 0, int(nx))]
+    while stack:
+        r0, r1, c0, c1 = stack.pop()
+        block = index[r0:r1, c0:c1]
+        if not (block >= 0).any():
+            continue  # unknown pixels are no evidence
+        h, w = r1 - r0, c1 - c0
+        if (h == 1 and w == 1) or (max(h, w) <= max_side and far_free[r0:r1, c0:c1].all()):
+            idx = block.ravel()
+            p = pts[idx]
+            lower.append(p.min(axis=0) - half)
+            upper.append(p.max(axis=0) + half)
+            labels.append(bool(occ[idx[0]]))
+            members.append(idx)
+            continue
+        if h >= w:
+            m = r0 + h // 2
+            stack += [(m, r1, c0, c1), (r0, m, c0, c1)]
+        else:
+            m = c0 + w // 2
+            stack += [(r0, r1, m, c1), (r0, r1, c0, m)]
+    counts = np.array([m.size for m in members], dtype=np.intp)
+    lo_a, hi_a = np.array(lower), np.array(upper)
+    cells = Cells(
+        lower=lo_a,
+        upper=hi_a,
+        node_lower=lo_a.copy(),
+        node_upper=hi_a.copy(),
+        occupied=np.array(labels, dtype=bool),
+        ambiguous=np.zeros(len(labels), dtype=bool),
+        member_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.intp),
+        member_order=np.concatenate(members).astype(np.intp),
+        points=pts,
+    )
+
+    if edge_strip > 0:
+        s_lo, s_hi, s_idx = [], [], []
+        padded_occ = np.pad(occ_grid, 1)
+        free_grid = known & ~occ_grid
+        width = edge_strip * pixel
+        for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+            # Free pixels whose neighbour at (row + dy, column + dx) is occupied.
+            neighbour = padded_occ[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx]
+            rows, cols = np.nonzero(free_grid & neighbour)
+            idx = index[rows, cols]
+            c = pts[idx]
+            lo, hi = c - half, c + half
+            if dx:
+                # The strip hugs the shared edge: x from the edge `width` into the free pixel.
+                edge = c[:, 0] + dx * half
+                lo[:, 0], hi[:, 0] = np.minimum(edge, edge - dx * width), np.maximum(edge, edge - dx * width)
+            else:
+                edge = c[:, 1] + dy * half
+                lo[:, 1], hi[:, 1] = np.minimum(edge, edge - dy * width), np.maximum(edge, edge - dy * width)
+            s_lo.append(lo)
+            s_hi.append(hi)
+            s_idx.append(idx)
+        idx_all = np.concatenate(s_idx)
+        cells = _extra_inputs(cells, np.vstack(s_lo), np.vstack(s_hi), np.zeros(idx_all.size, dtype=bool), idx_all)
+
+    n_inputs = len(cells)
+    if centre_noise is not None:
+        occ_idx = np.flatnonzero(occ)
+        centres = pts[occ_idx]
+        cells = _extra_inputs(cells, centres, centres.copy(), np.ones(occ_idx.size, dtype=bool), occ_idx)
+    weight = np.ones(len(cells))
+    if centre_noise is not None:
+        weight[:n_inputs] = float(centre_noise)
+    return GridCells(**{name: getattr(cells, name) for name in Cells.__dataclass_fields__}, weight=weight)
+
+
 class GridGPOM(AreaGPOM):
-    """:class:`~gpomap.mapping.AreaGPOM` whose cells cover their pixels' full footprints.
+    """:class:`~gpomap.mapping.AreaGPOM` over a grid's pixels, with cells that know the pixels.
 
     A grid pixel is an area observation: a free pixel says its whole square is free, an occupied
-    one that something within its square is occupied. The cell tree runs on pixel centres as for
-    any labelled points; each cell's box is then widened by `pixel_pad` metres on every side, so
-    a cell of pixels covers those pixels' squares (with ``cell_box="tight"``) rather than the
-    bounding box of their centres (a single pixel would be a point, a run of pixels a segment).
+    one that something within its square is occupied. With ``pixel_pad`` > 0 (half the source
+    pixel) and ``wall_reach`` set, the inputs are :func:`grid_cells`: single-pixel cells near
+    occupied pixels, merged free cells farther away, free strips along the edges free pixels share
+    with occupied ones, and a point at every occupied pixel's centre. With ``wall_reach=None`` the
+    project's cell tree runs on the pixel centres and each box is widened by ``pixel_pad`` (the
+    union of its pixels' squares with ``cell_box="tight"``); ``pixel_pad=0`` is the plain
+    :class:`~gpomap.mapping.AreaGPOM`.
 
     Parameters
     ----------
     pixel_pad : float
-        Widening of every cell box, metres (half the source pixel for footprints; 0: the plain
-        :class:`~gpomap.mapping.AreaGPOM`).
+        Half the source pixel side, metres (0: plain cell tree, no footprints).
+    wall_reach : int or None
+        See :func:`grid_cells`; None: the cell tree widened by ``pixel_pad``.
+    edge_strip : float
+        See :func:`grid_cells`.
+    centre_noise : float or None
+        See :func:`grid_cells`. The weights go through the member counts, so they assume the
+        ``"per_count"`` noise model and ``"mean"`` normalisation (the defaults).
     **options
-        :class:`~gpomap.mapping.AreaGPOM` arguments.
+        :class:`~gpomap.mapping.AreaGPOM` arguments (``min_cell`` is used only by the cell tree).
     """
 
-    def __init__(self, pixel_pad: float = 0.0, **options: Any) -> None:
+    def __init__(
+        self,
+        pixel_pad: float = 0.0,
+        wall_reach: int | None = None,
+        edge_strip: float = EDGE_STRIP_PIXELS,
+        centre_noise: float | None = CENTRE_NOISE,
+        **options: Any,
+    ) -> None:
         super().__init__(**options)
         self.pixel_pad = float(pixel_pad)
+        self.wall_reach = wall_reach
+        self.edge_strip = edge_strip
+        self.centre_noise = centre_noise
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
-        """The constructor arguments, by name (AreaGPOM's and ``pixel_pad``)."""
+        """The constructor arguments, by name (AreaGPOM's and the grid ones)."""
         names = [n for n in inspect.signature(AreaGPOM.__init__).parameters if n != "self"]
-        return {"pixel_pad": self.pixel_pad, **{n: getattr(self, n) for n in names}}
+        own = {n: getattr(self, n) for n in ("pixel_pad", "wall_reach", "edge_strip", "centre_noise")}
+        return {**own, **{n: getattr(self, n) for n in names}}
 
     def make_cells(self, obs: Observations) -> Cells:
-        """The cell tree over the pixel centres, each box widened to its pixels' full squares."""
+        """The GP inputs over the pixel centres `obs` (see the class docstring)."""
+        if self.pixel_pad > 0 and self.wall_reach is not None:
+            return grid_cells(
+                obs.points, obs.occupied, 2.0 * self.pixel_pad, self.max_cell, self.wall_reach, self.edge_strip, self.centre_noise
+            )
         cells = super().make_cells(obs)
         if self.pixel_pad > 0:
             cells = replace(cells, lower=cells.lower - self.pixel_pad, upper=cells.upper + self.pixel_pad)
@@ -322,6 +551,65 @@ def model_defaults(resolution: float) -> dict[str, Any]:
     }
 
 
+def _separable_se(model: AreaGPOM) -> bool:
+    """Whether `model`'s GP is the exact mean-normalised SE area kernel over 2-D boxes (a product of
+    1-D factors, which :func:`_grid_latent` relies on) with no ray evidence on top."""
+    gp = getattr(model, "gp_", None)
+    if gp is None:
+        return False
+    kernel = getattr(gp, "kernel", None)
+    return (
+        isinstance(kernel, AreaKernel)
+        and kernel.method == "exact"
+        and kernel.normalisation == "mean"
+        and make_point_kernel(model.kernel).name == "se"
+        and getattr(model, "evidence_", None) is None
+        and isinstance(gp.X_train_, Supports)
+        and gp.X_train_.lower.shape[1] == 2
+    )
+
+
+def _grid_latent(
+    model: AreaGPOM, xs: NDArray[np.float64], ys: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Latent mean and variance of `model` on the grid of points (xs[k], ys[j]), each (ny, nx).
+
+    The exact SE area kernel between a point and a box is the variance times one factor per axis,
+    so the factors are computed once per grid column and row (not once per grid point) and
+    multiplied per block of grid points. Each block uses only the inputs within the kernel's cutoff
+    (:data:`gpomap.gp.LOCAL_TOL` of the variance, as ``SupportGP.predict_latent`` does), so the
+    result equals the model's own prediction to that tolerance, in a fraction of the time.
+    """
+    gp = model.gp_
+    train = gp.X_train_
+    base = gp.kernel.base
+    var0, ls = float(base.variance), float(base.length_scale)
+    fx, _ = se_box_average(xs[:, None], xs[:, None], train.lower[:, :1], train.upper[:, :1], 1.0, ls)
+    fy, _ = se_box_average(ys[:, None], ys[:, None], train.lower[:, 1:], train.upper[:, 1:], 1.0, ls)
+    k_inv = gp.K_inv_ if gp.K_inv_ is not None else cholesky_inverse(gp.L_)
+    gp.K_inv_ = k_inv  # the GP would form the same on its first local prediction
+    weights = gp.alpha_
+    reach = base.cutoff(LOCAL_TOL)
+    mean = np.zeros((ys.size, xs.size))
+    var = np.full((ys.size, xs.size), var0)
+    # Blocks about a quarter of the cutoff across: smaller blocks gather fewer inputs each.
+    pitch = max(abs(xs[1] - xs[0]) if xs.size > 1 else reach, abs(ys[1] - ys[0]) if ys.size > 1 else reach)
+    step = max(1, int(0.25 * reach / pitch))
+    for r0 in range(0, ys.size, step):
+        r1 = min(ys.size, r0 + step)
+        near_y = (train.upper[:, 1] >= ys[r0] - reach) & (train.lower[:, 1] <= ys[r1 - 1] + reach)
+        for c0 in range(0, xs.size, step):
+            c1 = min(xs.size, c0 + step)
+            near = np.flatnonzero(near_y & (train.upper[:, 0] >= xs[c0] - reach) & (train.lower[:, 0] <= xs[c1 - 1] + reach))
+            if near.size == 0:
+                continue  # the prior: mean 0, variance var0
+            ks = var0 * (fy[r0:r1, None, near] * fx[None, c0:c1, near]).reshape(-1, near.size)
+            mean[r0:r1, c0:c1] = (ks @ weights[near]).reshape(r1 - r0, c1 - c0)
+            reduction = np.einsum("qj,qj->q", ks @ k_inv[np.ix_(near, near)], ks)
+            var[r0:r1, c0:c1] = np.maximum(var0 - reduction, 0.0).reshape(r1 - r0, c1 - c0)
+    return mean, var
+
+
 def _predict_on(
     model: AreaGPOM, spec: GridSpec, support_box: tuple[NDArray[np.float64], NDArray[np.float64]]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -347,7 +635,11 @@ def _predict_on(
         prob[:] = p_far[0]
         var[:] = v_far[0]
     ix, iy = np.flatnonzero(near_x), np.flatnonzero(near_y)
-    if ix.size and iy.size:
+    if ix.size and iy.size and _separable_se(model):
+        mean, v = _grid_latent(model, xs[ix], ys[iy])
+        prob[np.ix_(iy, ix)] = model.gp_.squash(mean, v)
+        var[np.ix_(iy, ix)] = v
+    elif ix.size and iy.size:
         xx, yy = np.meshgrid(xs[ix], ys[iy])
         p, v = model.predict_proba(np.column_stack([xx.ravel(), yy.ravel()]), return_var=True)
         prob[np.ix_(iy, ix)] = p.reshape(iy.size, ix.size)
@@ -406,6 +698,7 @@ def convert_grid(
 
     options = model_defaults(src.resolution)
     options["pixel_pad"] = FOOTPRINT_PIXELS * src.resolution
+    options["wall_reach"] = WALL_REACH_PIXELS
     options.update(model_options)
     model = GridGPOM(**options)
     t = time.perf_counter()
