@@ -41,7 +41,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("data", ("gpomap.observations", "gpomap.cells", "gpomap.evidence", "gpomap.simulate")),
     ("kernels", ("gpomap.kernels",)),
     ("gp", ("gpomap.gp",)),
-    ("maps", ("gpomap.estimator", "gpomap.fusion", "gpomap.mapping", "gpomap.baselines")),
+    ("maps", ("gpomap.estimator", "gpomap.fusion", "gpomap.extrapolation", "gpomap.mapping", "gpomap.baselines")),
     ("tiling", ("gpomap.tiles", "gpomap.streaming")),
     ("io", ("gpomap.io", "gpomap.plot")),
     ("apps", ("gpomap.convert", "gpomap.convert3d", "gpomap.evaluation", "gpomap.benchmark", "gpomap.apps", "gpomap.ros")),

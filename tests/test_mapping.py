@@ -78,7 +78,7 @@ def test_grid_and_ternary(fitted):
     np.testing.assert_allclose(var, v, rtol=0.05)
     summary = fitted.summary()
     assert summary["n_cells"] == fitted.n_inputs_ > 100
-    assert set(summary["hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta"}
+    assert set(summary["hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta", "variance_scale"}
     assert {"observations", "cells", "hyperparameters", "squash", "prediction"} <= set(summary["timings"])
 
 

@@ -47,9 +47,20 @@ def test_single_tile_equals_area_gpom(room):
     plain = AreaGPOM(**OPTS).fit(room)
     tiled = TiledGPOM(tile_size=50.0, origin=(-1.0, -1.0), n_workers=1, hyper_sample=10**6, **OPTS).fit(room)
     assert len(tiled.tiles_) == 1
-    assert tiled.hyperparameters_ == pytest.approx(plain.hyperparameters_, rel=1e-12)
+    assert tiled.hyperparameters_ == pytest.approx(plain.hyperparameters_, rel=1e-9)
+    # The variance scale is fitted on held-out stretches; the two held-in GPs agree to rounding,
+    # which its 1-D search amplifies to ~1e-11.
+    assert tiled.extrapolation_["n_points"] == plain.extrapolation_["n_points"] > 0
+    # With the same hyperparameters the GPs are the same to rounding ...
+    tiled = TiledGPOM(tile_size=50.0, origin=(-1.0, -1.0), n_workers=1, **OPTS).fit(room, plain.hyperparameters_)
+    pts = plain.grid(0.25).grid.centres()
+    p_plain, v_plain = plain.predict_proba_gp(pts, return_var=True)
+    p_tiled, v_tiled = tiled.predict_proba_gp(pts, return_var=True)
+    np.testing.assert_allclose(p_tiled, p_plain, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(v_tiled, v_plain, rtol=0, atol=1e-12)
+    # ... and so are the written maps, up to the ray-count calibration's optimiser tolerance.
     a, b = plain.grid(0.25), tiled.grid(0.25)
-    np.testing.assert_allclose(b.probability, a.probability, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(b.probability, a.probability, rtol=0, atol=1e-6)
     np.testing.assert_allclose(b.variance, a.variance, rtol=0, atol=1e-12)
 
 

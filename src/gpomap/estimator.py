@@ -129,7 +129,7 @@ class GPMapEstimator:
 
     @property
     def hyperparameters_(self) -> dict[str, float]:
-        """Learnt hyperparameters: signal variance, length scale, noise, alpha and beta."""
+        """Learnt hyperparameters: signal variance, length scale, noise, alpha, beta and the variance scale."""
         self._check_fitted()
         gp = self.gp_
         return {
@@ -138,6 +138,7 @@ class GPMapEstimator:
             "noise": gp.noise,
             "alpha": gp.squash.alpha,
             "beta": gp.squash.beta,
+            "variance_scale": gp.squash.variance_scale,
         }
 
     def predict(

@@ -242,9 +242,43 @@ class AreaGPOM(GPMapEstimator):
         self.extent_points_ = obs.points
         self.path_ = None if isinstance(data, Observations) else sensor_positions(data)
         t = time.perf_counter()
+        self.extrapolation_: dict[str, Any] = self._fit_variance_scale(data)
+        timings["variance_scale"] = time.perf_counter() - t
+        t = time.perf_counter()
         self.evidence_ = self.make_evidence(data, self.predict_proba_gp)
         timings["evidence"] = time.perf_counter() - t
         return self
+
+    def _fit_variance_scale(self, data: ScanData | Observations) -> dict[str, Any]:
+        """Set the squash's variance scale from held-out stretches of the scans; its report.
+
+        See :mod:`gpomap.extrapolation`. The held-in GP is this one with its hyperparameters
+        fixed, over the whole map (one GP holds at most a few thousand cells, so it is cheap);
+        given points have no stretches: kappa 1.
+        """
+        if isinstance(data, Observations):
+            return {"kappa": 1.0, "reason": "labelled points given, not scans"}
+        from gpomap.extrapolation import fit_variance_scale
+
+        xy = self.observations_.points[:, :2]
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        hyp = self.hyperparameters_
+        fixed = {"variance": hyp["variance"], "length_scale": hyp["length_scale"], "noise": hyp["noise"]}
+        held_in = type(self)(**{**self.get_params(), "optimise": False, "ray_evidence": False, **fixed})
+        kappa, report = fit_variance_scale(
+            data,
+            hyp,
+            self.make_observations,
+            held_in.fit,
+            centre=0.5 * (lo + hi),
+            # The whole map, with a metre to spare: no point is near an edge the data do not have.
+            region_half=0.5 * float(np.max(hi - lo)) + 1.0,
+            margin=0.0,
+            no_return_cap=self.no_return_cap,
+            seed=self.seed,
+        )
+        self.gp_.squash.variance_scale = kappa
+        return report
 
     def make_cells(self, obs: Observations) -> Cells:
         """The GP's inputs: the cell tree over `obs` with these settings."""
@@ -286,6 +320,7 @@ class AreaGPOM(GPMapEstimator):
             "n_cells": len(self.cells_),
             "n_ambiguous_cells": int(self.cells_.ambiguous.sum()),
             "hyperparameters": self.hyperparameters_,
+            "variance_scale_fit": dict(self.extrapolation_),
             "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
             "timings": dict(self.timings_),
         }

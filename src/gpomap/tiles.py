@@ -69,6 +69,10 @@ _KEY_BASE = 1 << 31
 
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 
+#: The squash's variance scale is fitted on a held-in GP over a square this many tiles from its
+#: centre each way (gpomap.extrapolation): three tiles across, the cost of about nine tiles.
+REGION_TILES: float = 1.5
+
 
 # --------------------------------------------------------------------------- tasks (picklable)
 @dataclass
@@ -928,12 +932,22 @@ class TiledGPOM:
             missing = [n for n in HYPER_NAMES if n not in hyperparameters]
             if missing:
                 raise ValueError(f"hyperparameters must give {HYPER_NAMES}; missing {missing}")
-            self.hyperparameters_ = {n: float(hyperparameters[n]) for n in HYPER_NAMES}
+            self.hyperparameters_ = {
+                n: float(hyperparameters[n]) for n in (*HYPER_NAMES, "variance_scale") if n in hyperparameters
+            }
             self.hyper_source_ = {"how": "given to fit()"}
         else:
             self.hyperparameters_ = self._learn_hyperparameters()
         timings["hyperparameters"] = time.perf_counter() - t
         self._set_geometry()
+        t = time.perf_counter()
+        self.extrapolation_: dict[str, Any] = (
+            {"kappa": self.hyperparameters_["variance_scale"], "reason": "given to fit()"}
+            if "variance_scale" in self.hyperparameters_
+            else self._fit_variance_scale(data, obs)
+        )
+        self.hyperparameters_["variance_scale"] = float(self.extrapolation_["kappa"])
+        timings["variance_scale"] = time.perf_counter() - t
 
         t = time.perf_counter()
         tiles = [self._decode(k) for k in sorted(self._blocks)]
@@ -952,6 +966,56 @@ class TiledGPOM:
         self._stale: dict[tuple[int, int], None] = {}
         self._reused: set[tuple[int, int]] = set()  # tiles last fitted reusing covariances
         return self
+
+    def _fit_variance_scale(self, data: ScanData | Observations, obs: Observations) -> dict[str, Any]:
+        """The squash's variance scale from held-out stretches of the scans, and its report.
+
+        See :mod:`gpomap.extrapolation`. The held-in GP covers the square of two tiles' side round
+        the hyperparameter sample's centre (the median point when hyperparameters were given),
+        so its cost stays that of a few tiles whatever the map's size.
+        """
+        if isinstance(data, Observations):
+            return {"kappa": 1.0, "reason": "labelled points given, not scans"}
+        from gpomap.extrapolation import fit_variance_scale
+
+        xy = obs.points[:, :2]
+        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        whole = 0.5 * float(np.max(hi - lo)) + 1.0
+        if whole <= REGION_TILES * self.tile_size:
+            # The region holds the whole map, as one GP's does (AreaGPOM): no edge to keep off.
+            centre, half, margin = 0.5 * (lo + hi), whole, 0.0
+        else:
+            source = getattr(self, "hyper_source_", {})
+            centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else np.median(xy, axis=0)
+            half, margin = REGION_TILES * self.tile_size, min(self.overlap_, 0.5 * self.tile_size)
+        options = {**self.options, "ray_evidence": False}
+        fixed = {**self.hyperparameters_, "variance_scale": 1.0}
+
+        def fit_held_in(held: Observations) -> TiledGPOM:
+            model = TiledGPOM(
+                self.tile_size,
+                self.overlap,
+                self.blend,
+                self.origin,
+                n_workers=self.n_workers,
+                hyper_sample=self.hyper_sample,
+                blas_threads=self.blas_threads,
+                **options,
+            )
+            return model.fit(held, hyperparameters=fixed)
+
+        _, report = fit_variance_scale(
+            data,
+            self.hyperparameters_,
+            self.base.make_observations,
+            fit_held_in,
+            centre=centre,
+            region_half=half,
+            margin=margin,
+            no_return_cap=self.base.no_return_cap,
+            seed=self.base.seed,
+        )
+        return report
 
     def _make_evidence(self) -> EvidenceLayer | None:
         """Ray counts over every scan so far, calibrated against the tiles' GP (see AreaGPOM)."""
@@ -1181,7 +1245,8 @@ class TiledGPOM:
             np.add.at(lat_m, idx, w * mu)
             np.add.at(lat_v, idx, w * var)
         num /= wsum
-        den /= wsum
+        # The variance scale widens the latent variance where the GP extrapolates (gpomap.extrapolation).
+        den *= self.hyperparameters_.get("variance_scale", 1.0) / wsum
         p = ndtr(num / np.sqrt(1.0 + den))
         return p, lat_m / wsum, lat_v / wsum
 
@@ -1333,6 +1398,7 @@ class TiledGPOM:
             "n_invalid_readings": self._n_invalid,
             "n_no_return_readings": self._n_no_return,
             "hyperparameters": dict(self.hyperparameters_),
+            "variance_scale_fit": dict(self.extrapolation_),
             "hyperparameter_source": dict(self.hyper_source_),
             "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
             "timings": dict(self.timings_),

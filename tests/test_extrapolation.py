@@ -1,0 +1,132 @@
+"""The squash's variance scale, fitted on held-out stretches of the log (gpomap.extrapolation)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import ndtr
+
+from gpomap import extrapolation as ex
+from gpomap.mapping import AreaGPOM
+from gpomap.simulate import paper_room_scans
+
+
+def test_holdout_stretches_by_hand():
+    kept, held = ex.holdout_stretches(20)
+    # Ten stretches of two scans; the 2nd, 5th and 8th are held out.
+    assert held.tolist() == [2, 3, 8, 9, 14, 15]
+    assert sorted(kept.tolist() + held.tolist()) == list(range(20))
+    # Nine scans: one per stretch.
+    assert ex.holdout_stretches(9)[1].tolist() == [1, 4, 7]
+    # Too short to hold anything out.
+    assert ex.holdout_stretches(2)[1].size == 0
+
+
+class _Fixed:
+    """A stand-in for the held-in GP: latent moments from a given function of the points."""
+
+    def __init__(self, moments):
+        self.moments = moments
+
+    def fit(self, obs):
+        return self
+
+    def predict(self, points, return_var=False):
+        return self.moments(points)
+
+
+def _fit(scans, moments, **kw):
+    model = AreaGPOM(ray_evidence=False)
+    return ex.fit_variance_scale(
+        scans,
+        {"alpha": 30.0, "beta": 0.0},
+        model.make_observations,
+        _Fixed(moments).fit,
+        centre=np.zeros(2),
+        region_half=50.0,
+        margin=0.0,
+        **kw,
+    )
+
+
+def _room_scans():
+    scans = paper_room_scans(n_beams=90, seed=0)
+    # Drop the first third of the beams of the kept stretches' scans, so the held-out stretches
+    # see space no kept beam went (as when a robot enters a room only later).
+    kept, _ = ex.holdout_stretches(len(scans))
+    for i in kept:
+        s = scans[i]
+        keep = np.arange(s.n_beams) >= s.n_beams // 3
+        scans[i] = type(s)(s.pose, s.angles[keep], s.ranges[keep], max_range=s.max_range)
+    return scans
+
+
+def _truth(scans):
+    hits = np.concatenate([s.hits() for s in scans])
+
+    def occupied(points):
+        d = np.sqrt(((points[:, None, :] - hits[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
+        return d < 1e-9
+
+    return occupied
+
+
+def test_a_perfect_predictor_gets_the_sharpest_scale_and_a_coin_a_very_soft_one():
+    scans = _room_scans()
+    occupied = _truth(scans)
+    kappa, report = _fit(scans, lambda p: (np.where(occupied(p), 1.0, -1.0), np.ones(len(p))))
+    assert report["n_points"] >= ex.MIN_POINTS_PER_CLASS
+    assert kappa == pytest.approx(ex.VARIANCE_SCALE_BOUNDS[0], rel=1e-3)
+    rng = np.random.default_rng(0)
+    kappa, _ = _fit(scans, lambda p: (rng.choice([-1.0, 1.0], len(p)), np.ones(len(p))))
+    # A coin's likelihood is best at p = 1/2, where kappa is infinite; the sample's few points
+    # more right than wrong stop the fit short of that, but far above 1.
+    assert kappa > 100
+
+
+def test_the_fitted_scale_is_the_likelihoods_best_by_brute_force():
+    scans = _room_scans()
+    occupied = _truth(scans)
+    rng = np.random.default_rng(1)
+
+    # Right four times in five, with a latent variance of 1/4: over-sure at kappa = 1.
+    def moments(p):
+        sign = np.where(occupied(p), 1.0, -1.0) * np.where(rng.random(len(p)) < 0.8, 1.0, -1.0)
+        return 0.5 * sign, np.full(len(p), 0.25)
+
+    state = rng.bit_generator.state
+    kappa, report = _fit(scans, moments, seed=3)
+    # The same points and moments again, scored on a fine grid of kappa.
+    rng.bit_generator.state = state
+    pts = []
+    model = _Fixed(lambda p: pts.append(p) or moments(p))
+    _, again = ex.fit_variance_scale(
+        scans, {"alpha": 30.0, "beta": 0.0}, AreaGPOM().make_observations, model.fit, np.zeros(2), 50.0, 0.0, seed=3
+    )
+    assert again["kappa"] == pytest.approx(kappa)
+    rng.bit_generator.state = state
+    mu, var = moments(pts[0])
+    y = occupied(pts[0])
+    grid = np.exp(np.linspace(np.log(0.1), np.log(1e4), 4001))
+    p = ndtr(30.0 * mu[None, :] / np.sqrt(1.0 + 900.0 * grid[:, None] * var[None, :]))
+    nll = -np.mean(np.where(y[None, :], np.log(p), np.log1p(-p)), axis=1)
+    assert kappa == pytest.approx(grid[np.argmin(nll)], rel=0.01)
+    assert report["log_loss"] == pytest.approx(nll.min(), abs=1e-4)
+    assert report["log_loss"] < report["log_loss_at_1"]
+
+
+def test_too_few_unseen_points_leave_the_scale_at_one():
+    # A robot standing still: every held-out beam is a kept one, nothing is unseen.
+    scans = paper_room_scans(n_beams=90, seed=0)[:1] * 20
+    kappa, report = _fit(scans, lambda p: (np.zeros(len(p)), np.ones(len(p))))
+    assert kappa == 1.0 and "reason" in report
+
+
+def test_a_fitted_map_carries_its_scale_and_stays_unknown_far_away():
+    scans = _room_scans()
+    model = AreaGPOM(min_cell=0.5, max_cell=1.0).fit(scans)
+    kappa = model.hyperparameters_["variance_scale"]
+    assert kappa == model.extrapolation_["kappa"] == model.summary()["variance_scale_fit"]["kappa"]
+    assert ex.VARIANCE_SCALE_BOUNDS[0] <= kappa <= ex.VARIANCE_SCALE_BOUNDS[1]
+    # beta is 0, so far from the data the map is unknown whatever kappa is.
+    assert model.predict_proba(np.array([[500.0, 500.0]]))[0] == pytest.approx(0.5, abs=1e-9)
