@@ -937,9 +937,8 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
 
 def cmd_convert(args: argparse.Namespace) -> int:
     from gpomap.apps import convert3d, map3d
-    from gpomap.convert import convert_grid, grid_to_observations, load_grid, model_defaults, output_grid
+    from gpomap.convert import convert_grid, converter_for, grid_to_observations, load_grid, output_grid
     from gpomap.io.export import write_map_files
-    from gpomap.tiles import count_cells
 
     _check_before_work(args)
     # OctoMap trees become voxel maps: gpomap.apps.convert3d.
@@ -956,7 +955,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
     if args.resolution is None:
         args.resolution = spec.resolution  # the source's pixel size (named in the messages)
     _check_grid_memory(args, spec.shape, spec.extent, 1, 0)
-    n_cells = count_cells(grid_to_observations(source), **{**model_defaults(source.grid.resolution), **options})
+    # The converter's own inputs (wall-aware, several per wall pixel), not a plain cell tree's.
+    n_cells = len(converter_for(source.grid.resolution, **options).make_cells(grid_to_observations(source)))
     _check_fit_memory(args, n_cells, 1, f"one GP over the cells of {args.input}")
     _check_grid_memory(args, spec.shape, spec.extent, 1, n_cells)
     result = convert_grid(source, resolution=args.resolution, extent=args.extent, **options)

@@ -87,6 +87,7 @@ from gpomap.observations import Observations
 from gpomap.supports import Supports
 
 __all__ = [
+    "converter_for",
     "ConversionResult",
     "GridCells",
     "GridGPOM",
@@ -651,6 +652,26 @@ def _grid_dict(spec: GridSpec) -> dict[str, Any]:
     return {"origin": spec.origin, "resolution": spec.resolution, "shape": spec.shape, "extent": spec.extent}
 
 
+def converter_for(resolution: float, **model_options: Any) -> GridGPOM:
+    """The unfitted :class:`GridGPOM` that :func:`convert_grid` fits on a grid of pixel side `resolution`.
+
+    Its :meth:`GridGPOM.make_cells` gives the GP inputs, so their number (what a fit's memory
+    grows with) can be known before fitting.
+
+    Parameters
+    ----------
+    resolution : float
+        Source pixel side, metres.
+    **model_options
+        Override :func:`model_defaults` and the pixel footprint and wall-aware inputs.
+    """
+    options = model_defaults(resolution)
+    options["pixel_pad"] = FOOTPRINT_PIXELS * resolution
+    options["wall_reach"] = WALL_REACH_PIXELS
+    options.update(model_options)
+    return GridGPOM(**options)
+
+
 def convert_grid(
     source: GridSource,
     resolution: float | None = None,
@@ -696,11 +717,7 @@ def convert_grid(
     src = grid_map.grid
     labels = _labels(grid_map)
 
-    options = model_defaults(src.resolution)
-    options["pixel_pad"] = FOOTPRINT_PIXELS * src.resolution
-    options["wall_reach"] = WALL_REACH_PIXELS
-    options.update(model_options)
-    model = GridGPOM(**options)
+    model = converter_for(src.resolution, **model_options)
     t = time.perf_counter()
     model.fit(obs)
     t_fit = time.perf_counter() - t
