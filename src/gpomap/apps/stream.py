@@ -25,15 +25,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.config import MapConfig
 from gpomap.errors import GpomapError
 from gpomap.scans import Scan, scan_extent
 from gpomap.streaming import DEFAULT_TILE_SIZE, DEFAULT_WARMUP_SCANS
 
-__all__ = ["ReplayResult", "replay_times", "replay", "add_parser", "mapper_from_args", "cmd_stream", "STREAM_RESOLUTION"]
-
-#: Cell side of the maps ``gpomap stream`` writes by default, metres (``gpomap map`` writes the ray
-#: counts' cells, :attr:`gpomap.config.MapConfig.evidence_resolution`).
-STREAM_RESOLUTION = 0.1
+__all__ = ["ReplayResult", "replay_times", "replay", "add_parser", "mapper_from_args", "cmd_stream"]
 
 
 @dataclass
@@ -262,7 +259,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     cli._add_reader_options(p)
     cli._add_selection_options(p)
     cli._add_model_options(p)
-    cli._add_output_options(p, cli._Default(STREAM_RESOLUTION), supersample=False)
+    # As ``gpomap map``: the written map's cells are the ray counts' (--evidence-resolution).
+    cli._add_output_options(p, cli._Default(MapConfig.evidence_resolution), supersample=False)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_stream)
     return p
@@ -291,6 +289,8 @@ def cmd_stream(args: argparse.Namespace) -> int:
     from gpomap.resources import grid_shape
 
     cli._check_before_work(args)
+    if "resolution" in getattr(args, "library_defaults", ()):
+        args.resolution = args.evidence_resolution  # the counted cells, as gpomap map writes them
     cli._status(args, f"reading scans from {args.input}...")
     scans = cli._load_scans(args)
     cli._status(args, f"  {len(scans)} scans of {scans[0].n_beams} beams")
