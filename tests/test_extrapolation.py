@@ -130,3 +130,25 @@ def test_a_fitted_map_carries_its_scale_and_stays_unknown_far_away():
     assert ex.VARIANCE_SCALE_BOUNDS[0] <= kappa <= ex.VARIANCE_SCALE_BOUNDS[1]
     # beta is 0, so far from the data the map is unknown whatever kappa is.
     assert model.predict_proba(np.array([[500.0, 500.0]]))[0] == pytest.approx(0.5, abs=1e-9)
+
+
+def test_the_scale_applies_only_where_no_beam_went():
+    scans = _room_scans()
+    model = AreaGPOM(min_cell=0.5, max_cell=1.0).fit(scans)
+    squash = model.gp_.squash
+    assert squash.variance_scale > 1  # the GP was over-sure on the held-out stretches
+    rng = np.random.default_rng(0)
+    lo, hi = model.extent_points_.min(axis=0) - 2.0, model.extent_points_.max(axis=0) + 2.0
+    pts = rng.uniform(lo, hi, (4000, 2))
+    h, m = model.evidence_.counts_at(pts)
+    empty = (h == 0) & (m == 0)
+    assert 100 < empty.sum() < len(pts) - 100
+    mean, var = model.predict(pts, return_var=True)
+    p = model.predict_proba(pts)
+    # Cells some beam crossed: the counts on top of the GP's own (leave-one-out) probability.
+    seen = model.evidence_.calibration(squash(mean, var), h, m)
+    np.testing.assert_allclose(p[~empty], seen[~empty], rtol=0, atol=1e-12)
+    # Cells none did: the probit with the latent variance scaled by kappa, by hand.
+    a, kappa = squash.alpha, squash.variance_scale
+    by_hand = ndtr(a * mean / np.sqrt(1 + a * a * kappa * var))
+    np.testing.assert_allclose(p[empty], np.clip(by_hand[empty], 1e-6, 1 - 1e-6), rtol=0, atol=1e-12)

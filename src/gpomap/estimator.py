@@ -182,11 +182,19 @@ class GPMapEstimator:
         var : ndarray of shape (m,), only with `return_var`
         """
         pts = as_points(points, self.dim_)
-        p, var = self.predict_proba_gp(pts, return_var=True)
         evidence = getattr(self, "evidence_", None)
-        if evidence is not None:
-            p = evidence.proba(pts, p)
+        if evidence is None:
+            return self.predict_proba_gp(pts, return_var=return_var)
+        p, var, p_unseen = self._gp_probabilities(pts)
+        p = evidence.proba(pts, p, p_unseen)
         return (p, var) if return_var else p
+
+    def _gp_probabilities(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The GP's probability, latent variance and probability for unseen space at points, each (m,)."""
+        mean, var = self.predict(points, return_var=True)
+        return self.gp_.squash(mean, var), var, self.gp_.squash.unseen(mean, var)
 
     def predict_proba_gp(self, points: NDArray[np.float64], return_var: bool = False):
         """The GP's own probability at points (the calibrated probit, before any ray evidence).
@@ -242,9 +250,7 @@ class GPMapEstimator:
         spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution)
         evidence = getattr(self, "evidence_", None)
         if evidence is not None:
-            probability, variance = evidence.written_grid(
-                spec, self.gp_.kernel.base.length_scale, lambda pts: self.predict_proba_gp(pts, return_var=True)
-            )
+            probability, variance = evidence.written_grid(spec, self.gp_.kernel.base.length_scale, self._gp_probabilities)
             return OccupancyMap(
                 grid=spec,
                 probability=probability,
@@ -296,9 +302,7 @@ class GPMapEstimator:
         spec = VoxelSpec.from_extent(lo, hi, resolution)
         evidence = getattr(self, "evidence_", None)
         if evidence is not None:
-            probability, variance = evidence.written_grid(
-                spec, self.gp_.kernel.base.length_scale, lambda pts: self.predict_proba_gp(pts, return_var=True)
-            )
+            probability, variance = evidence.written_grid(spec, self.gp_.kernel.base.length_scale, self._gp_probabilities)
         else:
             p, var = self.predict_proba_gp(spec.centres(), return_var=True)
             probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)

@@ -125,37 +125,12 @@ class RayEvidence:
         -------
         hits, misses : ndarray of int32, shape grid.shape
         """
-        hits, misses, _ = self.split_counts(grid, None, scans)
-        return hits, misses
-
-    def split_counts(
-        self, grid: AnyGrid, near: float | None, scans: NDArray[np.intp] | None = None
-    ) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
-        """Hits, clear misses and near misses per cell of `grid`, one update per cell per scan.
-
-        A scan's miss in a cell is *near* when every beam of the scan that crossed the cell
-        ended (returned) within `near` of the cell's centre: such beams may have grazed the
-        surface they hit or ended short of it by their range noise, while a beam that went on
-        well past the cell saw it free. No-return beams end nowhere, so their misses are clear.
-
-        Parameters
-        ----------
-        grid : GridSpec or VoxelSpec
-        near : float or None
-            Metres; None: every miss is clear.
-        scans : ndarray of int, optional
-            Count only these scans (default: all).
-
-        Returns
-        -------
-        hits, misses, near_misses : ndarray of int32, shape grid.shape
-            `misses` are the clear ones; a scan's cell counts in one of the three at most.
-        """
-        out = [np.zeros(grid_size(grid), dtype=np.int32) for _ in range(3)]
+        hits = np.zeros(grid_size(grid), dtype=np.int32)
+        misses = np.zeros(grid_size(grid), dtype=np.int32)
         select = np.ones(self.scan.size, bool) if scans is None else np.isin(self.scan, scans)
         idx = np.flatnonzero(select)
         if idx.size == 0:
-            return out[0].reshape(grid.shape), out[1].reshape(grid.shape), out[2].reshape(grid.shape)
+            return hits.reshape(grid.shape), misses.reshape(grid.shape)
         # Batches of whole scans whose traversals stay under the entry budget.
         cells_per_beam = (
             np.abs(np.floor(self.ends[idx] / grid.resolution) - np.floor(self.starts[idx] / grid.resolution)).sum(axis=1) + 2
@@ -170,41 +145,22 @@ class RayEvidence:
                 # Round down to a scan boundary, keeping at least one whole scan.
                 boundary = int(np.searchsorted(scan_of, scan_of[hi], side="left"))
                 hi = boundary if boundary > lo else int(np.searchsorted(scan_of, scan_of[lo], side="right"))
-            self._accumulate(grid, idx[lo:hi], near, *out)
+            self._accumulate(grid, idx[lo:hi], hits, misses)
             lo = hi
-        return out[0].reshape(grid.shape), out[1].reshape(grid.shape), out[2].reshape(grid.shape)
+        return hits.reshape(grid.shape), misses.reshape(grid.shape)
 
-    def _accumulate(
-        self,
-        grid: AnyGrid,
-        beams: NDArray[np.intp],
-        near: float | None,
-        hits: NDArray[np.int32],
-        misses: NDArray[np.int32],
-        near_misses: NDArray[np.int32],
-    ) -> None:
+    def _accumulate(self, grid: AnyGrid, beams: NDArray[np.intp], hits: NDArray[np.int32], misses: NDArray[np.int32]) -> None:
         ncell = grid_size(grid)
         b, *idx = traverse(grid, self.starts[beams], self.ends[beams])
         scan = self.scan[beams]
-        keys = scan[b].astype(np.int64) * ncell + np.ravel_multi_index(tuple(idx), grid.shape)
+        crossed = _unique(scan[b].astype(np.int64) * ncell + np.ravel_multi_index(tuple(idx), grid.shape))
         end_cell, inside = flat_index(grid, self.ends[beams])
         ended = inside & self.hit[beams]
         hit_keys = _unique(scan[ended].astype(np.int64) * ncell + end_cell[ended])
-        if near is None:
-            close = np.zeros(keys.size, bool)
-        else:
-            # Distance from each crossed cell's centre to its beam's end (x is the last index).
-            centre = np.asarray(grid.origin, dtype=float) + (np.column_stack(idx[::-1]) + 0.5) * grid.resolution
-            close = self.hit[beams][b] & (np.sum((self.ends[beams][b] - centre) ** 2, axis=1) <= near * near)
-        clear_keys = _unique(keys[~close])
-        near_keys = _unique(keys[close])
-        # A scan that ended a beam in a cell counts a hit there, not also a miss; one beam of
-        # the scan going well past a cell makes the scan's miss there a clear one.
-        clear_keys = clear_keys[~np.isin(clear_keys, hit_keys, assume_unique=True)]
-        near_keys = near_keys[~np.isin(near_keys, np.concatenate([hit_keys, clear_keys]))]
+        # A scan that ended a beam in a cell counts a hit there, not also a miss.
+        miss_keys = crossed[~np.isin(crossed, hit_keys, assume_unique=True)]
         hits += np.bincount(hit_keys % ncell, minlength=ncell).astype(np.int32)
-        misses += np.bincount(clear_keys % ncell, minlength=ncell).astype(np.int32)
-        near_misses += np.bincount(near_keys % ncell, minlength=ncell).astype(np.int32)
+        misses += np.bincount(miss_keys % ncell, minlength=ncell).astype(np.int32)
 
 
 def _unique(keys: NDArray[np.int64]) -> NDArray[np.int64]:

@@ -4,18 +4,12 @@ Model. The occupancy of a fine cell (5 cm by default) is a Beta variable whose m
 probability p_gp there, with an equivalent sample size n0; every scan that ended a beam in the cell
 is a hit worth ``hit_weight`` observations, every scan that crossed it a miss. Its posterior mean is
 
-    p = (hit_weight * hits + n0 * p_gp) / (hit_weight * hits + misses + near_weight * near + n0).
+    p = (hit_weight * hits + n0 * p_gp) / (hit_weight * hits + misses + n0).
 
-A miss is *near* when the scan's beams through the cell all ended within :data:`NEAR_MISS_CELLS`
-cells of it (:meth:`~gpomap.evidence.RayEvidence.split_counts`): a beam that ends just past a cell
-may have grazed the surface there or fallen short of it by its range noise, while one that went on
-well past saw the cell free. Fitted, a near miss weighs almost nothing (Intel, blocks of 40:
-0.015 of a clear miss; Belgioioso: 0.001), and then a lone hit (a person walking by, a door) no
-longer outweighs the dozens of clear misses that the rest of the log put through the same cell:
-the hit weight fell from 68 to 41 on Intel, and the leave-one-scan-out log loss from 0.112 to 0.105.
-
-Where no beam went, p = p_gp; where many did, the counts decide and walls are as sharp as the
-cells; the GP carries the map across gaps, and far from all data it returns its prior, 0.5.
+Where no beam went, p is the GP's probability for unseen space (its latent variance scaled by the
+factor fitted on held-out stretches of the log, :mod:`gpomap.extrapolation`); where many did, the
+counts decide and walls are as sharp as the cells; the GP carries the map across gaps, and far
+from all data it returns its prior, 0.5.
 
 The robot's own path is evidence too: the robot's body passed there, so each step of the path
 through a cell counts as ``hit_weight`` misses, as sure as a beam's end. A stray hit on the path
@@ -35,11 +29,11 @@ so a temperature fitted on them trusts the GP more than it deserves where no oth
 0.177 overall and 0.86 on points no training beam reached, against 0.165 and 0.66 without). The
 GP is calibrated by its own squash, fitted on leave-one-out moments of its cells.
 
-Known weakness: that squash is too sure in large gaps (where no training beam went). Softening
-the GP's logit by half before the fusion improved held-out log loss where a quarter of the test
-points lay in such gaps (Belgioioso, blocks of 40: 0.379 -> 0.288) and did no harm elsewhere
-(Intel 0-400: 0.165 -> 0.162), but a temperature needs data the GP has not seen to be fitted on,
-and a constant chosen on two logs is not a default; it is left at 1.
+That squash is too sure in large gaps, where no training beam went: there the map takes the GP's
+probability for unseen space instead, whose variance scale was fitted on exactly such points of
+held-out stretches of the log (:mod:`gpomap.extrapolation`). Applied everywhere, the same scale
+blurred the cells next to walls that have few counts (MIT CSAIL, blocks of 40: log loss 0.168 ->
+0.237), so it is kept to the cells it was fitted for.
 """
 
 from __future__ import annotations
@@ -92,54 +86,30 @@ def gp_sampling_factor(length_scale: float, resolution: float) -> int:
 #: at most ~9,000 hits); clouds do (la3dm: 31,500 hits in 9 scans, cut to a third).
 CALIBRATION_POINTS_PER_CLASS: int = 10_000
 
-#: Search bounds (log space) of the hit weight, the prior weight and the near-miss weight.
-CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = (
-    (np.log(0.1), np.log(1e3)),
-    (np.log(0.1), np.log(1e2)),
-    (np.log(1e-3), np.log(10.0)),
-)
-
-#: A miss is near when the beams through the cell ended within this many cells of its centre:
-#: the cell before the end cell and the one before that, whatever the lattice's resolution.
-NEAR_MISS_CELLS: float = 2.0
-
-
-def near_miss_distance(resolution: float) -> float:
-    """Metres within which a beam's end makes its miss of a cell near (see :data:`NEAR_MISS_CELLS`)."""
-    return NEAR_MISS_CELLS * resolution
+#: Search bounds (log space) of the hit weight and the prior weight.
+CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = ((np.log(0.1), np.log(1e3)), (np.log(0.1), np.log(1e2)))
 
 
 @dataclass(frozen=True)
 class EvidenceCalibration:
     """How much a hit, a miss and the GP prior weigh in a cell's probability.
 
-    The defaults (one hit = one miss = one near miss, the GP worth two observations) make the
-    counting grid p = (hits + 1) / (hits + misses + 2) with the GP's probability in place of its 1/2.
+    The defaults (one hit = one miss, the GP worth two observations) make the counting grid
+    p = (hits + 1) / (hits + misses + 2) with the GP's probability in place of its 1/2.
 
     Parameters
     ----------
     hit_weight : float
-        Observations one hit counts as (a clear miss counts as one).
+        Observations one hit counts as (a miss counts as one).
     prior_weight : float
         Equivalent sample size n0 of the GP's probability.
-    near_weight : float
-        Observations one near miss counts as.
     """
 
     hit_weight: float = 1.0
     prior_weight: float = 2.0
-    near_weight: float = 1.0
-
-    def misses(self, clear: ArrayLike, near: ArrayLike, path: ArrayLike | float = 0.0) -> NDArray[np.float64]:
-        """The misses :meth:`__call__` takes: clear ones, weighted near ones, and path passes (each as sure as a hit)."""
-        return (
-            np.asarray(clear, dtype=float)
-            + self.near_weight * np.asarray(near, dtype=float)
-            + self.hit_weight * np.asarray(path, dtype=float)
-        )
 
     def __call__(self, p_gp: ArrayLike, hits: ArrayLike, misses: ArrayLike) -> NDArray[np.float64]:
-        """Cell probability from the GP's probability, the hits and the weighted misses (:meth:`misses`)."""
+        """Cell probability from the GP's probability and the counts (matching shapes)."""
         wh = self.hit_weight * np.asarray(hits, dtype=float)
         p = (wh + self.prior_weight * np.asarray(p_gp, dtype=float)) / (wh + np.asarray(misses, dtype=float) + self.prior_weight)
         return np.clip(p, _EPS, 1 - _EPS)
@@ -180,9 +150,9 @@ def fit_calibration(
     step: float = 0.1,
     no_return_cap: float | None = 10.0,
     seed: int = 0,
-    counts: tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]] | None = None,
+    counts: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None,
 ) -> tuple[EvidenceCalibration, dict[str, float]]:
-    """Fit the hit, prior and near-miss weights by leave-one-scan-out log likelihood.
+    """Fit the hit weight and the prior weight by leave-one-scan-out log likelihood.
 
     Parameters
     ----------
@@ -200,8 +170,8 @@ def fit_calibration(
     no_return_cap : float or None
     seed : int
         Seed of the class-balancing subsample.
-    counts : (hits, misses, near_misses), optional
-        ``evidence.split_counts(grid, near_miss_distance(grid.resolution))`` when the caller has it already.
+    counts : (hits, misses), optional
+        ``evidence.counts(grid)`` when the caller has it already.
 
     Returns
     -------
@@ -210,30 +180,26 @@ def fit_calibration(
         ``"n_points"`` used and the balanced ``"log_loss"`` before (the counting grid's weights)
         and after the fit.
     """
-    near = near_miss_distance(grid.resolution)
-    hits, misses, nears = evidence.split_counts(grid, near) if counts is None else counts
+    hits, misses = evidence.counts(grid) if counts is None else counts
     picked = np.unique(np.linspace(0, len(scans) - 1, min(n_scans, len(scans))).round().astype(np.intp))
-    pts_all, occ_all, h_all, m_all, n_all = [], [], [], [], []
+    pts_all, occ_all, h_all, m_all = [], [], [], []
     for k in picked:
         pts, occ = calibration_points(scans[k], step, no_return_cap)
         if pts.size == 0:
             continue
-        own = evidence.split_counts(grid, near, scans=np.array([k]))
+        own_h, own_m = evidence.counts(grid, scans=np.array([k]))
         cell, inside = flat_index(grid, pts)
-        h, m, n_near = (
-            np.where(inside, total.reshape(-1)[cell] - mine.reshape(-1)[cell], 0)
-            for total, mine in zip((hits, misses, nears), own, strict=True)
-        )
+        h = np.where(inside, hits.reshape(-1)[cell] - own_h.reshape(-1)[cell], 0)
+        m = np.where(inside, misses.reshape(-1)[cell] - own_m.reshape(-1)[cell], 0)
         pts_all.append(pts)
         occ_all.append(occ)
         h_all.append(h)
         m_all.append(m)
-        n_all.append(n_near)
     default = EvidenceCalibration()
     if not pts_all:
         return default, {"n_points": 0}
     pts, occ = np.concatenate(pts_all), np.concatenate(occ_all)
-    h, m, nn = (np.concatenate(a).astype(float) for a in (h_all, m_all, n_all))
+    h, m = np.concatenate(h_all).astype(float), np.concatenate(m_all).astype(float)
     if occ.all() or not occ.any():
         return default, {"n_points": int(occ.size)}
     # Balance the classes by subsampling the larger one (seeded), as an evaluation would.
@@ -241,18 +207,27 @@ def fit_calibration(
     i_occ, i_free = np.flatnonzero(occ), np.flatnonzero(~occ)
     n = min(i_occ.size, i_free.size, CALIBRATION_POINTS_PER_CLASS)
     keep = np.concatenate([rng.choice(i_occ, n, replace=False), rng.choice(i_free, n, replace=False)])
-    pts, occ, h, m, nn = pts[keep], occ[keep], h[keep], m[keep], nn[keep]
+    pts, occ, h, m = pts[keep], occ[keep], h[keep], m[keep]
     p_gp = np.asarray(predict_gp(pts), dtype=float)
 
     def loss(theta: NDArray[np.float64]) -> float:
         cal = EvidenceCalibration(*np.exp(theta))
-        p = cal(p_gp, h, cal.misses(m, nn))
+        p = cal(p_gp, h, m)
         return float(-np.mean(np.where(occ, np.log(p), np.log1p(-p))))
 
-    x0 = np.log([default.hit_weight, default.prior_weight, default.near_weight])
+    x0 = np.log([default.hit_weight, default.prior_weight])
     res = minimize(loss, x0, method="L-BFGS-B", bounds=CALIBRATION_BOUNDS)
     fitted = EvidenceCalibration(*(float(v) for v in np.exp(res.x)))
     return fitted, {"n_points": int(occ.size), "log_loss_default": loss(x0), "log_loss": float(res.fun)}
+
+
+def _unseen_where_empty(
+    p: NDArray[np.float64], hits: NDArray[np.int32], misses: NDArray[np.float64], p_unseen: NDArray[np.float64] | None
+) -> NDArray[np.float64]:
+    """`p`, with `p_unseen` (clipped as the calibration clips) where a cell has no count at all."""
+    if p_unseen is None:
+        return p
+    return np.where((hits == 0) & (misses == 0), np.clip(p_unseen, _EPS, 1 - _EPS), p)
 
 
 #: How far (metres) the counted lattice reaches beyond the beams when scans arrive outside it: the
@@ -305,9 +280,8 @@ class EvidenceLayer:
         self.lattice: AnyGrid | None = None
         self._hits = np.zeros((0, 0), dtype=np.int32)
         self._beam_misses = np.zeros((0, 0), dtype=np.int32)
-        self._near_misses = np.zeros((0, 0), dtype=np.int32)
         self._path = np.zeros((0, 0), dtype=np.int32)
-        self._grid_cache: tuple[AnyGrid, NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]] | None = None
+        self._grid_cache: tuple[AnyGrid, NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]] | None = None
         self.add_scans(scans)
         self.recalibrate(predict_gp)
 
@@ -359,13 +333,12 @@ class EvidenceLayer:
             return
         local = lattice_grid(bounds_extent(pts.min(axis=0), pts.max(axis=0)), self.resolution, margin=self.resolution)
         self._cover(local)
-        hits, misses, nears = part.split_counts(local, near_miss_distance(self.resolution))
+        hits, misses = part.counts(local)
         passes = part.path_passes(local)
         assert self.lattice is not None
         block = self._block(local)
         self._hits[block] += hits
         self._beam_misses[block] += misses
-        self._near_misses[block] += nears
         self._path[block] += passes
         self._scans.extend(scans)
         self._parts.append(part)
@@ -383,7 +356,6 @@ class EvidenceLayer:
             self.lattice = local
             self._hits = np.zeros(local.shape, dtype=np.int32)
             self._beam_misses = np.zeros(local.shape, dtype=np.int32)
-            self._near_misses = np.zeros(local.shape, dtype=np.int32)
             self._path = np.zeros(local.shape, dtype=np.int32)
             return
         offset = cell_offset(local, self.lattice)
@@ -396,7 +368,7 @@ class EvidenceLayer:
         old = self.lattice
         self.lattice = grown
         block = self._block(old)
-        for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
+        for name in ("_hits", "_beam_misses", "_path"):
             arr = np.zeros(grown.shape, dtype=np.int32)
             arr[block] = getattr(self, name)
             setattr(self, name, arr)
@@ -421,25 +393,29 @@ class EvidenceLayer:
             2 * self.resolution,
             self.no_return_cap,
             self.seed,
-            counts=(self._hits, self._beam_misses, self._near_misses),
+            counts=(self._hits, self._beam_misses),
         )
 
     # ------------------------------------------------------------------ applying
     def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
-        """Hits and weighted misses (near ones and the path included) of the fine cell holding each point (0 outside the counted area)."""
+        """Hits and misses (path included) of the fine cell holding each point (0 outside the counted area)."""
         if self.lattice is None:
             n = np.asarray(points).shape[0]
             return np.zeros(n, dtype=np.int32), np.zeros(n)
         cell, inside = flat_index(self.lattice, points)
-        misses = self.calibration.misses(
-            self._beam_misses.reshape(-1)[cell], self._near_misses.reshape(-1)[cell], self._path.reshape(-1)[cell]
-        )
+        misses = self._beam_misses.reshape(-1)[cell] + self.calibration.hit_weight * self._path.reshape(-1)[cell]
         return np.where(inside, self._hits.reshape(-1)[cell], 0), np.where(inside, misses, 0.0)
 
-    def proba(self, points: NDArray[np.float64], p_gp: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Probability at points, ndarray of shape (m,), from the GP's probability there."""
+    def proba(
+        self, points: NDArray[np.float64], p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
+    ) -> NDArray[np.float64]:
+        """Probability at points, ndarray of shape (m,), from the GP's probability there.
+
+        `p_unseen`, the GP's probability for unseen space, is taken where no beam (and no step of
+        the path) crossed the point's cell; default `p_gp`.
+        """
         h, m = self.counts_at(points)
-        return self.calibration(p_gp, h, m)
+        return _unseen_where_empty(self.calibration(p_gp, h, m), h, m, p_unseen)
 
     def _on_lattice(self, grid: AnyGrid) -> bool:
         """Whether `grid`'s cells are cells of the counted lattice (same side, origin on a corner)."""
@@ -448,39 +424,40 @@ class EvidenceLayer:
         d = (np.asarray(grid.origin) - np.asarray(self.lattice.origin)) / self.resolution
         return bool(np.all(np.abs(d - np.round(d)) < 1e-6))
 
-    def _raw_grid_counts(
-        self, grid: AnyGrid
-    ) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
-        """Hits, clear beam misses, near misses and path passes per cell of `grid`."""
+    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+        """Hits, beam misses and path passes per cell of `grid`."""
         if not self._on_lattice(grid):
-            hits, misses, nears = self.evidence.split_counts(grid, near_miss_distance(grid.resolution))
-            return hits, misses, nears, self.evidence.path_passes(grid)
+            hits, misses = self.evidence.counts(grid)
+            return hits, misses, self.evidence.path_passes(grid)
         # The grid's cells are lattice cells: read the running counts (zero beyond them).
         assert self.lattice is not None
-        out = [np.zeros(grid.shape, dtype=np.int32) for _ in range(4)]
+        out = [np.zeros(grid.shape, dtype=np.int32) for _ in range(3)]
         where = overlap(cell_offset(grid, self.lattice), grid.shape, self.lattice.shape)
         if where is not None:
-            for o, a in zip(out, (self._hits, self._beam_misses, self._near_misses, self._path), strict=True):
+            for o, a in zip(out, (self._hits, self._beam_misses, self._path), strict=True):
                 o[where[0]] = a[where[1]]
-        return out[0], out[1], out[2], out[3]
+        return out[0], out[1], out[2]
 
     def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
-        """Hits and weighted misses (near ones and the path included) per cell of `grid`, counted on that grid's own cells (the last is cached)."""
+        """Hits and misses (path included) per cell of `grid`, counted on that grid's own cells (the last is cached)."""
         if self._grid_cache is None or self._grid_cache[0] != grid:
             self._grid_cache = (grid, *self._raw_grid_counts(grid))
-        _, hits, misses, nears, path = self._grid_cache
-        return hits, self.calibration.misses(misses, nears, path)
+        _, hits, misses, path = self._grid_cache
+        return hits, misses + self.calibration.hit_weight * path
 
-    def grid_proba(self, grid: AnyGrid, p_gp: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Probability per cell of `grid`, shape grid.shape, from the GP's probability per cell."""
+    def grid_proba(
+        self, grid: AnyGrid, p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
+    ) -> NDArray[np.float64]:
+        """Probability per cell of `grid`, shape grid.shape, from the GP's probabilities per cell (see :meth:`proba`)."""
         h, m = self.grid_counts(grid)
-        return self.calibration(np.asarray(p_gp).reshape(grid.shape), h, m)
+        unseen = None if p_unseen is None else np.asarray(p_unseen).reshape(grid.shape)
+        return _unseen_where_empty(self.calibration(np.asarray(p_gp).reshape(grid.shape), h, m), h, m, unseen)
 
     def written_grid(
         self,
         grid: AnyGrid,
         length_scale: float,
-        predict_gp: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]],
+        predict_gp: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Probability and latent variance per cell of `grid`, each of shape grid.shape.
 
@@ -493,13 +470,15 @@ class EvidenceLayer:
         length_scale : float
             The GP's length scale, metres.
         predict_gp : callable
-            Points of shape (m, 2) to the GP's probability and latent variance, each (m,).
+            Points of shape (m, d) to the GP's probability, its latent variance and its probability
+            for unseen space, each (m,).
         """
         sampled = coarse(grid, gp_sampling_factor(length_scale, grid.resolution))
-        p, var = predict_gp(grid_centres(sampled))
-        return self.grid_proba(grid, interpolate(p, sampled, grid)), interpolate(var, sampled, grid)
+        p, var, p_unseen = predict_gp(grid_centres(sampled))
+        probability = self.grid_proba(grid, interpolate(p, sampled, grid), interpolate(p_unseen, sampled, grid))
+        return probability, interpolate(var, sampled, grid)
 
     def summary(self) -> dict[str, float]:
         """The calibration and how it was fitted."""
         c = self.calibration
-        return {"hit_weight": c.hit_weight, "prior_weight": c.prior_weight, "near_weight": c.near_weight, **self.report}
+        return {"hit_weight": c.hit_weight, "prior_weight": c.prior_weight, **self.report}

@@ -1,6 +1,6 @@
 """Probit squashing of the GP's latent output into occupancy probabilities (the paper's eq. 15).
 
-    p(x) = Phi((alpha * mu(x) + beta) / sqrt(1 + alpha^2 * kappa * v(x)))
+    p(x) = Phi((alpha * mu(x) + beta) / sqrt(1 + alpha^2 * v(x)))
 
 alpha and beta are fitted as in probabilistic least-squares classification (Rasmussen & Williams,
 section 6.5): by maximising the leave-one-out log predictive probability of the training labels,
@@ -8,7 +8,8 @@ whose moments are closed form from the inverse covariance:
 
     mu_i = y_i - [K^-1 y]_i / [K^-1]_ii,    s_i^2 = 1 / [K^-1]_ii.
 
-The variance scale kappa (1 by default) is not fitted here: leave-one-out moments describe
+Where no beam went the map uses the same probit with the latent variance scaled by kappa
+(:meth:`ProbitSquash.unseen`). kappa is not fitted here: leave-one-out moments describe
 interpolation, and kappa is what extrapolation needs, fitted on held-out stretches of the log
 (:mod:`gpomap.extrapolation`).
 """
@@ -121,8 +122,8 @@ class ProbitSquash:
     beta : float
         Offset; negative values lean towards free.
     variance_scale : float
-        kappa, multiplying the latent variance (see :mod:`gpomap.extrapolation`); not changed by
-        :meth:`fit`.
+        kappa, multiplying the latent variance in :meth:`unseen` (see :mod:`gpomap.extrapolation`);
+        not changed by :meth:`fit`.
     """
 
     alpha: float = 1.0
@@ -131,6 +132,10 @@ class ProbitSquash:
 
     def __call__(self, mu: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
         """Occupancy probability from latent mean and variance (any matching shapes)."""
+        return ndtr((self.alpha * np.asarray(mu) + self.beta) / np.sqrt(1.0 + self.alpha**2 * np.asarray(var)))
+
+    def unseen(self, mu: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The probability where no beam went: the latent variance scaled by kappa."""
         scaled = self.alpha**2 * self.variance_scale * np.asarray(var)
         return ndtr((self.alpha * np.asarray(mu) + self.beta) / np.sqrt(1.0 + scaled))
 

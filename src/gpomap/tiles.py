@@ -70,8 +70,8 @@ _KEY_BASE = 1 << 31
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 
 #: The squash's variance scale is fitted on a held-in GP over a square this many tiles from its
-#: centre each way (gpomap.extrapolation): three tiles across, the cost of about nine tiles.
-REGION_TILES: float = 1.5
+#: centre each way (gpomap.extrapolation): two tiles across, the cost of about four tiles.
+REGION_TILES: float = 1.0
 
 
 # --------------------------------------------------------------------------- tasks (picklable)
@@ -1189,8 +1189,8 @@ class TiledGPOM:
 
     def _predict_blended(
         self, points: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """Blended probability, latent mean and latent variance at points, each (m,)."""
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Blended probability, latent mean, latent variance and probability for unseen space at points, each (m,)."""
         pts = np.asarray(points, dtype=float).reshape(-1, self._dim)
         m = pts.shape[0]
         h = 0.5 * self.blend_
@@ -1245,10 +1245,11 @@ class TiledGPOM:
             np.add.at(lat_m, idx, w * mu)
             np.add.at(lat_v, idx, w * var)
         num /= wsum
-        # The variance scale widens the latent variance where the GP extrapolates (gpomap.extrapolation).
-        den *= self.hyperparameters_.get("variance_scale", 1.0) / wsum
+        den /= wsum
         p = ndtr(num / np.sqrt(1.0 + den))
-        return p, lat_m / wsum, lat_v / wsum
+        # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation).
+        p_unseen = ndtr(num / np.sqrt(1.0 + self.hyperparameters_.get("variance_scale", 1.0) * den))
+        return p, lat_m / wsum, lat_v / wsum, p_unseen
 
     def predict(self, points: NDArray[np.float64], return_var: bool = False):
         """Blended latent mean (and variance) at points.
@@ -1264,7 +1265,7 @@ class TiledGPOM:
         var : ndarray of shape (m,), only with `return_var`
         """
         self._check_fitted()
-        _, mu, var = self._predict_blended(points)
+        _, mu, var, _ = self._predict_blended(points)
         return (mu, var) if return_var else mu
 
     def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
@@ -1281,9 +1282,13 @@ class TiledGPOM:
         probability : ndarray of shape (m,)
         var : ndarray of shape (m,), only with `return_var`
         """
-        p, var = self.predict_proba_gp(points, return_var=True)
-        if self.evidence_ is not None:
-            p = self.evidence_.proba(np.asarray(points, dtype=float).reshape(-1, self._dim), p)
+        if self.evidence_ is None:
+            return self.predict_proba_gp(points, return_var=return_var)
+        self._check_fitted()
+        t = time.perf_counter()
+        p, _, var, p_unseen = self._predict_blended(points)
+        self.timings_["prediction"] = time.perf_counter() - t
+        p = self.evidence_.proba(np.asarray(points, dtype=float).reshape(-1, self._dim), p, p_unseen)
         return (p, var) if return_var else p
 
     def predict_proba_gp(self, points: NDArray[np.float64], return_var: bool = False):
@@ -1301,7 +1306,7 @@ class TiledGPOM:
         """
         self._check_fitted()
         t = time.perf_counter()
-        p, _, var = self._predict_blended(points)
+        p, _, var, _ = self._predict_blended(points)
         self.timings_["prediction"] = time.perf_counter() - t
         return (p, var) if return_var else p
 
@@ -1343,13 +1348,18 @@ class TiledGPOM:
             info=self.summary(),
         )
 
+    def _gp_probabilities(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The blended GP's probability, latent variance and probability for unseen space, each (m,)."""
+        p, _, var, p_unseen = self._predict_blended(points)
+        return p, var, p_unseen
+
     def _sample(self, spec: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Probability and latent variance per cell of a GridSpec or VoxelSpec."""
         if self.evidence_ is not None:
-            return self.evidence_.written_grid(
-                spec, self.hyperparameters_["length_scale"], lambda pts: self._predict_blended(pts)[0::2]
-            )
-        p, _, var = self._predict_blended(spec.centres())
+            return self.evidence_.written_grid(spec, self.hyperparameters_["length_scale"], self._gp_probabilities)
+        p, _, var, _ = self._predict_blended(spec.centres())
         return p.reshape(spec.shape), var.reshape(spec.shape)
 
     def _voxels(self, resolution: float, extent: tuple[float, ...]) -> Any:
