@@ -31,9 +31,10 @@ GP is calibrated by its own squash, fitted on leave-one-out moments of its cells
 
 That squash is too sure in large gaps, where no training beam went: there the map takes the GP's
 probability for unseen space instead, whose variance scale was fitted on exactly such points of
-held-out stretches of the log (:mod:`gpomap.extrapolation`). Applied everywhere, the same scale
+held-out stretches of the log (:mod:`gpomap.extrapolation`). Applied everywhere, a scale of 290
 blurred the cells next to walls that have few counts (MIT CSAIL, blocks of 40: log loss 0.168 ->
-0.237), so it is kept to the cells it was fitted for.
+0.237, measured with another change; see docs/choices.md), so it is kept to the cells it was
+fitted for.
 """
 
 from __future__ import annotations
