@@ -240,6 +240,69 @@ def table(rows: list[dict[str, Any]], has_truth: bool) -> list[str]:
     return out
 
 
+def summary_table(results: list[dict[str, Any]]) -> list[str]:
+    """One line per log and split: MSK-GPOM's written map against the best grid for each metric.
+
+    "Best grid" is the best of the grid methods for that metric (higher AUC, lower log loss and
+    ECE, fewer path cells called occupied); CPU is MSK-GPOM's fit plus its written map against the
+    log-odds grid at 0.05 m.
+    """
+    head = [
+        "log, split",
+        "AUC gpomap / best grid",
+        "boundary AUC",
+        "AUC where the grid saw",
+        "log loss gpomap / best grid",
+        "ECE gpomap / best grid",
+        "truth AUC; IoU (gpomap / best grid)",
+        "path cells occupied (gpomap / best grid, of all)",
+        "fit + map CPU s, gpomap / log-odds 0.05",
+    ]
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    keys = list(dict.fromkeys((r["log"], r["split"]) for r in results))
+    for log, split in keys:
+        rows = {r["name"]: r for r in results if (r["log"], r["split"]) == (log, split)}
+        if "msk" not in rows:
+            continue
+        msk = rows["msk"]
+        grids = [r for n, r in rows.items() if n != "msk"]
+
+        def pair(key: str, higher: bool, msk: dict[str, Any] = msk, grids: list[dict[str, Any]] = grids) -> str:
+            vals = [g["points"][key] for g in grids if g["points"].get(key) is not None]
+            best = (max(vals) if higher else min(vals)) if vals else None
+            return f"{_fmt(msk['grid'][key])} / {_fmt(best)}"
+
+        truth = ""
+        if msk.get("truth"):
+            t_best_auc = max(g["truth"]["points"]["auc"] for g in grids) if grids else None
+            t_best_iou = max(g["truth"]["points"]["iou"] for g in grids) if grids else None
+            t = msk["truth"]["grid"]
+            truth = f"{_fmt(t['auc'])} / {_fmt(t_best_auc)}; {_fmt(t['iou'])} / {_fmt(t_best_iou)}"
+        path = msk["path"]["grid"]
+        best_path = min((g["path"]["points"]["n_occupied"] for g in grids), default=None)
+        lo = rows.get("ogm-logodds-0.05")
+        cpu = f"{msk['cpu_seconds']['fit'] + msk['cpu_seconds'].get('grid', 0):.0f}"
+        cpu += f" / {lo['cpu_seconds']['fit']:.0f}" if lo else ""
+        out.append(
+            "| "
+            + " | ".join(
+                [
+                    f"{LOGS[log]['title']}: {resolve_split(split)}",
+                    pair("auc", True),
+                    pair("boundary_auc", True),
+                    pair("observed_auc", True),
+                    pair("log_loss", False),
+                    pair("ece", False),
+                    truth,
+                    f"{path['n_occupied']} / {best_path} of {path['n_cells']}",
+                    cpu,
+                ]
+            )
+            + " |"
+        )
+    return out
+
+
 def reliability_figure(results: list[dict[str, Any]], log: str, path: Path) -> None:
     """Reliability diagrams of one log: a panel per split, a curve per method and prediction."""
     from matplotlib.figure import Figure
@@ -310,7 +373,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--figures", type=Path, help="write reliability diagrams reliability-<log>.png here")
     ap.add_argument("--json", type=Path, metavar="OUT", help="write every result (without the models) as JSON")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--summary-from", type=Path, metavar="JSON", help="print the summary table of a --json file and stop")
     args = ap.parse_args(argv)
+    if args.summary_from:
+        print("\n".join(summary_table(json.loads(args.summary_from.read_text()))))
+        return 0
     logs, splits, methods = (a.split(",") for a in (args.logs, args.splits, args.methods))
     for given, known, what in ((logs, LOGS, "log"), (methods, METHODS, "method")):
         bad = sorted(set(given) - set(known))
@@ -370,6 +437,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.figures:
             args.figures.mkdir(parents=True, exist_ok=True)
             reliability_figure(results, log, args.figures / f"reliability-{log}.png")
+    print("\n## Summary (written 0.05 m map against the best grid variant for each metric)\n")
+    print("\n".join(summary_table(results)))
     if args.json:
         args.json.write_text(json.dumps(results, default=str, indent=1))
     return 0
