@@ -40,7 +40,8 @@ def test_gpomik_high_auc_and_inputs(room, kernel):
     assert roc_auc(labels, p) > 0.9
     s = m.summary()
     assert s["method"] == "gpomik" and s["n_segments"] == n_beams and s["n_hits"] == n_hits
-    assert set(m.hyperparameters_) == {"variance", "length_scale", "noise", "alpha", "beta"}
+    assert set(m.hyperparameters_) == {"variance", "length_scale", "noise", "alpha", "beta", "variance_scale"}
+    assert m.hyperparameters_["variance_scale"] == 1.0  # fitted by MSK-GPOM only (gpomap.extrapolation)
     g = m.grid(1.0)
     assert g.probability.shape == g.grid.shape
 
