@@ -319,6 +319,12 @@ def _map_config(args: argparse.Namespace) -> MapConfig:
     return MapConfig(**given)
 
 
+def _resolution_from_evidence(args: argparse.Namespace) -> None:
+    """A 2-D written map's cell, when not given: the ray counts' (``--evidence-resolution``, given or not)."""
+    if "resolution" in getattr(args, "library_defaults", ()):
+        args.resolution = args.evidence_resolution
+
+
 def _tiling_config(args: argparse.Namespace) -> TilingConfig:
     """The :class:`~gpomap.config.TilingConfig` of the tiling options (``--workers`` is ``n_workers``, ``--threads`` ``blas_threads``)."""
     return TilingConfig(
@@ -609,8 +615,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     if path.suffix.lower() not in (".csv", ".npz") and map3d.is_cloud_input(path):
         return map3d.cmd_map3d(args)
     map3d.check_2d_options(args)
-    if "resolution" in getattr(args, "library_defaults", ()):
-        args.resolution = args.evidence_resolution  # the counted cells, also when --evidence-resolution is given
+    _resolution_from_evidence(args)
     if path.suffix.lower() in (".csv", ".npz"):
         from gpomap.io import read_points
 

@@ -75,9 +75,21 @@ def holdout_stretches(n_scans: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]
     return idx[~held], idx[held]
 
 
-def _balanced_nll(kappa: float, mu, var, occupied, alpha: float, beta: float, w) -> float:
+def _nll(kappa: float, mu, var, occupied, alpha: float, beta: float) -> float:
+    """Mean negative log probit likelihood at variance scale `kappa` (the classes are balanced by subsampling)."""
     z = (alpha * mu + beta) / np.sqrt(1.0 + alpha * alpha * kappa * var)
-    return float(-np.sum(w * np.where(occupied, log_ndtr(z), log_ndtr(-z))))
+    return float(-np.mean(np.where(occupied, log_ndtr(z), log_ndtr(-z))))
+
+
+def whole_map_region(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+    """Centre (x, y) and half side of a square holding every point with a metre to spare.
+
+    A held-in GP over it has the whole map, so no point is near an edge the data do not have
+    (``margin`` 0 in :func:`fit_variance_scale`).
+    """
+    xy = np.asarray(points, dtype=float)[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    return 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) + 1.0
 
 
 def fit_variance_scale(
@@ -173,9 +185,8 @@ def fit_variance_scale(
         return 1.0, {"kappa": 1.0, "reason": str(err)}
     mu, var = model.predict(pts, return_var=True)
     a, b = float(hyperparameters["alpha"]), float(hyperparameters["beta"])
-    w = np.full(occ.size, 1.0 / occ.size)
     res = minimize_scalar(
-        lambda t: _balanced_nll(float(np.exp(t)), mu, var, occ, a, b, w),
+        lambda t: _nll(float(np.exp(t)), mu, var, occ, a, b),
         bounds=tuple(np.log(VARIANCE_SCALE_BOUNDS)),
         method="bounded",
     )
@@ -183,6 +194,6 @@ def fit_variance_scale(
     return kappa, {
         "kappa": kappa,
         "n_points": n,
-        "log_loss_at_1": _balanced_nll(1.0, mu, var, occ, a, b, w),
+        "log_loss_at_1": _nll(1.0, mu, var, occ, a, b),
         "log_loss": float(res.fun),
     }

@@ -258,10 +258,9 @@ class AreaGPOM(GPMapEstimator):
         """
         if isinstance(data, Observations):
             return {"kappa": 1.0, "reason": "labelled points given, not scans"}
-        from gpomap.extrapolation import fit_variance_scale
+        from gpomap.extrapolation import fit_variance_scale, whole_map_region
 
-        xy = self.observations_.points[:, :2]
-        lo, hi = xy.min(axis=0), xy.max(axis=0)
+        centre, half = whole_map_region(self.observations_.points)
         hyp = self.hyperparameters_
         fixed = {"variance": hyp["variance"], "length_scale": hyp["length_scale"], "noise": hyp["noise"]}
         held_in = type(self)(**{**self.get_params(), "optimise": False, "ray_evidence": False, **fixed})
@@ -270,9 +269,8 @@ class AreaGPOM(GPMapEstimator):
             hyp,
             self.make_observations,
             held_in.fit,
-            centre=0.5 * (lo + hi),
-            # The whole map, with a metre to spare: no point is near an edge the data do not have.
-            region_half=0.5 * float(np.max(hi - lo)) + 1.0,
+            centre=centre,
+            region_half=half,
             margin=0.0,
             no_return_cap=self.no_return_cap,
             seed=self.seed,

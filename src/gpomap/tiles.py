@@ -976,17 +976,14 @@ class TiledGPOM:
         """
         if isinstance(data, Observations):
             return {"kappa": 1.0, "reason": "labelled points given, not scans"}
-        from gpomap.extrapolation import fit_variance_scale
+        from gpomap.extrapolation import fit_variance_scale, whole_map_region
 
-        xy = obs.points[:, :2]
-        lo, hi = xy.min(axis=0), xy.max(axis=0)
-        whole = 0.5 * float(np.max(hi - lo)) + 1.0
-        if whole <= REGION_TILES * self.tile_size:
-            # The region holds the whole map, as one GP's does (AreaGPOM): no edge to keep off.
-            centre, half, margin = 0.5 * (lo + hi), whole, 0.0
-        else:
+        centre, half = whole_map_region(obs.points)
+        margin = 0.0
+        if half > REGION_TILES * self.tile_size:
+            # Larger than the region: round the hyperparameter sample, off the region's edge.
             source = getattr(self, "hyper_source_", {})
-            centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else np.median(xy, axis=0)
+            centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else np.median(obs.points[:, :2], axis=0)
             half, margin = REGION_TILES * self.tile_size, min(self.overlap_, 0.5 * self.tile_size)
         options = {**self.options, "ray_evidence": False}
         fixed = {**self.hyperparameters_, "variance_scale": 1.0}
@@ -1282,13 +1279,9 @@ class TiledGPOM:
         probability : ndarray of shape (m,)
         var : ndarray of shape (m,), only with `return_var`
         """
-        if self.evidence_ is None:
-            return self.predict_proba_gp(points, return_var=return_var)
-        self._check_fitted()
-        t = time.perf_counter()
-        p, _, var, p_unseen = self._predict_blended(points)
-        self.timings_["prediction"] = time.perf_counter() - t
-        p = self.evidence_.proba(np.asarray(points, dtype=float).reshape(-1, self._dim), p, p_unseen)
+        p, var, p_unseen = self._timed_prediction(points)
+        if self.evidence_ is not None:
+            p = self.evidence_.proba(np.asarray(points, dtype=float).reshape(-1, self._dim), p, p_unseen)
         return (p, var) if return_var else p
 
     def predict_proba_gp(self, points: NDArray[np.float64], return_var: bool = False):
@@ -1304,11 +1297,18 @@ class TiledGPOM:
         probability : ndarray of shape (m,)
         var : ndarray of shape (m,), only with `return_var`
         """
+        p, var, _ = self._timed_prediction(points)
+        return (p, var) if return_var else p
+
+    def _timed_prediction(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """:meth:`_gp_probabilities` at points, its time kept as the ``prediction`` stage."""
         self._check_fitted()
         t = time.perf_counter()
-        p, _, var, _ = self._predict_blended(points)
+        out = self._gp_probabilities(points)
         self.timings_["prediction"] = time.perf_counter() - t
-        return (p, var) if return_var else p
+        return out
 
     def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""

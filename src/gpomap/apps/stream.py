@@ -289,8 +289,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
     from gpomap.resources import grid_shape
 
     cli._check_before_work(args)
-    if "resolution" in getattr(args, "library_defaults", ()):
-        args.resolution = args.evidence_resolution  # the counted cells, as gpomap map writes them
+    cli._resolution_from_evidence(args)  # as gpomap map writes them
     cli._status(args, f"reading scans from {args.input}...")
     scans = cli._load_scans(args)
     cli._status(args, f"  {len(scans)} scans of {scans[0].n_beams} beams")
