@@ -1,0 +1,36 @@
+"""Free samples near hits: the box pre-filter gives the brute-force answer exactly."""
+
+import numpy as np
+import pytest
+from scipy.spatial.distance import cdist
+
+from gpomap.observations import free_near_hits
+
+
+def brute_force(points: np.ndarray, occupied: np.ndarray, clearance: float) -> np.ndarray:
+    d = cdist(points[~occupied], points[occupied]).min(axis=1)
+    out = np.zeros(len(points), bool)
+    out[np.flatnonzero(~occupied)[d < clearance]] = True
+    return out
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("clearance", [0.05, 0.3, 1.7])
+def test_free_near_hits_equals_brute_force(dim: int, clearance: float) -> None:
+    rng = np.random.default_rng(dim * 10 + int(clearance * 10))
+    # Negative and positive coordinates, and points on box borders (multiples of the clearance).
+    pts = rng.uniform(-8.0, 12.0, size=(3000, dim)) * clearance * (2.0 if dim == 3 else 4.0)
+    pts[:300] = np.round(pts[:300] / clearance) * clearance
+    occ = rng.random(3000) < 0.1
+    got = free_near_hits(pts, occ, clearance)
+    np.testing.assert_array_equal(got, brute_force(pts, occ, clearance))
+    assert got.any() and not got.all()  # both answers occur, so the comparison means something
+
+
+def test_free_near_hits_far_apart_and_degenerate() -> None:
+    # Two clusters kilometres apart: boxes between them are never formed.
+    occ = np.array([True, False, False, True, False])
+    pts = np.array([[0.0, 0.0], [0.1, 0.0], [0.5, 0.0], [5000.0, -3000.0], [5000.0, -2999.8]])
+    np.testing.assert_array_equal(free_near_hits(pts, occ, 0.3), [False, True, False, False, True])
+    assert not free_near_hits(pts, np.zeros(5, bool), 0.3).any()
+    assert not free_near_hits(pts, np.ones(5, bool), 0.3).any()
