@@ -99,6 +99,32 @@ class PointKernel(ABC):
         dK_dlog_length_scale : ndarray, the shape of `d2`, or None without `eval_gradient`
         """
 
+    def values_into(
+        self,
+        d2: NDArray[np.float64],
+        out: NDArray[np.float64],
+        grad: NDArray[np.float64] | None = None,
+        work: NDArray[np.float64] | None = None,
+    ) -> None:
+        """:meth:`values` written into given arrays (the same numbers), for hot loops over blocks.
+
+        Parameters
+        ----------
+        d2 : ndarray
+            Squared distances; may be overwritten.
+        out : ndarray, the shape of `d2`
+            Receives the kernel values.
+        grad : ndarray, the shape of `d2`, optional
+            Receives the derivative with respect to log length scale.
+        work : ndarray, the shape of `d2`, optional
+            Scratch space.
+        """
+        K, dl = self.values(d2, grad is not None)
+        out[...] = K
+        if grad is not None:
+            assert dl is not None  # values() returns the derivative when asked for it
+            grad[...] = dl
+
     def from_sqdist(
         self, d2: NDArray[np.float64], eval_gradient: bool = False
     ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -169,6 +195,18 @@ class SquaredExponential(PointKernel):
         # d/dlog(l) = K * r^2 / l^2.
         return K, (K * (d2 / l2) if eval_gradient else None)
 
+    def values_into(self, d2, out, grad=None, work=None):
+        # The operations of values(), in its order, into the given arrays (the same bits).
+        l2 = self.length_scale**2
+        if grad is not None:
+            np.divide(d2, l2, out=grad)
+        np.multiply(d2, -0.5, out=out)
+        out /= l2
+        np.exp(out, out=out)
+        out *= self.variance
+        if grad is not None:
+            grad *= out
+
 
 class Matern32(PointKernel):
     """k(r) = variance * (1 + sqrt(3) r / l) * exp(-sqrt(3) r / l)."""
@@ -181,6 +219,23 @@ class Matern32(PointKernel):
         K = self.variance * (1.0 + s) * e
         # d/dl of (1 + s) e^-s with ds/dl = -s/l is s^2 e^-s / l; times l for log space.
         return K, (self.variance * s * s * e if eval_gradient else None)
+
+    def values_into(self, d2, out, grad=None, work=None):
+        # The operations of values(), in its order, into the given arrays (the same bits); e^-s
+        # goes where d2 was.
+        s = np.empty_like(d2) if work is None else work
+        np.multiply(d2, 3.0, out=s)
+        np.sqrt(s, out=s)
+        s /= self.length_scale
+        e = np.negative(s, out=d2)
+        np.exp(e, out=e)
+        np.add(s, 1.0, out=out)
+        out *= self.variance
+        out *= e
+        if grad is not None:
+            np.multiply(s, self.variance, out=grad)
+            grad *= s
+            grad *= e
 
 
 KERNELS: dict[str, type[PointKernel]] = {

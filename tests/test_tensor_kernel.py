@@ -1,0 +1,81 @@
+"""The tensor-product quadrature kernel against the node sums it replaces in 3-D (the reference)."""
+
+import numpy as np
+import pytest
+
+from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
+from gpomap.kernels.nodes import quadrature_nodes, weighted_gram, weighted_self
+from gpomap.kernels.tensor import tensor_gram, tensor_rules, tensor_self
+from gpomap.supports import Supports, concatenate
+
+KERNELS = [Matern32(1.3, 0.7), SquaredExponential(0.8, 1.1)]
+
+
+def _boxes(rng, n, dim, zero_every=7):
+    """`n` boxes, every `zero_every`-th of zero width (a point, as ambiguous cells can be)."""
+    lo = rng.uniform(0, 5, (n, dim))
+    hi = lo + rng.uniform(0.05, 1.2, (n, dim))
+    hi[::zero_every] = lo[::zero_every]
+    return Supports.from_boxes(lo, hi)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("order", [1, 2, 3])
+@pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: type(k).__name__)
+@pytest.mark.parametrize("block", [5, 100, 1 << 16])
+def test_tensor_gram_equals_node_sums(dim, order, kernel, block):
+    rng = np.random.default_rng(dim * 10 + order)
+    A = _boxes(rng, 23, dim)
+    B = concatenate([Supports.from_points(rng.uniform(0, 5, (17, dim))), _boxes(rng, 6, dim, zero_every=4)])
+    na, nb = quadrature_nodes(A, order), quadrature_nodes(B, order)
+    K0, dK0 = weighted_gram(kernel, na, nb, eval_gradient=True)
+    K1, dK1 = tensor_gram(kernel, A, B, order, eval_gradient=True, block=block)
+    np.testing.assert_allclose(K1, K0, rtol=0, atol=1e-14)
+    assert dK1 is not None and dK0 is not None
+    np.testing.assert_allclose(dK1, dK0, rtol=0, atol=1e-14)
+    # The Gram matrix of one set: each pair once, mirrored, and the gradient with it.
+    S0, dS0 = weighted_gram(kernel, na, na, eval_gradient=True)
+    S1, dS1 = tensor_gram(kernel, A, None, order, eval_gradient=True, block=block)
+    np.testing.assert_allclose(S1, S0, rtol=0, atol=1e-14)
+    assert dS1 is not None and dS0 is not None
+    np.testing.assert_allclose(dS1, dS0, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(S1, S1.T, rtol=0, atol=1e-15)
+    K2, none = tensor_gram(kernel, A, B, order, block=block)
+    assert none is None
+    np.testing.assert_array_equal(K2, K1)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("order", [1, 2, 3])
+def test_tensor_self_equals_node_sums(dim, order):
+    A = _boxes(np.random.default_rng(order), 19, dim)
+    for kernel in KERNELS:
+        np.testing.assert_allclose(tensor_self(kernel, A, order), weighted_self(kernel, quadrature_nodes(A, order)), atol=1e-14)
+
+
+def test_rules_group_boxes_then_points():
+    A = _boxes(np.random.default_rng(0), 10, 3, zero_every=3)
+    index, rules = tensor_rules(A, 2)
+    assert [len(r) for r in rules] == [6, 4]
+    np.testing.assert_array_equal(np.sort(np.concatenate(index)), np.arange(10))
+    assert rules[0].coords.shape == (3, 2, 6) and rules[1].coords.shape == (3, 1, 4)
+    assert rules[0].weights.sum() == pytest.approx(1.0) and rules[1].weights.tolist() == [1.0]
+    # Gauss-Legendre order 2 on [0, 1]: nodes at 1/2 -+ 1/(2 sqrt 3) of each side.
+    lo, w = A.lower[index[0][0]], A.widths[index[0][0]]
+    np.testing.assert_allclose(rules[0].coords[:, :, 0], lo[:, None] + w[:, None] * (0.5 + np.array([-1, 1]) / (2 * np.sqrt(3))))
+    with pytest.raises(ValueError, match="at least 1"):
+        tensor_rules(A, 0)
+
+
+def test_area_kernel_takes_the_tensor_path_in_3d_only():
+    rng = np.random.default_rng(3)
+    for dim in (2, 3):
+        A, Q = _boxes(rng, 12, dim), Supports.from_points(rng.uniform(0, 5, (9, dim)))
+        kern = AreaKernel(Matern32(1.0, 0.9), "quadrature", "mean", quadrature_order=2)
+        K = kern(A, Q)
+        ref, _ = weighted_gram(kern.base, quadrature_nodes(A, 2), quadrature_nodes(Q, 2))
+        if dim == 2:  # planar maps keep the node sums bit for bit
+            np.testing.assert_array_equal(K, ref)
+        else:
+            np.testing.assert_allclose(K, ref, rtol=0, atol=1e-14)
+            np.testing.assert_allclose(kern.diag(A), weighted_self(kern.base, quadrature_nodes(A, 2)), atol=1e-14)
