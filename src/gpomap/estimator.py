@@ -243,11 +243,12 @@ class GPMapEstimator:
             return self.voxels(resolution, extent)
         if supersample < 1:
             raise ValueError(f"supersample must be a positive integer, got {supersample}")
+        aligned = extent is None  # the default grid's cells are the ray counts' (no recount)
         if extent is None:
             lo = self.extent_points_.min(axis=0)
             hi = self.extent_points_.max(axis=0)
             extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
-        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution)
+        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
         evidence = getattr(self, "evidence_", None)
         if evidence is not None:
             probability, variance = evidence.written_grid(spec, self.gp_.kernel.base.length_scale, self._gp_probabilities)

@@ -51,16 +51,21 @@ class GridSpec:
         object.__setattr__(self, "resolution", float(self.resolution))
 
     @classmethod
-    def from_extent(cls, extent: tuple[float, float, float, float], resolution: float) -> GridSpec:
+    def from_extent(cls, extent: tuple[float, float, float, float], resolution: float, align: bool = False) -> GridSpec:
         """The grid of cells of side `resolution` covering `extent` = (xmin, xmax, ymin, ymax).
 
-        The origin is `(xmin, ymin)`; the grid extends past `xmax` / `ymax` to a whole cell.
+        The origin is `(xmin, ymin)`, or with `align` the multiple of `resolution` at or below
+        each (then the cells are those of every aligned grid of that resolution, the ray
+        counts' among them); the grid extends past `xmax` / `ymax` to a whole cell.
         """
         xmin, xmax, ymin, ymax = (float(v) for v in extent)
         if not (xmax > xmin and ymax > ymin):
             raise ValueError(f"extent must have xmin < xmax and ymin < ymax, got {extent}")
         if not (math.isfinite(resolution) and resolution > 0):
             raise ValueError(f"grid resolution must be a positive number, got {resolution}")
+        if align:
+            xmin = math.floor(xmin / resolution + 1e-9) * resolution
+            ymin = math.floor(ymin / resolution + 1e-9) * resolution
         # Small tolerance so an extent that is a whole number of cells does not gain one.
         nx = max(1, math.ceil((xmax - xmin) / resolution - 1e-9))
         ny = max(1, math.ceil((ymax - ymin) / resolution - 1e-9))

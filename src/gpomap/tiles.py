@@ -1329,13 +1329,14 @@ class TiledGPOM:
         OccupancyMap, or VoxelMap for a 3-D map
         """
         self._check_fitted()
+        aligned = extent is None  # the default grid's cells are the ray counts' (no recount)
         if extent is None:
             assert self._lower is not None and self._upper is not None
             lo, hi = self._lower, self._upper
             extent = tuple(float(v) for pair in zip(lo, hi) for v in pair)
         if self._dim == 3:
             return self._voxels(resolution, extent)
-        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution)
+        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
         t = time.perf_counter()
         probability, variance = self._sample(spec)
         self.timings_["grid"] = time.perf_counter() - t
