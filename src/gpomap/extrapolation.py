@@ -19,8 +19,12 @@ points (the evaluation protocol's points) that lie where no kept beam went. Near
 latent variance is small and kappa changes little; far from it p tends to 1/2 sooner.
 
 To bound the cost, the held-in GP covers one square region of side ``2 * region_half`` round a
-given centre (the hyperparameter sample's), and only points well inside it are used. With too
-few points of either class (a short log, a robot that never left one room), kappa stays 1.
+given centre (the hyperparameter sample's), and only points well inside it are used. When one
+pattern of held-out stretches finds too few such points of a class (on Intel, CSAIL and FR079
+with blocks of their scans held out, 24-27), the other two patterns (the stretches after, then
+the rest) are tried in turn and their points pooled, each with its own held-in GP: a robot that
+enters new space only once in its log is unseen in one pattern alone. With too few points in
+all three (a short log, a robot that never left one room), kappa stays 1.
 """
 
 from __future__ import annotations
@@ -40,8 +44,10 @@ from gpomap.observations import Observations
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
 N_STRETCHES: int = 10
-#: ... and every this-many-th stretch, starting at the second, is held out (3 of 10).
+#: ... and every this-many-th stretch is held out (3 of 10, starting at the second) ...
 HOLDOUT_EVERY: int = 3
+#: ... starting at these stretches in turn, while fewer than MIN_POINTS_PER_CLASS points are found.
+FOLD_STARTS: tuple[int, ...] = (1, 2, 0)
 #: Fewest held-out points of each class where no kept beam went for kappa to be fitted.
 MIN_POINTS_PER_CLASS: int = 50
 #: Most points of each class used (the held-in GP's prediction at them is the cost).
@@ -53,12 +59,14 @@ VARIANCE_SCALE_BOUNDS: tuple[float, float] = (0.1, 1e4)
 UNSEEN_RESOLUTION: dict[int, float] = {2: 0.05, 3: 0.1}
 
 
-def holdout_stretches(n_scans: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+def holdout_stretches(n_scans: int, first: int = FOLD_STARTS[0]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Indices of the kept and the held-out scans: every third of ten contiguous stretches held out.
 
     Parameters
     ----------
     n_scans : int
+    first : int
+        The first stretch held out (0-based); then every :data:`HOLDOUT_EVERY`-th.
 
     Returns
     -------
@@ -70,7 +78,7 @@ def holdout_stretches(n_scans: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]
         return idx, idx[:0]
     stretches = np.array_split(idx, min(N_STRETCHES, n_scans))
     held = np.zeros(n_scans, bool)
-    for s in stretches[1::HOLDOUT_EVERY]:
+    for s in stretches[first::HOLDOUT_EVERY]:
         held[s] = True
     return idx[~held], idx[held]
 
@@ -136,54 +144,51 @@ def fit_variance_scale(
         ``"kappa"``, ``"n_points"`` (per class), ``"log_loss_at_1"`` and ``"log_loss"`` (balanced,
         at kappa = 1 and at the fit), or ``"reason"`` when kappa stays 1.
     """
-    from gpomap.fusion import calibration_points
-
-    kept, held = holdout_stretches(len(scans))
-    if held.size == 0:
+    if len(scans) < HOLDOUT_EVERY:
         return 1.0, {"kappa": 1.0, "reason": f"only {len(scans)} scans"}
     centre = np.asarray(centre, dtype=float)[:2]
     lo, hi = centre - region_half, centre + region_half
-    kept_scans = [scans[i] for i in kept]
 
     def inside(points: NDArray[np.float64], shrink: float) -> NDArray[np.bool_]:
         xy = points[:, :2]
         return np.all((xy >= lo + shrink) & (xy <= hi - shrink), axis=1)
 
-    pts_l, occ_l = [], []
-    for i in held:
-        p, o = calibration_points(scans[i], no_return_cap=no_return_cap)
-        sel = inside(p, margin) if p.size else np.zeros(0, bool)
-        pts_l.append(p[sel])
-        occ_l.append(o[sel])
-    pts, occ = np.concatenate(pts_l), np.concatenate(occ_l)
-    if pts.size == 0:
-        return 1.0, {"kappa": 1.0, "reason": "no held-out points in the region"}
-    # Where no kept beam went: no hit and no miss on the evaluation's reference lattice.
-    dim = pts.shape[1]
-    rays = RayEvidence.from_scans(kept_scans, no_return_cap)
-    ext = list(bounds_extent(pts.min(axis=0), pts.max(axis=0)))
-    grid = lattice_grid(tuple(ext), UNSEEN_RESOLUTION[dim])
-    hits, misses = rays.counts(grid)
-    cell, ok = flat_index(grid, pts)
-    seen = ok & ((hits.reshape(-1)[cell] + misses.reshape(-1)[cell]) > 0)
-    pts, occ = pts[~seen], occ[~seen]
-    n = int(min(occ.sum(), (~occ).sum(), MAX_POINTS_PER_CLASS))
+    folds: list[tuple[list[Any], NDArray[np.float64], NDArray[np.bool_]]] = []
+    n = 0
+    for first in FOLD_STARTS:
+        kept, held = holdout_stretches(len(scans), first)
+        kept_scans = [scans[i] for i in kept]
+        pts, occ = _unseen_points(kept_scans, [scans[i] for i in held], inside, margin, no_return_cap)
+        folds.append((kept_scans, pts, occ))
+        n_occ = sum(int(f[2].sum()) for f in folds)
+        n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
+        if n >= MIN_POINTS_PER_CLASS:
+            break
     if n < MIN_POINTS_PER_CLASS:
-        return 1.0, {"kappa": 1.0, "reason": f"{n} held-out points of a class where no kept beam went"}
+        reason = f"{n} held-out points of a class where no kept beam went, in {len(folds)} patterns of held-out stretches"
+        return 1.0, {"kappa": 1.0, "reason": reason}
+    pts = np.concatenate([f[1] for f in folds])
+    occ = np.concatenate([f[2] for f in folds])
+    fold_of = np.concatenate([np.full(f[2].size, k) for k, f in enumerate(folds)])
     rng = np.random.default_rng(seed)
     keep = np.concatenate([rng.choice(np.flatnonzero(occ), n, replace=False), rng.choice(np.flatnonzero(~occ), n, replace=False)])
-    pts, occ = pts[keep], occ[keep]
-
-    obs = make_observations(kept_scans)
-    sel = inside(obs.points, 0.0)
-    obs = Observations(obs.points[sel], obs.occupied[sel], obs.scan_index[sel])
-    if obs.n_occupied == 0 or obs.n_free == 0:
-        return 1.0, {"kappa": 1.0, "reason": "no kept observations of a class in the region"}
-    try:
-        model = fit_held_in(obs)
-    except EmptyDataError as err:
-        return 1.0, {"kappa": 1.0, "reason": str(err)}
-    mu, var = model.predict(pts, return_var=True)
+    pts, occ, fold_of = pts[keep], occ[keep], fold_of[keep]
+    # Each pattern's points are predicted by the GP of that pattern's kept scans.
+    mu, var = np.empty(occ.size), np.empty(occ.size)
+    for k, (kept_scans, _, _) in enumerate(folds):
+        sel = fold_of == k
+        if not sel.any():
+            continue
+        obs = make_observations(kept_scans)
+        within = inside(obs.points, 0.0)
+        obs = Observations(obs.points[within], obs.occupied[within], obs.scan_index[within])
+        if obs.n_occupied == 0 or obs.n_free == 0:
+            return 1.0, {"kappa": 1.0, "reason": "no kept observations of a class in the region"}
+        try:
+            model = fit_held_in(obs)
+        except EmptyDataError as err:
+            return 1.0, {"kappa": 1.0, "reason": str(err)}
+        mu[sel], var[sel] = model.predict(pts[sel], return_var=True)
     a, b = float(hyperparameters["alpha"]), float(hyperparameters["beta"])
     res = minimize_scalar(
         lambda t: _nll(float(np.exp(t)), mu, var, occ, a, b),
@@ -194,6 +199,35 @@ def fit_variance_scale(
     return kappa, {
         "kappa": kappa,
         "n_points": n,
+        "n_patterns": len(folds),
         "log_loss_at_1": _nll(1.0, mu, var, occ, a, b),
         "log_loss": float(res.fun),
     }
+
+
+def _unseen_points(
+    kept_scans: Sequence[Any],
+    held_scans: Sequence[Any],
+    inside: Callable[[NDArray[np.float64], float], NDArray[np.bool_]],
+    margin: float,
+    no_return_cap: float | None,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The held-out scans' protocol points in the region where no kept beam went: points (m, d) and classes (m,)."""
+    from gpomap.fusion import calibration_points
+
+    pts_l, occ_l = [], []
+    for scan in held_scans:
+        p, o = calibration_points(scan, no_return_cap=no_return_cap)
+        sel = inside(p, margin) if p.size else np.zeros(0, bool)
+        pts_l.append(p[sel])
+        occ_l.append(o[sel])
+    pts, occ = np.concatenate(pts_l), np.concatenate(occ_l)
+    if pts.size == 0:
+        return pts, occ
+    # Where no kept beam went: no hit and no miss on the evaluation's reference lattice.
+    rays = RayEvidence.from_scans(kept_scans, no_return_cap)
+    grid = lattice_grid(tuple(bounds_extent(pts.min(axis=0), pts.max(axis=0))), UNSEEN_RESOLUTION[pts.shape[1]])
+    hits, misses = rays.counts(grid)
+    cell, ok = flat_index(grid, pts)
+    seen = ok & ((hits.reshape(-1)[cell] + misses.reshape(-1)[cell]) > 0)
+    return pts[~seen], occ[~seen]
