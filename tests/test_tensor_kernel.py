@@ -8,7 +8,16 @@ from gpomap.kernels.nodes import quadrature_nodes, weighted_gram, weighted_self
 from gpomap.kernels.tensor import tensor_gram, tensor_rules, tensor_self
 from gpomap.supports import Supports, concatenate
 
-KERNELS = [Matern32(1.3, 0.7), SquaredExponential(0.8, 1.1)]
+
+class _NoUnitForm(Matern32):
+    """Matern 3/2 without its unit profile: the tensor path's generic branch (values_into)."""
+
+    @property
+    def unit_scale(self):
+        return None
+
+
+KERNELS = [Matern32(1.3, 0.7), SquaredExponential(0.8, 1.1), _NoUnitForm(1.3, 0.7)]
 
 
 def _boxes(rng, n, dim, zero_every=7):
@@ -79,3 +88,21 @@ def test_area_kernel_takes_the_tensor_path_in_3d_only():
         else:
             np.testing.assert_allclose(K, ref, rtol=0, atol=1e-14)
             np.testing.assert_allclose(kern.diag(A), weighted_self(kern.base, quadrature_nodes(A, 2)), atol=1e-14)
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: type(k).__name__)
+def test_unit_profile_is_the_kernel_over_its_variance(kernel):
+    d2 = np.random.default_rng(5).uniform(0, 30, (4, 9))
+    K, dK = kernel.values(d2, True)
+    out, grad = np.empty_like(d2), np.empty_like(d2)
+    kernel.values_into(d2.copy(), out, grad)
+    np.testing.assert_array_equal(out, K)
+    np.testing.assert_array_equal(grad, dK)
+    if kernel.unit_scale is None:
+        return
+    u2 = d2 * kernel.unit_scale**2
+    for g in (None, np.empty_like(d2)):
+        kernel.unit_profile_into(u2.copy(), out, g, np.empty_like(d2))
+        np.testing.assert_allclose(kernel.variance * out, K, rtol=1e-13)
+        if g is not None:
+            np.testing.assert_allclose(kernel.variance * g, dK, rtol=1e-13, atol=1e-300)

@@ -8,6 +8,7 @@ request, its gradient with respect to ``theta``, shape (n, m, 2).
 from __future__ import annotations
 
 import copy
+import math
 from abc import ABC, abstractmethod
 from typing import Any
 
@@ -125,6 +126,37 @@ class PointKernel(ABC):
             assert dl is not None  # values() returns the derivative when asked for it
             grad[...] = dl
 
+    @property
+    def unit_scale(self) -> float | None:
+        """c such that k(r) = variance * profile((c r)^2), or None when the kernel has no such form.
+
+        Hot loops (:mod:`gpomap.kernels.tensor`) scale the coordinates by c once and evaluate
+        :meth:`unit_profile_into`, which saves the per-entry scaling of :meth:`values`.
+        """
+        return None
+
+    def unit_profile_into(
+        self,
+        u2: NDArray[np.float64],
+        out: NDArray[np.float64],
+        grad: NDArray[np.float64] | None = None,
+        work: NDArray[np.float64] | None = None,
+    ) -> None:
+        """The profile at scaled squared distances `u2` (kernel values over the variance), into `out`.
+
+        Parameters
+        ----------
+        u2 : ndarray
+            Squared distances of coordinates scaled by :attr:`unit_scale`; may be overwritten.
+        out : ndarray, the shape of `u2`
+            Receives profile(u2).
+        grad : ndarray, the shape of `u2`, optional
+            Receives its derivative with respect to log length scale (over the variance).
+        work : ndarray, the shape of `u2`, optional
+            Scratch space.
+        """
+        raise NotImplementedError(f"{type(self).__name__} has no unit profile (unit_scale is None)")
+
     def from_sqdist(
         self, d2: NDArray[np.float64], eval_gradient: bool = False
     ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -195,17 +227,17 @@ class SquaredExponential(PointKernel):
         # d/dlog(l) = K * r^2 / l^2.
         return K, (K * (d2 / l2) if eval_gradient else None)
 
-    def values_into(self, d2, out, grad=None, work=None):
-        # The operations of values(), in its order, into the given arrays (the same bits).
-        l2 = self.length_scale**2
-        if grad is not None:
-            np.divide(d2, l2, out=grad)
-        np.multiply(d2, -0.5, out=out)
-        out /= l2
+    @property
+    def unit_scale(self) -> float:
+        """1 / l: k = variance * exp(-u^2 / 2) with u = r / l (see :meth:`PointKernel.unit_scale`)."""
+        return 1.0 / self.length_scale
+
+    def unit_profile_into(self, u2, out, grad=None, work=None):
+        np.multiply(u2, -0.5, out=out)
         np.exp(out, out=out)
-        out *= self.variance
         if grad is not None:
-            grad *= out
+            # d/dlog(l) of exp(-u^2 / 2) with u = r / l is u^2 exp(-u^2 / 2).
+            np.multiply(out, u2, out=grad)
 
 
 class Matern32(PointKernel):
@@ -220,22 +252,23 @@ class Matern32(PointKernel):
         # d/dl of (1 + s) e^-s with ds/dl = -s/l is s^2 e^-s / l; times l for log space.
         return K, (self.variance * s * s * e if eval_gradient else None)
 
-    def values_into(self, d2, out, grad=None, work=None):
-        # The operations of values(), in its order, into the given arrays (the same bits); e^-s
-        # goes where d2 was.
-        s = np.empty_like(d2) if work is None else work
-        np.multiply(d2, 3.0, out=s)
-        np.sqrt(s, out=s)
-        s /= self.length_scale
-        e = np.negative(s, out=d2)
+    @property
+    def unit_scale(self) -> float:
+        """sqrt(3) / l: k = variance * (1 + u) exp(-u) with u = sqrt(3) r / l (see :meth:`PointKernel.unit_scale`)."""
+        return math.sqrt(3.0) / self.length_scale
+
+    def unit_profile_into(self, u2, out, grad=None, work=None):
+        u = np.empty_like(u2) if work is None else work
+        np.sqrt(u2, out=u)
+        # e^-u into grad when the gradient is asked for (it needs u^2 after), else where u^2 was.
+        e = u2 if grad is None else grad
+        np.negative(u, out=e)
         np.exp(e, out=e)
-        np.add(s, 1.0, out=out)
-        out *= self.variance
+        np.add(u, 1.0, out=out)
         out *= e
         if grad is not None:
-            np.multiply(s, self.variance, out=grad)
-            grad *= s
-            grad *= e
+            # d/dlog(l) of (1 + u) e^-u with du/dlog(l) = -u is u^2 e^-u.
+            grad *= u2
 
 
 KERNELS: dict[str, type[PointKernel]] = {
