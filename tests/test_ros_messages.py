@@ -144,7 +144,9 @@ class Clock:
 
 @needs_bag
 def test_live_map_from_bag_messages_is_the_streaming_map_of_the_bag_reader(tmp_path):
-    scans = batch_scans()
+    # The first 100 scans (30 of warm-up, 70 streamed after it) and the bag's last message, which
+    # has no pose: the whole bag would only stream more of the same.
+    scans = batch_scans()[:100]
     # The poses the bag reader found (tf interpolated 0.1 s after each stamp); the last scan has none.
     poses = {round(s.time + STAGE_TIME_OFFSET, 6): tuple(s.pose) for s in scans}
     lookups = []
@@ -165,7 +167,8 @@ def test_live_map_from_bag_messages_is_the_streaming_map_of_the_bag_reader(tmp_p
     assert live.layers() is None
     with pytest.raises(NotFittedError, match="0 scans seen"):
         live.save(tmp_path / "early")
-    messages = bag_messages()
+    every = bag_messages()
+    messages = [*every[: len(scans)], every[-1]]
     for msg in messages:
         live.receive(msg)
     # All but the last have a pose; the last waits, then is dropped once pose_wait has passed.
