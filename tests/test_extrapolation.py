@@ -122,9 +122,14 @@ def test_too_few_unseen_points_leave_the_scale_at_one():
     assert kappa == 1.0 and "reason" in report
 
 
-def test_a_fitted_map_carries_its_scale_and_stays_unknown_far_away():
-    scans = _room_scans()
-    model = AreaGPOM(min_cell=0.5, max_cell=1.0).fit(scans)
+@pytest.fixture(scope="module")
+def fitted_room() -> AreaGPOM:
+    """One fit for the two tests below, which only read it."""
+    return AreaGPOM(min_cell=0.5, max_cell=1.0).fit(_room_scans())
+
+
+def test_a_fitted_map_carries_its_scale_and_stays_unknown_far_away(fitted_room: AreaGPOM) -> None:
+    model = fitted_room
     kappa = model.hyperparameters_["variance_scale"]
     assert kappa == model.extrapolation_["kappa"] == model.summary()["variance_scale_fit"]["kappa"]
     assert ex.VARIANCE_SCALE_BOUNDS[0] <= kappa <= ex.VARIANCE_SCALE_BOUNDS[1]
@@ -132,9 +137,8 @@ def test_a_fitted_map_carries_its_scale_and_stays_unknown_far_away():
     assert model.predict_proba(np.array([[500.0, 500.0]]))[0] == pytest.approx(0.5, abs=1e-9)
 
 
-def test_the_scale_applies_only_where_no_beam_went():
-    scans = _room_scans()
-    model = AreaGPOM(min_cell=0.5, max_cell=1.0).fit(scans)
+def test_the_scale_applies_only_where_no_beam_went(fitted_room: AreaGPOM) -> None:
+    model = fitted_room
     squash = model.gp_.squash
     assert squash.variance_scale > 1  # the GP was over-sure on the held-out stretches
     rng = np.random.default_rng(0)
