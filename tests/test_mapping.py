@@ -21,7 +21,9 @@ def room():
     test_poses[:, :2] += rng.normal(0, 0.3, (len(poses), 2))
     test_poses = test_poses[world.distance_to_walls(test_poses[:, :2]) > 0.5]
     test = observations_from_scans(simulate_scans(world, test_poses, 90), free_step=0.2)
-    occ = np.flatnonzero(test.occupied)
+    # 1,000 held-out hits of the 2,790 and as many free points: the AUC's standard error is then
+    # about 0.002, against a margin of 0.04 to the bound.
+    occ = rng.choice(np.flatnonzero(test.occupied), 1000, replace=False)
     free = rng.choice(np.flatnonzero(~test.occupied), occ.size, replace=False)
     sel = np.concatenate([occ, free])
     return world, paper_room_scans(), test.points[sel], test.occupied[sel]
@@ -35,7 +37,7 @@ def fitted(request, room):
 
 def test_held_out_auc_is_high(fitted, room):
     _, _, points, labels = room
-    # Measured 0.994 / 0.994 (SE / Matern 3/2) with the defaults; chance is 0.5, the paper 0.93-0.94.
+    # Measured 0.996 / 0.996 (SE / Matern 3/2) with the defaults; chance is 0.5, the paper 0.93-0.94.
     assert roc_auc(labels, fitted.predict_proba(points)) > 0.95
 
 
