@@ -1,4 +1,4 @@
-"""Seeded, time-bounded fuzzing of every reader: a mutant either reads or raises a GpomapError.
+"""Seeded fuzzing of every reader, a fixed number of mutants each: a mutant either reads or raises a GpomapError.
 
 Valid small inputs (a CARMEN log, the first 50 lines of the Intel log when present, a map_server
 YAML + PGM, points CSV and NPZ, a gpomap NPZ map, a ROS1 bag) are mutated by byte flips, token
@@ -9,7 +9,6 @@ Any other exception fails the test and shows the mutant.
 from __future__ import annotations
 
 import gzip
-import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -26,8 +25,6 @@ from gpomap.io.rosmap import read_rosmap
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SEED = 20240614
-# Seconds each input may take in all; the iteration count is fixed, the clock only cuts it short.
-BUDGET = 2.0
 TOKENS = [b"nan", b"inf", b"-inf", b"1e400", b"-1", b"9" * 5000, b"", b"0", b"1e-400", b"\xff\xfe", b"[[[["]
 
 
@@ -57,14 +54,11 @@ def _mutate(data: bytes, rng: np.random.Generator, text: bool) -> bytes:
 
 
 def _fuzz(tmp_path: Path, name: str, original: bytes, read: Callable[[Path], object], iterations: int, text: bool = True) -> int:
-    """Run `iterations` mutants through `read` (within BUDGET seconds); return how many ran."""
+    """Run `iterations` mutants through `read`, every one whatever the machine's speed; return how many ran."""
     rng = np.random.default_rng([SEED, sum(name.encode())])
     path = tmp_path / name
-    start = time.monotonic()
     done = 0
     for k in range(iterations):
-        if time.monotonic() - start > BUDGET:
-            break
         mutant = _mutate(original, rng, text)
         path.write_bytes(mutant)
         try:
@@ -91,14 +85,14 @@ def _carmen_log() -> bytes:
 
 
 def test_fuzz_carmen(tmp_path: Path) -> None:
-    assert _fuzz(tmp_path, "small.log", _carmen_log(), read_scans, 300) > 50
+    assert _fuzz(tmp_path, "small.log", _carmen_log(), read_scans, 300) == 300
     intel = DATA / "intel" / "intel-corrected.log.gz"
     if intel.exists():
         with gzip.open(intel, "rb") as f:
             head = b"".join(f.readline() for _ in range(50))
-        assert _fuzz(tmp_path, "intel-head.log", head, read_scans, 150) > 20
+        assert _fuzz(tmp_path, "intel-head.log", head, read_scans, 150) == 150
         # Gzipped mutants: the decompressor's errors must become InputFormatError too.
-        assert _fuzz(tmp_path, "intel-head.log.gz", gzip.compress(head), read_scans, 100, text=False) > 20
+        assert _fuzz(tmp_path, "intel-head.log.gz", gzip.compress(head), read_scans, 100, text=False) == 100
 
 
 def test_fuzz_rosmap(tmp_path: Path) -> None:
@@ -108,29 +102,29 @@ def test_fuzz_rosmap(tmp_path: Path) -> None:
         b"image: map.pgm\nresolution: 0.05\norigin: [-1.0, 2.0, 0.0]\nnegate: 0\n"
         b"occupied_thresh: 0.65\nfree_thresh: 0.196\nmode: trinary\n"
     )
-    assert _fuzz(tmp_path, "map.yaml", yml, read_rosmap, 300) > 50
+    assert _fuzz(tmp_path, "map.yaml", yml, read_rosmap, 300) == 300
     # The image itself, read through an intact YAML that names it.
     (tmp_path / "img.yaml").write_bytes(yml.replace(b"map.pgm", b"fuzz.pgm"))
-    assert _fuzz(tmp_path, "fuzz.pgm", pgm, lambda _: read_rosmap(tmp_path / "img.yaml"), 200) > 50
+    assert _fuzz(tmp_path, "fuzz.pgm", pgm, lambda _: read_rosmap(tmp_path / "img.yaml"), 200) == 200
 
 
 def test_fuzz_points(tmp_path: Path) -> None:
     csv = b"x,y,occupied\n0.5,1.0,1\n-2.0,3.25,0\n1e-3,7,true\n"
-    assert _fuzz(tmp_path, "p.csv", csv, read_points, 300) > 50
+    assert _fuzz(tmp_path, "p.csv", csv, read_points, 300) == 300
     npz_path = tmp_path / "src.npz"
     np.savez(npz_path, points=np.array([[0.5, 1.0], [2.0, 3.0]]), occupied=np.array([True, False]))
-    assert _fuzz(tmp_path, "p.npz", npz_path.read_bytes(), read_points, 200, text=False) > 50
+    assert _fuzz(tmp_path, "p.npz", npz_path.read_bytes(), read_points, 200, text=False) == 200
 
 
 def test_fuzz_map_npz(tmp_path: Path) -> None:
     grid = GridSpec((-1.0, 0.5), 0.1, (3, 4))
     m = OccupancyMap(grid, np.linspace(0, 1, 12).reshape(3, 4), variance=np.ones((3, 4)), info={"a": [1, 2]})
     original = save_map(m, tmp_path / "src.npz").read_bytes()
-    assert _fuzz(tmp_path, "m.npz", original, load_map, 200, text=False) > 50
+    assert _fuzz(tmp_path, "m.npz", original, load_map, 200, text=False) == 200
 
 
 def test_fuzz_rosbag(tmp_path: Path) -> None:
     from tests.test_io_rosbag import _write_bag
 
     original = _write_bag(tmp_path / "src.bag").read_bytes()
-    assert _fuzz(tmp_path, "f.bag", original, read_scans, 60, text=False) > 10
+    assert _fuzz(tmp_path, "f.bag", original, read_scans, 60, text=False) == 60
