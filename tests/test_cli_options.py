@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import inspect
 import re
 from pathlib import Path
@@ -109,14 +110,21 @@ COMMAND_OWN: dict[str, str] = {
 }
 
 
+@functools.cache
+def _parser() -> argparse.ArgumentParser:
+    """One parser for every parse here: argparse leaves a parser as it was (and the defaults are
+    only read), and building it took most of this file's time, hundreds of times over."""
+    return cli.build_parser()
+
+
 def _parse(argv: list[str]) -> argparse.Namespace:
-    args = cli.build_parser().parse_args(argv)
+    args = _parser().parse_args(argv)
     cli._resolve_library_defaults(args)
     return args
 
 
 def _subparsers() -> dict[str, argparse.ArgumentParser]:
-    action = next(a for a in cli.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    action = next(a for a in _parser()._actions if isinstance(a, argparse._SubParsersAction))
     return dict(action.choices)
 
 
@@ -249,12 +257,15 @@ def test_every_option_reaches_the_library(command, fake_inputs, monkeypatch):
     """An option set to another value changes what the library gets, or is refused by --method, or
     is the command's own (COMMAND_OWN) and read by its code."""
     dropped, unread = [], []
+    bases: dict[str | None, Any] = {}  # what the base arguments hand over, per method: the same each time
     for action in _options(command):
         argv = _changed_argv(command, action)
         methods = _evaluate_methods() if command == "evaluate" and action.dest != "method" else [None]
         for method in methods:
             extra = [] if method is None else ["--method", method]
-            base = _snapshot(_handed_to_library(command, _parse(BASE[command] + extra), monkeypatch))
+            if method not in bases:
+                bases[method] = _snapshot(_handed_to_library(command, _parse(BASE[command] + extra), monkeypatch))
+            base = bases[method]
             try:
                 changed = _snapshot(_handed_to_library(command, _parse(argv + extra), monkeypatch))
             except GpomapError as exc:
