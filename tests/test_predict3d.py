@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.linalg import solve_triangular
 
-from gpomap.gp import SupportGP, triangular_inverse_for
+from gpomap.gp import SupportGP, lower_product, triangular_inverse_for
 from gpomap.kernels import AreaKernel, Matern32
 from gpomap.supports import Supports
 
@@ -41,3 +41,11 @@ def test_prediction_equals_the_triangular_solve(dim):
         np.testing.assert_array_equal(var, ref_var)
     else:
         np.testing.assert_allclose(var, ref_var, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [1, 5, 8, 37])
+def test_lower_product_equals_the_full_product(n):
+    rng = np.random.default_rng(n)
+    L_inv = np.tril(rng.normal(size=(n, n)))
+    K = rng.normal(size=(n, 11))
+    np.testing.assert_allclose(lower_product(L_inv, K), L_inv @ K, rtol=0, atol=1e-13)

@@ -15,6 +15,7 @@ analytic gradients, by one of two objectives:
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 from typing import Literal, overload
@@ -116,6 +117,23 @@ def triangular_inverse_for(L: NDArray[np.float64], n_queries: int, dim: int) -> 
     if info != 0:
         raise NumericalError(f"triangular inverse of the Cholesky factor failed (LAPACK info {info})")
     return np.tril(L_inv)  # dtrtri leaves the strict upper triangle as it found it
+
+
+#: Row blocks of :func:`lower_product`: each block's product skips the zeros right of its
+#: diagonal block, (1 + 1 / 8) / 2 of the full product's work. Measured on la3dm's 1,026 cells and
+#: 4,096 queries: 0.19 s against 0.28 s for the full product (4 and 16 blocks: 0.20 s).
+LOWER_PRODUCT_BLOCKS: int = 8
+
+
+def lower_product(L_inv: NDArray[np.float64], K: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``L_inv @ K`` for a lower-triangular `L_inv` of shape (n, n) and `K` of shape (n, c), by row blocks."""
+    n = L_inv.shape[0]
+    out = np.empty((n, K.shape[1]))
+    edges = np.linspace(0, n, min(LOWER_PRODUCT_BLOCKS, max(n, 1)) + 1).round().astype(int)
+    for a, b in itertools.pairwise(edges):
+        if b > a:
+            np.matmul(L_inv[a:b, :b], K[:b], out=out[a:b])
+    return out
 
 
 @dataclass
@@ -471,7 +489,7 @@ class SupportGP:
             Ks = self.kernel(self.X_train_, part)  # (n, c)
             mean[s : s + len(part)] = Ks.T @ self.alpha_
             if var is not None:
-                v = solve_triangular(self.L_, Ks, lower=True, check_finite=False) if L_inv is None else L_inv @ Ks
+                v = solve_triangular(self.L_, Ks, lower=True, check_finite=False) if L_inv is None else lower_product(L_inv, Ks)
                 kss = self.kernel.diag(part)
                 var[s : s + len(part)] = np.maximum(kss - np.einsum("ij,ij->j", v, v), 0.0)
         return mean, var

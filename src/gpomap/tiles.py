@@ -52,7 +52,7 @@ from gpomap.cells import build_cells
 from gpomap.config import DEFAULT_MAX_CELLS, DEFAULT_SCHEDULER_TIMEOUT, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.fusion import EvidenceLayer
-from gpomap.gp import SupportGP, robust_cholesky, triangular_inverse_for
+from gpomap.gp import SupportGP, lower_product, robust_cholesky, triangular_inverse_for
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
@@ -279,7 +279,7 @@ def predict_tile_task(
         part = Q.subset(slice(s, min(m, s + chunk_size)))
         Ks = kern(X, part)
         mean[s : s + len(part)] = Ks.T @ state.weights
-        v = solve_triangular(state.L, Ks, lower=True, check_finite=False) if L_inv is None else L_inv @ Ks
+        v = solve_triangular(state.L, Ks, lower=True, check_finite=False) if L_inv is None else lower_product(L_inv, Ks)
         var[s : s + len(part)] = np.maximum(kern.diag(part) - np.einsum("ij,ij->j", v, v), 0.0)
     return mean, var
 
