@@ -8,11 +8,13 @@ once per axis instead of once per node pair. With 3-D boxes at order 2 and point
 averaged in cache-sized blocks (a block of pairs is formed, turned into kernel values and reduced
 while it is still in cache, instead of streaming arrays of millions of pairs through memory).
 
-The node coordinates, their squared distances (summed over axes in the same order) and the kernel
-values are the same numbers :func:`gpomap.kernels.nodes.weighted_gram` forms from
-:func:`gpomap.kernels.nodes.quadrature_nodes`; only the weighted sums are taken in another order,
-so the two agree to round-off (``tests/test_tensor_kernel.py`` checks it). A point (a zero-width
-input) has one node of weight one, as there.
+The nodes are those of :func:`gpomap.kernels.nodes.quadrature_nodes` and the result is the
+average :func:`gpomap.kernels.nodes.weighted_gram` takes, to round-off (``tests/test_tensor_kernel.py``
+checks it against that reference): the coordinates are scaled by the kernel's own scale
+(:attr:`~gpomap.kernels.point.PointKernel.unit_scale`, so a block needs only the kernel's profile)
+and the weighted sums are taken in another order. A point (a zero-width input) has one node of
+weight one, as there. Kernels without a unit form go through
+:meth:`~gpomap.kernels.point.PointKernel.values_into`, the very numbers of ``values``.
 """
 
 from __future__ import annotations
