@@ -61,19 +61,19 @@ def test_stream_as_fast_as_possible_writes_the_streaming_map_of_every_scan(tmp_p
 
 @needs_bag
 def test_stream_at_rate_one_takes_the_recorded_time(tmp_path, capsys):
-    # Scans 0..39 of the arena: 3.9 s of recording at 10 Hz.
+    # Scans 0..19 of the arena: 1.9 s of recording at 10 Hz (10 of warm-up, 10 paced after it).
     out = tmp_path / "live"
     t = time.monotonic()
-    assert main(["stream", *ARENA, "-o", str(out), "--range", "0:40", "--warmup", "10", "--rate", "1", "-q"]) == 0
+    assert main(["stream", *ARENA, "-o", str(out), "--range", "0:20", "--warmup", "10", "--rate", "1", "-q"]) == 0
     elapsed = time.monotonic() - t
     text = capsys.readouterr().out
     wall = float(text.split("replay       at rate 1: ")[1].split(" s wall")[0])
-    assert 3.9 <= wall <= elapsed and "behind the recording" in text
+    assert 1.9 <= wall <= elapsed and "behind the recording" in text
     # Twice as fast: never ahead of half the recording. (How much longer it takes depends on how
     # busy the machine is, so only the pacing's lower bound is checked.)
-    assert main(["stream", *ARENA, "-o", str(out), "--range", "0:40", "--warmup", "10", "--rate", "2", "-q"]) == 0
+    assert main(["stream", *ARENA, "-o", str(out), "--range", "0:20", "--warmup", "10", "--rate", "2", "-q"]) == 0
     wall2 = float(capsys.readouterr().out.split("replay       at rate 2: ")[1].split(" s wall")[0])
-    assert wall2 >= 1.95
+    assert wall2 >= 0.95
     _set_is_complete(out)
 
 
