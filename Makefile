@@ -21,9 +21,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/gpomap demo -o $(DEMO_OUT)
 
-# One pytest worker per core (pytest-xdist), each file on one worker so its fixtures are built once.
+# One pytest worker per core (pytest-xdist), each file on one worker so its fixtures are built once;
+# files handed out in collection order, the longest first (tests/conftest.py), so the workers end together.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n auto --dist loadfile
+	$(BIN)/python -m pytest -q -n auto --dist loadfile --no-loadscope-reorder
 
 # ruff and mypy come from the `lint` extra, installed on top of the test set-up.
 $(LINT_STAMP): $(STAMP) pyproject.toml
