@@ -362,6 +362,9 @@ class _BlockPoints:
 
     def __init__(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
         self._parts = [(points, occupied)]
+        # Which of the first `_n_checked` points are free within the clearance of a hit among them.
+        self._near = np.zeros(0, dtype=bool)
+        self._n_checked = 0
 
     def append(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
         self._parts.append((points, occupied))
@@ -370,6 +373,39 @@ class _BlockPoints:
         if len(self._parts) > 1:
             self._parts = [(np.concatenate([p for p, _ in self._parts]), np.concatenate([o for _, o in self._parts]))]
         return self._parts[0]
+
+    def free_near_hits(self, clearance: float) -> NDArray[np.bool_]:
+        """:func:`~gpomap.observations.free_near_hits` of the block's points, worked out for the new ones only.
+
+        Hits are only ever added, so a free point once near a hit stays so. Of the points seen
+        at the last call, the free ones not yet near a hit are checked against the new hits; the
+        new free points against every hit. The answer is the whole computation's, at the cost
+        of the points appended since.
+        """
+        points, occupied = self.arrays()
+        n0 = self._n_checked
+        if n0 == 0:
+            near = free_near_hits(points, occupied, clearance)
+        else:
+            near = np.zeros(occupied.shape, dtype=bool)
+            near[:n0] = self._near
+            new_hits = points[n0:][occupied[n0:]]
+            if new_hits.size:
+                old_free = np.flatnonzero(~occupied[:n0] & ~self._near)
+                near[old_free] = _near_any(points[old_free], new_hits, clearance)
+            new_free = n0 + np.flatnonzero(~occupied[n0:])
+            near[new_free] = _near_any(points[new_free], points[occupied], clearance)
+        self._near, self._n_checked = near, int(occupied.size)
+        return near
+
+
+def _near_any(free: NDArray[np.float64], hits: NDArray[np.float64], clearance: float) -> NDArray[np.bool_]:
+    """Which of the free points, shape (m, d), lie within `clearance` of one of the hits, shape (h, d)."""
+    if free.shape[0] == 0 or hits.shape[0] == 0:
+        return np.zeros(free.shape[0], dtype=bool)
+    both = np.concatenate([free, hits])
+    occupied = np.concatenate([np.zeros(free.shape[0], bool), np.ones(hits.shape[0], bool)])
+    return free_near_hits(both, occupied, clearance)[: free.shape[0]]
 
 
 # --------------------------------------------------------------------------- estimator
@@ -504,8 +540,9 @@ class TiledGPOM:
     # ------------------------------------------------------------------ cells
     def _build_block(self, key: int) -> _BlockCells:
         b = self.base
-        points, occupied = self._block_points[key].arrays()
-        keep = ~free_near_hits(points, occupied, self._clearance)
+        block = self._block_points[key]
+        points, occupied = block.arrays()
+        keep = ~block.free_near_hits(self._clearance)
         c = build_cells(points[keep], occupied[keep], b.min_cell, b.max_cell, b.cell_box)
         summed = b.area_method == "summed"
         return _BlockCells(
