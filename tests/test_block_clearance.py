@@ -8,7 +8,9 @@ from gpomap.tiles import _BlockPoints
 
 def test_incremental_clearance_equals_the_whole_computation():
     rng = np.random.default_rng(4)
-    parts = [(rng.uniform(0, 3, (n, 2)), rng.random(n) < q) for n, q in [(400, 0.1), (50, 0.0), (300, 0.3), (5, 1.0), (200, 0.05)]]
+    parts = [
+        (rng.uniform(0, 3, (n, 2)), rng.random(n) < q) for n, q in [(400, 0.1), (50, 0.0), (300, 0.3), (5, 1.0), (200, 0.05)]
+    ]
     block = _BlockPoints(*parts[0])
     checked = [block.free_near_hits(0.3)]
     for pts, occ in parts[1:]:
