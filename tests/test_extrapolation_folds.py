@@ -8,6 +8,7 @@ import pytest
 from gpomap import extrapolation as ex
 from gpomap.mapping import AreaGPOM
 from gpomap.simulate import paper_room_scans
+from tests.test_extrapolation import _room_scans, _truth
 
 
 def test_the_three_patterns_by_hand():
@@ -45,13 +46,7 @@ def _only_one_stretch_moves():
     tour = paper_room_scans(n_beams=90, seed=0)
     moving = set(np.array_split(np.arange(len(tour)), ex.N_STRETCHES)[2].tolist())
     scans = [tour[i] if i in moving else tour[0] for i in range(len(tour))]
-    hits = np.concatenate([s.hits() for s in scans])
-
-    def occupied(points):
-        d = np.sqrt(((points[:, None, :] - hits[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
-        return d < 1e-9
-
-    return scans, occupied
+    return scans, _truth(scans)
 
 
 def _fit(scans, stand_in):
@@ -75,12 +70,7 @@ def test_a_second_pattern_is_pooled_when_the_first_finds_nothing_unseen():
 
 def test_one_pattern_is_enough_when_it_finds_enough():
     # The first pattern's kept scans miss a third of their beams: its held-out scans alone see there.
-    scans = paper_room_scans(n_beams=90, seed=0)
-    kept, _ = ex.holdout_stretches(len(scans))
-    for i in kept:
-        s = scans[i]
-        keep = np.arange(s.n_beams) >= s.n_beams // 3
-        scans[i] = type(s)(s.pose, s.angles[keep], s.ranges[keep], max_range=s.max_range)
+    scans = _room_scans()
     stand_in = _Fixed(lambda p: (np.zeros(len(p)), np.ones(len(p))))
     _, report = _fit(scans, stand_in)
     assert report["n_patterns"] == 1 and stand_in.fits == 1
