@@ -172,3 +172,101 @@ def test_inverse_diagonal_matches_the_inverse():
     A = rng.normal(size=(40, 40))
     K = A @ A.T + 40 * np.eye(40)
     np.testing.assert_allclose(inverse_diagonal(np.linalg.cholesky(K)), np.diag(np.linalg.inv(K)), rtol=1e-10)
+
+
+def _spd(n, seed):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, n))
+    return A @ A.T / n + 0.5 * np.eye(n)
+
+
+def test_in_place_inverse_is_the_cholesky_inverse():
+    from gpomap.gp import FILL_BLOCK, _inverse_in_place, cholesky_inverse
+
+    # Several blocks of the triangle mirror, the last one partial.
+    n = 2 * FILL_BLOCK + 37
+    K = _spd(n, 9)
+    L = np.linalg.cholesky(K)
+    expected = cholesky_inverse(L)
+    inv = _inverse_in_place(np.asfortranarray(L))
+    np.testing.assert_array_equal(inv, expected)
+    np.testing.assert_allclose(inv, np.linalg.inv(K), rtol=1e-9, atol=1e-12)
+    assert inv.flags.c_contiguous
+
+
+@pytest.mark.parametrize("signs", ["mixed", "positive", "negative", "zero"])
+def test_weighted_outer_and_its_trace_against_dense_products(signs):
+    from gpomap.gp import _trace_product_upper, _weighted_outer_upper
+
+    n = 150
+    C = np.linalg.inv(_spd(n, 10))
+    C = 0.5 * (C + C.T)
+    w = np.random.default_rng(11).normal(size=n)
+    w = {"mixed": w, "positive": np.abs(w), "negative": -np.abs(w), "zero": 0 * w}[signs]
+    M = C @ np.diag(w) @ C
+    upper = _weighted_outer_upper(C, w)
+    np.testing.assert_allclose(upper, np.triu(M), rtol=1e-10, atol=1e-12 * np.abs(M).max(initial=1.0))
+    assert np.all(np.tril(upper, -1) == 0)
+    G = _spd(n, 12)
+    assert _trace_product_upper(G, upper) == pytest.approx(np.sum(G * M), rel=1e-10, abs=1e-12)
+
+
+def _loo_by_the_direct_formulas(gp, X, y, params):
+    """The LOO objective's gradient as R&W write it (one n^3 product per hyperparameter)."""
+    kern = gp.kernel.clone_with_theta(params[:2])
+    K, dK = kern(X, eval_gradient=True)
+    nvec = np.exp(params[2]) * gp._noise_scale(X)
+    K_inv = np.linalg.inv(K + np.diag(nvec))
+    a, d = K_inv @ y, np.diag(K_inv)
+    alpha, shift = np.exp(params[3]), params[4]
+    value, g = loo_probit(y, y - a / d, 1.0 / d, alpha, alpha * shift, class_weights(y, gp.class_weight))
+    grad = []
+    for dKj in (dK[:, :, 0], dK[:, :, 1], np.diag(nvec)):
+        Z = K_inv @ dKj
+        zk = np.diag(Z @ K_inv)
+        grad.append(g["mu"] @ ((Z @ a) / d - a * zk / d**2) + g["var"] @ (zk / d**2))
+    return value, np.array(grad)
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=["se-exact", "matern-quadrature"])
+def test_loo_gradient_equals_the_direct_formulas_on_a_larger_mixed_sample(kernel):
+    # Boxes and points, more inputs than one block of the triangle mirror.
+    rng = np.random.default_rng(13)
+    lower = rng.uniform(0, 8, (220, 2))
+    upper = lower + rng.uniform(0.1, 0.8, (220, 2))
+    upper[::9] = lower[::9]
+    X = Supports.from_boxes(lower, upper, rng.integers(1, 30, 220).astype(float))
+    y = np.where(np.sin(lower[:, 0]) + 0.3 * rng.normal(size=220) > 0.2, 1.0, -1.0)
+    gp = SupportGP(kernel, noise_model="per_count")
+    params = np.array([np.log(1.3), np.log(0.7), np.log(0.05), np.log(2.0), 0.0])
+    value, grad = gp.loo_objective(X, y, params, eval_gradient=True)
+    ref_value, ref_grad = _loo_by_the_direct_formulas(gp, X, y, params)
+    assert value == pytest.approx(ref_value, rel=1e-10)
+    np.testing.assert_allclose(grad[:3], ref_grad, rtol=1e-7, atol=1e-9 * np.abs(ref_grad).max())
+    fd = _fd(lambda p: gp.loo_objective(X, y, p), params, eps=1e-5)
+    np.testing.assert_allclose(grad, fd, rtol=1e-4, atol=1e-5 * np.abs(grad).max())
+
+
+@pytest.mark.parametrize("objective", ["loo", "lml"])
+def test_objectives_fall_back_to_jitter_when_plain_factorisation_fails(objective):
+    # Three copies of one box and a noise far below round-off: K + noise is singular, so the
+    # in-place factorisation fails and robust_cholesky's jitter takes over.
+    X = Supports.from_boxes(np.zeros((3, 2)), np.ones((3, 2)))
+    y = np.array([1.0, -1.0, 1.0])
+    gp = SupportGP(AreaKernel(SquaredExponential(1.0, 1.0), "exact"))
+    params = np.array([0.0, 0.0, np.log(1e-30), 0.0, 0.0])
+    K = gp.kernel(X) + 1e-30 * np.eye(3)
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(K)
+    L, jitter = robust_cholesky(K)
+    assert jitter > 0
+    K_inv = np.linalg.inv(L @ L.T)
+    if objective == "loo":
+        value, grad = gp.loo_objective(X, y, params, eval_gradient=True)
+        a, d = K_inv @ y, np.diag(K_inv)
+        expected = loo_probit(y, y - a / d, 1.0 / d, 1.0, 0.0, class_weights(y, gp.class_weight))[0]
+    else:
+        value, grad = gp.log_marginal_likelihood(X, y, params[:3], eval_gradient=True)
+        expected = -0.5 * y @ K_inv @ y - np.log(np.diag(L)).sum() - 1.5 * np.log(2 * np.pi)
+    assert value == pytest.approx(expected, rel=1e-6)
+    assert np.all(np.isfinite(grad))

@@ -194,3 +194,50 @@ def test_cutoff_is_where_the_kernel_falls_below_the_tolerance(kernel):
     r = kernel.cutoff(1e-9)
     assert kernel.values(np.array(r * r))[0] <= 1e-9 * kernel.variance
     assert kernel.values(np.array((0.99 * r) ** 2))[0] > 1e-9 * kernel.variance
+
+
+@pytest.mark.parametrize("kernel", AREA_KERNELS, ids=repr)
+@pytest.mark.parametrize("dim", [2, 3])
+def test_gram_and_length_scale_gradient_is_the_full_gradient_without_the_variance(kernel, dim):
+    X = _cells(dim=dim)
+    K, dL = kernel.gram_and_length_scale_gradient(X)
+    # Exactly symmetric (the objectives factorise it in place, reading one triangle).
+    np.testing.assert_array_equal(K, K.T)
+    np.testing.assert_array_equal(dL, dL.T)
+    assert K.flags.c_contiguous and dL.flags.c_contiguous
+    K_full, dK_full = kernel(X, eval_gradient=True)
+    np.testing.assert_array_equal(K, K_full)
+    np.testing.assert_array_equal(dL, dK_full[:, :, 1])
+    np.testing.assert_array_equal(K, dK_full[:, :, 0])
+    # Against finite differences in log length scale.
+    eps = 1e-6
+    up, down = kernel.theta.copy(), kernel.theta.copy()
+    up[1] += eps
+    down[1] -= eps
+    fd = (kernel.clone_with_theta(up)(X) - kernel.clone_with_theta(down)(X)) / (2 * eps)
+    np.testing.assert_allclose(dL, fd, rtol=1e-5, atol=1e-8)
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+def test_se_box_gram_equals_the_box_average_symmetrised(dim):
+    from gpomap.kernels.closed_form import se_box_average, se_box_gram
+
+    rng = np.random.default_rng(dim)
+    # Boxes on a coarse grid share their sides (as cells from the tree do), some of zero width.
+    lower = rng.integers(0, 8, (60, dim)) * 0.25
+    upper = lower + rng.integers(0, 4, (60, dim)) * 0.25
+    K0, dK0 = se_box_average(lower, upper, lower, upper, 1.7, 0.6, eval_gradient=True)
+    assert dK0 is not None
+    K, dL = se_box_gram(lower, upper, 1.7, 0.6, eval_gradient=True)
+    assert dL is not None
+    np.testing.assert_allclose(K, 0.5 * (K0 + K0.T), rtol=1e-14, atol=1e-16)
+    np.testing.assert_allclose(dL, 0.5 * (dK0[:, :, 1] + dK0[:, :, 1].T), rtol=1e-13, atol=1e-16)
+    np.testing.assert_array_equal(K, K.T)
+    np.testing.assert_array_equal(dL, dL.T)
+    # In row blocks (bounded memory): the same numbers.
+    Kb, dLb = se_box_gram(lower, upper, 1.7, 0.6, eval_gradient=True, max_block=7 * 60)
+    np.testing.assert_array_equal(Kb, K)
+    np.testing.assert_array_equal(dLb, dL)
+    Kv, none = se_box_gram(lower, upper, 1.7, 0.6)
+    assert none is None
+    np.testing.assert_array_equal(Kv, K)

@@ -104,3 +104,27 @@ def test_unit_profile_is_the_kernel_over_its_variance(kernel):
         np.testing.assert_allclose(kernel.variance * out, K, rtol=1e-13)
         if g is not None:
             np.testing.assert_allclose(kernel.variance * g, dK, rtol=1e-13, atol=1e-300)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: type(k).__name__)
+@pytest.mark.parametrize("block", [5, 100, 2000, 1 << 16])
+def test_length_scale_gram_is_exactly_symmetric_and_the_full_gradients_part(dim, kernel, block):
+    from gpomap.kernels.tensor import tensor_gram_length_scale
+
+    rng = np.random.default_rng(dim)
+    A = concatenate([_boxes(rng, 31, dim), Supports.from_points(rng.uniform(0, 5, (9, dim)))])
+    K, dL = tensor_gram_length_scale(kernel, A, None, 2, eval_gradient=True, block=block)
+    assert dL is not None
+    # The diagonal blocks' pairs are computed both ways round; their mean makes K symmetric.
+    np.testing.assert_array_equal(K, K.T)
+    np.testing.assert_array_equal(dL, dL.T)
+    S0, dS0 = weighted_gram(kernel, quadrature_nodes(A, 2), quadrature_nodes(A, 2), eval_gradient=True)
+    assert dS0 is not None
+    np.testing.assert_allclose(K, S0, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(dL, dS0[:, :, 1], rtol=0, atol=1e-14)
+    K1, dK1 = tensor_gram(kernel, A, None, 2, eval_gradient=True, block=block)
+    assert dK1 is not None
+    np.testing.assert_array_equal(K1, K)
+    np.testing.assert_array_equal(dK1[:, :, 0], K)
+    np.testing.assert_array_equal(dK1[:, :, 1], dL)

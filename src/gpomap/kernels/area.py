@@ -21,10 +21,10 @@ from typing import Literal, overload
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.kernels.closed_form import se_box_average, se_box_self_average
+from gpomap.kernels.closed_form import se_box_average, se_box_gram, se_box_self_average
 from gpomap.kernels.nodes import NodeSet, member_nodes, quadrature_nodes, weighted_gram, weighted_self
 from gpomap.kernels.point import PointKernel, SquaredExponential, make_point_kernel
-from gpomap.kernels.tensor import tensor_gram, tensor_self
+from gpomap.kernels.tensor import tensor_gram, tensor_gram_length_scale, tensor_self
 from gpomap.supports import Supports
 
 AREA_METHODS = ("exact", "quadrature", "summed")
@@ -140,28 +140,68 @@ class AreaKernel:
         K : ndarray of shape (n, m)
         dK : ndarray of shape (n, m, 2), only with `eval_gradient`
         """
-        same = B is None
         if B is None:
-            B = A
+            # One set against itself: exactly symmetric, with the length-scale derivative alone.
+            K, dL = self._gram(A, eval_gradient)
+            if dL is None:
+                return K
+            # d/dlog(variance) of a variance-scaled kernel is the kernel itself.
+            return K, np.stack([K, dL], axis=-1)
         if self.method == "exact":
             K, dK = self._exact(A, B, eval_gradient)
         elif self.method == "quadrature" and A.dim in TENSOR_DIMS:
-            K, dK = tensor_gram(self.base, A, None if same else B, self.quadrature_order, eval_gradient)
+            K, dK = tensor_gram(self.base, A, B, self.quadrature_order, eval_gradient)
         else:
-            na = self.nodes(A)
-            nb = na if same else self.nodes(B)
-            K, dK = weighted_gram(self.base, na, nb, eval_gradient, self.max_block)
-        if same:
-            # Symmetric by construction; remove the rounding asymmetry.
-            K = 0.5 * (K + K.T)
-            if eval_gradient:
-                dK = 0.5 * (dK + dK.transpose(1, 0, 2))
+            K, dK = weighted_gram(self.base, self.nodes(A), self.nodes(B), eval_gradient, self.max_block)
         if self.normalisation == "sum":
             scale = np.outer(A.counts, B.counts)
             K = K * scale
             if eval_gradient:
                 dK = dK * scale[:, :, None]
         return (K, dK) if eval_gradient else K
+
+    def gram_and_length_scale_gradient(self, A: Supports) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The Gram matrix of `A` and its derivative with respect to log length scale.
+
+        The same numbers as ``self(A, eval_gradient=True)``, without the derivative with respect
+        to log variance (it is `K` itself): two contiguous arrays instead of one of shape
+        (n, n, 2), whose strided slices make every product with them slow.
+
+        Parameters
+        ----------
+        A : Supports
+            n inputs.
+
+        Returns
+        -------
+        K : ndarray of shape (n, n)
+            Exactly symmetric.
+        dK_dlog_length_scale : ndarray of shape (n, n)
+            Exactly symmetric.
+        """
+        K, dL = self._gram(A, True)
+        assert dL is not None  # asked for
+        return K, dL
+
+    def _gram(self, A: Supports, eval_gradient: bool) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """K(A, A), exactly symmetric, and (with `eval_gradient`) dK / dlog(length_scale), both (n, n)."""
+        dL: NDArray[np.float64] | None
+        if self.method == "exact":
+            K, dL = se_box_gram(A.lower, A.upper, self.base.variance, self.base.length_scale, eval_gradient, self.max_block)
+        elif self.method == "quadrature" and A.dim in TENSOR_DIMS:
+            K, dL = tensor_gram_length_scale(self.base, A, None, self.quadrature_order, eval_gradient)
+        else:
+            na = self.nodes(A)
+            K, dK = weighted_gram(self.base, na, na, eval_gradient, self.max_block)
+            # Symmetric by construction; remove the rounding asymmetry.
+            K = 0.5 * (K + K.T)
+            dL = None if dK is None else 0.5 * (dK[:, :, 1] + dK[:, :, 1].T)
+        if self.normalisation == "sum":
+            scale = np.outer(A.counts, A.counts)  # exactly symmetric: c_i c_j is c_j c_i
+            K *= scale
+            if dL is not None:
+                dL *= scale
+        return K, dL
 
     def _exact(self, A: Supports, B: Supports, eval_gradient: bool):
         n = len(A)

@@ -181,6 +181,22 @@ def _put(
         out[np.ix_(rows, cols)] = value
 
 
+def _symmetrise_leading(value: NDArray[np.float64]) -> None:
+    """Replace the leading square of a block on the diagonal of K(A, A) by its symmetric part, in place.
+
+    Its pairs (i, j) and (j, i) were both computed, summed over the node pairs in transposed
+    order; their mean is what symmetrising the whole matrix would give, and with the mirrored
+    blocks off the diagonal the Gram matrix then comes out exactly symmetric.
+
+    Parameters
+    ----------
+    value : ndarray of shape (r, c), r <= c
+    """
+    r = min(value.shape)
+    square = value[:, :r]
+    square[...] = 0.5 * (square + square.T)
+
+
 def _group_gram(
     kernel: PointKernel,
     a: TensorRule,
@@ -230,12 +246,16 @@ def _group_gram(
             else:
                 kernel.unit_profile_into(d2, kp, dkp, work.view(work.work, shape))
             value = (w @ kp.reshape(pairs, -1)).reshape(r1 - r0, c1 - c0)
+            if symmetric and c0 == r0:
+                _symmetrise_leading(value)
             _put(K, rr, cc, value)
             if mirror:
                 _put(K, cc, rr, value.T)
             if dL is not None:
                 assert dkp is not None  # asked for with dL
                 grad = (w @ dkp.reshape(pairs, -1)).reshape(r1 - r0, c1 - c0)
+                if symmetric and c0 == r0:
+                    _symmetrise_leading(grad)
                 _put(dL, rr, cc, grad)
                 if mirror:
                     _put(dL, cc, rr, grad.T)
@@ -271,21 +291,50 @@ def tensor_gram(
     dK : ndarray of shape (n, m, 2) or None
         d/dlog variance (K itself) and d/dlog length scale.
     """
+    K, dL = tensor_gram_length_scale(kernel, A, B, order, eval_gradient, block)
+    if dL is None:
+        return K, None
+    # d/dlog(variance) of a variance-scaled kernel is the kernel itself.
+    return K, np.stack([K, dL], axis=-1)
+
+
+def tensor_gram_length_scale(
+    kernel: PointKernel,
+    A: Supports,
+    B: Supports | None = None,
+    order: int = 2,
+    eval_gradient: bool = False,
+    block: int = BLOCK_PAIRS,
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """:func:`tensor_gram` with only the length-scale derivative, as its own contiguous array.
+
+    The gradient with respect to log variance is `K` itself; leaving it out saves an (n, m, 2)
+    array and the strided passes over it. For ``B=None`` both results are exactly symmetric.
+
+    Parameters
+    ----------
+    kernel, A, B, order, block
+        As for :func:`tensor_gram`.
+    eval_gradient : bool
+        Also return dK / dlog(length_scale).
+
+    Returns
+    -------
+    K : ndarray of shape (n, m)
+    dK_dlog_length_scale : ndarray of shape (n, m) or None
+    """
     symmetric = B is None
     ia, ra = tensor_rules(A, order)
     ib, rb = (ia, ra) if B is None else tensor_rules(B, order)
     n, m = len(A), len(A) if B is None else len(B)
     K = np.empty((n, m))
-    dK = np.empty((n, m, 2)) if eval_gradient else None
-    dL = None if dK is None else dK[:, :, 1]  # a view: the length-scale derivatives go straight in
+    dL = np.empty((n, m)) if eval_gradient else None
     for ga, (rows, a) in enumerate(zip(ia, ra, strict=True)):
         for gb, (cols, b) in enumerate(zip(ib, rb, strict=True)):
             if symmetric and gb < ga:
                 continue  # the transpose of a block done
             _group_gram(kernel, a, b, rows, cols, K, dL, symmetric and ga == gb, symmetric, block)
-    if dK is not None:
-        dK[:, :, 0] = K  # d/dlog(variance) of a variance-scaled kernel is the kernel itself
-    return K, dK
+    return K, dL
 
 
 def tensor_self(kernel: PointKernel, A: Supports, order: int = 2) -> NDArray[np.float64]:
