@@ -32,11 +32,15 @@ def _line_crossings(u0: NDArray[np.float64], u1: NDArray[np.float64]) -> tuple[N
     counts = np.maximum(np.ceil(hi) - first, 0).astype(np.intp)  # integers strictly inside
     seg = np.repeat(np.arange(u0.size, dtype=np.intp), counts)
     starts = np.cumsum(counts) - counts
-    j = np.arange(seg.size, dtype=np.intp) - np.repeat(starts, counts)
-    # Walk the lines in the direction of travel so t increases.
-    down = (u1 < u0)[seg]
-    k = np.where(down, first[seg] + (counts[seg] - 1 - j), first[seg] + j)
-    t = (k - u0[seg]) / (u1[seg] - u0[seg])
+    # Walk the lines in the direction of travel so t increases: the j-th crossing of a segment is
+    # line first + j going up, first + counts - 1 - j going down. The lines are integers, exact in
+    # floating point whatever the order of the sums, so per-segment offsets repeated (sequential
+    # copies) give them without gathering per crossing.
+    down = u1 < u0
+    sign = np.where(down, -1.0, 1.0)
+    offset = np.where(down, first + counts - 1, first) - sign * starts
+    k = np.repeat(offset, counts) + np.repeat(sign, counts) * np.arange(seg.size, dtype=np.float64)
+    t = (k - np.repeat(u0, counts)) / np.repeat(u1 - u0, counts)
     return seg, t
 
 
@@ -47,8 +51,8 @@ def traverse(grid: AnyGrid, starts: ArrayLike, ends: ArrayLike) -> tuple[NDArray
     to whichever grid line (plane in 3-D), x, y or z, comes next along the ray; the cells it
     visits are the intervals between the segment's grid-line crossings taken in increasing order.
     We list each segment's crossings per axis (each already in travel order), merge the lists
-    exactly, one axis after another (no sort: a merge position is an index plus a count from
-    ``searchsorted``), and take the cell holding the midpoint of each interval. Where a segment
+    exactly (one stable sort of their concatenation, which finds the sorted runs and merges them
+    in linear time), and take the cell holding the midpoint of each interval. Where a segment
     passes exactly through a grid corner (or edge) the interval between the crossings has zero
     length and is dropped, so the diagonal neighbour is visited and the side neighbours are not.
 
@@ -87,48 +91,38 @@ def traverse(grid: AnyGrid, starts: ArrayLike, ends: ArrayLike) -> tuple[NDArray
     return tuple(np.concatenate([part[j] for part in out]) for j in range(d + 1))
 
 
-def _merge(
-    seg_a: NDArray[np.intp], t_a: NDArray[np.float64], seg_b: NDArray[np.intp], t_b: NDArray[np.float64]
-) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-    """Two crossing lists, each sorted by (segment, t), merged into one (ties: `a` first)."""
-    # Keys 4 seg + 2 t stay inside a segment's own range [4 seg, 4 seg + 2] whatever the
-    # rounding, and both key arrays are sorted, so the positions below are an exact merge.
-    ka, kb = 4.0 * seg_a + 2.0 * t_a, 4.0 * seg_b + 2.0 * t_b
-    pos_a = np.arange(ka.size) + np.searchsorted(kb, ka, side="left")
-    pos_b = np.arange(kb.size) + np.searchsorted(ka, kb, side="right")
-    seg = np.empty(ka.size + kb.size, dtype=np.intp)
-    t = np.empty(ka.size + kb.size)
-    seg[pos_a], seg[pos_b] = seg_a, seg_b
-    t[pos_a], t[pos_b] = t_a, t_b
-    return seg, t
-
-
 def _traverse_chunk(p0: NDArray[np.float64], p1: NDArray[np.float64], shape: tuple[int, ...]) -> tuple[NDArray[np.intp], ...]:
     b, d = p0.shape
-    seg_c, t_c = _line_crossings(p0[:, 0], p1[:, 0])
-    for k in range(1, d):
-        seg_c, t_c = _merge(seg_c, t_c, *_line_crossings(p0[:, k], p1[:, k]))
-    n_cross = np.bincount(seg_c, minlength=b)
-    # Full per-segment sequences [0, crossings..., 1]: each segment gains two entries.
-    first = np.cumsum(n_cross + 2) - (n_cross + 2)
-    t = np.empty(seg_c.size + 2 * b)
-    t[first] = 0.0
-    t[first + n_cross + 1] = 1.0
-    t[np.arange(seg_c.size) + 2 * seg_c + 1] = t_c
-    seg = np.repeat(np.arange(b, dtype=np.intp), n_cross + 2)
-    # Intervals between consecutive entries of the same segment.
-    same = seg[1:] == seg[:-1]
-    dt = t[1:] - t[:-1]
+    # Every segment's entries [0, crossings..., 1] in travel order: the start, each axis's
+    # crossings and the end, each list sorted by the key 4 seg + 2 t (a segment's keys stay in
+    # its own range [4 seg, 4 seg + 2] whatever the rounding), merged by one stable sort of their
+    # concatenation (timsort finds the sorted runs and merges them in linear time; ties keep the
+    # lists' order: the start first, then the axes in order, the end last).
+    beams = np.arange(b, dtype=np.intp)
+    segs, ts = [beams], [np.zeros(b)]
+    for k in range(d):
+        seg_k, t_k = _line_crossings(p0[:, k], p1[:, k])
+        segs.append(seg_k)
+        ts.append(t_k)
+    segs.append(beams)
+    ts.append(np.ones(b))
+    seg, t = np.concatenate(segs), np.concatenate(ts)
+    order = np.argsort(4.0 * seg + 2.0 * t, kind="stable")
+    seg, t = seg[order], t[order]
+    # Intervals between consecutive entries of the same segment. Drop zero-length intervals (two
+    # lines crossed at once, at a grid corner), but keep the single [0, 1] interval of a
+    # zero-length segment so it still visits its own cell.
     length = np.sqrt(((p1 - p0) ** 2).sum(axis=1))[seg[:-1]]
-    # Drop zero-length intervals (two lines crossed at once, at a grid corner), but keep the
-    # single [0, 1] interval of a zero-length segment so it still visits its own cell.
-    keep = same & ((dt * length > 1e-9) | (length == 0))
+    keep = (seg[1:] == seg[:-1]) & (((t[1:] - t[:-1]) * length > 1e-9) | (length == 0))
     s = seg[:-1][keep]
     tm = 0.5 * (t[:-1][keep] + t[1:][keep])
-    mid = p0[s] + tm[:, None] * (p1[s] - p0[s])
+    # The cell holding each interval's midpoint, one coordinate at a time (contiguous columns).
     # Array order is coordinate order reversed (x last).
-    idx = [np.floor(mid[:, k]).astype(np.intp) for k in reversed(range(d))]
+    start, step = np.ascontiguousarray(p0.T), np.ascontiguousarray((p1 - p0).T)
+    idx = []
     inside = np.ones(s.size, dtype=bool)
-    for i, n in zip(idx, shape, strict=True):
-        inside &= (i >= 0) & (i < n)
+    for k, n in zip(reversed(range(d)), shape, strict=True):
+        i = np.floor(start[k][s] + tm * step[k][s]).astype(np.intp)
+        inside &= i.view(np.uintp) < n  # negative indices wrap to huge ones
+        idx.append(i)
     return (s[inside], *(i[inside] for i in idx))
