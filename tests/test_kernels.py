@@ -241,3 +241,28 @@ def test_se_box_gram_equals_the_box_average_symmetrised(dim):
     Kv, none = se_box_gram(lower, upper, 1.7, 0.6)
     assert none is None
     np.testing.assert_array_equal(Kv, K)
+
+
+@pytest.mark.parametrize("scale", [0.05, 0.6, 5.0])
+def test_interval_gram_is_the_interval_average_symmetrised(scale):
+    from gpomap.kernels.closed_form import distinct_intervals, interval_average, interval_gram
+
+    rng = np.random.default_rng(14)
+    # Shared ends (cells from a tree), points among the intervals, and intervals narrower than
+    # the point width at the small length scale.
+    lo = rng.integers(0, 12, 80) * 0.125
+    hi = lo + rng.integers(0, 5, 80) * 0.125
+    hi[::11] = lo[::11] + 1e-5
+    a, b, inverse = distinct_intervals(lo, hi)
+    np.testing.assert_array_equal(np.column_stack([a, b])[inverse], np.column_stack([lo, hi]))
+    expected, _ = np.unique(np.column_stack([lo, hi]), axis=0, return_inverse=True)
+    np.testing.assert_array_equal(np.column_stack([a, b]), expected)
+    F0, dF0 = interval_average(a, b, a, b, scale, eval_gradient=True)
+    assert dF0 is not None
+    F, dF = interval_gram(a, b, scale, eval_gradient=True)
+    # The same corner differences and formulas: the same numbers, to the last bit.
+    np.testing.assert_array_equal(F, 0.5 * (F0 + F0.T))
+    np.testing.assert_array_equal(dF, 0.5 * (dF0 + dF0.T))
+    F1, none = interval_gram(a, b, scale)
+    assert none is None
+    np.testing.assert_array_equal(F1, F)
