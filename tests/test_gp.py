@@ -181,13 +181,20 @@ def _spd(n, seed):
 
 
 def test_in_place_inverse_is_the_cholesky_inverse():
+    from scipy.linalg import lapack
+
     from gpomap.gp import FILL_BLOCK, _inverse_in_place, cholesky_inverse
 
     # Several blocks of the triangle mirror, the last one partial.
     n = 2 * FILL_BLOCK + 37
     K = _spd(n, 9)
     L = np.linalg.cholesky(K)
-    expected = cholesky_inverse(L)
+    # LAPACK's lower triangle, mirrored.
+    lapack_inverse = lapack.dpotri(L, lower=1)[0]
+    expected = np.tril(lapack_inverse) + np.tril(lapack_inverse, -1).T
+    np.testing.assert_array_equal(cholesky_inverse(L), expected)
+    # Garbage above the diagonal of the factor is never read.
+    np.testing.assert_array_equal(cholesky_inverse(L + np.triu(np.ones((n, n)), 1)), expected)
     inv = _inverse_in_place(np.asfortranarray(L))
     np.testing.assert_array_equal(inv, expected)
     np.testing.assert_allclose(inv, np.linalg.inv(K), rtol=1e-9, atol=1e-12)
