@@ -149,6 +149,55 @@ class RayEvidence:
             lo = hi
         return hits.reshape(grid.shape), misses.reshape(grid.shape)
 
+    def seen(self, grid: AnyGrid) -> NDArray[np.bool_]:
+        """Whether any beam crossed or ended a hit in each cell of `grid`: ``hits + misses > 0``
+        of :meth:`counts`, without sorting out which scan counted what. Shape grid.shape."""
+        mark = np.zeros(grid_size(grid), dtype=bool)
+        if self.scan.size == 0:
+            return mark.reshape(grid.shape)
+        end_cell, inside = flat_index(grid, self.ends)
+        mark[end_cell[inside & self.hit]] = True
+        for first, last in _batches(grid, self.starts, self.ends):
+            _, *idx = traverse(grid, self.starts[first:last], self.ends[first:last])
+            mark[np.ravel_multi_index(tuple(idx), grid.shape)] = True
+        return mark.reshape(grid.shape)
+
+    def scan_counts_at(self, grid: AnyGrid, scan: int, cells: NDArray[np.intp]) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+        """What one scan alone counts at some cells: ``counts(grid, scans=[scan])`` read at `cells`.
+
+        Without arrays of the grid's size: the scan's beams are traversed in batches and the
+        cells asked for are looked up among the cells they crossed and ended in. A leave-one-scan-
+        out calibration asks this of each held-out scan at its own points, on a lattice of
+        millions of cells.
+
+        Parameters
+        ----------
+        grid : GridSpec or VoxelSpec
+        scan : int
+            Index of the scan.
+        cells : ndarray of int
+            Flat (row-major) indices of cells of `grid`.
+
+        Returns
+        -------
+        hits, misses : ndarray of int32, shape cells.shape
+            1 where the scan ended a beam in the cell (a hit), or crossed it without ending a beam
+            there (a miss); else 0.
+        """
+        cells = np.asarray(cells, dtype=np.intp)
+        lo, hi = np.searchsorted(self.scan, [scan, scan + 1])
+        hit = np.zeros(cells.shape, dtype=bool)
+        crossed = np.zeros(cells.shape, dtype=bool)
+        if hi > lo:
+            starts, ends = self.starts[lo:hi], self.ends[lo:hi]
+            end_cell, inside = flat_index(grid, ends)
+            ended = _unique(end_cell[inside & self.hit[lo:hi]].astype(np.int64))
+            hit = np.isin(cells, ended)
+            for first, last in _batches(grid, starts, ends):
+                _, *idx = traverse(grid, starts[first:last], ends[first:last])
+                crossed |= np.isin(cells, _unique(np.ravel_multi_index(tuple(idx), grid.shape).astype(np.int64)))
+        return hit.astype(np.int32), (crossed & ~hit).astype(np.int32)
+
     def _accumulate(self, grid: AnyGrid, beams: NDArray[np.intp], hits: NDArray[np.int32], misses: NDArray[np.int32]) -> None:
         ncell = grid_size(grid)
         b, *idx = traverse(grid, self.starts[beams], self.ends[beams])
@@ -161,6 +210,18 @@ class RayEvidence:
         miss_keys = crossed[~np.isin(crossed, hit_keys, assume_unique=True)]
         hits += np.bincount(hit_keys % ncell, minlength=ncell).astype(np.int32)
         misses += np.bincount(miss_keys % ncell, minlength=ncell).astype(np.int32)
+
+
+def _batches(grid: AnyGrid, starts: NDArray[np.float64], ends: NDArray[np.float64]) -> list[tuple[int, int]]:
+    """Consecutive ranges [first, last) of beams whose traversals stay under the entry budget (at least one beam each)."""
+    cost = np.cumsum(np.abs(np.floor(ends / grid.resolution) - np.floor(starts / grid.resolution)).sum(axis=1) + 2)
+    out, first = [], 0
+    while first < cost.size:
+        base = cost[first - 1] if first > 0 else 0.0
+        last = max(first + 1, int(np.searchsorted(cost, base + _ENTRIES_PER_BATCH, side="right")))
+        out.append((first, last))
+        first = last
+    return out
 
 
 def _unique(keys: NDArray[np.int64]) -> NDArray[np.int64]:

@@ -227,7 +227,6 @@ def _unseen_points(
     # Where no kept beam went: no hit and no miss on the evaluation's reference lattice.
     rays = RayEvidence.from_scans(kept_scans, no_return_cap)
     grid = lattice_grid(tuple(bounds_extent(pts.min(axis=0), pts.max(axis=0))), UNSEEN_RESOLUTION[pts.shape[1]])
-    hits, misses = rays.counts(grid)
     cell, ok = flat_index(grid, pts)
-    seen = ok & ((hits.reshape(-1)[cell] + misses.reshape(-1)[cell]) > 0)
+    seen = ok & rays.seen(grid).reshape(-1)[cell]
     return pts[~seen], occ[~seen]

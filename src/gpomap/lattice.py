@@ -103,6 +103,12 @@ def coarse(grid: AnyGrid, factor: int) -> AnyGrid:
 def interpolate(values: ArrayLike, source: AnyGrid, target: AnyGrid) -> NDArray[np.float64]:
     """Multilinear interpolation of per-cell `values` on `source` to the cell centres of `target`.
 
+    Both are regular lattices, so the interpolation is separable: linear along x (every source
+    row to the target's x centres), then along y, then z; each pass takes two neighbours and two
+    weights per output value (a point-by-point interpolator finds 2^d corners and their weights
+    for every target cell: 0.6 s for 913,000 voxels, against tens of milliseconds here). The
+    result equals the point-by-point multilinear interpolation up to round-off.
+
     Parameters
     ----------
     values : array_like of shape source.shape
@@ -111,18 +117,49 @@ def interpolate(values: ArrayLike, source: AnyGrid, target: AnyGrid) -> NDArray[
     Returns
     -------
     ndarray of shape target.shape
-    """
-    from scipy.interpolate import RegularGridInterpolator
 
+    Raises
+    ------
+    ValueError
+        A target centre lies outside the span of the source's centres (no extrapolation).
+    """
+    v = np.asarray(values, dtype=float).reshape(source.shape)
     if source == target:
-        return np.asarray(values, dtype=float).reshape(target.shape)
+        return v
     d = grid_dim(source)
-    # Array order (x last) on both sides, so the result needs no transposing.
-    interp = RegularGridInterpolator(
-        tuple(_axis_centres(source, k) for k in reversed(range(d))), np.asarray(values, dtype=float).reshape(source.shape)
-    )
-    mesh = np.meshgrid(*(_axis_centres(target, k) for k in reversed(range(d))), indexing="ij")
-    return interp(np.column_stack([m.ravel() for m in mesh])).reshape(target.shape)
+    for k in range(d):
+        lo, hi, w = _axis_weights(_axis_centres(source, k), _axis_centres(target, k))
+        axis = d - 1 - k  # array order is coordinate order reversed (x last)
+        shape = [1] * d
+        shape[axis] = w.size
+        w = w.reshape(shape)
+        a, b = np.take(v, lo, axis=axis), np.take(v, hi, axis=axis)
+        v = a + w * (b - a)
+    return v
+
+
+def _axis_weights(
+    source: NDArray[np.float64], target: NDArray[np.float64]
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+    """For each target coordinate, the source interval holding it (lower and upper index) and the
+    weight of its upper end.
+
+    `source` is evenly spaced and increasing; a single source value is both ends, weight 0 (the
+    target must then be that value).
+    """
+    n = source.size
+    if n == 1:
+        if not np.allclose(target, source[0]):
+            raise ValueError("target centres lie outside the source lattice's centres")
+        zero = np.zeros(target.size, dtype=np.intp)
+        return zero, zero, np.zeros(target.size)
+    step = (source[-1] - source[0]) / (n - 1)
+    u = (target - source[0]) / step
+    tol = 1e-9 * max(1.0, float(n))
+    if u.size and (u.min() < -tol or u.max() > n - 1 + tol):
+        raise ValueError("target centres lie outside the source lattice's centres (no extrapolation)")
+    lo = np.clip(np.floor(u), 0, n - 2).astype(np.intp)
+    return lo, lo + 1, np.clip(u - lo, 0.0, 1.0)
 
 
 def grid_extent(grid: AnyGrid) -> tuple[float, ...]:
