@@ -26,7 +26,10 @@ resolution (0.1 m), looked up at each test point. ``--set KEY=VALUE`` changes a 
 Metrics (:func:`gpomap.evaluation.score`): ROC AUC, boundary AUC (test points within 0.5 m of a
 held-out hit), log loss, ECE; fit and predict wall times (for the voxel grid, predict is the
 grid's prediction) and the peak resident memory of the process that ran the method (each method
-runs in a forked child, so the number is its own, plus the data read before the fork).
+runs in a forked child, so the number is its own, plus the data read before the fork). The JSON
+rows of gpomap also hold the fit's stage times (``fit_stages``: the model's ``timings_``).
+``--set tiles=true --set workers=1`` builds the map as tiles of local GPs in this process
+(:class:`~gpomap.tiles.TiledGPOM`) whatever its number of cells.
 
 Run from the repository's root::
 
@@ -162,6 +165,9 @@ def _fit_predict(
         row["error"] = f"{type(exc).__name__}: {str(exc)[:120]}"
         return [row]
     row.update(fit_s=t1 - t0, predict_s=t2 - t1)
+    stages = getattr(model, "timings_", None)  # gpomap's stage times of the fit, seconds
+    if isinstance(stages, dict):
+        row["fit_stages"] = {k: round(float(v), 3) for k, v in stages.items()}
     rows = [_scored(row, labels, p, boundary)]
     if grid_resolution is not None:
         grid_row: dict[str, Any] = {"dataset": dataset, "method": f"{name}, voxel grid {grid_resolution:g} m"}

@@ -212,7 +212,7 @@ def fit_calibration(
     occ, h, m = occ[keep], h[keep], m[keep]
     # A point no other scan counted (no hit, no miss) has p = p_gp whatever the weights: a constant
     # of the loss, so the GP is not predicted there (44 % of la3dm sim_structured's 20,000 points,
-    # 54 % of sim_unstructured's). The loss below is the whole sample's mean less that constant:
+    # 78 % of sim_unstructured's). The loss below is the whole sample's mean less that constant:
     # the same minimiser, the same optimiser steps.
     counted = (h > 0) | (m > 0)
     n_points = int(occ.size)
