@@ -44,7 +44,6 @@ def run_main(argv, capsys):
         ("--no-return-cap", "-1"),
         ("--free-clearance", "inf"),
         ("--time-offset", "nan"),
-        ("--max-cells", "0"),
         ("--threads", "0"),
     ],
 )
@@ -59,14 +58,14 @@ def test_bad_numbers_are_usage_errors_before_anything_is_read(tmp_path, capsys, 
 def test_threads_reach_the_tile_workers():
     args = cli.build_parser().parse_args(["map", "x.log", "-o", "out", "--threads", "3", "--workers", "2"])
     cli._resolve_library_defaults(args)
-    model = cli._tiled_model(args)
+    model = cli._model(args)
     assert (model.blas_threads, model.n_workers) == (3, 2)
     from gpomap.apps.map3d import tile_options
 
     assert tile_options(args)["blas_threads"] == 3
     args = cli.build_parser().parse_args(["map", "x.log", "-o", "out"])
     cli._resolve_library_defaults(args)
-    assert cli._tiled_model(args).blas_threads is None  # the cores divided by the workers
+    assert cli._model(args).blas_threads is None  # the cores divided by the workers
 
 
 def test_number_type_edges():

@@ -63,7 +63,6 @@ VALUES: dict[str, str] = {
     "resolution": "0.3",
     "extent": "0,4,0,3",
     "thresholds": "0.2,0.8",
-    "supersample": "2",
     "memory_limit": "3",
     "max_cells": "1234",
     "tile_size": "6.5",
@@ -96,11 +95,9 @@ COMMAND_OWN: dict[str, str] = {
     "json": "the report's format",
     "demo": "evaluate: the input (the built-in room instead of a file)",
     "paper": "benchmark: which benchmark",
-    "tiles": "map: whether to tile (with --max-cells, decided by _plan_map)",
     "chunk_scans": "map: the incremental loop (_map_in_chunks)",
     "resolution": "the written grid's cell side (model.grid)",
     "extent": "the written grid's region (model.grid)",
-    "supersample": "samples per written cell (model.grid)",
     "pgm_mode": "the written image (write_map_files)",
     "memory_limit": "the memory checks before any work",
     "z_range": "the written voxel map's heights",
@@ -199,13 +196,12 @@ def _handed_to_library(command: str, args: argparse.Namespace, monkeypatch: pyte
         return {
             "config": cli._map_config(args),
             "tiling": cli._tiling_config(args),
-            "single": cli._single_model(args),
-            "tiled": cli._tiled_model(args),
+            "model": cli._model(args),
             "readers": _reader_snapshot(args, monkeypatch),
             "scans": [(s.n_beams, s.time) for s in cli._load_scans(args)],
         }
     if command == "demo":
-        return {"config": cli._map_config(args), "single": cli._single_model(args)}
+        return {"config": cli._map_config(args), "tiling": cli._tiling_config(args), "model": cli._model(args)}
     if command == "info":
         return _reader_snapshot(args, monkeypatch)
     if command == "evaluate":
@@ -229,11 +225,11 @@ def _handed_to_library(command: str, args: argparse.Namespace, monkeypatch: pyte
 
 
 def _evaluated_model(args: argparse.Namespace) -> Any:
-    """The unfitted model ``gpomap evaluate`` scores (one GP for msk: tiling is checked by its arguments)."""
+    """The unfitted model ``gpomap evaluate`` scores."""
     from gpomap.evaluation import make_model
 
     a = cli._evaluate_arguments(args)
-    return make_model(a["method"], a["kernel"], a["seed"], a["resolution"], **cli._method_options(args))
+    return make_model(a["method"], a["kernel"], a["seed"], a["resolution"], a["n_workers"], **cli._method_options(args))
 
 
 def _evaluate_methods() -> list[str]:
@@ -309,14 +305,19 @@ def test_defaults_are_the_configs(command):
 
 def test_library_signatures_take_their_defaults_from_the_config():
     from gpomap.mapping import AreaGPOM
+    from gpomap.settings import MapSettings
     from gpomap.tiles import TiledGPOM
 
+    settings = inspect.signature(MapSettings).parameters
+    assert set(settings) == {f.name for f in dataclasses.fields(MapConfig)}
+    assert {name: p.default for name, p in settings.items()} == MapConfig().kwargs()
     area = inspect.signature(AreaGPOM).parameters
-    assert set(area) == {f.name for f in dataclasses.fields(MapConfig)}
-    assert {name: p.default for name, p in area.items()} == MapConfig().kwargs()
+    assert {name: area[name].default for name in settings} == MapConfig().kwargs()
     tiled = inspect.signature(TiledGPOM).parameters
     for name, value in TilingConfig().kwargs().items():
         assert tiled[name].default == value, name
+        # The estimator runs its tiles in this process unless told (as scikit-learn's n_jobs).
+        assert area[name].default == (1 if name == "n_workers" else value), name
 
 
 def test_importing_the_config_stays_light():
@@ -358,7 +359,7 @@ def test_evaluate_hands_the_model_options_to_each_method(method, option, value, 
         (["--method", "ogm", "--kernel", "se"], "--kernel: not an option of --method ogm"),
         (["--method", "msk", "--resolution", "0.2"], "--resolution is for --method ogm"),
         (["--method", "ogm", "--grid-resolution", "0.1"], "--grid-resolution is for --method msk"),
-        (["--method", "gpom", "--max-cells", "10"], "--max-cells is for --method msk"),
+        (["--method", "gpom", "--workers", "2"], "--workers is for --method msk"),
     ],
 )
 def test_evaluate_refuses_what_a_method_would_ignore(argv, message, capsys, monkeypatch):

@@ -46,7 +46,6 @@ MAP_ARGS = [
     "1.0",
     "--free-step",
     "0.5",
-    "--tiles",
     "--tile-size",
     "4",
     "--resolution",

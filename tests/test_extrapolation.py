@@ -9,6 +9,7 @@ from scipy.special import ndtr
 from gpomap import extrapolation as ex
 from gpomap.mapping import AreaGPOM
 from gpomap.simulate import paper_room_scans
+from gpomap.squash import ProbitSquash
 
 
 def test_holdout_stretches_by_hand():
@@ -139,10 +140,11 @@ def test_a_fitted_map_carries_its_scale_and_stays_unknown_far_away(fitted_room: 
 
 def test_the_scale_applies_only_where_no_beam_went(fitted_room: AreaGPOM) -> None:
     model = fitted_room
-    squash = model.gp_.squash
+    hyp = model.hyperparameters_
+    squash = ProbitSquash(hyp["alpha"], hyp["beta"], hyp["variance_scale"])
     assert squash.variance_scale > 1  # the GP was over-sure on the held-out stretches
     rng = np.random.default_rng(0)
-    lo, hi = model.extent_points_.min(axis=0) - 2.0, model.extent_points_.max(axis=0) + 2.0
+    lo, hi = (corner + shift for corner, shift in zip(model.bounds_, (-2.0, 2.0)))
     pts = rng.uniform(lo, hi, (4000, 2))
     h, m = model.evidence_.counts_at(pts)
     empty = (h == 0) & (m == 0)

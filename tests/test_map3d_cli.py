@@ -73,16 +73,16 @@ def test_default_model_is_the_commands(room_pcds):
     clouds = select_clouds(world3d.lidar_clouds(world3d.ORIGINS[:2], n_rays=100), n_rays=50)
     assert [c.n_points for c in clouds] == [50, 50]
     model, resolution = default_model(clouds)
+    # The command's engine with its options: 3-D cells, tiles of the default size, every core.
     assert resolution == 0.1 and type(model).__name__ == "AreaGPOM"
-    tiled, _ = default_model(clouds, tiles=True, workers=1)
-    assert type(tiled).__name__ == "TiledGPOM"
+    assert (model.max_cell, model.tile_size, model.n_workers) == (1.0, 10.0, None)
+    assert default_model(clouds, workers=1, tile_size=4.0)[0].get_params()["tile_size"] == 4.0
     assert is_cloud_input(room_pcds)
 
 
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        (["--supersample", "2"], "--supersample is for 2-D inputs"),
         (["--chunk-scans", "2"], "--chunk-scans is for 2-D inputs"),
         (["--stride", "2"], "--stride: not an option of pcd-directory input"),
         (["--range", "5:9"], "--range 5:9 selects no scans from"),

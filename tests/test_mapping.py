@@ -81,24 +81,26 @@ def test_grid_and_ternary(fitted):
     summary = fitted.summary()
     assert summary["n_cells"] == fitted.n_inputs_ > 100
     assert set(summary["hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta", "variance_scale"}
-    assert {"observations", "cells", "hyperparameters", "squash", "prediction"} <= set(summary["timings"])
+    assert {"observations", "cells", "hyperparameters", "tile_fits", "prediction"} <= set(summary["timings"])
 
 
 def test_fixed_hyperparameters_are_kept():
     # A third of the room's scans: the hyperparameters are kept whatever the data.
     m = AreaGPOM(kernel="se", length_scale=0.7, noise=0.05, optimise=False).fit(paper_room_scans()[:10])
     assert m.hyperparameters_["length_scale"] == 0.7 and m.hyperparameters_["noise"] == 0.05
-    assert m.gp_.fit_report_ is None
+    assert m.hyper_source_["evaluations"] == 0
 
 
 def test_free_clearance_applies_to_scans_not_to_given_points():
     # A third of the room's scans still have beams grazing walls, whose free points get cleared.
     scans = paper_room_scans()[:10]
     m = AreaGPOM(kernel="se", length_scale=0.7, optimise=False, free_clearance=0.3)
-    from_scans = m.fit(scans).observations_
+    cleared = m.fit(scans).summary()["n_free_points_cleared"]
+    _, occupied = m.training_points()
     given = observations_from_scans(scans, free_step=0.2, no_return_cap=10.0)
-    assert from_scans.n_cleared > 0 and from_scans.n_free + from_scans.n_cleared == given.n_free
-    assert m.fit(given).observations_.n_free == given.n_free
+    assert cleared > 0 and np.sum(~occupied) + cleared == given.n_free
+    _, occupied = m.fit(given).training_points()
+    assert np.sum(~occupied) == given.n_free and m.summary()["n_free_points_cleared"] == 0
 
 
 def test_errors_are_clear():
@@ -138,7 +140,7 @@ def test_3d_map_from_clouds(room3d):
     from tests.world3d import occupied
 
     model, points, labels = room3d
-    assert model.dim_ == 3 and model.cells_.lower.shape[1] == 3 and model.path_.shape == (6, 3)
+    assert model.dim_ == 3 and model.cell_boxes()[0].shape[1] == 3 and model.path_.shape == (6, 3)
     assert model.evidence_ is not None and model.evidence_.lattice.resolution == 0.1
     p, var = model.predict_proba(points, return_var=True)
     assert p.shape == var.shape == (len(points),)

@@ -213,9 +213,9 @@ def _records(path: Path) -> list[dict[str, Any]]:
 # --------------------------------------------------------------------------- the test
 def _batch_auc(scans: list, truth: Any) -> float:
     """Truth AUC of the map ``gpomap map`` makes of the same scans at the same resolution."""
-    from gpomap.evaluation import lookup, make_model_for, score_truth, written_grid
+    from gpomap.evaluation import lookup, make_model, score_truth, written_grid
 
-    model = make_model_for(scans, "msk", n_workers=1).fit(scans)
+    model = make_model("msk", n_workers=1).fit(scans)
     return float(score_truth(truth, lookup(written_grid(model, RESOLUTION), truth.grid.centres()))["auc"])
 
 

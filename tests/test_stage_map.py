@@ -39,7 +39,7 @@ def test_stage_bag_map_matches_the_true_plan():
     # Score where the robot looked: pixels within 5 cm of the training data's points.
     from scipy.spatial import cKDTree
 
-    near = cKDTree(model.observations_.points).query(centres, distance_upper_bound=0.05)[0] < np.inf
+    near = cKDTree(model.training_points()[0]).query(centres, distance_upper_bound=0.05)[0] < np.inf
     rng = np.random.default_rng(0)
     occ = np.flatnonzero(near & occupied)
     free = rng.choice(np.flatnonzero(near & ~occupied), occ.size, replace=False)

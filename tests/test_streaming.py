@@ -140,24 +140,30 @@ def test_bad_settings_are_refused_at_once(bad):
 
 
 def test_tiles_in_3d_are_columns_and_one_column_is_the_plain_map():
-    from gpomap.mapping import AreaGPOM
+    from gpomap.gp import SupportGP
+    from gpomap.settings import MapSettings
+    from gpomap.supports import Supports
     from gpomap.voxels import VoxelMap
     from tests.world3d import ORIGINS, lidar_clouds
 
     clouds = lidar_clouds(ORIGINS, n_rays=200)
     opts = dict(kernel="se", optimise=False, length_scale=0.6, noise=0.1)
     # One tile holding the whole 6 x 4 m room, however tall, its squash fitted on every cell:
-    # exactly the plain 3-D map.
+    # exactly one GP over the cuboid cells of all the rays, built here by hand.
     one = TiledGPOM(tile_size=50.0, origin=(-10.0, -10.0), n_workers=1, hyper_sample=10**6, **opts).fit(clouds)
-    plain = AreaGPOM(**opts).fit(clouds)
+    settings = MapSettings(**opts)
+    cells = settings.make_cells(settings.make_observations(clouds))
+    gp = SupportGP(settings.make_kernel(), noise=0.1, noise_model=settings.noise_model, optimise=False)
+    gp.fit(cells.to_supports(), cells.labels)
     assert len(one.tiles_) == 1
     rng = np.random.default_rng(2)
     pts = rng.uniform([0, 0, 0], [6, 4, 2.5], (2000, 3))
-    np.testing.assert_allclose(one.predict_proba_gp(pts), plain.predict_proba_gp(pts), rtol=0, atol=1e-9)
+    plain = gp.squash(*gp.predict_latent(Supports.from_points(pts), local=False))
+    np.testing.assert_allclose(one.predict_proba_gp(pts), plain, rtol=0, atol=1e-9)
     # 2 m columns: several tiles, blended; the voxel map of the columns is a VoxelMap.
     cols = TiledGPOM(tile_size=2.0, n_workers=1, **opts).fit(clouds, hyperparameters=one.hyperparameters_)
     assert len(cols.tiles_) >= 6 and {k[0] for k in cols.tiles_} >= {0, 1, 2}
-    gap = np.abs(cols.predict_proba_gp(pts) - plain.predict_proba_gp(pts))
+    gap = np.abs(cols.predict_proba_gp(pts) - plain)
     assert np.median(gap) < 0.02
     vm = cols.grid(0.25)
     assert isinstance(vm, VoxelMap) and vm.probability.shape == vm.spec.shape

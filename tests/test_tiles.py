@@ -12,8 +12,10 @@ from threadpoolctl import threadpool_limits
 
 import gpomap.tiles as tiles
 from gpomap.errors import GpomapError
-from gpomap.mapping import AreaGPOM
+from gpomap.gp import SupportGP
+from gpomap.settings import MapSettings
 from gpomap.simulate import World, paper_room_scans, simulate_scans
+from gpomap.supports import Supports
 from gpomap.tiles import TiledGPOM, taper
 
 # Fixed hyperparameters keep the tests fast and the comparisons exact.
@@ -43,25 +45,28 @@ def test_taper_is_partition_of_unity():
     assert np.allclose(total, 1.0)
 
 
-def test_single_tile_equals_area_gpom(room):
-    plain = AreaGPOM(**OPTS).fit(room)
+def test_a_map_in_one_block_is_one_gp_over_its_cells(room):
     tiled = TiledGPOM(tile_size=50.0, origin=(-1.0, -1.0), n_workers=1, hyper_sample=10**6, **OPTS).fit(room)
     assert len(tiled.tiles_) == 1
-    assert tiled.hyperparameters_ == pytest.approx(plain.hyperparameters_, rel=1e-9)
-    # The variance scale is fitted on held-out stretches; the two held-in GPs agree to rounding,
-    # which its 1-D search amplifies to ~1e-11.
-    assert tiled.extrapolation_["n_points"] == plain.extrapolation_["n_points"] > 0
-    # With the same hyperparameters the GPs are the same to rounding ...
-    tiled = TiledGPOM(tile_size=50.0, origin=(-1.0, -1.0), n_workers=1, **OPTS).fit(room, plain.hyperparameters_)
-    pts = plain.grid(0.25).grid.centres()
-    p_plain, v_plain = plain.predict_proba_gp(pts, return_var=True)
-    p_tiled, v_tiled = tiled.predict_proba_gp(pts, return_var=True)
-    np.testing.assert_allclose(p_tiled, p_plain, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(v_tiled, v_plain, rtol=0, atol=1e-12)
-    # ... and so are the written maps, up to the ray-count calibration's optimiser tolerance.
-    a, b = plain.grid(0.25), tiled.grid(0.25)
-    np.testing.assert_allclose(b.probability, a.probability, rtol=0, atol=1e-6)
-    np.testing.assert_allclose(b.variance, a.variance, rtol=0, atol=1e-12)
+    # The reference: the cell tree over all the points and one GP on it, built by hand.
+    settings = MapSettings(**OPTS)
+    cells = settings.make_cells(settings.make_observations(room))
+    lower, upper, labels = tiled.cell_boxes()
+    np.testing.assert_array_equal(lower, cells.lower)
+    np.testing.assert_array_equal(upper, cells.upper)
+    np.testing.assert_array_equal(labels, cells.labels)
+    gp = SupportGP(settings.make_kernel(), noise=OPTS["noise"], noise_model=settings.noise_model, optimise=False)
+    gp.fit(cells.to_supports(), cells.labels)
+    # Fixed hyperparameters; alpha and beta fitted on the same leave-one-out moments.
+    hyp = tiled.hyperparameters_
+    assert (hyp["length_scale"], hyp["noise"]) == (OPTS["length_scale"], OPTS["noise"])
+    assert (hyp["alpha"], hyp["beta"]) == pytest.approx((gp.squash.alpha, gp.squash.beta), rel=1e-9)
+    pts = np.random.default_rng(0).uniform([-1.0, -1.0], [21.0, 17.0], (500, 2))
+    mean, var = gp.predict_latent(Supports.from_points(pts), local=False)
+    mu_t, var_t = tiled.predict(pts, return_var=True)
+    np.testing.assert_allclose(mu_t, mean, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(var_t, var, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(tiled.predict_proba_gp(pts), gp.squash(mean, var), rtol=0, atol=1e-10)
 
 
 def _max_jump_ratio(values: np.ndarray, border_step: int, k: int = 5) -> float:
@@ -245,19 +250,3 @@ def test_per_tile_hyperparameters_run_and_are_reported(room):
     assert set(s["per_tile_hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta"}
     p = model.predict_proba(np.array([[3.0, 3.0], [10.0, 8.0]]))
     assert np.all((p >= 0) & (p <= 1))
-
-
-def test_area_gpom_for_tiles_only_above_max_cells():
-    from gpomap.mapping import AreaGPOM
-    from gpomap.simulate import paper_room_scans
-    from gpomap.tiles import TiledGPOM, area_gpom_for, count_cells
-
-    scans = paper_room_scans(n_beams=12)[:10]
-    n = count_cells(scans, kernel="se", max_cell=1.0)
-    assert n == len(AreaGPOM(kernel="se", max_cell=1.0, optimise=False).fit(scans).cells_)
-    one, counted = area_gpom_for(scans, n, kernel="se", max_cell=1.0)
-    assert isinstance(one, AreaGPOM) and counted == n
-    tiled, _ = area_gpom_for(scans, n - 1, {"tile_size": 5.0, "n_workers": 1}, kernel="se", max_cell=1.0)
-    assert isinstance(tiled, TiledGPOM) and tiled.tile_size == 5.0 and tiled.base.max_cell == 1.0
-    never, uncounted = area_gpom_for(scans, None)
-    assert isinstance(never, AreaGPOM) and uncounted is None

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from gpomap import __version__
-from gpomap.config import DEFAULT_THRESHOLDS, MapConfig, TilingConfig
+from gpomap.config import DEFAULT_MAX_CELLS, DEFAULT_THRESHOLDS, MapConfig, TilingConfig
 from gpomap.errors import GpomapError
 
 EXIT_OK = 0
@@ -328,7 +328,6 @@ def _resolution_from_evidence(args: argparse.Namespace) -> None:
 def _tiling_config(args: argparse.Namespace) -> TilingConfig:
     """The :class:`~gpomap.config.TilingConfig` of the tiling options (``--workers`` is ``n_workers``, ``--threads`` ``blas_threads``)."""
     return TilingConfig(
-        max_cells=args.max_cells,
         tile_size=args.tile_size,
         n_workers=args.workers,
         blas_threads=args.threads,
@@ -337,15 +336,9 @@ def _tiling_config(args: argparse.Namespace) -> TilingConfig:
     )
 
 
-def _add_tiling_options(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("large maps (tiles of local GPs, blended without seams)")
-    g.add_argument(
-        "--max-cells",
-        type=_positive(int),
-        default=_Default(TilingConfig.max_cells),
-        help="above this many cells the map is built in tiles automatically (default: %(default)s)",
-    )
-    g.add_argument("--tiles", action="store_true", help="always build the map in tiles")
+def _add_tiling_options(p: argparse.ArgumentParser, chunks: bool = True) -> None:
+    """The options of :class:`~gpomap.config.TilingConfig` (and ``--chunk-scans`` with `chunks`)."""
+    g = p.add_argument_group("the local GPs (one per tile, blended without seams)")
     g.add_argument(
         "--tile-size", type=_positive(float), default=_Default(TilingConfig.tile_size), help="tile side, m (default: %(default)s)"
     )
@@ -365,15 +358,17 @@ def _add_tiling_options(p: argparse.ArgumentParser) -> None:
         metavar="SECONDS",
         help="give up when the scheduler does not answer, or has no workers, for this long (default: %(default)s)",
     )
+    if not chunks:
+        return
     g.add_argument(
         "--chunk-scans",
         type=_positive(int),
         metavar="K",
-        help="map incrementally, K scans at a time, rewriting the map after each chunk (implies --tiles)",
+        help="map incrementally, K scans at a time, rewriting the map after each chunk",
     )
 
 
-def _add_output_options(p: argparse.ArgumentParser, default_resolution: Any, supersample: bool = True) -> None:
+def _add_output_options(p: argparse.ArgumentParser, default_resolution: Any) -> None:
     g = p.add_argument_group("the output")
     g.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="directory for map.yaml, map.pgm, map.npz, map.png")
     g.add_argument(
@@ -392,14 +387,6 @@ def _add_output_options(p: argparse.ArgumentParser, default_resolution: Any, sup
         metavar="FREE,OCCUPIED",
         help="ternary-map thresholds (default: %(default)s)",
     )
-    if supersample:
-        g.add_argument(
-            "--supersample",
-            type=_positive(int),
-            metavar="K",
-            help="sample K x K points per map cell and keep the most occupied (default: enough for "
-            "samples half a min-cell apart, at most 4; single-GP maps only)",
-        )
     g.add_argument(
         "--pgm-mode",
         choices=["trinary", "scale"],
@@ -412,27 +399,6 @@ def _add_output_options(p: argparse.ArgumentParser, default_resolution: Any, sup
         metavar="GB",
         help="refuse, before fitting, a run estimated to need more memory than this (default: half of this machine's)",
     )
-
-
-def _print_summary(summary: dict[str, Any], files: Sequence[Path], source: str = "learnt") -> None:
-    hp = summary.get("hyperparameters", {})
-    t = summary.get("timings", {})
-    lines = []
-    if "n_scans" in summary:
-        lines.append(f"scans        {summary['n_scans']}")
-    lines.append(
-        f"points       {summary.get('n_free_points', 0)} free, {summary.get('n_occupied_points', 0)} occupied"
-        f" ({summary.get('n_no_return_readings', 0)} no-return, {summary.get('n_invalid_readings', 0)} invalid readings)"
-    )
-    lines.append(f"cells        {summary.get('n_cells')} ({summary.get('n_ambiguous_cells', 0)} from ambiguous min-size cells)")
-    lines.append(
-        f"model        {summary.get('kernel')} kernel, {summary.get('area')} area kernel, {summary.get('normalisation')} normalisation, "
-        f"{summary.get('objective')} objective"
-    )
-    lines.append("hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()) + f" ({source})")
-    lines.append("timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in t.items()) + f"; total {sum(t.values()):.2f}")
-    lines += [f"wrote        {f}" for f in files]
-    print("\n".join(lines))
 
 
 # --------------------------------------------------------------------------- checks before any work
@@ -452,9 +418,7 @@ def _check_before_work(args: argparse.Namespace) -> None:
 _GRID_ADVICE = "use a coarser --resolution, a smaller --extent, or a larger --memory-limit GB if the machine has the memory"
 
 
-def _check_grid_memory(
-    args: argparse.Namespace, shape: tuple[int, int], extent: Sequence[float], supersample: int, n_cells: int
-) -> None:
+def _check_grid_memory(args: argparse.Namespace, shape: tuple[int, int], extent: Sequence[float], n_cells: int) -> None:
     from gpomap.resources import check_memory, grid_memory, memory_limit
 
     limit, source = memory_limit(args.memory_limit)
@@ -465,7 +429,7 @@ def _check_grid_memory(
         f"a {nx} x {ny} grid ({nx * ny:.3g} cells) at --resolution {args.resolution:g} m over x {xmin:.6g}..{xmax:.6g}, "
         f"y {ymin:.6g}..{ymax:.6g} m ({origin})"
     )
-    check_memory(grid_memory(shape, supersample, n_cells), limit, what, _GRID_ADVICE, source)
+    check_memory(grid_memory(shape, 1, n_cells), limit, what, _GRID_ADVICE, source)
 
 
 def _check_fit_memory(args: argparse.Namespace, n_cells: int, n_at_once: int, where: str) -> None:
@@ -473,52 +437,32 @@ def _check_fit_memory(args: argparse.Namespace, n_cells: int, n_at_once: int, wh
 
     limit, source = memory_limit(args.memory_limit)
     what = f"fitting {n_at_once} GP(s) of {n_cells} cells at once ({where})"
-    advice = "use a larger --min-cell, smaller --max-cells or --tile-size, fewer --workers, or a larger --memory-limit GB"
+    advice = "use a larger --min-cell, a smaller --tile-size, fewer --workers, or a larger --memory-limit GB"
     check_memory(fit_memory(n_cells, n_at_once), limit, what, advice, source)
 
 
-def _supersample(args: argparse.Namespace) -> int:
-    """Samples per cell side of a single-GP map: given, or enough for samples half a min-cell apart (at most 4)."""
-    return args.supersample or min(4, max(1, math.ceil(args.resolution / (0.5 * args.min_cell) - 1e-9)))
+def _plan_map(args: argparse.Namespace, data: Any) -> None:
+    """Check the run's memory before fitting.
 
-
-def _plan_map(args: argparse.Namespace, data: Any) -> bool:
-    """Check the run's memory before fitting; returns whether the map is built in tiles.
-
-    Cheap steps only: the labelled points (for the grid's extent) and the cell tree (for the GP
-    sizes), both a small fraction of a fit.
+    Cheap steps only: the labelled points (for the grid's extent) and the cell tree (for the
+    tiles' GP sizes), both a small fraction of a fit.
     """
-    from gpomap.cells import build_cells
-    from gpomap.mapping import AreaGPOM
     from gpomap.resources import grid_shape, largest_tile_cells, points_extent
+    from gpomap.settings import MapSettings
 
-    base = AreaGPOM(**_map_config(args).kwargs())
-    obs = base.make_observations(data)
+    settings = MapSettings(**_map_config(args).kwargs())
+    obs = settings.make_observations(data)
     extent = args.extent if args.extent is not None else points_extent(obs.points)
     shape = grid_shape(extent, args.resolution)
-    tiled = bool(args.tiles or args.chunk_scans is not None)
     # The grid first: it needs no cells, and an absurd extent is refused before the tree is built.
-    _check_grid_memory(args, shape, extent, 1 if tiled else _supersample(args), 0)
-    cells = build_cells(obs.points, obs.occupied, base.min_cell, base.max_cell, base.cell_box)
-    n_cells = len(cells)
-    if not tiled and n_cells > args.max_cells:
-        _status(
-            args,
-            f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
-            f"mapping in tiles of {args.tile_size:g} m",
-        )
-        tiled = True
-    if tiled:
-        # A tile's GP reaches past its square by the overlap: 2.5 length scales by default (the
-        # starting one; the learnt one is not known yet), at most a tile.
-        overlap = min(args.tile_size, 2.5 * base.length_scale)
-        per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper), args.tile_size, overlap)
-        n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
-        _check_fit_memory(args, per_tile, n_at_once, f"the largest of the tiles of {args.tile_size:g} m")
-    else:
-        _check_fit_memory(args, n_cells, 1, "one GP over the whole map")
-        _check_grid_memory(args, shape, extent, _supersample(args), n_cells)
-    return tiled
+    _check_grid_memory(args, shape, extent, 0)
+    cells = settings.make_cells(obs)
+    # A tile's GP reaches past its square by the overlap: 2.5 length scales by default (the
+    # starting one; the learnt one is not known yet), at most a tile.
+    overlap = min(args.tile_size, 2.5 * settings.length_scale)
+    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper), args.tile_size, overlap)
+    n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
+    _check_fit_memory(args, per_tile, n_at_once, f"the largest of the tiles of {args.tile_size:g} m")
 
 
 # --------------------------------------------------------------------------- writing outputs
@@ -554,34 +498,6 @@ def _report_fit(model: Any, occupancy_map: Any) -> None:
 
 
 # --------------------------------------------------------------------------- subcommands
-def _fit_and_write(
-    args: argparse.Namespace, data: Any, n_scans: int | None, title: str, outputs: Any
-) -> tuple[Any, dict[str, Any], list[Path]]:
-    """Fit one GP, predict the grid and write the map files into the output set.
-
-    Returns the model, its summary and the files' final paths (printed once the set is in place).
-    """
-    from gpomap.diagnostics import hyperparameter_source
-    from gpomap.io.export import write_map_files
-
-    model = _single_model(args)
-    _status(args, f"fitting MSK-GPOM ({args.kernel})...")
-    model.fit(data)
-    _status(args, f"  {model.n_inputs_} cells, hyperparameters learnt in {model.timings_['hyperparameters']:.2f} s")
-    k = _supersample(args)
-    _status(args, f"predicting the map at {args.resolution} m ({k} x {k} samples per cell)...")
-    occupancy_map = model.grid(args.resolution, args.extent, supersample=k)
-    ny, nx = occupancy_map.grid.shape
-    _status(args, f"  {nx} x {ny} cells in {model.timings_['prediction']:.2f} s; writing {args.output}/")
-    staged = write_map_files(occupancy_map, outputs.path, pgm_mode=args.pgm_mode, title=title)
-    _report_fit(model, occupancy_map)
-    summary = model.summary()
-    if n_scans is not None:
-        summary = {"n_scans": n_scans, **summary}
-    summary["hyperparameter_source"] = hyperparameter_source(model)
-    return model, summary, [outputs.final(f) for f in staged]
-
-
 def _load_scans(args: argparse.Namespace) -> list:
     from gpomap.io import read_scans
     from gpomap.scans import select_scans
@@ -629,33 +545,30 @@ def cmd_map(args: argparse.Namespace) -> int:
         _status(args, f"  {n_scans} scans of {data[0].n_beams} beams")
     if args.chunk_scans is not None and n_scans is None:
         raise GpomapError("--chunk-scans needs scans (a CARMEN log or ROS bag), not labelled points")
-    tiled = _plan_map(args, data)
+    _plan_map(args, data)
     if args.chunk_scans is not None:
         return _map_in_chunks(args, data, title)
-    if tiled:
-        return _fit_tiled_and_write(args, data, n_scans, title)
-    with _outputs(args) as outputs:
-        _, summary, files = _fit_and_write(args, data, n_scans, title, outputs)
-    _print_summary(summary, files, summary["hyperparameter_source"])
+    model = _model(args)
+    _status(args, f"fitting MSK-GPOM ({args.kernel})...")
+    model.fit(data)
+    _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
+    files = _write_map(args, model, title)
+    _print_map_summary(model.summary(), files, _bound_source(model))
     return EXIT_OK
 
 
-def _single_model(args: argparse.Namespace) -> Any:
-    """The unfitted one-GP map of the parsed options (``gpomap map`` and ``gpomap demo``)."""
+def _model(args: argparse.Namespace) -> Any:
+    """The unfitted map of the parsed options (``gpomap map``, ``gpomap demo``)."""
     from gpomap.mapping import AreaGPOM
 
-    return AreaGPOM(**_map_config(args).kwargs())
+    return AreaGPOM(**_tiling_config(args).kwargs(), **_map_config(args).kwargs())
 
 
-def _tiled_model(args: argparse.Namespace) -> Any:
-    """The unfitted tiled map of the parsed options (``gpomap map`` above ``--max-cells``, with ``--tiles`` or ``--chunk-scans``)."""
-    from gpomap.tiles import TiledGPOM
+def _write_map(args: argparse.Namespace, model: Any, title: str, extra: Callable[[Any], None] | None = None) -> list[Path]:
+    """Predict the model's grid and replace the output set with it; returns the files written.
 
-    return TiledGPOM(**_tiling_config(args).kwargs(), **_map_config(args).kwargs())
-
-
-def _write_tiled(args: argparse.Namespace, model: Any, title: str) -> list[Path]:
-    """Predict the tiled model's grid and replace the output set with it; returns the files written."""
+    `extra`, if given, is called with the output set to add files of its own to it.
+    """
     from gpomap.io.export import write_map_files
 
     t = time.perf_counter()
@@ -664,11 +577,13 @@ def _write_tiled(args: argparse.Namespace, model: Any, title: str) -> list[Path]
     _status(args, f"  {nx} x {ny} cells predicted in {time.perf_counter() - t:.2f} s; writing {args.output}/")
     with _outputs(args) as outputs:
         staged = write_map_files(occupancy_map, outputs.path, pgm_mode=args.pgm_mode, title=title)
+        if extra is not None:
+            extra(outputs)
     _report_fit(model, occupancy_map)
     return [outputs.final(f) for f in staged]
 
 
-def _print_tiled_summary(summary: dict[str, Any], files: Sequence[Path], source: str | None = None) -> None:
+def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: str | None = None) -> None:
     per = summary["cells_per_tile"]
     lines = [
         f"scans        {summary['n_scans']}",
@@ -686,17 +601,7 @@ def _print_tiled_summary(summary: dict[str, Any], files: Sequence[Path], source:
     print("\n".join(lines))
 
 
-def _fit_tiled_and_write(args: argparse.Namespace, data: Any, n_scans: int | None, title: str) -> int:
-    model = _tiled_model(args)
-    _status(args, f"fitting tiled MSK-GPOM ({args.kernel})...")
-    model.fit(data)
-    _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
-    files = _write_tiled(args, model, title)
-    _print_tiled_summary(model.summary(), files, _tiled_source(model))
-    return EXIT_OK
-
-
-def _tiled_source(model: Any) -> str | None:
+def _bound_source(model: Any) -> str | None:
     """ "at bound: ..." when a learnt hyperparameter sits at a bound, else None (the model's own words)."""
     from gpomap.diagnostics import hyperparameter_source
 
@@ -706,7 +611,7 @@ def _tiled_source(model: Any) -> str | None:
 
 def _map_in_chunks(args: argparse.Namespace, scans: list, title: str) -> int:
     """Fit the first K scans, then add K at a time with ``update``, rewriting the map each time."""
-    model = _tiled_model(args)
+    model = _model(args)
     k = args.chunk_scans
     files: list[Path] = []
     for start in range(0, len(scans), k):
@@ -719,12 +624,14 @@ def _map_in_chunks(args: argparse.Namespace, scans: list, title: str) -> int:
             model.update(chunk)
             refit = len(model.last_refit_)
         _status(args, f"scans {start}..{start + len(chunk) - 1}: {refit} tile(s) fitted in {time.perf_counter() - t:.2f} s")
-        files = _write_tiled(args, model, f"{title} ({start + len(chunk)} of {len(scans)} scans)")
-    _print_tiled_summary(model.summary(), files, _tiled_source(model))
+        files = _write_map(args, model, f"{title} ({start + len(chunk)} of {len(scans)} scans)")
+    _print_map_summary(model.summary(), files, _bound_source(model))
     return EXIT_OK
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from gpomap.io.atomic import file_written
     from gpomap.plot import plot_inputs, save_figure
     from gpomap.simulate import paper_room_scans
@@ -732,16 +639,23 @@ def cmd_demo(args: argparse.Namespace) -> int:
     _check_before_work(args)
     scans = paper_room_scans()
     _status(args, f"simulated the paper's synthetic room: {len(scans)} poses x {scans[0].n_beams} beams over 360 degrees")
-    args.tiles, args.chunk_scans, args.max_cells = False, None, math.inf  # the demo is one GP
     _plan_map(args, scans)
-    with _outputs(args) as outputs:
-        model, summary, files = _fit_and_write(args, scans, len(scans), "gpomap demo: the paper's synthetic room", outputs)
+    model = _model(args)
+    _status(args, f"fitting MSK-GPOM ({args.kernel})...")
+    model.fit(scans)
+    _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
+    cells_png: list[Path] = []
+
+    def cell_figure(outputs: Any) -> None:
         # The cell tree as a figure too (the paper's Fig. 5a), in the same set of outputs.
-        cells = model.cells_
-        fig = plot_inputs(model.observations_.points, model.observations_.occupied, boxes=cells.boxes, box_labels=cells.labels)
-        files.append(outputs.final(save_figure(fig, outputs.path / "cells.png")))
+        lower, upper, labels = model.cell_boxes()
+        points, occupied = model.training_points()
+        fig = plot_inputs(points, occupied, boxes=np.stack([lower, upper], axis=1), box_labels=labels)
+        cells_png.append(outputs.final(save_figure(fig, outputs.path / "cells.png")))
         file_written()
-    _print_summary(summary, files, summary["hyperparameter_source"])
+
+    files = _write_map(args, model, "gpomap demo: the paper's synthetic room", cell_figure)
+    _print_map_summary(model.summary(), files + cells_png, _bound_source(model))
     return EXIT_OK
 
 
@@ -869,7 +783,7 @@ def _evaluate_arguments(args: argparse.Namespace) -> dict[str, Any]:
     gp_methods = tuple(m for m in METHODS if m not in GRID_METHODS)
     # The options only some methods take (refused on the others, not ignored): the grids' cell
     # side, the GP methods' written map, the tiles of MSK-GPOM.
-    only = {"resolution": GRID_METHODS, "grid_resolution": gp_methods, "max_cells": ("msk",), "workers": ("msk",)}
+    only = {"resolution": GRID_METHODS, "grid_resolution": gp_methods, "workers": ("msk",)}
     for dest, methods in only.items():
         if args.method not in methods and _given(args, [dest]):
             raise GpomapError(f"{_flag(dest)} is for --method {', '.join(methods)}, not {args.method}")
@@ -885,7 +799,6 @@ def _evaluate_arguments(args: argparse.Namespace) -> dict[str, Any]:
         "resolution": args.resolution,
         "grid_resolution": args.grid_resolution,
         "max_test_points": args.test_points,
-        "max_cells": args.max_cells,
         "n_workers": args.workers,
         "score_grid": not args.no_grid,
         **_method_options(args),
@@ -959,11 +872,11 @@ def cmd_convert(args: argparse.Namespace) -> int:
     spec = output_grid(source.grid, args.resolution, args.extent)
     if args.resolution is None:
         args.resolution = spec.resolution  # the source's pixel size (named in the messages)
-    _check_grid_memory(args, spec.shape, spec.extent, 1, 0)
+    _check_grid_memory(args, spec.shape, spec.extent, 0)
     # The converter's own inputs (wall-aware, several per wall pixel), not a plain cell tree's.
     n_cells = len(converter_for(source.grid.resolution, **options).make_cells(grid_to_observations(source)))
     _check_fit_memory(args, n_cells, 1, f"one GP over the cells of {args.input}")
-    _check_grid_memory(args, spec.shape, spec.extent, 1, n_cells)
+    _check_grid_memory(args, spec.shape, spec.extent, n_cells)
     result = convert_grid(source, resolution=args.resolution, extent=args.extent, **options)
     with _outputs(args) as outputs:
         staged = write_map_files(
@@ -1093,6 +1006,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="example:\n  gpomap demo -o demo-output",
     )
     _add_model_options(p)
+    _add_tiling_options(p, chunks=False)
     _add_output_options(p, _Default(DEMO_RESOLUTION))
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_demo)
@@ -1157,12 +1071,6 @@ def build_parser() -> argparse.ArgumentParser:
         help="use every K-th scan of the log (default: %(default)s)",
     )
     p.add_argument("--test-points", type=_positive(int), metavar="N", help="at most N test points (balanced, seeded subsample)")
-    p.add_argument(
-        "--max-cells",
-        type=_positive(int),
-        default=_Default(TilingConfig.max_cells),
-        help="msk: above this many cells the map is built in tiles, as gpomap map does (default: %(default)s)",
-    )
     p.add_argument("--workers", type=_positive(int), help="msk: worker processes for tiles (default: the CPU count)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_reader_options(p)
@@ -1183,14 +1091,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("input", help="map.yaml (ROS map_server), map.npz, or an OctoMap tree (.bt, .ot)")
     p.add_argument("--kernel", choices=["se", "matern32"], help="point kernel (default: se, measured best for grids)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
-    _add_output_options(p, None, supersample=False)
+    _add_output_options(p, None)
     # Octrees' own options: gpomap.apps.map3d / gpomap.apps.convert3d.
     from gpomap.apps.map3d import add_output_options as add_3d_output_options
 
     add_3d_output_options(p).add_argument(
         "--max-cells",
         type=_positive(int),
-        default=_Default(TilingConfig.max_cells),
+        default=_Default(DEFAULT_MAX_CELLS),
         help="octree: refuse a region whose cell tree has more cells than one GP should hold (default: %(default)s)",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")

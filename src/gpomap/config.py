@@ -1,8 +1,8 @@
 """Every default of a map, stated once: typed, frozen settings for the model and the tiling.
 
-:class:`MapConfig` holds the arguments of :class:`~gpomap.mapping.AreaGPOM` (whose signature
-takes its defaults from here), :class:`TilingConfig` those of :class:`~gpomap.tiles.TiledGPOM`
-and the cell count above which a map is built in tiles. The ``gpomap`` command builds its
+:class:`MapConfig` holds the map settings of :class:`~gpomap.mapping.AreaGPOM` (whose signature
+takes its defaults from here, through :class:`~gpomap.settings.MapSettings`), :class:`TilingConfig`
+its tiling arguments (those of :class:`~gpomap.tiles.TiledGPOM`). The ``gpomap`` command builds its
 options from these fields (their defaults are the options' defaults, shown in ``--help``) and
 builds one config from the parsed options; the library receives it as keyword arguments
 (:meth:`MapConfig.kwargs`), so a script and the command build the same model:
@@ -14,7 +14,7 @@ builds one config from the parsed options; the library receives it as keyword ar
     >>> model = AreaGPOM(**config.kwargs())  # doctest: +SKIP
 
 Why each value was chosen is said where it is used (the parameters of
-:class:`~gpomap.mapping.AreaGPOM` and :class:`~gpomap.tiles.TiledGPOM`).
+:class:`~gpomap.settings.MapSettings` and :class:`~gpomap.tiles.TiledGPOM`).
 
 This module imports no SciPy and no model: ``gpomap --help`` reads it.
 """
@@ -36,9 +36,9 @@ __all__ = [
     "VOXEL_MAP_DEFAULTS",
 ]
 
-#: Cells one GP holds before a map is built in tiles (``gpomap map --max-cells``): a dense GP over
-#: 3,000 cells factorises in about a second; at 8,000 (Belgioioso's whole log) one Matern 3/2 GP
-#: took 57 s and 2 GB against 14 s for 26 tiles, with the same held-out AUC (0.958).
+#: Most cells of the one GP of a grid or octree conversion (``gpomap convert --max-cells``; maps
+#: from scans are local GPs in tiles whatever their size): a dense GP over 3,000 cells factorises
+#: in about a second; at 8,000 one Matern 3/2 GP took 57 s and 2 GB.
 DEFAULT_MAX_CELLS = 3000
 
 #: Seconds to wait for a Dask scheduler to answer, and for workers when none is connected
@@ -69,9 +69,9 @@ class _Config:
 
 @dataclass(frozen=True)
 class MapConfig(_Config):
-    """The settings of one MSK-GPOM map: the arguments of :class:`~gpomap.mapping.AreaGPOM`.
+    """The settings of one MSK-GPOM map: the arguments of :class:`~gpomap.settings.MapSettings`.
 
-    The fields, their order and their meaning are AreaGPOM's (see its parameters); grouped here
+    The fields, their order and their meaning are MapSettings' (see its parameters); grouped here
     as the pipeline runs: beams to points, points to cells, cells to a GP, the GP to a map.
     """
 
@@ -113,12 +113,10 @@ class MapConfig(_Config):
 
 @dataclass(frozen=True)
 class TilingConfig(_Config):
-    """How a large map is split: when (`max_cells`) and the arguments of :class:`~gpomap.tiles.TiledGPOM`.
+    """How a map is split into local GPs: the tiling arguments of :class:`~gpomap.tiles.TiledGPOM`.
 
     Attributes
     ----------
-    max_cells : int or None
-        Above this many cells a map is built in tiles (None: one GP whatever the count).
     tile_size : float
         Side of the square tiles, metres.
     n_workers : int, optional
@@ -131,15 +129,8 @@ class TilingConfig(_Config):
         Seconds to wait for the scheduler, and for its workers.
     """
 
-    max_cells: int | None = DEFAULT_MAX_CELLS
     tile_size: float = 10.0
     n_workers: int | None = None
     blas_threads: int | None = None
     scheduler: str | None = None
     scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT
-
-    def kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of :class:`~gpomap.tiles.TiledGPOM` (all but `max_cells`, which decides whether to tile)."""
-        out = super().kwargs()
-        del out["max_cells"]
-        return out

@@ -52,7 +52,7 @@ decides whether a wall 1, 2 or 4 pixels thick comes out occupied or "unknown" (p
 (TurtleBot3: alpha ~ 6.4) are not separable and do not show it.
 
 Any of these can be overridden through ``**model_options`` (the :class:`GridGPOM` constructor
-arguments: those of :class:`~gpomap.mapping.AreaGPOM`, ``pixel_pad``, ``wall_reach``, ``edge_strip``
+arguments: those of :class:`~gpomap.settings.MapSettings`, ``pixel_pad``, ``wall_reach``, ``edge_strip``
 and ``centre_noise``; ``wall_reach=None`` gives the cell tree over footprints of before,
 ``pixel_pad=0`` the centre boxes of before that). ``free_step``, ``hit_margin`` and
 ``no_return_cap`` concern laser beams and have no effect here.
@@ -60,7 +60,6 @@ and ``centre_noise``; ``wall_reach=None`` gives the cell tree over footprints of
 
 from __future__ import annotations
 
-import inspect
 import math
 import os
 import time
@@ -74,6 +73,7 @@ from scipy import ndimage
 
 from gpomap.cells import Cells
 from gpomap.errors import EmptyDataError, InputFormatError
+from gpomap.estimator import GPMapEstimator
 from gpomap.gp import LOCAL_TOL, cholesky_inverse
 from gpomap.grid import FREE, OCCUPIED, UNKNOWN, GridSpec, OccupancyMap, ternary
 from gpomap.io.npz import load_map
@@ -81,9 +81,9 @@ from gpomap.io.rosmap import RosMap, read_rosmap
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.closed_form import se_box_average
 from gpomap.kernels.point import make_point_kernel
-from gpomap.mapping import AreaGPOM
 from gpomap.metrics import roc_auc
 from gpomap.observations import Observations
+from gpomap.settings import MapSettings
 from gpomap.supports import Supports
 
 __all__ = [
@@ -134,7 +134,7 @@ class ConversionResult:
     ----------
     map : OccupancyMap
         Probability and latent variance on the output grid, ndarrays of shape (ny, nx).
-    model : AreaGPOM
+    model : GridGPOM
         The fitted estimator; ask it anywhere with ``predict_proba(points)``.
     report : dict
         ``pixels`` (``free``, ``occupied``, ``unknown`` counts of the source), ``cells`` (``n``,
@@ -148,7 +148,7 @@ class ConversionResult:
     """
 
     map: OccupancyMap
-    model: AreaGPOM
+    model: GridGPOM
     report: dict[str, Any] = field(default_factory=dict)
 
 
@@ -467,8 +467,12 @@ def grid_cells(
     return GridCells(**{name: getattr(cells, name) for name in Cells.__dataclass_fields__}, weight=weight)
 
 
-class GridGPOM(AreaGPOM):
-    """:class:`~gpomap.mapping.AreaGPOM` over a grid's pixels, with cells that know the pixels.
+class GridGPOM(MapSettings, GPMapEstimator):
+    """One MSK-GPOM GP over a grid's pixels, with cells that know the pixels.
+
+    Maps from scans are local GPs in tiles (:class:`~gpomap.mapping.AreaGPOM`); a converted grid
+    is one GP over all its cells (at most ``--max-cells``), because the prediction on the output
+    grid (:func:`_grid_latent`) factorises the one GP's SE kernel along the grid's axes.
 
     A grid pixel is an area observation: a free pixel says its whole square is free, an occupied
     one that something within its square is occupied. With ``pixel_pad`` > 0 (half the source
@@ -476,8 +480,7 @@ class GridGPOM(AreaGPOM):
     occupied pixels, merged free cells farther away, free strips along the edges free pixels share
     with occupied ones, and a point at every occupied pixel's centre. With ``wall_reach=None`` the
     project's cell tree runs on the pixel centres and each box is widened by ``pixel_pad`` (the
-    union of its pixels' squares with ``cell_box="tight"``); ``pixel_pad=0`` is the plain
-    :class:`~gpomap.mapping.AreaGPOM`.
+    union of its pixels' squares with ``cell_box="tight"``); ``pixel_pad=0`` is the plain cell tree.
 
     Parameters
     ----------
@@ -491,8 +494,10 @@ class GridGPOM(AreaGPOM):
         See :func:`grid_cells`. The weights go through the member counts, so they assume the
         ``"per_count"`` noise model and ``"mean"`` normalisation (the defaults).
     **options
-        :class:`~gpomap.mapping.AreaGPOM` arguments (``min_cell`` is used only by the cell tree).
+        :class:`~gpomap.settings.MapSettings` arguments (``min_cell`` is used only by the cell tree).
     """
+
+    method_name = "msk-gpom"
 
     def __init__(
         self,
@@ -508,11 +513,56 @@ class GridGPOM(AreaGPOM):
         self.edge_strip = edge_strip
         self.centre_noise = centre_noise
 
+    def __repr__(self) -> str:
+        return f"GridGPOM(pixel_pad={self.pixel_pad}, wall_reach={self.wall_reach}, {MapSettings.__repr__(self)})"
+
     def get_params(self, deep: bool = True) -> dict[str, Any]:
-        """The constructor arguments, by name (AreaGPOM's and the grid ones)."""
-        names = [n for n in inspect.signature(AreaGPOM.__init__).parameters if n != "self"]
+        """The constructor arguments, by name (the map settings and the grid ones)."""
         own = {n: getattr(self, n) for n in ("pixel_pad", "wall_reach", "edge_strip", "centre_noise")}
-        return {**own, **{n: getattr(self, n) for n in names}}
+        return {**own, **MapSettings.get_params(self)}
+
+    def fit(self, data: Observations) -> GridGPOM:
+        """Fit the GP on the pixels' labelled points (:func:`grid_to_observations`).
+
+        Parameters
+        ----------
+        data : Observations
+            One point per known pixel, at its centre.
+
+        Returns
+        -------
+        self
+        """
+        timings: dict[str, float] = {}
+        t = time.perf_counter()
+        obs = self.make_observations(data)
+        cells = self.make_cells(obs)
+        timings["cells"] = time.perf_counter() - t
+        gp = self._make_gp(self.make_kernel())
+        gp.fit(cells.to_supports(), cells.labels)
+        timings.update(gp.timings_)
+        self.observations_: Observations = obs
+        self.cells_: Cells = cells
+        self.gp_ = gp
+        self.timings_ = timings
+        self.extent_points_ = obs.points
+        self.path_ = None
+        # Pixels are not rays: no held-out stretches (the variance scale stays 1), no ray counts.
+        self.extrapolation_: dict[str, Any] = {"kappa": 1.0, "reason": "labelled points given, not scans"}
+        self.evidence_ = None
+        return self
+
+    @property
+    def n_inputs_(self) -> int:
+        """Number of GP inputs (cells)."""
+        self._check_fitted()
+        return len(self.cells_)
+
+    def _queries(self, points: NDArray[np.float64]) -> Supports:
+        return Supports.from_points(points)
+
+    def _summary_extra(self) -> dict[str, Any]:
+        return {"area": self.area_method, "n_cells": len(self.cells_), "n_ambiguous_cells": int(self.cells_.ambiguous.sum())}
 
     def make_cells(self, obs: Observations) -> Cells:
         """The GP inputs over the pixel centres `obs` (see the class docstring)."""
@@ -520,14 +570,14 @@ class GridGPOM(AreaGPOM):
             return grid_cells(
                 obs.points, obs.occupied, 2.0 * self.pixel_pad, self.max_cell, self.wall_reach, self.edge_strip, self.centre_noise
             )
-        cells = super().make_cells(obs)
+        cells = MapSettings.make_cells(self, obs)
         if self.pixel_pad > 0:
             cells = replace(cells, lower=cells.lower - self.pixel_pad, upper=cells.upper + self.pixel_pad)
         return cells
 
 
 def model_defaults(resolution: float) -> dict[str, Any]:
-    """AreaGPOM settings for a grid of pixel side `resolution` (see the module docstring).
+    """Map settings for a grid of pixel side `resolution` (see the module docstring).
 
     Parameters
     ----------
@@ -537,7 +587,7 @@ def model_defaults(resolution: float) -> dict[str, Any]:
     Returns
     -------
     dict
-        Constructor arguments of :class:`~gpomap.mapping.AreaGPOM` (``convert_grid`` adds
+        Constructor arguments of :class:`GridGPOM` (``convert_grid`` adds
         ``pixel_pad`` = :data:`FOOTPRINT_PIXELS` pixels for :class:`GridGPOM`).
     """
     r = float(resolution)
@@ -552,7 +602,7 @@ def model_defaults(resolution: float) -> dict[str, Any]:
     }
 
 
-def _separable_se(model: AreaGPOM) -> bool:
+def _separable_se(model: GridGPOM) -> bool:
     """Whether `model`'s GP is the exact mean-normalised SE area kernel over 2-D boxes (a product of
     1-D factors, which :func:`_grid_latent` relies on) with no ray evidence on top."""
     gp = getattr(model, "gp_", None)
@@ -571,7 +621,7 @@ def _separable_se(model: AreaGPOM) -> bool:
 
 
 def _grid_latent(
-    model: AreaGPOM, xs: NDArray[np.float64], ys: NDArray[np.float64]
+    model: GridGPOM, xs: NDArray[np.float64], ys: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Latent mean and variance of `model` on the grid of points (xs[k], ys[j]), each (ny, nx).
 
@@ -612,7 +662,7 @@ def _grid_latent(
 
 
 def _predict_on(
-    model: AreaGPOM, spec: GridSpec, support_box: tuple[NDArray[np.float64], NDArray[np.float64]]
+    model: GridGPOM, spec: GridSpec, support_box: tuple[NDArray[np.float64], NDArray[np.float64]]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Probability and latent variance at every cell centre of `spec`, each of shape (ny, nx).
 
@@ -690,7 +740,7 @@ def convert_grid(
         Output region; default the source's extent, with its origin. See :func:`output_grid` for
         when the outer edges coincide with the source's.
     **model_options
-        :class:`GridGPOM` arguments (those of :class:`~gpomap.mapping.AreaGPOM`, and
+        :class:`GridGPOM` arguments (those of :class:`~gpomap.settings.MapSettings`, and
         ``pixel_pad``, default half a source pixel), overriding :func:`model_defaults` (which are
         relative to the source's pixel size).
 

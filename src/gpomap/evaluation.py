@@ -31,7 +31,6 @@
 from __future__ import annotations
 
 import itertools
-import math
 import resource
 import time
 from collections.abc import Sequence
@@ -46,7 +45,6 @@ from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap
 from gpomap.metrics import expected_calibration_error, fpr_at_tpr, iou, log_loss, reliability_bins, roc_auc, roc_curve
 from gpomap.observations import observations_from_scans
 from gpomap.scans import Scan, select_scans
-from gpomap.tiles import DEFAULT_MAX_CELLS, area_gpom_for
 
 #: "ogm" is the log-odds grid (OctoMap's model); "ogm-counting" the counting grid.
 METHODS = ("msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting")
@@ -236,7 +234,9 @@ def scan_window(scan_range: str | tuple[int | None, int | None] | None) -> slice
     return slice(first, last)
 
 
-def make_model(method: str, kernel: str | None = None, seed: int = 0, resolution: float = 0.1, **options: Any) -> Any:
+def make_model(
+    method: str, kernel: str | None = None, seed: int = 0, resolution: float = 0.1, n_workers: int | None = None, **options: Any
+) -> Any:
     """The estimator `method` names, with `options` passed to its constructor.
 
     Parameters
@@ -249,12 +249,14 @@ def make_model(method: str, kernel: str | None = None, seed: int = 0, resolution
         Ignored by the grids.
     resolution : float
         Cell side of the grids (the GP methods predict anywhere).
+    n_workers : int, optional
+        "msk": worker processes for its tiles (default: the CPU count, as ``gpomap map``).
     """
     gp_opts = dict(options, seed=seed, **({"kernel": kernel} if kernel is not None else {}))
     if method == "msk":
         from gpomap.mapping import AreaGPOM
 
-        return AreaGPOM(**gp_opts)
+        return AreaGPOM(n_workers=n_workers, **gp_opts)
     if method == "gpomik":
         from gpomap.baselines.gpomik import GPOMIK
 
@@ -271,25 +273,6 @@ def make_model(method: str, kernel: str | None = None, seed: int = 0, resolution
     raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
 
 
-def make_model_for(
-    train: Sequence[Scan],
-    method: str,
-    kernel: str | None = None,
-    seed: int = 0,
-    resolution: float = 0.1,
-    max_cells: int | None = DEFAULT_MAX_CELLS,
-    n_workers: int | None = None,
-    **options: Any,
-) -> Any:
-    """:func:`make_model`, except that "msk" is built in tiles when `train` gives more than
-    `max_cells` cells (:func:`gpomap.tiles.area_gpom_for`), as ``gpomap map`` does."""
-    if method != "msk":
-        return make_model(method, kernel, seed, resolution, **options)
-    gp_opts = dict(options, seed=seed, **({"kernel": kernel} if kernel is not None else {}))
-    model, _ = area_gpom_for(train, max_cells, {"n_workers": n_workers}, **gp_opts)
-    return model
-
-
 def n_inputs(model: Any) -> int:
     """GP inputs of a fitted model (cells, beams or points); for a grid, the cells it observed."""
     if hasattr(model, "n_inputs_"):
@@ -301,18 +284,13 @@ def n_inputs(model: Any) -> int:
 def written_grid(model: Any, resolution: float = GRID_RESOLUTION) -> OccupancyMap:
     """The map ``gpomap map`` writes for a fitted model, at `resolution` over the data's extent.
 
-    One MSK-GPOM GP: ``grid(resolution, supersample=k)`` with the CLI's k (samples half a
-    min-cell apart, at most 4); tiles and the GP baselines: ``grid(resolution)``; an occupancy
-    grid: its own grid (it has no finer map to give).
+    MSK-GPOM and the GP baselines: ``grid(resolution)``; an occupancy grid: its own grid (it has
+    no finer map to give).
     """
     from gpomap.baselines.ogm import OccupancyGridMapper
-    from gpomap.mapping import AreaGPOM
 
     if isinstance(model, OccupancyGridMapper):
         return model.grid_map()
-    if isinstance(model, AreaGPOM):
-        k = min(4, max(1, math.ceil(resolution / (0.5 * model.min_cell) - 1e-9)))
-        return model.grid(resolution, supersample=k)
     return model.grid(resolution)
 
 
@@ -743,7 +721,6 @@ def run_method(
     seed: int = 0,
     resolution: float = 0.1,
     grid_resolution: float = GRID_RESOLUTION,
-    max_cells: int | None = DEFAULT_MAX_CELLS,
     n_workers: int | None = None,
     return_roc: bool = False,
     score_grid: bool = True,
@@ -763,8 +740,6 @@ def run_method(
         Cell side of the occupancy grids.
     grid_resolution : float
         Resolution of the written map of the GP methods (0.05 m).
-    max_cells : int or None
-        "msk": above this many cells the map is built in tiles, as ``gpomap map`` does.
     n_workers : int, optional
         Worker processes for tiles (default: the CPU count).
     return_roc : bool
@@ -788,7 +763,7 @@ def run_method(
     seconds: dict[str, float] = {}
     cpu: dict[str, float] = {}
     w0, c0 = _clock()
-    model = make_model_for(data.train, method, kernel, seed, resolution, max_cells, n_workers, **method_options)
+    model = make_model(method, kernel, seed, resolution, n_workers, **method_options)
     model.fit(data.train)
     w1, c1 = _clock()
     prob = np.asarray(model.predict_proba(data.points), dtype=float)
@@ -876,7 +851,6 @@ def evaluate(
     test_free_step: float = TEST_FREE_STEP,
     max_test_points: int | None = None,
     return_roc: bool = False,
-    max_cells: int | None = DEFAULT_MAX_CELLS,
     n_workers: int | None = None,
     grid_resolution: float = GRID_RESOLUTION,
     scan_step: int = 1,
@@ -896,7 +870,7 @@ def evaluate(
     t = time.perf_counter()
     data = prepare(scans, holdout, scan_range, scan_step, n_scans, n_beams, seed, test_free_step, max_test_points, truth)
     result = run_method(
-        data, method, kernel, seed, resolution, grid_resolution, max_cells, n_workers, return_roc, score_grid, **method_options
+        data, method, kernel, seed, resolution, grid_resolution, n_workers, return_roc, score_grid, **method_options
     )
     result["seconds"] = {**data.seconds, **result["seconds"], "total": time.perf_counter() - t}
     return result

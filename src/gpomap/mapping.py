@@ -4,14 +4,20 @@
     >>> model = AreaGPOM(kernel="se").fit(paper_room_scans())
     >>> occupancy_map = model.grid(resolution=0.5)
 
-``fit`` runs the pipeline: beams to free and occupied points, points to cells (the cell tree),
-cells to a GP with an area kernel whose hyperparameters are learnt, and the probit squash
-calibrated. Afterwards the map can be asked anywhere: ``predict_proba(points)``,
-``predict(points, return_var=True)`` for the latent GP, or ``grid(resolution, extent)``.
+``fit`` runs the pipeline: beams to free and occupied points, points to cells (a cell tree per
+tile square), hyperparameters learnt once on a compact sample of cells, one GP with an area kernel
+per tile, blended without seams, and the ray counts on top (:mod:`gpomap.fusion`). A map whose data
+fall in one tile square is one GP over its cells. Afterwards the map can be asked anywhere:
+``predict_proba(points)``, ``predict(points, return_var=True)`` for the latent GP, or
+``grid(resolution, extent)``.
+
+:class:`AreaGPOM` is the local-GP engine :class:`~gpomap.tiles.TiledGPOM` with every setting
+named in its signature (``get_params`` / ``set_params``), one worker process by default (like
+scikit-learn's ``n_jobs``), and no other code path: a room and a building are mapped alike.
 
 The same estimator maps in 3-D: fitted on point clouds (:class:`~gpomap.clouds.CloudScan`), the
-rays give 3-D points, the cells are cuboids, the area kernel averages over them, queries are
-(m, 3) points and ``grid`` returns a :class:`~gpomap.voxels.VoxelMap`:
+rays give 3-D points, the cells are cuboids, the tiles x, y columns, queries are (m, 3) points and
+``grid`` returns a :class:`~gpomap.voxels.VoxelMap`:
 
     >>> from gpomap.io import read_clouds
     >>> clouds = read_clouds("../shared/data/la3dm-sim/sim_structured", max_range=8.0)  # doctest: +SKIP
@@ -20,113 +26,46 @@ rays give 3-D points, the cells are cuboids, the area kernel averages over them,
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
+import inspect
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
+from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
+from gpomap.tiles import DEFAULT_HYPER_SAMPLE, TiledGPOM
 
-from gpomap.cells import Cells, build_cells
-from gpomap.config import MapConfig
-from gpomap.estimator import GPMapEstimator
-from gpomap.fusion import EvidenceLayer
-from gpomap.gp import SupportGP
-from gpomap.kernels.area import AreaKernel
-from gpomap.kernels.point import make_point_kernel
-from gpomap.observations import Observations, ScanData, data_dim, sensor_positions
-from gpomap.supports import Supports
+#: The tiling arguments of :class:`AreaGPOM`, in its signature's order after the map's settings.
+TILING_PARAMETERS = (
+    "tile_size",
+    "overlap",
+    "blend",
+    "origin",
+    "n_workers",
+    "scheduler",
+    "hyper_sample",
+    "per_tile_hyperparameters",
+    "blas_threads",
+    "scheduler_timeout",
+)
 
 
-class AreaGPOM(GPMapEstimator):
-    """Continuous occupancy mapping with a GP over cells (MSK-GPOM).
+class AreaGPOM(TiledGPOM):
+    """Continuous occupancy mapping with local GPs over cells (MSK-GPOM).
 
     Parameters
     ----------
-    kernel : {"matern32", "se"}
-        Point kernel under the area kernel.
-    area : {"exact", "quadrature", "summed"}, optional
-        How cell averages are computed; default "exact" for "se", "quadrature" for "matern32".
-    normalisation : {"mean", "sum"}
-        Average the kernel over cells ("mean") or sum it over member points ("sum", the paper).
-    free_step : float
-        Spacing of free points along beams, metres.
-    hit_margin : float, optional
-        Free points stop this short of a hit (default half of `free_step`).
-    no_return_cap : float or None
-        Free points along a no-return beam go this far (never beyond the max range; None: to the
-        max range). 10 m by default: the SICK logs record no-return as 80 m, and trusting free
-        space that far filled a 160 m square around the Intel lab (a 14 GB, 10-minute run instead
-        of 1 GB and 37 s); on Belgioioso it measured as well or better (Matern 3/2: AUC 0.897
-        against 0.890 uncapped).
-    free_clearance : float
-        Free points closer than this (metres) to any hit are dropped, so beams grazing a wall do
-        not mark the wall free (see :func:`gpomap.observations.free_near_hits`); applies to scans,
-        not to labelled points given to ``fit``. 0.3 m by default, chosen on Intel and CSAIL
-        (scans 300-364, every 5th held out, 37 beams): held-out AUC 0.856 / 0.836 with none, 0.959 /
-        0.954 at 0.2 m, 0.970 / 0.963 at 0.3 m, 0.942 / 0.955 at 0.5 m. In 3-D too (la3dm
-        sim_structured, every 4th scan held out, SE, 0.5 m cells: AUC 0.828, log loss 0.656
-        against 0.784, 0.730 with none), though there it drops over half the free points (rays
-        grazing the floor) and the kd-tree query takes about 1 s of the observations' 1.1 s.
-    min_cell, max_cell : float
-        Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`). ``max_cell`` is 0.5 m by
-        default: with mean normalisation a cell much larger than the length scale has a small
-        prior variance and says little about the points inside it, and real logs learn length
-        scales of 0.3-0.7 m. Held-out AUC (SE), 0.5 m against 1 m, on windows of 65 scans (every
-        5th held out, 37 beams): Intel 0.976 / 0.949 against 0.970 / 0.813, CSAIL 0.971 against
-        0.963, FR079 0.978 against 0.965, Belgioioso's two rooms 0.982 against 0.976, at about
-        twice the cells. The synthetic room, whose length scale is longer, prefers 1 m (0.9955
-        against 0.9937, in half the time). See docs/choices.md.
-    cell_box : {"node", "tight"}
-        Each cell's box: the tree node ("node") or its points' bounding box ("tight").
-    variance, length_scale, noise : float
-        Starting hyperparameters (kept as they are with ``optimise=False``).
-    length_scale_bounds, noise_bounds : (float, float)
-        Bounds of the hyperparameter search.
-    noise_model : {"constant", "per_count"}
-        Noise per cell: one level for all, or divided by the cell's member count (default: a cell
-        averaging m points is m times surer than one; synthetic room SE AUC 0.98 against 0.88).
-    objective : {"loo", "lml"}
-        Hyperparameter objective: leave-one-out probit predictive probability (default; the
-        marginal likelihood collapses on real cells, see the docs) or log marginal likelihood.
-    optimise : bool
-        Learn the hyperparameters; False keeps them (alpha and beta are still fitted).
-    n_restarts : int
-        Extra seeded starts of the hyperparameter search.
-    hyper_subset : int or None
-        Learn hyperparameters on a compact block of at most this many cells (None: all).
-    prior_std : float or None
-        Width (log space) of the weak prior keeping length scale and noise near their starting
-        values where the objective is flat; None: no prior.
-    class_weight : {"balanced", None}
-        Weighting of free and occupied cells in the leave-one-out objective and the squash fit.
-        "balanced" (default) weighs both classes equally: free cells outnumber occupied ones
-        several times over, and unweighted the search can settle on maps that call everything
-        free (held-out AUC, unweighted against balanced: Belgioioso whole log 0.920 / 0.925
-        against 0.943 / 0.946 (SE / Matern 3/2), an Intel window 0.31 against 0.79).
-    seed : int
-        Seed of those starts.
-    quadrature_order : int
-        Gauss-Legendre nodes per cell side for ``area="quadrature"``. 2 measured as accurate as 3
-        on the synthetic room's held-out AUC (0.9815 against 0.9819) at a quarter of the cost.
-    thresholds : (float, float)
-        Free-below and occupied-above probabilities of the ternary map.
-    chunk_size : int
-        Query points per prediction chunk.
-    ray_evidence : bool
-        Update the GP's probability with each fine cell's ray counts (see :mod:`gpomap.fusion`):
-        scans that ended a beam in the cell and scans that crossed it, weighed by a calibration
-        fitted on the map's own scans, one held out at a time. Only for scans (labelled points
-        carry no rays). True by default: where the robot has data the map is then as sharp as an
-        occupancy grid and its probabilities are calibrated, and elsewhere it is the GP's.
-    evidence_resolution : float
-        Side of the fine cells of exact-point predictions, metres (a written grid counts on its
-        own cells).
-    evidence_resolution_3d : float
-        The same for 3-D maps (voxels). 0.1 m, OctoMap's resolution on the la3dm scans: a 3-D
-        lidar's rays are sparse, and at 5 cm few voxels would be crossed by more than one scan.
-    calibration_scans : int
-        Scans held out in turn to fit the evidence calibration.
+    kernel, area, normalisation, free_step, hit_margin, no_return_cap, free_clearance, min_cell, max_cell, cell_box
+        The points and the cells: see :class:`~gpomap.settings.MapSettings`, which says what each
+        does and why its default was chosen.
+    variance, length_scale, noise, length_scale_bounds, noise_bounds, noise_model, quadrature_order
+        The GP (:class:`~gpomap.settings.MapSettings`).
+    objective, optimise, n_restarts, hyper_subset, prior_std, class_weight, seed
+        How its hyperparameters are learnt (:class:`~gpomap.settings.MapSettings`).
+    thresholds, chunk_size, ray_evidence, evidence_resolution, calibration_scans, evidence_resolution_3d
+        The map on top of the GP (:class:`~gpomap.settings.MapSettings`).
+    tile_size, overlap, blend, origin, scheduler, hyper_sample, per_tile_hyperparameters, blas_threads, scheduler_timeout
+        The local GPs: see :class:`~gpomap.tiles.TiledGPOM`.
+    n_workers : int or None
+        Local worker processes for the tiles; 1 (default) runs them in this process, None uses
+        every core.
     """
 
     def __init__(
@@ -161,164 +100,39 @@ class AreaGPOM(GPMapEstimator):
         evidence_resolution: float = MapConfig.evidence_resolution,
         calibration_scans: int = MapConfig.calibration_scans,
         evidence_resolution_3d: float = MapConfig.evidence_resolution_3d,
+        tile_size: float = TilingConfig.tile_size,
+        overlap: float | None = None,
+        blend: float | None = None,
+        origin: tuple[float, float] = (0.0, 0.0),
+        n_workers: int | None = 1,
+        scheduler: Any = None,
+        hyper_sample: int = DEFAULT_HYPER_SAMPLE,
+        per_tile_hyperparameters: bool = False,
+        blas_threads: int | None = None,
+        scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
     ) -> None:
-        self.kernel = kernel
-        self.area = area
-        self.normalisation = normalisation
-        self.free_step = free_step
-        self.hit_margin = hit_margin
-        self.no_return_cap = no_return_cap
-        self.free_clearance = free_clearance
-        self.min_cell = min_cell
-        self.max_cell = max_cell
-        self.cell_box = cell_box
-        self.variance = variance
-        self.length_scale = length_scale
-        self.noise = noise
-        self.length_scale_bounds = length_scale_bounds
-        self.noise_bounds = noise_bounds
-        self.noise_model = noise_model
-        self.objective = objective
-        self.optimise = optimise
-        self.n_restarts = n_restarts
-        self.hyper_subset = hyper_subset
-        self.prior_std = prior_std
-        self.class_weight = class_weight
-        self.seed = seed
-        self.quadrature_order = quadrature_order
-        self.thresholds = thresholds
-        self.chunk_size = chunk_size
-        self.ray_evidence = ray_evidence
-        self.evidence_resolution = evidence_resolution
-        self.calibration_scans = calibration_scans
-        self.evidence_resolution_3d = evidence_resolution_3d
+        params = {name: value for name, value in locals().items() if name in _PARAMETERS}
+        self._configure(params)
+
+    def _configure(self, params: dict[str, Any]) -> None:
+        tiling = {n: params[n] for n in TILING_PARAMETERS}
+        TiledGPOM.__init__(self, **tiling, **{n: params[n] for n in MapConfig.__dataclass_fields__})
 
     def __repr__(self) -> str:
-        name = type(self).__name__
-        return f"{name}(kernel={self.kernel!r}, area={self.area_method!r}, min_cell={self.min_cell}, max_cell={self.max_cell})"
+        return f"AreaGPOM({self.base!r}, tile_size={self.tile_size})"
 
-    @property
-    def area_method(self) -> str:
-        """The area-kernel method in use (the default depends on the kernel)."""
-        if self.area is not None:
-            return self.area
-        return "exact" if make_point_kernel(self.kernel).name == "se" else "quadrature"
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        """The constructor arguments, by name."""
+        return {**self.base.get_params(), **{n: getattr(self, n) for n in TILING_PARAMETERS}}
 
-    def make_kernel(self) -> AreaKernel:
-        """The area kernel these settings describe, at the starting hyperparameters."""
-        base = make_point_kernel(
-            self.kernel, variance=self.variance, length_scale=self.length_scale, length_scale_bounds=self.length_scale_bounds
-        )
-        return AreaKernel(base, self.area_method, self.normalisation, self.quadrature_order)
-
-    # ----------------------------------------------------------------- fitting
-    def fit(self, data: ScanData | Observations) -> AreaGPOM:
-        """Build the map from planar scans (a 2-D map), point clouds (a 3-D map) or labelled points.
-
-        Parameters
-        ----------
-        data : sequence of Scan, sequence of CloudScan, or Observations
-            The map's dimension is the data's: :class:`~gpomap.clouds.CloudScan` rays give
-            3-D observations, cells over 3-D boxes and a voxel map from :meth:`grid`.
-
-        Returns
-        -------
-        self
-        """
-        timings: dict[str, float] = {}
-        t = time.perf_counter()
-        obs = self.make_observations(data)
-        timings["observations"] = time.perf_counter() - t
-        t = time.perf_counter()
-        cells = self.make_cells(obs)
-        timings["cells"] = time.perf_counter() - t
-        gp = self._make_gp(self.make_kernel())
-        gp.fit(cells.to_supports(), cells.labels)
-        timings.update(gp.timings_)
-        self.observations_: Observations = obs
-        self.cells_: Cells = cells
-        self.gp_: SupportGP = gp
-        self.timings_: dict[str, float] = timings
-        self.extent_points_ = obs.points
-        self.path_ = None if isinstance(data, Observations) else sensor_positions(data)
-        t = time.perf_counter()
-        self.extrapolation_: dict[str, Any] = self._fit_variance_scale(data)
-        timings["variance_scale"] = time.perf_counter() - t
-        t = time.perf_counter()
-        self.evidence_ = self.make_evidence(data, self.predict_proba_gp)
-        timings["evidence"] = time.perf_counter() - t
+    def set_params(self, **params: Any) -> AreaGPOM:
+        """Set constructor arguments by name (the fitted state, if any, is kept until the next fit); returns self."""
+        current = self.get_params()
+        unknown = sorted(set(params) - set(current))
+        if unknown:
+            raise ValueError(f"unknown parameter {unknown[0]!r} for AreaGPOM")
+        self._configure({**current, **params})
         return self
 
-    def _fit_variance_scale(self, data: ScanData | Observations) -> dict[str, Any]:
-        """Set the squash's variance scale from held-out stretches of the scans; its report.
 
-        See :mod:`gpomap.extrapolation`. The held-in GP is this one with its hyperparameters
-        fixed, over the whole map (one GP holds at most a few thousand cells, so it is cheap);
-        given points have no stretches: kappa 1.
-        """
-        if isinstance(data, Observations):
-            return {"kappa": 1.0, "reason": "labelled points given, not scans"}
-        from gpomap.extrapolation import fit_variance_scale, whole_map_region
-
-        centre, half = whole_map_region(self.observations_.points)
-        hyp = self.hyperparameters_
-        fixed = {"variance": hyp["variance"], "length_scale": hyp["length_scale"], "noise": hyp["noise"]}
-        held_in = type(self)(**{**self.get_params(), "optimise": False, "ray_evidence": False, **fixed})
-        kappa, report = fit_variance_scale(
-            data,
-            hyp,
-            self.make_observations,
-            held_in.fit,
-            centre=centre,
-            region_half=half,
-            margin=0.0,
-            no_return_cap=self.no_return_cap,
-            seed=self.seed,
-        )
-        self.gp_.squash.variance_scale = kappa
-        return report
-
-    def make_cells(self, obs: Observations) -> Cells:
-        """The GP's inputs: the cell tree over `obs` with these settings."""
-        return build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
-
-    def make_evidence(
-        self, data: ScanData | Observations, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]
-    ) -> EvidenceLayer | None:
-        """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off)."""
-        if not self.ray_evidence or isinstance(data, Observations):
-            return None
-        resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
-        return EvidenceLayer(data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed)
-
-    @property
-    def n_inputs_(self) -> int:
-        """Number of GP inputs (cells)."""
-        self._check_fitted()
-        return len(self.cells_)
-
-    def _queries(self, points: NDArray[np.float64]) -> Supports:
-        return Supports.from_points(points)
-
-    def summary(self) -> dict[str, Any]:
-        """What was fitted: settings, data sizes, hyperparameters and stage timings."""
-        self._check_fitted()
-        obs = self.observations_
-        return {
-            "method": "msk-gpom",
-            "kernel": make_point_kernel(self.kernel).name,
-            "area": self.area_method,
-            "normalisation": self.normalisation,
-            "objective": self.objective,
-            "n_free_points": obs.n_free,
-            "n_occupied_points": obs.n_occupied,
-            "n_invalid_readings": obs.n_invalid,
-            "n_no_return_readings": obs.n_no_return,
-            "n_free_points_cleared": obs.n_cleared,
-            "n_cells": len(self.cells_),
-            "n_ambiguous_cells": int(self.cells_.ambiguous.sum()),
-            "hyperparameters": self.hyperparameters_,
-            "variance_scale_fit": dict(self.extrapolation_),
-            "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
-            "timings": dict(self.timings_),
-        }
+_PARAMETERS = frozenset(p for p in inspect.signature(AreaGPOM.__init__).parameters if p != "self")

@@ -25,8 +25,9 @@ anchored at `origin`, and fits one GP per tile on the cells near it:
    moments ``alpha m + beta`` and ``alpha^2 v`` are averaged with those weights and then
    squashed, so neither probability nor variance jumps at a tile border.
 
-A map whose data fall in one block is exactly the plain :class:`~gpomap.mapping.AreaGPOM`
-(same cells, same hyperparameters, same GP).
+This is the one engine of every MSK-GPOM map, a room or a building, 2-D or 3-D
+(:class:`~gpomap.mapping.AreaGPOM` is its scikit-learn style face). A map whose data fall in one
+block is one GP over that block's cells.
 """
 
 from __future__ import annotations
@@ -49,17 +50,18 @@ from scipy.linalg import cho_solve, solve_triangular
 from scipy.special import ndtr
 
 from gpomap.cells import build_cells
-from gpomap.config import DEFAULT_MAX_CELLS, DEFAULT_SCHEDULER_TIMEOUT, TilingConfig
+from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
+from gpomap.estimator import as_points
 from gpomap.fusion import EvidenceLayer
 from gpomap.gp import SupportGP, lower_product, robust_cholesky, triangular_inverse_for
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
-from gpomap.mapping import AreaGPOM
 from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
 from gpomap.scans import Scan
+from gpomap.settings import MapSettings
 from gpomap.squash import ProbitSquash
 from gpomap.supports import Supports
 
@@ -68,6 +70,12 @@ _KEY_OFFSET = 1 << 30
 _KEY_BASE = 1 << 31
 
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
+
+#: Most cells of the compact sample the hyperparameters are learnt on.
+DEFAULT_HYPER_SAMPLE = 800
+
+#: The map settings a TiledGPOM answers as its own attributes (read from its ``base``).
+_SETTING_NAMES = frozenset(MapConfig.__dataclass_fields__)
 
 #: The squash's variance scale is fitted on a held-in GP over a square this many tiles from its
 #: centre each way (gpomap.extrapolation): two tiles across, the cost of about four tiles.
@@ -128,7 +136,7 @@ def _area_kernel(settings: dict[str, Any], variance: float, length_scale: float)
     )
     kern = AreaKernel(base, settings["area"], settings["normalisation"], settings["quadrature_order"])
     # Same path as SupportGP's factorisation (clone from log theta), so a one-tile map matches
-    # AreaGPOM to the last bits.
+    # one SupportGP over its cells to the last bits.
     return kern.clone_with_theta(kern.theta)
 
 
@@ -374,6 +382,11 @@ class _BlockPoints:
             self._parts = [(np.concatenate([p for p, _ in self._parts]), np.concatenate([o for _, o in self._parts]))]
         return self._parts[0]
 
+    @property
+    def n_cleared(self) -> int:
+        """Free points found within the clearance of a hit at the last :meth:`free_near_hits`."""
+        return int(self._near.sum())
+
     def free_near_hits(self, clearance: float) -> NDArray[np.bool_]:
         """:func:`~gpomap.observations.free_near_hits` of the block's points, worked out for the new ones only.
 
@@ -444,7 +457,7 @@ class TiledGPOM:
         BLAS threads per local worker process; default the cores divided among the workers (at
         least 1), so the pool never runs more threads than there are cores.
     **options
-        :class:`~gpomap.mapping.AreaGPOM` options (kernel, free_step, min_cell, max_cell,
+        :class:`~gpomap.settings.MapSettings` options (kernel, free_step, min_cell, max_cell,
         length_scale, noise, optimise, ...). ``optimise=False`` keeps the given variance,
         length scale and noise; alpha and beta are then still fitted once on the sample.
     """
@@ -465,7 +478,7 @@ class TiledGPOM:
         origin: tuple[float, float] = (0.0, 0.0),
         n_workers: int | None = None,
         scheduler: Any = None,
-        hyper_sample: int = 800,
+        hyper_sample: int = DEFAULT_HYPER_SAMPLE,
         per_tile_hyperparameters: bool = False,
         blas_threads: int | None = None,
         scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
@@ -486,12 +499,18 @@ class TiledGPOM:
             raise ValueError(f"scheduler_timeout must be positive seconds, got {scheduler_timeout}")
         self.scheduler_timeout = float(scheduler_timeout)
         self._client: Any = None  # the distributed.Client of the stage running, if any
-        # AreaGPOM validates the options and holds their defaults.
-        self.base = AreaGPOM(**options)
+        # The map's own settings (kernel, cells, evidence), with their defaults.
+        self.base = MapSettings(**options)
         self.options = dict(options)
 
     def __repr__(self) -> str:
         return f"TiledGPOM(tile_size={self.tile_size}, overlap={self.overlap}, {self.base!r})"
+
+    def __getattr__(self, name: str) -> Any:
+        # The map's settings read as the model's own (model.kernel, model.thresholds, ...).
+        if name in _SETTING_NAMES and "base" in self.__dict__:
+            return getattr(self.__dict__["base"], name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     # ------------------------------------------------------------------ settings
     def _settings(self) -> dict[str, Any]:
@@ -893,6 +912,11 @@ class TiledGPOM:
             return 0
 
     # ------------------------------------------------------------------ fitting
+    def make_observations(self, data: ScanData | Observations) -> Observations:
+        """The labelled points this map's settings make of `data` (free points near hits dropped); see
+        :meth:`gpomap.settings.MapSettings.make_observations`."""
+        return self.base.make_observations(data)
+
     def _observations(self, scans: ScanData) -> Observations:
         # No free_clearance here: it is applied per block when the cells are built, so a hit
         # that arrives in a later update clears the free points near it just as a batch fit would.
@@ -946,7 +970,7 @@ class TiledGPOM:
         obs = data if isinstance(data, Observations) else self._observations(data)
         if obs.n_occupied == 0 or obs.n_free == 0:
             raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
-        # As in AreaGPOM: the clearance applies to points sampled from scans, not to given points.
+        # The clearance applies to points sampled from scans, not to given points.
         self._clearance = 0.0 if isinstance(data, Observations) else float(self.base.free_clearance)
         self._block_points = {}
         self._blocks = {}
@@ -1053,7 +1077,7 @@ class TiledGPOM:
         return report
 
     def _make_evidence(self) -> EvidenceLayer | None:
-        """Ray counts over every scan so far, calibrated against the tiles' GP (see AreaGPOM)."""
+        """Ray counts over every scan so far, calibrated against the tiles' GP (see gpomap.fusion)."""
         if self._scans is None:
             return None
         return self.base.make_evidence(self._scans, self.predict_proba_gp)
@@ -1226,7 +1250,7 @@ class TiledGPOM:
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Blended probability, latent mean, latent variance and probability for unseen space at points, each (m,)."""
-        pts = np.asarray(points, dtype=float).reshape(-1, self._dim)
+        pts = as_points(points, self._dim)
         m = pts.shape[0]
         h = 0.5 * self.blend_
         settings = self._settings()
@@ -1414,10 +1438,53 @@ class TiledGPOM:
 
     # ------------------------------------------------------------------ reporting
     @property
+    def bounds_(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Lower and upper corners of the labelled points' bounding box (the default map extent), each (d,)."""
+        self._check_fitted()
+        assert self._lower is not None and self._upper is not None  # fit sees both classes
+        return self._lower.copy(), self._upper.copy()
+
+    @property
+    def dim_(self) -> int:
+        """Dimension of the fitted map: 2 for planar scans, 3 for point clouds."""
+        self._check_fitted()
+        return self._dim
+
+    @property
     def n_inputs_(self) -> int:
         """Number of cells over the whole map (each counted once)."""
         self._check_fitted()
         return int(sum(len(b.counts) for b in self._blocks.values()))
+
+    def cell_boxes(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Every cell of the map once, in block order.
+
+        Returns
+        -------
+        lower, upper : ndarray of shape (n, d)
+            The cells' boxes.
+        labels : ndarray of shape (n,)
+            +1 occupied, -1 free.
+        """
+        self._check_fitted()
+        lo, hi, _, lab, _ = self._all_cells()
+        return lo, hi, lab
+
+    def training_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """The labelled points the cells were built from (free points near hits dropped).
+
+        Returns
+        -------
+        points : ndarray of shape (m, d)
+        occupied : ndarray of bool, shape (m,)
+        """
+        self._check_fitted()
+        parts = []
+        for k in sorted(self._block_points):
+            points, occupied = self._block_points[k].arrays()
+            keep = ~self._block_points[k].free_near_hits(self._clearance)
+            parts.append((points[keep], occupied[keep]))
+        return np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
 
     def summary(self) -> dict[str, Any]:
         """Tiles, cells per tile, hyperparameters and where they came from, stage timings, peak memory."""
@@ -1425,7 +1492,7 @@ class TiledGPOM:
         per = np.array([s.n_cells for s in self.tiles_.values()])
         secs = np.array([s.seconds for s in self.tiles_.values()])
         out: dict[str, Any] = {
-            "method": "tiled-msk-gpom",
+            "method": "msk-gpom",
             "kernel": make_point_kernel(self.base.kernel).name,
             "area": self.base.area_method,
             "tile_size": self.tile_size,
@@ -1446,6 +1513,7 @@ class TiledGPOM:
             "n_scans": self._n_scans,
             "n_invalid_readings": self._n_invalid,
             "n_no_return_readings": self._n_no_return,
+            "n_free_points_cleared": sum(b.n_cleared for b in self._block_points.values()),
             "hyperparameters": dict(self.hyperparameters_),
             "variance_scale_fit": dict(self.extrapolation_),
             "hyperparameter_source": dict(self.hyper_source_),
@@ -1463,44 +1531,3 @@ class TiledGPOM:
                 for v in [[s.hyperparameters[n] for s in self.tiles_.values()]]
             }
         return out
-
-
-def count_cells(data: Sequence[Scan] | Observations, **options: Any) -> int:
-    """How many cells an :class:`AreaGPOM` with these options would build from `data`."""
-    model = AreaGPOM(**options)
-    obs = model.make_observations(data)
-    return len(model.make_cells(obs))
-
-
-def area_gpom_for(
-    data: Sequence[Scan] | Observations,
-    max_cells: int | None = DEFAULT_MAX_CELLS,
-    tile_options: dict[str, Any] | None = None,
-    **options: Any,
-) -> tuple[AreaGPOM | TiledGPOM, int | None]:
-    """The MSK-GPOM estimator for `data`: one GP up to `max_cells` cells, tiles beyond.
-
-    Parameters
-    ----------
-    data : sequence of Scan, or Observations
-        What the model will be fitted on (only counted here, not fitted).
-    max_cells : int or None
-        Largest number of cells for one GP; None never tiles.
-    tile_options : dict, optional
-        Passed to :class:`TiledGPOM` (tile_size, n_workers, scheduler, ...).
-    **options
-        Passed to :class:`AreaGPOM` (or to each tile's).
-
-    Returns
-    -------
-    model : AreaGPOM or TiledGPOM
-        Unfitted.
-    n_cells : int or None
-        The cells counted (None when `max_cells` is None).
-    """
-    if max_cells is None:
-        return AreaGPOM(**options), None
-    n_cells = count_cells(data, **options)
-    if n_cells <= max_cells:
-        return AreaGPOM(**options), n_cells
-    return TiledGPOM(**(tile_options or {}), **options), n_cells

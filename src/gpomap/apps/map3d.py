@@ -9,8 +9,7 @@ The steps mirror the 2-D command:
    (``--range``, ``--scans``, ``--beams``: rays per cloud);
 2. before anything is fitted, the voxel grid and the GP are checked against the memory limit
    (:func:`gpomap.resources.voxel_grid_memory`, :func:`gpomap.resources.fit_memory`), and the
-   map is built as one GP up to ``--max-cells`` cells or in tiles (x, y columns of
-   ``--tile-size``) beyond, as :func:`gpomap.tiles.area_gpom_for` decides for 2-D maps;
+   map is built by the local GPs of every map, in x, y columns of ``--tile-size``;
 3. the voxel map at ``--resolution`` (0.1 m by default, OctoMap's usual) is written as one output
    set by :func:`gpomap.io.voxel_outputs.write_voxel_outputs`: ``map.npz``, ``map.bt``,
    ``map.ply`` (the p = 0.5 surface), ``map-slices.png`` (at ``--slices`` heights) and
@@ -59,7 +58,6 @@ DEFAULTS_3D: dict[str, float] = VOXEL_MAP_DEFAULTS
 
 #: Options of ``gpomap map`` that only 2-D inputs take, refused on clouds with this reason.
 _TWO_D_ONLY = {
-    "supersample": ("--supersample", "a voxel map samples each voxel's centre"),
     "chunk_scans": ("--chunk-scans", "incremental mapping takes planar scans"),
 }
 
@@ -264,43 +262,32 @@ def tile_options(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def build_model(
-    clouds: Sequence[CloudScan],
-    max_cells: int | None,
-    tiles: bool = False,
-    tile_options: dict[str, Any] | None = None,
-    **model_options: Any,
-) -> tuple[Any, Any, int]:
-    """The unfitted 3-D model for `clouds`: one GP up to `max_cells` cells, tiles beyond.
+    clouds: Sequence[CloudScan], tile_options: dict[str, Any] | None = None, **model_options: Any
+) -> tuple[Any, Any, Any]:
+    """The unfitted 3-D model for `clouds` (local GPs in x, y columns of tiles), with what the checks need.
 
     Parameters
     ----------
     clouds : sequence of CloudScan
-    max_cells : int or None
-        Largest number of cells of one GP (None: never tiles unless `tiles`).
-    tiles : bool
-        Tile whatever the count.
     tile_options : dict, optional
-        :class:`~gpomap.tiles.TiledGPOM` arguments.
+        Tiling arguments of :class:`~gpomap.mapping.AreaGPOM` (tile_size, n_workers, ...).
     **model_options
-        :class:`~gpomap.mapping.AreaGPOM` arguments.
+        Its map settings (:class:`~gpomap.settings.MapSettings`).
 
     Returns
     -------
-    model : AreaGPOM or TiledGPOM
+    model : AreaGPOM
     observations : Observations
         The labelled points of the clouds (for the extent and the memory checks).
-    n_cells : int
-        Cells of the single-GP tree over them.
+    cells : Cells
+        The cell tree over them, as one block (for the memory checks; the fit cuts it per tile).
     """
     from gpomap.mapping import AreaGPOM
-    from gpomap.tiles import TiledGPOM
+    from gpomap.settings import MapSettings
 
-    base = AreaGPOM(**model_options)
-    obs = base.make_observations(list(clouds))
-    n_cells = len(base.make_cells(obs))
-    if tiles or (max_cells is not None and n_cells > max_cells):
-        return TiledGPOM(**(tile_options or {}), **model_options), obs, n_cells
-    return base, obs, n_cells
+    settings = MapSettings(**model_options)
+    obs = settings.make_observations(list(clouds))
+    return AreaGPOM(**(tile_options or {}), **model_options), obs, settings.make_cells(obs)
 
 
 def apply_3d_defaults(args: argparse.Namespace) -> None:
@@ -310,12 +297,11 @@ def apply_3d_defaults(args: argparse.Namespace) -> None:
             setattr(args, name, value)
 
 
-def model_from_args(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, Any, int]:
+def model_from_args(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, Any, Any]:
     """:func:`build_model` with the options of a parsed ``gpomap map`` command line."""
     from gpomap import cli
 
-    tiling = cli._tiling_config(args)
-    return build_model(clouds, tiling.max_cells, tiles=args.tiles, tile_options=tiling.kwargs(), **cli._map_config(args).kwargs())
+    return build_model(clouds, cli._tiling_config(args).kwargs(), **cli._map_config(args).kwargs())
 
 
 def default_model(clouds: Sequence[CloudScan], **overrides: Any) -> tuple[Any, float]:
@@ -329,7 +315,7 @@ def default_model(clouds: Sequence[CloudScan], **overrides: Any) -> tuple[Any, f
 
     Returns
     -------
-    model : AreaGPOM or TiledGPOM
+    model : AreaGPOM
     resolution : float
         The voxel side ``gpomap map`` writes, metres.
     """
@@ -381,27 +367,15 @@ def _plan(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, N
     from gpomap import cli
     from gpomap.resources import largest_tile_cells
 
-    model, obs, n_cells = model_from_args(args, clouds)
+    model, obs, cells = model_from_args(args, clouds)
     lo, hi = voxel_bounds(obs.points, args.extent, args.z_range)
     check_voxel_memory(args, lo, hi, 0)
-    tiled = not hasattr(model, "make_cells")
-    if tiled:
-        if not args.tiles:
-            cli._status(
-                args,
-                f"  {n_cells} cells are more than one GP should hold (--max-cells {args.max_cells}): "
-                f"mapping in x, y columns of {args.tile_size:g} m",
-            )
-        base = model.base
-        cells = base.make_cells(obs)
-        overlap = min(args.tile_size, 2.5 * base.length_scale)
-        per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], args.tile_size, overlap)
-        n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
-        cli._check_fit_memory(args, per_tile, n_at_once, f"the largest of the columns of {args.tile_size:g} m")
-    else:
-        cli._check_fit_memory(args, n_cells, 1, "one GP over the whole map")
-        check_voxel_memory(args, lo, hi, n_cells)
-    return model, lo, hi, n_cells
+    overlap = min(args.tile_size, 2.5 * model.length_scale)
+    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], args.tile_size, overlap)
+    n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
+    cli._check_fit_memory(args, per_tile, n_at_once, f"the largest of the columns of {args.tile_size:g} m")
+    check_voxel_memory(args, lo, hi, per_tile)
+    return model, lo, hi, len(cells)
 
 
 def cmd_map3d(args: argparse.Namespace) -> int:
@@ -418,8 +392,7 @@ def cmd_map3d(args: argparse.Namespace) -> int:
     n_rays = sum(c.n_points for c in clouds)
     cli._status(args, f"  {len(clouds)} scans, {n_rays} rays")
     model, lo, hi, n_cells = _plan(args, clouds)
-    tiled = not hasattr(model, "make_cells")
-    cli._status(args, f"fitting {'tiled ' if tiled else ''}MSK-GPOM in 3-D ({args.kernel}, {n_cells} cells)...")
+    cli._status(args, f"fitting MSK-GPOM in 3-D ({args.kernel}, about {n_cells} cells)...")
     t = time.perf_counter()
     model.fit(clouds)
     fit_s = time.perf_counter() - t
@@ -436,10 +409,7 @@ def cmd_map3d(args: argparse.Namespace) -> int:
     cli._report_fit(model, voxel_map)
     summary = model.summary()
     source = hyperparameter_source(model)
-    if tiled:
-        cli._print_tiled_summary(summary, [], source if source.startswith("at bound") else None)
-    else:
-        cli._print_summary({"n_scans": len(clouds), **summary}, [], source)
+    cli._print_map_summary(summary, [], source if source.startswith("at bound") else None)
     print(_voxel_line(voxel_map, grid_s, write_s))
     print("\n".join(f"wrote        {f}" for f in files))
     return cli.EXIT_OK

@@ -260,7 +260,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     cli._add_selection_options(p)
     cli._add_model_options(p)
     # As ``gpomap map``: the written map's cells are the ray counts' (--evidence-resolution).
-    cli._add_output_options(p, cli._Default(MapConfig.evidence_resolution), supersample=False)
+    cli._add_output_options(p, cli._Default(MapConfig.evidence_resolution))
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_stream)
     return p
@@ -300,7 +300,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
     extent = (
         args.extent if args.extent is not None else scan_extent(scans, include_no_return=True, no_return_cap=args.no_return_cap)
     )
-    cli._check_grid_memory(args, grid_shape(extent, args.resolution), extent, 1, 0)
+    cli._check_grid_memory(args, grid_shape(extent, args.resolution), extent, 0)
     mapper = mapper_from_args(args)
     title = f"gpomap stream: {Path(args.input).name}"
 

@@ -1,0 +1,243 @@
+"""The settings of an MSK-GPOM map and the pieces they build, shared by every path of the engine.
+
+:class:`MapSettings` turns scans into labelled points (:meth:`~MapSettings.make_observations`),
+points into cells (:meth:`~MapSettings.make_cells`), settings into an area kernel
+(:meth:`~MapSettings.make_kernel`) and scans into the ray-evidence layer
+(:meth:`~MapSettings.make_evidence`). The engine (:class:`~gpomap.tiles.TiledGPOM`, whose
+scikit-learn style face is :class:`~gpomap.mapping.AreaGPOM`) and grid conversion
+(:class:`~gpomap.convert.GridGPOM`) read their settings from here, so each is stated once.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.cells import Cells, build_cells
+from gpomap.config import MapConfig
+from gpomap.errors import EmptyDataError
+from gpomap.fusion import EvidenceLayer
+from gpomap.kernels.area import AreaKernel
+from gpomap.kernels.point import make_point_kernel
+from gpomap.observations import Observations, ScanData, data_dim, observations_from_scans
+
+
+class MapSettings:
+    """The settings of one MSK-GPOM map, and what they build: observations, cells, kernel, ray evidence.
+
+    Not an estimator: :class:`~gpomap.mapping.AreaGPOM` holds one and fits with it. Every default
+    comes from :class:`~gpomap.config.MapConfig`; why each was chosen is said below.
+
+    Parameters
+    ----------
+    kernel : {"matern32", "se"}
+        Point kernel under the area kernel.
+    area : {"exact", "quadrature", "summed"}, optional
+        How cell averages are computed; default "exact" for "se", "quadrature" for "matern32".
+    normalisation : {"mean", "sum"}
+        Average the kernel over cells ("mean") or sum it over member points ("sum", the paper).
+    free_step : float
+        Spacing of free points along beams, metres.
+    hit_margin : float, optional
+        Free points stop this short of a hit (default half of `free_step`).
+    no_return_cap : float or None
+        Free points along a no-return beam go this far (never beyond the max range; None: to the
+        max range). 10 m by default: the SICK logs record no-return as 80 m, and trusting free
+        space that far filled a 160 m square around the Intel lab (a 14 GB, 10-minute run instead
+        of 1 GB and 37 s); on Belgioioso it measured as well or better (Matern 3/2: AUC 0.897
+        against 0.890 uncapped).
+    free_clearance : float
+        Free points closer than this (metres) to any hit are dropped, so beams grazing a wall do
+        not mark the wall free (see :func:`gpomap.observations.free_near_hits`); applies to scans,
+        not to labelled points given to ``fit``. 0.3 m by default, chosen on Intel and CSAIL
+        (scans 300-364, every 5th held out, 37 beams): held-out AUC 0.856 / 0.836 with none, 0.959 /
+        0.954 at 0.2 m, 0.970 / 0.963 at 0.3 m, 0.942 / 0.955 at 0.5 m. In 3-D too (la3dm
+        sim_structured, every 4th scan held out, SE, 0.5 m cells: AUC 0.828, log loss 0.656
+        against 0.784, 0.730 with none), though there it drops over half the free points (rays
+        grazing the floor) and the kd-tree query takes about 1 s of the observations' 1.1 s.
+    min_cell, max_cell : float
+        Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`). ``max_cell`` is 0.5 m by
+        default: with mean normalisation a cell much larger than the length scale has a small
+        prior variance and says little about the points inside it, and real logs learn length
+        scales of 0.3-0.7 m. Held-out AUC (SE), 0.5 m against 1 m, on windows of 65 scans (every
+        5th held out, 37 beams): Intel 0.976 / 0.949 against 0.970 / 0.813, CSAIL 0.971 against
+        0.963, FR079 0.978 against 0.965, Belgioioso's two rooms 0.982 against 0.976, at about
+        twice the cells. The synthetic room, whose length scale is longer, prefers 1 m (0.9955
+        against 0.9937, in half the time). See docs/choices.md.
+    cell_box : {"node", "tight"}
+        Each cell's box: the tree node ("node") or its points' bounding box ("tight").
+    variance, length_scale, noise : float
+        Starting hyperparameters (kept as they are with ``optimise=False``).
+    length_scale_bounds, noise_bounds : (float, float)
+        Bounds of the hyperparameter search.
+    noise_model : {"constant", "per_count"}
+        Noise per cell: one level for all, or divided by the cell's member count (default: a cell
+        averaging m points is m times surer than one; synthetic room SE AUC 0.98 against 0.88).
+    objective : {"loo", "lml"}
+        Hyperparameter objective: leave-one-out probit predictive probability (default; the
+        marginal likelihood collapses on real cells, see the docs) or log marginal likelihood.
+    optimise : bool
+        Learn the hyperparameters; False keeps them (alpha and beta are still fitted).
+    n_restarts : int
+        Extra seeded starts of the hyperparameter search.
+    hyper_subset : int or None
+        Learn hyperparameters on a compact block of at most this many cells (None: all).
+    prior_std : float or None
+        Width (log space) of the weak prior keeping length scale and noise near their starting
+        values where the objective is flat; None: no prior.
+    class_weight : {"balanced", None}
+        Weighting of free and occupied cells in the leave-one-out objective and the squash fit.
+        "balanced" (default) weighs both classes equally: free cells outnumber occupied ones
+        several times over, and unweighted the search can settle on maps that call everything
+        free (held-out AUC, unweighted against balanced: Belgioioso whole log 0.920 / 0.925
+        against 0.943 / 0.946 (SE / Matern 3/2), an Intel window 0.31 against 0.79).
+    seed : int
+        Seed of those starts.
+    quadrature_order : int
+        Gauss-Legendre nodes per cell side for ``area="quadrature"``. 2 measured as accurate as 3
+        on the synthetic room's held-out AUC (0.9815 against 0.9819) at a quarter of the cost.
+    thresholds : (float, float)
+        Free-below and occupied-above probabilities of the ternary map.
+    chunk_size : int
+        Query points per prediction chunk.
+    ray_evidence : bool
+        Update the GP's probability with each fine cell's ray counts (see :mod:`gpomap.fusion`):
+        scans that ended a beam in the cell and scans that crossed it, weighed by a calibration
+        fitted on the map's own scans, one held out at a time. Only for scans (labelled points
+        carry no rays). True by default: where the robot has data the map is then as sharp as an
+        occupancy grid and its probabilities are calibrated, and elsewhere it is the GP's.
+    evidence_resolution : float
+        Side of the fine cells of exact-point predictions, metres (a written grid counts on its
+        own cells).
+    evidence_resolution_3d : float
+        The same for 3-D maps (voxels). 0.1 m, OctoMap's resolution on the la3dm scans: a 3-D
+        lidar's rays are sparse, and at 5 cm few voxels would be crossed by more than one scan.
+    calibration_scans : int
+        Scans held out in turn to fit the evidence calibration.
+    """
+
+    def __init__(
+        self,
+        kernel: str = MapConfig.kernel,
+        area: str | None = MapConfig.area,
+        normalisation: str = MapConfig.normalisation,
+        free_step: float = MapConfig.free_step,
+        hit_margin: float | None = MapConfig.hit_margin,
+        no_return_cap: float | None = MapConfig.no_return_cap,
+        free_clearance: float = MapConfig.free_clearance,
+        min_cell: float = MapConfig.min_cell,
+        max_cell: float = MapConfig.max_cell,
+        cell_box: str = MapConfig.cell_box,
+        variance: float = MapConfig.variance,
+        length_scale: float = MapConfig.length_scale,
+        noise: float = MapConfig.noise,
+        length_scale_bounds: tuple[float, float] = MapConfig.length_scale_bounds,
+        noise_bounds: tuple[float, float] = MapConfig.noise_bounds,
+        noise_model: str = MapConfig.noise_model,
+        objective: str = MapConfig.objective,
+        optimise: bool = MapConfig.optimise,
+        n_restarts: int = MapConfig.n_restarts,
+        hyper_subset: int | None = MapConfig.hyper_subset,
+        prior_std: float | None = MapConfig.prior_std,
+        class_weight: str | None = MapConfig.class_weight,
+        seed: int = MapConfig.seed,
+        quadrature_order: int = MapConfig.quadrature_order,
+        thresholds: tuple[float, float] = MapConfig.thresholds,
+        chunk_size: int = MapConfig.chunk_size,
+        ray_evidence: bool = MapConfig.ray_evidence,
+        evidence_resolution: float = MapConfig.evidence_resolution,
+        calibration_scans: int = MapConfig.calibration_scans,
+        evidence_resolution_3d: float = MapConfig.evidence_resolution_3d,
+    ) -> None:
+        self.kernel = kernel
+        self.area = area
+        self.normalisation = normalisation
+        self.free_step = free_step
+        self.hit_margin = hit_margin
+        self.no_return_cap = no_return_cap
+        self.free_clearance = free_clearance
+        self.min_cell = min_cell
+        self.max_cell = max_cell
+        self.cell_box = cell_box
+        self.variance = variance
+        self.length_scale = length_scale
+        self.noise = noise
+        self.length_scale_bounds = length_scale_bounds
+        self.noise_bounds = noise_bounds
+        self.noise_model = noise_model
+        self.objective = objective
+        self.optimise = optimise
+        self.n_restarts = n_restarts
+        self.hyper_subset = hyper_subset
+        self.prior_std = prior_std
+        self.class_weight = class_weight
+        self.seed = seed
+        self.quadrature_order = quadrature_order
+        self.thresholds = thresholds
+        self.chunk_size = chunk_size
+        self.ray_evidence = ray_evidence
+        self.evidence_resolution = evidence_resolution
+        self.calibration_scans = calibration_scans
+        self.evidence_resolution_3d = evidence_resolution_3d
+
+    def __repr__(self) -> str:
+        return f"kernel={self.kernel!r}, area={self.area_method!r}, min_cell={self.min_cell}, max_cell={self.max_cell}"
+
+    def get_params(self) -> dict[str, Any]:
+        """The settings, by name (the fields of :class:`~gpomap.config.MapConfig`)."""
+        return {name: getattr(self, name) for name in MapConfig.__dataclass_fields__}
+
+    @property
+    def area_method(self) -> str:
+        """The area-kernel method in use (the default depends on the kernel)."""
+        if self.area is not None:
+            return self.area
+        return "exact" if make_point_kernel(self.kernel).name == "se" else "quadrature"
+
+    def make_kernel(self) -> AreaKernel:
+        """The area kernel these settings describe, at the starting hyperparameters."""
+        base = make_point_kernel(
+            self.kernel, variance=self.variance, length_scale=self.length_scale, length_scale_bounds=self.length_scale_bounds
+        )
+        return AreaKernel(base, self.area_method, self.normalisation, self.quadrature_order)
+
+    def make_observations(self, data: ScanData | Observations, clearance: bool = True) -> Observations:
+        """Labelled points from scans, or `data` itself when it already is (taken as it is).
+
+        Parameters
+        ----------
+        data : sequence of Scan or CloudScan, or Observations
+        clearance : bool
+            Drop free points within ``free_clearance`` of a hit (the engine applies it per block
+            instead, so that hits arriving later clear them too).
+
+        Raises
+        ------
+        EmptyDataError
+            When either class is missing.
+        """
+        if isinstance(data, Observations):
+            obs = data
+        else:
+            obs = observations_from_scans(
+                data, self.free_step, self.hit_margin, self.no_return_cap, self.free_clearance if clearance else 0.0
+            )
+        if obs.n_occupied == 0 or obs.n_free == 0:
+            raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
+        return obs
+
+    def make_cells(self, obs: Observations) -> Cells:
+        """The GP's inputs: the cell tree over `obs` with these settings."""
+        return build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
+
+    def make_evidence(
+        self, data: ScanData | Observations, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]
+    ) -> EvidenceLayer | None:
+        """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off)."""
+        if not self.ray_evidence or isinstance(data, Observations):
+            return None
+        resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
+        return EvidenceLayer(data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed)
