@@ -277,3 +277,25 @@ def test_objectives_fall_back_to_jitter_when_plain_factorisation_fails(objective
         expected = -0.5 * y @ K_inv @ y - np.log(np.diag(L)).sum() - 1.5 * np.log(2 * np.pi)
     assert value == pytest.approx(expected, rel=1e-6)
     assert np.all(np.isfinite(grad))
+
+
+def test_loo_objective_with_the_kernels_prepared_distances():
+    # The search reuses the quadrature kernel's node distances from one evaluation to the next:
+    # the same objective and gradient to round-off, and the gradient still exact.
+    X, y = _data(4, 40)
+    gp = SupportGP(AreaKernel(Matern32(1.0, 1.0), "quadrature"), noise_model="per_count")
+    prepared = gp.kernel.prepare(X)
+    assert prepared is not None
+    params = np.array([0.0, np.log(0.8), np.log(0.1), np.log(1.5), 0.0])
+    value, grad = gp.loo_objective(X, y, params, eval_gradient=True)
+    value1, grad1 = gp._loo_objective(X, y, params, True, prepared)
+    assert value1 == pytest.approx(value, rel=1e-12)
+    np.testing.assert_allclose(grad1, grad, rtol=1e-10, atol=1e-12)
+    fd = _fd(lambda p: gp._loo_objective(X, y, p, False, prepared), params)
+    np.testing.assert_allclose(grad1, fd, rtol=1e-5, atol=1e-6)
+    lml, lml_grad = gp.log_marginal_likelihood(X, y, params[:3], eval_gradient=True)
+    lml1, lml_grad1 = gp._log_marginal_likelihood(X, y, params[:3], True, prepared)
+    assert lml1 == pytest.approx(lml, rel=1e-12)
+    np.testing.assert_allclose(lml_grad1, lml_grad, rtol=1e-10, atol=1e-12)
+    # The exact SE kernel has nothing to prepare.
+    assert AreaKernel(SquaredExponential(1.0, 1.0), "exact").prepare(X) is None

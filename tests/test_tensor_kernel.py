@@ -128,3 +128,46 @@ def test_length_scale_gram_is_exactly_symmetric_and_the_full_gradients_part(dim,
     np.testing.assert_array_equal(K1, K)
     np.testing.assert_array_equal(dK1[:, :, 0], K)
     np.testing.assert_array_equal(dK1[:, :, 1], dL)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("kernel", KERNELS, ids=lambda k: type(k).__name__)
+@pytest.mark.parametrize("block", [5, 2000, 1 << 16])
+def test_cached_node_distances_give_the_same_gram(dim, kernel, block):
+    from gpomap.kernels.tensor import tensor_distances, tensor_gram_length_scale
+
+    rng = np.random.default_rng(dim + 20)
+    A = concatenate([_boxes(rng, 29, dim), Supports.from_points(rng.uniform(0, 5, (7, dim))), _boxes(rng, 5, dim)])
+    distances = tensor_distances(A, 2, block)
+    assert distances is not None and distances.fits(A, 2, block)
+    K0, dL0 = tensor_gram_length_scale(kernel, A, None, 2, eval_gradient=True, block=block)
+    K1, dL1 = tensor_gram_length_scale(kernel, A, None, 2, eval_gradient=True, block=block, distances=distances)
+    assert dL0 is not None and dL1 is not None
+    if kernel.unit_scale is None:
+        # No unit form: the distances are not used.
+        np.testing.assert_array_equal(K1, K0)
+    np.testing.assert_allclose(K1, K0, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(dL1, dL0, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(K1, K1.T)
+    # Distances of other inputs, another rule or another block size are not taken.
+    other = Supports.from_boxes(A.lower.copy(), A.upper.copy())
+    for args in [(other, 2, block), (A, 3, block), (A, 2, block + 1)]:
+        K2, _ = tensor_gram_length_scale(kernel, args[0], None, args[1], block=args[2], distances=distances)
+        K3, _ = tensor_gram_length_scale(kernel, args[0], None, args[1], block=args[2])
+        np.testing.assert_array_equal(K2, K3)
+    # More pairs than allowed: none kept.
+    assert tensor_distances(A, 2, block, max_pairs=100) is None
+
+
+@pytest.mark.parametrize("kernel", [Matern32(1.3, 0.7), SquaredExponential(0.8, 1.1)], ids=lambda k: type(k).__name__)
+def test_unit_profile_from_distances_is_the_profile_of_their_squares(kernel):
+    u = np.random.default_rng(3).uniform(0, 6, 1000)
+    out0, grad0 = np.empty_like(u), np.empty_like(u)
+    kernel.unit_profile_into(u * u, out0, grad0)
+    out1, grad1 = np.empty_like(u), np.empty_like(u)
+    kernel.unit_profile_from_distance_into(u.copy(), out1, grad1, np.empty_like(u))
+    np.testing.assert_allclose(out1, out0, rtol=1e-14, atol=1e-300)
+    np.testing.assert_allclose(grad1, grad0, rtol=1e-14, atol=1e-300)
+    out2 = np.empty_like(u)
+    kernel.unit_profile_from_distance_into(u.copy(), out2)
+    np.testing.assert_array_equal(out2, out1)

@@ -27,6 +27,7 @@ from scipy.optimize import minimize
 
 from gpomap.errors import NotFittedError, NumericalError
 from gpomap.kernels.area import AreaKernel
+from gpomap.kernels.tensor import TensorDistances
 from gpomap.squash import CLASS_WEIGHTS, SQUASH_BOUNDS, ProbitSquash, class_weights, loo_probit, probit_gradient_in_shift
 from gpomap.supports import Supports
 
@@ -310,9 +311,16 @@ class SupportGP:
         return L, dK, nvec
 
     def _objective_factor(
-        self, theta: NDArray[np.float64], log_noise: float, X: Supports, eval_gradient: bool
+        self,
+        theta: NDArray[np.float64],
+        log_noise: float,
+        X: Supports,
+        eval_gradient: bool,
+        prepared: TensorDistances | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64]]:
         """The objectives' covariance, factorised: what :meth:`_factor` gives, laid out for the gradients.
+
+        `prepared`: the kernel's ``prepare(X)``, reused by its gradient evaluation.
 
         Returns
         -------
@@ -331,7 +339,7 @@ class SupportGP:
         if hasattr(kern, "gram_and_length_scale_gradient"):
             # Exactly symmetric by construction.
             if eval_gradient:
-                K, dL = kern.gram_and_length_scale_gradient(X)
+                K, dL = kern.gram_and_length_scale_gradient(X, prepared)
             else:
                 K = kern(X)
         else:
@@ -380,7 +388,18 @@ class SupportGP:
         value : float
         grad : ndarray of shape (3,), only with `eval_gradient`
         """
-        L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient)
+        return self._log_marginal_likelihood(X, y, params, eval_gradient)
+
+    def _log_marginal_likelihood(
+        self,
+        X: Supports,
+        y: NDArray[np.float64],
+        params: NDArray[np.float64],
+        eval_gradient: bool,
+        prepared: TensorDistances | None = None,
+    ) -> float | tuple[float, NDArray[np.float64]]:
+        """:meth:`log_marginal_likelihood`, with the kernel's ``prepare(X)`` (see :meth:`_objective_factor`)."""
+        L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient, prepared)
         a = cho_solve((L, True), y, check_finite=False)
         n = y.size
         value = -0.5 * y @ a - np.log(np.diag(L)).sum() - 0.5 * n * np.log(2 * np.pi)
@@ -422,7 +441,18 @@ class SupportGP:
         value : float
         grad : ndarray of shape (5,), only with `eval_gradient`
         """
-        L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient)
+        return self._loo_objective(X, y, params, eval_gradient)
+
+    def _loo_objective(
+        self,
+        X: Supports,
+        y: NDArray[np.float64],
+        params: NDArray[np.float64],
+        eval_gradient: bool,
+        prepared: TensorDistances | None = None,
+    ) -> float | tuple[float, NDArray[np.float64]]:
+        """:meth:`loo_objective`, with the kernel's ``prepare(X)`` (see :meth:`_objective_factor`)."""
+        L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient, prepared)
         K_inv = _inverse_in_place(L)
         a = K_inv @ y
         d = np.diag(K_inv).copy()
@@ -518,7 +548,10 @@ class SupportGP:
             x0_list += [np.log(max(self.squash.alpha, 1e-3)), self.squash.beta / max(self.squash.alpha, 1e-3)]
             free = np.concatenate([free, [True, True]])
         x0 = np.asarray(x0_list, dtype=float)
-        fun = self.loo_objective if loo else self.log_marginal_likelihood
+        fun = self._loo_objective if loo else self._log_marginal_likelihood
+        # What the kernel can reuse between evaluations on X (the quadrature's node distances),
+        # held for this search only.
+        prepared = self.kernel.prepare(X) if hasattr(self.kernel, "prepare") else None
         n_eval = 0
 
         def neg(z: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
@@ -527,7 +560,9 @@ class SupportGP:
             p = x0.copy()
             p[free] = z
             try:
-                v, g = fun(X, y, p, eval_gradient=True)
+                out = fun(X, y, p, True, prepared)
+                assert isinstance(out, tuple)  # asked for the gradient
+                v, g = out
             except NumericalError:
                 return 1e25, np.zeros(int(free.sum()))
             if self.prior_std is not None:

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from gpomap.kernels.closed_form import se_box_average, se_box_gram, se_box_self_average
 from gpomap.kernels.nodes import NodeSet, member_nodes, quadrature_nodes, weighted_gram, weighted_self
 from gpomap.kernels.point import PointKernel, SquaredExponential, make_point_kernel
-from gpomap.kernels.tensor import tensor_gram, tensor_gram_length_scale, tensor_self
+from gpomap.kernels.tensor import TensorDistances, tensor_distances, tensor_gram, tensor_gram_length_scale, tensor_self
 from gpomap.supports import Supports
 
 AREA_METHODS = ("exact", "quadrature", "summed")
@@ -160,7 +160,22 @@ class AreaKernel:
                 dK = dK * scale[:, :, None]
         return (K, dK) if eval_gradient else K
 
-    def gram_and_length_scale_gradient(self, A: Supports) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def prepare(self, A: Supports) -> TensorDistances | None:
+        """What :meth:`gram_and_length_scale_gradient` of `A` can reuse from one set of hyperparameters to the next.
+
+        The quadrature kernel's node-pair distances (:func:`~gpomap.kernels.tensor.tensor_distances`,
+        up to its memory bound); None for the other methods (the exact kernel's work depends on
+        the length scale throughout) or when there are too many. Hold it only while `A` is
+        evaluated again and again (a hyperparameter search): it costs memory.
+        """
+        # Only kernels with a unit form evaluate from scaled distances.
+        if self.method == "quadrature" and A.dim in TENSOR_DIMS and self.base.unit_scale is not None:
+            return tensor_distances(A, self.quadrature_order)
+        return None
+
+    def gram_and_length_scale_gradient(
+        self, A: Supports, prepared: TensorDistances | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The Gram matrix of `A` and its derivative with respect to log length scale.
 
         The same numbers as ``self(A, eval_gradient=True)``, without the derivative with respect
@@ -171,6 +186,8 @@ class AreaKernel:
         ----------
         A : Supports
             n inputs.
+        prepared : optional
+            :meth:`prepare` of `A` (the same numbers to round-off, faster).
 
         Returns
         -------
@@ -179,17 +196,19 @@ class AreaKernel:
         dK_dlog_length_scale : ndarray of shape (n, n)
             Exactly symmetric.
         """
-        K, dL = self._gram(A, True)
+        K, dL = self._gram(A, True, prepared)
         assert dL is not None  # asked for
         return K, dL
 
-    def _gram(self, A: Supports, eval_gradient: bool) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    def _gram(
+        self, A: Supports, eval_gradient: bool, prepared: TensorDistances | None = None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """K(A, A), exactly symmetric, and (with `eval_gradient`) dK / dlog(length_scale), both (n, n)."""
         dL: NDArray[np.float64] | None
         if self.method == "exact":
             K, dL = se_box_gram(A.lower, A.upper, self.base.variance, self.base.length_scale, eval_gradient, self.max_block)
         elif self.method == "quadrature" and A.dim in TENSOR_DIMS:
-            K, dL = tensor_gram_length_scale(self.base, A, None, self.quadrature_order, eval_gradient)
+            K, dL = tensor_gram_length_scale(self.base, A, None, self.quadrature_order, eval_gradient, distances=prepared)
         else:
             na = self.nodes(A)
             K, dK = weighted_gram(self.base, na, na, eval_gradient, self.max_block)

@@ -208,11 +208,14 @@ def _group_gram(
     symmetric: bool,
     mirror: bool,
     block: int,
+    distances: list[NDArray[np.float64]] | None = None,
 ) -> None:
     """The averaged kernel between groups `a` and `b`, written at ``K[rows, cols]`` (and d/dlog l in `dL`).
 
     `symmetric`: `a` is `b` (each pair of inputs computed once); `mirror`: also write the
-    transpose at ``K[cols, rows]`` (the Gram matrix of one set of inputs).
+    transpose at ``K[cols, rows]`` (the Gram matrix of one set of inputs); `distances`: the
+    node-pair distances of each block, in the inputs' units (:func:`tensor_distances`), used
+    instead of forming them when the kernel has a unit form.
     """
     n, m = len(a), len(b)
     d = a.dim
@@ -230,6 +233,7 @@ def _group_gram(
     cols_per = max(1, min(m, block // pairs))
     rows_per = max(1, min(n, block // (pairs * cols_per)))
     work = _Work(pairs * rows_per * cols_per, a.order * b.order * rows_per * cols_per, d, dL is not None)
+    cached = iter(distances) if distances is not None and scale is not None else None
     for r0 in range(0, n, rows_per):
         r1 = min(n, r0 + rows_per)
         rr = _as_slice(rows[r0:r1])
@@ -238,13 +242,19 @@ def _group_gram(
             c1 = min(m, c0 + cols_per)
             cc = _as_slice(cols[c0:c1])
             shape = (*node_shape, r1 - r0, c1 - c0)
-            d2 = _squared_distances(a, b, slice(r0, r1), slice(c0, c1), work.view(work.d2, shape), work)
             kp = work.view(work.value, shape)
             dkp = None if work.grad is None else work.view(work.grad, shape)
-            if scale is None:
-                kernel.values_into(d2, kp, dkp, work.view(work.work, shape))
+            if cached is not None:
+                assert scale is not None  # a cache is only taken with a unit form
+                # Scaled distances from the cached ones: no squared differences, no square root.
+                u = np.multiply(next(cached), scale, out=work.view(work.d2, shape))
+                kernel.unit_profile_from_distance_into(u, kp, dkp, work.view(work.work, shape))
             else:
-                kernel.unit_profile_into(d2, kp, dkp, work.view(work.work, shape))
+                d2 = _squared_distances(a, b, slice(r0, r1), slice(c0, c1), work.view(work.d2, shape), work)
+                if scale is None:
+                    kernel.values_into(d2, kp, dkp, work.view(work.work, shape))
+                else:
+                    kernel.unit_profile_into(d2, kp, dkp, work.view(work.work, shape))
             value = (w @ kp.reshape(pairs, -1)).reshape(r1 - r0, c1 - c0)
             if symmetric and c0 == r0:
                 _symmetrise_leading(value)
@@ -305,6 +315,7 @@ def tensor_gram_length_scale(
     order: int = 2,
     eval_gradient: bool = False,
     block: int = BLOCK_PAIRS,
+    distances: TensorDistances | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
     """:func:`tensor_gram` with only the length-scale derivative, as its own contiguous array.
 
@@ -317,6 +328,10 @@ def tensor_gram_length_scale(
         As for :func:`tensor_gram`.
     eval_gradient : bool
         Also return dK / dlog(length_scale).
+    distances : TensorDistances, optional
+        The node-pair distances of ``K(A, A)`` from :func:`tensor_distances`, reused (for
+        ``B=None`` and when they were taken for `A`, `order` and `block`; ignored otherwise).
+        The same numbers to round-off.
 
     Returns
     -------
@@ -329,12 +344,97 @@ def tensor_gram_length_scale(
     n, m = len(A), len(A) if B is None else len(B)
     K = np.empty((n, m))
     dL = np.empty((n, m)) if eval_gradient else None
+    cached = distances.blocks if distances is not None and symmetric and distances.fits(A, order, block) else None
     for ga, (rows, a) in enumerate(zip(ia, ra, strict=True)):
         for gb, (cols, b) in enumerate(zip(ib, rb, strict=True)):
             if symmetric and gb < ga:
                 continue  # the transpose of a block done
-            _group_gram(kernel, a, b, rows, cols, K, dL, symmetric and ga == gb, symmetric, block)
+            near = None if cached is None else cached[(ga, gb)]
+            _group_gram(kernel, a, b, rows, cols, K, dL, symmetric and ga == gb, symmetric, block, near)
     return K, dL
+
+
+#: Most node-pair distances :func:`tensor_distances` keeps (8 bytes each): 2^23 is 64 MB, enough
+#: for the hyperparameter sample of 800 cells at order 2 (5.1 M pairs, 41 MB).
+MAX_CACHED_PAIRS: int = 1 << 23
+
+
+@dataclass(frozen=True)
+class TensorDistances:
+    """The node-pair distances of the Gram matrix of one set of inputs, block by block.
+
+    They do not depend on the hyperparameters, so a search over them (every evaluation forms
+    ``K(A, A)`` anew) forms them once and each evaluation only scales them.
+
+    Attributes
+    ----------
+    lower, upper : ndarray of shape (n, d)
+        The inputs' bounds they were taken for (the very arrays: checked by identity).
+    order, block : int
+        The rule and the block size they were taken with.
+    blocks : dict
+        ``(ga, gb)`` (groups of :func:`tensor_rules`) to the distances of each block, in the
+        order :func:`_group_gram` visits them.
+    """
+
+    lower: NDArray[np.float64]
+    upper: NDArray[np.float64]
+    order: int
+    block: int
+    blocks: dict[tuple[int, int], list[NDArray[np.float64]]]
+
+    def fits(self, A: Supports, order: int, block: int) -> bool:
+        """Whether these are the distances of `A` with this rule and block size."""
+        return A.lower is self.lower and A.upper is self.upper and order == self.order and block == self.block
+
+
+def tensor_distances(
+    A: Supports, order: int = 2, block: int = BLOCK_PAIRS, max_pairs: int = MAX_CACHED_PAIRS
+) -> TensorDistances | None:
+    """The node-pair distances of ``K(A, A)`` for :func:`tensor_gram_length_scale`, or None when there are more than `max_pairs`.
+
+    Parameters
+    ----------
+    A : Supports
+    order : int
+        Gauss-Legendre nodes per box side.
+    block : int
+        Most node pairs per block (as the Gram matrix will be evaluated with).
+    max_pairs : int
+        Most distances kept; bounds memory.
+    """
+    _, rules = tensor_rules(A, order)
+    total = 0
+    for ga, a in enumerate(rules):
+        for b in rules[ga:]:
+            pairs = a.order**a.dim * b.order**b.dim
+            total += pairs * (len(a) * len(b) if a is not b else len(a) * (len(a) + 1) // 2)
+    if total > max_pairs:
+        return None
+    blocks: dict[tuple[int, int], list[NDArray[np.float64]]] = {}
+    for ga, a in enumerate(rules):
+        for gb in range(ga, len(rules)):
+            blocks[(ga, gb)] = _block_distances(a, rules[gb], ga == gb, block)
+    return TensorDistances(A.lower, A.upper, order, block, blocks)
+
+
+def _block_distances(a: TensorRule, b: TensorRule, symmetric: bool, block: int) -> list[NDArray[np.float64]]:
+    """The node-pair distances of each block :func:`_group_gram` forms for groups `a` and `b`, in its order."""
+    n, m, d = len(a), len(b), a.dim
+    pairs = a.order**d * b.order**d
+    node_shape = [a.order] * d + [b.order] * d
+    cols_per = max(1, min(m, block // pairs))
+    rows_per = max(1, min(n, block // (pairs * cols_per)))
+    work = _Work(pairs * rows_per * cols_per, a.order * b.order * rows_per * cols_per, d, False)
+    out = []
+    for r0 in range(0, n, rows_per):
+        r1 = min(n, r0 + rows_per)
+        for c0 in range(r0 if symmetric else 0, m, cols_per):
+            c1 = min(m, c0 + cols_per)
+            shape = (*node_shape, r1 - r0, c1 - c0)
+            d2 = _squared_distances(a, b, slice(r0, r1), slice(c0, c1), work.view(work.d2, shape), work)
+            out.append(np.sqrt(d2))
+    return out
 
 
 def tensor_self(kernel: PointKernel, A: Supports, order: int = 2) -> NDArray[np.float64]:
