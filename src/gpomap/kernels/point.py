@@ -157,27 +157,28 @@ class PointKernel(ABC):
         """
         raise NotImplementedError(f"{type(self).__name__} has no unit profile (unit_scale is None)")
 
-    def unit_profile_from_distance_into(
+    def unit_profile_from_negated_distance_into(
         self,
-        u: NDArray[np.float64],
+        v: NDArray[np.float64],
         out: NDArray[np.float64],
         grad: NDArray[np.float64] | None = None,
         work: NDArray[np.float64] | None = None,
     ) -> None:
-        """:meth:`unit_profile_into` from scaled distances `u` (not squared), into `out`.
+        """:meth:`unit_profile_into` from negated scaled distances ``v = -u`` (not squared), into `out`.
 
-        For hot loops that have the distances already (:func:`gpomap.kernels.tensor.tensor_distances`);
-        kernels of the distance itself (Matern 3/2) then skip a square root.
+        For hot loops that have the distances already (:func:`gpomap.kernels.tensor.tensor_distances`
+        keeps them negated): kernels of the distance itself (Matern 3/2) then need neither a
+        square root nor a negation before their exponential.
 
         Parameters
         ----------
-        u : ndarray
-            Distances of coordinates scaled by :attr:`unit_scale`; may be overwritten.
+        v : ndarray
+            Minus the distances of coordinates scaled by :attr:`unit_scale`; may be overwritten.
         out, grad, work : ndarray
             As for :meth:`unit_profile_into`.
         """
-        np.multiply(u, u, out=u)
-        self.unit_profile_into(u, out, grad, work)
+        np.multiply(v, v, out=v)
+        self.unit_profile_into(v, out, grad, work)
 
     def from_sqdist(
         self, d2: NDArray[np.float64], eval_gradient: bool = False
@@ -292,16 +293,15 @@ class Matern32(PointKernel):
             # d/dlog(l) of (1 + u) e^-u with du/dlog(l) = -u is u^2 e^-u.
             grad *= u2
 
-    def unit_profile_from_distance_into(self, u, out, grad=None, work=None):
-        # e^-u into grad when the gradient is asked for, else into work.
-        e = (np.empty_like(u) if work is None else work) if grad is None else grad
-        np.negative(u, out=e)
-        np.exp(e, out=e)
-        np.add(u, 1.0, out=out)
-        out *= e
+    def unit_profile_from_negated_distance_into(self, v, out, grad=None, work=None):
+        e = np.empty_like(v) if work is None else work
+        np.exp(v, out=e)
+        # (1 + u) e^-u = e^-u - v e^-u and u^2 e^-u = (v e^-u) v, with v = -u.
+        t = out if grad is None else grad
+        np.multiply(v, e, out=t)
+        np.subtract(e, t, out=out)
         if grad is not None:
-            grad *= u
-            grad *= u
+            grad *= v
 
 
 KERNELS: dict[str, type[PointKernel]] = {

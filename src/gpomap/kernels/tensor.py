@@ -246,9 +246,10 @@ def _group_gram(
             dkp = None if work.grad is None else work.view(work.grad, shape)
             if cached is not None:
                 assert scale is not None  # a cache is only taken with a unit form
-                # Scaled distances from the cached ones: no squared differences, no square root.
-                u = np.multiply(next(cached), scale, out=work.view(work.d2, shape))
-                kernel.unit_profile_from_distance_into(u, kp, dkp, work.view(work.work, shape))
+                # Scaled distances from the cached ones (negated): no squared differences, no
+                # square root.
+                v = np.multiply(next(cached), scale, out=work.view(work.d2, shape))
+                kernel.unit_profile_from_negated_distance_into(v, kp, dkp, work.view(work.work, shape))
             else:
                 d2 = _squared_distances(a, b, slice(r0, r1), slice(c0, c1), work.view(work.d2, shape), work)
                 if scale is None:
@@ -361,7 +362,7 @@ MAX_CACHED_PAIRS: int = 1 << 23
 
 @dataclass(frozen=True)
 class TensorDistances:
-    """The node-pair distances of the Gram matrix of one set of inputs, block by block.
+    """The node-pair distances of the Gram matrix of one set of inputs, block by block, negated.
 
     They do not depend on the hyperparameters, so a search over them (every evaluation forms
     ``K(A, A)`` anew) forms them once and each evaluation only scales them.
@@ -373,8 +374,8 @@ class TensorDistances:
     order, block : int
         The rule and the block size they were taken with.
     blocks : dict
-        ``(ga, gb)`` (groups of :func:`tensor_rules`) to the distances of each block, in the
-        order :func:`_group_gram` visits them.
+        ``(ga, gb)`` (groups of :func:`tensor_rules`) to minus the distances of each block, in
+        the order :func:`_group_gram` visits them.
     """
 
     lower: NDArray[np.float64]
@@ -433,7 +434,8 @@ def _block_distances(a: TensorRule, b: TensorRule, symmetric: bool, block: int) 
             c1 = min(m, c0 + cols_per)
             shape = (*node_shape, r1 - r0, c1 - c0)
             d2 = _squared_distances(a, b, slice(r0, r1), slice(c0, c1), work.view(work.d2, shape), work)
-            out.append(np.sqrt(d2))
+            # Negated: the profile's exponential then takes their scaled values as they are.
+            out.append(-np.sqrt(d2))
     return out
 
 
