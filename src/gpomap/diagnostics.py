@@ -48,16 +48,16 @@ _WHY = {
 
 
 def _base_estimator(model: Any) -> Any:
-    """The AreaGPOM holding the settings: the model itself, or a TiledGPOM's ``base``."""
+    """What holds the settings: a map's ``base`` (:class:`~gpomap.settings.MapSettings`), or the model itself (GridGPOM)."""
     return getattr(model, "base", model)
 
 
 def search_bounds(model: Any) -> dict[str, tuple[float, float]]:
-    """Bounds of the hyperparameter search of a (fitted or not) AreaGPOM or TiledGPOM.
+    """Bounds of the hyperparameter search of a (fitted or not) AreaGPOM, TiledGPOM or GridGPOM.
 
     Parameters
     ----------
-    model : AreaGPOM or TiledGPOM
+    model : AreaGPOM, TiledGPOM or GridGPOM
 
     Returns
     -------
@@ -223,11 +223,11 @@ def hyperparameter_source(model: Any, tolerance: float = BOUND_TOLERANCE) -> str
 
 
 def fit_warnings(model: Any, occupancy_map: Any = None, tolerance: float = BOUND_TOLERANCE) -> list[str]:
-    """Every warning about a fitted AreaGPOM or TiledGPOM (and the map it wrote, if given).
+    """Every warning about a fitted AreaGPOM, TiledGPOM or GridGPOM (and the map it wrote, if given).
 
     Parameters
     ----------
-    model : AreaGPOM or TiledGPOM
+    model : AreaGPOM, TiledGPOM or GridGPOM
         Fitted.
     occupancy_map : OccupancyMap, optional
         The map written from it; checked for being almost all one class.

@@ -1,7 +1,7 @@
 """What every GP occupancy-map estimator shares: the scikit-learn style protocol.
 
-:class:`GPMapEstimator` gives MSK-GPOM (:class:`gpomap.mapping.AreaGPOM`) and the GP baselines
-(GPOM, GPOMIK) one interface: ``get_params`` / ``set_params``, ``predict`` (latent mean and
+:class:`GPMapEstimator` gives the estimators built on one dense GP (the GP baselines GPOM and
+GPOMIK, and grid conversion's :class:`gpomap.convert.GridGPOM`) one interface: ``get_params`` / ``set_params``, ``predict`` (latent mean and
 variance), ``predict_proba``, ``predict_ternary``, ``grid`` and the learnt ``hyperparameters_``.
 """
 

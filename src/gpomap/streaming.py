@@ -76,7 +76,7 @@ class StreamingGPOM:
         wait for the next. Default: no limit (every read sees the GP of every scan so far).
     **options
         :class:`~gpomap.tiles.TiledGPOM` options (tile_size, n_workers, ...) and
-        :class:`~gpomap.mapping.AreaGPOM` options (kernel, max_cell, evidence_resolution, ...).
+        map settings (:class:`~gpomap.settings.MapSettings`: kernel, max_cell, evidence_resolution, ...).
         ``n_workers`` defaults to 1: one scan's refits are too small to pay for a process pool;
         ``tile_size`` to :data:`DEFAULT_TILE_SIZE`.
 

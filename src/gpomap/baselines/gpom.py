@@ -50,7 +50,7 @@ class GPOM(GPMapEstimator):
         Seed of the subsample and of the hyperparameter restarts.
     variance, length_scale, noise, length_scale_bounds, noise_bounds, noise_model, objective,
     optimise, n_restarts, thresholds, chunk_size
-        As in :class:`gpomap.mapping.AreaGPOM`.
+        As in :class:`gpomap.settings.MapSettings`.
     """
 
     method_name = "gpom"

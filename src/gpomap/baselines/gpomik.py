@@ -103,7 +103,7 @@ class GPOMIK(GPMapEstimator):
         defaults per kernel in ``DEFAULT_RULES``.
     variance, length_scale, noise, length_scale_bounds, noise_bounds, noise_model, objective,
     optimise, n_restarts, seed, thresholds, chunk_size
-        As in :class:`gpomap.mapping.AreaGPOM`.
+        As in :class:`gpomap.settings.MapSettings`.
     """
 
     method_name = "gpomik"
