@@ -1,12 +1,21 @@
-"""The gpomap command, run as a subprocess: outputs, summaries, exit codes and error messages."""
+"""The gpomap command: outputs, summaries, exit codes and error messages.
+
+Most commands run through ``gpomap.cli.main`` in this process (the same parser, commands and
+exit codes; a subprocess each only adds the interpreter's start-up and the imports). The entry
+point itself, ``python -m gpomap.cli``, runs as a subprocess in test_help_everywhere and
+test_debug_shows_the_traceback (and, with signals, in test_outputs_atomic and test_stream_cli).
+"""
 
 import json
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+
+from gpomap.cli import main
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 INTEL = DATA / "intel" / "intel-corrected.log.gz"
@@ -14,17 +23,32 @@ TB3 = DATA / "turtlebot3-world-map" / "map.yaml"
 
 
 def gpomap(*args, cwd=None):
+    """``python -m gpomap.cli ARGS`` as a subprocess."""
     return subprocess.run(
         [sys.executable, "-m", "gpomap.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd, timeout=600
     )
+
+
+@pytest.fixture
+def run(capsys):
+    """``gpomap ARGS`` through main() in this process: returncode, stdout and stderr, as from gpomap()."""
+
+    def call(*args):
+        capsys.readouterr()
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as exc:  # argparse's usage errors and --help
+            code = exc.code
+        out, err = capsys.readouterr()
+        return SimpleNamespace(returncode=code, stdout=out, stderr=err)
+
+    return call
 
 
 def test_help_everywhere(capsys):
     top = gpomap("--help")
     assert top.returncode == 0 and "map" in top.stdout and "demo" in top.stdout
     # Each command's help through the same main() in this process (a subprocess each only adds imports).
-    from gpomap.cli import main
-
     capsys.readouterr()
     for cmd in ["map", "demo", "info", "evaluate", "convert", "benchmark"]:
         with pytest.raises(SystemExit) as exc:
@@ -33,8 +57,9 @@ def test_help_everywhere(capsys):
         assert "example" in capsys.readouterr().out, cmd
 
 
-def test_demo_writes_every_output(tmp_path):
-    r = gpomap("demo", "-o", tmp_path / "out", "--kernel", "se")
+def test_demo_writes_every_output(tmp_path, run):
+    # One worker: the tiles in this process (a pool's start-up is test_tiles').
+    r = run("demo", "-o", tmp_path / "out", "--kernel", "se", "--workers", "1")
     assert r.returncode == 0, r.stderr
     for name in ["map.yaml", "map.pgm", "map.npz", "map.png", "cells.png"]:
         assert (tmp_path / "out" / name).stat().st_size > 0, name
@@ -49,16 +74,18 @@ def test_demo_writes_every_output(tmp_path):
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log not present")
-def test_map_and_info_on_a_real_log(tmp_path):
-    info = gpomap("info", INTEL, "--json")
+def test_map_and_info_on_a_real_log(tmp_path, run):
+    info = run("info", INTEL, "--json")
     assert info.returncode == 0, info.stderr
     d = json.loads(info.stdout)
     assert d["format"] == "carmen" and d["n_scans"] == 910
-    r = gpomap(
+    r = run(
         "map",
         INTEL,
         "-o",
         tmp_path,
+        "--workers",
+        "1",
         "--range",
         "0:120",
         "--scans",
@@ -77,8 +104,8 @@ def test_map_and_info_on_a_real_log(tmp_path):
     assert (tmp_path / "map.pgm").read_bytes().startswith(b"P5")
 
 
-def test_bad_input_is_one_clear_line(tmp_path):
-    missing = gpomap("map", tmp_path / "nope.log", "-o", tmp_path / "out")
+def test_bad_input_is_one_clear_line(tmp_path, run):
+    missing = run("map", tmp_path / "nope.log", "-o", tmp_path / "out")
     assert missing.returncode == 1
     last = missing.stderr.strip().splitlines()[-1]
     assert last.startswith("gpomap: error:") and "nope.log" in last
@@ -87,12 +114,12 @@ def test_bad_input_is_one_clear_line(tmp_path):
 
     log = tmp_path / "bad.log"
     log.write_text("FLASER 3 1.0 2.0 x 0 0 0 0 0 0 1.0 host 1.0\n")
-    bad = gpomap("map", log, "-o", tmp_path / "out2")
+    bad = run("map", log, "-o", tmp_path / "out2")
     assert bad.returncode == 1
     assert "bad.log, line 1: non-numeric field" in bad.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "out2" / "map.yaml").exists()
 
-    usage = gpomap("map", log, "-o", tmp_path, "--extent", "1,0,0,1")
+    usage = run("map", log, "-o", tmp_path, "--extent", "1,0,0,1")
     assert usage.returncode == 2 and "XMIN<XMAX" in usage.stderr
 
 
@@ -101,25 +128,43 @@ def test_debug_shows_the_traceback(tmp_path):
     assert r.returncode != 0 and "Traceback" in r.stderr
 
 
-def test_evaluate_demo_json():
-    r = gpomap("evaluate", "--demo", "--method", "ogm", "--json")
+def test_evaluate_demo_json(run):
+    r = run("evaluate", "--demo", "--method", "ogm", "--json")
     assert r.returncode == 0, r.stderr
     d = json.loads(r.stdout)
     for key in ["auc", "fpr_at_tpr95", "log_loss", "seconds", "n_inputs", "settings"]:
         assert key in d
     assert 0.5 < d["auc"] <= 1.0
-    assert gpomap("evaluate", "--method", "msk").returncode == 1
+    assert run("evaluate", "--method", "msk").returncode == 1
 
 
-def test_points_csv_input(tmp_path):
+def test_points_csv_input(tmp_path, run):
     from gpomap.io import write_points
     from gpomap.observations import observations_from_scans
     from gpomap.simulate import paper_room_scans
 
     write_points(tmp_path / "pts.csv", observations_from_scans(paper_room_scans()[:8], free_step=0.5))
-    r = gpomap("map", tmp_path / "pts.csv", "-o", tmp_path / "out", "--kernel", "se", "--resolution", "0.5")
+    # Fixed length scale, one worker: the test is about reading labelled points, not learning.
+    r = run(
+        "map",
+        tmp_path / "pts.csv",
+        "-o",
+        tmp_path / "out",
+        "--kernel",
+        "se",
+        "--resolution",
+        "0.5",
+        "--length-scale",
+        "1",
+        "--workers",
+        "1",
+    )
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "out" / "map.npz").exists()
+    from gpomap.io.npz import load_map
+
+    m = load_map(tmp_path / "out" / "map.npz")
+    assert m.grid.resolution == 0.5 and (m.ternary == 1).any() and (m.ternary == 0).any()
 
 
 def _tb3_corner(path):
@@ -140,9 +185,9 @@ def _tb3_corner(path):
 
 
 @pytest.mark.skipif(not TB3.exists(), reason="shared TurtleBot3 map not present")
-def test_convert_writes_the_same_outputs(tmp_path):
+def test_convert_writes_the_same_outputs(tmp_path, run):
     source = _tb3_corner(tmp_path / "corner.yaml")
-    r = gpomap("convert", source, "-o", tmp_path / "out", "--resolution", "0.1")
+    r = run("convert", source, "-o", tmp_path / "out", "--resolution", "0.1")
     assert r.returncode == 0, r.stderr
     assert "agreement" in r.stdout
     from gpomap.io.rosmap import read_rosmap
@@ -155,7 +200,7 @@ def test_convert_writes_the_same_outputs(tmp_path):
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log not present")
-def test_map_in_one_go_and_in_chunks(tmp_path):
+def test_map_in_one_go_and_in_chunks(tmp_path, run):
     common = [
         "--range",
         "0:60",
@@ -171,17 +216,18 @@ def test_map_in_one_go_and_in_chunks(tmp_path):
         "5",
         "--workers",
         "1",
+        # Only the two maps' grids are compared: a coarse written map.
         "--resolution",
-        "0.2",
+        "0.5",
         # Fixed: the tiled hyperparameter search (test_tiles) would take most of the run.
         "--length-scale",
         "1",
     ]
-    auto = gpomap("map", INTEL, "-o", tmp_path / "auto", *common)
+    auto = run("map", INTEL, "-o", tmp_path / "auto", *common)
     assert auto.returncode == 0, auto.stderr
     assert "tiles " in auto.stdout and (tmp_path / "auto" / "map.yaml").exists()
 
-    chunks = gpomap("map", INTEL, "-o", tmp_path / "chunks", "--chunk-scans", "10", *common)
+    chunks = run("map", INTEL, "-o", tmp_path / "chunks", "--chunk-scans", "10", *common)
     assert chunks.returncode == 0, chunks.stderr
     assert "scans 0..9:" in chunks.stderr and "scans 10..19:" in chunks.stderr
     from gpomap.io.npz import load_map
