@@ -28,8 +28,6 @@ held-out hit), log loss, ECE; fit and predict wall times (for the voxel grid, pr
 grid's prediction) and the peak resident memory of the process that ran the method (each method
 runs in a forked child, so the number is its own, plus the data read before the fork). The JSON
 rows of gpomap also hold the fit's stage times (``fit_stages``: the model's ``timings_``).
-``--set tiles=true --set workers=1`` builds the map as tiles of local GPs in this process
-(:class:`~gpomap.tiles.TiledGPOM`) whatever its number of cells.
 
 Run from the repository's root::
 
