@@ -44,11 +44,13 @@ _BLAS_LIMIT = []
 def pytest_configure(config: pytest.Config) -> None:
     workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
     if os.environ.get("PYTEST_XDIST_WORKER") and workers:
-        import numpy  # noqa: F401 - loads the BLAS, so that the limit applies to it
+        # numpy and scipy each bring their own OpenBLAS: both loaded, so that the limit applies to both.
+        import numpy  # noqa: F401
+        import scipy.linalg  # noqa: F401
         from threadpoolctl import threadpool_limits
 
         # Kept for the whole session (not a context); tests that set their own limits restore this one.
-        _BLAS_LIMIT.append(threadpool_limits(limits=max(1, (os.cpu_count() or 1) // int(workers)), user_api="blas"))
+        _BLAS_LIMIT.append(threadpool_limits(limits=max(1, (os.cpu_count() or 1) // int(workers))))
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
