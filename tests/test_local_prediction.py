@@ -1,0 +1,121 @@
+"""Local tile prediction (the cells within the kernel's cutoff of each block of queries) equals the dense one."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+import gpomap.tiles as tiles
+from gpomap.gp import LOCAL_TOL, local_blocks
+from gpomap.simulate import paper_room_scans
+from gpomap.supports import Supports
+from gpomap.tiles import TiledGPOM, predict_tile_task
+
+# Short length scales, so each block of queries sees a few metres of a tile: local is taken.
+OPTS = dict(optimise=False, noise=0.1, free_step=0.3)
+
+
+def _both(model: TiledGPOM, key: tuple[int, int], points: np.ndarray):
+    state = model.tiles_[key]
+    settings = model._settings()
+    hyp = state.hyperparameters
+    kern = tiles._area_kernel(settings, hyp["variance"], hyp["length_scale"])
+    # The local path is the one taken (not the dense fallback).
+    assert tiles._local_tile_blocks(state, kern, state.supports(), Supports.from_points(points), 4096) is not None
+    local = predict_tile_task(state, settings, points, 4096, local=True)
+    dense = predict_tile_task(state, settings, points, 4096, local=False)
+    return local, dense
+
+
+@pytest.fixture(scope="module")
+def room_maps():
+    scans = paper_room_scans()[:8]
+    return {
+        k: TiledGPOM(n_workers=1, kernel=k, length_scale=0.3 if k == "se" else 0.15, **OPTS).fit(scans)
+        for k in ("se", "matern32")
+    }
+
+
+@pytest.mark.parametrize("kernel", ["se", "matern32"])
+def test_local_equals_dense_in_2d(room_maps, kernel):
+    model = room_maps[kernel]
+    key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
+    state = model.tiles_[key]
+    rng = np.random.default_rng(0)
+    points = rng.uniform(state.lower.min(axis=0) - 1.0, state.upper.max(axis=0) + 1.0, (6000, 2))
+    (mean, var), (dense_mean, dense_var) = _both(model, key, points)
+    np.testing.assert_allclose(mean, dense_mean, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(var, dense_var, rtol=0, atol=1e-8)
+    # The blended map too, through every tile.
+    p = model.predict_proba_gp(points)
+    tiles_before = tiles.predict_tile_task
+    try:
+        tiles.predict_tile_task = lambda *a: tiles_before(*a, local=False)
+        p_dense = model.predict_proba_gp(points)
+    finally:
+        tiles.predict_tile_task = tiles_before
+    np.testing.assert_allclose(p, p_dense, rtol=0, atol=1e-8)
+
+
+def test_local_equals_dense_in_3d():
+    from tests.world3d import ORIGINS, lidar_clouds
+
+    model = TiledGPOM(tile_size=3.0, n_workers=1, kernel="se", length_scale=0.1, **OPTS).fit(lidar_clouds(ORIGINS, n_rays=100))
+    key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
+    rng = np.random.default_rng(1)
+    points = rng.uniform([-0.5, -0.5, -0.5], [6.5, 4.5, 3.0], (6000, 3))
+    (mean, var), (dense_mean, dense_var) = _both(model, key, points)
+    np.testing.assert_allclose(mean, dense_mean, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(var, dense_var, rtol=0, atol=1e-8)
+
+
+def test_points_with_no_cell_near_get_the_prior(room_maps):
+    model = room_maps["se"]
+    key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
+    state = model.tiles_[key]
+    # Many points far beyond the cutoff of every cell (J empty), and some near, so local pays.
+    far = state.upper.max(axis=0) + 50.0 + np.random.default_rng(2).uniform(0, 10, (3000, 2))
+    near = np.random.default_rng(3).uniform(state.lower.min(axis=0), state.upper.max(axis=0), (3000, 2))
+    (mean, var), (dense_mean, dense_var) = _both(model, key, np.concatenate([far, near]))
+    np.testing.assert_array_equal(mean[:3000], 0.0)
+    np.testing.assert_array_equal(var[:3000], state.hyperparameters["variance"])
+    np.testing.assert_allclose(mean, dense_mean, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(var, dense_var, rtol=0, atol=1e-8)
+
+
+def test_blocks_cover_every_query_once_and_keep_every_cell_within_reach():
+    rng = np.random.default_rng(4)
+    lo = rng.uniform(0, 20, (400, 2))
+    cells = Supports.from_boxes(lo, lo + rng.uniform(0.1, 0.6, (400, 2)))
+    queries = Supports.from_points(rng.uniform(-2, 22, (5000, 2)))
+    radius = 1.5
+    blocks, _ = local_blocks(queries, cells, radius, chunk_size=50)
+    seen = np.concatenate([q for q, _ in blocks])
+    np.testing.assert_array_equal(np.sort(seen), np.arange(5000))
+    for q, near in blocks:
+        assert q.size <= 50
+        # Every cell nearer than the radius to any query of the block is in the block.
+        p = queries.lower[q]
+        gap = np.maximum(np.maximum(cells.lower[None] - p[:, None], p[:, None] - cells.upper[None]), 0.0)
+        within = np.flatnonzero(np.any(np.sum(gap**2, axis=2) < radius**2, axis=0))
+        assert np.isin(within, near).all()
+
+
+def test_the_cached_inverse_is_not_pickled_or_compared(room_maps):
+    model = room_maps["se"]
+    state = next(iter(model.tiles_.values()))
+    model.predict_proba_gp(np.random.default_rng(5).uniform(0, 10, (20000, 2)))
+    assert any(s.precision is not None for s in model.tiles_.values())
+    assert pickle.loads(pickle.dumps(state)).precision is None
+    assert "precision" not in repr(state)
+
+
+def test_summed_kernel_keeps_the_dense_path():
+    model = TiledGPOM(n_workers=1, kernel="se", area="summed", length_scale=0.3, **OPTS).fit(paper_room_scans()[:4])
+    state = next(iter(model.tiles_.values()))
+    kern = tiles._area_kernel(model._settings(), 1.0, 0.3)
+    points = Supports.from_points(np.random.default_rng(6).uniform(0, 10, (5000, 2)))
+    assert tiles._local_tile_blocks(state, kern, state.supports(), points, 4096) is None
+    assert LOCAL_TOL > 0
