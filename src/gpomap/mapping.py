@@ -30,7 +30,7 @@ import inspect
 from typing import Any
 
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
-from gpomap.tiles import DEFAULT_HYPER_SAMPLE, TiledGPOM
+from gpomap.tiles import TiledGPOM
 
 #: The tiling arguments of :class:`AreaGPOM`, in its signature's order after the map's settings.
 TILING_PARAMETERS = (
@@ -106,7 +106,7 @@ class AreaGPOM(TiledGPOM):
         origin: tuple[float, float] = (0.0, 0.0),
         n_workers: int | None = 1,
         scheduler: Any = None,
-        hyper_sample: int = DEFAULT_HYPER_SAMPLE,
+        hyper_sample: int | None = None,
         per_tile_hyperparameters: bool = False,
         blas_threads: int | None = None,
         scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
