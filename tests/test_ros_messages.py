@@ -144,9 +144,9 @@ class Clock:
 
 @needs_bag
 def test_live_map_from_bag_messages_is_the_streaming_map_of_the_bag_reader(tmp_path):
-    # The first 100 scans (30 of warm-up, 70 streamed after it) and the bag's last message, which
+    # The first 40 scans (20 of warm-up, 20 streamed after it) and the bag's last message, which
     # has no pose: the whole bag would only stream more of the same.
-    scans = batch_scans()[:100]
+    scans = batch_scans()[:40]
     # The poses the bag reader found (tf interpolated 0.1 s after each stamp); the last scan has none.
     poses = {round(s.time + STAGE_TIME_OFFSET, 6): tuple(s.pose) for s in scans}
     lookups = []
@@ -157,7 +157,7 @@ def test_live_map_from_bag_messages_is_the_streaming_map_of_the_bag_reader(tmp_p
 
     clock = Clock()
     live = LiveMap(
-        StreamingGPOM(warmup_scans=30, n_workers=1),
+        StreamingGPOM(warmup_scans=20, n_workers=1),
         0.1,
         time_offset=STAGE_TIME_OFFSET,
         pose_wait=1.0,
@@ -182,7 +182,7 @@ def test_live_map_from_bag_messages_is_the_streaming_map_of_the_bag_reader(tmp_p
     assert status["latency_ms"]["median"] > 0 and status["stamp"] == scans[-1].time
     assert set(lookups) == {"base_laser_link"}
 
-    reference = StreamingGPOM(warmup_scans=30, n_workers=1)
+    reference = StreamingGPOM(warmup_scans=20, n_workers=1)
     for s in scans:
         reference.add_scan(s)
     expected = reference.grid(0.1)
