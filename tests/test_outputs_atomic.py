@@ -177,6 +177,9 @@ def test_signals_mid_write_leave_the_previous_set_byte_for_byte(tmp_path):
         "1",
         "--max-cell",
         "2",
+        # The tiles in the run's own process: no pool to start before the moment to signal it.
+        "--workers",
+        "1",
         "-o",
     ]
     procs = {
