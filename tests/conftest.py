@@ -7,8 +7,9 @@ files and filling in with the short ones leaves the two workers finishing close 
 
 Each xdist worker gets its share of the cores for BLAS (the cores divided by the workers, as
 TiledGPOM shares them among its tile workers): with one worker per core, two BLAS threads in each
-of two workers on two cores only wait for each other (measured on the quick paper benchmark test:
-11.5 CPU seconds with the default two threads against 4.4 with one, and the wall time halved).
+of two workers on two cores only wait for each other (measured under -n 2 on
+test_streaming::test_stream_then_finish_equals_the_batch_map: 15.1 CPU seconds with numpy's and
+scipy's OpenBLAS at their default two threads, 3.0 with one; 23.5 s wall against 4.9).
 """
 
 from __future__ import annotations
@@ -18,24 +19,35 @@ from pathlib import Path
 
 import pytest
 
-#: Files taking more than about 10 s, longest first (measured with --durations on 2 cores). A file
-#: not listed runs after these, in its usual order.
+#: Files taking more than about 3 s, longest first (measured per file with -n 2: CPU seconds, and
+#: the waits of the files that run real processes, roscore and rosbag play, signals, a replay at
+#: the recorded rate). A file not listed runs after these, in its usual order.
 LONGEST_FIRST = [
+    "test_ros_node.py",
     "test_cli.py",
+    "test_tiles.py",
     "test_mapping.py",
     "test_distributed.py",
-    "test_convert.py",
-    "test_tiles.py",
-    "test_ros_node.py",
-    "test_streaming.py",
+    "test_local_prediction.py",
     "test_outputs_atomic.py",
+    "test_convert.py",
     "test_stream_cli.py",
-    "test_ros_messages.py",
-    "test_benchmark.py",
-    "test_protocol.py",
+    "test_streaming.py",
     "test_fusion.py",
+    "test_map3d_cli.py",
+    "test_readme.py",
+    "test_tensor_kernel.py",
+    "test_kernels.py",
+    "test_protocol.py",
+    "test_ros_messages.py",
     "test_extrapolation.py",
     "test_ogm.py",
+    "test_plot.py",
+    "test_io_carmen.py",
+    "test_fuzz_readers.py",
+    "test_benchmark.py",
+    "test_cli_checks.py",
+    "test_gp.py",
 ]
 _RANK = {name: i for i, name in enumerate(LONGEST_FIRST)}
 _BLAS_LIMIT = []
