@@ -13,6 +13,7 @@ import pytest
 
 from gpomap.io import atomic
 from gpomap.io.atomic import JOURNAL, MANIFEST, output_set, recover_output_dir
+from tests.processes import as_from_a_terminal
 
 SET = ["map.npz", "map.pgm", "map.png", "map.yaml"]
 
@@ -134,7 +135,9 @@ def previous_set(out: Path) -> dict[str, bytes]:
 
 def start(args, env_extra):
     env = {**os.environ, **env_extra}
-    return subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    return subprocess.Popen(
+        [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=as_from_a_terminal
+    )
 
 
 def wait_for(condition, proc, timeout=60.0):

@@ -19,6 +19,7 @@ from gpomap.io.npz import load_map
 from gpomap.io.rosbag import STAGE_TIME_OFFSET, read_rosbag
 from gpomap.io.rosmap import read_rosmap
 from gpomap.streaming import StreamingGPOM
+from tests.processes import as_from_a_terminal
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 BAG = DATA / "stage-arena" / "robot1.bag"
@@ -86,7 +87,9 @@ def test_ctrl_c_stops_the_replay_and_keeps_the_last_complete_map(tmp_path):
     out = tmp_path / "live"
     cmd = [sys.executable, "-m", "gpomap.cli", "stream", *ARENA, "-o", str(out), "--rate", "1", "--every", "0.5"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=as_from_a_terminal
+    )
     try:
         deadline = time.monotonic() + 120
         while not (out / "map.npz").exists():
