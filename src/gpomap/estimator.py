@@ -14,12 +14,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.errors import EmptyDataError, NotFittedError
+from gpomap.errors import NotFittedError
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
 from gpomap.kernels.point import make_point_kernel
 from gpomap.lattice import extent_bounds
-from gpomap.observations import Observations, observations_from_scans
+from gpomap.observations import Observations, labelled_observations
 
 if TYPE_CHECKING:
     from gpomap.voxels import VoxelMap
@@ -111,15 +111,9 @@ class GPMapEstimator:
         """Labelled points from scans (this estimator's ``free_step``, ``hit_margin``,
         ``no_return_cap`` and ``free_clearance``), or `data` itself when it already is (given
         points are taken as they are); both classes are required."""
-        if isinstance(data, Observations):
-            obs = data
-        else:
-            obs = observations_from_scans(
-                data, self.free_step, self.hit_margin, self.no_return_cap, getattr(self, "free_clearance", 0.0)
-            )
-        if obs.n_occupied == 0 or obs.n_free == 0:
-            raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
-        return obs
+        return labelled_observations(
+            data, self.free_step, self.hit_margin, self.no_return_cap, getattr(self, "free_clearance", 0.0)
+        )
 
     def _queries(self, points: NDArray[np.float64]) -> Any:
         raise NotImplementedError

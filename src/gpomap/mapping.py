@@ -32,19 +32,8 @@ from typing import Any
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.tiles import TiledGPOM
 
-#: The tiling arguments of :class:`AreaGPOM`, in its signature's order after the map's settings.
-TILING_PARAMETERS = (
-    "tile_size",
-    "overlap",
-    "blend",
-    "origin",
-    "n_workers",
-    "scheduler",
-    "hyper_sample",
-    "per_tile_hyperparameters",
-    "blas_threads",
-    "scheduler_timeout",
-)
+#: The tiling arguments of :class:`AreaGPOM`: those :class:`~gpomap.tiles.TiledGPOM` names.
+TILING_PARAMETERS = tuple(p for p in inspect.signature(TiledGPOM.__init__).parameters if p not in ("self", "options"))
 
 
 class AreaGPOM(TiledGPOM):

@@ -253,6 +253,33 @@ class Rays:
         return np.where(self.hit, self.lengths - hit_margin, np.minimum(np.minimum(cap, self.no_return_limit), self.lengths))
 
 
+def labelled_observations(
+    data: ScanData | Observations,
+    free_step: float,
+    hit_margin: float | None,
+    no_return_cap: float | None,
+    free_clearance: float = 0.0,
+) -> Observations:
+    """:func:`observations_from_scans` of scans, or `data` itself when it already is labelled points.
+
+    What an estimator fits on: given points are taken as they are (no clearance); both classes
+    are required.
+
+    Raises
+    ------
+    EmptyDataError
+        When either class is missing.
+    """
+    obs = (
+        data
+        if isinstance(data, Observations)
+        else observations_from_scans(data, free_step, hit_margin, no_return_cap, free_clearance)
+    )
+    if obs.n_occupied == 0 or obs.n_free == 0:
+        raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
+    return obs
+
+
 def observations_from_scans(
     scans: ScanData,
     free_step: float = 0.2,

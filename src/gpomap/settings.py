@@ -18,11 +18,10 @@ from numpy.typing import NDArray
 
 from gpomap.cells import Cells, build_cells
 from gpomap.config import MapConfig
-from gpomap.errors import EmptyDataError
 from gpomap.fusion import EvidenceLayer
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
-from gpomap.observations import Observations, ScanData, data_dim, observations_from_scans
+from gpomap.observations import Observations, ScanData, data_dim, labelled_observations
 
 
 class MapSettings:
@@ -219,15 +218,9 @@ class MapSettings:
         EmptyDataError
             When either class is missing.
         """
-        if isinstance(data, Observations):
-            obs = data
-        else:
-            obs = observations_from_scans(
-                data, self.free_step, self.hit_margin, self.no_return_cap, self.free_clearance if clearance else 0.0
-            )
-        if obs.n_occupied == 0 or obs.n_free == 0:
-            raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
-        return obs
+        return labelled_observations(
+            data, self.free_step, self.hit_margin, self.no_return_cap, self.free_clearance if clearance else 0.0
+        )
 
     def make_cells(self, obs: Observations) -> Cells:
         """The GP's inputs: the cell tree over `obs` with these settings."""

@@ -79,6 +79,10 @@ HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 #: 0.5110 / 0.5373; the search 8-11x faster, each step of the cuboid kernel being dearer).
 DEFAULT_HYPER_SAMPLE: dict[int, int] = {2: 800, 3: 300}
 
+#: A tile's GP sees the cells this many learnt length scales beyond its square, by default (about
+#: where the SE kernel has decayed to 4 %).
+OVERLAP_LENGTH_SCALES = 2.5
+
 #: The map settings a TiledGPOM answers as its own attributes (read from its ``base``).
 _SETTING_NAMES = frozenset(MapConfig.__dataclass_fields__)
 
@@ -1068,9 +1072,8 @@ class TiledGPOM:
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         t = t0
-        obs = data if isinstance(data, Observations) else self._observations(data)
-        if obs.n_occupied == 0 or obs.n_free == 0:
-            raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
+        # No clearance here: it is applied per block (see _observations).
+        obs = self.base.make_observations(data, clearance=False)
         # The clearance applies to points sampled from scans, not to given points.
         self._clearance = 0.0 if isinstance(data, Observations) else float(self.base.free_clearance)
         self._block_points = {}
@@ -1185,7 +1188,7 @@ class TiledGPOM:
 
     def _set_geometry(self) -> None:
         ls = self.hyperparameters_["length_scale"]
-        o = 2.5 * ls if self.overlap is None else float(self.overlap)
+        o = OVERLAP_LENGTH_SCALES * ls if self.overlap is None else float(self.overlap)
         self.overlap_ = float(min(max(o, 1e-9), self.tile_size))
         w = self.overlap_ if self.blend is None else float(self.blend)
         if not 0 < w <= min(self.overlap_, self.tile_size) + 1e-12:
