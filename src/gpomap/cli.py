@@ -441,13 +441,29 @@ def _check_fit_memory(args: argparse.Namespace, n_cells: int, n_at_once: int, wh
     check_memory(fit_memory(n_cells, n_at_once), limit, what, advice, source)
 
 
+def _check_tile_memory(args: argparse.Namespace, cells: Any, length_scale: float, where: str) -> int:
+    """Refuse a fit whose largest tile's GP, times the tiles fitted at once, needs more than ``--memory-limit``.
+
+    A tile's GP reaches past its square by the overlap: its default in starting length scales
+    (the learnt one is not known yet), at most a tile. Returns the largest tile's cell count.
+    """
+    from gpomap.resources import largest_tile_cells
+    from gpomap.tiles import OVERLAP_LENGTH_SCALES
+
+    overlap = min(args.tile_size, OVERLAP_LENGTH_SCALES * length_scale)
+    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], args.tile_size, overlap)
+    n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
+    _check_fit_memory(args, per_tile, n_at_once, f"{where} of {args.tile_size:g} m")
+    return per_tile
+
+
 def _plan_map(args: argparse.Namespace, data: Any) -> None:
     """Check the run's memory before fitting.
 
     Cheap steps only: the labelled points (for the grid's extent) and the cell tree (for the
     tiles' GP sizes), both a small fraction of a fit.
     """
-    from gpomap.resources import grid_shape, largest_tile_cells, points_extent
+    from gpomap.resources import grid_shape, points_extent
     from gpomap.settings import MapSettings
 
     settings = MapSettings(**_map_config(args).kwargs())
@@ -456,13 +472,7 @@ def _plan_map(args: argparse.Namespace, data: Any) -> None:
     shape = grid_shape(extent, args.resolution)
     # The grid first: it needs no cells, and an absurd extent is refused before the tree is built.
     _check_grid_memory(args, shape, extent, 0)
-    cells = settings.make_cells(obs)
-    # A tile's GP reaches past its square by the overlap: 2.5 length scales by default (the
-    # starting one; the learnt one is not known yet), at most a tile.
-    overlap = min(args.tile_size, 2.5 * settings.length_scale)
-    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper), args.tile_size, overlap)
-    n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
-    _check_fit_memory(args, per_tile, n_at_once, f"the largest of the tiles of {args.tile_size:g} m")
+    _check_tile_memory(args, settings.make_cells(obs), settings.length_scale, "the largest of the tiles")
 
 
 # --------------------------------------------------------------------------- writing outputs
@@ -548,10 +558,7 @@ def cmd_map(args: argparse.Namespace) -> int:
     _plan_map(args, data)
     if args.chunk_scans is not None:
         return _map_in_chunks(args, data, title)
-    model = _model(args)
-    _status(args, f"fitting MSK-GPOM ({args.kernel})...")
-    model.fit(data)
-    _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
+    model = _fitted_model(args, data)
     files = _write_map(args, model, title)
     _print_map_summary(model.summary(), files, _bound_source(model))
     return EXIT_OK
@@ -562,6 +569,15 @@ def _model(args: argparse.Namespace) -> Any:
     from gpomap.mapping import AreaGPOM
 
     return AreaGPOM(**_tiling_config(args).kwargs(), **_map_config(args).kwargs())
+
+
+def _fitted_model(args: argparse.Namespace, data: Any) -> Any:
+    """:func:`_model` fitted on `data`, saying so (``gpomap map``, ``gpomap demo``)."""
+    model = _model(args)
+    _status(args, f"fitting MSK-GPOM ({args.kernel})...")
+    model.fit(data)
+    _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
+    return model
 
 
 def _write_map(args: argparse.Namespace, model: Any, title: str, extra: Callable[[Any], None] | None = None) -> list[Path]:
@@ -640,10 +656,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     scans = paper_room_scans()
     _status(args, f"simulated the paper's synthetic room: {len(scans)} poses x {scans[0].n_beams} beams over 360 degrees")
     _plan_map(args, scans)
-    model = _model(args)
-    _status(args, f"fitting MSK-GPOM ({args.kernel})...")
-    model.fit(scans)
-    _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
+    model = _fitted_model(args, scans)
     cells_png: list[Path] = []
 
     def cell_figure(outputs: Any) -> None:

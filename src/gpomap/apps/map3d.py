@@ -365,15 +365,11 @@ def check_voxel_memory(args: argparse.Namespace, lo: NDArray[np.float64], hi: ND
 def _plan(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, NDArray[np.float64], NDArray[np.float64], int]:
     """The model, the voxel map's corners and the cell count, with the memory checked before fitting."""
     from gpomap import cli
-    from gpomap.resources import largest_tile_cells
 
     model, obs, cells = model_from_args(args, clouds)
     lo, hi = voxel_bounds(obs.points, args.extent, args.z_range)
     check_voxel_memory(args, lo, hi, 0)
-    overlap = min(args.tile_size, 2.5 * model.length_scale)
-    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], args.tile_size, overlap)
-    n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
-    cli._check_fit_memory(args, per_tile, n_at_once, f"the largest of the columns of {args.tile_size:g} m")
+    per_tile = cli._check_tile_memory(args, cells, model.length_scale, "the largest of the columns")
     check_voxel_memory(args, lo, hi, per_tile)
     return model, lo, hi, len(cells)
 
