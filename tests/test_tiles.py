@@ -69,6 +69,26 @@ def test_a_map_in_one_block_is_one_gp_over_its_cells(room):
     np.testing.assert_allclose(tiled.predict_proba_gp(pts), gp.squash(mean, var), rtol=0, atol=1e-10)
 
 
+def test_default_tile_grid_is_centred_on_the_data(room):
+    points = MapSettings(**OPTS).make_observations(room).points
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    side = float(np.max(hi - lo)) + 0.5  # one tile holds the whole room
+    model = TiledGPOM(tile_size=side, n_workers=1, **OPTS).fit(room)
+    x0, y0 = model.origin_
+    assert len(model.tiles_) == 1
+    # The covering tile's centre is the data's: the same margin on both sides of each axis.
+    np.testing.assert_allclose([x0 + side / 2, y0 + side / 2], (lo + hi) / 2, atol=1e-12)
+    assert model.summary()["tile_origin"] == [x0, y0]
+    # The same tiles on a grid through the room's middle: four squares, four GPs.
+    cut = TiledGPOM(tile_size=side, origin=tuple((lo + hi) / 2), n_workers=1, **OPTS).fit(room)
+    assert len(cut.tiles_) == 4
+    # Two tiles' width of data: two tiles, the border on the data's midline.
+    two = TiledGPOM(tile_size=0.5 * float(hi[0] - lo[0]) + 1e-9, n_workers=1, **OPTS).fit(room)
+    xs = sorted({k[0] for k in two.tiles_})
+    assert len(xs) == 2
+    assert two.origin_[0] + two.tile_size == pytest.approx((lo[0] + hi[0]) / 2)
+
+
 def _max_jump_ratio(values: np.ndarray, border_step: int, k: int = 5) -> float:
     d = np.abs(np.diff(values))
     neighbours = np.concatenate([d[border_step - k : border_step], d[border_step + 1 : border_step + 1 + k]])
@@ -77,7 +97,7 @@ def _max_jump_ratio(values: np.ndarray, border_step: int, k: int = 5) -> float:
 
 def test_blending_has_no_seam():
     scans = _corridor_scans()
-    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS).fit(scans)
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, origin=(0.0, 0.0), n_workers=1, **OPTS).fit(scans)
     assert len(model.tiles_) >= 2
     x = np.linspace(4.0, 8.0, 401) + 0.005  # 1 cm steps; the border x = 6 falls inside one step
     border = int(np.searchsorted(x, 6.0)) - 1
@@ -88,7 +108,7 @@ def test_blending_has_no_seam():
         assert _max_jump_ratio(p, border) < 2.0, y
         assert _max_jump_ratio(var, border) < 2.0, y
     # A hard switch between tiles with a short overlap does jump: the check above sees seams.
-    hard = TiledGPOM(tile_size=6.0, overlap=1.0, blend=1e-6, n_workers=1, **OPTS).fit(
+    hard = TiledGPOM(tile_size=6.0, overlap=1.0, blend=1e-6, origin=(0.0, 0.0), n_workers=1, **OPTS).fit(
         scans, hyperparameters=model.hyperparameters_
     )
     p_hard = hard.predict_proba_gp(np.column_stack([x, np.full_like(x, 0.1)]))
@@ -102,7 +122,9 @@ def test_update_equals_batch(room):
     n_before = len(inc.tiles_)
     inc.update(b)
     assert 0 < len(inc.last_refit_) <= len(inc.tiles_)
-    batch = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS).fit(room, hyperparameters=inc.hyperparameters_)
+    # The tile grid was placed by the first fit (on scans a only); the batch map uses the same one.
+    batch = TiledGPOM(tile_size=6.0, overlap=2.5, origin=inc.origin_, n_workers=1, **OPTS)
+    batch.fit(room, hyperparameters=inc.hyperparameters_)
     assert sorted(batch.tiles_) == sorted(inc.tiles_)
     extent = (0.0, 20.0, 0.0, 16.0)
     gi, gb = inc.grid(0.25, extent), batch.grid(0.25, extent)

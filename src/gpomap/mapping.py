@@ -92,7 +92,7 @@ class AreaGPOM(TiledGPOM):
         tile_size: float = TilingConfig.tile_size,
         overlap: float | None = None,
         blend: float | None = None,
-        origin: tuple[float, float] = (0.0, 0.0),
+        origin: tuple[float, float] | None = None,
         n_workers: int | None = 1,
         scheduler: Any = None,
         hyper_sample: int | None = None,

@@ -2,7 +2,8 @@
 
 One dense GP over every cell of a real log does not fit (tens of thousands of cells, O(N^3)
 time and O(N^2) memory). :class:`TiledGPOM` cuts the plane into square tiles on a fixed grid
-anchored at `origin`, and fits one GP per tile on the cells near it:
+(by default centred on the first fit's data, so a map smaller than a tile is one tile), and fits
+one GP per tile on the cells near it:
 
 1. **Observations once** for the whole log (beams to labelled points).
 2. **Cells per block**: the points of each tile square ("block") get their own cell tree
@@ -302,7 +303,7 @@ def _local_tile_blocks(
 
 
 #: Most query points per kernel evaluation of a local block (see :func:`_predict_tile_local`).
-LOCAL_KERNEL_POINTS: int = 256
+LOCAL_KERNEL_POINTS: int = 4096
 
 #: Queries per local block aimed at, and the bounds of the block side (in cutoff distances r):
 #: where queries are sparse the kernel call's fixed cost dominates (Intel's random points: about
@@ -338,12 +339,10 @@ def _predict_tile_local(
         cells = Supports(X.lower[near], X.upper[near], X.counts[near])
         K_JJ = K_inv[near][:, near]  # rows, then columns: faster than np.ix_
         w_J = state.weights[near]
-        # The kernel in pieces that stay in cache (its time per point grows past a few hundred).
         for s in range(0, q.size, LOCAL_KERNEL_POINTS):
             qs = q[s : s + LOCAL_KERNEL_POINTS]
-            p = points[qs]
-            Ks = kern(cells, Supports(p, p, ones[: qs.size]))  # (|J|, |qs|)
-            mean[qs] = Ks.T @ w_J
+            Ks = kern.cross_points(cells, points[qs])  # (|J|, |qs|)
+            mean[qs] = w_J @ Ks
             reduction = np.einsum("ij,ij->j", Ks, K_JJ @ Ks)
             var[qs] = np.maximum(kss[qs] - reduction, 0.0)
     return mean, var
@@ -540,8 +539,11 @@ class TiledGPOM:
         Width of the blending ramp across each tile border, centred on the border; at most
         `overlap` (so a tile only predicts where it has at least ``overlap - blend / 2`` of data
         beyond) and at most `tile_size`. Default `overlap`.
-    origin : (float, float)
-        Corner of tile (0, 0); the tile grid is fixed so incremental updates line up.
+    origin : (float, float), optional
+        Corner of tile (0, 0). Default: set by the first fit so that the fewest tiles covering
+        the data's x, y extent are centred on it (``origin_``); a map smaller than a tile is
+        then one GP over one cell tree, not cut into up to four at an arbitrary world origin.
+        The grid then stays fixed, so incremental updates line up with it.
     n_workers : int, optional
         Local worker processes; 1 runs in this process without a pool; default the CPU count.
     scheduler : str or distributed.Client, optional
@@ -579,7 +581,7 @@ class TiledGPOM:
         tile_size: float = TilingConfig.tile_size,
         overlap: float | None = None,
         blend: float | None = None,
-        origin: tuple[float, float] = (0.0, 0.0),
+        origin: tuple[float, float] | None = None,
         n_workers: int | None = None,
         scheduler: Any = None,
         hyper_sample: int | None = None,
@@ -593,7 +595,7 @@ class TiledGPOM:
         self.tile_size = float(tile_size)
         self.overlap = overlap
         self.blend = blend
-        self.origin = (float(origin[0]), float(origin[1]))
+        self.origin = None if origin is None else (float(origin[0]), float(origin[1]))
         self.n_workers = n_workers
         self.scheduler = scheduler
         self.hyper_sample = None if hyper_sample is None else int(hyper_sample)
@@ -644,8 +646,17 @@ class TiledGPOM:
     # ------------------------------------------------------------------ geometry
     def _block_keys(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
         # Tiles are squares in x, y; in 3-D they are columns spanning every height.
-        ij = np.floor((points[:, :2] - np.asarray(self.origin)) / self.tile_size).astype(np.int64)
+        ij = np.floor((points[:, :2] - np.asarray(self.origin_)) / self.tile_size).astype(np.int64)
         return (ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET)
+
+    def _centred_origin(self, points: NDArray[np.float64]) -> tuple[float, float]:
+        """Corner of tile (0, 0) that centres the fewest tiles covering `points` (n, d) in x, y on them."""
+        if points.shape[0] == 0:
+            return (0.0, 0.0)
+        lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+        n = np.maximum(np.ceil((hi - lo) / self.tile_size), 1.0)
+        corner = 0.5 * (lo + hi) - 0.5 * n * self.tile_size
+        return float(corner[0]), float(corner[1])
 
     @staticmethod
     def _decode(key: int) -> tuple[int, int]:
@@ -656,8 +667,8 @@ class TiledGPOM:
         return (ix + _KEY_OFFSET) * _KEY_BASE + (iy + _KEY_OFFSET)
 
     def _core(self, key: tuple[int, int]) -> tuple[float, float, float, float]:
-        x0 = self.origin[0] + key[0] * self.tile_size
-        y0 = self.origin[1] + key[1] * self.tile_size
+        x0 = self.origin_[0] + key[0] * self.tile_size
+        y0 = self.origin_[1] + key[1] * self.tile_size
         return x0, x0 + self.tile_size, y0, y0 + self.tile_size
 
     # ------------------------------------------------------------------ cells
@@ -1082,6 +1093,8 @@ class TiledGPOM:
         self._upper = None
         self._n_points = self._n_occupied_points = 0
         self._dim = int(obs.points.shape[1])
+        points = np.asarray(obs.points, dtype=float)
+        self.origin_ = self.origin if self.origin is not None else self._centred_origin(points)
         self._dirty: set[int] = set()
         self._n_scans = int(obs.scan_index.max()) + 1 if obs.scan_index.size else 0
         self._n_invalid, self._n_no_return = obs.n_invalid, obs.n_no_return
@@ -1089,7 +1102,7 @@ class TiledGPOM:
         timings["observations"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        self._add_points(np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool))
+        self._add_points(points, np.asarray(obs.occupied, dtype=bool))
         self._build_blocks()
         timings["cells"] = time.perf_counter() - t
 
@@ -1159,7 +1172,7 @@ class TiledGPOM:
                 self.tile_size,
                 self.overlap,
                 self.blend,
-                self.origin,
+                self.origin_,
                 n_workers=self.n_workers,
                 hyper_sample=self.hyper_sample,
                 blas_threads=self.blas_threads,
@@ -1600,6 +1613,7 @@ class TiledGPOM:
             "kernel": make_point_kernel(self.base.kernel).name,
             "area": self.base.area_method,
             "tile_size": self.tile_size,
+            "tile_origin": [float(self.origin_[0]), float(self.origin_[1])],
             "overlap": self.overlap_,
             "blend": self.blend_,
             "n_tiles": len(self.tiles_),
