@@ -345,3 +345,34 @@ def test_seen_cells_and_one_scans_counts_at_cells_equal_the_whole_grid_counts(di
             got = ev.scan_counts_at(grid, k, cells)
             np.testing.assert_array_equal(got[0], want[0])
             np.testing.assert_array_equal(got[1], want[1])
+    # The cells the whole counts kept (batches of whole scans, one or a few a batch) give the same.
+    for budget in (1 << 22, 50):
+        monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", budget)
+        kept = RayEvidence.from_scans(scans)
+        h_all, m_all = kept.counts(grid, keep=np.array([1, 3]))
+        np.testing.assert_array_equal(h_all, ev.counts(grid)[0])
+        np.testing.assert_array_equal(m_all, ev.counts(grid)[1])
+        assert sorted(k for _, k in kept._kept) == [1, 3]
+        for k in range(4):
+            hits, misses = ev.counts(grid, scans=np.array([k]))
+            got = kept.scan_counts_at(grid, k, cells)
+            np.testing.assert_array_equal(got[0], hits.reshape(-1)[cells])
+            np.testing.assert_array_equal(got[1], misses.reshape(-1)[cells])
+        kept.forget()
+        assert not kept._kept
+
+
+def test_evidence_layer_calibrates_from_the_cells_its_counts_kept(monkeypatch: pytest.MonkeyPatch) -> None:
+    from gpomap.evidence import RayEvidence as RE
+    from gpomap.fusion import EvidenceLayer
+
+    scans, _, _ = _calibration_scene()
+    # Truth: the calibration on evidence that kept nothing (every held-out scan traversed again).
+    layer = EvidenceLayer(scans, 0.1, _p_gp, calibration_scans=len(scans))
+    assert layer.lattice is not None
+    want, report = fit_calibration(scans, RE.from_scans(scans), layer.lattice, _p_gp, n_scans=len(scans), step=0.2)
+    # The layer's own calibration never traverses a scan again, and drops the kept cells after.
+    monkeypatch.setattr(RE, "_scan_cells", lambda *a: pytest.fail("a held-out scan was traversed again"))
+    layer = EvidenceLayer(scans, 0.1, _p_gp, calibration_scans=len(scans))
+    assert (layer.calibration, layer.report) == (want, report)
+    assert not layer.evidence._kept

@@ -56,6 +56,11 @@ class RayEvidence:
     hit: NDArray[np.bool_]
     scan: NDArray[np.intp]
     path: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)))
+    #: Cells that :meth:`counts` saw some scans count, kept for :meth:`scan_counts_at` (``keep``):
+    #: ``{(grid, scan): (ended, crossed)}``, sorted distinct flat cell indices.
+    _kept: dict[tuple[AnyGrid, int], tuple[NDArray[np.int64], NDArray[np.int64]]] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
 
     @classmethod
     def from_scans(cls, scans: ScanData, no_return_cap: float | None = 10.0) -> RayEvidence:
@@ -111,7 +116,9 @@ class RayEvidence:
         pts = np.concatenate([self.starts, self.ends])
         return bounds_extent(pts.min(axis=0), pts.max(axis=0))
 
-    def counts(self, grid: AnyGrid, scans: NDArray[np.intp] | None = None) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
+    def counts(
+        self, grid: AnyGrid, scans: NDArray[np.intp] | None = None, keep: NDArray[np.intp] | None = None
+    ) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
         """Hits and misses per cell of `grid`, one update per cell per scan, a hit winning.
 
         Parameters
@@ -120,6 +127,11 @@ class RayEvidence:
             Of the rays' dimension.
         scans : ndarray of int, optional
             Count only these scans (default: all).
+        keep : ndarray of int, optional
+            Scans (among those counted) whose cells are remembered, so that
+            :meth:`scan_counts_at` on this grid reads them instead of traversing the scan's beams
+            again (a leave-one-scan-out calibration asks it of the scans it holds out, right after
+            the whole counts); :meth:`forget` drops them.
 
         Returns
         -------
@@ -145,9 +157,13 @@ class RayEvidence:
                 # Round down to a scan boundary, keeping at least one whole scan.
                 boundary = int(np.searchsorted(scan_of, scan_of[hi], side="left"))
                 hi = boundary if boundary > lo else int(np.searchsorted(scan_of, scan_of[lo], side="right"))
-            self._accumulate(grid, idx[lo:hi], hits, misses)
+            self._accumulate(grid, idx[lo:hi], hits, misses, keep)
             lo = hi
         return hits.reshape(grid.shape), misses.reshape(grid.shape)
+
+    def forget(self) -> None:
+        """Drop the cells :meth:`counts` kept for :meth:`scan_counts_at` (their memory)."""
+        self._kept.clear()
 
     def seen(self, grid: AnyGrid) -> NDArray[np.bool_]:
         """Whether any beam crossed or ended a hit in each cell of `grid`: ``hits + misses > 0``
@@ -165,10 +181,11 @@ class RayEvidence:
     def scan_counts_at(self, grid: AnyGrid, scan: int, cells: NDArray[np.intp]) -> tuple[NDArray[np.int32], NDArray[np.int32]]:
         """What one scan alone counts at some cells: ``counts(grid, scans=[scan])`` read at `cells`.
 
-        Without arrays of the grid's size: the scan's beams are traversed in batches and the
-        cells asked for are looked up among the cells they crossed and ended in. A leave-one-scan-
-        out calibration asks this of each held-out scan at its own points, on a lattice of
-        millions of cells.
+        Without arrays of the grid's size: the cells asked for are looked up (a binary search
+        each) among the sorted cells the scan crossed and ended in, which :meth:`counts` kept
+        when asked to (``keep``), or else come from traversing the scan's beams in batches. A
+        leave-one-scan-out calibration asks this of each held-out scan at its own points, on a
+        lattice of millions of cells.
 
         Parameters
         ----------
@@ -185,20 +202,34 @@ class RayEvidence:
             there (a miss); else 0.
         """
         cells = np.asarray(cells, dtype=np.intp)
-        lo, hi = np.searchsorted(self.scan, [scan, scan + 1])
-        hit = np.zeros(cells.shape, dtype=bool)
-        crossed = np.zeros(cells.shape, dtype=bool)
-        if hi > lo:
-            starts, ends = self.starts[lo:hi], self.ends[lo:hi]
-            end_cell, inside = flat_index(grid, ends)
-            ended = _unique(end_cell[inside & self.hit[lo:hi]].astype(np.int64))
-            hit = np.isin(cells, ended)
-            for first, last in _batches(grid, starts, ends):
-                _, *idx = traverse(grid, starts[first:last], ends[first:last])
-                crossed |= np.isin(cells, _unique(np.ravel_multi_index(tuple(idx), grid.shape).astype(np.int64)))
-        return hit.astype(np.int32), (crossed & ~hit).astype(np.int32)
+        kept = self._kept.get((grid, int(scan)))
+        ended, crossed = self._scan_cells(grid, int(scan)) if kept is None else kept
+        hit = _in_sorted(cells, ended)
+        return hit.astype(np.int32), (_in_sorted(cells, crossed) & ~hit).astype(np.int32)
 
-    def _accumulate(self, grid: AnyGrid, beams: NDArray[np.intp], hits: NDArray[np.int32], misses: NDArray[np.int32]) -> None:
+    def _scan_cells(self, grid: AnyGrid, scan: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The cells one scan ended a beam in (hits) and crossed, each sorted distinct flat indices."""
+        lo, hi = np.searchsorted(self.scan, [scan, scan + 1])
+        if hi <= lo:
+            empty = np.zeros(0, dtype=np.int64)
+            return empty, empty
+        starts, ends = self.starts[lo:hi], self.ends[lo:hi]
+        end_cell, inside = flat_index(grid, ends)
+        ended = _unique(end_cell[inside & self.hit[lo:hi]].astype(np.int64))
+        parts = []
+        for first, last in _batches(grid, starts, ends):
+            _, *idx = traverse(grid, starts[first:last], ends[first:last])
+            parts.append(_unique(np.ravel_multi_index(tuple(idx), grid.shape).astype(np.int64)))
+        return ended, _unique(np.concatenate(parts))
+
+    def _accumulate(
+        self,
+        grid: AnyGrid,
+        beams: NDArray[np.intp],
+        hits: NDArray[np.int32],
+        misses: NDArray[np.int32],
+        keep: NDArray[np.intp] | None = None,
+    ) -> None:
         ncell = grid_size(grid)
         b, *idx = traverse(grid, self.starts[beams], self.ends[beams])
         scan = self.scan[beams]
@@ -207,9 +238,17 @@ class RayEvidence:
         ended = inside & self.hit[beams]
         hit_keys = _unique(scan[ended].astype(np.int64) * ncell + end_cell[ended])
         # A scan that ended a beam in a cell counts a hit there, not also a miss.
-        miss_keys = crossed[~np.isin(crossed, hit_keys, assume_unique=True)]
+        miss_keys = crossed[~_sorted_in_sorted(crossed, hit_keys)]
         hits += np.bincount(hit_keys % ncell, minlength=ncell).astype(np.int32)
         misses += np.bincount(miss_keys % ncell, minlength=ncell).astype(np.int32)
+        if keep is not None:
+            # Keys are scan * ncell + cell, sorted: each kept scan's cells are one slice (copied,
+            # so the batch's arrays are not kept alive).
+            for k in np.intersect1d(keep, scan):
+                base = int(k) * ncell
+                h = np.searchsorted(hit_keys, [base, base + ncell])
+                c = np.searchsorted(crossed, [base, base + ncell])
+                self._kept[(grid, int(k))] = (hit_keys[h[0] : h[1]] - base, crossed[c[0] : c[1]] - base)
 
 
 def _batches(grid: AnyGrid, starts: NDArray[np.float64], ends: NDArray[np.float64]) -> list[tuple[int, int]]:
@@ -222,6 +261,29 @@ def _batches(grid: AnyGrid, starts: NDArray[np.float64], ends: NDArray[np.float6
         out.append((first, last))
         first = last
     return out
+
+
+def _in_sorted(values: NDArray[np.integer], sorted_keys: NDArray[np.integer]) -> NDArray[np.bool_]:
+    """Whether each of `values` is among `sorted_keys` (sorted ascending), shape values.shape.
+
+    A binary search per value: ``np.isin`` sorts both arrays together, which costs far more when
+    the values are many and the keys few, or the keys already sorted.
+    """
+    if sorted_keys.size == 0:
+        return np.zeros(values.shape, dtype=bool)
+    i = np.minimum(np.searchsorted(sorted_keys, values), sorted_keys.size - 1)
+    return sorted_keys[i] == values
+
+
+def _sorted_in_sorted(values: NDArray[np.int64], keys: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """:func:`_in_sorted` when `values` too are sorted and distinct: a binary search per key
+    instead of per value (a whole log's millions of crossed cells against its hits)."""
+    mask = np.zeros(values.shape, dtype=bool)
+    pos = np.searchsorted(values, keys)
+    ok = pos < values.size
+    ok[ok] = values[pos[ok]] == keys[ok]
+    mask[pos[ok]] = True
+    return mask
 
 
 def _unique(keys: NDArray[np.int64]) -> NDArray[np.int64]:

@@ -116,6 +116,11 @@ class EvidenceCalibration:
         return np.clip(p, _EPS, 1 - _EPS)
 
 
+def calibration_scans(n: int, n_scans: int) -> NDArray[np.intp]:
+    """Indices of the scans a calibration holds out in turn: `n_scans` evenly spaced among `n` (all when fewer)."""
+    return np.unique(np.linspace(0, n - 1, min(n_scans, n)).round().astype(np.intp))
+
+
 def calibration_points(
     scan: Scan | CloudScan, step: float = 0.1, no_return_cap: float | None = 10.0
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
@@ -183,7 +188,7 @@ def fit_calibration(
         change), before (the counting grid's weights, ``"log_loss_default"``) and after the fit.
     """
     hits, misses = evidence.counts(grid) if counts is None else counts
-    picked = np.unique(np.linspace(0, len(scans) - 1, min(n_scans, len(scans))).round().astype(np.intp))
+    picked = calibration_scans(len(scans), n_scans)
     pts_all, occ_all, h_all, m_all = [], [], [], []
     for k in picked:
         pts, occ = calibration_points(scans[k], step, no_return_cap)
@@ -311,6 +316,9 @@ class EvidenceLayer:
     @property
     def evidence(self) -> RayEvidence:
         """The beams and path of every scan counted, as one :class:`RayEvidence`."""
+        if self._joined is None and len(self._parts) == 1:
+            # One part is its own join, with the cells its counts kept for the calibration.
+            self._joined = self._parts[0]
         if self._joined is None:
             offsets = np.cumsum([0] + [p.n_scans for p in self._parts[:-1]])
             parts = self._parts
@@ -350,7 +358,10 @@ class EvidenceLayer:
             return
         local = lattice_grid(bounds_extent(pts.min(axis=0), pts.max(axis=0)), self.resolution, margin=self.resolution)
         self._cover(local)
-        hits, misses = part.counts(local)
+        # The first scans' counts are on the lattice itself: the calibration's held-out scans keep
+        # their cells, so their leave-one-scan-out counts need no second traversal.
+        keep = calibration_scans(len(scans), self.calibration_scans) if not self._scans else None
+        hits, misses = part.counts(local, keep=keep)
         passes = part.path_passes(local)
         assert self.lattice is not None
         block = self._block(local)
@@ -412,6 +423,8 @@ class EvidenceLayer:
             self.seed,
             counts=(self._hits, self._beam_misses),
         )
+        for part in self._parts:
+            part.forget()
 
     # ------------------------------------------------------------------ applying
     def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
