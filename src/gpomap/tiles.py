@@ -303,7 +303,7 @@ def _local_tile_blocks(
 
 
 #: Most query points per kernel evaluation of a local block (see :func:`_predict_tile_local`).
-LOCAL_KERNEL_POINTS: int = 256
+LOCAL_KERNEL_POINTS: int = 4096
 
 #: Queries per local block aimed at, and the bounds of the block side (in cutoff distances r):
 #: where queries are sparse the kernel call's fixed cost dominates (Intel's random points: about
@@ -333,18 +333,17 @@ def _predict_tile_local(
     kss = kern.diag(Supports(points, points, ones))
     mean = np.zeros(m)
     var = kss.copy()  # the prior where no cell is near
+    cross = kern.point_blocks(X, points)  # work common to every block done once
     for q, near in blocks:
         if near.size == 0:
             continue
-        cells = Supports(X.lower[near], X.upper[near], X.counts[near])
-        K_JJ = K_inv[near][:, near]  # rows, then columns: faster than np.ix_
+        # One gather of the |J|^2 entries (rows then columns would copy |J| whole rows first).
+        K_JJ = np.take(K_inv, near[:, None] * K_inv.shape[1] + near[None, :])
         w_J = state.weights[near]
-        # The kernel in pieces that stay in cache (its time per point grows past a few hundred).
         for s in range(0, q.size, LOCAL_KERNEL_POINTS):
             qs = q[s : s + LOCAL_KERNEL_POINTS]
-            p = points[qs]
-            Ks = kern(cells, Supports(p, p, ones[: qs.size]))  # (|J|, |qs|)
-            mean[qs] = Ks.T @ w_J
+            Ks = cross.block(near, qs)  # (|J|, |qs|)
+            mean[qs] = w_J @ Ks
             reduction = np.einsum("ij,ij->j", Ks, K_JJ @ Ks)
             var[qs] = np.maximum(kss[qs] - reduction, 0.0)
     return mean, var

@@ -21,7 +21,7 @@ from typing import Literal, overload
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.kernels.closed_form import se_box_average, se_box_gram, se_box_self_average
+from gpomap.kernels.closed_form import BoxPointFactors, se_box_average, se_box_gram, se_box_point_average, se_box_self_average
 from gpomap.kernels.nodes import NodeSet, member_nodes, quadrature_nodes, weighted_gram, weighted_self
 from gpomap.kernels.point import PointKernel, SquaredExponential, make_point_kernel
 from gpomap.kernels.tensor import TensorDistances, tensor_distances, tensor_gram, tensor_gram_length_scale, tensor_self
@@ -222,7 +222,46 @@ class AreaKernel:
                 dL *= scale
         return K, dL
 
+    def point_blocks(self, A: Supports, points: NDArray[np.float64]) -> BoxPointFactors | _GenericPointBlocks:
+        """Covariances between inputs and points, to be evaluated block by block (local prediction).
+
+        ``point_blocks(A, points).block(rows, cols)`` is ``self(A', P')`` for the inputs
+        ``A.lower[rows]``, ``A.upper[rows]`` (counts, no members) and the points ``points[cols]``,
+        the same numbers; the exact kernel does the work common to all blocks once
+        (:class:`~gpomap.kernels.closed_form.BoxPointFactors`).
+
+        Parameters
+        ----------
+        A : Supports
+            n inputs.
+        points : ndarray of shape (m, d)
+        """
+        if self.method == "exact" and self.normalisation == "mean":
+            return BoxPointFactors(A.lower, A.upper, points, self.base.variance, self.base.length_scale)
+        return _GenericPointBlocks(self, A, points)
+
+    def _exact_points(
+        self, lower: NDArray[np.float64], upper: NDArray[np.float64], points: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """The exact kernel between boxes (n, d) and points (m, d), (n, m), in blocks of at most `max_block` entries."""
+        n, m = lower.shape[0], points.shape[0]
+        cols = max(1, self.max_block // max(n, 1))
+        if cols >= m:
+            return se_box_point_average(lower, upper, points, self.base.variance, self.base.length_scale)
+        K = np.empty((n, m))
+        for s in range(0, m, cols):
+            K[:, s : s + cols] = se_box_point_average(
+                lower, upper, points[s : s + cols], self.base.variance, self.base.length_scale
+            )
+        return K
+
     def _exact(self, A: Supports, B: Supports, eval_gradient: bool):
+        if not eval_gradient and len(A) and len(B):
+            # Boxes against points (prediction): one erf table per axis, the same numbers.
+            if np.array_equal(B.lower, B.upper):
+                return self._exact_points(A.lower, A.upper, B.lower), None
+            if np.array_equal(A.lower, A.upper):
+                return self._exact_points(B.lower, B.upper, A.lower).T, None
         n = len(A)
         K = np.empty((n, len(B)))
         dK = np.empty((n, len(B), 2)) if eval_gradient else None
@@ -248,3 +287,15 @@ class AreaKernel:
         if self.normalisation == "sum":
             d = d * A.counts**2
         return d
+
+
+class _GenericPointBlocks:
+    """:meth:`AreaKernel.point_blocks` for every kernel: each block evaluated through ``kernel(A', P')``."""
+
+    def __init__(self, kernel: AreaKernel, A: Supports, points: NDArray[np.float64]) -> None:
+        self.kernel, self.A, self.points = kernel, A, points
+
+    def block(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.float64]:
+        """K between inputs `rows` and points `cols`, ndarray of shape (len(rows), len(cols))."""
+        A, p = self.A, self.points[cols]
+        return self.kernel(Supports(A.lower[rows], A.upper[rows], A.counts[rows]), Supports(p, p, np.ones(cols.size)))
