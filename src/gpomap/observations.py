@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import binary_dilation
+from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 from gpomap.clouds import CloudScan
@@ -148,9 +148,20 @@ def ray_free_points(
     return o + dist[:, None] * u, ray
 
 
-#: Largest lattice of clearance-sized boxes (bytes, one per box) the pre-filter of
-#: :func:`free_near_hits` lays over the points; wider maps skip it.
-MAX_CLEARANCE_BOXES: int = 50_000_000
+#: Most boxes of the lattice :func:`free_near_hits` lays over the points (its distance
+#: transform holds 8 bytes per box, and as much again while it runs) ...
+MAX_CLEARANCE_BOXES: int = 4_000_000
+#: ... and most boxes per clearance: finer boxes leave a thinner band of points to ask the tree
+#: about (about 2 sqrt(d) boxes wide round the clearance's distance).
+CLEARANCE_SUBDIVISIONS: int = 10
+
+
+def _subdivisions(span: NDArray[np.float64], clearance: float) -> int:
+    """Boxes per clearance for a lattice over `span` (d,) metres within the box budget; 0 if none fits."""
+    for k in range(CLEARANCE_SUBDIVISIONS, 0, -1):
+        if math.prod(float(v) for v in np.floor(span * (k / clearance)) + 2) <= MAX_CLEARANCE_BOXES:
+            return k
+    return 0
 
 
 def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], clearance: float) -> NDArray[np.bool_]:
@@ -174,17 +185,22 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
         return out
     points = np.asarray(points, dtype=float)
     free = np.flatnonzero(~occupied)
-    # Only a free point whose box of side `clearance` touches a box holding a hit can be that
-    # close to one: the tree is asked about those alone (about half the free points of an
-    # indoor log), with the same answer.
-    boxes = np.floor(points / clearance).astype(np.int64)
-    lo = boxes.min(axis=0) - 1  # the neighbours reach one box beyond the points
-    dims = tuple(int(v) for v in boxes.max(axis=0) - lo + 2)
-    if math.prod(dims) <= MAX_CLEARANCE_BOXES:
-        touched = np.zeros(dims, dtype=bool)
-        touched[tuple((boxes[occupied] - lo).T)] = True
-        touched = binary_dilation(touched, structure=np.ones((3,) * len(dims), dtype=bool))
-        candidates = free[touched[tuple((boxes[free] - lo).T)]]
+    # Boxes of side s = clearance / k: a point is within sqrt(d) s / 2 of its box's centre, so a
+    # free point whose box centre is D boxes from the nearest hit box's centre is within
+    # (D + sqrt(d)) s of a hit and farther than (D - sqrt(d)) s from every hit. Points sure
+    # either way are settled by the distance transform; only the band between goes to the tree.
+    dim = points.shape[1]
+    lo = points.min(axis=0)
+    k = _subdivisions(points.max(axis=0) - lo, clearance)
+    if k:
+        boxes = np.floor((points - lo) * (k / clearance)).astype(np.intp)
+        no_hit = np.ones(tuple(int(v) for v in boxes.max(axis=0) + 1), dtype=bool)
+        no_hit[tuple(boxes[occupied].T)] = False
+        boxes_away = distance_transform_edt(no_hit)[tuple(boxes[free].T)]
+        diagonal = math.sqrt(dim)  # two half diagonals, in boxes
+        # With a margin either way: a point on a box border may have been floored into either box.
+        out[free[boxes_away + diagonal < k - 1e-6]] = True
+        candidates = free[np.abs(boxes_away - k) <= diagonal + 1e-6]
     else:
         candidates = free  # a sparse, very wide map: ask the tree about every free point
     if candidates.size:
