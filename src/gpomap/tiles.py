@@ -1376,9 +1376,13 @@ class TiledGPOM:
         # Per tile: which points it predicts and with what weight.
         members: dict[tuple[int, int], tuple[NDArray[np.intp], NDArray[np.float64]]] = {}
         wsum = np.zeros(m)
+        # Points sorted by x once, so each tile scans only the points of its x range.
+        by_x = np.argsort(pts[:, 0], kind="stable")
+        xs = pts[by_x, 0]
         for key in sorted(self.tiles_):
             bx0, bx1, by0, by1 = self._blend_region(key)
-            idx = np.flatnonzero((pts[:, 0] > bx0) & (pts[:, 0] < bx1) & (pts[:, 1] > by0) & (pts[:, 1] < by1))
+            near_x = by_x[np.searchsorted(xs, bx0, side="right") : np.searchsorted(xs, bx1, side="left")]
+            idx = np.sort(near_x[(pts[near_x, 1] > by0) & (pts[near_x, 1] < by1)])  # bx0 < x < bx1, by0 < y < by1
             if idx.size == 0:
                 continue
             x0, x1, y0, y1 = self._core(key)
@@ -1386,7 +1390,7 @@ class TiledGPOM:
             nz = w > 0
             if nz.any():
                 members[key] = (idx[nz], w[nz])
-                np.add.at(wsum, idx[nz], w[nz])
+                wsum[idx[nz]] += w[nz]  # indices distinct within a tile
         # Points no tile reaches (blocks without data): the tile whose core is nearest, alone.
         orphans = np.flatnonzero(wsum <= 0)
         if orphans.size:
@@ -1417,10 +1421,11 @@ class TiledGPOM:
             a, b = hp["alpha"], hp["beta"]
             # Blend the calibrated latent moments so per-tile alpha and beta blend too; with
             # global alpha and beta this is exactly squash(blended mean, blended variance).
-            np.add.at(num, idx, w * (a * mu + b))
-            np.add.at(den, idx, w * (a * a * var))
-            np.add.at(lat_m, idx, w * mu)
-            np.add.at(lat_v, idx, w * var)
+            # idx is distinct within a tile, so fancy-index sums add each once, in tile order.
+            num[idx] += w * (a * mu + b)
+            den[idx] += w * (a * a * var)
+            lat_m[idx] += w * mu
+            lat_v[idx] += w * var
         num /= wsum
         den /= wsum
         p = ndtr(num / np.sqrt(1.0 + den))

@@ -403,8 +403,9 @@ def se_box_point_average(
             K *= np.take(f, side, axis=0)
     if K is None:
         K = np.ones((n, m))
-    # variance * (f_0 * f_1 * ...), in se_box_average's order.
-    K *= variance
+    # variance * (f_0 * f_1 * ...), in se_box_average's order (a unit variance changes nothing).
+    if variance != 1.0:
+        K *= variance
     return K
 
 
@@ -531,7 +532,8 @@ class BoxPointFactors:
                 K *= f
         if K is None:
             K = np.ones((rows.size, cols.size))
-        K *= self.variance
+        if self.variance != 1.0:
+            K *= self.variance
         return K
 
 
