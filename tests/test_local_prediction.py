@@ -11,7 +11,7 @@ import gpomap.tiles as tiles
 from gpomap.gp import LOCAL_TOL, local_blocks
 from gpomap.simulate import paper_room_scans
 from gpomap.supports import Supports
-from gpomap.tiles import TiledGPOM, predict_tile_task
+from gpomap.tiles import TiledGPOM, predict_tile_task, taper
 
 # Short length scales, so each block of queries sees a few metres of a tile: local is taken.
 OPTS = dict(optimise=False, noise=0.1, free_step=0.3)
@@ -119,3 +119,38 @@ def test_summed_kernel_keeps_the_dense_path():
     points = Supports.from_points(np.random.default_rng(6).uniform(0, 10, (5000, 2)))
     assert tiles._local_tile_blocks(state, kern, state.supports(), points, 4096) is None
     assert LOCAL_TOL > 0
+
+
+def test_blended_prediction_is_the_taper_weighted_mean_of_the_tiles(room_maps):
+    """Each point's blended moments from its own loop over the tiles (no sorting, no index sets), against the map's."""
+    from scipy.special import ndtr
+
+    model = room_maps["se"]
+    lo, hi = model.bounds_
+    rng = np.random.default_rng(8)
+    # Random points, and points on tile and blend-region edges where the weights switch on.
+    points = rng.uniform(lo - 0.5, hi + 0.5, (300, 2))
+    keys = sorted(model.tiles_)
+    edges = np.array([model._blend_region(k)[0] for k in keys] + [model._core(k)[0] for k in keys])
+    points = np.concatenate([points, np.column_stack([edges, rng.uniform(lo[1], hi[1], edges.size)])])
+    p, mean, var, _ = model._predict_blended(points)
+    h = 0.5 * model.blend_
+    settings = model._settings()
+    for i, x in enumerate(points):
+        num = den = lat_m = lat_v = wsum = 0.0
+        for key in keys:
+            bx0, bx1, by0, by1 = model._blend_region(key)
+            if not (bx0 < x[0] < bx1 and by0 < x[1] < by1):
+                continue
+            x0, x1, y0, y1 = model._core(key)
+            w = float(taper(np.array([x[0]]), x0, x1, h)[0] * taper(np.array([x[1]]), y0, y1, h)[0])
+            if w <= 0:
+                continue
+            (mu,), (v,) = predict_tile_task(model.tiles_[key], settings, x[None, :], local=False)
+            a, b = model.tiles_[key].hyperparameters["alpha"], model.tiles_[key].hyperparameters["beta"]
+            num, den, lat_m, lat_v, wsum = num + w * (a * mu + b), den + w * a * a * v, lat_m + w * mu, lat_v + w * v, wsum + w
+        if wsum == 0:  # reached by no tile: the map takes the nearest core's tile alone
+            continue
+        assert mean[i] == pytest.approx(lat_m / wsum, abs=1e-8)
+        assert var[i] == pytest.approx(lat_v / wsum, abs=1e-8)
+        assert p[i] == pytest.approx(ndtr((num / wsum) / np.sqrt(1.0 + den / wsum)), abs=1e-8)
