@@ -138,6 +138,41 @@ def interpolate(values: ArrayLike, source: AnyGrid, target: AnyGrid) -> NDArray[
     return v
 
 
+def interpolation_block(source: AnyGrid, target: AnyGrid) -> tuple[slice, ...]:
+    """The block of `source` cells whose values :func:`interpolate` onto `target` depends on.
+
+    Every value it reads lies in the block, or is read with a weight of exactly 0 (the upper
+    neighbour of a target centre on a source centre, where ``a + 0 * (b - a)`` is `a` for any
+    finite `b`): values outside the block, if finite, do not change the result by a bit. A
+    :func:`coarse` lattice, one cell beyond the target at each edge, has one or two cells per
+    axis and side outside it.
+
+    Parameters
+    ----------
+    source, target : GridSpec or VoxelSpec, of one dimension
+
+    Returns
+    -------
+    tuple of slice
+        One per array axis (x last).
+    """
+    d = grid_dim(source)
+    if source == target:
+        return tuple(slice(0, n) for n in source.shape)
+    block = []
+    for axis in range(d):
+        k = d - 1 - axis  # array order is coordinate order reversed (x last)
+        lo, hi, w = _axis_weights(_axis_centres(source, k), _axis_centres(target, k))
+        if lo.size == 0:
+            block.append(slice(0, 0))
+            continue
+        top = int(lo.max())
+        if (w > 0).any():
+            top = max(top, int(hi[w > 0].max()))
+        block.append(slice(int(lo.min()), top + 1))
+    return tuple(block)
+
+
 def _axis_weights(
     source: NDArray[np.float64], target: NDArray[np.float64]
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:

@@ -1,0 +1,72 @@
+"""The block of a coarse lattice that interpolation reads, and the written voxel grid that predicts only it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpomap import lattice
+from gpomap.clouds import CloudScan
+from gpomap.fusion import EvidenceLayer
+from gpomap.grid import GridSpec
+from gpomap.voxels import VoxelSpec
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_values_outside_the_block_do_not_change_the_interpolation(dim: int) -> None:
+    rng = np.random.default_rng(dim)
+    # Extents that are and are not whole multiples of the coarse step (a target centre on the
+    # last source centre reads its upper neighbour with weight 0).
+    for shape in ((12, 17, 9)[:dim], (13, 16, 8)[:dim]):
+        fine = GridSpec((-1.0, 2.0), 0.05, shape) if dim == 2 else VoxelSpec((-1.0, 2.0, 0.3), 0.05, shape)  # type: ignore[arg-type]
+        for factor in (1, 2, 3, 4):
+            big = lattice.coarse(fine, factor)
+            block = lattice.interpolation_block(big, fine)
+            values = rng.uniform(size=big.shape)
+            want = lattice.interpolate(values, big, fine)
+            other = rng.uniform(-1e6, 1e6, size=big.shape)
+            other[block] = values[block]
+            np.testing.assert_array_equal(lattice.interpolate(other, big, fine), want)
+            if factor > 1:
+                assert np.prod([b.stop - b.start for b in block]) < values.size
+            # And the block is the least: its first and last cells along each axis are read.
+            for axis in range(dim):
+                for edge in (block[axis].start, block[axis].stop - 1):
+                    changed = values.copy()
+                    index = [slice(None)] * dim
+                    index[axis] = slice(edge, edge + 1)
+                    changed[tuple(index)] += 1.0
+                    assert not np.array_equal(lattice.interpolate(changed, big, fine), want)
+
+
+def test_written_voxel_grid_predicts_the_gp_only_where_it_is_read() -> None:
+    rng = np.random.default_rng(0)
+    o = np.array([0.5, 0.5, 0.5])
+    ends = o + rng.normal(0.0, 0.6, (200, 3))
+    scans = [
+        CloudScan(o, ends, hit=np.ones(len(ends), bool), max_range=3.0),
+        CloudScan(o + 0.1, ends, hit=np.ones(len(ends), bool)),
+    ]
+
+    def p_gp(points: np.ndarray) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-np.sin(3 * points[:, 0]) - points[:, 1] * points[:, 2]))
+
+    asked: list[int] = []
+
+    def gp(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        asked.append(len(points))
+        p = p_gp(points)
+        return p, 0.3 * p + points[:, 2], 0.5 + 0.2 * (p - 0.5)
+
+    layer = EvidenceLayer(scans, 0.1, p_gp)
+    grid = VoxelSpec.from_extent(ends.min(axis=0), ends.max(axis=0), 0.1)
+    length_scale = 1.2  # 4 cells between GP samples
+    got = layer.written_grid(grid, length_scale, gp)
+    # Truth: every sample of the coarse lattice predicted, interpolated and fused.
+    sampled = lattice.coarse(grid, 4)
+    p, var, p_unseen = gp(lattice.grid_centres(sampled))
+    want_p = layer.grid_proba(grid, lattice.interpolate(p, sampled, grid), lattice.interpolate(p_unseen, sampled, grid))
+    np.testing.assert_array_equal(got[0], want_p)
+    np.testing.assert_array_equal(got[1], lattice.interpolate(var, sampled, grid))
+    block = lattice.interpolation_block(sampled, grid)
+    assert asked[0] == np.prod([s.stop - s.start for s in block]) < asked[1] == np.prod(sampled.shape)
