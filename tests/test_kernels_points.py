@@ -11,10 +11,10 @@ from gpomap.kernels import closed_form as cf
 from gpomap.supports import Supports
 
 
-def _boxes(rng: np.random.Generator, n: int, dim: int) -> tuple[np.ndarray, np.ndarray]:
-    """Boxes on a coarse lattice (so sides repeat, as a cell tree's do), some sides of zero or sub-POINT_WIDTH width."""
+def _boxes(rng: np.random.Generator, n: int, dim: int, thin: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes on a coarse lattice (so sides repeat, as a cell tree's do); with `thin`, some sides of zero or sub-POINT_WIDTH width."""
     lower = np.round(rng.uniform(0.0, 3.0, (n, dim)), 1)
-    upper = lower + rng.choice([0.0, 1e-5, 0.1, 0.25, 0.5, 1.0], (n, dim))
+    upper = lower + rng.choice([0.0, 1e-5, 0.1, 0.25, 0.5, 1.0] if thin else [0.1, 0.25, 0.5, 1.0], (n, dim))
     return lower, upper
 
 
@@ -25,9 +25,10 @@ def _points(rng: np.random.Generator, m: int, dim: int, grid: bool) -> np.ndarra
 
 @pytest.mark.parametrize("dim", [1, 2, 3])
 @pytest.mark.parametrize("grid", [False, True], ids=["scattered", "grid"])
-def test_box_point_average_is_the_box_average_bit_for_bit(dim, grid):
+@pytest.mark.parametrize("thin", [True, False], ids=["thin-sides", "intervals"])
+def test_box_point_average_is_the_box_average_bit_for_bit(dim, grid, thin):
     rng = np.random.default_rng(dim)
-    lower, upper = _boxes(rng, 200, dim)
+    lower, upper = _boxes(rng, 200, dim, thin)
     points = _points(rng, 300, dim, grid)
     reference, _ = cf.se_box_average(lower, upper, points, points, 1.3, 0.37)
     np.testing.assert_array_equal(cf.se_box_point_average(lower, upper, points, 1.3, 0.37), reference)
@@ -67,10 +68,11 @@ def test_box_point_average_matches_brute_force_integration():
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("grid", [False, True], ids=["scattered", "grid"])
 @pytest.mark.parametrize("table_limit", [cf.MAX_FACTOR_TABLE, 0], ids=["tabled", "per-block"])
-def test_box_point_factors_blocks_are_the_box_point_average(dim, grid, table_limit, monkeypatch):
+@pytest.mark.parametrize("thin", [True, False], ids=["thin-sides", "intervals"])
+def test_box_point_factors_blocks_are_the_box_point_average(dim, grid, table_limit, thin, monkeypatch):
     monkeypatch.setattr(cf, "MAX_FACTOR_TABLE", table_limit)
     rng = np.random.default_rng(10 + dim)
-    lower, upper = _boxes(rng, 250, dim)
+    lower, upper = _boxes(rng, 250, dim, thin)
     points = _points(rng, 400, dim, grid)
     factors = cf.BoxPointFactors(lower, upper, points, 0.8, 0.3)
     assert all((table is not None) == (grid and table_limit > 0) for *_, table, _ in factors.axes)

@@ -302,8 +302,10 @@ def _local_tile_blocks(
     return blocks
 
 
-#: Most query points per kernel evaluation of a local block (see :func:`_predict_tile_local`).
-LOCAL_KERNEL_POINTS: int = 4096
+#: Most query points per kernel evaluation of a local block for the quadrature and summed
+#: kernels, whose time per point grows past a few hundred (see :func:`_predict_tile_local`);
+#: the exact SE kernel's tabled factors take a block in one piece.
+LOCAL_KERNEL_POINTS: int = 256
 
 #: Queries per local block aimed at, and the bounds of the block side (in cutoff distances r):
 #: where queries are sparse the kernel call's fixed cost dominates (Intel's random points: about
@@ -340,8 +342,9 @@ def _predict_tile_local(
         # One gather of the |J|^2 entries (rows then columns would copy |J| whole rows first).
         K_JJ = np.take(K_inv, near[:, None] * K_inv.shape[1] + near[None, :])
         w_J = state.weights[near]
-        for s in range(0, q.size, LOCAL_KERNEL_POINTS):
-            qs = q[s : s + LOCAL_KERNEL_POINTS]
+        step = q.size if kern.method == "exact" else LOCAL_KERNEL_POINTS
+        for s in range(0, q.size, step):
+            qs = q[s : s + step]
             Ks = cross.block(near, qs)  # (|J|, |qs|)
             mean[qs] = w_J @ Ks
             reduction = np.einsum("ij,ij->j", Ks, K_JJ @ Ks)

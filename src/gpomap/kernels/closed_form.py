@@ -436,6 +436,15 @@ def side_point_factors(
     values, inverse = _distinct_coordinates(x) if repeated else (x, None)
     w = hi - lo
     is_point = w < POINT_WIDTH * l
+    if not is_point.any():
+        # Intervals only (cells of the tree): no masks, the differences formed in place.
+        ends, where = np.unique(np.concatenate([lo, hi]), return_inverse=True)
+        where = where.reshape(-1)
+        g1 = _g1(ends[:, None] - values[None, :], l)
+        F = np.take(g1, where[lo.size :], axis=0)
+        F -= np.take(g1, where[: lo.size], axis=0)
+        F /= w[:, None]
+        return F if inverse is None else F[:, inverse]
     F = np.empty((lo.size, values.size))
     ii = np.flatnonzero(~is_point)
     if ii.size:
@@ -523,9 +532,12 @@ class BoxPointFactors:
                 # Rows first (few distinct sides), then the block's columns.
                 f = np.take(np.take(f, s, axis=0), inverse[cols], axis=1)
             else:
-                used, local = np.unique(s, return_inverse=True)
+                # The block's distinct sides (sorted, as np.unique gives them) by marks: no sort.
+                mark = np.zeros(a.size, dtype=bool)
+                mark[s] = True
+                used = np.flatnonzero(mark)
                 f = side_point_factors(a[used], b[used], self.points[cols, k], self.length_scale, repeated)
-                f = np.take(f, local.reshape(-1), axis=0)
+                f = np.take(f, (np.cumsum(mark) - 1)[s], axis=0)
             if K is None:
                 K = f
             else:
