@@ -2,8 +2,8 @@
 
 One dense GP over every cell of a real log does not fit (tens of thousands of cells, O(N^3)
 time and O(N^2) memory). :class:`TiledGPOM` cuts the plane into square tiles on a fixed grid
-(by default centred on the first fit's data, so a map smaller than a tile is one tile), and fits
-one GP per tile on the cells near it:
+(anchored at the map frame's origin, or one tile centred on the data when they fit in one), and
+fits one GP per tile on the cells near it:
 
 1. **Observations once** for the whole log (beams to labelled points).
 2. **Cells per block**: the points of each tile square ("block") get their own cell tree
@@ -544,10 +544,13 @@ class TiledGPOM:
         `overlap` (so a tile only predicts where it has at least ``overlap - blend / 2`` of data
         beyond) and at most `tile_size`. Default `overlap`.
     origin : (float, float), optional
-        Corner of tile (0, 0). Default: set by the first fit so that the fewest tiles covering
-        the data's x, y extent are centred on it (``origin_``); a map smaller than a tile is
-        then one GP over one cell tree, not cut into up to four at an arbitrary world origin.
-        The grid then stays fixed, so incremental updates line up with it.
+        Corner of tile (0, 0). Default (``origin_``, set by the first fit): when the data's x, y
+        extent fits in one tile, that tile centred on them, so a small map is one GP over one
+        cell tree instead of being cut into up to four where the map frame's origin falls in
+        it; otherwise the map frame's origin. Moving the grid of a larger map only moves its
+        borders, and changes the cell trees (each grown from its block's points) at random: on
+        la3dm sim_unstructured a centred grid scored AUC 0.755 against 0.838. The grid then
+        stays fixed, so incremental updates line up with it.
     n_workers : int, optional
         Local worker processes; 1 runs in this process without a pool; default the CPU count.
     scheduler : str or distributed.Client, optional
@@ -653,14 +656,16 @@ class TiledGPOM:
         ij = np.floor((points[:, :2] - np.asarray(self.origin_)) / self.tile_size).astype(np.int64)
         return (ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET)
 
-    def _centred_origin(self, points: NDArray[np.float64]) -> tuple[float, float]:
-        """Corner of tile (0, 0) that centres the fewest tiles covering `points` (n, d) in x, y on them."""
+    def _default_origin(self, points: NDArray[np.float64]) -> tuple[float, float]:
+        """Corner of tile (0, 0) for `points` (n, d): one tile centred on them if their x, y extent
+        fits in one, else the map frame's origin."""
         if points.shape[0] == 0:
             return (0.0, 0.0)
         lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
-        n = np.maximum(np.ceil((hi - lo) / self.tile_size), 1.0)
-        corner = 0.5 * (lo + hi) - 0.5 * n * self.tile_size
-        return float(corner[0]), float(corner[1])
+        if np.all(hi - lo < self.tile_size):
+            corner = 0.5 * (lo + hi) - 0.5 * self.tile_size
+            return float(corner[0]), float(corner[1])
+        return (0.0, 0.0)
 
     @staticmethod
     def _decode(key: int) -> tuple[int, int]:
@@ -1098,7 +1103,7 @@ class TiledGPOM:
         self._n_points = self._n_occupied_points = 0
         self._dim = int(obs.points.shape[1])
         points = np.asarray(obs.points, dtype=float)
-        self.origin_ = self.origin if self.origin is not None else self._centred_origin(points)
+        self.origin_ = self.origin if self.origin is not None else self._default_origin(points)
         self._dirty: set[int] = set()
         self._n_scans = int(obs.scan_index.max()) + 1 if obs.scan_index.size else 0
         self._n_invalid, self._n_no_return = obs.n_invalid, obs.n_no_return
