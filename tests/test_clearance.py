@@ -17,7 +17,7 @@ def brute_force(points: np.ndarray, occupied: np.ndarray, clearance: float) -> n
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("clearance", [0.05, 0.3, 1.7])
-@pytest.mark.parametrize("lattice", ["fine", "coarse", "none"])  # 10 boxes per clearance, 2, no lattice
+@pytest.mark.parametrize("lattice", ["fine", "coarse", "none"])  # the most boxes per clearance, 1, no lattice
 def test_free_near_hits_equals_brute_force(dim: int, clearance: float, lattice: str, monkeypatch) -> None:
     rng = np.random.default_rng(dim * 10 + int(clearance * 10))
     # Negative and positive coordinates, and points on box borders (multiples of the clearance).
@@ -25,11 +25,11 @@ def test_free_near_hits_equals_brute_force(dim: int, clearance: float, lattice: 
     pts[:300] = np.round(pts[:300] / clearance) * clearance
     occ = rng.random(3000) < 0.1
     span = pts.max(axis=0) - pts.min(axis=0)
-    if lattice != "fine":  # a budget of boxes that allows 2 per clearance, or not even 1
-        budget = int(np.prod(np.floor(span * 2 / clearance) + 2)) if lattice == "coarse" else 1
+    if lattice != "fine":  # a budget of boxes that allows 1 per clearance, or none
+        budget = int(np.prod(np.floor(span / clearance) + 2)) if lattice == "coarse" else 1
         monkeypatch.setattr(observations, "MAX_CLEARANCE_BOXES", budget)
-    k = observations._subdivisions(span, clearance)
-    assert (k > 2) if lattice == "fine" else k == {"coarse": 2, "none": 0}[lattice]
+    expected = {"fine": observations.CLEARANCE_SUBDIVISIONS[dim], "coarse": 1, "none": 0}[lattice]
+    assert observations._subdivisions(span, clearance) == expected
     got = free_near_hits(pts, occ, clearance)
     np.testing.assert_array_equal(got, brute_force(pts, occ, clearance))
     assert got.any() and not got.all()  # both answers occur, so the comparison means something

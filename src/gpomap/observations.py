@@ -151,14 +151,17 @@ def ray_free_points(
 #: Most boxes of the lattice :func:`free_near_hits` lays over the points (its distance
 #: transform holds 8 bytes per box, and as much again while it runs) ...
 MAX_CLEARANCE_BOXES: int = 4_000_000
-#: ... and most boxes per clearance: finer boxes leave a thinner band of points to ask the tree
-#: about (about 2 sqrt(d) boxes wide round the clearance's distance).
-CLEARANCE_SUBDIVISIONS: int = 10
+#: ... and most boxes per clearance, by dimension: finer boxes leave a thinner band of points to
+#: ask the tree about (about 2 sqrt(d) boxes wide round the clearance's distance), but the
+#: distance transform grows with the cube in 3-D: la3dm sim_structured's cells stage took 1.23 s
+#: with 2, 3.26 s with 10 (1.26 s with the earlier pre-filter); FR079's planar blocks' clearance
+#: 3.4 s with 10, 11.3 s with the earlier one.
+CLEARANCE_SUBDIVISIONS: dict[int, int] = {2: 10, 3: 2}
 
 
 def _subdivisions(span: NDArray[np.float64], clearance: float) -> int:
     """Boxes per clearance for a lattice over `span` (d,) metres within the box budget; 0 if none fits."""
-    for k in range(CLEARANCE_SUBDIVISIONS, 0, -1):
+    for k in range(CLEARANCE_SUBDIVISIONS.get(span.size, 2), 0, -1):
         if math.prod(float(v) for v in np.floor(span * (k / clearance)) + 2) <= MAX_CLEARANCE_BOXES:
             return k
     return 0
