@@ -36,12 +36,18 @@ class _Fixed:
         return self.moments(points)
 
 
+def _kept_observations(scans):
+    """The map's points observed once, then each pattern's kept scans' share in the square."""
+    settings = AreaGPOM().base
+    obs = settings.make_observations(scans, clearance=False)
+    return lambda kept, lo, hi: ex.region_observations(obs, kept, lo, hi, settings.free_clearance)
+
+
 def _fit(scans, moments, **kw):
-    model = AreaGPOM(ray_evidence=False)
     return ex.fit_variance_scale(
         scans,
         {"alpha": 30.0, "beta": 0.0},
-        model.make_observations,
+        _kept_observations(scans),
         _Fixed(moments).fit,
         centre=np.zeros(2),
         region_half=50.0,
@@ -102,7 +108,7 @@ def test_the_fitted_scale_is_the_likelihoods_best_by_brute_force():
     pts = []
     model = _Fixed(lambda p: pts.append(p) or moments(p))
     _, again = ex.fit_variance_scale(
-        scans, {"alpha": 30.0, "beta": 0.0}, AreaGPOM().make_observations, model.fit, np.zeros(2), 50.0, 0.0, seed=3
+        scans, {"alpha": 30.0, "beta": 0.0}, _kept_observations(scans), model.fit, np.zeros(2), 50.0, 0.0, seed=3
     )
     assert again["kappa"] == pytest.approx(kappa)
     rng.bit_generator.state = state
@@ -114,6 +120,29 @@ def test_the_fitted_scale_is_the_likelihoods_best_by_brute_force():
     assert kappa == pytest.approx(grid[np.argmin(nll)], rel=0.01)
     assert report["log_loss"] == pytest.approx(nll.min(), abs=1e-4)
     assert report["log_loss"] < report["log_loss_at_1"]
+
+
+def test_region_observations_equal_the_kept_scans_observed_alone():
+    scans = paper_room_scans(n_beams=90, seed=0)
+    settings = AreaGPOM().base
+    whole = settings.make_observations(scans, clearance=False)
+    kept, _ = ex.holdout_stretches(len(scans))
+    # A square cutting through the room: hits just outside it clear free points just inside.
+    lo, hi = np.array([0.1, 2.0]), np.array([12.0, 9.5])  # the outer wall x = 0 just outside
+    got = ex.region_observations(whole, kept, lo, hi, settings.free_clearance)
+    alone = settings.make_observations([scans[i] for i in kept])  # with the clearance
+    inside = np.all((alone.points >= lo) & (alone.points <= hi), axis=1)
+    np.testing.assert_array_equal(got.points, alone.points[inside])
+    np.testing.assert_array_equal(got.occupied, alone.occupied[inside])
+    np.testing.assert_array_equal(got.scan_index, kept[alone.scan_index[inside]])
+    # The clearance was applied, and near the square's edge it took hits from outside.
+    unclear = ex.region_observations(whole, kept, lo, hi, 0.0)
+    assert unclear.n_free > got.n_free and unclear.n_occupied == got.n_occupied
+    cut = np.all((whole.points >= lo) & (whole.points <= hi), axis=1) & np.isin(whole.scan_index, kept)
+    from gpomap.observations import free_near_hits
+
+    inside_only = whole.points[cut][~free_near_hits(whole.points[cut], whole.occupied[cut], settings.free_clearance)]
+    assert len(inside_only) > len(got.points)
 
 
 def test_too_few_unseen_points_leave_the_scale_at_one():

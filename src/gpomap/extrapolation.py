@@ -40,7 +40,7 @@ from scipy.special import log_ndtr
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.lattice import bounds_extent, flat_index
-from gpomap.observations import Observations
+from gpomap.observations import Observations, free_near_hits
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
 N_STRETCHES: int = 10
@@ -100,10 +100,42 @@ def whole_map_region(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], 
     return 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) + 1.0
 
 
+def region_observations(
+    obs: Observations, kept: NDArray[np.intp], lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float
+) -> Observations:
+    """The kept scans' labelled points in a square, from the map's points before the clearance.
+
+    Equal to observing the kept scans alone (with the clearance) and keeping the points in the
+    square: a free point there is cleared only by a kept hit within `clearance`, which lies in
+    the square grown by `clearance`; so only that much of the map is looked at.
+
+    Parameters
+    ----------
+    obs : Observations
+        The map's points from all its scans, no clearance applied; ``scan_index`` numbers the scans.
+    kept : ndarray of int
+        Indices of the kept scans.
+    lo, hi : ndarray of shape (2,)
+        Corners of the square (x, y); in 3-D a column.
+    clearance : float
+        The map's free clearance, metres.
+
+    Returns
+    -------
+    Observations
+    """
+    xy = obs.points[:, :2]
+    grown = np.isin(obs.scan_index, kept) & np.all((xy >= lo - clearance) & (xy <= hi + clearance), axis=1)
+    points, occupied, scan_index = obs.points[grown], obs.occupied[grown], obs.scan_index[grown]
+    keep = ~free_near_hits(points, occupied, clearance)
+    keep &= np.all((points[:, :2] >= lo) & (points[:, :2] <= hi), axis=1)
+    return Observations(points[keep], occupied[keep], scan_index[keep])
+
+
 def fit_variance_scale(
     scans: Sequence[Any],
     hyperparameters: dict[str, float],
-    make_observations: Callable[[Sequence[Any]], Observations],
+    kept_observations: Callable[[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]], Observations],
     fit_held_in: Callable[[Observations], Any],
     centre: NDArray[np.float64],
     region_half: float,
@@ -119,8 +151,10 @@ def fit_variance_scale(
         The map's scans, in log order.
     hyperparameters : dict
         The map's variance, length_scale, noise, alpha and beta (kept fixed).
-    make_observations : callable
-        Scans to the map's labelled points (its free step, clearance, ...).
+    kept_observations : callable
+        ``(kept, lo, hi)`` to the labelled points (the map's free step, clearance, ...) that the
+        scans numbered `kept` give inside the square with corners `lo`, `hi` (x, y): for
+        example :func:`region_observations` of the map's points.
     fit_held_in : callable
         The kept scans' points in the region to a GP fitted on them with `hyperparameters` (the
         map's engine, no ray evidence), whose ``predict(points, return_var=True)`` gives the
@@ -153,13 +187,13 @@ def fit_variance_scale(
         xy = points[:, :2]
         return np.all((xy >= lo + shrink) & (xy <= hi - shrink), axis=1)
 
-    folds: list[tuple[list[Any], NDArray[np.float64], NDArray[np.bool_]]] = []
+    # Per pattern: the kept scans' indices, and the held-out points where none of them went.
+    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]] = []
     n = 0
     for first in FOLD_STARTS:
         kept, held = holdout_stretches(len(scans), first)
-        kept_scans = [scans[i] for i in kept]
-        pts, occ = _unseen_points(kept_scans, [scans[i] for i in held], inside, margin, no_return_cap)
-        folds.append((kept_scans, pts, occ))
+        pts, occ = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], inside, margin, no_return_cap)
+        folds.append((kept, pts, occ))
         n_occ = sum(int(f[2].sum()) for f in folds)
         n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
         if n >= MIN_POINTS_PER_CLASS:
@@ -175,13 +209,11 @@ def fit_variance_scale(
     pts, occ, fold_of = pts[keep], occ[keep], fold_of[keep]
     # Each pattern's points are predicted by the GP of that pattern's kept scans.
     mu, var = np.empty(occ.size), np.empty(occ.size)
-    for k, (kept_scans, _, _) in enumerate(folds):
+    for k, (kept, _, _) in enumerate(folds):
         sel = fold_of == k
         if not sel.any():
             continue
-        obs = make_observations(kept_scans)
-        within = inside(obs.points, 0.0)
-        obs = Observations(obs.points[within], obs.occupied[within], obs.scan_index[within])
+        obs = kept_observations(kept, lo, hi)
         if obs.n_occupied == 0 or obs.n_free == 0:
             return 1.0, {"kappa": 1.0, "reason": "no kept observations of a class in the region"}
         try:
