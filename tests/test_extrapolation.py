@@ -39,8 +39,7 @@ class _Fixed:
 def _kept_observations(scans):
     """The map's points observed once, then each pattern's kept scans' share in the square."""
     settings = AreaGPOM().base
-    obs = settings.make_observations(scans, clearance=False)
-    return lambda kept, lo, hi: ex.region_observations(obs, kept, lo, hi, settings.free_clearance)
+    return ex.kept_observations_from(settings.make_observations(scans, clearance=False), settings.free_clearance)
 
 
 def _fit(scans, moments, **kw):

@@ -132,6 +132,14 @@ def region_observations(
     return Observations(points[keep], occupied[keep], scan_index[keep])
 
 
+def kept_observations_from(
+    obs: Observations, clearance: float
+) -> Callable[[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]], Observations]:
+    """The `kept_observations` of :func:`fit_variance_scale` from a map's points before the clearance:
+    :func:`region_observations` of `obs`."""
+    return lambda kept, lo, hi: region_observations(obs, kept, lo, hi, clearance)
+
+
 def fit_variance_scale(
     scans: Sequence[Any],
     hyperparameters: dict[str, float],
@@ -154,7 +162,7 @@ def fit_variance_scale(
     kept_observations : callable
         ``(kept, lo, hi)`` to the labelled points (the map's free step, clearance, ...) that the
         scans numbered `kept` give inside the square with corners `lo`, `hi` (x, y): for
-        example :func:`region_observations` of the map's points.
+        example :func:`kept_observations_from` the map's points.
     fit_held_in : callable
         The kept scans' points in the region to a GP fitted on them with `hyperparameters` (the
         map's engine, no ray evidence), whose ``predict(points, return_var=True)`` gives the

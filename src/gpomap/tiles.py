@@ -1164,7 +1164,7 @@ class TiledGPOM:
         """
         if isinstance(data, Observations):
             return {"kappa": 1.0, "reason": "labelled points given, not scans"}
-        from gpomap.extrapolation import fit_variance_scale, region_observations, whole_map_region
+        from gpomap.extrapolation import fit_variance_scale, kept_observations_from, whole_map_region
 
         centre, half = whole_map_region(obs.points)
         margin = 0.0
@@ -1189,14 +1189,11 @@ class TiledGPOM:
             )
             return model.fit(held, hyperparameters=fixed)
 
-        def kept_observations(kept: NDArray[np.intp], lo: NDArray[np.float64], hi: NDArray[np.float64]) -> Observations:
-            # The map's own points, not the kept scans observed again (a whole log's points, twice).
-            return region_observations(obs, kept, lo, hi, float(self.base.free_clearance))
-
         _, report = fit_variance_scale(
             data,
             self.hyperparameters_,
-            kept_observations,
+            # The map's own points, not the kept scans observed again (a whole log's points, twice).
+            kept_observations_from(obs, float(self.base.free_clearance)),
             fit_held_in,
             centre=centre,
             region_half=half,
