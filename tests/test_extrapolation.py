@@ -36,17 +36,20 @@ class _Fixed:
         return self.moments(points)
 
 
-def _kept_observations(scans):
-    """The map's points observed once, then each pattern's kept scans' share in the square."""
-    settings = AreaGPOM().base
-    return ex.kept_observations_from(settings.make_observations(scans, clearance=False), settings.free_clearance)
+SETTINGS = AreaGPOM().base
+
+
+def _points(scans):
+    """The map's points before the clearance: what each pattern's held-in points are cut from."""
+    return SETTINGS.make_observations(scans, clearance=False)
 
 
 def _fit(scans, moments, **kw):
     return ex.fit_variance_scale(
         scans,
         {"alpha": 30.0, "beta": 0.0},
-        _kept_observations(scans),
+        _points(scans),
+        SETTINGS.free_clearance,
         _Fixed(moments).fit,
         centre=np.zeros(2),
         region_half=50.0,
@@ -107,7 +110,7 @@ def test_the_fitted_scale_is_the_likelihoods_best_by_brute_force():
     pts = []
     model = _Fixed(lambda p: pts.append(p) or moments(p))
     _, again = ex.fit_variance_scale(
-        scans, {"alpha": 30.0, "beta": 0.0}, _kept_observations(scans), model.fit, np.zeros(2), 50.0, 0.0, seed=3
+        scans, {"alpha": 30.0, "beta": 0.0}, _points(scans), SETTINGS.free_clearance, model.fit, np.zeros(2), 50.0, 0.0, seed=3
     )
     assert again["kappa"] == pytest.approx(kappa)
     rng.bit_generator.state = state

@@ -51,8 +51,10 @@ def _only_one_stretch_moves():
 
 def _fit(scans, stand_in):
     settings = AreaGPOM(ray_evidence=False).base
-    kept_observations = ex.kept_observations_from(settings.make_observations(scans, clearance=False), settings.free_clearance)
-    return ex.fit_variance_scale(scans, {"alpha": 30.0, "beta": 0.0}, kept_observations, stand_in.fit, np.zeros(2), 50.0, 0.0)
+    points = settings.make_observations(scans, clearance=False)
+    return ex.fit_variance_scale(
+        scans, {"alpha": 30.0, "beta": 0.0}, points, settings.free_clearance, stand_in.fit, np.zeros(2), 50.0, 0.0
+    )
 
 
 def test_a_second_pattern_is_pooled_when_the_first_finds_nothing_unseen():

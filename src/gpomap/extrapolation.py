@@ -100,6 +100,14 @@ def whole_map_region(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], 
     return 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) + 1.0
 
 
+def _in_square(
+    points: NDArray[np.float64], lo: NDArray[np.float64], hi: NDArray[np.float64], grow: float = 0.0
+) -> NDArray[np.bool_]:
+    """Which points (m, d) lie in the square lo..hi (x, y) grown by `grow` on every side (negative: shrunk)."""
+    xy = points[:, :2]
+    return np.all((xy >= lo - grow) & (xy <= hi + grow), axis=1)
+
+
 def region_observations(
     obs: Observations, kept: NDArray[np.intp], lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float
 ) -> Observations:
@@ -124,26 +132,17 @@ def region_observations(
     -------
     Observations
     """
-    xy = obs.points[:, :2]
-    grown = np.isin(obs.scan_index, kept) & np.all((xy >= lo - clearance) & (xy <= hi + clearance), axis=1)
+    grown = np.isin(obs.scan_index, kept) & _in_square(obs.points, lo, hi, clearance)
     points, occupied, scan_index = obs.points[grown], obs.occupied[grown], obs.scan_index[grown]
-    keep = ~free_near_hits(points, occupied, clearance)
-    keep &= np.all((points[:, :2] >= lo) & (points[:, :2] <= hi), axis=1)
+    keep = ~free_near_hits(points, occupied, clearance) & _in_square(points, lo, hi)
     return Observations(points[keep], occupied[keep], scan_index[keep])
-
-
-def kept_observations_from(
-    obs: Observations, clearance: float
-) -> Callable[[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]], Observations]:
-    """The `kept_observations` of :func:`fit_variance_scale` from a map's points before the clearance:
-    :func:`region_observations` of `obs`."""
-    return lambda kept, lo, hi: region_observations(obs, kept, lo, hi, clearance)
 
 
 def fit_variance_scale(
     scans: Sequence[Any],
     hyperparameters: dict[str, float],
-    kept_observations: Callable[[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]], Observations],
+    observations: Observations,
+    free_clearance: float,
     fit_held_in: Callable[[Observations], Any],
     centre: NDArray[np.float64],
     region_half: float,
@@ -159,10 +158,11 @@ def fit_variance_scale(
         The map's scans, in log order.
     hyperparameters : dict
         The map's variance, length_scale, noise, alpha and beta (kept fixed).
-    kept_observations : callable
-        ``(kept, lo, hi)`` to the labelled points (the map's free step, clearance, ...) that the
-        scans numbered `kept` give inside the square with corners `lo`, `hi` (x, y): for
-        example :func:`kept_observations_from` the map's points.
+    observations : Observations
+        The map's labelled points from `scans` (its free step, ...), before the clearance; each
+        pattern's held-in points are cut from them (:func:`region_observations`).
+    free_clearance : float
+        The map's free clearance, metres.
     fit_held_in : callable
         The kept scans' points in the region to a GP fitted on them with `hyperparameters` (the
         map's engine, no ray evidence), whose ``predict(points, return_var=True)`` gives the
@@ -192,8 +192,7 @@ def fit_variance_scale(
     lo, hi = centre - region_half, centre + region_half
 
     def inside(points: NDArray[np.float64], shrink: float) -> NDArray[np.bool_]:
-        xy = points[:, :2]
-        return np.all((xy >= lo + shrink) & (xy <= hi - shrink), axis=1)
+        return _in_square(points, lo, hi, -shrink)
 
     # Per pattern: the kept scans' indices, and the held-out points where none of them went.
     folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]] = []
@@ -221,7 +220,7 @@ def fit_variance_scale(
         sel = fold_of == k
         if not sel.any():
             continue
-        obs = kept_observations(kept, lo, hi)
+        obs = region_observations(observations, kept, lo, hi, free_clearance)
         if obs.n_occupied == 0 or obs.n_free == 0:
             return 1.0, {"kappa": 1.0, "reason": "no kept observations of a class in the region"}
         try:

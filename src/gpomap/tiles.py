@@ -1164,7 +1164,7 @@ class TiledGPOM:
         """
         if isinstance(data, Observations):
             return {"kappa": 1.0, "reason": "labelled points given, not scans"}
-        from gpomap.extrapolation import fit_variance_scale, kept_observations_from, whole_map_region
+        from gpomap.extrapolation import fit_variance_scale, whole_map_region
 
         centre, half = whole_map_region(obs.points)
         margin = 0.0
@@ -1192,8 +1192,8 @@ class TiledGPOM:
         _, report = fit_variance_scale(
             data,
             self.hyperparameters_,
-            # The map's own points, not the kept scans observed again (a whole log's points, twice).
-            kept_observations_from(obs, float(self.base.free_clearance)),
+            obs,  # the map's own points: the kept scans are not observed again
+            self._clearance,
             fit_held_in,
             centre=centre,
             region_half=half,
