@@ -1,9 +1,13 @@
-"""The tensor-product quadrature kernel against the node sums it replaces (the reference)."""
+"""The tensor-product quadrature kernel against the node sums it replaces (the reference).
+
+Every test runs twice: on the compiled path (:mod:`gpomap.kernels._compiled`, numba) and on the
+numpy one. ``tests/test_tensor_compiled.py`` compares the two directly.
+"""
 
 import numpy as np
 import pytest
 
-from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
+from gpomap.kernels import AreaKernel, Matern32, SquaredExponential, _compiled
 from gpomap.kernels.nodes import quadrature_nodes, weighted_gram, weighted_self
 from gpomap.kernels.tensor import tensor_gram, tensor_rules, tensor_self
 from gpomap.supports import Supports, concatenate
@@ -18,6 +22,15 @@ class _NoUnitForm(Matern32):
 
 
 KERNELS = [Matern32(1.3, 0.7), SquaredExponential(0.8, 1.1), _NoUnitForm(1.3, 0.7)]
+
+
+@pytest.fixture(autouse=True, params=["compiled", "numpy"])
+def kernel_path(request, monkeypatch):
+    """The tensor kernel's evaluation: numba's (when it imports) or numpy's."""
+    if request.param == "compiled" and not _compiled.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(_compiled, "ENABLED", request.param == "compiled")
+    return request.param
 
 
 def _boxes(rng, n, dim, zero_every=7):

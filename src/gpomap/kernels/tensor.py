@@ -15,6 +15,11 @@ checks it against that reference): the coordinates are scaled by the kernel's ow
 and the weighted sums are taken in another order. A point (a zero-width input) has one node of
 weight one, as there. Kernels without a unit form go through
 :meth:`~gpomap.kernels.point.PointKernel.values_into`, the very numbers of ``values``.
+
+Kernels whose unit profile is compiled (Matern 3/2 and the squared exponential) take
+:func:`gpomap.kernels._compiled.group_gram` instead of the numpy blocks below when numba imports
+(``_compiled.ENABLED``): the same sums in one loop, the same numbers to round-off. The numpy
+blocks stay as the reference and for every other kernel.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.kernels import _compiled
 from gpomap.kernels.point import PointKernel
 from gpomap.supports import Supports
 
@@ -215,7 +221,8 @@ def _group_gram(
     `symmetric`: `a` is `b` (each pair of inputs computed once); `mirror`: also write the
     transpose at ``K[cols, rows]`` (the Gram matrix of one set of inputs); `distances`: the
     node-pair distances of each block, in the inputs' units (:func:`tensor_distances`), used
-    instead of forming them when the kernel has a unit form.
+    instead of forming them when the kernel has a unit form (on the numpy path: the compiled one
+    forms them itself).
     """
     n, m = len(a), len(b)
     d = a.dim
@@ -228,6 +235,14 @@ def _group_gram(
         scaled_a = a.scaled(scale)
         a, b = scaled_a, (scaled_a if symmetric else b.scaled(scale))
         w = w * kernel.variance
+    profile = _compiled.profile_id(kernel) if _compiled.ENABLED else None
+    if profile is not None:
+        # One compiled loop for the whole group pair (its own chunks; `block` and the cached
+        # distances are not needed there): the same numbers to round-off.
+        _compiled.group_gram(
+            a.coords, b.coords, w, rows, cols, K, K if dL is None else dL, dL is not None, symmetric, mirror, profile
+        )
+        return
     pairs = w.size
     node_shape = [a.order] * d + [b.order] * d
     cols_per = max(1, min(m, block // pairs))
