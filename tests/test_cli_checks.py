@@ -145,6 +145,18 @@ def test_largest_tile_cells_by_hand():
     assert resources.largest_tile_cells(np.zeros((0, 2)), 10.0, 1.0) == 0
 
 
+def test_largest_tile_cells_when_the_overlap_spans_several_tiles():
+    # 2 m tiles seeing 4.5 m past their square: each centre is seen by up to 5 x 5 tiles. Brute
+    # force: every tile's grown square [2 i - 4.5, 2 i + 6.5) x [2 j - 4.5, 2 j + 6.5), counted.
+    centres = np.random.default_rng(3).uniform(0.0, 12.0, (300, 2))
+    brute = max(
+        int(np.sum(np.all((centres >= 2.0 * np.array([i, j]) - 4.5) & (centres < 2.0 * np.array([i, j]) + 6.5), axis=1)))
+        for i in range(-4, 8)
+        for j in range(-4, 8)
+    )
+    assert resources.largest_tile_cells(centres, 2.0, 4.5) == brute
+
+
 def test_check_memory_and_limits(monkeypatch):
     resources.check_memory(10, 10, "x", "y")  # at the limit: fine
     resources.check_memory(10**20, None, "x", "y")  # no limit known: nothing checked

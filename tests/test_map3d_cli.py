@@ -75,7 +75,7 @@ def test_default_model_is_the_commands(room_pcds):
     model, resolution = default_model(clouds)
     # The command's engine with its options: 3-D cells, tiles of the default size, every core.
     assert resolution == 0.1 and type(model).__name__ == "AreaGPOM"
-    assert (model.max_cell, model.tile_size, model.n_workers) == (1.0, 10.0, None)
+    assert (model.max_cell, model.tile_size, model.n_workers) == (1.0, None, None)  # None: the 3-D default
     assert default_model(clouds, workers=1, tile_size=4.0)[0].get_params()["tile_size"] == 4.0
     assert is_cloud_input(room_pcds)
 

@@ -106,11 +106,35 @@ def test_blending_has_no_seam():
         assert _max_jump_ratio(p, border) < 2.0, y
         assert _max_jump_ratio(var, border) < 2.0, y
     # A hard switch between tiles with a short overlap does jump: the check above sees seams.
-    hard = TiledGPOM(tile_size=6.0, overlap=1.0, blend=1e-6, origin=(0.0, 0.0), n_workers=1, **OPTS).fit(
+    hard = TiledGPOM(tile_size=6.0, overlap=0.5, blend=1e-6, origin=(0.0, 0.0), n_workers=1, **OPTS).fit(
         scans, hyperparameters=model.hyperparameters_
     )
     p_hard = hard.predict_proba_gp(np.column_stack([x, np.full_like(x, 0.1)]))
     assert _max_jump_ratio(p_hard, border) > 5.0
+
+
+def test_tiles_smaller_than_a_block_keep_its_cells_and_hyperparameters(room):
+    # The cell trees are grown per block of BLOCK_SIZE whatever the tiles: 4 m tiles give the very
+    # cells of 10 m ones and the same learnt hyperparameters.
+    opts = {**OPTS, "optimise": True}
+    points = MapSettings(**OPTS).make_observations(room)  # labelled points: no variance scale to fit
+    big = TiledGPOM(tile_size=tiles.BLOCK_SIZE, origin=(0.0, 0.0), n_workers=1, hyper_sample=200, **opts).fit(points)
+    small = TiledGPOM(tile_size=4.0, origin=(0.0, 0.0), n_workers=1, hyper_sample=200, **opts).fit(points)
+    assert len(small.tiles_) > len(big.tiles_)
+    for a, b in zip(big.cell_boxes(), small.cell_boxes()):
+        np.testing.assert_array_equal(a, b)
+    for name in tiles.HYPER_NAMES:
+        assert small.hyperparameters_[name] == big.hyperparameters_[name], name
+    # Both approximate the GP over all those cells as closely: here a tile seeing 10 m round it.
+    hyp = big.hyperparameters_
+    one = TiledGPOM(tile_size=tiles.BLOCK_SIZE, overlap=10.0, origin=(0.0, 0.0), n_workers=1, **opts).fit(
+        room, hyperparameters=hyp
+    )
+    pts = np.random.default_rng(1).uniform([0.0, 0.0], [20.0, 16.0], (400, 2))
+    exact = one.predict(pts)
+    error_big = np.mean(np.abs(big.predict(pts) - exact))
+    error_small = np.mean(np.abs(small.predict(pts) - exact))
+    assert error_small < 1.1 * error_big
 
 
 def test_update_equals_batch(room):

@@ -336,11 +336,21 @@ def _tiling_config(args: argparse.Namespace) -> TilingConfig:
     )
 
 
+def _tile_sizes(_: None) -> str:
+    """The default tile sides (by the map's dimension) for ``--help``: "5 in 2-D, 10 in 3-D"."""
+    from gpomap.tiles import DEFAULT_TILE_SIZE
+
+    return ", ".join(f"{v:g} in {d}-D" for d, v in sorted(DEFAULT_TILE_SIZE.items()))
+
+
 def _add_tiling_options(p: argparse.ArgumentParser, chunks: bool = True) -> None:
     """The options of :class:`~gpomap.config.TilingConfig` (and ``--chunk-scans`` with `chunks`)."""
     g = p.add_argument_group("the local GPs (one per tile, blended without seams)")
     g.add_argument(
-        "--tile-size", type=_positive(float), default=_Default(TilingConfig.tile_size), help="tile side, m (default: %(default)s)"
+        "--tile-size",
+        type=_positive(float),
+        default=_Default(TilingConfig.tile_size, show=_tile_sizes),
+        help="tile side, m (default: %(default)s)",
     )
     g.add_argument("--workers", type=_positive(int), help="local worker processes for tiles (default: the CPU count)")
     g.add_argument(
@@ -445,15 +455,16 @@ def _check_tile_memory(args: argparse.Namespace, cells: Any, length_scale: float
     """Refuse a fit whose largest tile's GP, times the tiles fitted at once, needs more than ``--memory-limit``.
 
     A tile's GP reaches past its square by the overlap: its default in starting length scales
-    (the learnt one is not known yet), at most a tile. Returns the largest tile's cell count.
+    (the learnt one is not known yet), at most a block. Returns the largest tile's cell count.
     """
     from gpomap.resources import largest_tile_cells
-    from gpomap.tiles import OVERLAP_LENGTH_SCALES
+    from gpomap.tiles import BLOCK_SIZE, DEFAULT_TILE_SIZE, OVERLAP_LENGTH_SCALES
 
-    overlap = min(args.tile_size, OVERLAP_LENGTH_SCALES * length_scale)
-    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], args.tile_size, overlap)
+    tile = args.tile_size if args.tile_size is not None else DEFAULT_TILE_SIZE[cells.lower.shape[1]]
+    overlap = min(max(BLOCK_SIZE, tile), OVERLAP_LENGTH_SCALES * length_scale)
+    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], tile, overlap)
     n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
-    _check_fit_memory(args, per_tile, n_at_once, f"{where} of {args.tile_size:g} m")
+    _check_fit_memory(args, per_tile, n_at_once, f"{where} of {tile:g} m")
     return per_tile
 
 

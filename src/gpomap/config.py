@@ -117,8 +117,9 @@ class TilingConfig(_Config):
 
     Attributes
     ----------
-    tile_size : float
-        Side of the square tiles, metres.
+    tile_size : float, optional
+        Side of the square tiles, metres (default: 5 m for planar maps, 10 m for voxel maps,
+        :data:`gpomap.tiles.DEFAULT_TILE_SIZE`).
     n_workers : int, optional
         Local worker processes (default: the CPU count).
     blas_threads : int, optional
@@ -129,7 +130,7 @@ class TilingConfig(_Config):
         Seconds to wait for the scheduler, and for its workers.
     """
 
-    tile_size: float = 10.0
+    tile_size: float | None = None
     n_workers: int | None = None
     blas_threads: int | None = None
     scheduler: str | None = None

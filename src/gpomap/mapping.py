@@ -89,7 +89,7 @@ class AreaGPOM(TiledGPOM):
         evidence_resolution: float = MapConfig.evidence_resolution,
         calibration_scans: int = MapConfig.calibration_scans,
         evidence_resolution_3d: float = MapConfig.evidence_resolution_3d,
-        tile_size: float = TilingConfig.tile_size,
+        tile_size: float | None = TilingConfig.tile_size,
         overlap: float | None = None,
         blend: float | None = None,
         origin: tuple[float, float] | None = None,

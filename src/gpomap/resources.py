@@ -232,7 +232,7 @@ def largest_tile_cells(
     tile_size : float
         Tile side, metres.
     overlap : float
-        How far past its square a tile's GP reaches, metres (at most `tile_size`).
+        How far past its square a tile's GP reaches, metres.
     origin : (float, float)
         Corner of tile (0, 0).
 
@@ -244,15 +244,16 @@ def largest_tile_cells(
     c = np.asarray(centres, dtype=float).reshape(-1, 2)
     if c.shape[0] == 0:
         return 0
-    reach = min(float(overlap), float(tile_size))
+    reach = float(overlap)
     # Every tile whose grown square holds a centre: the tiles of the centre shifted by -reach..+reach.
     rel = (c - np.asarray(origin, dtype=float)) / tile_size
     lo = np.floor(rel - reach / tile_size).astype(np.int64)
     hi = np.floor(rel + reach / tile_size).astype(np.int64)
     counts: dict[tuple[int, int], int] = {}
-    # reach <= tile_size: each centre touches at most 3 x 3 tiles.
-    for dx in range(3):
-        for dy in range(3):
+    # Each centre touches at most span x span tiles.
+    span = int((hi - lo).max()) + 1
+    for dx in range(span):
+        for dy in range(span):
             tx, ty = lo[:, 0] + dx, lo[:, 1] + dy
             ok = (tx <= hi[:, 0]) & (ty <= hi[:, 1])
             keys, n = np.unique(np.column_stack([tx[ok], ty[ok]]), axis=0, return_counts=True)

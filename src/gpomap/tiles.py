@@ -6,8 +6,8 @@ time and O(N^2) memory). :class:`TiledGPOM` cuts the plane into square tiles on 
 fits one GP per tile on the cells near it:
 
 1. **Observations once** for the whole log (beams to labelled points).
-2. **Cells per block**: the points of each tile square ("block") get their own cell tree
-   (:func:`gpomap.cells.build_cells` on that block's points). A block's cells therefore depend
+2. **Cells per block**: the points of each block (a square of :data:`BLOCK_SIZE`, or of the tile if larger, on the tile
+   grid's origin) get their own cell tree (:func:`gpomap.cells.build_cells` on that block's points). A block's cells therefore depend
    only on the points inside it, so new data changes the cells of the blocks it falls in and
    nowhere else; that is what makes ``update`` give exactly the batch answer. The trees are cut
    at block borders, which costs a few extra cells there and nothing else.
@@ -80,6 +80,15 @@ HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 #: 0.5110 / 0.5373; the search 8-11x faster, each step of the cuboid kernel being dearer).
 DEFAULT_HYPER_SAMPLE: dict[int, int] = {2: 800, 3: 300}
 
+#: Tile side by the map's dimension, metres. A tile's GP costs the cube of the cells it sees, its
+#: square grown by the overlap, so tiles not much larger than the overlap are cheapest in all;
+#: the cells, hyperparameters and variance scale do not depend on them (:data:`BLOCK_SIZE`).
+#: Planar maps: 5 m (CSAIL every 10th scan, one process: fit 22.1 -> 17.7 s and written 0.05 m
+#: grid 15.7 -> 7.6 s against 10 m, every metric the same to 4 digits; 3.5 m and 2.5 m no
+#: faster). Voxel maps keep 10 m: their columns hold every height, and at 5 m la3dm
+#: sim_structured's tile fits and calibration prediction took 1.5-1.9x longer.
+DEFAULT_TILE_SIZE: dict[int, float] = {2: 5.0, 3: 10.0}
+
 #: A tile's GP sees the cells this many learnt length scales beyond its square, by default (about
 #: where the SE kernel has decayed to 4 %).
 OVERLAP_LENGTH_SCALES = 2.5
@@ -87,9 +96,13 @@ OVERLAP_LENGTH_SCALES = 2.5
 #: The map settings a TiledGPOM answers as its own attributes (read from its ``base``).
 _SETTING_NAMES = frozenset(MapConfig.__dataclass_fields__)
 
-#: The squash's variance scale is fitted on a held-in GP over a square this many tiles from its
-#: centre each way (gpomap.extrapolation): two tiles across, the cost of about four tiles.
-REGION_TILES: float = 1.0
+#: Side of the blocks (metres), squares on the tile grid's origin whose points get their own cell
+#: tree, whatever the tile size: the cells, the hyperparameter sample anchored in a typical block,
+#: and the variance scale's region (one block from its centre each way, gpomap.extrapolation)
+#: are then the same for any tiles, and smaller tiles only make the tiles' GPs cheaper. Smaller
+#: blocks would cut the trees more often (at 4 m and 3 m CSAIL's learnt noise and squash moved
+#: to other optima: alpha 3.0 -> 30, the variance scale 31 -> 600-1,100).
+BLOCK_SIZE: float = 10.0
 
 
 # --------------------------------------------------------------------------- tasks (picklable)
@@ -533,16 +546,18 @@ class TiledGPOM:
 
     Parameters
     ----------
-    tile_size : float
-        Side of the square tiles (and of the cell-tree blocks), metres.
+    tile_size : float, optional
+        Side of the square tiles, metres; default (``tile_size_`` after the fit)
+        :data:`DEFAULT_TILE_SIZE` for the map's dimension. The cell trees are grown per block of
+        :data:`BLOCK_SIZE` (of the tiles' side if that is larger), whatever the tiles.
     overlap : float, optional
         Each tile's GP sees the cells meeting its square grown by this much on every side.
         Default 2.5 learnt length scales (about where the SE kernel has decayed to 4 %), at
-        most `tile_size`.
+        most the block side (:attr:`block_size_`).
     blend : float, optional
         Width of the blending ramp across each tile border, centred on the border; at most
         `overlap` (so a tile only predicts where it has at least ``overlap - blend / 2`` of data
-        beyond) and at most `tile_size`. Default `overlap`.
+        beyond) and at most `tile_size`. Default the smaller of the two.
     origin : (float, float), optional
         Corner of tile (0, 0). Default (``origin_``, set by the first fit): when the data's x, y
         extent fits in one tile, that tile centred on them, so a small map is one GP over one
@@ -578,6 +593,8 @@ class TiledGPOM:
     # Set by fit: the observation points per block, their cell trees, and the points' extent.
     _block_points: dict[int, _BlockPoints]
     _blocks: dict[int, _BlockCells]
+    _tiles_with_points: set[int]
+    tile_size_: float
     _lower: NDArray[np.float64] | None
     _upper: NDArray[np.float64] | None
     _n_points: int
@@ -585,7 +602,7 @@ class TiledGPOM:
 
     def __init__(
         self,
-        tile_size: float = TilingConfig.tile_size,
+        tile_size: float | None = TilingConfig.tile_size,
         overlap: float | None = None,
         blend: float | None = None,
         origin: tuple[float, float] | None = None,
@@ -597,9 +614,9 @@ class TiledGPOM:
         scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
         **options: Any,
     ) -> None:
-        if not tile_size > 0:
+        if tile_size is not None and not tile_size > 0:
             raise ValueError(f"tile_size must be positive, got {tile_size}")
-        self.tile_size = float(tile_size)
+        self.tile_size = None if tile_size is None else float(tile_size)
         self.overlap = overlap
         self.blend = blend
         self.origin = None if origin is None else (float(origin[0]), float(origin[1]))
@@ -651,20 +668,46 @@ class TiledGPOM:
         return int(self.n_workers) if self.n_workers is not None else max(1, os.cpu_count() or 1)
 
     # ------------------------------------------------------------------ geometry
+    @property
+    def block_size_(self) -> float:
+        """Side of the blocks that get their own cell tree: :data:`BLOCK_SIZE`, or the tiles' if larger."""
+        return max(BLOCK_SIZE, self.tile_size_)
+
     def _block_keys(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
-        # Tiles are squares in x, y; in 3-D they are columns spanning every height.
-        ij = np.floor((points[:, :2] - np.asarray(self.origin_)) / self.tile_size).astype(np.int64)
+        return self._square_keys(points, self.block_size_)
+
+    def _tile_keys(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
+        return self._square_keys(points, self.tile_size_)
+
+    def _square_keys(self, points: NDArray[np.float64], side: float) -> NDArray[np.int64]:
+        # Tiles and blocks are squares in x, y; in 3-D they are columns spanning every height.
+        ij = np.floor((points[:, :2] - np.asarray(self.origin_)) / side).astype(np.int64)
         return (ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET)
 
+    def _meeting(self, lo: tuple[float, float], hi: tuple[float, float], side: float) -> Iterator[tuple[int, int]]:
+        """Indices of the squares of `side` on the tile grid's origin that meet the closed box [lo, hi] in x, y."""
+        ox, oy = self.origin_
+        xs = range(math.ceil((lo[0] - ox) / side) - 1, math.floor((hi[0] - ox) / side) + 1)
+        ys = range(math.ceil((lo[1] - oy) / side) - 1, math.floor((hi[1] - oy) / side) + 1)
+        return ((ix, iy) for ix in xs for iy in ys)
+
+    def _grown(self, tile: tuple[int, int]) -> tuple[tuple[float, float], tuple[float, float]]:
+        """The tile's square grown by the overlap on every side: the cells its GP sees meet it."""
+        x0, x1, y0, y1 = self._core(tile)
+        o = self.overlap_
+        return (x0 - o, y0 - o), (x1 + o, y1 + o)
+
     def _default_origin(self, points: NDArray[np.float64]) -> tuple[float, float]:
-        """Corner of tile (0, 0) for `points` (n, d): one tile centred on them if their x, y extent
-        fits in one, else the map frame's origin."""
+        """Corner of tile (0, 0) and block (0, 0) for `points` (n, d): one tile centred on them if
+        their x, y extent fits in one, else one block centred on them if it fits in one (one cell
+        tree), else the map frame's origin."""
         if points.shape[0] == 0:
             return (0.0, 0.0)
         lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
-        if np.all(hi - lo < self.tile_size):
-            corner = 0.5 * (lo + hi) - 0.5 * self.tile_size
-            return float(corner[0]), float(corner[1])
+        for side in (self.tile_size_, self.block_size_):
+            if np.all(hi - lo < side):
+                corner = 0.5 * (lo + hi) - 0.5 * side
+                return float(corner[0]), float(corner[1])
         return (0.0, 0.0)
 
     @staticmethod
@@ -676,9 +719,9 @@ class TiledGPOM:
         return (ix + _KEY_OFFSET) * _KEY_BASE + (iy + _KEY_OFFSET)
 
     def _core(self, key: tuple[int, int]) -> tuple[float, float, float, float]:
-        x0 = self.origin_[0] + key[0] * self.tile_size
-        y0 = self.origin_[1] + key[1] * self.tile_size
-        return x0, x0 + self.tile_size, y0, y0 + self.tile_size
+        x0 = self.origin_[0] + key[0] * self.tile_size_
+        y0 = self.origin_[1] + key[1] * self.tile_size_
+        return x0, x0 + self.tile_size_, y0, y0 + self.tile_size_
 
     # ------------------------------------------------------------------ cells
     def _build_block(self, key: int) -> _BlockCells:
@@ -699,7 +742,8 @@ class TiledGPOM:
         )
 
     def _add_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> set[int]:
-        """File points under their blocks (in observation order within each); returns the blocks touched."""
+        """File points under their blocks (in observation order within each) and note their tiles; returns the blocks touched."""
+        self._tiles_with_points.update(int(k) for k in np.unique(self._tile_keys(points)))
         keys = self._block_keys(points)
         order = np.argsort(keys, kind="stable")  # stable: keeps observation order per block
         sk = keys[order]
@@ -730,28 +774,30 @@ class TiledGPOM:
         for k in keys:
             self._blocks[int(k)] = self._build_block(int(k))
 
-    def _reach(self) -> int:
-        return max(1, math.ceil(self.overlap_ / self.tile_size - 1e-12))
+    def _blocks_seen_by(self, tile: tuple[int, int]) -> list[int]:
+        """Keys of the blocks whose squares meet the tile's grown square (those it gathers cells from)."""
+        return [self._encode(*b) for b in self._meeting(*self._grown(tile), self.block_size_)]
+
+    def _tiles_seeing(self, block: int) -> list[tuple[int, int]]:
+        """The tiles holding points whose grown squares meet the block's square."""
+        bx, by = self._decode(block)
+        ox, oy = self.origin_
+        o = self.overlap_
+        lo = (ox + bx * self.block_size_ - o, oy + by * self.block_size_ - o)
+        hi = (ox + (bx + 1) * self.block_size_ + o, oy + (by + 1) * self.block_size_ + o)
+        return [t for t in self._meeting(lo, hi, self.tile_size_) if self._encode(*t) in self._tiles_with_points]
 
     def _gather(self, tile: tuple[int, int]) -> dict[str, Any] | None:
         """The cells meeting the tile's grown square, in canonical (block key, tree) order."""
-        x0, x1, y0, y1 = self._core(tile)
-        o = self.overlap_
-        r = self._reach()
+        (gx0, gy0), (gx1, gy1) = self._grown(tile)
         parts = []
-        for ix in range(tile[0] - r, tile[0] + r + 1):
-            for iy in range(tile[1] - r, tile[1] + r + 1):
-                bc = self._blocks.get(self._encode(ix, iy))
-                if bc is None:
-                    continue
-                keep = (
-                    (bc.lower[:, 0] <= x1 + o)
-                    & (bc.upper[:, 0] >= x0 - o)
-                    & (bc.lower[:, 1] <= y1 + o)
-                    & (bc.upper[:, 1] >= y0 - o)
-                )
-                if keep.any():
-                    parts.append((self._encode(ix, iy), bc, np.flatnonzero(keep)))
+        for key in self._blocks_seen_by(tile):
+            bc = self._blocks.get(key)
+            if bc is None:
+                continue
+            keep = (bc.lower[:, 0] <= gx1) & (bc.upper[:, 0] >= gx0) & (bc.lower[:, 1] <= gy1) & (bc.upper[:, 1] >= gy0)
+            if keep.any():
+                parts.append((key, bc, np.flatnonzero(keep)))
         if not parts:
             return None
         parts.sort(key=lambda p: p[0])
@@ -1098,10 +1144,12 @@ class TiledGPOM:
         self._clearance = 0.0 if isinstance(data, Observations) else float(self.base.free_clearance)
         self._block_points = {}
         self._blocks = {}
+        self._tiles_with_points = set()
         self._lower = None
         self._upper = None
         self._n_points = self._n_occupied_points = 0
         self._dim = int(obs.points.shape[1])
+        self.tile_size_ = self.tile_size if self.tile_size is not None else DEFAULT_TILE_SIZE[self._dim]
         points = np.asarray(obs.points, dtype=float)
         self.origin_ = self.origin if self.origin is not None else self._default_origin(points)
         self._dirty: set[int] = set()
@@ -1138,7 +1186,7 @@ class TiledGPOM:
         timings["variance_scale"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        tiles = [self._decode(k) for k in sorted(self._blocks)]
+        tiles = [self._decode(k) for k in sorted(self._tiles_with_points)]
         jobs, gathered = self._fit_jobs(tiles)
         self.tiles_: dict[tuple[int, int], TileState] = self._run(fit_tile_task, jobs, "tile fit", "fitting tiles")
         self._signatures = {t: self._signature(g) for t, g in gathered.items()}
@@ -1168,17 +1216,17 @@ class TiledGPOM:
 
         centre, half = whole_map_region(obs.points)
         margin = 0.0
-        if half > REGION_TILES * self.tile_size:
+        if half > self.block_size_:
             # Larger than the region: round the hyperparameter sample, off the region's edge.
             source = getattr(self, "hyper_source_", {})
             centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else np.median(obs.points[:, :2], axis=0)
-            half, margin = REGION_TILES * self.tile_size, min(self.overlap_, 0.5 * self.tile_size)
+            half, margin = self.block_size_, min(self.overlap_, 0.5 * self.block_size_)
         options = {**self.options, "ray_evidence": False}
         fixed = {**self.hyperparameters_, "variance_scale": 1.0}
 
         def fit_held_in(held: Observations) -> TiledGPOM:
             model = TiledGPOM(
-                self.tile_size,
+                self.tile_size_,
                 self.overlap,
                 self.blend,
                 self.origin_,
@@ -1212,11 +1260,11 @@ class TiledGPOM:
     def _set_geometry(self) -> None:
         ls = self.hyperparameters_["length_scale"]
         o = OVERLAP_LENGTH_SCALES * ls if self.overlap is None else float(self.overlap)
-        self.overlap_ = float(min(max(o, 1e-9), self.tile_size))
-        w = self.overlap_ if self.blend is None else float(self.blend)
-        if not 0 < w <= min(self.overlap_, self.tile_size) + 1e-12:
+        self.overlap_ = float(min(max(o, 1e-9), self.block_size_))
+        w = min(self.overlap_, self.tile_size_) if self.blend is None else float(self.blend)
+        if not 0 < w <= min(self.overlap_, self.tile_size_) + 1e-12:
             raise ValueError(
-                f"blend must be in (0, min(overlap, tile_size)] = (0, {min(self.overlap_, self.tile_size)}], got {w}"
+                f"blend must be in (0, min(overlap, tile_size)] = (0, {min(self.overlap_, self.tile_size_)}], got {w}"
             )
         self.blend_ = float(w)
 
@@ -1326,15 +1374,11 @@ class TiledGPOM:
 
     def _refresh(self, max_tiles: int | None, exact: bool) -> list[tuple[int, int]]:
         t0 = time.perf_counter()
-        r = self._reach()
         # Every tile that sees a block absorbed since it was fitted is waiting (oldest first).
         for k in sorted(self._dirty):
-            ix, iy = self._decode(int(k))
-            for dx in range(-r, r + 1):
-                for dy in range(-r, r + 1):
-                    t = (ix + dx, iy + dy)
-                    if self._encode(*t) in self._block_points and t not in self._stale:
-                        self._stale[t] = None  # dict as an ordered set: oldest first
+            for t in self._tiles_seeing(int(k)):
+                if t not in self._stale:
+                    self._stale[t] = None  # dict as an ordered set: oldest first
         if exact:
             for t in self._reused:
                 self._stale.setdefault(t, None)
@@ -1342,7 +1386,7 @@ class TiledGPOM:
         take = waiting if max_tiles is None else waiting[: max(0, int(max_tiles))]
         # Only the blocks the tiles refitted now gather from are rebuilt, so a capped refresh
         # rebuilds a bounded number of cell trees too; the rest wait with their tiles.
-        need = {self._encode(t[0] + dx, t[1] + dy) for t in take for dx in range(-r, r + 1) for dy in range(-r, r + 1)}
+        need = {k for t in take for k in self._blocks_seen_by(t)}
         rebuild = sorted(self._dirty & need)
         self._build_blocks(rebuild)
         self._dirty -= set(rebuild)
@@ -1627,7 +1671,8 @@ class TiledGPOM:
             "method": "msk-gpom",
             "kernel": make_point_kernel(self.base.kernel).name,
             "area": self.base.area_method,
-            "tile_size": self.tile_size,
+            "tile_size": self.tile_size_,
+            "block_size": self.block_size_,
             "tile_origin": [float(self.origin_[0]), float(self.origin_[1])],
             "overlap": self.overlap_,
             "blend": self.blend_,
