@@ -177,3 +177,10 @@ def test_scan_extent_caps_no_return_beams_by_hand():
     assert scan_extent([s]) == pytest.approx((1.0, 1.0, 1.0, 3.0))
     assert scan_extent([s], include_no_return=True) == pytest.approx((1.0, 31.0, 1.0, 3.0))
     assert scan_extent([s], include_no_return=True, no_return_cap=10.0) == pytest.approx((1.0, 11.0, 1.0, 3.0))
+
+
+def test_streaming_tiles_are_the_planar_batch_default():
+    # Stated twice (the streaming module must not import SciPy for --help): they must agree.
+    from gpomap import streaming, tiles
+
+    assert streaming.DEFAULT_TILE_SIZE == tiles.DEFAULT_TILE_SIZE[2]

@@ -36,8 +36,9 @@ if TYPE_CHECKING:  # the engine is imported when a mapper is made: the CLI's --h
 #: Scans the hyperparameters and the calibration are learnt on before the first map.
 DEFAULT_WARMUP_SCANS = 30
 
-#: Tile side of a streaming map, metres: half the batch map's. A refresh refits the tiles round
-#: the new scans, and a tile's fit grows with the cube of its cells, so smaller tiles refit
+#: Tile side of a streaming map, metres: the planar batch map's (``gpomap.tiles.DEFAULT_TILE_SIZE``,
+#: not imported here so that the command's ``--help`` needs no SciPy). A refresh refits the tiles
+#: round the new scans, and a tile's fit grows with the cube of its cells, so smaller tiles refit
 #: faster in all (Intel's first 250 scans, refresh every 10: 127 ms of CPU per scan at 5 m
 #: against 184 ms at 10 m, `benchmarks/streaming.py --tile-size`); much smaller and the overlap
 #: dominates.
