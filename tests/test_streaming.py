@@ -181,6 +181,6 @@ def test_scan_extent_caps_no_return_beams_by_hand():
 
 def test_streaming_tiles_are_the_planar_batch_default():
     # Stated twice (the streaming module must not import SciPy for --help): they must agree.
-    from gpomap import streaming, tiles
+    from gpomap import streaming
 
-    assert streaming.DEFAULT_TILE_SIZE == tiles.DEFAULT_TILE_SIZE[2]
+    assert tiles.DEFAULT_TILE_SIZE[2] == streaming.DEFAULT_TILE_SIZE
