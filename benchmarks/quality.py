@@ -7,7 +7,7 @@ scans only and scored on the same balanced test points from the held-out scans
 a cell lookup; a grid's written map is itself). Methods:
 
 - ``msk``: MSK-GPOM with the library's defaults, built exactly as ``gpomap map`` builds it (local
-  GPs in tiles of 10 m, on every core: :func:`gpomap.evaluation.make_model`);
+  GPs in tiles of 5 m, on every core: :func:`gpomap.evaluation.make_model`);
 - ``ogm-logodds-0.05``, ``ogm-logodds-0.1``: OctoMap's log-odds grid at 0.05 and 0.1 m;
 - ``ogm-counting-0.05``: the counting grid at 0.05 m.
 
