@@ -158,7 +158,8 @@ def _unit(u2: float, profile: int) -> tuple[float, float]:  # pragma: no cover -
     return e, e * u2
 
 
-@_jit(cache=True, fastmath=_FASTMATH)
+# nogil: a Dask worker runs its tasks (tiles) in threads by default; numpy's passes released the GIL too.
+@_jit(cache=True, fastmath=_FASTMATH, nogil=True)
 def group_gram(
     ca: NDArray[np.float64],
     cb: NDArray[np.float64],
