@@ -6,8 +6,8 @@ into profile values and reduces it with the rule's weights in a dozen numpy pass
 and chunk of column inputs, the per-axis squared differences, their sums over the axes (in the same
 order), the profile and its length-scale derivative, and the weighted sums written straight into
 ``K`` (and its transpose). The numbers are those of the numpy path to round-off (another
-summation order; ``tests/test_tensor_kernel.py`` compares the two and both against
-:func:`gpomap.kernels.nodes.weighted_gram`).
+summation order; ``tests/test_tensor_compiled.py`` compares the two and both against
+:func:`gpomap.kernels.nodes.weighted_gram`, ``tests/test_tensor_kernel.py`` runs on both).
 
 The exponential is evaluated here (:func:`_exp`): numba's ``np.exp`` is glibc's scalar one, and a
 loop of ``sqrt`` and ``exp`` with it ran 2.4x slower than numpy's SIMD passes; this branch-free
@@ -15,6 +15,11 @@ polynomial vectorises (1.25 ns per value against ``np.exp``'s 1.0 ns on the AVX-
 the measurements) and is within 2 ulp of ``np.exp`` (the tests check it). Below ``EXP_MIN`` it
 returns 0 where numpy returns a subnormal (under 3e-308 absolute). Products and sums may be fused
 into one multiply-add (rounded once); nothing is reassociated.
+
+Measured (one process, one BLAS thread, numpy path against this one in the same session): the
+CSAIL log (``make_model("msk")``, fit and ``grid(0.05)``) spent 16.8-17.3 s of 45-46 s CPU in
+``tensor_gram_length_scale``, now 6.7-7.0 s of 36-37 s. The first call compiles in about 2 s;
+``cache=True`` keeps the machine code in ``__pycache__``, and later processes load it in 0.3 s.
 
 ``AVAILABLE``: numba imports. ``ENABLED``: the tensor kernel takes this path (the environment
 variable ``GPOMAP_NUMPY_KERNELS=1`` at import, or setting ``ENABLED = False``, forces numpy).
