@@ -132,7 +132,10 @@ def region_observations(
     -------
     Observations
     """
-    grown = np.isin(obs.scan_index, kept) & _in_square(obs.points, lo, hi, clearance)
+    # A table of the kept scans, not np.isin, which sorts a copy of every point's scan index.
+    is_kept = np.zeros(int(obs.scan_index.max(initial=-1)) + 1, dtype=bool)
+    is_kept[kept[kept < is_kept.size]] = True
+    grown = is_kept[obs.scan_index] & _in_square(obs.points, lo, hi, clearance)
     points, occupied, scan_index = obs.points[grown], obs.occupied[grown], obs.scan_index[grown]
     keep = ~free_near_hits(points, occupied, clearance) & _in_square(points, lo, hi)
     return Observations(points[keep], occupied[keep], scan_index[keep])

@@ -69,6 +69,8 @@ from gpomap.supports import Supports
 # Block keys pack (ix, iy) into one int64 so grouping millions of points is one argsort.
 _KEY_OFFSET = 1 << 30
 _KEY_BASE = 1 << 31
+# Points given block and tile keys at once (bounds the temporaries of a whole log's points).
+_KEY_CHUNK = 1 << 20
 
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 
@@ -681,8 +683,13 @@ class TiledGPOM:
 
     def _square_keys(self, points: NDArray[np.float64], side: float) -> NDArray[np.int64]:
         # Tiles and blocks are squares in x, y; in 3-D they are columns spanning every height.
-        ij = np.floor((points[:, :2] - np.asarray(self.origin_)) / side).astype(np.int64)
-        return (ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET)
+        # By chunks: a whole log's temporaries would be several copies of its points.
+        keys = np.empty(points.shape[0], dtype=np.int64)
+        origin = np.asarray(self.origin_)
+        for s in range(0, points.shape[0], _KEY_CHUNK):
+            ij = np.floor((points[s : s + _KEY_CHUNK, :2] - origin) / side).astype(np.int64)
+            keys[s : s + _KEY_CHUNK] = (ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET)
+        return keys
 
     def _meeting(self, lo: tuple[float, float], hi: tuple[float, float], side: float) -> Iterator[tuple[int, int]]:
         """Indices of the squares of `side` on the tile grid's origin that meet the closed box [lo, hi] in x, y."""
@@ -743,16 +750,18 @@ class TiledGPOM:
 
     def _add_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> set[int]:
         """File points under their blocks (in observation order within each) and note their tiles; returns the blocks touched."""
-        self._tiles_with_points.update(int(k) for k in np.unique(self._tile_keys(points)))
+        for s in range(0, points.shape[0], _KEY_CHUNK):
+            self._tiles_with_points.update(int(k) for k in np.unique(self._tile_keys(points[s : s + _KEY_CHUNK])))
         keys = self._block_keys(points)
         order = np.argsort(keys, kind="stable")  # stable: keeps observation order per block
-        sk = keys[order]
-        cuts = np.flatnonzero(np.diff(sk)) + 1
+        keys = keys[order]
+        cuts = np.flatnonzero(keys[1:] != keys[:-1]) + 1
+        block_keys = keys[np.r_[0, cuts]] if keys.size else keys
+        del keys
         touched = set()
-        for grp in np.split(order, cuts):
+        for k, grp in zip(block_keys.tolist(), np.split(order, cuts)):
             if grp.size == 0:
                 continue
-            k = int(keys[grp[0]])
             if k in self._block_points:
                 self._block_points[k].append(points[grp], occupied[grp])
             else:
@@ -1184,6 +1193,9 @@ class TiledGPOM:
         )
         self.hyperparameters_["variance_scale"] = float(self.extrapolation_["kappa"])
         timings["variance_scale"] = time.perf_counter() - t
+        # The blocks hold every point from here on: the log's points are let go before the ray
+        # counts are taken (FR079's whole log: 24 M points, 600 MB with their labels and scans).
+        del obs, points
 
         t = time.perf_counter()
         tiles = [self._decode(k) for k in sorted(self._tiles_with_points)]
