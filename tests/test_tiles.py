@@ -13,6 +13,7 @@ from threadpoolctl import threadpool_limits
 import gpomap.tiles as tiles
 from gpomap.errors import GpomapError
 from gpomap.gp import SupportGP
+from gpomap.observations import Observations
 from gpomap.settings import MapSettings
 from gpomap.simulate import World, paper_room_scans, simulate_scans
 from gpomap.supports import Supports
@@ -85,6 +86,22 @@ def test_a_map_smaller_than_a_tile_is_one_tile_centred_on_it(room):
     # Data wider than a tile: the grid is the map frame's.
     wide = TiledGPOM(tile_size=0.75 * side, n_workers=1, **OPTS).fit(room)
     assert wide.origin_ == (0.0, 0.0)
+
+
+def test_a_map_within_one_block_is_one_cell_tree_whatever_the_tiles(room):
+    # A 7 m square of the room's points across the map frame's block border x = 10: wider than 3 m
+    # tiles, narrower than a block.
+    obs = MapSettings(**OPTS).make_observations(room)
+    sel = np.all((obs.points >= [6.5, 4.0]) & (obs.points < [13.5, 11.0]), axis=1)
+    part = Observations(obs.points[sel], obs.occupied[sel], obs.scan_index[sel])
+    small = TiledGPOM(tile_size=3.0, n_workers=1, **OPTS).fit(part)
+    one = TiledGPOM(tile_size=tiles.BLOCK_SIZE, n_workers=1, **OPTS).fit(part)
+    assert len(small.tiles_) > 1 and len(one.tiles_) == 1
+    # The block is centred on the data, as the one big tile is: the same single cell tree.
+    centre = 0.5 * (part.points.min(axis=0) + part.points.max(axis=0))
+    np.testing.assert_allclose(np.asarray(small.origin_) + tiles.BLOCK_SIZE / 2, centre, atol=1e-12)
+    for a, b in zip(one.cell_boxes(), small.cell_boxes()):
+        np.testing.assert_array_equal(a, b)
 
 
 def _max_jump_ratio(values: np.ndarray, border_step: int, k: int = 5) -> float:

@@ -6,9 +6,10 @@ time and O(N^2) memory). :class:`TiledGPOM` cuts the plane into square tiles on 
 fits one GP per tile on the cells near it:
 
 1. **Observations once** for the whole log (beams to labelled points).
-2. **Cells per block**: the points of each block (a square of :data:`BLOCK_SIZE`, or of the tile if larger, on the tile
-   grid's origin) get their own cell tree (:func:`gpomap.cells.build_cells` on that block's points). A block's cells therefore depend
-   only on the points inside it, so new data changes the cells of the blocks it falls in and
+2. **Cells per block**: the points of each block (a square of :data:`BLOCK_SIZE`, or of the tile
+   if larger, on the tile grid's origin) get their own cell tree (:func:`gpomap.cells.build_cells`
+   on that block's points), whatever the tile size. A block's cells therefore depend only on the
+   points inside it, so new data changes the cells of the blocks it falls in and
    nowhere else; that is what makes ``update`` give exactly the batch answer. The trees are cut
    at block borders, which costs a few extra cells there and nothing else.
 3. **Hyperparameters once**: the signal variance, length scale, noise, and the squash's alpha and
@@ -561,10 +562,11 @@ class TiledGPOM:
         `overlap` (so a tile only predicts where it has at least ``overlap - blend / 2`` of data
         beyond) and at most `tile_size`. Default the smaller of the two.
     origin : (float, float), optional
-        Corner of tile (0, 0). Default (``origin_``, set by the first fit): when the data's x, y
-        extent fits in one tile, that tile centred on them, so a small map is one GP over one
-        cell tree instead of being cut into up to four where the map frame's origin falls in
-        it; otherwise the map frame's origin. Moving the grid of a larger map only moves its
+        Corner of tile (0, 0) and of block (0, 0). Default (``origin_``, set by the first fit):
+        when the data's x, y extent fits in one tile, that tile centred on them, so a small map
+        is one GP over one cell tree instead of being cut into up to four where the map frame's
+        origin falls in it; else, when it fits in one block, that block centred on them (one
+        cell tree, several tiles); otherwise the map frame's origin. Moving the grid of a larger map only moves its
         borders, and changes the cell trees (each grown from its block's points) at random: on
         la3dm sim_unstructured a centred grid scored AUC 0.755 against 0.838. The grid then
         stays fixed, so incremental updates line up with it.
