@@ -211,6 +211,20 @@ def test_process_pool_matches_in_process(room, reference):
     _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
 
 
+def test_pool_workers_inherit_the_tile_states_instead_of_receiving_them(room, reference, monkeypatch):
+    # Forked workers read a stage's tasks from the memory they inherit: predicting never pickles
+    # a tile's state (its Cholesky factor), only the tiles' answers come back.
+    hyp, ref = reference
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+
+    def no_pickling(self, protocol):
+        raise AssertionError("a tile state was pickled")
+
+    monkeypatch.setattr(tiles.TileState, "__reduce_ex__", no_pickling, raising=False)
+    _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
+    assert not tiles._INHERITED  # the stage's tasks let go
+
+
 def test_dead_worker_is_retried(room, reference, tmp_path, monkeypatch):
     hyp, ref = reference
     marker = tmp_path / "died"
