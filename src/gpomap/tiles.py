@@ -96,6 +96,13 @@ DEFAULT_TILE_SIZE: dict[int, float] = {2: 5.0, 3: 10.0}
 #: where the SE kernel has decayed to 4 %).
 OVERLAP_LENGTH_SCALES = 2.5
 
+#: Default blend width, as a fraction of the overlap (or of the tile, if smaller). A tile predicts
+#: within half the blend of its square, where it still sees at least 3/4 of the overlap beyond,
+#: and fewer tiles predict each point: CSAIL every 10th scan (learnt length scale 1.14 m, 5 m
+#: tiles), fit and written map 27.2 -> 23.1 CPU s against a blend of the whole overlap, the
+#: written map's AUC, log loss and ECE the same to 4 digits (Belgioioso's blocks split too).
+BLEND_FRACTION: float = 0.5
+
 #: The map settings a TiledGPOM answers as its own attributes (read from its ``base``).
 _SETTING_NAMES = frozenset(MapConfig.__dataclass_fields__)
 
@@ -574,7 +581,7 @@ class TiledGPOM:
     blend : float, optional
         Width of the blending ramp across each tile border, centred on the border; at most
         `overlap` (so a tile only predicts where it has at least ``overlap - blend / 2`` of data
-        beyond) and at most `tile_size`. Default the smaller of the two.
+        beyond) and at most `tile_size`. Default :data:`BLEND_FRACTION` of the smaller of the two.
     origin : (float, float), optional
         Corner of tile (0, 0) and of block (0, 0). Default (``origin_``, set by the first fit):
         when the data's x, y extent fits in one tile, that tile centred on them, so a small map
@@ -1299,7 +1306,7 @@ class TiledGPOM:
         ls = self.hyperparameters_["length_scale"]
         o = OVERLAP_LENGTH_SCALES * ls if self.overlap is None else float(self.overlap)
         self.overlap_ = float(min(max(o, 1e-9), self.block_size_))
-        w = min(self.overlap_, self.tile_size_) if self.blend is None else float(self.blend)
+        w = BLEND_FRACTION * min(self.overlap_, self.tile_size_) if self.blend is None else float(self.blend)
         if not 0 < w <= min(self.overlap_, self.tile_size_) + 1e-12:
             raise ValueError(
                 f"blend must be in (0, min(overlap, tile_size)] = (0, {min(self.overlap_, self.tile_size_)}], got {w}"
