@@ -721,9 +721,10 @@ class TiledGPOM:
         ys = range(math.ceil((lo[1] - oy) / side) - 1, math.floor((hi[1] - oy) / side) + 1)
         return ((ix, iy) for ix in xs for iy in ys)
 
-    def _grown(self, tile: tuple[int, int]) -> tuple[tuple[float, float], tuple[float, float]]:
-        """The tile's square grown by the overlap on every side: the cells its GP sees meet it."""
-        x0, x1, y0, y1 = self._core(tile)
+    def _grown(self, square: tuple[float, float, float, float]) -> tuple[tuple[float, float], tuple[float, float]]:
+        """A square (x0, x1, y0, y1) grown by the overlap on every side, as its corners (lo, hi): a
+        tile's GP sees the cells meeting its grown square."""
+        x0, x1, y0, y1 = square
         o = self.overlap_
         return (x0 - o, y0 - o), (x1 + o, y1 + o)
 
@@ -749,9 +750,13 @@ class TiledGPOM:
         return (ix + _KEY_OFFSET) * _KEY_BASE + (iy + _KEY_OFFSET)
 
     def _core(self, key: tuple[int, int]) -> tuple[float, float, float, float]:
-        x0 = self.origin_[0] + key[0] * self.tile_size_
-        y0 = self.origin_[1] + key[1] * self.tile_size_
-        return x0, x0 + self.tile_size_, y0, y0 + self.tile_size_
+        return self._square(key, self.tile_size_)
+
+    def _square(self, index: tuple[int, int], side: float) -> tuple[float, float, float, float]:
+        """Bounds (x0, x1, y0, y1) of square `index` of `side` on the tile grid's origin (a tile or a block)."""
+        x0 = self.origin_[0] + index[0] * side
+        y0 = self.origin_[1] + index[1] * side
+        return x0, x0 + side, y0, y0 + side
 
     # ------------------------------------------------------------------ cells
     def _build_block(self, key: int) -> _BlockCells:
@@ -808,20 +813,16 @@ class TiledGPOM:
 
     def _blocks_seen_by(self, tile: tuple[int, int]) -> list[int]:
         """Keys of the blocks whose squares meet the tile's grown square (those it gathers cells from)."""
-        return [self._encode(*b) for b in self._meeting(*self._grown(tile), self.block_size_)]
+        return [self._encode(*b) for b in self._meeting(*self._grown(self._core(tile)), self.block_size_)]
 
     def _tiles_seeing(self, block: int) -> list[tuple[int, int]]:
         """The tiles holding points whose grown squares meet the block's square."""
-        bx, by = self._decode(block)
-        ox, oy = self.origin_
-        o = self.overlap_
-        lo = (ox + bx * self.block_size_ - o, oy + by * self.block_size_ - o)
-        hi = (ox + (bx + 1) * self.block_size_ + o, oy + (by + 1) * self.block_size_ + o)
+        lo, hi = self._grown(self._square(self._decode(block), self.block_size_))
         return [t for t in self._meeting(lo, hi, self.tile_size_) if self._encode(*t) in self._tiles_with_points]
 
     def _gather(self, tile: tuple[int, int]) -> dict[str, Any] | None:
         """The cells meeting the tile's grown square, in canonical (block key, tree) order."""
-        (gx0, gy0), (gx1, gy1) = self._grown(tile)
+        (gx0, gy0), (gx1, gy1) = self._grown(self._core(tile))
         parts = []
         for key in self._blocks_seen_by(tile):
             bc = self._blocks.get(key)
