@@ -7,7 +7,7 @@ import pytest
 
 from gpomap import lattice
 from gpomap.clouds import CloudScan
-from gpomap.evidence import RayEvidence, lattice_grid
+from gpomap.evidence import NEAR_END, RayEvidence, lattice_grid
 from gpomap.fusion import EvidenceCalibration, calibration_points, fit_calibration, gp_sampling_factor
 from gpomap.grid import GridSpec, coarse_grid, interpolate_to
 from gpomap.mapping import AreaGPOM
@@ -41,10 +41,29 @@ def _row(a: np.ndarray, dim: int) -> np.ndarray:
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_counts_along_one_beam_by_hand(dim: int) -> None:
-    # From the centre of cell 0 along +x to x = 1.05: crosses cells 0..9 of the row, ends in 10.
-    hits, misses = RayEvidence.from_scans([_along_x(dim, [1.0])]).counts(GRID if dim == 2 else VOXELS)
+    # From the centre of cell 0 along +x to x = 1.07: crosses cells 0..9 of the row, ends in 10.
+    hits, misses, near = RayEvidence.from_scans([_along_x(dim, [1.02])]).counts(GRID if dim == 2 else VOXELS)
     assert hits.sum() == 1 and _row(hits, dim)[10] == 1
     assert _row(misses, dim)[:10].tolist() == [1] * 10 and misses.sum() == 10
+    # Near misses: cells whose centres lie within NEAR_END (0.2 m) of the end: cell 9 (centre
+    # 0.95, 0.12 m away) and not cell 8 (0.85, 0.22 m).
+    assert NEAR_END == 0.2
+    assert np.flatnonzero(_row(near, dim)).tolist() == [9] and near.sum() == 1
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_scan_that_sees_through_a_cell_on_any_beam_counts_no_near_miss(dim: int) -> None:
+    # One beam ends at x = 0.57 (cell 5), another of the same scan at 0.64 (cell 6): cell 4
+    # (centre 0.45) is within 0.2 m of both ends, so a near miss, cell 3 (0.35) of neither; cell 5
+    # is the first beam's hit.
+    grid = GRID if dim == 2 else VOXELS
+    _, _, near = RayEvidence.from_scans([_along_x(dim, [0.52, 0.59])]).counts(grid)
+    assert np.flatnonzero(_row(near, dim)).tolist() == [4] and near.sum() == 1
+    # A third beam of the same scan going on to x = 1.57 sees through cells 4 and 5: no near miss
+    # there; only cell 14 is near its own end.
+    hits, misses, near = RayEvidence.from_scans([_along_x(dim, [0.52, 0.59, 1.52])]).counts(grid)
+    assert _row(hits, dim)[[5, 6, 15]].tolist() == [1, 1, 1] and _row(misses, dim)[[4, 5, 6]].tolist() == [1, 0, 0]
+    assert np.flatnonzero(_row(near, dim)).tolist() == [14]
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -52,12 +71,12 @@ def test_one_update_per_cell_per_scan_and_hit_wins(dim: int) -> None:
     # Two beams of one scan: one ends in cell 5, the other passes through it to cell 12.
     s = _along_x(dim, [0.5, 1.2])
     grid = GRID if dim == 2 else VOXELS
-    hits, misses = RayEvidence.from_scans([s]).counts(grid)
+    hits, misses, _ = RayEvidence.from_scans([s]).counts(grid)
     assert _row(hits, dim)[5] == 1 and _row(misses, dim)[5] == 0  # the hit wins over the same scan's miss
     assert _row(hits, dim)[12] == 1
     assert _row(misses, dim)[0:5].tolist() == [1] * 5  # crossed by both beams, counted once
     # The same scan twice: every count doubles.
-    h2, m2 = RayEvidence.from_scans([s, s]).counts(grid)
+    h2, m2, _ = RayEvidence.from_scans([s, s]).counts(grid)
     np.testing.assert_array_equal(h2, 2 * hits)
     np.testing.assert_array_equal(m2, 2 * misses)
 
@@ -65,26 +84,27 @@ def test_one_update_per_cell_per_scan_and_hit_wins(dim: int) -> None:
 @pytest.mark.parametrize("dim", [2, 3])
 def test_no_return_beam_gives_misses_to_the_cap_and_no_hit(dim: int) -> None:
     s = _along_x(dim, [5.0], max_range=5.0)
-    hits, misses = RayEvidence.from_scans([s], no_return_cap=0.7).counts(GRID if dim == 2 else VOXELS)
+    hits, misses, near = RayEvidence.from_scans([s], no_return_cap=0.7).counts(GRID if dim == 2 else VOXELS)
     assert hits.sum() == 0
     assert _row(misses, dim)[:8].tolist() == [1] * 8 and misses.sum() == 8
+    assert near.sum() == 0  # a beam that did not return has no end to be near
 
 
 def test_counts_add_over_scans_and_batches(monkeypatch: pytest.MonkeyPatch) -> None:
     scans = paper_room_scans()[:6]
     ev = RayEvidence.from_scans(scans)
     grid = lattice_grid(ev.extent(), 0.05, margin=0.05)
-    hits, misses = ev.counts(grid)
+    whole = ev.counts(grid)
     parts = [ev.counts(grid, scans=np.array([k])) for k in range(len(scans))]
-    np.testing.assert_array_equal(hits, sum(p[0] for p in parts))
-    np.testing.assert_array_equal(misses, sum(p[1] for p in parts))
+    assert 0 < whole.near.sum() < whole.misses.sum() and np.all(whole.near <= whole.misses)
+    for j in range(3):
+        np.testing.assert_array_equal(whole[j], sum(p[j] for p in parts))
     # Tiny batches (one scan each) give the same counts as one batch.
     import gpomap.evidence as evidence
 
     monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", 1)
-    h1, m1 = ev.counts(grid)
-    np.testing.assert_array_equal(h1, hits)
-    np.testing.assert_array_equal(m1, misses)
+    for a, b in zip(ev.counts(grid), whole, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_lattice_cells_do_not_depend_on_the_extent() -> None:
@@ -98,9 +118,11 @@ def test_lattice_cells_do_not_depend_on_the_extent() -> None:
 
 
 def test_calibration_formula_by_hand() -> None:
-    cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0)
+    cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0, near_weight=0.25)
     # (2 * 1 + 2 * 0.5) / (2 * 1 + 1 + 2) = 0.6
     assert cal(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.6)
+    # 5 misses of which 4 near, and 3 steps of the path: 1 + 4 * 0.25 + 3 * 2 = 8 weighted misses.
+    assert cal.misses(np.array([5]), np.array([4]), np.array([3]))[0] == pytest.approx(8.0)
     # No counts: the GP's probability.
     assert cal(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(0.8)
     # The defaults are the counting grid with the GP in place of its prior 1/2: (3 + 1) / (3 + 5 + 2).
@@ -231,13 +253,14 @@ def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
 
 
 def _calibration_scene() -> tuple[list[Scan], RayEvidence, GridSpec]:
-    """Six short scans (beams of 0.2 m: one hit and one free calibration point each), three of them
-    close together (their points are counted by the others) and three far apart (never counted)."""
-    poses = [(0.52, 0.51), (0.57, 0.53), (0.61, 0.47), (1.5, 0.5), (0.5, 1.5), (1.5, 1.5)]
+    """Six scans of 12 beams of 0.5 m (a hit and four free calibration points each, misses near
+    their ends and far from them), three of them close together (their points are counted by the
+    others) and three far apart (never counted)."""
+    poses = [(0.52, 0.51), (0.57, 0.53), (0.61, 0.47), (3.5, 0.5), (0.5, 3.5), (3.5, 3.5)]
     scans = [
-        _scan(x, y, list(np.linspace(-np.pi, np.pi, 12, endpoint=False) + 0.3 * k), [0.2] * 12) for k, (x, y) in enumerate(poses)
+        _scan(x, y, list(np.linspace(-np.pi, np.pi, 12, endpoint=False) + 0.3 * k), [0.5] * 12) for k, (x, y) in enumerate(poses)
     ]
-    return scans, RayEvidence.from_scans(scans), GridSpec((0.0, 0.0), 0.05, (40, 40))
+    return scans, RayEvidence.from_scans(scans), GridSpec((0.0, 0.0), 0.05, (80, 80))
 
 
 def _p_gp(points: np.ndarray) -> np.ndarray:
@@ -259,30 +282,38 @@ def test_calibration_predicts_only_counted_points_and_matches_the_whole_sample_f
     fitted, report = fit_calibration(scans, ev, grid, predict_gp, n_scans=len(scans), step=0.1)
     # Truth by brute force: every scan's points with the other scans' counts taken directly (not
     # all counts minus its own), the GP at every point, the plain mean log loss minimised.
-    pts, occ, h, m = [], [], [], []
+    pts, occ, h, m, n = [], [], [], [], []
     for k, s in enumerate(scans):
         p, o = calibration_points(s, 0.1)
-        hits, misses = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
+        hits, misses, near = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
         cell, inside = lattice.flat_index(grid, p)
         pts.append(p)
         occ.append(o)
         h.append(np.where(inside, hits.reshape(-1)[cell], 0))
         m.append(np.where(inside, misses.reshape(-1)[cell], 0))
-    P, O, H, M = np.concatenate(pts), np.concatenate(occ), np.concatenate(h), np.concatenate(m)
-    assert O.sum() == (~O).sum()  # balanced already: the sample is every point
+        n.append(np.where(inside, near.reshape(-1)[cell], 0))
+    P, O, H, M, N = (np.concatenate(a) for a in (pts, occ, h, m, n))
+    # The scene has points of both classes, counted and not, with near misses and far ones.
     counted = (H + M) > 0
-    assert 0 < counted.sum() < counted.size  # the scene has points of both kinds
+    assert 0 < counted.sum() < counted.size and 0 < N.sum() < M.sum()
+    # Balance the classes as the fit does (its seed, its draw order) to get the sample's points.
+    rng = np.random.default_rng(0)
+    i_occ, i_free = np.flatnonzero(O), np.flatnonzero(~O)
+    size = min(i_occ.size, i_free.size)
+    keep = np.concatenate([rng.choice(i_occ, size, replace=False), rng.choice(i_free, size, replace=False)])
+    P, O, H, M, N, counted = P[keep], O[keep], H[keep], M[keep], N[keep], counted[keep]
     g = _p_gp(P)
 
     def loss(theta: np.ndarray) -> float:
-        p = EvidenceCalibration(*np.exp(theta))(g, H, M)
+        cal = EvidenceCalibration(*np.exp(theta))
+        p = cal(g, H, cal.misses(M, N))
         return float(-np.mean(np.where(O, np.log(p), np.log1p(-p))))
 
     best = minimize(
-        loss, np.log([1.0, 2.0]), method="L-BFGS-B", bounds=CALIBRATION_BOUNDS, options={"ftol": 1e-14, "gtol": 1e-10}
+        loss, np.log([1.0, 2.0, 1.0]), method="L-BFGS-B", bounds=CALIBRATION_BOUNDS, options={"ftol": 1e-14, "gtol": 1e-10}
     )
     truth = np.exp(best.x)
-    np.testing.assert_allclose([fitted.hit_weight, fitted.prior_weight], truth, rtol=2e-3)
+    np.testing.assert_allclose([fitted.hit_weight, fitted.prior_weight, fitted.near_weight], truth, rtol=2e-3)
     # The GP was asked once, at exactly the counted points.
     assert len(asked) == 1 and len(asked[0]) == counted.sum() == report["n_predicted"]
     want = {tuple(np.round(q, 9)) for q in P[counted]}
@@ -329,7 +360,7 @@ def test_seen_cells_and_one_scans_counts_at_cells_equal_the_whole_grid_counts(di
             scans.append(CloudScan(o, ends, hit=np.linalg.norm(ends - o, axis=1) < 1.5, max_range=1.5))
     ev = RayEvidence.from_scans(scans)
     # Whether any scan counted a cell, against the whole counts (one batch and many).
-    hits, misses = ev.counts(grid)
+    hits, misses, _ = ev.counts(grid)
     assert 0 < np.count_nonzero(hits + misses) < hits.size
     for budget in (1 << 22, 50):
         monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", budget)
@@ -337,27 +368,40 @@ def test_seen_cells_and_one_scans_counts_at_cells_equal_the_whole_grid_counts(di
     cells = rng.integers(0, int(np.prod(grid.shape)), 3000)
     for k in range(4):
         # Truth: the whole grid's counts of that scan alone, read at the cells.
-        hits, misses = ev.counts(grid, scans=np.array([k]))
-        want = hits.reshape(-1)[cells], misses.reshape(-1)[cells]
-        assert want[0].sum() > 0 and want[1].sum() > 0
+        counts = ev.counts(grid, scans=np.array([k]))
+        want = [a.reshape(-1)[cells] for a in counts]
+        assert want[0].sum() > 0 and want[1].sum() > want[2].sum() > 0
         for budget in (1 << 22, 50):  # one batch, and a few beams a batch
             monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", budget)
             got = ev.scan_counts_at(grid, k, cells)
-            np.testing.assert_array_equal(got[0], want[0])
-            np.testing.assert_array_equal(got[1], want[1])
+            for j in range(3):
+                np.testing.assert_array_equal(got[j], want[j])
+        # The near misses by brute force: beam by beam, a cell is near while every beam of the
+        # scan crossing it returned and ended within NEAR_END of its centre, and it is no hit.
+        lo, hi = np.searchsorted(ev.scan, [k, k + 1])
+        all_near: dict[int, bool] = {}
+        for j in range(lo, hi):
+            _, *idx = evidence.traverse(grid, ev.starts[j : j + 1], ev.ends[j : j + 1])
+            for cell in zip(*idx, strict=True):
+                centre = np.asarray(grid.origin) + (np.array(cell[::-1]) + 0.5) * grid.resolution
+                close = bool(ev.hit[j]) and float(np.linalg.norm(centre - ev.ends[j])) < NEAR_END
+                flat = int(np.ravel_multi_index(cell, grid.shape))
+                all_near[flat] = all_near.get(flat, True) and close
+        near = np.zeros(grid.shape, dtype=np.int32).reshape(-1)
+        near[[c for c, v in all_near.items() if v]] = 1
+        near[counts.hits.reshape(-1) > 0] = 0
+        np.testing.assert_array_equal(counts.near.reshape(-1), near)
     # The cells the whole counts kept (batches of whole scans, one or a few a batch) give the same.
     for budget in (1 << 22, 50):
         monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", budget)
         kept = RayEvidence.from_scans(scans)
-        h_all, m_all = kept.counts(grid, keep=np.array([1, 3]))
-        np.testing.assert_array_equal(h_all, ev.counts(grid)[0])
-        np.testing.assert_array_equal(m_all, ev.counts(grid)[1])
+        for a, b in zip(kept.counts(grid, keep=np.array([1, 3])), ev.counts(grid), strict=True):
+            np.testing.assert_array_equal(a, b)
         assert sorted(k for _, k in kept._kept) == [1, 3]
         for k in range(4):
-            hits, misses = ev.counts(grid, scans=np.array([k]))
             got = kept.scan_counts_at(grid, k, cells)
-            np.testing.assert_array_equal(got[0], hits.reshape(-1)[cells])
-            np.testing.assert_array_equal(got[1], misses.reshape(-1)[cells])
+            for g, a in zip(got, ev.counts(grid, scans=np.array([k])), strict=True):
+                np.testing.assert_array_equal(g, a.reshape(-1)[cells])
         kept.forget()
         assert not kept._kept
 

@@ -2,9 +2,11 @@
 
 Model. The occupancy of a fine cell (5 cm by default) is a Beta variable whose mean is the GP's
 probability p_gp there, with an equivalent sample size n0; every scan that ended a beam in the cell
-is a hit worth ``hit_weight`` observations, every scan that crossed it a miss. Its posterior mean is
+is a hit worth ``hit_weight`` observations, every scan that saw through it a miss, and a scan
+whose beams crossed it only just before their returned ends (a near miss,
+:data:`~gpomap.evidence.NEAR_END`) a miss worth ``near_weight``. Its posterior mean is
 
-    p = (hit_weight * hits + n0 * p_gp) / (hit_weight * hits + misses + n0).
+    p = (hit_weight * hits + n0 * p_gp) / (hit_weight * hits + far misses + near_weight * near misses + n0).
 
 Where no beam went, p is the GP's probability for unseen space (its latent variance scaled by the
 factor fitted on held-out stretches of the log, :mod:`gpomap.extrapolation`); where many did, the
@@ -21,7 +23,10 @@ out, exact because counts add over scans), and its hits and free points along it
 (class-balanced, as an evaluation would score them) are predicted from the rest. One hit comes
 out worth tens of misses on real logs: a beam ending in a cell is direct evidence of a surface,
 while beams crossing a wall's cell graze past it or pass through a gap of the range noise
-(OctoMap encodes the same asymmetry, more mildly, with +0.85 against -0.4 log-odds).
+(OctoMap encodes the same asymmetry, more mildly, with +0.85 against -0.4 log-odds). Near misses
+come out worth a tenth of a miss or less: a beam ending a few centimetres past a cell says little
+of whether the surface is in it. Weighed apart, they let the hit weight fall (Intel, blocks of 40:
+68 -> 36; Belgioioso 80 -> 36), so fewer misses clear a cell a transient once stood in.
 
 The GP's own probability is not re-tempered here: its points were part of the GP's training data,
 so a temperature fitted on them trusts the GP more than it deserves where no other scan looked
@@ -49,7 +54,7 @@ from scipy.optimize import minimize
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
-from gpomap.evidence import MAX_PATH_STEP, RayEvidence, lattice_grid
+from gpomap.evidence import MAX_PATH_STEP, RayCounts, RayEvidence, lattice_grid
 from gpomap.lattice import (
     AnyGrid,
     bounds_extent,
@@ -89,16 +94,20 @@ def gp_sampling_factor(length_scale: float, resolution: float) -> int:
 #: at most ~9,000 hits); clouds do (la3dm: 31,500 hits in 9 scans, cut to a third).
 CALIBRATION_POINTS_PER_CLASS: int = 10_000
 
-#: Search bounds (log space) of the hit weight and the prior weight.
-CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = ((np.log(0.1), np.log(1e3)), (np.log(0.1), np.log(1e2)))
+#: Search bounds (log space) of the hit weight, the prior weight and the near-miss weight.
+CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = (
+    (np.log(0.1), np.log(1e3)),
+    (np.log(0.1), np.log(1e2)),
+    (np.log(1e-3), np.log(10.0)),
+)
 
 
 @dataclass(frozen=True)
 class EvidenceCalibration:
-    """How much a hit, a miss and the GP prior weigh in a cell's probability.
+    """How much a hit, a miss, a near miss and the GP prior weigh in a cell's probability.
 
-    The defaults (one hit = one miss, the GP worth two observations) make the counting grid
-    p = (hits + 1) / (hits + misses + 2) with the GP's probability in place of its 1/2.
+    The defaults (one hit = one miss = one near miss, the GP worth two observations) make the
+    counting grid p = (hits + 1) / (hits + misses + 2) with the GP's probability in place of its 1/2.
 
     Parameters
     ----------
@@ -106,13 +115,23 @@ class EvidenceCalibration:
         Observations one hit counts as (a miss counts as one).
     prior_weight : float
         Equivalent sample size n0 of the GP's probability.
+    near_weight : float
+        Observations one near miss counts as.
     """
 
     hit_weight: float = 1.0
     prior_weight: float = 2.0
+    near_weight: float = 1.0
+
+    def misses(self, misses: ArrayLike, near: ArrayLike, path: ArrayLike = 0) -> NDArray[np.float64]:
+        """Weighted misses of cells: each miss one, each near miss (counted among `misses`)
+        ``near_weight``, each step of the robot's path ``hit_weight`` (matching shapes)."""
+        near = np.asarray(near, dtype=float)
+        return np.asarray(misses, dtype=float) + (self.near_weight - 1.0) * near + self.hit_weight * np.asarray(path, dtype=float)
 
     def __call__(self, p_gp: ArrayLike, hits: ArrayLike, misses: ArrayLike) -> NDArray[np.float64]:
-        """Cell probability from the GP's probability and the counts (matching shapes)."""
+        """Cell probability from the GP's probability, the hits and the weighted misses
+        (:meth:`misses`) (matching shapes)."""
         wh = self.hit_weight * np.asarray(hits, dtype=float)
         p = (wh + self.prior_weight * np.asarray(p_gp, dtype=float)) / (wh + np.asarray(misses, dtype=float) + self.prior_weight)
         return np.clip(p, _EPS, 1 - _EPS)
@@ -158,9 +177,9 @@ def fit_calibration(
     step: float = 0.1,
     no_return_cap: float | None = 10.0,
     seed: int = 0,
-    counts: tuple[NDArray[np.int32], NDArray[np.int32]] | None = None,
+    counts: RayCounts | None = None,
 ) -> tuple[EvidenceCalibration, dict[str, float]]:
-    """Fit the hit weight and the prior weight by leave-one-scan-out log likelihood.
+    """Fit the hit, prior and near-miss weights by leave-one-scan-out log likelihood.
 
     Parameters
     ----------
@@ -178,7 +197,7 @@ def fit_calibration(
     no_return_cap : float or None
     seed : int
         Seed of the class-balancing subsample.
-    counts : (hits, misses), optional
+    counts : RayCounts, optional
         ``evidence.counts(grid)`` when the caller has it already.
 
     Returns
@@ -189,26 +208,24 @@ def fit_calibration(
         where the GP was predicted, and their ``"log_loss"`` (the only points the weights
         change), before (the counting grid's weights, ``"log_loss_default"``) and after the fit.
     """
-    hits, misses = evidence.counts(grid) if counts is None else counts
+    whole = evidence.counts(grid) if counts is None else counts
     picked = calibration_scans(len(scans), n_scans)
-    pts_all, occ_all, h_all, m_all = [], [], [], []
+    pts_all, occ_all, counts_all = [], [], []
     for k in picked:
         pts, occ = calibration_points(scans[k], step, no_return_cap)
         if pts.size == 0:
             continue
         cell, inside = flat_index(grid, pts)
-        own_h, own_m = evidence.scan_counts_at(grid, int(k), cell)
-        h = np.where(inside, hits.reshape(-1)[cell] - own_h, 0)
-        m = np.where(inside, misses.reshape(-1)[cell] - own_m, 0)
+        own = evidence.scan_counts_at(grid, int(k), cell)
+        # The other scans' hits, misses and near misses at each point.
+        counts_all.append([np.where(inside, total.reshape(-1)[cell] - mine, 0) for total, mine in zip(whole, own, strict=True)])
         pts_all.append(pts)
         occ_all.append(occ)
-        h_all.append(h)
-        m_all.append(m)
     default = EvidenceCalibration()
     if not pts_all:
         return default, {"n_points": 0}
     pts, occ = np.concatenate(pts_all), np.concatenate(occ_all)
-    h, m = np.concatenate(h_all).astype(float), np.concatenate(m_all).astype(float)
+    h, m, near = (np.concatenate([c[j] for c in counts_all]).astype(float) for j in range(3))
     if occ.all() or not occ.any():
         return default, {"n_points": int(occ.size)}
     # Balance the classes by subsampling the larger one (seeded), as an evaluation would.
@@ -216,7 +233,7 @@ def fit_calibration(
     i_occ, i_free = np.flatnonzero(occ), np.flatnonzero(~occ)
     n = min(i_occ.size, i_free.size, CALIBRATION_POINTS_PER_CLASS)
     keep = np.concatenate([rng.choice(i_occ, n, replace=False), rng.choice(i_free, n, replace=False)])
-    occ, h, m = occ[keep], h[keep], m[keep]
+    occ, h, m, near = occ[keep], h[keep], m[keep], near[keep]
     # A point no other scan counted (no hit, no miss) has p = p_gp whatever the weights: a constant
     # of the loss, so the GP is not predicted there (44 % of la3dm sim_structured's 20,000 points,
     # 78 % of sim_unstructured's). The loss below is the whole sample's mean less that constant:
@@ -225,15 +242,15 @@ def fit_calibration(
     n_points = int(occ.size)
     if not counted.any():
         return default, {"n_points": n_points, "n_predicted": 0}
-    occ, h, m = occ[counted], h[counted], m[counted]
+    occ, h, m, near = occ[counted], h[counted], m[counted], near[counted]
     p_gp = np.asarray(predict_gp(pts[keep[counted]]), dtype=float)
 
     def loss(theta: NDArray[np.float64]) -> float:
         cal = EvidenceCalibration(*np.exp(theta))
-        p = cal(p_gp, h, m)
+        p = cal(p_gp, h, cal.misses(m, near))
         return float(-np.sum(np.where(occ, np.log(p), np.log1p(-p))) / n_points)
 
-    x0 = np.log([default.hit_weight, default.prior_weight])
+    x0 = np.log([default.hit_weight, default.prior_weight, default.near_weight])
     res = minimize(loss, x0, method="L-BFGS-B", bounds=CALIBRATION_BOUNDS)
     fitted = EvidenceCalibration(*(float(v) for v in np.exp(res.x)))
     scale = n_points / occ.size  # from the sample's sum to the mean over the counted points
@@ -334,8 +351,9 @@ class EvidenceLayer:
         self.lattice: AnyGrid | None = None
         self._hits = np.zeros((0, 0), dtype=np.int32)
         self._beam_misses = np.zeros((0, 0), dtype=np.int32)
+        self._near_misses = np.zeros((0, 0), dtype=np.int32)
         self._path = np.zeros((0, 0), dtype=np.int32)
-        self._grid_cache: tuple[AnyGrid, NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]] | None = None
+        self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.int32]] | None = None
         self.add_scans(scans)
         self.recalibrate(predict_gp)
 
@@ -393,12 +411,13 @@ class EvidenceLayer:
         # The first scans' counts are on the lattice itself: the calibration's held-out scans keep
         # their cells, so their leave-one-scan-out counts need no second traversal.
         keep = calibration_scans(len(scans), self.calibration_scans) if not self._scans else None
-        hits, misses = part.counts(local, keep=keep)
+        counts = part.counts(local, keep=keep)
         passes = part.path_passes(local)
         assert self.lattice is not None
         block = self._block(local)
-        self._hits[block] += hits
-        self._beam_misses[block] += misses
+        self._hits[block] += counts.hits
+        self._beam_misses[block] += counts.misses
+        self._near_misses[block] += counts.near
         self._path[block] += passes
         self._scans.extend(scans)
         self._parts.append(part)
@@ -416,6 +435,7 @@ class EvidenceLayer:
             self.lattice = local
             self._hits = np.zeros(local.shape, dtype=np.int32)
             self._beam_misses = np.zeros(local.shape, dtype=np.int32)
+            self._near_misses = np.zeros(local.shape, dtype=np.int32)
             self._path = np.zeros(local.shape, dtype=np.int32)
             return
         offset = cell_offset(local, self.lattice)
@@ -428,7 +448,7 @@ class EvidenceLayer:
         old = self.lattice
         self.lattice = grown
         block = self._block(old)
-        for name in ("_hits", "_beam_misses", "_path"):
+        for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
             arr = np.zeros(grown.shape, dtype=np.int32)
             arr[block] = getattr(self, name)
             setattr(self, name, arr)
@@ -453,19 +473,20 @@ class EvidenceLayer:
             2 * self.resolution,
             self.no_return_cap,
             self.seed,
-            counts=(self._hits, self._beam_misses),
+            counts=RayCounts(self._hits, self._beam_misses, self._near_misses),
         )
         for part in self._parts:
             part.forget()
 
     # ------------------------------------------------------------------ applying
     def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
-        """Hits and misses (path included) of the fine cell holding each point (0 outside the counted area)."""
+        """Hits and weighted misses (:meth:`EvidenceCalibration.misses`, path included) of the fine
+        cell holding each point (0 outside the counted area)."""
         if self.lattice is None:
             n = np.asarray(points).shape[0]
             return np.zeros(n, dtype=np.int32), np.zeros(n)
         cell, inside = flat_index(self.lattice, points)
-        misses = self._beam_misses.reshape(-1)[cell] + self.calibration.hit_weight * self._path.reshape(-1)[cell]
+        misses = self.calibration.misses(*(a.reshape(-1)[cell] for a in (self._beam_misses, self._near_misses, self._path)))
         return np.where(inside, self._hits.reshape(-1)[cell], 0), np.where(inside, misses, 0.0)
 
     def proba(
@@ -486,26 +507,26 @@ class EvidenceLayer:
         d = (np.asarray(grid.origin) - np.asarray(self.lattice.origin)) / self.resolution
         return bool(np.all(np.abs(d - np.round(d)) < 1e-6))
 
-    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
-        """Hits, beam misses and path passes per cell of `grid`."""
+    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[RayCounts, NDArray[np.int32]]:
+        """The beams' counts and the path's passes per cell of `grid`."""
         if not self._on_lattice(grid):
-            hits, misses = self.evidence.counts(grid)
-            return hits, misses, self.evidence.path_passes(grid)
+            return self.evidence.counts(grid), self.evidence.path_passes(grid)
         # The grid's cells are lattice cells: read the running counts (zero beyond them).
         assert self.lattice is not None
-        out = [np.zeros(grid.shape, dtype=np.int32) for _ in range(3)]
+        out = [np.zeros(grid.shape, dtype=np.int32) for _ in range(4)]
         where = overlap(cell_offset(grid, self.lattice), grid.shape, self.lattice.shape)
         if where is not None:
-            for o, a in zip(out, (self._hits, self._beam_misses, self._path), strict=True):
+            for o, a in zip(out, (self._hits, self._beam_misses, self._near_misses, self._path), strict=True):
                 o[where[0]] = a[where[1]]
-        return out[0], out[1], out[2]
+        return RayCounts(out[0], out[1], out[2]), out[3]
 
     def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
-        """Hits and misses (path included) per cell of `grid`, counted on that grid's own cells (the last is cached)."""
+        """Hits and weighted misses (:meth:`EvidenceCalibration.misses`, path included) per cell of
+        `grid`, counted on that grid's own cells (the last is cached)."""
         if self._grid_cache is None or self._grid_cache[0] != grid:
             self._grid_cache = (grid, *self._raw_grid_counts(grid))
-        _, hits, misses, path = self._grid_cache
-        return hits, misses + self.calibration.hit_weight * path
+        _, counts, path = self._grid_cache
+        return counts.hits, self.calibration.misses(counts.misses, counts.near, path)
 
     def grid_proba(
         self, grid: AnyGrid, p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
@@ -551,4 +572,4 @@ class EvidenceLayer:
     def summary(self) -> dict[str, float]:
         """The calibration and how it was fitted."""
         c = self.calibration
-        return {"hit_weight": c.hit_weight, "prior_weight": c.prior_weight, **self.report}
+        return {"hit_weight": c.hit_weight, "prior_weight": c.prior_weight, "near_weight": c.near_weight, **self.report}
