@@ -56,7 +56,8 @@ def _calibrate(model: Any, near_end: float | None) -> None:
 def run(log: str, split: str, seed: int = 0) -> list[dict[str, Any]]:
     """Every variant on one log and split."""
     scans, truth = quality.load(log, False)
-    data = prepare(scans, split, seed=seed, max_test_points=quality.MAX_TEST_POINTS, truth=truth)
+    step = quality.LOGS[log].get("scan_step", 1)
+    data = prepare(scans, split, scan_step=step, seed=seed, max_test_points=quality.MAX_TEST_POINTS, truth=truth)
     t = time.perf_counter()
     model = make_model("msk", seed=seed).fit(data.train)
     fit_s = time.perf_counter() - t

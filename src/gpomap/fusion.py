@@ -17,7 +17,7 @@ The robot's own path is evidence too: the robot's body passed there, so each ste
 through a cell counts as ``hit_weight`` misses, as sure as a beam's end. A stray hit on the path
 (a person walking by, a pose error) then cannot make the robot's own corridor an obstacle.
 
-Calibration. The two weights are fitted on the map's own data, never on a test set: for a
+Calibration. The three weights are fitted on the map's own data, never on a test set: for a
 sample of the training scans, the scan's own beams are removed from the counts (leave one scan
 out, exact because counts add over scans), and its hits and free points along its beams
 (class-balanced, as an evaluation would score them) are predicted from the rest. One hit comes
@@ -26,7 +26,8 @@ while beams crossing a wall's cell graze past it or pass through a gap of the ra
 (OctoMap encodes the same asymmetry, more mildly, with +0.85 against -0.4 log-odds). Near misses
 come out worth a tenth of a miss or less: a beam ending a few centimetres past a cell says little
 of whether the surface is in it. Weighed apart, they let the hit weight fall (Intel, blocks of 40:
-68 -> 36; Belgioioso 80 -> 36), so fewer misses clear a cell a transient once stood in.
+68 -> 36; Belgioioso 80 -> 36), so fewer misses clear a cell a transient once stood in
+(``benchmarks/near_misses.py``).
 
 The GP's own probability is not re-tempered here: its points were part of the GP's training data,
 so a temperature fitted on them trusts the GP more than it deserves where no other scan looked
