@@ -28,13 +28,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import quality  # noqa: E402  (the quality benchmark's logs and their loading)
-
-from gpomap import evidence, fusion  # noqa: E402
-from gpomap.evaluation import lookup, make_model, path_occupied, prepare, score, score_truth  # noqa: E402
+import quality
+from gpomap import evidence, fusion
+from gpomap.evaluation import lookup, make_model, path_occupied, prepare, score, score_truth
 
 VARIANTS: tuple[float | None, ...] = (None, 0.1, 0.2, 0.3)
 GRID_RESOLUTION = 0.05

@@ -6,6 +6,7 @@ robot has data. :class:`RayEvidence` keeps the beams and counts, on any grid, th
 ended a beam in each cell (hits) and the scans that crossed it without ending there (misses). As
 in OctoMap, a scan updates a cell once, and a hit wins over a miss of the same scan. It also keeps
 the robot's own path: space the robot drove through was free when it did.
+:mod:`gpomap.fusion` combines these counts with the GP's probability.
 
 Misses are told apart by where they fall on their beam. A beam that crossed a cell and ended its
 return within :data:`NEAR_END` of it says little about that cell: the surface may lie in it, the
@@ -13,7 +14,6 @@ range noise and the beam's width put the end a cell or two either side. A beam t
 well beyond the cell saw through it. The counts keep, beside all misses, the ``near`` ones: those
 of scans whose every beam through the cell ended within :data:`NEAR_END` (a scan that saw
 through the cell on any beam counts a plain miss); :mod:`gpomap.fusion` weighs them apart.
-:mod:`gpomap.fusion` combines these counts with the GP's probability.
 
 The rays of 3-D point clouds are counted the same way on a voxel lattice
 (:class:`~gpomap.voxels.VoxelSpec`): every array here has the data's own dimension d.
@@ -39,9 +39,9 @@ MAX_PATH_STEP: float = 1.5
 
 #: A miss whose cell centre lies within this distance (metres) of its beam's returned end is a
 #: near miss (see the module's docstring): about the range noise and footprint of a 2-D or 3-D
-#: lidar's return at a few metres, a few cells of the 5 cm (10 cm in 3-D) count lattices. On the
-#: blocks split of Intel, FR079, Belgioioso and the Stage arena, 0.1 and 0.2 m both cut the
-#: held-out log loss; 0.3 m less so on every log (docs/choices.md).
+#: lidar's return at a few metres, a few cells of the 5 cm (10 cm in 3-D) count lattices. On
+#: every shared log and split, 0.1 and 0.2 m both cut the held-out log loss and tie; 0.3 m cuts
+#: it less on 11 of 12 (``benchmarks/near_misses.py``, docs/choices.md).
 NEAR_END: float = 0.2
 
 

@@ -24,7 +24,7 @@ out, exact because counts add over scans), and its hits and free points along it
 out worth tens of misses on real logs: a beam ending in a cell is direct evidence of a surface,
 while beams crossing a wall's cell graze past it or pass through a gap of the range noise
 (OctoMap encodes the same asymmetry, more mildly, with +0.85 against -0.4 log-odds). Near misses
-come out worth a tenth of a miss or less: a beam ending a few centimetres past a cell says little
+come out worth a tenth to a quarter of a miss: a beam ending a few centimetres past a cell says little
 of whether the surface is in it. Weighed apart, they let the hit weight fall (Intel, blocks of 40:
 68 -> 36; Belgioioso 80 -> 36), so fewer misses clear a cell a transient once stood in
 (``benchmarks/near_misses.py``).
@@ -90,7 +90,7 @@ def gp_sampling_factor(length_scale: float, resolution: float) -> int:
     return int(min(MAX_GP_STEP_CELLS, max(1, np.floor(step / resolution + 1e-9))))
 
 
-#: Most calibration points of each class. Two weights need no more, and the GP's prediction at
+#: Most calibration points of each class. Three weights need no more, and the GP's prediction at
 #: them is the calibration's cost. Planar logs never reach it (25 scans of at most 361 beams give
 #: at most ~9,000 hits); clouds do (la3dm: 31,500 hits in 9 scans, cut to a third).
 CALIBRATION_POINTS_PER_CLASS: int = 10_000
@@ -455,7 +455,7 @@ class EvidenceLayer:
             setattr(self, name, arr)
 
     def recalibrate(self, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]) -> None:
-        """Refit the hit and prior weights on the scans counted so far (see :func:`fit_calibration`).
+        """Refit the hit, prior and near-miss weights on the scans counted so far (see :func:`fit_calibration`).
 
         Parameters
         ----------
