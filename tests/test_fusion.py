@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpomap import lattice
+from gpomap import _compiled_counts, lattice
 from gpomap.clouds import CloudScan
 from gpomap.evidence import NEAR_END, RayEvidence, lattice_grid
 from gpomap.fusion import EvidenceCalibration, calibration_points, fit_calibration, gp_sampling_factor
@@ -34,13 +34,22 @@ def _along_x(dim: int, ranges: list[float], max_range: float = 5.0, y: float = 0
     return CloudScan(o, o + np.column_stack([r, 0 * r, 0 * r]), hit=r < max_range, max_range=max_range)
 
 
+@pytest.fixture(params=["compiled", "numpy"])
+def counting(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Run a test on both ways of counting: numba's pass over the entries and numpy's sorts."""
+    if request.param == "compiled" and not _compiled_counts.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(_compiled_counts, "ENABLED", request.param == "compiled")
+    return str(request.param)
+
+
 def _row(a: np.ndarray, dim: int) -> np.ndarray:
     """The row of cells the rays run along (y index 1; z index 2 in 3-D)."""
     return a[1] if dim == 2 else a[2, 1]
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_counts_along_one_beam_by_hand(dim: int) -> None:
+def test_counts_along_one_beam_by_hand(dim: int, counting: str) -> None:
     # From the centre of cell 0 along +x to x = 1.07: crosses cells 0..9 of the row, ends in 10.
     hits, misses, near = RayEvidence.from_scans([_along_x(dim, [1.02])]).counts(GRID if dim == 2 else VOXELS)
     assert hits.sum() == 1 and _row(hits, dim)[10] == 1
@@ -52,7 +61,7 @@ def test_counts_along_one_beam_by_hand(dim: int) -> None:
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_a_scan_that_sees_through_a_cell_on_any_beam_counts_no_near_miss(dim: int) -> None:
+def test_a_scan_that_sees_through_a_cell_on_any_beam_counts_no_near_miss(dim: int, counting: str) -> None:
     # One beam ends at x = 0.57 (cell 5), another of the same scan at 0.64 (cell 6): cell 4
     # (centre 0.45) is within 0.2 m of both ends, so a near miss, cell 3 (0.35) of neither; cell 5
     # is the first beam's hit.
@@ -67,7 +76,7 @@ def test_a_scan_that_sees_through_a_cell_on_any_beam_counts_no_near_miss(dim: in
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_one_update_per_cell_per_scan_and_hit_wins(dim: int) -> None:
+def test_one_update_per_cell_per_scan_and_hit_wins(dim: int, counting: str) -> None:
     # Two beams of one scan: one ends in cell 5, the other passes through it to cell 12.
     s = _along_x(dim, [0.5, 1.2])
     grid = GRID if dim == 2 else VOXELS
@@ -82,7 +91,7 @@ def test_one_update_per_cell_per_scan_and_hit_wins(dim: int) -> None:
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_no_return_beam_gives_misses_to_the_cap_and_no_hit(dim: int) -> None:
+def test_no_return_beam_gives_misses_to_the_cap_and_no_hit(dim: int, counting: str) -> None:
     s = _along_x(dim, [5.0], max_range=5.0)
     hits, misses, near = RayEvidence.from_scans([s], no_return_cap=0.7).counts(GRID if dim == 2 else VOXELS)
     assert hits.sum() == 0
@@ -90,7 +99,7 @@ def test_no_return_beam_gives_misses_to_the_cap_and_no_hit(dim: int) -> None:
     assert near.sum() == 0  # a beam that did not return has no end to be near
 
 
-def test_counts_add_over_scans_and_batches(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_counts_add_over_scans_and_batches(monkeypatch: pytest.MonkeyPatch, counting: str) -> None:
     scans = paper_room_scans()[:6]
     ev = RayEvidence.from_scans(scans)
     grid = lattice_grid(ev.extent(), 0.05, margin=0.05)
@@ -105,6 +114,37 @@ def test_counts_add_over_scans_and_batches(monkeypatch: pytest.MonkeyPatch) -> N
     monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", 1)
     for a, b in zip(ev.counts(grid), whole, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.skipif(not _compiled_counts.AVAILABLE, reason="numba is not installed")
+@pytest.mark.parametrize("budget", [1 << 22, 2000])
+def test_compiled_counts_equal_numpys_and_keep_the_same_scans_cells(monkeypatch: pytest.MonkeyPatch, budget: int) -> None:
+    import gpomap.evidence as evidence
+
+    # The room's scans (most beams return) and 3-D clouds with no-returns, in one batch or many.
+    rng = np.random.default_rng(3)
+    clouds = []
+    for _ in range(5):
+        o = rng.uniform([0.5, 0.5, 0.2], [3.0, 2.0, 0.8])
+        ends = o + rng.normal(0, 0.8, (80, 3))
+        clouds.append(CloudScan(o, ends, hit=np.linalg.norm(ends - o, axis=1) < 1.2, max_range=1.2))
+    room = paper_room_scans()[:8]
+    monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", budget)
+    for scans, res in ((room, 0.05), (clouds, 0.1)):
+        got = {}
+        for path in ("compiled", "numpy"):
+            monkeypatch.setattr(_compiled_counts, "ENABLED", path == "compiled")
+            ev = RayEvidence.from_scans(scans)
+            grid = lattice_grid(ev.extent(), res, margin=res)
+            got[path] = (ev.counts(grid, keep=np.array([1, 4])), dict(ev._kept))
+        (c_counts, c_kept), (n_counts, n_kept) = got["compiled"], got["numpy"]
+        assert c_counts.hits.sum() > 0 and 0 < c_counts.near.sum() < c_counts.misses.sum()
+        for a, b in zip(c_counts, n_counts, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert sorted(k for _, k in c_kept) == sorted(k for _, k in n_kept) == [1, 4]
+        for key, cells in c_kept.items():
+            for a, b in zip(cells, n_kept[key], strict=True):
+                np.testing.assert_array_equal(a, b)
 
 
 def test_lattice_cells_do_not_depend_on_the_extent() -> None:
@@ -344,7 +384,9 @@ def test_separable_interpolation_equals_the_point_by_point_one(dim: int) -> None
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_seen_cells_and_one_scans_counts_at_cells_equal_the_whole_grid_counts(dim: int, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_seen_cells_and_one_scans_counts_at_cells_equal_the_whole_grid_counts(
+    dim: int, monkeypatch: pytest.MonkeyPatch, counting: str
+) -> None:
     from gpomap import evidence
 
     rng = np.random.default_rng(dim)
@@ -406,7 +448,7 @@ def test_seen_cells_and_one_scans_counts_at_cells_equal_the_whole_grid_counts(di
         assert not kept._kept
 
 
-def test_evidence_layer_calibrates_from_the_cells_its_counts_kept(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_evidence_layer_calibrates_from_the_cells_its_counts_kept(monkeypatch: pytest.MonkeyPatch, counting: str) -> None:
     from gpomap.evidence import RayEvidence as RE
     from gpomap.fusion import EvidenceLayer
 

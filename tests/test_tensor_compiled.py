@@ -7,6 +7,7 @@ import sys
 import numpy as np
 import pytest
 
+from gpomap.compiled import FORCE_NUMPY_ENV
 from gpomap.kernels import Matern32, SquaredExponential, _compiled
 from gpomap.kernels.nodes import quadrature_nodes, weighted_gram
 from gpomap.kernels.tensor import tensor_gram, tensor_gram_length_scale
@@ -128,8 +129,8 @@ def _run(code, **env):
 
 def test_environment_variable_forces_the_numpy_path():
     code = "from gpomap.kernels import _compiled; print(_compiled.AVAILABLE, _compiled.ENABLED)"
-    assert _run(code, **{_compiled.FORCE_NUMPY_ENV: "1"}).split() == ["True", "False"]
-    assert _run(code, **{_compiled.FORCE_NUMPY_ENV: "0"}).split() == ["True", "True"]
+    assert _run(code, **{FORCE_NUMPY_ENV: "1"}).split() == ["True", "False"]
+    assert _run(code, **{FORCE_NUMPY_ENV: "0"}).split() == ["True", "True"]
 
 
 def test_without_numba_the_numpy_path_is_taken():
@@ -141,6 +142,11 @@ def test_without_numba_the_numpy_path_is_taken():
         "from gpomap.supports import Supports\n"
         "lo = np.random.default_rng(0).uniform(0, 3, (6, 2))\n"
         "K, _ = tensor_gram(Matern32(), Supports.from_boxes(lo, lo + 0.5))\n"
-        "print(_compiled.AVAILABLE, _compiled.ENABLED, K.shape)"
+        "from gpomap import _compiled_counts\n"
+        "from gpomap.evidence import RayEvidence, lattice_grid\n"
+        "from gpomap.simulate import paper_room_scans\n"
+        "ev = RayEvidence.from_scans(paper_room_scans()[:2])\n"
+        "hits = ev.counts(lattice_grid(ev.extent(), 0.1)).hits\n"
+        "print(_compiled.AVAILABLE, _compiled.ENABLED, K.shape, _compiled_counts.ENABLED, hits.sum())"
     )
-    assert _run(code, **{_compiled.FORCE_NUMPY_ENV: ""}).split() == ["False", "False", "(6,", "6)"]
+    assert _run(code, **{FORCE_NUMPY_ENV: ""}).split() == ["False", "False", "(6,", "6)", "False", "72"]

@@ -27,6 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap import _compiled_counts
 from gpomap.lattice import AnyGrid, bounds_extent, extent_bounds, flat_index, grid_size, make_grid
 from gpomap.observations import Rays, ScanData, sensor_positions
 from gpomap.raycast import traverse
@@ -170,6 +171,8 @@ class RayEvidence:
         RayCounts
         """
         counts = RayCounts(*(np.zeros(grid_size(grid), dtype=np.int32) for _ in range(3)))
+        # The compiled path's scratch: the last scan that touched each cell (kept across batches).
+        mark = np.full(grid_size(grid), -1, dtype=np.int64) if _compiled_counts.ENABLED else None
         select = np.ones(self.scan.size, bool) if scans is None else np.isin(self.scan, scans)
         idx = np.flatnonzero(select)
         if idx.size == 0:
@@ -188,7 +191,7 @@ class RayEvidence:
                 # Round down to a scan boundary, keeping at least one whole scan.
                 boundary = int(np.searchsorted(scan_of, scan_of[hi], side="left"))
                 hi = boundary if boundary > lo else int(np.searchsorted(scan_of, scan_of[lo], side="right"))
-            self._accumulate(grid, idx[lo:hi], counts, keep)
+            self._accumulate(grid, idx[lo:hi], counts, keep, mark)
             lo = hi
         return RayCounts(*(a.reshape(grid.shape) for a in counts))
 
@@ -269,6 +272,13 @@ class RayEvidence:
 
         `group` (one per beam) is the beam's scan for whole counts, or 0 for one scan's cells.
         """
+        b, cell, near = self._entries(grid, beams)
+        return _crossed_keys(group[b] * ncell + cell, near)
+
+    def _entries(self, grid: AnyGrid, beams: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.int64], NDArray[np.bool_]]:
+        """Every cell `beams` crossed (:func:`~gpomap.raycast.traverse`): the entry's beam (index
+        into `beams`, non-decreasing), its cell's flat index, and whether the cell's centre lies
+        within :data:`NEAR_END` of the beam's returned end."""
         b, *idx = traverse(grid, self.starts[beams], self.ends[beams])
         d = len(idx)
         # Only a beam's last few cells can lie within NEAR_END of its end: a cell whose centre is
@@ -286,29 +296,42 @@ class RayEvidence:
         d2 = np.zeros(cand.size)
         for k, i in enumerate(reversed(idx)):
             d2 += (origin[k] + (i[cand] + 0.5) * grid.resolution - ends[:, k]) ** 2
-        keys = group[b] * ncell + np.ravel_multi_index(tuple(idx), grid.shape)
-        # A key is near only if every entry of it is: compare its near entries' count with all
-        # of its entries' (the few near keys sorted apart: tagging every key costs a slower sort).
-        ordered = np.sort(keys)
-        crossed = _distinct(ordered)
-        near, near_entries = _unique_counts(keys[cand[d2 < NEAR_END**2]])
-        entries = np.searchsorted(ordered, near, side="right") - np.searchsorted(ordered, near, side="left")
-        return crossed, near[near_entries == entries]
+        near = np.zeros(b.size, dtype=bool)
+        near[cand[d2 < NEAR_END**2]] = True
+        return b, np.ravel_multi_index(tuple(idx), grid.shape).astype(np.int64), near
 
     def _accumulate(
-        self, grid: AnyGrid, beams: NDArray[np.intp], counts: RayCounts, keep: NDArray[np.intp] | None = None
+        self,
+        grid: AnyGrid,
+        beams: NDArray[np.intp],
+        counts: RayCounts,
+        keep: NDArray[np.intp] | None = None,
+        mark: NDArray[np.int64] | None = None,
     ) -> None:
+        """Add the counts of `beams` (whole scans) into `counts`; with `mark` (the compiled path's
+        scratch, see :func:`gpomap._compiled_counts.count_entries`) in one compiled pass."""
         ncell = grid_size(grid)
         scan = self.scan[beams]
-        crossed, near = self._crossed(grid, beams, scan.astype(np.int64), ncell)
         end_cell, inside = flat_index(grid, self.ends[beams])
         ended = inside & self.hit[beams]
+        b, cell, near_entry = self._entries(grid, beams)
+        if mark is not None:
+            _compiled_counts.count_entries(b, cell, near_entry, scan, np.where(ended, end_cell, -1), counts, mark)
+            if keep is None or not np.isin(scan, keep).any():
+                return
+            # The kept scans' own cells, from their entries alone.
+            mine = np.isin(scan, keep)
+            sub = mine[b]
+            b, cell, near_entry = b[sub], cell[sub], near_entry[sub]
+            ended &= mine
+        crossed, near = _crossed_keys(scan[b].astype(np.int64) * ncell + cell, near_entry)
         hit_keys = _unique(scan[ended].astype(np.int64) * ncell + end_cell[ended])
-        # A scan that ended a beam in a cell counts a hit there, not also a miss.
-        miss_keys = crossed[~_sorted_in_sorted(crossed, hit_keys)]
-        near_keys = near[~_sorted_in_sorted(near, hit_keys)]
-        for total, keys in zip(counts, (hit_keys, miss_keys, near_keys), strict=True):
-            total += np.bincount(keys % ncell, minlength=ncell).astype(np.int32)
+        if mark is None:
+            # A scan that ended a beam in a cell counts a hit there, not also a miss.
+            miss_keys = crossed[~_sorted_in_sorted(crossed, hit_keys)]
+            near_keys = near[~_sorted_in_sorted(near, hit_keys)]
+            for total, keys in zip(counts, (hit_keys, miss_keys, near_keys), strict=True):
+                total += np.bincount(keys % ncell, minlength=ncell).astype(np.int32)
         if keep is not None:
             # Keys are scan * ncell + cell, sorted: each kept scan's cells are one slice (copied,
             # so the batch's arrays are not kept alive).
@@ -368,6 +391,18 @@ def _distinct(s: NDArray[np.int64]) -> NDArray[np.int64]:
     if s.size == 0:
         return s
     return s[np.concatenate([[True], s[1:] != s[:-1]])]
+
+
+def _crossed_keys(keys: NDArray[np.int64], near: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The distinct `keys`, and those whose every entry is `near`, each sorted.
+
+    A key's near entries are counted against all its entries (the few near keys sorted apart:
+    tagging every key with its flag made the one large sort slower).
+    """
+    ordered = np.sort(keys)
+    near_keys, near_entries = _unique_counts(keys[near])
+    entries = np.searchsorted(ordered, near_keys, side="right") - np.searchsorted(ordered, near_keys, side="left")
+    return _distinct(ordered), near_keys[near_entries == entries]
 
 
 def _unique_counts(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.intp]]:

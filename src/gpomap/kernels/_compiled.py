@@ -28,11 +28,12 @@ variable ``GPOMAP_NUMPY_KERNELS=1`` at import, or setting ``ENABLED = False``, f
 from __future__ import annotations
 
 import math
-import os
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+from gpomap.compiled import compiled_by_default
 
 
 def _plain(*args: Any, **kwargs: Any) -> Any:
@@ -53,11 +54,8 @@ except ImportError:  # pragma: no cover - numba is a dependency; the numpy path 
     AVAILABLE = False
 
 
-#: Environment variable that, set to anything but "" or "0", makes the tensor kernel use numpy.
-FORCE_NUMPY_ENV: str = "GPOMAP_NUMPY_KERNELS"
-
 #: Whether :mod:`gpomap.kernels.tensor` takes the compiled path (read at each call: tests switch it).
-ENABLED: bool = AVAILABLE and os.environ.get(FORCE_NUMPY_ENV, "") in ("", "0")
+ENABLED: bool = AVAILABLE and compiled_by_default()
 
 #: Profiles compiled here, by :meth:`~gpomap.kernels.point.PointKernel.unit_profile_into`'s owner.
 MATERN32: int = 0

@@ -1,0 +1,27 @@
+"""Whether gpomap's numba-compiled fast paths are used.
+
+The quadrature kernel's node sums (:mod:`gpomap.kernels._compiled`) and the ray counts
+(:mod:`gpomap._compiled_counts`) each have a compiled path and a numpy one, which stays the
+tests' reference. The compiled ones are taken when numba imports, unless the environment
+variable :data:`FORCE_NUMPY_ENV` is set (to anything but "" or "0") when gpomap is imported.
+"""
+
+from __future__ import annotations
+
+import os
+
+#: Environment variable that, set to anything but "" or "0", makes every compiled path use numpy.
+FORCE_NUMPY_ENV: str = "GPOMAP_NUMPY_KERNELS"
+
+try:
+    import numba  # noqa: F401  (imported to know that it imports)
+
+    #: Whether numba imports.
+    NUMBA_AVAILABLE: bool = True
+except ImportError:  # pragma: no cover - numba is a dependency; the numpy paths remain the reference
+    NUMBA_AVAILABLE = False
+
+
+def compiled_by_default() -> bool:
+    """Whether a compiled path starts enabled: numba is there and the environment does not force numpy."""
+    return NUMBA_AVAILABLE and os.environ.get(FORCE_NUMPY_ENV, "") in ("", "0")
