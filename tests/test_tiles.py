@@ -205,17 +205,18 @@ def _same(grid_a, grid_b):
     np.testing.assert_allclose(grid_a.variance, grid_b.variance, rtol=0, atol=1e-10)
 
 
-def test_process_pool_matches_in_process(room, reference):
+@pytest.mark.parametrize("worker_processes", [False, True])
+def test_worker_threads_and_processes_match_in_process(room, reference, worker_processes):
     hyp, ref = reference
-    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
-    _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, worker_processes=worker_processes, **OPTS)
+    _same(model.fit(room, hyperparameters=hyp).grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
 
 
 def test_pool_workers_inherit_the_tile_states_instead_of_receiving_them(room, reference, monkeypatch):
     # Forked workers read a stage's tasks from the memory they inherit: predicting never pickles
     # a tile's state (its Cholesky factor), only the tiles' answers come back.
     hyp, ref = reference
-    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, worker_processes=True, **OPTS).fit(room, hyperparameters=hyp)
 
     def no_pickling(self, protocol):
         raise AssertionError("a tile state was pickled")
@@ -230,7 +231,7 @@ def test_dead_worker_is_retried(room, reference, tmp_path, monkeypatch):
     marker = tmp_path / "died"
     monkeypatch.setenv(MARKER_ENV, str(marker))
     monkeypatch.setattr(tiles, "fit_tile_task", _dying_fit)
-    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, worker_processes=True, **OPTS).fit(room, hyperparameters=hyp)
     assert marker.exists()  # a worker really died
     assert (1, 1) in model.tiles_
     _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
@@ -302,16 +303,18 @@ def _blas_threads_fit(payload):
     return state
 
 
-def test_pool_workers_share_the_cores_for_blas(room, reference, monkeypatch):
+@pytest.mark.parametrize("worker_processes", [False, True])
+def test_pool_workers_share_the_cores_for_blas(room, reference, monkeypatch, worker_processes):
     threadpoolctl = pytest.importorskip("threadpoolctl")
     hyp, _ = reference
     monkeypatch.setattr(tiles, "fit_tile_task", _blas_threads_fit)
     monkeypatch.setattr(tiles, "_cores", lambda: 4)  # as if on 4 cores: 2 workers get 2 threads each
     before = threadpoolctl.threadpool_info()
-    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    opts = {"tile_size": 6.0, "overlap": 2.5, "n_workers": 2, "worker_processes": worker_processes, **OPTS}
+    model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
     assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {2}
     monkeypatch.setattr(tiles, "_cores", lambda: 2)
-    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
     assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {1}
     assert threadpoolctl.threadpool_info() == before  # this process keeps its own
 

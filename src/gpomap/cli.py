@@ -331,6 +331,7 @@ def _tiling_config(args: argparse.Namespace) -> TilingConfig:
         tile_size=args.tile_size,
         n_workers=args.workers,
         blas_threads=args.threads,
+        worker_processes=args.processes,
         scheduler=args.scheduler,
         scheduler_timeout=args.scheduler_timeout,
     )
@@ -352,7 +353,13 @@ def _add_tiling_options(p: argparse.ArgumentParser, chunks: bool = True) -> None
         default=_Default(TilingConfig.tile_size, show=_tile_sizes),
         help="tile side, m (default: %(default)s)",
     )
-    g.add_argument("--workers", type=_positive(int), help="local worker processes for tiles (default: the CPU count)")
+    g.add_argument("--workers", type=_positive(int), help="local workers for tiles (default: the CPU count)")
+    g.add_argument(
+        "--processes",
+        action="store_true",
+        default=_Default(TilingConfig.worker_processes),
+        help="run the workers as processes, so that one that dies is retried (default: threads of this process)",
+    )
     g.add_argument(
         "--threads",
         type=_positive(int),
@@ -1095,7 +1102,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="use every K-th scan of the log (default: %(default)s)",
     )
     p.add_argument("--test-points", type=_positive(int), metavar="N", help="at most N test points (balanced, seeded subsample)")
-    p.add_argument("--workers", type=_positive(int), help="msk: worker processes for tiles (default: the CPU count)")
+    p.add_argument("--workers", type=_positive(int), help="msk: workers for tiles (default: the CPU count)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_reader_options(p)
     _add_selection_options(p)

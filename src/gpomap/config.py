@@ -121,9 +121,13 @@ class TilingConfig(_Config):
         Side of the square tiles, metres (default: 5 m for planar maps, 10 m for voxel maps,
         :data:`gpomap.tiles.DEFAULT_TILE_SIZE`).
     n_workers : int, optional
-        Local worker processes (default: the CPU count).
+        Local workers (default: the CPU count).
     blas_threads : int, optional
         BLAS threads of each worker (default: the cores divided by the workers, at least 1).
+    worker_processes : bool
+        Run the local workers as processes (a worker that dies, killed for its memory say, is
+        retried) instead of threads of this process (the default: the tiles' factors are not
+        copied to and from workers, and the GP's compiled and BLAS work runs without the GIL).
     scheduler : str, optional
         Address of a Dask distributed scheduler that runs the tiles instead.
     scheduler_timeout : float
@@ -133,5 +137,6 @@ class TilingConfig(_Config):
     tile_size: float | None = None
     n_workers: int | None = None
     blas_threads: int | None = None
+    worker_processes: bool = False
     scheduler: str | None = None
     scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT

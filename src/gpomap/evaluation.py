@@ -250,7 +250,7 @@ def make_model(
     resolution : float
         Cell side of the grids (the GP methods predict anywhere).
     n_workers : int, optional
-        "msk": worker processes for its tiles (default: the CPU count, as ``gpomap map``).
+        "msk": workers for its tiles (default: the CPU count, as ``gpomap map``).
     """
     gp_opts = dict(options, seed=seed, **({"kernel": kernel} if kernel is not None else {}))
     if method == "msk":

@@ -50,11 +50,11 @@ class AreaGPOM(TiledGPOM):
         How its hyperparameters are learnt (:class:`~gpomap.settings.MapSettings`).
     thresholds, chunk_size, ray_evidence, evidence_resolution, calibration_scans, evidence_resolution_3d
         The map on top of the GP (:class:`~gpomap.settings.MapSettings`).
-    tile_size, overlap, blend, origin, scheduler, hyper_sample, per_tile_hyperparameters, blas_threads, scheduler_timeout
+    tile_size, overlap, blend, origin, scheduler, hyper_sample, per_tile_hyperparameters, blas_threads, scheduler_timeout, worker_processes
         The local GPs: see :class:`~gpomap.tiles.TiledGPOM`.
     n_workers : int or None
-        Local worker processes for the tiles; 1 (default) runs them in this process, None uses
-        every core.
+        Local workers for the tiles (threads of this process, or processes with
+        ``worker_processes``); 1 (default) runs them in this process, None uses every core.
     """
 
     def __init__(
@@ -99,6 +99,7 @@ class AreaGPOM(TiledGPOM):
         per_tile_hyperparameters: bool = False,
         blas_threads: int | None = None,
         scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
+        worker_processes: bool = TilingConfig.worker_processes,
     ) -> None:
         params = {name: value for name, value in locals().items() if name in _PARAMETERS}
         self._configure(params)

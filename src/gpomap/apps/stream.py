@@ -254,7 +254,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     g.add_argument(
         "--workers",
         type=cli._positive(int),
-        help="worker processes refitting tiles (default: the mapper's, one: a scan's refits are too small for a pool)",
+        help="workers refitting tiles (default: the mapper's, one: a scan's refits are too small for a pool)",
     )
     cli._add_reader_options(p)
     cli._add_selection_options(p)
