@@ -553,14 +553,25 @@ class SupportGP:
         params: NDArray[np.float64],
         eval_gradient: bool,
         prepared: TensorDistances | None = None,
+        squash: ProbitSquash | None = None,
     ) -> float | tuple[float, NDArray[np.float64]]:
-        """:meth:`loo_objective`, with the kernel's ``prepare(X)`` (see :meth:`_objective_factor`)."""
+        """:meth:`loo_objective`, with the kernel's ``prepare(X)`` (see :meth:`_objective_factor`).
+
+        With `squash`, alpha and beta are not read from `params`: `squash` is fitted to this
+        evaluation's leave-one-out moments (from its own alpha and beta) and they are taken from
+        it, so the value is the objective maximised over the squash, and its gradient in the
+        kernel's and the noise's parameters that of the maximised objective.
+        """
         L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient, prepared)
         K_inv = _inverse_in_place(L)
         a = K_inv @ y
         d = np.diag(K_inv).copy()
         mu, var = y - a / d, 1.0 / d
-        alpha, shift = float(np.exp(params[3])), float(params[4])
+        if squash is not None:
+            squash.fit(y, mu, var, class_weights(y, self.class_weight))
+            alpha, shift = squash.alpha, squash.beta / squash.alpha
+        else:
+            alpha, shift = float(np.exp(params[3])), float(params[4])
         value, g = loo_probit(y, mu, var, alpha, alpha * shift, class_weights(y, self.class_weight))
         if not eval_gradient:
             return value
@@ -649,8 +660,14 @@ class SupportGP:
             free[0] = False
             bounds += list(SQUASH_BOUNDS)
             x0_list += [np.log(max(self.squash.alpha, 1e-3)), self.squash.beta / max(self.squash.alpha, 1e-3)]
-            free = np.concatenate([free, [True, True]])
+            # The squash is profiled out: at each length scale and noise it is fitted to the
+            # leave-one-out moments (O(n) an evaluation, from the last one's alpha), so the search
+            # runs over two numbers instead of four, in fewer evaluations of the O(n^3) objective
+            # (Intel every 10th, 800 cells: 27 -> 16; the synthetic room: 23 -> 13).
+            free = np.concatenate([free, [False, False]])
         x0 = np.asarray(x0_list, dtype=float)
+        profiled = ProbitSquash(max(self.squash.alpha, 1e-3), self.squash.beta) if loo else None
+        squash_at: dict[bytes, tuple[float, float]] = {}  # the profiled squash of each point evaluated
         fun = self._loo_objective if loo else self._log_marginal_likelihood
         # What the kernel can reuse between evaluations on X (the quadrature's node distances),
         # held for this search only.
@@ -663,11 +680,13 @@ class SupportGP:
             p = x0.copy()
             p[free] = z
             try:
-                out = fun(X, y, p, True, prepared)
+                out = fun(X, y, p, True, prepared) if profiled is None else self._loo_objective(X, y, p, True, prepared, profiled)
                 assert isinstance(out, tuple)  # asked for the gradient
                 v, g = out
             except NumericalError:
                 return 1e25, np.zeros(int(free.sum()))
+            if profiled is not None:
+                squash_at[z.tobytes()] = (profiled.alpha, profiled.beta)
             if self.prior_std is not None:
                 # A weak log-normal prior on length scale and noise, centred on the starting
                 # values: where the data pin them down it hardly moves them; where the objective
@@ -704,8 +723,9 @@ class SupportGP:
         self.kernel.theta = p[:2]
         self.noise = float(np.exp(p[2]))
         if loo:
-            alpha = float(np.exp(p[3]))
-            self.squash = ProbitSquash(alpha, alpha * float(p[4]))
+            if best.x.tobytes() not in squash_at:  # the optimiser's answer is a point it evaluated
+                neg(best.x)
+            self.squash = ProbitSquash(*squash_at[best.x.tobytes()])
         return FitReport(self.objective, float(-best.fun), n_eval, time.perf_counter() - t0, values)
 
     # ----------------------------------------------------------------- prediction
