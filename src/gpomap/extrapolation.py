@@ -236,6 +236,8 @@ def fit_variance_scale(
         lambda t: _nll(float(np.exp(t)), mu, var, occ, a, b),
         bounds=tuple(np.log(VARIANCE_SCALE_BOUNDS)),
         method="bounded",
+        # Tight, so kappa is the optimum's and not moved by the last bits of the held-in maps.
+        options={"xatol": 1e-10},
     )
     kappa = float(np.exp(res.x))
     return kappa, {
