@@ -14,24 +14,10 @@ tests switch it).
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default
-
-
-def _plain(*args: Any, **kwargs: Any) -> Any:
-    """Stand-in for numba's decorator without numba: the function stays plain Python (and unused)."""
-    return lambda f: f
-
-
-_jit: Any = _plain
-if NUMBA_AVAILABLE:
-    import numba
-
-    _jit = numba.njit
+from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
 
 #: Whether numba imports here.
 AVAILABLE: bool = NUMBA_AVAILABLE
@@ -40,7 +26,7 @@ AVAILABLE: bool = NUMBA_AVAILABLE
 ENABLED: bool = compiled_by_default()
 
 
-@_jit(cache=True, nogil=True)
+@jit(cache=True, nogil=True)
 def _count_entries(
     entry_beam: NDArray[np.intp],
     entry_cell: NDArray[np.int64],

@@ -9,13 +9,23 @@ variable :data:`FORCE_NUMPY_ENV` is set (to anything but "" or "0") when gpomap 
 from __future__ import annotations
 
 import os
+from typing import Any
 
 #: Environment variable that, set to anything but "" or "0", makes every compiled path use numpy.
 FORCE_NUMPY_ENV: str = "GPOMAP_NUMPY_KERNELS"
 
-try:
-    import numba  # noqa: F401  (imported to know that it imports)
 
+def plain_decorator(*args: Any, **kwargs: Any) -> Any:
+    """Stand-in for numba's decorators without numba: the function stays plain Python (and unused)."""
+    return lambda f: f
+
+
+#: ``numba.njit``, or :func:`plain_decorator` without numba.
+jit: Any = plain_decorator
+try:
+    import numba
+
+    jit = numba.njit
     #: Whether numba imports.
     NUMBA_AVAILABLE: bool = True
 except ImportError:  # pragma: no cover - numba is a dependency; the numpy paths remain the reference

@@ -447,6 +447,22 @@ def _blas_limited(n: int) -> Iterator[None]:
         yield
 
 
+def _collect(
+    futures: dict[cf.Future, tuple[int, int]], bar: Progress
+) -> tuple[dict[tuple[int, int], Any], dict[tuple[int, int], Exception]]:
+    """Each tile's result, as its task finishes, and the exception of each task that failed."""
+    results: dict[tuple[int, int], Any] = {}
+    failed: dict[tuple[int, int], Exception] = {}
+    for f in cf.as_completed(futures):
+        key = futures[f]
+        try:
+            results[key] = f.result()
+            bar.update()
+        except Exception as e:  # reported per tile after the retry
+            failed[key] = e
+    return results, failed
+
+
 def _worker_init(blas_threads: int) -> None:
     """Initialiser of the local pool's worker processes."""
     _limit_blas_threads(blas_threads)
@@ -1044,27 +1060,20 @@ class TiledGPOM:
                 failed[key] = e
         return results, failed
 
+    def _workers_and_threads(self, n_jobs: int) -> tuple[int, int]:
+        """Local workers for `n_jobs` tasks, and BLAS threads for each (the cores shared out)."""
+        workers = min(self.n_workers_, n_jobs)
+        return workers, self.blas_threads if self.blas_threads is not None else max(1, _cores() // workers)
+
     def _run_threads(self, fn, jobs, bar: Progress, what: str):
         """The jobs on threads of this process, BLAS held to the cores' share of each meanwhile."""
-        results, failed = {}, {}
-        workers = min(self.n_workers_, len(jobs))
-        threads = self.blas_threads if self.blas_threads is not None else max(1, _cores() // workers)
+        workers, threads = self._workers_and_threads(len(jobs))
         with _blas_limited(threads), cf.ThreadPoolExecutor(workers) as pool:
-            futs = {pool.submit(fn, *args): key for key, args in jobs}
-            for f in cf.as_completed(futs):
-                key = futs[f]
-                try:
-                    results[key] = f.result()
-                    bar.update()
-                except Exception as e:  # reported per tile after the retry
-                    failed[key] = e
-        return results, failed
+            return _collect({pool.submit(fn, *args): key for key, args in jobs}, bar)
 
     def _run_pool(self, fn, jobs, bar: Progress, what: str):
-        results, failed = {}, {}
         ctx = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
-        workers = min(self.n_workers_, len(jobs))
-        threads = self.blas_threads if self.blas_threads is not None else max(1, _cores() // workers)
+        workers, threads = self._workers_and_threads(len(jobs))
         # With fork, the workers are forked after the tasks are filed and read them from there.
         token = uuid.uuid4().hex
         if ctx is not None:
@@ -1075,16 +1084,9 @@ class TiledGPOM:
                     futs = {pool.submit(_inherited_task, token, i): key for i, (key, _) in enumerate(jobs)}
                 else:
                     futs = {pool.submit(fn, *args): key for key, args in jobs}
-                for f in cf.as_completed(futs):
-                    key = futs[f]
-                    try:
-                        results[key] = f.result()
-                        bar.update()
-                    except Exception as e:  # a dead worker breaks the pool: retried
-                        failed[key] = e
+                return _collect(futs, bar)  # a dead worker breaks the pool: its tasks are retried
         finally:
             _INHERITED.pop(token, None)
-        return results, failed
 
     def _run_dask(self, fn, jobs, bar: Progress, what: str):
         """Run the jobs on the scheduler of ``self._client`` (see :meth:`_connected`).

@@ -33,16 +33,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.compiled import compiled_by_default
+from gpomap.compiled import compiled_by_default, plain_decorator
 
-
-def _plain(*args: Any, **kwargs: Any) -> Any:
-    """Stand-in for numba's decorators without numba: the functions stay plain Python (and unused)."""
-    return lambda f: f
-
-
-_jit: Any = _plain
-_intrinsic: Any = _plain
+_jit: Any = plain_decorator
+_intrinsic: Any = plain_decorator
 try:
     import numba
     from llvmlite import ir as _ir  # type: ignore[import-untyped]
