@@ -1789,7 +1789,11 @@ class TiledGPOM:
             "peak_memory": _peak_rss_mb(),
             "executor": "dask"
             if self.scheduler is not None
-            else ("in-process" if self.n_workers_ <= 1 else f"process pool x{self.n_workers_}"),
+            else (
+                "in-process"
+                if self.n_workers_ <= 1
+                else f"{'process pool' if self.worker_processes else 'threads'} x{self.n_workers_}"
+            ),
         }
         if self.per_tile_hyperparameters:
             out["per_tile_hyperparameters"] = {
