@@ -212,6 +212,7 @@ def test_worker_threads_and_processes_match_in_process(room, reference, worker_p
     hyp, ref = reference
     model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, worker_processes=worker_processes, **OPTS)
     _same(model.fit(room, hyperparameters=hyp).grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
+    assert model.summary()["executor"] == ("process pool x2" if worker_processes else "threads x2")
 
 
 def test_pool_workers_inherit_the_tile_states_instead_of_receiving_them(room, reference, monkeypatch):
