@@ -24,8 +24,8 @@ out, exact because counts add over scans), and its hits and free points along it
 out worth tens of misses on real logs: a beam ending in a cell is direct evidence of a surface,
 while beams crossing a wall's cell graze past it or pass through a gap of the range noise
 (OctoMap encodes the same asymmetry, more mildly, with +0.85 against -0.4 log-odds). Near misses
-come out worth a tenth to a quarter of a miss: a beam ending a few centimetres past a cell says little
-of whether the surface is in it. Weighed apart, they let the hit weight fall (Intel, blocks of 40:
+come out worth 0.07-0.24 of a miss on the real logs: a beam ending a few centimetres past a cell
+says little of whether the surface is in it. Weighed apart, they let the hit weight fall (Intel, blocks of 40:
 68 -> 36; Belgioioso 80 -> 36), so fewer misses clear a cell a transient once stood in
 (``benchmarks/near_misses.py``).
 
