@@ -285,8 +285,9 @@ class RayEvidence:
         # within it meets the last NEAR_END + half a diagonal of the beam, and each cell there
         # takes at least one of the d axes a step further.
         tail = d * (int(np.ceil(NEAR_END / grid.resolution + np.sqrt(d) / 2)) + 1)
-        stop = np.cumsum(np.bincount(b, minlength=len(beams)))  # one past each beam's last entry
-        start = stop - np.bincount(b, minlength=len(beams))
+        per_beam = np.bincount(b, minlength=len(beams))
+        stop = np.cumsum(per_beam)  # one past each beam's last entry
+        start = stop - per_beam
         back = np.arange(1, tail + 1)
         cand = (stop[:, None] - back[None, :])[self.hit[beams]]
         cand = cand[cand >= start[self.hit[beams]][:, None]]
@@ -317,10 +318,10 @@ class RayEvidence:
         b, cell, near_entry = self._entries(grid, beams)
         if mark is not None:
             _compiled_counts.count_entries(b, cell, near_entry, scan, np.where(ended, end_cell, -1), counts, mark)
-            if keep is None or not np.isin(scan, keep).any():
+            mine = np.zeros(scan.size, dtype=bool) if keep is None else np.isin(scan, keep)
+            if not mine.any():
                 return
             # The kept scans' own cells, from their entries alone.
-            mine = np.isin(scan, keep)
             sub = mine[b]
             b, cell, near_entry = b[sub], cell[sub], near_entry[sub]
             ended &= mine

@@ -247,14 +247,15 @@ def fit_calibration(
     p_gp = np.asarray(predict_gp(pts[keep[counted]]), dtype=float)
 
     def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        w, n0, a = np.exp(theta)
+        cal = EvidenceCalibration(*np.exp(theta))
+        w, n0, a = cal.hit_weight, cal.prior_weight, cal.near_weight
         wh = w * h
-        den = wh + m + (a - 1.0) * near + n0
-        raw = (wh + n0 * p_gp) / den
-        p = np.clip(raw, _EPS, 1 - _EPS)
+        weighted = cal.misses(m, near)
+        p = cal(p_gp, h, weighted)
+        den = wh + weighted + n0
         value = float(-np.sum(np.where(occ, np.log(p), np.log1p(-p))) / n_points)
         # d loss / dp, zero where the clip holds p; then dp / dlog w, dlog n0, dlog a.
-        dp = np.where((raw > _EPS) & (raw < 1 - _EPS), np.where(occ, -1.0 / p, 1.0 / (1.0 - p)), 0.0) / n_points
+        dp = np.where((p > _EPS) & (p < 1 - _EPS), np.where(occ, -1.0 / p, 1.0 / (1.0 - p)), 0.0) / n_points
         grad = np.array([dp @ (wh * (1.0 - p) / den), dp @ (n0 * (p_gp - p) / den), dp @ (-a * near * p / den)])
         return value, grad
 

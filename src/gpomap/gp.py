@@ -15,6 +15,7 @@ analytic gradients, by one of two objectives:
 
 from __future__ import annotations
 
+import functools
 import itertools
 import time
 from dataclasses import dataclass, field
@@ -567,12 +568,13 @@ class SupportGP:
         a = K_inv @ y
         d = np.diag(K_inv).copy()
         mu, var = y - a / d, 1.0 / d
+        weights = class_weights(y, self.class_weight)
         if squash is not None:
-            squash.fit(y, mu, var, class_weights(y, self.class_weight))
+            squash.fit(y, mu, var, weights)
             alpha, shift = squash.alpha, squash.beta / squash.alpha
         else:
             alpha, shift = float(np.exp(params[3])), float(params[4])
-        value, g = loo_probit(y, mu, var, alpha, alpha * shift, class_weights(y, self.class_weight))
+        value, g = loo_probit(y, mu, var, alpha, alpha * shift, weights)
         if not eval_gradient:
             return value
         assert dL is not None  # asked for with eval_gradient
@@ -668,7 +670,7 @@ class SupportGP:
         x0 = np.asarray(x0_list, dtype=float)
         profiled = ProbitSquash(max(self.squash.alpha, 1e-3), self.squash.beta) if loo else None
         squash_at: dict[bytes, tuple[float, float]] = {}  # the profiled squash of each point evaluated
-        fun = self._loo_objective if loo else self._log_marginal_likelihood
+        fun = functools.partial(self._loo_objective, squash=profiled) if loo else self._log_marginal_likelihood
         # What the kernel can reuse between evaluations on X (the quadrature's node distances),
         # held for this search only.
         prepared = self.kernel.prepare(X) if hasattr(self.kernel, "prepare") else None
@@ -680,7 +682,7 @@ class SupportGP:
             p = x0.copy()
             p[free] = z
             try:
-                out = fun(X, y, p, True, prepared) if profiled is None else self._loo_objective(X, y, p, True, prepared, profiled)
+                out = fun(X, y, p, True, prepared)
                 assert isinstance(out, tuple)  # asked for the gradient
                 v, g = out
             except NumericalError:
