@@ -465,10 +465,10 @@ def _check_tile_memory(args: argparse.Namespace, cells: Any, length_scale: float
     (the learnt one is not known yet), at most a block. Returns the largest tile's cell count.
     """
     from gpomap.resources import largest_tile_cells
-    from gpomap.tiles import BLOCK_SIZE, DEFAULT_TILE_SIZE, OVERLAP_LENGTH_SCALES
+    from gpomap.tiles import DEFAULT_TILE_SIZE, OVERLAP_LENGTH_SCALES, capped_overlap
 
     tile = args.tile_size if args.tile_size is not None else DEFAULT_TILE_SIZE[cells.lower.shape[1]]
-    overlap = min(max(BLOCK_SIZE, tile), OVERLAP_LENGTH_SCALES * length_scale)
+    overlap = capped_overlap(OVERLAP_LENGTH_SCALES * length_scale, tile)
     per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], tile, overlap)
     n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
     _check_fit_memory(args, per_tile, n_at_once, f"{where} of {tile:g} m")

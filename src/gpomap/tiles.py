@@ -115,6 +115,16 @@ _SETTING_NAMES = frozenset(MapConfig.__dataclass_fields__)
 BLOCK_SIZE: float = 10.0
 
 
+def block_side(tile_size: float) -> float:
+    """Side of the blocks that get their own cell tree for tiles of `tile_size`: :data:`BLOCK_SIZE`, or the tiles' if larger."""
+    return max(BLOCK_SIZE, float(tile_size))
+
+
+def capped_overlap(overlap: float, tile_size: float) -> float:
+    """How far a tile's GP sees past its square: `overlap`, at most one block (:func:`block_side`)."""
+    return float(min(max(overlap, 1e-9), block_side(tile_size)))
+
+
 # --------------------------------------------------------------------------- tasks (picklable)
 @dataclass
 class TileState:
@@ -734,7 +744,7 @@ class TiledGPOM:
     @property
     def block_size_(self) -> float:
         """Side of the blocks that get their own cell tree: :data:`BLOCK_SIZE`, or the tiles' if larger."""
-        return max(BLOCK_SIZE, self.tile_size_)
+        return block_side(self.tile_size_)
 
     def _block_keys(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
         return self._square_keys(points, self.block_size_)
@@ -1349,7 +1359,7 @@ class TiledGPOM:
     def _set_geometry(self) -> None:
         ls = self.hyperparameters_["length_scale"]
         o = OVERLAP_LENGTH_SCALES * ls if self.overlap is None else float(self.overlap)
-        self.overlap_ = float(min(max(o, 1e-9), self.block_size_))
+        self.overlap_ = capped_overlap(o, self.tile_size_)
         w = BLEND_FRACTION * min(self.overlap_, self.tile_size_) if self.blend is None else float(self.blend)
         if not 0 < w <= min(self.overlap_, self.tile_size_) + 1e-12:
             raise ValueError(
