@@ -170,7 +170,7 @@ def test_check_memory_and_limits(monkeypatch):
     assert resources.memory_limit(2.5) == (2_500_000_000, "--memory-limit 2.5")
     monkeypatch.setattr(resources, "total_memory", lambda: 8 * 10**9)
     assert resources.memory_limit(None) == (4 * 10**9, "0.5 of this machine's 8.0 GB")
-    assert resources.format_bytes(3.2e6) == "3 MB" and resources.format_bytes(4.5e14) == "4.5e+05 GB"
+    assert resources.format_bytes(3.2e6) == "3 MB" and resources.format_bytes(2e5) == "200 kB" and resources.format_bytes(4.5e14) == "4.5e+05 GB"
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log not present")
@@ -208,6 +208,57 @@ def test_memory_limit_refuses_a_small_grid_when_set_low(tmp_path, capsys):
     assert code == 1
     assert "grid" in err and "more than the limit of 10 MB (--memory-limit 0.01)" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_fit_too_large_for_the_memory_limit_is_refused_before_the_hyperparameters(tmp_path, capsys, monkeypatch):
+    """The grid passes, the tiles' GPs do not: refused once the cells exist, nothing learnt or written."""
+    from gpomap.tiles import TiledGPOM
+
+    def never(self):
+        raise AssertionError("hyperparameters learnt past a failed memory check")
+
+    monkeypatch.setattr(TiledGPOM, "_learn_hyperparameters", never)
+    # 1 m cells over the 20 x 16 m room: a few kB; the tiles' GPs of hundreds of cells: megabytes.
+    argv = ["demo", "-o", tmp_path / "out", "--resolution", "1", "--memory-limit", "0.0002", "--workers", "2"]
+    code, _, err = run_main(argv, capsys)
+    assert code == 1
+    last = err.strip().splitlines()[-1]
+    assert "fitting 2 GP(s) of" in last and "more than the limit of 200 kB (--memory-limit 0.0002)" in last
+    for word in ["--min-cell", "--tile-size", "--workers", "--memory-limit"]:
+        assert word in last
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_fit_checks_its_largest_tile_against_memory_limit():
+    """TiledGPOM.check_fit_memory: the largest tile's cells by centre, brute force over the tiles."""
+    from gpomap.mapping import AreaGPOM
+    from gpomap.simulate import paper_room_scans
+    from gpomap.tiles import tile_reach
+
+    scans = paper_room_scans()
+    model = AreaGPOM(tile_size=4.0, n_workers=3, ray_evidence=False).fit(scans)
+    per_tile = model.check_fit_memory(1.0)
+    lower, upper, _ = model.cell_boxes()
+    centres = 0.5 * (lower + upper)
+    reach, (ox, oy), side = tile_reach(4.0, 1.0), model.origin_, 4.0
+    brute = 0
+    for ix in range(-10, 10):
+        for iy in range(-10, 10):
+            x0, y0 = ox + ix * side, oy + iy * side
+            inside = (
+                (centres[:, 0] >= x0 - reach)
+                & (centres[:, 0] < x0 + side + reach)
+                & (centres[:, 1] >= y0 - reach)
+                & (centres[:, 1] < y0 + side + reach)
+            )
+            brute = max(brute, int(inside.sum()))
+    assert per_tile == brute > 0
+    need = resources.fit_memory(per_tile, 3)  # three workers fit at once
+    model.set_params(memory_limit=0.999 * need / 1e9)
+    with pytest.raises(MemoryLimitError, match=f"fitting 3 GP\\(s\\) of {per_tile} cells"):
+        model.check_fit_memory(1.0)
+    model.set_params(memory_limit=1.001 * need / 1e9)
+    assert model.check_fit_memory(1.0) == per_tile
 
 
 def test_memory_error_is_one_line(tmp_path, capsys, monkeypatch):

@@ -12,7 +12,6 @@ import dataclasses
 import inspect
 import json
 import math
-import os
 import signal
 import sys
 import threading
@@ -334,6 +333,7 @@ def _tiling_config(args: argparse.Namespace) -> TilingConfig:
         worker_processes=args.processes,
         scheduler=args.scheduler,
         scheduler_timeout=args.scheduler_timeout,
+        memory_limit=args.memory_limit,
     )
 
 
@@ -458,39 +458,23 @@ def _check_fit_memory(args: argparse.Namespace, n_cells: int, n_at_once: int, wh
     check_memory(fit_memory(n_cells, n_at_once), limit, what, advice, source)
 
 
-def _check_tile_memory(args: argparse.Namespace, cells: Any, length_scale: float, where: str) -> int:
-    """Refuse a fit whose largest tile's GP, times the tiles fitted at once, needs more than ``--memory-limit``.
-
-    A tile's GP reaches past its square by the overlap: its default in starting length scales
-    (the learnt one is not known yet), at most a block. Returns the largest tile's cell count.
-    """
-    from gpomap.resources import largest_tile_cells
-    from gpomap.tiles import DEFAULT_TILE_SIZE, OVERLAP_LENGTH_SCALES, capped_overlap
-
-    tile = args.tile_size if args.tile_size is not None else DEFAULT_TILE_SIZE[cells.lower.shape[1]]
-    overlap = capped_overlap(OVERLAP_LENGTH_SCALES * length_scale, tile)
-    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], tile, overlap)
-    n_at_once = 1 if args.scheduler else (args.workers or os.cpu_count() or 1)
-    _check_fit_memory(args, per_tile, n_at_once, f"{where} of {tile:g} m")
-    return per_tile
-
-
 def _plan_map(args: argparse.Namespace, data: Any) -> None:
-    """Check the run's memory before fitting.
+    """Check the written grid's memory before fitting, from the box of the points the scans will make.
 
-    Cheap steps only: the labelled points (for the grid's extent) and the cell tree (for the
-    tiles' GP sizes), both a small fraction of a fit.
+    The box comes from each beam's first and last free sample and its hit, without the points
+    themselves (a whole log's are gigabytes with the cell tree); the tiles' GP sizes are checked
+    by the fit once its cells exist (:meth:`gpomap.tiles.TiledGPOM.check_fit_memory`).
     """
-    from gpomap.resources import grid_shape, points_extent
-    from gpomap.settings import MapSettings
+    from gpomap.observations import observations_box
+    from gpomap.resources import grid_shape
 
-    settings = MapSettings(**_map_config(args).kwargs())
-    obs = settings.make_observations(data)
-    extent = args.extent if args.extent is not None else points_extent(obs.points)
-    shape = grid_shape(extent, args.resolution)
-    # The grid first: it needs no cells, and an absurd extent is refused before the tree is built.
-    _check_grid_memory(args, shape, extent, 0)
-    _check_tile_memory(args, settings.make_cells(obs), settings.length_scale, "the largest of the tiles")
+    if args.extent is not None:
+        extent = args.extent
+    else:
+        config = _map_config(args)
+        lo, hi = observations_box(data, config.free_step, config.hit_margin, config.no_return_cap)
+        extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+    _check_grid_memory(args, grid_shape(extent, args.resolution), extent, 0)
 
 
 # --------------------------------------------------------------------------- writing outputs

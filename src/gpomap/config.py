@@ -132,6 +132,11 @@ class TilingConfig(_Config):
         Address of a Dask distributed scheduler that runs the tiles instead.
     scheduler_timeout : float
         Seconds to wait for the scheduler, and for its workers.
+    memory_limit : float, optional
+        Gigabytes the fit may plan to use: once the cells are built, before the hyperparameters
+        and the tiles, a fit whose largest tile's GP times the GPs fitted at once would need more
+        is refused (default: half of this machine's memory,
+        :data:`gpomap.resources.DEFAULT_MEMORY_FRACTION`).
     """
 
     tile_size: float | None = None
@@ -140,3 +145,4 @@ class TilingConfig(_Config):
     worker_processes: bool = False
     scheduler: str | None = None
     scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT
+    memory_limit: float | None = None

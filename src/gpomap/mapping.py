@@ -100,6 +100,7 @@ class AreaGPOM(TiledGPOM):
         blas_threads: int | None = None,
         scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
         worker_processes: bool = TilingConfig.worker_processes,
+        memory_limit: float | None = TilingConfig.memory_limit,
     ) -> None:
         params = {name: value for name, value in locals().items() if name in _PARAMETERS}
         self._configure(params)

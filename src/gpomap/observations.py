@@ -365,6 +365,55 @@ def observations_from_scans(
     )
 
 
+def observations_box(
+    data: ScanData | Observations,
+    free_step: float = 0.2,
+    hit_margin: float | None = None,
+    no_return_cap: float | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Corners of the box of the points :func:`observations_from_scans` would make, without making them.
+
+    A beam's free points lie between its first and last sample, so the box of those two per beam
+    and of the hits is the points' box (before the clearance drops any): what a run checks
+    its map's extent on before a whole log's points (FR079: 24 M) exist.
+
+    Parameters
+    ----------
+    data : sequence of Scan or CloudScan, or Observations
+        Given labelled points give their own box.
+    free_step, hit_margin, no_return_cap
+        As in :func:`observations_from_scans`.
+
+    Returns
+    -------
+    lower, upper : ndarray of shape (d,)
+
+    Raises
+    ------
+    EmptyDataError
+        When the scans give no point.
+    """
+    if isinstance(data, Observations):
+        return np.asarray(data.points).min(axis=0), np.asarray(data.points).max(axis=0)
+    if hit_margin is None:
+        hit_margin = 0.5 * free_step
+    lows, highs = [], []
+    for scan in data:
+        rays = Rays.of(scan)
+        # The same sample count as ray_free_points: the last sample at floor(length / step) steps.
+        n = np.floor(np.maximum(rays.free_lengths(hit_margin, no_return_cap), 0.0) / free_step + 1e-9)
+        use = n >= 1
+        u = rays.directions[use]
+        ends = [rays.origin + free_step * u, rays.origin + (n[use] * free_step)[:, None] * u, rays.ends[rays.hit]]
+        for e in ends:
+            if e.shape[0]:
+                lows.append(e.min(axis=0))
+                highs.append(e.max(axis=0))
+    if not lows:
+        raise EmptyDataError(f"no usable readings in {len(data)} scan(s): nothing to map")
+    return np.min(lows, axis=0), np.max(highs, axis=0)
+
+
 def sensor_positions(scans: ScanData) -> NDArray[np.float64]:
     """Where the sensor was for each scan, ndarray of shape (k, d): a planar pose's (x, y), a cloud's origin."""
     return np.array([s.origin if isinstance(s, CloudScan) else s.pose[:2] for s in scans], dtype=float)

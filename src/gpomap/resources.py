@@ -102,13 +102,15 @@ def default_memory_limit(fraction: float = DEFAULT_MEMORY_FRACTION) -> int | Non
 
 
 def format_bytes(n: float) -> str:
-    """`n` bytes as a short decimal figure: ``"1.5 GB"``, ``"320 MB"``, ``"8.0e+07 GB"``."""
+    """`n` bytes as a short decimal figure: ``"1.5 GB"``, ``"320 MB"``, ``"200 kB"``, ``"8.0e+07 GB"``."""
     gb = n / 1e9
     if gb >= 1e5:
         return f"{gb:.1e} GB"
     if gb >= 1:
         return f"{gb:.1f} GB"
-    return f"{n / 1e6:.0f} MB"
+    if n >= 1e6:
+        return f"{n / 1e6:.0f} MB"
+    return f"{n / 1e3:.0f} kB"
 
 
 def grid_shape(extent: Sequence[float], resolution: float) -> tuple[int, int]:

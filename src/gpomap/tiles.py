@@ -125,6 +125,12 @@ def capped_overlap(overlap: float, tile_size: float) -> float:
     return float(min(max(overlap, 1e-9), block_side(tile_size)))
 
 
+def tile_reach(tile_size: float, length_scale: float, overlap: float | None = None) -> float:
+    """How far a tile's GP sees past its square: `overlap`, by default :data:`OVERLAP_LENGTH_SCALES`
+    length scales, at most one block (:func:`capped_overlap`)."""
+    return capped_overlap(OVERLAP_LENGTH_SCALES * length_scale if overlap is None else float(overlap), tile_size)
+
+
 # --------------------------------------------------------------------------- tasks (picklable)
 @dataclass
 class TileState:
@@ -655,6 +661,11 @@ class TiledGPOM:
         seconds against one worker's 16.9 / 16.9 (CSAIL every 10th) and 7.9 / 8.0 (Intel blocks
         of 40): threads 17.8 / 13.9 and 7.5 / 6.7, processes 20.6 / 14.4 and 9.5 / 8.1 (the
         factors pickled back from tile fits, and each stage's fork).
+    memory_limit : float, optional
+        Gigabytes the tile fits may plan to use (default: half of this machine's memory). Once
+        the cells are built, before anything costlier, a fit whose largest tile's GP, times the
+        GPs fitted at once, would need more raises :class:`~gpomap.resources.MemoryLimitError`
+        (see :meth:`check_fit_memory`).
     **options
         :class:`~gpomap.settings.MapSettings` options (kernel, free_step, min_cell, max_cell,
         length_scale, noise, optimise, ...). ``optimise=False`` keeps the given variance,
@@ -684,6 +695,7 @@ class TiledGPOM:
         blas_threads: int | None = None,
         scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
         worker_processes: bool = TilingConfig.worker_processes,
+        memory_limit: float | None = TilingConfig.memory_limit,
         **options: Any,
     ) -> None:
         if tile_size is not None and not tile_size > 0:
@@ -701,6 +713,9 @@ class TiledGPOM:
         if not scheduler_timeout > 0:
             raise ValueError(f"scheduler_timeout must be positive seconds, got {scheduler_timeout}")
         self.scheduler_timeout = float(scheduler_timeout)
+        if memory_limit is not None and not memory_limit > 0:
+            raise ValueError(f"memory_limit must be positive gigabytes, got {memory_limit}")
+        self.memory_limit = None if memory_limit is None else float(memory_limit)
         self._client: Any = None  # the distributed.Client of the stage running, if any
         # The map's own settings (kernel, cells, evidence), with their defaults.
         self.base = MapSettings(**options)
@@ -1257,6 +1272,8 @@ class TiledGPOM:
         self._add_points(points, np.asarray(obs.occupied, dtype=bool))
         self._build_blocks()
         timings["cells"] = time.perf_counter() - t
+        start = hyperparameters.get("length_scale") if hyperparameters is not None else None
+        self.check_fit_memory(self.base.length_scale if start is None else float(start))
 
         t = time.perf_counter()
         if hyperparameters is not None:
@@ -1356,10 +1373,48 @@ class TiledGPOM:
             return None
         return self.base.make_evidence(self._scans, self.predict_proba_gp)
 
+    def check_fit_memory(self, length_scale: float) -> int:
+        """Refuse tile fits whose largest GP, times the GPs fitted at once, needs more than `memory_limit`.
+
+        Called by :meth:`fit` once the cells are built, before the hyperparameters are learnt:
+        a tile's GP is taken to reach past its square by the overlap of `length_scale` (the
+        learnt one is not known yet; the overlap is at most a block either way).
+
+        Parameters
+        ----------
+        length_scale : float
+            The length scale the overlap is taken from, metres.
+
+        Returns
+        -------
+        int
+            The largest tile's cells (an estimate: cells are counted by centre).
+
+        Raises
+        ------
+        MemoryLimitError
+            The estimate exceeds the limit.
+        """
+        from gpomap.resources import check_memory, fit_memory, largest_tile_cells, memory_limit
+
+        overlap = tile_reach(self.tile_size_, length_scale, self.overlap)
+        blocks = list(self._blocks.values())
+        centres = np.concatenate([0.5 * (b.lower + b.upper)[:, :2] for b in blocks]) if blocks else np.zeros((0, 2))
+        per_tile = largest_tile_cells(centres, self.tile_size_, overlap, self.origin_)
+        n_at_once = 1 if self.scheduler is not None else self.n_workers_
+        limit, source = memory_limit(self.memory_limit)
+        check_memory(
+            fit_memory(per_tile, n_at_once),
+            limit,
+            f"fitting {n_at_once} GP(s) of {per_tile} cells at once (the largest of the tiles of {self.tile_size_:g} m)",
+            "use a larger --min-cell (min_cell), a smaller --tile-size (tile_size), fewer --workers (n_workers), "
+            "or a larger --memory-limit GB (memory_limit) if the machine has the memory",
+            source,
+        )
+        return per_tile
+
     def _set_geometry(self) -> None:
-        ls = self.hyperparameters_["length_scale"]
-        o = OVERLAP_LENGTH_SCALES * ls if self.overlap is None else float(self.overlap)
-        self.overlap_ = capped_overlap(o, self.tile_size_)
+        self.overlap_ = tile_reach(self.tile_size_, self.hyperparameters_["length_scale"], self.overlap)
         w = BLEND_FRACTION * min(self.overlap_, self.tile_size_) if self.blend is None else float(self.blend)
         if not 0 < w <= min(self.overlap_, self.tile_size_) + 1e-12:
             raise ValueError(

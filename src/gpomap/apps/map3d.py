@@ -364,12 +364,16 @@ def check_voxel_memory(args: argparse.Namespace, lo: NDArray[np.float64], hi: ND
 
 def _plan(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, NDArray[np.float64], NDArray[np.float64], int]:
     """The model, the voxel map's corners and the cell count, with the memory checked before fitting."""
-    from gpomap import cli
+    from gpomap.resources import largest_tile_cells
+    from gpomap.tiles import DEFAULT_TILE_SIZE, tile_reach
 
     model, obs, cells = model_from_args(args, clouds)
     lo, hi = voxel_bounds(obs.points, args.extent, args.z_range)
     check_voxel_memory(args, lo, hi, 0)
-    per_tile = cli._check_tile_memory(args, cells, model.length_scale, "the largest of the columns")
+    # The fit refuses tiles too large for the memory itself, once its cells exist; the voxel
+    # grid's prediction chunks are sized by the largest column too.
+    tile = args.tile_size if args.tile_size is not None else DEFAULT_TILE_SIZE[3]
+    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], tile, tile_reach(tile, model.length_scale))
     check_voxel_memory(args, lo, hi, per_tile)
     return model, lo, hi, len(cells)
 
