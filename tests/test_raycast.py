@@ -82,3 +82,25 @@ def test_traversal_scaled_grid_and_chunks(monkeypatch: pytest.MonkeyPatch) -> No
     monkeypatch.setattr(raycast, "ENTRIES_PER_CHUNK", 40)
     for a, b in zip(whole, traverse(grid, starts, ends), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_segments_far_from_the_grid_are_left_out_and_the_rest_walk_as_before(dim: int) -> None:
+    """Most segments pass beside a small grid (a region's among a log's beams): the same cells
+    as the exact walk, and the dropped ones are truly dropped (the filter is exercised)."""
+    shape = (8, 8) if dim == 2 else (6, 8, 8)
+    grid = GridSpec((0.0, 0.0), 1.0, (8, 8)) if dim == 2 else VoxelSpec((0.0, 0.0, 0.0), 1.0, (6, 8, 8))
+    rng = np.random.default_rng(11 + dim)
+    starts = rng.uniform(-40, 48, (400, dim))
+    ends = starts + rng.uniform(-20, 20, (400, dim))
+    ends[:20] = starts[:20]  # points, most outside
+    ends[20:60, 0] = starts[20:60, 0]  # parallel to an axis
+    starts[60:70] = -1.0 + rng.integers(0, 2, (10, dim)) * (np.array(shape[::-1]) + 2.0)  # on the grown box's corners
+    ends[60:70] = starts[60:70] + rng.uniform(-1, 1, (10, dim))
+    near = raycast._near_box(starts, ends, shape)
+    assert 5 < near.sum() < 390
+    beam, *idx = traverse(grid, starts, ends)
+    for i in range(len(starts)):
+        got = list(zip(*(j[beam == i].tolist() for j in idx), strict=True))
+        assert got == exact_cells(starts[i], ends[i], shape), (i, starts[i], ends[i])
+        assert near[i] or not got

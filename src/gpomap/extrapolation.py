@@ -217,6 +217,10 @@ def fit_variance_scale(
     rng = np.random.default_rng(seed)
     keep = np.concatenate([rng.choice(np.flatnonzero(occ), n, replace=False), rng.choice(np.flatnonzero(~occ), n, replace=False)])
     pts, occ, fold_of = pts[keep], occ[keep], fold_of[keep]
+    # The region's points (grown by the clearance) cut once for every pattern: a whole log has
+    # tens of millions.
+    near = _in_square(observations.points, lo, hi, free_clearance)
+    observations = Observations(observations.points[near], observations.occupied[near], observations.scan_index[near])
     # Each pattern's points are predicted by the GP of that pattern's kept scans.
     mu, var = np.empty(occ.size), np.empty(occ.size)
     for k, (kept, _, _) in enumerate(folds):

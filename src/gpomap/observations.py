@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,7 +40,8 @@ class Observations:
     occupied : ndarray of bool, shape (n,)
         True for hits, False for free samples.
     scan_index : ndarray of int, shape (n,)
-        Which scan (position in the input sequence) each point came from.
+        Which scan (position in the input sequence) each point came from (int32 from scans: a
+        whole log has tens of millions of points).
     n_invalid : int
         Readings dropped as NaN, inf or non-positive (rays with a non-finite endpoint, or one
         at the sensor origin, for clouds).
@@ -51,7 +53,7 @@ class Observations:
 
     points: NDArray[np.float64]
     occupied: NDArray[np.bool_]
-    scan_index: NDArray[np.intp]
+    scan_index: NDArray[np.integer[Any]]
     n_invalid: int = 0
     n_no_return: int = 0
     n_cleared: int = 0
@@ -331,7 +333,7 @@ def observations_from_scans(
         hit_margin = 0.5 * free_step
     pts_all: list[NDArray[np.float64]] = []
     occ_all: list[NDArray[np.bool_]] = []
-    idx_all: list[NDArray[np.intp]] = []
+    idx_all: list[NDArray[np.int32]] = []
     n_invalid = 0
     n_no_return = 0
     for i, scan in enumerate(scans):
@@ -345,7 +347,7 @@ def observations_from_scans(
         hp = rays.ends[rays.hit]
         pts_all += [fp, hp]
         occ_all += [np.zeros(len(fp), bool), np.ones(len(hp), bool)]
-        idx_all.append(np.full(len(fp) + len(hp), i, dtype=np.intp))
+        idx_all.append(np.full(len(fp) + len(hp), i, dtype=np.int32))
     if not pts_all or sum(len(p) for p in pts_all) == 0:
         raise EmptyDataError(f"no usable readings in {len(scans)} scan(s) ({n_invalid} invalid): nothing to map")
     points, occupied, scan_index = np.concatenate(pts_all, axis=0), np.concatenate(occ_all), np.concatenate(idx_all)

@@ -77,6 +77,12 @@ def traverse(grid: AnyGrid, starts: ArrayLike, ends: ArrayLike) -> tuple[NDArray
     origin = np.asarray(grid.origin, dtype=float)
     p0 = (np.asarray(starts, dtype=float).reshape(-1, d) - origin) / grid.resolution
     p1 = (np.asarray(ends, dtype=float).reshape(-1, d) - origin) / grid.resolution
+    # Segments that never come near the grid visit none of its cells: left out before the walk
+    # (a region's grid among a whole log's beams).
+    near = _near_box(p0, p1, grid.shape)
+    kept = None if near.all() else np.flatnonzero(near)
+    if kept is not None:
+        p0, p1 = p0[kept], p1[kept]
     b = len(p0)
     # Crossings per segment (an upper bound), to cut the work into chunks of bounded memory.
     cost = np.cumsum(np.abs(np.floor(p1) - np.floor(p0)).sum(axis=1) + 2)
@@ -86,11 +92,30 @@ def traverse(grid: AnyGrid, starts: ArrayLike, ends: ArrayLike) -> tuple[NDArray
         base = cost[lo - 1] if lo > 0 else 0.0
         hi = max(lo + 1, int(np.searchsorted(cost, base + ENTRIES_PER_CHUNK, side="right")))
         seg, *idx = _traverse_chunk(p0[lo:hi], p1[lo:hi], grid.shape)
-        out.append((seg + lo, *idx))
+        out.append((seg + lo if kept is None else kept[seg + lo], *idx))
         lo = hi
     if not out:
         return tuple(np.zeros(0, dtype=np.intp) for _ in range(d + 1))
     return tuple(np.concatenate([part[j] for part in out]) for j in range(d + 1))
+
+
+def _near_box(p0: NDArray[np.float64], p1: NDArray[np.float64], shape: tuple[int, ...]) -> NDArray[np.bool_]:
+    """Whether each segment p0 -> p1 (cell units) meets the grid's box grown by a cell on every side.
+
+    The slab test (Liang & Barsky): the parameter interval where the segment lies within each
+    axis's bounds, intersected over the axes and with [0, 1]. The margin of a cell keeps every
+    segment that could visit a grid cell whatever the rounding. Shape (b,).
+    """
+    t_in, t_out = np.zeros(p0.shape[0]), np.ones(p0.shape[0])
+    for k, n in zip(range(p0.shape[1]), reversed(shape), strict=True):
+        a, z, d = -1.0, float(n) + 1.0, p1[:, k] - p0[:, k]
+        flat = d == 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (a - p0[:, k]) / d, (z - p0[:, k]) / d
+        inside = (p0[:, k] >= a) & (p0[:, k] <= z)
+        t_in = np.maximum(t_in, np.where(flat, np.where(inside, 0.0, np.inf), np.minimum(t1, t2)))
+        t_out = np.minimum(t_out, np.where(flat, np.where(inside, 1.0, -np.inf), np.maximum(t1, t2)))
+    return t_in <= t_out
 
 
 def _traverse_chunk(p0: NDArray[np.float64], p1: NDArray[np.float64], shape: tuple[int, ...]) -> tuple[NDArray[np.intp], ...]:

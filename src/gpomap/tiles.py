@@ -841,14 +841,22 @@ class TiledGPOM:
 
     def _add_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> set[int]:
         """File points under their blocks (in observation order within each) and note their tiles; returns the blocks touched."""
-        for s in range(0, points.shape[0], _KEY_CHUNK):
-            self._tiles_with_points.update(int(k) for k in np.unique(self._tile_keys(points[s : s + _KEY_CHUNK])))
-        keys = self._block_keys(points)
-        order = np.argsort(keys, kind="stable")  # stable: keeps observation order per block
-        keys = keys[order]
-        cuts = np.flatnonzero(keys[1:] != keys[:-1]) + 1
-        block_keys = keys[np.r_[0, cuts]] if keys.size else keys
-        del keys
+        # Keys per chunk of points, blocks then numbered 0..b-1 in key order: a whole log's int64
+        # keys and their sorted copy would be hundreds of megabytes (FR079: 24 M points).
+        chunks = range(0, points.shape[0], _KEY_CHUNK)
+        found = [np.zeros(0, dtype=np.int64)]
+        for s in chunks:
+            part = points[s : s + _KEY_CHUNK]
+            self._tiles_with_points.update(int(k) for k in np.unique(self._tile_keys(part)))
+            found.append(np.unique(self._block_keys(part)))
+        block_keys = np.unique(np.concatenate(found))
+        ids = np.empty(points.shape[0], dtype=np.int16 if block_keys.size <= np.iinfo(np.int16).max else np.int32)
+        for s in chunks:
+            ids[s : s + _KEY_CHUNK] = np.searchsorted(block_keys, self._block_keys(points[s : s + _KEY_CHUNK]))
+        # Stable (a radix sort for 16-bit ids): keeps observation order per block.
+        order = np.argsort(ids, kind="stable")
+        cuts = np.cumsum(np.bincount(ids, minlength=block_keys.size))[:-1]
+        del ids
         touched = set()
         for k, grp in zip(block_keys.tolist(), np.split(order, cuts)):
             if grp.size == 0:
