@@ -170,7 +170,11 @@ def test_check_memory_and_limits(monkeypatch):
     assert resources.memory_limit(2.5) == (2_500_000_000, "--memory-limit 2.5")
     monkeypatch.setattr(resources, "total_memory", lambda: 8 * 10**9)
     assert resources.memory_limit(None) == (4 * 10**9, "0.5 of this machine's 8.0 GB")
-    assert resources.format_bytes(3.2e6) == "3 MB" and resources.format_bytes(2e5) == "200 kB" and resources.format_bytes(4.5e14) == "4.5e+05 GB"
+    assert (
+        resources.format_bytes(3.2e6) == "3 MB"
+        and resources.format_bytes(2e5) == "200 kB"
+        and resources.format_bytes(4.5e14) == "4.5e+05 GB"
+    )
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log not present")
