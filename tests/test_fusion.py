@@ -161,8 +161,9 @@ def test_calibration_formula_by_hand() -> None:
     cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0, near_weight=0.25)
     # (2 * 1 + 2 * 0.5) / (2 * 1 + 1 + 2) = 0.6
     assert cal(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.6)
-    # 5 misses of which 4 near, and 3 steps of the path: 1 + 4 * 0.25 + 3 * 2 = 8 weighted misses.
-    assert cal.misses(np.array([5]), np.array([4]), np.array([3]))[0] == pytest.approx(8.0)
+    # 5 misses of which 4 near, and 3 steps of the path worth PATH_HITS = 10 hits of weight 2 each:
+    # 1 + 4 * 0.25 + 3 * 10 * 2 = 62 weighted misses.
+    assert cal.misses(np.array([5]), np.array([4]), np.array([3]))[0] == pytest.approx(62.0)
     # No counts: the GP's probability.
     assert cal(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(0.8)
     # The defaults are the counting grid with the GP in place of its prior 1/2: (3 + 1) / (3 + 5 + 2).
@@ -273,10 +274,37 @@ def test_gp_sampling_factor() -> None:
 
 
 def test_path_passes_in_3d_follow_the_sensor() -> None:
-    # A sensor moved along x at y = 0.15, z = 0.25 in 0.25 m steps: its path crosses cells 0..15.
+    # A sensor moved along x at y = 0.15, z = 0.25 in 0.25 m steps from x = 0.05 to 1.55: on
+    # 0.1 m voxels the body's reach is one voxel, so the track's row (x from -0.05 to 1.65: ix
+    # 0..16) and its four side rows (shifted by a voxel in y or z, not in x: ix 0..15).
     clouds = [CloudScan(o, o[None, :] + [0.0, 0.0, 0.1]) for o in (np.array([0.05 + 0.25 * k, 0.15, 0.25]) for k in range(7))]
     passes = RayEvidence.from_scans(clouds).path_passes(VOXELS)
-    assert _row(passes, 3)[:16].min() >= 1 and passes.sum() == _row(passes, 3).sum() == _row(passes, 3)[:16].sum()
+    want = np.zeros(VOXELS.shape, dtype=bool)
+    want[2, 1, :17] = True
+    for iz, iy in ((1, 1), (3, 1), (2, 0), (2, 2)):
+        want[iz, iy, :16] = True
+    np.testing.assert_array_equal(passes > 0, want)
+
+
+def test_path_passes_cover_the_robots_body_once_per_step() -> None:
+    """One 0.5 m step along row 10 of a 5 cm grid: the cells it crosses shifted by up to
+    PATH_RADIUS (2 cells: 0 or +-1, +-2 along x in the row itself, 0, +-1 one row off, 0 two
+    rows off), each once; two steps count where both pass, and add up."""
+    from gpomap.evidence import PATH_RADIUS
+
+    assert PATH_RADIUS == pytest.approx(0.1)
+    grid = GridSpec((0.0, 0.0), 0.05, (40, 40))
+    a, b, c = (_scan(x, 0.52, [np.pi / 2], [0.1]) for x in (0.51, 1.01, 1.26))
+    passes = RayEvidence.from_scans([a, b]).path_passes(grid)
+    # x from 0.51 + k_x 0.05 to 1.01 + k_x 0.05 in row 10 + k_y, with k_x^2 + k_y^2 <= 4.
+    want = np.zeros(grid.shape, dtype=np.int32)
+    want[10, 8:23] = 1  # 0.41 .. 1.11 m
+    want[[9, 11], 9:22] = 1  # 0.46 .. 1.06 m
+    want[[8, 12], 10:21] = 1  # 0.51 .. 1.01 m
+    np.testing.assert_array_equal(passes, want)
+    two = RayEvidence.from_scans([a, b, c]).path_passes(grid)
+    np.testing.assert_array_equal(two, passes + RayEvidence.from_scans([b, c]).path_passes(grid))
+    assert two.max() == 2
 
 
 def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
@@ -286,7 +314,7 @@ def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
     scans = [first, *path]
     ev = RayEvidence.from_scans(scans)
     passes = ev.path_passes(GRID)
-    assert passes[1, :16].min() >= 1 and passes[1, 16:].sum() == 0
+    assert passes[1, :16].min() >= 1 and passes[1, 17:].sum() == 0
     # A long jump between poses is not a path.
     jump = RayEvidence.from_scans([first, _scan(1.9, 0.15, [0.0], [0.1])])
     assert jump.path_passes(GRID).sum() == 0
