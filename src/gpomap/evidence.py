@@ -40,9 +40,9 @@ MAX_PATH_STEP: float = 1.5
 
 #: The robot's body round its path (metres): the cells the path crosses, shifted by up to this
 #: much, count its steps (:meth:`RayEvidence.path_passes`). Any robot that carries a planar lidar
-#: is wider than 0.2 m, so these cells were inside it; held-out hits this close to a log's training
-#: path are 0-0.15 % of them on the shared logs (FR079's people beside the robot), a third as many
-#: as within 0.15 m on the Stage arena, whose robot passes close to its walls.
+#: is wider than 0.2 m, so these cells were inside it. Held-out hits this close to a log's training
+#: path are 0-0.15 % of them on the shared logs (FR079's people beside the robot); the Stage
+#: arena's robot passes closer to its walls (1 held-out hit within 0.1 m, 10 within 0.15 m).
 PATH_RADIUS: float = 0.1
 
 #: A miss whose cell centre lies within this distance (metres) of its beam's returned end is a
