@@ -490,3 +490,37 @@ def test_evidence_layer_calibrates_from_the_cells_its_counts_kept(monkeypatch: p
     layer = EvidenceLayer(scans, 0.1, _p_gp, calibration_scans=len(scans))
     assert (layer.calibration, layer.report) == (want, report)
     assert not layer.evidence._kept
+
+
+def test_written_grid_takes_the_variance_two_samples_apart(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
+    """The planar written map: the GP's mean at every sample, its variance at every second one,
+    interpolated (checked against scipy's interpolator and the squash worked out here); the mean
+    alone is the full prediction's mean to the bit."""
+    from scipy.interpolate import RegularGridInterpolator
+    from scipy.special import ndtr
+
+    from gpomap.fusion import VARIANCE_STEP_SAMPLES
+
+    model, _ = half_room
+    om = model.grid(0.05, extent=(0.0, 10.0, 0.0, 8.0))
+    sampled = lattice.coarse(om.grid, gp_sampling_factor(model.hyperparameters_["length_scale"], 0.05))
+    apart = lattice.coarse(sampled, VARIANCE_STEP_SAMPLES)
+    centres = lattice.grid_centres(sampled)
+    num, no_den, mean, no_var = model.blended_moments(centres, variance=False)
+    assert no_den is None and no_var is None
+    full_num, _, full_mean, _ = model.blended_moments(centres)
+    np.testing.assert_array_equal(num, full_num)
+    np.testing.assert_array_equal(mean, full_mean)
+    _, den_apart, _, var_apart = model.blended_moments(lattice.grid_centres(apart))
+    axes = [np.asarray(apart.origin)[k] + apart.resolution * (np.arange(n) + 0.5) for k, n in zip((1, 0), apart.shape)]
+    den = RegularGridInterpolator(axes, den_apart.reshape(apart.shape))(centres[:, ::-1])
+    var = RegularGridInterpolator(axes, var_apart.reshape(apart.shape))(centres[:, ::-1])
+    kappa = model.hyperparameters_["variance_scale"]
+    p_gp, p_unseen = ndtr(num / np.sqrt(1.0 + den)), ndtr(num / np.sqrt(1.0 + kappa * den))
+    hits, misses = model.evidence_.grid_counts(om.grid)
+    want = model.evidence_.grid_proba(
+        om.grid, lattice.interpolate(p_gp, sampled, om.grid), lattice.interpolate(p_unseen, sampled, om.grid)
+    )
+    np.testing.assert_allclose(om.probability, want, atol=1e-12)
+    np.testing.assert_allclose(om.variance, lattice.interpolate(var, sampled, om.grid), atol=1e-12)
+    assert (hits + misses).max() > 0 and np.ptp(den) > 0  # counts and a variance that varies

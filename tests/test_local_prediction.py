@@ -48,6 +48,11 @@ def test_local_equals_dense_in_2d(room_maps, kernel):
     (mean, var), (dense_mean, dense_var) = _both(model, key, points)
     np.testing.assert_allclose(mean, dense_mean, rtol=0, atol=1e-8)
     np.testing.assert_allclose(var, dense_var, rtol=0, atol=1e-8)
+    # The mean alone (a written map's samples between its variance's) is the same to the bit.
+    for local in (True, False):
+        alone, none = predict_tile_task(state, model._settings(), points, 4096, variance=False, local=local)
+        assert none is None
+        np.testing.assert_array_equal(alone, mean if local else dense_mean)
     # The blended map too, through every tile.
     p = model.predict_proba_gp(points)
     tiles_before = tiles.predict_tile_task

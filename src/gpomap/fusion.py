@@ -50,6 +50,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -292,6 +293,37 @@ def _unseen_where_empty(
     if p_unseen is None:
         return p
     return np.where((hits == 0) & (misses == 0), np.clip(p_unseen, _EPS, 1 - _EPS), p)
+
+
+#: A planar written map's GP variance is predicted this many GP samples apart and interpolated;
+#: its mean at every sample. The variance is what a tile's prediction costs (the whitened
+#: cross-covariances, n^2 per point against n for the mean), and it varies over the distance to
+#: the data, not over the walls' detail that the mean and the counts carry.
+VARIANCE_STEP_SAMPLES: int = 2
+
+
+class BlendedMoments(Protocol):
+    """A GP map's calibrated latent moments and their squash (:class:`gpomap.tiles.TiledGPOM`)."""
+
+    def blended_moments(
+        self, points: NDArray[np.float64], variance: bool = True
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64], NDArray[np.float64] | None]: ...
+
+    def squash_moments(
+        self, num: NDArray[np.float64], den: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+
+def _variance_apart(moments: BlendedMoments, sampled: AnyGrid) -> tuple[NDArray[np.float64], ...]:
+    """The GP's probability, latent variance and probability for unseen space at `sampled`'s
+    centres, each (size,), the variances predicted :data:`VARIANCE_STEP_SAMPLES` samples apart."""
+    num, _, _, _ = moments.blended_moments(grid_centres(sampled), variance=False)
+    apart = coarse(sampled, VARIANCE_STEP_SAMPLES)
+    _, den_apart, _, var_apart = moments.blended_moments(grid_centres(apart))
+    assert den_apart is not None and var_apart is not None
+    den = interpolate(den_apart, apart, sampled).reshape(-1)
+    p, p_unseen = moments.squash_moments(num, den)
+    return p, interpolate(var_apart, apart, sampled).reshape(-1), p_unseen
 
 
 def _predict_block(
@@ -566,6 +598,7 @@ class EvidenceLayer:
         grid: AnyGrid,
         length_scale: float,
         predict_gp: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
+        moments: BlendedMoments | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Probability and latent variance per cell of `grid`, each of shape grid.shape.
 
@@ -580,16 +613,21 @@ class EvidenceLayer:
         predict_gp : callable
             Points of shape (m, d) to the GP's probability, its latent variance and its probability
             for unseen space, each (m,).
+        moments : BlendedMoments, optional
+            The same GP's moments: a planar grid then takes the GP's variance
+            :data:`VARIANCE_STEP_SAMPLES` samples apart instead of `predict_gp` at every sample.
         """
         sampled = coarse(grid, gp_sampling_factor(length_scale, grid.resolution))
         centres = grid_centres(sampled)
         block = interpolation_block(sampled, grid)
         if grid_dim(grid) == 3 and all(s.stop > s.start for s in block):
             p, var, p_unseen = _predict_block(predict_gp, centres, sampled, block)
+        elif moments is not None and grid_dim(grid) == 2:
+            p, var, p_unseen = _variance_apart(moments, sampled)
         else:
-            # Planar grids keep every sample, so their written maps stay as they were to the bit:
-            # the tiles' local prediction bins the queries it is given, so another set of queries
-            # moves the values by round-off (and a plane's margins are a few rows of hundreds).
+            # Every sample, the planar margins too: the tiles' local prediction bins the queries
+            # it is given, so another set of queries moves the values by round-off (and a plane's
+            # margins are a few rows of hundreds).
             p, var, p_unseen = predict_gp(centres)
         probability = self.grid_proba(grid, interpolate(p, sampled, grid), interpolate(p_unseen, sampled, grid))
         return probability, interpolate(var, sampled, grid)

@@ -364,36 +364,46 @@ def _predict_tile_local(
     X: Supports,
     points: NDArray[np.float64],
     blocks: list[tuple[NDArray[np.intp], NDArray[np.intp]]],
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Mean k_J^T w_J and variance k** - k_J^T (K^-1)_JJ k_J at points, block by block, each (m,)."""
-    if state.precision is None:
-        state.precision = cholesky_inverse(state.L)
-    K_inv = state.precision
+    variance: bool = True,
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """Mean k_J^T w_J and (with `variance`) variance k** - k_J^T (K^-1)_JJ k_J at points, block by block, each (m,)."""
     m = points.shape[0]
-    ones = np.ones(m)
-    kss = kern.diag(Supports(points, points, ones))
     mean = np.zeros(m)
-    var = kss.copy()  # the prior where no cell is near
+    var = None
+    if variance:
+        if state.precision is None:
+            state.precision = cholesky_inverse(state.L)
+        var = kern.diag(Supports(points, points, np.ones(m)))  # the prior where no cell is near
     cross = kern.point_blocks(X, points)  # work common to every block done once
     for q, near in blocks:
         if near.size == 0:
             continue
-        # One gather of the |J|^2 entries (rows then columns would copy |J| whole rows first).
-        K_JJ = np.take(K_inv, near[:, None] * K_inv.shape[1] + near[None, :])
+        K_JJ = None
+        if var is not None:
+            K_inv = state.precision
+            assert K_inv is not None
+            # One gather of the |J|^2 entries (rows then columns would copy |J| whole rows first).
+            K_JJ = np.take(K_inv, near[:, None] * K_inv.shape[1] + near[None, :])
         w_J = state.weights[near]
         step = q.size if kern.method == "exact" else LOCAL_KERNEL_POINTS
         for s in range(0, q.size, step):
             qs = q[s : s + step]
             Ks = cross.block(near, qs)  # (|J|, |qs|)
             mean[qs] = w_J @ Ks
-            reduction = np.einsum("ij,ij->j", Ks, K_JJ @ Ks)
-            var[qs] = np.maximum(kss[qs] - reduction, 0.0)
+            if var is not None and K_JJ is not None:
+                reduction = np.einsum("ij,ij->j", Ks, K_JJ @ Ks)
+                var[qs] = np.maximum(var[qs] - reduction, 0.0)
     return mean, var
 
 
 def predict_tile_task(
-    state: TileState, settings: dict[str, Any], points: NDArray[np.float64], chunk_size: int = 4096, local: bool = True
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    state: TileState,
+    settings: dict[str, Any],
+    points: NDArray[np.float64],
+    chunk_size: int = 4096,
+    variance: bool = True,
+    local: bool = True,
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
     """Latent mean and variance of one tile's GP at points (top-level, picklable).
 
     Parameters
@@ -404,6 +414,8 @@ def predict_tile_task(
     points : ndarray of shape (m, d)
     chunk_size : int
         Query points per block, bounding memory at ``n * chunk_size``.
+    variance : bool
+        Also the variance (the costly part: the whitened cross-covariances); False gives None.
     local : bool
         Predict block by block from the cells within the kernel's cutoff
         (:data:`gpomap.gp.LOCAL_TOL` of its variance) of each block, through K^-1 formed once
@@ -423,17 +435,18 @@ def predict_tile_task(
     if local:
         blocks = _local_tile_blocks(state, kern, X, Q, chunk_size)
         if blocks is not None:
-            return _predict_tile_local(state, kern, X, pts, blocks)
+            return _predict_tile_local(state, kern, X, pts, blocks, variance)
     m = len(Q)
     mean = np.empty(m)
-    var = np.empty(m)
-    L_inv = triangular_inverse_for(state.L, m, X.dim)  # 3-D: whitening by a product (see gpomap.gp)
+    var = np.empty(m) if variance else None
+    L_inv = triangular_inverse_for(state.L, m, X.dim) if variance else None  # whitening by a product (see gpomap.gp)
     for s in range(0, m, chunk_size):
         part = Q.subset(slice(s, min(m, s + chunk_size)))
         Ks = kern(X, part)
         mean[s : s + len(part)] = Ks.T @ state.weights
-        v = solve_triangular(state.L, Ks, lower=True, check_finite=False) if L_inv is None else lower_product(L_inv, Ks)
-        var[s : s + len(part)] = np.maximum(kern.diag(part) - np.einsum("ij,ij->j", v, v), 0.0)
+        if var is not None:
+            v = solve_triangular(state.L, Ks, lower=True, check_finite=False) if L_inv is None else lower_product(L_inv, Ks)
+            var[s : s + len(part)] = np.maximum(kern.diag(part) - np.einsum("ij,ij->j", v, v), 0.0)
     return mean, var
 
 
@@ -1583,6 +1596,28 @@ class TiledGPOM:
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Blended probability, latent mean, latent variance and probability for unseen space at points, each (m,)."""
+        num, den, lat_m, lat_v = self.blended_moments(points)
+        assert den is not None and lat_v is not None
+        p, p_unseen = self.squash_moments(num, den)
+        return p, lat_m, lat_v, p_unseen
+
+    def squash_moments(
+        self, num: NDArray[np.float64], den: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Probability, and probability for unseen space, from :meth:`blended_moments`' calibrated moments, each (m,)."""
+        p = ndtr(num / np.sqrt(1.0 + den))
+        # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation).
+        p_unseen = ndtr(num / np.sqrt(1.0 + self.hyperparameters_.get("variance_scale", 1.0) * den))
+        return p, p_unseen
+
+    def blended_moments(
+        self, points: NDArray[np.float64], variance: bool = True
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64], NDArray[np.float64] | None]:
+        """The tiles' calibrated latent moments at points, blended: alpha mu + beta, alpha^2 var, mu, var.
+
+        Each of shape (m,); the two variances None without `variance` (the mean costs a small
+        part of a prediction). :meth:`squash_moments` turns the first two into probabilities.
+        """
         pts = as_points(points, self._dim)
         m = pts.shape[0]
         h = 0.5 * self.blend_
@@ -1624,12 +1659,12 @@ class TiledGPOM:
                 else:
                     members[key] = (sel, np.ones(sel.size))
                 wsum[sel] = 1.0
-        jobs = [(key, (self.tiles_[key], settings, pts[idx], chunk)) for key, (idx, _) in members.items()]
+        jobs = [(key, (self.tiles_[key], settings, pts[idx], chunk, variance)) for key, (idx, _) in members.items()]
         res = self._run(predict_tile_task, jobs, "tile prediction", "predicting tiles")
         num = np.zeros(m)
-        den = np.zeros(m)
         lat_m = np.zeros(m)
-        lat_v = np.zeros(m)
+        den = np.zeros(m) if variance else None
+        lat_v = np.zeros(m) if variance else None
         for key, (idx, w) in members.items():
             mu, var = res[key]
             hp = self.tiles_[key].hyperparameters
@@ -1638,15 +1673,11 @@ class TiledGPOM:
             # global alpha and beta this is exactly squash(blended mean, blended variance).
             # idx is distinct within a tile, so fancy-index sums add each once, in tile order.
             num[idx] += w * (a * mu + b)
-            den[idx] += w * (a * a * var)
             lat_m[idx] += w * mu
-            lat_v[idx] += w * var
-        num /= wsum
-        den /= wsum
-        p = ndtr(num / np.sqrt(1.0 + den))
-        # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation).
-        p_unseen = ndtr(num / np.sqrt(1.0 + self.hyperparameters_.get("variance_scale", 1.0) * den))
-        return p, lat_m / wsum, lat_v / wsum, p_unseen
+            if den is not None and lat_v is not None and var is not None:
+                den[idx] += w * (a * a * var)
+                lat_v[idx] += w * var
+        return num / wsum, None if den is None else den / wsum, lat_m / wsum, None if lat_v is None else lat_v / wsum
 
     def predict(self, points: NDArray[np.float64], return_var: bool = False):
         """Blended latent mean (and variance) at points.
@@ -1759,7 +1790,7 @@ class TiledGPOM:
     def _sample(self, spec: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Probability and latent variance per cell of a GridSpec or VoxelSpec."""
         if self.evidence_ is not None:
-            return self.evidence_.written_grid(spec, self.hyperparameters_["length_scale"], self._gp_probabilities)
+            return self.evidence_.written_grid(spec, self.hyperparameters_["length_scale"], self._gp_probabilities, self)
         p, _, var, _ = self._predict_blended(spec.centres())
         return p.reshape(spec.shape), var.reshape(spec.shape)
 
