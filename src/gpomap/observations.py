@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
@@ -108,6 +108,15 @@ def beam_free_points(
     return ray_free_points(origins, np.column_stack([np.cos(a), np.sin(a)]), lengths, step)
 
 
+def _sample_counts(lengths: ArrayLike, step: float) -> NDArray[np.intp]:
+    """Free samples of each ray: at step, 2 step, ..., floor(length / step) * step, shape (b,).
+
+    A tiny slack keeps a sample that lands exactly on the limit despite rounding; negative
+    lengths give none.
+    """
+    return np.floor(np.maximum(np.asarray(lengths, dtype=float), 0.0) / step + 1e-9).astype(np.intp)
+
+
 def ray_free_points(
     origins: NDArray[np.float64],
     directions: NDArray[np.float64],
@@ -135,12 +144,9 @@ def ray_free_points(
     """
     if not step > 0:
         raise ValueError(f"free-point step must be positive, got {step}")
-    lengths = np.maximum(np.asarray(lengths, dtype=float), 0.0)
-    # Points at step, 2 step, ..., floor(length / step) * step; a tiny slack keeps a
-    # sample that lands exactly on the limit despite rounding.
-    counts = np.floor(lengths / step + 1e-9).astype(np.intp)
+    counts = _sample_counts(lengths, step)
     total = int(counts.sum())
-    ray = np.repeat(np.arange(lengths.size, dtype=np.intp), counts)
+    ray = np.repeat(np.arange(counts.size, dtype=np.intp), counts)
     # Position of each sample within its ray: 1, 2, ..., count.
     starts = np.cumsum(counts) - counts
     k = np.arange(total, dtype=np.intp) - np.repeat(starts, counts) + 1
@@ -402,8 +408,8 @@ def observations_box(
     lows, highs = [], []
     for scan in data:
         rays = Rays.of(scan)
-        # The same sample count as ray_free_points: the last sample at floor(length / step) steps.
-        n = np.floor(np.maximum(rays.free_lengths(hit_margin, no_return_cap), 0.0) / free_step + 1e-9)
+        # ray_free_points' samples: the last at n steps.
+        n = _sample_counts(rays.free_lengths(hit_margin, no_return_cap), free_step)
         use = n >= 1
         u = rays.directions[use]
         ends = [rays.origin + free_step * u, rays.origin + (n[use] * free_step)[:, None] * u, rays.ends[rays.hit]]
