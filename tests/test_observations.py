@@ -3,7 +3,7 @@ import pytest
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError, InputFormatError
-from gpomap.observations import free_near_hits, observations_box, observations_from_scans, sensor_positions
+from gpomap.observations import free_near_hits, observations_from_scans, sensor_positions
 from gpomap.scans import Scan, evenly_spaced, select_scans
 from tests.world3d import ORIGINS, lidar_clouds
 
@@ -69,29 +69,6 @@ def test_twelve_lidar_clouds_of_la3dm_size_are_sampled_at_once():
     clouds = lidar_clouds(np.tile(ORIGINS, (2, 1)), n_rays=3500, max_range=8.0)
     obs = observations_from_scans(clouds, free_step=0.2)
     assert obs.n_occupied == sum(int(c.hit.sum()) for c in clouds) and obs.n_free > 100_000
-
-
-@pytest.mark.parametrize(("step", "cap"), [(0.2, 10.0), (0.3, None), (0.25, 0.0)])
-def test_observations_box_is_the_points_box_without_the_points(step, cap):
-    """The box from each beam's first and last sample and its hit equals the made points' box, exactly."""
-    rng = np.random.default_rng(3)
-    scans = []
-    for _ in range(6):  # short hits, no-returns (max range 8), invalid readings
-        ranges = rng.uniform(0.05, 9.0, 40)
-        ranges[rng.random(40) < 0.2] = 8.0
-        ranges[rng.random(40) < 0.1] = np.nan
-        scans.append(Scan(rng.uniform(-5, 5, 3), rng.uniform(-np.pi, np.pi, 40), ranges, 8.0))
-    obs = observations_from_scans(scans, free_step=step, no_return_cap=cap)
-    lo, hi = observations_box(scans, step, None, cap)
-    np.testing.assert_array_equal(lo, obs.points.min(axis=0))
-    np.testing.assert_array_equal(hi, obs.points.max(axis=0))
-    clouds = lidar_clouds(ORIGINS[:2], n_rays=200)
-    obs3 = observations_from_scans(clouds, free_step=step, no_return_cap=cap)
-    lo3, hi3 = observations_box(clouds, step, None, cap)
-    np.testing.assert_array_equal(np.stack([lo3, hi3]), np.stack([obs3.points.min(axis=0), obs3.points.max(axis=0)]))
-    np.testing.assert_array_equal(np.stack(observations_box(obs)), np.stack([lo, hi]))
-    with pytest.raises(EmptyDataError, match="no usable readings in 1 scan"):
-        observations_box([Scan([0.0, 0.0, 0.0], [0.0], [np.nan], 5.0)])
 
 
 def test_free_near_hits_by_hand():

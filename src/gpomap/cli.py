@@ -459,21 +459,22 @@ def _check_fit_memory(args: argparse.Namespace, n_cells: int, n_at_once: int, wh
 
 
 def _plan_map(args: argparse.Namespace, data: Any) -> None:
-    """Check the written grid's memory before fitting, from the box of the points the scans will make.
+    """Check the written grid's memory before fitting, over the box of the sensor and its beams' ends.
 
-    The box comes from each beam's first and last free sample and its hit, without the points
-    themselves (a whole log's are gigabytes with the cell tree); the tiles' GP sizes are checked
-    by the fit once its cells exist (:meth:`gpomap.tiles.TiledGPOM.check_fit_memory`).
+    The box comes from the scans (:func:`gpomap.scans.scan_extent`, no-return beams to the cap),
+    not from the points they make (a whole log's are gigabytes with the cell tree); the tiles' GP
+    sizes are checked by the fit once its cells exist (:meth:`gpomap.tiles.TiledGPOM.check_fit_memory`).
     """
-    from gpomap.observations import observations_box
-    from gpomap.resources import grid_shape
+    from gpomap.observations import Observations
+    from gpomap.resources import grid_shape, points_extent
+    from gpomap.scans import scan_extent
 
     if args.extent is not None:
         extent = args.extent
+    elif isinstance(data, Observations):
+        extent = points_extent(data.points)
     else:
-        config = _map_config(args)
-        lo, hi = observations_box(data, config.free_step, config.hit_margin, config.no_return_cap)
-        extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+        extent = scan_extent(data, include_no_return=True, no_return_cap=_map_config(args).no_return_cap)
     _check_grid_memory(args, grid_shape(extent, args.resolution), extent, 0)
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
@@ -108,15 +108,6 @@ def beam_free_points(
     return ray_free_points(origins, np.column_stack([np.cos(a), np.sin(a)]), lengths, step)
 
 
-def _sample_counts(lengths: ArrayLike, step: float) -> NDArray[np.intp]:
-    """Free samples of each ray: at step, 2 step, ..., floor(length / step) * step, shape (b,).
-
-    A tiny slack keeps a sample that lands exactly on the limit despite rounding; negative
-    lengths give none.
-    """
-    return np.floor(np.maximum(np.asarray(lengths, dtype=float), 0.0) / step + 1e-9).astype(np.intp)
-
-
 def ray_free_points(
     origins: NDArray[np.float64],
     directions: NDArray[np.float64],
@@ -144,9 +135,12 @@ def ray_free_points(
     """
     if not step > 0:
         raise ValueError(f"free-point step must be positive, got {step}")
-    counts = _sample_counts(lengths, step)
+    lengths = np.maximum(np.asarray(lengths, dtype=float), 0.0)
+    # Points at step, 2 step, ..., floor(length / step) * step; a tiny slack keeps a
+    # sample that lands exactly on the limit despite rounding.
+    counts = np.floor(lengths / step + 1e-9).astype(np.intp)
     total = int(counts.sum())
-    ray = np.repeat(np.arange(counts.size, dtype=np.intp), counts)
+    ray = np.repeat(np.arange(lengths.size, dtype=np.intp), counts)
     # Position of each sample within its ray: 1, 2, ..., count.
     starts = np.cumsum(counts) - counts
     k = np.arange(total, dtype=np.intp) - np.repeat(starts, counts) + 1
@@ -371,55 +365,6 @@ def observations_from_scans(
         n_no_return=n_no_return,
         n_cleared=n_cleared,
     )
-
-
-def observations_box(
-    data: ScanData | Observations,
-    free_step: float = 0.2,
-    hit_margin: float | None = None,
-    no_return_cap: float | None = None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Corners of the box of the points :func:`observations_from_scans` would make, without making them.
-
-    A beam's free points lie between its first and last sample, so the box of those two per beam
-    and of the hits is the points' box (before the clearance drops any): what a run checks
-    its map's extent on before a whole log's points (FR079: 24 M) exist.
-
-    Parameters
-    ----------
-    data : sequence of Scan or CloudScan, or Observations
-        Given labelled points give their own box.
-    free_step, hit_margin, no_return_cap
-        As in :func:`observations_from_scans`.
-
-    Returns
-    -------
-    lower, upper : ndarray of shape (d,)
-
-    Raises
-    ------
-    EmptyDataError
-        When the scans give no point.
-    """
-    if isinstance(data, Observations):
-        return np.asarray(data.points).min(axis=0), np.asarray(data.points).max(axis=0)
-    if hit_margin is None:
-        hit_margin = 0.5 * free_step
-    lows, highs = [], []
-    for scan in data:
-        rays = Rays.of(scan)
-        # ray_free_points' samples: the last at n steps.
-        n = _sample_counts(rays.free_lengths(hit_margin, no_return_cap), free_step)
-        use = n >= 1
-        u = rays.directions[use]
-        ends = [rays.origin + free_step * u, rays.origin + (n[use] * free_step)[:, None] * u, rays.ends[rays.hit]]
-        for e in ends:
-            if e.shape[0]:
-                lows.append(e.min(axis=0))
-                highs.append(e.max(axis=0))
-    if not lows:
-        raise EmptyDataError(f"no usable readings in {len(data)} scan(s): nothing to map")
-    return np.min(lows, axis=0), np.max(highs, axis=0)
 
 
 def sensor_positions(scans: ScanData) -> NDArray[np.float64]:
