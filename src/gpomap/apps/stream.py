@@ -16,8 +16,11 @@ from __future__ import annotations
 
 import argparse
 import math
+import signal
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,7 +33,7 @@ from gpomap.errors import GpomapError
 from gpomap.scans import Scan, scan_extent
 from gpomap.streaming import DEFAULT_TILE_SIZE, DEFAULT_WARMUP_SCANS
 
-__all__ = ["ReplayResult", "replay_times", "replay", "add_parser", "mapper_from_args", "cmd_stream"]
+__all__ = ["ReplayResult", "replay_times", "deferred_signals", "replay", "add_parser", "mapper_from_args", "cmd_stream"]
 
 
 @dataclass
@@ -107,6 +110,50 @@ def replay_times(scans: Sequence[Scan], rate: float, source: str = "input") -> N
     return (t - t[0]) / rate
 
 
+@contextmanager
+def deferred_signals(signums: Sequence[int] = (signal.SIGINT, signal.SIGTERM)) -> Iterator[Callable[[], None]]:
+    """Hold Ctrl-C and SIGTERM until the caller reaches a point where stopping is safe.
+
+    Inside the block, each of `signums` whose handler is a Python function (Ctrl-C's default
+    raises KeyboardInterrupt; ``gpomap``'s SIGTERM handler raises its subclass) is recorded
+    instead of raised. The yielded ``check()`` runs the recorded signal's own handler, so the
+    interrupt is raised where the caller calls it, between two scans. Raised anywhere, it may
+    land in code that swallows it (a callback run while an object is torn down reports it as
+    "Exception ignored" and goes on). A second signal before ``check()`` is raised at once: a
+    user pressing Ctrl-C twice is not kept waiting. Outside the main thread nothing changes.
+
+    Yields
+    ------
+    check : callable
+        Raises the recorded signal's exception, if any.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None
+        return
+    pending: list[int] = []
+    previous = {s: signal.getsignal(s) for s in signums}
+    handlers = {s: h for s, h in previous.items() if callable(h)}
+
+    def record(signum: int, frame: Any) -> None:
+        if pending:
+            handlers[signum](signum, frame)
+        pending.append(signum)
+
+    def check() -> None:
+        if pending:
+            signum = pending[0]
+            pending.clear()
+            handlers[signum](signum, None)
+
+    for s in handlers:
+        signal.signal(s, record)
+    try:
+        yield check
+    finally:
+        for s in handlers:
+            signal.signal(s, previous[s])
+
+
 def replay(
     scans: Sequence[Scan],
     mapper: Any,
@@ -165,28 +212,32 @@ def replay(
             )
 
     try:
-        for i, scan in enumerate(scans):
-            if rate > 0:
-                wait = start + due[i] - clock()
-                if wait > 0:
-                    sleep(wait)
-                else:
-                    result.lag = max(result.lag, -wait)
-            t = time.perf_counter()
-            mapper.add_scan(scan)
-            result.latency.append(time.perf_counter() - t)
-            result.n_scans = i + 1
-            if progress is not None and not mapper.ready_ and i == 0:
-                progress("  warming up: the first map comes once the hyperparameters are learnt")
-            if mapper.ready_ and clock() >= next_write:
-                do_write()
-                next_write = clock() + every
-        if not mapper.ready_:
-            raise GpomapError(
-                f"{source}: {len(scans)} scans were not enough to learn the hyperparameters; "
-                "use a smaller --warmup or a longer log"
-            )
-        do_write()
+        with deferred_signals() as stop_if_asked:
+            for i, scan in enumerate(scans):
+                if rate > 0:
+                    wait = start + due[i] - clock()
+                    if wait > 0:
+                        sleep(wait)
+                    else:
+                        result.lag = max(result.lag, -wait)
+                stop_if_asked()
+                t = time.perf_counter()
+                mapper.add_scan(scan)
+                result.latency.append(time.perf_counter() - t)
+                result.n_scans = i + 1
+                if progress is not None and not mapper.ready_ and i == 0:
+                    progress("  warming up: the first map comes once the hyperparameters are learnt")
+                if mapper.ready_ and clock() >= next_write:
+                    stop_if_asked()
+                    do_write()
+                    next_write = clock() + every
+            stop_if_asked()
+            if not mapper.ready_:
+                raise GpomapError(
+                    f"{source}: {len(scans)} scans were not enough to learn the hyperparameters; "
+                    "use a smaller --warmup or a longer log"
+                )
+            do_write()
     except KeyboardInterrupt:
         result.interrupted = True
         raise
