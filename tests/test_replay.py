@@ -14,7 +14,9 @@ from gpomap.scans import Scan
 
 
 def _scans(n: int) -> list[Scan]:
-    return [Scan(pose=np.zeros(3), angles=np.array([0.0]), ranges=np.array([1.0]), max_range=10.0, time=float(i)) for i in range(n)]
+    return [
+        Scan(pose=np.zeros(3), angles=np.array([0.0]), ranges=np.array([1.0]), max_range=10.0, time=float(i)) for i in range(n)
+    ]
 
 
 class _Mapper:
