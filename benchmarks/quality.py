@@ -22,6 +22,10 @@ Run from the repository root::
     .venv/bin/python benchmarks/quality.py                    # everything (hours on 2 cores)
     .venv/bin/python benchmarks/quality.py --quick            # a smoke run: a few scans per log
     .venv/bin/python benchmarks/quality.py --logs intel,room --splits every --json out.json
+    .venv/bin/python benchmarks/quality.py --log-file robot.log.gz --log-file lab.bag   # your own logs
+
+``--log-file`` scores any log or bag :func:`gpomap.io.read_scans` reads (a CARMEN log, a ROS bag
+with one laser topic) the same way, named by its file; given alone, only those logs are run.
 
 In each table '*' marks the best value of a metric among the rows of that log and split
 (exact points and written grids together). An occupancy grid's exact-point prediction is a
@@ -360,7 +364,16 @@ def _commit() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--logs", default=",".join(LOGS), help="comma-separated (default: %(default)s)")
+    ap.add_argument("--logs", help=f"comma-separated (default: {','.join(LOGS)}; none when --log-file is given)")
+    ap.add_argument(
+        "--log-file",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="also score this log (CARMEN log or ROS bag), named by its file (repeatable)",
+    )
+    ap.add_argument("--scan-step", type=int, default=1, metavar="N", help="every Nth scan of each --log-file (default: 1)")
     ap.add_argument("--splits", default=",".join(SPLIT_NAMES), help="comma-separated (default: %(default)s)")
     ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated (default: %(default)s)")
     ap.add_argument(
@@ -378,7 +391,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.summary_from:
         print("\n".join(summary_table(json.loads(args.summary_from.read_text()))))
         return 0
-    logs, splits, methods = (a.split(",") for a in (args.logs, args.splits, args.methods))
+    for path in args.log_file:
+        if not path.exists():
+            ap.error(f"--log-file {path}: no such file")
+        name = path.name.split(".")[0]
+        LOGS[name] = {"path": path, "title": path.name, "scan_step": args.scan_step, "own": True}
+    default_logs = "" if args.log_file else ",".join(k for k, v in LOGS.items() if not v.get("own"))
+    chosen = args.logs if args.logs is not None else default_logs
+    logs = [n for n in chosen.split(",") if n] + [p.name.split(".")[0] for p in args.log_file]
+    splits, methods = (a.split(",") for a in (args.splits, args.methods))
     for given, known, what in ((logs, LOGS, "log"), (methods, METHODS, "method")):
         bad = sorted(set(given) - set(known))
         if bad:
