@@ -331,3 +331,20 @@ def test_per_tile_hyperparameters_run_and_are_reported(room):
     assert set(s["per_tile_hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta"}
     p = model.predict_proba(np.array([[3.0, 3.0], [10.0, 8.0]]))
     assert np.all((p >= 0) & (p <= 1))
+
+
+@pytest.mark.parametrize("pairs", [1, 7, 1 << 20])
+def test_nearest_box_is_the_brute_force_nearest_in_any_chunking(monkeypatch, pairs):
+    monkeypatch.setattr(tiles, "NEAREST_BOX_PAIRS", pairs)
+    rng = np.random.default_rng(3)
+    # Unit squares on a lattice with gaps, as a map's tiles are; points inside, between and far out.
+    corners = np.array([(x, y) for x in range(0, 10, 2) for y in range(0, 6, 3)], dtype=float)
+    boxes = np.column_stack([corners[:, 0], corners[:, 0] + 1, corners[:, 1], corners[:, 1] + 1])
+    pts = rng.uniform(-5, 15, size=(300, 2))
+    got = tiles.nearest_box(pts, boxes)
+    for p, g in zip(pts, got):
+        d = [np.hypot(max(b[0] - p[0], 0, p[0] - b[1]), max(b[2] - p[1], 0, p[1] - b[3])) for b in boxes]
+        assert d[g] == pytest.approx(min(d), abs=1e-12)
+        assert g == int(np.flatnonzero(np.isclose(d, min(d), rtol=0, atol=1e-12))[0])  # the first on ties
+    inside = np.array([[0.5, 0.5], [8.2, 3.9]])
+    assert tiles.nearest_box(inside, boxes).tolist() == [0, 9]

@@ -520,6 +520,35 @@ def _cores() -> int:
 
 
 # --------------------------------------------------------------------------- helpers
+#: Point-box pairs :func:`nearest_box` measures at once (bounds its temporaries at a few MB: a
+#: written map can hold millions of points no tile reaches, and a map hundreds of tiles).
+NEAREST_BOX_PAIRS: int = 1 << 20
+
+
+def nearest_box(points: NDArray[np.float64], boxes: NDArray[np.float64]) -> NDArray[np.intp]:
+    """Index of the box nearest each point in x, y (distance 0 inside; the first box on ties).
+
+    Parameters
+    ----------
+    points : ndarray of shape (m, d)
+        Only x and y are used.
+    boxes : ndarray of shape (k, 4)
+        ``x0, x1, y0, y1`` per box, k >= 1.
+
+    Returns
+    -------
+    ndarray of int, shape (m,)
+    """
+    out = np.empty(points.shape[0], dtype=np.intp)
+    step = max(1, NEAREST_BOX_PAIRS // max(1, boxes.shape[0]))
+    for s in range(0, points.shape[0], step):
+        p = points[s : s + step]
+        dx = np.maximum(np.maximum(boxes[None, :, 0] - p[:, None, 0], p[:, None, 0] - boxes[None, :, 1]), 0.0)
+        dy = np.maximum(np.maximum(boxes[None, :, 2] - p[:, None, 1], p[:, None, 1] - boxes[None, :, 3]), 0.0)
+        out[s : s + step] = np.argmin(dx * dx + dy * dy, axis=1)
+    return out
+
+
 def _smoothstep(t: NDArray[np.float64]) -> NDArray[np.float64]:
     t = np.clip(t, 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
@@ -1645,11 +1674,7 @@ class TiledGPOM:
         orphans = np.flatnonzero(wsum <= 0)
         if orphans.size:
             keys = sorted(self.tiles_)
-            cores = np.array([self._core(k) for k in keys])
-            op = pts[orphans]
-            dx = np.maximum(np.maximum(cores[None, :, 0] - op[:, None, 0], op[:, None, 0] - cores[None, :, 1]), 0.0)
-            dy = np.maximum(np.maximum(cores[None, :, 2] - op[:, None, 1], op[:, None, 1] - cores[None, :, 3]), 0.0)
-            nearest = np.argmin(dx * dx + dy * dy, axis=1)
+            nearest = nearest_box(pts[orphans], np.array([self._core(k) for k in keys]))
             for j in np.unique(nearest):
                 sel = orphans[nearest == j]
                 key = keys[int(j)]
