@@ -130,6 +130,16 @@ def test_blending_has_no_seam():
     assert _max_jump_ratio(p_hard, border) > 5.0
 
 
+def test_the_hyperparameter_sample_is_anchored_in_a_mixed_block():
+    # Cells per block; the upper quartile is 692.5, nearest it the 690-cell block (index 2).
+    sizes = [100, 700, 690, 300]
+    # That block is an open hall (2 % occupied, under half the map's 20 %): the next nearest, 700.
+    assert tiles.hyper_anchor_block(sizes, [0.3, 0.25, 0.02, 0.3], 0.2) == 1
+    assert tiles.hyper_anchor_block(sizes, [0.3, 0.25, 0.15, 0.3], 0.2) == 2
+    # No block mixed enough: by size alone.
+    assert tiles.hyper_anchor_block(sizes, [0.0, 0.0, 0.0, 0.0], 0.2) == 2
+
+
 def test_tiles_smaller_than_a_block_keep_its_cells_and_hyperparameters(room):
     # The cell trees are grown per block of BLOCK_SIZE whatever the tiles: 4 m tiles give the very
     # cells of 10 m ones and the same learnt hyperparameters.
