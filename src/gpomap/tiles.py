@@ -1062,6 +1062,7 @@ class TiledGPOM:
             "sample_cells": int(idx.size),
             "sample_centre": [round(float(anchor[0]), 2), round(float(anchor[1]), 2)],
             "sample_radius_m": round(float(r), 2),
+            "sample_occupied_fraction": round(float(np.mean(lab[idx] > 0)), 4),
             "evaluations": gp.fit_report_.n_evaluations if gp.fit_report_ is not None else 0,
         }
         return hyp
