@@ -8,7 +8,7 @@ import pytest
 from gpomap import _compiled_counts, lattice
 from gpomap.clouds import CloudScan
 from gpomap.evidence import NEAR_END, RayEvidence, lattice_grid
-from gpomap.fusion import EvidenceCalibration, calibration_points, fit_calibration, gp_sampling_factor
+from gpomap.fusion import SURPRISE_RATE, EvidenceCalibration, calibration_points, fit_calibration, gp_sampling_factor
 from gpomap.grid import GridSpec, coarse_grid, interpolate_to
 from gpomap.mapping import AreaGPOM
 from gpomap.scans import Scan
@@ -159,15 +159,20 @@ def test_lattice_cells_do_not_depend_on_the_extent() -> None:
 
 def test_calibration_formula_by_hand() -> None:
     cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0, near_weight=0.25)
-    # (2 * 1 + 2 * 0.5) / (2 * 1 + 1 + 2) = 0.6
-    assert cal(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.6)
+    # (2 * 1 + 2 * 0.5) / (2 * 1 + 1 + 2) = 0.6, then one surprise in a thousand: 0.0005 + 0.999 * 0.6.
+    assert cal.posterior_mean(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.6)
+    assert SURPRISE_RATE == 1e-3
+    assert cal(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.5999)
+    # A hundred scans saw through a cell and none ended there: not 1e-4 (the GP's 0.01 weighing 2
+    # against 100), but 0.0005 + 0.999 * 0.02 / 102.
+    assert cal(np.array([0.01]), np.array([0]), np.array([100]))[0] == pytest.approx(0.0005 + 0.999 * 0.02 / 102)
     # 5 misses of which 4 near, and 3 steps of the path worth PATH_HITS = 10 hits of weight 2 each:
     # 1 + 4 * 0.25 + 3 * 10 * 2 = 62 weighted misses.
     assert cal.misses(np.array([5]), np.array([4]), np.array([3]))[0] == pytest.approx(62.0)
     # No counts: the GP's probability.
-    assert cal(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(0.8)
+    assert cal.posterior_mean(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(0.8)
     # The defaults are the counting grid with the GP in place of its prior 1/2: (3 + 1) / (3 + 5 + 2).
-    assert EvidenceCalibration()(np.array([0.5]), np.array([3]), np.array([5]))[0] == pytest.approx(0.4)
+    assert EvidenceCalibration().posterior_mean(np.array([0.5]), np.array([3]), np.array([5]))[0] == pytest.approx(0.4)
 
 
 def test_calibration_points_follow_the_protocol() -> None:
