@@ -19,6 +19,10 @@ through a cell (or within :data:`~gpomap.evidence.PATH_RADIUS` of it) counts as
 had moved (a person walking by, a door) or was a pose error, so a few such hits cannot make the
 robot's own corridor an obstacle.
 
+Surprises. One observation in a thousand (:data:`SURPRISE_RATE`) is taken to be one the counts
+cannot foresee, a person where every scan saw free space or a door that closed, so every
+probability is ``eps / 2 + (1 - eps) p`` and no cell is surer than 1 - 5e-4.
+
 Calibration. The three weights are fitted on the map's own data, never on a test set: for a
 sample of the training scans, the scan's own beams are removed from the counts (leave one scan
 out, exact because counts add over scans), and its hits and free points along its beams
