@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gpomap.errors import NumericalError
-from gpomap.gp import SupportGP, inverse_diagonal, robust_cholesky
+from gpomap.gp import SupportGP, compact_groups, inverse_diagonal, robust_cholesky
 from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
 from gpomap.squash import ProbitSquash, class_weights, loo_moments, loo_probit
 from gpomap.supports import Supports
@@ -299,3 +299,61 @@ def test_loo_objective_with_the_kernels_prepared_distances():
     np.testing.assert_allclose(lml_grad1, lml_grad, rtol=1e-10, atol=1e-12)
     # The exact SE kernel has nothing to prepare.
     assert AreaKernel(SquaredExponential(1.0, 1.0), "exact").prepare(X) is None
+
+
+def test_compact_groups_halve_at_the_median_of_the_widest_axis():
+    # Eight points on a 4 x 2 lattice, groups of at most 2: first cut across x (the wider axis)
+    # between x = 1 and x = 2, then across x again, leaving the four columns of two points.
+    centres = np.array([[x, y] for x in range(4) for y in range(2)], dtype=float)
+    groups = compact_groups(centres, 2)
+    assert sorted(tuple(g) for g in groups) == [(0, 1), (2, 3), (4, 5), (6, 7)]
+    # Uneven sizes differ by at most one and cover every index once.
+    groups = compact_groups(np.random.default_rng(0).uniform(0, 1, (11, 2)), 3)
+    assert sorted(np.concatenate(groups).tolist()) == list(range(11))
+    assert sorted(g.size for g in groups) == [2, 3, 3, 3]
+    with pytest.raises(ValueError, match="max_size"):
+        compact_groups(centres, 0)
+
+
+@pytest.mark.parametrize("kernel", KERNELS, ids=["se-exact", "matern-quadrature"])
+def test_grouped_objectives_are_those_of_groups_that_do_not_covary(kernel):
+    # Two clusters 200 m apart do not covary to double precision, so the objectives of one GP
+    # over both equal those of the two groups as independent GPs, value and gradient; the
+    # grouped gradient is also checked by finite differences.
+    X1, y1 = _data(5, 20)
+    X2, y2 = _data(6, 17)
+    X2 = Supports.from_boxes(X2.lower + 200.0, X2.upper + 200.0, X2.counts)
+    X = Supports.from_boxes(np.vstack([X1.lower, X2.lower]), np.vstack([X1.upper, X2.upper]), np.concatenate([X1.counts, X2.counts]))
+    y = np.concatenate([y1, y2])
+    gp = SupportGP(kernel, noise_model="per_count")
+    parts = [(X1, y1, None), (X2, y2, None)]
+    params = np.array([0.0, np.log(0.9), np.log(0.1), np.log(1.4), -0.2])
+    value, grad = gp.loo_objective(X, y, params, eval_gradient=True)
+    value_g, grad_g = gp._parts_loo_objective(parts, params, True)
+    assert value_g == pytest.approx(value, rel=1e-12)
+    np.testing.assert_allclose(grad_g, grad, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(grad_g, _fd(lambda p: gp._parts_loo_objective(parts, p, False), params), rtol=1e-5, atol=1e-6)
+    lml, lml_grad = gp.log_marginal_likelihood(X, y, params[:3], eval_gradient=True)
+    lml_g, lml_grad_g = gp._parts_log_marginal_likelihood(parts, params[:3], True)
+    assert lml_g == pytest.approx(lml, rel=1e-12)
+    np.testing.assert_allclose(lml_grad_g, lml_grad, rtol=1e-9, atol=1e-12)
+    # The profiled squash sees both groups' moments together, as one GP's would.
+    s1, s2 = ProbitSquash(1.0, 0.0), ProbitSquash(1.0, 0.0)
+    gp._loo_objective(X, y, params, False, None, s1)
+    gp._parts_loo_objective(parts, params, False, s2)
+    assert (s2.alpha, s2.beta) == pytest.approx((s1.alpha, s1.beta), rel=1e-9)
+
+
+def test_a_grouped_search_learns_what_one_gp_learns_when_groups_are_apart():
+    X1, y1 = _data(7, 30)
+    X2, y2 = _data(8, 30)
+    X2 = Supports.from_boxes(X2.lower + 200.0, X2.upper + 200.0, X2.counts)
+    X = Supports.from_boxes(np.vstack([X1.lower, X2.lower]), np.vstack([X1.upper, X2.upper]), np.concatenate([X1.counts, X2.counts]))
+    y = np.concatenate([y1, y2])
+    kernel = AreaKernel(SquaredExponential(1.0, 1.0), "exact")
+    one = SupportGP(kernel, hyper_subset=None).fit(X, y)
+    grouped = SupportGP(kernel, hyper_subset=None, hyper_group=30).fit(X, y)
+    assert grouped.kernel.base.length_scale == pytest.approx(one.kernel.base.length_scale, rel=1e-6)
+    assert grouped.noise == pytest.approx(one.noise, rel=1e-6)
+    with pytest.raises(ValueError, match="hyper_group"):
+        SupportGP(kernel, hyper_group=0)

@@ -33,6 +33,10 @@ from gpomap.squash import CLASS_WEIGHTS, SQUASH_BOUNDS, ProbitSquash, class_weig
 from gpomap.supports import Supports
 
 OBJECTIVES = ("loo", "lml")
+
+#: One group of a hyperparameter objective: its inputs, their +-1 targets, and the kernel's
+#: ``prepare`` of those inputs (None where the kernel has none).
+ObjectivePart = tuple[Supports, NDArray[np.float64], TensorDistances | None]
 NOISE_MODELS = ("constant", "per_count")
 
 
@@ -312,6 +316,42 @@ def lower_product(L_inv: NDArray[np.float64], K: NDArray[np.float64]) -> NDArray
     return out
 
 
+def compact_groups(centres: NDArray[np.float64], max_size: int) -> list[NDArray[np.intp]]:
+    """Split points into spatially compact groups of at most `max_size`, by halving at the median.
+
+    A group larger than `max_size` is cut at the median of its widest coordinate into two halves
+    (sizes differing by at most one), and each half is split again, so 800 points with
+    ``max_size = 200`` give four groups of 200, each a compact patch.
+
+    Parameters
+    ----------
+    centres : ndarray of shape (n, d)
+    max_size : int
+        At least 1.
+
+    Returns
+    -------
+    list of ndarray of int
+        Sorted indices into `centres`; every index in exactly one group.
+    """
+    if max_size < 1:
+        raise ValueError(f"max_size must be at least 1, got {max_size}")
+    pending = [np.arange(centres.shape[0])]
+    groups: list[NDArray[np.intp]] = []
+    while pending:
+        idx = pending.pop()
+        if idx.size <= max_size:
+            if idx.size:
+                groups.append(np.sort(idx))
+            continue
+        c = centres[idx]
+        axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+        order = np.argsort(c[:, axis], kind="stable")
+        half = idx.size // 2
+        pending += [idx[order[half:]], idx[order[:half]]]
+    return groups
+
+
 @dataclass
 class FitReport:
     """What hyperparameter learning did: the objective, its value, and the time and evaluations spent."""
@@ -358,6 +398,12 @@ class SupportGP:
         Weighting of the leave-one-out terms (in the "loo" objective and the squash fit):
         "balanced" gives free and occupied inputs the same total weight (see
         :func:`gpomap.squash.class_weights`); None counts every input once.
+    hyper_group : int or None
+        Learn hyperparameters on the sample cut into compact groups of at most this many inputs
+        (:func:`compact_groups`), each its own GP: the objective sums the groups' terms, as if
+        inputs of different groups did not covary. The O(n^3) work of an evaluation falls by
+        the square of the number of groups, while every input of the sample still counts.
+        None: one GP over the whole sample.
     """
 
     def __init__(
@@ -374,6 +420,7 @@ class SupportGP:
         hyper_subset: int | None = 300,
         prior_std: float | None = 1.0,
         class_weight: str | None = "balanced",
+        hyper_group: int | None = None,
     ) -> None:
         if objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
@@ -395,6 +442,9 @@ class SupportGP:
         if class_weight not in CLASS_WEIGHTS:
             raise ValueError(f"class_weight must be one of {CLASS_WEIGHTS}, got {class_weight!r}")
         self.class_weight = class_weight
+        if hyper_group is not None and hyper_group < 1:
+            raise ValueError(f"hyper_group must be at least 1, got {hyper_group}")
+        self.hyper_group = hyper_group
         self.squash = ProbitSquash()
 
     # ----------------------------------------------------------------- objectives
@@ -503,21 +553,28 @@ class SupportGP:
         prepared: TensorDistances | None = None,
     ) -> float | tuple[float, NDArray[np.float64]]:
         """:meth:`log_marginal_likelihood`, with the kernel's ``prepare(X)`` (see :meth:`_objective_factor`)."""
-        L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient, prepared)
-        a = cho_solve((L, True), y, check_finite=False)
-        n = y.size
-        value = -0.5 * y @ a - np.log(np.diag(L)).sum() - 0.5 * n * np.log(2 * np.pi)
-        if not eval_gradient:
-            return float(value)
-        assert dL is not None  # asked for with eval_gradient
-        K_inv = _inverse_in_place(L)
-        # R&W eq. 5.9: 0.5 tr((a a^T - K^-1) dK/dtheta_j), without forming a a^T; dK/dlog(variance)
-        # is K itself.
-        grad = np.empty(3)
-        for j, dK in enumerate((K, dL)):
-            grad[j] = 0.5 * (a @ (dK @ a) - np.vdot(K_inv, dK))
-        grad[2] = 0.5 * (np.sum(a * a * nvec) - np.sum(np.diag(K_inv) * nvec))
-        return float(value), grad
+        return self._parts_log_marginal_likelihood([(X, y, prepared)], params, eval_gradient)
+
+    def _parts_log_marginal_likelihood(
+        self, parts: list[ObjectivePart], params: NDArray[np.float64], eval_gradient: bool
+    ) -> float | tuple[float, NDArray[np.float64]]:
+        """The log marginal likelihood of independent groups of inputs: the sum of theirs (a block-diagonal K)."""
+        total = 0.0
+        grad = np.zeros(3)
+        for X, y, prepared in parts:
+            L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient, prepared)
+            a = cho_solve((L, True), y, check_finite=False)
+            total += float(-0.5 * y @ a - np.log(np.diag(L)).sum() - 0.5 * y.size * np.log(2 * np.pi))
+            if not eval_gradient:
+                continue
+            assert dL is not None  # asked for with eval_gradient
+            K_inv = _inverse_in_place(L)
+            # R&W eq. 5.9: 0.5 tr((a a^T - K^-1) dK/dtheta_j), without forming a a^T;
+            # dK/dlog(variance) is K itself.
+            for j, dK in enumerate((K, dL)):
+                grad[j] += 0.5 * (a @ (dK @ a) - np.vdot(K_inv, dK))
+            grad[2] += 0.5 * (np.sum(a * a * nvec) - np.sum(np.diag(K_inv) * nvec))
+        return (total, grad) if eval_gradient else total
 
     @overload
     def loo_objective(
@@ -563,10 +620,28 @@ class SupportGP:
         it, so the value is the objective maximised over the squash, and its gradient in the
         kernel's and the noise's parameters that of the maximised objective.
         """
-        L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient, prepared)
-        K_inv = _inverse_in_place(L)
-        a = K_inv @ y
-        d = np.diag(K_inv).copy()
+        return self._parts_loo_objective([(X, y, prepared)], params, eval_gradient, squash)
+
+    def _parts_loo_objective(
+        self,
+        parts: list[ObjectivePart],
+        params: NDArray[np.float64],
+        eval_gradient: bool,
+        squash: ProbitSquash | None = None,
+    ) -> float | tuple[float, NDArray[np.float64]]:
+        """:meth:`_loo_objective` over independent groups of inputs (a block-diagonal K).
+
+        Each group's leave-one-out moments come from its own GP; the class weights and the
+        profiled squash are those of all groups' moments together, as for one set of inputs.
+        """
+        factors = []
+        for X, y, prepared in parts:
+            L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient, prepared)
+            K_inv = _inverse_in_place(L)
+            factors.append((K_inv, K, dL, nvec, K_inv @ y, np.diag(K_inv).copy()))
+        y = np.concatenate([part[1] for part in parts])
+        a = np.concatenate([f[4] for f in factors])
+        d = np.concatenate([f[5] for f in factors])
         mu, var = y - a / d, 1.0 / d
         weights = class_weights(y, self.class_weight)
         if squash is not None:
@@ -577,21 +652,27 @@ class SupportGP:
         value, g = loo_probit(y, mu, var, alpha, alpha * shift, weights)
         if not eval_gradient:
             return value
-        assert dL is not None  # asked for with eval_gradient
         # R&W section 5.4.2: with Z_j = K^-1 dK_j,
         #   dmu_i = [Z_j a]_i / d_i - a_i [Z_j K^-1]_ii / d_i^2,  dvar_i = [Z_j K^-1]_ii / d_i^2.
         # Summed against the objective's partials g_mu and g_var, with u = g_mu / d and
         # w = (g_var - g_mu a) / d^2 that is
         #   grad_j = (K^-1 u)^T dK_j a + tr(dK_j M),  M = K^-1 diag(w) K^-1,
-        # so one n^3 product (M) serves every hyperparameter, each then costing n^2.
-        gmu, gvar = np.asarray(g["mu"]), np.asarray(g["var"])
-        b = K_inv @ (gmu / d)
-        M = _weighted_outer_upper(K_inv, (gvar - gmu * a) / d**2)
-        grad = np.empty(5)
-        for j, dK in enumerate((K, dL)):
-            grad[j] = b @ (dK @ a) + _trace_product_upper(dK, M)
-        # Noise: dK = diag(nvec).
-        grad[2] = nvec @ (b * a + np.diagonal(M))
+        # so one n^3 product (M) serves every hyperparameter, each then costing n^2; a
+        # block-diagonal K adds its groups' terms.
+        gmu_all, gvar_all = np.asarray(g["mu"]), np.asarray(g["var"])
+        grad = np.zeros(5)
+        start = 0
+        for K_inv, K, dL, nvec, a_g, d_g in factors:
+            assert dL is not None  # asked for with eval_gradient
+            part = slice(start, start + a_g.size)
+            start += a_g.size
+            gmu, gvar = gmu_all[part], gvar_all[part]
+            b = K_inv @ (gmu / d_g)
+            M = _weighted_outer_upper(K_inv, (gvar - gmu * a_g) / d_g**2)
+            for j, dK in enumerate((K, dL)):
+                grad[j] += b @ (dK @ a_g) + _trace_product_upper(dK, M)
+            # Noise: dK = diag(nvec).
+            grad[2] += nvec @ (b * a_g + np.diagonal(M))
         grad[3], grad[4] = probit_gradient_in_shift(g, alpha, shift)
         return value, grad
 
@@ -670,10 +751,18 @@ class SupportGP:
         x0 = np.asarray(x0_list, dtype=float)
         profiled = ProbitSquash(max(self.squash.alpha, 1e-3), self.squash.beta) if loo else None
         squash_at: dict[bytes, tuple[float, float]] = {}  # the profiled squash of each point evaluated
-        fun = functools.partial(self._loo_objective, squash=profiled) if loo else self._log_marginal_likelihood
-        # What the kernel can reuse between evaluations on X (the quadrature's node distances),
-        # held for this search only.
-        prepared = self.kernel.prepare(X) if hasattr(self.kernel, "prepare") else None
+        # The sample's groups, each with what the kernel can reuse between evaluations on it (the
+        # quadrature's node distances), held for this search only.
+        groups = [np.arange(len(X))] if self.hyper_group is None else compact_groups(X.centres, self.hyper_group)
+        parts: list[ObjectivePart] = []
+        for g in groups:
+            Xg = X if g.size == len(X) else X.subset(g)
+            parts.append((Xg, y[g], self.kernel.prepare(Xg) if hasattr(self.kernel, "prepare") else None))
+        fun = (
+            functools.partial(self._parts_loo_objective, parts, squash=profiled)
+            if loo
+            else functools.partial(self._parts_log_marginal_likelihood, parts)
+        )
         n_eval = 0
 
         def neg(z: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
@@ -682,7 +771,7 @@ class SupportGP:
             p = x0.copy()
             p[free] = z
             try:
-                out = fun(X, y, p, True, prepared)
+                out = fun(p, True)
                 assert isinstance(out, tuple)  # asked for the gradient
                 v, g = out
             except NumericalError:
