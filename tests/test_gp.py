@@ -323,7 +323,9 @@ def test_grouped_objectives_are_those_of_groups_that_do_not_covary(kernel):
     X1, y1 = _data(5, 20)
     X2, y2 = _data(6, 17)
     X2 = Supports.from_boxes(X2.lower + 200.0, X2.upper + 200.0, X2.counts)
-    X = Supports.from_boxes(np.vstack([X1.lower, X2.lower]), np.vstack([X1.upper, X2.upper]), np.concatenate([X1.counts, X2.counts]))
+    X = Supports.from_boxes(
+        np.vstack([X1.lower, X2.lower]), np.vstack([X1.upper, X2.upper]), np.concatenate([X1.counts, X2.counts])
+    )
     y = np.concatenate([y1, y2])
     gp = SupportGP(kernel, noise_model="per_count")
     parts = [(X1, y1, None), (X2, y2, None)]
@@ -348,12 +350,15 @@ def test_a_grouped_search_learns_what_one_gp_learns_when_groups_are_apart():
     X1, y1 = _data(7, 30)
     X2, y2 = _data(8, 30)
     X2 = Supports.from_boxes(X2.lower + 200.0, X2.upper + 200.0, X2.counts)
-    X = Supports.from_boxes(np.vstack([X1.lower, X2.lower]), np.vstack([X1.upper, X2.upper]), np.concatenate([X1.counts, X2.counts]))
+    X = Supports.from_boxes(
+        np.vstack([X1.lower, X2.lower]), np.vstack([X1.upper, X2.upper]), np.concatenate([X1.counts, X2.counts])
+    )
     y = np.concatenate([y1, y2])
     kernel = AreaKernel(SquaredExponential(1.0, 1.0), "exact")
     one = SupportGP(kernel, hyper_subset=None).fit(X, y)
     grouped = SupportGP(kernel, hyper_subset=None, hyper_group=30).fit(X, y)
     assert grouped.kernel.base.length_scale == pytest.approx(one.kernel.base.length_scale, rel=1e-6)
     assert grouped.noise == pytest.approx(one.noise, rel=1e-6)
+    assert (grouped.fit_report_.groups, one.fit_report_.groups) == (2, 1)
     with pytest.raises(ValueError, match="hyper_group"):
         SupportGP(kernel, hyper_group=0)

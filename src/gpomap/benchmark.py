@@ -169,7 +169,9 @@ def run_paper_benchmark(
         for method in methods:
             for kernel in kernels if method != "ogm" else ("-",):
                 # MSK-GPOM as `gpomap map` runs it: local GPs in tiles, on every core.
-                build = functools.partial(make_model, method, kernel if kernel != "-" else "se", seed, resolution, None, **_options(method, quick))
+                build = functools.partial(
+                    make_model, method, kernel if kernel != "-" else "se", seed, resolution, None, **_options(method, quick)
+                )
                 # Untimed, every method alike: what a process pays once (imports, loading compiled
                 # code) is not the method's cost per map.
                 build().fit(train[:WARMUP_SCANS])

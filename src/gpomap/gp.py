@@ -361,6 +361,7 @@ class FitReport:
     n_evaluations: int
     seconds: float
     restarts: list[float] = field(default_factory=list)
+    groups: int = 1
 
 
 class SupportGP:
@@ -817,7 +818,7 @@ class SupportGP:
             if best.x.tobytes() not in squash_at:  # the optimiser's answer is a point it evaluated
                 neg(best.x)
             self.squash = ProbitSquash(*squash_at[best.x.tobytes()])
-        return FitReport(self.objective, float(-best.fun), n_eval, time.perf_counter() - t0, values)
+        return FitReport(self.objective, float(-best.fun), n_eval, time.perf_counter() - t0, values, len(groups))
 
     # ----------------------------------------------------------------- prediction
     def predict_latent(

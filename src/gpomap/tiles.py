@@ -84,13 +84,14 @@ HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 DEFAULT_HYPER_SAMPLE: dict[int, int] = {2: 800, 3: 300}
 
 #: Most cells of each compact group the hyperparameter sample is cut into for the search, each
-#: group its own GP (:class:`gpomap.gp.SupportGP`'s ``hyper_group``); None: one GP over the sample.
-#: 200: a planar sample's 800 cells are four groups, each evaluation of the objective 16 times
-#: cheaper (the synthetic room's search 0.47 -> 0.11 s, SE), and the written maps of every shared
-#: log and split score as with one GP (`benchmarks/quality.py --methods msk` at 6047d85 against
-#: this: log loss the same to 0.001 on 11 of 12 cases, CSAIL's blocks split 0.170 -> 0.172,
-#: Belgioioso's 0.310 -> 0.309; docs/choices.md).
-HYPER_GROUP_CELLS: int | None = 200
+#: group its own GP (:class:`gpomap.gp.SupportGP`'s ``hyper_group``), by the map's dimension;
+#: None: one GP over the sample. Planar maps: 200, so the 800 cells are four groups and each
+#: evaluation of the objective is 16 times cheaper (the synthetic room's search 0.47 -> 0.11 s,
+#: SE), while the written maps of every shared log and split score as with one GP
+#: (docs/choices.md). Voxel maps: one GP; their 300-cell search costs mostly kernel evaluations,
+#: which groups do not make fewer (la3dm sim_unstructured's stage 0.26 s either way), and groups
+#: of 150 moved sim_structured's exact-point log loss from 0.492 to 0.507.
+HYPER_GROUP_CELLS: dict[int, int | None] = {2: 200, 3: None}
 
 #: The hyperparameter sample is anchored only in a block whose share of occupied cells is at
 #: least this fraction of the whole map's (when any block is): a sample of one class says nothing
@@ -1056,7 +1057,7 @@ class TiledGPOM:
             hyper_subset=None,
             prior_std=b.prior_std,
             class_weight=b.class_weight,
-            hyper_group=HYPER_GROUP_CELLS,
+            hyper_group=HYPER_GROUP_CELLS[self._dim],
         )
         gp.fit(X, lab[idx])
         hyp = {
@@ -1074,6 +1075,7 @@ class TiledGPOM:
             "sample_radius_m": round(float(r), 2),
             "sample_occupied_fraction": round(float(np.mean(lab[idx] > 0)), 4),
             "evaluations": gp.fit_report_.n_evaluations if gp.fit_report_ is not None else 0,
+            "sample_groups": gp.fit_report_.groups if gp.fit_report_ is not None else 1,
         }
         return hyp
 
