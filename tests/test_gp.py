@@ -357,8 +357,9 @@ def test_a_grouped_search_learns_what_one_gp_learns_when_groups_are_apart():
     kernel = AreaKernel(SquaredExponential(1.0, 1.0), "exact")
     one = SupportGP(kernel, hyper_subset=None).fit(X, y)
     grouped = SupportGP(kernel, hyper_subset=None, hyper_group=30).fit(X, y)
-    assert grouped.kernel.base.length_scale == pytest.approx(one.kernel.base.length_scale, rel=1e-6)
-    assert grouped.noise == pytest.approx(one.noise, rel=1e-6)
+    # The same optimum, to the search's own tolerance (the two paths' round-off differs).
+    assert grouped.kernel.base.length_scale == pytest.approx(one.kernel.base.length_scale, rel=1e-4)
+    assert grouped.noise == pytest.approx(one.noise, rel=1e-4)
     assert (grouped.fit_report_.groups, one.fit_report_.groups) == (2, 1)
     with pytest.raises(ValueError, match="hyper_group"):
         SupportGP(kernel, hyper_group=0)

@@ -33,11 +33,11 @@ from gpomap.squash import CLASS_WEIGHTS, SQUASH_BOUNDS, ProbitSquash, class_weig
 from gpomap.supports import Supports
 
 OBJECTIVES = ("loo", "lml")
+NOISE_MODELS = ("constant", "per_count")
 
 #: One group of a hyperparameter objective: its inputs, their +-1 targets, and the kernel's
 #: ``prepare`` of those inputs (None where the kernel has none).
 ObjectivePart = tuple[Supports, NDArray[np.float64], TensorDistances | None]
-NOISE_MODELS = ("constant", "per_count")
 
 
 def robust_cholesky(K: NDArray[np.float64], max_tries: int = 6) -> tuple[NDArray[np.float64], float]:
