@@ -13,6 +13,14 @@ from gpomap.apps.stream import ReplayResult, deferred_signals, replay
 from gpomap.scans import Scan
 
 
+@pytest.fixture(autouse=True)
+def _python_sigint_handler():
+    """Ctrl-C as a fresh Python process has it: a test worker may have been left with another handler."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
 def _scans(n: int) -> list[Scan]:
     return [
         Scan(pose=np.zeros(3), angles=np.array([0.0]), ranges=np.array([1.0]), max_range=10.0, time=float(i)) for i in range(n)
