@@ -15,8 +15,9 @@ fits one GP per tile on the cells near it:
 3. **Hyperparameters once**: the signal variance, length scale, noise, and the squash's alpha and
    beta are learnt by one :class:`~gpomap.gp.SupportGP` on a compact sample of at most
    `hyper_sample` cells (the cells nearest the centroid of a block at the upper quartile of
-   cells per block: a dense but typical patch), then every tile uses them as they are. With
-   ``per_tile_hyperparameters=True`` each tile learns its own instead.
+   cells per block: a dense but typical patch; in planar maps the search treats it as compact
+   groups of :data:`HYPER_GROUP_CELLS`, each its own GP), then every tile uses them as they are.
+   With ``per_tile_hyperparameters=True`` each tile learns its own instead.
 4. **One GP per tile**, fitted on the cells whose boxes meet the tile grown by `overlap` on each
    side. Tiles are independent tasks run in this process, in a local process pool, or on a Dask
    distributed cluster (:func:`fit_tile_task` and :func:`predict_tile_task` are plain picklable
