@@ -70,3 +70,14 @@ def test_written_voxel_grid_predicts_the_gp_only_where_it_is_read() -> None:
     np.testing.assert_array_equal(got[1], lattice.interpolate(var, sampled, grid))
     block = lattice.interpolation_block(sampled, grid)
     assert asked[0] == np.prod([s.stop - s.start for s in block]) < asked[1] == np.prod(sampled.shape)
+
+
+def test_column_bounds_are_the_least_and_greatest_of_each_column():
+    rng = np.random.default_rng(2)
+    for a in (rng.normal(size=(1000, 2)), rng.integers(-50, 50, size=(777, 3)), rng.normal(size=(1, 1))):
+        lo, hi = lattice.column_bounds(a)
+        assert lo.dtype == a.dtype and hi.dtype == a.dtype
+        np.testing.assert_array_equal(lo, np.min(a, axis=0))
+        np.testing.assert_array_equal(hi, np.max(a, axis=0))
+    with pytest.raises(ValueError):
+        lattice.column_bounds(np.zeros((0, 2)))

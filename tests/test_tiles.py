@@ -358,3 +358,36 @@ def test_nearest_box_is_the_brute_force_nearest_in_any_chunking(monkeypatch, pai
         assert g == int(np.flatnonzero(np.isclose(d, min(d), rtol=0, atol=1e-12))[0])  # the first on ties
     inside = np.array([[0.5, 0.5], [8.2, 3.9]])
     assert tiles.nearest_box(inside, boxes).tolist() == [0, 9]
+
+
+@pytest.mark.parametrize("spread", [30.0, 1e6], ids=["compact", "sparse-and-wide"])
+def test_present_keys_are_the_distinct_keys_of_the_points(spread):
+    # Counted over the squares' index box (or sorted, when the box is too wide): the distinct
+    # squares holding points, as a sort of every point's key gives them, points on square borders
+    # and negative coordinates included.
+    rng = np.random.default_rng(4)
+    model = TiledGPOM(tile_size=5.0, n_workers=1, **OPTS)
+    model.origin_ = (-2.5, 1.0)
+    model.tile_size_ = 5.0
+    pts = np.vstack([rng.uniform(-spread, spread, (2000, 2)), [[-2.5, 1.0], [2.5, 6.0], [-7.5, -4.0]]])
+    for side in (5.0, 10.0):
+        expected = np.unique(model._square_keys(pts, side))
+        got = model._present_keys(pts, side)
+        assert got.dtype == np.int64 and got.tolist() == expected.tolist()
+    assert model._present_keys(pts[:0], 5.0).size == 0
+
+
+def test_points_are_filed_under_their_blocks_in_arrival_order(room):
+    # Every point under the block whose square holds it, in the order the points came: what a
+    # sort of every point's block key gives, found here by brute force.
+    model = TiledGPOM(tile_size=5.0, n_workers=1, **OPTS).fit(room)
+    points = np.concatenate([model._block_points[k].arrays()[0] for k in sorted(model._block_points)])
+    keys = model._square_keys(points, model.block_size_)
+    for k in model._block_points:
+        mine = model._block_points[k].arrays()[0]
+        assert np.all(model._square_keys(mine, model.block_size_) == k)
+    assert len(model._block_points) == np.unique(keys).size >= 2
+    obs = model.base.make_observations(room, clearance=False)
+    for k, block in model._block_points.items():
+        mine = obs.points[model._square_keys(obs.points, model.block_size_) == k]
+        np.testing.assert_array_equal(block.arrays()[0], mine)

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import EmptyDataError
+from gpomap.lattice import column_bounds
 from gpomap.supports import Supports
 
 #: Box conventions: "node" is the tree node's box (the paper), "tight" the bounding box of the
@@ -134,8 +135,7 @@ def build_cells(
     if box not in BOX_MODES:
         raise ValueError(f"box must be one of {BOX_MODES}, got {box!r}")
 
-    lo0 = pts.min(axis=0)
-    hi0 = pts.max(axis=0)
+    lo0, hi0 = column_bounds(pts)
     # A degenerate root (all points on a line or a plane) still needs an extent to split.
     hi0 = np.maximum(hi0, lo0 + 1e-9)
 

@@ -11,6 +11,7 @@ with the GP are written once for every dimension.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -21,6 +22,20 @@ from gpomap.voxels import VoxelSpec
 #: A 2-D grid or a 3-D voxel grid: both have `origin` (coordinate order), `resolution`, `shape`
 #: (array order, x last) and `index_of`.
 AnyGrid = GridSpec | VoxelSpec
+
+
+def column_bounds(points: ArrayLike) -> tuple[NDArray[Any], NDArray[Any]]:
+    """``points.min(axis=0)`` and ``points.max(axis=0)`` of an array of shape (n, d), each (d,).
+
+    Column by column: numpy reduces an (n, 2) array along its first axis some 30 times slower
+    than it reduces each column in turn (a million planar points: 25 ms against 0.8 ms), and a
+    whole log's points are reduced so in several places. An empty array raises ValueError, as
+    ``min`` does.
+    """
+    a = np.asarray(points)
+    lo = np.array([a[:, j].min() for j in range(a.shape[1])], dtype=a.dtype)
+    hi = np.array([a[:, j].max() for j in range(a.shape[1])], dtype=a.dtype)
+    return lo, hi
 
 
 def extent_bounds(extent: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

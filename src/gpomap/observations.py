@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
+from gpomap.lattice import column_bounds
 from gpomap.scans import Scan
 
 #: What the map is made from: planar scans (2-D) or point clouds (3-D), one kind at a time.
@@ -195,13 +196,19 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     # (D + sqrt(d)) s of a hit and farther than (D - sqrt(d)) s from every hit. Points sure
     # either way are settled by the distance transform; only the band between goes to the tree.
     dim = points.shape[1]
-    lo = points.min(axis=0)
-    k = _subdivisions(points.max(axis=0) - lo, clearance)
+    lo, hi = column_bounds(points)
+    k = _subdivisions(hi - lo, clearance)
     if k:
-        boxes = np.floor((points - lo) * (k / clearance)).astype(np.intp)
-        no_hit = np.ones(tuple(int(v) for v in boxes.max(axis=0) + 1), dtype=bool)
-        no_hit[tuple(boxes[occupied].T)] = False
-        boxes_away = distance_transform_edt(no_hit)[tuple(boxes[free].T)]
+        # Each point's box as one flat index, column by column (the offsets are >= 0, so the
+        # integer cast floors them), without (n, d) temporaries.
+        shape = tuple(int(v) for v in np.floor((hi - lo) * (k / clearance)) + 1)
+        flat = np.zeros(points.shape[0], dtype=np.intp)
+        for j, size in enumerate(shape):
+            flat *= size
+            flat += np.minimum(((points[:, j] - lo[j]) * (k / clearance)).astype(np.intp), size - 1)
+        no_hit = np.ones(shape, dtype=bool)
+        no_hit.ravel()[flat[occupied]] = False
+        boxes_away = distance_transform_edt(no_hit).ravel()[flat[free]]
         diagonal = math.sqrt(dim)  # two half diagonals, in boxes
         # With a margin either way: a point on a box border may have been floored into either box.
         out[free[boxes_away + diagonal < k - 1e-6]] = True

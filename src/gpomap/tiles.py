@@ -61,6 +61,7 @@ from gpomap.gp import LOCAL_TOL, SupportGP, cholesky_inverse, local_blocks, lowe
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
+from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
 from gpomap.scans import Scan
@@ -862,11 +863,30 @@ class TiledGPOM:
         # Tiles and blocks are squares in x, y; in 3-D they are columns spanning every height.
         # By chunks: a whole log's temporaries would be several copies of its points.
         keys = np.empty(points.shape[0], dtype=np.int64)
-        origin = np.asarray(self.origin_)
         for s in range(0, points.shape[0], _KEY_CHUNK):
-            ij = np.floor((points[s : s + _KEY_CHUNK, :2] - origin) / side).astype(np.int64)
+            ij = self._square_indices(points[s : s + _KEY_CHUNK], side)
             keys[s : s + _KEY_CHUNK] = (ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET)
         return keys
+
+    def _square_indices(self, points: NDArray[np.float64], side: float) -> NDArray[np.int64]:
+        """Integer (ix, iy) of the square of `side` on the tile grid's origin holding each point, shape (n, 2)."""
+        return np.floor((points[:, :2] - np.asarray(self.origin_)) / side).astype(np.int64)
+
+    def _present_keys(self, points: NDArray[np.float64], side: float) -> NDArray[np.int64]:
+        """The keys of the squares of `side` holding any of `points`, sorted: ``np.unique`` of their
+        :meth:`_square_keys`, found by counting over the squares' index box instead of sorting."""
+        if points.shape[0] == 0:
+            return np.zeros(0, dtype=np.int64)
+        ij = self._square_indices(points, side)
+        lo, hi = column_bounds(ij)
+        span = hi - lo + 1
+        if int(span[0]) * int(span[1]) > max(4 * points.shape[0], 1 << 16):
+            # A few points spread very wide: sorting them is cheaper than counting the box.
+            return np.unique((ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET))
+        # Row-major over (ix, iy), the order of the keys.
+        flat = np.flatnonzero(np.bincount((ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1]), minlength=int(span.prod())))
+        ix, iy = flat // span[1] + lo[0], flat % span[1] + lo[1]
+        return (ix + _KEY_OFFSET) * _KEY_BASE + (iy + _KEY_OFFSET)
 
     def _meeting(self, lo: tuple[float, float], hi: tuple[float, float], side: float) -> Iterator[tuple[int, int]]:
         """Indices of the squares of `side` on the tile grid's origin that meet the closed box [lo, hi] in x, y."""
@@ -888,7 +908,7 @@ class TiledGPOM:
         tree), else the map frame's origin."""
         if points.shape[0] == 0:
             return (0.0, 0.0)
-        lo, hi = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+        lo, hi = column_bounds(points[:, :2])
         for side in (self.tile_size_, self.block_size_):
             if np.all(hi - lo < side):
                 corner = 0.5 * (lo + hi) - 0.5 * side
@@ -938,12 +958,26 @@ class TiledGPOM:
         found = [np.zeros(0, dtype=np.int64)]
         for s in chunks:
             part = points[s : s + _KEY_CHUNK]
-            self._tiles_with_points.update(int(k) for k in np.unique(self._tile_keys(part)))
-            found.append(np.unique(self._block_keys(part)))
+            self._tiles_with_points.update(self._present_keys(part, self.tile_size_).tolist())
+            found.append(self._present_keys(part, self.block_size_))
         block_keys = np.unique(np.concatenate(found))
         ids = np.empty(points.shape[0], dtype=np.int16 if block_keys.size <= np.iinfo(np.int16).max else np.int32)
+        # Each block's id looked up in a table over the blocks' index box (a search per point
+        # where that box is too large for a table).
+        bx, by = block_keys // _KEY_BASE - _KEY_OFFSET, block_keys % _KEY_BASE - _KEY_OFFSET
+        b_lo = np.array([bx.min(), by.min()]) if block_keys.size else np.zeros(2, dtype=np.int64)
+        b_span = np.array([bx.max(), by.max()]) - b_lo + 1 if block_keys.size else np.ones(2, dtype=np.int64)
+        table = None
+        if int(b_span[0]) * int(b_span[1]) <= _KEY_CHUNK:
+            table = np.zeros(int(b_span.prod()), dtype=ids.dtype)
+            table[(bx - b_lo[0]) * b_span[1] + (by - b_lo[1])] = np.arange(block_keys.size)
         for s in chunks:
-            ids[s : s + _KEY_CHUNK] = np.searchsorted(block_keys, self._block_keys(points[s : s + _KEY_CHUNK]))
+            part = points[s : s + _KEY_CHUNK]
+            if table is None:
+                ids[s : s + _KEY_CHUNK] = np.searchsorted(block_keys, self._block_keys(part))
+            else:
+                ij = self._square_indices(part, self.block_size_) - b_lo
+                ids[s : s + _KEY_CHUNK] = table[ij[:, 0] * b_span[1] + ij[:, 1]]
         # Stable (a radix sort for 16-bit ids): keeps observation order per block.
         order = np.argsort(ids, kind="stable")
         cuts = np.cumsum(np.bincount(ids, minlength=block_keys.size))[:-1]
@@ -958,7 +992,7 @@ class TiledGPOM:
                 self._block_points[k] = _BlockPoints(points[grp], occupied[grp])
             touched.add(k)
         if points.shape[0]:
-            lo, hi = points.min(axis=0), points.max(axis=0)
+            lo, hi = column_bounds(points)
             self._lower = lo if self._lower is None else np.minimum(self._lower, lo)
             self._upper = hi if self._upper is None else np.maximum(self._upper, hi)
         self._n_points += int(points.shape[0])
