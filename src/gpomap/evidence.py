@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap import _compiled_counts
-from gpomap.lattice import AnyGrid, bounds_extent, extent_bounds, flat_index, grid_size, make_grid
+from gpomap.lattice import AnyGrid, bounds_extent, column_bounds, extent_bounds, flat_index, grid_size, make_grid
 from gpomap.observations import Rays, ScanData, sensor_positions
 from gpomap.raycast import traverse
 
@@ -172,7 +172,7 @@ class RayEvidence:
     def extent(self) -> tuple[float, ...]:
         """(xmin, xmax, ymin, ymax) of every beam's start and end ((..., zmin, zmax) in 3-D)."""
         pts = np.concatenate([self.starts, self.ends])
-        return bounds_extent(pts.min(axis=0), pts.max(axis=0))
+        return bounds_extent(*column_bounds(pts))
 
     def counts(self, grid: AnyGrid, scans: NDArray[np.intp] | None = None, keep: NDArray[np.intp] | None = None) -> RayCounts:
         """Hits, misses and near misses per cell of `grid`, one update per cell per scan, a hit winning.

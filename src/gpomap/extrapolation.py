@@ -39,7 +39,7 @@ from scipy.special import log_ndtr
 
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
-from gpomap.lattice import bounds_extent, flat_index
+from gpomap.lattice import bounds_extent, column_bounds, flat_index
 from gpomap.observations import Observations, free_near_hits
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
@@ -96,7 +96,7 @@ def whole_map_region(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], 
     (``margin`` 0 in :func:`fit_variance_scale`).
     """
     xy = np.asarray(points, dtype=float)[:, :2]
-    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    lo, hi = column_bounds(xy)
     return 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) + 1.0
 
 
@@ -274,7 +274,7 @@ def _unseen_points(
         return pts, occ
     # Where no kept beam went: no hit and no miss on the evaluation's reference lattice.
     rays = RayEvidence.from_scans(kept_scans, no_return_cap)
-    grid = lattice_grid(tuple(bounds_extent(pts.min(axis=0), pts.max(axis=0))), UNSEEN_RESOLUTION[pts.shape[1]])
+    grid = lattice_grid(tuple(bounds_extent(*column_bounds(pts))), UNSEEN_RESOLUTION[pts.shape[1]])
     cell, ok = flat_index(grid, pts)
     seen = ok & rays.seen(grid).reshape(-1)[cell]
     return pts[~seen], occ[~seen]

@@ -68,6 +68,7 @@ from gpomap.lattice import (
     bounds_extent,
     cell_offset,
     coarse,
+    column_bounds,
     extent_bounds,
     flat_index,
     grid_centres,
@@ -488,7 +489,7 @@ class EvidenceLayer:
             return
         # The margin holds the robot's body round a path at the data's edge.
         margin = self.resolution + PATH_RADIUS
-        local = lattice_grid(bounds_extent(pts.min(axis=0), pts.max(axis=0)), self.resolution, margin=margin)
+        local = lattice_grid(bounds_extent(*column_bounds(pts)), self.resolution, margin=margin)
         self._cover(local)
         # The first scans' counts are on the lattice itself: the calibration's held-out scans keep
         # their cells, so their leave-one-scan-out counts need no second traversal.
