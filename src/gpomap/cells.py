@@ -139,19 +139,22 @@ def build_cells(
     # A degenerate root (all points on a line or a plane) still needs an extent to split.
     hi0 = np.maximum(hi0, lo0 + 1e-9)
 
-    out_lo: list[NDArray[np.float64]] = []
-    out_hi: list[NDArray[np.float64]] = []
-    node_lo: list[NDArray[np.float64]] = []
-    node_hi: list[NDArray[np.float64]] = []
+    # Boxes as tuples of Python floats: a node's few numbers cost less so than as small arrays,
+    # and the arithmetic (sides, midpoints) is the same IEEE double arithmetic.
+    Box = tuple[float, ...]
+    out_lo: list[Box] = []
+    out_hi: list[Box] = []
+    node_lo: list[Box] = []
+    node_hi: list[Box] = []
     out_occ: list[bool] = []
     out_amb: list[bool] = []
     out_members: list[NDArray[np.intp]] = []
+    columns = [np.ascontiguousarray(pts[:, j]) for j in range(pts.shape[1])]
 
-    def emit(idx: NDArray[np.intp], lo: NDArray[np.float64], hi: NDArray[np.float64], label: bool, amb: bool) -> None:
+    def emit(idx: NDArray[np.intp], lo: Box, hi: Box, label: bool, amb: bool) -> None:
         if box == "tight" or amb:
-            p = pts[idx]
-            out_lo.append(p.min(axis=0))
-            out_hi.append(p.max(axis=0))
+            out_lo.append(tuple(float(c[idx].min()) for c in columns))
+            out_hi.append(tuple(float(c[idx].max()) for c in columns))
         else:
             out_lo.append(lo)
             out_hi.append(hi)
@@ -162,17 +165,17 @@ def build_cells(
         out_members.append(idx)
 
     # Depth-first with an explicit stack: the tree can be deep for large maps.
-    stack: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]]] = [
-        (np.arange(pts.shape[0], dtype=np.intp), lo0, hi0)
+    stack: list[tuple[NDArray[np.intp], Box, Box]] = [
+        (np.arange(pts.shape[0], dtype=np.intp), tuple(lo0.tolist()), tuple(hi0.tolist()))
     ]
     while stack:
         idx, lo, hi = stack.pop()
         if idx.size == 0:
             continue  # empty cells carry no evidence
-        n_occ = int(occ[idx].sum())
+        n_occ = int(np.count_nonzero(occ[idx]))
         pure = n_occ == 0 or n_occ == idx.size
-        side = hi - lo
-        longest = float(side.max())
+        side = [h - l for l, h in zip(lo, hi)]
+        longest = max(side)
         if pure and longest <= max_cell:
             emit(idx, lo, hi, n_occ > 0, False)
             continue
@@ -184,15 +187,13 @@ def build_cells(
                 emit(idx[o], lo, hi, True, True)
                 emit(idx[~o], lo, hi, False, True)
             continue
-        axis = int(np.argmax(side))
+        axis = side.index(longest)  # the first longest, as argmax
         mid = 0.5 * (lo[axis] + hi[axis])
-        left = pts[idx, axis] < mid
-        lo_r = lo.copy()
-        lo_r[axis] = mid
-        hi_l = hi.copy()
-        hi_l[axis] = mid
-        stack.append((idx[~left], lo_r, hi.copy()))
-        stack.append((idx[left], lo.copy(), hi_l))
+        left = columns[axis][idx] < mid
+        lo_r = (*lo[:axis], mid, *lo[axis + 1 :])
+        hi_l = (*hi[:axis], mid, *hi[axis + 1 :])
+        stack.append((idx[~left], lo_r, hi))
+        stack.append((idx[left], lo, hi_l))
 
     counts = np.array([m.size for m in out_members], dtype=np.intp)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
