@@ -24,6 +24,7 @@ blocks stay as the reference and for every other kernel.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -73,6 +74,24 @@ class TensorRule:
         return TensorRule(self.coords * factor, self.weights)
 
 
+@functools.lru_cache(maxsize=16)
+def _unit_rule(order: int, d: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Gauss-Legendre nodes on [0, 1], shape (order,), and the weights of their d-fold product, shape (order**d,).
+
+    Cached: every kernel call on boxes needs them, and the eigenvalue problem that gives the
+    nodes costs more than a small block's arithmetic. Read-only, since they are shared.
+    """
+    x, w = np.polynomial.legendre.leggauss(order)
+    unit, unit_w = 0.5 * (x + 1.0), 0.5 * w
+    # The d-fold product of the 1-D weights, nodes in row-major order of their axis indices (as
+    # quadrature_nodes' meshgrid with indexing "ij").
+    grids = np.meshgrid(*([unit_w] * d), indexing="ij")
+    box_w = np.prod(np.column_stack([g.ravel() for g in grids]), axis=1)
+    unit.flags.writeable = False
+    box_w.flags.writeable = False
+    return unit, box_w
+
+
 def tensor_rules(supports: Supports, order: int) -> tuple[list[NDArray[np.intp]], list[TensorRule]]:
     """The inputs of `supports` in groups: boxes with `order` Gauss-Legendre nodes per axis, points with one.
 
@@ -91,13 +110,7 @@ def tensor_rules(supports: Supports, order: int) -> tuple[list[NDArray[np.intp]]
     """
     if order < 1:
         raise ValueError(f"quadrature order must be at least 1, got {order}")
-    d = supports.dim
-    x, w = np.polynomial.legendre.leggauss(order)
-    unit, unit_w = 0.5 * (x + 1.0), 0.5 * w
-    # The d-fold product of the 1-D weights, nodes in row-major order of their axis indices (as
-    # quadrature_nodes' meshgrid with indexing "ij").
-    grids = np.meshgrid(*([unit_w] * d), indexing="ij")
-    box_w = np.prod(np.column_stack([g.ravel() for g in grids]), axis=1)
+    unit, box_w = _unit_rule(order, supports.dim)
     is_point = supports.is_point
     index: list[NDArray[np.intp]] = []
     rules: list[TensorRule] = []
