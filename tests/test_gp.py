@@ -7,7 +7,7 @@ from gpomap.errors import NumericalError
 from gpomap.gp import SupportGP, compact_groups, inverse_diagonal, robust_cholesky
 from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
 from gpomap.squash import ProbitSquash, class_weights, loo_moments, loo_probit
-from gpomap.supports import Supports
+from gpomap.supports import Supports, concatenate
 
 
 def _data(seed=0, n=25):
@@ -315,18 +315,19 @@ def test_compact_groups_halve_at_the_median_of_the_widest_axis():
         compact_groups(centres, 0)
 
 
+def _far_apart(first, second):
+    """Two data sets, the second moved 200 m away, and both as one: ((X1, y1), (X2, y2), (X, y))."""
+    (X1, y1), (X2, y2) = first, second
+    X2 = Supports.from_boxes(X2.lower + 200.0, X2.upper + 200.0, X2.counts)
+    return (X1, y1), (X2, y2), (concatenate([X1, X2]), np.concatenate([y1, y2]))
+
+
 @pytest.mark.parametrize("kernel", KERNELS, ids=["se-exact", "matern-quadrature"])
 def test_grouped_objectives_are_those_of_groups_that_do_not_covary(kernel):
     # Two clusters 200 m apart do not covary to double precision, so the objectives of one GP
     # over both equal those of the two groups as independent GPs, value and gradient; the
     # grouped gradient is also checked by finite differences.
-    X1, y1 = _data(5, 20)
-    X2, y2 = _data(6, 17)
-    X2 = Supports.from_boxes(X2.lower + 200.0, X2.upper + 200.0, X2.counts)
-    X = Supports.from_boxes(
-        np.vstack([X1.lower, X2.lower]), np.vstack([X1.upper, X2.upper]), np.concatenate([X1.counts, X2.counts])
-    )
-    y = np.concatenate([y1, y2])
+    (X1, y1), (X2, y2), (X, y) = _far_apart(_data(5, 20), _data(6, 17))
     gp = SupportGP(kernel, noise_model="per_count")
     parts = [(X1, y1, None), (X2, y2, None)]
     params = np.array([0.0, np.log(0.9), np.log(0.1), np.log(1.4), -0.2])
@@ -347,13 +348,7 @@ def test_grouped_objectives_are_those_of_groups_that_do_not_covary(kernel):
 
 
 def test_a_grouped_search_learns_what_one_gp_learns_when_groups_are_apart():
-    X1, y1 = _data(7, 30)
-    X2, y2 = _data(8, 30)
-    X2 = Supports.from_boxes(X2.lower + 200.0, X2.upper + 200.0, X2.counts)
-    X = Supports.from_boxes(
-        np.vstack([X1.lower, X2.lower]), np.vstack([X1.upper, X2.upper]), np.concatenate([X1.counts, X2.counts])
-    )
-    y = np.concatenate([y1, y2])
+    _, _, (X, y) = _far_apart(_data(7, 30), _data(8, 30))
     kernel = AreaKernel(SquaredExponential(1.0, 1.0), "exact")
     one = SupportGP(kernel, hyper_subset=None).fit(X, y)
     grouped = SupportGP(kernel, hyper_subset=None, hyper_group=30).fit(X, y)

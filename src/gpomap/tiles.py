@@ -45,7 +45,7 @@ import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -856,16 +856,13 @@ class TiledGPOM:
     def _block_keys(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
         return self._square_keys(points, self.block_size_)
 
-    def _tile_keys(self, points: NDArray[np.float64]) -> NDArray[np.int64]:
-        return self._square_keys(points, self.tile_size_)
-
     def _square_keys(self, points: NDArray[np.float64], side: float) -> NDArray[np.int64]:
         # Tiles and blocks are squares in x, y; in 3-D they are columns spanning every height.
         # By chunks: a whole log's temporaries would be several copies of its points.
         keys = np.empty(points.shape[0], dtype=np.int64)
         for s in range(0, points.shape[0], _KEY_CHUNK):
             ij = self._square_indices(points[s : s + _KEY_CHUNK], side)
-            keys[s : s + _KEY_CHUNK] = (ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET)
+            keys[s : s + _KEY_CHUNK] = self._encode(ij[:, 0], ij[:, 1])
         return keys
 
     def _square_indices(self, points: NDArray[np.float64], side: float) -> NDArray[np.int64]:
@@ -882,11 +879,10 @@ class TiledGPOM:
         span = hi - lo + 1
         if int(span[0]) * int(span[1]) > max(4 * points.shape[0], 1 << 16):
             # A few points spread very wide: sorting them is cheaper than counting the box.
-            return np.unique((ij[:, 0] + _KEY_OFFSET) * _KEY_BASE + (ij[:, 1] + _KEY_OFFSET))
+            return np.unique(self._encode(ij[:, 0], ij[:, 1]))
         # Row-major over (ix, iy), the order of the keys.
         flat = np.flatnonzero(np.bincount((ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1]), minlength=int(span.prod())))
-        ix, iy = flat // span[1] + lo[0], flat % span[1] + lo[1]
-        return (ix + _KEY_OFFSET) * _KEY_BASE + (iy + _KEY_OFFSET)
+        return self._encode(flat // span[1] + lo[0], flat % span[1] + lo[1])
 
     def _meeting(self, lo: tuple[float, float], hi: tuple[float, float], side: float) -> Iterator[tuple[int, int]]:
         """Indices of the squares of `side` on the tile grid's origin that meet the closed box [lo, hi] in x, y."""
@@ -919,8 +915,17 @@ class TiledGPOM:
     def _decode(key: int) -> tuple[int, int]:
         return int(key // _KEY_BASE - _KEY_OFFSET), int(key % _KEY_BASE - _KEY_OFFSET)
 
+    @overload
     @staticmethod
-    def _encode(ix: int, iy: int) -> int:
+    def _encode(ix: int, iy: int) -> int: ...
+
+    @overload
+    @staticmethod
+    def _encode(ix: NDArray[np.int64], iy: NDArray[np.int64]) -> NDArray[np.int64]: ...
+
+    @staticmethod
+    def _encode(ix: Any, iy: Any) -> Any:
+        """The key of square (ix, iy), or of each pair of index arrays."""
         return (ix + _KEY_OFFSET) * _KEY_BASE + (iy + _KEY_OFFSET)
 
     def _core(self, key: tuple[int, int]) -> tuple[float, float, float, float]:
@@ -964,13 +969,14 @@ class TiledGPOM:
         ids = np.empty(points.shape[0], dtype=np.int16 if block_keys.size <= np.iinfo(np.int16).max else np.int32)
         # Each block's id looked up in a table over the blocks' index box (a search per point
         # where that box is too large for a table).
-        bx, by = block_keys // _KEY_BASE - _KEY_OFFSET, block_keys % _KEY_BASE - _KEY_OFFSET
-        b_lo = np.array([bx.min(), by.min()]) if block_keys.size else np.zeros(2, dtype=np.int64)
-        b_span = np.array([bx.max(), by.max()]) - b_lo + 1 if block_keys.size else np.ones(2, dtype=np.int64)
         table = None
-        if int(b_span[0]) * int(b_span[1]) <= _KEY_CHUNK:
-            table = np.zeros(int(b_span.prod()), dtype=ids.dtype)
-            table[(bx - b_lo[0]) * b_span[1] + (by - b_lo[1])] = np.arange(block_keys.size)
+        if block_keys.size:
+            bxy = np.column_stack([block_keys // _KEY_BASE - _KEY_OFFSET, block_keys % _KEY_BASE - _KEY_OFFSET])
+            b_lo, b_hi = column_bounds(bxy)
+            b_span = b_hi - b_lo + 1
+            if int(b_span[0]) * int(b_span[1]) <= _KEY_CHUNK:
+                table = np.zeros(int(b_span.prod()), dtype=ids.dtype)
+                table[(bxy[:, 0] - b_lo[0]) * b_span[1] + (bxy[:, 1] - b_lo[1])] = np.arange(block_keys.size)
         for s in chunks:
             part = points[s : s + _KEY_CHUNK]
             if table is None:
