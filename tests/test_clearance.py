@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
+import gpomap._compiled_clearance as compiled_clearance
 import gpomap.observations as observations
 from gpomap.observations import free_near_hits
 
@@ -18,7 +19,11 @@ def brute_force(points: np.ndarray, occupied: np.ndarray, clearance: float) -> n
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("clearance", [0.05, 0.3, 1.7])
 @pytest.mark.parametrize("lattice", ["fine", "coarse", "none"])  # the most boxes per clearance, 1, no lattice
-def test_free_near_hits_equals_brute_force(dim: int, clearance: float, lattice: str, monkeypatch) -> None:
+@pytest.mark.parametrize("compiled", [False, True])
+def test_free_near_hits_equals_brute_force(dim: int, clearance: float, lattice: str, compiled: bool, monkeypatch) -> None:
+    if compiled and not compiled_clearance.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(compiled_clearance, "ENABLED", compiled)
     rng = np.random.default_rng(dim * 10 + int(clearance * 10))
     # Negative and positive coordinates, and points on box borders (multiples of the clearance).
     pts = rng.uniform(-8.0, 12.0, size=(3000, dim)) * clearance * (2.0 if dim == 3 else 4.0)
@@ -35,10 +40,30 @@ def test_free_near_hits_equals_brute_force(dim: int, clearance: float, lattice: 
     assert got.any() and not got.all()  # both answers occur, so the comparison means something
 
 
-def test_free_near_hits_far_apart_and_degenerate() -> None:
+@pytest.mark.parametrize("compiled", [False, True])
+def test_free_near_hits_far_apart_and_degenerate(compiled: bool, monkeypatch) -> None:
+    monkeypatch.setattr(compiled_clearance, "ENABLED", compiled and compiled_clearance.AVAILABLE)
     # Two clusters kilometres apart: boxes between them are never formed.
     occ = np.array([True, False, False, True, False])
     pts = np.array([[0.0, 0.0], [0.1, 0.0], [0.5, 0.0], [5000.0, -3000.0], [5000.0, -2999.8]])
     np.testing.assert_array_equal(free_near_hits(pts, occ, 0.3), [False, True, False, False, True])
     assert not free_near_hits(pts, np.zeros(5, bool), 0.3).any()
     assert not free_near_hits(pts, np.ones(5, bool), 0.3).any()
+
+
+@pytest.mark.skipif(not compiled_clearance.AVAILABLE, reason="numba is not installed")
+@pytest.mark.parametrize("dim", [2, 3])
+def test_compiled_clearance_on_box_borders_and_its_budget(dim: int) -> None:
+    # Samples and hits on a lattice one clearance apart, shifted by less than a rounding error:
+    # pairs exactly a clearance apart are not near, pairs a hair closer are.
+    clearance = 0.3
+    rng = np.random.default_rng(dim)
+    lattice = rng.integers(-20, 20, size=(2000, dim)) * clearance + 1e-12 * rng.standard_normal((2000, dim))
+    hits, free = lattice[:200], lattice[200:]
+    got = compiled_clearance.near_hits(free, hits, clearance, max_boxes=10**7)
+    assert got is not None
+    d = cdist(free, hits).min(axis=1)
+    np.testing.assert_array_equal(got, d < clearance)
+    assert got.any() and not got.all()
+    # Past the budget of boxes it declines, and free_near_hits falls back on the numpy path.
+    assert compiled_clearance.near_hits(free, hits, clearance, max_boxes=10) is None

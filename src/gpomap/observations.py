@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
+from gpomap import _compiled_clearance
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
 from gpomap.lattice import column_bounds
@@ -178,6 +179,10 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     is then predicted free with confidence. Space this close to a surface is what the range and
     pose errors blur anyway, so such samples are better dropped than trusted.
 
+    Compiled (:mod:`gpomap._compiled_clearance`) when numba is there and its table of boxes fits
+    :data:`MAX_CLEARANCE_BOXES`; else a distance transform over a lattice of boxes settles most
+    samples and a k-d tree the rest. Both give the same answer.
+
     Parameters
     ----------
     points : ndarray of shape (n, d)
@@ -191,6 +196,11 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
         return out
     points = np.asarray(points, dtype=float)
     free = np.flatnonzero(~occupied)
+    if _compiled_clearance.ENABLED:
+        near = _compiled_clearance.near_hits(points[free], points[occupied], clearance, MAX_CLEARANCE_BOXES)
+        if near is not None:
+            out[free[near]] = True
+            return out
     # Boxes of side s = clearance / k: a point is within sqrt(d) s / 2 of its box's centre, so a
     # free point whose box centre is D boxes from the nearest hit box's centre is within
     # (D + sqrt(d)) s of a hit and farther than (D - sqrt(d)) s from every hit. Points sure
