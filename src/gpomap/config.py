@@ -118,7 +118,7 @@ class TilingConfig(_Config):
     Attributes
     ----------
     tile_size : float, optional
-        Side of the square tiles, metres (default: 5 m for planar maps, 10 m for voxel maps,
+        Side of the square tiles, metres (default: 5 m for planar maps, 3 m for voxel maps,
         :data:`gpomap.tiles.DEFAULT_TILE_SIZE`).
     n_workers : int, optional
         Local workers (default: the CPU count).

@@ -138,9 +138,11 @@ def hyper_anchor_block(sizes: ArrayLike, occupied_fractions: ArrayLike, map_occu
 #: the cells, hyperparameters and variance scale do not depend on them (:data:`BLOCK_SIZE`).
 #: Planar maps: 5 m (CSAIL every 10th scan, one process: fit 22.1 -> 17.7 s and written 0.05 m
 #: grid 15.7 -> 7.6 s against 10 m, every metric the same to 4 digits; 3.5 m and 2.5 m no
-#: faster). Voxel maps keep 10 m: their columns hold every height, and at 5 m la3dm
-#: sim_structured's tile fits and calibration prediction took 1.5-1.9x longer.
-DEFAULT_TILE_SIZE: dict[int, float] = {2: 5.0, 3: 10.0}
+#: faster). Voxel maps: 3 m columns, which hold every height, so they fill faster than planar
+#: squares (benchmarks/volume_quality.py, fit wall seconds on la3dm sim_structured /
+#: sim_unstructured / geb079: 10 m 2.85 / 1.36 / 2.48, 5 m 1.69 / 0.88 / 1.79, 3 m 1.23 / 0.78 /
+#: 1.39, 2 m 1.58 / 0.84 / 1.61; every score the same to 3 digits).
+DEFAULT_TILE_SIZE: dict[int, float] = {2: 5.0, 3: 3.0}
 
 #: A tile's GP sees the cells this many learnt length scales beyond its square, by default (about
 #: where the SE kernel has decayed to 4 %).
