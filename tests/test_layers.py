@@ -39,7 +39,17 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.compiled",
         ),
     ),
-    ("data", ("gpomap.observations", "gpomap.cells", "gpomap.evidence", "gpomap._compiled_counts", "gpomap._compiled_clearance", "gpomap.simulate")),
+    (
+        "data",
+        (
+            "gpomap.observations",
+            "gpomap.cells",
+            "gpomap.evidence",
+            "gpomap._compiled_counts",
+            "gpomap._compiled_clearance",
+            "gpomap.simulate",
+        ),
+    ),
     ("kernels", ("gpomap.kernels",)),
     ("gp", ("gpomap.gp",)),
     ("maps", ("gpomap.estimator", "gpomap.fusion", "gpomap.extrapolation", "gpomap.settings", "gpomap.baselines")),
