@@ -65,5 +65,10 @@ def test_compiled_clearance_on_box_borders_and_its_budget(dim: int) -> None:
     d = cdist(free, hits).min(axis=1)
     np.testing.assert_array_equal(got, d < clearance)
     assert got.any() and not got.all()
+    # Scattered samples, negative coordinates, a clearance that is not a round number.
+    pts = rng.uniform(-3.0, 7.0, size=(4000, dim))
+    got = compiled_clearance.near_hits(pts[400:], pts[:400], 0.37, max_boxes=10**7)
+    assert got is not None
+    np.testing.assert_array_equal(got, cdist(pts[400:], pts[:400]).min(axis=1) < 0.37)
     # Past the budget of boxes it declines, and free_near_hits falls back on the numpy path.
     assert compiled_clearance.near_hits(free, hits, clearance, max_boxes=10) is None

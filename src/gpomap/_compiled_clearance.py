@@ -5,10 +5,12 @@ asks a k-d tree about the band it leaves; in 3-D that band is most of the sample
 sim_structured: 194,000 of 321,000 free samples, 0.24 s of k-d tree queries per call, three
 calls a fit). Here the hits are filed by boxes one clearance wide, and one compiled pass asks
 each free sample about the hits in its own and the neighbouring boxes, stopping at the first
-within the clearance: time linear in the samples. The answer is the numpy path's exactly
-(``tests/test_clearance.py`` checks both against brute force).
+within the clearance. The answer is the numpy path's exactly (``tests/test_clearance.py``
+checks both against brute force). Where the lattice is fine (planar maps) the numpy path stays:
+a box of a wall scanned thousands of times holds hundreds of hits, which a sample just beyond
+the clearance reads one by one (:data:`gpomap.observations.COMPILED_MAX_SUBDIVISIONS`).
 
-``ENABLED``: :func:`gpomap.observations.free_near_hits` takes this path (read at each call;
+``ENABLED``: :func:`gpomap.observations.free_near_hits` may take this path (read at each call;
 :func:`gpomap.compiled.compiled_by_default` at import, tests switch it).
 """
 
