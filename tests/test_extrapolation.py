@@ -147,6 +147,54 @@ def test_region_observations_equal_the_kept_scans_observed_alone():
     assert len(inside_only) > len(got.points)
 
 
+def test_unseen_points_pass_over_only_scans_that_cannot_reach_the_square():
+    # Short beams (3 m) round the paper room, and a square round one pose: most scans cannot
+    # reach it, and skipping them changes nothing.
+    from gpomap.evidence import RayEvidence, lattice_grid
+    from gpomap.fusion import calibration_points
+    from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
+    from gpomap.observations import beams_reach
+    from gpomap.simulate import paper_room, simulate_scans
+
+    world, poses = paper_room()
+    scans = simulate_scans(world, poses, 90, max_range=3.0, seed=0)
+    kept, held = ex.holdout_stretches(len(scans))
+    # A square round a held-out pose, most of the room away from it.
+    lo, hi, margin = poses[held[0], :2] - 2.0, poses[held[0], :2] + 3.0, 0.25
+    kept_scans, held_scans = [scans[i] for i in kept], [scans[i] for i in held]
+    got_pts, got_occ = ex._unseen_points(kept_scans, held_scans, lo, hi, margin, 10.0)
+    # By hand, every scan looked at.
+    parts = [calibration_points(s, no_return_cap=10.0) for s in held_scans]
+    pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
+    sel = in_box(pts, lo + margin, hi - margin)
+    pts, occ = pts[sel], occ[sel]
+    grid = lattice_grid(bounds_extent(*column_bounds(pts)), ex.UNSEEN_RESOLUTION[2])
+    cell, ok = flat_index(grid, pts)
+    seen = ok & RayEvidence.from_scans(kept_scans, 10.0).seen(grid).reshape(-1)[cell]
+    np.testing.assert_array_equal(got_pts, pts[~seen])
+    np.testing.assert_array_equal(got_occ, occ[~seen])
+    assert got_occ.any() and not got_occ.all()
+    reach = [beams_reach(s, lo, hi, 10.0) for s in scans]
+    assert any(reach) and not all(reach)  # the test passes some scans over
+
+
+def test_beams_reach_by_hand():
+    from gpomap.observations import beams_reach
+    from gpomap.scans import Scan
+
+    # One beam of 2 m along +x from (0, 0).
+    scan = Scan(pose=np.array([0.0, 0.0, 0.0]), angles=np.array([0.0]), ranges=np.array([2.0]), max_range=5.0)
+    assert beams_reach(scan, [1.9, -1.0], [3.0, 1.0])  # the box begins within 2 m
+    assert beams_reach(scan, [-3.0, 1.0], [-1.0, 3.0])  # sqrt(2) m away, behind: reach is a radius
+    assert not beams_reach(scan, [2.1, -1.0], [3.0, 1.0])
+    assert not beams_reach(scan, [1.5, 1.5], [3.0, 3.0])  # corner 2.12 m away
+    # A no-return beam (at the max range, 5 m) reaches as far as the cap allows.
+    far = Scan(pose=np.array([0.0, 0.0, 0.0]), angles=np.array([0.0]), ranges=np.array([5.0]), max_range=5.0)
+    assert beams_reach(far, [4.5, -1.0], [6.0, 1.0]) and beams_reach(far, [4.5, -1.0], [6.0, 1.0], no_return_cap=4.6)
+    assert not beams_reach(far, [4.5, -1.0], [6.0, 1.0], no_return_cap=4.0)
+    assert beams_reach(scan, [1.9, -1.0], [3.0, 1.0], no_return_cap=1.0)  # a hit is not capped
+
+
 def test_too_few_unseen_points_leave_the_scale_at_one():
     # A robot standing still: every held-out beam is a kept one, nothing is unseen.
     scans = paper_room_scans(n_beams=90, seed=0)[:1] * 20

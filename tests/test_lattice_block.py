@@ -81,3 +81,19 @@ def test_column_bounds_are_the_least_and_greatest_of_each_column():
         np.testing.assert_array_equal(hi, np.max(a, axis=0))
     with pytest.raises(ValueError):
         lattice.column_bounds(np.zeros((0, 2)))
+
+
+def test_in_box_is_the_closed_box_test_of_every_axis_it_gives():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-2.0, 3.0, size=(5000, 3))
+    pts[:50, 0] = 1.0  # on a face: inside (the box is closed)
+    pts[50:60, 1] = np.nan  # NaN: outside
+    lo, hi = np.array([-1.0, 0.0, 0.5]), np.array([1.0, 2.0, 2.5])
+    with np.errstate(invalid="ignore"):
+        expected = np.all((pts >= lo) & (pts <= hi), axis=1)
+    np.testing.assert_array_equal(lattice.in_box(pts, lo, hi), expected)
+    assert expected[:50].any() and not expected[50:60].any()
+    # A square bounds 3-D points as a column: their heights are not looked at.
+    np.testing.assert_array_equal(
+        lattice.in_box(pts, lo[:2], hi[:2]), np.all((pts[:, :2] >= lo[:2]) & (pts[:, :2] <= hi[:2]), axis=1)
+    )

@@ -6,9 +6,9 @@ sim_structured: 194,000 of 321,000 free samples, 0.24 s of k-d tree queries per 
 calls a fit). Here the hits are filed by boxes one clearance wide, and one compiled pass asks
 each free sample about the hits in its own and the neighbouring boxes, stopping at the first
 within the clearance. The answer is the numpy path's exactly (``tests/test_clearance.py``
-checks both against brute force). Where the lattice is fine (planar maps) the numpy path stays:
-a box of a wall scanned thousands of times holds hundreds of hits, which a sample just beyond
-the clearance reads one by one (:data:`gpomap.observations.COMPILED_MAX_SUBDIVISIONS`).
+checks both against brute force). Where a wall was scanned thousands of times its boxes hold
+hundreds of hits, which a sample just beyond the clearance reads one by one: there the numpy
+path stays (:data:`MAX_MEAN_HITS_PER_BOX`).
 
 ``ENABLED``: :func:`gpomap.observations.free_near_hits` may take this path (read at each call;
 :func:`gpomap.compiled.compiled_by_default` at import, tests switch it).
@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
 
-__all__ = ["AVAILABLE", "ENABLED", "SIDE_MARGIN", "near_hits"]
+__all__ = ["AVAILABLE", "ENABLED", "SIDE_MARGIN", "MAX_MEAN_HITS_PER_BOX", "BOXES_PER_CLEARANCE", "near_hits"]
 
 #: Whether numba imports here.
 AVAILABLE: bool = NUMBA_AVAILABLE
@@ -35,6 +35,14 @@ ENABLED: bool = compiled_by_default()
 #: The boxes are this much wider than the clearance (relatively), so that a hit within the
 #: clearance of a sample is in a neighbouring box despite the rounding of box indices.
 SIDE_MARGIN: float = 1e-6
+
+#: Most hits per box holding any, on average, for this path to be taken: a sample just beyond
+#: the clearance of a wall reads every hit of the boxes round it, and walls scanned again and
+#: again fill them. Measured against the numpy path (FR079, seconds): one scan (4-5 hits a
+#: box) 0.0005 against 0.005-0.08; 40 scans (57) 0.034 against 0.10; 400 scans (104) 0.37
+#: against 0.62; 800 scans (162) 1.39 against 1.37; a 10 m block of 1,500 scans (423) 0.94
+#: against 0.33. la3dm sim_structured's clouds: 22.
+MAX_MEAN_HITS_PER_BOX: int = 64
 
 #: Boxes per clearance: smaller boxes hold fewer hits to compare but are more to look up (la3dm
 #: sim_structured's 351,000 samples: 0.065 s a call with 1, 0.09 s with 2, 0.21 s with 3).
@@ -114,6 +122,7 @@ def near_hits(
     Returns
     -------
     ndarray of bool, shape (n,), or None
+        None past `max_boxes` or :data:`MAX_MEAN_HITS_PER_BOX`: the numpy path is the one to take.
     """
     dim = free_points.shape[1]
     both = np.concatenate([free_points, hit_points])
@@ -134,9 +143,12 @@ def near_hits(
         return flat
 
     hit_box = flat_box(hit_points)
+    per_box = np.bincount(hit_box, minlength=math.prod(shape))
+    if hit_points.shape[0] > MAX_MEAN_HITS_PER_BOX * np.count_nonzero(per_box):
+        return None
     order = np.argsort(hit_box, kind="stable")
     starts = np.zeros(math.prod(shape) + 1, dtype=np.int64)
-    np.cumsum(np.bincount(hit_box, minlength=math.prod(shape)), out=starts[1:])
+    np.cumsum(per_box, out=starts[1:])
     # The sample's own box first: most samples near a hit find it there.
     steps = sorted(itertools.product(range(-pad, pad + 1), repeat=dim), key=lambda s: sum(map(abs, s)))
     out = np.zeros(free_points.shape[0], dtype=bool)

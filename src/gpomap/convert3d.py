@@ -37,6 +37,7 @@ from gpomap.config import DEFAULT_MAX_CELLS  # most cells of the one GP of a con
 from gpomap.convert import FOOTPRINT_PIXELS, GridGPOM, _agreement, model_defaults
 from gpomap.errors import EmptyDataError, GpomapError
 from gpomap.io.octomap import Octree, read_octree
+from gpomap.lattice import in_box
 from gpomap.observations import Observations
 from gpomap.voxels import VoxelMap, VoxelSpec
 
@@ -76,7 +77,7 @@ class OctreeConversion:
 
 
 def _inside(points: NDArray[np.float64], lower: NDArray[np.float64], upper: NDArray[np.float64]) -> NDArray[np.bool_]:
-    return np.asarray(np.all((points >= lower) & (points <= upper), axis=1), dtype=bool)
+    return in_box(points, lower, upper)
 
 
 def octree_to_observations(

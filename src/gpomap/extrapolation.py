@@ -39,8 +39,8 @@ from scipy.special import log_ndtr
 
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
-from gpomap.lattice import bounds_extent, column_bounds, flat_index
-from gpomap.observations import Observations, free_near_hits
+from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
+from gpomap.observations import Observations, Rays, beams_reach, free_near_hits
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
 N_STRETCHES: int = 10
@@ -104,8 +104,7 @@ def _in_square(
     points: NDArray[np.float64], lo: NDArray[np.float64], hi: NDArray[np.float64], grow: float = 0.0
 ) -> NDArray[np.bool_]:
     """Which points (m, d) lie in the square lo..hi (x, y) grown by `grow` on every side (negative: shrunk)."""
-    xy = points[:, :2]
-    return np.all((xy >= lo - grow) & (xy <= hi + grow), axis=1)
+    return in_box(points, np.asarray(lo)[:2] - grow, np.asarray(hi)[:2] + grow)
 
 
 def region_observations(
@@ -194,15 +193,12 @@ def fit_variance_scale(
     centre = np.asarray(centre, dtype=float)[:2]
     lo, hi = centre - region_half, centre + region_half
 
-    def inside(points: NDArray[np.float64], shrink: float) -> NDArray[np.bool_]:
-        return _in_square(points, lo, hi, -shrink)
-
     # Per pattern: the kept scans' indices, and the held-out points where none of them went.
     folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]] = []
     n = 0
     for first in FOLD_STARTS:
         kept, held = holdout_stretches(len(scans), first)
-        pts, occ = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], inside, margin, no_return_cap)
+        pts, occ = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
         folds.append((kept, pts, occ))
         n_occ = sum(int(f[2].sum()) for f in folds)
         n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
@@ -256,25 +252,35 @@ def fit_variance_scale(
 def _unseen_points(
     kept_scans: Sequence[Any],
     held_scans: Sequence[Any],
-    inside: Callable[[NDArray[np.float64], float], NDArray[np.bool_]],
+    lo: NDArray[np.float64],
+    hi: NDArray[np.float64],
     margin: float,
     no_return_cap: float | None,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """The held-out scans' protocol points in the region where no kept beam went: points (m, d) and classes (m,)."""
+    """The held-out scans' protocol points in the square `lo`..`hi` (x, y) shrunk by `margin`, where
+    no kept beam went: points (m, d) and classes (m,).
+
+    Scans whose beams cannot reach the square are passed over (a whole log's scans mostly look
+    elsewhere: on FR079 they were most of the stage's time).
+    """
     from gpomap.fusion import calibration_points
 
     pts_l, occ_l = [], []
     for scan in held_scans:
+        if not beams_reach(scan, lo, hi, no_return_cap):
+            continue
         p, o = calibration_points(scan, no_return_cap=no_return_cap)
-        sel = inside(p, margin) if p.size else np.zeros(0, bool)
+        sel = _in_square(p, lo, hi, -margin) if p.size else np.zeros(0, bool)
         pts_l.append(p[sel])
         occ_l.append(o[sel])
+    if not pts_l or sum(len(p) for p in pts_l) == 0:
+        dim = Rays.of(held_scans[0]).origin.size if held_scans else 2
+        return np.zeros((0, dim)), np.zeros(0, bool)
     pts, occ = np.concatenate(pts_l), np.concatenate(occ_l)
-    if pts.size == 0:
-        return pts, occ
     # Where no kept beam went: no hit and no miss on the evaluation's reference lattice.
-    rays = RayEvidence.from_scans(kept_scans, no_return_cap)
-    grid = lattice_grid(tuple(bounds_extent(*column_bounds(pts))), UNSEEN_RESOLUTION[pts.shape[1]])
+    box_lo, box_hi = column_bounds(pts)
+    rays = RayEvidence.from_scans([s for s in kept_scans if beams_reach(s, box_lo, box_hi, no_return_cap)], no_return_cap)
+    grid = lattice_grid(bounds_extent(box_lo, box_hi), UNSEEN_RESOLUTION[pts.shape[1]])
     cell, ok = flat_index(grid, pts)
     seen = ok & rays.seen(grid).reshape(-1)[cell]
     return pts[~seen], occ[~seen]

@@ -38,6 +38,24 @@ def column_bounds(points: ArrayLike) -> tuple[NDArray[Any], NDArray[Any]]:
     return lo, hi
 
 
+def in_box(points: ArrayLike, lower: ArrayLike, upper: ArrayLike) -> NDArray[np.bool_]:
+    """Which points (n, d) lie in the closed box `lower`..`upper` along its k <= d axes, ndarray of bool (n,).
+
+    Column by column, for the reason :func:`column_bounds` gives (``np.all(..., axis=1)`` on
+    (n, 2) comparisons: 10 million points, 0.35 s against 0.03 s). A box of fewer axes than the
+    points (k < d) bounds their first k coordinates: a square bounds 3-D points as a column.
+    NaN coordinates are outside.
+    """
+    a = np.asarray(points)
+    lo, hi = np.ravel(lower), np.ravel(upper)
+    out = np.ones(a.shape[0], dtype=bool)
+    for j in range(lo.size):
+        column = a[:, j]
+        out &= column >= lo[j]
+        out &= column <= hi[j]
+    return out
+
+
 def extent_bounds(extent: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Lower and upper corners, each ndarray of shape (d,), of ``(xmin, xmax, ymin, ymax, ...)``."""
     e = np.asarray(extent, dtype=float).reshape(-1, 2)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
@@ -162,14 +162,6 @@ MAX_CLEARANCE_BOXES: int = 4_000_000
 #: 3.4 s with 10, 11.3 s with the earlier one.
 CLEARANCE_SUBDIVISIONS: dict[int, int] = {2: 10, 3: 2}
 
-#: Most boxes per clearance at which the compiled pass (:mod:`gpomap._compiled_clearance`)
-#: replaces the distance transform and the tree: where the lattice is coarse, the band left to
-#: the tree is most of the samples (la3dm sim_structured, 2 boxes: 194,000 of 321,000; 0.20 s
-#: a call against 0.065 s compiled); where it is fine the band is thin, and the tree answers it
-#: faster than the compiled pass reads the hundreds of hits a box of a much-scanned wall holds
-#: (a 10 m block of FR079, 3.5 M samples, 10 boxes: 0.29 s against 1.08 s compiled).
-COMPILED_MAX_SUBDIVISIONS: int = 2
-
 
 def _subdivisions(span: NDArray[np.float64], clearance: float) -> int:
     """Boxes per clearance for a lattice over `span` (d,) metres within the box budget; 0 if none fits."""
@@ -187,10 +179,10 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     is then predicted free with confidence. Space this close to a surface is what the range and
     pose errors blur anyway, so such samples are better dropped than trusted.
 
-    A distance transform over a lattice of boxes settles most samples and a k-d tree the rest;
-    where that lattice is coarse (:data:`COMPILED_MAX_SUBDIVISIONS`, as in 3-D) a compiled pass
-    over boxes of hits does it all instead (:mod:`gpomap._compiled_clearance`, when numba is there
-    and its table of boxes fits :data:`MAX_CLEARANCE_BOXES`). Both give the same answer.
+    A compiled pass over boxes of hits (:mod:`gpomap._compiled_clearance`, when numba is there,
+    its table of boxes fits :data:`MAX_CLEARANCE_BOXES` and the boxes are not packed with the hits
+    of a wall scanned again and again); else a distance transform over a lattice of boxes settles
+    most samples and a k-d tree the rest. Both give the same answer.
 
     Parameters
     ----------
@@ -205,10 +197,7 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
         return out
     points = np.asarray(points, dtype=float)
     free = np.flatnonzero(~occupied)
-    dim = points.shape[1]
-    lo, hi = column_bounds(points)
-    k = _subdivisions(hi - lo, clearance)
-    if _compiled_clearance.ENABLED and k <= COMPILED_MAX_SUBDIVISIONS:
+    if _compiled_clearance.ENABLED:
         near = _compiled_clearance.near_hits(points[free], points[occupied], clearance, MAX_CLEARANCE_BOXES)
         if near is not None:
             out[free[near]] = True
@@ -217,6 +206,9 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     # free point whose box centre is D boxes from the nearest hit box's centre is within
     # (D + sqrt(d)) s of a hit and farther than (D - sqrt(d)) s from every hit. Points sure
     # either way are settled by the distance transform; only the band between goes to the tree.
+    dim = points.shape[1]
+    lo, hi = column_bounds(points)
+    k = _subdivisions(hi - lo, clearance)
     if k:
         # Each point's box as one flat index, column by column (the offsets are >= 0, so the
         # integer cast floors them), without (n, d) temporaries.
@@ -298,6 +290,31 @@ class Rays:
         ray to `no_return_cap` (None: to its default limit), never beyond its recorded range."""
         cap = self.no_return_limit if no_return_cap is None else float(no_return_cap)
         return np.where(self.hit, self.lengths - hit_margin, np.minimum(np.minimum(cap, self.no_return_limit), self.lengths))
+
+
+def beams_reach(scan: Scan | CloudScan, lower: ArrayLike, upper: ArrayLike, no_return_cap: float | None = None) -> bool:
+    """Whether any beam of `scan` can come within the box `lower`..`upper` (its first k axes).
+
+    A beam runs from the sensor at most as far as its recorded range, a no-return beam at most
+    `no_return_cap` (None: its recorded range), as :meth:`Rays.free_lengths` and the ray counts
+    (:meth:`gpomap.evidence.RayEvidence.from_scans`) take them; so a scan whose sensor is farther
+    from the box than its longest beam sees nothing of it. A scan without usable beams reaches
+    nothing.
+    """
+    if isinstance(scan, CloudScan):
+        rays = Rays.of(scan)
+        origin, lengths, hit = rays.origin, rays.lengths, rays.hit
+    else:  # from the ranges alone: a whole log asks this of every scan
+        valid = scan.valid()
+        origin, lengths, hit = scan.pose[:2], scan.ranges[valid], scan.ranges[valid] < scan.max_range
+    if lengths.size == 0:
+        return False
+    if no_return_cap is not None:
+        lengths = np.where(hit, lengths, np.minimum(lengths, no_return_cap))
+    lo, hi = np.ravel(lower), np.ravel(upper)
+    origin = origin[: lo.size]
+    gap = np.maximum(np.maximum(lo - origin, origin - hi), 0.0)
+    return bool(math.sqrt(float(gap @ gap)) <= float(lengths.max()))
 
 
 def labelled_observations(
