@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 import gpomap._compiled_clearance as compiled_clearance
@@ -76,22 +75,13 @@ def test_compiled_clearance_on_box_borders_and_its_budget(dim: int) -> None:
 
 
 @pytest.mark.skipif(not compiled_clearance.AVAILABLE, reason="numba is not installed")
-def test_boxes_packed_with_hits_go_to_the_numpy_path(monkeypatch) -> None:
-    # A wall scanned again and again: hundreds of hits a box. The compiled pass declines, and
-    # free_near_hits still gives the brute-force answer.
+def test_compiled_clearance_on_a_wall_scanned_again_and_again() -> None:
+    # Hundreds of hits a box along a wall, free samples on both sides at all distances: the
+    # boxes' bounding boxes skip or take whole boxes, and the answer is still brute force's.
     rng = np.random.default_rng(5)
     wall = np.column_stack([rng.uniform(0.0, 3.0, 20000), rng.normal(0.0, 0.01, 20000)])
-    free = rng.uniform([0.0, -1.0], [3.0, 1.0], size=(3000, 2))
-    assert compiled_clearance.near_hits(free, wall, 0.3, max_boxes=10**7) is None
-    pts = np.concatenate([wall, free])
-    occ = np.arange(len(pts)) < len(wall)
-    monkeypatch.setattr(compiled_clearance, "ENABLED", True)
-    calls = []
-    monkeypatch.setattr(observations, "cKDTree", lambda *a, **k: calls.append(1) or cKDTree(*a, **k))
-    np.testing.assert_array_equal(free_near_hits(pts, occ, 0.3), brute_force(pts, occ, 0.3))
-    assert calls  # the numpy path answered
-    # The same free samples against a sparse wall take the compiled pass.
-    assert (
-        compiled_clearance.near_hits(free, wall[:: compiled_clearance.MAX_MEAN_HITS_PER_BOX * 4], 0.3, max_boxes=10**7)
-        is not None
-    )
+    free = rng.uniform([-0.5, -1.0], [3.5, 1.0], size=(4000, 2))
+    got = compiled_clearance.near_hits(free, wall, 0.3, max_boxes=10**7)
+    assert got is not None
+    np.testing.assert_array_equal(got, cdist(free, wall).min(axis=1) < 0.3)
+    assert got.any() and not got.all()

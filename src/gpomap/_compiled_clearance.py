@@ -3,14 +3,12 @@
 The numpy path settles most free samples with a distance transform over a lattice of boxes and
 asks a k-d tree about the band it leaves; in 3-D that band is most of the samples (la3dm
 sim_structured: 194,000 of 321,000 free samples, 0.24 s of k-d tree queries per call, three
-calls a fit). Here the hits are filed by boxes one clearance wide, and one compiled pass asks
-each free sample about the hits in its own and the neighbouring boxes, stopping at the first
-within the clearance. The answer is the numpy path's exactly (``tests/test_clearance.py``
-checks both against brute force). Where a wall was scanned thousands of times its boxes hold
-hundreds of hits, which a sample just beyond the clearance reads one by one: there the numpy
-path stays (:data:`MAX_MEAN_HITS_PER_BOX`).
+calls a fit), and for a single scan the lattice spans the scan's whole reach. Here the hits are
+filed by boxes, each with the bounding box of its hits, and one compiled pass asks each free
+sample about the boxes round it, stopping at the first hit within the clearance. The answer is
+the numpy path's exactly (``tests/test_clearance.py`` checks both against brute force).
 
-``ENABLED``: :func:`gpomap.observations.free_near_hits` may take this path (read at each call;
+``ENABLED``: :func:`gpomap.observations.free_near_hits` takes this path (read at each call;
 :func:`gpomap.compiled.compiled_by_default` at import, tests switch it).
 """
 
@@ -24,7 +22,7 @@ from numpy.typing import NDArray
 
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
 
-__all__ = ["AVAILABLE", "ENABLED", "SIDE_MARGIN", "MAX_MEAN_HITS_PER_BOX", "BOXES_PER_CLEARANCE", "near_hits"]
+__all__ = ["AVAILABLE", "ENABLED", "SIDE_MARGIN", "BOXES_PER_CLEARANCE", "near_hits"]
 
 #: Whether numba imports here.
 AVAILABLE: bool = NUMBA_AVAILABLE
@@ -36,17 +34,14 @@ ENABLED: bool = compiled_by_default()
 #: clearance of a sample is in a neighbouring box despite the rounding of box indices.
 SIDE_MARGIN: float = 1e-6
 
-#: Most hits per box holding any, on average, for this path to be taken: a sample just beyond
-#: the clearance of a wall reads every hit of the boxes round it, and walls scanned again and
-#: again fill them. Measured against the numpy path (FR079, seconds): one scan (4-5 hits a
-#: box) 0.0005 against 0.005-0.08; 40 scans (57) 0.034 against 0.10; 400 scans (104) 0.37
-#: against 0.62; 800 scans (162) 1.39 against 1.37; a 10 m block of 1,500 scans (423) 0.94
-#: against 0.33. la3dm sim_structured's clouds: 22.
-MAX_MEAN_HITS_PER_BOX: int = 64
-
-#: Boxes per clearance: smaller boxes hold fewer hits to compare but are more to look up (la3dm
-#: sim_structured's 351,000 samples: 0.065 s a call with 1, 0.09 s with 2, 0.21 s with 3).
-BOXES_PER_CLEARANCE: int = 1
+#: Boxes per clearance. A box's hits are skipped at once when their bounding box is a clearance
+#: away, and taken at once when its farthest corner is nearer, so only samples at about a
+#: clearance from a box's hits read them one by one; smaller boxes leave fewer such reads but
+#: more boxes to look up. Seconds, 1 / 2 / 3 boxes (numpy path): a 10 m block of FR079 (1,500
+#: scans, 423 hits a box) 0.39 / 0.23 / 0.29 (0.31); 800 scans of FR079 0.72 / 0.69 / 0.88
+#: (1.38); la3dm sim_structured 0.061 / 0.064 / 0.137 (0.20); one FR079 scan 0.0004 / 0.0007 /
+#: 0.0010 (0.005-0.07).
+BOXES_PER_CLEARANCE: int = 2
 
 
 @jit(cache=True, nogil=True)
@@ -54,6 +49,8 @@ def _mark_near(
     free_points: NDArray[np.float64],
     hit_points: NDArray[np.float64],
     starts: NDArray[np.int64],
+    hits_lo: NDArray[np.float64],
+    hits_hi: NDArray[np.float64],
     lo: NDArray[np.float64],
     side: float,
     shape: NDArray[np.int64],
@@ -64,32 +61,38 @@ def _mark_near(
 ) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
     n, dim = free_points.shape
     index = np.empty(dim, dtype=np.int64)
-    below = np.empty(dim)  # distance to the box's lower face, in boxes
-    # A neighbouring box is skipped when even its nearest face is a clearance away; the bound is
-    # shrunk a little so that rounding in the box indices never skips a box it should not.
-    reach = (clearance / side) ** 2 * (1.0 + 1e-9)
+    c2 = clearance * clearance
+    # The bounds are widened a little so that rounding never decides a box wrongly.
+    skip_beyond = c2 * (1.0 + 1e-9)
+    take_within = c2 * (1.0 - 1e-9)
     for i in range(n):
         for a in range(dim):
-            u = (free_points[i, a] - lo[a]) / side
-            k = min(np.int64(u) + pad, shape[a] - 1 - pad)
-            index[a] = k
-            below[a] = u - (k - pad)
+            index[a] = min(np.int64((free_points[i, a] - lo[a]) / side) + pad, shape[a] - 1 - pad)
         found = False
         for s in range(steps.shape[0]):
             c = np.int64(0)
-            bound = 0.0
             for a in range(dim):
-                step = steps[s, a]
-                c = c * shape[a] + index[a] + step
-                if step < 0:
-                    t = below[a] - step - 1.0
-                    bound += t * t
-                elif step > 0:
-                    t = max(step - below[a], 0.0)
-                    bound += t * t
-            if bound * (1.0 - 1e-9) >= reach:
+                c = c * shape[a] + index[a] + steps[s, a]
+            j0, j1 = starts[c], starts[c + 1]
+            if j0 == j1:
                 continue
-            for j in range(starts[c], starts[c + 1]):
+            # The box's hits lie in their bounding box (kept at the box's first hit): none is
+            # near if it is a clearance away, all are if its farthest corner is nearer.
+            near2 = 0.0
+            far2 = 0.0
+            for a in range(dim):
+                x = free_points[i, a]
+                below, above = hits_lo[j0, a] - x, x - hits_hi[j0, a]
+                t = max(below, above, 0.0)
+                near2 += t * t
+                u = max(x - hits_lo[j0, a], hits_hi[j0, a] - x)
+                far2 += u * u
+            if near2 > skip_beyond:
+                continue
+            if far2 < take_within:
+                found = True
+                break
+            for j in range(j0, j1):
                 d2 = 0.0
                 for a in range(dim):
                     t = free_points[i, a] - hit_points[j, a]
@@ -122,7 +125,7 @@ def near_hits(
     Returns
     -------
     ndarray of bool, shape (n,), or None
-        None past `max_boxes` or :data:`MAX_MEAN_HITS_PER_BOX`: the numpy path is the one to take.
+        None past `max_boxes`: the numpy path is the one to take.
     """
     dim = free_points.shape[1]
     both = np.concatenate([free_points, hit_points])
@@ -144,18 +147,25 @@ def near_hits(
 
     hit_box = flat_box(hit_points)
     per_box = np.bincount(hit_box, minlength=math.prod(shape))
-    if hit_points.shape[0] > MAX_MEAN_HITS_PER_BOX * np.count_nonzero(per_box):
-        return None
     order = np.argsort(hit_box, kind="stable")
     starts = np.zeros(math.prod(shape) + 1, dtype=np.int64)
     np.cumsum(per_box, out=starts[1:])
+    hits = np.ascontiguousarray(hit_points[order], dtype=float)
+    # Each box's bounding box of its hits, at the row of its first hit.
+    first = starts[:-1][per_box > 0]
+    hits_lo, hits_hi = np.empty_like(hits), np.empty_like(hits)
+    for j in range(dim):
+        hits_lo[first, j] = np.minimum.reduceat(hits[:, j], first)
+        hits_hi[first, j] = np.maximum.reduceat(hits[:, j], first)
     # The sample's own box first: most samples near a hit find it there.
     steps = sorted(itertools.product(range(-pad, pad + 1), repeat=dim), key=lambda s: sum(map(abs, s)))
     out = np.zeros(free_points.shape[0], dtype=bool)
     _mark_near(
         np.ascontiguousarray(free_points, dtype=float),
-        np.ascontiguousarray(hit_points[order], dtype=float),
+        hits,
         starts,
+        hits_lo,
+        hits_hi,
         lo,
         side,
         np.array(shape, dtype=np.int64),

@@ -179,10 +179,9 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     is then predicted free with confidence. Space this close to a surface is what the range and
     pose errors blur anyway, so such samples are better dropped than trusted.
 
-    A compiled pass over boxes of hits (:mod:`gpomap._compiled_clearance`, when numba is there,
-    its table of boxes fits :data:`MAX_CLEARANCE_BOXES` and the boxes are not packed with the hits
-    of a wall scanned again and again); else a distance transform over a lattice of boxes settles
-    most samples and a k-d tree the rest. Both give the same answer.
+    A compiled pass over boxes of hits (:mod:`gpomap._compiled_clearance`, when numba is there
+    and its table of boxes fits :data:`MAX_CLEARANCE_BOXES`); else a distance transform over a
+    lattice of boxes settles most samples and a k-d tree the rest. Both give the same answer.
 
     Parameters
     ----------
