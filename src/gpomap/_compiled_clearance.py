@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
+from gpomap.lattice import column_bounds
 
 __all__ = ["AVAILABLE", "ENABLED", "SIDE_MARGIN", "BOXES_PER_CLEARANCE", "near_hits"]
 
@@ -119,8 +120,8 @@ def near_hits(
     clearance : float
         Metres, > 0.
     max_boxes : int
-        Most boxes of side `clearance` over the points' bounding box (the table of where each
-        box's hits start holds 8 bytes per box).
+        Most boxes (of side ``clearance / BOXES_PER_CLEARANCE``) over the points' bounding box:
+        the table of where each box's hits start holds 8 bytes per box.
 
     Returns
     -------
@@ -128,9 +129,8 @@ def near_hits(
         None past `max_boxes`: the numpy path is the one to take.
     """
     dim = free_points.shape[1]
-    both = np.concatenate([free_points, hit_points])
-    lo = np.array([both[:, j].min() for j in range(dim)])
-    hi = np.array([both[:, j].max() for j in range(dim)])
+    (free_lo, free_hi), (hit_lo, hit_hi) = column_bounds(free_points), column_bounds(hit_points)
+    lo, hi = np.minimum(free_lo, hit_lo).astype(float), np.maximum(free_hi, hit_hi).astype(float)
     side = clearance * (1.0 + SIDE_MARGIN) / BOXES_PER_CLEARANCE
     # Empty boxes on either side of the occupied ones, so every neighbour of a box exists.
     pad = BOXES_PER_CLEARANCE
