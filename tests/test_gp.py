@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from gpomap.errors import NumericalError
-from gpomap.gp import SupportGP, compact_groups, inverse_diagonal, robust_cholesky
+from gpomap.gp import SupportGP, cholesky_in_place, compact_groups, inverse_diagonal, robust_cholesky
 from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
 from gpomap.squash import ProbitSquash, class_weights, loo_moments, loo_probit
 from gpomap.supports import Supports, concatenate
@@ -136,6 +136,49 @@ def test_squash_fit_raises_the_loo_probability():
     from scipy.stats import norm
 
     assert ProbitSquash(2.0, 0.1)(0.5, 0.21) == pytest.approx(norm.cdf(1.1 / np.sqrt(1.84)))
+
+
+def test_cholesky_in_place_is_the_factor_in_the_matrix_own_memory():
+    rng = np.random.default_rng(4)
+    A = rng.normal(size=(60, 60))
+    K = A @ A.T + 60 * np.eye(60)
+    expected = np.linalg.cholesky(K)
+    work = K.copy()
+    L = cholesky_in_place(work)
+    assert L is not None and np.shares_memory(L, work)
+    np.testing.assert_allclose(L, expected, rtol=0, atol=1e-12)  # the upper triangle zeroed too
+    np.testing.assert_array_equal(L, robust_cholesky(K)[0])  # the same numbers as the copying path
+    assert cholesky_in_place(np.ones((3, 3))) is None  # singular: the caller falls back on jitter
+
+
+def test_a_tile_whose_covariance_is_singular_is_fitted_with_jitter():
+    # Two identical cells with opposite labels and almost no noise: the in-place factorisation
+    # fails on the tile's covariance, and the tile is formed again and factorised with jitter.
+    from gpomap.tiles import fit_tile_task
+
+    box = np.array([[0.0, 0.0], [0.0, 0.0], [2.0, 0.0]]), np.array([[0.5, 0.5], [0.5, 0.5], [2.5, 0.5]])
+    settings = {
+        "kernel": "se",
+        "length_scale_bounds": (1e-2, 1e2),
+        "area": "exact",
+        "normalisation": "mean",
+        "quadrature_order": 2,
+        "noise_model": "constant",
+        "per_tile": False,
+    }
+    payload = {
+        "key": (0, 0),
+        "lower": box[0],
+        "upper": box[1],
+        "counts": np.ones(3),
+        "labels": np.array([1.0, -1.0, 1.0]),
+        "member_points": None,
+        "member_offsets": None,
+        "settings": settings,
+        "hyperparameters": {"variance": 1.0, "length_scale": 1.0, "noise": 1e-300, "alpha": 1.0, "beta": 0.0},
+    }
+    state = fit_tile_task(payload)
+    assert state.jitter > 0 and np.all(np.isfinite(state.L)) and np.all(np.isfinite(state.weights))
 
 
 def test_robust_cholesky_adds_jitter_only_when_needed():

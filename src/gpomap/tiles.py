@@ -57,7 +57,16 @@ from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
 from gpomap.fusion import EvidenceLayer
-from gpomap.gp import LOCAL_TOL, SupportGP, cholesky_inverse, local_blocks, lower_product, robust_cholesky, triangular_inverse_for
+from gpomap.gp import (
+    LOCAL_TOL,
+    SupportGP,
+    cholesky_in_place,
+    cholesky_inverse,
+    local_blocks,
+    lower_product,
+    robust_cholesky,
+    triangular_inverse_for,
+)
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
@@ -348,8 +357,14 @@ def fit_tile_task(payload: dict[str, Any]) -> TileState:
         K = _gram_reusing(kern, X, previous, st) if previous is not None and same_hyp else None
         if K is None:
             K = kern(X)
-        K[np.diag_indices_from(K)] += _noise_vector(st, hyp["noise"], X.counts)
-        L, jitter = robust_cholesky(K)
+        noise = _noise_vector(st, hyp["noise"], X.counts)
+        K[np.diag_indices_from(K)] += noise
+        factor, jitter = cholesky_in_place(K), 0.0
+        if factor is None:  # K was overwritten: formed again, for the factorisation with jitter
+            K = kern(X)
+            K[np.diag_indices_from(K)] += noise
+            factor, jitter = robust_cholesky(K)
+        L = factor
         weights = cho_solve((L, True), y, check_finite=False)
     return TileState(
         key=tuple(payload["key"]),
