@@ -87,3 +87,52 @@ def test_bad_arguments():
         build_cells(np.zeros((0, 2)), np.zeros(0, bool))
     with pytest.raises(ValueError, match="min_cell <= max_cell"):
         build_cells(np.zeros((2, 2)), np.zeros(2, bool), min_cell=2.0, max_cell=1.0)
+
+
+FIELDS = ("lower", "upper", "node_lower", "node_upper", "occupied", "ambiguous", "member_offsets", "member_order")
+
+
+def _both_paths(monkeypatch, *args):
+    import gpomap._compiled_cells as compiled_cells
+
+    monkeypatch.setattr(compiled_cells, "ENABLED", True)
+    fast = build_cells(*args)
+    monkeypatch.setattr(compiled_cells, "ENABLED", False)
+    return fast, build_cells(*args)
+
+
+@pytest.mark.parametrize("dim", [1, 2, 3])
+@pytest.mark.parametrize("box", ["node", "tight"])
+@pytest.mark.parametrize("sizes", [(0.5, 0.5), (0.5, 3.0), (1.0, 1.0)])
+def test_compiled_tree_is_the_python_tree(monkeypatch, dim, box, sizes):
+    import gpomap._compiled_cells as compiled_cells
+
+    if not compiled_cells.AVAILABLE:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(dim)
+    n = {1: 60, 2: 1500, 3: 6000}[dim]  # some boxes pure, some ambiguous, in every dimension
+    pts = rng.uniform(-3.0, 17.0, size=(n, dim))
+    pts[: n // 30] = np.round(pts[: n // 30])  # on split planes, and repeated
+    occ = rng.random(n) < 0.2
+    fast, slow = _both_paths(monkeypatch, pts, occ, *sizes, box)
+    for name in FIELDS:
+        np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+    assert slow.ambiguous.any() and not slow.ambiguous.all()  # both kinds of cell occur
+
+
+def test_compiled_tree_on_degenerate_inputs(monkeypatch):
+    import gpomap._compiled_cells as compiled_cells
+
+    if not compiled_cells.AVAILABLE:
+        pytest.skip("numba is not installed")
+    line = np.column_stack([np.linspace(0.0, 5.0, 50), np.full(50, 2.0)])  # a flat root
+    cases = [
+        (np.array([[1.0, 2.0]]), np.array([True])),  # one point
+        (line, np.ones(50, bool)),  # one class
+        (line, np.arange(50) % 2 == 0),  # both classes on a line
+        (np.zeros((30, 2)), np.arange(30) % 3 == 0),  # every point at one place
+    ]
+    for pts, occ in cases:
+        fast, slow = _both_paths(monkeypatch, pts, occ, 0.5, 3.0, "node")
+        for name in FIELDS:
+            np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)

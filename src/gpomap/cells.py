@@ -8,6 +8,9 @@ hits and one over its free points, so neither class's evidence is lost or averag
 
 Nothing in the tree depends on the dimension: over 3-D points the boxes are cuboids and the
 tree is octree-like (a cube splits into eight after three levels).
+
+The tree is walked by compiled code when numba is there (:mod:`gpomap._compiled_cells`, the same
+cells exactly); the Python walk below is the reference.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap import _compiled_cells
 from gpomap.errors import EmptyDataError
 from gpomap.lattice import column_bounds
 from gpomap.supports import Supports
@@ -138,6 +142,22 @@ def build_cells(
     lo0, hi0 = column_bounds(pts)
     # A degenerate root (all points on a line or a plane) still needs an extent to split.
     hi0 = np.maximum(hi0, lo0 + 1e-9)
+    if _compiled_cells.ENABLED:
+        order, offsets, cell_box, node_box, cell_occ, cell_amb = _compiled_cells.cell_tree(
+            pts, occ, lo0, hi0, min_cell, max_cell, box == "tight"
+        )
+        d = pts.shape[1]
+        return Cells(
+            lower=cell_box[:, :d].copy(),
+            upper=cell_box[:, d:].copy(),
+            node_lower=node_box[:, :d].copy(),
+            node_upper=node_box[:, d:].copy(),
+            occupied=cell_occ,
+            ambiguous=cell_amb,
+            member_offsets=offsets,
+            member_order=order,
+            points=pts,
+        )
 
     # Boxes as tuples of Python floats: a node's few numbers cost less so than as small arrays,
     # and the arithmetic (sides, midpoints) is the same IEEE double arithmetic.

@@ -1,8 +1,9 @@
 """Whether gpomap's numba-compiled fast paths are used.
 
 The quadrature kernel's node sums (:mod:`gpomap.kernels._compiled`), the ray counts
-(:mod:`gpomap._compiled_counts`) and the free samples near hits (:mod:`gpomap._compiled_clearance`)
-each have a compiled path and a numpy one, which stays the tests' reference. The compiled ones are taken when numba imports, unless the environment
+(:mod:`gpomap._compiled_counts`), the free samples near hits (:mod:`gpomap._compiled_clearance`)
+and the cell tree (:mod:`gpomap._compiled_cells`) each have a compiled path and a numpy one, which
+stays the tests' reference. The compiled ones are taken when numba imports, unless the environment
 variable :data:`FORCE_NUMPY_ENV` is set (to anything but "" or "0") when gpomap is imported.
 """
 
