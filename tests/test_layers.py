@@ -47,6 +47,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.evidence",
             "gpomap._compiled_counts",
             "gpomap._compiled_clearance",
+            "gpomap._compiled_cells",
             "gpomap.simulate",
         ),
     ),
