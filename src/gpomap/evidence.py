@@ -322,7 +322,7 @@ class RayEvidence:
             d2 += (origin[k] + (i[cand] + 0.5) * grid.resolution - ends[:, k]) ** 2
         near = np.zeros(b.size, dtype=bool)
         near[cand[d2 < NEAR_END**2]] = True
-        return b, np.ravel_multi_index(tuple(idx), grid.shape).astype(np.int64), near
+        return b, np.ravel_multi_index(tuple(idx), grid.shape).astype(np.int64, copy=False), near
 
     def _accumulate(
         self,
