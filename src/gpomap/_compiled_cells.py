@@ -42,6 +42,38 @@ def _grow(a: NDArray, n: int) -> NDArray:  # pragma: no cover - compiled
 
 
 @jit(cache=True, nogil=True)
+def _partition(
+    first: NDArray[np.bool_],
+    a: int,
+    order: NDArray[np.intp],
+    xs: NDArray[np.float64],
+    oc: NDArray[np.bool_],
+    s_order: NDArray[np.intp],
+    s_xs: NDArray[np.float64],
+    s_oc: NDArray[np.bool_],
+) -> int:  # pragma: no cover - compiled
+    """Stably move the points ``a + k`` where ``first[k]`` ahead of the others, in `order`, `xs`
+    and `oc` together (through the scratch arrays); the index where the others begin. `first`
+    may be a view of `oc`: it is read before `oc` is written."""
+    b = a + first.size
+    m = split = a
+    for want in (True, False):
+        for k in range(a, b):
+            if first[k - a] == want:
+                s_order[m] = order[k]
+                s_oc[m] = oc[k]
+                for j in range(xs.shape[0]):
+                    s_xs[j, m] = xs[j, k]
+                m += 1
+        if want:
+            split = m
+    order[a:b] = s_order[a:b]
+    oc[a:b] = s_oc[a:b]
+    xs[:, a:b] = s_xs[:, a:b]
+    return split
+
+
+@jit(cache=True, nogil=True)
 def _tree(
     pts: NDArray[np.float64],
     occ: NDArray[np.bool_],
@@ -100,25 +132,8 @@ def _tree(
             if pure:
                 parts = ((a, b, n_occ > 0), (b, b, False))
             else:
-                # Stable, occupied first: the occupied cell, then the free one.
-                m = a
-                for k in range(a, b):
-                    if oc[k]:
-                        s_order[m] = order[k]
-                        for j in range(d):
-                            s_xs[j, m] = xs[j, k]
-                        m += 1
-                split = m
-                for k in range(a, b):
-                    if not oc[k]:
-                        s_order[m] = order[k]
-                        for j in range(d):
-                            s_xs[j, m] = xs[j, k]
-                        m += 1
-                order[a:b] = s_order[a:b]
-                xs[:, a:b] = s_xs[:, a:b]
-                oc[a:split] = True
-                oc[split:b] = False
+                # Occupied first: the occupied cell, then the free one.
+                split = _partition(oc[a:b], a, order, xs, oc, s_order, s_xs, s_oc)
                 parts = ((a, split, True), (split, b, False))
             for part in parts:
                 s, e, label = part
@@ -144,26 +159,8 @@ def _tree(
                 n_cells += 1
             continue
         mid = 0.5 * (lo[axis] + hi[axis])
-        # Stable partition: the points left of the midpoint first, each side in its order.
-        m = a
-        for k in range(a, b):
-            if xs[axis, k] < mid:
-                s_order[m] = order[k]
-                s_oc[m] = oc[k]
-                for j in range(d):
-                    s_xs[j, m] = xs[j, k]
-                m += 1
-        split = m
-        for k in range(a, b):
-            if not xs[axis, k] < mid:
-                s_order[m] = order[k]
-                s_oc[m] = oc[k]
-                for j in range(d):
-                    s_xs[j, m] = xs[j, k]
-                m += 1
-        order[a:b] = s_order[a:b]
-        oc[a:b] = s_oc[a:b]
-        xs[:, a:b] = s_xs[:, a:b]
+        # The points left of the midpoint first.
+        split = _partition(xs[axis, a:b] < mid, a, order, xs, oc, s_order, s_xs, s_oc)
         # The right half is pushed first, so the left one is walked first (the Python tree's order).
         stack_range = _grow(stack_range, top + 2)
         stack_box = _grow(stack_box, top + 2)
@@ -225,7 +222,7 @@ def cell_tree(
     # order they were emitted (left halves first): `order` is the members, cell by cell.
     offsets = np.concatenate([ranges[:, 0], ranges[-1:, 1]]).astype(np.intp)
     return (
-        order.astype(np.intp),
+        order.astype(np.intp, copy=False),
         offsets,
         boxes[:, : 2 * d],
         boxes[:, 2 * d :],

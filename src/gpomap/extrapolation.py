@@ -40,7 +40,7 @@ from scipy.special import log_ndtr
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
-from gpomap.observations import Observations, Rays, beams_reach, free_near_hits
+from gpomap.observations import Observations, beams_reach, data_dim, free_near_hits
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
 N_STRETCHES: int = 10
@@ -274,8 +274,7 @@ def _unseen_points(
         pts_l.append(p[sel])
         occ_l.append(o[sel])
     if not pts_l or sum(len(p) for p in pts_l) == 0:
-        dim = Rays.of(held_scans[0]).origin.size if held_scans else 2
-        return np.zeros((0, dim)), np.zeros(0, bool)
+        return np.zeros((0, data_dim(held_scans))), np.zeros(0, bool)
     pts, occ = np.concatenate(pts_l), np.concatenate(occ_l)
     # Where no kept beam went: no hit and no miss on the evaluation's reference lattice.
     box_lo, box_hi = column_bounds(pts)

@@ -305,7 +305,7 @@ def beams_reach(scan: Scan | CloudScan, lower: ArrayLike, upper: ArrayLike, no_r
         origin, lengths, hit = rays.origin, rays.lengths, rays.hit
     else:  # from the ranges alone: a whole log asks this of every scan
         valid = scan.valid()
-        origin, lengths, hit = scan.pose[:2], scan.ranges[valid], scan.ranges[valid] < scan.max_range
+        origin, lengths, hit = scan.pose[:2], scan.ranges[valid], ~scan.no_return()[valid]
     if lengths.size == 0:
         return False
     if no_return_cap is not None:
