@@ -29,6 +29,7 @@ from scipy.optimize import minimize
 from gpomap.errors import NotFittedError, NumericalError
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.tensor import TensorDistances
+from gpomap.lattice import column_bounds
 from gpomap.squash import CLASS_WEIGHTS, SQUASH_BOUNDS, ProbitSquash, class_weights, loo_probit, probit_gradient_in_shift
 from gpomap.supports import Supports
 
@@ -361,7 +362,8 @@ def compact_groups(centres: NDArray[np.float64], max_size: int) -> list[NDArray[
                 groups.append(np.sort(idx))
             continue
         c = centres[idx]
-        axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+        c_lo, c_hi = column_bounds(c)
+        axis = int(np.argmax(c_hi - c_lo))
         order = np.argsort(c[:, axis], kind="stable")
         half = idx.size // 2
         pending += [idx[order[half:]], idx[order[:half]]]
