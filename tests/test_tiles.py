@@ -391,3 +391,29 @@ def test_points_are_filed_under_their_blocks_in_arrival_order(room):
     for k, block in model._block_points.items():
         mine = obs.points[model._square_keys(obs.points, model.block_size_) == k]
         np.testing.assert_array_equal(block.arrays()[0], mine)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_each_tile_sees_the_cells_meeting_its_square_grown_by_its_dimensions_reach(dim):
+    """A tile's cells are those whose boxes meet its x, y square grown by OVERLAP_LENGTH_SCALES[dim]
+    length scales (brute force over every cell's box); voxel maps' columns see less far."""
+    from tests.world3d import ORIGINS, lidar_clouds
+
+    data = _corridor_scans() if dim == 2 else lidar_clouds(ORIGINS, n_rays=200)
+    model = TiledGPOM(tile_size=2.0, n_workers=1, **{**OPTS, "length_scale": 0.5}).fit(data)
+    reach = tiles.OVERLAP_LENGTH_SCALES[dim] * 0.5
+    assert model.overlap_ == pytest.approx(reach)
+    lo, hi, _ = model.cell_boxes()
+    (ox, oy), side = model.origin_, 2.0
+    assert len(model.tiles_) > 1
+    for (ix, iy), state in model.tiles_.items():
+        x0, y0 = ox + ix * side, oy + iy * side
+        meets = (
+            (lo[:, 0] <= x0 + side + reach)
+            & (hi[:, 0] >= x0 - reach)
+            & (lo[:, 1] <= y0 + side + reach)
+            & (hi[:, 1] >= y0 - reach)
+        )
+        want = sorted(map(tuple, np.hstack([lo[meets], hi[meets]]).round(9)))
+        got = sorted(map(tuple, np.hstack([state.lower, state.upper]).round(9)))
+        assert got == want
