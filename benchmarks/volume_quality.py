@@ -14,6 +14,8 @@ Protocol (issue 13, item 6):
   points in unknown space are dropped), so the truth is the map the lidar saw, not the rays.
 
 Methods: OctoMap through pyoctomap at 0.1 m on the training scans (:class:`OctoMapBaseline`);
+the project's own voxel grids at 0.1 m on the same scans (:class:`OccupancyGridMapper`: OctoMap's
+log-odds model without the tree, and the counting model);
 the shipped OctoMap predictions (``sim_structured_octomap.csv``, the only one shipped; 0.1 m voxels,
 the voxel holding each point; made by the
 la3dm authors from *all* 12 scans, so it saw the test scans: a reference, not a competitor);
@@ -61,6 +63,7 @@ import yaml
 from numpy.typing import NDArray
 
 from gpomap.baselines.octomap import OctoMapBaseline
+from gpomap.baselines.ogm import OccupancyGridMapper
 from gpomap.clouds import CloudScan
 from gpomap.evaluation import BOUNDARY_RADIUS, TEST_FREE_STEP, TEST_HIT_MARGIN, near, score
 from gpomap.io import read_clouds
@@ -220,6 +223,23 @@ def run(
         return job.result()
 
 
+def grid_rows(
+    dataset: str,
+    max_range: float,
+    train: Sequence[CloudScan],
+    points: NDArray[np.float64],
+    labels: NDArray[np.bool_],
+    boundary: NDArray[np.bool_],
+    repeats: int,
+) -> list[dict[str, Any]]:
+    """The project's voxel grids at 0.1 m (log-odds with OctoMap's model, counting) on the same scans."""
+    rows: list[dict[str, Any]] = []
+    for model in ("logodds", "counting"):
+        grid = OccupancyGridMapper(0.1, sensor_model=model, max_range_free=max_range)
+        rows += run(dataset, f"grid {model} 0.1 m", grid, train, points, labels, boundary, repeats=repeats)
+    return rows
+
+
 def la3dm_case(world: str, max_test: int | None, factories: dict[str, Factory], repeats: int = REPEATS) -> list[dict[str, Any]]:
     folder = DATA / "la3dm-sim" / world
     config = yaml.safe_load((folder / f"{world}.yaml").read_text())
@@ -240,6 +260,7 @@ def la3dm_case(world: str, max_test: int | None, factories: dict[str, Factory], 
         boundary,
         repeats=repeats,
     )
+    rows += grid_rows(world, float(config["max_range"]), train, pts, lab, boundary, repeats)
     csv = folder / f"{world}_octomap.csv"
     if csv.exists():  # shipped for sim_structured only
         rows += run(world, "octomap csv (all scans)", CsvVoxels(csv), train, pts, lab, boundary)
@@ -326,6 +347,7 @@ def geb079_case(max_test: int | None, factories: dict[str, Factory], repeats: in
         boundary,
         repeats=repeats,
     )
+    rows += grid_rows("geb079 (sim lidar)", 10.0, train, pts, lab, boundary, repeats)
     for name, make in factories.items():
         model, resolution = make(train)
         rows += run("geb079 (sim lidar)", name, model, train, pts, lab, boundary, resolution, repeats)
