@@ -255,8 +255,13 @@ def fit_calibration(
             continue
         cell, inside = flat_index(grid, pts)
         own = evidence.scan_counts_at(grid, int(k), cell)
-        # The other scans' hits, misses and near misses at each point.
-        counts_all.append([np.where(inside, total.reshape(-1)[cell] - mine, 0) for total, mine in zip(whole, own, strict=True)])
+        # The other scans' hits, misses and near misses at each point. Never below zero: a scan
+        # counted before the lattice grew can fall one cell apart when recounted on the grown one,
+        # for a beam ending exactly on a cell border (the two origins round differently), and a
+        # negative count would make the loss NaN and leave the weights at their defaults.
+        counts_all.append(
+            [np.where(inside, np.maximum(total.reshape(-1)[cell] - mine, 0), 0) for total, mine in zip(whole, own, strict=True)]
+        )
         pts_all.append(pts)
         occ_all.append(occ)
     default = EvidenceCalibration()
