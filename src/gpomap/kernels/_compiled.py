@@ -155,6 +155,15 @@ def _unit(u2: float, profile: int) -> tuple[float, float]:  # pragma: no cover -
     return e, e * u2
 
 
+@_jit(cache=True, fastmath=_FASTMATH, inline="always")
+def _value(u2: float, profile: int) -> float:  # pragma: no cover - compiled
+    """The unit profile at `u2` alone (:func:`_unit` without the derivative, for a Gram without gradient)."""
+    if profile == MATERN32:
+        u = np.sqrt(u2)
+        return (u + 1.0) * _exp(-u)
+    return _exp(u2 * -0.5)
+
+
 # nogil: a Dask worker runs its tasks (tiles) in threads by default; numpy's passes released the GIL too.
 @_jit(cache=True, fastmath=_FASTMATH, nogil=True)
 def group_gram(
@@ -226,10 +235,14 @@ def group_gram(
                         for q0 in range(ob):
                             for q1 in range(ob):
                                 wp = w[(p0 * oa + p1) * pb + q0 * ob + q1]
-                                for jj in range(nj):
-                                    v, g = _unit(diff[0, p0, q0, jj] + diff[1, p1, q1, jj], profile)
-                                    acc[jj] += wp * v
-                                    gacc[jj] += wp * g
+                                if gradient:
+                                    for jj in range(nj):
+                                        v, g = _unit(diff[0, p0, q0, jj] + diff[1, p1, q1, jj], profile)
+                                        acc[jj] += wp * v
+                                        gacc[jj] += wp * g
+                                else:
+                                    for jj in range(nj):
+                                        acc[jj] += wp * _value(diff[0, p0, q0, jj] + diff[1, p1, q1, jj], profile)
             else:  # d == 3 (area.TENSOR_DIMS)
                 for p0 in range(oa):
                     for p1 in range(oa):
@@ -238,11 +251,16 @@ def group_gram(
                                 for q1 in range(ob):
                                     for q2 in range(ob):
                                         wp = w[((p0 * oa + p1) * oa + p2) * pb + (q0 * ob + q1) * ob + q2]
-                                        for jj in range(nj):
-                                            s = (diff[0, p0, q0, jj] + diff[1, p1, q1, jj]) + diff[2, p2, q2, jj]
-                                            v, g = _unit(s, profile)
-                                            acc[jj] += wp * v
-                                            gacc[jj] += wp * g
+                                        if gradient:
+                                            for jj in range(nj):
+                                                s = (diff[0, p0, q0, jj] + diff[1, p1, q1, jj]) + diff[2, p2, q2, jj]
+                                                v, g = _unit(s, profile)
+                                                acc[jj] += wp * v
+                                                gacc[jj] += wp * g
+                                        else:
+                                            for jj in range(nj):
+                                                s = (diff[0, p0, q0, jj] + diff[1, p1, q1, jj]) + diff[2, p2, q2, jj]
+                                                acc[jj] += wp * _value(s, profile)
             for jj in range(nj):
                 cj = cols[j0 + jj]
                 K[ri, cj] = acc[jj]
