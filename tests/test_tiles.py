@@ -443,3 +443,13 @@ def test_update_equals_batch_in_3d():
     assert inc.evidence_.lattice != first_lattice
     report = inc.evidence_.report
     assert np.isfinite(report["log_loss"]) and report["log_loss"] < report["log_loss_default"]
+
+
+def test_square_keys_decode_to_their_indices_for_arrays_and_scalars():
+    rng = np.random.default_rng(4)
+    ix, iy = rng.integers(-5000, 5000, 200), rng.integers(-5000, 5000, 200)
+    keys = TiledGPOM._encode(ix, iy)
+    dx, dy = TiledGPOM._decode(keys)
+    np.testing.assert_array_equal(dx, ix)
+    np.testing.assert_array_equal(dy, iy)
+    assert [TiledGPOM._decode(int(k)) for k in keys[:20]] == list(zip(ix[:20].tolist(), iy[:20].tolist(), strict=True))

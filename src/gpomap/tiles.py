@@ -155,9 +155,8 @@ DEFAULT_TILE_SIZE: dict[int, float] = {2: 5.0, 3: 3.0}
 
 #: A tile's GP sees the cells this many learnt length scales beyond its square, by default, by the
 #: map's dimension. Planar maps: 2.5 (about where the SE kernel has decayed to 4 %). Voxel maps:
-#: 1.5, because there the scores did not move with it while the time did: the columns' cells grow
-#: with the square of the side they see, and a point's cells further than 1.5 length scales are
-#: screened by nearer ones (benchmarks/volume_quality.py on la3dm sim_structured /
+#: 1.5, where the scores did not move with it while the time did (a column's cells grow with the
+#: square of the side it sees; benchmarks/volume_quality.py on la3dm sim_structured /
 #: sim_unstructured / geb079, best of three fits: AUC 0.8677 / 0.8402 / 0.9744 at 2.5, 0.8725 /
 #: 0.8435 / 0.9744 at 1.5, 0.8717 / 0.8423 / 0.9747 at 1.0; log loss 0.4916 / 0.5335 / 0.2119,
 #: 0.4901 / 0.5300 / 0.2110, 0.4904 / 0.5304 / 0.2100; fit 1.11 / 0.78 / 1.55 s, 0.90 / 0.65 /
@@ -937,9 +936,19 @@ class TiledGPOM:
                 return float(corner[0]), float(corner[1])
         return (0.0, 0.0)
 
+    @overload
     @staticmethod
-    def _decode(key: int) -> tuple[int, int]:
-        return int(key // _KEY_BASE - _KEY_OFFSET), int(key % _KEY_BASE - _KEY_OFFSET)
+    def _decode(key: int) -> tuple[int, int]: ...
+
+    @overload
+    @staticmethod
+    def _decode(key: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]: ...
+
+    @staticmethod
+    def _decode(key: Any) -> Any:
+        """Square (ix, iy) of a key, or the index arrays of an array of keys (:meth:`_encode`'s inverse)."""
+        ix, iy = key // _KEY_BASE - _KEY_OFFSET, key % _KEY_BASE - _KEY_OFFSET
+        return (ix, iy) if isinstance(key, np.ndarray) else (int(ix), int(iy))
 
     @overload
     @staticmethod
@@ -997,7 +1006,7 @@ class TiledGPOM:
         # where that box is too large for a table).
         table = None
         if block_keys.size:
-            bxy = np.column_stack([block_keys // _KEY_BASE - _KEY_OFFSET, block_keys % _KEY_BASE - _KEY_OFFSET])
+            bxy = np.column_stack(self._decode(block_keys))
             b_lo, b_hi = column_bounds(bxy)
             b_span = b_hi - b_lo + 1
             if int(b_span[0]) * int(b_span[1]) <= _KEY_CHUNK:
