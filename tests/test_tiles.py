@@ -394,14 +394,14 @@ def test_points_are_filed_under_their_blocks_in_arrival_order(room):
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_each_tile_sees_the_cells_meeting_its_square_grown_by_its_dimensions_reach(dim):
-    """A tile's cells are those whose boxes meet its x, y square grown by OVERLAP_LENGTH_SCALES[dim]
-    length scales (brute force over every cell's box); voxel maps' columns see less far."""
+def test_each_tile_sees_the_cells_meeting_its_square_grown_by_its_reach(dim):
+    """A tile's cells are those whose boxes meet its x, y square grown by OVERLAP_LENGTH_SCALES
+    length scales (brute force over every cell's box), planar squares and voxel columns alike."""
     from tests.world3d import ORIGINS, lidar_clouds
 
     data = _corridor_scans() if dim == 2 else lidar_clouds(ORIGINS, n_rays=200)
     model = TiledGPOM(tile_size=2.0, n_workers=1, **{**OPTS, "length_scale": 0.5}).fit(data)
-    reach = tiles.OVERLAP_LENGTH_SCALES[dim] * 0.5
+    reach = tiles.OVERLAP_LENGTH_SCALES * 0.5
     assert model.overlap_ == pytest.approx(reach)
     lo, hi, _ = model.cell_boxes()
     (ox, oy), side = model.origin_, 2.0

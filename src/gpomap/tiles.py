@@ -153,15 +153,18 @@ def hyper_anchor_block(sizes: ArrayLike, occupied_fractions: ArrayLike, map_occu
 #: 1.39, 2 m 1.58 / 0.84 / 1.61; every score the same to 3 digits).
 DEFAULT_TILE_SIZE: dict[int, float] = {2: 5.0, 3: 3.0}
 
-#: A tile's GP sees the cells this many learnt length scales beyond its square, by default, by the
-#: map's dimension. Planar maps: 2.5 (about where the SE kernel has decayed to 4 %). Voxel maps:
-#: 1.5, where the scores did not move with it while the time did (a column's cells grow with the
-#: square of the side it sees; benchmarks/volume_quality.py on la3dm sim_structured /
-#: sim_unstructured / geb079, best of three fits: AUC 0.8677 / 0.8402 / 0.9744 at 2.5, 0.8725 /
-#: 0.8435 / 0.9744 at 1.5, 0.8717 / 0.8423 / 0.9747 at 1.0; log loss 0.4916 / 0.5335 / 0.2119,
-#: 0.4901 / 0.5300 / 0.2110, 0.4904 / 0.5304 / 0.2100; fit 1.11 / 0.78 / 1.55 s, 0.90 / 0.65 /
-#: 1.30 s, 0.78 / 0.59 / 1.61 s).
-OVERLAP_LENGTH_SCALES: dict[int, float] = {2: 2.5, 3: 1.5}
+#: A tile's GP sees the cells this many learnt length scales beyond its square, by default. 1.5
+#: (it was 2.5, about where the SE kernel has decayed to 4 %): the scores did not move
+#: with it while the time did, since a tile's cells grow with the square of the side it sees.
+#: Planar maps (benchmarks/quality.py, the written 0.05 m map, 12 shared and 14 unseen
+#: log-splits): AUC within 0.0003, log loss within 0.0027 (Edmonton's blocks split 0.418 ->
+#: 0.421; CSAIL's 0.172 -> 0.171), ECE within 0.0015, the path cells the same; fit and map CPU
+#: 3-40 % lower (CSAIL blocks 8.5 -> 5.1 s). Voxel maps (benchmarks/volume_quality.py, la3dm
+#: sim_structured / sim_unstructured / geb079, best of three fits): AUC 0.8677 / 0.8402 / 0.9744
+#: at 2.5, 0.8725 / 0.8435 / 0.9744 at 1.5, 0.8717 / 0.8423 / 0.9747 at 1.0; log loss 0.4916 /
+#: 0.5335 / 0.2119, 0.4901 / 0.5300 / 0.2110, 0.4904 / 0.5304 / 0.2100; fit 1.11 / 0.78 / 1.55 s,
+#: 0.90 / 0.65 / 1.30 s, 0.78 / 0.59 / 1.61 s.
+OVERLAP_LENGTH_SCALES: float = 1.5
 
 #: Default blend width, as a fraction of the overlap (or of the tile, if smaller). A tile predicts
 #: within half the blend of its square, where it still sees at least 3/4 of the overlap beyond,
@@ -192,11 +195,10 @@ def capped_overlap(overlap: float, tile_size: float) -> float:
     return float(min(max(overlap, 1e-9), block_side(tile_size)))
 
 
-def tile_reach(tile_size: float, length_scale: float, overlap: float | None = None, dim: int = 2) -> float:
+def tile_reach(tile_size: float, length_scale: float, overlap: float | None = None) -> float:
     """How far a tile's GP sees past its square: `overlap`, by default :data:`OVERLAP_LENGTH_SCALES`
-    length scales for the map's dimension `dim`, at most one block (:func:`capped_overlap`)."""
-    reach = OVERLAP_LENGTH_SCALES[dim] * length_scale if overlap is None else float(overlap)
-    return capped_overlap(reach, tile_size)
+    length scales, at most one block (:func:`capped_overlap`)."""
+    return capped_overlap(OVERLAP_LENGTH_SCALES * length_scale if overlap is None else float(overlap), tile_size)
 
 
 # --------------------------------------------------------------------------- tasks (picklable)
@@ -737,9 +739,8 @@ class TiledGPOM:
         :data:`BLOCK_SIZE` (of the tiles' side if that is larger), whatever the tiles.
     overlap : float, optional
         Each tile's GP sees the cells meeting its square grown by this much on every side.
-        Default :data:`OVERLAP_LENGTH_SCALES` learnt length scales for the map's dimension (2.5 on
-        planar maps, about where the SE kernel has decayed to 4 %; 1.5 on voxel maps), at most
-        the block side (:attr:`block_size_`).
+        Default :data:`OVERLAP_LENGTH_SCALES` (1.5) learnt length scales, at most the block side
+        (:attr:`block_size_`).
     blend : float, optional
         Width of the blending ramp across each tile border, centred on the border; at most
         `overlap` (so a tile only predicts where it has at least ``overlap - blend / 2`` of data
@@ -1571,7 +1572,7 @@ class TiledGPOM:
         """
         from gpomap.resources import check_memory, fit_memory, largest_tile_cells, memory_limit
 
-        overlap = tile_reach(self.tile_size_, length_scale, self.overlap, self._dim)
+        overlap = tile_reach(self.tile_size_, length_scale, self.overlap)
         blocks = list(self._blocks.values())
         centres = np.concatenate([0.5 * (b.lower + b.upper)[:, :2] for b in blocks]) if blocks else np.zeros((0, 2))
         per_tile = largest_tile_cells(centres, self.tile_size_, overlap, self.origin_)
@@ -1588,7 +1589,7 @@ class TiledGPOM:
         return per_tile
 
     def _set_geometry(self) -> None:
-        self.overlap_ = tile_reach(self.tile_size_, self.hyperparameters_["length_scale"], self.overlap, self._dim)
+        self.overlap_ = tile_reach(self.tile_size_, self.hyperparameters_["length_scale"], self.overlap)
         w = BLEND_FRACTION * min(self.overlap_, self.tile_size_) if self.blend is None else float(self.blend)
         if not 0 < w <= min(self.overlap_, self.tile_size_) + 1e-12:
             raise ValueError(

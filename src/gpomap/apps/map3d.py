@@ -373,7 +373,7 @@ def _plan(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, N
     # The fit refuses tiles too large for the memory itself, once its cells exist; the voxel
     # grid's prediction chunks are sized by the largest column too.
     tile = args.tile_size if args.tile_size is not None else DEFAULT_TILE_SIZE[3]
-    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], tile, tile_reach(tile, model.length_scale, dim=3))
+    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], tile, tile_reach(tile, model.length_scale))
     check_voxel_memory(args, lo, hi, per_tile)
     return model, lo, hi, len(cells)
 
