@@ -442,7 +442,8 @@ def lattice_grid(extent: tuple[float, ...], resolution: float, margin: float = 0
     """The grid of cells ``[k r, (k + 1) r)`` covering `extent` (plus `margin`), r = `resolution`.
 
     Cells on this lattice are the same whatever the extent, so counts taken on grids of two
-    extents agree cell by cell. A 4-value extent (xmin, xmax, ymin, ymax) gives a
+    extents agree cell by cell, but for a point exactly on a cell border: indices are taken from
+    each grid's own origin, and two origins can round such a point to either side. A 4-value extent (xmin, xmax, ymin, ymax) gives a
     :class:`~gpomap.grid.GridSpec`, a 6-value one a :class:`~gpomap.voxels.VoxelSpec`.
     """
     lo, hi = extent_bounds(extent)
