@@ -805,12 +805,8 @@ class SupportGP:
                 v = v - 0.5 * float(d @ d)
                 g = g.copy()
                 g[1:3] -= d / self.prior_std
-            return -v * per_input, -g[free] * per_input
+            return -v, -g[free]
 
-        # The search minimises the objective per input, the same optimum: L-BFGS-B's first step
-        # is as long as the gradient, and the sum's (hundreds, over 800 cells) sent it to the
-        # bounds (length scale 0.05 m, noise 1e-4) before it found the objective's scale.
-        per_input = 1.0 / max(1, y.size)
         free_bounds = [b for b, f in zip(bounds, free) if f]
         rng = np.random.default_rng(self.seed)
         starts = [x0[free]]
@@ -828,7 +824,7 @@ class SupportGP:
             res = minimize(
                 neg, s, jac=True, method="L-BFGS-B", bounds=free_bounds, options={"maxiter": self.max_iter, "ftol": 1e-7}
             )
-            values.append(float(-res.fun) / per_input)
+            values.append(float(-res.fun))
             if best is None or res.fun < best.fun:
                 best = res
         assert best is not None  # there is always the given start
@@ -840,7 +836,7 @@ class SupportGP:
             if best.x.tobytes() not in squash_at:  # the optimiser's answer is a point it evaluated
                 neg(best.x)
             self.squash = ProbitSquash(*squash_at[best.x.tobytes()])
-        return FitReport(self.objective, float(-best.fun) / per_input, n_eval, time.perf_counter() - t0, values, len(groups))
+        return FitReport(self.objective, float(-best.fun), n_eval, time.perf_counter() - t0, values, len(groups))
 
     # ----------------------------------------------------------------- prediction
     def predict_latent(
