@@ -30,7 +30,8 @@ held-out hit), log loss, ECE; fit and predict wall times (for the voxel grid, pr
 grid's prediction) and the peak resident memory of the process that ran the method (each method
 runs in a forked child, so the number is its own, plus the data read before the fork). The JSON
 rows of gpomap also hold the fit's stage times (``fit_stages``: the model's ``timings_``), printed
-after the table with each fit's time over OctoMap's on the same case.
+after the table with each fit's time over OctoMap's on the same case, and the fit and prediction at
+the test points together over OctoMap's (the prediction timed once, after the fits).
 
 Fit times are the best of at least ``--repeats`` fits of the same method on the same scans, and
 of as many more as fill a second (at most :data:`MAX_REPEATS`), after one untimed fit, one after
@@ -407,18 +408,21 @@ STAGES = ("observations", "cells", "hyperparameters", "variance_scale", "tile_fi
 
 
 def print_stages(rows: list[dict[str, Any]]) -> None:
-    """The gpomap fits' stage times, and each fit's time over OctoMap's (pyoctomap) on the same case."""
-    octomap = {r["dataset"]: r["fit_s"] for r in rows if r["method"].startswith("octomap (") and "fit_s" in r}
+    """The gpomap fits' stage times, and each fit's time over OctoMap's (pyoctomap) on the same case:
+    the fit alone, and the fit with the prediction at the test points (each method's own)."""
+    octomap = {r["dataset"]: r for r in rows if r["method"].startswith("octomap (") and "fit_s" in r}
     fits = [r for r in rows if "fit_stages" in r]
     if not fits:
         return
     print()
-    print("| dataset | method | " + " | ".join(STAGES) + " | fit / OctoMap's |")
-    print("|" + "---|" * (len(STAGES) + 3))
+    print("| dataset | method | " + " | ".join(STAGES) + " | fit / OctoMap's | fit + predict / OctoMap's |")
+    print("|" + "---|" * (len(STAGES) + 4))
     for r in fits:
         st = r["fit_stages"]
-        ratio = f"{r['fit_s'] / octomap[r['dataset']]:.1f}x" if octomap.get(r["dataset"]) else "-"
-        print(f"| {r['dataset']} | {r['method']} | " + " | ".join(_fmt(st.get(k)) for k in STAGES) + f" | {ratio} |")
+        o = octomap.get(r["dataset"])
+        fit = f"{r['fit_s'] / o['fit_s']:.1f}x" if o else "-"
+        both = f"{(r['fit_s'] + r['predict_s']) / (o['fit_s'] + o['predict_s']):.1f}x" if o else "-"
+        print(f"| {r['dataset']} | {r['method']} | " + " | ".join(_fmt(st.get(k)) for k in STAGES) + f" | {fit} | {both} |")
 
 
 def main(argv: list[str] | None = None) -> int:
