@@ -529,3 +529,31 @@ def test_written_grid_takes_the_variance_two_samples_apart(half_room: tuple[Area
     np.testing.assert_allclose(om.probability, want, atol=1e-12)
     np.testing.assert_allclose(om.variance, lattice.interpolate(var, sampled, om.grid), atol=1e-12)
     assert (hits + misses).max() > 0 and np.ptp(den) > 0  # counts and a variance that varies
+
+
+def test_other_scans_counts_are_the_counts_without_each_points_own_scan() -> None:
+    """The calibration's per-point counts equal the counts of every scan but the point's own, taken
+    afresh (``counts(grid, scans=others)``) and read at the point's cell (0 off the grid)."""
+    from gpomap.fusion import _other_scans_counts
+
+    scans = paper_room_scans()[:6]
+    ev = RayEvidence.from_scans(scans)
+    grid = lattice_grid((-1.0, 11.0, -1.0, 11.0), 0.1)
+    whole = ev.counts(grid)
+    rng = np.random.default_rng(5)
+    pts_all, scan_all = [], []
+    for k in range(len(scans)):
+        pts, _ = calibration_points(scans[k], 0.1)
+        pick = rng.choice(len(pts), 40, replace=False)
+        pts_all.append(pts[pick])
+        scan_all.append(np.full(40, k))
+    pts, scan_of = np.concatenate(pts_all), np.concatenate(scan_all)
+    got = _other_scans_counts(ev, grid, whole, pts, scan_of)
+    cell, inside = lattice.flat_index(grid, pts)
+    assert 0 < inside.sum() < inside.size  # points on the grid and off it
+    for k in range(len(scans)):
+        others = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
+        sel = scan_of == k
+        for mine, theirs in zip(got, others, strict=True):
+            np.testing.assert_array_equal(mine[sel], np.where(inside[sel], theirs.reshape(-1)[cell[sel]], 0))
+    assert got[0].sum() > 0 and got[1].sum() > 0  # the room's scans overlap: the test sees counts
