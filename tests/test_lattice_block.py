@@ -97,3 +97,15 @@ def test_in_box_is_the_closed_box_test_of_every_axis_it_gives():
     np.testing.assert_array_equal(
         lattice.in_box(pts, lo[:2], hi[:2]), np.all((pts[:, :2] >= lo[:2]) & (pts[:, :2] <= hi[:2]), axis=1)
     )
+
+
+@pytest.mark.parametrize("pad", [0, 2])
+def test_box_index_is_the_row_major_index_of_the_floored_offsets(pad):
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-3.0, 5.0, (500, 3))
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    shape = lattice.box_shape(lo, hi, 2.5, pad)
+    assert shape == tuple(int(np.floor((h - l) * 2.5)) + 1 + 2 * pad for l, h in zip(lo, hi, strict=True))
+    boxes = np.minimum(np.floor((pts - lo) * 2.5).astype(np.int64) + pad, np.array(shape) - 1 - pad)
+    want = np.ravel_multi_index(tuple(boxes.T), shape)
+    np.testing.assert_array_equal(lattice.box_index(pts, lo, 2.5, shape, pad), want)

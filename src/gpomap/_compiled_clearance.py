@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
-from gpomap.lattice import column_bounds
+from gpomap.lattice import box_index, box_shape, column_bounds
 
 __all__ = ["AVAILABLE", "ENABLED", "SIDE_MARGIN", "BOXES_PER_CLEARANCE", "near_hits"]
 
@@ -53,7 +53,7 @@ def _mark_near(
     hits_lo: NDArray[np.float64],
     hits_hi: NDArray[np.float64],
     lo: NDArray[np.float64],
-    side: float,
+    scale: float,
     shape: NDArray[np.int64],
     steps: NDArray[np.int64],
     pad: int,
@@ -68,7 +68,7 @@ def _mark_near(
     take_within = c2 * (1.0 - 1e-9)
     for i in range(n):
         for a in range(dim):
-            index[a] = min(np.int64((free_points[i, a] - lo[a]) / side) + pad, shape[a] - 1 - pad)
+            index[a] = min(np.int64((free_points[i, a] - lo[a]) * scale) + pad, shape[a] - 1 - pad)
         found = False
         for s in range(steps.shape[0]):
             c = np.int64(0)
@@ -131,21 +131,14 @@ def near_hits(
     dim = free_points.shape[1]
     (free_lo, free_hi), (hit_lo, hit_hi) = column_bounds(free_points), column_bounds(hit_points)
     lo, hi = np.minimum(free_lo, hit_lo).astype(float), np.maximum(free_hi, hit_hi).astype(float)
-    side = clearance * (1.0 + SIDE_MARGIN) / BOXES_PER_CLEARANCE
+    # Boxes per metre: BOXES_PER_CLEARANCE boxes a clearance, a little wider (SIDE_MARGIN).
+    scale = BOXES_PER_CLEARANCE / (clearance * (1.0 + SIDE_MARGIN))
     # Empty boxes on either side of the occupied ones, so every neighbour of a box exists.
     pad = BOXES_PER_CLEARANCE
-    shape = [int(v) + 1 + 2 * pad for v in np.floor((hi - lo) / side)]
+    shape = box_shape(lo, hi, scale, pad)
     if math.prod(shape) > max_boxes:
         return None
-
-    def flat_box(points: NDArray[np.float64]) -> NDArray[np.int64]:
-        flat = np.zeros(points.shape[0], dtype=np.int64)
-        for j, size in enumerate(shape):
-            flat *= size
-            flat += np.minimum(((points[:, j] - lo[j]) / side).astype(np.int64) + pad, size - 1 - pad)
-        return flat
-
-    hit_box = flat_box(hit_points)
+    hit_box = box_index(hit_points, lo, scale, shape, pad)
     per_box = np.bincount(hit_box, minlength=math.prod(shape))
     order = np.argsort(hit_box, kind="stable")
     starts = np.zeros(math.prod(shape) + 1, dtype=np.int64)
@@ -167,7 +160,7 @@ def near_hits(
         hits_lo,
         hits_hi,
         lo,
-        side,
+        scale,
         np.array(shape, dtype=np.int64),
         np.array(steps, dtype=np.int64),
         pad,

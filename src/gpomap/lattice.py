@@ -56,6 +56,29 @@ def in_box(points: ArrayLike, lower: ArrayLike, upper: ArrayLike) -> NDArray[np.
     return out
 
 
+def box_shape(lower: ArrayLike, upper: ArrayLike, scale: float, pad: int = 0) -> tuple[int, ...]:
+    """Boxes per axis of a lattice of boxes of side ``1 / scale`` from `lower` that holds `upper`,
+    with `pad` empty boxes more on either side (the order of `lower`'s axes, x first)."""
+    span = np.floor((np.asarray(upper, dtype=float) - np.asarray(lower, dtype=float)) * scale)
+    return tuple(int(v) + 1 + 2 * pad for v in span)
+
+
+def box_index(
+    points: NDArray[np.float64], lower: ArrayLike, scale: float, shape: tuple[int, ...], pad: int = 0
+) -> NDArray[np.int64]:
+    """Flat index, row-major over `shape` (:func:`box_shape`), of the box holding each point (n, d), shape (n,).
+
+    Column by column (the offsets from `lower` are >= 0, so the integer cast floors them),
+    without (n, d) temporaries; indices past the last box are clipped to it.
+    """
+    lo = np.asarray(lower, dtype=float)
+    flat = np.zeros(points.shape[0], dtype=np.int64)
+    for j, size in enumerate(shape):
+        flat *= size
+        flat += np.minimum(((points[:, j] - lo[j]) * scale).astype(np.int64) + pad, size - 1 - pad)
+    return flat
+
+
 def extent_bounds(extent: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Lower and upper corners, each ndarray of shape (d,), of ``(xmin, xmax, ymin, ymax, ...)``."""
     e = np.asarray(extent, dtype=float).reshape(-1, 2)

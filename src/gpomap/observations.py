@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from gpomap import _compiled_clearance
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
-from gpomap.lattice import column_bounds
+from gpomap.lattice import box_index, box_shape, column_bounds
 from gpomap.scans import Scan
 
 #: What the map is made from: planar scans (2-D) or point clouds (3-D), one kind at a time.
@@ -209,13 +209,8 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     lo, hi = column_bounds(points)
     k = _subdivisions(hi - lo, clearance)
     if k:
-        # Each point's box as one flat index, column by column (the offsets are >= 0, so the
-        # integer cast floors them), without (n, d) temporaries.
-        shape = tuple(int(v) for v in np.floor((hi - lo) * (k / clearance)) + 1)
-        flat = np.zeros(points.shape[0], dtype=np.intp)
-        for j, size in enumerate(shape):
-            flat *= size
-            flat += np.minimum(((points[:, j] - lo[j]) * (k / clearance)).astype(np.intp), size - 1)
+        shape = box_shape(lo, hi, k / clearance)
+        flat = box_index(points, lo, k / clearance, shape)
         no_hit = np.ones(shape, dtype=bool)
         no_hit.ravel()[flat[occupied]] = False
         boxes_away = distance_transform_edt(no_hit).ravel()[flat[free]]
