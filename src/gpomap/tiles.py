@@ -201,6 +201,12 @@ def tile_reach(tile_size: float, length_scale: float, overlap: float | None = No
     return capped_overlap(OVERLAP_LENGTH_SCALES * length_scale if overlap is None else float(overlap), tile_size)
 
 
+def _box_offset(ij: NDArray[np.int64], lo: NDArray[np.int64], span: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Row-major offset of each square index (ix, iy) (shape (n, 2)) in the index box from `lo`
+    spanning `span` squares per axis: ix major, the order of the squares' keys."""
+    return (ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1])
+
+
 # --------------------------------------------------------------------------- tasks (picklable)
 @dataclass
 class TileState:
@@ -907,7 +913,7 @@ class TiledGPOM:
             # A few points spread very wide: sorting them is cheaper than counting the box.
             return np.unique(self._encode(ij[:, 0], ij[:, 1]))
         # Row-major over (ix, iy), the order of the keys.
-        flat = np.flatnonzero(np.bincount((ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1]), minlength=int(span.prod())))
+        flat = np.flatnonzero(np.bincount(_box_offset(ij, lo, span), minlength=int(span.prod())))
         return self._encode(flat // span[1] + lo[0], flat % span[1] + lo[1])
 
     def _meeting(self, lo: tuple[float, float], hi: tuple[float, float], side: float) -> Iterator[tuple[int, int]]:
@@ -1012,14 +1018,13 @@ class TiledGPOM:
             b_span = b_hi - b_lo + 1
             if int(b_span[0]) * int(b_span[1]) <= _KEY_CHUNK:
                 table = np.zeros(int(b_span.prod()), dtype=ids.dtype)
-                table[(bxy[:, 0] - b_lo[0]) * b_span[1] + (bxy[:, 1] - b_lo[1])] = np.arange(block_keys.size)
+                table[_box_offset(bxy, b_lo, b_span)] = np.arange(block_keys.size)
         for s in chunks:
             part = points[s : s + _KEY_CHUNK]
             if table is None:
                 ids[s : s + _KEY_CHUNK] = np.searchsorted(block_keys, self._block_keys(part))
             else:
-                ij = self._square_indices(part, self.block_size_) - b_lo
-                ids[s : s + _KEY_CHUNK] = table[ij[:, 0] * b_span[1] + ij[:, 1]]
+                ids[s : s + _KEY_CHUNK] = table[_box_offset(self._square_indices(part, self.block_size_), b_lo, b_span)]
         # Stable (a radix sort for 16-bit ids): keeps observation order per block.
         order = np.argsort(ids, kind="stable")
         cuts = np.cumsum(np.bincount(ids, minlength=block_keys.size))[:-1]
