@@ -228,7 +228,7 @@ def run(
         return job.result()
 
 
-def grid_rows(
+def baseline_rows(
     dataset: str,
     max_range: float,
     train: Sequence[CloudScan],
@@ -237,8 +237,18 @@ def grid_rows(
     boundary: NDArray[np.bool_],
     repeats: int,
 ) -> list[dict[str, Any]]:
-    """The project's voxel grids at 0.1 m (log-odds with OctoMap's model, counting) on the same scans."""
-    rows: list[dict[str, Any]] = []
+    """OctoMap (pyoctomap, 0.1 m) and the project's voxel grids at 0.1 m (log-odds with OctoMap's
+    model, counting) on the same scans, rays cut at `max_range`."""
+    rows = run(
+        dataset,
+        "octomap (pyoctomap 0.1 m)",
+        OctoMapBaseline(0.1, max_range=max_range),
+        train,
+        points,
+        labels,
+        boundary,
+        repeats=repeats,
+    )
     for model in ("logodds", "counting"):
         grid = OccupancyGridMapper(0.1, sensor_model=model, max_range_free=max_range)
         rows += run(dataset, f"grid {model} 0.1 m", grid, train, points, labels, boundary, repeats=repeats)
@@ -255,17 +265,7 @@ def la3dm_case(world: str, max_test: int | None, factories: dict[str, Factory], 
     pts, lab = balance(*ray_points(test), max_test)
     hits = np.concatenate([c.points[c.valid() & np.asarray(c.hit, dtype=bool)] for c in test])
     boundary = near(pts, hits, BOUNDARY_RADIUS)
-    rows = run(
-        world,
-        "octomap (pyoctomap 0.1 m)",
-        OctoMapBaseline(0.1, max_range=float(config["max_range"])),
-        train,
-        pts,
-        lab,
-        boundary,
-        repeats=repeats,
-    )
-    rows += grid_rows(world, float(config["max_range"]), train, pts, lab, boundary, repeats)
+    rows = baseline_rows(world, float(config["max_range"]), train, pts, lab, boundary, repeats)
     csv = folder / f"{world}_octomap.csv"
     if csv.exists():  # shipped for sim_structured only
         rows += run(world, "octomap csv (all scans)", CsvVoxels(csv), train, pts, lab, boundary)
@@ -342,17 +342,7 @@ def geb079_case(max_test: int | None, factories: dict[str, Factory], repeats: in
     pts, lab = balance(pts[known], truth[known] == 1, max_test)
     hits = np.concatenate([c.points[c.hit] for c in test])
     boundary = near(pts, hits, BOUNDARY_RADIUS)
-    rows = run(
-        "geb079 (sim lidar)",
-        "octomap (pyoctomap 0.1 m)",
-        OctoMapBaseline(0.1, max_range=10.0),
-        train,
-        pts,
-        lab,
-        boundary,
-        repeats=repeats,
-    )
-    rows += grid_rows("geb079 (sim lidar)", 10.0, train, pts, lab, boundary, repeats)
+    rows = baseline_rows("geb079 (sim lidar)", 10.0, train, pts, lab, boundary, repeats)
     for name, make in factories.items():
         model, resolution = make(train)
         rows += run("geb079 (sim lidar)", name, model, train, pts, lab, boundary, resolution, repeats)
