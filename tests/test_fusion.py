@@ -159,13 +159,13 @@ def test_lattice_cells_do_not_depend_on_the_extent() -> None:
 
 def test_calibration_formula_by_hand() -> None:
     cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0, near_weight=0.25)
-    # (2 * 1 + 2 * 0.5) / (2 * 1 + 1 + 2) = 0.6, then one surprise in a thousand: 0.0005 + 0.999 * 0.6.
+    # (2 * 1 + 2 * 0.5) / (2 * 1 + 1 + 2) = 0.6, then one surprise in a hundred: 0.005 + 0.99 * 0.6.
     assert cal.posterior_mean(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.6)
-    assert SURPRISE_RATE == 1e-3
-    assert cal(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.5999)
+    assert SURPRISE_RATE == 1e-2
+    assert cal(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.599)
     # A hundred scans saw through a cell and none ended there: not 1e-4 (the GP's 0.01 weighing 2
-    # against 100), but 0.0005 + 0.999 * 0.02 / 102.
-    assert cal(np.array([0.01]), np.array([0]), np.array([100]))[0] == pytest.approx(0.0005 + 0.999 * 0.02 / 102)
+    # against 100), but 0.005 + 0.99 * 0.02 / 102.
+    assert cal(np.array([0.01]), np.array([0]), np.array([100]))[0] == pytest.approx(0.005 + 0.99 * 0.02 / 102)
     # 5 misses of which 4 near, and 3 steps of the path worth PATH_HITS = 10 hits of weight 2 each:
     # 1 + 4 * 0.25 + 3 * 10 * 2 = 62 weighted misses.
     assert cal.misses(np.array([5]), np.array([4]), np.array([3]))[0] == pytest.approx(62.0)
