@@ -86,6 +86,7 @@ VALUES: dict[str, str] = {
     "every": "3",
     "warmup": "12",
     "max_refits": "4",
+    "timed_runs": "2",
 }
 
 #: Options the command uses itself, not handed to the library as a setting: why, by dest.

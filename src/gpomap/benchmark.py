@@ -14,9 +14,10 @@ Two experiments, each method fitted on training data only and scored on held-out
 
 Test points are held-out hits and free points along held-out beams, classes balanced
 (:func:`gpomap.evaluation.test_points`). GPOMIK and GPOM are dense GPs over beams and points: they
-use `GPOMIK_BEAMS` beams per scan and `GPOM_POINTS` points, stated in the table. Each timed fit
-follows an untimed one of the same method on `WARMUP_SCANS` training scans, so no method is charged
-for what a process does once (imports, loading compiled code).
+use `GPOMIK_BEAMS` beams per scan and `GPOM_POINTS` points, stated in the table. Every method is
+timed alike: an untimed fit on `WARMUP_SCANS` training scans, so no method is charged for what a
+process does once (imports, loading compiled code), then `TIMED_RUNS` fits and predictions, of
+which the fastest is reported (a 0.3 s fit on a shared machine moves by a third between runs).
 """
 
 from __future__ import annotations
@@ -45,6 +46,10 @@ GPOMIK_BEAMS = 12
 GPOM_POINTS = 1500
 #: Training scans of the untimed fit that precedes each timed one (see :func:`run_paper_benchmark`).
 WARMUP_SCANS = 3
+#: Timed fits and predictions of each method; the fastest is reported. One timing of MSK-GPOM's
+#: two-rooms fit ranged over 0.24-0.39 s on the 2-core machine; GPOMIK's 11-15 s fits move by a
+#: tenth. The same fits give the same maps, so only the times differ between them.
+TIMED_RUNS = 3
 DEFAULT_BELGIOIOSO = Path("..") / "shared" / "data" / "belgioioso" / "belgioioso-corrected.log.gz"
 
 #: The paper's Tables II and III: (running time s, AUC, FPR at TPR 95 %).
@@ -109,6 +114,7 @@ def run_paper_benchmark(
     seed: int = 0,
     quick: bool = False,
     progress: Callable[[str], None] | None = None,
+    timed_runs: int = TIMED_RUNS,
 ) -> dict[str, Any]:
     """Run both experiments for every method and kernel; write tables, ROC curves and maps.
 
@@ -128,6 +134,8 @@ def run_paper_benchmark(
         A small run (the synthetic room, fewer test points, Belgioioso thinned further).
     progress : callable, optional
         Called with a line of text as each run finishes.
+    timed_runs : int
+        Timed fits and predictions of each method, at least 1; the fastest is reported.
 
     Returns
     -------
@@ -138,6 +146,8 @@ def run_paper_benchmark(
     """
     from gpomap.plot import plot_map, save_figure
 
+    if timed_runs < 1:
+        raise ValueError(f"timed_runs must be at least 1, got {timed_runs}")
     unknown = sorted(set(experiments) - set(EXPERIMENTS))
     if unknown:
         raise ValueError(f"unknown experiment(s) {', '.join(unknown)}; expected some of {', '.join(EXPERIMENTS)}")
@@ -175,13 +185,16 @@ def run_paper_benchmark(
                 # Untimed, every method alike: what a process pays once (imports, loading compiled
                 # code) is not the method's cost per map.
                 build().fit(train[:WARMUP_SCANS])
-                t0 = time.perf_counter()
-                model = build()
-                model.fit(train)
-                fit_s = time.perf_counter() - t0
-                t1 = time.perf_counter()
-                p = np.clip(model.predict_proba(points), 0.0, 1.0)
-                pred_s = time.perf_counter() - t1
+                fit_s = pred_s = np.inf
+                for _ in range(timed_runs):
+                    t0 = time.perf_counter()
+                    model = build()
+                    model.fit(train)
+                    t1 = time.perf_counter()
+                    p = np.clip(model.predict_proba(points), 0.0, 1.0)
+                    t2 = time.perf_counter()
+                    if t2 - t0 < fit_s + pred_s:
+                        fit_s, pred_s = t1 - t0, t2 - t1
                 fpr, tpr, _ = roc_curve(labels, p)
                 row: dict[str, Any] = {
                     "experiment": name,
@@ -213,7 +226,7 @@ def run_paper_benchmark(
             for method, grid_map in by_method.items():
                 fig = plot_map(grid_map, title=f"{LABELS[method]} ({kernel}), {name}")
                 save_figure(fig, out / f"map_{name}_{method}_{kernel}.png")
-    _write_tables(rows, out / "tables.md", quick)
+    _write_tables(rows, out / "tables.md", quick, timed_runs)
     return {"rows": rows}
 
 
@@ -242,15 +255,15 @@ def _write_roc(rows: list[dict[str, Any]], experiment: str, kernels: Sequence[st
     save_figure(fig, path)
 
 
-def _write_tables(rows: list[dict[str, Any]], path: Path, quick: bool) -> None:
+def _write_tables(rows: list[dict[str, Any]], path: Path, quick: bool, timed_runs: int) -> None:
     lines = ["# The paper's Tables II and III, reproduced", ""]
     lines.append(
         f"Settings: MSK-GPOM with gpomap's defaults; GPOMIK on {GPOMIK_BEAMS} beams per scan; GPOM on at most "
         f"{GPOM_POINTS} points; OGM at the map resolution; test points balanced, never trained on"
         + (" (quick run: smaller data)." if quick else ".")
         + f" Times are wall seconds on {os.cpu_count()} core(s): fit, prediction at the test points, and their sum,"
-        f" each after an untimed fit of the same method on {WARMUP_SCANS} training scans (what a process pays once);"
-        " 'vs GPOMIK' is GPOMIK's total over this row's."
+        f" each after an untimed fit of the same method on {WARMUP_SCANS} training scans (what a process pays once),"
+        f" the fastest of {timed_runs} timed run(s); 'vs GPOMIK' is GPOMIK's total over this row's."
     )
     for experiment in EXPERIMENTS:
         sub = [r for r in rows if r["experiment"] == experiment]

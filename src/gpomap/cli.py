@@ -939,7 +939,9 @@ def _benchmark_arguments(args: argparse.Namespace) -> dict[str, Any]:
         raise GpomapError(f"--methods: unknown method(s) {', '.join(unknown)}; expected {', '.join(METHODS)}")
     # run_paper_benchmark refuses unknown experiments with a ValueError, reported as one line.
     experiments = tuple(e.strip() for e in args.experiments.split(",") if e.strip())
-    return {"methods": methods, "experiments": experiments, "quick": args.quick, "seed": args.seed}
+    if args.timed_runs < 1:
+        raise GpomapError(f"--timed-runs must be at least 1, got {args.timed_runs}")
+    return {"methods": methods, "experiments": experiments, "quick": args.quick, "seed": args.seed, "timed_runs": args.timed_runs}
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:
@@ -1147,6 +1149,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=_signature_default("gpomap.benchmark", "run_paper_benchmark", "seed"),
         help="seed of every method (default: %(default)s)",
+    )
+    p.add_argument(
+        "--timed-runs",
+        type=int,
+        default=_signature_default("gpomap.benchmark", "run_paper_benchmark", "timed_runs"),
+        metavar="N",
+        help="timed fits and predictions of each method after its warm-up; the fastest is reported (default: %(default)s)",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_benchmark)
