@@ -17,6 +17,13 @@ from gpomap.tiles import TiledGPOM, predict_tile_task, taper
 OPTS = dict(optimise=False, noise=0.1, free_step=0.3)
 
 
+@pytest.fixture
+def tight(monkeypatch):
+    """Covariances below 1e-9 of the variance left out, not LOCAL_TOL's: the blocks' bookkeeping
+    (which cells, which entries of K^-1) is then checked against the dense prediction to 1e-8."""
+    monkeypatch.setattr(tiles, "LOCAL_TOL", 1e-9)
+
+
 def _both(model: TiledGPOM, key: tuple[int, int], points: np.ndarray):
     state = model.tiles_[key]
     settings = model._settings()
@@ -39,7 +46,7 @@ def room_maps():
 
 
 @pytest.mark.parametrize("kernel", ["se", "matern32"])
-def test_local_equals_dense_in_2d(room_maps, kernel):
+def test_local_equals_dense_in_2d(room_maps, kernel, tight):
     model = room_maps[kernel]
     key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
     state = model.tiles_[key]
@@ -64,7 +71,7 @@ def test_local_equals_dense_in_2d(room_maps, kernel):
     np.testing.assert_allclose(p, p_dense, rtol=0, atol=1e-8)
 
 
-def test_local_equals_dense_in_3d():
+def test_local_equals_dense_in_3d(tight):
     from tests.world3d import ORIGINS, lidar_clouds
 
     model = TiledGPOM(tile_size=3.0, n_workers=1, kernel="se", length_scale=0.1, **OPTS).fit(lidar_clouds(ORIGINS, n_rays=100))
@@ -76,7 +83,7 @@ def test_local_equals_dense_in_3d():
     np.testing.assert_allclose(var, dense_var, rtol=0, atol=1e-8)
 
 
-def test_points_with_no_cell_near_get_the_prior(room_maps):
+def test_points_with_no_cell_near_get_the_prior(room_maps, tight):
     model = room_maps["se"]
     key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
     state = model.tiles_[key]
@@ -88,6 +95,33 @@ def test_points_with_no_cell_near_get_the_prior(room_maps):
     np.testing.assert_array_equal(var[:3000], state.hyperparameters["variance"])
     np.testing.assert_allclose(mean, dense_mean, rtol=0, atol=1e-8)
     np.testing.assert_allclose(var, dense_var, rtol=0, atol=1e-8)
+
+
+def test_local_is_within_the_tolerance_of_dense_at_the_default(room_maps):
+    # Every covariance left out is below LOCAL_TOL * variance (see test_blocks_... below), so the
+    # mean moves by at most that times the sum of |weights|, and the variance's reduction
+    # k^T K^-1 k by at most (2 tol + tol^2) variance^2 sum |K^-1| (each |k_j| <= variance).
+    from gpomap.gp import cholesky_inverse
+
+    model = room_maps["se"]
+    key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
+    state = model.tiles_[key]
+    points = np.random.default_rng(9).uniform(state.lower.min(axis=0) - 1.0, state.upper.max(axis=0) + 1.0, (6000, 2))
+    (mean, var), (dense_mean, dense_var) = _both(model, key, points)
+    s2 = state.hyperparameters["variance"]
+    mean_bound = LOCAL_TOL * s2 * np.abs(state.weights).sum()
+    var_bound = (2 * LOCAL_TOL + LOCAL_TOL**2) * s2**2 * np.abs(cholesky_inverse(state.L)).sum()
+    assert np.abs(mean - dense_mean).max() <= mean_bound
+    assert np.abs(var - dense_var).max() <= var_bound
+    # The bounds are loose; what the map's probabilities move by, measured: below 1e-5 here.
+    p = model.predict_proba_gp(points)
+    tiles_before = tiles.predict_tile_task
+    try:
+        tiles.predict_tile_task = lambda *a: tiles_before(*a, local=False)
+        p_dense = model.predict_proba_gp(points)
+    finally:
+        tiles.predict_tile_task = tiles_before
+    assert 0 < np.abs(p - p_dense).max() < 1e-5
 
 
 def test_blocks_cover_every_query_once_and_keep_every_cell_within_reach():
