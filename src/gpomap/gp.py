@@ -903,11 +903,13 @@ class SupportGP:
         if not boxes or self.kernel.normalisation != "mean" or self.kernel.method == "summed" or len(X) == 0:
             return None
         n = len(self.X_train_)
-        # Blocks of side r / 2, as before the tiles shared this function.
-        blocks, work = local_blocks(X, self.X_train_, self.kernel.base.cutoff(LOCAL_TOL), chunk_size, side=0.5)
         # Dense costs about n^2 per query; local |J|^2 per query plus taking (K^-1)_JJ per block,
         # and forming K^-1 (about n^3) the first time.
         setup = n**3 if self.K_inv_ is None else 0
+        if setup > 0.5 * n * n * len(X):
+            return None  # dense whatever the blocks' work: not worth finding them
+        # Blocks of side r / 2, as before the tiles shared this function.
+        blocks, work = local_blocks(X, self.X_train_, self.kernel.base.cutoff(LOCAL_TOL), chunk_size, side=0.5)
         if work + setup > 0.5 * n * n * len(X):
             return None
         return blocks

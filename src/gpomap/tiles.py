@@ -408,6 +408,8 @@ def _local_tile_blocks(
     if kern.method == "summed" or kern.normalisation != "mean" or len(Q) == 0:
         return None
     n, m = len(X), len(Q)
+    if n**3 > 0.5 * n * n * m:
+        return None  # dense whatever the blocks' work (below): not worth finding them
     r = kern.base.cutoff(LOCAL_TOL)
     axes = LOCAL_AXES.get(X.dim)
     # Blocks of about LOCAL_BLOCK_QUERIES queries where they are sparse (each kernel call and
