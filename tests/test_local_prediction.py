@@ -36,6 +36,16 @@ def _both(model: TiledGPOM, key: tuple[int, int], points: np.ndarray):
     return local, dense
 
 
+def _dense_blended(model: TiledGPOM, points: np.ndarray) -> np.ndarray:
+    """The map's blended probability at points with every tile predicted densely (the reference)."""
+    tiles_before = tiles.predict_tile_task
+    try:
+        tiles.predict_tile_task = lambda *a: tiles_before(*a, local=False)
+        return model.predict_proba_gp(points)
+    finally:
+        tiles.predict_tile_task = tiles_before
+
+
 @pytest.fixture(scope="module")
 def room_maps():
     scans = paper_room_scans()[:8]
@@ -61,13 +71,7 @@ def test_local_equals_dense_in_2d(room_maps, kernel, tight):
         assert none is None
         np.testing.assert_array_equal(alone, mean if local else dense_mean)
     # The blended map too, through every tile.
-    p = model.predict_proba_gp(points)
-    tiles_before = tiles.predict_tile_task
-    try:
-        tiles.predict_tile_task = lambda *a: tiles_before(*a, local=False)
-        p_dense = model.predict_proba_gp(points)
-    finally:
-        tiles.predict_tile_task = tiles_before
+    p, p_dense = model.predict_proba_gp(points), _dense_blended(model, points)
     np.testing.assert_allclose(p, p_dense, rtol=0, atol=1e-8)
 
 
@@ -114,13 +118,7 @@ def test_local_is_within_the_tolerance_of_dense_at_the_default(room_maps):
     assert np.abs(mean - dense_mean).max() <= mean_bound
     assert np.abs(var - dense_var).max() <= var_bound
     # The bounds are loose; what the map's probabilities move by, measured: below 1e-5 here.
-    p = model.predict_proba_gp(points)
-    tiles_before = tiles.predict_tile_task
-    try:
-        tiles.predict_tile_task = lambda *a: tiles_before(*a, local=False)
-        p_dense = model.predict_proba_gp(points)
-    finally:
-        tiles.predict_tile_task = tiles_before
+    p, p_dense = model.predict_proba_gp(points), _dense_blended(model, points)
     assert 0 < np.abs(p - p_dense).max() < 1e-5
 
 
