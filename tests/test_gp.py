@@ -154,30 +154,13 @@ def test_cholesky_in_place_is_the_factor_in_the_matrix_own_memory():
 def test_a_tile_whose_covariance_is_singular_is_fitted_with_jitter():
     # Two identical cells with opposite labels and almost no noise: the in-place factorisation
     # fails on the tile's covariance, and the tile is formed again and factorised with jitter.
-    from gpomap.tiles import fit_tile_task
+    from gpomap.tiles import TileCells, TileFitTask, TileSettings, fit_tile_task
 
     box = np.array([[0.0, 0.0], [0.0, 0.0], [2.0, 0.0]]), np.array([[0.5, 0.5], [0.5, 0.5], [2.5, 0.5]])
-    settings = {
-        "kernel": "se",
-        "length_scale_bounds": (1e-2, 1e2),
-        "area": "exact",
-        "normalisation": "mean",
-        "quadrature_order": 2,
-        "noise_model": "constant",
-        "per_tile": False,
-    }
-    payload = {
-        "key": (0, 0),
-        "lower": box[0],
-        "upper": box[1],
-        "counts": np.ones(3),
-        "labels": np.array([1.0, -1.0, 1.0]),
-        "member_points": None,
-        "member_offsets": None,
-        "settings": settings,
-        "hyperparameters": {"variance": 1.0, "length_scale": 1.0, "noise": 1e-300, "alpha": 1.0, "beta": 0.0},
-    }
-    state = fit_tile_task(payload)
+    settings = TileSettings(area="exact", kernel="se", length_scale_bounds=(1e-2, 1e2), noise_model="constant")
+    cells = TileCells(box[0], box[1], np.ones(3), np.array([1.0, -1.0, 1.0]))
+    hyperparameters = {"variance": 1.0, "length_scale": 1.0, "noise": 1e-300, "alpha": 1.0, "beta": 0.0}
+    state = fit_tile_task(TileFitTask((0, 0), cells, settings, hyperparameters))
     assert state.jitter > 0 and np.all(np.isfinite(state.L)) and np.all(np.isfinite(state.weights))
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -60,10 +62,10 @@ def test_tile_refit_reusing_covariances_matches_a_fresh_fit(room):
     model._build_blocks(sorted(model._dirty))
     key = sorted(model.tiles_)[0]
     jobs, _ = model._fit_jobs([key], reuse=True)
-    payload = jobs[0][1][0]
-    assert "previous" in payload
-    reused = tiles.fit_tile_task(payload)
-    exact = tiles.fit_tile_task({k: v for k, v in payload.items() if k != "previous"})
+    task = jobs[0][1][0]
+    assert task.previous is not None
+    reused = tiles.fit_tile_task(task)
+    exact = tiles.fit_tile_task(dataclasses.replace(task, previous=None))
     assert reused.n_cells == exact.n_cells
     np.testing.assert_allclose(reused.L, exact.L, rtol=0, atol=1e-10)
     np.testing.assert_allclose(reused.weights, exact.weights, rtol=0, atol=1e-8)

@@ -185,19 +185,19 @@ def test_update_equals_batch(room):
     assert n_before <= len(inc.tiles_)
 
 
-def _dying_fit(payload):
+def _dying_fit(task):
     """Kill the worker process the first time tile (1, 1) is fitted (marker file records it)."""
     marker = Path(os.environ[MARKER_ENV])
-    if tuple(payload["key"]) == (1, 1) and not marker.exists():
+    if tuple(task.key) == (1, 1) and not marker.exists():
         marker.write_text("died")
         os._exit(17)
-    return _REAL_FIT(payload)
+    return _REAL_FIT(task)
 
 
-def _always_failing_fit(payload):
-    if tuple(payload["key"]) == (1, 1):
+def _always_failing_fit(task):
+    if tuple(task.key) == (1, 1):
         raise RuntimeError("disk on fire")
-    return _REAL_FIT(payload)
+    return _REAL_FIT(task)
 
 
 @pytest.fixture(scope="module")
@@ -307,11 +307,11 @@ def test_progress_of_fit_update_and_grid(room, reference, progress_mode, capsys,
     assert capsys.readouterr() == ("", "")  # nothing printed at all
 
 
-def _blas_threads_fit(payload):
+def _blas_threads_fit(task):
     """The real fit, with the BLAS thread count of the process it ran in added to the state."""
     from threadpoolctl import threadpool_info
 
-    state = _REAL_FIT(payload)
+    state = _REAL_FIT(task)
     state.hyperparameters["blas_threads"] = max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
     return state
 

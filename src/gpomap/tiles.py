@@ -263,18 +263,106 @@ class TileState:
         return int(self.counts.size)
 
 
-def _area_kernel(settings: dict[str, Any], variance: float, length_scale: float) -> AreaKernel:
+@dataclass(frozen=True)
+class TileSettings:
+    """What a tile's tasks need of the map's settings: the kernel and noise and, for per-tile
+    hyperparameters, how to learn them (the fields of :class:`~gpomap.config.MapConfig` they come from).
+
+    Attributes
+    ----------
+    area : str
+        The area kernel's method, resolved ("exact", "quadrature" or "summed"; the map's
+        ``area_method``).
+    per_tile : bool
+        Learn each tile's hyperparameters, starting from the map's; False: use the map's.
+    """
+
+    area: str
+    kernel: str = MapConfig.kernel
+    normalisation: str = MapConfig.normalisation
+    quadrature_order: int = MapConfig.quadrature_order
+    length_scale_bounds: tuple[float, float] = MapConfig.length_scale_bounds
+    noise_bounds: tuple[float, float] = MapConfig.noise_bounds
+    noise_model: str = MapConfig.noise_model
+    objective: str = MapConfig.objective
+    n_restarts: int = MapConfig.n_restarts
+    seed: int = MapConfig.seed
+    hyper_subset: int | None = MapConfig.hyper_subset
+    prior_std: float | None = MapConfig.prior_std
+    class_weight: str | None = MapConfig.class_weight
+    per_tile: bool = False
+
+
+@dataclass
+class TileCells:
+    """The cells a tile's GP is fitted on (those meeting its grown square, in canonical order).
+
+    Attributes
+    ----------
+    lower, upper : ndarray of shape (n, d)
+        Boxes.
+    counts : ndarray of shape (n,)
+        Member points per cell.
+    labels : ndarray of shape (n,)
+        +1 occupied, -1 free.
+    member_points : ndarray of shape (m, d) or None
+        Only for the ``"summed"`` area kernel.
+    member_offsets : ndarray of int, shape (n + 1,) or None
+    """
+
+    lower: NDArray[np.float64]
+    upper: NDArray[np.float64]
+    counts: NDArray[np.float64]
+    labels: NDArray[np.float64]
+    member_points: NDArray[np.float64] | None = None
+    member_offsets: NDArray[np.intp] | None = None
+
+    def supports(self) -> Supports:
+        """The cells as GP inputs."""
+        return Supports(self.lower, self.upper, self.counts, self.member_points, self.member_offsets)
+
+    def signature(self) -> tuple[bytes, ...]:
+        """The cells' bytes: equal signatures, the same GP (an update refits a tile only when it changes)."""
+        return (self.lower.tobytes(), self.upper.tobytes(), self.counts.tobytes(), self.labels.tobytes())
+
+
+@dataclass
+class TileFitTask:
+    """One tile's fit, as it is shipped to a worker (:func:`fit_tile_task`).
+
+    Attributes
+    ----------
+    key : (int, int)
+        Tile index (ix, iy).
+    cells : TileCells
+    settings : TileSettings
+    hyperparameters : dict
+        variance, length_scale, noise, alpha, beta: used as they are, or as the start with
+        ``settings.per_tile``.
+    previous : TileState or None
+        This tile's last fit, whose covariances of the cells still there are reused (same
+        hyperparameters only); None: every entry computed afresh.
+    """
+
+    key: tuple[int, int]
+    cells: TileCells
+    settings: TileSettings
+    hyperparameters: dict[str, float]
+    previous: TileState | None = None
+
+
+def _area_kernel(settings: TileSettings, variance: float, length_scale: float) -> AreaKernel:
     base = make_point_kernel(
-        settings["kernel"], variance=variance, length_scale=length_scale, length_scale_bounds=settings["length_scale_bounds"]
+        settings.kernel, variance=variance, length_scale=length_scale, length_scale_bounds=settings.length_scale_bounds
     )
-    kern = AreaKernel(base, settings["area"], settings["normalisation"], settings["quadrature_order"])
+    kern = AreaKernel(base, settings.area, settings.normalisation, settings.quadrature_order)
     # Same path as SupportGP's factorisation (clone from log theta), so a one-tile map matches
     # one SupportGP over its cells to the last bits.
     return kern.clone_with_theta(kern.theta)
 
 
-def _noise_vector(settings: dict[str, Any], noise: float, counts: NDArray[np.float64]) -> NDArray[np.float64]:
-    scale = 1.0 / np.maximum(counts, 1.0) if settings["noise_model"] == "per_count" else np.ones(counts.size)
+def _noise_vector(settings: TileSettings, noise: float, counts: NDArray[np.float64]) -> NDArray[np.float64]:
+    scale = 1.0 / np.maximum(counts, 1.0) if settings.noise_model == "per_count" else np.ones(counts.size)
     return np.exp(np.log(noise)) * scale
 
 
@@ -282,7 +370,7 @@ def _box_keys(lower: NDArray[np.float64], upper: NDArray[np.float64]) -> list[by
     return [row.tobytes() for row in np.ascontiguousarray(np.concatenate([lower, upper], axis=1))]
 
 
-def _gram_reusing(kern: AreaKernel, X: Supports, previous: TileState, settings: dict[str, Any]) -> NDArray[np.float64] | None:
+def _gram_reusing(kern: AreaKernel, X: Supports, previous: TileState, settings: TileSettings) -> NDArray[np.float64] | None:
     """K(X, X), with the entries of cells the previous fit of this tile had copied from it.
 
     The previous covariance is recovered from its factor (``L L^T`` less its noise and jitter):
@@ -292,7 +380,7 @@ def _gram_reusing(kern: AreaKernel, X: Supports, previous: TileState, settings: 
     None when too little can be reused: a kernel whose entries depend on more than the boxes
     (member points, counts), or fewer than half the cells in common.
     """
-    if settings["area"] == "summed" or settings["normalisation"] == "sum":
+    if settings.area == "summed" or settings.normalisation == "sum":
         return None
     old_index = {k: i for i, k in enumerate(_box_keys(previous.lower, previous.upper))}
     new_keys = _box_keys(X.lower, X.upper)
@@ -317,40 +405,36 @@ def _gram_reusing(kern: AreaKernel, X: Supports, previous: TileState, settings: 
     return K
 
 
-def fit_tile_task(payload: dict[str, Any]) -> TileState:
+def fit_tile_task(task: TileFitTask) -> TileState:
     """Fit one tile's GP (a top-level function so process pools and Dask can ship it).
 
     Parameters
     ----------
-    payload : dict
-        ``key`` (ix, iy); ``lower``, ``upper`` (n, 2); ``counts``, ``labels`` (n,);
-        ``member_points`` (m, 2) and ``member_offsets`` (n + 1,) or None; ``settings`` (dict of
-        kernel and learning options); ``hyperparameters`` (dict of variance, length_scale, noise,
-        alpha, beta: used as they are, or as the start when ``settings["per_tile"]``).
+    task : TileFitTask
 
     Returns
     -------
     TileState
     """
     t0 = time.perf_counter()
-    st = payload["settings"]
-    hyp = dict(payload["hyperparameters"])
-    X = Supports(payload["lower"], payload["upper"], payload["counts"], payload["member_points"], payload["member_offsets"])
-    y = np.asarray(payload["labels"], dtype=float)
+    st = task.settings
+    hyp = dict(task.hyperparameters)
+    X = task.cells.supports()
+    y = np.asarray(task.cells.labels, dtype=float)
     kern = _area_kernel(st, hyp["variance"], hyp["length_scale"])
-    if st["per_tile"]:
+    if st.per_tile:
         gp = SupportGP(
             kern,
             noise=hyp["noise"],
-            noise_bounds=st["noise_bounds"],
-            noise_model=st["noise_model"],
-            objective=st["objective"],
+            noise_bounds=st.noise_bounds,
+            noise_model=st.noise_model,
+            objective=st.objective,
             optimise=True,
-            n_restarts=st["n_restarts"],
-            seed=st["seed"],
-            hyper_subset=st["hyper_subset"],
-            prior_std=st["prior_std"],
-            class_weight=st["class_weight"],
+            n_restarts=st.n_restarts,
+            seed=st.seed,
+            hyper_subset=st.hyper_subset,
+            prior_std=st.prior_std,
+            class_weight=st.class_weight,
         )
         gp.squash = ProbitSquash(hyp["alpha"], hyp["beta"])
         gp.fit(X, y)
@@ -365,7 +449,7 @@ def fit_tile_task(payload: dict[str, Any]) -> TileState:
     else:
         # Fixed hyperparameters: one factorisation, no leave-one-out pass (alpha and beta are
         # global), which halves the work of SupportGP.fit.
-        previous = payload.get("previous")
+        previous = task.previous
         same_hyp = previous is not None and all(
             previous.hyperparameters.get(n) == hyp[n] for n in ("variance", "length_scale", "noise")
         )
@@ -382,12 +466,12 @@ def fit_tile_task(payload: dict[str, Any]) -> TileState:
         L = factor
         weights = cho_solve((L, True), y, check_finite=False)
     return TileState(
-        key=tuple(payload["key"]),
+        key=(int(task.key[0]), int(task.key[1])),
         lower=X.lower,
         upper=X.upper,
         counts=X.counts,
-        member_points=X.member_points if st["area"] == "summed" else None,
-        member_offsets=X.member_offsets if st["area"] == "summed" else None,
+        member_points=X.member_points if st.area == "summed" else None,
+        member_offsets=X.member_offsets if st.area == "summed" else None,
         L=L,
         weights=weights,
         hyperparameters={k: float(v) for k, v in hyp.items()},
@@ -482,7 +566,7 @@ def _predict_tile_local(
 
 def predict_tile_task(
     state: TileState,
-    settings: dict[str, Any],
+    settings: TileSettings,
     points: NDArray[np.float64],
     chunk_size: int = 4096,
     variance: bool = True,
@@ -857,24 +941,24 @@ class TiledGPOM:
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     # ------------------------------------------------------------------ settings
-    def _settings(self) -> dict[str, Any]:
+    def _settings(self) -> TileSettings:
         b = self.base
-        return {
-            "kernel": b.kernel,
-            "area": b.area_method,
-            "normalisation": b.normalisation,
-            "quadrature_order": b.quadrature_order,
-            "length_scale_bounds": b.length_scale_bounds,
-            "noise_bounds": b.noise_bounds,
-            "noise_model": b.noise_model,
-            "objective": b.objective,
-            "n_restarts": b.n_restarts,
-            "seed": b.seed,
-            "hyper_subset": b.hyper_subset,
-            "prior_std": b.prior_std,
-            "class_weight": b.class_weight,
-            "per_tile": self.per_tile_hyperparameters,
-        }
+        return TileSettings(
+            area=b.area_method,
+            kernel=b.kernel,
+            normalisation=b.normalisation,
+            quadrature_order=b.quadrature_order,
+            length_scale_bounds=b.length_scale_bounds,
+            noise_bounds=b.noise_bounds,
+            noise_model=b.noise_model,
+            objective=b.objective,
+            n_restarts=b.n_restarts,
+            seed=b.seed,
+            hyper_subset=b.hyper_subset,
+            prior_std=b.prior_std,
+            class_weight=b.class_weight,
+            per_tile=self.per_tile_hyperparameters,
+        )
 
     @property
     def n_workers_(self) -> int:
@@ -1065,7 +1149,7 @@ class TiledGPOM:
         lo, hi = self._grown(self._square(self._decode(block), self.block_size_))
         return [t for t in self._meeting(lo, hi, self.tile_size_) if self._encode(*t) in self._tiles_with_points]
 
-    def _gather(self, tile: tuple[int, int]) -> dict[str, Any] | None:
+    def _gather(self, tile: tuple[int, int]) -> TileCells | None:
         """The cells meeting the tile's grown square, in canonical (block key, tree) order."""
         (gx0, gy0), (gx1, gy1) = self._grown(self._core(tile))
         parts = []
@@ -1079,20 +1163,18 @@ class TiledGPOM:
         if not parts:
             return None
         parts.sort(key=lambda p: p[0])
-        out: dict[str, Any] = {
-            "lower": np.concatenate([bc.lower[k] for _, bc, k in parts]),
-            "upper": np.concatenate([bc.upper[k] for _, bc, k in parts]),
-            "counts": np.concatenate([bc.counts[k] for _, bc, k in parts]),
-            "labels": np.concatenate([np.where(bc.occupied[k], 1.0, -1.0) for _, bc, k in parts]),
-            "member_points": None,
-            "member_offsets": None,
-        }
+        out = TileCells(
+            lower=np.concatenate([bc.lower[k] for _, bc, k in parts]),
+            upper=np.concatenate([bc.upper[k] for _, bc, k in parts]),
+            counts=np.concatenate([bc.counts[k] for _, bc, k in parts]),
+            labels=np.concatenate([np.where(bc.occupied[k], 1.0, -1.0) for _, bc, k in parts]),
+        )
         if self.base.area_method == "summed":
             sup = [Supports(bc.lower, bc.upper, bc.counts, bc.member_points, bc.member_offsets).subset(k) for _, bc, k in parts]
             from gpomap.supports import concatenate
 
             s = concatenate(sup)
-            out["member_points"], out["member_offsets"] = s.member_points, s.member_offsets
+            out.member_points, out.member_offsets = s.member_points, s.member_offsets
         return out
 
     def _all_cells(
@@ -1106,7 +1188,7 @@ class TiledGPOM:
         return lo, hi, cnt, lab, keys
 
     # ------------------------------------------------------------------ hyperparameters
-    def _learn_hyperparameters(self) -> dict[str, Any]:
+    def _learn_hyperparameters(self) -> dict[str, float]:
         """Learn all five hyperparameters once, on a compact sample round a dense, typical block."""
         b = self.base
         keys = sorted(self._blocks)
@@ -1388,7 +1470,7 @@ class TiledGPOM:
 
     def _fit_jobs(
         self, tiles: Sequence[tuple[int, int]], reuse: bool = False
-    ) -> tuple[list, dict[tuple[int, int], dict[str, Any]]]:
+    ) -> tuple[list[tuple[tuple[int, int], tuple[TileFitTask]]], dict[tuple[int, int], TileCells]]:
         settings = self._settings()
         jobs, gathered = [], {}
         for t in tiles:
@@ -1396,10 +1478,8 @@ class TiledGPOM:
             if g is None:
                 continue
             gathered[t] = g
-            payload = {"key": t, **g, "settings": settings, "hyperparameters": self.hyperparameters_}
-            if reuse and t in self.tiles_:
-                payload["previous"] = self.tiles_[t]
-            jobs.append((t, (payload,)))
+            previous = self.tiles_[t] if reuse and t in self.tiles_ else None
+            jobs.append((t, (TileFitTask(t, g, settings, self.hyperparameters_, previous),)))
         return jobs, gathered
 
     def fit(self, data: ScanData | Observations, hyperparameters: dict[str, float] | None = None) -> TiledGPOM:
@@ -1486,7 +1566,7 @@ class TiledGPOM:
         tiles = [self._decode(k) for k in sorted(self._tiles_with_points)]
         jobs, gathered = self._fit_jobs(tiles)
         self.tiles_: dict[tuple[int, int], TileState] = self._run(fit_tile_task, jobs, "tile fit", "fitting tiles")
-        self._signatures = {t: self._signature(g) for t, g in gathered.items()}
+        self._signatures = {t: g.signature() for t, g in gathered.items()}
         timings["tile_fits"] = time.perf_counter() - t
         t = time.perf_counter()
         self.timings_ = timings
@@ -1603,10 +1683,6 @@ class TiledGPOM:
                 f"blend must be in (0, min(overlap, tile_size)] = (0, {min(self.overlap_, self.tile_size_)}], got {w}"
             )
         self.blend_ = float(w)
-
-    @staticmethod
-    def _signature(g: dict[str, Any]) -> tuple[bytes, ...]:
-        return (g["lower"].tobytes(), g["upper"].tobytes(), g["counts"].tobytes(), g["labels"].tobytes())
 
     def update(self, scans: Sequence[Scan]) -> TiledGPOM:
         """Add scans: rebuild the cells of the blocks they touch, refit only the tiles whose cell
@@ -1728,11 +1804,11 @@ class TiledGPOM:
         self._dirty -= set(rebuild)
         t1 = time.perf_counter()
         jobs, gathered = self._fit_jobs(take, reuse=not exact)
-        todo = [j for j in jobs if j[0] in self._reused or self._signatures.get(j[0]) != self._signature(gathered[j[0]])]
+        todo = [j for j in jobs if j[0] in self._reused or self._signatures.get(j[0]) != gathered[j[0]].signature()]
         self.tiles_.update(self._run(fit_tile_task, todo, "tile fit", "refitting tiles"))
-        for key, payload in todo:
-            self._signatures[key] = self._signature(gathered[key])
-            if "previous" in payload[0]:
+        for key, (task,) in todo:
+            self._signatures[key] = gathered[key].signature()
+            if task.previous is not None:
                 self._reused.add(key)
             else:
                 self._reused.discard(key)
