@@ -118,7 +118,7 @@ def main() -> None:
             for case, (n_points, fn) in cases.items():
                 # Each fit starts without K^-1: the first local call of each case forms it.
                 for state in model.tiles_.values():
-                    state.precision = None
+                    state.posterior.precision = None
                 first, best, cpu, (p, v) = timed(fn, args.repeat)
                 row = (
                     f"{name:<8}{kernel:<10}{f'{np.median(cells):.0f}/{cells.max()}':>11} {case:<9}{n_points:>9}"

@@ -161,7 +161,8 @@ def test_a_tile_whose_covariance_is_singular_is_fitted_with_jitter():
     cells = TileCells(box[0], box[1], np.ones(3), np.array([1.0, -1.0, 1.0]))
     hyperparameters = {"variance": 1.0, "length_scale": 1.0, "noise": 1e-300, "alpha": 1.0, "beta": 0.0}
     state = fit_tile_task(TileFitTask((0, 0), cells, settings, hyperparameters))
-    assert state.jitter > 0 and np.all(np.isfinite(state.L)) and np.all(np.isfinite(state.weights))
+    post = state.posterior
+    assert post.jitter > 0 and np.all(np.isfinite(post.L)) and np.all(np.isfinite(post.weights))
 
 
 def test_robust_cholesky_adds_jitter_only_when_needed():
@@ -191,7 +192,7 @@ def test_local_prediction_equals_dense(kernel, monkeypatch):
     area = "exact" if isinstance(kernel, SquaredExponential) else "quadrature"
     gp = SupportGP(AreaKernel(kernel, area), noise=0.05, noise_model="per_count", optimise=False).fit(X, y)
     Q = Supports.from_points(np.column_stack([rng.uniform(-1, 41, 3000), rng.uniform(-1, 5, 3000)]))
-    assert gp._local_blocks(Q, 4096) is not None
+    assert gp.posterior_.local_blocks(Q, 4096) is not None
     mean, var = gp.predict_latent(Q, local=True)
     dense_mean, dense_var = gp.predict_latent(Q, local=False)
     np.testing.assert_allclose(mean, dense_mean, atol=1e-9)

@@ -7,6 +7,7 @@ import pickle
 import numpy as np
 import pytest
 
+import gpomap.gp
 import gpomap.tiles as tiles
 from gpomap.gp import LOCAL_TOL, local_blocks
 from gpomap.simulate import paper_room_scans
@@ -21,18 +22,15 @@ OPTS = dict(optimise=False, noise=0.1, free_step=0.3)
 def tight(monkeypatch):
     """Covariances below 1e-9 of the variance left out, not LOCAL_TOL's: the blocks' bookkeeping
     (which cells, which entries of K^-1) is then checked against the dense prediction to 1e-8."""
-    monkeypatch.setattr(tiles, "LOCAL_TOL", 1e-9)
+    monkeypatch.setattr(gpomap.gp, "LOCAL_TOL", 1e-9)
 
 
 def _both(model: TiledGPOM, key: tuple[int, int], points: np.ndarray):
     state = model.tiles_[key]
-    settings = model._settings()
-    hyp = state.hyperparameters
-    kern = tiles._area_kernel(settings, hyp["variance"], hyp["length_scale"])
     # The local path is the one taken (not the dense fallback).
-    assert tiles._local_tile_blocks(state, kern, state.supports(), Supports.from_points(points), 4096) is not None
-    local = predict_tile_task(state, settings, points, 4096, local=True)
-    dense = predict_tile_task(state, settings, points, 4096, local=False)
+    assert state.posterior.local_blocks(Supports.from_points(points), 4096) is not None
+    local = predict_tile_task(state, points, 4096, local=True)
+    dense = predict_tile_task(state, points, 4096, local=False)
     return local, dense
 
 
@@ -61,13 +59,15 @@ def test_local_equals_dense_in_2d(room_maps, kernel, tight):
     key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
     state = model.tiles_[key]
     rng = np.random.default_rng(0)
-    points = rng.uniform(state.lower.min(axis=0) - 1.0, state.upper.max(axis=0) + 1.0, (6000, 2))
+    points = rng.uniform(
+        state.posterior.inputs.lower.min(axis=0) - 1.0, state.posterior.inputs.upper.max(axis=0) + 1.0, (6000, 2)
+    )
     (mean, var), (dense_mean, dense_var) = _both(model, key, points)
     np.testing.assert_allclose(mean, dense_mean, rtol=0, atol=1e-8)
     np.testing.assert_allclose(var, dense_var, rtol=0, atol=1e-8)
     # The mean alone (a written map's samples between its variance's) is the same to the bit.
     for local in (True, False):
-        alone, none = predict_tile_task(state, model._settings(), points, 4096, variance=False, local=local)
+        alone, none = predict_tile_task(state, points, 4096, variance=False, local=local)
         assert none is None
         np.testing.assert_array_equal(alone, mean if local else dense_mean)
     # The blended map too, through every tile.
@@ -92,8 +92,10 @@ def test_points_with_no_cell_near_get_the_prior(room_maps, tight):
     key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
     state = model.tiles_[key]
     # Many points far beyond the cutoff of every cell (J empty), and some near, so local pays.
-    far = state.upper.max(axis=0) + 50.0 + np.random.default_rng(2).uniform(0, 10, (3000, 2))
-    near = np.random.default_rng(3).uniform(state.lower.min(axis=0), state.upper.max(axis=0), (3000, 2))
+    far = state.posterior.inputs.upper.max(axis=0) + 50.0 + np.random.default_rng(2).uniform(0, 10, (3000, 2))
+    near = np.random.default_rng(3).uniform(
+        state.posterior.inputs.lower.min(axis=0), state.posterior.inputs.upper.max(axis=0), (3000, 2)
+    )
     (mean, var), (dense_mean, dense_var) = _both(model, key, np.concatenate([far, near]))
     np.testing.assert_array_equal(mean[:3000], 0.0)
     np.testing.assert_array_equal(var[:3000], state.hyperparameters["variance"])
@@ -110,11 +112,13 @@ def test_local_is_within_the_tolerance_of_dense_at_the_default(room_maps):
     model = room_maps["se"]
     key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
     state = model.tiles_[key]
-    points = np.random.default_rng(9).uniform(state.lower.min(axis=0) - 1.0, state.upper.max(axis=0) + 1.0, (6000, 2))
+    points = np.random.default_rng(9).uniform(
+        state.posterior.inputs.lower.min(axis=0) - 1.0, state.posterior.inputs.upper.max(axis=0) + 1.0, (6000, 2)
+    )
     (mean, var), (dense_mean, dense_var) = _both(model, key, points)
     s2 = state.hyperparameters["variance"]
-    mean_bound = LOCAL_TOL * s2 * np.abs(state.weights).sum()
-    var_bound = (2 * LOCAL_TOL + LOCAL_TOL**2) * s2**2 * np.abs(cholesky_inverse(state.L)).sum()
+    mean_bound = LOCAL_TOL * s2 * np.abs(state.posterior.weights).sum()
+    var_bound = (2 * LOCAL_TOL + LOCAL_TOL**2) * s2**2 * np.abs(cholesky_inverse(state.posterior.L)).sum()
     assert np.abs(mean - dense_mean).max() <= mean_bound
     assert np.abs(var - dense_var).max() <= var_bound
     # The bounds are loose; what the map's probabilities move by, measured: below 1e-5 here.
@@ -144,17 +148,16 @@ def test_the_cached_inverse_is_not_pickled_or_compared(room_maps):
     model = room_maps["se"]
     state = next(iter(model.tiles_.values()))
     model.predict_proba_gp(np.random.default_rng(5).uniform(0, 10, (20000, 2)))
-    assert any(s.precision is not None for s in model.tiles_.values())
-    assert pickle.loads(pickle.dumps(state)).precision is None
+    assert any(s.posterior.precision is not None for s in model.tiles_.values())
+    assert pickle.loads(pickle.dumps(state)).posterior.precision is None
     assert "precision" not in repr(state)
 
 
 def test_summed_kernel_keeps_the_dense_path():
     model = TiledGPOM(n_workers=1, kernel="se", area="summed", length_scale=0.3, **OPTS).fit(paper_room_scans()[:4])
     state = next(iter(model.tiles_.values()))
-    kern = tiles._area_kernel(model._settings(), 1.0, 0.3)
     points = Supports.from_points(np.random.default_rng(6).uniform(0, 10, (5000, 2)))
-    assert tiles._local_tile_blocks(state, kern, state.supports(), points, 4096) is None
+    assert state.posterior.local_blocks(points, 4096) is None
     assert LOCAL_TOL > 0
 
 
@@ -172,7 +175,6 @@ def test_blended_prediction_is_the_taper_weighted_mean_of_the_tiles(room_maps):
     points = np.concatenate([points, np.column_stack([edges, rng.uniform(lo[1], hi[1], edges.size)])])
     p, mean, var, _ = model._predict_blended(points)
     h = 0.5 * model.blend_
-    settings = model._settings()
     for i, x in enumerate(points):
         num = den = lat_m = lat_v = wsum = 0.0
         for key in keys:
@@ -183,7 +185,7 @@ def test_blended_prediction_is_the_taper_weighted_mean_of_the_tiles(room_maps):
             w = float(taper(np.array([x[0]]), x0, x1, h)[0] * taper(np.array([x[1]]), y0, y1, h)[0])
             if w <= 0:
                 continue
-            (mu,), (v,) = predict_tile_task(model.tiles_[key], settings, x[None, :], local=False)
+            (mu,), (v,) = predict_tile_task(model.tiles_[key], x[None, :], local=False)
             a, b = model.tiles_[key].hyperparameters["alpha"], model.tiles_[key].hyperparameters["beta"]
             num, den, lat_m, lat_v, wsum = num + w * (a * mu + b), den + w * a * a * v, lat_m + w * mu, lat_v + w * v, wsum + w
         if wsum == 0:  # reached by no tile: the map takes the nearest core's tile alone

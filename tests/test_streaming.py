@@ -67,8 +67,8 @@ def test_tile_refit_reusing_covariances_matches_a_fresh_fit(room):
     reused = tiles.fit_tile_task(task)
     exact = tiles.fit_tile_task(dataclasses.replace(task, previous=None))
     assert reused.n_cells == exact.n_cells
-    np.testing.assert_allclose(reused.L, exact.L, rtol=0, atol=1e-10)
-    np.testing.assert_allclose(reused.weights, exact.weights, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(reused.posterior.L, exact.posterior.L, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(reused.posterior.weights, exact.posterior.weights, rtol=0, atol=1e-8)
 
 
 def test_stream_then_finish_equals_the_batch_map(room):

@@ -415,7 +415,7 @@ def test_each_tile_sees_the_cells_meeting_its_square_grown_by_its_reach(dim):
             & (hi[:, 1] >= y0 - reach)
         )
         want = sorted(map(tuple, np.hstack([lo[meets], hi[meets]]).round(9)))
-        got = sorted(map(tuple, np.hstack([state.lower, state.upper]).round(9)))
+        got = sorted(map(tuple, np.hstack([state.posterior.inputs.lower, state.posterior.inputs.upper]).round(9)))
         assert got == want
 
 

@@ -34,7 +34,7 @@ Defaults (measured with benchmarks/convert_maps.py; see docs/convert.md)
   occupied pixels' edges or beyond, so walls came out a coarse pixel wide or wider;
 - ``min_cell`` = 1.2 pixels: used only with ``wall_reach=None`` (the plain cell tree);
 - squared-exponential kernel with the exact closed-form area kernel; on a grid it is a product of
-  per-axis factors, which the prediction on the output grid uses (:func:`_grid_latent`);
+  per-axis factors, which the prediction on the output grid tables once per row and column;
 - length scale started at 3 pixels and bounded to 1..50 pixels; the default ``objective="loo"``;
   no restarts.
 
@@ -74,12 +74,9 @@ from scipy import ndimage
 from gpomap.cells import Cells
 from gpomap.errors import EmptyDataError, InputFormatError
 from gpomap.estimator import GPMapEstimator
-from gpomap.gp import LOCAL_TOL, cholesky_inverse
 from gpomap.grid import FREE, OCCUPIED, UNKNOWN, GridSpec, OccupancyMap, ternary
 from gpomap.io.npz import load_map
 from gpomap.io.rosmap import RosMap, read_rosmap
-from gpomap.kernels.area import AreaKernel
-from gpomap.kernels.closed_form import se_box_average
 from gpomap.kernels.point import make_point_kernel
 from gpomap.metrics import roc_auc
 from gpomap.observations import Observations
@@ -471,8 +468,8 @@ class GridGPOM(MapSettings, GPMapEstimator):
     """One MSK-GPOM GP over a grid's pixels, with cells that know the pixels.
 
     Maps from scans are local GPs in tiles (:class:`~gpomap.mapping.AreaGPOM`); a converted grid
-    is one GP over all its cells (at most ``--max-cells``), because the prediction on the output
-    grid (:func:`_grid_latent`) factorises the one GP's SE kernel along the grid's axes.
+    is one GP over all its cells (at most ``--max-cells``), predicted on the output grid block by
+    block from the cells near each block (:meth:`gpomap.gp.GPPosterior.latent`).
 
     A grid pixel is an area observation: a free pixel says its whole square is free, an occupied
     one that something within its square is occupied. With ``pixel_pad`` > 0 (half the source
@@ -602,65 +599,6 @@ def model_defaults(resolution: float) -> dict[str, Any]:
     }
 
 
-def _separable_se(model: GridGPOM) -> bool:
-    """Whether `model`'s GP is the exact mean-normalised SE area kernel over 2-D boxes (a product of
-    1-D factors, which :func:`_grid_latent` relies on) with no ray evidence on top."""
-    gp = getattr(model, "gp_", None)
-    if gp is None:
-        return False
-    kernel = getattr(gp, "kernel", None)
-    return (
-        isinstance(kernel, AreaKernel)
-        and kernel.method == "exact"
-        and kernel.normalisation == "mean"
-        and make_point_kernel(model.kernel).name == "se"
-        and getattr(model, "evidence_", None) is None
-        and isinstance(gp.X_train_, Supports)
-        and gp.X_train_.lower.shape[1] == 2
-    )
-
-
-def _grid_latent(
-    model: GridGPOM, xs: NDArray[np.float64], ys: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Latent mean and variance of `model` on the grid of points (xs[k], ys[j]), each (ny, nx).
-
-    The exact SE area kernel between a point and a box is the variance times one factor per axis,
-    so the factors are computed once per grid column and row (not once per grid point) and
-    multiplied per block of grid points. Each block uses only the inputs within the kernel's cutoff
-    (:data:`gpomap.gp.LOCAL_TOL` of the variance, as ``SupportGP.predict_latent`` does), so the
-    result equals the model's own prediction to that tolerance, in a fraction of the time.
-    """
-    gp = model.gp_
-    train = gp.X_train_
-    base = gp.kernel.base
-    var0, ls = float(base.variance), float(base.length_scale)
-    fx, _ = se_box_average(xs[:, None], xs[:, None], train.lower[:, :1], train.upper[:, :1], 1.0, ls)
-    fy, _ = se_box_average(ys[:, None], ys[:, None], train.lower[:, 1:], train.upper[:, 1:], 1.0, ls)
-    k_inv = gp.K_inv_ if gp.K_inv_ is not None else cholesky_inverse(gp.L_)
-    gp.K_inv_ = k_inv  # the GP would form the same on its first local prediction
-    weights = gp.alpha_
-    reach = base.cutoff(LOCAL_TOL)
-    mean = np.zeros((ys.size, xs.size))
-    var = np.full((ys.size, xs.size), var0)
-    # Blocks about a quarter of the cutoff across: smaller blocks gather fewer inputs each.
-    pitch = max(abs(xs[1] - xs[0]) if xs.size > 1 else reach, abs(ys[1] - ys[0]) if ys.size > 1 else reach)
-    step = max(1, int(0.25 * reach / pitch))
-    for r0 in range(0, ys.size, step):
-        r1 = min(ys.size, r0 + step)
-        near_y = (train.upper[:, 1] >= ys[r0] - reach) & (train.lower[:, 1] <= ys[r1 - 1] + reach)
-        for c0 in range(0, xs.size, step):
-            c1 = min(xs.size, c0 + step)
-            near = np.flatnonzero(near_y & (train.upper[:, 0] >= xs[c0] - reach) & (train.lower[:, 0] <= xs[c1 - 1] + reach))
-            if near.size == 0:
-                continue  # the prior: mean 0, variance var0
-            ks = var0 * (fy[r0:r1, None, near] * fx[None, c0:c1, near]).reshape(-1, near.size)
-            mean[r0:r1, c0:c1] = (ks @ weights[near]).reshape(r1 - r0, c1 - c0)
-            reduction = np.einsum("qj,qj->q", ks @ k_inv[np.ix_(near, near)], ks)
-            var[r0:r1, c0:c1] = np.maximum(var0 - reduction, 0.0).reshape(r1 - r0, c1 - c0)
-    return mean, var
-
-
 def _predict_on(
     model: GridGPOM, spec: GridSpec, support_box: tuple[NDArray[np.float64], NDArray[np.float64]]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -686,11 +624,9 @@ def _predict_on(
         prob[:] = p_far[0]
         var[:] = v_far[0]
     ix, iy = np.flatnonzero(near_x), np.flatnonzero(near_y)
-    if ix.size and iy.size and _separable_se(model):
-        mean, v = _grid_latent(model, xs[ix], ys[iy])
-        prob[np.ix_(iy, ix)] = model.gp_.squash(mean, v)
-        var[np.ix_(iy, ix)] = v
-    elif ix.size and iy.size:
+    if ix.size and iy.size:
+        # The local prediction's blocks of the exact SE kernel table its factors once per grid
+        # row and column (gpomap.kernels.closed_form.BoxPointFactors).
         xx, yy = np.meshgrid(xs[ix], ys[iy])
         p, v = model.predict_proba(np.column_stack([xx.ravel(), yy.ravel()]), return_var=True)
         prob[np.ix_(iy, ix)] = p.reshape(iy.size, ix.size)

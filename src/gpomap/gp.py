@@ -18,6 +18,7 @@ from __future__ import annotations
 import functools
 import itertools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal, overload
 
@@ -95,6 +96,37 @@ def cholesky_in_place(K: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """
     L, info = lapack.dpotrf(K.T, lower=1, clean=1, overwrite_a=1)
     return L if info == 0 else None
+
+
+def noisy_cholesky(
+    K: NDArray[np.float64], noise: NDArray[np.float64], form_again: Callable[[], NDArray[np.float64]]
+) -> tuple[NDArray[np.float64], float]:
+    """Lower Cholesky factor of K + diag(noise), in `K`'s own memory where it succeeds, and the jitter it took.
+
+    The factorisation of every fit (:meth:`SupportGP.fit`, a tile's): :func:`cholesky_in_place`
+    first (no copy of an n x n matrix); where K + noise is not positive definite as it stands,
+    `form_again` gives K afresh (the first try overwrote it) for :func:`robust_cholesky`'s jitter.
+
+    Parameters
+    ----------
+    K : ndarray of shape (n, n)
+        Noise-free covariance, symmetric and C-ordered; overwritten.
+    noise : ndarray of shape (n,)
+    form_again : callable
+        K as it was.
+
+    Returns
+    -------
+    L : ndarray of shape (n, n)
+    jitter : float
+    """
+    K[np.diag_indices_from(K)] += noise
+    L = cholesky_in_place(K)
+    if L is not None:
+        return L, 0.0
+    K = form_again()
+    K[np.diag_indices_from(K)] += noise
+    return robust_cholesky(K)
 
 
 def cholesky_inverse(L: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -377,6 +409,176 @@ def compact_groups(centres: NDArray[np.float64], max_size: int) -> list[NDArray[
     return groups
 
 
+#: Most queries per kernel evaluation of a local block for the quadrature and summed kernels,
+#: whose time per query grows past a few hundred (see :meth:`GPPosterior.latent`); the exact SE
+#: kernel's tabled factors take a block in one piece.
+LOCAL_KERNEL_POINTS: int = 256
+
+#: Queries per local block aimed at, and the bounds of the block side (in cutoff distances r):
+#: where queries are sparse the kernel call's fixed cost dominates (Intel's random points: about
+#: 40 per block of side r / 4).
+LOCAL_BLOCK_QUERIES: int = 256
+LOCAL_SIDE_RANGE: tuple[float, float] = (0.25, 1.0)
+
+#: Query coordinates the local blocks bin on, per dimension (None: all). 3-D tiles are columns
+#: and bin in x, y: la3dm sim_structured (AreaGPOM se defaults, 6 tiles of up to 9,059 cells,
+#: r = 0.32 m), 100k random points: 21,100 points/s against 5,700 binned in x, y, z (one CPU).
+LOCAL_AXES: dict[int, int | None] = {2: None, 3: 2}
+
+
+@dataclass
+class GPPosterior:
+    """A fitted GP: what predicting from it takes, and its prediction, dense or local.
+
+    What :meth:`SupportGP.fit` and a tile's fit (:func:`gpomap.tiles.fit_tile_task`) return, and
+    what pool and Dask workers send back: picklable, its cache of K^-1 left out.
+
+    Attributes
+    ----------
+    inputs : Supports
+        The n training inputs (or any inputs `kernel` takes, such as GPOMIK's segments).
+    L : ndarray of shape (n, n)
+        Lower Cholesky factor of K + noise (+ jitter).
+    weights : ndarray of shape (n,)
+        (K + noise)^-1 y.
+    kernel : AreaKernel
+        The kernel, with the hyperparameters the factor was formed with.
+    squash : ProbitSquash
+        Latent moments to probabilities.
+    jitter : float
+        What was added to the diagonal for the factorisation to succeed (0 when nothing was).
+    precision : ndarray of shape (n, n) or None
+        (K + noise)^-1, formed by the first local prediction and kept for the next ones; a
+        cache, left out of comparisons and pickles (a worker forms its own).
+    """
+
+    inputs: Supports
+    L: NDArray[np.float64]
+    weights: NDArray[np.float64]
+    kernel: AreaKernel
+    squash: ProbitSquash
+    jitter: float = 0.0
+    precision: NDArray[np.float64] | None = field(default=None, compare=False, repr=False)
+
+    def __getstate__(self) -> dict[str, object]:
+        # The cache would double what is shipped to a worker.
+        return {**self.__dict__, "precision": None}
+
+    @property
+    def n_inputs(self) -> int:
+        """Number of training inputs."""
+        return int(self.weights.size)
+
+    def latent(
+        self, queries: Supports, variance: bool = True, local: bool = True, chunk_size: int = 4096
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Latent mean and (with `variance`) variance at the queries, each ndarray of shape (m,).
+
+        Parameters
+        ----------
+        queries : Supports
+            m query inputs (points are boxes of zero width).
+        variance : bool
+            Also the variance (the costly part); False gives None.
+        local : bool
+            Where the kernel falls below ``LOCAL_TOL`` of its variance within a small part of the
+            inputs, predict block by block from the inputs near each block of queries (see
+            :meth:`local_blocks`): equal to the dense prediction to that tolerance, and taken only
+            where it saves at least half of the dense work. False: always dense (the reference).
+        chunk_size : int
+            Queries per block, bounding memory at ``n * chunk_size``.
+        """
+        if local:
+            blocks = self.local_blocks(queries, chunk_size)
+            if blocks is not None:
+                return self._latent_local(queries, blocks, variance)
+        return self._latent_dense(queries, variance, chunk_size)
+
+    def local_blocks(self, queries: Supports, chunk_size: int) -> list[tuple[NDArray[np.intp], NDArray[np.intp]]] | None:
+        """(query indices, input indices) per spatial block of queries (:func:`local_blocks`), or
+        None where the dense prediction is taken.
+
+        The blocks' inputs are those within r of them, r the distance beyond which the point
+        kernel is below ``LOCAL_TOL`` of its variance: every input left out covaries with every
+        query of its block by less than that. None for kernels without such a bound (member
+        sums, the "sum" normalisation, other inputs than boxes) and where the blocks would not
+        save half the dense work. The decision counts forming K^-1 (n^3) even when it is cached,
+        so an answer never depends on what was predicted before.
+        """
+        kern, X = self.kernel, self.inputs
+        if not (isinstance(kern, AreaKernel) and isinstance(X, Supports) and isinstance(queries, Supports)):
+            return None
+        if kern.method == "summed" or kern.normalisation != "mean" or len(queries) == 0:
+            return None
+        n, m = len(X), len(queries)
+        if n**3 > 0.5 * n * n * m:
+            return None  # dense whatever the blocks' work (below): not worth finding them
+        r = kern.base.cutoff(LOCAL_TOL)
+        axes = LOCAL_AXES.get(X.dim)
+        # Blocks of about LOCAL_BLOCK_QUERIES queries where they are sparse (each kernel call and
+        # gather of (K^-1)_JJ costs as much as a few dozen queries), else small, so their inputs
+        # stay few: the side from the queries' mean density over their bounding box, within bounds.
+        centres = queries.centres[:, :axes]
+        lo_side, hi_side = LOCAL_SIDE_RANGE
+        extent = np.maximum(centres.max(axis=0) - centres.min(axis=0), lo_side * r)
+        side = (LOCAL_BLOCK_QUERIES * float(np.prod(extent)) / m) ** (1.0 / extent.size) / r
+        blocks, work = local_blocks(queries, X, r, chunk_size, axes=axes, side=min(max(side, lo_side), hi_side))
+        if work + n**3 > 0.5 * n * n * m:
+            return None
+        return blocks
+
+    def _latent_local(
+        self, queries: Supports, blocks: list[tuple[NDArray[np.intp], NDArray[np.intp]]], variance: bool
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Mean k_J^T w_J and (with `variance`) variance k** - k_J^T (K^-1)_JJ k_J, block by block."""
+        kern, X = self.kernel, self.inputs
+        mean = np.zeros(len(queries))
+        var = kern.diag(queries) if variance else None  # the prior where no input is near
+        if variance and self.precision is None:
+            self.precision = cholesky_inverse(self.L)
+        points = bool(np.array_equal(queries.lower, queries.upper))
+        # Work common to every block done once (the exact kernel's tables of factors).
+        cross = kern.point_blocks(X, queries.lower) if points else None
+        for q, near in blocks:
+            if near.size == 0:
+                continue
+            K_JJ = None
+            if var is not None:
+                K_inv = self.precision
+                assert K_inv is not None  # formed above
+                # One gather of the |J|^2 entries (rows then columns would copy |J| whole rows first).
+                K_JJ = np.take(K_inv, near[:, None] * K_inv.shape[1] + near[None, :])
+            w_J = self.weights[near]
+            step = q.size if kern.method == "exact" else LOCAL_KERNEL_POINTS
+            for s in range(0, q.size, step):
+                qs = q[s : s + step]
+                # (|J|, |qs|)
+                Ks = cross.block(near, qs) if cross is not None else kern(X.subset(near), queries.subset(qs))
+                mean[qs] = w_J @ Ks
+                if var is not None and K_JJ is not None:
+                    reduction = np.einsum("ij,ij->j", Ks, K_JJ @ Ks)
+                    var[qs] = np.maximum(var[qs] - reduction, 0.0)
+        return mean, var
+
+    def _latent_dense(
+        self, queries: Supports, variance: bool, chunk_size: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Mean and variance from every input, in chunks of queries."""
+        m = len(queries)
+        mean = np.empty(m)
+        var = np.empty(m) if variance else None
+        # Whitening by a product where it pays (see triangular_inverse_for).
+        L_inv = triangular_inverse_for(self.L, m, getattr(self.inputs, "dim", 2)) if variance else None
+        for s in range(0, m, chunk_size):
+            part = queries.subset(slice(s, min(m, s + chunk_size)))
+            Ks = self.kernel(self.inputs, part)  # (n, c)
+            mean[s : s + len(part)] = Ks.T @ self.weights
+            if var is not None:
+                v = solve_triangular(self.L, Ks, lower=True, check_finite=False) if L_inv is None else lower_product(L_inv, Ks)
+                var[s : s + len(part)] = np.maximum(self.kernel.diag(part) - np.einsum("ij,ij->j", v, v), 0.0)
+        return mean, var
+
+
 @dataclass
 class FitReport:
     """What hyperparameter learning did: the objective, its value, and the time and evaluations spent."""
@@ -479,16 +681,12 @@ class SupportGP:
             return 1.0 / np.maximum(X.counts, 1.0)
         return np.ones(len(X))
 
-    def _factor(self, theta: NDArray[np.float64], log_noise: float, X: Supports, eval_gradient: bool):
-        kern = self.kernel.clone_with_theta(theta)
-        if eval_gradient:
-            K, dK = kern(X, eval_gradient=True)
-        else:
-            K, dK = kern(X), None
-        nvec = np.exp(log_noise) * self._noise_scale(X)
-        K[np.diag_indices_from(K)] += nvec
-        L, _ = robust_cholesky(K)
-        return L, dK, nvec
+    def _factor(self, X: Supports) -> tuple[NDArray[np.float64], float]:
+        """Lower Cholesky factor of K + noise at the current hyperparameters, and the jitter it took."""
+        # The noise through log space, as the search holds it (the tiles form it the same way,
+        # so a map of one tile is this GP to the last bit).
+        noise = np.exp(np.log(self.noise)) * self._noise_scale(X)
+        return noisy_cholesky(self.kernel(X), noise, lambda: self.kernel(X))
 
     def _objective_factor(
         self,
@@ -730,16 +928,15 @@ class SupportGP:
             idx = self.hyperparameter_sample(X)
             self.fit_report_ = self._optimise(X.subset(idx), y[idx])
         t1 = time.perf_counter()
-        L, _, _ = self._factor(self.kernel.theta, np.log(self.noise), X, False)
-        self.L_ = L
-        self.alpha_ = cho_solve((L, True), y, check_finite=False)
+        L, jitter = self._factor(X)
+        weights = cho_solve((L, True), y, check_finite=False)
         t2 = time.perf_counter()
         # alpha and beta for the full model: from its own leave-one-out moments.
         # Leave-one-out moments (R&W eq. 5.12) need only K^-1 y and diag(K^-1).
         d = inverse_diagonal(L)
-        mu, var = y - self.alpha_ / d, 1.0 / d
-        self.K_inv_: NDArray[np.float64] | None = None  # formed on first local prediction
+        mu, var = y - weights / d, 1.0 / d
         self.squash.fit(y, mu, var, class_weights(y, self.class_weight))
+        self.posterior_ = GPPosterior(X, L, weights, self.kernel, self.squash, jitter)
         self.timings_ = {"hyperparameters": t1 - t0, "factorisation": t2 - t1, "squash": time.perf_counter() - t2}
         return self
 
@@ -845,11 +1042,27 @@ class SupportGP:
             self.squash = ProbitSquash(*squash_at[best.x.tobytes()])
         return FitReport(self.objective, float(-best.fun), n_eval, time.perf_counter() - t0, values, len(groups))
 
+    # ----------------------------------------------------------------- the fitted posterior
+    @property
+    def L_(self) -> NDArray[np.float64]:
+        """Lower Cholesky factor of K + noise over the training inputs, ndarray of shape (n, n)."""
+        return self._posterior().L
+
+    @property
+    def alpha_(self) -> NDArray[np.float64]:
+        """(K + noise)^-1 y, ndarray of shape (n,)."""
+        return self._posterior().weights
+
+    def _posterior(self) -> GPPosterior:
+        if not hasattr(self, "posterior_"):
+            raise NotFittedError("this model is not fitted yet: call fit() first")
+        return self.posterior_
+
     # ----------------------------------------------------------------- prediction
     def predict_latent(
         self, X: Supports, return_var: bool = True, chunk_size: int = 4096, local: bool = True
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-        """Latent mean and variance at new inputs, in chunks so memory stays bounded.
+        """Latent mean and variance at new inputs: :meth:`GPPosterior.latent` of the fitted posterior.
 
         Parameters
         ----------
@@ -859,9 +1072,7 @@ class SupportGP:
         chunk_size : int
             Query inputs per chunk.
         local : bool
-            Where the kernel falls below ``LOCAL_TOL`` of its variance within a small part of the
-            map, predict block by block from the training inputs within that distance
-            (:meth:`_predict_local`); the result equals the dense one to that tolerance. False:
+            Local prediction where it pays (equal to the dense one to ``LOCAL_TOL``); False:
             always dense.
 
         Returns
@@ -870,68 +1081,7 @@ class SupportGP:
         var : ndarray of shape (m,) or None
             Variance of the latent function (without observation noise).
         """
-        if not hasattr(self, "L_"):
-            raise NotFittedError("this model is not fitted yet: call fit() first")
-        if local and return_var:
-            blocks = self._local_blocks(X, chunk_size)
-            if blocks is not None:
-                return self._predict_local(X, blocks)
-        m = len(X)
-        mean = np.empty(m)
-        var = np.empty(m) if return_var else None
-        L_inv = triangular_inverse_for(self.L_, m, getattr(self.X_train_, "dim", 2)) if return_var else None
-        for s in range(0, m, chunk_size):
-            part = X.subset(slice(s, min(m, s + chunk_size)))
-            Ks = self.kernel(self.X_train_, part)  # (n, c)
-            mean[s : s + len(part)] = Ks.T @ self.alpha_
-            if var is not None:
-                v = solve_triangular(self.L_, Ks, lower=True, check_finite=False) if L_inv is None else lower_product(L_inv, Ks)
-                kss = self.kernel.diag(part)
-                var[s : s + len(part)] = np.maximum(kss - np.einsum("ij,ij->j", v, v), 0.0)
-        return mean, var
-
-    def _local_blocks(self, X: Supports, chunk_size: int) -> list[tuple[NDArray[np.intp], NDArray[np.intp]]] | None:
-        """(query indices, training indices) per spatial block of queries (:func:`local_blocks`), or
-        None when local prediction would not save at least half of the dense work.
-
-        The blocks' inputs are those within r of them, r the distance beyond which the point
-        kernel is below ``LOCAL_TOL`` of its variance: every input left out covaries with every
-        query of its block by less than that.
-        """
-        # Boxes only (line inputs have no such bound here), and averages, not sums.
-        boxes = isinstance(X, Supports) and isinstance(self.X_train_, Supports) and isinstance(self.kernel, AreaKernel)
-        if not boxes or self.kernel.normalisation != "mean" or self.kernel.method == "summed" or len(X) == 0:
-            return None
-        n = len(self.X_train_)
-        # Dense costs about n^2 per query; local |J|^2 per query plus taking (K^-1)_JJ per block,
-        # and forming K^-1 (about n^3) the first time.
-        setup = n**3 if self.K_inv_ is None else 0
-        if setup > 0.5 * n * n * len(X):
-            return None  # dense whatever the blocks' work: not worth finding them
-        # Blocks of side r / 2, as before the tiles shared this function.
-        blocks, work = local_blocks(X, self.X_train_, self.kernel.base.cutoff(LOCAL_TOL), chunk_size, side=0.5)
-        if work + setup > 0.5 * n * n * len(X):
-            return None
-        return blocks
-
-    def _predict_local(
-        self, X: Supports, blocks: list[tuple[NDArray[np.intp], NDArray[np.intp]]]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Mean and variance block by block: k_J^T a_J and k** - k_J^T (K^-1)_JJ k_J."""
-        if self.K_inv_ is None:
-            self.K_inv_ = cholesky_inverse(self.L_)
-        mean = np.zeros(len(X))
-        var = np.empty(len(X))
-        for q, near in blocks:
-            part = X.subset(q)
-            kss = self.kernel.diag(part)
-            if near.size == 0:
-                var[q] = kss
-                continue
-            Ks = self.kernel(self.X_train_.subset(near), part)  # (|J|, |q|)
-            mean[q] = Ks.T @ self.alpha_[near]
-            var[q] = np.maximum(kss - np.einsum("ij,ij->j", Ks, self.K_inv_[np.ix_(near, near)] @ Ks), 0.0)
-        return mean, var
+        return self._posterior().latent(X, return_var, local, chunk_size)
 
     def predict_proba(self, X: Supports, chunk_size: int = 4096) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Occupancy probability and latent variance at new inputs, each ndarray of shape (m,)."""

@@ -44,12 +44,12 @@ import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import cho_solve, solve_triangular
+from scipy.linalg import cho_solve
 from scipy.special import ndtr
 
 from gpomap.cells import build_cells
@@ -57,16 +57,7 @@ from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
 from gpomap.fusion import EvidenceLayer
-from gpomap.gp import (
-    LOCAL_TOL,
-    SupportGP,
-    cholesky_in_place,
-    cholesky_inverse,
-    local_blocks,
-    lower_product,
-    robust_cholesky,
-    triangular_inverse_for,
-)
+from gpomap.gp import GPPosterior, SupportGP, noisy_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
@@ -210,57 +201,30 @@ def _box_offset(ij: NDArray[np.int64], lo: NDArray[np.int64], span: NDArray[np.i
 # --------------------------------------------------------------------------- tasks (picklable)
 @dataclass
 class TileState:
-    """A fitted tile: its training cells, Cholesky factor and hyperparameters.
+    """A fitted tile: its GP's posterior and the hyperparameters it was fitted with.
 
     Attributes
     ----------
     key : (int, int)
         Tile index (ix, iy) on the tile grid.
-    lower, upper : ndarray of shape (n, 2)
-        Boxes of the n training cells.
-    counts : ndarray of shape (n,)
-        Member points per cell.
-    member_points : ndarray of shape (m, 2) or None
-        Only kept for the ``"summed"`` area kernel, which needs them.
-    member_offsets : ndarray of int, shape (n + 1,) or None
-    L : ndarray of shape (n, n)
-        Lower Cholesky factor of K + noise.
-    weights : ndarray of shape (n,)
-        (K + noise)^-1 y.
+    posterior : GPPosterior
+        The tile's training cells (their member points only for the ``"summed"`` area kernel,
+        which needs them), the Cholesky factor, the weights, the kernel and the squash.
     hyperparameters : dict
         variance, length_scale, noise, alpha, beta used by this tile.
     seconds : float
         Time the fit took on its worker.
-    precision : ndarray of shape (n, n) or None
-        (K + noise)^-1 from `L`, formed by the first local prediction and kept for the next ones;
-        a cache, left out of comparisons and pickles (a worker forms its own).
     """
 
     key: tuple[int, int]
-    lower: NDArray[np.float64]
-    upper: NDArray[np.float64]
-    counts: NDArray[np.float64]
-    member_points: NDArray[np.float64] | None
-    member_offsets: NDArray[np.intp] | None
-    L: NDArray[np.float64]
-    weights: NDArray[np.float64]
+    posterior: GPPosterior
     hyperparameters: dict[str, float]
     seconds: float
-    jitter: float = 0.0
-    precision: NDArray[np.float64] | None = field(default=None, compare=False, repr=False)
-
-    def __getstate__(self) -> dict[str, Any]:
-        # The cache would double what is shipped to a worker.
-        return {**self.__dict__, "precision": None}
-
-    def supports(self) -> Supports:
-        """The training cells as GP inputs."""
-        return Supports(self.lower, self.upper, self.counts, self.member_points, self.member_offsets)
 
     @property
     def n_cells(self) -> int:
         """Number of training cells."""
-        return int(self.counts.size)
+        return self.posterior.n_inputs
 
 
 @dataclass(frozen=True)
@@ -382,16 +346,17 @@ def _gram_reusing(kern: AreaKernel, X: Supports, previous: TileState, settings: 
     """
     if settings.area == "summed" or settings.normalisation == "sum":
         return None
-    old_index = {k: i for i, k in enumerate(_box_keys(previous.lower, previous.upper))}
+    old_index = {k: i for i, k in enumerate(_box_keys(previous.posterior.inputs.lower, previous.posterior.inputs.upper))}
     new_keys = _box_keys(X.lower, X.upper)
     pairs = [(j, old_index[k]) for j, k in enumerate(new_keys) if k in old_index]
     if len(pairs) < 0.5 * len(new_keys):
         return None
     keep_new = np.array([j for j, _ in pairs], dtype=np.intp)
     keep_old = np.array([i for _, i in pairs], dtype=np.intp)
-    Lk = previous.L[keep_old]
+    before = previous.posterior
+    Lk = before.L[keep_old]
     K = np.empty((len(X), len(X)))
-    old_diag = _noise_vector(settings, previous.hyperparameters["noise"], previous.counts[keep_old]) + previous.jitter
+    old_diag = _noise_vector(settings, previous.hyperparameters["noise"], before.inputs.counts[keep_old]) + before.jitter
     K_old = Lk @ Lk.T
     K_old[np.diag_indices_from(K_old)] -= old_diag
     K[np.ix_(keep_new, keep_new)] = K_old
@@ -438,7 +403,7 @@ def fit_tile_task(task: TileFitTask) -> TileState:
         )
         gp.squash = ProbitSquash(hyp["alpha"], hyp["beta"])
         gp.fit(X, y)
-        L, weights, jitter = gp.L_, gp.alpha_, 0.0
+        kern, L, weights, jitter = gp.kernel, gp.posterior_.L, gp.posterior_.weights, gp.posterior_.jitter
         hyp = {
             "variance": gp.kernel.base.variance,
             "length_scale": gp.kernel.base.length_scale,
@@ -456,166 +421,43 @@ def fit_tile_task(task: TileFitTask) -> TileState:
         K = _gram_reusing(kern, X, previous, st) if previous is not None and same_hyp else None
         if K is None:
             K = kern(X)
-        noise = _noise_vector(st, hyp["noise"], X.counts)
-        K[np.diag_indices_from(K)] += noise
-        factor, jitter = cholesky_in_place(K), 0.0
-        if factor is None:  # K was overwritten: formed again, for the factorisation with jitter
-            K = kern(X)
-            K[np.diag_indices_from(K)] += noise
-            factor, jitter = robust_cholesky(K)
-        L = factor
+        L, jitter = noisy_cholesky(K, _noise_vector(st, hyp["noise"], X.counts), lambda: kern(X))
         weights = cho_solve((L, True), y, check_finite=False)
-    return TileState(
-        key=(int(task.key[0]), int(task.key[1])),
-        lower=X.lower,
-        upper=X.upper,
-        counts=X.counts,
-        member_points=X.member_points if st.area == "summed" else None,
-        member_offsets=X.member_offsets if st.area == "summed" else None,
-        L=L,
-        weights=weights,
-        hyperparameters={k: float(v) for k, v in hyp.items()},
-        seconds=time.perf_counter() - t0,
-        jitter=jitter,
-    )
-
-
-def _local_tile_blocks(
-    state: TileState, kern: AreaKernel, X: Supports, Q: Supports, chunk_size: int
-) -> list[tuple[NDArray[np.intp], NDArray[np.intp]]] | None:
-    """Blocks of queries with the tile's cells near each (:func:`gpomap.gp.local_blocks`), or None for the dense path.
-
-    None for kernels without a distance bound (member sums, the "sum" normalisation) and where
-    the blocks would not save half the dense work. The decision counts forming K^-1 (n^3) even
-    when it is cached, so a tile's answer never depends on what was predicted before.
-    """
-    if kern.method == "summed" or kern.normalisation != "mean" or len(Q) == 0:
-        return None
-    n, m = len(X), len(Q)
-    if n**3 > 0.5 * n * n * m:
-        return None  # dense whatever the blocks' work (below): not worth finding them
-    r = kern.base.cutoff(LOCAL_TOL)
-    axes = LOCAL_AXES.get(X.dim)
-    # Blocks of about LOCAL_BLOCK_QUERIES queries where they are sparse (each kernel call and
-    # gather of (K^-1)_JJ costs as much as a few dozen queries), else small, so their cells stay
-    # few: the side from the queries' mean density over their bounding box, within bounds.
-    centres = Q.centres[:, :axes]
-    lo_side, hi_side = LOCAL_SIDE_RANGE
-    extent = np.maximum(centres.max(axis=0) - centres.min(axis=0), lo_side * r)
-    side = (LOCAL_BLOCK_QUERIES * float(np.prod(extent)) / m) ** (1.0 / extent.size) / r
-    blocks, work = local_blocks(Q, X, r, chunk_size, axes=axes, side=min(max(side, lo_side), hi_side))
-    if work + n**3 > 0.5 * n * n * m:
-        return None
-    return blocks
-
-
-#: Most query points per kernel evaluation of a local block for the quadrature and summed
-#: kernels, whose time per point grows past a few hundred (see :func:`_predict_tile_local`);
-#: the exact SE kernel's tabled factors take a block in one piece.
-LOCAL_KERNEL_POINTS: int = 256
-
-#: Queries per local block aimed at, and the bounds of the block side (in cutoff distances r):
-#: where queries are sparse the kernel call's fixed cost dominates (Intel's random points: about
-#: 40 per block of side r / 4).
-LOCAL_BLOCK_QUERIES: int = 256
-LOCAL_SIDE_RANGE: tuple[float, float] = (0.25, 1.0)
-
-#: Query coordinates the local blocks bin on, per dimension (None: all). 3-D tiles are columns
-#: and bin in x, y: la3dm sim_structured (AreaGPOM se defaults, 6 tiles of up to 9,059 cells,
-#: r = 0.32 m), 100k random points: 21,100 points/s against 5,700 binned in x, y, z (one CPU).
-LOCAL_AXES: dict[int, int | None] = {2: None, 3: 2}
-
-
-def _predict_tile_local(
-    state: TileState,
-    kern: AreaKernel,
-    X: Supports,
-    points: NDArray[np.float64],
-    blocks: list[tuple[NDArray[np.intp], NDArray[np.intp]]],
-    variance: bool = True,
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """Mean k_J^T w_J and (with `variance`) variance k** - k_J^T (K^-1)_JJ k_J at points, block by block, each (m,)."""
-    m = points.shape[0]
-    mean = np.zeros(m)
-    var = None
-    if variance:
-        if state.precision is None:
-            state.precision = cholesky_inverse(state.L)
-        var = kern.diag(Supports(points, points, np.ones(m)))  # the prior where no cell is near
-    cross = kern.point_blocks(X, points)  # work common to every block done once
-    for q, near in blocks:
-        if near.size == 0:
-            continue
-        K_JJ = None
-        if var is not None:
-            K_inv = state.precision
-            assert K_inv is not None
-            # One gather of the |J|^2 entries (rows then columns would copy |J| whole rows first).
-            K_JJ = np.take(K_inv, near[:, None] * K_inv.shape[1] + near[None, :])
-        w_J = state.weights[near]
-        step = q.size if kern.method == "exact" else LOCAL_KERNEL_POINTS
-        for s in range(0, q.size, step):
-            qs = q[s : s + step]
-            Ks = cross.block(near, qs)  # (|J|, |qs|)
-            mean[qs] = w_J @ Ks
-            if var is not None and K_JJ is not None:
-                reduction = np.einsum("ij,ij->j", Ks, K_JJ @ Ks)
-                var[qs] = np.maximum(var[qs] - reduction, 0.0)
-    return mean, var
+    # Member points only where the kernel reads them.
+    kept = X if st.area == "summed" else Supports(X.lower, X.upper, X.counts)
+    hyp = {k: float(v) for k, v in hyp.items()}
+    posterior = GPPosterior(kept, L, weights, kern, ProbitSquash(hyp["alpha"], hyp["beta"]), jitter)
+    return TileState((int(task.key[0]), int(task.key[1])), posterior, hyp, time.perf_counter() - t0)
 
 
 def predict_tile_task(
     state: TileState,
-    settings: TileSettings,
     points: NDArray[np.float64],
     chunk_size: int = 4096,
     variance: bool = True,
     local: bool = True,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """Latent mean and variance of one tile's GP at points (top-level, picklable).
+    """Latent mean and variance of one tile's GP at points (top-level, picklable):
+    :meth:`~gpomap.gp.GPPosterior.latent` of its posterior.
 
     Parameters
     ----------
     state : TileState
-    settings : dict
-        Kernel settings (as for :func:`fit_tile_task`).
     points : ndarray of shape (m, d)
     chunk_size : int
         Query points per block, bounding memory at ``n * chunk_size``.
     variance : bool
-        Also the variance (the costly part: the whitened cross-covariances); False gives None.
+        Also the variance (the costly part); False gives None.
     local : bool
-        Predict block by block from the cells within the kernel's cutoff
-        (:data:`gpomap.gp.LOCAL_TOL` of its variance) of each block, through K^-1 formed once
-        per tile (:attr:`TileState.precision`): equal to the dense prediction to that
-        tolerance, and taken only where it saves at least half the work. False: always dense
-        (the reference).
+        Local prediction where it pays (equal to the dense one to :data:`gpomap.gp.LOCAL_TOL`);
+        False: always dense (the reference).
 
     Returns
     -------
     mean, var : ndarray of shape (m,)
     """
-    hyp = state.hyperparameters
-    kern = _area_kernel(settings, hyp["variance"], hyp["length_scale"])
-    X = state.supports()
-    pts = np.asarray(points, dtype=float).reshape(-1, state.lower.shape[1])
-    Q = Supports.from_points(pts)
-    if local:
-        blocks = _local_tile_blocks(state, kern, X, Q, chunk_size)
-        if blocks is not None:
-            return _predict_tile_local(state, kern, X, pts, blocks, variance)
-    m = len(Q)
-    mean = np.empty(m)
-    var = np.empty(m) if variance else None
-    L_inv = triangular_inverse_for(state.L, m, X.dim) if variance else None  # whitening by a product (see gpomap.gp)
-    for s in range(0, m, chunk_size):
-        part = Q.subset(slice(s, min(m, s + chunk_size)))
-        Ks = kern(X, part)
-        mean[s : s + len(part)] = Ks.T @ state.weights
-        if var is not None:
-            v = solve_triangular(state.L, Ks, lower=True, check_finite=False) if L_inv is None else lower_product(L_inv, Ks)
-            var[s : s + len(part)] = np.maximum(kern.diag(part) - np.einsum("ij,ij->j", v, v), 0.0)
-    return mean, var
+    pts = np.asarray(points, dtype=float).reshape(-1, state.posterior.inputs.dim)
+    return state.posterior.latent(Supports.from_points(pts), variance, local, chunk_size)
 
 
 def _limit_blas_threads(n: int) -> None:
@@ -1858,7 +1700,6 @@ class TiledGPOM:
         pts = as_points(points, self._dim)
         m = pts.shape[0]
         h = 0.5 * self.blend_
-        settings = self._settings()
         chunk = self.base.chunk_size
         # Per tile: which points it predicts and with what weight.
         members: dict[tuple[int, int], tuple[NDArray[np.intp], NDArray[np.float64]]] = {}
@@ -1892,7 +1733,7 @@ class TiledGPOM:
                 else:
                     members[key] = (sel, np.ones(sel.size))
                 wsum[sel] = 1.0
-        jobs = [(key, (self.tiles_[key], settings, pts[idx], chunk, variance)) for key, (idx, _) in members.items()]
+        jobs = [(key, (self.tiles_[key], pts[idx], chunk, variance)) for key, (idx, _) in members.items()]
         res = self._run(predict_tile_task, jobs, "tile prediction", "predicting tiles")
         num = np.zeros(m)
         lat_m = np.zeros(m)
