@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.config import MapConfig
 from gpomap.errors import NotFittedError
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
@@ -22,6 +23,7 @@ from gpomap.lattice import extent_bounds
 from gpomap.observations import Observations, labelled_observations
 
 if TYPE_CHECKING:
+    from gpomap.fusion import EvidenceLayer
     from gpomap.voxels import VoxelMap
 
 
@@ -56,7 +58,15 @@ class GPMapEstimator:
     optimise: bool
     n_restarts: int
     seed: int
-    # What a subclass's fit sets.
+    # Settings only MSK-GPOM's (MapSettings) take, which its constructor sets; these are the
+    # baselines' fixed choices: hyperparameters learnt on every input, the same weak prior and
+    # class balance as MSK-GPOM's defaults, no free clearance.
+    hyper_subset: int | None = None
+    prior_std: float | None = MapConfig.prior_std
+    class_weight: str | None = MapConfig.class_weight
+    free_clearance: float = 0.0
+    # What a subclass's fit sets (no ray evidence unless it builds some).
+    evidence_: EvidenceLayer | None = None
     gp_: SupportGP
     timings_: dict[str, float]
     extent_points_: NDArray[np.float64]
@@ -102,18 +112,16 @@ class GPMapEstimator:
             n_restarts=self.n_restarts,
             seed=self.seed,
             # Only MSK-GPOM samples cells for its hyperparameters; the baselines use every input.
-            hyper_subset=getattr(self, "hyper_subset", None),
-            prior_std=getattr(self, "prior_std", 1.0),
-            class_weight=getattr(self, "class_weight", "balanced"),
+            hyper_subset=self.hyper_subset,
+            prior_std=self.prior_std,
+            class_weight=self.class_weight,
         )
 
     def make_observations(self, data: Any) -> Observations:
         """Labelled points from scans (this estimator's ``free_step``, ``hit_margin``,
         ``no_return_cap`` and ``free_clearance``), or `data` itself when it already is (given
         points are taken as they are); both classes are required."""
-        return labelled_observations(
-            data, self.free_step, self.hit_margin, self.no_return_cap, getattr(self, "free_clearance", 0.0)
-        )
+        return labelled_observations(data, self.free_step, self.hit_margin, self.no_return_cap, self.free_clearance)
 
     def _queries(self, points: NDArray[np.float64]) -> Any:
         raise NotImplementedError
@@ -176,7 +184,7 @@ class GPMapEstimator:
         var : ndarray of shape (m,), only with `return_var`
         """
         pts = as_points(points, self.dim_)
-        evidence = getattr(self, "evidence_", None)
+        evidence = self.evidence_
         if evidence is None:
             return self.predict_proba_gp(pts, return_var=return_var)
         p, var, p_unseen = self._gp_probabilities(pts)
@@ -243,7 +251,7 @@ class GPMapEstimator:
             hi = self.extent_points_.max(axis=0)
             extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
         spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
-        evidence = getattr(self, "evidence_", None)
+        evidence = self.evidence_
         if evidence is not None:
             probability, variance = evidence.written_grid(spec, self.gp_.kernel.base.length_scale, self._gp_probabilities)
             return OccupancyMap(
@@ -295,7 +303,7 @@ class GPMapEstimator:
         else:
             lo, hi = extent_bounds(extent)
         spec = VoxelSpec.from_extent(lo, hi, resolution)
-        evidence = getattr(self, "evidence_", None)
+        evidence = self.evidence_
         if evidence is not None:
             probability, variance = evidence.written_grid(spec, self.gp_.kernel.base.length_scale, self._gp_probabilities)
         else:
