@@ -390,3 +390,24 @@ def test_a_grouped_search_learns_what_one_gp_learns_when_groups_are_apart():
     assert (grouped.fit_report_.groups, one.fit_report_.groups) == (2, 1)
     with pytest.raises(ValueError, match="hyper_group"):
         SupportGP(kernel, hyper_group=0)
+
+
+@pytest.mark.parametrize("objective", ["lml", "loo"])
+def test_the_search_per_input_learns_what_the_sum_learns_and_reports_the_sum(objective):
+    X, y = _data(2, 40)
+    kernel = AreaKernel(SquaredExponential(1.0, 3.0), "exact")
+    whole = SupportGP(kernel, noise=1.0, objective=objective).fit(X, y)
+    mean = SupportGP(kernel, noise=1.0, objective=objective, objective_per_input=True).fit(X, y)
+    # The same optimum, to the search's tolerance.
+    assert mean.kernel.base.length_scale == pytest.approx(whole.kernel.base.length_scale, rel=1e-3)
+    assert mean.noise == pytest.approx(whole.noise, rel=1e-3)
+    # The value reported is the objective's own (with the prior's term), not its mean.
+    assert mean.fit_report_.value == pytest.approx(whole.fit_report_.value, rel=1e-6)
+    params = [np.log(mean.kernel.base.variance), np.log(mean.kernel.base.length_scale), np.log(mean.noise)]
+    if objective == "lml":
+        value = mean.log_marginal_likelihood(X, y, np.array(params))
+    else:
+        value = mean.loo_objective(X, y, np.array([*params, np.log(mean.squash.alpha), mean.squash.beta / mean.squash.alpha]))
+    start = np.log([3.0, 1.0])  # the prior's centre: the starting length scale and noise
+    prior = -0.5 * float(np.sum(((np.array(params[1:]) - start) / mean.prior_std) ** 2))
+    assert mean.fit_report_.value == pytest.approx(value + prior, rel=1e-9, abs=1e-9)

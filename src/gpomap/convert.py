@@ -495,6 +495,8 @@ class GridGPOM(MapSettings, GPMapEstimator):
     """
 
     method_name = "msk-gpom"
+    # MSK-GPOM's search, as the maps from scans run it (see SupportGP's objective_per_input).
+    objective_per_input = True
 
     def __init__(
         self,

@@ -65,6 +65,8 @@ class GPMapEstimator:
     prior_std: float | None = MapConfig.prior_std
     class_weight: str | None = MapConfig.class_weight
     free_clearance: float = 0.0
+    # The baselines' searches minimise the objective's sum (see SupportGP's objective_per_input).
+    objective_per_input: bool = False
     # What a subclass's fit sets (no ray evidence unless it builds some).
     evidence_: EvidenceLayer | None = None
     gp_: SupportGP
@@ -115,6 +117,7 @@ class GPMapEstimator:
             hyper_subset=self.hyper_subset,
             prior_std=self.prior_std,
             class_weight=self.class_weight,
+            objective_per_input=self.objective_per_input,
         )
 
     def make_observations(self, data: Any) -> Observations:

@@ -400,6 +400,7 @@ def fit_tile_task(task: TileFitTask) -> TileState:
             hyper_subset=st.hyper_subset,
             prior_std=st.prior_std,
             class_weight=st.class_weight,
+            objective_per_input=True,
         )
         gp.squash = ProbitSquash(hyp["alpha"], hyp["beta"])
         gp.fit(X, y)
@@ -1066,6 +1067,7 @@ class TiledGPOM:
             prior_std=b.prior_std,
             class_weight=b.class_weight,
             hyper_group=HYPER_GROUP_CELLS[self._dim],
+            objective_per_input=True,
         )
         gp.fit(X, lab[idx])
         hyp = {
