@@ -638,6 +638,17 @@ class SupportGP:
         curvature), which on a sum over hundreds of inputs runs to a corner of the bounds; per
         input MSK-GPOM's searches take fewer evaluations (docs/choices.md). False (the sum) for
         the baselines, whose searches it lengthens (GPOMIK's on the paper's two rooms 18 -> 28).
+
+    Attributes
+    ----------
+    posterior_ : GPPosterior
+        What :meth:`fit` made: the inputs, the factor, the weights, the learnt kernel and squash.
+    X_train_, y_train_ : Supports, ndarray of shape (n,)
+        The training inputs and targets.
+    fit_report_ : FitReport or None
+        What the hyperparameter search did (None without ``optimise``).
+    timings_ : dict
+        Seconds of the fit's stages.
     """
 
     def __init__(
