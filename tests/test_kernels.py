@@ -218,9 +218,13 @@ def test_gram_and_length_scale_gradient_is_the_full_gradient_without_the_varianc
     np.testing.assert_allclose(dL, fd, rtol=1e-5, atol=1e-8)
 
 
+@pytest.mark.parametrize("compiled", [False, True], ids=["numpy", "compiled"])
 @pytest.mark.parametrize("dim", [1, 2, 3])
-def test_se_box_gram_equals_the_box_average_symmetrised(dim):
+def test_se_box_gram_equals_the_box_average_symmetrised(dim, compiled, monkeypatch):
+    from gpomap.kernels import _compiled_box
     from gpomap.kernels.closed_form import se_box_average, se_box_gram
+
+    monkeypatch.setattr(_compiled_box, "ENABLED", compiled)
 
     rng = np.random.default_rng(dim)
     # Boxes on a coarse grid share their sides (as cells from the tree do), some of zero width.
@@ -230,8 +234,11 @@ def test_se_box_gram_equals_the_box_average_symmetrised(dim):
     assert dK0 is not None
     K, dL = se_box_gram(lower, upper, 1.7, 0.6, eval_gradient=True)
     assert dL is not None
-    np.testing.assert_allclose(K, 0.5 * (K0 + K0.T), rtol=1e-14, atol=1e-16)
-    np.testing.assert_allclose(dL, 0.5 * (dK0[:, :, 1] + dK0[:, :, 1].T), rtol=1e-13, atol=1e-16)
+    # The compiled path takes libm's erf, not scipy's, and sums in another order: the corners'
+    # cancellation (four G2 terms of order l^2 for an entry of order w^2) shows it at 1e-15.
+    atol = 2e-15 if compiled else 1e-16
+    np.testing.assert_allclose(K, 0.5 * (K0 + K0.T), rtol=1e-14, atol=atol)
+    np.testing.assert_allclose(dL, 0.5 * (dK0[:, :, 1] + dK0[:, :, 1].T), rtol=1e-13, atol=atol)
     np.testing.assert_array_equal(K, K.T)
     np.testing.assert_array_equal(dL, dL.T)
     # In row blocks (bounded memory): the same numbers.
@@ -241,6 +248,33 @@ def test_se_box_gram_equals_the_box_average_symmetrised(dim):
     Kv, none = se_box_gram(lower, upper, 1.7, 0.6)
     assert none is None
     np.testing.assert_array_equal(Kv, K)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("scale", [0.05, 0.6, 5.0])
+def test_compiled_se_box_gram_gives_the_numpy_paths_numbers(dim, scale, monkeypatch):
+    from gpomap.kernels import _compiled_box
+    from gpomap.kernels.closed_form import se_box_gram
+
+    rng = np.random.default_rng(21)
+    # Shared sides, repeated boxes, points, and sides narrower than the point width at the
+    # small length scale (points there, intervals at the others).
+    lower = rng.integers(0, 16, (250, dim)) * 0.125
+    upper = lower + rng.integers(0, 5, (250, dim)) * 0.125
+    upper[::13, 0] = lower[::13, 0] + 1e-5
+    lower[7], upper[7] = lower[3], upper[3]
+    monkeypatch.setattr(_compiled_box, "ENABLED", False)
+    K0, dL0 = se_box_gram(lower, upper, 1.3, scale, eval_gradient=True)
+    monkeypatch.setattr(_compiled_box, "ENABLED", True)
+    K, dL = se_box_gram(lower, upper, 1.3, scale, eval_gradient=True)
+    # To round-off: the corners lose (l / w)^2 of it to cancellation in both paths (sides of
+    # 0.125 m at l = 5 m: about 1e-13).
+    np.testing.assert_allclose(K, K0, rtol=0, atol=4e-15 * max(1.0, (scale / 0.125) ** 2))
+    np.testing.assert_allclose(dL, dL0, rtol=0, atol=4e-15 * max(1.0, (scale / 0.125) ** 2))
+    np.testing.assert_array_equal(K, K.T)
+    np.testing.assert_array_equal(dL, dL.T)
+    np.testing.assert_array_equal(se_box_gram(lower, upper, 1.3, scale)[0], K)  # without the derivative
+    assert se_box_gram(lower[:0], upper[:0], 1.3, scale)[0].shape == (0, 0)
 
 
 @pytest.mark.parametrize("scale", [0.05, 0.6, 5.0])
