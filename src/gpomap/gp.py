@@ -442,7 +442,8 @@ class GPPosterior:
     weights : ndarray of shape (n,)
         (K + noise)^-1 y.
     kernel : AreaKernel
-        The kernel, with the hyperparameters the factor was formed with.
+        The kernel, with the hyperparameters the factor was formed with (for GPOMIK's segments,
+        its line kernel).
     squash : ProbitSquash
         Latent moments to probabilities.
     jitter : float
