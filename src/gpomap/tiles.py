@@ -256,6 +256,26 @@ class TileSettings:
     class_weight: str | None = MapConfig.class_weight
     per_tile: bool = False
 
+    def search_gp(
+        self, kernel: AreaKernel, noise: float, optimise: bool, hyper_subset: int | None, hyper_group: int | None = None
+    ) -> SupportGP:
+        """The GP that learns hyperparameters with these settings: MSK-GPOM's search, its objective per input."""
+        return SupportGP(
+            kernel,
+            noise=noise,
+            noise_bounds=self.noise_bounds,
+            noise_model=self.noise_model,
+            objective=self.objective,
+            optimise=optimise,
+            n_restarts=self.n_restarts,
+            seed=self.seed,
+            hyper_subset=hyper_subset,
+            prior_std=self.prior_std,
+            class_weight=self.class_weight,
+            hyper_group=hyper_group,
+            objective_per_input=True,
+        )
+
 
 @dataclass
 class TileCells:
@@ -388,20 +408,7 @@ def fit_tile_task(task: TileFitTask) -> TileState:
     y = np.asarray(task.cells.labels, dtype=float)
     kern = _area_kernel(st, hyp["variance"], hyp["length_scale"])
     if st.per_tile:
-        gp = SupportGP(
-            kern,
-            noise=hyp["noise"],
-            noise_bounds=st.noise_bounds,
-            noise_model=st.noise_model,
-            objective=st.objective,
-            optimise=True,
-            n_restarts=st.n_restarts,
-            seed=st.seed,
-            hyper_subset=st.hyper_subset,
-            prior_std=st.prior_std,
-            class_weight=st.class_weight,
-            objective_per_input=True,
-        )
+        gp = st.search_gp(kern, hyp["noise"], optimise=True, hyper_subset=st.hyper_subset)
         gp.squash = ProbitSquash(hyp["alpha"], hyp["beta"])
         gp.fit(X, y)
         kern, L, weights, jitter = gp.kernel, gp.posterior_.L, gp.posterior_.weights, gp.posterior_.jitter
@@ -1054,20 +1061,8 @@ class TiledGPOM:
             X = concatenate([Supports(c.lower, c.upper, c.counts, c.member_points, c.member_offsets) for c in blocks]).subset(idx)
         else:
             X = Supports(lo[idx], hi[idx], cnt[idx])
-        gp = SupportGP(
-            b.make_kernel(),
-            noise=b.noise,
-            noise_bounds=b.noise_bounds,
-            noise_model=b.noise_model,
-            objective=b.objective,
-            optimise=b.optimise,
-            n_restarts=b.n_restarts,
-            seed=b.seed,
-            hyper_subset=None,
-            prior_std=b.prior_std,
-            class_weight=b.class_weight,
-            hyper_group=HYPER_GROUP_CELLS[self._dim],
-            objective_per_input=True,
+        gp = self._settings().search_gp(
+            b.make_kernel(), b.noise, optimise=b.optimise, hyper_subset=None, hyper_group=HYPER_GROUP_CELLS[self._dim]
         )
         gp.fit(X, lab[idx])
         hyp = {
