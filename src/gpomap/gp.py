@@ -82,7 +82,7 @@ def robust_cholesky(K: NDArray[np.float64], max_tries: int = 6) -> tuple[NDArray
     )
 
 
-def cholesky_in_place(K: NDArray[np.float64]) -> NDArray[np.float64] | None:
+def cholesky_in_place(K: NDArray[np.float64], clean: bool = True) -> NDArray[np.float64] | None:
     """Lower Cholesky factor of a symmetric C-ordered `K`, computed in `K`'s own memory; None if not positive definite.
 
     An exactly symmetric C-ordered matrix read in Fortran order is itself, so LAPACK factorises
@@ -90,16 +90,23 @@ def cholesky_in_place(K: NDArray[np.float64]) -> NDArray[np.float64] | None:
     pages each time), the same numbers as :func:`robust_cholesky`'s first try. `K` is
     overwritten either way; on None the caller forms it again for :func:`robust_cholesky`.
 
+    Parameters
+    ----------
+    K : ndarray of shape (n, n)
+    clean : bool
+        Zero the strict upper triangle; False leaves K's entries there (for callers that read
+        the lower triangle only, such as LAPACK's and cho_solve's with ``lower=True``).
+
     Returns
     -------
-    ndarray of shape (n, n), Fortran-ordered (``K.T``'s memory), upper triangle zeroed, or None
+    ndarray of shape (n, n), Fortran-ordered (``K.T``'s memory), or None
     """
-    L, info = lapack.dpotrf(K.T, lower=1, clean=1, overwrite_a=1)
+    L, info = lapack.dpotrf(K.T, lower=1, clean=int(clean), overwrite_a=1)
     return L if info == 0 else None
 
 
 def noisy_cholesky(
-    K: NDArray[np.float64], noise: NDArray[np.float64], form_again: Callable[[], NDArray[np.float64]]
+    K: NDArray[np.float64], noise: NDArray[np.float64], form_again: Callable[[], NDArray[np.float64]], clean: bool = True
 ) -> tuple[NDArray[np.float64], float]:
     """Lower Cholesky factor of K + diag(noise), in `K`'s own memory where it succeeds, and the jitter it took.
 
@@ -114,6 +121,8 @@ def noisy_cholesky(
     noise : ndarray of shape (n,)
     form_again : callable
         K as it was.
+    clean : bool
+        As :func:`cholesky_in_place`'s (the jitter's factor is always clean).
 
     Returns
     -------
@@ -121,7 +130,7 @@ def noisy_cholesky(
     jitter : float
     """
     K[np.diag_indices_from(K)] += noise
-    L = cholesky_in_place(K)
+    L = cholesky_in_place(K, clean)
     if L is not None:
         return L, 0.0
     K = form_again()
@@ -748,17 +757,8 @@ class SupportGP:
                 K = kern(X)
             K = 0.5 * (K + K.T)
         nvec = np.exp(log_noise) * self._noise_scale(X)
-        # The copy keeps K for the gradient. An exactly symmetric C-ordered matrix read in
-        # Fortran order is itself, so LAPACK factorises the copy where it lies, the numbers
-        # those of robust_cholesky's first try.
-        Kn = K.copy()
-        Kn[np.diag_indices_from(Kn)] += nvec
-        L, info = lapack.dpotrf(Kn.T, lower=1, clean=0, overwrite_a=1)
-        if info != 0:
-            # Not positive definite as it stands: robust_cholesky adds its jitter (or raises).
-            Kn = K.copy()
-            Kn[np.diag_indices_from(Kn)] += nvec
-            L, _ = robust_cholesky(Kn)
+        # Factorised in a copy, which keeps K for the gradient; the upper triangle is not read.
+        L, _ = noisy_cholesky(K.copy(), nvec, K.copy, clean=False)
         return L, K, dL, nvec
 
     @overload
