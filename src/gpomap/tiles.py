@@ -44,7 +44,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, overload
 
 import numpy as np
@@ -793,22 +793,9 @@ class TiledGPOM:
     # ------------------------------------------------------------------ settings
     def _settings(self) -> TileSettings:
         b = self.base
-        return TileSettings(
-            area=b.area_method,
-            kernel=b.kernel,
-            normalisation=b.normalisation,
-            quadrature_order=b.quadrature_order,
-            length_scale_bounds=b.length_scale_bounds,
-            noise_bounds=b.noise_bounds,
-            noise_model=b.noise_model,
-            objective=b.objective,
-            n_restarts=b.n_restarts,
-            seed=b.seed,
-            hyper_subset=b.hyper_subset,
-            prior_std=b.prior_std,
-            class_weight=b.class_weight,
-            per_tile=self.per_tile_hyperparameters,
-        )
+        # Every field but these two is the map setting of the same name.
+        same = {f.name: getattr(b, f.name) for f in fields(TileSettings) if f.name not in ("area", "per_tile")}
+        return TileSettings(area=b.area_method, per_tile=self.per_tile_hyperparameters, **same)
 
     @property
     def n_workers_(self) -> int:
