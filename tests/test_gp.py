@@ -411,3 +411,23 @@ def test_the_search_per_input_learns_what_the_sum_learns_and_reports_the_sum(obj
     start = np.log([3.0, 1.0])  # the prior's centre: the starting length scale and noise
     prior = -0.5 * float(np.sum(((np.array(params[1:]) - start) / mean.prior_std) ** 2))
     assert mean.fit_report_.value == pytest.approx(value + prior, rel=1e-9, abs=1e-9)
+
+
+@pytest.mark.parametrize("objective", ["loo", "lml"])
+def test_a_search_on_threads_learns_to_the_bit_what_it_learns_in_turn(objective):
+    # Four groups evaluated on two threads: the same sums in the same order, so the same search
+    # (BLAS on one thread in both, as the threads hold it: its threads split sums differently).
+    from threadpoolctl import threadpool_limits
+
+    X, y = _data(11, 120)
+    kernel = AreaKernel(Matern32(1.0, 0.8), "quadrature")
+    with threadpool_limits(1):
+        fits = [SupportGP(kernel, hyper_subset=None, hyper_group=30, objective=objective, n_threads=t).fit(X, y) for t in (1, 2)]
+    assert fits[0].fit_report_.groups == 4
+    assert fits[1].kernel.theta.tolist() == fits[0].kernel.theta.tolist()
+    assert fits[1].noise == fits[0].noise
+    assert (fits[1].squash.alpha, fits[1].squash.beta) == (fits[0].squash.alpha, fits[0].squash.beta)
+    assert fits[1].fit_report_.n_evaluations == fits[0].fit_report_.n_evaluations
+    np.testing.assert_array_equal(fits[1].posterior_.weights, fits[0].posterior_.weights)
+    with pytest.raises(ValueError, match="n_threads"):
+        SupportGP(kernel, n_threads=0)

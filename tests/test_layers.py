@@ -37,6 +37,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.diagnostics",
             "gpomap.raycast",
             "gpomap.compiled",
+            "gpomap.lapack",
         ),
     ),
     (

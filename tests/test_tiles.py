@@ -321,12 +321,12 @@ def test_pool_workers_share_the_cores_for_blas(room, reference, monkeypatch, wor
     threadpoolctl = pytest.importorskip("threadpoolctl")
     hyp, _ = reference
     monkeypatch.setattr(tiles, "fit_tile_task", _blas_threads_fit)
-    monkeypatch.setattr(tiles, "_cores", lambda: 4)  # as if on 4 cores: 2 workers get 2 threads each
+    monkeypatch.setattr(tiles, "available_cores", lambda: 4)  # as if on 4 cores: 2 workers get 2 threads each
     before = threadpoolctl.threadpool_info()
     opts = {"tile_size": 6.0, "overlap": 2.5, "n_workers": 2, "worker_processes": worker_processes, **OPTS}
     model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
     assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {2}
-    monkeypatch.setattr(tiles, "_cores", lambda: 2)
+    monkeypatch.setattr(tiles, "available_cores", lambda: 2)
     model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
     assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {1}
     assert threadpoolctl.threadpool_info() == before  # this process keeps its own

@@ -15,18 +15,21 @@ analytic gradients, by one of two objectives:
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import functools
 import itertools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Literal, overload
+from typing import Any, Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import LinAlgError, blas, cho_solve, cholesky, lapack, solve_triangular
+from scipy.linalg import LinAlgError, cholesky, solve_triangular
 from scipy.optimize import minimize
 
+from gpomap import lapack
 from gpomap.errors import NotFittedError, NumericalError
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.tensor import TensorDistances
@@ -40,6 +43,15 @@ NOISE_MODELS = ("constant", "per_count")
 #: One group of a hyperparameter objective: its inputs, their +-1 targets, and the kernel's
 #: ``prepare`` of those inputs (None where the kernel has none).
 ObjectivePart = tuple[Supports, NDArray[np.float64], TensorDistances | None]
+
+#: How an objective evaluates its groups: ``run(fn, items)`` is ``[fn(x) for x in items]``, in
+#: that order, perhaps on threads (:meth:`SupportGP._group_runner`).
+GroupMap = Callable[[Callable[[Any], Any], Sequence[Any]], list[Any]]
+
+
+def _in_turn(fn: Callable[[Any], Any], items: Sequence[Any]) -> list[Any]:
+    """``[fn(x) for x in items]``: the groups of an objective evaluated one after another."""
+    return [fn(x) for x in items]
 
 
 def robust_cholesky(K: NDArray[np.float64], max_tries: int = 6) -> tuple[NDArray[np.float64], float]:
@@ -101,8 +113,35 @@ def cholesky_in_place(K: NDArray[np.float64], clean: bool = True) -> NDArray[np.
     -------
     ndarray of shape (n, n), Fortran-ordered (``K.T``'s memory), or None
     """
-    L, info = lapack.dpotrf(K.T, lower=1, clean=int(clean), overwrite_a=1)
-    return L if info == 0 else None
+    if not K.flags.c_contiguous:
+        K = np.ascontiguousarray(K)
+    L = K.T
+    if lapack.potrf(L) != 0:
+        return None
+    if clean:
+        _clear_strict_upper(L)
+    return L
+
+
+def _clear_strict_upper(L: NDArray[np.float64]) -> None:
+    """Zero the strict upper triangle of the Fortran-ordered square `L` in place (its C-ordered
+    transpose's strict lower one, by row blocks of :data:`FILL_BLOCK`)."""
+    C = L.T
+    n = C.shape[0]
+    for i0 in range(0, n, FILL_BLOCK):
+        i1 = min(n, i0 + FILL_BLOCK)
+        C[i0:i1, :i0] = 0.0
+        block = C[i0:i1, i0:i1]
+        block[...] = np.triu(block)
+
+
+def cholesky_solve(L: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(L L^T)^-1 y from a lower Cholesky factor (its lower triangle read), ndarray of `y`'s shape (n,) or (n, k)."""
+    x = np.array(y, dtype=float, order="F")
+    info = lapack.potrs(np.asfortranarray(L), x)
+    if info != 0:
+        raise NumericalError(f"solve from the Cholesky factor failed (LAPACK info {info})")
+    return x
 
 
 def noisy_cholesky(
@@ -140,13 +179,14 @@ def noisy_cholesky(
 
 def cholesky_inverse(L: NDArray[np.float64]) -> NDArray[np.float64]:
     """(L L^T)^-1 from a lower Cholesky factor, ndarray of shape (n, n)."""
-    inv, info = lapack.dpotri(L, lower=1)
+    inv = np.array(L, dtype=float, order="F")
+    info = lapack.potri(inv)
     if info != 0:
         raise NumericalError(f"inverse from the Cholesky factor failed (LAPACK info {info})")
     # dpotri fills the lower triangle only (of its Fortran-ordered copy: the C-ordered
     # transpose's upper one); mirrored in cache-sized blocks, the same numbers as
     # np.tril(inv) + np.tril(inv, -1).T at a third of the time.
-    return _fill_lower(np.asfortranarray(inv).T)
+    return _fill_lower(inv.T)
 
 
 def inverse_diagonal(L: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -154,7 +194,8 @@ def inverse_diagonal(L: NDArray[np.float64]) -> NDArray[np.float64]:
 
     The squared column norms of L^-1: one triangular inverse, half the work of the full inverse.
     """
-    L_inv, info = lapack.dtrtri(L, lower=1)
+    L_inv = np.array(L, dtype=float, order="F")
+    info = lapack.trtri(L_inv)
     if info != 0:
         raise NumericalError(f"triangular inverse of the Cholesky factor failed (LAPACK info {info})")
     return np.einsum("ij,ij->j", L_inv, L_inv)
@@ -181,11 +222,13 @@ def _inverse_in_place(L: NDArray[np.float64]) -> NDArray[np.float64]:
 
     The same numbers as :func:`cholesky_inverse` (LAPACK's triangle, then its mirror).
     """
-    inv, info = lapack.dpotri(L, lower=1, overwrite_c=1)
+    if not L.flags.f_contiguous:  # a factor from robust_cholesky's jitter may not be
+        L = np.asfortranarray(L)
+    info = lapack.potri(L)
     if info != 0:
         raise NumericalError(f"inverse from the Cholesky factor failed (LAPACK info {info})")
     # Fortran lower triangle = C upper triangle of the transposed view.
-    return _fill_lower(inv.T)
+    return _fill_lower(L.T)
 
 
 def _trace_product_upper(G: NDArray[np.float64], M_upper: NDArray[np.float64]) -> float:
@@ -213,18 +256,14 @@ def _weighted_outer_upper(C: NDArray[np.float64], w: NDArray[np.float64]) -> NDA
     """
     n = C.shape[0]
     root = np.sqrt(np.abs(w))
-    out: NDArray[np.float64] | None = None
+    out = np.zeros((n, n), order="F")
     for sign, cols in ((1.0, np.flatnonzero(w > 0)), (-1.0, np.flatnonzero(w < 0))):
         if cols.size == 0:
             continue
         # Rows of the symmetric C are its columns; the transpose of the scaled rows is a
-        # Fortran-ordered (n, k) matrix, which BLAS takes without a copy.
-        B = (C[cols] * root[cols, None]).T
-        # The second update adds onto the first where it lies.
-        onto = {} if out is None else {"beta": 1.0, "c": out, "overwrite_c": 1}
-        out = blas.dsyrk(sign, B, lower=1, **onto)
-    if out is None:
-        return np.zeros((n, n))
+        # Fortran-ordered (n, k) matrix, which BLAS takes without a copy. The second update adds
+        # onto the first.
+        lapack.syrk(sign, (C[cols] * root[cols, None]).T, 1.0, out)
     # Fortran lower triangle = C upper triangle of the transposed view.
     return out.T
 
@@ -358,7 +397,8 @@ def triangular_inverse_for(L: NDArray[np.float64], n_queries: int, dim: int) -> 
     n = L.shape[0]
     if dim not in WHITEN_BY_PRODUCT_DIMS or n_queries < n or n == 0:
         return None
-    L_inv, info = lapack.dtrtri(L, lower=1)
+    L_inv = np.array(L, dtype=float, order="F")
+    info = lapack.trtri(L_inv)
     if info != 0:
         raise NumericalError(f"triangular inverse of the Cholesky factor failed (LAPACK info {info})")
     return np.tril(L_inv)  # dtrtri leaves the strict upper triangle as it found it
@@ -648,6 +688,11 @@ class SupportGP:
         curvature), which on a sum over hundreds of inputs runs to a corner of the bounds; per
         input MSK-GPOM's searches take fewer evaluations (docs/choices.md). False (the sum) for
         the baselines, whose searches it lengthens (GPOMIK's on the paper's two rooms 18 -> 28).
+    n_threads : int
+        Threads of this process the search's groups are evaluated on (their factorisations,
+        inverses and kernel sums run without the GIL), BLAS held to the cores' share of each
+        meanwhile; 1 evaluates them in turn. The same numbers either way when BLAS runs on one
+        thread (its threads split sums differently).
 
     Attributes
     ----------
@@ -677,6 +722,7 @@ class SupportGP:
         class_weight: str | None = "balanced",
         hyper_group: int | None = None,
         objective_per_input: bool = False,
+        n_threads: int = 1,
     ) -> None:
         if objective not in OBJECTIVES:
             raise ValueError(f"objective must be one of {OBJECTIVES}, got {objective!r}")
@@ -702,6 +748,9 @@ class SupportGP:
             raise ValueError(f"hyper_group must be at least 1, got {hyper_group}")
         self.hyper_group = hyper_group
         self.objective_per_input = objective_per_input
+        if n_threads < 1:
+            raise ValueError(f"n_threads must be at least 1, got {n_threads}")
+        self.n_threads = int(n_threads)
         self.squash = ProbitSquash()
 
     # ----------------------------------------------------------------- objectives
@@ -800,25 +849,33 @@ class SupportGP:
         return self._parts_log_marginal_likelihood([(X, y, prepared)], params, eval_gradient)
 
     def _parts_log_marginal_likelihood(
-        self, parts: list[ObjectivePart], params: NDArray[np.float64], eval_gradient: bool
+        self, parts: list[ObjectivePart], params: NDArray[np.float64], eval_gradient: bool, run: GroupMap | None = None
     ) -> float | tuple[float, NDArray[np.float64]]:
-        """The log marginal likelihood of independent groups of inputs: the sum of theirs (a block-diagonal K)."""
-        total = 0.0
-        grad = np.zeros(3)
-        for X, y, prepared in parts:
+        """The log marginal likelihood of independent groups of inputs: the sum of theirs (a block-diagonal K).
+
+        `run`: how the groups are evaluated (:meth:`_group_runner`); default in turn.
+        """
+
+        def group(part: ObjectivePart) -> tuple[float, NDArray[np.float64]]:
+            X, y, prepared = part
+            grad = np.zeros(3)
             L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient, prepared)
-            a = cho_solve((L, True), y, check_finite=False)
-            total += float(-0.5 * y @ a - np.log(np.diag(L)).sum() - 0.5 * y.size * np.log(2 * np.pi))
+            a = cholesky_solve(L, y)
+            value = float(-0.5 * y @ a - np.log(np.diag(L)).sum() - 0.5 * y.size * np.log(2 * np.pi))
             if not eval_gradient:
-                continue
+                return value, grad
             assert dL is not None  # asked for with eval_gradient
             K_inv = _inverse_in_place(L)
             # R&W eq. 5.9: 0.5 tr((a a^T - K^-1) dK/dtheta_j), without forming a a^T;
             # dK/dlog(variance) is K itself.
             for j, dK in enumerate((K, dL)):
-                grad[j] += 0.5 * (a @ (dK @ a) - np.vdot(K_inv, dK))
-            grad[2] += 0.5 * (np.sum(a * a * nvec) - np.sum(np.diag(K_inv) * nvec))
-        return (total, grad) if eval_gradient else total
+                grad[j] = 0.5 * (a @ (dK @ a) - np.vdot(K_inv, dK))
+            grad[2] = 0.5 * (np.sum(a * a * nvec) - np.sum(np.diag(K_inv) * nvec))
+            return value, grad
+
+        terms = (run or _in_turn)(group, parts)
+        total = float(sum(t[0] for t in terms))
+        return (total, np.sum([t[1] for t in terms], axis=0)) if eval_gradient else total
 
     @overload
     def loo_objective(
@@ -872,17 +929,23 @@ class SupportGP:
         params: NDArray[np.float64],
         eval_gradient: bool,
         squash: ProbitSquash | None = None,
+        run: GroupMap | None = None,
     ) -> float | tuple[float, NDArray[np.float64]]:
         """:meth:`_loo_objective` over independent groups of inputs (a block-diagonal K).
 
         Each group's leave-one-out moments come from its own GP; the class weights and the
         profiled squash are those of all groups' moments together, as for one set of inputs.
+        `run`: how the groups are evaluated (:meth:`_group_runner`); default in turn.
         """
-        factors = []
-        for X, y, prepared in parts:
+        run = run or _in_turn
+
+        def factor(part: ObjectivePart) -> tuple[NDArray[np.float64] | None, ...]:
+            X, y, prepared = part
             L, K, dL, nvec = self._objective_factor(params[:2], params[2], X, eval_gradient, prepared)
             K_inv = _inverse_in_place(L)
-            factors.append((K_inv, K, dL, nvec, K_inv @ y, np.diag(K_inv).copy()))
+            return K_inv, K, dL, nvec, K_inv @ y, np.diag(K_inv).copy()
+
+        factors = run(factor, parts)
         y = np.concatenate([part[1] for part in parts])
         a = np.concatenate([f[4] for f in factors])
         d = np.concatenate([f[5] for f in factors])
@@ -904,21 +967,37 @@ class SupportGP:
         # so one n^3 product (M) serves every hyperparameter, each then costing n^2; a
         # block-diagonal K adds its groups' terms.
         gmu_all, gvar_all = np.asarray(g["mu"]), np.asarray(g["var"])
-        grad = np.zeros(5)
-        start = 0
-        for K_inv, K, dL, nvec, a_g, d_g in factors:
+        ends = np.cumsum([0] + [f[4].size for f in factors])
+
+        def gradient(i: int) -> NDArray[np.float64]:
+            K_inv, K, dL, nvec, a_g, d_g = factors[i]
             assert dL is not None  # asked for with eval_gradient
-            part = slice(start, start + a_g.size)
-            start += a_g.size
-            gmu, gvar = gmu_all[part], gvar_all[part]
+            gmu, gvar = gmu_all[ends[i] : ends[i + 1]], gvar_all[ends[i] : ends[i + 1]]
             b = K_inv @ (gmu / d_g)
             M = _weighted_outer_upper(K_inv, (gvar - gmu * a_g) / d_g**2)
+            part = np.zeros(3)
             for j, dK in enumerate((K, dL)):
-                grad[j] += b @ (dK @ a_g) + _trace_product_upper(dK, M)
+                part[j] = b @ (dK @ a_g) + _trace_product_upper(dK, M)
             # Noise: dK = diag(nvec).
-            grad[2] += nvec @ (b * a_g + np.diagonal(M))
+            part[2] = nvec @ (b * a_g + np.diagonal(M))
+            return part
+
+        grad = np.zeros(5)
+        for part in run(gradient, range(len(factors))):
+            grad[:3] += part
         grad[3], grad[4] = probit_gradient_in_shift(g, alpha, shift)
         return value, grad
+
+    @contextmanager
+    def _group_runner(self, n_groups: int) -> Iterator[GroupMap]:
+        """How a search evaluates its `n_groups` groups: on up to :attr:`n_threads` threads, BLAS held
+        to the cores' share of each meanwhile, or in turn. Results come back in the groups' order."""
+        threads = min(self.n_threads, n_groups)
+        if threads <= 1:
+            yield _in_turn
+            return
+        with lapack.blas_limited(max(1, lapack.available_cores() // threads)), cf.ThreadPoolExecutor(threads) as pool:
+            yield lambda fn, items: list(pool.map(fn, items))
 
     # ----------------------------------------------------------------- fitting
     def fit(self, X: Supports, y: NDArray[np.float64]) -> SupportGP:
@@ -949,7 +1028,7 @@ class SupportGP:
             self.fit_report_ = self._optimise(X.subset(idx), y[idx])
         t1 = time.perf_counter()
         L, jitter = self._factor(X)
-        weights = cho_solve((L, True), y, check_finite=False)
+        weights = cholesky_solve(L, y)
         t2 = time.perf_counter()
         # alpha and beta for the full model: from its own leave-one-out moments.
         # Leave-one-out moments (R&W eq. 5.12) need only K^-1 y and diag(K^-1).
@@ -1001,11 +1080,6 @@ class SupportGP:
         for g in groups:
             Xg = X if g.size == len(X) else X.subset(g)
             parts.append((Xg, y[g], self.kernel.prepare(Xg) if hasattr(self.kernel, "prepare") else None))
-        fun = (
-            functools.partial(self._parts_loo_objective, parts, squash=profiled)
-            if loo
-            else functools.partial(self._parts_log_marginal_likelihood, parts)
-        )
         n_eval = 0
         # What the search minimises is scaled by this (see objective_per_input); the values
         # reported are the objective's own.
@@ -1047,21 +1121,27 @@ class SupportGP:
         t0 = time.perf_counter()
         best = None
         values = []
-        for s in starts:
-            res = minimize(
-                neg, s, jac=True, method="L-BFGS-B", bounds=free_bounds, options={"maxiter": self.max_iter, "ftol": 1e-7}
+        with self._group_runner(len(groups)) as run:
+            fun = (
+                functools.partial(self._parts_loo_objective, parts, squash=profiled, run=run)
+                if loo
+                else functools.partial(self._parts_log_marginal_likelihood, parts, run=run)
             )
-            values.append(float(-res.fun) / per_input)
-            if best is None or res.fun < best.fun:
-                best = res
-        assert best is not None  # there is always the given start
+            for s in starts:
+                res = minimize(
+                    neg, s, jac=True, method="L-BFGS-B", bounds=free_bounds, options={"maxiter": self.max_iter, "ftol": 1e-7}
+                )
+                values.append(float(-res.fun) / per_input)
+                if best is None or res.fun < best.fun:
+                    best = res
+            assert best is not None  # there is always the given start
+            if loo and best.x.tobytes() not in squash_at:  # the optimiser's answer is a point it evaluated
+                neg(best.x)
         p = x0.copy()
         p[free] = best.x
         self.kernel.theta = p[:2]
         self.noise = float(np.exp(p[2]))
         if loo:
-            if best.x.tobytes() not in squash_at:  # the optimiser's answer is a point it evaluated
-                neg(best.x)
             self.squash = ProbitSquash(*squash_at[best.x.tobytes()])
         return FitReport(self.objective, float(-best.fun) / per_input, n_eval, time.perf_counter() - t0, values, len(groups))
 

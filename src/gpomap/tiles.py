@@ -36,7 +36,6 @@ block is one GP over that block's cells.
 from __future__ import annotations
 
 import concurrent.futures as cf
-import functools
 import math
 import multiprocessing
 import os
@@ -50,7 +49,6 @@ from typing import Any, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import cho_solve
 from scipy.special import ndtr
 
 from gpomap.cells import build_cells
@@ -58,10 +56,11 @@ from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
 from gpomap.fusion import EvidenceLayer
-from gpomap.gp import GPPosterior, SupportGP, noisy_cholesky
+from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
+from gpomap.lapack import available_cores, blas_limited, limit_blas_threads
 from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
@@ -258,9 +257,16 @@ class TileSettings:
     per_tile: bool = False
 
     def search_gp(
-        self, kernel: AreaKernel, noise: float, optimise: bool, hyper_subset: int | None, hyper_group: int | None = None
+        self,
+        kernel: AreaKernel,
+        noise: float,
+        optimise: bool,
+        hyper_subset: int | None,
+        hyper_group: int | None = None,
+        n_threads: int = 1,
     ) -> SupportGP:
-        """The GP that learns hyperparameters with these settings: MSK-GPOM's search, its objective per input."""
+        """The GP that learns hyperparameters with these settings: MSK-GPOM's search, its objective
+        per input, its groups on `n_threads` threads."""
         return SupportGP(
             kernel,
             noise=noise,
@@ -275,6 +281,7 @@ class TileSettings:
             class_weight=self.class_weight,
             hyper_group=hyper_group,
             objective_per_input=True,
+            n_threads=n_threads,
         )
 
 
@@ -431,7 +438,7 @@ def fit_tile_task(task: TileFitTask) -> TileState:
         if K is None:
             K = kern(X)
         L, jitter = noisy_cholesky(K, _noise_vector(st, hyp["noise"], X.counts), lambda: kern(X))
-        weights = cho_solve((L, True), y, check_finite=False)
+        weights = cholesky_solve(L, y)
     # Member points only where the kernel reads them.
     kept = X if st.area == "summed" else Supports(X.lower, X.upper, X.counts)
     hyp = {k: float(v) for k, v in hyp.items()}
@@ -469,44 +476,6 @@ def predict_tile_task(
     return state.posterior.latent(Supports.from_points(pts), variance, local, chunk_size)
 
 
-@functools.lru_cache(maxsize=1)
-def _blas_controller() -> Any:
-    """threadpoolctl's view of this process's BLAS and OpenMP libraries, found once (None without
-    threadpoolctl).
-
-    Finding them walks every loaded library: 1-2 ms a time, which the two rooms' 0.3 s map paid
-    on each of its five stages; a limit set through the found controller takes 0.01 ms.
-    """
-    try:
-        from threadpoolctl import ThreadpoolController
-    except ImportError:
-        return None
-    return ThreadpoolController()
-
-
-def _limit_blas_threads(n: int) -> None:
-    """Cap the BLAS (and OpenMP) threads of this process at `n` for the rest of its life.
-
-    Pool workers call it on start so that ``workers x threads`` never exceeds the cores. Best
-    effort: without threadpoolctl the libraries keep their own defaults.
-    """
-    controller = _blas_controller()
-    if controller is not None:
-        controller.limit(limits=max(1, int(n)))  # not used as a context: the limit must stay
-
-
-@contextmanager
-def _blas_limited(n: int) -> Iterator[None]:
-    """BLAS (and OpenMP) threads of this process capped at `n` within the block (best effort, as
-    :func:`_limit_blas_threads`)."""
-    controller = _blas_controller()
-    if controller is None:
-        yield
-        return
-    with controller.limit(limits=max(1, int(n))):
-        yield
-
-
 def _collect(
     futures: dict[cf.Future, tuple[int, int]], bar: Progress
 ) -> tuple[dict[tuple[int, int], Any], dict[tuple[int, int], Exception]]:
@@ -525,7 +494,7 @@ def _collect(
 
 def _worker_init(blas_threads: int) -> None:
     """Initialiser of the local pool's worker processes."""
-    _limit_blas_threads(blas_threads)
+    limit_blas_threads(blas_threads)
 
 
 #: The tasks of each local pool stage running now, by a token: forked workers read them from the
@@ -540,14 +509,6 @@ def _inherited_task(token: str, index: int) -> Any:
     """Run task `index` of the stage `token` of :data:`_INHERITED` (in a forked pool worker)."""
     fn, args = _INHERITED[token]
     return fn(*args[index])
-
-
-def _cores() -> int:
-    """CPU cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 # --------------------------------------------------------------------------- helpers
@@ -1061,8 +1022,14 @@ class TiledGPOM:
             X = concatenate([Supports(c.lower, c.upper, c.counts, c.member_points, c.member_offsets) for c in blocks]).subset(idx)
         else:
             X = Supports(lo[idx], hi[idx], cnt[idx])
+        # The search runs in this process, its groups on the local workers' cores.
         gp = self._settings().search_gp(
-            b.make_kernel(), b.noise, optimise=b.optimise, hyper_subset=None, hyper_group=HYPER_GROUP_CELLS[self._dim]
+            b.make_kernel(),
+            b.noise,
+            optimise=b.optimise,
+            hyper_subset=None,
+            hyper_group=HYPER_GROUP_CELLS[self._dim],
+            n_threads=min(self.n_workers_, available_cores()),
         )
         gp.fit(X, lab[idx])
         hyp = {
@@ -1191,12 +1158,12 @@ class TiledGPOM:
     def _workers_and_threads(self, n_jobs: int) -> tuple[int, int]:
         """Local workers for `n_jobs` tasks, and BLAS threads for each (the cores shared out)."""
         workers = min(self.n_workers_, n_jobs)
-        return workers, self.blas_threads if self.blas_threads is not None else max(1, _cores() // workers)
+        return workers, self.blas_threads if self.blas_threads is not None else max(1, available_cores() // workers)
 
     def _run_threads(self, fn, jobs, bar: Progress, what: str):
         """The jobs on threads of this process, BLAS held to the cores' share of each meanwhile."""
         workers, threads = self._workers_and_threads(len(jobs))
-        with _blas_limited(threads), cf.ThreadPoolExecutor(workers) as pool:
+        with blas_limited(threads), cf.ThreadPoolExecutor(workers) as pool:
             return _collect({pool.submit(fn, *args): key for key, args in jobs}, bar)
 
     def _run_pool(self, fn, jobs, bar: Progress, what: str):
