@@ -19,13 +19,12 @@ points (the evaluation protocol's points) that lie where no kept beam went. Near
 latent variance is small and kappa changes little; far from it p tends to 1/2 sooner.
 
 To bound the cost, the held-in GP covers one square region of side ``2 * region_half`` round a
-given centre (the hyperparameter sample's), and only points well inside it are used. The three
-patterns of held-out stretches (every third stretch from the second, the third, the first:
-together every scan once) are all used, their points pooled, each predicted by its own held-in
-GP: a robot enters new space once in its log, so whether a pattern holds that stretch out is
-luck, and kappa from one pattern alone went from 0.1 to 10^4 (its bounds) on logs alike
-(docs/choices.md). A pattern with no unseen point costs no GP. With too few points in all three
-(a short log, a robot that never left one room), kappa stays 1.
+given centre (the hyperparameter sample's), and only points well inside it are used. When one
+pattern of held-out stretches finds too few such points of a class (on Intel, CSAIL and FR079
+with blocks of their scans held out, 24-27), the other two patterns (the stretches after, then
+the rest) are tried in turn and their points pooled, each with its own held-in GP: a robot that
+enters new space only once in its log is unseen in one pattern alone. With too few points in
+all three (a short log, a robot that never left one room), kappa stays 1.
 """
 
 from __future__ import annotations
@@ -47,9 +46,9 @@ from gpomap.observations import Observations, beams_reach, data_dim, free_near_h
 N_STRETCHES: int = 10
 #: ... and every this-many-th stretch is held out (3 of 10, starting at the second) ...
 HOLDOUT_EVERY: int = 3
-#: ... starting at each of these stretches in turn (three patterns, every scan held out once), their points pooled.
+#: ... starting at these stretches in turn, while fewer than MIN_POINTS_PER_CLASS points are found.
 FOLD_STARTS: tuple[int, ...] = (1, 2, 0)
-#: Fewest held-out points of each class, over all patterns, where no kept beam went for kappa to be fitted.
+#: Fewest held-out points of each class where no kept beam went for kappa to be fitted.
 MIN_POINTS_PER_CLASS: int = 50
 #: Most points of each class used (the held-in GP's prediction at them is the cost).
 MAX_POINTS_PER_CLASS: int = 5_000
@@ -186,9 +185,8 @@ def fit_variance_scale(
     -------
     kappa : float
     report : dict
-        ``"kappa"``, ``"n_points"`` (per class), ``"unseen_points_per_pattern"`` (before the
-        classes are balanced), ``"log_loss_at_1"`` and ``"log_loss"`` (balanced, at kappa = 1 and
-        at the fit), or ``"reason"`` when kappa stays 1.
+        ``"kappa"``, ``"n_points"`` (per class), ``"log_loss_at_1"`` and ``"log_loss"`` (balanced,
+        at kappa = 1 and at the fit), or ``"reason"`` when kappa stays 1.
     """
     if len(scans) < HOLDOUT_EVERY:
         return 1.0, {"kappa": 1.0, "reason": f"only {len(scans)} scans"}
@@ -197,12 +195,15 @@ def fit_variance_scale(
 
     # Per pattern: the kept scans' indices, and the held-out points where none of them went.
     folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]] = []
+    n = 0
     for first in FOLD_STARTS:
         kept, held = holdout_stretches(len(scans), first)
         pts, occ = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
         folds.append((kept, pts, occ))
-    n_occ = sum(int(f[2].sum()) for f in folds)
-    n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
+        n_occ = sum(int(f[2].sum()) for f in folds)
+        n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
+        if n >= MIN_POINTS_PER_CLASS:
+            break
     if n < MIN_POINTS_PER_CLASS:
         reason = f"{n} held-out points of a class where no kept beam went, in {len(folds)} patterns of held-out stretches"
         return 1.0, {"kappa": 1.0, "reason": reason}
@@ -242,7 +243,7 @@ def fit_variance_scale(
     return kappa, {
         "kappa": kappa,
         "n_points": n,
-        "unseen_points_per_pattern": [int(f[2].size) for f in folds],
+        "n_patterns": len(folds),
         "log_loss_at_1": _nll(1.0, mu, var, occ, a, b),
         "log_loss": float(res.fun),
     }
