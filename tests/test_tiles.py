@@ -225,6 +225,31 @@ def test_worker_threads_and_processes_match_in_process(room, reference, worker_p
     assert model.summary()["executor"] == ("process pool x2" if worker_processes else "threads x2")
 
 
+def test_a_prediction_of_few_points_runs_in_process_and_of_many_on_the_threads(room, reference, monkeypatch):
+    hyp, _ = reference
+    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    stages = []
+    real = TiledGPOM._run_threads
+
+    def recording(self, fn, jobs, bar, what):
+        stages.append((what, sum(len(args[1]) for _, args in jobs)))
+        return real(self, fn, jobs, bar, what)
+
+    monkeypatch.setattr(TiledGPOM, "_run_threads", recording)
+    rng = np.random.default_rng(0)
+    # A point in the blend of tiles is predicted by each (up to four): a quarter is surely few.
+    few = rng.uniform((0.0, 0.0), (20.0, 16.0), (tiles.SMALL_PREDICTION_POINTS // 4 - 1, 2))
+    many = rng.uniform((0.0, 0.0), (20.0, 16.0), (tiles.SMALL_PREDICTION_POINTS, 2))
+    p_few = model.predict_proba(few)
+    assert stages == []  # not a single stage on the threads
+    model.predict_proba(many)
+    assert [w for w, _ in stages] == ["tile prediction"] and stages[0][1] >= tiles.SMALL_PREDICTION_POINTS
+    # The same numbers on the threads: the few points again, with no stage kept in process.
+    monkeypatch.setattr(tiles, "SMALL_PREDICTION_POINTS", 0)
+    np.testing.assert_allclose(model.predict_proba(few), p_few, rtol=0, atol=1e-12)
+    assert len(stages) == 2
+
+
 def test_pool_workers_inherit_the_tile_states_instead_of_receiving_them(room, reference, monkeypatch):
     # Forked workers read a stage's tasks from the memory they inherit: predicting never pickles
     # a tile's state (its Cholesky factor), only the tiles' answers come back.

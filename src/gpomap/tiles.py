@@ -477,7 +477,8 @@ def predict_tile_task(
 
 
 #: A prediction stage of fewer query points than this over all its tiles (one chunk of
-#: :func:`predict_tile_task`) runs in this process: its tasks are too small for threads, which then
+#: :func:`predict_tile_task`; a point in the blend of several tiles counts once for each) runs
+#: in this process: its tasks are too small for threads, which then
 #: contend for the GIL more than they share the work. Measured on the paper's two rooms (fit and
 #: prediction, both settings alternated six times, best and median): the variance scale's held-in
 #: predictions (a few hundred points over 39 tiles) 0.038 -> 0.029 s with SE, the ray evidence's
@@ -488,7 +489,7 @@ SMALL_PREDICTION_POINTS: int = 4096
 
 
 def _few_queries(fn: Callable[..., Any], jobs: list[tuple[tuple[int, int], tuple[Any, ...]]]) -> bool:
-    """Whether `jobs` are tile predictions of fewer than :data:`SMALL_PREDICTION_POINTS` points in all."""
+    """Whether `jobs` are tile predictions of fewer than :data:`SMALL_PREDICTION_POINTS` points, summed over the tiles."""
     return fn is predict_tile_task and sum(len(args[1]) for _, args in jobs) < SMALL_PREDICTION_POINTS
 
 
