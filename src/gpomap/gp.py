@@ -178,15 +178,18 @@ def noisy_cholesky(
 
 
 def cholesky_inverse(L: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(L L^T)^-1 from a lower Cholesky factor, ndarray of shape (n, n)."""
-    inv = np.array(L, dtype=float, order="F")
-    info = lapack.potri(inv)
+    """(L L^T)^-1 from a lower Cholesky factor, ndarray of shape (n, n): :func:`_inverse_in_place` on a copy."""
+    return _inverse_in_place(np.array(L, dtype=float, order="F"))
+
+
+def _triangular_inverse(L: NDArray[np.float64]) -> NDArray[np.float64]:
+    """L^-1 in a Fortran-ordered copy of the lower factor `L`, ndarray of shape (n, n); the strict
+    upper triangle is `L`'s own (LAPACK leaves it as it finds it)."""
+    L_inv = np.array(L, dtype=float, order="F")
+    info = lapack.trtri(L_inv)
     if info != 0:
-        raise NumericalError(f"inverse from the Cholesky factor failed (LAPACK info {info})")
-    # dpotri fills the lower triangle only (of its Fortran-ordered copy: the C-ordered
-    # transpose's upper one); mirrored in cache-sized blocks, the same numbers as
-    # np.tril(inv) + np.tril(inv, -1).T at a third of the time.
-    return _fill_lower(inv.T)
+        raise NumericalError(f"triangular inverse of the Cholesky factor failed (LAPACK info {info})")
+    return L_inv
 
 
 def inverse_diagonal(L: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -194,10 +197,7 @@ def inverse_diagonal(L: NDArray[np.float64]) -> NDArray[np.float64]:
 
     The squared column norms of L^-1: one triangular inverse, half the work of the full inverse.
     """
-    L_inv = np.array(L, dtype=float, order="F")
-    info = lapack.trtri(L_inv)
-    if info != 0:
-        raise NumericalError(f"triangular inverse of the Cholesky factor failed (LAPACK info {info})")
+    L_inv = _triangular_inverse(L)
     return np.einsum("ij,ij->j", L_inv, L_inv)
 
 
@@ -220,7 +220,9 @@ def _fill_lower(S: NDArray[np.float64]) -> NDArray[np.float64]:
 def _inverse_in_place(L: NDArray[np.float64]) -> NDArray[np.float64]:
     """(L L^T)^-1 in `L`'s memory from a Fortran-ordered lower factor, full and C-ordered (n, n).
 
-    The same numbers as :func:`cholesky_inverse` (LAPACK's triangle, then its mirror).
+    dpotri fills the lower triangle only (the C-ordered transpose's upper one), which is then
+    mirrored in cache-sized blocks: the same numbers as ``np.tril(inv) + np.tril(inv, -1).T`` at
+    a third of the time.
     """
     if not L.flags.f_contiguous:  # a factor from robust_cholesky's jitter may not be
         L = np.asfortranarray(L)
@@ -397,11 +399,7 @@ def triangular_inverse_for(L: NDArray[np.float64], n_queries: int, dim: int) -> 
     n = L.shape[0]
     if dim not in WHITEN_BY_PRODUCT_DIMS or n_queries < n or n == 0:
         return None
-    L_inv = np.array(L, dtype=float, order="F")
-    info = lapack.trtri(L_inv)
-    if info != 0:
-        raise NumericalError(f"triangular inverse of the Cholesky factor failed (LAPACK info {info})")
-    return np.tril(L_inv)  # dtrtri leaves the strict upper triangle as it found it
+    return np.tril(_triangular_inverse(L))
 
 
 #: Row blocks of :func:`lower_product`: each block's product skips the zeros right of its
