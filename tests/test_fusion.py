@@ -8,7 +8,16 @@ import pytest
 from gpomap import _compiled_counts, lattice
 from gpomap.clouds import CloudScan
 from gpomap.evidence import NEAR_END, RayEvidence, lattice_grid
-from gpomap.fusion import SURPRISE_RATE, EvidenceCalibration, calibration_points, fit_calibration, gp_sampling_factor
+from gpomap.fusion import (
+    HIT_DISTANCE_REACHES,
+    SURPRISE_RATE,
+    EvidenceCalibration,
+    HitCells,
+    HitProximity,
+    calibration_points,
+    fit_calibration,
+    gp_sampling_factor,
+)
 from gpomap.grid import GridSpec, coarse_grid, interpolate_to
 from gpomap.mapping import AreaGPOM
 from gpomap.scans import Scan
@@ -175,6 +184,37 @@ def test_calibration_formula_by_hand() -> None:
     assert EvidenceCalibration().posterior_mean(np.array([0.5]), np.array([3]), np.array([5]))[0] == pytest.approx(0.4)
 
 
+def test_hit_cells_distance_by_hand() -> None:
+    hits = np.zeros((4, 5), dtype=np.int32)  # rows y, columns x; cells of 0.5 m from (0, 0)
+    hits[1, 2] = 3  # the cell centred on (1.25, 0.75)
+    cells = HitCells(hits, GridSpec((0.0, 0.0), 0.5, (4, 5)))
+    points = np.array([[1.3, 0.6], [2.3, 1.6], [-0.2, 0.1], [0.1, 0.1]])
+    # The point's own cell centre to the hit's: (2.25, 1.75), and (-0.25, 0.25) outside the lattice.
+    want = [0.0, np.sqrt(2.0), np.sqrt(1.5**2 + 0.5**2), np.sqrt(1.0**2 + 0.5**2)]
+    np.testing.assert_allclose(cells.distance(points), want, rtol=0, atol=1e-12)
+    assert np.isinf(cells.distance(points, upper=1.2)[1:3]).all()
+    hits[3, 0] = 1  # a second hit, nearer to the last point: (0.25, 1.75)
+    assert HitCells(hits, GridSpec((0.0, 0.0), 0.5, (4, 5))).distance(points[3:])[0] == pytest.approx(np.sqrt(1.0**2 + 0.5**2))
+    assert HitCells(hits, GridSpec((0.0, 0.0), 0.5, (4, 5))).distance(np.array([[0.3, 1.9]]))[0] == 0.0
+    assert np.isinf(HitCells(np.zeros((2, 3), dtype=np.int32), GridSpec((0.0, 0.0), 0.5, (2, 3))).distance(points)).all()
+    # In 3-D, axes z, y, x.
+    vox = np.zeros((2, 3, 4), dtype=np.int32)
+    vox[1, 2, 3] = 1  # the voxel centred on (1.75, 1.25, 0.75)
+    cells3 = HitCells(vox, VoxelSpec((0.0, 0.0, 0.0), 0.5, (2, 3, 4)))
+    assert cells3.distance(np.array([[0.1, 0.1, 0.1]]))[0] == pytest.approx(np.sqrt(1.5**2 + 1.0**2 + 0.5**2))
+
+
+def test_hit_proximity_by_hand() -> None:
+    near = HitProximity(shift=1.0, reach=0.5)
+    p = np.array([0.5, 0.5, 0.5, 0.3085375387259869])  # the last: Phi(-0.5)
+    d = np.array([0.0, 0.5, np.inf, 1.0])
+    # Phi(0 + 1), Phi(0 + e^-1), Phi(0), Phi(-0.5 + e^-2) (Phi by a table of the normal law).
+    want = [0.8413447460685429, 0.6435184347604058, 0.5, 0.3576808497161207]
+    np.testing.assert_allclose(near(p, d), want, rtol=0, atol=1e-8)
+    # No gain: the probabilities as they were, to the bit.
+    assert HitProximity()(p, d) is p
+
+
 def test_calibration_points_follow_the_protocol() -> None:
     s = _scan(0.0, 0.0, [0.0, np.pi / 2], [1.0, 5.0], max_range=5.0)
     pts, occ = calibration_points(s, step=0.1, no_return_cap=0.5)
@@ -244,6 +284,9 @@ def test_written_grid_uses_its_own_cells_counts(half_room: tuple[AreaGPOM, list[
     factor = gp_sampling_factor(model.hyperparameters_["length_scale"], 0.05)
     assert factor > 1  # the GP was sampled coarsely and interpolated
     # Cells no beam crossed take the GP's probability for unseen space (gpomap.extrapolation).
+    # Cells no beam crossed take the GP's probability for unseen space (gpomap.extrapolation),
+    # raised near the cells beams ended in.
+    p_unseen = model.evidence_.proximity(p_unseen, model.evidence_.hit_distance(om.grid.centres()).reshape(om.grid.shape))
     exact = np.where((hits == 0) & (misses == 0), p_unseen, model.evidence_.calibration(p_gp, hits, misses))
     # Interpolating the GP a third of a length scale apart moves the written map little, and
     # only in cells next to walls with few counts (measured on Intel scans 0-300, every 10th
@@ -251,6 +294,24 @@ def test_written_grid_uses_its_own_cells_counts(half_room: tuple[AreaGPOM, list[
     diff = np.abs(om.probability - exact)
     assert diff.mean() < 0.01
     assert np.quantile(diff, 0.95) < 0.05
+
+
+def test_hit_distance_from_the_lattice_equals_the_hit_cells_tree(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
+    # The layer reads a distance transform of its lattice inside it; the tree of hit cells is the
+    # independent reference, inside and outside the lattice.
+    model, _ = half_room
+    ev = model.evidence_
+    lo = np.asarray(ev.lattice.origin)
+    hi = lo + np.asarray(ev.lattice.shape[::-1]) * ev.lattice.resolution
+    pts = np.random.default_rng(0).uniform(lo - 2.0, hi + 2.0, (5000, 2))
+    fitted, ev.proximity = ev.proximity, HitProximity(1.0, 0.15)  # the gain nil beyond 1.5 m
+    try:
+        got = ev.hit_distance(pts)
+    finally:
+        ev.proximity = fitted
+    want = HitCells(ev._hits, ev.lattice).distance(pts, HIT_DISTANCE_REACHES * 0.15)
+    assert np.isfinite(want).sum() > 1000 and np.isinf(want).sum() > 0
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
 
 
 def test_bilinear_interpolation_is_exact_on_a_plane() -> None:

@@ -80,7 +80,16 @@ def test_grid_and_ternary(fitted):
     np.testing.assert_allclose(var, v, rtol=0.05)
     summary = fitted.summary()
     assert summary["n_cells"] == fitted.n_inputs_ > 100
-    assert set(summary["hyperparameters"]) == {"variance", "length_scale", "noise", "alpha", "beta", "variance_scale"}
+    assert set(summary["hyperparameters"]) == {
+        "variance",
+        "length_scale",
+        "noise",
+        "alpha",
+        "beta",
+        "variance_scale",
+        "hit_shift",
+        "hit_reach",
+    }
     assert {"observations", "cells", "hyperparameters", "tile_fits", "prediction"} <= set(summary["timings"])
 
 

@@ -34,12 +34,13 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import minimize_scalar
+from scipy.optimize import minimize, minimize_scalar
+from scipy.spatial import cKDTree
 from scipy.special import log_ndtr
 
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
-from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
+from gpomap.lattice import bounds_extent, cell_centres_of, column_bounds, flat_index, in_box
 from gpomap.observations import Observations, beams_reach, data_dim, free_near_hits
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
@@ -54,6 +55,16 @@ MIN_POINTS_PER_CLASS: int = 50
 MAX_POINTS_PER_CLASS: int = 5_000
 #: Search bounds of kappa.
 VARIANCE_SCALE_BOUNDS: tuple[float, float] = (0.1, 1e4)
+#: Bounds of the probit gain of unseen space at a hit's cell (:class:`gpomap.fusion.HitProximity`);
+#: never negative: a surface nearby does not make space freer.
+HIT_SHIFT_BOUNDS: tuple[float, float] = (0.0, 5.0)
+#: Bounds of the distance over which that gain falls by e, metres. At most 1 m, so that 5 m from
+#: every hit (where the map must return its prior) the largest gain is 5 e^-5 = 0.034 in probit,
+#: 0.013 in probability.
+HIT_REACH_BOUNDS: tuple[float, float] = (0.05, 1.0)
+#: Standard deviation of the zero-mean normal prior on that gain (probit units): the penalty is
+#: the prior's log density per point fitted, so it fades as the points grow in number.
+HIT_SHIFT_PRIOR_STD: float = 1.0
 #: Cell side of the lattice on which "no kept beam went" is decided, as the evaluation's
 #: reference grid decides it, metres (planar maps; voxel maps use 0.1 m).
 UNSEEN_RESOLUTION: dict[int, float] = {2: 0.05, 3: 0.1}
@@ -83,9 +94,15 @@ def holdout_stretches(n_scans: int, first: int = FOLD_STARTS[0]) -> tuple[NDArra
     return idx[~held], idx[held]
 
 
-def _nll(kappa: float, mu, var, occupied, alpha: float, beta: float) -> float:
-    """Mean negative log probit likelihood at variance scale `kappa` (the classes are balanced by subsampling)."""
+def _nll(
+    kappa: float, mu, var, occupied, alpha: float, beta: float, distance=None, shift: float = 0.0, reach: float = 1.0
+) -> float:
+    """Mean negative log probit likelihood at variance scale `kappa`, with the gain ``shift *
+    exp(-distance / reach)`` near hits (:class:`gpomap.fusion.HitProximity`); the classes are
+    balanced by subsampling."""
     z = (alpha * mu + beta) / np.sqrt(1.0 + alpha * alpha * kappa * var)
+    if shift != 0.0 and distance is not None:
+        z = z + shift * np.exp(-distance / reach)
     return float(-np.mean(np.where(occupied, log_ndtr(z), log_ndtr(-z))))
 
 
@@ -194,12 +211,12 @@ def fit_variance_scale(
     lo, hi = centre - region_half, centre + region_half
 
     # Per pattern: the kept scans' indices, and the held-out points where none of them went.
-    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]] = []
+    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]] = []
     n = 0
     for first in FOLD_STARTS:
         kept, held = holdout_stretches(len(scans), first)
-        pts, occ = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
-        folds.append((kept, pts, occ))
+        pts, occ, dist = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
+        folds.append((kept, pts, occ, dist))
         n_occ = sum(int(f[2].sum()) for f in folds)
         n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
         if n >= MIN_POINTS_PER_CLASS:
@@ -209,17 +226,18 @@ def fit_variance_scale(
         return 1.0, {"kappa": 1.0, "reason": reason}
     pts = np.concatenate([f[1] for f in folds])
     occ = np.concatenate([f[2] for f in folds])
+    dist = np.concatenate([f[3] for f in folds])
     fold_of = np.concatenate([np.full(f[2].size, k) for k, f in enumerate(folds)])
     rng = np.random.default_rng(seed)
     keep = np.concatenate([rng.choice(np.flatnonzero(occ), n, replace=False), rng.choice(np.flatnonzero(~occ), n, replace=False)])
-    pts, occ, fold_of = pts[keep], occ[keep], fold_of[keep]
+    pts, occ, fold_of, dist = pts[keep], occ[keep], fold_of[keep], dist[keep]
     # The region's points (grown by the clearance) cut once for every pattern: a whole log has
     # tens of millions.
     near = _in_square(observations.points, lo, hi, free_clearance)
     observations = Observations(observations.points[near], observations.occupied[near], observations.scan_index[near])
     # Each pattern's points are predicted by the GP of that pattern's kept scans.
     mu, var = np.empty(occ.size), np.empty(occ.size)
-    for k, (kept, _, _) in enumerate(folds):
+    for k, (kept, _, _, _) in enumerate(folds):
         sel = fold_of == k
         if not sel.any():
             continue
@@ -232,6 +250,50 @@ def fit_variance_scale(
             return 1.0, {"kappa": 1.0, "reason": str(err)}
         mu[sel], var[sel] = model.predict(pts[sel], return_var=True)
     a, b = float(hyperparameters["alpha"]), float(hyperparameters["beta"])
+    kappa, shift, reach, loss = fit_unseen_squash(mu, var, occ, dist, a, b)
+    return kappa, {
+        "kappa": kappa,
+        "hit_shift": shift,
+        "hit_reach": reach,
+        "n_points": n,
+        "n_patterns": len(folds),
+        "log_loss_at_1": _nll(1.0, mu, var, occ, a, b),
+        "log_loss": loss,
+    }
+
+
+def fit_unseen_squash(
+    mu: NDArray[np.float64],
+    var: NDArray[np.float64],
+    occupied: NDArray[np.bool_],
+    distance: NDArray[np.float64],
+    alpha: float,
+    beta: float,
+) -> tuple[float, float, float, float]:
+    """The variance scale and the gain near hits that maximise the likelihood of unseen points.
+
+    The probability of a point where no beam went is
+    ``Phi((alpha mu + beta) / sqrt(1 + alpha^2 kappa var) + shift exp(-distance / reach))``
+    (:class:`gpomap.fusion.HitProximity`). Kappa is fitted alone first, then all three together
+    from there; the better of the two is kept.
+
+    Parameters
+    ----------
+    mu, var : ndarray of shape (m,)
+        The held-in GP's latent mean and variance at the points.
+    occupied : ndarray of bool, shape (m,)
+        Their classes, balanced.
+    distance : ndarray of shape (m,)
+        From each point's cell to the nearest cell a kept beam ended in, metres (inf: none).
+    alpha, beta : float
+        The map's squash.
+
+    Returns
+    -------
+    kappa, shift, reach, log_loss : float
+        ``shift`` 0 (and ``reach`` 1) when the gain does not lower the loss.
+    """
+    a, b, occ, dist = alpha, beta, occupied, distance
     res = minimize_scalar(
         lambda t: _nll(float(np.exp(t)), mu, var, occ, a, b),
         bounds=tuple(np.log(VARIANCE_SCALE_BOUNDS)),
@@ -239,14 +301,25 @@ def fit_variance_scale(
         # Tight, so kappa is the optimum's and not moved by the last bits of the held-in maps.
         options={"xatol": 1e-10},
     )
-    kappa = float(np.exp(res.x))
-    return kappa, {
-        "kappa": kappa,
-        "n_points": n,
-        "n_patterns": len(folds),
-        "log_loss_at_1": _nll(1.0, mu, var, occ, a, b),
-        "log_loss": float(res.fun),
-    }
+    kappa, loss, shift, reach = float(np.exp(res.x)), float(res.fun), 0.0, 1.0
+    # Then kappa and the gain near hits together, from kappa alone (where the gain is nil and its
+    # reach has no say, so the search starts at a gain of 1 over half a metre), the gain under
+    # its prior: a few dozen points of one room do not make unseen space next to walls certain.
+    prior = 1.0 / (2.0 * HIT_SHIFT_PRIOR_STD**2 * max(occ.size, 1))
+
+    def penalised(t: NDArray[np.float64]) -> float:
+        return _nll(float(np.exp(t[0])), mu, var, occ, a, b, dist, float(t[1]), float(np.exp(t[2]))) + prior * t[1] ** 2
+
+    both = minimize(
+        penalised,
+        np.array([np.log(kappa), 1.0, np.log(0.5)]),
+        method="L-BFGS-B",
+        bounds=[tuple(np.log(VARIANCE_SCALE_BOUNDS)), HIT_SHIFT_BOUNDS, tuple(np.log(HIT_REACH_BOUNDS))],
+    )
+    if float(both.fun) < loss:
+        kappa, shift, reach = float(np.exp(both.x[0])), float(both.x[1]), float(np.exp(both.x[2]))
+        loss = _nll(kappa, mu, var, occ, a, b, dist, shift, reach)
+    return kappa, shift, reach, loss
 
 
 def _unseen_points(
@@ -256,9 +329,11 @@ def _unseen_points(
     hi: NDArray[np.float64],
     margin: float,
     no_return_cap: float | None,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
     """The held-out scans' protocol points in the square `lo`..`hi` (x, y) shrunk by `margin`, where
-    no kept beam went: points (m, d) and classes (m,).
+    no kept beam went: points (m, d), classes (m,), and the distance (m,) from each point's cell to
+    the nearest cell a kept beam ended in, centre to centre, as the map measures it
+    (:func:`gpomap.fusion.hit_distance`; inf when no kept beam ended).
 
     Scans whose beams cannot reach the square are passed over (a whole log's scans mostly look
     elsewhere: on FR079 they were most of the stage's time).
@@ -274,7 +349,7 @@ def _unseen_points(
         pts_l.append(p[sel])
         occ_l.append(o[sel])
     if not pts_l or sum(len(p) for p in pts_l) == 0:
-        return np.zeros((0, data_dim(held_scans))), np.zeros(0, bool)
+        return np.zeros((0, data_dim(held_scans))), np.zeros(0, bool), np.zeros(0)
     pts, occ = np.concatenate(pts_l), np.concatenate(occ_l)
     # Where no kept beam went: no hit and no miss on the evaluation's reference lattice.
     box_lo, box_hi = column_bounds(pts)
@@ -282,4 +357,14 @@ def _unseen_points(
     grid = lattice_grid(bounds_extent(box_lo, box_hi), UNSEEN_RESOLUTION[pts.shape[1]])
     cell, ok = flat_index(grid, pts)
     seen = ok & rays.seen(grid).reshape(-1)[cell]
-    return pts[~seen], occ[~seen]
+    pts, occ = pts[~seen], occ[~seen]
+    return pts, occ, _cell_distance(grid, pts, rays.ends[rays.hit])
+
+
+def _cell_distance(grid: Any, points: NDArray[np.float64], hits: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Distance (m,) from each point's cell of `grid`'s lattice to the nearest cell holding a hit, centre to centre."""
+    if points.shape[0] == 0 or hits.shape[0] == 0:
+        return np.full(points.shape[0], np.inf)
+    origin, res = np.asarray(grid.origin, dtype=float), float(grid.resolution)
+    tree = cKDTree(np.unique(cell_centres_of(hits, origin, res), axis=0))
+    return np.asarray(tree.query(cell_centres_of(points, origin, res))[0], dtype=float)

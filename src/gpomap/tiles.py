@@ -55,7 +55,7 @@ from gpomap.cells import build_cells
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
-from gpomap.fusion import EvidenceLayer
+from gpomap.fusion import EvidenceLayer, HitProximity
 from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
@@ -76,6 +76,9 @@ _KEY_BASE = 1 << 31
 _KEY_CHUNK = 1 << 20
 
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
+#: What a fit learns of unseen space besides, taken as given when passed with the hyperparameters:
+#: the variance scale and the gain near hits (:mod:`gpomap.extrapolation`).
+UNSEEN_NAMES = ("variance_scale", "hit_shift", "hit_reach")
 
 #: Most cells of the compact sample the hyperparameters are learnt on, by the map's dimension.
 #: Planar maps: 800 (Intel and CSAIL, blocks split, at 2cf7589: held-out log loss of the written
@@ -1365,9 +1368,7 @@ class TiledGPOM:
             missing = [n for n in HYPER_NAMES if n not in hyperparameters]
             if missing:
                 raise ValueError(f"hyperparameters must give {HYPER_NAMES}; missing {missing}")
-            self.hyperparameters_ = {
-                n: float(hyperparameters[n]) for n in (*HYPER_NAMES, "variance_scale") if n in hyperparameters
-            }
+            self.hyperparameters_ = {n: float(hyperparameters[n]) for n in (*HYPER_NAMES, *UNSEEN_NAMES) if n in hyperparameters}
             self.hyper_source_ = {"how": "given to fit()"}
         else:
             self.hyperparameters_ = self._learn_hyperparameters()
@@ -1380,6 +1381,9 @@ class TiledGPOM:
             else self._fit_variance_scale(data, obs)
         )
         self.hyperparameters_["variance_scale"] = float(self.extrapolation_["kappa"])
+        if "hit_shift" not in self.hyperparameters_:
+            self.hyperparameters_["hit_shift"] = float(self.extrapolation_.get("hit_shift", 0.0))
+            self.hyperparameters_["hit_reach"] = float(self.extrapolation_.get("hit_reach", HitProximity.reach))
         timings["variance_scale"] = time.perf_counter() - t
         # The blocks hold every point from here on: the log's points are let go before the ray
         # counts are taken (FR079's whole log: 24 M points, 600 MB with their labels and scans).
@@ -1422,7 +1426,7 @@ class TiledGPOM:
             centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else np.median(obs.points[:, :2], axis=0)
             half, margin = self.block_size_, min(self.overlap_, 0.5 * self.block_size_)
         options = {**self.options, "ray_evidence": False}
-        fixed = {**self.hyperparameters_, "variance_scale": 1.0}
+        fixed = {**self.hyperparameters_, "variance_scale": 1.0, "hit_shift": 0.0}
 
         def fit_held_in(held: Observations) -> TiledGPOM:
             model = TiledGPOM(
@@ -1456,7 +1460,9 @@ class TiledGPOM:
         """Ray counts over every scan so far, calibrated against the tiles' GP (see gpomap.fusion)."""
         if self._scans is None:
             return None
-        return self.base.make_evidence(self._scans, self.predict_proba_gp)
+        hp = self.hyperparameters_
+        proximity = HitProximity(hp.get("hit_shift", 0.0), hp.get("hit_reach", HitProximity.reach))
+        return self.base.make_evidence(self._scans, self.predict_proba_gp, proximity)
 
     def check_fit_memory(self, length_scale: float) -> int:
         """Refuse tile fits whose largest GP, times the GPs fitted at once, needs more than `memory_limit`.
