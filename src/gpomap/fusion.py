@@ -9,7 +9,8 @@ whose beams crossed it only just before their returned ends (a near miss,
     p = (hit_weight * hits + n0 * p_gp) / (hit_weight * hits + far misses + near_weight * near misses + n0).
 
 Where no beam went, p is the GP's probability for unseen space (its latent variance scaled by the
-factor fitted on held-out stretches of the log, :mod:`gpomap.extrapolation`); where many did, the
+factor fitted on held-out stretches of the log, and raised near cells beams ended in by a gain
+fitted with it, :mod:`gpomap.extrapolation`); where many did, the
 counts decide and walls are as sharp as the cells; the GP carries the map across gaps, and far
 from all data it returns its prior, 0.5.
 
