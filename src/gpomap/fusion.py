@@ -546,7 +546,6 @@ class EvidenceLayer:
         self.resolution = float(resolution)
         self.proximity = proximity if proximity is not None else HitProximity()
         self._hit_cells: HitCells | None = None  # of the counts so far, when asked
-        self._hit_distance: NDArray[np.float64] | None = None  # per lattice cell, when asked
         self.no_return_cap = no_return_cap
         self.calibration_scans = int(calibration_scans)
         self.seed = int(seed)
@@ -634,7 +633,6 @@ class EvidenceLayer:
         self._joined = None
         self._grid_cache = None
         self._hit_cells = None
-        self._hit_distance = None
 
     def _block(self, grid: AnyGrid) -> tuple[slice, ...]:
         """The slices of the lattice's arrays that `grid` (on the same cell lattice) covers."""
@@ -717,30 +715,37 @@ class EvidenceLayer:
 
     def hit_distance(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
         """Distance (m,) from each point's cell (m, d) to the nearest cell a beam ended in
-        (:class:`HitCells`), inf where the gain near hits is nil.
-
-        Every hit lies in the counted lattice, so inside it a distance transform of the lattice
-        (once, then read) gives the same distances as the cells' tree, which serves the points
-        outside it.
-        """
+        (:class:`HitCells`), inf where the gain near hits is nil."""
         n = np.asarray(points).shape[0]
         if self.lattice is None:
             return np.full(n, np.inf)
         if self._hit_cells is None:
             self._hit_cells = HitCells(self._hits, self.lattice)
+        return self._hit_cells.distance(points, HIT_DISTANCE_REACHES * self.proximity.reach)
+
+    def grid_hit_distance(self, grid: AnyGrid) -> NDArray[np.float64]:
+        """:meth:`hit_distance` at every cell of `grid`, shape grid.shape.
+
+        On the counted lattice, a distance transform of the grid's window grown by the distance
+        beyond which the gain is nil (every hit that counts lies in it): the same distances, at a
+        cost that follows the grid read, not the whole map.
+        """
         upper = HIT_DISTANCE_REACHES * self.proximity.reach
-        if self._hit_distance is None:
-            self._hit_distance = (
-                np.asarray(distance_transform_edt(self._hits == 0, sampling=self.resolution), dtype=float).reshape(-1)
-                if np.any(self._hits)
-                else np.full(self._hits.size, np.inf)
-            )
-        cell, inside = flat_index(self.lattice, points)
-        out = np.where(inside, self._hit_distance[cell], np.inf)
-        if not inside.all():
-            out[~inside] = self._hit_cells.distance(np.asarray(points)[~inside], upper)
-        out[out >= upper] = np.inf
-        return out
+        if self.lattice is None or not self._on_lattice(grid):
+            return self.hit_distance(grid_centres(grid)).reshape(grid.shape)
+        pad = int(np.ceil(upper / self.resolution)) + 1
+        offset = tuple(o - pad for o in cell_offset(grid, self.lattice))
+        shape = tuple(n + 2 * pad for n in grid.shape)
+        hit = np.zeros(shape, dtype=bool)
+        where = overlap(offset, shape, self.lattice.shape)
+        if where is not None:
+            hit[where[0]] = self._hits[where[1]] > 0
+        if not hit.any():
+            return np.full(grid.shape, np.inf)
+        d = np.asarray(distance_transform_edt(~hit, sampling=self.resolution), dtype=float)
+        d = d[tuple(slice(pad, pad + n) for n in grid.shape)]
+        d[d >= upper] = np.inf
+        return d
 
     def _on_lattice(self, grid: AnyGrid) -> bool:
         """Whether `grid`'s cells are cells of the counted lattice (same side, origin on a corner)."""
@@ -777,7 +782,7 @@ class EvidenceLayer:
         h, m = self.grid_counts(grid)
         unseen = None if p_unseen is None else np.asarray(p_unseen).reshape(grid.shape)
         p = self.calibration(np.asarray(p_gp).reshape(grid.shape), h, m)
-        return _unseen_where_empty(p, h, m, unseen, lambda mask: self.hit_distance(grid_centres(grid)[mask]), self.proximity)
+        return _unseen_where_empty(p, h, m, unseen, lambda mask: self.grid_hit_distance(grid).reshape(-1)[mask], self.proximity)
 
     def written_grid(
         self,
