@@ -286,3 +286,52 @@ def test_the_scale_applies_only_where_no_beam_went(fitted_room: AreaGPOM) -> Non
     d[d >= HIT_DISTANCE_REACHES * reach] = np.inf  # where the layer takes the gain as nil
     z = a * mean[empty] / np.sqrt(1 + a * a * kappa * var[empty]) + shift * np.exp(-d / reach)
     np.testing.assert_allclose(p[empty], 0.005 + 0.99 * ndtr(z), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("gain", [False, True])
+def test_point_clouds_fit_the_variance_scale_alone_unless_asked(monkeypatch: pytest.MonkeyPatch, gain: bool) -> None:
+    from tests.world3d import ORIGINS, lidar_clouds
+
+    clouds = lidar_clouds(np.tile(ORIGINS, (4, 1)), n_rays=300)
+    # A GP that knows nothing: where the data end, only the nearness of hits can tell.
+    moments = _Fixed(lambda p: (np.zeros(len(p)), np.ones(len(p))))
+    monkeypatch.setitem(ex.HIT_GAIN, 3, gain)
+    _, report = ex.fit_variance_scale(
+        clouds,
+        {"alpha": 1.0, "beta": 0.0},
+        SETTINGS.make_observations(clouds, clearance=False),
+        0.0,
+        moments.fit,
+        np.zeros(2),
+        50.0,
+        0.0,
+    )
+    assert report["n_points"] >= ex.MIN_POINTS_PER_CLASS
+    if gain:
+        assert report["hit_shift"] > 0.5 and report["log_loss"] < report["log_loss_at_1"] - 0.01
+    else:
+        assert report["hit_shift"] == 0.0
+        assert report["log_loss"] == pytest.approx(report["log_loss_at_1"], abs=1e-9)  # a coin, whatever kappa
+
+
+def test_a_region_with_too_few_unseen_points_gives_way_to_the_wider_one(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ex, "REGION_POINTS_PER_CLASS", 200)  # the whole room holds 384 a class
+    scans = _room_scans()
+    occupied = _truth(scans)
+    model = _Fixed(lambda p: (np.where(occupied(p), 0.5, -0.5), np.full(len(p), 0.25)))
+    obs = _points(scans)
+
+    def fit(centre, half, wider=None):
+        return ex.fit_variance_scale(
+            scans, {"alpha": 30.0, "beta": 0.0}, obs, SETTINGS.free_clearance, model.fit, centre, half, 0.0, wider=wider
+        )[1]
+
+    small = fit(np.array([3.0, 3.0]), 1.5)
+    assert small.get("n_points", 0) < ex.REGION_POINTS_PER_CLASS  # a corner of the room holds few
+    wide = fit(np.zeros(2), 50.0)
+    assert wide["n_points"] >= ex.REGION_POINTS_PER_CLASS
+    # Too few in the first region: the wider one is taken, as if it had been given alone.
+    got = fit(np.array([3.0, 3.0]), 1.5, wider=(np.zeros(2), 50.0, 0.0))
+    assert got["region_half"] == 50.0 and got["kappa"] == wide["kappa"] and got["n_points"] == wide["n_points"]
+    # Enough in the first: it is kept.
+    assert fit(np.zeros(2), 50.0, wider=(np.zeros(2), 80.0, 0.0))["region_half"] == 50.0

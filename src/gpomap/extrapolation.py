@@ -21,8 +21,9 @@ latent variance is small and kappa changes little; far from it p tends to 1/2 so
 Where no beam went but a beam ended close by, the space is mostly the same surface going on: a
 wall past the last metre a scan saw of it, the far side of an obstacle. On the blocks splits of
 the evaluation, such points within 0.5 m of a training hit were 73-100 % occupied, and the GP,
-pulled by the free cells on the seen side, gave them 0.32-0.68. The same held-out points fit a
-gain of the probit near hits with kappa (:class:`gpomap.fusion.HitProximity`):
+pulled by the free cells on the seen side, gave them 0.32-0.68. In planar maps (:data:`HIT_GAIN`)
+the same held-out points fit a gain of the probit near hits with kappa
+(:class:`gpomap.fusion.HitProximity`):
 
     p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 kappa v) + shift exp(-d / reach)),
 
@@ -31,7 +32,8 @@ negative, has a normal prior (a few dozen points of one room do not make unseen 
 walls certain), and its reach is at most 1 m, so that far from all data p is still 1/2.
 
 To bound the cost, the held-in GP covers one square region of side ``2 * region_half`` round a
-given centre (the hyperparameter sample's), and only points well inside it are used. When one
+given centre (the hyperparameter sample's), and only points well inside it are used; where it
+holds fewer than :data:`REGION_POINTS_PER_CLASS` of a class, a wider square is taken. When one
 pattern of held-out stretches finds too few such points of a class (on Intel, CSAIL and FR079
 with blocks of their scans held out, 24-27), the other two patterns (the stretches after, then
 the rest) are tried in turn and their points pooled, each with its own held-in GP: a robot that
@@ -77,6 +79,15 @@ HIT_REACH_BOUNDS: tuple[float, float] = (0.05, 1.0)
 #: Standard deviation of the zero-mean normal prior on that gain (probit units): the penalty is
 #: the prior's log density per point fitted, so it fades as the points grow in number.
 HIT_SHIFT_PRIOR_STD: float = 1.0
+#: Whether the gain near hits is fitted, per dimension of the data. Planar maps: measured on the
+#: 26 log-splits of the shared and seven unseen logs (docs/choices.md). Not for point clouds: on
+#: la3dm's worlds (nine training clouds) it lowered the written voxel grids' AUC by 0.004-0.008
+#: and raised sim_unstructured's log loss.
+HIT_GAIN: dict[int, bool] = {2: True, 3: False}
+#: Fewest held-out points of each class where no kept beam went for the held-in GP's square round
+#: the hyperparameter sample to be enough; with fewer, a square twice as wide is taken (or the
+#: whole map, when that is smaller). Kappa needs few; the gain near hits is fitted with it.
+REGION_POINTS_PER_CLASS: int = 500
 #: Cell side of the lattice on which "no kept beam went" is decided, as the evaluation's
 #: reference grid decides it, metres (planar maps; voxel maps use 0.1 m).
 UNSEEN_RESOLUTION: dict[int, float] = {2: 0.05, 3: 0.1}
@@ -180,6 +191,7 @@ def fit_variance_scale(
     margin: float,
     no_return_cap: float | None = 10.0,
     seed: int = 0,
+    wider: tuple[NDArray[np.float64], float, float] | None = None,
 ) -> tuple[float, dict[str, Any]]:
     """Fit kappa on held-out stretches of `scans` (see the module docstring).
 
@@ -209,29 +221,27 @@ def fit_variance_scale(
         As the map's.
     seed : int
         Seeds the class-balancing subsample.
+    wider : (centre, region_half, margin), optional
+        A wider region, taken instead when the first holds fewer than
+        :data:`REGION_POINTS_PER_CLASS` points of a class (in every pattern tried).
 
     Returns
     -------
     kappa : float
     report : dict
-        ``"kappa"``, ``"n_points"`` (per class), ``"log_loss_at_1"`` and ``"log_loss"`` (balanced,
-        at kappa = 1 and at the fit), or ``"reason"`` when kappa stays 1.
+        ``"kappa"``, ``"hit_shift"`` and ``"hit_reach"`` (the gain near hits),
+        ``"n_points"`` (per class), ``"n_patterns"``, ``"region_half"``, ``"log_loss_at_1"``
+        and ``"log_loss"`` (balanced, at kappa = 1 and at the fit), or ``"reason"`` when kappa
+        stays 1.
     """
     if len(scans) < HOLDOUT_EVERY:
         return 1.0, {"kappa": 1.0, "reason": f"only {len(scans)} scans"}
-    centre = np.asarray(centre, dtype=float)[:2]
-    lo, hi = centre - region_half, centre + region_half
-
-    # Per pattern: the kept scans' indices, and the held-out points where none of them went.
-    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]] = []
-    n = 0
-    for first in FOLD_STARTS:
-        kept, held = holdout_stretches(len(scans), first)
-        pts, occ, dist = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
-        folds.append((kept, pts, occ, dist))
-        n_occ = sum(int(f[2].sum()) for f in folds)
-        n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
-        if n >= MIN_POINTS_PER_CLASS:
+    regions = [(centre, region_half, margin)] + ([wider] if wider is not None else [])
+    for c, h, g in regions:
+        centre, region_half, margin = np.asarray(c, dtype=float)[:2], float(h), float(g)
+        lo, hi = centre - region_half, centre + region_half
+        folds, n = _region_folds(scans, lo, hi, margin, no_return_cap)
+        if n >= REGION_POINTS_PER_CLASS:
             break
     if n < MIN_POINTS_PER_CLASS:
         reason = f"{n} held-out points of a class where no kept beam went, in {len(folds)} patterns of held-out stretches"
@@ -262,16 +272,41 @@ def fit_variance_scale(
             return 1.0, {"kappa": 1.0, "reason": str(err)}
         mu[sel], var[sel] = model.predict(pts[sel], return_var=True)
     a, b = float(hyperparameters["alpha"]), float(hyperparameters["beta"])
-    kappa, shift, reach, loss = fit_unseen_squash(mu, var, occ, dist, a, b)
+    # Without the gain, its distances are inf: kappa alone.
+    gain = HIT_GAIN.get(pts.shape[1], False)
+    kappa, shift, reach, loss = fit_unseen_squash(mu, var, occ, dist if gain else np.full(occ.size, np.inf), a, b)
     return kappa, {
         "kappa": kappa,
         "hit_shift": shift,
         "hit_reach": reach,
         "n_points": n,
         "n_patterns": len(folds),
+        "region_half": float(region_half),
         "log_loss_at_1": _nll(1.0, mu, var, occ, a, b),
         "log_loss": loss,
     }
+
+
+def _region_folds(
+    scans: Sequence[Any], lo: NDArray[np.float64], hi: NDArray[np.float64], margin: float, no_return_cap: float | None
+) -> tuple[list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]], int]:
+    """Per pattern of held-out stretches tried, the kept scans' indices and the held-out points in
+    the square where none of them went (:func:`_unseen_points`); and the points per class to use.
+
+    Patterns are tried in the order of :data:`FOLD_STARTS` until their points pooled hold
+    :data:`MIN_POINTS_PER_CLASS` of each class.
+    """
+    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]] = []
+    n = 0
+    for first in FOLD_STARTS:
+        kept, held = holdout_stretches(len(scans), first)
+        pts, occ, dist = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
+        folds.append((kept, pts, occ, dist))
+        n_occ = sum(int(f[2].sum()) for f in folds)
+        n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
+        if n >= MIN_POINTS_PER_CLASS:
+            break
+    return folds, n
 
 
 def fit_unseen_squash(
@@ -314,6 +349,8 @@ def fit_unseen_squash(
         options={"xatol": 1e-10},
     )
     kappa, loss, shift, reach = float(np.exp(res.x)), float(res.fun), 0.0, 1.0
+    if not np.isfinite(dist).any():
+        return kappa, shift, reach, loss  # no hit near any point: the gain has no say
     # Then kappa and the gain near hits together, from kappa alone (where the gain is nil and its
     # reach has no say, so the search starts at a gain of 1 over half a metre), the gain under
     # its prior: a few dozen points of one room do not make unseen space next to walls certain.

@@ -1410,9 +1410,11 @@ class TiledGPOM:
     def _fit_variance_scale(self, data: ScanData | Observations, obs: Observations) -> dict[str, Any]:
         """The squash's variance scale from held-out stretches of the scans, and its report.
 
-        See :mod:`gpomap.extrapolation`. The held-in GP covers the square of two tiles' side round
-        the hyperparameter sample's centre (the median point when hyperparameters were given),
-        so its cost stays that of a few tiles whatever the map's size.
+        See :mod:`gpomap.extrapolation`. The held-in GP covers the whole map when it is within a
+        block of its centre; a larger map, the square of two blocks' side round the hyperparameter
+        sample's centre (the median point when hyperparameters were given), or where that holds
+        too few unseen points, of four (or the whole map, if smaller), so its cost is bounded
+        whatever the map's size.
         """
         if isinstance(data, Observations):
             return {"kappa": 1.0, "reason": "labelled points given, not scans"}
@@ -1420,11 +1422,15 @@ class TiledGPOM:
 
         centre, half = whole_map_region(obs.points)
         margin = 0.0
+        wider: tuple[NDArray[np.float64], float, float] | None = None
         if half > self.block_size_:
-            # Larger than the region: round the hyperparameter sample, off the region's edge.
+            # Larger than the region: round the hyperparameter sample, off the region's edge; a
+            # region twice as wide (or the whole map) where that holds too few unseen points.
+            whole = (centre, half, 0.0)
             source = getattr(self, "hyper_source_", {})
             centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else np.median(obs.points[:, :2], axis=0)
             half, margin = self.block_size_, min(self.overlap_, 0.5 * self.block_size_)
+            wider = whole if whole[1] <= 2.0 * half else (centre, 2.0 * half, margin)
         options = {**self.options, "ray_evidence": False}
         fixed = {**self.hyperparameters_, "variance_scale": 1.0, "hit_shift": 0.0}
 
@@ -1453,6 +1459,7 @@ class TiledGPOM:
             margin=margin,
             no_return_cap=self.base.no_return_cap,
             seed=self.base.seed,
+            wider=wider,
         )
         return report
 
