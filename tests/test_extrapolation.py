@@ -200,12 +200,11 @@ def test_unseen_points_pass_over_only_scans_that_cannot_reach_the_square():
     np.testing.assert_array_equal(got_pts, pts[~seen])
     np.testing.assert_array_equal(got_occ, occ[~seen])
     assert got_occ.any() and not got_occ.all()
-    # Each point's distance to the nearest kept hit, cell centre to cell centre, by brute force.
-    res, origin = grid.resolution, np.asarray(grid.origin)
+    # Each point's distance to the nearest centre of a kept hit's cell, by brute force.
+    res = grid.resolution
     hits = np.concatenate([s.hits() for s in kept_scans])
-    hit_centres = np.unique(origin + (np.floor((hits - origin) / res) + 0.5) * res, axis=0)
-    centres = origin + (np.floor((got_pts - origin) / res) + 0.5) * res
-    brute = np.sqrt(((centres[:, None, :] - hit_centres[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
+    hit_centres = np.unique((np.floor(hits / res) + 0.5) * res, axis=0)
+    brute = np.sqrt(((got_pts[:, None, :] - hit_centres[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
     np.testing.assert_allclose(got_dist, brute, rtol=0, atol=1e-9)
     reach = [beams_reach(s, lo, hi, 10.0) for s in scans]
     assert any(reach) and not all(reach)  # the test passes some scans over
@@ -280,8 +279,7 @@ def test_the_scale_applies_only_where_no_beam_went(fitted_room: AreaGPOM) -> Non
     rows, cols = np.nonzero(ev._hits)
     hit_centres = origin + (np.column_stack([cols, rows]) + 0.5) * res
     assert hit_centres.shape[0] > 100
-    centres = origin + (np.floor((pts[empty] - origin) / res) + 0.5) * res
-    d = np.sqrt(((centres[:, None, :] - hit_centres[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
+    d = np.sqrt(((pts[empty][:, None, :] - hit_centres[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
     assert (d < 1.0).sum() > 50  # unseen cells near walls, where the gain tells
     d[d >= HIT_DISTANCE_REACHES * reach] = np.inf  # where the layer takes the gain as nil
     z = a * mean[empty] / np.sqrt(1 + a * a * kappa * var[empty]) + shift * np.exp(-d / reach)

@@ -27,7 +27,7 @@ the same held-out points fit a gain of the probit near hits with kappa
 
     p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 kappa v) + shift exp(-d / reach)),
 
-d the distance from the point's cell to the nearest cell a kept beam ended in. The gain is never
+d the distance from the point to the nearest centre of a cell a kept beam ended in. The gain is never
 negative, has a normal prior (a few dozen points of one room do not make unseen space next to
 walls certain), and its reach is at most 1 m, so that far from all data p is still 1/2.
 
@@ -380,9 +380,9 @@ def _unseen_points(
     no_return_cap: float | None,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
     """The held-out scans' protocol points in the square `lo`..`hi` (x, y) shrunk by `margin`, where
-    no kept beam went: points (m, d), classes (m,), and the distance (m,) from each point's cell to
-    the nearest cell a kept beam ended in, centre to centre, as the map measures it
-    (:func:`gpomap.fusion.hit_distance`; inf when no kept beam ended).
+    no kept beam went: points (m, d), classes (m,), and the distance (m,) from each point to the
+    nearest centre of a cell a kept beam ended in, as the map measures it
+    (:class:`gpomap.fusion.HitCells`; inf when no kept beam ended).
 
     Scans whose beams cannot reach the square are passed over (a whole log's scans mostly look
     elsewhere: on FR079 they were most of the stage's time).
@@ -413,13 +413,13 @@ def _unseen_points(
 
     hits = rays.ends[rays.hit]
     hits = hits[_in_square(hits, box_lo, box_hi, HIT_DISTANCE_REACHES * HIT_REACH_BOUNDS[1])]
-    return pts, occ, _cell_distance(grid, pts, hits)
+    return pts, occ, _cell_distance(pts, hits, grid.resolution)
 
 
-def _cell_distance(grid: Any, points: NDArray[np.float64], hits: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Distance (m,) from each point's cell of `grid`'s lattice to the nearest cell holding a hit, centre to centre."""
+def _cell_distance(points: NDArray[np.float64], hits: NDArray[np.float64], resolution: float) -> NDArray[np.float64]:
+    """Distance (m,) from each point to the nearest centre of a cell of `resolution` holding a hit,
+    cells ``[k r, (k + 1) r)``, as the map measures it (:class:`gpomap.fusion.HitCells`)."""
     if points.shape[0] == 0 or hits.shape[0] == 0:
         return np.full(points.shape[0], np.inf)
-    origin, res = np.asarray(grid.origin, dtype=float), float(grid.resolution)
-    tree = cKDTree(np.unique(cell_centres_of(hits, origin, res), axis=0))
-    return np.asarray(tree.query(cell_centres_of(points, origin, res))[0], dtype=float)
+    tree = cKDTree(np.unique(cell_centres_of(hits, np.zeros(hits.shape[1]), resolution), axis=0))
+    return np.asarray(tree.query(points)[0], dtype=float)

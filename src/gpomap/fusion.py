@@ -70,7 +70,6 @@ from gpomap.evidence import MAX_PATH_STEP, PATH_RADIUS, RayCounts, RayEvidence, 
 from gpomap.lattice import (
     AnyGrid,
     bounds_extent,
-    cell_centres_of,
     cell_offset,
     coarse,
     column_bounds,
@@ -362,7 +361,7 @@ class HitProximity:
 
         shift * exp(-d / reach),
 
-    d the distance from the point's cell to the nearest cell a beam ended in; both are fitted
+    d the distance from the point to the nearest centre of a cell a beam ended in; both are fitted
     with the variance scale on held-out stretches of the log (:mod:`gpomap.extrapolation`).
     ``reach`` is bounded so the gain is nil far from the data.
 
@@ -391,32 +390,35 @@ HIT_DISTANCE_REACHES: float = 10.0
 
 
 class HitCells:
-    """The cells of a lattice that some beam ended in, and how far any point's cell is from them.
+    """The cells of a lattice that some beam ended in, and how far any point is from them.
 
-    Distances run from the centre of the point's lattice cell to the nearest such cell's centre,
-    as :mod:`gpomap.extrapolation` measures them when it fits the gain.
+    A distance runs from the point to the nearest such cell's centre: at a cell centre, the
+    distance between the two cells, as :mod:`gpomap.extrapolation` measures it when it fits the
+    gain. The centres are taken on the lattice through the origin (cells ``[k r, (k + 1) r)``,
+    :func:`gpomap.evidence.lattice_grid`), so two lattices of other extents give the same numbers.
 
     Parameters
     ----------
     hits : ndarray of int, shape lattice.shape
         Hits per cell.
     lattice : GridSpec or VoxelSpec
+        On the lattice through the origin.
     """
 
     def __init__(self, hits: NDArray[np.integer], lattice: AnyGrid) -> None:
-        self.origin = np.asarray(lattice.origin, dtype=float)
-        self.resolution = float(lattice.resolution)
+        r = float(lattice.resolution)
+        first = np.rint(np.asarray(lattice.origin, dtype=float) / r)
         # Array axes run (z,) y, x; coordinates x, y (, z).
         cells = np.argwhere(np.asarray(hits) > 0)[:, ::-1]
-        self._tree = cKDTree(self.origin + (cells + 0.5) * self.resolution) if cells.size else None
+        self._tree = cKDTree((first + cells + 0.5) * r) if cells.size else None
 
     def distance(self, points: NDArray[np.float64], upper: float = np.inf) -> NDArray[np.float64]:
-        """Distance (m,) from each point's cell (m, d) to the nearest hit's cell, metres; inf
-        where none is nearer than `upper`."""
+        """Distance (m,) from each point (m, d) to the nearest hit's cell centre, metres; inf where
+        none is nearer than `upper`."""
         m = np.asarray(points).shape[0]
         if self._tree is None or m == 0:
             return np.full(m, np.inf)
-        d, _ = self._tree.query(cell_centres_of(points, self.origin, self.resolution), distance_upper_bound=upper)
+        d, _ = self._tree.query(np.asarray(points, dtype=float), distance_upper_bound=upper)
         return np.asarray(d, dtype=float)
 
 
@@ -714,7 +716,7 @@ class EvidenceLayer:
         )
 
     def hit_distance(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Distance (m,) from each point's cell (m, d) to the nearest cell a beam ended in
+        """Distance (m,) from each point (m, d) to the nearest centre of a cell a beam ended in
         (:class:`HitCells`), inf where the gain near hits is nil."""
         n = np.asarray(points).shape[0]
         if self.lattice is None:
@@ -724,7 +726,7 @@ class EvidenceLayer:
         return self._hit_cells.distance(points, HIT_DISTANCE_REACHES * self.proximity.reach)
 
     def grid_hit_distance(self, grid: AnyGrid) -> NDArray[np.float64]:
-        """:meth:`hit_distance` at every cell of `grid`, shape grid.shape.
+        """:meth:`hit_distance` at every cell centre of `grid`, shape grid.shape.
 
         On the counted lattice, a distance transform of the grid's window grown by the distance
         beyond which the gain is nil (every hit that counts lies in it): the same distances, at a
