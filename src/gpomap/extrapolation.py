@@ -19,8 +19,8 @@ points (the evaluation protocol's points) that lie where no kept beam went. Near
 latent variance is small and kappa changes little; far from it p tends to 1/2 sooner.
 
 Where no beam went but a beam ended close by, the space is mostly the same surface going on: a
-wall past the last metre a scan saw of it, the far side of an obstacle. On the blocks splits of
-the evaluation, such points within 0.5 m of a training hit were 73-100 % occupied, and the GP,
+wall past the last metre a scan saw of it, the far side of an obstacle. On the evaluation's blocks
+splits of ACES and Belgioioso, such points within 0.5 m of a training hit were 73-100 % occupied, and the GP,
 pulled by the free cells on the seen side, gave them 0.32-0.68. In planar maps (:data:`HIT_GAIN`)
 the same held-out points fit a gain of the probit near hits with kappa
 (:class:`gpomap.fusion.HitProximity`):
@@ -331,7 +331,7 @@ def fit_unseen_squash(
     occupied : ndarray of bool, shape (m,)
         Their classes, balanced.
     distance : ndarray of shape (m,)
-        From each point's cell to the nearest cell a kept beam ended in, metres (inf: none).
+        From each point to the nearest centre of a cell a kept beam ended in, metres (inf: none).
     alpha, beta : float
         The map's squash.
 

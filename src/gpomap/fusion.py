@@ -355,9 +355,10 @@ class HitProximity:
 
     Where no beam went, a point next to where beams ended is mostly the same surface going on
     (a wall past the last metre a scan saw of it, the far side of an obstacle): on the blocks
-    splits of the shared and unseen logs, held-out points no training beam reached were 73-100 %
-    occupied within 0.5 m of a training hit, and 34-58 % beyond 1 m, while the GP, pulled by the
-    free cells on the seen side, gave them 0.32-0.68. So the probit of unseen space gains
+    splits of ACES and Belgioioso, held-out points no training beam reached were 73-100 %
+    occupied within 0.5 m of a training hit, and 34-58 % at 1-2 m, while the GP, pulled by the
+    free cells on the seen side, gave them 0.32-0.68 (docs/choices.md). So the probit of unseen
+    space gains
 
         shift * exp(-d / reach),
 
