@@ -80,6 +80,36 @@ HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 #: the variance scale and the gain near hits (:mod:`gpomap.extrapolation`).
 UNSEEN_NAMES = ("variance_scale", "hit_shift", "hit_reach")
 
+#: Of the hyperparameters, those that must be positive; hit_shift must not be negative; beta is any number.
+_POSITIVE_HYPER = ("variance", "length_scale", "noise", "alpha", "variance_scale", "hit_reach")
+
+
+def given_hyperparameters(hyperparameters: dict[str, float]) -> dict[str, float]:
+    """The hyperparameters a fit is given (:data:`HYPER_NAMES`, and any of :data:`UNSEEN_NAMES`), as floats.
+
+    Raises
+    ------
+    ValueError
+        Naming the hyperparameter missing, not a finite number, or out of its range.
+    """
+    missing = [n for n in HYPER_NAMES if n not in hyperparameters]
+    if missing:
+        raise ValueError(f"hyperparameters must give {HYPER_NAMES}; missing {missing}")
+    out: dict[str, float] = {}
+    for n in (*HYPER_NAMES, *UNSEEN_NAMES):
+        if n not in hyperparameters:
+            continue
+        try:
+            v = float(hyperparameters[n])
+        except (TypeError, ValueError):
+            raise ValueError(f"hyperparameter {n} must be a number, got {hyperparameters[n]!r}") from None
+        if not np.isfinite(v) or (n in _POSITIVE_HYPER and v <= 0) or (n == "hit_shift" and v < 0):
+            need = "positive" if n in _POSITIVE_HYPER else "at least 0" if n == "hit_shift" else "finite"
+            raise ValueError(f"hyperparameter {n} must be {need}, got {v}")
+        out[n] = v
+    return out
+
+
 #: Most cells of the compact sample the hyperparameters are learnt on, by the map's dimension.
 #: Planar maps: 800 (Intel and CSAIL, blocks split, at 2cf7589: held-out log loss of the written
 #: map 0.1297 / 0.162 against 0.1314 / 0.1667 with 300). Voxel maps: 300, as the 3-D defaults were
@@ -1333,6 +1363,7 @@ class TiledGPOM:
             return self._fit(data, hyperparameters)
 
     def _fit(self, data: ScanData | Observations, hyperparameters: dict[str, float] | None) -> TiledGPOM:
+        given = None if hyperparameters is None else given_hyperparameters(hyperparameters)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         t = t0
@@ -1364,11 +1395,8 @@ class TiledGPOM:
         self.check_fit_memory(self.base.length_scale if start is None else float(start))
 
         t = time.perf_counter()
-        if hyperparameters is not None:
-            missing = [n for n in HYPER_NAMES if n not in hyperparameters]
-            if missing:
-                raise ValueError(f"hyperparameters must give {HYPER_NAMES}; missing {missing}")
-            self.hyperparameters_ = {n: float(hyperparameters[n]) for n in (*HYPER_NAMES, *UNSEEN_NAMES) if n in hyperparameters}
+        if given is not None:
+            self.hyperparameters_ = given
             self.hyper_source_ = {"how": "given to fit()"}
         else:
             self.hyperparameters_ = self._learn_hyperparameters()
