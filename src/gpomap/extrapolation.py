@@ -49,12 +49,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize, minimize_scalar
-from scipy.spatial import cKDTree
 from scipy.special import log_ndtr
 
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
-from gpomap.lattice import bounds_extent, cell_centres_of, column_bounds, flat_index, in_box
+from gpomap.fusion import HIT_DISTANCE_REACHES, HitCells, HitProximity, calibration_points
+from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
 from gpomap.observations import Observations, beams_reach, data_dim, free_near_hits
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
@@ -125,7 +125,7 @@ def _nll(
     balanced by subsampling."""
     z = (alpha * mu + beta) / np.sqrt(1.0 + alpha * alpha * kappa * var)
     if shift != 0.0 and distance is not None:
-        z = z + shift * np.exp(-distance / reach)
+        z = z + HitProximity(shift, reach).gain(distance)
     return float(-np.mean(np.where(occupied, log_ndtr(z), log_ndtr(-z))))
 
 
@@ -387,8 +387,6 @@ def _unseen_points(
     Scans whose beams cannot reach the square are passed over (a whole log's scans mostly look
     elsewhere: on FR079 they were most of the stage's time).
     """
-    from gpomap.fusion import calibration_points
-
     pts_l, occ_l = [], []
     for scan in held_scans:
         if not beams_reach(scan, lo, hi, no_return_cap):
@@ -409,17 +407,6 @@ def _unseen_points(
     pts, occ = pts[~seen], occ[~seen]
     # Hits farther than the map looks for one (its reach at most, times HIT_DISTANCE_REACHES)
     # change no distance that counts: a whole log's kept scans end millions of beams elsewhere.
-    from gpomap.fusion import HIT_DISTANCE_REACHES
-
     hits = rays.ends[rays.hit]
     hits = hits[_in_square(hits, box_lo, box_hi, HIT_DISTANCE_REACHES * HIT_REACH_BOUNDS[1])]
-    return pts, occ, _cell_distance(pts, hits, grid.resolution)
-
-
-def _cell_distance(points: NDArray[np.float64], hits: NDArray[np.float64], resolution: float) -> NDArray[np.float64]:
-    """Distance (m,) from each point to the nearest centre of a cell of `resolution` holding a hit,
-    cells ``[k r, (k + 1) r)``, as the map measures it (:class:`gpomap.fusion.HitCells`)."""
-    if points.shape[0] == 0 or hits.shape[0] == 0:
-        return np.full(points.shape[0], np.inf)
-    tree = cKDTree(np.unique(cell_centres_of(hits, np.zeros(hits.shape[1]), resolution), axis=0))
-    return np.asarray(tree.query(points)[0], dtype=float)
+    return pts, occ, HitCells.of_points(hits, grid.resolution).distance(pts)

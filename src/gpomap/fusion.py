@@ -377,13 +377,17 @@ class HitProximity:
     shift: float = 0.0
     reach: float = 0.5
 
+    def gain(self, distance: ArrayLike) -> NDArray[np.float64]:
+        """The probit's gain ``shift * exp(-distance / reach)`` at `distance` metres from the nearest hit's cell (inf: none)."""
+        return self.shift * np.exp(-np.asarray(distance, dtype=float) / self.reach)
+
     def __call__(self, p_unseen: NDArray[np.float64], distance: NDArray[np.float64]) -> NDArray[np.float64]:
         """`p_unseen` at points `distance` metres from the nearest hit's cell (matching shapes; inf: none)."""
         if self.shift == 0.0:
             return p_unseen
         # ndtri is exact enough to invert ndtr where the gain matters (|z| < 8).
         z = ndtri(np.clip(p_unseen, 1e-15, 1.0 - 1e-15))
-        return ndtr(z + self.shift * np.exp(-np.asarray(distance, dtype=float) / self.reach))
+        return ndtr(z + self.gain(distance))
 
 
 #: The gain near hits is taken as nil beyond this many of its reaches (at most 5 e^-10 < 3e-4 in probit).
@@ -412,6 +416,15 @@ class HitCells:
         # Array axes run (z,) y, x; coordinates x, y (, z).
         cells = np.argwhere(np.asarray(hits) > 0)[:, ::-1]
         self._tree = cKDTree((first + cells + 0.5) * r) if cells.size else None
+
+    @classmethod
+    def of_points(cls, points: NDArray[np.float64], resolution: float) -> HitCells:
+        """The cells of `resolution` (``[k r, (k + 1) r)``) holding `points` (m, d): as if they were
+        counted as hits on a lattice of that resolution."""
+        cells = np.unique(np.floor(np.asarray(points, dtype=float) / resolution), axis=0)
+        out = cls.__new__(cls)
+        out._tree = cKDTree((cells + 0.5) * resolution) if cells.size else None
+        return out
 
     def distance(self, points: NDArray[np.float64], upper: float = np.inf) -> NDArray[np.float64]:
         """Distance (m,) from each point (m, d) to the nearest hit's cell centre, metres; inf where

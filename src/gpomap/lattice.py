@@ -127,13 +127,6 @@ def flat_index(grid: AnyGrid, points: ArrayLike) -> tuple[NDArray[np.intp], NDAr
     return np.ravel_multi_index(safe, grid.shape).astype(np.intp), inside.astype(bool)
 
 
-def cell_centres_of(points: ArrayLike, origin: ArrayLike, resolution: float) -> NDArray[np.float64]:
-    """Centre of the cell holding each point (m, d) of the unbounded lattice of `resolution` through
-    `origin` (a corner), ndarray of shape (m, d)."""
-    o = np.asarray(origin, dtype=float)
-    return o + (np.floor((np.asarray(points, dtype=float) - o) / resolution) + 0.5) * resolution
-
-
 def grid_centres(grid: AnyGrid) -> NDArray[np.float64]:
     """Cell centres of `grid` in row-major order (x fastest), ndarray of shape (size, d)."""
     d = grid_dim(grid)

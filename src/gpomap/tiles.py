@@ -1496,7 +1496,8 @@ class TiledGPOM:
         if self._scans is None:
             return None
         hp = self.hyperparameters_
-        proximity = HitProximity(hp.get("hit_shift", 0.0), hp.get("hit_reach", HitProximity.reach))
+        # _fit sets hit_shift; hit_reach may be missing where hit_shift alone was given.
+        proximity = HitProximity(hp["hit_shift"], hp.get("hit_reach", HitProximity.reach))
         return self.base.make_evidence(self._scans, self.predict_proba_gp, proximity)
 
     def check_fit_memory(self, length_scale: float) -> int:
