@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
+import gpomap.lapack as lapack
 import gpomap.tiles as tiles
 from gpomap.errors import GpomapError
 from gpomap.gp import SupportGP
@@ -346,12 +347,13 @@ def test_pool_workers_share_the_cores_for_blas(room, reference, monkeypatch, wor
     threadpoolctl = pytest.importorskip("threadpoolctl")
     hyp, _ = reference
     monkeypatch.setattr(tiles, "fit_tile_task", _blas_threads_fit)
-    monkeypatch.setattr(tiles, "available_cores", lambda: 4)  # as if on 4 cores: 2 workers get 2 threads each
+    # As if on 4 cores: 2 workers get 2 threads each (the cores are counted in gpomap.lapack).
+    monkeypatch.setattr(lapack, "available_cores", lambda: 4)
     before = threadpoolctl.threadpool_info()
     opts = {"tile_size": 6.0, "overlap": 2.5, "n_workers": 2, "worker_processes": worker_processes, **OPTS}
     model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
     assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {2}
-    monkeypatch.setattr(tiles, "available_cores", lambda: 2)
+    monkeypatch.setattr(lapack, "available_cores", lambda: 2)
     model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
     assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {1}
     assert threadpoolctl.threadpool_info() == before  # this process keeps its own

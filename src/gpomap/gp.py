@@ -994,7 +994,7 @@ class SupportGP:
         if threads <= 1:
             yield _in_turn
             return
-        with lapack.blas_limited(max(1, lapack.available_cores() // threads)), cf.ThreadPoolExecutor(threads) as pool:
+        with lapack.blas_limited(lapack.cores_share(threads)), cf.ThreadPoolExecutor(threads) as pool:
             yield lambda fn, items: list(pool.map(fn, items))
 
     # ----------------------------------------------------------------- fitting

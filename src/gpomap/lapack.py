@@ -139,6 +139,12 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+def cores_share(threads: int) -> int:
+    """BLAS threads for each of `threads` threads (or processes) of work running at once: the
+    cores shared out, at least one."""
+    return max(1, available_cores() // max(1, int(threads)))
+
+
 @functools.lru_cache(maxsize=1)
 def blas_controller() -> Any:
     """threadpoolctl's view of this process's BLAS and OpenMP libraries, found once (None without

@@ -60,7 +60,7 @@ from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
-from gpomap.lapack import available_cores, blas_limited, limit_blas_threads
+from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas_threads
 from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
@@ -1208,7 +1208,7 @@ class TiledGPOM:
     def _workers_and_threads(self, n_jobs: int) -> tuple[int, int]:
         """Local workers for `n_jobs` tasks, and BLAS threads for each (the cores shared out)."""
         workers = min(self.n_workers_, n_jobs)
-        return workers, self.blas_threads if self.blas_threads is not None else max(1, available_cores() // workers)
+        return workers, self.blas_threads if self.blas_threads is not None else cores_share(workers)
 
     def _run_threads(self, fn, jobs, bar: Progress, what: str):
         """The jobs on threads of this process, BLAS held to the cores' share of each meanwhile."""
