@@ -347,16 +347,30 @@ def test_pool_workers_share_the_cores_for_blas(room, reference, monkeypatch, wor
     threadpoolctl = pytest.importorskip("threadpoolctl")
     hyp, _ = reference
     monkeypatch.setattr(tiles, "fit_tile_task", _blas_threads_fit)
-    # As if on 4 cores: 2 workers get 2 threads each (the cores are counted in gpomap.lapack).
-    monkeypatch.setattr(lapack, "available_cores", lambda: 4)
-    before = threadpoolctl.threadpool_info()
     opts = {"tile_size": 6.0, "overlap": 2.5, "n_workers": 2, "worker_processes": worker_processes, **OPTS}
-    model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
-    assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {2}
-    monkeypatch.setattr(lapack, "available_cores", lambda: 2)
-    model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
-    assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {1}
+    before = threadpoolctl.threadpool_info()
+    # As if on 4 or 2 cores with one or two BLAS libraries (both are counted in gpomap.lapack):
+    # 2 workers get the cores shared out among them and the libraries.
+    for cores, libraries, threads in ((4, 1, 2), (4, 2, 1), (2, 1, 1)):
+        monkeypatch.setattr(lapack, "available_cores", lambda c=cores: c)
+        monkeypatch.setattr(lapack, "blas_libraries", lambda n=libraries: n)
+        model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
+        assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {threads}
     assert threadpoolctl.threadpool_info() == before  # this process keeps its own
+
+
+def test_stages_in_this_process_share_the_cores_for_blas(room, reference, monkeypatch):
+    # One worker: the tiles are fitted in this process, within the fit's own limit.
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    hyp, _ = reference
+    monkeypatch.setattr(tiles, "fit_tile_task", _blas_threads_fit)
+    before = threadpoolctl.threadpool_info()
+    for libraries, threads in ((1, 4), (2, 2)):
+        monkeypatch.setattr(lapack, "available_cores", lambda: 4)
+        monkeypatch.setattr(lapack, "blas_libraries", lambda n=libraries: n)
+        model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS).fit(room, hyperparameters=hyp)
+        assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {threads}
+    assert threadpoolctl.threadpool_info() == before
 
 
 def test_per_tile_hyperparameters_run_and_are_reported(room):

@@ -36,6 +36,7 @@ block is one GP over that block's cells.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import functools
 import math
 import multiprocessing
 import os
@@ -45,7 +46,7 @@ import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
-from typing import Any, overload
+from typing import Any, Concatenate, ParamSpec, TypeVar, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -694,6 +695,26 @@ def _near_any(free: NDArray[np.float64], hits: NDArray[np.float64], clearance: f
 
 
 # --------------------------------------------------------------------------- estimator
+_Tiled = TypeVar("_Tiled", bound="TiledGPOM")
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+
+def _blas_shared(method: Callable[Concatenate[_Tiled, _P], _R]) -> Callable[Concatenate[_Tiled, _P], _R]:
+    """Run a :class:`TiledGPOM` stage with this process's BLAS held to one worker's share of the
+    cores (:meth:`TiledGPOM._workers_and_threads`), as its workers' is: the stages that run here
+    (the hyperparameter search, the variance scale, the ray evidence, small predictions) would
+    otherwise take every core in each BLAS library while workers or the other library spin on
+    them (see :func:`gpomap.lapack.blas_libraries`)."""
+
+    @functools.wraps(method)
+    def shared(self: _Tiled, /, *args: _P.args, **kwargs: _P.kwargs) -> _R:
+        with blas_limited(self._workers_and_threads(self.n_workers_)[1]):
+            return method(self, *args, **kwargs)
+
+    return shared
+
+
 class TiledGPOM:
     """MSK-GPOM over tiles, for maps larger than one GP can hold.
 
@@ -1338,6 +1359,7 @@ class TiledGPOM:
             jobs.append((t, (TileFitTask(t, g, settings, self.hyperparameters_, previous),)))
         return jobs, gathered
 
+    @_blas_shared
     def fit(self, data: ScanData | Observations, hyperparameters: dict[str, float] | None = None) -> TiledGPOM:
         """Build the tiled map from scans (or labelled points).
 
@@ -1549,6 +1571,7 @@ class TiledGPOM:
             )
         self.blend_ = float(w)
 
+    @_blas_shared
     def update(self, scans: Sequence[Scan]) -> TiledGPOM:
         """Add scans: rebuild the cells of the blocks they touch, refit only the tiles whose cell
         sets changed (hyperparameters kept fixed), and refit the ray evidence's calibration.
@@ -1619,6 +1642,7 @@ class TiledGPOM:
         self.timings_["absorb_points"] = t1 - t0
         self.timings_["absorb_evidence"] = time.perf_counter() - t1
 
+    @_blas_shared
     def refresh(self, max_tiles: int | None = None, exact: bool = False) -> list[tuple[int, int]]:
         """Rebuild the cells of the blocks absorbed since the last refresh and refit the tiles
         whose cell sets changed.
@@ -1776,6 +1800,7 @@ class TiledGPOM:
                 lat_v[idx] += w * var
         return num / wsum, None if den is None else den / wsum, lat_m / wsum, None if lat_v is None else lat_v / wsum
 
+    @_blas_shared
     def predict(self, points: NDArray[np.float64], return_var: bool = False):
         """Blended latent mean (and variance) at points.
 
@@ -1828,6 +1853,7 @@ class TiledGPOM:
         p, var, _ = self._timed_prediction(points)
         return (p, var) if return_var else p
 
+    @_blas_shared
     def _timed_prediction(
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
@@ -1842,6 +1868,7 @@ class TiledGPOM:
         """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
         return ternary(self.predict_proba(points), self.base.thresholds)
 
+    @_blas_shared
     def grid(self, resolution: float, extent: tuple[float, ...] | None = None) -> Any:
         """The map sampled at grid-cell centres; each tile predicts only the grid cells it covers.
 
