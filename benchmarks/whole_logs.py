@@ -7,8 +7,8 @@ from those options, fitted and sampled at 0.05 m), and OctoMap's log-odds grid a
 fits, and builds the map it would write; CPU seconds include every thread of the process. The
 ratio is the GP's fit + map CPU over the grid's, from the same run. Usage::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/whole_logs.py                 # intel, fr079, csail, belgioioso
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/whole_logs.py --logs fr079 --workers 1
+    .venv/bin/python benchmarks/whole_logs.py                 # intel, fr079, csail, belgioioso
+    .venv/bin/python benchmarks/whole_logs.py --logs fr079 --workers 1
 """
 
 from __future__ import annotations

@@ -364,8 +364,8 @@ def _add_tiling_options(p: argparse.ArgumentParser, chunks: bool = True) -> None
         "--threads",
         type=_positive(int),
         metavar="N",
-        help="BLAS threads of each tile worker (default: the cores divided by the workers, at least 1) and, "
-        "when given, of this process",
+        help="BLAS threads of each tile worker and of the map's stages in this process (default: the cores "
+        "divided by the workers and by the BLAS libraries loaded, at least 1)",
     )
     g.add_argument("--scheduler", metavar="ADDRESS", help="run tiles on this Dask distributed scheduler (tcp://host:port)")
     g.add_argument(

@@ -123,7 +123,8 @@ class TilingConfig(_Config):
     n_workers : int, optional
         Local workers (default: the CPU count).
     blas_threads : int, optional
-        BLAS threads of each worker (default: the cores divided by the workers, at least 1).
+        BLAS threads of each worker and of the map's stages in this process (default: the cores
+        divided by the workers and by the BLAS libraries loaded, at least 1).
     worker_processes : bool
         Run the local workers as processes (a worker that dies, killed for its memory say, is
         retried) instead of threads of this process (the default: the tiles' factors are not

@@ -757,8 +757,10 @@ class TiledGPOM:
     per_tile_hyperparameters : bool
         Learn hyperparameters in every tile (each on at most ``hyper_subset`` of its cells).
     blas_threads : int, optional
-        BLAS threads per local worker; default the cores divided among the workers (at least 1),
-        so the pool never runs more threads than there are cores.
+        BLAS threads per local worker, and of the stages that run in this process; default the
+        cores divided among the workers and the BLAS libraries loaded (at least 1,
+        :func:`gpomap.lapack.cores_share`), so the map never runs more threads than there are
+        cores.
     worker_processes : bool
         Local workers are processes (forked where the platform can: they read their tasks from
         the memory they inherit; a worker that dies is retried) instead of threads of this
