@@ -145,7 +145,7 @@ def blas_libraries() -> int:
     numpy's and scipy's wheels each bring their own OpenBLAS, with a thread pool of its own whose
     threads spin for a while after each call: a numpy product and a scipy factorisation in turn
     then run four threads on two cores. Measured on the paper's two rooms with one worker on 2
-    cores: the hyperparameter stage took 0.80-0.86 s with both libraries at 2 threads, 0.08-0.10 s
+    cores: the hyperparameter stage took 0.80-0.86 s with both libraries at 2 threads, 0.08-0.13 s
     with either at 1 (and the fit's CPU time was twice its wall time while any had 2).
     """
     controller = blas_controller()
