@@ -187,21 +187,25 @@ def test_calibration_formula_by_hand() -> None:
 def test_hit_cells_distance_by_hand() -> None:
     hits = np.zeros((4, 5), dtype=np.int32)  # rows y, columns x; cells of 0.5 m from (0, 0)
     hits[1, 2] = 3  # the cell centred on (1.25, 0.75)
-    cells = HitCells(hits, GridSpec((0.0, 0.0), 0.5, (4, 5)))
+    cells = HitCells.of_counts(hits, GridSpec((0.0, 0.0), 0.5, (4, 5)))
     points = np.array([[1.25, 0.75], [1.3, 0.6], [2.25, 1.75], [-0.25, 0.25]])
     # From each point to the hit's cell centre; the last point lies outside the lattice.
     want = [0.0, np.hypot(0.05, 0.15), np.sqrt(2.0), np.hypot(1.5, 0.5)]
     np.testing.assert_allclose(cells.distance(points), want, rtol=0, atol=1e-12)
     assert np.isinf(cells.distance(points, upper=1.2)[2:]).all()
     hits[3, 0] = 1  # a second hit, centred on (0.25, 1.75)
-    two = HitCells(hits, GridSpec((0.0, 0.0), 0.5, (4, 5)))
+    two = HitCells.of_counts(hits, GridSpec((0.0, 0.0), 0.5, (4, 5)))
     extra = np.array([[0.3, 1.9], [1.1, 1.3]])  # nearer the second hit; nearer the first (0.57 against 0.96 m)
     np.testing.assert_allclose(two.distance(extra), [np.hypot(0.05, 0.15), np.hypot(0.15, 0.55)], rtol=0, atol=1e-12)
     # Another extent of the same lattice (origin on a cell corner) gives the same numbers.
     wider = np.zeros((6, 7), dtype=np.int32)
     wider[2:6, 1:6] = hits
-    np.testing.assert_array_equal(HitCells(wider, GridSpec((-0.5, -1.0), 0.5, (6, 7))).distance(points), two.distance(points))
-    assert np.isinf(HitCells(np.zeros((2, 3), dtype=np.int32), GridSpec((0.0, 0.0), 0.5, (2, 3))).distance(points)).all()
+    np.testing.assert_array_equal(
+        HitCells.of_counts(wider, GridSpec((-0.5, -1.0), 0.5, (6, 7))).distance(points), two.distance(points)
+    )
+    assert np.isinf(
+        HitCells.of_counts(np.zeros((2, 3), dtype=np.int32), GridSpec((0.0, 0.0), 0.5, (2, 3))).distance(points)
+    ).all()
     # Two lattices of 5 cm cells from extents far apart (their origins' last bits differ, as a
     # map's grows while it streams), the same hit cells: the same distances, to the bit, at
     # points on the cells' borders too (a 0.1 m grid's centres lie on them).
@@ -212,13 +216,13 @@ def test_hit_cells_distance_by_hand() -> None:
         h = np.zeros(g.shape, dtype=np.int32)
         i = np.floor((ends - np.asarray(g.origin)) / 0.05).astype(int)
         h[i[:, 1], i[:, 0]] = 1
-        grid_hits.append(HitCells(h, g))
+        grid_hits.append(HitCells.of_counts(h, g))
     borders = np.array([[0.15, 0.05], [0.35, -0.25], [1.05, 0.45], [-0.45, 1.15]])
     np.testing.assert_array_equal(grid_hits[0].distance(borders), grid_hits[1].distance(borders))
     # In 3-D, axes z, y, x.
     vox = np.zeros((2, 3, 4), dtype=np.int32)
     vox[1, 2, 3] = 1  # the voxel centred on (1.75, 1.25, 0.75)
-    cells3 = HitCells(vox, VoxelSpec((0.0, 0.0, 0.0), 0.5, (2, 3, 4)))
+    cells3 = HitCells.of_counts(vox, VoxelSpec((0.0, 0.0, 0.0), 0.5, (2, 3, 4)))
     assert cells3.distance(np.array([[0.25, 0.25, 0.25]]))[0] == pytest.approx(np.sqrt(1.5**2 + 1.0**2 + 0.5**2))
 
 
@@ -325,7 +329,7 @@ def test_a_grids_hit_distance_equals_the_hit_cells_tree(half_room: tuple[AreaGPO
         for corner, shape, res in (((2.0, 3.0), (60, 80), 0.05), ((-3.0, -2.0), (120, 90), 0.05), ((1.0, 1.0), (30, 40), 0.1)):
             grid = GridSpec(tuple(lo + corner), res, shape)
             got = ev.grid_hit_distance(grid)
-            want = HitCells(ev._hits, ev.lattice).distance(grid.centres(), HIT_DISTANCE_REACHES * 0.15).reshape(shape)
+            want = HitCells.of_counts(ev._hits, ev.lattice).distance(grid.centres(), HIT_DISTANCE_REACHES * 0.15).reshape(shape)
             assert np.isfinite(want).sum() > 100 and np.isinf(want).sum() > 100
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
             assert ev.hit_distance(grid.centres()).reshape(shape) == pytest.approx(want)

@@ -399,32 +399,34 @@ class HitCells:
 
     A distance runs from the point to the nearest such cell's centre: at a cell centre, the
     distance between the two cells, as :mod:`gpomap.extrapolation` measures it when it fits the
-    gain. The centres are taken on the lattice through the origin (cells ``[k r, (k + 1) r)``,
+    gain. The cells are those of the lattice through the origin (cell k spans ``[k r, (k + 1) r)``,
     :func:`gpomap.evidence.lattice_grid`), so two lattices of other extents give the same numbers.
 
     Parameters
     ----------
-    hits : ndarray of int, shape lattice.shape
-        Hits per cell.
-    lattice : GridSpec or VoxelSpec
-        On the lattice through the origin.
+    cells : ndarray of int, shape (k, d)
+        The cells beams ended in, by index k on that lattice (x, y (, z)).
+    resolution : float
+        The lattice's side r, metres.
     """
 
-    def __init__(self, hits: NDArray[np.integer], lattice: AnyGrid) -> None:
+    def __init__(self, cells: NDArray[np.integer] | NDArray[np.floating], resolution: float) -> None:
+        cells = np.asarray(cells, dtype=float)
+        self._tree = cKDTree((cells + 0.5) * float(resolution)) if cells.size else None
+
+    @classmethod
+    def of_counts(cls, hits: NDArray[np.integer], lattice: AnyGrid) -> HitCells:
+        """The cells of `lattice` (on the lattice through the origin) with hits, of `hits` (ndarray of int, shape lattice.shape)."""
         r = float(lattice.resolution)
         first = np.rint(np.asarray(lattice.origin, dtype=float) / r)
         # Array axes run (z,) y, x; coordinates x, y (, z).
-        cells = np.argwhere(np.asarray(hits) > 0)[:, ::-1]
-        self._tree = cKDTree((first + cells + 0.5) * r) if cells.size else None
+        return cls(first + np.argwhere(np.asarray(hits) > 0)[:, ::-1], r)
 
     @classmethod
     def of_points(cls, points: NDArray[np.float64], resolution: float) -> HitCells:
-        """The cells of `resolution` (``[k r, (k + 1) r)``) holding `points` (m, d): as if they were
-        counted as hits on a lattice of that resolution."""
-        cells = np.unique(np.floor(np.asarray(points, dtype=float) / resolution), axis=0)
-        out = cls.__new__(cls)
-        out._tree = cKDTree((cells + 0.5) * resolution) if cells.size else None
-        return out
+        """The cells of `resolution` holding `points` (m, d): as if they were counted as hits on a
+        lattice of that resolution."""
+        return cls(np.unique(np.floor(np.asarray(points, dtype=float) / resolution), axis=0), resolution)
 
     def distance(self, points: NDArray[np.float64], upper: float = np.inf) -> NDArray[np.float64]:
         """Distance (m,) from each point (m, d) to the nearest hit's cell centre, metres; inf where
@@ -736,7 +738,7 @@ class EvidenceLayer:
         if self.lattice is None:
             return np.full(n, np.inf)
         if self._hit_cells is None:
-            self._hit_cells = HitCells(self._hits, self.lattice)
+            self._hit_cells = HitCells.of_counts(self._hits, self.lattice)
         return self._hit_cells.distance(points, HIT_DISTANCE_REACHES * self.proximity.reach)
 
     def grid_hit_distance(self, grid: AnyGrid) -> NDArray[np.float64]:
