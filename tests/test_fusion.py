@@ -9,6 +9,7 @@ from gpomap import _compiled_counts, lattice
 from gpomap.clouds import CloudScan
 from gpomap.evidence import NEAR_END, RayEvidence, lattice_grid
 from gpomap.fusion import (
+    CALIBRATION_BOUNDS,
     HIT_DISTANCE_REACHES,
     SURPRISE_RATE,
     EvidenceCalibration,
@@ -167,21 +168,31 @@ def test_lattice_cells_do_not_depend_on_the_extent() -> None:
 
 
 def test_calibration_formula_by_hand() -> None:
-    cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0, near_weight=0.25)
+    cal = EvidenceCalibration(hit_weight=2.0, prior_weight=2.0, near_weight=0.25, near_hit_weight=0.5)
     # (2 * 1 + 2 * 0.5) / (2 * 1 + 1 + 2) = 0.6, then one surprise in a hundred: 0.005 + 0.99 * 0.6.
-    assert cal.posterior_mean(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.6)
+    assert cal.posterior_mean(np.array([0.5]), np.array([2.0]), np.array([1]))[0] == pytest.approx(0.6)
     assert SURPRISE_RATE == 1e-2
-    assert cal(np.array([0.5]), np.array([1]), np.array([1]))[0] == pytest.approx(0.599)
+    assert cal(np.array([0.5]), np.array([2.0]), np.array([1]))[0] == pytest.approx(0.599)
     # A hundred scans saw through a cell and none ended there: not 1e-4 (the GP's 0.01 weighing 2
     # against 100), but 0.005 + 0.99 * 0.02 / 102.
     assert cal(np.array([0.01]), np.array([0]), np.array([100]))[0] == pytest.approx(0.005 + 0.99 * 0.02 / 102)
+    # 3 hits of weight 2 and 4 near misses worth half a hit each: 6 + 2 = 8 weighted hits.
+    assert cal.hits(np.array([3]), np.array([4]))[0] == pytest.approx(8.0)
     # 5 misses of which 4 near, and 3 steps of the path worth PATH_HITS = 10 hits of weight 2 each:
     # 1 + 4 * 0.25 + 3 * 10 * 2 = 62 weighted misses.
     assert cal.misses(np.array([5]), np.array([4]), np.array([3]))[0] == pytest.approx(62.0)
+    # A cell crossed by 4 scans, each ending its beam just beyond it: 4 * 0.5 weighted hits against
+    # 4 * 0.25 weighted misses, (2 + 2 * 0.5) / (2 + 1 + 2) = 0.6 from the GP's 0.5.
+    h, m = cal.hits(np.array([0]), np.array([4])), cal.misses(np.array([4]), np.array([4]))
+    assert cal.posterior_mean(np.array([0.5]), h, m)[0] == pytest.approx(0.6)
     # No counts: the GP's probability.
     assert cal.posterior_mean(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(0.8)
-    # The defaults are the counting grid with the GP in place of its prior 1/2: (3 + 1) / (3 + 5 + 2).
-    assert EvidenceCalibration().posterior_mean(np.array([0.5]), np.array([3]), np.array([5]))[0] == pytest.approx(0.4)
+    # The defaults are the counting grid with the GP in place of its prior 1/2: (3 + 1) / (3 + 5 + 2),
+    # a near miss a miss and no hit.
+    default = EvidenceCalibration()
+    assert default.posterior_mean(np.array([0.5]), default.hits(np.array([3]), np.array([2])), np.array([5]))[0] == pytest.approx(
+        0.4
+    )
 
 
 def test_hit_cells_distance_by_hand() -> None:
@@ -427,8 +438,6 @@ def _p_gp(points: np.ndarray) -> np.ndarray:
 def test_calibration_predicts_only_counted_points_and_matches_the_whole_sample_fit() -> None:
     from scipy.optimize import minimize
 
-    from gpomap.fusion import CALIBRATION_BOUNDS
-
     scans, ev, grid = _calibration_scene()
     asked: list[np.ndarray] = []
 
@@ -463,14 +472,19 @@ def test_calibration_predicts_only_counted_points_and_matches_the_whole_sample_f
 
     def loss(theta: np.ndarray) -> float:
         cal = EvidenceCalibration(*np.exp(theta))
-        p = cal(g, H, cal.misses(M, N))
+        p = cal(g, cal.hits(H, N), cal.misses(M, N))
         return float(-np.mean(np.where(O, np.log(p), np.log1p(-p))))
 
     best = minimize(
-        loss, np.log([1.0, 2.0, 1.0]), method="L-BFGS-B", bounds=CALIBRATION_BOUNDS, options={"ftol": 1e-14, "gtol": 1e-10}
+        loss, np.log([1.0, 2.0, 1.0, 1.0]), method="L-BFGS-B", bounds=CALIBRATION_BOUNDS, options={"ftol": 1e-14, "gtol": 1e-10}
     )
     truth = np.exp(best.x)
-    np.testing.assert_allclose([fitted.hit_weight, fitted.prior_weight, fitted.near_weight], truth, rtol=2e-3)
+    got = np.array([fitted.hit_weight, fitted.prior_weight, fitted.near_weight, fitted.near_hit_weight])
+    # The same minimum. On this small scene the near miss's two weights lie on a ridge (the
+    # near misses decide, so their ratio does, not their size): the loss and the ratio are compared.
+    assert loss(np.log(got)) == pytest.approx(best.fun, rel=1e-5)
+    np.testing.assert_allclose(got[:2], truth[:2], rtol=2e-3)
+    assert got[3] / got[2] == pytest.approx(truth[3] / truth[2], rel=2e-3)
     # The GP was asked once, at exactly the counted points.
     assert len(asked) == 1 and len(asked[0]) == counted.sum() == report["n_predicted"]
     want = {tuple(np.round(q, 9)) for q in P[counted]}
@@ -641,3 +655,43 @@ def test_other_scans_counts_are_the_counts_without_each_points_own_scan() -> Non
         for mine, theirs in zip(got, others, strict=True):
             np.testing.assert_array_equal(mine[sel], np.where(inside[sel], theirs.reshape(-1)[cell[sel]], 0))
     assert got[0].sum() > 0 and got[1].sum() > 0  # the room's scans overlap: the test sees counts
+
+
+def _wall_scans(jitter: float, n: int = 30) -> list[Scan]:
+    """Scans from the line x = 0.5 of a wall at x = 2.0 (beams over +-0.6 rad), the wall seen
+    `jitter` metres nearer or farther in each scan (uniform: a pose error across scans)."""
+    rng = np.random.default_rng(3)
+    angles = np.linspace(-0.6, 0.6, 41)
+    scans = []
+    for k in range(n):
+        y = 1.0 + 2.0 * k / n
+        wall = 2.0 + rng.uniform(-jitter, jitter)
+        scans.append(_scan(0.5, y, list(angles), list((wall - 0.5) / np.cos(angles))))
+    return scans
+
+
+def test_a_near_miss_counts_as_a_hit_only_where_surfaces_fall_in_such_cells(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Walls smeared across scans by pose error: a cell one scan nearly missed just before the
+    # wall is another scan's hit, and the fit finds near misses worth hits. A wall seen in the same
+    # place by every scan: the cells before it are never hit, and a near miss is worth no hit.
+    import gpomap.fusion
+
+    grid = GridSpec((0.0, 0.0), 0.05, (100, 60))
+
+    def fit(scans: list[Scan]) -> tuple[EvidenceCalibration, float]:
+        ev = RayEvidence.from_scans(scans)
+        cal, report = fit_calibration(scans, ev, grid, lambda p: np.full(len(p), 0.5), n_scans=len(scans), step=0.1)
+        return cal, report["log_loss"]
+
+    smeared, loss_smeared = fit(_wall_scans(0.12))
+    steady, _ = fit(_wall_scans(0.0))
+    floor = float(np.exp(CALIBRATION_BOUNDS[3][0]))
+    assert smeared.near_hit_weight > 100 * floor
+    assert steady.near_hit_weight < 10 * floor
+    # On the smeared wall the fourth weight is what lowers the held-out loss: the best fit with a
+    # near miss worth no hit (its bounds pinned to the floor) is worse.
+    low = CALIBRATION_BOUNDS[3][0]
+    monkeypatch.setattr(gpomap.fusion, "CALIBRATION_BOUNDS", (*CALIBRATION_BOUNDS[:3], (low, low)))
+    pinned, loss_pinned = fit(_wall_scans(0.12))
+    assert pinned.near_hit_weight == pytest.approx(floor)
+    assert loss_smeared < loss_pinned - 0.01

@@ -52,7 +52,7 @@ def test_ray_counts_added_scan_by_scan_equal_counting_them_at_once(room):
     # A grid on the lattice reads the running counts: the same as traversing its own cells.
     on = GridSpec((x0 + 0.5, y0 + 0.25), 0.05, (120, 150))
     hits, misses, near = inc.evidence.counts(on)
-    np.testing.assert_array_equal(inc.grid_counts(on)[0], hits)
+    np.testing.assert_array_equal(inc.grid_counts(on)[0], inc.calibration.hits(hits, near))
     np.testing.assert_array_equal(inc.grid_counts(on)[1], inc.calibration.misses(misses, near, inc.evidence.path_passes(on)))
 
 

@@ -758,7 +758,8 @@ def run_method(
         the far lattice, for both predictions), ``path`` (:func:`path_occupied` of both), ``truth`` (:func:`score_truth` of both, or None),
         ``seconds`` and ``cpu_seconds`` (``fit``, ``predict``, ``grid``; the model's own stages),
         ``peak_rss_mb`` (this process's peak so far), ``n_inputs``, ``n_train_scans``,
-        ``n_test_scans``, ``n_test_points``, ``hyperparameters`` (GP methods), ``settings``.
+        ``n_test_scans``, ``n_test_points``, ``hyperparameters`` (GP methods), ``evidence`` (the ray
+        evidence's calibration, MSK-GPOM), ``settings``.
     """
     seconds: dict[str, float] = {}
     cpu: dict[str, float] = {}
@@ -832,6 +833,8 @@ def run_method(
     }
     if hasattr(model, "hyperparameters_"):
         result["hyperparameters"] = {k: float(v) for k, v in model.hyperparameters_.items()}
+    if getattr(model, "evidence_", None) is not None:
+        result["evidence"] = _jsonable(model.evidence_.summary())
     if return_roc:
         fpr, tpr, _ = roc_curve(data.labels, prob)
         result["roc"] = {"fpr": fpr.tolist(), "tpr": tpr.tolist()}

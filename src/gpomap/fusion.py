@@ -131,11 +131,13 @@ PATH_HITS: float = 10.0
 #: at most ~9,000 hits); clouds do (la3dm: 31,500 hits in 9 scans, cut to a third).
 CALIBRATION_POINTS_PER_CLASS: int = 10_000
 
-#: Search bounds (log space) of the hit weight, the prior weight and the near-miss weight.
+#: Search bounds (log space) of the hit weight, the prior weight, the near-miss weight and the
+#: near miss's hit weight (whose floor, 1e-3 of a hit, is none for any count a log reaches).
 CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = (
     (np.log(0.1), np.log(1e3)),
     (np.log(0.1), np.log(1e2)),
     (np.log(1e-3), np.log(10.0)),
+    (np.log(1e-3), np.log(1e2)),
 )
 
 
@@ -143,8 +145,9 @@ CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = (
 class EvidenceCalibration:
     """How much a hit, a miss, a near miss and the GP prior weigh in a cell's probability.
 
-    The defaults (one hit = one miss = one near miss, the GP worth two observations) make the
-    counting grid p = (hits + 1) / (hits + misses + 2) with the GP's probability in place of its 1/2.
+    The defaults (one hit = one miss = one near miss, the GP worth two observations, a near miss no
+    hit) make the counting grid p = (hits + 1) / (hits + misses + 2) with the GP's probability in
+    place of its 1/2.
 
     Parameters
     ----------
@@ -153,12 +156,22 @@ class EvidenceCalibration:
     prior_weight : float
         Equivalent sample size n0 of the GP's probability.
     near_weight : float
-        Observations one near miss counts as.
+        Misses one near miss counts as.
+    near_hit_weight : float
+        Hits' worth of observations one near miss adds besides: a beam that ended its return
+        within :data:`~gpomap.evidence.NEAR_END` of a cell says a surface is near it, and with
+        range noise and the pose's error, often in it.
     """
 
     hit_weight: float = 1.0
     prior_weight: float = 2.0
     near_weight: float = 1.0
+    near_hit_weight: float = 0.0
+
+    def hits(self, hits: ArrayLike, near: ArrayLike) -> NDArray[np.float64]:
+        """Weighted hits of cells: each hit ``hit_weight``, each near miss ``near_hit_weight``
+        (matching shapes)."""
+        return self.hit_weight * np.asarray(hits, dtype=float) + self.near_hit_weight * np.asarray(near, dtype=float)
 
     def misses(self, misses: ArrayLike, near: ArrayLike, path: ArrayLike = 0) -> NDArray[np.float64]:
         """Weighted misses of cells: each miss one, each near miss (counted among `misses`)
@@ -169,9 +182,10 @@ class EvidenceCalibration:
         return np.asarray(misses, dtype=float) + (self.near_weight - 1.0) * near + path_weight * np.asarray(path, dtype=float)
 
     def posterior_mean(self, p_gp: ArrayLike, hits: ArrayLike, misses: ArrayLike) -> NDArray[np.float64]:
-        """The Beta-binomial posterior mean from the GP's probability, the hits and the weighted
-        misses (:meth:`misses`) (matching shapes), before :func:`with_surprises`."""
-        wh = self.hit_weight * np.asarray(hits, dtype=float)
+        """The Beta-binomial posterior mean from the GP's probability, the weighted hits
+        (:meth:`hits`) and the weighted misses (:meth:`misses`) (matching shapes), before
+        :func:`with_surprises`."""
+        wh = np.asarray(hits, dtype=float)
         return (wh + self.prior_weight * np.asarray(p_gp, dtype=float)) / (
             wh + np.asarray(misses, dtype=float) + self.prior_weight
         )
@@ -289,19 +303,27 @@ def fit_calibration(
 
     def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         cal = EvidenceCalibration(*np.exp(theta))
-        w, n0, a = cal.hit_weight, cal.prior_weight, cal.near_weight
-        wh = w * h
+        n0, a, b = cal.prior_weight, cal.near_weight, cal.near_hit_weight
+        wh = cal.hit_weight * h
         weighted = cal.misses(m, near)
-        q = cal.posterior_mean(p_gp, h, weighted)
+        q = cal.posterior_mean(p_gp, cal.hits(h, near), weighted)
         p = with_surprises(q)
-        den = wh + weighted + n0
+        den = wh + b * near + weighted + n0
         value = float(-np.sum(np.where(occ, np.log(p), np.log1p(-p))) / n_points)
-        # d loss / dq (dp / dq = 1 - SURPRISE_RATE); then dq / dlog w, dlog n0, dlog a.
+        # d loss / dq (dp / dq = 1 - SURPRISE_RATE); then dq / dlog w, dlog n0, dlog a, dlog b.
         dq = np.where(occ, -1.0 / p, 1.0 / (1.0 - p)) * (1.0 - SURPRISE_RATE) / n_points
-        grad = np.array([dq @ (wh * (1.0 - q) / den), dq @ (n0 * (p_gp - q) / den), dq @ (-a * near * q / den)])
+        grad = np.array(
+            [
+                dq @ (wh * (1.0 - q) / den),
+                dq @ (n0 * (p_gp - q) / den),
+                dq @ (-a * near * q / den),
+                dq @ (b * near * (1.0 - q) / den),
+            ]
+        )
         return value, grad
 
-    x0 = np.log([default.hit_weight, default.prior_weight, default.near_weight])
+    # The counting grid's weights, but for the near miss's hit weight: its floor (log space has no 0).
+    x0 = np.log([default.hit_weight, default.prior_weight, default.near_weight, np.exp(CALIBRATION_BOUNDS[3][0])])
     # With the exact gradient and a tight tolerance the weights are the optimum's, not where a
     # search on finite differences stopped (which, with three weights, left the hit weight 3e-6
     # apart for GP probabilities 1e-13 apart, tile factors of another BLAS thread count).
@@ -440,7 +462,7 @@ class HitCells:
 
 def _unseen_where_empty(
     p: NDArray[np.float64],
-    hits: NDArray[np.int32],
+    hits: NDArray[np.float64],
     misses: NDArray[np.float64],
     p_unseen: NDArray[np.float64] | None,
     distance: Callable[[NDArray[np.bool_]], NDArray[np.float64]] | None = None,
@@ -707,15 +729,18 @@ class EvidenceLayer:
             part.forget()
 
     # ------------------------------------------------------------------ applying
-    def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
-        """Hits and weighted misses (:meth:`EvidenceCalibration.misses`, path included) of the fine
-        cell holding each point (0 outside the counted area)."""
+    def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Weighted hits (:meth:`EvidenceCalibration.hits`) and weighted misses
+        (:meth:`EvidenceCalibration.misses`, path included) of the fine cell holding each point (0
+        outside the counted area)."""
         if self.lattice is None:
             n = np.asarray(points).shape[0]
-            return np.zeros(n, dtype=np.int32), np.zeros(n)
+            return np.zeros(n), np.zeros(n)
         cell, inside = flat_index(self.lattice, points)
+        near = self._near_misses.reshape(-1)[cell]
+        hits = self.calibration.hits(self._hits.reshape(-1)[cell], near)
         misses = self.calibration.misses(*(a.reshape(-1)[cell] for a in (self._beam_misses, self._near_misses, self._path)))
-        return np.where(inside, self._hits.reshape(-1)[cell], 0), np.where(inside, misses, 0.0)
+        return np.where(inside, hits, 0.0), np.where(inside, misses, 0.0)
 
     def proba(
         self, points: NDArray[np.float64], p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
@@ -785,13 +810,14 @@ class EvidenceLayer:
                 o[where[0]] = a[where[1]]
         return RayCounts(out[0], out[1], out[2]), out[3]
 
-    def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.int32], NDArray[np.float64]]:
-        """Hits and weighted misses (:meth:`EvidenceCalibration.misses`, path included) per cell of
-        `grid`, counted on that grid's own cells (the last is cached)."""
+    def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Weighted hits (:meth:`EvidenceCalibration.hits`) and weighted misses
+        (:meth:`EvidenceCalibration.misses`, path included) per cell of `grid`, counted on that
+        grid's own cells (the last is cached)."""
         if self._grid_cache is None or self._grid_cache[0] != grid:
             self._grid_cache = (grid, *self._raw_grid_counts(grid))
         _, counts, path = self._grid_cache
-        return counts.hits, self.calibration.misses(counts.misses, counts.near, path)
+        return self.calibration.hits(counts.hits, counts.near), self.calibration.misses(counts.misses, counts.near, path)
 
     def grid_proba(
         self, grid: AnyGrid, p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
@@ -844,4 +870,10 @@ class EvidenceLayer:
     def summary(self) -> dict[str, float]:
         """The calibration and how it was fitted."""
         c = self.calibration
-        return {"hit_weight": c.hit_weight, "prior_weight": c.prior_weight, "near_weight": c.near_weight, **self.report}
+        return {
+            "hit_weight": c.hit_weight,
+            "prior_weight": c.prior_weight,
+            "near_weight": c.near_weight,
+            "near_hit_weight": c.near_hit_weight,
+            **self.report,
+        }
