@@ -137,7 +137,8 @@ PATH_HITS: float = 10.0
 CALIBRATION_POINTS_PER_CLASS: int = 10_000
 
 #: Search bounds (log space) of the hit weight, the prior weight, the near-miss weight and the
-#: near miss's hit weight (whose floor, 1e-3 of a hit, is none for any count a log reaches).
+#: near miss's weight as a surface (whose floor, 1e-3 of an observation, is nothing against the
+#: counts a log gives).
 CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = (
     (np.log(0.1), np.log(1e3)),
     (np.log(0.1), np.log(1e2)),
