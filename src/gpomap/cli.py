@@ -1155,7 +1155,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=_signature_default("gpomap.benchmark", "run_paper_benchmark", "timed_runs"),
         metavar="N",
-        help="timed fits and predictions of each method after its warm-up; the fastest is reported (default: %(default)s)",
+        help="fewest timed fits and predictions of each method after its warm-up (fast methods get more, until"
+        " the runs fill gpomap.benchmark.MIN_TIMED_SECONDS); the fastest is reported (default: %(default)s)",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_benchmark)
