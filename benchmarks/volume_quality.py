@@ -29,7 +29,8 @@ Metrics (:func:`gpomap.evaluation.score`): ROC AUC, boundary AUC (test points wi
 held-out hit), log loss, ECE; fit and predict wall times (for the voxel grid, predict is the
 grid's prediction) and the peak resident memory of the process that ran the method (each method
 runs in a forked child, so the number is its own, plus the data read before the fork). The JSON
-rows of gpomap also hold the fit's stage times (``fit_stages``: the model's ``timings_``), printed
+rows of gpomap also hold the ray evidence's calibration (``evidence``) and the fit's stage times
+(``fit_stages``: the model's ``timings_``), printed
 after the table with each fit's time over OctoMap's on the same case, and the fit and prediction at
 the test points together over OctoMap's (the prediction timed once, after the fits).
 
@@ -187,6 +188,10 @@ def _fit_predict(
     row.update(fit_s=fit_s, predict_s=t2 - t1, fit_repeats=[round(f[0], 4) for f in fits])
     if stages:
         row["fit_stages"] = {k: round(float(v), 3) for k, v in stages.items()}
+    evidence = getattr(model, "evidence_", None)
+    if evidence is not None:
+        # The ray evidence's calibration (its weights and leave-one-scan-out losses).
+        row["evidence"] = {k: float(v) for k, v in evidence.summary().items()}
     rows = [_scored(row, labels, p, boundary)]
     if grid_resolution is not None:
         grid_row: dict[str, Any] = {"dataset": dataset, "method": f"{name}, voxel grid {grid_resolution:g} m"}
