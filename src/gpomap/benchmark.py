@@ -150,8 +150,9 @@ def run_paper_benchmark(
     -------
     dict
         ``rows``: one dict per run with experiment, method, kernel, seconds (fit + predict),
-        fit_seconds, predict_seconds, timed_runs (how many were timed), auc, fpr_at_tpr95, log_loss, n_inputs, the ROC curve and,
-        on the synthetic room, ``truth_auc`` (the map on the 0.5 grid against the true room).
+        fit_seconds, predict_seconds, timed_runs (how many were timed), auc, fpr_at_tpr95,
+        log_loss, n_inputs, the ROC curve and, on the synthetic room, ``truth_auc`` (the map on
+        the 0.5 grid against the true room).
     """
     from gpomap.plot import plot_map, save_figure
 

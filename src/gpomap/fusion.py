@@ -311,10 +311,10 @@ def fit_calibration(
         cal = EvidenceCalibration(*np.exp(theta))
         n0, a, b = cal.prior_weight, cal.near_weight, cal.near_hit_weight
         wh = cal.hit_weight * h
-        weighted = cal.misses(m, near)
-        q = cal.posterior_mean(p_gp, cal.hits(h, near), weighted)
+        hits, weighted = cal.hits(h, near), cal.misses(m, near)
+        q = cal.posterior_mean(p_gp, hits, weighted)
         p = with_surprises(q)
-        den = wh + b * near + weighted + n0
+        den = hits + weighted + n0
         value = float(-np.sum(np.where(occ, np.log(p), np.log1p(-p))) / n_points)
         # d loss / dq (dp / dq = 1 - SURPRISE_RATE); then dq / dlog w, dlog n0, dlog a, dlog b.
         dq = np.where(occ, -1.0 / p, 1.0 / (1.0 - p)) * (1.0 - SURPRISE_RATE) / n_points
@@ -743,10 +743,10 @@ class EvidenceLayer:
             n = np.asarray(points).shape[0]
             return np.zeros(n), np.zeros(n)
         cell, inside = flat_index(self.lattice, points)
-        near = self._near_misses.reshape(-1)[cell]
-        hits = self.calibration.hits(self._hits.reshape(-1)[cell], near)
-        misses = self.calibration.misses(*(a.reshape(-1)[cell] for a in (self._beam_misses, self._near_misses, self._path)))
-        return np.where(inside, hits, 0.0), np.where(inside, misses, 0.0)
+        hits, beam, near, path = (a.reshape(-1)[cell] for a in (self._hits, self._beam_misses, self._near_misses, self._path))
+        return np.where(inside, self.calibration.hits(hits, near), 0.0), np.where(
+            inside, self.calibration.misses(beam, near, path), 0.0
+        )
 
     def proba(
         self, points: NDArray[np.float64], p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
