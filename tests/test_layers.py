@@ -53,7 +53,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         ),
     ),
     ("kernels", ("gpomap.kernels",)),
-    ("gp", ("gpomap.gp",)),
+    ("gp", ("gpomap.gp", "gpomap._compiled_local")),
     ("maps", ("gpomap.estimator", "gpomap.fusion", "gpomap.extrapolation", "gpomap.settings", "gpomap.baselines")),
     ("tiling", ("gpomap.tiles", "gpomap.mapping", "gpomap.streaming")),
     ("io", ("gpomap.io", "gpomap.plot")),

@@ -9,6 +9,7 @@ import pytest
 
 import gpomap.gp
 import gpomap.tiles as tiles
+from gpomap import _compiled_local
 from gpomap.gp import LOCAL_TOL, local_blocks
 from gpomap.simulate import paper_room_scans
 from gpomap.supports import Supports
@@ -44,6 +45,15 @@ def _dense_blended(model: TiledGPOM, points: np.ndarray) -> np.ndarray:
         tiles.predict_tile_task = tiles_before
 
 
+@pytest.fixture(params=["numpy", "compiled"])
+def path(request, monkeypatch):
+    """Each test once with numpy's block loop and once with the compiled one (:mod:`gpomap._compiled_local`)."""
+    if request.param == "compiled" and not _compiled_local.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(_compiled_local, "ENABLED", request.param == "compiled")
+    return request.param
+
+
 @pytest.fixture(scope="module")
 def room_maps():
     scans = paper_room_scans()[:8]
@@ -54,7 +64,7 @@ def room_maps():
 
 
 @pytest.mark.parametrize("kernel", ["se", "matern32"])
-def test_local_equals_dense_in_2d(room_maps, kernel, tight):
+def test_local_equals_dense_in_2d(room_maps, kernel, tight, path):
     model = room_maps[kernel]
     key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
     state = model.tiles_[key]
@@ -75,7 +85,7 @@ def test_local_equals_dense_in_2d(room_maps, kernel, tight):
     np.testing.assert_allclose(p, p_dense, rtol=0, atol=1e-8)
 
 
-def test_local_equals_dense_in_3d(tight):
+def test_local_equals_dense_in_3d(tight, path):
     from tests.world3d import ORIGINS, lidar_clouds
 
     model = TiledGPOM(tile_size=3.0, n_workers=1, kernel="se", length_scale=0.1, **OPTS).fit(lidar_clouds(ORIGINS, n_rays=100))
@@ -87,7 +97,7 @@ def test_local_equals_dense_in_3d(tight):
     np.testing.assert_allclose(var, dense_var, rtol=0, atol=1e-8)
 
 
-def test_points_with_no_cell_near_get_the_prior(room_maps, tight):
+def test_points_with_no_cell_near_get_the_prior(room_maps, tight, path):
     model = room_maps["se"]
     key = max(model.tiles_, key=lambda k: model.tiles_[k].n_cells)
     state = model.tiles_[key]
@@ -103,7 +113,7 @@ def test_points_with_no_cell_near_get_the_prior(room_maps, tight):
     np.testing.assert_allclose(var, dense_var, rtol=0, atol=1e-8)
 
 
-def test_local_is_within_the_tolerance_of_dense_at_the_default(room_maps):
+def test_local_is_within_the_tolerance_of_dense_at_the_default(room_maps, path):
     # Every covariance left out is below LOCAL_TOL * variance (see test_blocks_... below), so the
     # mean moves by at most that times the sum of |weights|, and the variance's reduction
     # k^T K^-1 k by at most (2 tol + tol^2) variance^2 sum |K^-1| (each |k_j| <= variance).
@@ -193,3 +203,46 @@ def test_blended_prediction_is_the_taper_weighted_mean_of_the_tiles(room_maps):
         assert mean[i] == pytest.approx(lat_m / wsum, abs=1e-8)
         assert var[i] == pytest.approx(lat_v / wsum, abs=1e-8)
         assert p[i] == pytest.approx(ndtr((num / wsum) / np.sqrt(1.0 + den / wsum)), abs=1e-8)
+
+
+@pytest.mark.skipif(not _compiled_local.AVAILABLE, reason="numba is not installed")
+@pytest.mark.parametrize("dim", [2, 3])
+def test_compiled_blocks_equal_numpys_to_round_off(monkeypatch, dim):
+    """Boxes of every kind (wide, thin, a point's width along some axes), random weights and a
+    random K^-1, blocks with and without inputs: the compiled loop gives numpy's numbers."""
+    from gpomap.gp import GPPosterior
+    from gpomap.kernels.area import AreaKernel
+    from gpomap.kernels.closed_form import POINT_WIDTH
+    from gpomap.squash import ProbitSquash
+
+    rng = np.random.default_rng(11)
+    n, l = 300, 0.4
+    lo = np.round(rng.uniform(0, 8, (n, dim)) / 0.05) * 0.05  # ends on a lattice repeat, as cells' do
+    width = rng.choice([0.0, 0.5 * POINT_WIDTH * l, 0.05, 0.2, 0.5], size=(n, dim))
+    X = Supports.from_boxes(lo, lo + width)
+    kernel = AreaKernel("se")
+    kernel.base.length_scale, kernel.base.variance = l, 1.7
+    A = rng.normal(size=(n, n))
+    L = np.linalg.cholesky(A @ A.T / n + np.eye(n))
+    posterior = GPPosterior(X, L, rng.normal(size=n), kernel, ProbitSquash(1.0, 0.0))
+    # Points inside the boxes' span, on a lattice (repeated coordinates) and scattered, and far.
+    points = np.concatenate(
+        [rng.uniform(-1, 9, (3000, dim)), np.round(rng.uniform(0, 8, (2000, dim)) / 0.1) * 0.1, rng.uniform(30, 40, (500, dim))]
+    )
+    Q = Supports.from_points(points)
+    blocks = posterior.local_blocks(Q, 4096)
+    assert blocks is not None and any(near.size == 0 for _, near in blocks)
+    out = {}
+    for compiled in (False, True):
+        monkeypatch.setattr(_compiled_local, "ENABLED", compiled)
+        posterior.precision = None
+        out[compiled] = posterior.latent(Q), posterior.latent(Q, variance=False)
+    (m0, v0), _ = out[False]
+    (m1, v1), (a1, none) = out[True]
+    assert none is None
+    np.testing.assert_allclose(m1, m0, rtol=0, atol=1e-12 * np.abs(posterior.weights).sum())
+    np.testing.assert_allclose(v1, v0, rtol=0, atol=1e-11)
+    np.testing.assert_array_equal(a1, m1)
+    # Far points: the prior.
+    np.testing.assert_array_equal(m1[-500:], 0.0)
+    np.testing.assert_array_equal(v1[-500:], 1.7)

@@ -29,9 +29,10 @@ from numpy.typing import NDArray
 from scipy.linalg import LinAlgError, cholesky, solve_triangular
 from scipy.optimize import minimize
 
-from gpomap import lapack
+from gpomap import _compiled_local, lapack
 from gpomap.errors import NotFittedError, NumericalError
 from gpomap.kernels.area import AreaKernel
+from gpomap.kernels.closed_form import POINT_WIDTH, BoxPointFactors
 from gpomap.kernels.tensor import TensorDistances
 from gpomap.lattice import column_bounds
 from gpomap.squash import CLASS_WEIGHTS, SQUASH_BOUNDS, ProbitSquash, class_weights, loo_probit, probit_gradient_in_shift
@@ -473,6 +474,14 @@ LOCAL_SIDE_RANGE: tuple[float, float] = (0.25, 1.0)
 LOCAL_AXES: dict[int, int | None] = {2: None, 3: 2}
 
 
+def _packed(parts: list[NDArray[np.intp]]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Index arrays one after another and where each starts (the last entry: the total), both int64."""
+    starts = np.zeros(len(parts) + 1, dtype=np.int64)
+    np.cumsum([p.size for p in parts], out=starts[1:])
+    flat = np.concatenate(parts).astype(np.int64, copy=False) if parts else np.empty(0, dtype=np.int64)
+    return flat, starts
+
+
 @dataclass
 class GPPosterior:
     """A fitted GP: what predicting from it takes, and its prediction, dense or local.
@@ -587,6 +596,32 @@ class GPPosterior:
         points = bool(np.array_equal(queries.lower, queries.upper))
         # Work common to every block done once (the exact kernel's tables of factors).
         cross = kern.point_blocks(X, queries.lower) if points else None
+        if isinstance(cross, BoxPointFactors) and _compiled_local.ENABLED:
+            reduction = np.zeros(len(queries))
+            side_lo, side_hi, side_of = cross.packed_sides()
+            q_index, q_start = _packed([q for q, _ in blocks])
+            j_index, j_start = _packed([near for _, near in blocks])
+            _compiled_local.point_block_moments(
+                self.precision if self.precision is not None else np.empty((0, 0)),
+                self.weights,
+                side_lo,
+                side_hi,
+                side_of,
+                np.ascontiguousarray(queries.lower, dtype=np.float64),
+                q_index,
+                q_start,
+                j_index,
+                j_start,
+                float(cross.length_scale),
+                float(cross.variance),
+                POINT_WIDTH,
+                var is not None,
+                mean,
+                reduction,
+            )
+            if var is not None:
+                var = np.maximum(var - reduction, 0.0)
+            return mean, var
         for q, near in blocks:
             if near.size == 0:
                 continue

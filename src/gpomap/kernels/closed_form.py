@@ -527,6 +527,24 @@ class BoxPointFactors:
                 table = (side_point_factors(a, b, values, length_scale), inverse)
             self.axes.append((a, b, side, table, inverse is not None))
 
+    def packed_sides(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+        """Every axis's distinct sides one axis after another, and each box's side on each axis among them.
+
+        Returns
+        -------
+        side_lo, side_hi : ndarray of shape (s,)
+        side_of : ndarray of int, shape (n, d)
+            Box i's side on axis k is ``side_lo[side_of[i, k]]``, ``side_hi[side_of[i, k]]``.
+        """
+        side_of = np.empty((self.n, len(self.axes)), dtype=np.int64)
+        offset = 0
+        for k, (a, _, side, _, _) in enumerate(self.axes):
+            side_of[:, k] = side + offset
+            offset += a.size
+        lo = np.concatenate([ax[0] for ax in self.axes]) if self.axes else np.empty(0)
+        hi = np.concatenate([ax[1] for ax in self.axes]) if self.axes else np.empty(0)
+        return lo, hi, side_of
+
     def block(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.float64]:
         """K[rows][:, cols], ndarray of shape (len(rows), len(cols)).
 
