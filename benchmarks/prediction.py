@@ -12,7 +12,9 @@ otherwise) and predicted
 
 Each is timed with the local prediction (:func:`gpomap.tiles.predict_tile_task`'s default): the
 first call (which forms each tile's K^-1) and the best of `--repeat` (K^-1 cached; wall clock,
-and this process's CPU time, steadier on a shared machine), and once with
+and this process's CPU time, steadier on a shared machine); the best of `--repeat` again with the
+blocks walked by numpy instead of the compiled loop (:mod:`gpomap._compiled_local`, the exact SE
+kernel at points only; the same numbers to round-off); and once with
 ``local=False``, the dense solve it replaces; the table gives both rates, their ratio, and the
 largest absolute differences of probability and latent variance between the two. One process,
 one BLAS thread (set here before numpy loads).
@@ -85,6 +87,7 @@ def main() -> None:
 
     import numpy as np
 
+    from gpomap import _compiled_local
     from gpomap.grid import GridSpec
     from gpomap.io import read_scans
     from gpomap.mapping import AreaGPOM
@@ -98,7 +101,7 @@ def main() -> None:
     }
     head = (
         f"{'dataset':<8}{'kernel':<10}{'cells/tile':>11} {'case':<9}{'points':>9}{'first s':>9}{'best s':>8}"
-        f"{'pts/s':>10}{'cpu pts/s':>10}{'dense s':>9}{'dense pts/s':>12}{'speed-up':>9}{'max |dp|':>10}{'max |dvar|':>11}"
+        f"{'pts/s':>10}{'cpu pts/s':>10}{'numpy pts/s':>12}{'dense s':>9}{'dense pts/s':>12}{'speed-up':>9}{'max |dp|':>10}{'max |dvar|':>11}"
     )
     print(head, flush=True)
     for name in args.datasets.split(","):
@@ -120,9 +123,15 @@ def main() -> None:
                 for state in model.tiles_.values():
                     state.posterior.precision = None
                 first, best, cpu, (p, v) = timed(fn, args.repeat)
+                compiled = _compiled_local.ENABLED
+                _compiled_local.ENABLED = False
+                try:
+                    _, numpy_best, _, _ = timed(fn, args.repeat)
+                finally:
+                    _compiled_local.ENABLED = compiled
                 row = (
                     f"{name:<8}{kernel:<10}{f'{np.median(cells):.0f}/{cells.max()}':>11} {case:<9}{n_points:>9}"
-                    f"{first:>9.3f}{best:>8.3f}{n_points / best:>10.0f}{n_points / cpu:>10.0f}"
+                    f"{first:>9.3f}{best:>8.3f}{n_points / best:>10.0f}{n_points / cpu:>10.0f}{n_points / numpy_best:>12.0f}"
                 )
                 if args.no_dense:
                     print(row, flush=True)
