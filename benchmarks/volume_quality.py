@@ -67,6 +67,7 @@ from numpy.typing import NDArray
 
 from gpomap.baselines.octomap import OctoMapBaseline
 from gpomap.baselines.ogm import OccupancyGridMapper
+from gpomap.benchmark import autorange
 from gpomap.clouds import CloudScan
 from gpomap.evaluation import BOUNDARY_RADIUS, TEST_FREE_STEP, TEST_HIT_MARGIN, near, score
 from gpomap.io import read_clouds
@@ -171,13 +172,15 @@ def _fit_predict(
     row: dict[str, Any] = {"dataset": dataset, "method": name}
     try:
         model.fit(train)  # the warm-up
-        fits: list[tuple[float, dict[str, float]]] = []
-        while len(fits) < max(1, repeats) or (sum(f[0] for f in fits) < MIN_TIMED_SECONDS and len(fits) < MAX_REPEATS):
+
+        def timed_fit() -> tuple[float, dict[str, float]]:
             t0 = time.perf_counter()
             model.fit(train)
             # gpomap's stage times of the fit, seconds, taken before predicting (which times
             # itself into the same dict, over the calibration's "prediction").
-            fits.append((time.perf_counter() - t0, dict(getattr(model, "timings_", None) or {})))
+            return time.perf_counter() - t0, dict(getattr(model, "timings_", None) or {})
+
+        fits = autorange(timed_fit, max(1, repeats), MIN_TIMED_SECONDS, MAX_REPEATS)
         fit_s, stages = min(fits, key=lambda f: f[0])
         t1 = time.perf_counter()
         p = np.asarray(model.predict_proba(points), dtype=float)

@@ -77,3 +77,18 @@ def test_fast_methods_are_timed_until_the_runs_fill_the_minimum(tmp_path, monkey
     assert (row["fit_seconds"], row["predict_seconds"]) == pytest.approx((0.25, 0.125))
     (line,) = [x for x in (tmp_path / "tables.md").read_text().splitlines() if x.startswith("| OGM |")]
     assert [c.strip() for c in line.split("|")][7] == "4"  # the "runs" column
+
+
+def test_autorange_times_until_the_minimum_then_stops_at_the_cap():
+    from gpomap.benchmark import autorange
+
+    def runs_of(seconds):
+        it = iter(seconds)
+        return lambda: (next(it), None)
+
+    # Three runs of 1 s already fill 2 s: exactly the three asked for.
+    assert len(autorange(runs_of([1.0] * 10), 3, min_seconds=2.0, max_runs=20)) == 3
+    # Runs of 0.3 s: seven fill 2.1 s (six are 1.8 s).
+    assert [s for s, _ in autorange(runs_of([0.3] * 30), 3, min_seconds=2.0, max_runs=20)] == [0.3] * 7
+    # Never more than the cap, however short the runs.
+    assert len(autorange(runs_of([0.01] * 30), 1, min_seconds=2.0, max_runs=5)) == 5
