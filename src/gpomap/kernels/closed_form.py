@@ -478,6 +478,18 @@ def side_point_factors(
 MAX_FACTOR_TABLE: int = 4_000_000
 
 
+#: One axis of :class:`BoxPointFactors`: distinct sides lo and hi, each box's side, the table of
+#: factors against the distinct coordinates and each point's coordinate among them (or None), and
+#: whether the points repeat coordinates.
+_AxisFactors = tuple[
+    NDArray[np.float64],
+    NDArray[np.float64],
+    NDArray[np.intp],
+    tuple[NDArray[np.float64], NDArray[np.intp]] | None,
+    bool,
+]
+
+
 class BoxPointFactors:
     """The SE kernel between one set of boxes and one set of points, evaluated block by block.
 
@@ -508,24 +520,29 @@ class BoxPointFactors:
         self.variance = variance
         self.length_scale = length_scale
         self.n = lower.shape[0]
-        #: Per axis: distinct sides (lo, hi), each box's side, either (table, coordinate index of
-        #: each point) or None (tabled per block), and whether the points repeat coordinates.
-        self.axes: list[
-            tuple[
-                NDArray[np.float64],
-                NDArray[np.float64],
-                NDArray[np.intp],
-                tuple[NDArray[np.float64], NDArray[np.intp]] | None,
-                bool,
-            ]
-        ] = []
-        for k in range(lower.shape[1]):
-            a, b, side = distinct_intervals(lower[:, k], upper[:, k])
-            values, inverse = _distinct_coordinates(points[:, k])
-            table = None
-            if inverse is not None and a.size * values.size <= MAX_FACTOR_TABLE:
-                table = (side_point_factors(a, b, values, length_scale), inverse)
-            self.axes.append((a, b, side, table, inverse is not None))
+        #: Per axis: its distinct sides (lo, hi) and each box's side among them.
+        self.sides: list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]] = [
+            distinct_intervals(lower[:, k], upper[:, k]) for k in range(lower.shape[1])
+        ]
+        self._axes: list[_AxisFactors] | None = None
+
+    @property
+    def axes(self) -> list[_AxisFactors]:
+        """Per axis: distinct sides (lo, hi), each box's side, either (table, coordinate index of
+        each point) or None (tabled per block), and whether the points repeat coordinates.
+
+        Formed on first use: the compiled local prediction (:mod:`gpomap._compiled_local`) takes
+        only :meth:`packed_sides`.
+        """
+        if self._axes is None:
+            self._axes = []
+            for k, (a, b, side) in enumerate(self.sides):
+                values, inverse = _distinct_coordinates(self.points[:, k])
+                table = None
+                if inverse is not None and a.size * values.size <= MAX_FACTOR_TABLE:
+                    table = (side_point_factors(a, b, values, self.length_scale), inverse)
+                self._axes.append((a, b, side, table, inverse is not None))
+        return self._axes
 
     def packed_sides(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
         """Every axis's distinct sides one axis after another, and each box's side on each axis among them.
@@ -536,13 +553,13 @@ class BoxPointFactors:
         side_of : ndarray of int, shape (n, d)
             Box i's side on axis k is ``side_lo[side_of[i, k]]``, ``side_hi[side_of[i, k]]``.
         """
-        side_of = np.empty((self.n, len(self.axes)), dtype=np.int64)
+        side_of = np.empty((self.n, len(self.sides)), dtype=np.int64)
         offset = 0
-        for k, (a, _, side, _, _) in enumerate(self.axes):
+        for k, (a, _, side) in enumerate(self.sides):
             side_of[:, k] = side + offset
             offset += a.size
-        lo = np.concatenate([ax[0] for ax in self.axes]) if self.axes else np.empty(0)
-        hi = np.concatenate([ax[1] for ax in self.axes]) if self.axes else np.empty(0)
+        lo = np.concatenate([a for a, _, _ in self.sides]) if self.sides else np.empty(0)
+        hi = np.concatenate([b for _, b, _ in self.sides]) if self.sides else np.empty(0)
         return lo, hi, side_of
 
     def block(self, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.float64]:
