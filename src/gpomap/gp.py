@@ -587,7 +587,12 @@ class GPPosterior:
     def _latent_local(
         self, queries: Supports, blocks: list[tuple[NDArray[np.intp], NDArray[np.intp]]], variance: bool
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-        """Mean k_J^T w_J and (with `variance`) variance k** - k_J^T (K^-1)_JJ k_J, block by block."""
+        """Mean k_J^T w_J and (with `variance`) variance k** - k_J^T (K^-1)_JJ k_J, block by block.
+
+        The exact SE kernel at points takes one compiled call over every block
+        (:func:`gpomap._compiled_local.point_block_moments`) where numba is enabled; the loop
+        below is the reference it is tested against, and the path of every other kernel.
+        """
         kern, X = self.kernel, self.inputs
         mean = np.zeros(len(queries))
         var = kern.diag(queries) if variance else None  # the prior where no input is near
