@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
+from gpomap.kernels._compiled_box import distinct_sorted
 
 #: Whether numba imports here.
 AVAILABLE: bool = NUMBA_AVAILABLE
@@ -31,22 +32,6 @@ AVAILABLE: bool = NUMBA_AVAILABLE
 ENABLED: bool = compiled_by_default()
 
 _SQRT_HALF_PI = math.sqrt(math.pi / 2.0)
-
-
-@jit(cache=True, nogil=True)
-def _distinct_sorted(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:  # pragma: no cover - compiled
-    """The distinct values of x, sorted, and where each element of x is among them."""
-    order = np.argsort(x, kind="mergesort")
-    values = np.empty(x.size)
-    where = np.empty(x.size, dtype=np.int64)
-    u = -1
-    for t in range(x.size):
-        v = x[order[t]]
-        if u < 0 or v != values[u]:
-            u += 1
-            values[u] = v
-        where[order[t]] = u
-    return values[: u + 1], where
 
 
 @jit(cache=True, nogil=True)
@@ -76,7 +61,7 @@ def _block_kernel(
     for k in range(d):
         for i in range(Q):
             coords[i] = points[queries[i], k]
-        values, where = _distinct_sorted(coords)
+        values, where = distinct_sorted(coords)
         # The block's distinct sides on this axis, numbered in order of first use.
         n_used = 0
         used = np.empty(J, dtype=np.int64)
@@ -87,7 +72,8 @@ def _block_kernel(
                 used[n_used] = s
                 n_used += 1
             sides[j] = local[s]
-        # Their distinct ends (sides of the width of a point take the point value instead).
+        # Their distinct ends (sides of the width of a point take the point value instead), and
+        # which end each side's lo and hi is: ends[2 t], ends[2 t + 1] are the t-th wide side's.
         ends = np.empty(2 * n_used)
         n_ends = 0
         for u in range(n_used):
@@ -96,19 +82,20 @@ def _block_kernel(
                 ends[n_ends] = side_lo[s]
                 ends[n_ends + 1] = side_hi[s]
                 n_ends += 2
-        end_values, _ = _distinct_sorted(ends[:n_ends])
+        end_values, end_of = distinct_sorted(ends[:n_ends])
         G = np.empty((end_values.size, values.size))
         for e in range(end_values.size):
             for v in range(values.size):
                 G[e, v] = g1 * math.erf((end_values[e] - values[v]) * scale)
         F = np.empty((n_used, values.size))
+        wide = 0
         for u in range(n_used):
             s = used[u]
             lo, hi = side_lo[s], side_hi[s]
             w = hi - lo
             if w >= point_width * length_scale:
-                a = np.searchsorted(end_values, lo)
-                b = np.searchsorted(end_values, hi)
+                a, b = end_of[2 * wide], end_of[2 * wide + 1]
+                wide += 1
                 for v in range(values.size):
                     F[u, v] = (G[b, v] - G[a, v]) / w
             else:

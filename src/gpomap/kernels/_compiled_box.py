@@ -42,6 +42,22 @@ _SQRT_HALF_PI = math.sqrt(math.pi / 2.0)
 
 
 @jit(cache=True, nogil=True)
+def distinct_sorted(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.intp]]:  # pragma: no cover - compiled
+    """The distinct values of x, sorted, and where each element of x is among them (``values[where] == x``)."""
+    order = np.argsort(x, kind="mergesort")
+    values = np.empty(x.size)
+    where = np.empty(x.size, dtype=np.intp)
+    u = 0
+    for t in range(x.size):
+        v = x[order[t]]
+        if u == 0 or v != values[u - 1]:
+            values[u] = v
+            u += 1
+        where[order[t]] = u - 1
+    return values[:u], where
+
+
+@jit(cache=True, nogil=True)
 def _axis_tables(
     lo: NDArray[np.float64], hi: NDArray[np.float64], l: float, eval_gradient: bool, point_width: float
 ) -> tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.float64]]:  # pragma: no cover - compiled
@@ -74,16 +90,8 @@ def _axis_tables(
     both = np.empty(2 * u)
     both[:u] = a[:u]
     both[u:] = b[:u]
-    by_value = np.argsort(both, kind="mergesort")
-    ends = np.empty(2 * u)
-    where = np.empty(2 * u, dtype=np.intp)
-    e = 0
-    for t in range(2 * u):
-        v = both[by_value[t]]
-        if e == 0 or v != ends[e - 1]:
-            ends[e] = v
-            e += 1
-        where[by_value[t]] = e - 1
+    ends, where = distinct_sorted(both)
+    e = ends.size
     # G2 (and its derivative in l) of every difference of ends: the very differences the
     # corners take. G2 is even, so each pair once.
     g2 = np.empty((e, e))
