@@ -180,11 +180,12 @@ def test_robust_cholesky_adds_jitter_only_when_needed():
 def test_local_prediction_equals_dense(kernel, monkeypatch):
     # A 40 m strip of cells and a short length scale: each block of queries sees a few metres of
     # the map, so local prediction is taken, and must agree with the dense solve (covariances
-    # below 1e-9 of the variance left out, so to 1e-9; the default tolerance is checked in
+    # below 1e-9 of the variance left out, so to 1e-9; the default tolerances are checked in
     # test_local_prediction).
     import gpomap.gp
 
     monkeypatch.setattr(gpomap.gp, "LOCAL_TOL", 1e-9)
+    monkeypatch.setattr(gpomap.gp, "LOCAL_VARIANCE_TOL", 1e-9)
     rng = np.random.default_rng(6)
     lo = np.column_stack([rng.uniform(0, 40, 500), rng.uniform(0, 4, 500)])
     X = Supports.from_boxes(lo, lo + rng.uniform(0.1, 0.5, (500, 2)), rng.integers(1, 20, 500).astype(float))

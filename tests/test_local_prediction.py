@@ -10,7 +10,7 @@ import pytest
 import gpomap.gp
 import gpomap.tiles as tiles
 from gpomap import _compiled_local
-from gpomap.gp import LOCAL_TOL, local_blocks
+from gpomap.gp import LOCAL_TOL, LOCAL_VARIANCE_TOL, local_blocks
 from gpomap.simulate import paper_room_scans
 from gpomap.supports import Supports
 from gpomap.tiles import TiledGPOM, predict_tile_task, taper
@@ -21,9 +21,11 @@ OPTS = dict(optimise=False, noise=0.1, free_step=0.3)
 
 @pytest.fixture
 def tight(monkeypatch):
-    """Covariances below 1e-9 of the variance left out, not LOCAL_TOL's: the blocks' bookkeeping
-    (which cells, which entries of K^-1) is then checked against the dense prediction to 1e-8."""
+    """Covariances below 1e-9 of the variance left out, not LOCAL_TOL's and LOCAL_VARIANCE_TOL's: the
+    blocks' bookkeeping (which cells, which entries of K^-1) is then checked against the dense
+    prediction to 1e-8."""
     monkeypatch.setattr(gpomap.gp, "LOCAL_TOL", 1e-9)
+    monkeypatch.setattr(gpomap.gp, "LOCAL_VARIANCE_TOL", 1e-9)
 
 
 def _both(model: TiledGPOM, key: tuple[int, int], points: np.ndarray):
@@ -114,9 +116,10 @@ def test_points_with_no_cell_near_get_the_prior(room_maps, tight, path):
 
 
 def test_local_is_within_the_tolerance_of_dense_at_the_default(room_maps, path):
-    # Every covariance left out is below LOCAL_TOL * variance (see test_blocks_... below), so the
-    # mean moves by at most that times the sum of |weights|, and the variance's reduction
-    # k^T K^-1 k by at most (2 tol + tol^2) variance^2 sum |K^-1| (each |k_j| <= variance).
+    # Every covariance left out of the mean is below LOCAL_TOL * variance (see test_blocks_...
+    # below), so the mean moves by at most that times the sum of |weights|; every one left out of
+    # the variance is below LOCAL_VARIANCE_TOL * variance, so its reduction k^T K^-1 k moves by at
+    # most (2 tol + tol^2) variance^2 sum |K^-1| (each |k_j| <= variance).
     from gpomap.gp import cholesky_inverse
 
     model = room_maps["se"]
@@ -128,7 +131,7 @@ def test_local_is_within_the_tolerance_of_dense_at_the_default(room_maps, path):
     (mean, var), (dense_mean, dense_var) = _both(model, key, points)
     s2 = state.hyperparameters["variance"]
     mean_bound = LOCAL_TOL * s2 * np.abs(state.posterior.weights).sum()
-    var_bound = (2 * LOCAL_TOL + LOCAL_TOL**2) * s2**2 * np.abs(cholesky_inverse(state.posterior.L)).sum()
+    var_bound = (2 * LOCAL_VARIANCE_TOL + LOCAL_VARIANCE_TOL**2) * s2**2 * np.abs(cholesky_inverse(state.posterior.L)).sum()
     assert np.abs(mean - dense_mean).max() <= mean_bound
     assert np.abs(var - dense_var).max() <= var_bound
     # The bounds are loose; what the map's probabilities move by, measured: below 1e-5 here.
@@ -142,16 +145,25 @@ def test_blocks_cover_every_query_once_and_keep_every_cell_within_reach():
     cells = Supports.from_boxes(lo, lo + rng.uniform(0.1, 0.6, (400, 2)))
     queries = Supports.from_points(rng.uniform(-2, 22, (5000, 2)))
     radius = 1.5
-    blocks, _ = local_blocks(queries, cells, radius, chunk_size=50)
-    seen = np.concatenate([q for q, _ in blocks])
+    inner_radius = 0.8
+    blocks, _ = local_blocks(queries, cells, radius, chunk_size=50, inner_radius=inner_radius)
+    seen = np.concatenate([q for q, _, _ in blocks])
     np.testing.assert_array_equal(np.sort(seen), np.arange(5000))
-    for q, near in blocks:
+    assert any(0 < n_inner < near.size for _, near, n_inner in blocks)
+    for q, near, n_inner in blocks:
         assert q.size <= 50
-        # Every cell nearer than the radius to any query of the block is in the block.
+        # Every cell nearer than the radius to any query of the block is in the block, and every
+        # cell nearer than the inner radius among its first n_inner.
         p = queries.lower[q]
         gap = np.maximum(np.maximum(cells.lower[None] - p[:, None], p[:, None] - cells.upper[None]), 0.0)
-        within = np.flatnonzero(np.any(np.sum(gap**2, axis=2) < radius**2, axis=0))
-        assert np.isin(within, near).all()
+        d2 = np.sum(gap**2, axis=2)
+        assert np.isin(np.flatnonzero(np.any(d2 < radius**2, axis=0)), near).all()
+        assert np.isin(np.flatnonzero(np.any(d2 < inner_radius**2, axis=0)), near[:n_inner]).all()
+        # ... and no cell beyond the inner radius of the block's bounding box is among them.
+        lo_b, hi_b = p.min(axis=0), p.max(axis=0)
+        box_gap = np.maximum(np.maximum(cells.lower[near] - hi_b, lo_b - cells.upper[near]), 0.0)
+        box_d2 = np.sum(box_gap**2, axis=1)
+        assert (box_d2[:n_inner] < inner_radius**2).all() and (box_d2[n_inner:] >= inner_radius**2).all()
 
 
 def test_the_cached_inverse_is_not_pickled_or_compared(room_maps):
@@ -231,7 +243,7 @@ def test_compiled_blocks_equal_numpys_to_round_off(monkeypatch, dim):
     )
     Q = Supports.from_points(points)
     blocks = posterior.local_blocks(Q, 4096)
-    assert blocks is not None and any(near.size == 0 for _, near in blocks)
+    assert blocks is not None and any(near.size == 0 for _, near, _ in blocks)
     out = {}
     for compiled in (False, True):
         monkeypatch.setattr(_compiled_local, "ENABLED", compiled)

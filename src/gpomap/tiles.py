@@ -499,8 +499,8 @@ def predict_tile_task(
     variance : bool
         Also the variance (the costly part); False gives None.
     local : bool
-        Local prediction where it pays (equal to the dense one to :data:`gpomap.gp.LOCAL_TOL`);
-        False: always dense (the reference).
+        Local prediction where it pays (equal to the dense one to :data:`gpomap.gp.LOCAL_TOL` and
+        :data:`gpomap.gp.LOCAL_VARIANCE_TOL`); False: always dense (the reference).
 
     Returns
     -------
