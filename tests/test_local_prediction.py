@@ -258,3 +258,29 @@ def test_compiled_blocks_equal_numpys_to_round_off(monkeypatch, dim):
     # Far points: the prior.
     np.testing.assert_array_equal(m1[-500:], 0.0)
     np.testing.assert_array_equal(v1[-500:], 1.7)
+
+
+@pytest.mark.skipif(not _compiled_local.AVAILABLE, reason="numba is not installed")
+@pytest.mark.parametrize("half_width", [0.05, 0.4, 1.0, 2.5, 5.0])
+def test_interpolated_factors_equal_the_direct_ones(half_width):
+    """A block's factors interpolated from Chebyshev nodes (as the compiled kernel takes them for
+    scattered points) against each coordinate's own erf, sides of every width and placement."""
+    from gpomap.kernels.closed_form import POINT_WIDTH
+
+    rng = np.random.default_rng(12)
+    l = 0.5
+    lo = np.round(rng.uniform(-4, 4, 300) / 0.05) * 0.05
+    hi = lo + rng.choice([0.0, 0.5 * POINT_WIDTH * l, 0.05, 0.3, 1.0, 3.0], 300)
+    used = np.arange(300, dtype=np.int64)
+    centre = rng.uniform(-1, 1)
+    a, b = centre - half_width * l, centre + half_width * l
+    n_nodes = _compiled_local.chebyshev_nodes_needed(half_width * l, l, _compiled_local.INTERPOLATION_ERROR)
+    nodes, B = _compiled_local._interpolation_matrix(a, b, n_nodes, np.zeros(0))
+    # Scattered coordinates, the interval's ends, and a node itself (the basis there is exact).
+    x = np.concatenate([rng.uniform(a, b, 2000), [a, b, nodes[3]]])
+    nodes, B = _compiled_local._interpolation_matrix(a, b, n_nodes, x)
+    direct = _compiled_local._factors_at(lo, hi, used, 300, x, l, POINT_WIDTH)
+    interpolated = _compiled_local._factors_at(lo, hi, used, 300, nodes, l, POINT_WIDTH) @ B
+    assert direct.max() > 0.5  # sides near and far
+    np.testing.assert_allclose(interpolated, direct, rtol=0, atol=5e-14)
+    np.testing.assert_array_equal(B[:, -1], np.eye(n_nodes)[3])
