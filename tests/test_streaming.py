@@ -169,7 +169,8 @@ def test_tiles_in_3d_are_columns_and_one_column_is_the_plain_map():
     assert len(one.tiles_) == 1
     rng = np.random.default_rng(2)
     pts = rng.uniform([0, 0, 0], [6, 4, 2.5], (2000, 3))
-    plain = gp.squash(*gp.predict_latent(Supports.from_points(pts), local=False))
+    # The same prediction (local where it pays, as the tile's) as the one GP's.
+    plain = gp.squash(*gp.predict_latent(Supports.from_points(pts)))
     np.testing.assert_allclose(one.predict_proba_gp(pts), plain, rtol=0, atol=1e-9)
     # 2 m columns: several tiles, blended; the voxel map of the columns is a VoxelMap.
     cols = TiledGPOM(tile_size=2.0, n_workers=1, **opts).fit(clouds, hyperparameters=one.hyperparameters_)

@@ -64,7 +64,8 @@ def test_a_map_in_one_block_is_one_gp_over_its_cells(room):
     assert (hyp["length_scale"], hyp["noise"]) == (OPTS["length_scale"], OPTS["noise"])
     assert (hyp["alpha"], hyp["beta"]) == pytest.approx((gp.squash.alpha, gp.squash.beta), rel=1e-9)
     pts = np.random.default_rng(0).uniform([-1.0, -1.0], [21.0, 17.0], (500, 2))
-    mean, var = gp.predict_latent(Supports.from_points(pts), local=False)
+    # The same prediction (local where it pays, as the tile's) as the one GP's.
+    mean, var = gp.predict_latent(Supports.from_points(pts))
     mu_t, var_t = tiled.predict(pts, return_var=True)
     np.testing.assert_allclose(mu_t, mean, rtol=0, atol=1e-10)
     np.testing.assert_allclose(var_t, var, rtol=0, atol=1e-10)

@@ -302,6 +302,16 @@ LOCAL_BLOCK_SIDE: float = 0.25
 #: against 0.9 ms for 108 queries at |J| = 365).
 LOCAL_GATHER_QUERIES: int = 64
 
+#: Local prediction is taken where its work (:func:`local_blocks`' estimate, plus n^3 for K^-1)
+#: is at most this share of the dense n^2 m: half with numpy's block loop, whose products are the
+#: dense path's own; twice with the compiled walk (:mod:`gpomap._compiled_local`), whose kernel
+#: costs a small part of the dense path's numpy one (an erf per side end and point): on the paper's
+#: room's edge tiles (about 120 cells, every cell within reach of every block) the dense path
+#: took 2.2 us per point and the walk about 0.8 (`benchmarks/prediction.py`: random points 462 ->
+#: 509 k/s, Intel's 924 -> 987 k/s).
+LOCAL_WORK_SHARE: float = 0.5
+COMPILED_LOCAL_WORK_SHARE: float = 2.0
+
 #: Block-cell pairs tested at once when :func:`local_blocks` looks for each block's inputs.
 _PAIRS_AT_ONCE: int = 1 << 15
 
@@ -318,6 +328,32 @@ class LocalBlock(NamedTuple):
     n_inner: int
 
 
+@dataclass(frozen=True)
+class LocalBlocks:
+    """Every block of a local prediction, packed: block b's queries are
+    ``query_index[query_start[b]:query_start[b + 1]]``, its inputs likewise, the first
+    ``n_inner[b]`` of them within the inner radius. Iterating gives each :class:`LocalBlock`."""
+
+    #: ndarray of int64, shape (m,): the queries, block after block.
+    query_index: NDArray[np.int64]
+    #: ndarray of int64, shape (blocks + 1,).
+    query_start: NDArray[np.int64]
+    #: ndarray of int64, shape (sum of |J|,): the inputs, block after block, inner ones first.
+    input_index: NDArray[np.int64]
+    #: ndarray of int64, shape (blocks + 1,).
+    input_start: NDArray[np.int64]
+    #: ndarray of int64, shape (blocks,).
+    n_inner: NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return int(self.n_inner.size)
+
+    def __iter__(self) -> Iterator[LocalBlock]:
+        qs, js = self.query_start, self.input_start
+        for b in range(len(self)):
+            yield LocalBlock(self.query_index[qs[b] : qs[b + 1]], self.input_index[js[b] : js[b + 1]], int(self.n_inner[b]))
+
+
 def local_blocks(
     queries: Supports,
     train: Supports,
@@ -327,7 +363,7 @@ def local_blocks(
     side: float = LOCAL_BLOCK_SIDE,
     euclidean: bool = True,
     inner_radius: float | None = None,
-) -> tuple[list[LocalBlock], float]:
+) -> tuple[LocalBlocks, float]:
     """The queries in spatial blocks, each with the training inputs that come within `radius` of it.
 
     Queries are binned by centre on a grid of side ``LOCAL_BLOCK_SIDE * radius`` (bins of more
@@ -361,7 +397,7 @@ def local_blocks(
 
     Returns
     -------
-    blocks : list of LocalBlock
+    blocks : LocalBlocks
         Query indices, training indices and how many of those are within `inner_radius`, per
         block; every query is in exactly one block.
     work : float
@@ -370,27 +406,33 @@ def local_blocks(
     """
     m = len(queries)
     if m == 0:
-        return [], 0.0
+        empty = np.zeros(0, dtype=np.int64)
+        return LocalBlocks(empty, np.zeros(1, dtype=np.int64), empty, np.zeros(1, dtype=np.int64), empty), 0.0
     centres = queries.centres
     a = centres.shape[1] if axes is None else axes
-    bins = np.floor((centres[:, :a] - centres[:, :a].min(axis=0)) / (side * radius)).astype(np.int64)
-    # Sort by bin (last axis fastest) and cut where the bin changes.
-    order = np.lexsort(bins.T[::-1])
-    sb = bins[order]
-    starts = np.flatnonzero(np.concatenate([[True], np.any(sb[1:] != sb[:-1], axis=1)]))
+    low, _ = column_bounds(centres[:, :a])
+    bins = np.floor((centres[:, :a] - low) / (side * radius)).astype(np.int64)
+    # One integer per bin, the last axis fastest, sorted stably (a radix sort where the bins'
+    # numbers fit 16 bits), and cut where it changes.
+    key = np.zeros(m, dtype=np.int64)
+    for k in range(a):
+        key *= int(bins[:, k].max()) + 1
+        key += bins[:, k]
+    order = np.argsort(key.astype(np.int16) if key.max() < np.iinfo(np.int16).max else key, kind="stable")
+    sorted_key = key[order]
+    starts = np.flatnonzero(np.concatenate([[True], sorted_key[1:] != sorted_key[:-1]]))
     ends = np.append(starts[1:], m)
     # Bins of more than chunk_size queries in pieces of at most that many.
     pieces = [np.arange(s, e, chunk_size) for s, e in zip(starts, ends)]
     cuts = np.concatenate(pieces) if pieces else starts
-    cut_ends = np.append(cuts[1:], m)
     lo_b = np.minimum.reduceat(queries.lower[order], cuts, axis=0)
     hi_b = np.maximum.reduceat(queries.upper[order], cuts, axis=0)
     n = len(train)
-    r2 = radius * radius
     inner = radius if inner_radius is None else min(inner_radius, radius)
-    limit, inner_limit = (r2, inner * inner) if euclidean else (radius, inner)
-    blocks: list[LocalBlock] = []
-    work = 0.0
+    limit, inner_limit = (radius * radius, inner * inner) if euclidean else (radius, inner)
+    rows: list[NDArray[np.intp]] = []
+    cols: list[NDArray[np.intp]] = []
+    outer: list[NDArray[np.bool_]] = []
     step = max(1, _PAIRS_AT_ONCE // max(n, 1))
     for b0 in range(0, cuts.size, step):
         b1 = min(cuts.size, b0 + step)
@@ -404,16 +446,24 @@ def local_blocks(
                 d2 += gap
             else:
                 np.maximum(d2, gap, out=d2)
-        near_all = d2 < limit
-        for b in range(b0, b1):
-            q = order[cuts[b] : cut_ends[b]]
-            near = np.flatnonzero(near_all[b - b0])
-            within = d2[b - b0, near] < inner_limit
-            n_inner = int(np.count_nonzero(within))
-            if n_inner < near.size:
-                near = np.concatenate([near[within], near[~within]])
-            blocks.append(LocalBlock(q, near, n_inner))
-            work += n_inner * n_inner * (q.size + LOCAL_GATHER_QUERIES)
+        r, c = np.nonzero(d2 < limit)  # by block, then input
+        rows.append(r + b0)
+        cols.append(c)
+        outer.append(d2[r, c] >= inner_limit)
+    row = np.concatenate(rows)
+    # Each block's inner inputs first, each part in input order (a stable sort on small integers).
+    order_in = np.argsort(2 * row + np.concatenate(outer), kind="stable")
+    counts = np.bincount(row, minlength=cuts.size)
+    n_inner = counts - np.bincount(row, weights=np.concatenate(outer), minlength=cuts.size).astype(np.int64)
+    query_start = np.append(cuts, m).astype(np.int64)
+    blocks = LocalBlocks(
+        query_index=order.astype(np.int64),
+        query_start=query_start,
+        input_index=np.concatenate(cols)[order_in].astype(np.int64),
+        input_start=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+        n_inner=n_inner.astype(np.int64),
+    )
+    work = float(np.sum(n_inner.astype(np.float64) ** 2 * (np.diff(query_start) + LOCAL_GATHER_QUERIES)))
     return blocks, work
 
 
@@ -507,14 +557,6 @@ LOCAL_SIDE_RANGE: tuple[float, float] = (0.25, 1.0)
 LOCAL_AXES: dict[int, int | None] = {2: None, 3: 2}
 
 
-def _packed(parts: list[NDArray[np.intp]]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Index arrays one after another and where each starts (the last entry: the total), both int64."""
-    starts = np.zeros(len(parts) + 1, dtype=np.int64)
-    np.cumsum([p.size for p in parts], out=starts[1:])
-    flat = np.concatenate(parts).astype(np.int64, copy=False) if parts else np.empty(0, dtype=np.int64)
-    return flat, starts
-
-
 @dataclass
 class GPPosterior:
     """A fitted GP: what predicting from it takes, and its prediction, dense or local.
@@ -584,7 +626,7 @@ class GPPosterior:
                 return self._latent_local(queries, blocks, variance)
         return self._latent_dense(queries, variance, chunk_size)
 
-    def local_blocks(self, queries: Supports, chunk_size: int) -> list[LocalBlock] | None:
+    def local_blocks(self, queries: Supports, chunk_size: int) -> LocalBlocks | None:
         """Spatial blocks of queries with the inputs near each (:func:`local_blocks`), or None
         where the dense prediction is taken.
 
@@ -592,8 +634,9 @@ class GPPosterior:
         is below ``LOCAL_TOL`` of its variance: every input left out covaries with every query
         of the block by less than that. Those within the distance of ``LOCAL_VARIANCE_TOL`` come
         first and make the variance. None for kernels without such a bound (member sums, the
-        "sum" normalisation, other inputs than boxes) and where the blocks would not save half
-        the dense work. The decision counts forming K^-1 (n^3) even when it is cached, so an
+        "sum" normalisation, other inputs than boxes) and where the blocks' work is more than
+        ``LOCAL_WORK_SHARE`` of the dense one (``COMPILED_LOCAL_WORK_SHARE`` where the compiled
+        walk takes them). The decision counts forming K^-1 (n^3) even when it is cached, so an
         answer never depends on what was predicted before.
         """
         kern, X = self.kernel, self.inputs
@@ -602,16 +645,17 @@ class GPPosterior:
         if kern.method == "summed" or kern.normalisation != "mean" or len(queries) == 0:
             return None
         n, m = len(X), len(queries)
-        if n**3 > 0.5 * n * n * m:
+        share = COMPILED_LOCAL_WORK_SHARE if self._walks_compiled(queries) else LOCAL_WORK_SHARE
+        if n**3 > share * n * n * m:
             return None  # dense whatever the blocks' work (below): not worth finding them
         r = kern.base.cutoff(LOCAL_TOL)
         axes = LOCAL_AXES.get(X.dim)
         # Blocks of about LOCAL_BLOCK_QUERIES queries where they are sparse (each kernel call and
         # gather of (K^-1)_JJ costs as much as a few dozen queries), else small, so their inputs
         # stay few: the side from the queries' mean density over their bounding box, within bounds.
-        centres = queries.centres[:, :axes]
+        low, high = column_bounds(queries.centres[:, :axes])
         lo_side, hi_side = LOCAL_SIDE_RANGE
-        extent = np.maximum(centres.max(axis=0) - centres.min(axis=0), lo_side * r)
+        extent = np.maximum(high - low, lo_side * r)
         side = (LOCAL_BLOCK_QUERIES * float(np.prod(extent)) / m) ** (1.0 / extent.size) / r
         blocks, work = local_blocks(
             queries,
@@ -622,12 +666,23 @@ class GPPosterior:
             side=min(max(side, lo_side), hi_side),
             inner_radius=kern.base.cutoff(LOCAL_VARIANCE_TOL),
         )
-        if work + n**3 > 0.5 * n * n * m:
+        if work + n**3 > share * n * n * m:
             return None
         return blocks
 
+    def _walks_compiled(self, queries: Supports) -> bool:
+        """Whether local prediction at `queries` takes the compiled walk: the exact (SE) kernel at points."""
+        kern = self.kernel
+        return (
+            _compiled_local.ENABLED
+            and isinstance(kern, AreaKernel)
+            and kern.method == "exact"
+            and kern.normalisation == "mean"
+            and bool(np.array_equal(queries.lower, queries.upper))
+        )
+
     def _latent_local(
-        self, queries: Supports, blocks: list[LocalBlock], variance: bool
+        self, queries: Supports, blocks: LocalBlocks, variance: bool
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """Mean k_J^T w_J and (with `variance`) variance k** - k_I^T (K^-1)_II k_I, block by block
         (J a block's inputs, I its inner ones).
@@ -644,11 +699,9 @@ class GPPosterior:
         points = bool(np.array_equal(queries.lower, queries.upper))
         # Work common to every block done once (the exact kernel's tables of factors).
         cross = kern.point_blocks(X, queries.lower) if points else None
-        if isinstance(cross, BoxPointFactors) and _compiled_local.ENABLED:
+        if isinstance(cross, BoxPointFactors) and self._walks_compiled(queries):
             reduction = np.zeros(len(queries))
             side_lo, side_hi, side_of = cross.packed_sides()
-            q_index, q_start = _packed([block.queries for block in blocks])
-            j_index, j_start = _packed([block.inputs for block in blocks])
             _compiled_local.point_block_moments(
                 self.precision if self.precision is not None else np.empty((0, 0)),
                 self.weights,
@@ -656,11 +709,11 @@ class GPPosterior:
                 side_hi,
                 side_of,
                 np.ascontiguousarray(queries.lower, dtype=np.float64),
-                q_index,
-                q_start,
-                j_index,
-                j_start,
-                np.array([block.n_inner for block in blocks], dtype=np.int64),
+                blocks.query_index,
+                blocks.query_start,
+                blocks.input_index,
+                blocks.input_start,
+                blocks.n_inner,
                 float(cross.length_scale),
                 float(cross.variance),
                 POINT_WIDTH,

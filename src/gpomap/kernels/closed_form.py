@@ -627,7 +627,10 @@ def se_box_self_average(
     """
     l = length_scale
     w = upper - lower
-    # For an interval against itself the four G2 terms reduce to 2 G2(w) / w^2.
-    with np.errstate(invalid="ignore", divide="ignore"):
-        f = np.where(w < POINT_WIDTH * l, 1.0, 2.0 * _g2(w, l) / np.where(w > 0, w, 1.0) ** 2)
+    # For an interval against itself the four G2 terms reduce to 2 G2(w) / w^2; a point's is 1
+    # (formed only where the sides are wide: a prediction's points have none).
+    f = np.ones_like(w)
+    wide = w >= POINT_WIDTH * l
+    if wide.any():
+        f[wide] = 2.0 * _g2(w[wide], l) / w[wide] ** 2
     return variance * np.prod(f, axis=1)
