@@ -1753,13 +1753,24 @@ class TiledGPOM:
         # Per tile: which points it predicts and with what weight.
         members: dict[tuple[int, int], tuple[NDArray[np.intp], NDArray[np.float64]]] = {}
         wsum = np.zeros(m)
-        # Points sorted by x once, so each tile scans only the points of its x range.
-        by_x = np.argsort(pts[:, 0], kind="stable")
-        xs = pts[by_x, 0]
-        for key in sorted(self.tiles_):
+        # Points bucketed by x once, in strips as wide as the blend (a radix sort of small
+        # integers), so each tile scans only the strips its blend region reaches.
+        keys = sorted(self.tiles_)
+        strip = min(self.tile_size_, self.blend_) if self.blend_ > 0 else self.tile_size_
+        x_lo, x_hi = self._blend_region(keys[0])[0], max(self._blend_region(k)[1] for k in keys)
+        n_strips = math.ceil((x_hi - x_lo) / strip) + 1
+        x_strip = np.clip(np.floor((pts[:, 0] - x_lo) / strip), -1, n_strips)
+        strip_key = x_strip.astype(np.int16 if n_strips < np.iinfo(np.int16).max else np.int64)
+        by_strip = np.argsort(strip_key, kind="stable")
+        sorted_strip = strip_key[by_strip]
+        for key in keys:
             bx0, bx1, by0, by1 = self._blend_region(key)
-            near_x = by_x[np.searchsorted(xs, bx0, side="right") : np.searchsorted(xs, bx1, side="left")]
-            idx = np.sort(near_x[(pts[near_x, 1] > by0) & (pts[near_x, 1] < by1)])  # bx0 < x < bx1, by0 < y < by1
+            first, last = math.floor((bx0 - x_lo) / strip), math.floor((bx1 - x_lo) / strip)
+            near_x = by_strip[
+                np.searchsorted(sorted_strip, first, side="left") : np.searchsorted(sorted_strip, last, side="right")
+            ]
+            inside = (pts[near_x, 0] > bx0) & (pts[near_x, 0] < bx1) & (pts[near_x, 1] > by0) & (pts[near_x, 1] < by1)
+            idx = np.sort(near_x[inside])
             if idx.size == 0:
                 continue
             x0, x1, y0, y1 = self._core(key)
@@ -1771,7 +1782,6 @@ class TiledGPOM:
         # Points no tile reaches (blocks without data): the tile whose core is nearest, alone.
         orphans = np.flatnonzero(wsum <= 0)
         if orphans.size:
-            keys = sorted(self.tiles_)
             nearest = nearest_box(pts[orphans], np.array([self._core(k) for k in keys]))
             for j in np.unique(nearest):
                 sel = orphans[nearest == j]
