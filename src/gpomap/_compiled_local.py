@@ -1,15 +1,17 @@
 """Local prediction at points compiled with numba (:meth:`gpomap.gp.GPPosterior.latent`'s fast path).
 
-A local prediction visits spatial blocks of queries, each with the inputs near it (J): it forms the
-exact SE kernel between the block's boxes and points, the mean k_J^T w_J and the variance's
-reduction k_I^T (K^-1)_II k_I over its inner inputs I. In numpy each block is some twenty calls (the kernel's distinct
-sides and ends, a table of erf, gathers, products), and on the paper's room at 200,000 random
-points (971 blocks of about 200 points and 190 inputs) the calls other than the variance's matrix
-product took 0.43 of 0.73 s. Here one compiled call per tile walks every block: each axis's
-distinct sides and ends of the block found with marks and a sort, one table of G1 over the ends
-and the block's distinct coordinates, the kernel's factors multiplied straight into K, the mean
-and, through BLAS's matrix product, the reduction. The numbers are the numpy path's to round-off
-(libm's erf stands for scipy's; ``tests/test_local_prediction.py`` compares the two).
+A local prediction visits spatial blocks of queries, each with the inputs near it (J, the inner
+ones I first): it forms the exact SE kernel between the block's boxes and points, the mean
+k_J^T w_J and the variance's reduction k_I^T (K^-1)_II k_I. In numpy each block is some twenty
+calls (the kernel's distinct sides and ends, a table of erf, gathers, products), and on the
+paper's room at 200,000 random points (971 blocks of about 200 points and 190 inputs) the calls
+other than the variance's matrix product took 0.43 of 0.73 s. Here one compiled call per tile
+walks every block: each axis's distinct sides of the block, their factors (one table of G1 over
+the sides' distinct ends, at the block's distinct coordinates, or, where the points are
+scattered, at a few Chebyshev nodes across the block and interpolated), the factors multiplied
+straight into K, the mean and, through BLAS's matrix product, the reduction. The numbers are the
+numpy path's to round-off (libm's erf stands for scipy's, the interpolation errs by about 6e-15;
+``tests/test_local_prediction.py`` compares the two).
 
 ``ENABLED``: :meth:`gpomap.gp.GPPosterior.latent` takes this path for the exact SE kernel at
 points (:func:`gpomap.compiled.compiled_by_default` at import; tests switch it).
