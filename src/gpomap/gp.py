@@ -306,9 +306,10 @@ LOCAL_GATHER_QUERIES: int = 64
 #: is at most this share of the dense n^2 m: half with numpy's block loop, whose products are the
 #: dense path's own; twice with the compiled walk (:mod:`gpomap._compiled_local`), whose kernel
 #: costs a small part of the dense path's numpy one (an erf per side end and point): on the paper's
-#: room's edge tiles (about 120 cells, every cell within reach of every block) the dense path
-#: took 2.2 us per point and the walk about 0.8 (`benchmarks/prediction.py`: random points 462 ->
-#: 509 k/s, Intel's 924 -> 987 k/s).
+#: room's edge tiles (about 120 cells, every cell within reach of every block, so a local work
+#: of about 1.3 n^2 m) the dense path took 2.2 us per point and the walk about 0.8
+#: (`benchmarks/prediction.py`, one sitting: the room's random points 462 k/s with a half, 509 k/s
+#: with four times; Intel's 924 and 987 k/s).
 LOCAL_WORK_SHARE: float = 0.5
 COMPILED_LOCAL_WORK_SHARE: float = 2.0
 
