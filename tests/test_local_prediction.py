@@ -237,13 +237,24 @@ def test_compiled_blocks_equal_numpys_to_round_off(monkeypatch, dim):
     A = rng.normal(size=(n, n))
     L = np.linalg.cholesky(A @ A.T / n + np.eye(n))
     posterior = GPPosterior(X, L, rng.normal(size=n), kernel, ProbitSquash(1.0, 0.0))
-    # Points inside the boxes' span, on a lattice (repeated coordinates) and scattered, and far.
+    # Points inside the boxes' span, on a lattice (repeated coordinates) and scattered, points in
+    # reach of the mean only (4.5 length scales past the boxes along x: inner inputs none), and far.
+    beyond = rng.uniform(0, 8, (300, dim))
+    beyond[:, 0] = 8.5 + 4.5 * l + rng.uniform(0, 0.1, 300)
     points = np.concatenate(
-        [rng.uniform(-1, 9, (3000, dim)), np.round(rng.uniform(0, 8, (2000, dim)) / 0.1) * 0.1, rng.uniform(30, 40, (500, dim))]
+        [
+            rng.uniform(-1, 9, (3000, dim)),
+            np.round(rng.uniform(0, 8, (2000, dim)) / 0.1) * 0.1,
+            beyond,
+            rng.uniform(30, 40, (500, dim)),
+        ]
     )
     Q = Supports.from_points(points)
     blocks = posterior.local_blocks(Q, 4096)
     assert blocks is not None and any(near.size == 0 for _, near, _ in blocks)
+    # Blocks whose variance takes some of their inputs, and blocks whose variance takes none.
+    assert any(0 < n_inner < near.size for _, near, n_inner in blocks)
+    assert any(n_inner == 0 < near.size for _, near, n_inner in blocks)
     out = {}
     for compiled in (False, True):
         monkeypatch.setattr(_compiled_local, "ENABLED", compiled)
