@@ -451,11 +451,11 @@ def local_blocks(
         rows.append(r + b0)
         cols.append(c)
         outer.append(d2[r, c] >= inner_limit)
-    row = np.concatenate(rows)
+    row, is_outer = np.concatenate(rows), np.concatenate(outer)
     # Each block's inner inputs first, each part in input order (a stable sort on small integers).
-    order_in = np.argsort(2 * row + np.concatenate(outer), kind="stable")
+    order_in = np.argsort(2 * row + is_outer, kind="stable")
     counts = np.bincount(row, minlength=cuts.size)
-    n_inner = counts - np.bincount(row, weights=np.concatenate(outer), minlength=cuts.size).astype(np.int64)
+    n_inner = counts - np.bincount(row, weights=is_outer, minlength=cuts.size).astype(np.int64)
     query_start = np.append(cuts, m).astype(np.int64)
     blocks = LocalBlocks(
         query_index=order.astype(np.int64),
@@ -700,7 +700,7 @@ class GPPosterior:
         points = bool(np.array_equal(queries.lower, queries.upper))
         # Work common to every block done once (the exact kernel's tables of factors).
         cross = kern.point_blocks(X, queries.lower) if points else None
-        if isinstance(cross, BoxPointFactors) and self._walks_compiled(queries):
+        if isinstance(cross, BoxPointFactors) and _compiled_local.ENABLED:
             reduction = np.zeros(len(queries))
             side_lo, side_hi, side_of = cross.packed_sides()
             _compiled_local.point_block_moments(
