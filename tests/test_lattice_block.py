@@ -109,3 +109,12 @@ def test_box_index_is_the_row_major_index_of_the_floored_offsets(pad):
     boxes = np.minimum(np.floor((pts - lo) * 2.5).astype(np.int64) + pad, np.array(shape) - 1 - pad)
     want = np.ravel_multi_index(tuple(boxes.T), shape)
     np.testing.assert_array_equal(lattice.box_index(pts, lo, 2.5, shape, pad), want)
+
+
+@pytest.mark.parametrize("high", [40, 2**15 - 1, 10**6])
+def test_stable_order_is_a_stable_argsort(high):
+    # Many ties (a stable sort keeps their order), -1 among the keys, and keys that do or do not
+    # fit 16 bits: the same order as numpy's stable argsort of int64.
+    keys = np.random.default_rng(3).integers(-1, high, 5000)
+    np.testing.assert_array_equal(lattice.stable_order(keys), np.argsort(keys, kind="stable"))
+    assert lattice.stable_order(np.zeros(0, dtype=np.int64)).size == 0

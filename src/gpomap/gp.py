@@ -34,7 +34,7 @@ from gpomap.errors import NotFittedError, NumericalError
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.closed_form import POINT_WIDTH, BoxPointFactors
 from gpomap.kernels.tensor import TensorDistances
-from gpomap.lattice import column_bounds
+from gpomap.lattice import column_bounds, stable_order
 from gpomap.squash import CLASS_WEIGHTS, SQUASH_BOUNDS, ProbitSquash, class_weights, loo_probit, probit_gradient_in_shift
 from gpomap.supports import Supports
 
@@ -413,13 +413,12 @@ def local_blocks(
     a = centres.shape[1] if axes is None else axes
     low, _ = column_bounds(centres[:, :a])
     bins = np.floor((centres[:, :a] - low) / (side * radius)).astype(np.int64)
-    # One integer per bin, the last axis fastest, sorted stably (a radix sort where the bins'
-    # numbers fit 16 bits), and cut where it changes.
+    # One integer per bin, the last axis fastest, sorted stably, and cut where it changes.
     key = np.zeros(m, dtype=np.int64)
     for k in range(a):
         key *= int(bins[:, k].max()) + 1
         key += bins[:, k]
-    order = np.argsort(key.astype(np.int16) if key.max() < np.iinfo(np.int16).max else key, kind="stable")
+    order = stable_order(key)
     sorted_key = key[order]
     starts = np.flatnonzero(np.concatenate([[True], sorted_key[1:] != sorted_key[:-1]]))
     ends = np.append(starts[1:], m)

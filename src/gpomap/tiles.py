@@ -62,7 +62,7 @@ from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas_threads
-from gpomap.lattice import column_bounds
+from gpomap.lattice import column_bounds, stable_order
 from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
 from gpomap.scans import Scan
@@ -1753,15 +1753,14 @@ class TiledGPOM:
         # Per tile: which points it predicts and with what weight.
         members: dict[tuple[int, int], tuple[NDArray[np.intp], NDArray[np.float64]]] = {}
         wsum = np.zeros(m)
-        # Points bucketed by x once, in strips as wide as the blend (a radix sort of small
+        # Points bucketed by x once, in strips as wide as the blend (a stable sort of small
         # integers), so each tile scans only the strips its blend region reaches.
         keys = sorted(self.tiles_)
         strip = min(self.tile_size_, self.blend_) if self.blend_ > 0 else self.tile_size_
         x_lo, x_hi = self._blend_region(keys[0])[0], max(self._blend_region(k)[1] for k in keys)
         n_strips = math.ceil((x_hi - x_lo) / strip) + 1
-        x_strip = np.clip(np.floor((pts[:, 0] - x_lo) / strip), -1, n_strips)
-        strip_key = x_strip.astype(np.int16 if n_strips < np.iinfo(np.int16).max else np.int64)
-        by_strip = np.argsort(strip_key, kind="stable")
+        strip_key = np.clip(np.floor((pts[:, 0] - x_lo) / strip), -1, n_strips).astype(np.int64)
+        by_strip = stable_order(strip_key)
         sorted_strip = strip_key[by_strip]
         for key in keys:
             bx0, bx1, by0, by1 = self._blend_region(key)
