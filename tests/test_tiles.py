@@ -402,6 +402,20 @@ def test_nearest_box_is_the_brute_force_nearest_in_any_chunking(monkeypatch, pai
     assert tiles.nearest_box(inside, boxes).tolist() == [0, 9]
 
 
+def test_nearest_box_of_boxes_of_any_size_is_the_brute_force_nearest():
+    # Boxes of mixed sizes, overlapping or not, some degenerate; points near and very far: the
+    # pruning by squares must keep every box that can be nearest.
+    rng = np.random.default_rng(11)
+    lo = rng.uniform(-20, 20, size=(40, 2))
+    size = rng.choice([0.0, 0.3, 2.0, 7.0], size=(40, 2))
+    boxes = np.column_stack([lo[:, 0], lo[:, 0] + size[:, 0], lo[:, 1], lo[:, 1] + size[:, 1]])
+    pts = np.concatenate([rng.uniform(-30, 30, size=(2000, 2)), rng.uniform(-1e4, 1e4, size=(200, 2))])
+    dx = np.maximum(np.maximum(boxes[None, :, 0] - pts[:, None, 0], pts[:, None, 0] - boxes[None, :, 1]), 0)
+    dy = np.maximum(np.maximum(boxes[None, :, 2] - pts[:, None, 1], pts[:, None, 1] - boxes[None, :, 3]), 0)
+    assert tiles.nearest_box(pts, boxes).tolist() == np.argmin(dx * dx + dy * dy, axis=1).tolist()
+    assert tiles.nearest_box(np.zeros((0, 2)), boxes).shape == (0,)
+
+
 @pytest.mark.parametrize("spread", [30.0, 1e6], ids=["compact", "sparse-and-wide"])
 def test_present_keys_are_the_distinct_keys_of_the_points(spread):
     # Counted over the squares' index box (or sorted, when the box is too wide): the distinct

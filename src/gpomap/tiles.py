@@ -563,13 +563,25 @@ def _inherited_task(token: str, index: int) -> Any:
 
 
 # --------------------------------------------------------------------------- helpers
-#: Point-box pairs :func:`nearest_box` measures at once (bounds its temporaries at a few MB: a
-#: written map can hold millions of points no tile reaches, and a map hundreds of tiles).
+#: Square-box pairs :func:`nearest_box` bounds at once (its temporaries stay at a few MB: a map
+#: can hold thousands of tiles).
 NEAREST_BOX_PAIRS: int = 1 << 20
+
+
+def _axis_gap(lo: NDArray[np.float64], hi: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Distance along one axis from coordinates `x` to the intervals `lo`..`hi` (0 inside), broadcast."""
+    return np.maximum(np.maximum(lo - x, x - hi), 0.0)
 
 
 def nearest_box(points: NDArray[np.float64], boxes: NDArray[np.float64]) -> NDArray[np.intp]:
     """Index of the box nearest each point in x, y (distance 0 inside; the first box on ties).
+
+    The points are grouped in squares as wide as the widest box. For each square, a box whose
+    distance from the square exceeds the least, over boxes, of the farthest a point of the
+    square can be from it cannot be nearest to any of its points; the points are measured against
+    the few boxes left. A written map's points that no tile reaches are millions, its tiles
+    thousands (the Freiburg campus log: 36 million cells, 1,869 tiles, 390 s when every point
+    was measured against every box; the squares and the boxes alone are a few million pairs).
 
     Parameters
     ----------
@@ -583,12 +595,44 @@ def nearest_box(points: NDArray[np.float64], boxes: NDArray[np.float64]) -> NDAr
     ndarray of int, shape (m,)
     """
     out = np.empty(points.shape[0], dtype=np.intp)
+    if points.shape[0] == 0:
+        return out
+    x, y = points[:, 0], points[:, 1]
+    side = max(float(np.max(boxes[:, 1] - boxes[:, 0])), float(np.max(boxes[:, 3] - boxes[:, 2])))
+    if not side > 0:
+        side = 1.0  # point boxes: any square side gives the same answers
+    origin = np.array([x.min(), y.min()])
+    ix = np.floor((x - origin[0]) / side).astype(np.int64)
+    iy = np.floor((y - origin[1]) / side).astype(np.int64)
+    key = ix * (int(iy.max()) + 1) + iy
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    bounds = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1], True])
+    first = order[bounds[:-1]]
+    squares = np.column_stack([ix[first], iy[first]])
+    bx0, bx1, by0, by1 = (boxes[None, :, j] for j in range(4))
     step = max(1, NEAREST_BOX_PAIRS // max(1, boxes.shape[0]))
-    for s in range(0, points.shape[0], step):
-        p = points[s : s + step]
-        dx = np.maximum(np.maximum(boxes[None, :, 0] - p[:, None, 0], p[:, None, 0] - boxes[None, :, 1]), 0.0)
-        dy = np.maximum(np.maximum(boxes[None, :, 2] - p[:, None, 1], p[:, None, 1] - boxes[None, :, 3]), 0.0)
-        out[s : s + step] = np.argmin(dx * dx + dy * dy, axis=1)
+    for s in range(0, squares.shape[0], step):
+        sq = squares[s : s + step]
+        sx0 = (origin[0] + sq[:, 0] * side)[:, None]
+        sy0 = (origin[1] + sq[:, 1] * side)[:, None]
+        sx1, sy1 = sx0 + side, sy0 + side
+        # Squared distance from the square to each box (a lower bound for its points), and the
+        # farthest its points can be from each box (at a corner: the distance is convex).
+        lower = np.maximum(np.maximum(bx0 - sx1, sx0 - bx1), 0.0) ** 2 + np.maximum(np.maximum(by0 - sy1, sy0 - by1), 0.0) ** 2
+        upper = (
+            np.maximum(_axis_gap(bx0, bx1, sx0), _axis_gap(bx0, bx1, sx1)) ** 2
+            + np.maximum(_axis_gap(by0, by1, sy0), _axis_gap(by0, by1, sy1)) ** 2
+        )
+        # A little slack: the bounds and the points' distances round differently.
+        keep = lower <= upper.min(axis=1, keepdims=True) * (1 + 1e-9) + 1e-12
+        for j in range(sq.shape[0]):
+            cand = np.flatnonzero(keep[j])  # ascending: argmin keeps the first box on ties
+            sel = order[bounds[s + j] : bounds[s + j + 1]]
+            c = boxes[cand]
+            dx = _axis_gap(c[None, :, 0], c[None, :, 1], x[sel, None])
+            dy = _axis_gap(c[None, :, 2], c[None, :, 3], y[sel, None])
+            out[sel] = cand[np.argmin(dx * dx + dy * dy, axis=1)]
     return out
 
 
