@@ -1797,23 +1797,31 @@ class TiledGPOM:
         # Per tile: which points it predicts and with what weight.
         members: dict[tuple[int, int], tuple[NDArray[np.intp], NDArray[np.float64]]] = {}
         wsum = np.zeros(m)
-        # Points bucketed by x once, in strips as wide as the blend (a stable sort of small
-        # integers), so each tile scans only the strips its blend region reaches.
+        # Points bucketed once in squares as wide as the blend (a stable sort of integers), so
+        # each tile scans only the squares its blend region reaches: strips of x alone made each
+        # tile of a map 300 m tall scan sixty tiles' points (the Freiburg campus log's written
+        # map: 42 s of 114).
         keys = sorted(self.tiles_)
-        strip = min(self.tile_size_, self.blend_) if self.blend_ > 0 else self.tile_size_
-        x_lo, x_hi = self._blend_region(keys[0])[0], max(self._blend_region(k)[1] for k in keys)
-        n_strips = math.ceil((x_hi - x_lo) / strip) + 1
-        strip_key = np.clip(np.floor((pts[:, 0] - x_lo) / strip), -1, n_strips).astype(np.int64)
-        by_strip = stable_order(strip_key)
-        sorted_strip = strip_key[by_strip]
-        for key in keys:
-            bx0, bx1, by0, by1 = self._blend_region(key)
-            first, last = math.floor((bx0 - x_lo) / strip), math.floor((bx1 - x_lo) / strip)
-            near_x = by_strip[
-                np.searchsorted(sorted_strip, first, side="left") : np.searchsorted(sorted_strip, last, side="right")
-            ]
-            inside = (pts[near_x, 0] > bx0) & (pts[near_x, 0] < bx1) & (pts[near_x, 1] > by0) & (pts[near_x, 1] < by1)
-            idx = np.sort(near_x[inside])
+        side = min(self.tile_size_, self.blend_) if self.blend_ > 0 else self.tile_size_
+        regions = np.array([self._blend_region(k) for k in keys])
+        lo = regions[:, [0, 2]].min(axis=0)
+        n_sq = np.ceil((regions[:, [1, 3]].max(axis=0) - lo) / side).astype(np.int64) + 1
+        # Square indices -1..n (points beyond every region are clipped to the edge squares).
+        sq_x = np.clip(np.floor((pts[:, 0] - lo[0]) / side), -1, n_sq[0]).astype(np.int64) + 1
+        sq_y = np.clip(np.floor((pts[:, 1] - lo[1]) / side), -1, n_sq[1]).astype(np.int64) + 1
+        row = int(n_sq[1]) + 2
+        sq_key = sq_x * row + sq_y
+        by_square = stable_order(sq_key)
+        sorted_key = sq_key[by_square]
+        for key, (bx0, bx1, by0, by1) in zip(keys, regions, strict=True):
+            fx, lx = (math.floor((v - lo[0]) / side) + 1 for v in (bx0, bx1))
+            fy, ly = (math.floor((v - lo[1]) / side) + 1 for v in (by0, by1))
+            # One slice of the sorted points per column of squares the region reaches.
+            starts = np.searchsorted(sorted_key, np.arange(fx, lx + 1) * row + fy, side="left")
+            stops = np.searchsorted(sorted_key, np.arange(fx, lx + 1) * row + ly, side="right")
+            near = np.concatenate([by_square[a:b] for a, b in zip(starts, stops, strict=True)])
+            inside = (pts[near, 0] > bx0) & (pts[near, 0] < bx1) & (pts[near, 1] > by0) & (pts[near, 1] < by1)
+            idx = np.sort(near[inside])
             if idx.size == 0:
                 continue
             x0, x1, y0, y1 = self._core(key)
