@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -83,3 +85,25 @@ def test_a_robot_that_never_moves_leaves_the_scale_at_one_after_every_pattern():
     stand_in = _Fixed(lambda p: (np.zeros(len(p)), np.ones(len(p))))
     kappa, report = _fit(scans, stand_in)
     assert kappa == 1.0 and "3 patterns" in report["reason"] and stand_in.fits == 0
+
+
+def test_a_pattern_whose_kept_scans_never_saw_the_region_is_passed_over():
+    # The robot stands in the room but for the 2nd of ten stretches, which tours a copy of the
+    # room 100 m away. The first pattern holds that stretch out: its kept scans saw nothing of
+    # the copy, so it has no GP there and is passed over (it used to end the fit, the scale at 1);
+    # the other two keep the stretch and hold out nothing that reaches the copy.
+    tour = paper_room_scans(n_beams=90, seed=0)
+    away = set(np.array_split(np.arange(len(tour)), ex.N_STRETCHES)[1].tolist())
+    scans = [
+        dataclasses.replace(tour[i], pose=tour[i].pose + np.array([100.0, 0.0, 0.0])) if i in away else tour[0]
+        for i in range(len(tour))
+    ]
+    assert set(ex.holdout_stretches(len(scans), ex.FOLD_STARTS[0])[1].tolist()) >= away
+    settings = AreaGPOM(ray_evidence=False).base
+    points = settings.make_observations(scans, clearance=False)
+    stand_in = _Fixed(lambda p: (np.zeros(len(p)), np.ones(len(p))))
+    centre = np.mean([s.pose[:2] for s in (scans[i] for i in away)], axis=0)
+    kappa, report = ex.fit_variance_scale(
+        scans, {"alpha": 30.0, "beta": 0.0}, points, settings.free_clearance, stand_in.fit, centre, 15.0, 0.0
+    )
+    assert kappa == 1.0 and report["reason"].endswith("in 2 patterns of held-out stretches") and stand_in.fits == 0

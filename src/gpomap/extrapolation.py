@@ -43,6 +43,7 @@ all three (a short log, a robot that never left one room), kappa stays 1.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -237,10 +238,17 @@ def fit_variance_scale(
     if len(scans) < HOLDOUT_EVERY:
         return 1.0, {"kappa": 1.0, "reason": f"only {len(scans)} scans"}
     regions = [(centre, region_half, margin)] + ([wider] if wider is not None else [])
+    map_points = observations
     for c, h, g in regions:
         centre, region_half, margin = np.asarray(c, dtype=float)[:2], float(h), float(g)
         lo, hi = centre - region_half, centre + region_half
-        folds, n = _region_folds(scans, lo, hi, margin, no_return_cap)
+        # The region's points (grown by the clearance) cut once for every pattern: a whole log
+        # has tens of millions.
+        near = _in_square(map_points.points, lo, hi, free_clearance)
+        observations = Observations(map_points.points[near], map_points.occupied[near], map_points.scan_index[near])
+
+        held_in = functools.partial(_held_in, observations, lo=lo, hi=hi, clearance=free_clearance)
+        folds, n = _region_folds(scans, lo, hi, margin, no_return_cap, held_in)
         if n >= REGION_POINTS_PER_CLASS:
             break
     if n < MIN_POINTS_PER_CLASS:
@@ -253,19 +261,12 @@ def fit_variance_scale(
     rng = np.random.default_rng(seed)
     keep = np.concatenate([rng.choice(np.flatnonzero(occ), n, replace=False), rng.choice(np.flatnonzero(~occ), n, replace=False)])
     pts, occ, fold_of, dist = pts[keep], occ[keep], fold_of[keep], dist[keep]
-    # The region's points (grown by the clearance) cut once for every pattern: a whole log has
-    # tens of millions.
-    near = _in_square(observations.points, lo, hi, free_clearance)
-    observations = Observations(observations.points[near], observations.occupied[near], observations.scan_index[near])
     # Each pattern's points are predicted by the GP of that pattern's kept scans.
     mu, var = np.empty(occ.size), np.empty(occ.size)
-    for k, (kept, _, _, _) in enumerate(folds):
+    for k, (_, _, _, _, obs) in enumerate(folds):
         sel = fold_of == k
         if not sel.any():
             continue
-        obs = region_observations(observations, kept, lo, hi, free_clearance)
-        if obs.n_occupied == 0 or obs.n_free == 0:
-            return 1.0, {"kappa": 1.0, "reason": "no kept observations of a class in the region"}
         try:
             model = fit_held_in(obs)
         except EmptyDataError as err:
@@ -287,21 +288,41 @@ def fit_variance_scale(
     }
 
 
+def _held_in(
+    obs: Observations, kept: NDArray[np.intp], lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float
+) -> Observations | None:
+    """:func:`region_observations`, or None when they lack a class (no GP to fit there)."""
+    held = region_observations(obs, kept, lo, hi, clearance)
+    return held if held.n_occupied > 0 and held.n_free > 0 else None
+
+
 def _region_folds(
-    scans: Sequence[Any], lo: NDArray[np.float64], hi: NDArray[np.float64], margin: float, no_return_cap: float | None
-) -> tuple[list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]], int]:
-    """Per pattern of held-out stretches tried, the kept scans' indices and the held-out points in
-    the square where none of them went (:func:`_unseen_points`); and the points per class to use.
+    scans: Sequence[Any],
+    lo: NDArray[np.float64],
+    hi: NDArray[np.float64],
+    margin: float,
+    no_return_cap: float | None,
+    held_in: Callable[[NDArray[np.intp]], Observations | None],
+) -> tuple[list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64], Observations]], int]:
+    """Per pattern of held-out stretches tried, the kept scans' indices, the held-out points in
+    the square where none of them went (:func:`_unseen_points`) and the kept scans' points there
+    (`held_in`); and the points per class to use.
 
     Patterns are tried in the order of :data:`FOLD_STARTS` until their points pooled hold
-    :data:`MIN_POINTS_PER_CLASS` of each class.
+    :data:`MIN_POINTS_PER_CLASS` of each class. A pattern whose kept scans observed no point of a
+    class in the square (`held_in` gives None) is passed over: its GP there would be its prior,
+    whatever the variance scale (a robot that drove past the square once, in a stretch this
+    pattern holds out: MIT's infinite corridor kept the scale at 1 so).
     """
-    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]] = []
+    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64], Observations]] = []
     n = 0
     for first in FOLD_STARTS:
         kept, held = holdout_stretches(len(scans), first)
+        obs = held_in(kept)
+        if obs is None:
+            continue
         pts, occ, dist = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
-        folds.append((kept, pts, occ, dist))
+        folds.append((kept, pts, occ, dist, obs))
         n_occ = sum(int(f[2].sum()) for f in folds)
         n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
         if n >= MIN_POINTS_PER_CLASS:
