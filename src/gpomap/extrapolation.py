@@ -238,16 +238,14 @@ def fit_variance_scale(
     if len(scans) < HOLDOUT_EVERY:
         return 1.0, {"kappa": 1.0, "reason": f"only {len(scans)} scans"}
     regions = [(centre, region_half, margin)] + ([wider] if wider is not None else [])
-    map_points = observations
     for c, h, g in regions:
         centre, region_half, margin = np.asarray(c, dtype=float)[:2], float(h), float(g)
         lo, hi = centre - region_half, centre + region_half
         # The region's points (grown by the clearance) cut once for every pattern: a whole log
         # has tens of millions.
-        near = _in_square(map_points.points, lo, hi, free_clearance)
-        observations = Observations(map_points.points[near], map_points.occupied[near], map_points.scan_index[near])
-
-        held_in = functools.partial(_held_in, observations, lo=lo, hi=hi, clearance=free_clearance)
+        near = _in_square(observations.points, lo, hi, free_clearance)
+        region_points = Observations(observations.points[near], observations.occupied[near], observations.scan_index[near])
+        held_in = functools.partial(_held_in, region_points, lo=lo, hi=hi, clearance=free_clearance)
         folds, n = _region_folds(scans, lo, hi, margin, no_return_cap, held_in)
         if n >= REGION_POINTS_PER_CLASS:
             break
