@@ -241,12 +241,8 @@ def fit_variance_scale(
     for c, h, g in regions:
         centre, region_half, margin = np.asarray(c, dtype=float)[:2], float(h), float(g)
         lo, hi = centre - region_half, centre + region_half
-        # The region's points (grown by the clearance) cut once for every pattern: a whole log
-        # has tens of millions.
-        near = _in_square(observations.points, lo, hi, free_clearance)
-        region_points = Observations(observations.points[near], observations.occupied[near], observations.scan_index[near])
-        held_in = functools.partial(_held_in, region_points, lo=lo, hi=hi, clearance=free_clearance)
-        folds, n = _region_folds(scans, lo, hi, margin, no_return_cap, held_in)
+        observes = functools.partial(_observes_both, observations, _in_square(observations.points, lo, hi))
+        folds, n = _region_folds(scans, lo, hi, margin, no_return_cap, observes)
         if n >= REGION_POINTS_PER_CLASS:
             break
     if n < MIN_POINTS_PER_CLASS:
@@ -259,12 +255,19 @@ def fit_variance_scale(
     rng = np.random.default_rng(seed)
     keep = np.concatenate([rng.choice(np.flatnonzero(occ), n, replace=False), rng.choice(np.flatnonzero(~occ), n, replace=False)])
     pts, occ, fold_of, dist = pts[keep], occ[keep], fold_of[keep], dist[keep]
+    # The region's points (grown by the clearance) cut once for every pattern: a whole log has
+    # tens of millions.
+    near = _in_square(observations.points, lo, hi, free_clearance)
+    observations = Observations(observations.points[near], observations.occupied[near], observations.scan_index[near])
     # Each pattern's points are predicted by the GP of that pattern's kept scans.
     mu, var = np.empty(occ.size), np.empty(occ.size)
-    for k, (_, _, _, _, obs) in enumerate(folds):
+    for k, (kept, _, _, _) in enumerate(folds):
         sel = fold_of == k
         if not sel.any():
             continue
+        obs = region_observations(observations, kept, lo, hi, free_clearance)
+        if obs.n_occupied == 0 or obs.n_free == 0:  # every kept free point cleared (see _observes_both)
+            return 1.0, {"kappa": 1.0, "reason": "no kept observations of a class in the region"}
         try:
             model = fit_held_in(obs)
         except EmptyDataError as err:
@@ -286,12 +289,13 @@ def fit_variance_scale(
     }
 
 
-def _held_in(
-    obs: Observations, kept: NDArray[np.intp], lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float
-) -> Observations | None:
-    """:func:`region_observations`, or None when they lack a class (no GP to fit there)."""
-    held = region_observations(obs, kept, lo, hi, clearance)
-    return held if held.n_occupied > 0 and held.n_free > 0 else None
+def _observes_both(obs: Observations, in_square: NDArray[np.bool_], kept: NDArray[np.intp]) -> bool:
+    """Whether the kept scans have a hit and a free point among the points `in_square` (a mask
+    of `obs`), before the clearance (which could, in principle, clear every free point)."""
+    is_kept = np.zeros(int(obs.scan_index.max(initial=-1)) + 1, dtype=bool)
+    is_kept[kept] = True
+    occupied = obs.occupied[in_square & is_kept[obs.scan_index]]
+    return bool(occupied.any() and not occupied.all())
 
 
 def _region_folds(
@@ -300,27 +304,25 @@ def _region_folds(
     hi: NDArray[np.float64],
     margin: float,
     no_return_cap: float | None,
-    held_in: Callable[[NDArray[np.intp]], Observations | None],
-) -> tuple[list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64], Observations]], int]:
-    """Per pattern of held-out stretches tried, the kept scans' indices, the held-out points in
-    the square where none of them went (:func:`_unseen_points`) and the kept scans' points there
-    (`held_in`); and the points per class to use.
+    observes: Callable[[NDArray[np.intp]], bool],
+) -> tuple[list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]], int]:
+    """Per pattern of held-out stretches tried, the kept scans' indices and the held-out points in
+    the square where none of them went (:func:`_unseen_points`); and the points per class to use.
 
     Patterns are tried in the order of :data:`FOLD_STARTS` until their points pooled hold
     :data:`MIN_POINTS_PER_CLASS` of each class. A pattern whose kept scans observed no point of a
-    class in the square (`held_in` gives None) is passed over: its GP there would be its prior,
+    class in the square (`observes` says no) is passed over: its GP there would be its prior,
     whatever the variance scale (a robot that drove past the square once, in a stretch this
     pattern holds out: MIT's infinite corridor kept the scale at 1 so).
     """
-    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64], Observations]] = []
+    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]] = []
     n = 0
     for first in FOLD_STARTS:
         kept, held = holdout_stretches(len(scans), first)
-        obs = held_in(kept)
-        if obs is None:
+        if not observes(kept):
             continue
         pts, occ, dist = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
-        folds.append((kept, pts, occ, dist, obs))
+        folds.append((kept, pts, occ, dist))
         n_occ = sum(int(f[2].sum()) for f in folds)
         n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
         if n >= MIN_POINTS_PER_CLASS:
