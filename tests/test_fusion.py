@@ -695,3 +695,47 @@ def test_a_near_miss_counts_as_a_hit_only_where_surfaces_fall_in_such_cells(monk
     pinned, loss_pinned = fit(_wall_scans(0.12))
     assert pinned.near_hit_weight == pytest.approx(floor)
     assert loss_smeared < loss_pinned - 0.01
+
+
+def test_a_large_planar_written_grid_is_built_in_bands_and_is_the_same_map(
+    half_room: tuple[AreaGPOM, list[Scan]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Built in bands of rows (a shorter last one), the written map is the one built whole: each
+    band samples the GP where the whole grid does, and reads the counts and the distances to hits
+    of its own rows. Up to the local prediction's tolerance: a tile's blocks of queries, and so
+    the covariances below `gpomap.gp.LOCAL_TOL` of the variance it leaves out, follow the queries
+    it is given (2e-5 at most against the dense solve on the room's grid, docs/choices.md)."""
+    from gpomap import fusion
+
+    model, _ = half_room
+    extent = (-0.5, 10.5, -0.5, 8.3)  # 176 rows of 220 cells
+    whole = model.grid(0.05, extent=extent)
+    assert any(tile.posterior.precision is not None for tile in model.tiles_.values())
+    bands: list[tuple[int, ...]] = []
+    build = fusion.EvidenceLayer._written_block
+
+    def counted(self: fusion.EvidenceLayer, grid: GridSpec, *args: object) -> tuple[np.ndarray, np.ndarray]:
+        bands.append(grid.shape)
+        return build(self, grid, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(fusion, "WRITTEN_BAND_CELLS", 5_000)
+    monkeypatch.setattr(fusion.EvidenceLayer, "_written_block", counted)
+    banded = model.grid(0.05, extent=extent)
+    assert len(bands) == 9 and bands[-1][0] < bands[0][0] and sum(b[0] for b in bands) == 176
+    np.testing.assert_allclose(banded.probability, whole.probability, rtol=0, atol=2e-5)
+    assert banded.variance is not None and whole.variance is not None
+    np.testing.assert_allclose(banded.variance, whole.variance, rtol=0, atol=2e-5)
+    np.testing.assert_array_equal(banded.ternary, whole.ternary)
+    # The tiles' K^-1, formed by the variance's prediction, is dropped as the bands pass them.
+    assert all(tile.posterior.precision is None for tile in model.tiles_.values())
+    assert np.ptp(whole.probability) > 0.9  # walls and free space, not a constant map
+
+
+def test_grid_rows_are_a_band_of_the_same_cells() -> None:
+    grid = GridSpec((1.0, -2.0), 0.1, (30, 7))
+    band = grid.rows(10, 25)
+    assert band.shape == (15, 7) and band.resolution == grid.resolution
+    np.testing.assert_allclose(band.y_centres(), grid.y_centres()[10:25], rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(band.x_centres(), grid.x_centres())
+    with pytest.raises(ValueError, match="rows 5:31"):
+        grid.rows(5, 31)

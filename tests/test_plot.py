@@ -43,6 +43,24 @@ def test_plot_map_three_panels_and_png(tmp_path):
     _assert_png(out)
 
 
+def test_a_map_larger_than_a_panel_draws_every_kth_cell(monkeypatch):
+    """A map wider than :data:`FIGURE_CELLS` is drawn from every k-th row and column (20 columns,
+    at most 8 a side: every 3rd), over the map's whole extent, and its variance colour bar still
+    reaches the largest variance of all cells, here one that is not drawn."""
+    from gpomap import plot
+
+    m = _map()
+    m.variance[1, 1] = 9.0  # row and column 1: not among every 3rd
+    monkeypatch.setattr(plot, "FIGURE_CELLS", 8)
+    fig = plot_map(m)
+    np.testing.assert_array_equal(fig.axes[0].images[0].get_array(), m.probability[::3, ::3])
+    np.testing.assert_array_equal(fig.axes[2].images[0].get_array(), m.ternary[::3, ::3])
+    assert fig.axes[0].images[0].get_extent() == pytest.approx([-1.0, 1.0, -0.5, 0.7])
+    assert fig.axes[1].images[0].get_clim() == (0.0, 9.0)
+    blank = plot_map(_map(with_variance=False))
+    assert blank.axes[1].images[0].get_array().shape == (4, 7)
+
+
 def test_plot_map_without_variance_or_path(tmp_path):
     fig = plot_map(_map(with_variance=False, with_path=False))
     assert len(fig.axes) == 3

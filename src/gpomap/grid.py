@@ -91,6 +91,14 @@ class GridSpec:
         xx, yy = np.meshgrid(self.x_centres(), self.y_centres())
         return np.column_stack([xx.ravel(), yy.ravel()])
 
+    def rows(self, start: int, stop: int) -> GridSpec:
+        """The grid of rows `start` to `stop` (exclusive) of this one: the same cells, in a band."""
+        if not 0 <= start < stop <= self.shape[0]:
+            raise ValueError(f"rows {start}:{stop} are not a band of a grid of {self.shape[0]} rows")
+        return GridSpec(
+            (self.origin[0], self.origin[1] + start * self.resolution), self.resolution, (stop - start, self.shape[1])
+        )
+
     def index_of(self, points: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]]:
         """Row and column of the cell holding each point, and whether it is inside the grid.
 

@@ -36,6 +36,18 @@ _FREE_COLOUR = "#2ca02c"
 _HIT_COLOUR = "#d62728"
 
 
+#: A map panel shows at most this many cells a side: every k-th row and column of a larger map. A
+#: panel is about 600 pixels wide (4 inches at 150 dpi) and nearest-neighbour drawing shows one
+#: cell a pixel anyway, while matplotlib draws from float copies of the whole array (a 6,000 by
+#: 6,000-cell map took 3 GB and 20 s to draw whole).
+FIGURE_CELLS: int = 2048
+
+
+def _shown(values: NDArray, step: int) -> NDArray:
+    """Every `step`-th row and column of a map's array (shape (ny, nx)), for drawing."""
+    return values[::step, ::step] if step > 1 else values
+
+
 def _new_figure(width: float, height: float) -> Figure:
     fig = Figure(figsize=(width, height), layout="constrained")
     FigureCanvasAgg(fig)  # attaches itself as fig.canvas
@@ -85,23 +97,25 @@ def plot_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str] | None = 
     axes = fig.subplots(1, 3, sharex=True, sharey=True)
 
     imshow = {"extent": extent, "origin": "lower", "interpolation": "nearest", "aspect": "equal"}
-    im = axes[0].imshow(m.probability, cmap=PROBABILITY_CMAP, vmin=0.0, vmax=1.0, **imshow)
+    step = -(-max(ny, nx) // FIGURE_CELLS)
+    im = axes[0].imshow(_shown(m.probability, step), cmap=PROBABILITY_CMAP, vmin=0.0, vmax=1.0, **imshow)
     _colorbar(fig, axes[0], im, "occupancy probability")
     axes[0].set_title("probability")
 
     if m.variance is not None:
         var = m.variance
-        finite = var[np.isfinite(var)]
-        vmax = float(finite.max()) if finite.size and finite.max() > 0 else 1.0
-        im = axes[1].imshow(var, cmap=VARIANCE_CMAP, vmin=0.0, vmax=vmax, **imshow)
+        finite = np.isfinite(var)
+        top = float(np.max(var, where=finite, initial=-np.inf))  # of every cell, not the ones drawn
+        vmax = top if top > 0 else 1.0
+        im = axes[1].imshow(_shown(var, step), cmap=VARIANCE_CMAP, vmin=0.0, vmax=vmax, **imshow)
         _colorbar(fig, axes[1], im, "latent variance")
     else:
         # Keep the panel (and the three-panel layout) but say why it is empty.
-        axes[1].imshow(np.full(grid.shape, np.nan), **imshow)
+        axes[1].imshow(np.full((len(range(0, ny, step)), len(range(0, nx, step))), np.nan), **imshow)
         axes[1].text(0.5, 0.5, "no variance", transform=axes[1].transAxes, ha="center", va="center", color="0.4")
     axes[1].set_title("latent variance")
 
-    im = axes[2].imshow(m.ternary, cmap=_TERNARY_CMAP, norm=_TERNARY_NORM, **imshow)
+    im = axes[2].imshow(_shown(m.ternary, step), cmap=_TERNARY_CMAP, norm=_TERNARY_NORM, **imshow)
     cbar = _colorbar(fig, axes[2], im, "")
     cbar.set_ticks([-1, 0, 1], labels=["unknown", "free", "occupied"])
     axes[2].set_title(f"ternary (free < {m.thresholds[0]:g}, occupied > {m.thresholds[1]:g})")
