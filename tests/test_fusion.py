@@ -739,3 +739,29 @@ def test_grid_rows_are_a_band_of_the_same_cells() -> None:
     np.testing.assert_array_equal(band.x_centres(), grid.x_centres())
     with pytest.raises(ValueError, match="rows 5:31"):
         grid.rows(5, 31)
+
+
+def test_the_gp_alone_grid_is_built_in_bands_of_the_same_values(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Without ray evidence a large planar grid is predicted in bands of rows: each cell is still
+    the blended GP's prediction at its centre (here against the prediction of every centre at
+    once, to the local prediction's tolerance)."""
+    from gpomap import tiles
+
+    scans = paper_room_scans()[::4]
+    model = AreaGPOM(kernel="se", length_scale=0.4, optimise=False, ray_evidence=False).fit(scans)
+    monkeypatch.setattr(tiles, "WRITTEN_BAND_CELLS", 3_000)
+    calls: list[int] = []
+    predict = type(model)._predict_blended
+
+    def counted(self: AreaGPOM, points: np.ndarray) -> tuple[np.ndarray, ...]:
+        calls.append(len(points))
+        return predict(self, points)
+
+    monkeypatch.setattr(type(model), "_predict_blended", counted)
+    om = model.grid(0.05, extent=(-0.5, 10.5, -0.5, 8.3))
+    assert len(calls) == 14 and sum(calls) == om.probability.size  # 13 rows of 220 cells a band
+    p, var = model.predict_proba_gp(om.grid.centres(), return_var=True)
+    np.testing.assert_allclose(om.probability, p.reshape(om.grid.shape), rtol=0, atol=2e-5)
+    assert om.variance is not None
+    np.testing.assert_allclose(om.variance, var.reshape(om.grid.shape), rtol=0, atol=2e-5)
+    assert np.ptp(om.probability) > 0.5

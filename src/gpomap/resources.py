@@ -23,6 +23,8 @@ from numpy.typing import NDArray
 from gpomap.errors import GpomapError
 
 __all__ = [
+    "BYTES_PER_BAND_CELL",
+    "BYTES_PER_FIGURE_CELL",
     "BYTES_PER_MAP_CELL",
     "BYTES_PER_SAMPLE",
     "DEFAULT_MEMORY_FRACTION",
@@ -48,12 +50,22 @@ __all__ = [
 DEFAULT_MEMORY_FRACTION = 0.5
 
 #: Bytes per cell of a written map: probability and variance (float64, 8 + 8), the ternary map
-#: and the PGM image (1 + 1), their copies while the NPZ is compressed (8 + 8), and the figure's
-#: three panels, each normalised to float64 and coloured before resampling (3 x 24).
-BYTES_PER_MAP_CELL = 8 + 8 + 1 + 1 + 8 + 8 + 3 * 24
+#: and the PGM image (1 + 1), and their copies while the NPZ is compressed (8 + 8).
+BYTES_PER_MAP_CELL = 8 + 8 + 1 + 1 + 8 + 8
 
-#: Bytes per prediction sample (``supersample`` K gives K x K per map cell): its coordinates
-#: (2 x 8), latent mean and variance (8 + 8) and probability (8).
+#: Bytes per cell of one band of a written map while it is built (GP samples, ray counts, distances
+#: to hits and their interpolations; :data:`gpomap.fusion.WRITTEN_BAND_CELLS` cells a band):
+#: the Freiburg campus log's map, built whole at 0.05 m, took 6.1 GB over its 36.5 million cells
+#: above the fitted model, its 16 bytes a cell of probability and variance among them.
+BYTES_PER_BAND_CELL = 150
+
+#: Bytes per cell drawn in the map's figure (at most :data:`gpomap.plot.FIGURE_CELLS` a side):
+#: three panels, each normalised to float64 and coloured before resampling (3 x 24).
+BYTES_PER_FIGURE_CELL = 3 * 24
+
+#: Bytes per prediction sample of a supersampled grid (``supersample`` K > 1 gives K x K per map
+#: cell, predicted at once): its coordinates (2 x 8), latent mean and variance (8 + 8) and
+#: probability (8).
 BYTES_PER_SAMPLE = 2 * 8 + 8 + 8 + 8
 
 #: Bytes per voxel of a written 3-D map: probability and variance (8 + 8), the ternary layer (1),
@@ -161,11 +173,30 @@ def grid_memory(shape: tuple[int, int], supersample: int = 1, n_cells: int = 0, 
     Returns
     -------
     int
-        ``ny * nx * (BYTES_PER_MAP_CELL + K^2 * BYTES_PER_SAMPLE)`` plus one chunk's arrays.
+        ``ny * nx * BYTES_PER_MAP_CELL``, one band's cells times :data:`BYTES_PER_BAND_CELL`,
+        the figure's cells times :data:`BYTES_PER_FIGURE_CELL`, with K > 1 ``ny * nx * K^2 *
+        BYTES_PER_SAMPLE``, and one chunk's arrays.
     """
+    # Imported here: the figure's module brings matplotlib, and the check runs before any work.
+    from gpomap.fusion import MAX_GP_STEP_CELLS, VARIANCE_STEP_SAMPLES, WRITTEN_BAND_CELLS
+    from gpomap.plot import FIGURE_CELLS
+
     ny, nx = (int(v) for v in shape)
     k = int(supersample)
-    return ny * nx * (BYTES_PER_MAP_CELL + k * k * BYTES_PER_SAMPLE) + prediction_chunk_memory(n_cells, chunk_size)
+    cells = ny * nx
+    # A band holds WRITTEN_BAND_CELLS cells, or a few rows of a wider map (a whole number of
+    # variance samples, each at most MAX_GP_STEP_CELLS rows).
+    band = min(cells, max(WRITTEN_BAND_CELLS, VARIANCE_STEP_SAMPLES * MAX_GP_STEP_CELLS * nx))
+    step = -(-max(ny, nx) // FIGURE_CELLS)
+    drawn = -(-ny // step) * -(-nx // step)
+    samples = cells * k * k * BYTES_PER_SAMPLE if k > 1 else 0
+    return (
+        cells * BYTES_PER_MAP_CELL
+        + band * BYTES_PER_BAND_CELL
+        + drawn * BYTES_PER_FIGURE_CELL
+        + samples
+        + prediction_chunk_memory(n_cells, chunk_size)
+    )
 
 
 def voxel_shape(

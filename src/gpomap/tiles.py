@@ -56,7 +56,7 @@ from gpomap.cells import build_cells
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
-from gpomap.fusion import EvidenceLayer, HitProximity
+from gpomap.fusion import WRITTEN_BAND_CELLS, EvidenceLayer, HitProximity
 from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
@@ -1990,8 +1990,18 @@ class TiledGPOM:
         """Probability and latent variance per cell of a GridSpec or VoxelSpec."""
         if self.evidence_ is not None:
             return self.evidence_.written_grid(spec, self.hyperparameters_["length_scale"], self._gp_probabilities, self)
-        p, _, var, _ = self._predict_blended(spec.centres())
-        return p.reshape(spec.shape), var.reshape(spec.shape)
+        if not isinstance(spec, GridSpec):
+            p, _, var, _ = self._predict_blended(spec.centres())
+            return p.reshape(spec.shape), var.reshape(spec.shape)
+        # The GP alone, in bands of rows as the written map with counts is (the same values).
+        probability, variance = np.empty(spec.shape), np.empty(spec.shape)
+        rows = max(1, WRITTEN_BAND_CELLS // spec.shape[1])
+        for start in range(0, spec.shape[0], rows):
+            stop = min(start + rows, spec.shape[0])
+            p, _, var, _ = self._predict_blended(spec.rows(start, stop).centres())
+            probability[start:stop], variance[start:stop] = p.reshape(-1, spec.shape[1]), var.reshape(-1, spec.shape[1])
+            self.forget_below(spec.origin[1] + stop * spec.resolution)
+        return probability, variance
 
     def _voxels(self, resolution: float, extent: tuple[float, ...]) -> Any:
         from gpomap.lattice import extent_bounds
