@@ -89,6 +89,7 @@ from gpomap.lattice import (
     overlap,
 )
 from gpomap.observations import ScanData, data_dim, observations_from_scans, sensor_positions
+from gpomap.resources import WRITTEN_BAND_CELLS
 from gpomap.scans import Scan
 
 #: One observation in this many is a surprise the counts cannot foresee (a person standing where
@@ -550,13 +551,6 @@ def _predict_block(
     shape = tuple(s.stop - s.start for s in block)
     pad = [(s.start, n - s.stop) for s, n in zip(block, sampled.shape, strict=True)]
     return tuple(np.pad(np.asarray(v, dtype=float).reshape(shape), pad, mode="edge").reshape(-1) for v in predict_gp(inner))
-
-
-#: A planar written map is built in bands of rows of at most about this many cells (see
-#: :meth:`EvidenceLayer.written_grid`): its temporaries (GP samples, counts, distances to hits,
-#: about 150 bytes a cell) then follow the band, not the map. The Freiburg campus log's map at
-#: 0.05 m has 36 million cells, and built whole it took 5.6 GB above the fitted model.
-WRITTEN_BAND_CELLS: int = 2**21
 
 
 #: How far (metres) the counted lattice reaches beyond the beams when scans arrive outside it: the

@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from gpomap.grid import OccupancyMap
 from gpomap.io.atomic import atomic_write
+from gpomap.resources import FIGURE_CELLS
 
 __all__ = ["plot_map", "plot_inputs", "save_figure", "PROBABILITY_CMAP", "VARIANCE_CMAP"]
 
@@ -34,13 +35,6 @@ _TERNARY_NORM = BoundaryNorm([-1.5, -0.5, 0.5, 1.5], _TERNARY_CMAP.N)
 _PATH_COLOUR = "#19b219"
 _FREE_COLOUR = "#2ca02c"
 _HIT_COLOUR = "#d62728"
-
-
-#: A map panel shows at most this many cells a side: every k-th row and column of a larger map. A
-#: panel is about 600 pixels wide (4 inches at 150 dpi) and nearest-neighbour drawing shows one
-#: cell a pixel anyway, while matplotlib draws from float copies of the whole array (a 6,000 by
-#: 6,000-cell map took 3 GB and 20 s to draw whole).
-FIGURE_CELLS: int = 2048
 
 
 def _shown(values: NDArray, step: int) -> NDArray:

@@ -28,6 +28,7 @@ __all__ = [
     "BYTES_PER_MAP_CELL",
     "BYTES_PER_SAMPLE",
     "DEFAULT_MEMORY_FRACTION",
+    "FIGURE_CELLS",
     "FIT_MATRICES",
     "MemoryLimitError",
     "check_memory",
@@ -43,23 +44,36 @@ __all__ = [
     "total_memory",
     "BYTES_PER_VOXEL",
     "voxel_grid_memory",
+    "WRITTEN_BAND_CELLS",
     "voxel_shape",
 ]
 
 #: Fraction of the physical memory a run may plan to use by default (``--memory-limit``).
 DEFAULT_MEMORY_FRACTION = 0.5
 
+#: A planar written map is built in bands of rows of at most about this many cells
+#: (:meth:`gpomap.fusion.EvidenceLayer.written_grid`): its temporaries (GP samples, counts,
+#: distances to hits, :data:`BYTES_PER_BAND_CELL`) then follow the band, not the map. The
+#: Freiburg campus log's map at 0.05 m has 36 million cells; built whole, they took 6.1 GB.
+WRITTEN_BAND_CELLS: int = 2**21
+
+#: A map's figure draws at most this many cells a side: every k-th row and column of a larger
+#: map (:func:`gpomap.plot.plot_map`). A panel is about 600 pixels wide (4 inches at 150 dpi)
+#: and nearest-neighbour drawing shows one cell a pixel anyway, while matplotlib draws from float
+#: copies of the whole array (a 6,000 by 6,000-cell map took 3 GB and 20 s to draw whole).
+FIGURE_CELLS: int = 2048
+
 #: Bytes per cell of a written map: probability and variance (float64, 8 + 8), the ternary map
 #: and the PGM image (1 + 1), and their copies while the NPZ is compressed (8 + 8).
 BYTES_PER_MAP_CELL = 8 + 8 + 1 + 1 + 8 + 8
 
 #: Bytes per cell of one band of a written map while it is built (GP samples, ray counts, distances
-#: to hits and their interpolations; :data:`gpomap.fusion.WRITTEN_BAND_CELLS` cells a band):
+#: to hits and their interpolations; :data:`WRITTEN_BAND_CELLS` cells a band):
 #: the Freiburg campus log's map, built whole at 0.05 m, took 6.1 GB over its 36.5 million cells
 #: above the fitted model, its 16 bytes a cell of probability and variance among them.
 BYTES_PER_BAND_CELL = 150
 
-#: Bytes per cell drawn in the map's figure (at most :data:`gpomap.plot.FIGURE_CELLS` a side):
+#: Bytes per cell drawn in the map's figure (at most :data:`FIGURE_CELLS` a side):
 #: three panels, each normalised to float64 and coloured before resampling (3 x 24).
 BYTES_PER_FIGURE_CELL = 3 * 24
 
@@ -177,16 +191,12 @@ def grid_memory(shape: tuple[int, int], supersample: int = 1, n_cells: int = 0, 
         the figure's cells times :data:`BYTES_PER_FIGURE_CELL`, with K > 1 ``ny * nx * K^2 *
         BYTES_PER_SAMPLE``, and one chunk's arrays.
     """
-    # Imported here: the figure's module brings matplotlib, and the check runs before any work.
-    from gpomap.fusion import MAX_GP_STEP_CELLS, VARIANCE_STEP_SAMPLES, WRITTEN_BAND_CELLS
-    from gpomap.plot import FIGURE_CELLS
-
     ny, nx = (int(v) for v in shape)
     k = int(supersample)
     cells = ny * nx
-    # A band holds WRITTEN_BAND_CELLS cells, or a few rows of a wider map (a whole number of
-    # variance samples, each at most MAX_GP_STEP_CELLS rows).
-    band = min(cells, max(WRITTEN_BAND_CELLS, VARIANCE_STEP_SAMPLES * MAX_GP_STEP_CELLS * nx))
+    # A band holds WRITTEN_BAND_CELLS cells, or 8 rows of a wider map: its rows are a whole
+    # number of the GP's variance samples, two samples of at most four cells (gpomap.fusion).
+    band = min(cells, max(WRITTEN_BAND_CELLS, 8 * nx))
     step = -(-max(ny, nx) // FIGURE_CELLS)
     drawn = -(-ny // step) * -(-nx // step)
     samples = cells * k * k * BYTES_PER_SAMPLE if k > 1 else 0

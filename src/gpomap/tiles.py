@@ -56,7 +56,7 @@ from gpomap.cells import build_cells
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
-from gpomap.fusion import WRITTEN_BAND_CELLS, EvidenceLayer, HitProximity
+from gpomap.fusion import EvidenceLayer, HitProximity
 from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, ternary
 from gpomap.kernels.area import AreaKernel
@@ -65,6 +65,7 @@ from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas
 from gpomap.lattice import column_bounds, stable_order
 from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
+from gpomap.resources import WRITTEN_BAND_CELLS
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
 from gpomap.squash import ProbitSquash
