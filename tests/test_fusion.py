@@ -697,18 +697,20 @@ def test_a_near_miss_counts_as_a_hit_only_where_surfaces_fall_in_such_cells(monk
     assert loss_smeared < loss_pinned - 0.01
 
 
+@pytest.mark.parametrize("x0", [-0.5, -0.513], ids=["on the counted lattice", "off it"])
 def test_a_large_planar_written_grid_is_built_in_bands_and_is_the_same_map(
-    half_room: tuple[AreaGPOM, list[Scan]], monkeypatch: pytest.MonkeyPatch
+    half_room: tuple[AreaGPOM, list[Scan]], monkeypatch: pytest.MonkeyPatch, x0: float
 ) -> None:
     """Built in bands of rows (a shorter last one), the written map is the one built whole: each
     band samples the GP where the whole grid does, and reads the counts and the distances to hits
-    of its own rows. Up to the local prediction's tolerance: a tile's blocks of queries, and so
+    of its own rows (off the counted lattice, from one count of the whole grid). Up to the local
+    prediction's tolerance: a tile's blocks of queries, and so
     the covariances below `gpomap.gp.LOCAL_TOL` of the variance it leaves out, follow the queries
     it is given (2e-5 at most against the dense solve on the room's grid, docs/choices.md)."""
     from gpomap import fusion
 
     model, _ = half_room
-    extent = (-0.5, 10.5, -0.5, 8.3)  # 176 rows of 220 cells
+    extent = (x0, 10.5, -0.5, 8.3)  # 176 rows of 220 cells (221 off the lattice)
     whole = model.grid(0.05, extent=extent)
     assert any(tile.posterior.precision is not None for tile in model.tiles_.values())
     bands: list[tuple[int, ...]] = []
@@ -720,7 +722,16 @@ def test_a_large_planar_written_grid_is_built_in_bands_and_is_the_same_map(
 
     monkeypatch.setattr(fusion, "WRITTEN_BAND_CELLS", 5_000)
     monkeypatch.setattr(fusion.EvidenceLayer, "_written_block", counted)
+    traversals: list[tuple[int, ...]] = []
+    count = RayEvidence.counts
+
+    def traversed(self: RayEvidence, grid: GridSpec, *args: object, **kwargs: object) -> object:
+        traversals.append(grid.shape)
+        return count(self, grid, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(RayEvidence, "counts", traversed)
     banded = model.grid(0.05, extent=extent)
+    assert traversals == ([] if x0 == -0.5 else [(176, 221)])
     assert len(bands) == 9 and bands[-1][0] < bands[0][0] and sum(b[0] for b in bands) == 176
     np.testing.assert_allclose(banded.probability, whole.probability, rtol=0, atol=2e-5)
     assert banded.variance is not None and whole.variance is not None

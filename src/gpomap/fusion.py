@@ -878,11 +878,16 @@ class EvidenceLayer:
         if ny <= rows:
             return self._written_block(grid, factor, predict_gp, moments)
         probability, variance = np.empty(grid.shape), np.empty(grid.shape)
+        # Cells off the counted lattice are counted afresh, a traversal of every beam: once for
+        # the whole grid (16 bytes a cell), not once per band.
+        whole = None if self._on_lattice(grid) else self._raw_grid_counts(grid)
         for start in range(0, ny, rows):
             stop = min(start + rows, ny)
-            probability[start:stop], variance[start:stop] = self._written_block(
-                grid.rows(start, stop), factor, predict_gp, moments
-            )
+            band = grid.rows(start, stop)
+            if whole is not None:
+                counts, path = whole
+                self._grid_cache = (band, RayCounts(*(c[start:stop] for c in counts)), path[start:stop])
+            probability[start:stop], variance[start:stop] = self._written_block(band, factor, predict_gp, moments)
             if moments is not None:
                 # The next band's GP samples, and its variance's, reach at most 4.5 samples below its rows.
                 moments.forget_below(grid.origin[1] + (stop - 3 * unit) * grid.resolution)

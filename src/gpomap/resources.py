@@ -64,8 +64,9 @@ WRITTEN_BAND_CELLS: int = 2**21
 FIGURE_CELLS: int = 2048
 
 #: Bytes per cell of a written map: probability and variance (float64, 8 + 8), the ternary map
-#: and the PGM image (1 + 1), and their copies while the NPZ is compressed (8 + 8).
-BYTES_PER_MAP_CELL = 8 + 8 + 1 + 1 + 8 + 8
+#: and the PGM image (1 + 1), their copies while the NPZ is compressed (8 + 8), and the ray
+#: counts of a grid off the counted lattice (an ``--extent``), counted whole (4 x 4).
+BYTES_PER_MAP_CELL = 8 + 8 + 1 + 1 + 8 + 8 + 4 * 4
 
 #: Bytes per cell of one band of a written map while it is built (GP samples, ray counts, distances
 #: to hits and their interpolations; :data:`WRITTEN_BAND_CELLS` cells a band):
