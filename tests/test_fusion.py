@@ -771,6 +771,7 @@ def test_the_gp_alone_grid_is_built_in_bands_of_the_same_values(monkeypatch: pyt
     monkeypatch.setattr(type(model), "_predict_blended", counted)
     om = model.grid(0.05, extent=(-0.5, 10.5, -0.5, 8.3))
     assert len(calls) == 14 and sum(calls) == om.probability.size  # 13 rows of 220 cells a band
+    assert all(tile.posterior.precision is None for tile in model.tiles_.values())
     p, var = model.predict_proba_gp(om.grid.centres(), return_var=True)
     np.testing.assert_allclose(om.probability, p.reshape(om.grid.shape), rtol=0, atol=2e-5)
     assert om.variance is not None

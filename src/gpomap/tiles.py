@@ -1991,17 +1991,19 @@ class TiledGPOM:
         """Probability and latent variance per cell of a GridSpec or VoxelSpec."""
         if self.evidence_ is not None:
             return self.evidence_.written_grid(spec, self.hyperparameters_["length_scale"], self._gp_probabilities, self)
-        if not isinstance(spec, GridSpec):
+        ny, nx = spec.shape[-2:]
+        rows = max(1, WRITTEN_BAND_CELLS // nx)
+        if not isinstance(spec, GridSpec) or ny <= rows:
             p, _, var, _ = self._predict_blended(spec.centres())
             return p.reshape(spec.shape), var.reshape(spec.shape)
         # The GP alone, in bands of rows as the written map with counts is (the same values).
         probability, variance = np.empty(spec.shape), np.empty(spec.shape)
-        rows = max(1, WRITTEN_BAND_CELLS // spec.shape[1])
-        for start in range(0, spec.shape[0], rows):
-            stop = min(start + rows, spec.shape[0])
+        for start in range(0, ny, rows):
+            stop = min(start + rows, ny)
             p, _, var, _ = self._predict_blended(spec.rows(start, stop).centres())
-            probability[start:stop], variance[start:stop] = p.reshape(-1, spec.shape[1]), var.reshape(-1, spec.shape[1])
+            probability[start:stop], variance[start:stop] = p.reshape(-1, nx), var.reshape(-1, nx)
             self.forget_below(spec.origin[1] + stop * spec.resolution)
+        self.forget_below(np.inf)
         return probability, variance
 
     def _voxels(self, resolution: float, extent: tuple[float, ...]) -> Any:
