@@ -777,3 +777,26 @@ def test_the_gp_alone_grid_is_built_in_bands_of_the_same_values(monkeypatch: pyt
     assert om.variance is not None
     np.testing.assert_allclose(om.variance, var.reshape(om.grid.shape), rtol=0, atol=2e-5)
     assert np.ptp(om.probability) > 0.5
+
+
+def test_a_map_built_in_bands_reports_its_bands_not_each_bands_tiles(
+    half_room: tuple[AreaGPOM, list[Scan]], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from gpomap import fusion
+    from gpomap.progress import get_progress_mode, set_progress_mode
+
+    model, _ = half_room
+    monkeypatch.setattr(fusion, "WRITTEN_BAND_CELLS", 5_000)
+    before = get_progress_mode()
+    set_progress_mode("lines")
+    try:
+        capsys.readouterr()
+        model.grid(0.05, extent=(-0.5, 10.5, -0.5, 8.3))  # 9 bands
+        err = capsys.readouterr().err
+        model.grid(0.5)  # one piece: its tiles report
+        one_piece = capsys.readouterr().err
+    finally:
+        set_progress_mode(before)
+    assert "building the map: 1/9 bands" in err and "building the map: 8/9 bands" in err
+    assert "predicting tiles" not in err
+    assert "predicting tiles" in one_piece and "building the map" not in one_piece

@@ -24,6 +24,7 @@ __all__ = ["Progress", "progress", "set_progress_mode", "get_progress_mode"]
 Mode = Literal["auto", "lines", "quiet"]
 _MODES: tuple[Mode, ...] = ("auto", "lines", "quiet")
 _mode: Mode = "auto"
+_open = 0  # stages open: a stage within another reports nothing, the outer one speaks for both
 
 
 def set_progress_mode(mode: Mode) -> None:
@@ -60,7 +61,7 @@ class Progress:
         self._t0 = time.perf_counter()
         self._next_line = 0.1
         self._bar = None
-        self._mode = _mode
+        self._mode: Mode = "quiet" if _open else _mode
         if self._mode == "auto" and sys.stderr.isatty():
             from tqdm import tqdm
 
@@ -93,9 +94,16 @@ class Progress:
 
 @contextmanager
 def progress(total: int, desc: str, unit: str = "item") -> Iterator[Progress]:
-    """Report progress of a stage of `total` items: ``with progress(n, "fitting tiles") as bar: bar.update()``."""
+    """Report progress of a stage of `total` items: ``with progress(n, "fitting tiles") as bar: bar.update()``.
+
+    Stages opened within it report nothing: a map built in bands of rows says which band it is
+    at, not how far each band's tiles are (18 bands of 20 lines each on a large map).
+    """
+    global _open
     bar = Progress(total, desc, unit)
+    _open += 1
     try:
         yield bar
     finally:
+        _open -= 1
         bar.close()

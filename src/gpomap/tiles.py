@@ -1998,11 +1998,13 @@ class TiledGPOM:
             return p.reshape(spec.shape), var.reshape(spec.shape)
         # The GP alone, in bands of rows as the written map with counts is (the same values).
         probability, variance = np.empty(spec.shape), np.empty(spec.shape)
-        for start in range(0, ny, rows):
-            stop = min(start + rows, ny)
-            p, _, var, _ = self._predict_blended(spec.rows(start, stop).centres())
-            probability[start:stop], variance[start:stop] = p.reshape(-1, nx), var.reshape(-1, nx)
-            self.forget_below(spec.origin[1] + stop * spec.resolution)
+        with progress(-(-ny // rows), "building the map", unit="band") as bar:
+            for start in range(0, ny, rows):
+                stop = min(start + rows, ny)
+                p, _, var, _ = self._predict_blended(spec.rows(start, stop).centres())
+                probability[start:stop], variance[start:stop] = p.reshape(-1, nx), var.reshape(-1, nx)
+                self.forget_below(spec.origin[1] + stop * spec.resolution)
+                bar.update()
         self.forget_below(np.inf)
         return probability, variance
 
