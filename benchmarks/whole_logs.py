@@ -9,6 +9,7 @@ ratio is the GP's fit + map CPU over the grid's, from the same run. Usage::
 
     .venv/bin/python benchmarks/whole_logs.py                 # intel, fr079, csail, belgioioso
     .venv/bin/python benchmarks/whole_logs.py --logs fr079 --workers 1
+    .venv/bin/python benchmarks/whole_logs.py --logs none --log-file robot.log.gz   # your own logs
 """
 
 from __future__ import annotations
@@ -77,7 +78,15 @@ def child(log: str, method: str, workers: int) -> dict[str, Any]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--logs", default=",".join(LOGS), help="comma-separated: " + ", ".join(LOGS))
+    parser.add_argument("--logs", default=",".join(LOGS), help="comma-separated: " + ", ".join(LOGS) + ", or none")
+    parser.add_argument(
+        "--log-file",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="also any log gpomap reads (repeatable), named by its file",
+    )
     parser.add_argument("--workers", type=int, default=2, help="gpomap map --workers (default: 2)")
     parser.add_argument("--child", nargs=2, metavar=("LOG", "METHOD"), help=argparse.SUPPRESS)
     parser.add_argument("--json", type=Path, help="also write the results here")
@@ -88,8 +97,12 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     print(f"# Whole logs (commit {commit}, {os.cpu_count()} CPUs, gpomap map --resolution {RESOLUTION} --workers {args.workers})")
     results = []
-    for name in args.logs.split(","):
-        path = LOGS[name]
+    names = [] if args.logs == "none" else args.logs.split(",")
+    unknown = [n for n in names if n not in LOGS]
+    if unknown:
+        raise SystemExit(f"unknown log(s) {', '.join(unknown)}: --logs takes {', '.join(LOGS)} or none")
+    chosen = [(n, LOGS[n]) for n in names] + [(p.name, p) for p in args.log_file]
+    for name, path in chosen:
         if not path.exists():
             print(f"skipping {name}: {path} not found", flush=True)
             continue
