@@ -750,6 +750,9 @@ def test_grid_rows_are_a_band_of_the_same_cells() -> None:
     np.testing.assert_array_equal(band.x_centres(), grid.x_centres())
     with pytest.raises(ValueError, match="rows 5:31"):
         grid.rows(5, 31)
+    from gpomap.grid import row_bands
+
+    assert [(a, b, band.shape) for a, b, band in row_bands(grid, 12)] == [(0, 12, (12, 7)), (12, 24, (12, 7)), (24, 30, (6, 7))]
 
 
 def test_the_gp_alone_grid_is_built_in_bands_of_the_same_values(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -72,7 +72,7 @@ from scipy.special import ndtr, ndtri
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import MAX_PATH_STEP, PATH_RADIUS, RayCounts, RayEvidence, lattice_grid
-from gpomap.grid import GridSpec
+from gpomap.grid import GridSpec, row_bands
 from gpomap.lattice import (
     AnyGrid,
     bounds_extent,
@@ -89,7 +89,6 @@ from gpomap.lattice import (
     overlap,
 )
 from gpomap.observations import ScanData, data_dim, observations_from_scans, sensor_positions
-from gpomap.progress import progress
 from gpomap.resources import WRITTEN_BAND_CELLS
 from gpomap.scans import Scan
 
@@ -882,18 +881,14 @@ class EvidenceLayer:
         # Cells off the counted lattice are counted afresh, a traversal of every beam: once for
         # the whole grid (16 bytes a cell), not once per band.
         whole = None if self._on_lattice(grid) else self._raw_grid_counts(grid)
-        with progress(-(-ny // rows), "building the map", unit="band") as bar:
-            for start in range(0, ny, rows):
-                stop = min(start + rows, ny)
-                band = grid.rows(start, stop)
-                if whole is not None:
-                    counts, path = whole
-                    self._grid_cache = (band, RayCounts(*(c[start:stop] for c in counts)), path[start:stop])
-                probability[start:stop], variance[start:stop] = self._written_block(band, factor, predict_gp, moments)
-                if moments is not None:
-                    # The next band's GP samples, and its variance's, reach at most 4.5 samples below its rows.
-                    moments.forget_below(grid.origin[1] + (stop - 3 * unit) * grid.resolution)
-                bar.update()
+        for start, stop, band in row_bands(grid, rows):
+            if whole is not None:
+                counts, path = whole
+                self._grid_cache = (band, RayCounts(*(c[start:stop] for c in counts)), path[start:stop])
+            probability[start:stop], variance[start:stop] = self._written_block(band, factor, predict_gp, moments)
+            if moments is not None:
+                # The next band's GP samples, and its variance's, reach at most 4.5 samples below its rows.
+                moments.forget_below(grid.origin[1] + (stop - 3 * unit) * grid.resolution)
         if moments is not None:
             moments.forget_below(np.inf)
         self._grid_cache = None  # the last band's counts: of no use to the next grid

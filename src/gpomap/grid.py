@@ -9,10 +9,13 @@ corner of the lower-left cell; arrays are indexed ``[row, col]`` with row 0 at t
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+
+from gpomap.progress import progress
 
 FREE: int = 0
 OCCUPIED: int = 1
@@ -116,6 +119,24 @@ class GridSpec:
         rows = np.floor((p[:, 1] - self.origin[1]) / self.resolution).astype(np.intp)
         inside = (rows >= 0) & (rows < self.shape[0]) & (cols >= 0) & (cols < self.shape[1])
         return rows, cols, inside
+
+
+def row_bands(grid: GridSpec, rows: int) -> Iterator[tuple[int, int, GridSpec]]:
+    """`grid` in bands of `rows` rows, bottom up (the last one shorter), reporting each as it ends.
+
+    Yields
+    ------
+    start, stop : int
+        The band's rows of `grid` (stop exclusive).
+    band : GridSpec
+        Those rows (:meth:`GridSpec.rows`).
+    """
+    ny = grid.shape[0]
+    with progress(-(-ny // rows), "building the map", unit="band") as bar:
+        for start in range(0, ny, rows):
+            stop = min(start + rows, ny)
+            yield start, stop, grid.rows(start, stop)
+            bar.update()
 
 
 def ternary(probability: NDArray[np.float64], thresholds: tuple[float, float] = DEFAULT_THRESHOLDS) -> NDArray[np.int8]:

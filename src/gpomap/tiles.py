@@ -58,7 +58,7 @@ from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFitt
 from gpomap.estimator import as_points
 from gpomap.fusion import EvidenceLayer, HitProximity
 from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
-from gpomap.grid import GridSpec, OccupancyMap, ternary
+from gpomap.grid import GridSpec, OccupancyMap, row_bands, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas_threads
@@ -1998,13 +1998,10 @@ class TiledGPOM:
             return p.reshape(spec.shape), var.reshape(spec.shape)
         # The GP alone, in bands of rows as the written map with counts is (the same values).
         probability, variance = np.empty(spec.shape), np.empty(spec.shape)
-        with progress(-(-ny // rows), "building the map", unit="band") as bar:
-            for start in range(0, ny, rows):
-                stop = min(start + rows, ny)
-                p, _, var, _ = self._predict_blended(spec.rows(start, stop).centres())
-                probability[start:stop], variance[start:stop] = p.reshape(-1, nx), var.reshape(-1, nx)
-                self.forget_below(spec.origin[1] + stop * spec.resolution)
-                bar.update()
+        for start, stop, band in row_bands(spec, rows):
+            p, _, var, _ = self._predict_blended(band.centres())
+            probability[start:stop], variance[start:stop] = p.reshape(-1, nx), var.reshape(-1, nx)
+            self.forget_below(spec.origin[1] + stop * spec.resolution)
         self.forget_below(np.inf)
         return probability, variance
 
