@@ -19,7 +19,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from numpy.typing import ArrayLike, NDArray
 
-from gpomap.grid import OccupancyMap
+from gpomap.grid import OccupancyMap, ternary
 from gpomap.io.atomic import atomic_write
 from gpomap.resources import FIGURE_CELLS
 
@@ -92,7 +92,8 @@ def plot_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str] | None = 
 
     imshow = {"extent": extent, "origin": "lower", "interpolation": "nearest", "aspect": "equal"}
     step = -(-max(ny, nx) // FIGURE_CELLS)
-    im = axes[0].imshow(_shown(m.probability, step), cmap=PROBABILITY_CMAP, vmin=0.0, vmax=1.0, **imshow)
+    probability = _shown(m.probability, step)
+    im = axes[0].imshow(probability, cmap=PROBABILITY_CMAP, vmin=0.0, vmax=1.0, **imshow)
     _colorbar(fig, axes[0], im, "occupancy probability")
     axes[0].set_title("probability")
 
@@ -109,7 +110,8 @@ def plot_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str] | None = 
         axes[1].text(0.5, 0.5, "no variance", transform=axes[1].transAxes, ha="center", va="center", color="0.4")
     axes[1].set_title("latent variance")
 
-    im = axes[2].imshow(_shown(m.ternary, step), cmap=_TERNARY_CMAP, norm=_TERNARY_NORM, **imshow)
+    # The drawn cells' classes only (the whole map's would be sliced the same).
+    im = axes[2].imshow(ternary(probability, m.thresholds), cmap=_TERNARY_CMAP, norm=_TERNARY_NORM, **imshow)
     cbar = _colorbar(fig, axes[2], im, "")
     cbar.set_ticks([-1, 0, 1], labels=["unknown", "free", "occupied"])
     axes[2].set_title(f"ternary (free < {m.thresholds[0]:g}, occupied > {m.thresholds[1]:g})")
