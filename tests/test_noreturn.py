@@ -78,6 +78,27 @@ def test_code_found_without_param(tmp_path: Path, codes: list[float]) -> None:
     assert max(np.hypot(*(s.hits() - s.pose[:2]).T).max() for s in scans) < min(codes) - 0.4
 
 
+def test_code_under_a_few_stray_readings(tmp_path: Path) -> None:
+    # MIT's infinite corridor log: 3,720 readings at 51.06 m and 466 at 51.11 m under two at
+    # 51.16 m. Before, the top reading had to be the code, so none was found and every no-return
+    # became a hit 51 m out.
+    rng = np.random.default_rng(9)
+    ranges = _with_codes(rng, _real_ranges(rng, N_SCANS * N_BEAMS), [51.06, 51.06, 51.11])
+    strays = rng.choice(np.flatnonzero(ranges < 20.0), 2, replace=False)
+    ranges[strays] = [51.16, 51.2]
+    scans = read_carmen(_flaser_log(tmp_path / "s.log", ranges))
+    d = scans[0].meta["no_return"]
+    assert d["source"] == "data" and d["code"] == [51.06, 51.11]
+    assert scans[0].max_range == pytest.approx(51.05)
+    assert d["n_no_return"] == int((ranges > 51.0).sum()) == sum(int(s.no_return().sum()) for s in scans)
+    assert max(np.hypot(*(s.hits() - s.pose[:2]).T).max() for s in scans) < 20.5
+    # As many readings above the code as a code holds, at distinct values: real long returns
+    # beyond a repeated range, so that range is not a code.
+    over = np.r_[ranges[ranges < 51.0], np.full(500, 51.06), 51.2 + 0.1 * np.arange(8)]
+    assert detect_no_return_code(over) is None
+    assert detect_no_return_code(over[:-1]).values == (51.06,)
+
+
 def test_50m_code_beats_an_80m_param_and_is_reported(tmp_path: Path) -> None:
     rng = np.random.default_rng(2)
     ranges = _with_codes(rng, _real_ranges(rng, N_SCANS * N_BEAMS), [50.0])

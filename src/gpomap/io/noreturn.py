@@ -4,7 +4,8 @@ Many lasers write "no return" as a fixed code instead of leaving the beam empty:
 (SICK, 80 m family), 50.0 m, 51.05 / 51.1 m, 32.767 / 32.76 m, 5.0 / 5.6 m. Such a code sits at the
 top of the range distribution and is repeated far more often than any real range near it: in Intel
 4,172 readings are 81.83 while the nearest real ranges (around 25 m) hold one or two readings per
-centimetre. A header value (CARMEN ``PARAM robot_front_laser_max``, the ``max_range`` field of
+centimetre. A few stray readings may lie above it (MIT's infinite corridor: 3,720 at 51.06 m, two
+at 51.16 m). A header value (CARMEN ``PARAM robot_front_laser_max``, the ``max_range`` field of
 ``ROBOTLASER1``, a LaserScan's ``range_max``) may be missing, or say something else than the data
 (``PARAM robot_front_laser_max 10`` in a log with real returns out to 50 m), so the readers decide:
 
@@ -171,9 +172,10 @@ def detect_no_return_code(ranges: ArrayLike) -> NoReturnCode | None:
     A code is a value (to the millimetre) within 0.1 m of the top of the distribution that holds at
     least 8 readings and at least 10 times the readings per centimetre of the real ranges just below
     it (estimated from the 50 readings below the 0.1 m window). Several such values in the window
-    (81.83 and 81.91) are all codes. The largest reading must be one of them (a sensor reports
-    nothing beyond its code), and the readings below must look like real ranges (at least 20
-    distinct values), else nothing is found.
+    (81.83 and 81.91) are all codes. The highest code must be the largest reading or lie under
+    fewer than 8 readings (a sensor reports next to nothing beyond its code; those strays are
+    no-return too), and the readings below must look like real ranges (at least 20 distinct
+    values), else nothing is found.
 
     Parameters
     ----------
@@ -185,10 +187,18 @@ def detect_no_return_code(ranges: ArrayLike) -> NoReturnCode | None:
     NoReturnCode or None
     """
     r = np.sort(_valid(ranges))
-    if r.size == 0:
-        return None
-    # A sensor never reports beyond its own code: the code is the largest reading.
-    return _code_below(r, r.size - 1)
+    values = np.round(r, _DECIMALS)
+    # A sensor reports next to nothing beyond its own code: the code is the largest reading, or
+    # lies under fewer stray readings than a code holds (MIT's infinite corridor: 51.06 m, 3,720
+    # readings, under 2 at 51.16 m; Acapulco: 51.15 m under one each at 51.2 and 51.25 m).
+    for strays in range(min(_MIN_COUNT, r.size)):
+        top_index = r.size - 1 - strays
+        if strays and values[top_index] == values[top_index + 1]:
+            continue  # readings above it of its own value: not the top of a value
+        code = _code_below(r, top_index)
+        if code is not None:
+            return code
+    return None
 
 
 def _fmt(x: float) -> str:
