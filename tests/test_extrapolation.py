@@ -9,7 +9,7 @@ from scipy.special import ndtr
 from gpomap import extrapolation as ex
 from gpomap.fusion import HIT_DISTANCE_REACHES, HitProximity
 from gpomap.mapping import AreaGPOM
-from gpomap.simulate import paper_room_scans
+from gpomap.simulate import paper_room, paper_room_scans, simulate_scans
 from gpomap.squash import ProbitSquash
 
 
@@ -333,3 +333,63 @@ def test_a_region_with_too_few_unseen_points_gives_way_to_the_wider_one(monkeypa
     assert got["region_half"] == 50.0 and got["kappa"] == wide["kappa"] and got["n_points"] == wide["n_points"]
     # Enough in the first: it is kept.
     assert fit(np.zeros(2), 50.0, wider=(np.zeros(2), 80.0, 0.0))["region_half"] == 50.0
+
+
+def test_new_ground_centre_by_hand() -> None:
+    # 20 scans: the first pattern holds out scans 2, 3, 8, 9, 14 and 15 (scan 0 is kept).
+    wall = np.c_[np.arange(0.0, 10.0, 0.5), np.zeros(20)]  # kept hits in the square (0, 0) of 20 m
+    rows = [
+        (wall, True, 0),
+        (wall[:5] + np.array([0.0, 0.9]), True, 2),  # held out, within 1 m of a kept hit: not new
+        (np.array([[5.0, 5.0]]), False, 0),  # a kept free point in (0, 0)
+        (np.array([[35.0, 15.0]]), True, 0),  # the square (1, 0): a kept hit ...
+        (np.array([[30.0, 10.0]]), False, 0),  # ... a kept free point ...
+        (np.array([[25.0, 5.0], [26.0, 5.0], [27.0, 6.0]]), True, 8),  # ... and three new hits
+        (np.array([[45.0, 45.0]]), True, 0),  # the square (2, 2): a kept hit, no kept free point ...
+        (np.array([[50.0, 50.0], [51.0, 50.0], [52.0, 50.0], [53.0, 50.0]]), True, 14),  # ... four new hits
+    ]
+    points = np.concatenate([r[0] for r in rows])
+    occupied = np.concatenate([np.full(len(r[0]), r[1]) for r in rows])
+    scan_index = np.concatenate([np.full(len(r[0]), r[2]) for r in rows])
+    obs = ex.Observations(points, occupied, scan_index)
+    # The square (2, 2) has more new hits, but a held-in GP there would have no free point.
+    np.testing.assert_allclose(ex.new_ground_centre(obs, 20, 20.0), [30.0, 10.0])
+    # Without the kept free point of (1, 0), no square will do; nor without held-out hits.
+    no_free = ~np.all(points == [30.0, 10.0], axis=1)
+    assert ex.new_ground_centre(ex.Observations(points[no_free], occupied[no_free], scan_index[no_free]), 20, 20.0) is None
+    kept = np.isin(scan_index, [0])
+    assert ex.new_ground_centre(ex.Observations(points[kept], occupied[kept], scan_index[kept]), 20, 20.0) is None
+
+
+def _visit_scans():
+    """The paper's room, the robot in its left part (x < 12) but for the second of ten stretches
+    of the log, when it drives up the right part: the first pattern holds that stretch out, and
+    its held-out scans alone see most of the right part."""
+    world, _ = paper_room()
+    n = 5  # scans per stretch
+    left = np.c_[np.linspace(2.0, 10.0, n), np.full(n, 7.5), np.zeros(n)]  # sees through the doorway
+    right = np.c_[np.full(n, 14.0), np.linspace(3.0, 14.0, n), np.full(n, np.pi / 2)]
+    poses = [right if k == 1 else left for k in range(ex.N_STRETCHES)]
+    return simulate_scans(world, np.concatenate(poses), n_beams=180, seed=0)
+
+
+def test_too_few_in_both_regions_tries_where_held_out_stretches_saw_new_ground(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ex, "REGION_POINTS_PER_CLASS", 200)
+    scans = _visit_scans()
+    occupied = _truth(scans)
+    model = _Fixed(lambda p: (np.where(occupied(p), 0.5, -0.5), np.full(len(p), 0.25)))
+    obs = _points(scans)
+    corner, outside = np.array([3.0, 3.0]), np.array([-30.0, -30.0])
+
+    def fit(centre, wider=None):
+        return ex.fit_variance_scale(
+            scans, {"alpha": 30.0, "beta": 0.0}, obs, SETTINGS.free_clearance, model.fit, centre, 3.0, 0.0, wider=wider
+        )[1]
+
+    ground = ex.new_ground_centre(obs, len(scans), 6.0)
+    assert ground is not None and ground[0] > 12.0  # in the right part
+    alone = {name: fit(c).get("n_points", 0) for name, c in [("corner", corner), ("outside", outside), ("ground", ground)]}
+    assert alone["ground"] > max(alone["corner"], alone["outside"])
+    got = fit(corner, wider=(outside, 3.0, 0.0))
+    np.testing.assert_allclose(got["region_centre"], ground)
+    assert got["n_points"] == alone["ground"] and got["region_half"] == 3.0

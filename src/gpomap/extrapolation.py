@@ -33,7 +33,10 @@ walls certain), and its reach is at most 1 m, so that far from all data p is sti
 
 To bound the cost, the held-in GP covers one square region of side ``2 * region_half`` round a
 given centre (the hyperparameter sample's), and only points well inside it are used; where it
-holds fewer than :data:`REGION_POINTS_PER_CLASS` of a class, a wider square is taken. When one
+holds fewer than :data:`REGION_POINTS_PER_CLASS` of a class, a wider square is taken, and where
+that holds too few as well, a square of the first's size where the held-out stretches saw most
+new ground next to what the kept ones saw (:func:`new_ground_centre`: on MIT's infinite corridor
+the robot passes the sample's square in every stretch, which left no unseen point there). When one
 pattern of held-out stretches finds too few such points of a class (on Intel, CSAIL and FR079
 with blocks of their scans held out, 24-27), the other two patterns (the stretches after, then
 the rest) are tried in turn and their points pooled, each with its own held-in GP: a robot that
@@ -44,12 +47,13 @@ all three (a short log, a robot that never left one room), kappa stays 1.
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize, minimize_scalar
+from scipy.spatial import cKDTree
 from scipy.special import log_ndtr
 
 from gpomap.errors import EmptyDataError
@@ -89,6 +93,10 @@ HIT_GAIN: dict[int, bool] = {2: True, 3: False}
 #: the hyperparameter sample to be enough; with fewer, a square twice as wide is taken (or the
 #: whole map, when that is smaller). Kappa needs few; the gain near hits is fitted with it.
 REGION_POINTS_PER_CLASS: int = 500
+#: A held-out hit farther than this from every kept hit saw new ground (metres): where the first
+#: regions hold too few unseen points, the square where held-out stretches saw most of it is
+#: tried (:func:`new_ground_centre`).
+NEW_HIT_DISTANCE: float = 1.0
 #: Cell side of the lattice on which "no kept beam went" is decided, as the evaluation's
 #: reference grid decides it, metres (planar maps; voxel maps use 0.1 m).
 UNSEEN_RESOLUTION: dict[int, float] = {2: 0.05, 3: 0.1}
@@ -223,28 +231,47 @@ def fit_variance_scale(
     seed : int
         Seeds the class-balancing subsample.
     wider : (centre, region_half, margin), optional
-        A wider region, taken instead when the first holds fewer than
-        :data:`REGION_POINTS_PER_CLASS` points of a class (in every pattern tried).
+        A wider region, tried when the first holds fewer than :data:`REGION_POINTS_PER_CLASS`
+        points of a class (in every pattern tried); when it holds fewer too, so is a square of
+        the first's size where held-out stretches saw new ground (:func:`new_ground_centre`).
+        The first region with enough points is used, else the one with the most.
 
     Returns
     -------
     kappa : float
     report : dict
         ``"kappa"``, ``"hit_shift"`` and ``"hit_reach"`` (the gain near hits),
-        ``"n_points"`` (per class), ``"n_patterns"``, ``"region_half"``, ``"log_loss_at_1"``
-        and ``"log_loss"`` (balanced, at kappa = 1 and at the fit), or ``"reason"`` when kappa
-        stays 1.
+        ``"n_points"`` (per class), ``"n_patterns"``, ``"region_centre"`` and ``"region_half"``
+        (the square used), ``"log_loss_at_1"`` and ``"log_loss"`` (balanced, at kappa = 1 and
+        at the fit), or ``"reason"`` when kappa stays 1.
     """
     if len(scans) < HOLDOUT_EVERY:
         return 1.0, {"kappa": 1.0, "reason": f"only {len(scans)} scans"}
-    regions = [(centre, region_half, margin)] + ([wider] if wider is not None else [])
-    for c, h, g in regions:
-        centre, region_half, margin = np.asarray(c, dtype=float)[:2], float(h), float(g)
-        lo, hi = centre - region_half, centre + region_half
+
+    first = (np.asarray(centre, dtype=float)[:2], float(region_half), float(margin))
+
+    def regions() -> Iterator[tuple[NDArray[np.float64], float, float]]:
+        yield first
+        if wider is None:
+            return  # the first region is the whole map
+        yield np.asarray(wider[0], dtype=float)[:2], float(wider[1]), float(wider[2])
+        # A robot that passes the sample's square in every stretch (MIT's infinite corridor):
+        # where held-out stretches saw new ground, the square is first's size.
+        ground = new_ground_centre(observations, len(scans), 2.0 * first[1])
+        if ground is not None:
+            yield ground, first[1], first[2]
+
+    # The first region with enough points, else the one with the most (the first of equals).
+    tried: list[tuple[int, NDArray[np.float64], float, float, list[Any]]] = []
+    for c, h, g in regions():
+        lo, hi = c - h, c + h
         observes = functools.partial(_observes_both, observations, _in_square(observations.points, lo, hi))
-        folds, n = _region_folds(scans, lo, hi, margin, no_return_cap, observes)
+        folds, n = _region_folds(scans, lo, hi, g, no_return_cap, observes)
+        tried.append((n, c, h, g, folds))
         if n >= REGION_POINTS_PER_CLASS:
             break
+    n, centre, region_half, margin, folds = max(tried, key=lambda t: t[0])
+    lo, hi = centre - region_half, centre + region_half
     if n < MIN_POINTS_PER_CLASS:
         reason = f"{n} held-out points of a class where no kept beam went, in {len(folds)} patterns of held-out stretches"
         return 1.0, {"kappa": 1.0, "reason": reason}
@@ -283,10 +310,56 @@ def fit_variance_scale(
         "hit_reach": reach,
         "n_points": n,
         "n_patterns": len(folds),
+        "region_centre": [float(v) for v in centre],
         "region_half": float(region_half),
         "log_loss_at_1": _nll(1.0, mu, var, occ, a, b),
         "log_loss": loss,
     }
+
+
+def new_ground_centre(observations: Observations, n_scans: int, side: float) -> NDArray[np.float64] | None:
+    """Where the first pattern's held-out stretches saw most that its kept stretches did not.
+
+    The centre (x, y) of the square of side `side` (on a lattice from the origin) that holds the
+    most new hits, held-out hits farther than :data:`NEW_HIT_DISTANCE` from every kept hit, among
+    the squares where the kept scans have a hit and a free point (elsewhere a held-in GP would
+    only give its prior). None when there is no such square.
+
+    Parameters
+    ----------
+    observations : Observations
+        The map's labelled points; ``scan_index`` numbers the scans.
+    n_scans : int
+        Scans in the log.
+    side : float
+        Side of the squares, metres.
+
+    Returns
+    -------
+    ndarray of shape (2,) or None
+    """
+    kept, _ = holdout_stretches(n_scans, FOLD_STARTS[0])
+    is_kept = np.zeros(max(n_scans, int(observations.scan_index.max(initial=-1)) + 1), dtype=bool)
+    is_kept[kept] = True
+    from_kept = is_kept[observations.scan_index]
+    xy, occupied = observations.points[:, :2], observations.occupied
+    hits_kept, hits_held = xy[occupied & from_kept], xy[occupied & ~from_kept]
+    if hits_kept.size == 0 or hits_held.size == 0:
+        return None
+    # Kept hits to the decimetre: a whole log repeats each wall thousands of times.
+    distance, _ = cKDTree(np.unique(np.round(hits_kept, 1), axis=0)).query(hits_held, distance_upper_bound=NEW_HIT_DISTANCE)
+    new, counts = np.unique(np.floor(hits_held[np.isinf(distance)] / side).astype(np.int64), axis=0, return_counts=True)
+    # Only squares where the kept scans observed both classes (a few hundred squares per log).
+    both = _squares(hits_kept, side) & _squares(xy[~occupied & from_kept], side)
+    usable = np.array([tuple(row) in both for row in new.tolist()], dtype=bool)
+    if not usable.any():
+        return None
+    return (new[usable][np.argmax(counts[usable])] + 0.5) * side
+
+
+def _squares(points: NDArray[np.float64], side: float) -> set[tuple[int, ...]]:
+    """The squares of side `side` (on a lattice from the origin) that hold any of `points` (n, 2)."""
+    return {tuple(row) for row in np.unique(np.floor(points / side).astype(np.int64), axis=0).tolist()}
 
 
 def _observes_both(obs: Observations, in_square: NDArray[np.bool_], kept: NDArray[np.intp]) -> bool:
