@@ -415,8 +415,10 @@ def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
     ev = RayEvidence.from_scans(scans)
     passes = ev.path_passes(GRID)
     assert passes[1, :16].min() >= 1 and passes[1, 17:].sum() == 0
-    # A long jump between poses is not a path.
-    jump = RayEvidence.from_scans([first, _scan(1.9, 0.15, [0.0], [0.1])])
+    # A 2 m step (a log of 1 m strides that lost a scan) is driving; a 3 m jump is not a path.
+    lost = RayEvidence.from_scans([first, _scan(2.05, 0.15, [0.0], [0.1])])
+    assert lost.path_passes(GRID)[1].min() == 1
+    jump = RayEvidence.from_scans([first, _scan(3.1, 0.15, [0.0], [0.1])])
     assert jump.path_passes(GRID).sum() == 0
 
 
