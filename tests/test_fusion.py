@@ -7,7 +7,7 @@ import pytest
 
 from gpomap import _compiled_counts, lattice
 from gpomap.clouds import CloudScan
-from gpomap.evidence import NEAR_END, RayEvidence, lattice_grid
+from gpomap.evidence import NEAR_END, PATH_RADIUS, RayEvidence, lattice_grid
 from gpomap.fusion import (
     CALIBRATION_BOUNDS,
     HIT_DISTANCE_REACHES,
@@ -415,11 +415,18 @@ def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
     ev = RayEvidence.from_scans(scans)
     passes = ev.path_passes(GRID)
     assert passes[1, :16].min() >= 1 and passes[1, 17:].sum() == 0
-    # A 2 m step (a log of 1 m strides that lost a scan) is driving; a 3 m jump is not a path.
-    lost = RayEvidence.from_scans([first, _scan(2.05, 0.15, [0.0], [0.1])])
+    # A 2 m step (a log of 1 m strides that lost a scan) is driving, unless its ends' scans saw
+    # something within the robot's body of it (first's hit at x = 1.05: a loop held out, whose
+    # ends are close across a wall); a 3 m jump is not a path.
+    clear = _scan(0.05, 0.15, [np.pi / 2], [0.5])
+    lost = RayEvidence.from_scans([clear, _scan(2.05, 0.15, [np.pi / 2], [0.5])])
     assert lost.path_passes(GRID)[1].min() == 1
-    jump = RayEvidence.from_scans([first, _scan(3.1, 0.15, [0.0], [0.1])])
-    assert jump.path_passes(GRID).sum() == 0
+    for start, end in [(first, 2.05), (clear, 3.1)]:
+        assert RayEvidence.from_scans([start, _scan(end, 0.15, [np.pi / 2], [0.5])]).path_passes(GRID).sum() == 0
+    # The hit just beyond the robot's body (0.1 m) of the step does not stop it.
+    gap = PATH_RADIUS + 0.01
+    beside = _scan(0.05, 0.15, [np.arctan2(gap, 1.0)], [np.hypot(gap, 1.0)])  # a hit at (1.05, 0.26)
+    assert RayEvidence.from_scans([beside, _scan(2.05, 0.15, [np.pi / 2], [0.5])]).path.shape == (1, 4)
 
 
 def _calibration_scene() -> tuple[list[Scan], RayEvidence, GridSpec]:

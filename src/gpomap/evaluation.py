@@ -30,7 +30,6 @@
 
 from __future__ import annotations
 
-import itertools
 import resource
 import time
 from collections.abc import Sequence
@@ -320,19 +319,18 @@ def observed_at(reference: Any, points: NDArray[np.float64]) -> NDArray[np.bool_
 def path_points(scans: Sequence[Scan], step: float = PATH_STEP) -> NDArray[np.float64]:
     """Points every `step` along the robot's path through `scans` (in log order), shape (n, 2).
 
-    The path joins consecutive scans' sensor positions; steps longer than
-    :data:`gpomap.evidence.MAX_PATH_STEP` are jumps in the log, not driving, and are left out.
+    The path joins consecutive scans' sensor positions where the map takes the robot to have
+    driven (:func:`gpomap.evidence.path_steps`); jumps in the log are left out.
     """
-    from gpomap.evidence import MAX_PATH_STEP
+    from gpomap.evidence import path_steps
     from gpomap.observations import sensor_positions
 
     if len(scans) == 0:
         return np.zeros((0, 2))
-    poses = sensor_positions(scans)
-    out = [poses]
-    for a, b in itertools.pairwise(poses):
+    out = [sensor_positions(scans)]
+    for a, b in zip(*np.split(path_steps(scans), 2, axis=1)):
         length = float(np.hypot(*(b - a)))
-        if 0 < length <= MAX_PATH_STEP:
+        if length > 0:
             t = np.arange(step, length, step) / length
             out.append(a + t[:, None] * (b - a))
     return np.concatenate(out)

@@ -38,9 +38,15 @@ from gpomap.raycast import traverse
 #: corridor, the Freiburg campus and seven other public logs: median 0.9-1.05 m, 99 % under
 #: 1.25 m). A scan lost, or held out, doubles a step there: at 1.5 m, those steps were jumps and
 #: the robot's path had a gap at each (the corridor's every-10th split called 28 path cells
-#: occupied, none at 2.5 m). Örebro's 3 m steps (two scans lost) stay jumps. The cost: a step's
-#: straight line cuts a turn, by at most 0.9 m inside the middle pose of a right-angle turn.
+#: occupied, none at 2.5 m). Örebro's 3 m steps (two scans lost) stay jumps.
 MAX_PATH_STEP: float = 2.5
+
+#: Steps up to this long (metres) are the robot's path as they are. A longer one may not be
+#: where the robot drove (a loop in a stretch held out, whose ends are 2.2 m apart across Intel's
+#: wall): it is the path only if neither end's scan has a hit within :data:`PATH_RADIUS` of it.
+#: On the shared logs' every-10th splits, the steps over a held-out scan keep 0.33 m or more
+#: from their ends' hits.
+SURE_PATH_STEP: float = 1.5
 
 #: The robot's body round its path (metres): the cells the path crosses, shifted by up to this
 #: much, count its steps (:meth:`RayEvidence.path_passes`). Any robot that carries a planar lidar
@@ -55,6 +61,40 @@ PATH_RADIUS: float = 0.1
 #: every shared log and split, 0.1 and 0.2 m both cut the held-out log loss and tie; 0.3 m cuts
 #: it less on 11 of 12 (``benchmarks/near_misses.py``, docs/choices.md).
 NEAR_END: float = 0.2
+
+
+def path_steps(scans: ScanData) -> NDArray[np.float64]:
+    """The robot's path between consecutive scans, as segments (x0, y0, x1, y1), shape (k, 2 d).
+
+    A step up to :data:`SURE_PATH_STEP` long is the path; one up to :data:`MAX_PATH_STEP` is,
+    when neither end's scan has a hit within :data:`PATH_RADIUS` of it (the robot could not
+    have driven through what it saw); longer steps are jumps.
+
+    Parameters
+    ----------
+    scans : sequence of Scan, or sequence of CloudScan
+        In log order.
+    """
+    scans = list(scans)
+    if not scans:
+        return np.zeros((0, 4))
+    poses = sensor_positions(scans)
+    d = poses.shape[1]
+    steps = np.column_stack([poses[:-1], poses[1:]])
+    lengths = np.sqrt(((steps[:, d:] - steps[:, :d]) ** 2).sum(axis=1))
+    keep = lengths <= SURE_PATH_STEP
+    for k in np.flatnonzero((lengths > SURE_PATH_STEP) & (lengths <= MAX_PATH_STEP)):
+        ends = [Rays.of(s) for s in (scans[k], scans[k + 1])]
+        hits = np.concatenate([r.ends[r.hit] for r in ends]).reshape(-1, d)
+        keep[k] = not (hits.size and _segment_distances(hits, steps[k, :d], steps[k, d:]).min() <= PATH_RADIUS)
+    return steps[keep]
+
+
+def _segment_distances(points: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Distance from each point (n, d) to the segment a-b, shape (n,)."""
+    ab = b - a
+    t = np.clip(((points - a) @ ab) / float(ab @ ab), 0.0, 1.0)
+    return np.sqrt(((points - (a + t[:, None] * ab)) ** 2).sum(axis=1))
 
 
 class RayCounts(NamedTuple):
@@ -93,8 +133,7 @@ class RayEvidence:
         Index of the scan each beam belongs to, non-decreasing.
     path : ndarray of shape (k, 2 d)
         The robot's own path between consecutive scans, as segments (x0, y0, x1, y1) (in 3-D
-        (x0, y0, z0, x1, y1, z1)); steps longer than :data:`MAX_PATH_STEP` (a jump in the log)
-        are left out.
+        (x0, y0, z0, x1, y1, z1)): :func:`path_steps`, which leaves out jumps in the log.
     """
 
     starts: NDArray[np.float64]
@@ -134,11 +173,7 @@ class RayEvidence:
         if not starts:
             empty = np.zeros((0, 2))
             return cls(empty, empty.copy(), np.zeros(0, bool), np.zeros(0, np.intp))
-        poses = sensor_positions(scans)
-        d = poses.shape[1]
-        steps = np.column_stack([poses[:-1], poses[1:]])
-        steps = steps[np.sqrt(((steps[:, d:] - steps[:, :d]) ** 2).sum(axis=1)) <= MAX_PATH_STEP]
-        return cls(np.concatenate(starts), np.concatenate(ends), np.concatenate(hit), np.concatenate(scan), steps)
+        return cls(np.concatenate(starts), np.concatenate(ends), np.concatenate(hit), np.concatenate(scan), path_steps(scans))
 
     @property
     def dim(self) -> int:

@@ -71,7 +71,7 @@ from scipy.special import ndtr, ndtri
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
-from gpomap.evidence import MAX_PATH_STEP, PATH_RADIUS, RayCounts, RayEvidence, lattice_grid
+from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, path_steps
 from gpomap.grid import GridSpec, row_bands
 from gpomap.lattice import (
     AnyGrid,
@@ -88,7 +88,7 @@ from gpomap.lattice import (
     interpolation_block,
     overlap,
 )
-from gpomap.observations import ScanData, data_dim, observations_from_scans, sensor_positions
+from gpomap.observations import ScanData, data_dim, observations_from_scans
 from gpomap.resources import WRITTEN_BAND_CELLS
 from gpomap.scans import Scan
 
@@ -654,9 +654,8 @@ class EvidenceLayer:
         d = self._dim = data_dim(scans)
         if self._scans:
             # The step from the last scan counted to the first new one is part of the path too.
-            link = sensor_positions([self._scans[-1], scans[0]]).reshape(1, 2 * d)
-            if np.linalg.norm(link[0, d:] - link[0, :d]) <= MAX_PATH_STEP:
-                part = RayEvidence(part.starts, part.ends, part.hit, part.scan, np.concatenate([link, part.path]))
+            link = path_steps([self._scans[-1], scans[0]]).reshape(-1, 2 * d)
+            part = RayEvidence(part.starts, part.ends, part.hit, part.scan, np.concatenate([link, part.path]))
         pts = np.concatenate([part.starts, part.ends, part.path[:, :d], part.path[:, d:]])
         if pts.size == 0:
             self._scans.extend(scans)
