@@ -35,7 +35,7 @@ from gpomap.raycast import traverse
 #: Longest step between consecutive scans' poses taken as the robot driving (metres); longer
 #: steps are jumps in the log (a new session, a relocalisation), not a path. Logs thinned by
 #: distance keep a scan every 0.5-1 m (Intel: median 0.67 m, 99 % under 1.06 m; MIT's infinite
-#: corridor, the Freiburg campus and seven other public logs: median 0.9-1.05 m, 99 % under
+#: corridor, the Freiburg campus and five other public logs: median 0.97-1.04 m, 99 % at most
 #: 1.25 m). A scan lost, or held out, doubles a step there: at 1.5 m, those steps were jumps and
 #: the robot's path had a gap at each (the corridor's every-10th split called 28 path cells
 #: occupied, none at 2.5 m). Örebro's 3 m steps (two scans lost) stay jumps.
