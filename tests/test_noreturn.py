@@ -89,6 +89,7 @@ def test_code_under_a_few_stray_readings(tmp_path: Path) -> None:
     scans = read_carmen(_flaser_log(tmp_path / "s.log", ranges))
     d = scans[0].meta["no_return"]
     assert d["source"] == "data" and d["code"] == [51.06, 51.11]
+    assert "2 stray readings above it, no-return too" in d["notes"][0]
     assert scans[0].max_range == pytest.approx(51.05)
     assert d["n_no_return"] == int((ranges > 51.0).sum()) == sum(int(s.no_return().sum()) for s in scans)
     assert max(np.hypot(*(s.hits() - s.pose[:2]).T).max() for s in scans) < 20.5

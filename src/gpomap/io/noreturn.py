@@ -23,7 +23,7 @@ dict, in ``Scan.meta["no_return"]``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -67,12 +67,15 @@ class NoReturnCode:
         ``min(values) - TOLERANCE``: readings at or above it are no-return.
     background : float
         Real readings per centimetre just below the code, the density the codes stand out from.
+    strays : int
+        Readings above the highest code (fewer than a code holds), no-return too.
     """
 
     values: tuple[float, ...]
     counts: tuple[int, ...]
     threshold: float
     background: float
+    strays: int = 0
 
 
 @dataclass
@@ -197,7 +200,7 @@ def detect_no_return_code(ranges: ArrayLike) -> NoReturnCode | None:
             continue  # readings above it of its own value: not the top of a value
         code = _code_below(r, top_index)
         if code is not None:
-            return code
+            return replace(code, strays=strays)
     return None
 
 
@@ -249,7 +252,8 @@ def decide_max_range(
     if code is not None:
         found = (
             f"code {', '.join(_fmt(v) for v in code.values)} m found in the data "
-            f"({', '.join(str(c) for c in code.counts)} readings, against {code.background:.2g} per cm below it)"
+            f"({', '.join(str(c) for c in code.counts)} readings, against {code.background:.2g} per cm below it"
+            + (f"; {code.strays} stray readings above it, no-return too)" if code.strays else ")")
         )
     else:
         found = f"no no-return code in the data (largest reading {_fmt(top)} m)"
