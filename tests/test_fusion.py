@@ -412,21 +412,37 @@ def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
     first = _scan(0.05, 0.15, [0.0], [1.0])
     path = [_scan(0.05 + 0.25 * k, 0.15, [np.pi / 2], [0.1]) for k in range(1, 7)]
     scans = [first, *path]
-    ev = RayEvidence.from_scans(scans)
-    passes = ev.path_passes(GRID)
-    assert passes[1, :16].min() >= 1 and passes[1, 17:].sum() == 0
-    # A 2 m step (a log of 1 m strides that lost a scan) is driving, unless its ends' scans saw
-    # something within the robot's body of it (first's hit at x = 1.05: a loop held out, whose
-    # ends are close across a wall); a 3 m jump is not a path.
-    clear = _scan(0.05, 0.15, [np.pi / 2], [0.5])
-    lost = RayEvidence.from_scans([clear, _scan(2.05, 0.15, [np.pi / 2], [0.5])])
-    assert lost.path_passes(GRID)[1].min() == 1
-    for start, end in [(first, 2.05), (clear, 3.1)]:
-        assert RayEvidence.from_scans([start, _scan(end, 0.15, [np.pi / 2], [0.5])]).path_passes(GRID).sum() == 0
-    # The hit just beyond the robot's body (0.1 m) of the step does not stop it.
+    driven = RayEvidence.from_scans(scans).path_passes(GRID)
+    assert driven[1, :16].min() >= 1 and driven[1, 17:].sum() == 0
+
+    # A 2 m step (a log of 1 m strides that lost a scan) is driving: straight along the robot's
+    # heading, or, turning, where its ends' scans saw nothing within the robot's body of it. A
+    # sideways step past what an end saw (x = 1.05: the ends of a held-out loop, close across a
+    # wall) is not; nor is a 3 m jump.
+    def facing(x: float, heading: float, hit_x: float | None = None) -> Scan:
+        if hit_x is None:  # one beam to +y, 0.5 m long
+            return Scan(
+                pose=np.array([x, 0.15, heading]), angles=np.array([np.pi / 2 - heading]), ranges=np.array([0.5]), max_range=5.0
+            )
+        return Scan(pose=np.array([x, 0.15, heading]), angles=np.array([-heading]), ranges=np.array([hit_x - x]), max_range=5.0)
+
+    def passes(a: Scan, b: Scan) -> np.ndarray:
+        return RayEvidence.from_scans([a, b]).path_passes(GRID)
+
+    side = np.pi / 2
+    assert passes(facing(0.05, side), facing(2.05, side))[1].min() == 1  # turning, nothing in the way
+    assert passes(facing(0.05, side, hit_x=1.05), facing(2.05, side)).sum() == 0
+    assert passes(facing(0.05, 0.0, hit_x=1.05), facing(2.05, np.pi))[1].min() == 1  # straight: drove through it
+    assert passes(facing(0.05, 0.0), facing(3.1, 0.0)).sum() == 0
+    # A hit just beyond the robot's body (0.1 m) of a sideways step does not stop it.
     gap = PATH_RADIUS + 0.01
-    beside = _scan(0.05, 0.15, [np.arctan2(gap, 1.0)], [np.hypot(gap, 1.0)])  # a hit at (1.05, 0.26)
-    assert RayEvidence.from_scans([beside, _scan(2.05, 0.15, [np.pi / 2], [0.5])]).path.shape == (1, 4)
+    beside = Scan(
+        pose=np.array([0.05, 0.15, side]),
+        angles=np.array([np.arctan2(gap, 1.0) - side]),
+        ranges=np.array([np.hypot(gap, 1.0)]),
+        max_range=5.0,
+    )
+    assert RayEvidence.from_scans([beside, facing(2.05, side)]).path.shape == (1, 4)
 
 
 def _calibration_scene() -> tuple[list[Scan], RayEvidence, GridSpec]:

@@ -28,9 +28,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap import _compiled_counts
+from gpomap.clouds import CloudScan
 from gpomap.lattice import AnyGrid, bounds_extent, column_bounds, extent_bounds, flat_index, grid_size, make_grid
 from gpomap.observations import Rays, ScanData, sensor_positions
 from gpomap.raycast import traverse
+from gpomap.scans import Scan
 
 #: Longest step between consecutive scans' poses taken as the robot driving (metres); longer
 #: steps are jumps in the log (a new session, a relocalisation), not a path. Logs thinned by
@@ -43,10 +45,17 @@ MAX_PATH_STEP: float = 2.5
 
 #: Steps up to this long (metres) are the robot's path as they are. A longer one may not be
 #: where the robot drove (a loop in a stretch held out, whose ends are 2.2 m apart across Intel's
-#: wall): it is the path only if neither end's scan has a hit within :data:`PATH_RADIUS` of it.
-#: On the shared logs' every-10th splits, the steps over a held-out scan keep 0.33 m or more
-#: from their ends' hits.
+#: wall, facing 85 degrees off the step): it is the path only where the robot drove straight
+#: along it (:data:`STRAIGHT_STEP_ANGLE`) or neither end's scan has a hit within
+#: :data:`PATH_RADIUS` of it. On the shared logs' every-10th splits, the steps over a held-out
+#: scan keep 0.33 m or more from their ends' hits; on the corridor's, three straight ones pass
+#: within 0.06 m of a hit (something the robot then drove through: a person, a door).
 SURE_PATH_STEP: float = 1.5
+
+#: A planar scan's step is straight driving when both ends' headings lie within this many degrees
+#: of the step's direction, forward or backward (the corridor's straight steps over a held-out
+#: scan: 2-10 degrees; turns in the logs' every-10th splits: up to 73).
+STRAIGHT_STEP_ANGLE: float = 30.0
 
 #: The robot's body round its path (metres): the cells the path crosses, shifted by up to this
 #: much, count its steps (:meth:`RayEvidence.path_passes`). Any robot that carries a planar lidar
@@ -67,8 +76,9 @@ def path_steps(scans: ScanData) -> NDArray[np.float64]:
     """The robot's path between consecutive scans, as segments (x0, y0, x1, y1), shape (k, 2 d).
 
     A step up to :data:`SURE_PATH_STEP` long is the path; one up to :data:`MAX_PATH_STEP` is,
-    when neither end's scan has a hit within :data:`PATH_RADIUS` of it (the robot could not
-    have driven through what it saw); longer steps are jumps.
+    when the robot drove straight along it (planar scans whose headings both lie within
+    :data:`STRAIGHT_STEP_ANGLE` of it) or neither end's scan has a hit within :data:`PATH_RADIUS`
+    of it (it could not have driven through what it saw); longer steps are jumps.
 
     Parameters
     ----------
@@ -84,10 +94,25 @@ def path_steps(scans: ScanData) -> NDArray[np.float64]:
     lengths = np.sqrt(((steps[:, d:] - steps[:, :d]) ** 2).sum(axis=1))
     keep = lengths <= SURE_PATH_STEP
     for k in np.flatnonzero((lengths > SURE_PATH_STEP) & (lengths <= MAX_PATH_STEP)):
+        if _drives_straight(scans[k], scans[k + 1]):
+            keep[k] = True
+            continue
         ends = [Rays.of(s) for s in (scans[k], scans[k + 1])]
         hits = np.concatenate([r.ends[r.hit] for r in ends]).reshape(-1, d)
         keep[k] = not (hits.size and _segment_distances(hits, steps[k, :d], steps[k, d:]).min() <= PATH_RADIUS)
     return steps[keep]
+
+
+def _drives_straight(first: Scan | CloudScan, second: Scan | CloudScan) -> bool:
+    """Whether two planar scans' headings both lie within :data:`STRAIGHT_STEP_ANGLE` of the step
+    between them, forward or backward (point clouds carry no heading: False)."""
+    if not (isinstance(first, Scan) and isinstance(second, Scan)):
+        return False
+    step = second.pose[:2] - first.pose[:2]
+    direction = np.arctan2(step[1], step[0])
+    # Off the step's line, forward or backward: the heading's difference folded into [0, pi/2].
+    off = np.abs(np.angle(np.exp(2j * (np.array([first.pose[2], second.pose[2]]) - direction)))) / 2.0
+    return bool(np.all(off <= np.radians(STRAIGHT_STEP_ANGLE)))
 
 
 def _segment_distances(points: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
