@@ -180,10 +180,7 @@ def region_observations(
     -------
     Observations
     """
-    # A table of the kept scans, not np.isin, which sorts a copy of every point's scan index.
-    is_kept = np.zeros(int(obs.scan_index.max(initial=-1)) + 1, dtype=bool)
-    is_kept[kept[kept < is_kept.size]] = True
-    grown = is_kept[obs.scan_index] & _in_square(obs.points, lo, hi, clearance)
+    grown = _from_kept(obs.scan_index, kept) & _in_square(obs.points, lo, hi, clearance)
     points, occupied, scan_index = obs.points[grown], obs.occupied[grown], obs.scan_index[grown]
     keep = ~free_near_hits(points, occupied, clearance) & _in_square(points, lo, hi)
     return Observations(points[keep], occupied[keep], scan_index[keep])
@@ -338,10 +335,7 @@ def new_ground_centre(observations: Observations, n_scans: int, side: float) -> 
     -------
     ndarray of shape (2,) or None
     """
-    kept, _ = holdout_stretches(n_scans, FOLD_STARTS[0])
-    is_kept = np.zeros(max(n_scans, int(observations.scan_index.max(initial=-1)) + 1), dtype=bool)
-    is_kept[kept] = True
-    from_kept = is_kept[observations.scan_index]
+    from_kept = _from_kept(observations.scan_index, holdout_stretches(n_scans, FOLD_STARTS[0])[0])
     xy, occupied = observations.points[:, :2], observations.occupied
     hits_kept, hits_held = xy[occupied & from_kept], xy[occupied & ~from_kept]
     if hits_kept.size == 0 or hits_held.size == 0:
@@ -362,12 +356,21 @@ def _squares(points: NDArray[np.float64], side: float) -> set[tuple[int, ...]]:
     return {tuple(row) for row in np.unique(np.floor(points / side).astype(np.int64), axis=0).tolist()}
 
 
+def _from_kept(scan_index: NDArray[np.integer], kept: NDArray[np.intp]) -> NDArray[np.bool_]:
+    """Which points (by their scan's index) come from the `kept` scans, shape scan_index.shape.
+
+    A table of the scans, not np.isin, which sorts a copy of every point's scan index; kept
+    scans with no point (past the last index) mark nothing.
+    """
+    is_kept = np.zeros(int(scan_index.max(initial=-1)) + 1, dtype=bool)
+    is_kept[kept[kept < is_kept.size]] = True
+    return is_kept[scan_index]
+
+
 def _observes_both(obs: Observations, in_square: NDArray[np.bool_], kept: NDArray[np.intp]) -> bool:
     """Whether the kept scans have a hit and a free point among the points `in_square` (a mask
     of `obs`), before the clearance (which could, in principle, clear every free point)."""
-    is_kept = np.zeros(int(obs.scan_index.max(initial=-1)) + 1, dtype=bool)
-    is_kept[kept] = True
-    occupied = obs.occupied[in_square & is_kept[obs.scan_index]]
+    occupied = obs.occupied[in_square & _from_kept(obs.scan_index, kept)]
     return bool(occupied.any() and not occupied.all())
 
 
