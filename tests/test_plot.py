@@ -47,11 +47,11 @@ def test_a_map_larger_than_a_panel_draws_every_kth_cell(monkeypatch):
     """A map wider than :data:`FIGURE_CELLS` is drawn from every k-th row and column (20 columns,
     at most 8 a side: every 3rd), over the map's whole extent, and its variance colour bar still
     reaches the largest variance of all cells, here one that is not drawn."""
-    from gpomap import plot
+    from gpomap import resources
 
     m = _map()
     m.variance[1, 1] = 9.0  # row and column 1: not among every 3rd
-    monkeypatch.setattr(plot, "FIGURE_CELLS", 8)
+    monkeypatch.setattr(resources, "FIGURE_CELLS", 8)
     fig = plot_map(m)
     np.testing.assert_array_equal(fig.axes[0].images[0].get_array(), m.probability[::3, ::3])
     np.testing.assert_array_equal(fig.axes[2].images[0].get_array(), m.ternary[::3, ::3])

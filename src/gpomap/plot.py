@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from gpomap.grid import OccupancyMap, ternary
 from gpomap.io.atomic import atomic_write
-from gpomap.resources import FIGURE_CELLS
+from gpomap.resources import figure_step
 
 __all__ = ["plot_map", "plot_inputs", "save_figure", "PROBABILITY_CMAP", "VARIANCE_CMAP"]
 
@@ -91,7 +91,7 @@ def plot_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str] | None = 
     axes = fig.subplots(1, 3, sharex=True, sharey=True)
 
     imshow = {"extent": extent, "origin": "lower", "interpolation": "nearest", "aspect": "equal"}
-    step = -(-max(ny, nx) // FIGURE_CELLS)
+    step = figure_step((ny, nx))
     probability = _shown(m.probability, step)
     im = axes[0].imshow(probability, cmap=PROBABILITY_CMAP, vmin=0.0, vmax=1.0, **imshow)
     _colorbar(fig, axes[0], im, "occupancy probability")

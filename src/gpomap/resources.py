@@ -29,6 +29,7 @@ __all__ = [
     "BYTES_PER_SAMPLE",
     "DEFAULT_MEMORY_FRACTION",
     "FIGURE_CELLS",
+    "figure_step",
     "FIT_MATRICES",
     "MemoryLimitError",
     "check_memory",
@@ -73,6 +74,13 @@ BYTES_PER_MAP_CELL = 8 + 8 + 1 + 1 + 8 + 8 + 4 * 4
 #: the Freiburg campus log's map, built whole at 0.05 m, took 6.1 GB over its 36.5 million cells
 #: above the fitted model, its 16 bytes a cell of probability and variance among them.
 BYTES_PER_BAND_CELL = 150
+
+
+def figure_step(shape: tuple[int, int]) -> int:
+    """Every how many rows and columns a map of `shape` (ny, nx) is drawn: at most
+    :data:`FIGURE_CELLS` cells a side."""
+    return -(-max(int(v) for v in shape) // FIGURE_CELLS)
+
 
 #: Bytes per cell drawn in the map's figure (at most :data:`FIGURE_CELLS` a side):
 #: three panels, each normalised to float64 and coloured before resampling (3 x 24).
@@ -198,7 +206,7 @@ def grid_memory(shape: tuple[int, int], supersample: int = 1, n_cells: int = 0, 
     # A band holds WRITTEN_BAND_CELLS cells, or 8 rows of a wider map: its rows are a whole
     # number of the GP's variance samples, two samples of at most four cells (gpomap.fusion).
     band = min(cells, max(WRITTEN_BAND_CELLS, 8 * nx))
-    step = -(-max(ny, nx) // FIGURE_CELLS)
+    step = figure_step((ny, nx))
     drawn = -(-ny // step) * -(-nx // step)
     samples = cells * k * k * BYTES_PER_SAMPLE if k > 1 else 0
     return (
