@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -313,3 +314,20 @@ def test_bag_that_is_not_a_regular_file(tmp_path: Path) -> None:
     junk.write_bytes(b"#ROSBAG V2.0\n" + bytes(200))
     with pytest.raises(InputFormatError, match=r"junk\.bag: cannot open as a ROS bag"):
         read_rosbag(junk)
+
+
+def test_bag_whose_index_is_damaged_names_the_cause(tmp_path: Path) -> None:
+    # A written ROS1 bag whose first index-data record (op 0x04) claims one entry more than its
+    # 12-byte entries hold: the reader's own check fails with a bare AssertionError.
+    path = _write_bag(tmp_path / "damaged.bag")
+    data = bytearray(path.read_bytes())
+    op = data.index(b"op=\x04")
+    count = data.index(b"count=", op - 40) + len(b"count=")
+    assert op - 40 < count < op + 40  # the same record's header
+    (n,) = struct.unpack_from("<I", data, count)
+    struct.pack_into("<I", data, count, n + 1)
+    path.write_bytes(bytes(data))
+    with pytest.raises(
+        InputFormatError, match=r"damaged\.bag: cannot open as a ROS bag \(AssertionError in the bag reader: .*rosbag reindex"
+    ):
+        read_rosbag(path)

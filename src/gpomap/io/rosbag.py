@@ -353,6 +353,18 @@ def read_tf(reader: Any, connections: list[Any], tree: TfTree) -> None:
             )
 
 
+def _reader_failure(exc: Exception) -> str:
+    """What the bag reader's exception says, or, for a bare failed check (an ``AssertionError``
+    without a message: rosbags checks a ROS1 bag's index records so), what it means."""
+    if str(exc):
+        return str(exc)
+    return (
+        f"{type(exc).__name__} in the bag reader: a record or its index is not laid out as the bag "
+        "format specifies; a ROS1 bag cut short or damaged in copying reads so, and `rosbag reindex` "
+        "rebuilds its index"
+    )
+
+
 def open_bag(path: Path) -> Any:
     """An open ``rosbags.highlevel.AnyReader`` on a ROS1 or ROS2 bag; InputFormatError if it cannot be opened."""
     from rosbags.highlevel import AnyReader
@@ -364,7 +376,7 @@ def open_bag(path: Path) -> Any:
     except GpomapError:
         raise
     except Exception as exc:  # rosbags raises its own error types for unreadable bags
-        raise InputFormatError(f"cannot open as a ROS bag ({exc})", path=str(path)) from None
+        raise InputFormatError(f"cannot open as a ROS bag ({_reader_failure(exc)})", path=str(path)) from None
     return reader
 
 
