@@ -331,3 +331,15 @@ def test_bag_whose_index_is_damaged_names_the_cause(tmp_path: Path) -> None:
         InputFormatError, match=r"damaged\.bag: cannot open as a ROS bag \(AssertionError in the bag reader: .*rosbag reindex"
     ):
         read_rosbag(path)
+
+
+def test_bag_of_the_old_format_names_it_and_the_conversion(tmp_path: Path) -> None:
+    # ROS bags before format 2.0 begin "#ROSRECORD V1.2" (a real one: CCNY's scan_tools demo).
+    old = tmp_path / "old.bag"
+    old.write_bytes(b"#ROSRECORD V1.2\n" + b"\x1e\x00\x00\x00" + bytes(60))
+    with pytest.raises(
+        InputFormatError, match=r"old\.bag: a ROS bag of the old format V1\.2 .*rosbag filter IN\.bag OUT\.bag True"
+    ):
+        detect_format(old)
+    with pytest.raises(InputFormatError, match=r"old format V1\.2"):
+        read_scans(old)

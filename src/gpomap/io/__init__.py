@@ -115,6 +115,15 @@ def detect_format(path: str | os.PathLike[str]) -> str:
     head = _head(p)
     if head.startswith(b"#ROSBAG"):
         return "rosbag1"
+    if head.startswith(b"#ROSRECORD"):
+        # ROS1 bags before format 2.0 (ROS C Turtle and older): rosbags reads 2.0 only.
+        magic = head.split(b"\n", 1)[0].decode("ascii", "replace")
+        raise InputFormatError(
+            f"a ROS bag of the old format {magic[len('#ROSRECORD') :].strip()} ({magic!r}); gpomap reads ROS1 bags "
+            "of format 2.0 and ROS2 bags. ROS's own rosbag reads the old format: "
+            "`rosbag filter IN.bag OUT.bag True` writes it again as 2.0",
+            path=str(p),
+        )
     if head.startswith(b"SQLite format 3") or head.startswith(b"\x89MCAP"):
         return "rosbag2"
     if is_octree_file(head):
