@@ -307,6 +307,73 @@ def summary_table(results: list[dict[str, Any]]) -> list[str]:
     return out
 
 
+#: What a map must meet on every log and split, beside the grids (the protocol's targets): ECE
+#: below this ...
+ECE_TARGET = 0.05
+#: ... and far from all data, predictions within this of 1/2.
+FAR_TOLERANCE = 0.05
+
+
+def criteria_table(results: list[dict[str, Any]]) -> tuple[list[str], int, int]:
+    """One line per log and split: which targets MSK-GPOM's written map meets.
+
+    AUC, boundary AUC and AUC where the grid saw at least the best grid's; log loss below every
+    grid's; ECE under :data:`ECE_TARGET`; the mean prediction far from all data within
+    :data:`FAR_TOLERANCE` of 0.5; occupied-class IoU against the truth at least the best grid's
+    (logs with a truth); no cell of the robot's own path called occupied. A target met reads
+    "yes"; one missed, the two values. Without grids in `results`, the comparisons read "-".
+
+    Returns
+    -------
+    lines : list of str
+        The markdown table.
+    met, checked : int
+        Targets met and targets checked.
+    """
+    head = ["log, split", "AUC", "boundary AUC", "AUC where the grid saw", "log loss", f"ECE < {ECE_TARGET:g}"]
+    head += ["far p", "truth IoU", "path cells", "met"]
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    met = checked = 0
+    for log, split in dict.fromkeys((r["log"], r["split"]) for r in results):
+        rows = {r["name"]: r for r in results if (r["log"], r["split"]) == (log, split)}
+        if "msk" not in rows:
+            continue
+        msk, grids = rows["msk"], [r for n, r in rows.items() if n != "msk"]
+        cells: list[str] = []
+
+        def check(ok: bool | None, text: str, cells: list[str] = cells) -> None:
+            nonlocal met, checked
+            if ok is None:
+                cells.append("-")
+                return
+            checked += 1
+            met += ok
+            cells.append("yes" if ok else text)
+
+        for key in ("auc", "boundary_auc", "observed_auc"):
+            vals = [g["points"][key] for g in grids if g["points"].get(key) is not None]
+            mine = msk["grid"][key]
+            check(None if not vals or mine is None else mine >= max(vals), f"{_fmt(mine)} < {_fmt(max(vals, default=None))}")
+        losses = [g["points"]["log_loss"] for g in grids]
+        mine = msk["grid"]["log_loss"]
+        check(None if not losses else mine < min(losses), f"{_fmt(mine)} >= {_fmt(min(losses, default=None))}")
+        check(msk["grid"]["ece"] < ECE_TARGET, _fmt(msk["grid"]["ece"]))
+        far = msk["far"]["lattice"]["grid"]
+        check(None if not far.get("n") else abs(far["mean"] - 0.5) <= FAR_TOLERANCE, _fmt(far.get("mean")))
+        if msk.get("truth") and grids:
+            best = max(g["truth"]["points"]["iou"] for g in grids)
+            check(msk["truth"]["grid"]["iou"] >= best, f"{_fmt(msk['truth']['grid']['iou'])} < {_fmt(best)}")
+        else:
+            check(None, "")
+        path = msk["path"]["grid"]
+        check(path["n_occupied"] == 0, f"{path['n_occupied']} of {path['n_cells']}")
+        n_checked = sum(c != "-" for c in cells)
+        title = LOGS[log]["title"] if log in LOGS else log
+        line = [f"{title}: {resolve_split(split)}", *cells, f"{sum(c == 'yes' for c in cells)} of {n_checked}"]
+        out.append("| " + " | ".join(line) + " |")
+    return out, met, checked
+
+
 def reliability_figure(results: list[dict[str, Any]], log: str, path: Path) -> None:
     """Reliability diagrams of one log: a panel per split, a curve per method and prediction."""
     from matplotlib.figure import Figure
@@ -460,6 +527,9 @@ def main(argv: list[str] | None = None) -> int:
             reliability_figure(results, log, args.figures / f"reliability-{log}.png")
     print("\n## Summary (written 0.05 m map against the best grid variant for each metric)\n")
     print("\n".join(summary_table(results)))
+    lines, met, checked = criteria_table(results)
+    print(f"\n## Targets met by the written map: {met} of {checked}\n")
+    print("\n".join(lines))
     if args.json:
         args.json.write_text(json.dumps(results, default=str, indent=1))
     return 0
