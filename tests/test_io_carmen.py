@@ -190,6 +190,24 @@ def test_file_without_laser_lines(tmp_path: Path) -> None:
         read_carmen(path)
 
 
+def test_file_with_only_lasers_the_reader_does_not_take_says_which(tmp_path: Path) -> None:
+    # A raw log (RAWLASER1 and ODOM, before any SLAM corrected it) and a rear laser's RLASER lines.
+    raw = tmp_path / "raw.log"
+    raw.write_text(
+        "ODOM 0 0 0 0 0 0 1.0 host 1.0\n"
+        + "RAWLASER1 0 -1.5708 3.1416 0.0175 8.0 0.01 0 3 1.0 2.0 3.0 0 1.0 host 1.0\n" * 2
+        + "RLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 1.0 host 1.0\n"
+    )
+    with pytest.raises(
+        InputFormatError,
+        match=(
+            r"no laser lines in 4 lines; .* \(found RAWLASER1 \(2 lines\), RLASER \(1 line\); "
+            r"RAWLASER lines carry no pose: .*GMapping.*; RLASER and ROBOTLASER2 lines are a second \(rear\) laser"
+        ),
+    ):
+        read_carmen(raw)
+
+
 # --- hostile input: only InputFormatError, naming file and line ---------------------------------
 
 

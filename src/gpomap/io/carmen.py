@@ -122,6 +122,28 @@ class _Parsed:
     any_text: bool
     # First line that is not text (NUL bytes or not UTF-8), for the "no laser lines" message.
     binary_line: int | None
+    # Lines of the laser messages this reader does not take (RAWLASER, RLASER, ...), by name.
+    other_lasers: dict[str, int]
+
+
+#: Laser messages of CARMEN logs this reader does not take: RAWLASER1-4 carry no pose (a log
+#: before SLAM corrected it), RLASER and ROBOTLASER2 are a second, rear laser.
+_OTHER_LASERS: tuple[bytes, ...] = (b"RAWLASER", b"RLASER", b"ROBOTLASER2")
+
+
+def _other_lasers_note(other: dict[str, int]) -> str:
+    """What the "no laser lines" message adds about the laser lines a log has instead."""
+    if not other:
+        return ""
+    found = ", ".join(f"{name} ({n} line{'s' if n != 1 else ''})" for name, n in sorted(other.items()))
+    notes = []
+    if any(name.startswith("RAWLASER") for name in other):
+        notes.append(
+            "RAWLASER lines carry no pose: correct the log with a SLAM first, such as GMapping, which writes FLASER lines with the corrected poses"
+        )
+    if any(name.startswith(("RLASER", "ROBOTLASER2")) for name in other):
+        notes.append("RLASER and ROBOTLASER2 lines are a second (rear) laser, which gpomap does not read")
+    return f" (found {found}; " + "; ".join(notes) + ")"
 
 
 def _lines(path: Path) -> Iterator[tuple[int, bytes]]:
@@ -300,6 +322,7 @@ def _parse_file(path: Path) -> _Parsed:
     n_lines = 0
     any_text = False
     binary_line: int | None = None
+    other_lasers: dict[str, int] = {}
     for i, raw in _lines(path):
         n_lines = i
         # Cheap first-token test on the bytes: most lines of a log are skipped ODOM / NEFF lines.
@@ -317,11 +340,14 @@ def _parse_file(path: Path) -> _Parsed:
             tokens = _decode(raw).split()
             if len(tokens) >= 3 and tokens[0] == "PARAM":
                 params[tokens[1]] = (tokens[2], i)
+        elif raw.startswith(_OTHER_LASERS):
+            name = _decode(raw).split(maxsplit=1)[0]
+            other_lasers[name] = other_lasers.get(name, 0) + 1
         if binary_line is None and _is_binary(raw):
             binary_line = i
         if not any_text and raw.strip():
             any_text = True
-    return _Parsed(lasers, params, n_lines, any_text or bool(lasers), binary_line)
+    return _Parsed(lasers, params, n_lines, any_text or bool(lasers), binary_line, other_lasers)
 
 
 def _param_float(params: dict[str, tuple[str, int]], name: str, path: str, positive: bool = False) -> float | None:
@@ -419,7 +445,8 @@ def read_carmen(
     if not lasers:
         binary = f" (line {parsed.binary_line} is binary data, not text)" if parsed.binary_line is not None else ""
         raise InputFormatError(
-            f"no laser lines in {parsed.n_lines} lines{binary}; expected FLASER or ROBOTLASER1 messages",
+            f"no laser lines in {parsed.n_lines} lines{binary}; expected FLASER or ROBOTLASER1 messages"
+            + _other_lasers_note(parsed.other_lasers),
             path=spath,
             line=parsed.binary_line,
         )
