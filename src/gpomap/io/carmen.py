@@ -341,7 +341,7 @@ def _parse_file(path: Path) -> _Parsed:
             if len(tokens) >= 3 and tokens[0] == "PARAM":
                 params[tokens[1]] = (tokens[2], i)
         elif raw.startswith(_OTHER_LASERS):
-            name = _decode(raw).split(maxsplit=1)[0]
+            name = raw.split(maxsplit=1)[0].decode("ascii", "replace")
             other_lasers[name] = other_lasers.get(name, 0) + 1
         if binary_line is None and _is_binary(raw):
             binary_line = i
