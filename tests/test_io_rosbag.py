@@ -103,10 +103,10 @@ def _header(types, t: float, frame: str):
     return header(stamp=stamp, frame_id=frame)
 
 
-def _tf(types, t: float, parent: str, child: str, x: float, y: float, yaw: float):
-    tr = types["geometry_msgs/msg/Transform"](
-        translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=0.0), rotation=_quat(types, yaw)
-    )
+def _tf(types, t: float, parent: str, child: str, x: float, y: float, yaw: float, quaternion=None):
+    """A TFMessage of one transform: a planar pose, or the rotation `quaternion` (x, y, z, w)."""
+    rotation = _quat(types, yaw) if quaternion is None else types["geometry_msgs/msg/Quaternion"](*quaternion)
+    tr = types["geometry_msgs/msg/Transform"](translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=0.0), rotation=rotation)
     ts = types["geometry_msgs/msg/TransformStamped"](header=_header(types, t, parent), child_frame_id=child, transform=tr)
     return types["tf2_msgs/msg/TFMessage"](transforms=[ts])
 
@@ -142,11 +142,12 @@ def _odometry(types, t: float, x: float, yaw: float):
     )
 
 
-def _write_bag(path: Path, ros2: bool = False, odom: bool = False) -> Path:
+def _write_bag(path: Path, ros2: bool = False, odom: bool = False, laser_quaternion=None) -> Path:
     """Robot drives along x from 0 to 2 m over 2 s while turning 0 -> pi/2; laser 0.1 m ahead.
 
     Scans at t = -0.5 (before the poses, dropped), 0.5, 1.0 and 1.5 s, three beams at -90, 0 and 90
-    degrees with ranges (1, 4 = max range, 0.01 = below range_min).
+    degrees with ranges (1, 4 = max range, 0.01 = below range_min). The laser's rotation on the
+    robot is `laser_quaternion` (x, y, z, w), or none.
     """
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
@@ -158,7 +159,8 @@ def _write_bag(path: Path, ros2: bool = False, odom: bool = False) -> Path:
     ser = store.serialize_cdr if ros2 else store.serialize_ros1
     messages = []
     # Frame names with leading slashes, as in ROS1 bags, must be normalised by the reader.
-    messages.append((0.0, "/tf_static", "tf2_msgs/msg/TFMessage", _tf(types, 0.0, "/base_link", "/laser", 0.1, 0.0, 0.0)))
+    laser = _tf(types, 0.0, "/base_link", "/laser", 0.1, 0.0, 0.0, laser_quaternion)
+    messages.append((0.0, "/tf_static", "tf2_msgs/msg/TFMessage", laser))
     for t in (0.0, 1.0, 2.0):
         if odom:
             messages.append((t, "/odom", "nav_msgs/msg/Odometry", _odometry(types, t, t, t * math.pi / 4)))
@@ -343,3 +345,34 @@ def test_bag_of_the_old_format_names_it_and_the_conversion(tmp_path: Path) -> No
         detect_format(old)
     with pytest.raises(InputFormatError, match=r"old format V1\.2"):
         read_scans(old)
+
+
+@pytest.mark.parametrize("quaternion", [(1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0)], ids=["roll", "pitch"])
+def test_upside_down_laser_mirrors_its_beams(tmp_path: Path, quaternion: tuple[float, ...]) -> None:
+    # A laser on its back (rolled, or pitched and so facing backwards) turns clockwise seen from
+    # above. Its beam at angle a in its own frame points along the world heading of its x axis
+    # minus a (x axis: the robot's heading for a roll, the reverse for a pitch).
+    path = _write_bag(tmp_path / "flipped.bag", laser_quaternion=quaternion)
+    result = load_rosbag(path)
+    assert result.n_dropped == 1
+    assert any("upside down" in note for note in result.scans[0].meta["no_return"]["notes"])
+    for s in result.scans:
+        yaw = s.time * math.pi / 4
+        laser = np.array([s.time + 0.1 * math.cos(yaw), 0.1 * math.sin(yaw)])
+        heading = yaw + (math.pi if quaternion[1] else 0.0)
+        # The one beam that returned: -90 degrees in the laser's frame, 1 m.
+        expected = laser + np.array([math.cos(heading + math.pi / 2), math.sin(heading + math.pi / 2)])
+        np.testing.assert_allclose(s.hits(), [expected], atol=1e-6)
+
+
+def test_tilted_laser_is_warned_of(tmp_path: Path) -> None:
+    # Pitched 20 degrees down: a planar map takes the scans as level, so the reader says so.
+    half = math.radians(20.0) / 2
+    path = _write_bag(tmp_path / "tilted.bag", laser_quaternion=(0.0, math.sin(half), 0.0, math.cos(half)))
+    with pytest.warns(
+        UserWarning, match=r"3 of 3 scans' laser planes are tilted more than 10 degrees from level in 'odom' \(up to 20\)"
+    ):
+        result = load_rosbag(path)
+    assert not any("upside down" in note for note in result.scans[0].meta["no_return"]["notes"])
+    level = load_rosbag(_write_bag(tmp_path / "level.bag"))
+    assert not any("tilted" in note for note in level.scans[0].meta["no_return"]["notes"])

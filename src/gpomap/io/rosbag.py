@@ -86,6 +86,12 @@ class RosbagScans:
     n_dropped: int = 0
 
 
+#: Laser planes tilted more than this from level (degrees) are worth a warning: a planar map
+#: projects each scan as if level, so its ranges are off by 1 - cos(tilt) along the tilt (1.5 %
+#: at 10 degrees) and a tilted scan may strike the floor.
+MAX_LEVEL_TILT_DEG: float = 10.0
+
+
 def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
     """Heading (rotation about z) of a unit quaternion, radians."""
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
@@ -153,6 +159,30 @@ def planar(pose: NDArray[np.float64]) -> NDArray[np.float64]:
     """3-D transforms (k, 7) projected to (x, y, yaw), shape (k, 3)."""
     x, y, z, w = pose[:, 3], pose[:, 4], pose[:, 5], pose[:, 6]
     return np.column_stack([pose[:, 0], pose[:, 1], np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))])
+
+
+def _attitude_notes(up: NDArray[np.float64], frames: NDArray[np.str_], fixed: str) -> list[str]:
+    """What the scans' laser attitudes call for: a note for lasers mounted upside down (mirrored
+    beams) and a warning (also a note) for laser planes tilted from level by more than
+    :data:`MAX_LEVEL_TILT_DEG`, which a planar map takes as level."""
+    notes = []
+    flipped = up < 0
+    if flipped.any():
+        names = ", ".join(repr(f) for f in sorted(set(frames[flipped].tolist())))
+        notes.append(
+            f"laser frame {names} is upside down in {fixed!r} (its z axis points down) in {int(flipped.sum())} of "
+            f"{up.size} scans: their beam angles are mirrored"
+        )
+    tilt = np.degrees(np.arccos(np.clip(np.abs(up), 0.0, 1.0)))
+    tilted = tilt > MAX_LEVEL_TILT_DEG
+    if tilted.any():
+        note = (
+            f"{int(tilted.sum())} of {up.size} scans' laser planes are tilted more than {MAX_LEVEL_TILT_DEG:g} degrees "
+            f"from level in {fixed!r} (up to {tilt.max():.0f}); a planar map takes every scan as level"
+        )
+        warnings.warn(note, stacklevel=3)
+        notes.append(note)
+    return notes
 
 
 def _planar_transform(x: float, y: float, yaw: float) -> tuple[float, ...]:
@@ -522,12 +552,15 @@ def load_rosbag(
 
     t = np.asarray(stamps) + float(time_offset)
     poses = np.full((len(t), 3), np.nan)
+    # The laser frame's z axis in the fixed frame, z component: -1 for a laser mounted upside down.
+    up = np.full(len(t), np.nan)
     ok = np.zeros(len(t), dtype=bool)
     frame_arr = np.asarray(frames)
     for lf in sorted(set(frames)):
         sel = frame_arr == lf
         transforms, ok[sel] = tree.lookup(fixed, lf, t[sel], spath)
         poses[sel] = planar(transforms)
+        up[sel] = _rotate(transforms[:, 3:], np.tile([0.0, 0.0, 1.0], (len(transforms), 1)))[:, 2]
     # A NaN quaternion or translation in the bag gives a pose no scan can use.
     ok &= np.isfinite(poses).all(axis=1)
 
@@ -538,7 +571,8 @@ def load_rosbag(
         a0, da, n, rmin, _ = geometry[i]
         # ROS: readings below range_min are not measurements.
         ranges[i] = np.where(ranges[i] < rmin, np.nan, ranges[i])
-        beams[i] = a0 + da * np.arange(n, dtype=float)
+        # An upside-down laser turns clockwise seen from above: its beams mirror about its heading.
+        beams[i] = (a0 + da * np.arange(n, dtype=float)) * (-1.0 if up[i] < 0 else 1.0)
         if not np.isfinite(beams[i]).all():
             raise InputFormatError(
                 f"LaserScan on {topic} at stamp {stamps[i]:.9g} s has non-finite beam angles "
@@ -558,6 +592,8 @@ def load_rosbag(
                 f"LaserScan range_max differs between messages ({', '.join(f'{v:g}' for v in values[:5])}); "
                 f"compared the most common, {header:g} m, with the data"
             )
+    if decision is not None:
+        decision.notes.extend(_attitude_notes(up[kept], frame_arr[kept], fixed))
     info = decision.as_dict() if decision is not None else {}
     if info:
         info["topic"] = topic
