@@ -22,7 +22,7 @@ from gpomap.grid import GridSpec, OccupancyMap
 from gpomap.io.npz import load_map
 from gpomap.io.rosbag import STAGE_TIME_OFFSET, read_rosbag
 from gpomap.ros.live import LiveMap
-from gpomap.ros.messages import grid_layers, pose_from_transform, scan_from_laserscan, stamp_seconds
+from gpomap.ros.messages import grid_layers, is_upside_down, pose_from_transform, scan_from_laserscan, stamp_seconds
 from gpomap.ros.node import NodeSettings, settings_from_params
 from gpomap.streaming import StreamingGPOM
 
@@ -71,6 +71,20 @@ def test_pose_from_transform_is_x_y_yaw():
     half = math.radians(30) / 2
     q = SimpleNamespace(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half))
     assert pose_from_transform(t, q) == pytest.approx((1.0, -2.0, math.radians(30)))
+
+
+def test_upside_down_laser_frames_mirror_their_beams():
+    # z axis of the rotated frame: level (yaw only), rolled 180 degrees, pitched 180, rolled 60.
+    yaw = SimpleNamespace(x=0.0, y=0.0, z=math.sin(0.3), w=math.cos(0.3))
+    roll = SimpleNamespace(x=1.0, y=0.0, z=0.0, w=0.0)
+    pitch = SimpleNamespace(x=0.0, y=1.0, z=0.0, w=0.0)
+    tilt = SimpleNamespace(x=math.sin(math.radians(30)), y=0.0, z=0.0, w=math.cos(math.radians(30)))
+    assert [is_upside_down(q) for q in (yaw, roll, pitch, tilt)] == [False, True, True, False]
+    # A beam at +90 degrees of an upside-down laser heading along x points to -y.
+    msg = laserscan([1.0, 2.0])  # beams at -1.0 and -0.5 rad
+    scan = scan_from_laserscan(msg, (0.0, 0.0, 0.0), upside_down=True)
+    np.testing.assert_allclose(scan.angles, [1.0, 0.5])
+    np.testing.assert_allclose(scan.hits(), [[math.cos(1.0), math.sin(1.0)], [2 * math.cos(0.5), 2 * math.sin(0.5)]])
 
 
 def test_laserscan_readings_follow_rep_117():
@@ -140,6 +154,24 @@ class Clock:
 
     def __call__(self) -> float:
         return self.now
+
+
+def test_live_map_mirrors_the_scans_of_a_laser_the_lookup_says_is_upside_down():
+    class Recorder:
+        def __init__(self) -> None:
+            self.scans: list = []
+
+        def add_scan(self, scan) -> None:
+            self.scans.append(scan)
+
+    mapper = Recorder()
+    live = LiveMap(mapper, 0.1)  # type: ignore[arg-type]
+    live.receive(laserscan([1.0, 2.0]))
+    live.receive(laserscan([1.0, 2.0], stamp=(4, 0)))
+    poses = {3.5: (0.0, 0.0, 0.0), 4.0: (0.0, 0.0, 0.0, True)}
+    assert live.process(lambda frame, t: poses[t]) == 2
+    np.testing.assert_allclose(mapper.scans[0].angles, [-1.0, -0.5])
+    np.testing.assert_allclose(mapper.scans[1].angles, [1.0, 0.5])
 
 
 @needs_bag

@@ -26,8 +26,9 @@ from gpomap.ros.messages import GridLayers, grid_layers, scan_from_laserscan, st
 __all__ = ["LiveMap", "PoseLookup"]
 
 #: ``lookup(frame, seconds)``: the pose (x, y, yaw) of `frame` in the fixed frame at that time,
-#: or None while it is not known (yet).
-PoseLookup = Callable[[str, float], "tuple[float, float, float] | None"]
+#: or None while it is not known (yet); (x, y, yaw, upside_down) for a frame that may be mounted
+#: upside down (its beams are then mirrored: :func:`gpomap.ros.messages.is_upside_down`).
+PoseLookup = Callable[[str, float], "tuple[float, float, float] | tuple[float, float, float, bool] | None"]
 
 
 class LiveMap:
@@ -131,7 +132,8 @@ class LiveMap:
                     continue
                 self._waiting.popleft()
                 try:
-                    scan = scan_from_laserscan(msg, pose, self.max_range, source=self.source)
+                    flipped = len(pose) == 4 and bool(pose[3])
+                    scan = scan_from_laserscan(msg, pose[:3], self.max_range, source=self.source, upside_down=flipped)
                 except InputFormatError as exc:
                     # One bad message must not stop a robot's map: count it, keep its reason.
                     self.n_rejected += 1

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from gpomap.errors import InputFormatError
 from gpomap.grid import FREE, OCCUPIED, GridSpec, OccupancyMap
-from gpomap.io.rosbag import yaw_from_quaternion
+from gpomap.io.rosbag import up_component, yaw_from_quaternion
 from gpomap.scans import Scan
 
 __all__ = [
@@ -30,6 +30,7 @@ __all__ = [
     "GridLayers",
     "stamp_seconds",
     "pose_from_transform",
+    "is_upside_down",
     "scan_from_laserscan",
     "grid_layers",
 ]
@@ -69,7 +70,7 @@ def pose_from_transform(translation: Any, rotation: Any) -> tuple[float, float, 
     Returns
     -------
     (float, float, float)
-        x and y in metres, yaw (rotation about z) in radians.
+        x and y in metres, yaw (the heading of the frame's x axis) in radians.
     """
     return (
         float(translation.x),
@@ -78,8 +79,18 @@ def pose_from_transform(translation: Any, rotation: Any) -> tuple[float, float, 
     )
 
 
+def is_upside_down(rotation: Any) -> bool:
+    """Whether a frame with this rotation (x, y, z, w; a unit quaternion) has its z axis pointing
+    down: a laser mounted so turns clockwise seen from above, and its beams mirror."""
+    return bool(up_component(float(rotation.x), float(rotation.y)) < 0)
+
+
 def scan_from_laserscan(
-    msg: Any, pose: tuple[float, float, float] | NDArray[np.float64], max_range: float | None = None, source: str = "LaserScan"
+    msg: Any,
+    pose: tuple[float, float, float] | NDArray[np.float64],
+    max_range: float | None = None,
+    source: str = "LaserScan",
+    upside_down: bool = False,
 ) -> Scan:
     """A :class:`~gpomap.scans.Scan` from a ``sensor_msgs/LaserScan`` and the laser's pose.
 
@@ -97,6 +108,9 @@ def scan_from_laserscan(
         No-return threshold, metres; default the message's ``range_max``.
     source : str
         Where the message came from (topic name), for error messages.
+    upside_down : bool
+        The laser frame's z axis points down (:func:`is_upside_down`): its beam angles are
+        mirrored about its heading.
 
     Returns
     -------
@@ -131,7 +145,7 @@ def scan_from_laserscan(
     meta = {"frame_id": str(header.frame_id).lstrip("/")} if header is not None else {}
     return Scan(
         pose=pose_arr,
-        angles=a0 + da * np.arange(ranges.size, dtype=float),
+        angles=(a0 + da * np.arange(ranges.size, dtype=float)) * (-1.0 if upside_down else 1.0),
         ranges=ranges,
         max_range=limit,
         time=time,

@@ -212,15 +212,16 @@ class RosNode:
         self.live.receive(msg)
         self._wake.set()
 
-    def lookup(self, frame: str, seconds: float) -> tuple[float, float, float] | None:
-        """The laser frame's pose in the fixed frame at `seconds`, from tf2; None while unknown."""
-        from gpomap.ros.messages import pose_from_transform
+    def lookup(self, frame: str, seconds: float) -> tuple[float, float, float, bool] | None:
+        """The laser frame's pose in the fixed frame at `seconds` and whether it is upside down,
+        from tf2; None while unknown."""
+        from gpomap.ros.messages import is_upside_down, pose_from_transform
 
         try:
             tr = self.tf_buffer.lookup_transform(self.settings.fixed_frame, frame, self.rospy.Time.from_sec(seconds))
         except self._tf_errors:
             return None
-        return pose_from_transform(tr.transform.translation, tr.transform.rotation)
+        return (*pose_from_transform(tr.transform.translation, tr.transform.rotation), is_upside_down(tr.transform.rotation))
 
     def _message(self, layers: Any, data: Any, stamp: Any) -> Any:
         msg = self._grid_type()
