@@ -42,6 +42,27 @@ def test_warning_sentences():
     assert any(s.startswith("length_scale 0.05 is at the lower bound 0.05") for s in w)
 
 
+def test_alpha_at_its_cap_is_no_warning_for_a_map_of_ray_counts():
+    # With ray evidence the GP is the counts' prior: a capped alpha does not make the map hard.
+    w = d.hyperparameter_warnings(hp(alpha=30.0, length_scale=0.05), BOUNDS, counted=True)
+    assert not any(s.startswith("alpha") for s in w)
+    assert any(s.startswith("length_scale 0.05 is at the lower bound 0.05") for s in w)
+    # A fitted map: the same fit with and without its ray counts.
+    from gpomap.simulate import paper_room_scans
+
+    scans = paper_room_scans()[:6]
+    with_counts = AreaGPOM(kernel="se", min_cell=1.0, max_cell=2.0, free_step=0.5).fit(scans)
+    assert with_counts.evidence_ is not None
+    hyper = {**with_counts.hyperparameters_, "alpha": 30.0}
+    gp_only = AreaGPOM(kernel="se", min_cell=1.0, max_cell=2.0, free_step=0.5, ray_evidence=False).fit(
+        scans, hyperparameters=hyper
+    )
+    with_counts = AreaGPOM(kernel="se", min_cell=1.0, max_cell=2.0, free_step=0.5).fit(scans, hyperparameters=hyper)
+    assert gp_only.evidence_ is None
+    assert not any(s.startswith("alpha") for s in d.fit_warnings(with_counts))
+    assert any(s.startswith("alpha 30 is at the upper bound") for s in d.fit_warnings(gp_only))
+
+
 def test_prior_probability_by_hand():
     # Phi(beta / sqrt(1 + alpha^2 v)): beta 1, alpha 0, v 1 -> Phi(1) = 0.8413.
     assert d.prior_probability(hp(alpha=0.0, beta=1.0)) == pytest.approx(0.841345, abs=1e-6)

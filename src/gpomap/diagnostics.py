@@ -2,7 +2,8 @@
 
 A fit can finish without error and still be poor: a hyperparameter that ran to the edge of its
 search (the data did not pin it down, or wanted a value the search does not allow), a probit
-slope at its cap (the classes separate perfectly and the map turns hard 0 / 1), a map whose
+slope at its cap (the classes separate perfectly and a map of the GP alone turns hard 0 / 1;
+not a warning for a map of ray counts, whose GP is only their prior), a map whose
 probability away from the data is far from 0.5 (unexplored space then looks free or occupied
 instead of unknown), or a map that is almost all one class. The command line prints these as
 ``warning: ...`` lines after a fit; :func:`fit_warnings` is the one entry point.
@@ -146,6 +147,7 @@ def hyperparameter_warnings(
     hyperparameters: Mapping[str, float],
     bounds: Mapping[str, tuple[float, float]],
     tolerance: float = BOUND_TOLERANCE,
+    counted: bool = False,
 ) -> list[str]:
     """Warnings about hyperparameters at their bounds and about the probability far from data.
 
@@ -157,6 +159,12 @@ def hyperparameter_warnings(
         As :func:`search_bounds` returns.
     tolerance : float
         See :func:`at_bounds`.
+    counted : bool
+        The map's probabilities come from ray counts with the GP as their prior
+        (:mod:`gpomap.fusion`, the default of maps made from scans): then alpha at its cap is
+        no warning. Where beams went, the counts decide and the GP weighs a few observations;
+        where none went, the variance scale fitted on held-out stretches tempers the squash; so
+        the map does not turn hard 0 / 1 (it is what most real logs fit: the cells are pure).
 
     Returns
     -------
@@ -165,6 +173,8 @@ def hyperparameter_warnings(
     """
     out = []
     for name, (v, side, bound) in at_bounds(hyperparameters, bounds, tolerance).items():
+        if counted and name == "alpha" and side == "upper":
+            continue
         label = "beta / alpha" if name == "shift" else name
         cap = " (its cap)" if name == "alpha" and side == "upper" else ""
         out.append(f"{label} {v:.4g} is at the {side} bound {bound:.4g} of its search{cap}: {_WHY.get(name, 'check the fit')}")
@@ -239,7 +249,8 @@ def fit_warnings(model: Any, occupancy_map: Any = None, tolerance: float = BOUND
     list of str
         One sentence per finding, without a prefix.
     """
-    out = hyperparameter_warnings(model.hyperparameters_, search_bounds(model), tolerance)
+    counted = getattr(model, "evidence_", None) is not None
+    out = hyperparameter_warnings(model.hyperparameters_, search_bounds(model), tolerance, counted=counted)
     if occupancy_map is not None:
         out += map_warnings(occupancy_map.ternary)
     return out
