@@ -361,6 +361,22 @@ def test_new_ground_centre_by_hand() -> None:
     assert ex.new_ground_centre(ex.Observations(points[kept], occupied[kept], scan_index[kept]), 20, 20.0) is None
 
 
+def test_square_lattice_marks_what_a_set_of_squares_holds(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Against the squares found one point at a time, in chunks smaller than the points.
+    monkeypatch.setattr(ex._SquareLattice, "CHUNK", 7)
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([-31.0, -12.0], [44.0, 9.0], size=(200, 2))
+    mask = rng.random(200) < 0.3
+    lattice = ex._SquareLattice(pts, 10.0)
+    got = {tuple(lattice.centre(int(k))) for k in np.flatnonzero(lattice.holding(pts, mask))}
+    want = {tuple((np.floor(p / 10.0) + 0.5) * 10.0) for p in pts[mask]}
+    assert got == want
+    # Squares are numbered x-major: equal counts go to the least x, then the least y.
+    k = lattice.index(np.array([[-25.0, 5.0], [-25.0, -5.0], [15.0, -5.0]]))
+    counts = np.bincount(k, minlength=lattice.size)
+    np.testing.assert_allclose(lattice.centre(int(np.argmax(counts))), [-25.0, -5.0])
+
+
 def _visit_scans():
     """The paper's room, the robot in its left part (x < 12) but for the second of ten stretches
     of the log, when it drives up the right part: the first pattern holds that stretch out, and
