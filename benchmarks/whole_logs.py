@@ -58,8 +58,6 @@ def child(log: str, method: str, workers: int) -> dict[str, Any]:
     else:
         model = OccupancyGridMapper(resolution=RESOLUTION, sensor_model="logodds")
     model.fit(scans)
-    if method == "gpomap":
-        model.release_points()  # as `gpomap map` does before it writes the map
     w2, c2 = _clock()
     occupancy_map = model.grid(RESOLUTION)
     w3, c3 = _clock()
