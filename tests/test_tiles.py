@@ -187,26 +187,6 @@ def test_update_equals_batch(room):
     assert n_before <= len(inc.tiles_)
 
 
-def test_released_points_leave_the_map_and_refuse_updates(room):
-    model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS).fit(room[:14])
-    extent = (0.0, 20.0, 0.0, 16.0)
-    before, summary = model.grid(0.25, extent), model.summary()
-    n_points = model.training_points()[0].shape[0]
-    model.release_points()
-    assert model._block_points == {}
-    after = model.grid(0.25, extent)
-    np.testing.assert_array_equal(after.probability, before.probability)
-    np.testing.assert_array_equal(after.variance, before.variance)
-    assert model.summary()["n_free_points_cleared"] == summary["n_free_points_cleared"]
-    for call in (lambda: model.update(room[14:]), lambda: model.absorb(room[14:]), model.training_points):
-        with pytest.raises(ValueError, match=r"release_points\(\) let go; fit the map again"):
-            call()
-    # Fitted again, the map has its points and takes updates.
-    model.fit(room[:14])
-    assert model.training_points()[0].shape[0] == n_points
-    model.update(room[14:])
-
-
 def _dying_fit(task):
     """Kill the worker process the first time tile (1, 1) is fitted (marker file records it)."""
     marker = Path(os.environ[MARKER_ENV])

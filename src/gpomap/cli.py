@@ -562,7 +562,6 @@ def cmd_map(args: argparse.Namespace) -> int:
     if args.chunk_scans is not None:
         return _map_in_chunks(args, data, title)
     model = _fitted_model(args, data)
-    model.release_points()  # no update follows: the written map does not need them
     files = _write_map(args, model, title)
     _print_map_summary(model.summary(), files, _bound_source(model))
     return EXIT_OK

@@ -826,8 +826,6 @@ class TiledGPOM:
 
     # Set by fit: the observation points per block, their cell trees, and the points' extent.
     _block_points: dict[int, _BlockPoints]
-    # Free points cleared near hits, counted when release_points let the points go (else None).
-    _released_n_cleared: int | None = None
     _blocks: dict[int, _BlockCells]
     _tiles_with_points: set[int]
     tile_size_: float
@@ -1443,7 +1441,6 @@ class TiledGPOM:
         # The clearance applies to points sampled from scans, not to given points.
         self._clearance = 0.0 if isinstance(data, Observations) else float(self.base.free_clearance)
         self._block_points = {}
-        self._released_n_cleared = None
         self._blocks = {}
         self._tiles_with_points = set()
         self._lower = None
@@ -1640,7 +1637,6 @@ class TiledGPOM:
         with self._connected():
             if not hasattr(self, "tiles_"):
                 return self._fit(scans, None)
-            self._check_points("update()")
             self._absorb(scans)
             self._refresh(None, exact=True)
             if self.evidence_ is not None:
@@ -1664,7 +1660,6 @@ class TiledGPOM:
             The blocks waiting for :meth:`refresh` (the new ones and any left before).
         """
         self._check_fitted()
-        self._check_points("absorb()")
         if not isinstance(self._scans, list):
             raise ValueError("absorb() needs a map fitted on scans, not on labelled points")
         self._absorb(scans)
@@ -1764,26 +1759,6 @@ class TiledGPOM:
     def _check_fitted(self) -> None:
         if not hasattr(self, "tiles_"):
             raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit() first")
-
-    def _check_points(self, what: str) -> None:
-        """Refuse `what` once :meth:`release_points` has let the points go."""
-        if self._released_n_cleared is not None:
-            raise ValueError(f"{what} needs the map's observation points, which release_points() let go; fit the map again")
-
-    def release_points(self) -> None:
-        """Let the observation points go when no update will follow (``gpomap map`` does so
-        before it writes the map).
-
-        The cells, the tiles' GPs, the ray counts and every prediction stay as they are;
-        :meth:`update`, :meth:`absorb` and :meth:`training_points` raise
-        ValueError afterwards. The points and their labels are most of what a fitted map holds
-        beside its tiles' factors: about 17 bytes a point, 1 GB of the Freiburg campus log's
-        55 million.
-        """
-        self._check_fitted()
-        if self._released_n_cleared is None:
-            self._released_n_cleared = sum(b.n_cleared for b in self._block_points.values())
-            self._block_points = {}
 
     def _blend_region(self, key: tuple[int, int]) -> tuple[float, float, float, float]:
         x0, x1, y0, y1 = self._core(key)
@@ -2084,7 +2059,6 @@ class TiledGPOM:
         occupied : ndarray of bool, shape (m,)
         """
         self._check_fitted()
-        self._check_points("training_points()")
         parts = []
         for k in sorted(self._block_points):
             points, occupied = self._block_points[k].arrays()
@@ -2121,11 +2095,7 @@ class TiledGPOM:
             "n_scans": self._n_scans,
             "n_invalid_readings": self._n_invalid,
             "n_no_return_readings": self._n_no_return,
-            "n_free_points_cleared": (
-                sum(b.n_cleared for b in self._block_points.values())
-                if self._released_n_cleared is None
-                else self._released_n_cleared
-            ),
+            "n_free_points_cleared": sum(b.n_cleared for b in self._block_points.values()),
             "hyperparameters": dict(self.hyperparameters_),
             "variance_scale_fit": dict(self.extrapolation_),
             "hyperparameter_source": dict(self.hyper_source_),
