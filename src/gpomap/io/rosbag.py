@@ -600,6 +600,13 @@ def load_rosbag(
             )
     if decision is not None:
         decision.notes.extend(_attitude_notes(up[kept], frame_arr[kept], fixed))
+        above = tree.chain(fixed)[1:]
+        if fixed_frame is None and above and not odom_conns:
+            # A robot that ran SLAM or localisation while recording has its correction above odom.
+            decision.notes.append(
+                f"tf also places {fixed!r} in {', then '.join(repr(f) for f in above)} (a SLAM or localisation "
+                f"correction, when the robot ran one): --fixed-frame {above[-1]} (fixed_frame=) maps in that frame instead"
+            )
     info = decision.as_dict() if decision is not None else {}
     if info:
         info["topic"] = topic
