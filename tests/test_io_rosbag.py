@@ -389,3 +389,21 @@ def test_frames_above_the_default_fixed_frame_are_named(tmp_path: Path) -> None:
     chosen = load_rosbag(path, fixed_frame="odom").scans[0].meta["no_return"]["notes"]
     plain = load_rosbag(_write_bag(tmp_path / "plain.bag")).scans[0].meta["no_return"]["notes"]
     assert not any("tf also places" in n for n in chosen + plain)
+
+
+def test_map_command_says_where_a_corrected_frame_is(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from gpomap import cli
+
+    path = _write_bag(tmp_path / "slam.bag", map_frame=True)
+    for argv, said in (
+        (["map", str(path), "-o", "out"], True),
+        (["map", str(path), "-o", "out", "--fixed-frame", "odom"], False),
+    ):
+        capsys.readouterr()
+        args = cli.build_parser().parse_args(argv)
+        cli._resolve_library_defaults(args)
+        with pytest.warns(UserWarning, match="dropped 1 of 4 scans"):
+            scans = cli._load_scans(args)
+        assert scans[0].meta["frames_above"] == ["map"] and scans[0].meta["fixed_frame"] == "odom"
+        err = capsys.readouterr().err
+        assert ("poses in 'odom', which tf places in 'map': --fixed-frame map maps in that frame" in err) == said

@@ -516,6 +516,13 @@ def _load_scans(args: argparse.Namespace) -> list:
     from gpomap.scans import select_scans
 
     scans = read_scans(args.input, **_reader_options(args, args.input))
+    above = scans[0].meta.get("frames_above") if scans and getattr(args, "fixed_frame", None) is None else None
+    if above:
+        # A bag recorded while a SLAM ran: the corrected frame is there for the asking.
+        _status(
+            args,
+            f"  poses in {scans[0].meta['fixed_frame']!r}, which tf places in {above[-1]!r}: --fixed-frame {above[-1]} maps in that frame",
+        )
     if args.scan_range is not None:
         first, last = args.scan_range
         n_all = len(scans)

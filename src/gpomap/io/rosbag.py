@@ -450,6 +450,9 @@ def load_rosbag(
     Returns
     -------
     RosbagScans
+        Each scan's ``meta`` holds ``frame_id``, ``topic``, ``no_return``, ``fixed_frame`` and
+        ``frames_above``: the frames tf places the fixed frame in, nearest first (``["map"]``
+        for a bag recorded while a SLAM ran; empty with an odometry topic).
 
     Raises
     ------
@@ -598,10 +601,12 @@ def load_rosbag(
                 f"LaserScan range_max differs between messages ({', '.join(f'{v:g}' for v in values[:5])}); "
                 f"compared the most common, {header:g} m, with the data"
             )
+    # Frames tf places the fixed frame in (a SLAM's map above odom), from the nearest up; with an
+    # odometry topic the user chose the poses' source, and nothing is suggested.
+    above = [] if odom_conns else tree.chain(fixed)[1:]
     if decision is not None:
         decision.notes.extend(_attitude_notes(up[kept], frame_arr[kept], fixed))
-        above = tree.chain(fixed)[1:]
-        if fixed_frame is None and above and not odom_conns:
+        if fixed_frame is None and above:
             # A robot that ran SLAM or localisation while recording has its correction above odom.
             decision.notes.append(
                 f"tf also places {fixed!r} in {', then '.join(repr(f) for f in above)} (a SLAM or localisation "
@@ -617,7 +622,7 @@ def load_rosbag(
             ranges=ranges[i],
             max_range=decision.max_range,  # type: ignore[union-attr]
             time=stamps[i],
-            meta={"frame_id": frames[i], "topic": topic, "no_return": info},
+            meta={"frame_id": frames[i], "topic": topic, "no_return": info, "fixed_frame": fixed, "frames_above": above},
         )
         for i in kept
     ]
