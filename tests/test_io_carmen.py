@@ -206,6 +206,15 @@ def test_file_with_only_lasers_the_reader_does_not_take_says_which(tmp_path: Pat
         ),
     ):
         read_carmen(raw)
+    # Beside front-laser lines, the others are left out and the decision's notes say so.
+    both = tmp_path / "both.log"
+    both.write_text("FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 1.0 host 1.0\n" + "RLASER 3 1.0 2.0 3.0 0 0 3.14 0 0 0 1.0 host 1.0\n")
+    scans = read_carmen(both)
+    assert len(scans) == 1
+    assert (
+        "laser lines not read: RLASER (1); gpomap reads FLASER and ROBOTLASER1 (the front laser)"
+        in scans[0].meta["no_return"]["notes"]
+    )
 
 
 # --- hostile input: only InputFormatError, naming file and line ---------------------------------

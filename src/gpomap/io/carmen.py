@@ -470,6 +470,10 @@ def read_carmen(
         group = [las for las in lasers if las.kind == kind]
         if group:
             d = _decide(group, kind, param_max, max_range)
+            if parsed.other_lasers:
+                # Read beside FLASER / ROBOTLASER1, a rear laser's lines are left out: say so.
+                left = ", ".join(f"{name} ({n})" for name, n in sorted(parsed.other_lasers.items()))
+                d.notes.append(f"laser lines not read: {left}; gpomap reads FLASER and ROBOTLASER1 (the front laser)")
             info = d.as_dict()
             info["message"] = kind
             decisions[kind] = (d.max_range, info)
