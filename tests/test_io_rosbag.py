@@ -142,12 +142,20 @@ def _odometry(types, t: float, x: float, yaw: float):
     )
 
 
-def _write_bag(path: Path, ros2: bool = False, odom: bool = False, laser_quaternion=None, map_frame: bool = False) -> Path:
+def _write_bag(
+    path: Path,
+    ros2: bool = False,
+    odom: bool = False,
+    laser_quaternion=None,
+    map_frame: bool = False,
+    map_clock: float | None = None,
+) -> Path:
     """Robot drives along x from 0 to 2 m over 2 s while turning 0 -> pi/2; laser 0.1 m ahead.
 
     Scans at t = -0.5 (before the poses, dropped), 0.5, 1.0 and 1.5 s, three beams at -90, 0 and 90
     degrees with ranges (1, 4 = max range, 0.01 = below range_min). The laser's rotation on the
-    robot is `laser_quaternion` (x, y, z, w), or none; with `map_frame`, tf places odom in map.
+    robot is `laser_quaternion` (x, y, z, w), or none; with `map_frame`, tf places odom in map
+    (on /tf_static, or on /tf at the robot's stamps plus `map_clock` seconds when given).
     """
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
@@ -161,8 +169,12 @@ def _write_bag(path: Path, ros2: bool = False, odom: bool = False, laser_quatern
     # Frame names with leading slashes, as in ROS1 bags, must be normalised by the reader.
     laser = _tf(types, 0.0, "/base_link", "/laser", 0.1, 0.0, 0.0, laser_quaternion)
     messages.append((0.0, "/tf_static", "tf2_msgs/msg/TFMessage", laser))
-    if map_frame:
+    if map_frame and map_clock is None:
         messages.append((0.0, "/tf_static", "tf2_msgs/msg/TFMessage", _tf(types, 0.0, "/map", "/odom", 0.0, 0.0, 0.0)))
+    elif map_frame:
+        for t in (0.0, 1.0, 2.0):
+            # A correction that moves (one published unchanged would count as static).
+            messages.append((t, "/tf", "tf2_msgs/msg/TFMessage", _tf(types, t + map_clock, "/map", "/odom", 0.01 * t, 0.0, 0.0)))
     for t in (0.0, 1.0, 2.0):
         if odom:
             messages.append((t, "/odom", "nav_msgs/msg/Odometry", _odometry(types, t, t, t * math.pi / 4)))
@@ -385,10 +397,16 @@ def test_frames_above_the_default_fixed_frame_are_named(tmp_path: Path) -> None:
     path = _write_bag(tmp_path / "slam.bag", map_frame=True)
     notes = load_rosbag(path).scans[0].meta["no_return"]["notes"]
     assert any("tf also places 'odom' in 'map'" in n and "--fixed-frame map" in n for n in notes)
-    # Not when the fixed frame was chosen, nor when nothing is above it.
+    # Not when the fixed frame was chosen, nor when nothing is above it, nor when what is above
+    # gives no pose at the scans' stamps (a SLAM stamping with the wall clock, as on the Stage bag).
     chosen = load_rosbag(path, fixed_frame="odom").scans[0].meta["no_return"]["notes"]
     plain = load_rosbag(_write_bag(tmp_path / "plain.bag")).scans[0].meta["no_return"]["notes"]
-    assert not any("tf also places" in n for n in chosen + plain)
+    wall = load_rosbag(_write_bag(tmp_path / "wall.bag", map_frame=True, map_clock=1e9)).scans[0]
+    assert wall.meta["frames_above"] == []
+    assert not any("tf also places" in n for n in chosen + plain + wall.meta["no_return"]["notes"])
+    # The same at the robot's own stamps: suggested.
+    same = load_rosbag(_write_bag(tmp_path / "same.bag", map_frame=True, map_clock=0.0)).scans[0]
+    assert same.meta["frames_above"] == ["map"]
 
 
 def test_map_command_says_where_a_corrected_frame_is(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

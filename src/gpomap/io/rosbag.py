@@ -601,9 +601,14 @@ def load_rosbag(
                 f"LaserScan range_max differs between messages ({', '.join(f'{v:g}' for v in values[:5])}); "
                 f"compared the most common, {header:g} m, with the data"
             )
-    # Frames tf places the fixed frame in (a SLAM's map above odom), from the nearest up; with an
-    # odometry topic the user chose the poses' source, and nothing is suggested.
-    above = [] if odom_conns else tree.chain(fixed)[1:]
+    # Frames tf places the fixed frame in (a SLAM's map above odom), from the nearest up, as far as
+    # they give poses at most scan stamps (a SLAM stamping with the wall clock in a simulation
+    # does not); with an odometry topic the user chose the poses' source, and none is suggested.
+    above: list[str] = []
+    for frame in [] if odom_conns or not kept else tree.chain(fixed)[1:]:
+        if tree.lookup(frame, fixed, t[kept], spath)[1].mean() < 0.5:
+            break
+        above.append(frame)
     if decision is not None:
         decision.notes.extend(_attitude_notes(up[kept], frame_arr[kept], fixed))
         if fixed_frame is None and above:
