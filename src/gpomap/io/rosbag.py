@@ -45,7 +45,15 @@ from gpomap.io.checks import ros2_bag_directory
 from gpomap.io.noreturn import decide_max_range
 from gpomap.scans import Scan
 
-__all__ = ["read_rosbag", "load_rosbag", "RosbagScans", "STAGE_TIME_OFFSET", "yaw_from_quaternion", "up_component"]
+__all__ = [
+    "read_rosbag",
+    "load_rosbag",
+    "RosbagScans",
+    "STAGE_TIME_OFFSET",
+    "yaw_from_quaternion",
+    "up_component",
+    "laserscan_angles",
+]
 
 #: Suggested `time_offset` (seconds) for Stage bags such as ``stage-arena/robot1.bag``: the scan
 #: matches the pose one 10 Hz step later (91 % of hits within 3 cm of a wall, against 83 % at 0).
@@ -101,6 +109,13 @@ def up_component(qx: Any, qy: Any) -> Any:
     """The z component of a frame's z axis rotated by the unit quaternion (qx, qy, qz, qw), in the
     parent frame: 1 level, 0 on its side, -1 upside down. Scalars or arrays."""
     return 1.0 - 2.0 * (np.square(qx) + np.square(qy))
+
+
+def laserscan_angles(angle_min: float, angle_increment: float, n: int, upside_down: bool = False) -> NDArray[np.float64]:
+    """A LaserScan's `n` beam angles in its laser frame, radians, shape (n,); mirrored about the
+    laser's heading when the laser is mounted upside down (it then turns clockwise seen from above)."""
+    angles = angle_min + angle_increment * np.arange(n, dtype=float)
+    return -angles if upside_down else angles
 
 
 def _frame(name: str) -> str:
@@ -580,8 +595,7 @@ def load_rosbag(
         a0, da, n, rmin, _ = geometry[i]
         # ROS: readings below range_min are not measurements.
         ranges[i] = np.where(ranges[i] < rmin, np.nan, ranges[i])
-        # An upside-down laser turns clockwise seen from above: its beams mirror about its heading.
-        beams[i] = (a0 + da * np.arange(n, dtype=float)) * (-1.0 if up[i] < 0 else 1.0)
+        beams[i] = laserscan_angles(a0, da, n, upside_down=bool(up[i] < 0))
         if not np.isfinite(beams[i]).all():
             raise InputFormatError(
                 f"LaserScan on {topic} at stamp {stamps[i]:.9g} s has non-finite beam angles "

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from gpomap.errors import InputFormatError
 from gpomap.grid import FREE, OCCUPIED, GridSpec, OccupancyMap
-from gpomap.io.rosbag import up_component, yaw_from_quaternion
+from gpomap.io.rosbag import laserscan_angles, up_component, yaw_from_quaternion
 from gpomap.scans import Scan
 
 __all__ = [
@@ -145,7 +145,7 @@ def scan_from_laserscan(
     meta = {"frame_id": str(header.frame_id).lstrip("/")} if header is not None else {}
     return Scan(
         pose=pose_arr,
-        angles=(a0 + da * np.arange(ranges.size, dtype=float)) * (-1.0 if upside_down else 1.0),
+        angles=laserscan_angles(a0, da, ranges.size, upside_down),
         ranges=ranges,
         max_range=limit,
         time=time,
