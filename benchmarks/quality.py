@@ -246,6 +246,11 @@ def table(rows: list[dict[str, Any]], has_truth: bool) -> list[str]:
     return out
 
 
+def _title(log: str) -> str:
+    """A log's title; a --log-file log's (read back from JSON) is its name."""
+    return str(LOGS[log]["title"]) if log in LOGS else log
+
+
 def summary_table(results: list[dict[str, Any]]) -> list[str]:
     """One line per log and split: MSK-GPOM's written map against the best grid for each metric.
 
@@ -297,7 +302,7 @@ def summary_table(results: list[dict[str, Any]]) -> list[str]:
             "| "
             + " | ".join(
                 [
-                    f"{LOGS[log]['title']}: {resolve_split(split)}",
+                    f"{_title(log)}: {resolve_split(split)}",
                     pair("auc", True),
                     pair("boundary_auc", True),
                     pair("observed_auc", True),
@@ -374,7 +379,7 @@ def criteria_table(results: list[dict[str, Any]]) -> tuple[list[str], int, int]:
         path = msk["path"]["grid"]
         check(path["n_occupied"] == 0, f"{path['n_occupied']} of {path['n_cells']}")
         n_checked = sum(c != "-" for c in cells)
-        title = LOGS[log]["title"] if log in LOGS else log
+        title = _title(log)
         line = [f"{title}: {resolve_split(split)}", *cells, f"{sum(c == 'yes' for c in cells)} of {n_checked}"]
         out.append("| " + " | ".join(line) + " |")
     return out, met, checked
@@ -422,7 +427,7 @@ def reliability_figure(results: list[dict[str, Any]], log: str, path: Path) -> N
             ylabel="fraction occupied",
             xlim=(0, 1),
             ylim=(0, 1),
-            title=f"{LOGS[log]['title']}: {resolve_split(split)}",
+            title=f"{_title(log)}: {resolve_split(split)}",
         )
         ax.legend(loc="upper left", fontsize=7)
     save_figure(fig, path)
