@@ -48,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from gpomap.comparison import GPOMAP, LABELS, METHODS, TARGET_NAMES, format_value, table, targets
 from gpomap.evaluation import EvalData, Truth, prepare, resolve_split, run_method
 
 DATA = Path("..") / "shared" / "data"
@@ -60,39 +61,12 @@ LOGS: dict[str, dict[str, Any]] = {
     "room": {"path": None, "title": "synthetic room, 400 scans x 180 beams, 2 cm noise (true geometry)"},
 }
 SPLIT_NAMES = ("blocks", "every")
-#: name: (evaluation method, grid cell side or None)
-METHODS: dict[str, tuple[str, float | None]] = {
-    "msk": ("msk", None),
-    "ogm-logodds-0.05": ("ogm-logodds", 0.05),
-    "ogm-logodds-0.1": ("ogm-logodds", 0.1),
-    "ogm-counting-0.05": ("ogm-counting", 0.05),
-}
-LABELS = {
-    "msk": "MSK-GPOM",
-    "ogm-logodds-0.05": "OGM log-odds 0.05",
-    "ogm-logodds-0.1": "OGM log-odds 0.1",
-    "ogm-counting-0.05": "OGM counting 0.05",
-}
 #: Test points per log and split (a seeded, balanced subsample; the same for every method).
 MAX_TEST_POINTS = 20000
 GRID_RESOLUTION = 0.05
 #: The room's truth grid (20 x 16 m): 0.1 m keeps its 32,000 predictions per method affordable.
 ROOM_TRUTH_RESOLUTION = 0.1
 QUICK = {"scan_range": "0:120", "n_scans": 30, "n_beams": 90, "max_test_points": 2000, "grid_resolution": 0.2}
-
-# metric key, column title, higher is better
-COLUMNS = [
-    ("auc", "AUC", True),
-    ("boundary_auc", "bnd AUC", True),
-    ("observed_auc", "obs AUC", True),
-    ("unobserved_auc", "unobs AUC", True),
-    ("fpr_at_tpr95", "FPR95", False),
-    ("log_loss", "log loss", False),
-    ("ece", "ECE", False),
-]
-# Against the true map; "where seen": its cells a training beam observed (the rest are where the
-# map extrapolates and a grid says nothing).
-TRUTH_COLUMNS = [("auc", "truth AUC", True), ("iou", "truth IoU", True), ("observed_iou", "truth IoU where seen", True)]
 
 
 # ------------------------------------------------------------------------------ data
@@ -180,72 +154,6 @@ def run_one(data: EvalData, name: str, grid_resolution: float, seed: int) -> dic
 
 
 # ------------------------------------------------------------------------------ tables
-def _fmt(v: Any, pct: bool = False) -> str:
-    if v is None or (isinstance(v, float) and np.isnan(v)):
-        return "-"
-    return f"{100 * v:.1f} %" if pct else f"{v:.3f}"
-
-
-def table(rows: list[dict[str, Any]], has_truth: bool) -> list[str]:
-    """Markdown table of one log and split: two lines (points, grid) per method, best marked '*'."""
-    lines_data = []
-    for r in rows:
-        for kind in ("points", "grid"):
-            s = r[kind]
-            # A grid's written map is itself (the same numbers): one row, "own grid".
-            if s is None or (kind == "grid" and r["name"] != "msk"):
-                continue
-            far = r["far"]["lattice"].get(kind, {})
-            truth = (r.get("truth") or {}).get(kind) or {}
-            lines_data.append((r, kind, s, {**far, "path": (r.get("path") or {}).get(kind)}, truth))
-    cols = COLUMNS + (TRUTH_COLUMNS if has_truth else [])
-    best: dict[str, float] = {}
-    for key, _, higher in COLUMNS:
-        vals = [s[key] for _, _, s, _, _ in lines_data if s.get(key) is not None]
-        if vals:
-            best[key] = max(vals) if higher else min(vals)
-    for key, _, higher in TRUTH_COLUMNS if has_truth else []:
-        vals = [t[key] for *_, t in lines_data if t.get(key) is not None and not np.isnan(t[key])]
-        if vals:
-            best["truth_" + key] = max(vals) if higher else min(vals)
-    head = (
-        ["method", "map"]
-        + [c[1] for c in cols]
-        + ["far p (mean ± sd)", "path occ", "fit s (wall/CPU)", "predict s", "grid s", "peak MB"]
-    )
-    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r, kind, s, far, truth in lines_data:
-        own = r["name"] != "msk"
-        cells = [
-            LABELS[r["name"]],
-            "own grid" if own else ("points" if kind == "points" else f"grid {r['settings']['grid_resolution']:g}"),
-        ]
-        for key, _, _ in COLUMNS:
-            v = s.get(key)
-            mark = "*" if v is not None and key in best and np.isclose(v, best[key], rtol=0, atol=5e-4) else ""
-            cells.append(_fmt(v, key == "fpr_at_tpr95") + mark)
-        if has_truth:
-            for key, _, _ in TRUTH_COLUMNS:
-                v = truth.get(key)
-                mark = (
-                    "*" if v is not None and ("truth_" + key) in best and np.isclose(v, best["truth_" + key], atol=5e-4) else ""
-                )
-                cells.append(_fmt(v) + mark)
-        cells.append(f"{far['mean']:.3f} ± {far['std']:.3f}" if far.get("n") else "-")
-        path = far["path"]
-        cells.append(f"{path['n_occupied']} / {path['n_cells']}" if path else "-")
-        sec, cpu = r["seconds"], r["cpu_seconds"]
-        if kind == "points":
-            cells += [f"{sec['fit']:.1f} / {cpu['fit']:.1f}", f"{sec['predict']:.2f}", "", ""]
-        else:
-            cells += ["", "", f"{sec.get('grid', 0):.1f} / {cpu.get('grid', 0):.1f}", ""]
-        if kind == "points":
-            pk = r["peak_rss_mb"]
-            cells[-1] = f"{pk['self']:.0f} (+{pk['children']:.0f} workers; {r['rss_at_start_mb']:.0f} at start)"
-        out.append("| " + " | ".join(cells) + " |")
-    return out
-
-
 def _title(log: str) -> str:
     """A log's title; a --log-file log's (read back from JSON) is its name."""
     return str(LOGS[log]["title"]) if log in LOGS else log
@@ -273,15 +181,15 @@ def summary_table(results: list[dict[str, Any]]) -> list[str]:
     keys = list(dict.fromkeys((r["log"], r["split"]) for r in results))
     for log, split in keys:
         rows = {r["name"]: r for r in results if (r["log"], r["split"]) == (log, split)}
-        if "msk" not in rows:
+        if GPOMAP not in rows:
             continue
-        msk = rows["msk"]
-        grids = [r for n, r in rows.items() if n != "msk"]
+        msk = rows[GPOMAP]
+        grids = [r for n, r in rows.items() if n != GPOMAP]
 
         def pair(key: str, higher: bool, msk: dict[str, Any] = msk, grids: list[dict[str, Any]] = grids) -> str:
             vals = [g["points"][key] for g in grids if g["points"].get(key) is not None]
             best = (max(vals) if higher else min(vals)) if vals else None
-            return f"{_fmt(msk['grid'][key])} / {_fmt(best)}"
+            return f"{format_value(msk['grid'][key])} / {format_value(best)}"
 
         truth = ""
         if msk.get("truth"):
@@ -290,8 +198,8 @@ def summary_table(results: list[dict[str, Any]]) -> list[str]:
             t_best_seen = max(g["truth"]["points"]["observed_iou"] for g in grids) if grids else None
             t = msk["truth"]["grid"]
             truth = (
-                f"{_fmt(t['auc'])} / {_fmt(t_best_auc)}; {_fmt(t['iou'])} / {_fmt(t_best_iou)}; "
-                f"{_fmt(t['observed_iou'])} / {_fmt(t_best_seen)}"
+                f"{format_value(t['auc'])} / {format_value(t_best_auc)}; {format_value(t['iou'])} / {format_value(t_best_iou)}; "
+                f"{format_value(t['observed_iou'])} / {format_value(t_best_seen)}"
             )
         path = msk["path"]["grid"]
         best_path = min((g["path"]["points"]["n_occupied"] for g in grids), default=None)
@@ -318,21 +226,10 @@ def summary_table(results: list[dict[str, Any]]) -> list[str]:
     return out
 
 
-#: What a map must meet on every log and split, beside the grids (the protocol's targets): ECE
-#: below this ...
-ECE_TARGET = 0.05
-#: ... and far from all data, predictions within this of 1/2.
-FAR_TOLERANCE = 0.05
-
-
 def criteria_table(results: list[dict[str, Any]]) -> tuple[list[str], int, int]:
-    """One line per log and split: which targets MSK-GPOM's written map meets.
-
-    AUC, boundary AUC and AUC where the grid saw at least the best grid's; log loss below every
-    grid's; ECE under :data:`ECE_TARGET`; the mean prediction far from all data within
-    :data:`FAR_TOLERANCE` of 0.5; occupied-class IoU against the truth at least the best grid's
-    (logs with a truth); no cell of the robot's own path called occupied. A target met reads
-    "yes"; one missed, the two values. Without grids in `results`, the comparisons read "-".
+    """One line per log and split: which targets MSK-GPOM's written map meets
+    (:func:`gpomap.comparison.targets`). A target met reads "yes"; one missed, the two values;
+    one not checked (no grid, no truth), "-".
 
     Returns
     -------
@@ -341,46 +238,17 @@ def criteria_table(results: list[dict[str, Any]]) -> tuple[list[str], int, int]:
     met, checked : int
         Targets met and targets checked.
     """
-    head = ["log, split", "AUC", "boundary AUC", "AUC where the grid saw", "log loss", f"ECE < {ECE_TARGET:g}"]
-    head += ["far p", "truth IoU", "path cells", "met"]
+    head = ["log, split", *TARGET_NAMES, "met"]
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     met = checked = 0
     for log, split in dict.fromkeys((r["log"], r["split"]) for r in results):
-        rows = {r["name"]: r for r in results if (r["log"], r["split"]) == (log, split)}
-        if "msk" not in rows:
+        rows = [r for r in results if (r["log"], r["split"]) == (log, split)]
+        if not any(r["name"] == GPOMAP for r in rows):
             continue
-        msk, grids = rows["msk"], [r for n, r in rows.items() if n != "msk"]
-        cells: list[str] = []
-
-        def check(ok: bool | None, text: str, cells: list[str] = cells) -> None:
-            nonlocal met, checked
-            if ok is None:
-                cells.append("-")
-                return
-            checked += 1
-            met += ok
-            cells.append("yes" if ok else text)
-
-        for key in ("auc", "boundary_auc", "observed_auc"):
-            vals = [g["points"][key] for g in grids if g["points"].get(key) is not None]
-            mine = msk["grid"][key]
-            check(None if not vals or mine is None else mine >= max(vals), f"{_fmt(mine)} < {_fmt(max(vals, default=None))}")
-        losses = [g["points"]["log_loss"] for g in grids]
-        mine = msk["grid"]["log_loss"]
-        check(None if not losses else mine < min(losses), f"{_fmt(mine)} >= {_fmt(min(losses, default=None))}")
-        check(msk["grid"]["ece"] < ECE_TARGET, _fmt(msk["grid"]["ece"]))
-        far = msk["far"]["lattice"]["grid"]
-        check(None if not far.get("n") else abs(far["mean"] - 0.5) <= FAR_TOLERANCE, _fmt(far.get("mean")))
-        if msk.get("truth") and grids:
-            best = max(g["truth"]["points"]["iou"] for g in grids)
-            check(msk["truth"]["grid"]["iou"] >= best, f"{_fmt(msk['truth']['grid']['iou'])} < {_fmt(best)}")
-        else:
-            check(None, "")
-        path = msk["path"]["grid"]
-        check(path["n_occupied"] == 0, f"{path['n_occupied']} of {path['n_cells']}")
-        n_checked = sum(c != "-" for c in cells)
-        title = _title(log)
-        line = [f"{title}: {resolve_split(split)}", *cells, f"{sum(c == 'yes' for c in cells)} of {n_checked}"]
+        found = targets(rows)
+        n_met, n_checked = sum(t.met is True for t in found), sum(t.met is not None for t in found)
+        met, checked = met + n_met, checked + n_checked
+        line = [f"{_title(log)}: {resolve_split(split)}", *(t.cell() for t in found), f"{n_met} of {n_checked}"]
         out.append("| " + " | ".join(line) + " |")
     return out, met, checked
 
@@ -408,7 +276,7 @@ def reliability_figure(results: list[dict[str, Any]], log: str, path: Path) -> N
             if r["log"] != log or r["split"] != split:
                 continue
             for kind, ls in (("points", "-"), ("grid", ":")):
-                if r[kind] is None or (kind == "grid" and r["name"] != "msk"):
+                if r[kind] is None or (kind == "grid" and r["name"] != GPOMAP):
                     continue  # a grid's written map is itself: one curve
                 rel = r[kind]["reliability"]
                 x = [m for m, c in zip(rel["mean_prob"], rel["counts"]) if c]
@@ -540,8 +408,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"Training {len(data.train)} scans, {len(data.test)} held out; {data.labels.size} test points "
                 f"({int(m['boundary'].sum())} boundary, {int(m['observed'].sum())} in observed cells, "
                 f"{int(m['unobserved'].sum())} not; {int(data.far_test.sum())} > 5 m from the data); MSK-GPOM "
-                + (f"in {rows[0]['settings']['tiles']} tiles, " if methods[0] == "msk" and rows[0]["settings"]["tiles"] else "")
-                + (f"{rows[0]['n_inputs']} cells.\n" if methods[0] == "msk" else "\n")
+                + (f"in {rows[0]['settings']['tiles']} tiles, " if methods[0] == GPOMAP and rows[0]["settings"]["tiles"] else "")
+                + (f"{rows[0]['n_inputs']} cells.\n" if methods[0] == GPOMAP else "\n")
             )
             print("\n".join(table(rows, truth is not None)), flush=True)
         if args.figures:

@@ -95,6 +95,7 @@ COMMAND_OWN: dict[str, str] = {
     "quiet": "progress messages",
     "json": "the report's format",
     "demo": "evaluate: the input (the built-in room instead of a file)",
+    "compare": "evaluate: gpomap beside the standard grids (gpomap.comparison.compare) instead of one method",
     "paper": "benchmark: which benchmark",
     "chunk_scans": "map: the incremental loop (_map_in_chunks)",
     "resolution": "the written grid's cell side (model.grid)",

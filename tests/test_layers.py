@@ -57,7 +57,18 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("maps", ("gpomap.estimator", "gpomap.fusion", "gpomap.extrapolation", "gpomap.settings", "gpomap.baselines")),
     ("tiling", ("gpomap.tiles", "gpomap.mapping", "gpomap.streaming")),
     ("io", ("gpomap.io", "gpomap.plot")),
-    ("apps", ("gpomap.convert", "gpomap.convert3d", "gpomap.evaluation", "gpomap.benchmark", "gpomap.apps", "gpomap.ros")),
+    (
+        "apps",
+        (
+            "gpomap.convert",
+            "gpomap.convert3d",
+            "gpomap.evaluation",
+            "gpomap.comparison",
+            "gpomap.benchmark",
+            "gpomap.apps",
+            "gpomap.ros",
+        ),
+    ),
     ("cli", ("gpomap.cli",)),
 ]
 RANK = {name: i for i, (name, _) in enumerate(LAYERS)}

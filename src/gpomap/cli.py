@@ -727,6 +727,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         from gpomap.io import read_scans
 
         scans, source = read_scans(args.input, **_reader_options(args, args.input)), args.input
+    if args.compare:
+        return _compare(args, scans, truth, arguments, source)
     _status(args, f"evaluating {args.method} on {source} ({len(scans)} scans)...")
     result = evaluate(scans, truth=truth, **arguments)
     result["settings"]["input"] = source
@@ -734,6 +736,69 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(json.dumps(result, default=str))
         return EXIT_OK
     _print_evaluation(args, result, source, resolve_split(args.split))
+    return EXIT_OK
+
+
+def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, arguments: dict[str, Any], source: str) -> int:
+    """``gpomap evaluate --compare``: gpomap and the standard grids on one split, and the targets met."""
+    from dataclasses import asdict
+
+    from gpomap.comparison import TARGET_NAMES, compare, table, targets
+    from gpomap.evaluation import TEST_FREE_STEP, prepare, resolve_split
+
+    a = dict(arguments)
+    # evaluate()'s own arguments; the rest are gpomap's constructor options.
+    own = {"method", "kernel", "holdout", "n_scans", "n_beams", "scan_range", "scan_step", "seed", "resolution"}
+    own |= {"grid_resolution", "max_test_points", "n_workers", "score_grid"}
+    gpomap_options = {k: v for k, v in a.items() if k not in own}
+    _status(args, f"comparing gpomap with the standard grids on {source} ({len(scans)} scans)...")
+    data = prepare(
+        scans,
+        a["holdout"],
+        a["scan_range"],
+        a["scan_step"],
+        a["n_scans"],
+        a["n_beams"],
+        a["seed"],
+        TEST_FREE_STEP,
+        a["max_test_points"],
+        truth,
+    )
+    results = compare(
+        data,
+        a["seed"],
+        a["grid_resolution"],
+        a["n_workers"],
+        a["kernel"],
+        progress=lambda label: _status(args, f"  {label}..."),
+        **gpomap_options,
+    )
+    found = targets(results)
+    met, checked = sum(t.met is True for t in found), sum(t.met is not None for t in found)
+    if args.json:
+        out = {
+            "results": results,
+            "targets": [asdict(t) for t in found],
+            "met": met,
+            "checked": checked,
+            "settings": {**data.settings, "input": source},
+        }
+        print(json.dumps(out, default=str))
+        return EXIT_OK
+    masks = data.masks
+    print(
+        f"data          {source}: {len(data.train)} training scans, {len(data.test)} held-out scans ({resolve_split(args.split)})"
+    )
+    print(
+        f"test points   {data.labels.size} (balanced): {int(masks['boundary'].sum())} within 0.5 m of a held-out hit, "
+        f"{int(masks['observed'].sum())} in cells a training beam crossed, {int(masks['unobserved'].sum())} not"
+    )
+    print("'*' marks the best of each metric; gpomap's map is the one `gpomap map` writes (grid), a grid's its own.\n")
+    print("\n".join(table(results, truth is not None)))
+    print(f"\ntargets met by gpomap's written map: {met} of {checked}")
+    width = max(len(n) for n in TARGET_NAMES)
+    for t in found:
+        print(f"  {t.name:<{width}}  {t.cell()}")
     return EXIT_OK
 
 
@@ -799,7 +864,8 @@ def _evaluate_arguments(args: argparse.Namespace) -> dict[str, Any]:
     Raises
     ------
     GpomapError
-        An option given that ``--method`` does not take.
+        An option given that ``--method`` does not take; ``--compare`` with another method than
+        msk, or with ``--no-grid``.
     """
     from gpomap.evaluation import GRID_METHODS, METHODS
 
@@ -810,6 +876,11 @@ def _evaluate_arguments(args: argparse.Namespace) -> dict[str, Any]:
     for dest, methods in only.items():
         if args.method not in methods and _given(args, [dest]):
             raise GpomapError(f"{_flag(dest)} is for --method {', '.join(methods)}, not {args.method}")
+    if args.compare and (args.method != "msk" or args.no_grid):
+        raise GpomapError(
+            "--compare scores gpomap's written map (--method msk) against the standard grids; "
+            + ("drop --no-grid" if args.method == "msk" else f"drop --method {args.method}")
+        )
     return {
         "method": args.method,
         "kernel": None if args.method in GRID_METHODS else args.kernel,
@@ -980,6 +1051,7 @@ EPILOG_MAP = """examples:
 """
 EPILOG_EVALUATE = """examples:
   gpomap evaluate --demo --method msk --kernel se
+  gpomap evaluate ../shared/data/intel/intel-corrected.log.gz --split blocks --compare
   gpomap evaluate ../shared/data/belgioioso/belgioioso-corrected.log.gz --method gpomik --scans 52 --beams 37 --json
 """
 
@@ -1088,6 +1160,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="resolution of the written map scored for the GP methods, m (default: %(default)s)",
     )
     p.add_argument("--no-grid", action="store_true", help="score the exact-point predictions only")
+    p.add_argument(
+        "--compare",
+        action="store_true",
+        help="score gpomap (--method msk) beside the standard occupancy grids on the same split and test points "
+        "(OctoMap's log-odds model at 0.05 and 0.1 m, the counting grid at 0.05 m): one table with the best of each "
+        "metric marked, and the targets gpomap's written map meets",
+    )
     p.add_argument(
         "--scan-step",
         type=_positive(int),

@@ -1,0 +1,290 @@
+"""gpomap's map against the occupancy grids a robot would otherwise build, on one split of a log.
+
+The comparison ``gpomap evaluate --compare`` prints and ``benchmarks/quality.py`` runs on every
+log: MSK-GPOM as ``gpomap map`` builds it, and the standard grids built from the same training
+scans (OctoMap's log-odds model with OctoMap's defaults at 0.05 and 0.1 m, the counting grid
+``(hits + 1) / (hits + misses + 2)`` at 0.05 m), each scored on the same test points of the same
+held-out scans (:func:`gpomap.evaluation.prepare`, :func:`gpomap.evaluation.run_method`). Then
+the targets gpomap's written map must meet beside them (:func:`targets`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from gpomap.evaluation import GRID_RESOLUTION, EvalData, run_method
+
+#: gpomap's name in a comparison.
+GPOMAP: str = "msk"
+#: Every method of a comparison, name: (evaluation method, grid cell side in metres; None for
+#: gpomap, which predicts anywhere and is scored on the map it writes).
+METHODS: dict[str, tuple[str, float | None]] = {
+    GPOMAP: ("msk", None),
+    "ogm-logodds-0.05": ("ogm-logodds", 0.05),
+    "ogm-logodds-0.1": ("ogm-logodds", 0.1),
+    "ogm-counting-0.05": ("ogm-counting", 0.05),
+}
+#: How tables name them.
+LABELS: dict[str, str] = {
+    GPOMAP: "MSK-GPOM",
+    "ogm-logodds-0.05": "OGM log-odds 0.05",
+    "ogm-logodds-0.1": "OGM log-odds 0.1",
+    "ogm-counting-0.05": "OGM counting 0.05",
+}
+#: The written map's expected calibration error must be below this ...
+ECE_TARGET: float = 0.05
+#: ... and its mean prediction far from all data within this of 1/2.
+FAR_TOLERANCE: float = 0.05
+
+# Metric key, column title, higher is better.
+COLUMNS: tuple[tuple[str, str, bool], ...] = (
+    ("auc", "AUC", True),
+    ("boundary_auc", "bnd AUC", True),
+    ("observed_auc", "obs AUC", True),
+    ("unobserved_auc", "unobs AUC", True),
+    ("fpr_at_tpr95", "FPR95", False),
+    ("log_loss", "log loss", False),
+    ("ece", "ECE", False),
+)
+# Against a true map; "where seen": its cells a training beam observed (elsewhere the map
+# extrapolates and a grid says nothing).
+TRUTH_COLUMNS: tuple[tuple[str, str, bool], ...] = (
+    ("auc", "truth AUC", True),
+    ("iou", "truth IoU", True),
+    ("observed_iou", "truth IoU where seen", True),
+)
+
+
+def compare(
+    data: EvalData,
+    seed: int = 0,
+    grid_resolution: float = GRID_RESOLUTION,
+    n_workers: int | None = None,
+    kernel: str | None = None,
+    progress: Callable[[str], None] | None = None,
+    **gpomap_options: Any,
+) -> list[dict[str, Any]]:
+    """Fit gpomap and every standard grid on ``data.train`` and score each on ``data``'s test points.
+
+    Parameters
+    ----------
+    data : EvalData
+        One split of a log and its test points (:func:`gpomap.evaluation.prepare`).
+    seed : int
+        Seeds gpomap.
+    grid_resolution : float
+        Cell side of gpomap's written map, metres (a grid's written map is itself).
+    n_workers : int, optional
+        gpomap's tile workers (default: the CPU count, as ``gpomap map``).
+    kernel : str, optional
+        gpomap's point kernel (default: the library's).
+    progress : callable, optional
+        Told each method's label before it runs.
+    **gpomap_options
+        gpomap's constructor options (the grids take their standard settings).
+
+    Returns
+    -------
+    list of dict
+        :func:`gpomap.evaluation.run_method`'s result per method of :data:`METHODS`, in order,
+        each with its ``"name"``.
+    """
+    results = []
+    for name, (method, cell) in METHODS.items():
+        if progress is not None:
+            progress(LABELS[name])
+        if name == GPOMAP:
+            r = run_method(data, method, kernel, seed, grid_resolution=grid_resolution, n_workers=n_workers, **gpomap_options)
+        else:
+            assert cell is not None
+            r = run_method(data, method, seed=seed, resolution=cell)
+        r["name"] = name
+        results.append(r)
+    return results
+
+
+@dataclass(frozen=True)
+class Target:
+    """One target of gpomap's written map beside the grids, and whether it was met.
+
+    Attributes
+    ----------
+    name : str
+    met : bool or None
+        None: not checked (no grid to compare with, no true map, no lattice far from the data).
+    detail : str
+        The values, when missed ("0.950 < 0.960").
+    """
+
+    name: str
+    met: bool | None
+    detail: str = ""
+
+    def cell(self) -> str:
+        """ "yes", the values when missed, or "-" when not checked."""
+        return "-" if self.met is None else ("yes" if self.met else self.detail)
+
+
+#: The targets' names, in :func:`targets`' order.
+TARGET_NAMES: tuple[str, ...] = (
+    "AUC",
+    "boundary AUC",
+    "AUC where the grid saw",
+    "log loss",
+    f"ECE < {ECE_TARGET:g}",
+    "far p",
+    "truth IoU",
+    "path cells",
+)
+
+
+def targets(rows: Sequence[dict[str, Any]]) -> list[Target]:
+    """What gpomap's written map meets beside the grids of the same split.
+
+    AUC, boundary AUC and AUC where the grid saw at least the best grid's; log loss below every
+    grid's; ECE under :data:`ECE_TARGET`; the mean prediction on lattice points far from all data
+    within :data:`FAR_TOLERANCE` of 1/2; occupied-class IoU against the true map at least the best
+    grid's (where there is one); no cell of the robot's own path called occupied.
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        :func:`compare`'s results for one split: gpomap's (``"name"`` :data:`GPOMAP`, scored with
+        its written map) and any grids'.
+
+    Returns
+    -------
+    list of Target
+        One per :data:`TARGET_NAMES`, in that order.
+
+    Raises
+    ------
+    ValueError
+        Without gpomap's row, or with its written map unscored.
+    """
+    mine = next((r for r in rows if r["name"] == GPOMAP), None)
+    if mine is None or mine.get("grid") is None:
+        raise ValueError("targets need gpomap's result with its written map scored")
+    grids = [r for r in rows if r["name"] != GPOMAP]
+    written = mine["grid"]
+    out = []
+    for key, name in zip(("auc", "boundary_auc", "observed_auc"), TARGET_NAMES, strict=False):
+        vals = [g["points"][key] for g in grids if g["points"].get(key) is not None]
+        value = written.get(key)
+        if not vals or value is None:
+            out.append(Target(name, None))
+        else:
+            out.append(Target(name, bool(value >= max(vals)), f"{format_value(value)} < {format_value(max(vals))}"))
+    losses = [g["points"]["log_loss"] for g in grids]
+    loss = written["log_loss"]
+    out.append(
+        Target("log loss", None)
+        if not losses
+        else Target("log loss", bool(loss < min(losses)), f"{format_value(loss)} >= {format_value(min(losses))}")
+    )
+    out.append(Target(TARGET_NAMES[4], bool(written["ece"] < ECE_TARGET), format_value(written["ece"])))
+    far = mine["far"]["lattice"].get("grid") or {}
+    out.append(
+        Target("far p", None)
+        if not far.get("n")
+        else Target("far p", bool(abs(far["mean"] - 0.5) <= FAR_TOLERANCE), format_value(far["mean"]))
+    )
+    truth = (mine.get("truth") or {}).get("grid")
+    if truth and grids:
+        best = max(g["truth"]["points"]["iou"] for g in grids)
+        out.append(Target("truth IoU", bool(truth["iou"] >= best), f"{format_value(truth['iou'])} < {format_value(best)}"))
+    else:
+        out.append(Target("truth IoU", None))
+    path = mine["path"]["grid"]
+    out.append(Target("path cells", path["n_occupied"] == 0, f"{path['n_occupied']} of {path['n_cells']}"))
+    return out
+
+
+def table(rows: Sequence[dict[str, Any]], has_truth: bool) -> list[str]:
+    """Markdown table of one split: gpomap's exact points and written map, each grid's own grid.
+
+    '*' marks the best value of each metric among the rows (within 5e-4).
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        :func:`compare`'s results for one split.
+    has_truth : bool
+        Add the columns against the true map.
+
+    Returns
+    -------
+    list of str
+        The table's lines.
+    """
+    lines_data = []
+    for r in rows:
+        for kind in ("points", "grid"):
+            s = r[kind]
+            # A grid's written map is itself (the same numbers): one row, "own grid".
+            if s is None or (kind == "grid" and r["name"] != GPOMAP):
+                continue
+            far = r["far"]["lattice"].get(kind, {})
+            truth = (r.get("truth") or {}).get(kind) or {}
+            lines_data.append((r, kind, s, {**far, "path": (r.get("path") or {}).get(kind)}, truth))
+    truth_columns = TRUTH_COLUMNS if has_truth else ()
+    best: dict[str, float] = {}
+    for key, _, higher in COLUMNS:
+        vals = [s[key] for _, _, s, _, _ in lines_data if s.get(key) is not None]
+        if vals:
+            best[key] = max(vals) if higher else min(vals)
+    for key, _, higher in truth_columns:
+        vals = [t[key] for *_, t in lines_data if t.get(key) is not None and not np.isnan(t[key])]
+        if vals:
+            best["truth_" + key] = max(vals) if higher else min(vals)
+    head = (
+        ["method", "map"]
+        + [c[1] for c in COLUMNS + truth_columns]
+        + ["far p (mean ± sd)", "path occ", "fit s (wall/CPU)", "predict s", "grid s", "peak MB"]
+    )
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r, kind, s, far, truth in lines_data:
+        own = r["name"] != GPOMAP
+        cells = [
+            LABELS.get(r["name"], r["name"]),
+            "own grid" if own else ("points" if kind == "points" else f"grid {r['settings']['grid_resolution']:g}"),
+        ]
+        for key, _, _ in COLUMNS:
+            cells.append(_marked(s.get(key), best.get(key), key == "fpr_at_tpr95"))
+        for key, _, _ in truth_columns:
+            cells.append(_marked(truth.get(key), best.get("truth_" + key)))
+        cells.append(f"{far['mean']:.3f} ± {far['std']:.3f}" if far.get("n") else "-")
+        path = far["path"]
+        cells.append(f"{path['n_occupied']} / {path['n_cells']}" if path else "-")
+        sec, cpu = r["seconds"], r["cpu_seconds"]
+        if kind == "points":
+            # A method's own peak memory only where it ran in a process of its own, which started at
+            # its parent's size (benchmarks/quality.py); in one process the peak is every method's so far.
+            pk = r["peak_rss_mb"]
+            peak = (
+                f"{pk['self']:.0f} (+{pk['children']:.0f} workers; {r['rss_at_start_mb']:.0f} at start)"
+                if "rss_at_start_mb" in r
+                else "-"
+            )
+            cells += [f"{sec['fit']:.1f} / {cpu['fit']:.1f}", f"{sec['predict']:.2f}", "", peak]
+        else:
+            cells += ["", "", f"{sec.get('grid', 0):.1f} / {cpu.get('grid', 0):.1f}", ""]
+        out.append("| " + " | ".join(cells) + " |")
+    return out
+
+
+def _marked(value: float | None, best: float | None, pct: bool = False) -> str:
+    """`value` formatted, with '*' when it is the best (within 5e-4)."""
+    is_best = value is not None and best is not None and bool(np.isclose(value, best, rtol=0, atol=5e-4))
+    return format_value(value, pct) + ("*" if is_best else "")
+
+
+def format_value(v: Any, pct: bool = False) -> str:
+    """A metric as the tables print it: 3 decimals, a percentage with 1, "-" for none."""
+    if v is None or (isinstance(v, float) and np.isnan(v)):
+        return "-"
+    return f"{100 * v:.1f} %" if pct else f"{v:.3f}"

@@ -1,0 +1,146 @@
+"""gpomap beside the standard grids: the runs on one split, the table's best marks, the targets."""
+
+import json
+
+import pytest
+
+from gpomap.comparison import GPOMAP, METHODS, TARGET_NAMES, compare, table, targets
+from gpomap.evaluation import prepare, run_method
+from gpomap.simulate import paper_room_scans
+
+
+def _scores(auc, boundary, observed, log_loss, ece):
+    return {
+        "auc": auc,
+        "boundary_auc": boundary,
+        "observed_auc": observed,
+        "unobserved_auc": None,
+        "fpr_at_tpr95": 0.1,
+        "log_loss": log_loss,
+        "ece": ece,
+    }
+
+
+def _row(name, scores, far_mean=0.5, path_occupied=0, iou=None):
+    """A result as run_method gives it, gpomap's scores on its written map, a grid's on its own."""
+    far = {"n": 10, "mean": far_mean, "std": 0.0}
+    path = {"n_occupied": path_occupied, "n_cells": 100}
+    truth = None if iou is None else {"auc": 0.9, "iou": iou, "observed_iou": iou}
+    row = {
+        "name": name,
+        "points": scores,
+        "grid": None,
+        "far": {"lattice": {"points": far, "grid": far}},
+        "path": {"points": path, "grid": path},
+        "truth": None if truth is None else {"points": truth, "grid": truth},
+        "seconds": {"fit": 1.0, "predict": 0.1, "grid": 0.2},
+        "cpu_seconds": {"fit": 1.0, "predict": 0.1, "grid": 0.2},
+        "peak_rss_mb": {"self": 100.0, "children": 0.0},
+        "settings": {"grid_resolution": 0.05},
+    }
+    if name == GPOMAP:
+        row["grid"] = scores
+    return row
+
+
+def test_targets_read_each_comparison_as_the_issue_states_it():
+    mine = _row(GPOMAP, _scores(0.95, 0.93, 0.97, 0.20, 0.049), far_mean=0.56, path_occupied=2, iou=0.40)
+    grids = [
+        _row("ogm-logodds-0.05", _scores(0.96, 0.90, 0.97, 0.30, 0.1), iou=0.40),
+        _row("ogm-counting-0.05", _scores(0.90, 0.92, 0.96, 0.20, 0.1), iou=0.35),
+    ]
+    found = targets([mine, *grids])
+    assert [t.name for t in found] == list(TARGET_NAMES)
+    cells = {t.name: t.cell() for t in found}
+    assert cells["AUC"] == "0.950 < 0.960"  # below the best grid's
+    assert cells["boundary AUC"] == "yes"  # above both
+    assert cells["AUC where the grid saw"] == "yes"  # a tie with the best grid meets it
+    assert cells["log loss"] == "0.200 >= 0.200"  # must be below every grid's: a tie does not
+    assert cells["ECE < 0.05"] == "yes"
+    assert cells["far p"] == "0.560"  # 0.06 from 1/2
+    assert cells["truth IoU"] == "yes"  # a tie with the best grid's
+    assert cells["path cells"] == "2 of 100"
+    assert sum(t.met is True for t in found) == 4
+
+
+def test_targets_without_grids_or_truth_check_what_they_can():
+    mine = _row(GPOMAP, _scores(0.95, 0.93, 0.97, 0.20, 0.05), far_mean=0.54)
+    found = {t.name: t for t in targets([mine])}
+    for name in ("AUC", "boundary AUC", "AUC where the grid saw", "log loss", "truth IoU"):
+        assert found[name].met is None and found[name].cell() == "-"
+    assert found["ECE < 0.05"].cell() == "0.050"  # must be below 0.05
+    assert found["far p"].met is True  # within 0.05 of 1/2
+    assert found["path cells"].met is True
+
+
+def test_targets_need_gpomaps_written_map():
+    mine = _row(GPOMAP, _scores(0.95, 0.93, 0.97, 0.20, 0.05))
+    mine["grid"] = None
+    with pytest.raises(ValueError, match="written map"):
+        targets([mine])
+    with pytest.raises(ValueError):
+        targets([_row("ogm-logodds-0.05", _scores(0.9, 0.9, 0.9, 0.3, 0.1))])
+
+
+def test_table_marks_the_best_of_each_metric():
+    mine = _row(GPOMAP, _scores(0.99, 0.90, 0.9702, 0.20, 0.03))
+    grid = _row("ogm-logodds-0.1", _scores(0.98, 0.95, 0.9700, 0.30, 0.01))
+    lines = table([mine, grid], has_truth=False)
+    head = [c.strip() for c in lines[0].strip("|").split("|")]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in lines[2:]]
+    assert [r[:2] for r in rows] == [["MSK-GPOM", "points"], ["MSK-GPOM", "grid 0.05"], ["OGM log-odds 0.1", "own grid"]]
+    col = {name: head.index(name) for name in ("AUC", "bnd AUC", "obs AUC", "log loss", "ECE", "peak MB")}
+    assert rows[0][col["AUC"]] == "0.990*" and rows[2][col["AUC"]] == "0.980"
+    assert rows[0][col["bnd AUC"]] == "0.900" and rows[2][col["bnd AUC"]] == "0.950*"
+    assert rows[0][col["obs AUC"]] == "0.970*" and rows[2][col["obs AUC"]] == "0.970*"  # within 5e-4: both
+    assert rows[0][col["log loss"]] == "0.200*" and rows[2][col["log loss"]] == "0.300"  # lower is better
+    assert rows[2][col["ECE"]] == "0.010*"
+    assert rows[0][col["peak MB"]] == "-"  # one process: the peak is not the method's own
+
+
+@pytest.fixture(scope="module")
+def room_split():
+    return prepare(paper_room_scans(), "every", seed=0)
+
+
+def test_compare_scores_every_method_on_the_same_test_points(room_split):
+    results = compare(room_split, seed=0, n_workers=1)
+    assert [r["name"] for r in results] == list(METHODS)
+    # Each grid as run_method scores it alone on the same split: the same points, the same scores.
+    for r in results[1:]:
+        method, cell = METHODS[r["name"]]
+        alone = run_method(room_split, method, seed=0, resolution=cell)
+        assert r["settings"]["resolution"] == cell
+        for key in ("auc", "log_loss", "ece", "boundary_auc"):
+            assert r["points"][key] == pytest.approx(alone["points"][key], abs=1e-12)
+    mine = results[0]
+    assert mine["grid"] is not None and mine["settings"]["grid_resolution"] == 0.05
+    assert all(r["n_test_points"] == room_split.labels.size for r in results)
+
+
+def test_evaluate_compare_prints_the_table_and_the_targets(capsys):
+    from gpomap.cli import main
+
+    assert main(["evaluate", "--demo", "--compare", "--workers", "1", "--json", "-q"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [r["name"] for r in out["results"]] == list(METHODS)
+    assert [t["name"] for t in out["targets"]] == list(TARGET_NAMES)
+    assert out["met"] == sum(t["met"] is True for t in out["targets"])
+    assert out["checked"] == sum(t["met"] is not None for t in out["targets"]) == len(TARGET_NAMES)  # the room has a truth
+
+    assert main(["evaluate", "--demo", "--compare", "--workers", "1", "-q"]) == 0
+    text = capsys.readouterr().out
+    for label in ("MSK-GPOM", "OGM log-odds 0.05", "OGM log-odds 0.1", "OGM counting 0.05"):
+        assert f"| {label} |" in text
+    assert f"targets met by gpomap's written map: {out['met']} of {out['checked']}" in text
+    # The same split and seed give the same scores as the JSON.
+    auc = float(text.split("| MSK-GPOM | grid 0.05 |")[1].split("|")[0].strip().rstrip("*"))
+    assert auc == pytest.approx(out["results"][0]["grid"]["auc"], abs=5e-4)
+
+
+@pytest.mark.parametrize(("extra", "message"), [(["--method", "ogm"], "drop --method ogm"), (["--no-grid"], "drop --no-grid")])
+def test_evaluate_compare_refuses_what_it_cannot_compare(capsys, extra, message):
+    from gpomap.cli import main
+
+    assert main(["evaluate", "--demo", "--compare", *extra]) == 1
+    assert message in capsys.readouterr().err
