@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from gpomap.comparison import GPOMAP, LABELS, METHODS, TARGET_NAMES, format_value, table, targets
+from gpomap.comparison import GPOMAP, LABELS, METHODS, TARGET_NAMES, format_value, table, tally, targets
 from gpomap.evaluation import EvalData, Truth, prepare, resolve_split, run_method
 
 DATA = Path("..") / "shared" / "data"
@@ -246,7 +246,7 @@ def criteria_table(results: list[dict[str, Any]]) -> tuple[list[str], int, int]:
         if not any(r["name"] == GPOMAP for r in rows):
             continue
         found = targets(rows)
-        n_met, n_checked = sum(t.met is True for t in found), sum(t.met is not None for t in found)
+        n_met, n_checked = tally(found)
         met, checked = met + n_met, checked + n_checked
         line = [f"{_title(log)}: {resolve_split(split)}", *(t.cell() for t in found), f"{n_met} of {n_checked}"]
         out.append("| " + " | ".join(line) + " |")

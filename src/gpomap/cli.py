@@ -743,7 +743,7 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
     """``gpomap evaluate --compare``: gpomap and the standard grids on one split, and the targets met."""
     from dataclasses import asdict
 
-    from gpomap.comparison import TARGET_NAMES, compare, table, targets
+    from gpomap.comparison import TARGET_NAMES, compare, table, tally, targets
     from gpomap.evaluation import TEST_FREE_STEP, prepare, resolve_split
 
     a = dict(arguments)
@@ -774,7 +774,7 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
         **gpomap_options,
     )
     found = targets(results)
-    met, checked = sum(t.met is True for t in found), sum(t.met is not None for t in found)
+    met, checked = tally(found)
     if args.json:
         out = {
             "results": results,

@@ -204,6 +204,11 @@ def targets(rows: Sequence[dict[str, Any]]) -> list[Target]:
     return out
 
 
+def tally(found: Sequence[Target]) -> tuple[int, int]:
+    """Targets met and targets checked among `found`."""
+    return sum(t.met is True for t in found), sum(t.met is not None for t in found)
+
+
 def table(rows: Sequence[dict[str, Any]], has_truth: bool) -> list[str]:
     """Markdown table of one split: gpomap's exact points and written map, each grid's own grid.
 
