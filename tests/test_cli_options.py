@@ -43,6 +43,7 @@ BASE: dict[str, list[str]] = {
 #: A value other than the default for each option that takes one (choices are picked from the
 #: parser, flags are flipped). A new option needs an entry here, and so a check that it reaches.
 VALUES: dict[str, str] = {
+    "truth": "truth.yaml",
     "output": "elsewhere",
     "max_range": "20",
     "topic": "/scan",
@@ -96,6 +97,7 @@ COMMAND_OWN: dict[str, str] = {
     "json": "the report's format",
     "demo": "evaluate: the input (the built-in room instead of a file)",
     "compare": "evaluate: gpomap beside the standard grids (gpomap.comparison.compare) instead of one method",
+    "truth": "evaluate: the true map scored against (Truth.from_rosmap), read before the log",
     "paper": "benchmark: which benchmark",
     "chunk_scans": "map: the incremental loop (_map_in_chunks)",
     "resolution": "the written grid's cell side (model.grid)",

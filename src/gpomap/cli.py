@@ -716,6 +716,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     if args.demo == (args.input is not None):
         raise GpomapError("give either INPUT or --demo")
+    if args.demo and args.truth is not None:
+        raise GpomapError("--demo is scored against the room's true geometry already; drop --truth")
     arguments = _evaluate_arguments(args)  # refuses an option --method does not take, before any reading
     truth = None
     if args.demo:
@@ -726,7 +728,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     else:
         from gpomap.io import read_scans
 
+        # The true map first: it is small, and a bad one should not wait for the log.
+        truth = _read_truth(args) if args.truth is not None else None
         scans, source = read_scans(args.input, **_reader_options(args, args.input)), args.input
+        if truth is not None:
+            _check_truth_frame(args, truth, scans)
     if args.compare:
         return _compare(args, scans, truth, arguments, source)
     _status(args, f"evaluating {args.method} on {source} ({len(scans)} scans)...")
@@ -737,6 +743,39 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         return EXIT_OK
     _print_evaluation(args, result, source, resolve_split(args.split))
     return EXIT_OK
+
+
+def _read_truth(args: argparse.Namespace) -> Any:
+    """``--truth``: a ROS map_server map as the true map, at the written map's resolution."""
+    from gpomap.evaluation import Truth
+    from gpomap.io.rosmap import read_rosmap
+
+    truth = Truth.from_rosmap(read_rosmap(args.truth), args.grid_resolution)
+    assert truth.known is not None
+    if not truth.occupied.any() or not (truth.known & ~truth.occupied).any():
+        raise GpomapError(
+            f"{args.truth}: a true map needs occupied and free pixels (by its YAML's thresholds); "
+            f"it has {int(truth.occupied.sum())} occupied and {int((truth.known & ~truth.occupied).sum())} free cells "
+            f"at {args.grid_resolution:g} m"
+        )
+    return truth
+
+
+#: Below this share of a log's hits near an occupied cell of its true map, the two are likely in
+#: different frames (``--truth``).
+TRUTH_AGREEMENT_WARN: float = 0.5
+
+
+def _check_truth_frame(args: argparse.Namespace, truth: Any, scans: Sequence[Any]) -> None:
+    """Say how many of the log's hits lie on the true map's walls; warn when few do."""
+    import numpy as np
+
+    share = truth.agreement(np.concatenate([s.hits() for s in scans]))
+    message = f"{args.truth}: {100 * share:.0f} % of the log's hits lie within 0.1 m of an occupied cell of the true map"
+    if share < TRUTH_AGREEMENT_WARN:
+        _warn(message + ": are the map and the scans in the same frame (the map's origin, --fixed-frame)?")
+    else:
+        _status(args, message)
 
 
 def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, arguments: dict[str, Any], source: str) -> int:
@@ -1160,6 +1199,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="resolution of the written map scored for the GP methods, m (default: %(default)s)",
     )
     p.add_argument("--no-grid", action="store_true", help="score the exact-point predictions only")
+    p.add_argument(
+        "--truth",
+        metavar="MAP.yaml",
+        help="a true map (ROS map_server YAML and image, in the scans' frame) to score against as well, at the "
+        "written map's resolution: AUC and occupied-class IoU over its known cells, and over those a training beam reached",
+    )
     p.add_argument(
         "--compare",
         action="store_true",

@@ -34,7 +34,7 @@ import resource
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -44,6 +44,9 @@ from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap
 from gpomap.metrics import expected_calibration_error, fpr_at_tpr, iou, log_loss, reliability_bins, roc_auc, roc_curve
 from gpomap.observations import observations_from_scans
 from gpomap.scans import Scan, select_scans
+
+if TYPE_CHECKING:
+    from gpomap.io.rosmap import RosMap
 
 #: "ogm" is the log-odds grid (OctoMap's model); "ogm-counting" the counting grid.
 METHODS = ("msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting")
@@ -438,6 +441,7 @@ class Truth:
         lower_left: tuple[float, float],
         pixel_size: tuple[float, float],
         resolution: float = GRID_RESOLUTION,
+        known_pixels: NDArray[np.bool_] | None = None,
     ) -> Truth:
         """A floor-plan bitmap resampled to `resolution`: a cell is occupied if any pixel in it is.
 
@@ -450,6 +454,9 @@ class Truth:
         pixel_size : (sx, sy)
             Pixel width and height, metres.
         resolution : float
+        known_pixels : ndarray of bool, shape (h, w), optional
+            The pixels the plan knows (default: every one); a cell is scored if any known pixel is
+            in it, and occupied if any known occupied pixel is.
         """
         h, w = occupied_pixels.shape
         x0, y0 = lower_left
@@ -457,12 +464,45 @@ class Truth:
         rows, cols = np.indices((h, w))
         centres = np.column_stack([x0 + (cols.ravel() + 0.5) * pixel_size[0], y0 + (h - rows.ravel() - 0.5) * pixel_size[1]])
         r, c, inside = grid.index_of(centres)
+        scored = inside if known_pixels is None else inside & np.asarray(known_pixels, dtype=bool).ravel()
         occ = np.zeros(grid.shape, dtype=bool)
-        hit = inside & occupied_pixels.ravel()
+        hit = scored & occupied_pixels.ravel()
         occ[r[hit], c[hit]] = True
         known = np.zeros(grid.shape, dtype=bool)
-        known[r[inside], c[inside]] = True
+        known[r[scored], c[scored]] = True
         return cls(grid, occ, known)
+
+    @classmethod
+    def from_rosmap(cls, rosmap: RosMap, resolution: float = GRID_RESOLUTION) -> Truth:
+        """A ROS map_server map as the truth, resampled to `resolution` (:meth:`from_plan`).
+
+        Its pixels are read as map_server reads them (:func:`gpomap.io.rosmap.read_rosmap`):
+        occupied above the YAML's ``occupied_thresh``, free below ``free_thresh``, the rest unknown
+        and not scored.
+        """
+        g = rosmap.grid
+        # RosMap's rows start at the lowest y; from_plan takes image order.
+        return cls.from_plan(
+            rosmap.occupied[::-1], g.origin, (g.resolution, g.resolution), resolution, known_pixels=~rosmap.unknown[::-1]
+        )
+
+    def agreement(self, points: NDArray[np.float64], within: float = 0.1) -> float:
+        """Share of `points` (hits, shape (m, 2)) whose cell lies within `within` metres of an
+        occupied cell (centre to centre).
+
+        A log and its true map in one frame put most hits on the walls; in different frames
+        (another origin, a map frame against odometry) few. Points outside the grid count as far.
+        """
+        from scipy import ndimage
+
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        if len(pts) == 0 or not self.occupied.any():
+            return 0.0
+        # Distance from each cell's centre to the nearest occupied cell's centre, metres.
+        distance = ndimage.distance_transform_edt(~self.occupied) * self.grid.resolution
+        r, c, inside = self.grid.index_of(pts)
+        near = distance[r[inside], c[inside]] <= within + 1e-9
+        return float(near.sum() / len(pts))
 
 
 def score_truth(
