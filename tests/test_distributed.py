@@ -260,10 +260,12 @@ def _free_port() -> int:
 
 
 @pytest.fixture
-def progress_lines() -> Iterator[None]:
-    """Progress as plain lines for one test (the mode is global to the process)."""
+def progress_lines(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Progress as plain lines for one test (the mode is global to the process), from the first step."""
+    from gpomap import progress
     from gpomap.progress import get_progress_mode, set_progress_mode
 
+    monkeypatch.setattr(progress, "LINES_AFTER_SECONDS", 0.0)
     before = get_progress_mode()
     set_progress_mode("lines")
     try:

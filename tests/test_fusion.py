@@ -810,9 +810,10 @@ def test_the_gp_alone_grid_is_built_in_bands_of_the_same_values(monkeypatch: pyt
 def test_a_map_built_in_bands_reports_its_bands_not_each_bands_tiles(
     half_room: tuple[AreaGPOM, list[Scan]], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from gpomap import fusion
+    from gpomap import fusion, progress
     from gpomap.progress import get_progress_mode, set_progress_mode
 
+    monkeypatch.setattr(progress, "LINES_AFTER_SECONDS", 0.0)  # lines from the first step: the bands are quick
     model, _ = half_room
     monkeypatch.setattr(fusion, "WRITTEN_BAND_CELLS", 5_000)
     before = get_progress_mode()

@@ -307,10 +307,13 @@ def test_dask_local_cluster_matches_in_process(room, reference, tmp_path, monkey
 
 
 @pytest.fixture
-def progress_mode():
-    """Set the (process-wide) progress mode for one test, restored afterwards."""
+def progress_mode(monkeypatch):
+    """Set the (process-wide) progress mode for one test, restored afterwards; lines from the first
+    step (these stages take a fraction of a second)."""
+    from gpomap import progress
     from gpomap.progress import get_progress_mode, set_progress_mode
 
+    monkeypatch.setattr(progress, "LINES_AFTER_SECONDS", 0.0)
     before = get_progress_mode()
     yield set_progress_mode
     set_progress_mode(before)

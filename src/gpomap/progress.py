@@ -4,8 +4,10 @@ Every stage that can take more than a few seconds (tiled fit, grid prediction, r
 log) reports through :func:`progress`, so a user can tell a slow run from a hung one. The mode is
 set once per process by the command line (``--quiet``) or by the API user:
 
-- ``"auto"`` (default): a tqdm bar when stderr is a terminal, else one line per ~10 % step;
-- ``"lines"``: always line-based (logs, CI);
+- ``"auto"`` (default): a tqdm bar when stderr is a terminal, else one line per ~10 % step of a
+  stage that has run for :data:`LINES_AFTER_SECONDS` (a log holds no lines for the many stages
+  that take a fraction of a second);
+- ``"lines"``: always line-based (logs, CI), after the same delay;
 - ``"quiet"``: nothing.
 
 tqdm is imported only when a bar is shown, so ``gpomap --help`` stays light.
@@ -25,6 +27,8 @@ Mode = Literal["auto", "lines", "quiet"]
 _MODES: tuple[Mode, ...] = ("auto", "lines", "quiet")
 _mode: Mode = "auto"
 _open = 0  # stages open: a stage within another reports nothing, the outer one speaks for both
+#: In line mode a stage says nothing until it has run this long, seconds.
+LINES_AFTER_SECONDS: float = 1.0
 
 
 def set_progress_mode(mode: Mode) -> None:
@@ -59,7 +63,7 @@ class Progress:
         self.unit = unit
         self.n = 0
         self._t0 = time.perf_counter()
-        self._next_line = 0.1
+        self._next_tenth = 1  # the next line is due when this many tenths of the work are done
         self._bar = None
         self._mode: Mode = "quiet" if _open else _mode
         if self._mode == "auto" and sys.stderr.isatty():
@@ -74,16 +78,18 @@ class Progress:
         self.n += n
         if self._bar is not None:
             self._bar.update(n)
-        elif self._mode == "lines" and self.total > 0 and self.n / self.total >= self._next_line and self.n < self.total:
+        # Tenths in integers: n / total >= k / 10 exactly, without a float's drift.
+        elif self._mode == "lines" and 0 < self.n < self.total and 10 * self.n >= self._next_tenth * self.total:
             elapsed = time.perf_counter() - self._t0
+            if elapsed < LINES_AFTER_SECONDS:
+                return  # the next update past the delay prints the line
             left = elapsed * (self.total - self.n) / self.n
             print(
                 f"  {self.desc}: {self.n}/{self.total} {self.unit}s, {elapsed:.0f} s elapsed, ~{left:.0f} s left",
                 file=sys.stderr,
                 flush=True,
             )
-            while self._next_line <= self.n / self.total:
-                self._next_line += 0.1
+            self._next_tenth = 10 * self.n // self.total + 1
 
     def close(self) -> None:
         """End the stage (removes the bar; line mode prints nothing more)."""
