@@ -118,29 +118,53 @@ def test_compare_scores_every_method_on_the_same_test_points(room_split):
     assert all(r["n_test_points"] == room_split.labels.size for r in results)
 
 
-def test_evaluate_compare_prints_the_table_and_the_targets(capsys):
+def test_evaluate_compare_prints_each_split_and_the_targets(capsys):
     from gpomap.cli import main
 
     assert main(["evaluate", "--demo", "--compare", "--workers", "1", "--json", "-q"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert [r["name"] for r in out["results"]] == list(METHODS)
-    assert [t["name"] for t in out["targets"]] == list(TARGET_NAMES)
-    assert out["met"] == sum(t["met"] is True for t in out["targets"])
-    assert out["checked"] == sum(t["met"] is not None for t in out["targets"]) == len(TARGET_NAMES)  # the room has a truth
+    assert [s["split"] for s in out["splits"]] == ["blocks:40:5", "every:10"]  # both of the protocol's by default
+    for run in out["splits"]:
+        assert [r["name"] for r in run["results"]] == list(METHODS)
+        assert [t["name"] for t in run["targets"]] == list(TARGET_NAMES)
+        assert run["met"] == sum(t["met"] is True for t in run["targets"])
+        assert run["checked"] == len(TARGET_NAMES)  # the room has a truth: every target is checked
+    assert out["met"] == sum(run["met"] for run in out["splits"])
 
-    assert main(["evaluate", "--demo", "--compare", "--workers", "1", "-q"]) == 0
+    assert main(["evaluate", "--demo", "--compare", "--split", "every", "--workers", "1", "-q"]) == 0
     text = capsys.readouterr().out
+    assert "## every:10" in text and "## blocks" not in text
     for label in ("MSK-GPOM", "OGM log-odds 0.05", "OGM log-odds 0.1", "OGM counting 0.05"):
         assert f"| {label} |" in text
-    assert f"targets met by gpomap's written map: {out['met']} of {out['checked']}" in text
+    every = out["splits"][1]
+    assert f"targets met by gpomap's written map: {every['met']} of {every['checked']}" in text
     # The same split and seed give the same scores as the JSON.
     auc = float(text.split("| MSK-GPOM | grid 0.05 |")[1].split("|")[0].strip().rstrip("*"))
-    assert auc == pytest.approx(out["results"][0]["grid"]["auc"], abs=5e-4)
+    assert auc == pytest.approx(every["results"][0]["grid"]["auc"], abs=5e-4)
 
 
-@pytest.mark.parametrize(("extra", "message"), [(["--method", "ogm"], "drop --method ogm"), (["--no-grid"], "drop --no-grid")])
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--method", "ogm"], "drop --method ogm"),
+        (["--no-grid"], "drop --no-grid"),
+        (["--split", "blocks,every:0"], "--split every:0: hold-out sizes must be >= 1 and periods >= 2"),
+    ],
+)
 def test_evaluate_compare_refuses_what_it_cannot_compare(capsys, extra, message):
     from gpomap.cli import main
 
     assert main(["evaluate", "--demo", "--compare", *extra]) == 1
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("split", "message"),
+    [("bogus", "--split bogus: holdout must be"), ("blocks,every", "several splits are for --compare")],
+)
+def test_evaluate_checks_its_splits_before_reading(capsys, tmp_path, split, message):
+    from gpomap.cli import main
+
+    # A log that does not exist: the split is refused before any reading.
+    assert main(["evaluate", str(tmp_path / "absent.log"), "--split", split]) == 1
     assert message in capsys.readouterr().err

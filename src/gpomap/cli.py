@@ -745,6 +745,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+#: The splits ``gpomap evaluate --compare`` runs unless ``--split`` names others.
+COMPARE_SPLITS: str = "blocks,every"
+
+
 def _read_truth(args: argparse.Namespace) -> Any:
     """``--truth``: a ROS map_server map as the true map, at the written map's resolution."""
     from gpomap.evaluation import Truth
@@ -779,65 +783,78 @@ def _check_truth_frame(args: argparse.Namespace, truth: Any, scans: Sequence[Any
 
 
 def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, arguments: dict[str, Any], source: str) -> int:
-    """``gpomap evaluate --compare``: gpomap and the standard grids on one split, and the targets met."""
+    """``gpomap evaluate --compare``: gpomap and the standard grids on each split, and the targets met."""
     from dataclasses import asdict
 
     from gpomap.comparison import TARGET_NAMES, compare, table, tally, targets
-    from gpomap.evaluation import TEST_FREE_STEP, prepare, resolve_split
+    from gpomap.evaluation import TEST_FREE_STEP, check_split, prepare
 
     a = dict(arguments)
     # evaluate()'s own arguments; the rest are gpomap's constructor options.
     own = {"method", "kernel", "holdout", "n_scans", "n_beams", "scan_range", "scan_step", "seed", "resolution"}
     own |= {"grid_resolution", "max_test_points", "n_workers", "score_grid"}
     gpomap_options = {k: v for k, v in a.items() if k not in own}
-    _status(args, f"comparing gpomap with the standard grids on {source} ({len(scans)} scans)...")
-    data = prepare(
-        scans,
-        a["holdout"],
-        a["scan_range"],
-        a["scan_step"],
-        a["n_scans"],
-        a["n_beams"],
-        a["seed"],
-        TEST_FREE_STEP,
-        a["max_test_points"],
-        truth,
-    )
-    results = compare(
-        data,
-        a["seed"],
-        a["grid_resolution"],
-        a["n_workers"],
-        a["kernel"],
-        progress=lambda label: _status(args, f"  {label}..."),
-        **gpomap_options,
-    )
-    found = targets(results)
-    met, checked = tally(found)
+    runs = []
+    for split in (check_split(part.strip()) for part in str(a["holdout"]).split(",")):
+        _status(args, f"comparing gpomap with the standard grids on {source} ({len(scans)} scans), split {split}...")
+        data = prepare(
+            scans,
+            split,
+            a["scan_range"],
+            a["scan_step"],
+            a["n_scans"],
+            a["n_beams"],
+            a["seed"],
+            TEST_FREE_STEP,
+            a["max_test_points"],
+            truth,
+        )
+        results = compare(
+            data,
+            a["seed"],
+            a["grid_resolution"],
+            a["n_workers"],
+            a["kernel"],
+            progress=lambda label: _status(args, f"  {label}..."),
+            **gpomap_options,
+        )
+        runs.append((split, data, results, targets(results)))
+    met = sum(tally(found)[0] for *_, found in runs)
+    checked = sum(tally(found)[1] for *_, found in runs)
     if args.json:
         out = {
-            "results": results,
-            "targets": [asdict(t) for t in found],
+            "splits": [
+                {
+                    "split": split,
+                    "results": results,
+                    "targets": [asdict(t) for t in found],
+                    "met": tally(found)[0],
+                    "checked": tally(found)[1],
+                    "settings": {**data.settings, "input": source},
+                }
+                for split, data, results, found in runs
+            ],
             "met": met,
             "checked": checked,
-            "settings": {**data.settings, "input": source},
         }
         print(json.dumps(out, default=str))
         return EXIT_OK
-    masks = data.masks
-    print(
-        f"data          {source}: {len(data.train)} training scans, {len(data.test)} held-out scans ({resolve_split(args.split)})"
-    )
-    print(
-        f"test points   {data.labels.size} (balanced): {int(masks['boundary'].sum())} within 0.5 m of a held-out hit, "
-        f"{int(masks['observed'].sum())} in cells a training beam crossed, {int(masks['unobserved'].sum())} not"
-    )
-    print("'*' marks the best of each metric; gpomap's map is the one `gpomap map` writes (grid), a grid's its own.\n")
-    print("\n".join(table(results, truth is not None)))
-    print(f"\ntargets met by gpomap's written map: {met} of {checked}")
+    print("'*' marks the best of each metric; gpomap's map is the one `gpomap map` writes (grid), a grid's its own.")
     width = max(len(n) for n in TARGET_NAMES)
-    for t in found:
-        print(f"  {t.name:<{width}}  {t.cell()}")
+    for split, data, results, found in runs:
+        masks = data.masks
+        print(f"\n## {split}\n")
+        print(f"data          {source}: {len(data.train)} training scans, {len(data.test)} held-out scans")
+        print(
+            f"test points   {data.labels.size} (balanced): {int(masks['boundary'].sum())} within 0.5 m of a held-out hit, "
+            f"{int(masks['observed'].sum())} in cells a training beam crossed, {int(masks['unobserved'].sum())} not\n"
+        )
+        print("\n".join(table(results, truth is not None)))
+        print(f"\ntargets met by gpomap's written map: {tally(found)[0]} of {tally(found)[1]}")
+        for t in found:
+            print(f"  {t.name:<{width}}  {t.cell()}")
+    if len(runs) > 1:
+        print(f"\ntargets met over the {len(runs)} splits: {met} of {checked}")
     return EXIT_OK
 
 
@@ -915,6 +932,16 @@ def _evaluate_arguments(args: argparse.Namespace) -> dict[str, Any]:
     for dest, methods in only.items():
         if args.method not in methods and _given(args, [dest]):
             raise GpomapError(f"{_flag(dest)} is for --method {', '.join(methods)}, not {args.method}")
+    from gpomap.evaluation import check_split
+
+    splits = [part.strip() for part in str(args.split).split(",")]
+    if len(splits) > 1 and not args.compare:
+        raise GpomapError(f"--split {args.split}: several splits are for --compare; give one")
+    for split in splits:
+        try:
+            check_split(split)
+        except ValueError as exc:
+            raise GpomapError(f"--split {split}: {exc} (or 'blocks', 'every')") from None
     if args.compare and (args.method != "msk" or args.no_grid):
         raise GpomapError(
             "--compare scores gpomap's written map (--method msk) against the standard grids; "
@@ -923,7 +950,8 @@ def _evaluate_arguments(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "method": args.method,
         "kernel": None if args.method in GRID_METHODS else args.kernel,
-        "holdout": args.split,
+        # --compare without --split: both of the protocol's splits.
+        "holdout": COMPARE_SPLITS if args.compare and not _given(args, ["split"]) else args.split,
         "n_scans": args.scans,
         "n_beams": args.beams,
         "scan_range": args.scan_range,
@@ -1090,7 +1118,7 @@ EPILOG_MAP = """examples:
 """
 EPILOG_EVALUATE = """examples:
   gpomap evaluate --demo --method msk --kernel se
-  gpomap evaluate ../shared/data/intel/intel-corrected.log.gz --split blocks --compare
+  gpomap evaluate ../shared/data/intel/intel-corrected.log.gz --compare
   gpomap evaluate ../shared/data/belgioioso/belgioioso-corrected.log.gz --method gpomik --scans 52 --beams 37 --json
 """
 
@@ -1184,7 +1212,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=_signature_default("gpomap.evaluation", "evaluate", "holdout"),
         metavar="blocks|every|every:K|blocks:LEN[:K]",
         help="held-out scans: 'blocks' = blocks of 40 consecutive scans, every 5th held out; 'every' = every "
-        "10th scan; or any every:K / blocks:LEN[:K] (default: %(default)s)",
+        "10th scan; or any every:K / blocks:LEN[:K]; with --compare, several, comma-separated (default: %(default)s; "
+        "with --compare, blocks,every)",
     )
     p.add_argument(
         "--resolution",
@@ -1208,9 +1237,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--compare",
         action="store_true",
-        help="score gpomap (--method msk) beside the standard occupancy grids on the same split and test points "
-        "(OctoMap's log-odds model at 0.05 and 0.1 m, the counting grid at 0.05 m): one table with the best of each "
-        "metric marked, and the targets gpomap's written map meets",
+        help="score gpomap (--method msk) beside the standard occupancy grids on the same splits and test points "
+        "(OctoMap's log-odds model at 0.05 and 0.1 m, the counting grid at 0.05 m): a table per split with the best of "
+        "each metric marked, and the targets gpomap's written map meets",
     )
     p.add_argument(
         "--scan-step",

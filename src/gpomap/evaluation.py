@@ -93,6 +93,21 @@ def _parse_holdout(holdout: str) -> tuple[str, int, int]:
     raise ValueError(f"holdout must be 'every:K', 'blocks:LEN' or 'blocks:LEN:K' with integers, got {holdout!r}")
 
 
+def check_split(split: str) -> str:
+    """The hold-out spec of a split name or spec (see :func:`holdout_split`), checked before any work.
+
+    Raises
+    ------
+    ValueError
+        Not "blocks", "every", ``every:K`` or ``blocks:LEN[:K]`` with integers K >= 2, LEN >= 1.
+    """
+    spec = resolve_split(split)
+    mode, size, period = _parse_holdout(spec)
+    if size < 1 or (mode == "every" and size < 2) or (mode == "blocks" and period < 2):
+        raise ValueError(f"hold-out sizes must be >= 1 and periods >= 2, got {spec!r}")
+    return spec
+
+
 def holdout_split(n_scans: int, holdout: str = "every:5", seed: int = 0) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     """Split scan indices into training and held-out (test) scans; the two never overlap.
 
