@@ -148,7 +148,8 @@ def test_evaluate_compare_prints_each_split_and_the_targets(capsys):
     [
         (["--method", "ogm"], "drop --method ogm"),
         (["--no-grid"], "drop --no-grid"),
-        (["--split", "blocks,every:0"], "--split every:0: hold-out sizes must be >= 1 and periods >= 2"),
+        (["--split", "blocks,every:1"], "--split every:1: 'every:K' needs K >= 2"),
+        (["--split", "blocks:40:1"], "--split blocks:40:1: hold-out sizes must be >= 1 and periods >= 2"),
     ],
 )
 def test_evaluate_compare_refuses_what_it_cannot_compare(capsys, extra, message):

@@ -37,9 +37,13 @@ def test_split_fractions_and_blocks():
 
 
 def test_split_rejects_bad_specs():
-    for bad in ["every", "every:x", "blocks:2:1", "every:1", "random:3"]:
+    for bad in ["every:", "every:x", "blocks:2:1", "every:1", "random:3", "blocks:0"]:
         with pytest.raises(ValueError):
             ev.holdout_split(10, bad)
+    # The protocol's names stand for their specs.
+    for name, spec in (("every", "every:10"), ("blocks", "blocks:40:5")):
+        for a, b in zip(ev.holdout_split(200, name, seed=3), ev.holdout_split(200, spec, seed=3), strict=True):
+            np.testing.assert_array_equal(a, b)
 
 
 def test_test_points_balanced_and_seeded():

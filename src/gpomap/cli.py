@@ -749,6 +749,25 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 COMPARE_SPLITS: str = "blocks,every"
 
 
+def _splits(text: str) -> list[str]:
+    """The hold-out specs of ``--split`` (comma-separated names or specs), each checked.
+
+    Raises
+    ------
+    GpomapError
+        Naming the split that is neither "blocks", "every", ``every:K`` nor ``blocks:LEN[:K]``.
+    """
+    from gpomap.evaluation import check_split
+
+    specs = []
+    for part in str(text).split(","):
+        try:
+            specs.append(check_split(part.strip()))
+        except ValueError as exc:
+            raise GpomapError(f"--split {part.strip()}: {exc} (or 'blocks', 'every')") from None
+    return specs
+
+
 def _read_truth(args: argparse.Namespace) -> Any:
     """``--truth``: a ROS map_server map as the true map, at the written map's resolution."""
     from gpomap.evaluation import Truth
@@ -787,7 +806,7 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
     from dataclasses import asdict
 
     from gpomap.comparison import TARGET_NAMES, compare, table, tally, targets
-    from gpomap.evaluation import TEST_FREE_STEP, check_split, prepare
+    from gpomap.evaluation import TEST_FREE_STEP, prepare
 
     a = dict(arguments)
     # evaluate()'s own arguments; the rest are gpomap's constructor options.
@@ -795,7 +814,7 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
     own |= {"grid_resolution", "max_test_points", "n_workers", "score_grid"}
     gpomap_options = {k: v for k, v in a.items() if k not in own}
     runs = []
-    for split in (check_split(part.strip()) for part in str(a["holdout"]).split(",")):
+    for split in _splits(a["holdout"]):
         _status(args, f"comparing gpomap with the standard grids on {source} ({len(scans)} scans), split {split}...")
         data = prepare(
             scans,
@@ -932,16 +951,8 @@ def _evaluate_arguments(args: argparse.Namespace) -> dict[str, Any]:
     for dest, methods in only.items():
         if args.method not in methods and _given(args, [dest]):
             raise GpomapError(f"{_flag(dest)} is for --method {', '.join(methods)}, not {args.method}")
-    from gpomap.evaluation import check_split
-
-    splits = [part.strip() for part in str(args.split).split(",")]
-    if len(splits) > 1 and not args.compare:
+    if len(_splits(args.split)) > 1 and not args.compare:
         raise GpomapError(f"--split {args.split}: several splits are for --compare; give one")
-    for split in splits:
-        try:
-            check_split(split)
-        except ValueError as exc:
-            raise GpomapError(f"--split {split}: {exc} (or 'blocks', 'every')") from None
     if args.compare and (args.method != "msk" or args.no_grid):
         raise GpomapError(
             "--compare scores gpomap's written map (--method msk) against the standard grids; "

@@ -103,7 +103,9 @@ def check_split(split: str) -> str:
     """
     spec = resolve_split(split)
     mode, size, period = _parse_holdout(spec)
-    if size < 1 or (mode == "every" and size < 2) or (mode == "blocks" and period < 2):
+    if mode == "every" and size < 2:
+        raise ValueError(f"'every:K' needs K >= 2, got {spec!r}")
+    if size < 1 or (mode == "blocks" and period < 2):
         raise ValueError(f"hold-out sizes must be >= 1 and periods >= 2, got {spec!r}")
     return spec
 
@@ -116,6 +118,7 @@ def holdout_split(n_scans: int, holdout: str = "every:5", seed: int = 0) -> tupl
     n_scans : int
         Number of scans (at least 2).
     holdout : str
+        A split name ("blocks", "every": :data:`SPLITS`) or spec.
         ``"every:K"``: hold out every K-th scan, starting at a seeded phase in ``[0, K)``
         (about 1/K of the scans). ``"blocks:LEN"`` / ``"blocks:LEN:K"``: cut the sequence into
         consecutive blocks of LEN scans (the first block shortened by a seeded offset in
@@ -129,16 +132,12 @@ def holdout_split(n_scans: int, holdout: str = "every:5", seed: int = 0) -> tupl
     train_idx, test_idx : ndarray of int
         Sorted, disjoint, together ``arange(n_scans)``; both non-empty.
     """
-    mode, size, period = _parse_holdout(holdout)
+    mode, size, period = _parse_holdout(check_split(holdout))
     if n_scans < 2:
         raise EmptyDataError(f"a hold-out split needs at least 2 scans, got {n_scans}")
-    if size < 1 or (mode == "blocks" and period < 2):
-        raise ValueError(f"hold-out sizes must be >= 1 and periods >= 2, got {holdout!r}")
     rng = np.random.default_rng(seed)
     idx = np.arange(n_scans)
     if mode == "every":
-        if size < 2:
-            raise ValueError(f"'every:K' needs K >= 2, got {holdout!r}")
         phase = int(rng.integers(size))
         test = (idx - phase) % size == 0
     else:
