@@ -1857,7 +1857,8 @@ class TiledGPOM:
                     members[key] = (sel, np.ones(sel.size))
                 wsum[sel] = 1.0
         jobs = [(key, (self.tiles_[key], pts[idx], chunk, variance)) for key, (idx, _) in members.items()]
-        res = self._run(predict_tile_task, jobs, "tile prediction", "predicting tiles")
+        # A written map predicts the mean at every GP sample, then both moments at fewer: say which.
+        res = self._run(predict_tile_task, jobs, "tile prediction", "predicting tiles" if variance else "predicting tile means")
         num = np.zeros(m)
         lat_m = np.zeros(m)
         den = np.zeros(m) if variance else None
