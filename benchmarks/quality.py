@@ -303,7 +303,9 @@ def reliability_figure(results: list[dict[str, Any]], log: str, path: Path) -> N
 
 def print_summary(results: list[dict[str, Any]]) -> None:
     """Print the summary table and the targets met, from a run's results (or its --json file)."""
-    print("\n## Summary (written 0.05 m map against the best grid variant for each metric)\n")
+    cells = {r["settings"]["grid_resolution"] for r in results if r["name"] == GPOMAP}
+    written = f"written {cells.pop():g} m map" if len(cells) == 1 else "written map"
+    print(f"\n## Summary ({written} against the best grid variant for each metric)\n")
     print("\n".join(summary_table(results)))
     lines, met, checked = criteria_table(results)
     print(f"\n## Targets met by the written map: {met} of {checked}\n")
