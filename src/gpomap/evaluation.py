@@ -501,11 +501,22 @@ class Truth:
         )
 
     def agreement(self, points: NDArray[np.float64], within: float = 0.1) -> float:
-        """Share of `points` (hits, shape (m, 2)) whose cell lies within `within` metres of an
-        occupied cell (centre to centre).
+        """Share of `points` on the true map's walls: their cell within `within` of an occupied cell.
 
         A log and its true map in one frame put most hits on the walls; in different frames
-        (another origin, a map frame against odometry) few. Points outside the grid count as far.
+        (another origin, a map frame against odometry) few.
+
+        Parameters
+        ----------
+        points : ndarray of shape (m, 2)
+            Hits, metres. Points outside the grid count as off the walls.
+        within : float
+            Largest distance between the centres of a point's cell and an occupied cell, metres.
+
+        Returns
+        -------
+        float
+            In [0, 1]; 0 without points or without an occupied cell.
         """
         from scipy import ndimage
 
