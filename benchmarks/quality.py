@@ -48,8 +48,8 @@ from typing import Any
 
 import numpy as np
 
-from gpomap.comparison import GPOMAP, LABELS, METHODS, TARGET_NAMES, format_value, table, tally, targets
-from gpomap.evaluation import EvalData, Truth, prepare, resolve_split, run_method
+from gpomap.comparison import GPOMAP, LABELS, METHODS, TARGET_NAMES, format_value, run_one, table, tally, targets
+from gpomap.evaluation import EvalData, Truth, prepare, resolve_split
 
 DATA = Path("..") / "shared" / "data"
 LOGS: dict[str, dict[str, Any]] = {
@@ -123,10 +123,10 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def _child(conn: Any, data: EvalData, method: str, resolution: float | None, grid_resolution: float, seed: int) -> None:
+def _child(conn: Any, data: EvalData, name: str, grid_resolution: float, seed: int) -> None:
     try:
         start = _rss_mb()
-        res = run_method(data, method, seed=seed, resolution=resolution or 0.1, grid_resolution=grid_resolution)
+        res = run_one(data, name, seed, grid_resolution)
         res["rss_at_start_mb"] = start
         conn.send(("ok", res))
     except BaseException:  # report any failure to the parent instead of dying silently
@@ -135,20 +135,18 @@ def _child(conn: Any, data: EvalData, method: str, resolution: float | None, gri
         conn.close()
 
 
-def run_one(data: EvalData, name: str, grid_resolution: float, seed: int) -> dict[str, Any]:
+def run_forked(data: EvalData, name: str, grid_resolution: float, seed: int) -> dict[str, Any]:
     """One method on one split, in a forked child process (its own peak memory)."""
-    method, resolution = METHODS[name]
     ctx = mp.get_context("fork")
     parent, child = ctx.Pipe(duplex=False)
     t = time.perf_counter()
-    proc = ctx.Process(target=_child, args=(child, data, method, resolution, grid_resolution, seed))
+    proc = ctx.Process(target=_child, args=(child, data, name, grid_resolution, seed))
     proc.start()
     child.close()
     status, payload = parent.recv()
     proc.join()
     if status != "ok":
         raise RuntimeError(f"{name} failed:\n{payload}")
-    payload["name"] = name
     payload["wall_in_child"] = time.perf_counter() - t
     return payload
 
@@ -400,7 +398,7 @@ def main(argv: list[str] | None = None) -> int:
             data = prepare(scans, split, **kw)
             rows = []
             for name in methods:
-                r = run_one(data, name, grid_res, args.seed)
+                r = run_forked(data, name, grid_res, args.seed)
                 r.update(log=log, split=split)
                 rows.append(r)
                 results.append(r)

@@ -94,17 +94,37 @@ def compare(
         each with its ``"name"``.
     """
     results = []
-    for name, (method, cell) in METHODS.items():
+    for name in METHODS:
         if progress is not None:
             progress(LABELS[name])
-        if name == GPOMAP:
-            r = run_method(data, method, kernel, seed, grid_resolution=grid_resolution, n_workers=n_workers, **gpomap_options)
-        else:
-            assert cell is not None
-            r = run_method(data, method, seed=seed, resolution=cell)
-        r["name"] = name
-        results.append(r)
+        results.append(run_one(data, name, seed, grid_resolution, n_workers, kernel, **gpomap_options))
     return results
+
+
+def run_one(
+    data: EvalData,
+    name: str,
+    seed: int = 0,
+    grid_resolution: float = GRID_RESOLUTION,
+    n_workers: int | None = None,
+    kernel: str | None = None,
+    **gpomap_options: Any,
+) -> dict[str, Any]:
+    """One method of :data:`METHODS` on ``data`` (see :func:`compare` for the parameters).
+
+    Returns
+    -------
+    dict
+        :func:`gpomap.evaluation.run_method`'s result, with its ``"name"``.
+    """
+    method, cell = METHODS[name]
+    if name == GPOMAP:
+        r = run_method(data, method, kernel, seed, grid_resolution=grid_resolution, n_workers=n_workers, **gpomap_options)
+    else:
+        assert cell is not None
+        r = run_method(data, method, seed=seed, resolution=cell)
+    r["name"] = name
+    return r
 
 
 @dataclass(frozen=True)
