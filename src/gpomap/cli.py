@@ -808,11 +808,8 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
     from gpomap.comparison import TARGET_NAMES, compare, table, tally, targets
     from gpomap.evaluation import TEST_FREE_STEP, prepare
 
-    a = dict(arguments)
-    # evaluate()'s own arguments; the rest are gpomap's constructor options.
-    own = {"method", "kernel", "holdout", "n_scans", "n_beams", "scan_range", "scan_step", "seed", "resolution"}
-    own |= {"grid_resolution", "max_test_points", "n_workers", "score_grid"}
-    gpomap_options = {k: v for k, v in a.items() if k not in own}
+    a = arguments
+    gpomap_options = _method_options(args)  # what _evaluate_arguments merged into `arguments` for msk
     runs = []
     for split in _splits(a["holdout"]):
         _status(args, f"comparing gpomap with the standard grids on {source} ({len(scans)} scans), split {split}...")
@@ -837,9 +834,10 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
             progress=lambda label: _status(args, f"  {label}..."),
             **gpomap_options,
         )
-        runs.append((split, data, results, targets(results)))
-    met = sum(tally(found)[0] for *_, found in runs)
-    checked = sum(tally(found)[1] for *_, found in runs)
+        found = targets(results)
+        runs.append((split, data, results, found, tally(found)))
+    met = sum(counts[0] for *_, counts in runs)
+    checked = sum(counts[1] for *_, counts in runs)
     if args.json:
         out = {
             "splits": [
@@ -847,11 +845,11 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
                     "split": split,
                     "results": results,
                     "targets": [asdict(t) for t in found],
-                    "met": tally(found)[0],
-                    "checked": tally(found)[1],
+                    "met": n_met,
+                    "checked": n_checked,
                     "settings": {**data.settings, "input": source},
                 }
-                for split, data, results, found in runs
+                for split, data, results, found, (n_met, n_checked) in runs
             ],
             "met": met,
             "checked": checked,
@@ -860,7 +858,7 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
         return EXIT_OK
     print("'*' marks the best of each metric; gpomap's map is the one `gpomap map` writes (grid), a grid's its own.")
     width = max(len(n) for n in TARGET_NAMES)
-    for split, data, results, found in runs:
+    for split, data, results, found, (n_met, n_checked) in runs:
         masks = data.masks
         print(f"\n## {split}\n")
         print(f"data          {source}: {len(data.train)} training scans, {len(data.test)} held-out scans")
@@ -869,7 +867,7 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
             f"{int(masks['observed'].sum())} in cells a training beam crossed, {int(masks['unobserved'].sum())} not\n"
         )
         print("\n".join(table(results, truth is not None)))
-        print(f"\ntargets met by gpomap's written map: {tally(found)[0]} of {tally(found)[1]}")
+        print(f"\ntargets met by gpomap's written map: {n_met} of {n_checked}")
         for t in found:
             print(f"  {t.name:<{width}}  {t.cell()}")
     if len(runs) > 1:
