@@ -89,6 +89,7 @@ def test_grid_and_ternary(fitted):
         "variance_scale",
         "hit_shift",
         "hit_reach",
+        "unseen_free_cut",
     }
     assert {"observations", "cells", "hyperparameters", "tile_fits", "prediction"} <= set(summary["timings"])
 

@@ -9,9 +9,10 @@ whose moments are closed form from the inverse covariance:
     mu_i = y_i - [K^-1 y]_i / [K^-1]_ii,    s_i^2 = 1 / [K^-1]_ii.
 
 Where no beam went the map uses the same probit with the latent variance scaled by kappa
-(:meth:`ProbitSquash.unseen`). kappa is not fitted here: leave-one-out moments describe
-interpolation, and kappa is what extrapolation needs, fitted on held-out stretches of the log
-(:mod:`gpomap.extrapolation`).
+(:meth:`ProbitSquash.unseen`, :func:`unseen_probit`). kappa is not fitted here: leave-one-out
+moments describe interpolation, and kappa is what extrapolation needs, fitted on held-out
+stretches of the log (:mod:`gpomap.extrapolation`). A planar map of scans also cuts the GP's lean
+towards free there, near the data (:data:`UNSEEN_FREE_CUT`).
 """
 
 from __future__ import annotations
@@ -22,6 +23,50 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 from scipy.special import log_ndtr, ndtr
+
+#: How far, in probit units, the GP's lean towards free is cut where no beam went, in full at the
+#: data and fading to nothing where the GP's latent variance reaches its prior, never past even
+#: odds (:func:`unseen_probit`); per dimension of a map of scans. A lidar crosses free space with
+#: every beam but sees a surface only from the side that faces it, so what stays unseen next to
+#: what it saw is more often surface than the GP, pulled by the free cells on the seen side, says:
+#: the walls a later visit meets first, the inside and far side of obstacles. Never past even
+#: odds, so it cannot call unseen space occupied (a simulation's one-pixel walls have free space
+#: behind them). A prior, not a fit: held-out stretches of the training log, on which kappa is
+#: fitted, said the opposite when a shift was fitted on them (docs/choices.md). Chosen on the
+#: shared logs' written maps; not measured on point clouds, so 0 there.
+UNSEEN_FREE_CUT: dict[int, float] = {2: 0.5, 3: 0.0}
+
+
+def unseen_probit(
+    num: NDArray[np.float64],
+    den: NDArray[np.float64],
+    variance_scale: float,
+    free_cut: float = 0.0,
+    prior_den: float = 1.0,
+) -> NDArray[np.float64]:
+    """The probit's argument where no beam went, from calibrated moments (any matching shapes).
+
+    ``z = num / sqrt(1 + kappa den)``, the latent variance scaled by kappa; where z < 0 it is then
+    raised by ``free_cut * max(0, 1 - den / prior_den)`` (:data:`UNSEEN_FREE_CUT`), at most to 0.
+
+    Parameters
+    ----------
+    num : ndarray
+        ``alpha mu + beta``.
+    den : ndarray
+        ``alpha^2 v``, v the latent variance.
+    variance_scale : float
+        kappa.
+    free_cut : float
+        The cut at zero variance, probit units.
+    prior_den : float
+        ``alpha^2`` times the kernel's prior variance.
+    """
+    z = np.asarray(num) / np.sqrt(1.0 + variance_scale * np.asarray(den))
+    if free_cut != 0.0:
+        raised = z + free_cut * np.clip(1.0 - np.asarray(den) / prior_den, 0.0, 1.0)
+        z = np.minimum(raised, np.maximum(z, 0.0))
+    return z
 
 
 def loo_moments(K_inv: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -135,9 +180,8 @@ class ProbitSquash:
         return ndtr((self.alpha * np.asarray(mu) + self.beta) / np.sqrt(1.0 + self.alpha**2 * np.asarray(var)))
 
     def unseen(self, mu: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The probability where no beam went: the latent variance scaled by kappa."""
-        scaled = self.alpha**2 * self.variance_scale * np.asarray(var)
-        return ndtr((self.alpha * np.asarray(mu) + self.beta) / np.sqrt(1.0 + scaled))
+        """The probability where no beam went: the latent variance scaled by kappa (no shift)."""
+        return ndtr(unseen_probit(self.alpha * np.asarray(mu) + self.beta, self.alpha**2 * np.asarray(var), self.variance_scale))
 
     def fit(
         self,

@@ -68,7 +68,7 @@ from gpomap.progress import Progress, progress
 from gpomap.resources import WRITTEN_BAND_CELLS
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
-from gpomap.squash import ProbitSquash
+from gpomap.squash import UNSEEN_FREE_CUT, ProbitSquash, unseen_probit
 from gpomap.supports import Supports
 
 # Block keys pack (ix, iy) into one int64 so grouping millions of points is one argsort.
@@ -79,10 +79,13 @@ _KEY_CHUNK = 1 << 20
 
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 #: What a fit learns of unseen space besides, taken as given when passed with the hyperparameters:
-#: the variance scale and the gain near hits (:mod:`gpomap.extrapolation`).
-UNSEEN_NAMES = ("variance_scale", "hit_shift", "hit_reach")
+#: the variance scale and the gain near hits (:mod:`gpomap.extrapolation`), and the cut of the
+#: lean towards free near the data (:data:`gpomap.squash.UNSEEN_FREE_CUT`).
+UNSEEN_NAMES = ("variance_scale", "hit_shift", "hit_reach", "unseen_free_cut")
+#: Of the hyperparameters, those that must not be negative.
+_NON_NEGATIVE_HYPER = ("hit_shift", "unseen_free_cut")
 
-#: Of the hyperparameters, those that must be positive; hit_shift must not be negative; beta is any number.
+#: Of the hyperparameters, those that must be positive; _NON_NEGATIVE_HYPER's not negative; beta is any number.
 _POSITIVE_HYPER = ("variance", "length_scale", "noise", "alpha", "variance_scale", "hit_reach")
 
 
@@ -105,8 +108,8 @@ def given_hyperparameters(hyperparameters: dict[str, float]) -> dict[str, float]
             v = float(hyperparameters[n])
         except (TypeError, ValueError):
             raise ValueError(f"hyperparameter {n} must be a number, got {hyperparameters[n]!r}") from None
-        if not np.isfinite(v) or (n in _POSITIVE_HYPER and v <= 0) or (n == "hit_shift" and v < 0):
-            need = "positive" if n in _POSITIVE_HYPER else "at least 0" if n == "hit_shift" else "finite"
+        if not np.isfinite(v) or (n in _POSITIVE_HYPER and v <= 0) or (n in _NON_NEGATIVE_HYPER and v < 0):
+            need = "positive" if n in _POSITIVE_HYPER else "at least 0" if n in _NON_NEGATIVE_HYPER else "finite"
             raise ValueError(f"hyperparameter {n} must be {need}, got {v}")
         out[n] = v
     return out
@@ -1471,6 +1474,10 @@ class TiledGPOM:
             self.hyperparameters_ = self._learn_hyperparameters()
         timings["hyperparameters"] = time.perf_counter() - t
         self._set_geometry()
+        if "unseen_free_cut" not in self.hyperparameters_:
+            # Rays, not labelled points, are what leave unseen space next to surfaces.
+            cut = 0.0 if isinstance(data, Observations) else UNSEEN_FREE_CUT[self._dim]
+            self.hyperparameters_["unseen_free_cut"] = cut
         t = time.perf_counter()
         self.extrapolation_: dict[str, Any] = (
             {"kappa": self.hyperparameters_["variance_scale"], "reason": "given to fit()"}
@@ -1779,8 +1786,11 @@ class TiledGPOM:
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Probability, and probability for unseen space, from :meth:`blended_moments`' calibrated moments, each (m,)."""
         p = ndtr(num / np.sqrt(1.0 + den))
-        # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation).
-        p_unseen = ndtr(num / np.sqrt(1.0 + self.hyperparameters_.get("variance_scale", 1.0) * den))
+        # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation), and
+        # the lean towards free cut near the data.
+        hp = self.hyperparameters_
+        prior_den = hp["alpha"] ** 2 * hp["variance"]
+        p_unseen = ndtr(unseen_probit(num, den, hp.get("variance_scale", 1.0), hp.get("unseen_free_cut", 0.0), prior_den))
         return p, p_unseen
 
     def forget_below(self, y: float) -> None:
