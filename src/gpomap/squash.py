@@ -12,7 +12,7 @@ Where no beam went the map uses the same probit with the latent variance scaled 
 (:meth:`ProbitSquash.unseen`, :func:`unseen_probit`). kappa is not fitted here: leave-one-out
 moments describe interpolation, and kappa is what extrapolation needs, fitted on held-out
 stretches of the log (:mod:`gpomap.extrapolation`). A planar map of scans also cuts the GP's lean
-towards free there, near the data (:data:`UNSEEN_FREE_CUT`).
+towards free there, the more the larger its variance (:data:`UNSEEN_FREE_CUT`).
 """
 
 from __future__ import annotations
@@ -24,17 +24,19 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 from scipy.special import log_ndtr, ndtr
 
-#: How far, in probit units, the GP's lean towards free is cut where no beam went, in full at the
-#: data and fading to nothing where the GP's latent variance reaches its prior, never past even
-#: odds (:func:`unseen_probit`); per dimension of a map of scans. A lidar crosses free space with
-#: every beam but sees a surface only from the side that faces it, so what stays unseen next to
-#: what it saw is more often surface than the GP, pulled by the free cells on the seen side, says:
-#: the walls a later visit meets first, the inside and far side of obstacles. Never past even
-#: odds, so it cannot call unseen space occupied (a simulation's one-pixel walls have free space
-#: behind them). A prior, not a fit: held-out stretches of the training log, on which kappa is
-#: fitted, said the opposite when a shift was fitted on them (docs/choices.md). Chosen on the
-#: shared logs' written maps; not measured on point clouds, so 0 there.
-UNSEEN_FREE_CUT: dict[int, float] = {2: 0.5, 3: 0.0}
+#: How hard the GP's lean towards free is cut where no beam went, per dimension of a map of scans
+#: (:func:`unseen_probit`): a probit z < 0 becomes ``z |z| / (|z| + cut v / v0)``, v the latent
+#: variance and v0 the prior's. Near the data (v small) the GP's free calls stand; where its
+#: variance grows, a weak lean towards free fades to even odds and a strong one loses about
+#: ``cut v / v0``; it never passes even odds, and the GP's lean towards occupied is left alone.
+#: Why: a lidar crosses free space with every beam but sees a surface only from the side that
+#: faces it, so space that stays unseen past what a robot saw is more often surface than the GP,
+#: pulled by the free cells on the seen side, says (the walls a later visit meets first); on the
+#: evaluation's blocks splits the free side wanted a variance scale tens of times the occupied
+#: side's (docs/choices.md). A prior, not a fit: held-out stretches of the training log, on which
+#: kappa is fitted, said the opposite when two scales were fitted on them. Chosen on the shared
+#: logs' written maps; not measured on point clouds, so 0 there.
+UNSEEN_FREE_CUT: dict[int, float] = {2: 1.0, 3: 0.0}
 
 
 def unseen_probit(
@@ -46,8 +48,8 @@ def unseen_probit(
 ) -> NDArray[np.float64]:
     """The probit's argument where no beam went, from calibrated moments (any matching shapes).
 
-    ``z = num / sqrt(1 + kappa den)``, the latent variance scaled by kappa; where z < 0 it is then
-    raised by ``free_cut * max(0, 1 - den / prior_den)`` (:data:`UNSEEN_FREE_CUT`), at most to 0.
+    ``z = num / sqrt(1 + kappa den)``, the latent variance scaled by kappa; where z < 0 its lean
+    towards free is then cut (:data:`UNSEEN_FREE_CUT`): ``z |z| / (|z| + free_cut den / prior_den)``.
 
     Parameters
     ----------
@@ -58,14 +60,16 @@ def unseen_probit(
     variance_scale : float
         kappa.
     free_cut : float
-        The cut at zero variance, probit units.
+        The cut where the variance is the prior's.
     prior_den : float
         ``alpha^2`` times the kernel's prior variance.
     """
     z = np.asarray(num) / np.sqrt(1.0 + variance_scale * np.asarray(den))
     if free_cut != 0.0:
-        raised = z + free_cut * np.clip(1.0 - np.asarray(den) / prior_den, 0.0, 1.0)
-        z = np.minimum(raised, np.maximum(z, 0.0))
+        z, cut = np.broadcast_arrays(z, free_cut * np.clip(np.asarray(den) / prior_den, 0.0, 1.0))
+        z = z.copy()
+        free = z < 0
+        z[free] = -(z[free] ** 2) / (cut[free] - z[free])
     return z
 
 

@@ -80,7 +80,7 @@ _KEY_CHUNK = 1 << 20
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 #: What a fit learns of unseen space besides, taken as given when passed with the hyperparameters:
 #: the variance scale and the gain near hits (:mod:`gpomap.extrapolation`), and the cut of the
-#: lean towards free near the data (:data:`gpomap.squash.UNSEEN_FREE_CUT`).
+#: GP's lean towards free (:data:`gpomap.squash.UNSEEN_FREE_CUT`).
 UNSEEN_NAMES = ("variance_scale", "hit_shift", "hit_reach", "unseen_free_cut")
 #: Of the hyperparameters, those that must not be negative.
 _NON_NEGATIVE_HYPER = ("hit_shift", "unseen_free_cut")
@@ -1787,7 +1787,7 @@ class TiledGPOM:
         """Probability, and probability for unseen space, from :meth:`blended_moments`' calibrated moments, each (m,)."""
         p = ndtr(num / np.sqrt(1.0 + den))
         # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation), and
-        # the lean towards free cut near the data.
+        # its lean towards free cut, the more the larger the variance.
         hp = self.hyperparameters_
         prior_den = hp["alpha"] ** 2 * hp["variance"]
         p_unseen = ndtr(unseen_probit(num, den, hp.get("variance_scale", 1.0), hp.get("unseen_free_cut", 0.0), prior_den))
