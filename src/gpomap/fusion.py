@@ -12,9 +12,10 @@ observations of a surface besides. Its posterior mean is
 
 Where no beam went, p is the GP's probability for unseen space (its latent variance scaled by the
 factor fitted on held-out stretches of the log, and raised near cells beams ended in by a gain
-fitted with it, :mod:`gpomap.extrapolation`); where many did, the
-counts decide and walls are as sharp as the cells; the GP carries the map across gaps, and far
-from all data it returns its prior, 0.5.
+fitted with it, :mod:`gpomap.extrapolation`; its lean towards free cut where its variance is
+large, :data:`gpomap.squash.UNSEEN_FREE_CUT`); where many did, the counts decide and walls are as
+sharp as the cells; the GP carries the map across gaps, and far from all data it returns its
+prior, 0.5.
 
 The robot's own path is evidence too: the robot's body passed there, so each step of the path
 through a cell (or within :data:`~gpomap.evidence.PATH_RADIUS` of it) counts as
