@@ -523,6 +523,7 @@ def test_square_keys_decode_to_their_indices_for_arrays_and_scalars():
         ({"beta": float("inf")}, "beta must be finite, got inf"),
         ({"hit_reach": 0.0}, "hit_reach must be positive"),
         ({"hit_shift": -0.5}, "hit_shift must be at least 0, got -0.5"),
+        ({"unseen_free_cut": -1.0}, "unseen_free_cut must be at least 0, got -1.0"),
         ({"variance_scale": "wide"}, "variance_scale must be a number, got 'wide'"),
     ],
 )
