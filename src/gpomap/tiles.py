@@ -1474,10 +1474,6 @@ class TiledGPOM:
             self.hyperparameters_ = self._learn_hyperparameters()
         timings["hyperparameters"] = time.perf_counter() - t
         self._set_geometry()
-        if "unseen_free_cut" not in self.hyperparameters_:
-            # Rays, not labelled points, are what leave unseen space next to surfaces.
-            cut = 0.0 if isinstance(data, Observations) else UNSEEN_FREE_CUT[self._dim]
-            self.hyperparameters_["unseen_free_cut"] = cut
         t = time.perf_counter()
         self.extrapolation_: dict[str, Any] = (
             {"kappa": self.hyperparameters_["variance_scale"], "reason": "given to fit()"}
@@ -1488,6 +1484,10 @@ class TiledGPOM:
         if "hit_shift" not in self.hyperparameters_:
             self.hyperparameters_["hit_shift"] = float(self.extrapolation_.get("hit_shift", 0.0))
             self.hyperparameters_["hit_reach"] = float(self.extrapolation_.get("hit_reach", HitProximity.reach))
+        if "unseen_free_cut" not in self.hyperparameters_:
+            # Rays, not labelled points, are what leave unseen space next to surfaces.
+            cut = 0.0 if isinstance(data, Observations) else UNSEEN_FREE_CUT[self._dim]
+            self.hyperparameters_["unseen_free_cut"] = cut
         timings["variance_scale"] = time.perf_counter() - t
         # The blocks hold every point from here on: the log's points are let go before the ray
         # counts are taken (FR079's whole log: 24 M points, 600 MB with their labels and scans).
