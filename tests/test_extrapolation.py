@@ -283,7 +283,7 @@ def test_the_scale_applies_only_where_no_beam_went(fitted_room: AreaGPOM) -> Non
     d = np.sqrt(((pts[empty][:, None, :] - hit_centres[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
     assert (d < 1.0).sum() > 50  # unseen cells near walls, where the gain tells
     d[d >= HIT_DISTANCE_REACHES * reach] = np.inf  # where the layer takes the gain as nil
-    cut = hyp["unseen_free_cut"] * var[empty] / hyp["variance"]
+    cut = hyp["unseen_free_cut"] * np.minimum(var[empty] / hyp["variance"], 1.0)
     z = a * mean[empty] / np.sqrt(1 + a * a * kappa * var[empty])
     assert ((z < 0) & (cut > 0.1 * np.abs(z))).sum() > 10  # free-leaning points the cut moves
     z = np.where(z < 0, z * np.abs(z) / (np.abs(z) + cut), z) + shift * np.exp(-d / reach)

@@ -184,7 +184,8 @@ class ProbitSquash:
         return ndtr((self.alpha * np.asarray(mu) + self.beta) / np.sqrt(1.0 + self.alpha**2 * np.asarray(var)))
 
     def unseen(self, mu: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The probability where no beam went: the latent variance scaled by kappa (no shift)."""
+        """The probability where no beam went: the latent variance scaled by kappa (a tiled map
+        also cuts its lean towards free, :meth:`gpomap.tiles.TiledGPOM.squash_moments`)."""
         return ndtr(unseen_probit(self.alpha * np.asarray(mu) + self.beta, self.alpha**2 * np.asarray(var), self.variance_scale))
 
     def fit(
