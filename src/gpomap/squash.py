@@ -31,11 +31,12 @@ from scipy.special import log_ndtr, ndtr
 #: ``cut v / v0``; it never passes even odds, and the GP's lean towards occupied is left alone.
 #: Why: a lidar crosses free space with every beam but sees a surface only from the side that
 #: faces it, so space that stays unseen past what a robot saw is more often surface than the GP,
-#: pulled by the free cells on the seen side, says (the walls a later visit meets first); on the
-#: evaluation's blocks splits the free side wanted a variance scale tens of times the occupied
-#: side's (docs/choices.md). A prior, not a fit: held-out stretches of the training log, on which
-#: kappa is fitted, said the opposite when two scales were fitted on them. Chosen on the shared
-#: logs' written maps; not measured on point clouds, so 0 there.
+#: pulled by the free cells on the seen side, says (the walls a later visit meets first); on four
+#: of five blocks splits measured, the free side wanted a variance scale tens of times the
+#: occupied side's (docs/choices.md). A prior, not a fit: held-out stretches of the training log,
+#: on which kappa is fitted, said the opposite when two scales were fitted on them. Chosen on the
+#: shared logs' written maps (c = 1: the largest tried that made no more than one of their 20
+#: log-splits worse); not measured on point clouds, so 0 there.
 UNSEEN_FREE_CUT: dict[int, float] = {2: 1.0, 3: 0.0}
 
 
