@@ -61,6 +61,7 @@ from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.fusion import HIT_DISTANCE_REACHES, HitCells, HitProximity, calibration_points
 from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
 from gpomap.observations import Observations, beams_reach, data_dim, free_near_hits
+from gpomap.squash import unseen_probit
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
 N_STRETCHES: int = 10
@@ -131,8 +132,9 @@ def _nll(
 ) -> float:
     """Mean negative log probit likelihood at variance scale `kappa`, with the gain ``shift *
     exp(-distance / reach)`` near hits (:class:`gpomap.fusion.HitProximity`); the classes are
-    balanced by subsampling."""
-    z = (alpha * mu + beta) / np.sqrt(1.0 + alpha * alpha * kappa * var)
+    balanced by subsampling. The probit is the map's where no beam went before its cut of the
+    lean towards free (:func:`gpomap.squash.unseen_probit`), which is a prior, not fitted."""
+    z = unseen_probit(alpha * mu + beta, alpha * alpha * var, kappa)
     if shift != 0.0 and distance is not None:
         z = z + HitProximity(shift, reach).gain(distance)
     return float(-np.mean(np.where(occupied, log_ndtr(z), log_ndtr(-z))))
