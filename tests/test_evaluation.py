@@ -248,8 +248,9 @@ def test_evaluate_against_truth_scores_the_room():
 def test_path_points_and_path_occupied_by_hand():
     from gpomap.scans import Scan
 
-    # Three poses: a 1 m drive along x, then a 3 m jump (a new session, not a path).
-    scans = [Scan([x, 0.02, 0.0], [0.0], [1.0], max_range=5.0) for x in (0.0, 1.0, 4.0)]
+    # Three poses facing +y: a 1 m step along x, then a 3 m one, which, sideways to the robot's
+    # heading, is a jump (a new session, not a path).
+    scans = [Scan([x, 0.02, np.pi / 2], [0.0], [1.0], max_range=5.0) for x in (0.0, 1.0, 4.0)]
     pts = ev.path_points(scans, step=0.025)
     # The poses themselves plus 39 points strictly between 0 and 1 m; nothing between 1 and 4 m.
     assert len(pts) == 3 + 39

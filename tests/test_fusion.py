@@ -418,7 +418,7 @@ def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
     # A 2 m step (a log of 1 m strides that lost a scan) is driving: straight along the robot's
     # heading, or, turning, where its ends' scans saw nothing within the robot's body of it. A
     # sideways step past what an end saw (x = 1.05: the ends of a held-out loop, close across a
-    # wall) is not; nor is a 3 m jump.
+    # wall) is not; nor is a 3 m one unless the robot drove straight along it.
     def facing(x: float, heading: float, hit_x: float | None = None) -> Scan:
         if hit_x is None:  # one beam to +y, 0.5 m long
             return Scan(
@@ -433,7 +433,19 @@ def test_path_passes_follow_the_robot_and_skip_jumps() -> None:
     assert passes(facing(0.05, side), facing(2.05, side))[1].min() == 1  # turning, nothing in the way
     assert passes(facing(0.05, side, hit_x=1.05), facing(2.05, side)).sum() == 0
     assert passes(facing(0.05, 0.0, hit_x=1.05), facing(2.05, np.pi))[1].min() == 1  # straight: drove through it
-    assert passes(facing(0.05, 0.0), facing(3.1, 0.0)).sum() == 0
+    assert passes(facing(0.05, side), facing(3.1, side)).sum() == 0  # 3 m sideways: a jump
+    assert passes(facing(0.05, 0.0), facing(3.1, 0.0))[1].min() == 1  # 3 m straight: two scans lost
+
+    # A long straight step holds its headings closer to it. An arc leaving and reaching a 2.5 m
+    # step at 30 degrees strays 1.25 tan(15 deg) = 0.3349 m from it; one leaving and reaching a 4 m
+    # step at 19.01 degrees as far, 2 tan(9.507 deg) = 0.3349 m, and a 3 m one at 25.17 degrees,
+    # 1.5 tan(12.587 deg) = 0.3349 m.
+    def steps(length: float, degrees: float) -> int:
+        h = np.radians(degrees)
+        return len(RayEvidence.from_scans([facing(0.05, h), facing(0.05 + length, h)]).path)
+
+    assert steps(4.0, 18.5) == 1 and steps(4.0, 19.5) == 0
+    assert steps(3.0, 24.9) == 1 and steps(3.0, 25.5) == 0
     # A hit just beyond the robot's body (0.1 m) of a sideways step does not stop it.
     gap = PATH_RADIUS + 0.01
     beside = Scan(

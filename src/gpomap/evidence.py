@@ -40,8 +40,14 @@ from gpomap.scans import Scan
 #: corridor, the Freiburg campus and five other public logs: median 0.97-1.04 m, 99 % at most
 #: 1.25 m). A scan lost, or held out, doubles a step there: at 1.5 m, those steps were jumps and
 #: the robot's path had a gap at each (the corridor's every-10th split called 28 path cells
-#: occupied, none at 2.5 m). Örebro's 3 m steps (two scans lost) stay jumps.
+#: occupied, none at 2.5 m). A longer step is driving only where the robot drove straight along
+#: it (:data:`STRAIGHT_STEP_STRAY`): Örebro loses one or two scans in a row (3 m steps).
 MAX_PATH_STEP: float = 2.5
+
+#: Longest step (metres) taken as driving where the robot drove straight along it: twice
+#: :data:`MAX_PATH_STEP`. Longer gaps may hide a detour whatever the ends' headings (a block of 40
+#: scans held out spans 10-40 m on the logs here).
+MAX_STRAIGHT_STEP: float = 2 * MAX_PATH_STEP
 
 #: Steps up to this long (metres) are the robot's path as they are. A longer one may not be
 #: where the robot drove (a loop in a stretch held out, whose ends are 2.2 m apart across Intel's
@@ -56,6 +62,12 @@ SURE_PATH_STEP: float = 1.5
 #: of the step's direction, forward or backward (the corridor's straight steps over a held-out
 #: scan: 2-10 degrees; turns in the logs' every-10th splits: up to 73).
 STRAIGHT_STEP_ANGLE: float = 30.0
+
+#: How far (metres) the robot may have strayed from a straight step. An arc that leaves and
+#: reaches a step of length L at an angle a to it lies at most (L / 2) tan(a / 2) from it; this
+#: is that distance for the longest step and the angle above (0.33 m), so a straight step longer
+#: than :data:`MAX_PATH_STEP` holds its ends' headings closer to it (19 degrees at 4 m, 15 at 5 m).
+STRAIGHT_STEP_STRAY: float = MAX_PATH_STEP / 2 * float(np.tan(np.radians(STRAIGHT_STEP_ANGLE) / 2))
 
 #: The robot's body round its path (metres): the cells the path crosses, shifted by up to this
 #: much, count its steps (:meth:`RayEvidence.path_passes`). Any robot that carries a planar lidar
@@ -75,10 +87,12 @@ NEAR_END: float = 0.2
 def path_steps(scans: ScanData) -> NDArray[np.float64]:
     """The robot's path between consecutive scans, as segments (x0, y0, x1, y1), shape (k, 2 d).
 
-    A step up to :data:`SURE_PATH_STEP` long is the path; one up to :data:`MAX_PATH_STEP` is,
-    when the robot drove straight along it (planar scans whose headings both lie within
-    :data:`STRAIGHT_STEP_ANGLE` of it) or neither end's scan has a hit within :data:`PATH_RADIUS`
-    of it (it could not have driven through what it saw); longer steps are jumps.
+    A step up to :data:`SURE_PATH_STEP` long is the path. A longer one is, when the robot drove
+    straight along it (planar scans whose headings both lie within :data:`STRAIGHT_STEP_ANGLE` of
+    it, and close enough that an arc between them strays at most :data:`STRAIGHT_STEP_STRAY`) and
+    it is at most :data:`MAX_STRAIGHT_STEP` long, or, up to :data:`MAX_PATH_STEP`, when neither
+    end's scan has a hit within :data:`PATH_RADIUS` of it (it could not have driven through what it
+    saw); other steps are jumps.
 
     Parameters
     ----------
@@ -93,9 +107,11 @@ def path_steps(scans: ScanData) -> NDArray[np.float64]:
     steps = np.column_stack([poses[:-1], poses[1:]])
     lengths = np.sqrt(((steps[:, d:] - steps[:, :d]) ** 2).sum(axis=1))
     keep = lengths <= SURE_PATH_STEP
-    for k in np.flatnonzero((lengths > SURE_PATH_STEP) & (lengths <= MAX_PATH_STEP)):
+    for k in np.flatnonzero((lengths > SURE_PATH_STEP) & (lengths <= MAX_STRAIGHT_STEP)):
         if _drives_straight(scans[k], scans[k + 1]):
             keep[k] = True
+            continue
+        if lengths[k] > MAX_PATH_STEP:
             continue
         ends = [Rays.of(s) for s in (scans[k], scans[k + 1])]
         hits = np.concatenate([r.ends[r.hit] for r in ends]).reshape(-1, d)
@@ -105,14 +121,17 @@ def path_steps(scans: ScanData) -> NDArray[np.float64]:
 
 def _drives_straight(first: Scan | CloudScan, second: Scan | CloudScan) -> bool:
     """Whether two planar scans' headings both lie within :data:`STRAIGHT_STEP_ANGLE` of the step
-    between them, forward or backward (point clouds carry no heading: False)."""
+    between them, forward or backward, and within the angle at which an arc between them strays
+    :data:`STRAIGHT_STEP_STRAY` from it (point clouds carry no heading: False)."""
     if not (isinstance(first, Scan) and isinstance(second, Scan)):
         return False
     step = second.pose[:2] - first.pose[:2]
     direction = np.arctan2(step[1], step[0])
     # Off the step's line, forward or backward: the heading's difference folded into [0, pi/2].
     off = np.abs(np.angle(np.exp(2j * (np.array([first.pose[2], second.pose[2]]) - direction)))) / 2.0
-    return bool(np.all(off <= np.radians(STRAIGHT_STEP_ANGLE)))
+    # The arc's stray (L / 2) tan(a / 2) solved for a.
+    arc = 2.0 * np.arctan(2.0 * STRAIGHT_STEP_STRAY / max(float(np.hypot(*step)), 1e-12))
+    return bool(np.all(off <= min(np.radians(STRAIGHT_STEP_ANGLE), arc)))
 
 
 def _segment_distances(points: NDArray[np.float64], a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
