@@ -14,8 +14,9 @@ a cell lookup; a grid's written map is itself). Methods:
 Logs: Intel, FR079 (every 3rd of its 4,791 scans: the whole log at full rate is 5x the others'
 size), CSAIL, Belgioioso, the Stage arena bag (also scored against its true floor plan) and a
 simulated tour of the synthetic room of :mod:`gpomap.simulate` (also scored against its true
-geometry). Each method runs in a forked child process so its peak memory is its own (reported
-as the child's peak RSS, which starts from the parent's, and the tile workers' peak).
+geometry). Each method runs in a forked child process (:func:`gpomap.comparison.run_apart`) so
+its peak memory is its own (reported as the child's peak RSS, which starts from the parent's,
+and the tile workers' peak).
 
 Run from the repository root::
 
@@ -36,20 +37,18 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import subprocess
 import sys
 import time
-import traceback
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from gpomap.comparison import GPOMAP, LABELS, METHODS, TARGET_NAMES, format_value, run_one, table, tally, targets
-from gpomap.evaluation import EvalData, Truth, prepare, resolve_split
+from gpomap.comparison import GPOMAP, LABELS, METHODS, TARGET_NAMES, format_value, run_apart, table, tally, targets
+from gpomap.evaluation import Truth, prepare, resolve_split
 
 DATA = Path("..") / "shared" / "data"
 LOGS: dict[str, dict[str, Any]] = {
@@ -115,40 +114,6 @@ def _room_truth_quick() -> Truth:
     from gpomap.simulate import paper_room
 
     return Truth.from_world(paper_room()[0], QUICK["grid_resolution"])
-
-
-# ------------------------------------------------------------------------------ running
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
-def _child(conn: Any, data: EvalData, name: str, grid_resolution: float, seed: int) -> None:
-    try:
-        start = _rss_mb()
-        res = run_one(data, name, seed, grid_resolution)
-        res["rss_at_start_mb"] = start
-        conn.send(("ok", res))
-    except BaseException:  # report any failure to the parent instead of dying silently
-        conn.send(("error", traceback.format_exc()))
-    finally:
-        conn.close()
-
-
-def run_forked(data: EvalData, name: str, grid_resolution: float, seed: int) -> dict[str, Any]:
-    """One method on one split, in a forked child process (its own peak memory)."""
-    ctx = mp.get_context("fork")
-    parent, child = ctx.Pipe(duplex=False)
-    t = time.perf_counter()
-    proc = ctx.Process(target=_child, args=(child, data, name, grid_resolution, seed))
-    proc.start()
-    child.close()
-    status, payload = parent.recv()
-    proc.join()
-    if status != "ok":
-        raise RuntimeError(f"{name} failed:\n{payload}")
-    payload["wall_in_child"] = time.perf_counter() - t
-    return payload
 
 
 # ------------------------------------------------------------------------------ tables
@@ -398,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
             data = prepare(scans, split, **kw)
             rows = []
             for name in methods:
-                r = run_forked(data, name, grid_res, args.seed)
+                r = run_apart(data, name, args.seed, grid_res)
                 r.update(log=log, split=split)
                 rows.append(r)
                 results.append(r)

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from gpomap.comparison import GPOMAP, METHODS, TARGET_NAMES, compare, table, targets
+from gpomap.comparison import GPOMAP, METHODS, TARGET_NAMES, can_run_apart, compare, run_apart, table, targets
 from gpomap.evaluation import prepare, run_method
 from gpomap.simulate import paper_room_scans
 
@@ -116,6 +116,17 @@ def test_compare_scores_every_method_on_the_same_test_points(room_split):
     mine = results[0]
     assert mine["grid"] is not None and mine["settings"]["grid_resolution"] == 0.05
     assert all(r["n_test_points"] == room_split.labels.size for r in results)
+    if can_run_apart():  # each in a child: its peak is its own, and no lower than its size at the fork
+        assert all(r["peak_rss_mb"]["self"] >= r["rss_at_start_mb"] > 0 for r in results)
+
+
+@pytest.mark.skipif(not can_run_apart(), reason="methods run apart only where processes fork safely")
+def test_a_method_run_apart_raises_what_it_raised() -> None:
+    data = prepare(paper_room_scans()[:20], "every", seed=0)
+    with pytest.raises(KeyError, match="no-such-method"):
+        run_apart(data, "no-such-method")
+    with pytest.raises(TypeError, match="not_an_option"):
+        run_apart(data, GPOMAP, n_workers=1, not_an_option=1)
 
 
 def test_evaluate_compare_prints_each_split_and_the_targets(capsys):
@@ -141,6 +152,8 @@ def test_evaluate_compare_prints_each_split_and_the_targets(capsys):
     # The same split and seed give the same scores as the JSON.
     auc = float(text.split("| MSK-GPOM | grid 0.05 |")[1].split("|")[0].strip().rstrip("*"))
     assert auc == pytest.approx(every["results"][0]["grid"]["auc"], abs=5e-4)
+    if can_run_apart():  # the method's own peak memory, not "-"
+        assert text.split("| MSK-GPOM | points |")[1].split("\n")[0].rstrip(" |").endswith(" at start)")
 
 
 @pytest.mark.parametrize(

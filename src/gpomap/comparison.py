@@ -10,6 +10,10 @@ the targets gpomap's written map must meet beside them (:func:`targets`).
 
 from __future__ import annotations
 
+import multiprocessing as mp
+import os
+import sys
+import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -97,7 +101,7 @@ def compare(
     for name in METHODS:
         if progress is not None:
             progress(LABELS[name])
-        results.append(run_one(data, name, seed, grid_resolution, n_workers, kernel, **gpomap_options))
+        results.append(run_apart(data, name, seed, grid_resolution, n_workers, kernel, **gpomap_options))
     return results
 
 
@@ -125,6 +129,95 @@ def run_one(
         r = run_method(data, method, seed=seed, resolution=cell)
     r["name"] = name
     return r
+
+
+def can_run_apart() -> bool:
+    """Whether :func:`run_apart` runs each method in a process of its own: where processes fork
+    safely (Linux; on macOS a forked process that had threads may hang, and Windows cannot fork)."""
+    return sys.platform.startswith("linux") and "fork" in mp.get_all_start_methods()
+
+
+def run_apart(
+    data: EvalData,
+    name: str,
+    seed: int = 0,
+    grid_resolution: float = GRID_RESOLUTION,
+    n_workers: int | None = None,
+    kernel: str | None = None,
+    **gpomap_options: Any,
+) -> dict[str, Any]:
+    """:func:`run_one` in a forked child process, so that the peak memory it reports is its own.
+
+    The child starts as a copy of this process, so its peak counts this process's size at the fork
+    too, reported beside it as ``rss_at_start_mb``. Where processes cannot fork safely
+    (:func:`can_run_apart`), the method runs in this process, whose peak is every method's so far,
+    and the result has no ``rss_at_start_mb``.
+
+    Returns
+    -------
+    dict
+        :func:`run_one`'s result, with ``rss_at_start_mb`` where it ran apart.
+
+    Raises
+    ------
+    Exception
+        What the method raised in the child (re-raised here when it can be sent back; otherwise a
+        RuntimeError with the child's traceback).
+    """
+    if not can_run_apart():
+        return run_one(data, name, seed, grid_resolution, n_workers, kernel, **gpomap_options)
+    ctx = mp.get_context("fork")
+    receiver, sender = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_run_in_child, args=(sender, data, name, seed, grid_resolution, n_workers, kernel, gpomap_options))
+    child.start()
+    sender.close()
+    try:
+        status, payload = receiver.recv()
+    except EOFError:  # the child died without a word (killed, out of memory)
+        child.join()
+        raise RuntimeError(f"{LABELS.get(name, name)} ended without a result (exit code {child.exitcode})") from None
+    finally:
+        receiver.close()
+    child.join()
+    if status == "raised":
+        raise payload
+    if status == "failed":
+        raise RuntimeError(f"{LABELS.get(name, name)} failed:\n{payload}")
+    return dict(payload)
+
+
+def _rss_mb() -> float:
+    """This process's resident memory now (MB)."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _run_in_child(
+    sender: Any,
+    data: EvalData,
+    name: str,
+    seed: int,
+    grid_resolution: float,
+    n_workers: int | None,
+    kernel: str | None,
+    gpomap_options: dict[str, Any],
+) -> None:
+    """:func:`run_apart`'s child: the result, or what it raised, sent back over `sender`."""
+    import pickle
+
+    try:
+        start = _rss_mb()
+        result = run_one(data, name, seed, grid_resolution, n_workers, kernel, **gpomap_options)
+        result["rss_at_start_mb"] = start
+        sender.send(("ok", result))
+    except BaseException as exc:  # the parent reports it; the child must not die silently
+        try:
+            pickle.loads(pickle.dumps(exc))
+            sender.send(("raised", exc))
+        except Exception:
+            sender.send(("failed", traceback.format_exc()))
+    finally:
+        sender.close()
 
 
 @dataclass(frozen=True)
