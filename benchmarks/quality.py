@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from gpomap.comparison import GPOMAP, LABELS, METHODS, TARGET_NAMES, format_value, run_apart, table, tally, targets
+from gpomap.comparison import GPOMAP, METHODS, TARGET_NAMES, format_value, run_apart, score_curves, table, tally, targets
 from gpomap.evaluation import Truth, prepare, resolve_split
 
 DATA = Path("..") / "shared" / "data"
@@ -218,50 +218,18 @@ def criteria_table(results: list[dict[str, Any]]) -> tuple[list[str], int, int]:
 
 def reliability_figure(results: list[dict[str, Any]], log: str, path: Path) -> None:
     """Reliability diagrams of one log: a panel per split, a curve per method and prediction."""
-    from matplotlib.figure import Figure
-
-    from gpomap.plot import save_figure
+    from gpomap.plot import plot_evaluation
 
     splits = [s for s in SPLIT_NAMES if any(r["log"] == log and r["split"] == s for r in results)]
-    if not splits:
-        return
-    fig = Figure(figsize=(5.2 * len(splits), 4.6), layout="constrained")
-    colours = {
-        "msk": "tab:blue",
-        "ogm-logodds-0.05": "tab:red",
-        "ogm-logodds-0.1": "tab:orange",
-        "ogm-counting-0.05": "tab:green",
-    }
-    for i, split in enumerate(splits):
-        ax = fig.add_subplot(1, len(splits), i + 1)
-        ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="calibrated")
-        for r in results:
-            if r["log"] != log or r["split"] != split:
-                continue
-            for kind, ls in (("points", "-"), ("grid", ":")):
-                if r[kind] is None or (kind == "grid" and r["name"] != GPOMAP):
-                    continue  # a grid's written map is itself: one curve
-                rel = r[kind]["reliability"]
-                x = [m for m, c in zip(rel["mean_prob"], rel["counts"]) if c]
-                y = [f for f, c in zip(rel["frac_pos"], rel["counts"]) if c]
-                ax.plot(
-                    x,
-                    y,
-                    ls,
-                    marker="o",
-                    ms=3,
-                    color=colours[r["name"]],
-                    label=f"{LABELS[r['name']]}{' grid' if kind == 'grid' else ''} (ECE {r[kind]['ece']:.3f})",
-                )
-        ax.set(
-            xlabel="predicted occupancy probability",
-            ylabel="fraction occupied",
-            xlim=(0, 1),
-            ylim=(0, 1),
-            title=f"{_title(log)}: {resolve_split(split)}",
-        )
-        ax.legend(loc="upper left", fontsize=7)
-    save_figure(fig, path)
+    if splits:
+        panels = [
+            (
+                f"{_title(log)}: {resolve_split(split)}",
+                score_curves([r for r in results if r["log"] == log and r["split"] == split]),
+            )
+            for split in splits
+        ]
+        plot_evaluation(panels, path)
 
 
 def print_summary(results: list[dict[str, Any]]) -> None:

@@ -138,6 +138,28 @@ def test_evaluate_demo_json(run):
     assert run("evaluate", "--method", "msk").returncode == 1
 
 
+def test_evaluate_figure(run, tmp_path):
+    from PIL import Image
+
+    fig = tmp_path / "scores.png"
+    r = run("evaluate", "--demo", "--method", "ogm", "--json", "--figure", fig)
+    assert r.returncode == 0, r.stderr
+    with Image.open(fig) as img:
+        assert img.format == "PNG" and img.size[0] > 0
+    d = json.loads(r.stdout)
+    assert "roc" not in d and "roc" not in d["points"]  # the JSON is the one without --figure
+
+    # Refused before any reading or fitting, the file never written.
+    for bad, message in (
+        (tmp_path / "scores.pdf", "give a file name ending in .png"),
+        (tmp_path / "absent" / "scores.png", f"the directory {tmp_path / 'absent'} does not exist"),
+        (tmp_path, "is a directory"),
+    ):
+        r = run("evaluate", tmp_path / "absent.log", "--figure", bad)
+        assert r.returncode == 1 and message in r.stderr and "absent.log" not in r.stderr
+    assert not (tmp_path / "scores.pdf").exists()
+
+
 def test_points_csv_input(tmp_path, run):
     from gpomap.io import write_points
     from gpomap.observations import observations_from_scans

@@ -88,6 +88,7 @@ VALUES: dict[str, str] = {
     "warmup": "12",
     "max_refits": "4",
     "timed_runs": "2",
+    "figure": "scores.png",
 }
 
 #: Options the command uses itself, not handed to the library as a setting: why, by dest.
@@ -98,6 +99,7 @@ COMMAND_OWN: dict[str, str] = {
     "demo": "evaluate: the input (the built-in room instead of a file)",
     "compare": "evaluate: gpomap beside the standard grids (gpomap.comparison.compare) instead of one method",
     "truth": "evaluate: the true map scored against (Truth.from_rosmap), read before the log",
+    "figure": "evaluate: the ROC curves and reliability diagrams drawn (gpomap.plot.plot_evaluation)",
     "paper": "benchmark: which benchmark",
     "chunk_scans": "map: the incremental loop (_map_in_chunks)",
     "resolution": "the written grid's cell side (model.grid)",

@@ -129,7 +129,7 @@ def test_a_method_run_apart_raises_what_it_raised() -> None:
         run_apart(data, GPOMAP, n_workers=1, not_an_option=1)
 
 
-def test_evaluate_compare_prints_each_split_and_the_targets(capsys):
+def test_evaluate_compare_prints_each_split_and_the_targets(capsys, tmp_path):
     from gpomap.cli import main
 
     assert main(["evaluate", "--demo", "--compare", "--workers", "1", "--json", "-q"]) == 0
@@ -142,8 +142,10 @@ def test_evaluate_compare_prints_each_split_and_the_targets(capsys):
         assert run["checked"] == len(TARGET_NAMES)  # the room has a truth: every target is checked
     assert out["met"] == sum(run["met"] for run in out["splits"])
 
-    assert main(["evaluate", "--demo", "--compare", "--split", "every", "--workers", "1", "-q"]) == 0
+    figure = tmp_path / "compare.png"
+    assert main(["evaluate", "--demo", "--compare", "--split", "every", "--workers", "1", "-q", "--figure", str(figure)]) == 0
     text = capsys.readouterr().out
+    assert f"wrote         {figure}" in text and figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "## every:10" in text and "## blocks" not in text
     for label in ("MSK-GPOM", "OGM log-odds 0.05", "OGM log-odds 0.1", "OGM counting 0.05"):
         assert f"| {label} |" in text

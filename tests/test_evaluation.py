@@ -115,6 +115,11 @@ def test_evaluate_returns_documented_keys(method):
         for key in ("auc", "boundary_auc", "observed_auc", "unobserved_auc", "fpr_at_tpr95", "log_loss", "ece", "reliability"):
             assert key in res[kind]
         assert res[kind]["n_observed"] + res[kind]["n_unobserved"] == 100
+        # The ROC curve's area by the trapezoid rule is the rank statistic's AUC.
+        fpr, tpr = np.asarray(res[kind]["roc"]["fpr"]), np.asarray(res[kind]["roc"]["tpr"])
+        area = float(np.sum(np.diff(fpr) * (tpr[1:] + tpr[:-1]) / 2))
+        assert area == pytest.approx(res[kind]["auc"], abs=1e-12)
+    assert res["roc"] == res["points"]["roc"]
     if method.startswith("ogm"):
         assert res["grid"]["auc"] == res["points"]["auc"]  # a grid's written map is itself
     assert res["seconds"]["total"] >= res["seconds"]["fit"] > 0

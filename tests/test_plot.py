@@ -3,7 +3,7 @@ import pytest
 from PIL import Image
 
 from gpomap.grid import GridSpec, OccupancyMap
-from gpomap.plot import plot_inputs, plot_map, save_figure
+from gpomap.plot import ScoreCurve, plot_evaluation, plot_inputs, plot_map, save_figure
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -103,3 +103,42 @@ def test_save_figure_failure_keeps_old_png(tmp_path, monkeypatch):
         save_figure(fig, out)
     assert out.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["fig.png"]
+
+
+def _scores(with_roc=True):
+    # Three of ten bins used: the empty ones have no point on the reliability curve.
+    counts = [0] * 10
+    counts[1], counts[5], counts[9] = 4, 2, 4
+    mean_p = [None] * 10
+    mean_p[1], mean_p[5], mean_p[9] = 0.15, 0.55, 0.95
+    frac = [None] * 10
+    frac[1], frac[5], frac[9] = 0.0, 0.5, 1.0
+    out = {"auc": 0.9, "ece": 0.04, "reliability": {"mean_prob": mean_p, "frac_pos": frac, "counts": counts}}
+    if with_roc:
+        out["roc"] = {"fpr": [0.0, 0.0, 0.5, 1.0], "tpr": [0.0, 0.6, 1.0, 1.0]}
+    return out
+
+
+def test_plot_evaluation_roc_above_reliability_a_column_per_split(tmp_path):
+    out = tmp_path / "eval.png"
+    curves = [ScoreCurve("map", _scores(), "tab:blue"), ScoreCurve("grid", _scores(), "tab:red", ":")]
+    fig = plot_evaluation([("blocks", curves), ("every", curves[:1])], path=out, title="scores")
+    assert len(fig.axes) == 4  # two rows, two columns, row by row
+    roc_blocks, roc_every, rel_blocks, rel_every = fig.axes
+    assert [roc_blocks.get_title(), roc_every.get_title()] == ["blocks", "every"]
+    # Each panel: the diagonal, then one line per curve.
+    assert len(roc_blocks.get_lines()) == 3 and len(roc_every.get_lines()) == 2
+    np.testing.assert_array_equal(roc_blocks.get_lines()[1].get_xdata(), [0.0, 0.0, 0.5, 1.0])
+    np.testing.assert_array_equal(rel_blocks.get_lines()[1].get_xdata(), [0.15, 0.55, 0.95])
+    np.testing.assert_array_equal(rel_blocks.get_lines()[1].get_ydata(), [0.0, 0.5, 1.0])
+    assert rel_blocks.get_lines()[2].get_linestyle() == ":"
+    labels = [t.get_text() for t in roc_blocks.get_legend().get_texts()]
+    assert labels == ["chance", "map (AUC 0.900)", "grid (AUC 0.900)"]
+    assert [t.get_text() for t in rel_every.get_legend().get_texts()] == ["calibrated", "map (ECE 0.040)"]
+    _assert_png(out)
+
+
+def test_plot_evaluation_without_roc_draws_the_reliability_row():
+    fig = plot_evaluation([("every", [ScoreCurve("map", _scores(with_roc=False))])])
+    assert len(fig.axes) == 1 and fig.axes[0].get_title() == "every"
+    assert fig.axes[0].get_xlabel() == "predicted occupancy probability"

@@ -718,6 +718,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise GpomapError("give either INPUT or --demo")
     if args.demo and args.truth is not None:
         raise GpomapError("--demo is scored against the room's true geometry already; drop --truth")
+    if args.figure is not None:
+        _check_figure_path(args.figure)
     arguments = _evaluate_arguments(args)  # refuses an option --method does not take, before any reading
     truth = None
     if args.demo:
@@ -736,13 +738,53 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.compare:
         return _compare(args, scans, truth, arguments, source)
     _status(args, f"evaluating {args.method} on {source} ({len(scans)} scans)...")
-    result = evaluate(scans, truth=truth, **arguments)
+    result = evaluate(scans, truth=truth, return_roc=args.figure is not None, **arguments)
     result["settings"]["input"] = source
+    if args.figure is not None:
+        _evaluation_figure(args.figure, [(resolve_split(args.split), _method_curves(args.method, result))], source)
+        _without_roc(result)
     if args.json:
         print(json.dumps(result, default=str))
-        return EXIT_OK
-    _print_evaluation(args, result, source, resolve_split(args.split))
+    else:
+        _print_evaluation(args, result, source, resolve_split(args.split))
+    if args.figure is not None and not args.json:
+        print(f"wrote         {args.figure}")
     return EXIT_OK
+
+
+def _check_figure_path(path: Path) -> None:
+    """``--figure``: a PNG file's name in a directory that exists (checked before any work)."""
+    if path.is_dir():
+        raise GpomapError(f"--figure {path}: is a directory; give a file name ending in .png")
+    if path.suffix.lower() != ".png":
+        raise GpomapError(f"--figure {path}: the figure is written as a PNG; give a file name ending in .png")
+    if not path.parent.is_dir():
+        raise GpomapError(f"--figure {path}: the directory {path.parent} does not exist")
+
+
+def _method_curves(method: str, result: dict[str, Any]) -> list[Any]:
+    """One method's exact-point and written-map predictions as :func:`gpomap.plot.plot_evaluation` draws them."""
+    from gpomap.plot import ScoreCurve
+
+    curves = [ScoreCurve(f"{method} points", result["points"], "tab:blue")]
+    if result.get("grid") is not None:
+        curves.append(ScoreCurve(f"{method} grid {result['settings']['grid_resolution']:g} m", result["grid"], "tab:blue", ":"))
+    return curves
+
+
+def _evaluation_figure(path: Path, panels: list[tuple[str, list[Any]]], source: str) -> None:
+    """``--figure``: the ROC curves and reliability diagrams, written atomically."""
+    from gpomap.plot import plot_evaluation
+
+    plot_evaluation(panels, path, title=f"gpomap evaluate: {source}")
+
+
+def _without_roc(result: dict[str, Any]) -> None:
+    """Drop the ROC curves drawn for ``--figure`` from a result, so its JSON is the one without it."""
+    result.pop("roc", None)
+    for key in ("points", "grid"):
+        if isinstance(result.get(key), dict):
+            result[key].pop("roc", None)
 
 
 #: The splits ``gpomap evaluate --compare`` runs unless ``--split`` names others.
@@ -805,7 +847,7 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
     """``gpomap evaluate --compare``: gpomap and the standard grids on each split, and the targets met."""
     from dataclasses import asdict
 
-    from gpomap.comparison import TARGET_NAMES, compare, table, tally, targets
+    from gpomap.comparison import TARGET_NAMES, compare, score_curves, table, tally, targets
     from gpomap.evaluation import TEST_FREE_STEP, prepare
 
     a = arguments
@@ -832,10 +874,16 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
             a["n_workers"],
             a["kernel"],
             progress=lambda label: _status(args, f"  {label}..."),
+            return_roc=args.figure is not None,
             **gpomap_options,
         )
         found = targets(results)
         runs.append((split, data, results, found, tally(found)))
+    if args.figure is not None:
+        _evaluation_figure(args.figure, [(split, score_curves(results)) for split, _, results, *_ in runs], source)
+        for _, _, results, *_ in runs:
+            for r in results:
+                _without_roc(r)
     met = sum(counts[0] for *_, counts in runs)
     checked = sum(counts[1] for *_, counts in runs)
     if args.json:
@@ -872,6 +920,8 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
             print(f"  {t.name:<{width}}  {t.cell()}")
     if len(runs) > 1:
         print(f"\ntargets met over the {len(runs)} splits: {met} of {checked}")
+    if args.figure is not None:
+        print(f"\nwrote         {args.figure}")
     return EXIT_OK
 
 
@@ -1249,6 +1299,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="score gpomap (--method msk) beside the standard occupancy grids on the same splits and test points "
         "(OctoMap's log-odds model at 0.05 and 0.1 m, the counting grid at 0.05 m): a table per split with the best of "
         "each metric marked, and the targets gpomap's written map meets",
+    )
+    p.add_argument(
+        "--figure",
+        type=Path,
+        metavar="PATH.png",
+        help="also write ROC curves above reliability diagrams as a PNG: the exact points and the written map (with "
+        "--compare every method, a column per split)",
     )
     p.add_argument(
         "--scan-step",

@@ -16,11 +16,14 @@ import sys
 import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from gpomap.evaluation import GRID_RESOLUTION, EvalData, run_method
+
+if TYPE_CHECKING:
+    from gpomap.plot import ScoreCurve
 
 #: gpomap's name in a comparison.
 GPOMAP: str = "msk"
@@ -38,6 +41,13 @@ LABELS: dict[str, str] = {
     "ogm-logodds-0.05": "OGM log-odds 0.05",
     "ogm-logodds-0.1": "OGM log-odds 0.1",
     "ogm-counting-0.05": "OGM counting 0.05",
+}
+#: How figures draw them.
+COLOURS: dict[str, str] = {
+    GPOMAP: "tab:blue",
+    "ogm-logodds-0.05": "tab:red",
+    "ogm-logodds-0.1": "tab:orange",
+    "ogm-counting-0.05": "tab:green",
 }
 #: The written map's expected calibration error must be below this ...
 ECE_TARGET: float = 0.05
@@ -70,6 +80,7 @@ def compare(
     n_workers: int | None = None,
     kernel: str | None = None,
     progress: Callable[[str], None] | None = None,
+    return_roc: bool = False,
     **gpomap_options: Any,
 ) -> list[dict[str, Any]]:
     """Fit gpomap and every standard grid on ``data.train`` and score each on ``data``'s test points.
@@ -88,6 +99,8 @@ def compare(
         gpomap's point kernel (default: the library's).
     progress : callable, optional
         Told each method's label before it runs.
+    return_roc : bool
+        Also return each score's ROC curve (:func:`gpomap.evaluation.score`).
     **gpomap_options
         gpomap's constructor options (the grids take their standard settings).
 
@@ -101,7 +114,7 @@ def compare(
     for name in METHODS:
         if progress is not None:
             progress(LABELS[name])
-        results.append(run_apart(data, name, seed, grid_resolution, n_workers, kernel, **gpomap_options))
+        results.append(run_apart(data, name, seed, grid_resolution, n_workers, kernel, return_roc, **gpomap_options))
     return results
 
 
@@ -112,6 +125,7 @@ def run_one(
     grid_resolution: float = GRID_RESOLUTION,
     n_workers: int | None = None,
     kernel: str | None = None,
+    return_roc: bool = False,
     **gpomap_options: Any,
 ) -> dict[str, Any]:
     """One method of :data:`METHODS` on ``data`` (see :func:`compare` for the parameters).
@@ -123,10 +137,19 @@ def run_one(
     """
     method, cell = METHODS[name]
     if name == GPOMAP:
-        r = run_method(data, method, kernel, seed, grid_resolution=grid_resolution, n_workers=n_workers, **gpomap_options)
+        r = run_method(
+            data,
+            method,
+            kernel,
+            seed,
+            grid_resolution=grid_resolution,
+            n_workers=n_workers,
+            return_roc=return_roc,
+            **gpomap_options,
+        )
     else:
         assert cell is not None
-        r = run_method(data, method, seed=seed, resolution=cell)
+        r = run_method(data, method, seed=seed, resolution=cell, return_roc=return_roc)
     r["name"] = name
     return r
 
@@ -144,6 +167,7 @@ def run_apart(
     grid_resolution: float = GRID_RESOLUTION,
     n_workers: int | None = None,
     kernel: str | None = None,
+    return_roc: bool = False,
     **gpomap_options: Any,
 ) -> dict[str, Any]:
     """:func:`run_one` in a forked child process, so that the peak memory it reports is its own.
@@ -165,10 +189,11 @@ def run_apart(
         RuntimeError with the child's traceback).
     """
     if not can_run_apart():
-        return run_one(data, name, seed, grid_resolution, n_workers, kernel, **gpomap_options)
+        return run_one(data, name, seed, grid_resolution, n_workers, kernel, return_roc, **gpomap_options)
     ctx = mp.get_context("fork")
     receiver, sender = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_run_in_child, args=(sender, data, name, seed, grid_resolution, n_workers, kernel, gpomap_options))
+    arguments = (data, name, seed, grid_resolution, n_workers, kernel, return_roc)
+    child = ctx.Process(target=_run_in_child, args=(sender, arguments, gpomap_options))
     child.start()
     sender.close()
     try:
@@ -192,22 +217,13 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def _run_in_child(
-    sender: Any,
-    data: EvalData,
-    name: str,
-    seed: int,
-    grid_resolution: float,
-    n_workers: int | None,
-    kernel: str | None,
-    gpomap_options: dict[str, Any],
-) -> None:
+def _run_in_child(sender: Any, arguments: tuple[Any, ...], gpomap_options: dict[str, Any]) -> None:
     """:func:`run_apart`'s child: the result, or what it raised, sent back over `sender`."""
     import pickle
 
     try:
         start = _rss_mb()
-        result = run_one(data, name, seed, grid_resolution, n_workers, kernel, **gpomap_options)
+        result = run_one(*arguments, **gpomap_options)
         result["rss_at_start_mb"] = start
         sender.send(("ok", result))
     except BaseException as exc:  # the parent reports it; the child must not die silently
@@ -218,6 +234,30 @@ def _run_in_child(
             sender.send(("failed", traceback.format_exc()))
     finally:
         sender.close()
+
+
+def score_curves(rows: Sequence[dict[str, Any]]) -> list[ScoreCurve]:
+    """Each method's predictions on one split as :func:`gpomap.plot.plot_evaluation` draws them:
+    gpomap's exact points (solid) and written map (dotted), each grid's own grid.
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        :func:`compare`'s results for one split.
+
+    Returns
+    -------
+    list of gpomap.plot.ScoreCurve
+    """
+    from gpomap.plot import ScoreCurve  # matplotlib only when drawn
+
+    curves = []
+    for r in rows:
+        label, colour = LABELS.get(r["name"], r["name"]), COLOURS.get(r["name"])
+        curves.append(ScoreCurve(label, r["points"], colour))
+        if r["name"] == GPOMAP and r.get("grid") is not None:  # a grid's written map is itself
+            curves.append(ScoreCurve(f"{label} grid {r['settings']['grid_resolution']:g}", r["grid"], colour, ":"))
+    return curves
 
 
 @dataclass(frozen=True)

@@ -580,7 +580,11 @@ def _auc_or_none(labels: NDArray[np.bool_], prob: NDArray[np.float64]) -> float 
 
 
 def score(
-    labels: NDArray[np.bool_], prob: NDArray[np.float64], masks: dict[str, NDArray[np.bool_]] | None = None, n_bins: int = 10
+    labels: NDArray[np.bool_],
+    prob: NDArray[np.float64],
+    masks: dict[str, NDArray[np.bool_]] | None = None,
+    n_bins: int = 10,
+    roc: bool = False,
 ) -> dict[str, Any]:
     """Every protocol metric of one prediction at the test points.
 
@@ -594,12 +598,15 @@ def score(
         "observed", "unobserved"); None where a subset lacks a class.
     n_bins : int
         Bins of the expected calibration error and the reliability diagram.
+    roc : bool
+        Also return the ROC curve.
 
     Returns
     -------
     dict
-        ``auc``, ``fpr_at_tpr95``, ``log_loss``, ``ece``, the subset AUCs, and ``reliability``
-        (``mean_prob``, ``frac_pos``, ``counts`` per bin; empty bins None).
+        ``auc``, ``fpr_at_tpr95``, ``log_loss``, ``ece``, the subset AUCs, ``reliability``
+        (``mean_prob``, ``frac_pos``, ``counts`` per bin; empty bins None) and, with `roc`,
+        ``roc`` (``fpr`` and ``tpr`` lists, one point per distinct probability).
     """
     p = np.clip(np.asarray(prob, dtype=float), 0.0, 1.0)
     mean_p, frac, counts = reliability_bins(labels, p, n_bins)
@@ -617,6 +624,9 @@ def score(
         "frac_pos": [None if np.isnan(v) else float(v) for v in frac],
         "counts": counts.tolist(),
     }
+    if roc:
+        fpr, tpr, _ = roc_curve(labels, p)
+        out["roc"] = {"fpr": fpr.tolist(), "tpr": tpr.tolist()}
     return out
 
 
@@ -806,7 +816,8 @@ def run_method(
     n_workers : int, optional
         Worker processes for tiles (default: the CPU count).
     return_roc : bool
-        Also return the exact-point ROC curve as ``roc = {"fpr": [...], "tpr": [...]}``.
+        Also return the ROC curves: each score's ``roc`` (:func:`score`), the exact points' also
+        as ``roc``.
     score_grid : bool
         Also build and score the written grid.
     **method_options
@@ -837,7 +848,7 @@ def run_method(
     for stage, value in getattr(model, "timings_", {}).items():
         if stage != "prediction" and isinstance(value, (int, float)):
             seconds[stage] = float(value)
-    points_score = score(data.labels, prob, data.masks)
+    points_score = score(data.labels, prob, data.masks, roc=return_roc)
     far_lattice = np.asarray(model.predict_proba(data.far_points), dtype=float) if len(data.far_points) else np.zeros(0)
     far = {"test_points": {"points": _spread(prob[data.far_test])}, "lattice": {"points": _spread(far_lattice)}}
     path = {"points": path_occupied(np.asarray(model.predict_proba(data.path), dtype=float), data.path)}
@@ -857,7 +868,7 @@ def run_method(
         seconds["grid"], cpu["grid"] = w4 - w3, c4 - c3
         written_shape = list(occupancy_map.grid.shape)
         gprob = lookup(occupancy_map, data.points)
-        grid_score = score(data.labels, gprob, data.masks)
+        grid_score = score(data.labels, gprob, data.masks, roc=return_roc)
         far["test_points"]["grid"] = _spread(gprob[data.far_test])
         far["lattice"]["grid"] = _spread(lookup(occupancy_map, data.far_points))
         path["grid"] = path_occupied(lookup(occupancy_map, data.path), data.path)
@@ -899,8 +910,7 @@ def run_method(
     if getattr(model, "evidence_", None) is not None:
         result["evidence"] = _jsonable(model.evidence_.summary())
     if return_roc:
-        fpr, tpr, _ = roc_curve(data.labels, prob)
-        result["roc"] = {"fpr": fpr.tolist(), "tpr": tpr.tolist()}
+        result["roc"] = points_score["roc"]
     return result
 
 

@@ -1,4 +1,5 @@
-"""Figures: the paper's three-panel map view and the input/cell-tree view.
+"""Figures: the paper's three-panel map view, the input/cell-tree view, and a scored map's ROC
+curves and reliability diagrams.
 
 Everything draws on :class:`matplotlib.figure.Figure` objects rendered with the Agg canvas, never
 through ``pyplot``: no window is opened, no global backend is switched and no figure is kept alive by
@@ -9,7 +10,10 @@ from __future__ import annotations
 
 import io
 import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -23,7 +27,7 @@ from gpomap.grid import OccupancyMap, ternary
 from gpomap.io.atomic import atomic_write
 from gpomap.resources import figure_step
 
-__all__ = ["plot_map", "plot_inputs", "save_figure", "PROBABILITY_CMAP", "VARIANCE_CMAP"]
+__all__ = ["plot_map", "plot_inputs", "plot_evaluation", "ScoreCurve", "save_figure", "PROBABILITY_CMAP", "VARIANCE_CMAP"]
 
 #: Diverging blue (free) to red (occupied), white at p = 0.5, like the paper's probability maps.
 PROBABILITY_CMAP = "RdBu_r"
@@ -196,6 +200,79 @@ def plot_inputs(
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.legend(loc="upper right", fontsize="small", markerscale=max(1.0, 4.0 / np.sqrt(size)), framealpha=0.85)
+    if path is not None:
+        save_figure(fig, path)
+    return fig
+
+
+@dataclass(frozen=True)
+class ScoreCurve:
+    """One scored prediction as :func:`plot_evaluation` draws it.
+
+    Attributes
+    ----------
+    label : str
+    scores : mapping
+        :func:`gpomap.evaluation.score`'s dict: ``reliability`` and ``ece``; ``roc`` and ``auc``
+        for the ROC panel.
+    colour : str, optional
+        A matplotlib colour (default: the next of the colour cycle).
+    linestyle : str
+    """
+
+    label: str
+    scores: Mapping[str, Any]
+    colour: str | None = None
+    linestyle: str = "-"
+
+
+def plot_evaluation(
+    panels: Sequence[tuple[str, Sequence[ScoreCurve]]], path: str | os.PathLike[str] | None = None, title: str | None = None
+) -> Figure:
+    """ROC curves and reliability diagrams: a column per split, a curve per prediction.
+
+    Parameters
+    ----------
+    panels : sequence of (str, sequence of ScoreCurve)
+        Each column's title (a split) and its curves.
+    path : str or path-like, optional
+        When given, the figure is also written there as a PNG (atomically).
+    title : str, optional
+        Figure title.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        Two rows of panels, ROC curves above reliability diagrams; the reliability row alone when
+        a curve has no ``roc``. ``fig.axes`` holds them row by row.
+    """
+    with_roc = all("roc" in c.scores for _, curves in panels for c in curves)
+    rows = 2 if with_roc else 1
+    fig = _new_figure(5.2 * len(panels), 4.6 * rows + (0.4 if title else 0.0))
+    axes = np.asarray(fig.subplots(rows, len(panels), squeeze=False))
+    for col, (name, curves) in enumerate(panels):
+        if with_roc:
+            ax = axes[0, col]
+            ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="chance")
+            for c in curves:
+                roc = c.scores["roc"]
+                ax.plot(roc["fpr"], roc["tpr"], c.linestyle, color=c.colour, label=f"{c.label} (AUC {c.scores['auc']:.3f})")
+            ax.set(xlabel="false positive rate", ylabel="true positive rate", xlim=(0, 1), ylim=(0, 1), title=name)
+            ax.legend(loc="lower right", fontsize=7)
+        ax = axes[rows - 1, col]
+        ax.plot([0, 1], [0, 1], color="0.6", lw=1, ls="--", label="calibrated")
+        for c in curves:
+            rel = c.scores["reliability"]
+            # Empty bins have no point.
+            x = [m for m, n in zip(rel["mean_prob"], rel["counts"], strict=True) if n]
+            y = [f for f, n in zip(rel["frac_pos"], rel["counts"], strict=True) if n]
+            ax.plot(x, y, c.linestyle, marker="o", ms=3, color=c.colour, label=f"{c.label} (ECE {c.scores['ece']:.3f})")
+        ax.set(xlabel="predicted occupancy probability", ylabel="fraction occupied", xlim=(0, 1), ylim=(0, 1))
+        if not with_roc:
+            ax.set_title(name)
+        ax.legend(loc="upper left", fontsize=7)
+    if title:
+        fig.suptitle(title)
     if path is not None:
         save_figure(fig, path)
     return fig
