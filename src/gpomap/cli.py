@@ -20,11 +20,14 @@ import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from gpomap import __version__
 from gpomap.config import DEFAULT_MAX_CELLS, DEFAULT_THRESHOLDS, MapConfig, TilingConfig
 from gpomap.errors import GpomapError
+
+if TYPE_CHECKING:
+    from gpomap.plot import ScoreCurve
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -762,9 +765,9 @@ def _check_figure_path(path: Path) -> None:
         raise GpomapError(f"--figure {path}: the directory {path.parent} does not exist")
 
 
-def _method_curves(method: str, result: dict[str, Any]) -> list[Any]:
+def _method_curves(method: str, result: dict[str, Any]) -> list[ScoreCurve]:
     """One method's exact-point and written-map predictions as :func:`gpomap.plot.plot_evaluation` draws them."""
-    from gpomap.plot import ScoreCurve
+    from gpomap.plot import ScoreCurve  # matplotlib only when drawn
 
     curves = [ScoreCurve(f"{method} points", result["points"], "tab:blue")]
     if result.get("grid") is not None:
@@ -772,7 +775,7 @@ def _method_curves(method: str, result: dict[str, Any]) -> list[Any]:
     return curves
 
 
-def _evaluation_figure(path: Path, panels: list[tuple[str, list[Any]]], source: str) -> None:
+def _evaluation_figure(path: Path, panels: list[tuple[str, list[ScoreCurve]]], source: str) -> None:
     """``--figure``: the ROC curves and reliability diagrams, written atomically."""
     from gpomap.plot import plot_evaluation
 
