@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from gpomap.comparison import GPOMAP, METHODS, TARGET_NAMES, can_run_apart, compare, run_apart, table, targets
+from gpomap.comparison import GPOMAP, METHODS, TARGET_NAMES, can_run_apart, compare, run_apart, score_curves, table, targets
 from gpomap.evaluation import prepare, run_method
 from gpomap.simulate import paper_room_scans
 
@@ -116,6 +116,12 @@ def test_compare_scores_every_method_on_the_same_test_points(room_split):
     mine = results[0]
     assert mine["grid"] is not None and mine["settings"]["grid_resolution"] == 0.05
     assert all(r["n_test_points"] == room_split.labels.size for r in results)
+    # Drawn: gpomap's exact points and written map, each grid once (its written map is itself),
+    # whether named by the comparison or, as one method's result, by its method.
+    labels = [c.label for c in score_curves(results)]
+    assert labels == ["MSK-GPOM", "MSK-GPOM grid 0.05", "OGM log-odds 0.05", "OGM log-odds 0.1", "OGM counting 0.05"]
+    alone = [{k: v for k, v in r.items() if k != "name"} for r in results]
+    assert [c.label for c in score_curves(alone[:2])] == ["MSK-GPOM", "MSK-GPOM grid 0.05", "ogm-logodds"]
     if can_run_apart():  # each in a child: its peak is its own, and no lower than its size at the fork
         assert all(r["peak_rss_mb"]["self"] >= r["rss_at_start_mb"] > 0 for r in results)
 

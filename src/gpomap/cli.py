@@ -715,6 +715,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
+    from gpomap.comparison import score_curves
     from gpomap.evaluation import Truth, evaluate, resolve_split
 
     if args.demo == (args.input is not None):
@@ -744,7 +745,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     result = evaluate(scans, truth=truth, return_roc=args.figure is not None, **arguments)
     result["settings"]["input"] = source
     if args.figure is not None:
-        _evaluation_figure(args.figure, [(resolve_split(args.split), _method_curves(args.method, result))], source)
+        _evaluation_figure(args.figure, [(resolve_split(args.split), score_curves([result]))], source)
         _without_roc(result)
     if args.json:
         print(json.dumps(result, default=str))
@@ -763,16 +764,6 @@ def _check_figure_path(path: Path) -> None:
         raise GpomapError(f"--figure {path}: the figure is written as a PNG; give a file name ending in .png")
     if not path.parent.is_dir():
         raise GpomapError(f"--figure {path}: the directory {path.parent} does not exist")
-
-
-def _method_curves(method: str, result: dict[str, Any]) -> list[ScoreCurve]:
-    """One method's exact-point and written-map predictions as :func:`gpomap.plot.plot_evaluation` draws them."""
-    from gpomap.plot import ScoreCurve  # matplotlib only when drawn
-
-    curves = [ScoreCurve(f"{method} points", result["points"], "tab:blue")]
-    if result.get("grid") is not None:
-        curves.append(ScoreCurve(f"{method} grid {result['settings']['grid_resolution']:g} m", result["grid"], "tab:blue", ":"))
-    return curves
 
 
 def _evaluation_figure(path: Path, panels: list[tuple[str, list[ScoreCurve]]], source: str) -> None:

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gpomap.evaluation import GRID_RESOLUTION, EvalData, run_method
+from gpomap.evaluation import GRID_METHODS, GRID_RESOLUTION, EvalData, run_method
 
 if TYPE_CHECKING:
     from gpomap.plot import ScoreCurve
@@ -238,12 +238,13 @@ def _run_in_child(sender: Any, arguments: tuple[Any, ...], gpomap_options: dict[
 
 def score_curves(rows: Sequence[dict[str, Any]]) -> list[ScoreCurve]:
     """Each method's predictions on one split as :func:`gpomap.plot.plot_evaluation` draws them:
-    gpomap's exact points (solid) and written map (dotted), each grid's own grid.
+    a GP method's exact points (solid) and written map (dotted), each grid's own grid.
 
     Parameters
     ----------
     rows : sequence of dict
-        :func:`compare`'s results for one split.
+        :func:`compare`'s results for one split, or :func:`gpomap.evaluation.run_method`'s
+        (named by their method).
 
     Returns
     -------
@@ -253,9 +254,10 @@ def score_curves(rows: Sequence[dict[str, Any]]) -> list[ScoreCurve]:
 
     curves = []
     for r in rows:
-        label, colour = LABELS.get(r["name"], r["name"]), COLOURS.get(r["name"])
+        name = r.get("name", r["method"])
+        label, colour = LABELS.get(name, name), COLOURS.get(name)
         curves.append(ScoreCurve(label, r["points"], colour))
-        if r["name"] == GPOMAP and r.get("grid") is not None:  # a grid's written map is itself
+        if r.get("grid") is not None and r["method"] not in GRID_METHODS:  # a grid's written map is itself
             curves.append(ScoreCurve(f"{label} grid {r['settings']['grid_resolution']:g}", r["grid"], colour, ":"))
     return curves
 
