@@ -11,7 +11,6 @@ the targets gpomap's written map must meet beside them (:func:`targets`).
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 import sys
 import traceback
 from collections.abc import Callable, Sequence
@@ -21,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from gpomap.evaluation import GRID_METHODS, GRID_RESOLUTION, EvalData, run_method
+from gpomap.resources import rss_mb
 
 if TYPE_CHECKING:
     from gpomap.plot import ScoreCurve
@@ -211,20 +211,15 @@ def run_apart(
     return dict(payload)
 
 
-def _rss_mb() -> float:
-    """This process's resident memory now (MB)."""
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
 def _run_in_child(sender: Any, arguments: tuple[Any, ...], gpomap_options: dict[str, Any]) -> None:
     """:func:`run_apart`'s child: the result, or what it raised, sent back over `sender`."""
     import pickle
 
     try:
-        start = _rss_mb()
+        start = rss_mb()
         result = run_one(*arguments, **gpomap_options)
-        result["rss_at_start_mb"] = start
+        if start is not None:
+            result["rss_at_start_mb"] = start
         sender.send(("ok", result))
     except BaseException as exc:  # the parent reports it; the child must not die silently
         try:

@@ -30,7 +30,7 @@
 
 from __future__ import annotations
 
-import resource
+import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -43,6 +43,7 @@ from gpomap.errors import EmptyDataError
 from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap
 from gpomap.metrics import expected_calibration_error, fpr_at_tpr, iou, log_loss, reliability_bins, roc_auc, roc_curve
 from gpomap.observations import observations_from_scans
+from gpomap.resources import peak_rss_mb
 from gpomap.scans import Scan, select_scans
 
 if TYPE_CHECKING:
@@ -639,17 +640,8 @@ def _spread(values: NDArray[np.float64]) -> dict[str, Any]:
 
 def _clock() -> tuple[float, float]:
     """Wall time and CPU time of this process and its reaped children (tile workers), seconds."""
-    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return time.perf_counter(), time.process_time() + ch.ru_utime + ch.ru_stime
-
-
-def peak_rss_mb() -> dict[str, float]:
-    """Peak resident memory so far (MB) of this process and of its largest reaped child."""
-    kb = 1024.0  # Linux reports ru_maxrss in KB
-    return {
-        "self": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / kb,
-        "children": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / kb,
-    }
+    t = os.times()
+    return time.perf_counter(), time.process_time() + t.children_user + t.children_system
 
 
 @dataclass

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 from collections.abc import Sequence
 
 import numpy as np
@@ -34,6 +35,8 @@ __all__ = [
     "MemoryLimitError",
     "check_memory",
     "memory_limit",
+    "peak_rss_mb",
+    "rss_mb",
     "default_memory_limit",
     "fit_memory",
     "format_bytes",
@@ -128,6 +131,32 @@ def total_memory() -> int | None:
     except (AttributeError, ValueError, OSError):
         return None
     return int(pages) * int(size) if pages > 0 and size > 0 else None
+
+
+def rss_mb() -> float | None:
+    """This process's resident memory now, MiB (None where the system does not say: not Linux)."""
+    try:
+        with open("/proc/self/statm", encoding="ascii") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
+
+
+def peak_rss_mb() -> dict[str, float]:
+    """Peak resident memory so far, MiB: ``"self"``, this process; ``"children"``, its largest reaped child.
+
+    NaN where the system keeps no such record (Windows). The record is ``getrusage``'s
+    ``ru_maxrss``: KiB on Linux, bytes on macOS.
+    """
+    try:
+        import resource  # POSIX only
+    except ImportError:
+        return {"self": math.nan, "children": math.nan}
+    per_mib = 2**20 if sys.platform == "darwin" else 2**10
+    return {
+        "self": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / per_mib,
+        "children": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / per_mib,
+    }
 
 
 def default_memory_limit(fraction: float = DEFAULT_MEMORY_FRACTION) -> int | None:

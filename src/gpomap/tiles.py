@@ -40,7 +40,6 @@ import functools
 import math
 import multiprocessing
 import os
-import resource
 import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
@@ -65,7 +64,7 @@ from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas
 from gpomap.lattice import column_bounds, stable_order
 from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
-from gpomap.resources import WRITTEN_BAND_CELLS
+from gpomap.resources import WRITTEN_BAND_CELLS, peak_rss_mb
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
 from gpomap.squash import UNSEEN_FREE_CUT, ProbitSquash, unseen_probit
@@ -664,13 +663,6 @@ def taper(x: NDArray[np.float64], a: float, b: float, half: float) -> NDArray[np
     ndarray of shape (m,)
     """
     return _smoothstep((x - (a - half)) / (2 * half)) * _smoothstep(((b + half) - x) / (2 * half))
-
-
-def _peak_rss_mb() -> dict[str, float]:
-    # ru_maxrss is in KiB on Linux; children covers pool workers that have been reaped.
-    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
-    return {"self_mb": round(own, 1), "children_mb": round(kids, 1)}
 
 
 @dataclass
@@ -2112,7 +2104,7 @@ class TiledGPOM:
             "hyperparameter_source": dict(self.hyper_source_),
             "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
             "timings": dict(self.timings_),
-            "peak_memory": _peak_rss_mb(),
+            "peak_memory": peak_rss_mb(),
             "executor": "dask"
             if self.scheduler is not None
             else (

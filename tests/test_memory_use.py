@@ -1,0 +1,55 @@
+"""The memory a run reports using: ``gpomap.resources.rss_mb`` and ``peak_rss_mb``."""
+
+from __future__ import annotations
+
+import builtins
+import math
+import sys
+import types
+
+import numpy as np
+import pytest
+
+from gpomap import resources
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/self/statm is Linux's")
+def test_peak_counts_an_array_just_touched() -> None:
+    # Two independent records of the same memory: /proc's resident pages now, getrusage's peak.
+    # A unit slip (KiB read as bytes, or as MiB) would miss by a factor of 1024.
+    before = resources.rss_mb()
+    assert before is not None
+    block = np.ones(64 * 2**20 // 8)  # 64 MiB, every page written
+    now = resources.rss_mb()
+    assert now is not None and now >= before + 60
+    peak = resources.peak_rss_mb()
+    assert now - 1 <= peak["self"] < 100 * now
+    assert block.sum() == block.size
+
+
+def _fake_resource(maxrss: int) -> types.SimpleNamespace:
+    usage = types.SimpleNamespace(ru_maxrss=maxrss)
+    return types.SimpleNamespace(RUSAGE_SELF=0, RUSAGE_CHILDREN=-1, getrusage=lambda who: usage)
+
+
+@pytest.mark.parametrize(("platform", "maxrss"), [("linux", 2**20), ("darwin", 2**30)])
+def test_peak_units_per_platform(monkeypatch: pytest.MonkeyPatch, platform: str, maxrss: int) -> None:
+    # 1 GiB either way: Linux reports KiB, macOS bytes.
+    monkeypatch.setitem(sys.modules, "resource", _fake_resource(maxrss))
+    monkeypatch.setattr(resources.sys, "platform", platform)
+    assert resources.peak_rss_mb() == {"self": 1024.0, "children": 1024.0}
+
+
+def test_peak_unknown_without_resource_module(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Windows has no `resource` module: the peak is unknown (NaN), not an ImportError at import time.
+    real_import = builtins.__import__
+
+    def no_resource(name: str, *args: object, **kwargs: object) -> object:
+        if name == "resource":
+            raise ImportError(name)
+        return real_import(name, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.delitem(sys.modules, "resource", raising=False)
+    monkeypatch.setattr(builtins, "__import__", no_resource)
+    peak = resources.peak_rss_mb()
+    assert set(peak) == {"self", "children"} and all(math.isnan(v) for v in peak.values())
