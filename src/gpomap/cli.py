@@ -612,6 +612,12 @@ def _write_map(args: argparse.Namespace, model: Any, title: str, extra: Callable
     return [outputs.final(f) for f in staged]
 
 
+def _peak_memory(peak: dict[str, float]) -> str:
+    """``"self 663 MB, children 0 MB"`` from :func:`gpomap.resources.peak_rss_mb`; "unknown" where the system keeps no record."""
+    known = {k: v for k, v in peak.items() if math.isfinite(v)}
+    return ", ".join(f"{k} {v:.0f} MB" for k, v in known.items()) if known else "unknown on this system"
+
+
 def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: str | None = None) -> None:
     per = summary["cells_per_tile"]
     lines = [
@@ -624,7 +630,7 @@ def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: s
         + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
         + f" ({source or summary['hyperparameter_source'].get('how', '')})",
         "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
-        "peak memory  " + ", ".join(f"{k} {v:.0f} MB" for k, v in summary["peak_memory"].items()),
+        "peak memory  " + _peak_memory(summary["peak_memory"]),
     ]
     lines += [f"wrote        {f}" for f in files]
     print("\n".join(lines))
@@ -1064,7 +1070,7 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
             )
     print("seconds       " + ", ".join(f"{k} {v:.3f}" for k, v in result["seconds"].items()))
     print("cpu seconds   " + ", ".join(f"{k} {v:.3f}" for k, v in result["cpu_seconds"].items()))
-    print("peak memory   " + ", ".join(f"{k} {v:.0f} MB" for k, v in result["peak_rss_mb"].items()))
+    print("peak memory   " + _peak_memory(result["peak_rss_mb"]))
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
