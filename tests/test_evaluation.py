@@ -268,3 +268,19 @@ def test_path_points_and_path_occupied_by_hand():
     assert out["n_occupied"] == 2
     # The ternary map's threshold decides: 0.66 exactly is not occupied.
     assert ev.path_occupied(np.full(len(pts), 0.66), pts)["n_occupied"] == 0
+
+
+def test_truth_from_plan_lies_on_the_maps_lattice():
+    # 4 x 1 pixels of 0.1 m whose lower-left corner is (0.03, 0.0): on a 0.2 m grid the cells start
+    # at x = 0 (a multiple of 0.2, as every written map's do), not at 0.03. Pixel centres 0.08,
+    # 0.18, 0.28, 0.38 fall in cells 0, 0, 1, 1; the extent reaches 0.43, so a third cell.
+    img = np.array([[False, True, True, False]])
+    t = ev.Truth.from_plan(img, (0.03, 0.0), (0.1, 0.1), 0.2)
+    assert t.grid.origin == (0.0, 0.0) and t.grid.shape == (1, 3)
+    np.testing.assert_array_equal(t.occupied, [[True, True, False]])
+    np.testing.assert_array_equal(t.known, [[True, True, False]])
+    # A map written at 0.2 m over any extent has the same cells: its occupied cells are the plan's.
+    from gpomap.grid import GridSpec
+
+    written = GridSpec.from_extent((0.01, 0.39, 0.0, 0.1), 0.2, align=True)
+    assert written.origin == t.grid.origin

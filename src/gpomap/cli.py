@@ -811,7 +811,7 @@ def _splits(text: str) -> list[str]:
 
 
 def _read_truth(args: argparse.Namespace) -> Any:
-    """``--truth``: a ROS map_server map as the true map, at the written map's resolution."""
+    """``--truth``: a ROS map_server map as the true map, on the written map's cells."""
     from gpomap.evaluation import Truth
     from gpomap.io.rosmap import read_rosmap
 
@@ -1291,7 +1291,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--truth",
         metavar="MAP.yaml",
         help="a true map (ROS map_server YAML and image, in the scans' frame) to score against as well, at the "
-        "written map's resolution: AUC and occupied-class IoU over its known cells, and over those a training beam reached",
+        "written map's resolution and on its cells: AUC and occupied-class IoU over its known cells, and over those a training beam reached",
     )
     p.add_argument(
         "--compare",

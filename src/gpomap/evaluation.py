@@ -445,8 +445,9 @@ class Truth:
 
     @classmethod
     def from_world(cls, world: Any, resolution: float = GRID_RESOLUTION, wall_thickness: float | None = None) -> Truth:
-        """A simulated world's true grid over its bounds (:meth:`gpomap.simulate.World.true_grid`)."""
-        grid = GridSpec.from_extent(world.bounds, resolution)
+        """A simulated world's true grid over its bounds (:meth:`gpomap.simulate.World.true_grid`), on
+        the written maps' lattice (see :meth:`from_plan`)."""
+        grid = GridSpec.from_extent(world.bounds, resolution, align=True)
         return cls(grid, world.true_grid(grid, wall_thickness))
 
     @classmethod
@@ -459,6 +460,13 @@ class Truth:
         known_pixels: NDArray[np.bool_] | None = None,
     ) -> Truth:
         """A floor-plan bitmap resampled to `resolution`: a cell is occupied if any pixel in it is.
+
+        The cells are those of every map written at `resolution` (corners on multiples of it, as
+        ``gpomap map`` and the occupancy grids place theirs), not cells from the bitmap's corner:
+        a map is scored cell for cell. Off that lattice every map cell straddles two true cells,
+        and a wall one cell thick in the map is scored as two half-right cells (the Stage arena's
+        plan, whose corner is 0.4 and 0.5 cells off at 0.05 m, gave the 0.05 m log-odds grid an
+        occupied-class IoU of 0.42-0.43 against 0.56 on the maps' lattice).
 
         Parameters
         ----------
@@ -475,7 +483,7 @@ class Truth:
         """
         h, w = occupied_pixels.shape
         x0, y0 = lower_left
-        grid = GridSpec.from_extent((x0, x0 + w * pixel_size[0], y0, y0 + h * pixel_size[1]), resolution)
+        grid = GridSpec.from_extent((x0, x0 + w * pixel_size[0], y0, y0 + h * pixel_size[1]), resolution, align=True)
         rows, cols = np.indices((h, w))
         centres = np.column_stack([x0 + (cols.ravel() + 0.5) * pixel_size[0], y0 + (h - rows.ravel() - 0.5) * pixel_size[1]])
         r, c, inside = grid.index_of(centres)
