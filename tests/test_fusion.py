@@ -846,3 +846,58 @@ def test_a_map_built_in_bands_reports_its_bands_not_each_bands_tiles(
     assert "building the map: 1/9 bands" in err and "building the map: 8/9 bands" in err
     assert "predicting tiles" not in err
     assert "predicting tiles" in one_piece and "building the map" not in one_piece
+
+
+def _jaccard(p, y, w, t):
+    tp = np.sum(y & (p > t))
+    fp = w * np.sum(~y & (p > t))
+    fn = np.sum(y & (p <= t))
+    return tp / (tp + fp + fn)
+
+
+def test_occupied_threshold_by_hand():
+    from gpomap.fusion import occupied_threshold
+
+    # Hits at 0.99, 0.9, 0.7; free points at 0.95 and 0.8, each worth 3 (the log's ratio).
+    # Above 0.66: 3 / (3 + 6) = 1/3; above 0.7: 2 / (3 + 6) = 2/9; above 0.8: 2 / (3 + 3) = 1/3;
+    # above 0.9: 1 / (3 + 3) = 1/6; above 0.95: 1 / 3. Ties keep the lowest threshold: 0.66.
+    p = np.array([0.99, 0.9, 0.7, 0.95, 0.8])
+    y = np.array([True, True, True, False, False])
+    t, iou = occupied_threshold(p, y, free_weight=3.0)
+    assert t == 0.66 and iou == pytest.approx(1 / 3)
+    # With free points worth 4: 3/11, 2/11, 2/7, 1/7, 1/3 -> above 0.95.
+    t, iou = occupied_threshold(p, y, free_weight=4.0)
+    assert t == 0.95 and iou == pytest.approx(1 / 3)
+    assert occupied_threshold(p, np.zeros(5, bool)) == (0.66, 0.0)
+
+
+def test_occupied_threshold_is_the_brute_force_best():
+    from gpomap.fusion import occupied_threshold
+
+    rng = np.random.default_rng(3)
+    y = rng.random(400) < 0.5
+    p = np.clip(np.where(y, rng.beta(5, 2, 400), rng.beta(2, 4, 400)), 0, 1).round(3)  # ties included
+    for w in (0.5, 1.0, 7.0, 40.0):
+        t, iou = occupied_threshold(p, y, free_weight=w)
+        grid = np.r_[0.66, np.unique(p[p > 0.66])]
+        best = max(_jaccard(p, y, w, g) for g in grid)
+        assert iou == pytest.approx(best) and _jaccard(p, y, w, t) == pytest.approx(best)
+        assert t >= 0.66
+
+
+def test_the_map_fits_its_ternary_occupied_threshold():
+    from gpomap.grid import DEFAULT_THRESHOLDS, ternary
+    from gpomap.mapping import AreaGPOM
+    from gpomap.simulate import paper_room_scans
+
+    scans = paper_room_scans(n_beams=36, noise_std=0.02)
+    model = AreaGPOM().fit(scans)
+    fitted = model.evidence_.report["occupied_threshold"]
+    assert DEFAULT_THRESHOLDS[1] <= fitted < 1.0 and 0.0 < model.evidence_.report["occupied_iou"] <= 1.0
+    assert model.thresholds_ == (DEFAULT_THRESHOLDS[0], fitted)
+    assert model.grid(0.5).thresholds == model.thresholds_
+    q = np.array([[1.0, 1.0], [5.0, 5.0], [8.0, 2.0]])
+    np.testing.assert_array_equal(model.predict_ternary(q), ternary(model.predict_proba(q), (DEFAULT_THRESHOLDS[0], fitted)))
+    # Given thresholds are kept; without ray evidence there is nothing to fit them on.
+    assert AreaGPOM(thresholds=(0.2, 0.7)).fit(scans).thresholds_ == (0.2, 0.7)
+    assert AreaGPOM(ray_evidence=False).fit(scans).thresholds_ == DEFAULT_THRESHOLDS

@@ -160,10 +160,6 @@ def _module_default(module: str, name: str, convert: Callable[[Any], Any] | None
     return _Default(lookup=lookup)
 
 
-def _show_pair(pair: tuple[float, float]) -> str:
-    return f"{pair[0]:g},{pair[1]:g}"
-
-
 def _status(args: argparse.Namespace, message: str) -> None:
     if not getattr(args, "quiet", False):
         print(message, file=sys.stderr, flush=True)
@@ -403,9 +399,10 @@ def _add_output_options(p: argparse.ArgumentParser, default_resolution: Any) -> 
     g.add_argument(
         "--thresholds",
         type=_pair,
-        default=_Default(DEFAULT_THRESHOLDS, show=_show_pair),
+        default=_Default(MapConfig.thresholds, show=lambda _: f"{DEFAULT_THRESHOLDS[0]:g},fitted"),
         metavar="FREE,OCCUPIED",
-        help="ternary-map thresholds (default: %(default)s)",
+        help="ternary-map thresholds (default: %(default)s: free below 0.33, occupied above a "
+        "threshold fitted on the log's own scans, at least 0.66; 3-D maps 0.33,0.66)",
     )
     g.add_argument(
         "--pgm-mode",
@@ -1113,7 +1110,8 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 def _convert_options(args: argparse.Namespace) -> dict[str, Any]:
     """The model options of ``gpomap convert`` (the rest are the converter's own, see gpomap.convert.model_defaults)."""
-    options: dict[str, Any] = {"thresholds": args.thresholds}
+    # No ray counts to fit the occupied threshold on: the paper's thresholds unless given.
+    options: dict[str, Any] = {"thresholds": args.thresholds if args.thresholds is not None else DEFAULT_THRESHOLDS}
     if args.kernel:
         options["kernel"] = args.kernel
     return options

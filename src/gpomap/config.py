@@ -103,7 +103,7 @@ class MapConfig(_Config):
     seed: int = 0
     quadrature_order: int = 2
     # the map: thresholds, prediction chunks, the ray counts on top of the GP
-    thresholds: tuple[float, float] = DEFAULT_THRESHOLDS
+    thresholds: tuple[float, float] | None = None
     chunk_size: int = 4096
     ray_evidence: bool = True
     evidence_resolution: float = 0.05

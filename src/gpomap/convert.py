@@ -723,7 +723,7 @@ def convert_grid(
     t = time.perf_counter()
     # On the source grid itself the known pixels are in the observations' row-major order.
     p_known = prob[labels != UNKNOWN] if spec == src else model.predict_proba(obs.points)
-    agreement = _agreement(p_known, obs.occupied, model.thresholds)
+    agreement = _agreement(p_known, obs.occupied, model.thresholds_)
     t_agree = time.perf_counter() - t
 
     cells = model.cells_
@@ -758,7 +758,7 @@ def convert_grid(
     info = dict(model.summary())
     info["source"] = "grid conversion"
     info["conversion"] = {k: report[k] for k in ("pixels", "cells", "agreement", "grid")}
-    occupancy_map = OccupancyMap(spec, prob, variance=var, thresholds=model.thresholds, info=info)
+    occupancy_map = OccupancyMap(spec, prob, variance=var, thresholds=model.thresholds_, info=info)
     return ConversionResult(map=occupancy_map, model=model, report=report)
 
 

@@ -219,7 +219,7 @@ def convert_octree(
     agreement: dict[str, Any] = {"n_known": int(check.sum()), "n_checked": int(idx.size)}
     occupied = obs.occupied[idx]
     if occupied.any() and not occupied.all():
-        agreement.update(_agreement(model.predict_proba(obs.points[idx]), occupied, model.thresholds))
+        agreement.update(_agreement(model.predict_proba(obs.points[idx]), occupied, model.thresholds_))
     t_agree = time.perf_counter() - t
 
     spec: VoxelSpec = voxel_map.spec

@@ -45,7 +45,7 @@ class GPMapEstimator:
 
     method_name = "gp"
     chunk_size: int = 4096
-    thresholds: tuple[float, float] = DEFAULT_THRESHOLDS
+    thresholds: tuple[float, float] | None = DEFAULT_THRESHOLDS
     # Settings every subclass takes in its constructor, declared for the code shared here.
     kernel: str
     free_step: float
@@ -73,6 +73,11 @@ class GPMapEstimator:
     timings_: dict[str, float]
     extent_points_: NDArray[np.float64]
     path_: NDArray[np.float64] | None
+
+    @property
+    def thresholds_(self) -> tuple[float, float]:
+        """The ternary map's (free below, occupied above) probabilities: ``thresholds``, or the paper's."""
+        return self.thresholds if self.thresholds is not None else DEFAULT_THRESHOLDS
 
     @property
     def n_inputs_(self) -> int:
@@ -220,7 +225,7 @@ class GPMapEstimator:
 
     def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
-        return ternary(self.predict_proba(points), self.thresholds)
+        return ternary(self.predict_proba(points), self.thresholds_)
 
     def grid(self, resolution: float, extent: tuple[float, ...] | None = None, supersample: int = 1) -> Any:
         """The map sampled on a regular grid: an OccupancyMap in 2-D, a VoxelMap (:meth:`voxels`) in 3-D.
@@ -261,7 +266,7 @@ class GPMapEstimator:
                 grid=spec,
                 probability=probability,
                 variance=variance,
-                thresholds=self.thresholds,
+                thresholds=self.thresholds_,
                 path=self.path_,
                 info=self.summary(),
             )
@@ -274,7 +279,7 @@ class GPMapEstimator:
             grid=spec,
             probability=p.reshape(blocks).max(axis=(1, 3)),
             variance=var.reshape(blocks).mean(axis=(1, 3)),
-            thresholds=self.thresholds,
+            thresholds=self.thresholds_,
             path=self.path_,
             info=self.summary(),
         )
@@ -312,7 +317,7 @@ class GPMapEstimator:
         else:
             p, var = self.predict_proba_gp(spec.centres(), return_var=True)
             probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)
-        return VoxelMap(spec, probability, variance, thresholds=self.thresholds, info=self.summary())
+        return VoxelMap(spec, probability, variance, thresholds=self.thresholds_, info=self.summary())
 
     def summary(self) -> dict[str, Any]:
         """What was fitted: settings, data sizes, hyperparameters and stage timings."""

@@ -354,7 +354,12 @@ def path_points(scans: Sequence[Scan], step: float = PATH_STEP) -> NDArray[np.fl
     return np.concatenate(out)
 
 
-def path_occupied(prob: NDArray[np.float64], points: NDArray[np.float64], cell: float = REFERENCE_RESOLUTION) -> dict[str, Any]:
+def path_occupied(
+    prob: NDArray[np.float64],
+    points: NDArray[np.float64],
+    cell: float = REFERENCE_RESOLUTION,
+    threshold: float = DEFAULT_THRESHOLDS[1],
+) -> dict[str, Any]:
     """How much of the robot's own path a map calls occupied (ternary threshold).
 
     Parameters
@@ -366,6 +371,8 @@ def path_occupied(prob: NDArray[np.float64], points: NDArray[np.float64], cell: 
     cell : float
         Path points are counted per cell of this side (a lattice from the origin), so a long
         stretch of path in one cell counts once.
+    threshold : float
+        The map's ternary occupied threshold (occupied above it).
 
     Returns
     -------
@@ -378,7 +385,7 @@ def path_occupied(prob: NDArray[np.float64], points: NDArray[np.float64], cell: 
     cell_of = cell_of.ravel()
     n = int(cell_of.max()) + 1 if cell_of.size else 0
     occupied = np.zeros(n, bool)
-    np.logical_or.at(occupied, cell_of, np.asarray(prob) > DEFAULT_THRESHOLDS[1])
+    np.logical_or.at(occupied, cell_of, np.asarray(prob) > threshold)
     return {"n_cells": n, "n_occupied": int(occupied.sum()), "fraction": float(occupied.mean()) if n else 0.0}
 
 
@@ -555,7 +562,7 @@ def score_truth(
     observed : ndarray of bool, shape (ny * nx,), optional
         Cells the training data observed: also scored alone.
     threshold : float
-        Occupied above this (the ternary map's threshold, 0.66): the IoU's predicted class.
+        Occupied above this (the map's ternary threshold): the IoU's predicted class.
 
     Returns
     -------
@@ -851,12 +858,16 @@ def run_method(
     points_score = score(data.labels, prob, data.masks, roc=return_roc)
     far_lattice = np.asarray(model.predict_proba(data.far_points), dtype=float) if len(data.far_points) else np.zeros(0)
     far = {"test_points": {"points": _spread(prob[data.far_test])}, "lattice": {"points": _spread(far_lattice)}}
-    path = {"points": path_occupied(np.asarray(model.predict_proba(data.path), dtype=float), data.path)}
+    # Each map's ternary map is judged at its own occupied threshold (MSK-GPOM fits its own).
+    occupied_above = float(getattr(model, "thresholds_", DEFAULT_THRESHOLDS)[1])
+    path = {"points": path_occupied(np.asarray(model.predict_proba(data.path), dtype=float), data.path, threshold=occupied_above)}
     truth_out: dict[str, Any] | None = None
     if data.truth is not None:
         centres = data.truth.grid.centres()
         truth_out = {
-            "points": score_truth(data.truth, np.asarray(model.predict_proba(centres), dtype=float), data.truth_observed)
+            "points": score_truth(
+                data.truth, np.asarray(model.predict_proba(centres), dtype=float), data.truth_observed, occupied_above
+            )
         }
 
     grid_score = None
@@ -871,14 +882,18 @@ def run_method(
         grid_score = score(data.labels, gprob, data.masks, roc=return_roc)
         far["test_points"]["grid"] = _spread(gprob[data.far_test])
         far["lattice"]["grid"] = _spread(lookup(occupancy_map, data.far_points))
-        path["grid"] = path_occupied(lookup(occupancy_map, data.path), data.path)
+        written_above = occupancy_map.thresholds[1]
+        path["grid"] = path_occupied(lookup(occupancy_map, data.path), data.path, threshold=written_above)
         if data.truth is not None and truth_out is not None:
-            truth_out["grid"] = score_truth(data.truth, lookup(occupancy_map, data.truth.grid.centres()), data.truth_observed)
+            truth_out["grid"] = score_truth(
+                data.truth, lookup(occupancy_map, data.truth.grid.centres()), data.truth_observed, written_above
+            )
         del occupancy_map
 
     is_grid = method in GRID_METHODS
     result: dict[str, Any] = {
         "method": method,
+        "occupied_threshold": occupied_above,
         "auc": points_score["auc"],
         "fpr_at_tpr95": points_score["fpr_at_tpr95"],
         "log_loss": points_score["log_loss"],

@@ -83,7 +83,7 @@ class AreaGPOM(TiledGPOM):
         class_weight: str | None = MapConfig.class_weight,
         seed: int = MapConfig.seed,
         quadrature_order: int = MapConfig.quadrature_order,
-        thresholds: tuple[float, float] = MapConfig.thresholds,
+        thresholds: tuple[float, float] | None = MapConfig.thresholds,
         chunk_size: int = MapConfig.chunk_size,
         ray_evidence: bool = MapConfig.ray_evidence,
         evidence_resolution: float = MapConfig.evidence_resolution,

@@ -57,7 +57,7 @@ from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFitt
 from gpomap.estimator import as_points
 from gpomap.fusion import EvidenceLayer, HitProximity
 from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
-from gpomap.grid import GridSpec, OccupancyMap, row_bands, ternary
+from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, row_bands, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas_threads
@@ -1943,9 +1943,24 @@ class TiledGPOM:
         self.timings_["prediction"] = time.perf_counter() - t
         return out
 
+    @property
+    def thresholds_(self) -> tuple[float, float]:
+        """The ternary map's (free below, occupied above) probabilities.
+
+        The ``thresholds`` given, else the paper's free threshold and the occupied one the ray
+        evidence's calibration fitted (:func:`gpomap.fusion.occupied_threshold`), else the paper's
+        (:data:`gpomap.grid.DEFAULT_THRESHOLDS`).
+        """
+        if self.base.thresholds is not None:
+            return self.base.thresholds
+        fitted = self.evidence_.report.get("occupied_threshold") if self.evidence_ is not None else None
+        if fitted is None:
+            return DEFAULT_THRESHOLDS
+        return (DEFAULT_THRESHOLDS[0], float(fitted))
+
     def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
-        return ternary(self.predict_proba(points), self.base.thresholds)
+        return ternary(self.predict_proba(points), self.thresholds_)
 
     @_blas_shared
     def grid(self, resolution: float, extent: tuple[float, ...] | None = None) -> Any:
@@ -1978,7 +1993,7 @@ class TiledGPOM:
             grid=spec,
             probability=probability,
             variance=variance,
-            thresholds=self.base.thresholds,
+            thresholds=self.thresholds_,
             path=self.path_,
             info=self.summary(),
         )
@@ -2017,7 +2032,7 @@ class TiledGPOM:
         t = time.perf_counter()
         probability, variance = self._sample(spec)
         self.timings_["grid"] = time.perf_counter() - t
-        return VoxelMap(spec, probability, variance, thresholds=self.base.thresholds, info=self.summary())
+        return VoxelMap(spec, probability, variance, thresholds=self.thresholds_, info=self.summary())
 
     # ------------------------------------------------------------------ reporting
     @property
@@ -2103,6 +2118,7 @@ class TiledGPOM:
             "variance_scale_fit": dict(self.extrapolation_),
             "hyperparameter_source": dict(self.hyper_source_),
             "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
+            "thresholds": list(self.thresholds_),
             "timings": dict(self.timings_),
             "peak_memory": peak_rss_mb(),
             "executor": "dask"
