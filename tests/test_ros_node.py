@@ -325,7 +325,8 @@ def test_node_maps_the_stage_arena_bag_on_a_real_roscore(ros_python, ros_master,
     for i in range(n):
         geometry = {(m["stamp"], m["width"], m["height"], tuple(m["origin"])) for m in (by_topic[t][i] for t in grids)}
         assert len(geometry) == 1
-        # Trinary and probability agree (thresholds 0.33 / 0.66, probabilities rounded to 1 %).
+        # Trinary and probability agree (free below 0.33, occupied above a fitted threshold of at least
+        # 0.66; probabilities rounded to 1 %).
         trinary, prob = layers["/map"][i], layers["/map_probability"][i]
         assert (prob[trinary == 100] >= 66).all() and (prob[trinary == 0] <= 33).all()
     stamps = [m["stamp"] for m in by_topic["/map"]]

@@ -58,7 +58,7 @@ class NodeSettings:
     warmup_scans: int = DEFAULT_WARMUP_SCANS
     max_refits: int | None = None
     tile_size: float = DEFAULT_TILE_SIZE
-    thresholds: tuple[float, float] = (0.33, 0.66)
+    thresholds: tuple[float, float] | None = None
     save_directory: str = "gpomap-map"
     save_on_shutdown: bool = False
     model: dict[str, Any] = field(default_factory=dict)
@@ -96,7 +96,8 @@ def settings_from_params(get: Callable[[str, Any], Any]) -> NodeSettings:
         ``pose_wait`` (s a scan waits for its tf before it is dropped, 1.0), ``warmup_scans``
         (scans before the hyperparameters are learnt and the first map, 30), ``max_refits``
         (most tiles refitted per map published, oldest first; default no limit), ``tile_size`` (m,
-        5), ``thresholds`` ([free, occupied], 0.33, 0.66), ``save_directory`` (``gpomap-map``),
+        5), ``thresholds`` ([free, occupied]; default 0.33 and an occupied threshold fitted on the scans so far,
+        :attr:`gpomap.tiles.TiledGPOM.thresholds_`), ``save_directory`` (``gpomap-map``),
         ``save_on_shutdown`` (false), ``model`` (a dict of :class:`~gpomap.mapping.AreaGPOM`
         options, e.g. ``{kernel: se, free_step: 0.1}``).
 
@@ -116,12 +117,15 @@ def settings_from_params(get: Callable[[str, Any], Any]) -> NodeSettings:
         extent = (e[0], e[1], e[2], e[3])
     else:
         extent = None
-    thresholds = get("thresholds", list(d.thresholds))
-    if not isinstance(thresholds, Sequence) or isinstance(thresholds, str) or len(thresholds) != 2:
-        raise GpomapError(f"parameter ~thresholds must be [free, occupied], got {thresholds!r}")
-    lo, hi = (_number("thresholds", v) or 0.0 for v in thresholds)
-    if not 0 <= lo <= hi <= 1:
-        raise GpomapError(f"parameter ~thresholds must satisfy 0 <= free <= occupied <= 1, got {thresholds!r}")
+    given = get("thresholds", None)
+    thresholds: tuple[float, float] | None = None
+    if given is not None and given != []:
+        if not isinstance(given, Sequence) or isinstance(given, str) or len(given) != 2:
+            raise GpomapError(f"parameter ~thresholds must be [free, occupied], got {given!r}")
+        lo, hi = (_number("thresholds", v) or 0.0 for v in given)
+        if not 0 <= lo <= hi <= 1:
+            raise GpomapError(f"parameter ~thresholds must satisfy 0 <= free <= occupied <= 1, got {given!r}")
+        thresholds = (lo, hi)
     model = get("model", {}) or {}
     if not isinstance(model, dict):
         raise GpomapError(f"parameter ~model must be a dict of AreaGPOM options, got {model!r}")
@@ -146,7 +150,7 @@ def settings_from_params(get: Callable[[str, Any], Any]) -> NodeSettings:
         warmup_scans=int(warmup),
         max_refits=max_refits,
         tile_size=float(_number("tile_size", get("tile_size", d.tile_size), 0.0) or d.tile_size),
-        thresholds=(lo, hi),
+        thresholds=thresholds,
         save_directory=str(get("save_directory", d.save_directory)),
         save_on_shutdown=save_on_shutdown,
         model=dict(model),
