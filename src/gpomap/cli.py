@@ -626,6 +626,7 @@ def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: s
         "hyperparams  "
         + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
         + f" ({source or summary['hyperparameter_source'].get('how', '')})",
+        "ternary      free below {:g}, occupied above {:.3f}".format(*summary["thresholds"]),
         "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
         "peak memory  " + _peak_memory(summary["peak_memory"]),
     ]
@@ -1059,6 +1060,11 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
             for k in ("points", "grid")
         ]
         print(f"{label:<16}" + "   ".join(cells) + "   (> 5 m from any training beam: mean +- std)")
+    path = result["path"]
+    counts = "   ".join(f"{path[k]['n_occupied']} of {path[k]['n_cells']}" if path.get(k) else "-" for k in ("points", "grid"))
+    print(
+        f"{'path occupied':<16}{counts}   (robot's path cells the ternary map calls occupied, above {result['occupied_threshold']:.3f})"
+    )
     if result.get("truth"):
         for k, t in result["truth"].items():
             print(
