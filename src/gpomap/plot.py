@@ -118,7 +118,7 @@ def plot_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str] | None = 
     im = axes[2].imshow(ternary(probability, m.thresholds), cmap=_TERNARY_CMAP, norm=_TERNARY_NORM, **imshow)
     cbar = _colorbar(fig, axes[2], im, "")
     cbar.set_ticks([-1, 0, 1], labels=["unknown", "free", "occupied"])
-    axes[2].set_title(f"ternary (free < {m.thresholds[0]:g}, occupied > {m.thresholds[1]:g})")
+    axes[2].set_title(f"ternary (free < {m.thresholds[0]:.3g}, occupied > {m.thresholds[1]:.3g})")
 
     for i, ax in enumerate(axes):
         ax.set_xlim(extent[0], extent[1])
