@@ -1116,8 +1116,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
 
 def _convert_options(args: argparse.Namespace) -> dict[str, Any]:
     """The model options of ``gpomap convert`` (the rest are the converter's own, see gpomap.convert.model_defaults)."""
-    # No ray counts to fit the occupied threshold on: the paper's thresholds unless given.
-    options: dict[str, Any] = {"thresholds": args.thresholds if args.thresholds is not None else DEFAULT_THRESHOLDS}
+    options: dict[str, Any] = {"thresholds": args.thresholds}
     if args.kernel:
         options["kernel"] = args.kernel
     return options

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from gpomap.config import MapConfig
 from gpomap.errors import NotFittedError
+from gpomap.fusion import ternary_thresholds
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
 from gpomap.kernels.point import make_point_kernel
@@ -76,8 +77,8 @@ class GPMapEstimator:
 
     @property
     def thresholds_(self) -> tuple[float, float]:
-        """The ternary map's (free below, occupied above) probabilities: ``thresholds``, or the paper's."""
-        return self.thresholds if self.thresholds is not None else DEFAULT_THRESHOLDS
+        """The ternary map's (free below, occupied above) probabilities (:func:`gpomap.fusion.ternary_thresholds`)."""
+        return ternary_thresholds(self.thresholds, self.evidence_)
 
     @property
     def n_inputs_(self) -> int:

@@ -278,15 +278,23 @@ def occupied_threshold(
     # strictly above each. Sorted descending, the weighted counts above each are cumulative sums.
     order = np.argsort(-p, kind="stable")
     ps, ys = p[order], y[order]
-    tp = np.cumsum(ys.astype(float))
-    fp = np.cumsum(np.where(ys, 0.0, free_weight))
+    tp = np.r_[0.0, np.cumsum(ys.astype(float))]  # tp[k]: occupied among the first k points
+    fp = np.r_[0.0, np.cumsum(np.where(ys, 0.0, free_weight))]
     cand = np.unique(np.r_[floor, ps[ps > floor]])
-    idx = np.searchsorted(-ps, -cand, side="left")  # points strictly above each candidate
-    above_tp = np.where(idx > 0, tp[np.maximum(idx - 1, 0)], 0.0)
-    above_fp = np.where(idx > 0, fp[np.maximum(idx - 1, 0)], 0.0)
-    iou = above_tp / (n_occ + above_fp)  # TP + FN = every occupied point
+    above = np.searchsorted(-ps, -cand, side="left")  # points strictly above each candidate
+    iou = tp[above] / (n_occ + fp[above])  # TP + FN = every occupied point
     best = int(np.argmax(iou))
     return float(cand[best]), float(iou[best])
+
+
+def ternary_thresholds(given: tuple[float, float] | None, evidence: EvidenceLayer | None) -> tuple[float, float]:
+    """A map's ternary (free below, occupied above) thresholds: those `given`, else the paper's
+    free threshold and the occupied one `evidence`'s calibration fitted (:func:`occupied_threshold`),
+    else the paper's (:data:`gpomap.grid.DEFAULT_THRESHOLDS`)."""
+    if given is not None:
+        return given
+    fitted = evidence.report.get("occupied_threshold") if evidence is not None else None
+    return DEFAULT_THRESHOLDS if fitted is None else (DEFAULT_THRESHOLDS[0], float(fitted))
 
 
 def fit_calibration(

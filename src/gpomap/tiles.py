@@ -55,9 +55,9 @@ from gpomap.cells import build_cells
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
-from gpomap.fusion import EvidenceLayer, HitProximity
+from gpomap.fusion import EvidenceLayer, HitProximity, ternary_thresholds
 from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
-from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, row_bands, ternary
+from gpomap.grid import GridSpec, OccupancyMap, row_bands, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas_threads
@@ -1945,18 +1945,8 @@ class TiledGPOM:
 
     @property
     def thresholds_(self) -> tuple[float, float]:
-        """The ternary map's (free below, occupied above) probabilities.
-
-        The ``thresholds`` given, else the paper's free threshold and the occupied one the ray
-        evidence's calibration fitted (:func:`gpomap.fusion.occupied_threshold`), else the paper's
-        (:data:`gpomap.grid.DEFAULT_THRESHOLDS`).
-        """
-        if self.base.thresholds is not None:
-            return self.base.thresholds
-        fitted = self.evidence_.report.get("occupied_threshold") if self.evidence_ is not None else None
-        if fitted is None:
-            return DEFAULT_THRESHOLDS
-        return (DEFAULT_THRESHOLDS[0], float(fitted))
+        """The ternary map's (free below, occupied above) probabilities (:func:`gpomap.fusion.ternary_thresholds`)."""
+        return ternary_thresholds(self.base.thresholds, self.evidence_)
 
     def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
