@@ -187,6 +187,9 @@ def test_calibration_formula_by_hand() -> None:
     assert cal.posterior_mean(np.array([0.5]), h, m)[0] == pytest.approx(0.6)
     # No counts: the GP's probability.
     assert cal.posterior_mean(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(0.8)
+    # A fitted surprise rate of 0.1 instead: 0.05 + 0.9 * 0.6.
+    surprised = EvidenceCalibration(2.0, 2.0, 0.25, 0.5, surprise_rate=0.1)
+    assert surprised(np.array([0.5]), np.array([2.0]), np.array([1]))[0] == pytest.approx(0.59)
     # The defaults are the counting grid with the GP in place of its prior 1/2: (3 + 1) / (3 + 5 + 2),
     # a near miss a miss and no hit.
     default = EvidenceCalibration()
@@ -901,3 +904,96 @@ def test_the_map_fits_its_ternary_occupied_threshold():
     # Given thresholds are kept; without ray evidence there is nothing to fit them on.
     assert AreaGPOM(thresholds=(0.2, 0.7)).fit(scans).thresholds_ == (0.2, 0.7)
     assert AreaGPOM(ray_evidence=False).fit(scans).thresholds_ == DEFAULT_THRESHOLDS
+
+
+def test_surprise_rate_by_hand():
+    from gpomap.fusion import MAX_SURPRISE_RATE, fit_surprise_rate
+
+    # 100 points the counts call certainly free (p = 0), 5 of them hits: the likelihood
+    # 5 log(eps / 2) + 95 log(1 - eps / 2) is largest at eps / 2 = 5 / 100.
+    p, y = np.zeros(100), np.arange(100) < 5
+    assert fit_surprise_rate(p, y) == pytest.approx(0.1, rel=1e-9)
+    # Every point right and sure: the floor; every point wrong and sure: the ceiling.
+    assert fit_surprise_rate(p, np.zeros(100, bool)) == SURPRISE_RATE
+    assert fit_surprise_rate(p, np.ones(100, bool)) == MAX_SURPRISE_RATE
+    # 2 hits among the 100: 0.04, inside the bounds (1e-3, 0.3) but not those of the library.
+    assert fit_surprise_rate(p, np.arange(100) < 2, bounds=(1e-3, 0.3)) == pytest.approx(0.04, rel=1e-9)
+    assert fit_surprise_rate(p, np.arange(100) < 2, bounds=(0.05, 0.3)) == 0.05
+
+
+def test_surprise_rate_is_the_brute_force_most_likely():
+    from gpomap.fusion import fit_surprise_rate
+
+    rng = np.random.default_rng(5)
+    y = rng.random(2000) < 0.5
+    q = np.where(y, rng.beta(6, 1, 2000), rng.beta(1, 6, 2000))
+    flip = rng.random(2000) < 0.06  # surprises: labels the probabilities did not foresee
+    y = y ^ flip
+    rates = np.exp(np.linspace(np.log(1e-4), np.log(0.3), 20001))
+    p = rates[:, None] / 2 + (1 - rates[:, None]) * q[None, :]
+    loglik = np.where(y[None, :], np.log(p), np.log1p(-p)).sum(axis=1)
+    best = rates[np.argmax(loglik)]
+    got = fit_surprise_rate(q, y, bounds=(1e-4, 0.3))
+    assert got == pytest.approx(best, rel=1e-3) and 0.01 < got < 0.3
+
+
+def test_calibration_fits_the_surprise_rate_against_a_gp_that_never_saw_the_held_out_scans() -> None:
+    from gpomap.fusion import fit_surprise_rate
+
+    scans, ev, grid = _calibration_scene()
+    given: list[list[Scan]] = []
+
+    def p_apart(points: np.ndarray) -> np.ndarray:
+        return 1.0 - _p_gp(points)  # another GP than the map's, so that it shows where it is used
+
+    def gp_apart(kept: list[Scan]):
+        given.append(list(kept))
+        return p_apart
+
+    # Three of the six scans held out: the GP apart is fitted on the other three.
+    fitted, report = fit_calibration(scans, ev, grid, _p_gp, n_scans=3, step=0.1, gp_apart=gp_apart)
+    held = [0, 2, 5]  # calibration_scans(6, 3)
+    assert len(given) == 1 and [id(s) for s in given[0]] == [id(scans[k]) for k in (1, 3, 4)]
+    # Truth: the held-out scans' points, each with the other scans' counts taken directly, the
+    # same balanced sample; counted points at the fitted weights' posterior mean over the GP apart,
+    # the others at the GP apart alone; the rate maximising their likelihood.
+    pts, occ, h, m, n = [], [], [], [], []
+    for k in held:
+        pk, ok = calibration_points(scans[k], 0.1)
+        hits, misses, near = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
+        cell, inside = lattice.flat_index(grid, pk)
+        pts.append(pk)
+        occ.append(ok)
+        for dest, a in zip((h, m, n), (hits, misses, near)):
+            dest.append(np.where(inside, a.reshape(-1)[cell], 0))
+    P, O, H, M, N = (np.concatenate(a) for a in (pts, occ, h, m, n))
+    rng = np.random.default_rng(0)
+    i_occ, i_free = np.flatnonzero(O), np.flatnonzero(~O)
+    size = min(i_occ.size, i_free.size)
+    keep = np.concatenate([rng.choice(i_occ, size, replace=False), rng.choice(i_free, size, replace=False)])
+    P, O, H, M, N = P[keep], O[keep], H[keep], M[keep], N[keep]
+    q = np.where(H + M > 0, fitted.posterior_mean(p_apart(P), fitted.hits(H, N), fitted.misses(M, N)), p_apart(P))
+    assert fitted.surprise_rate == pytest.approx(fit_surprise_rate(q, O), rel=1e-9)
+    assert report["surprise_rate"] == fitted.surprise_rate and fitted.surprise_rate >= SURPRISE_RATE
+    # The weights are those fitted without it, at the prior rate.
+    plain, _ = fit_calibration(scans, ev, grid, _p_gp, n_scans=3, step=0.1)
+    assert plain.surprise_rate == SURPRISE_RATE
+    assert (plain.hit_weight, plain.prior_weight) == (fitted.hit_weight, fitted.prior_weight)
+    # More scans held out than kept: the GP apart would not be the map's GP, the prior stays.
+    short, report = fit_calibration(scans, ev, grid, _p_gp, n_scans=4, step=0.1, gp_apart=gp_apart)
+    assert short.surprise_rate == SURPRISE_RATE and "surprise_rate" not in report and len(given) == 1
+
+
+def test_the_maps_gp_apart_is_its_gp_fitted_on_those_scans_alone():
+    from gpomap.mapping import AreaGPOM
+    from gpomap.simulate import paper_room_scans
+
+    scans = paper_room_scans(n_beams=36, noise_std=0.02)
+    model = AreaGPOM(n_workers=1).fit(scans)
+    assert model.evidence_.gp_apart is not None
+    kept = scans[::2]
+    held = AreaGPOM(n_workers=1).fit(kept, hyperparameters=model.hyperparameters_)
+    q = np.array([[1.0, 1.0], [5.0, 5.0], [8.0, 2.0], [3.0, 6.5]])
+    np.testing.assert_allclose(model.evidence_.gp_apart(kept)(q), held.predict_proba_gp(q), rtol=1e-12)
+    # And it is not the map's own GP, which saw the other scans too.
+    assert not np.allclose(model.evidence_.gp_apart(kept)(q), model.predict_proba_gp(q))

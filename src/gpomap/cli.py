@@ -627,6 +627,15 @@ def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: s
         + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
         + f" ({source or summary['hyperparameter_source'].get('how', '')})",
         "ternary      free below {:g}, occupied above {:.3f}".format(*summary["thresholds"]),
+    ]
+    evidence = summary.get("evidence")
+    if evidence:
+        lines.append(
+            f"ray counts   a hit weighs {evidence['hit_weight']:.3g} misses, the GP {evidence['prior_weight']:.3g}, "
+            f"a near miss {evidence['near_weight']:.3g} (and {evidence['near_hit_weight']:.3g} hits); "
+            f"surprise rate {evidence['surprise_rate']:.3g}"
+        )
+    lines += [
         "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
         "peak memory  " + _peak_memory(summary["peak_memory"]),
     ]

@@ -1566,7 +1566,25 @@ class TiledGPOM:
         hp = self.hyperparameters_
         # _fit sets hit_shift; hit_reach may be missing where hit_shift alone was given.
         proximity = HitProximity(hp["hit_shift"], hp.get("hit_reach", HitProximity.reach))
-        return self.base.make_evidence(self._scans, self.predict_proba_gp, proximity)
+        return self.base.make_evidence(self._scans, self.predict_proba_gp, proximity, self._gp_apart)
+
+    def _gp_apart(self, scans: ScanData) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
+        """This map's GP fitted on `scans` alone, its hyperparameters held and without ray evidence:
+        its :meth:`predict_proba_gp`. The ray-count calibration fits the surprise rate against it
+        (:func:`gpomap.fusion.fit_calibration`); it runs on local workers whatever the scheduler."""
+        apart = TiledGPOM(
+            self.tile_size_,
+            self.overlap,
+            self.blend,
+            self.origin_,
+            n_workers=self.n_workers,
+            hyper_sample=self.hyper_sample,
+            blas_threads=self.blas_threads,
+            worker_processes=self.worker_processes,
+            memory_limit=self.memory_limit,
+            **{**self.options, "ray_evidence": False},
+        )
+        return apart.fit(scans, hyperparameters=dict(self.hyperparameters_)).predict_proba_gp
 
     def check_fit_memory(self, length_scale: float) -> int:
         """Refuse tile fits whose largest GP, times the GPs fitted at once, needs more than `memory_limit`.
