@@ -24,6 +24,7 @@ Run from the repository root::
     .venv/bin/python benchmarks/quality.py --quick            # a smoke run: a few scans per log
     .venv/bin/python benchmarks/quality.py --logs intel,room --splits every --json out.json
     .venv/bin/python benchmarks/quality.py --log-file robot.log.gz --log-file lab.bag   # your own logs
+    .venv/bin/python benchmarks/quality.py --fit-surprise-rate   # gpomap as gpomap map --fit-surprise-rate makes it
 
 ``--log-file`` scores any log or bag :func:`gpomap.io.read_scans` reads (a CARMEN log, a ROS bag
 with one laser topic) the same way, named by its file; given alone, only those logs are run.
@@ -277,12 +278,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, metavar="OUT", help="write every result (without the models) as JSON")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--fit-surprise-rate",
+        action="store_true",
+        help="gpomap with its surprise rate fitted on each log's own scans (gpomap map --fit-surprise-rate)",
+    )
+    ap.add_argument(
         "--summary-from", type=Path, metavar="JSON", help="print the summary and the targets met of a --json file and stop"
     )
     args = ap.parse_args(argv)
     if args.summary_from:
         print_summary(json.loads(args.summary_from.read_text()))
         return 0
+    gpomap_options = {"fit_surprise_rate": True} if args.fit_surprise_rate else {}
     for path in args.log_file:
         if not path.exists():
             ap.error(f"--log-file {path}: no such file")
@@ -334,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
             data = prepare(scans, split, **kw)
             rows = []
             for name in methods:
-                r = run_apart(data, name, args.seed, grid_res)
+                r = run_apart(data, name, args.seed, grid_res, **gpomap_options)
                 r.update(log=log, split=split)
                 rows.append(r)
                 results.append(r)

@@ -984,13 +984,21 @@ def test_calibration_fits_the_surprise_rate_against_a_gp_that_never_saw_the_held
     assert short.surprise_rate == SURPRISE_RATE and "surprise_rate" not in report and len(given) == 1
 
 
-def test_the_maps_gp_apart_is_its_gp_fitted_on_those_scans_alone():
+def test_a_map_fits_its_surprise_rate_when_asked_against_its_gp_fitted_on_the_other_scans_alone():
     from gpomap.mapping import AreaGPOM
     from gpomap.simulate import paper_room_scans
 
     scans = paper_room_scans(n_beams=36, noise_std=0.02)
-    model = AreaGPOM(n_workers=1).fit(scans)
-    assert model.evidence_.gp_apart is not None
+    # By default the prior: no GP apart, no rate fitted.
+    plain = AreaGPOM(n_workers=1, calibration_scans=10).fit(scans)
+    assert plain.evidence_.gp_apart is None and plain.evidence_.calibration.surprise_rate == SURPRISE_RATE
+    assert "surprise_rate" not in plain.evidence_.report
+    # Asked, with 10 of the 31 scans held out (the GP apart fitted on the other 21): a rate, at
+    # least the prior, that every probability of the map is mixed with.
+    model = AreaGPOM(n_workers=1, calibration_scans=10, fit_surprise_rate=True).fit(scans)
+    rate = model.evidence_.report["surprise_rate"]
+    assert model.evidence_.calibration.surprise_rate == rate >= SURPRISE_RATE
+    assert model.get_params()["fit_surprise_rate"] is True
     kept = scans[::2]
     held = AreaGPOM(n_workers=1).fit(kept, hyperparameters=model.hyperparameters_)
     q = np.array([[1.0, 1.0], [5.0, 5.0], [8.0, 2.0], [3.0, 6.5]])

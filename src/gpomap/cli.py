@@ -294,6 +294,13 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
         metavar="M",
         help="fine cells whose ray counts update exact-point predictions, m (default: %(default)s; a written map counts on its own cells)",
     )
+    g.add_argument(
+        "--fit-surprise-rate",
+        action="store_true",
+        default=_Default(d.fit_surprise_rate),
+        help="fit the share of surprises (visitors where scans saw free space) on the log's own scans instead "
+        "of the prior 0.01, its floor: for logs with crowds; refits the GP once more (planar scans)",
+    )
 
 
 def _map_config(args: argparse.Namespace) -> MapConfig:

@@ -109,6 +109,7 @@ class MapConfig(_Config):
     evidence_resolution: float = 0.05
     calibration_scans: int = 25
     evidence_resolution_3d: float = 0.1
+    fit_surprise_rate: bool = False
 
 
 @dataclass(frozen=True)

@@ -25,10 +25,10 @@ robot's own corridor an obstacle.
 
 Surprises. A share eps of observations is taken to be ones the counts cannot foresee, a person
 where every scan saw free space or a door that closed, so every probability is
-``eps / 2 + (1 - eps) p``. On planar maps eps is fitted on the map's own scans, as the weights are
-but against a GP that never saw the held-out scans (:func:`fit_surprise_rate`), and is never below
-the prior one in a hundred (:data:`SURPRISE_RATE`), so no cell is surer than 0.995: a museum's
-visitors, a conference centre's crowd raise it to 0.015-0.04.
+``eps / 2 + (1 - eps) p``, eps one in a hundred (:data:`SURPRISE_RATE`), so no cell is surer than
+0.995. Asked to (``fit_surprise_rate``), a planar map fits eps on its own scans, as the weights are
+but against a GP that never saw the held-out scans (:func:`fit_surprise_rate`), never below the
+prior: a museum's visitors, a conference centre's crowd raise it to 0.015-0.04.
 
 Calibration. The four weights are fitted on the map's own data, never on a test set: for a
 sample of the training scans, the scan's own beams are removed from the counts (leave one scan
@@ -113,13 +113,13 @@ SURPRISE_RATE: float = 1e-2
 #: Largest surprise rate a map may fit (:func:`fit_surprise_rate`); its floor is :data:`SURPRISE_RATE`.
 MAX_SURPRISE_RATE: float = 0.3
 
-#: Whether a map of this dimension fits its surprise rate on its own scans (:func:`fit_surprise_rate`).
-#: The calibration's leave-one-scan-out points, predicted by a GP fitted without those scans, show
-#: how often a log's observations are surprises: 0.015-0.033 on a museum's and a conference
-#: centre's logs, where the prior's 0.01 had made the map too sure of cells visitors later stood in
-#: (the museum's held-out log loss 0.394 -> 0.347 with blocks of scans held out, 0.213 -> 0.204 with
-#: every 10th), below the prior on the other logs measured (docs/choices.md). Planar maps: not
-#: measured on point clouds, which keep the prior.
+#: Whether a map of this dimension can fit its surprise rate on its own scans, when its settings ask
+#: (``fit_surprise_rate``; :func:`fit_surprise_rate`). The calibration's leave-one-scan-out points,
+#: predicted by a GP fitted without those scans, show how often a log's observations are surprises:
+#: 0.015-0.033 on a museum's and a conference centre's logs, where the prior's 0.01 had made the map
+#: too sure of cells visitors later stood in (the museum's held-out log loss 0.394 -> 0.347 with
+#: blocks of scans held out, 0.213 -> 0.204 with every 10th), below the prior on the other logs
+#: measured (docs/choices.md). Planar maps: not measured on point clouds, which keep the prior.
 FIT_SURPRISE_RATE: dict[int, bool] = {2: True, 3: False}
 
 

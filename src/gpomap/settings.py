@@ -119,6 +119,13 @@ class MapSettings:
         lidar's rays are sparse, and at 5 cm few voxels would be crossed by more than one scan.
     calibration_scans : int
         Scans held out in turn to fit the evidence calibration.
+    fit_surprise_rate : bool
+        Fit the surprise rate (the share of observations the counts cannot foresee: a visitor where
+        every scan saw free space) on the map's own scans instead of taking the prior one in a
+        hundred, which stays its floor (planar scans, :func:`gpomap.fusion.fit_calibration`). It
+        refits the GP without the calibration's held-out scans: 14-40 % more time and up to a third
+        more memory. Off by default: it changed no shared log's map; on logs with crowds it lowers
+        the held-out log loss (a museum's 0.394 -> 0.347 with blocks of scans held out).
     """
 
     def __init__(
@@ -153,6 +160,7 @@ class MapSettings:
         evidence_resolution: float = MapConfig.evidence_resolution,
         calibration_scans: int = MapConfig.calibration_scans,
         evidence_resolution_3d: float = MapConfig.evidence_resolution_3d,
+        fit_surprise_rate: bool = MapConfig.fit_surprise_rate,
     ) -> None:
         self.kernel = kernel
         self.area = area
@@ -184,6 +192,7 @@ class MapSettings:
         self.evidence_resolution = evidence_resolution
         self.calibration_scans = calibration_scans
         self.evidence_resolution_3d = evidence_resolution_3d
+        self.fit_surprise_rate = fit_surprise_rate
 
     def __repr__(self) -> str:
         return f"kernel={self.kernel!r}, area={self.area_method!r}, min_cell={self.min_cell}, max_cell={self.max_cell}"
@@ -238,10 +247,11 @@ class MapSettings:
     ) -> EvidenceLayer | None:
         """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off),
         with `proximity` the gain of unseen space near hits and `gp_apart` the GP its surprise
-        rate is fitted against (:func:`gpomap.fusion.fit_calibration`)."""
+        rate is fitted against with ``fit_surprise_rate`` (:func:`gpomap.fusion.fit_calibration`)."""
         if not self.ray_evidence or isinstance(data, Observations):
             return None
         resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
+        apart = gp_apart if self.fit_surprise_rate else None
         return EvidenceLayer(
-            data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, proximity, gp_apart
+            data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, proximity, apart
         )
