@@ -1527,22 +1527,10 @@ class TiledGPOM:
             centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else np.median(obs.points[:, :2], axis=0)
             half, margin = self.block_size_, min(self.overlap_, 0.5 * self.block_size_)
             wider = whole if whole[1] <= 2.0 * half else (centre, 2.0 * half, margin)
-        options = {**self.options, "ray_evidence": False}
         fixed = {**self.hyperparameters_, "variance_scale": 1.0, "hit_shift": 0.0}
 
         def fit_held_in(held: Observations) -> TiledGPOM:
-            model = TiledGPOM(
-                self.tile_size_,
-                self.overlap,
-                self.blend,
-                self.origin_,
-                n_workers=self.n_workers,
-                hyper_sample=self.hyper_sample,
-                blas_threads=self.blas_threads,
-                worker_processes=self.worker_processes,
-                **options,
-            )
-            return model.fit(held, hyperparameters=fixed)
+            return self._gp_like().fit(held, hyperparameters=fixed)
 
         _, report = fit_variance_scale(
             data,
@@ -1568,11 +1556,11 @@ class TiledGPOM:
         proximity = HitProximity(hp["hit_shift"], hp.get("hit_reach", HitProximity.reach))
         return self.base.make_evidence(self._scans, self.predict_proba_gp, proximity, self._gp_apart)
 
-    def _gp_apart(self, scans: ScanData) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
-        """This map's GP fitted on `scans` alone, its hyperparameters held and without ray evidence:
-        its :meth:`predict_proba_gp`. The ray-count calibration fits the surprise rate against it
-        (:func:`gpomap.fusion.fit_calibration`); it runs on local workers whatever the scheduler."""
-        apart = TiledGPOM(
+    def _gp_like(self) -> TiledGPOM:
+        """An unfitted map with this one's tiles and settings but no ray evidence, on local
+        workers whatever the scheduler: fitted on other data with this map's hyperparameters, it is
+        this map's GP on those data."""
+        return TiledGPOM(
             self.tile_size_,
             self.overlap,
             self.blend,
@@ -1584,7 +1572,12 @@ class TiledGPOM:
             memory_limit=self.memory_limit,
             **{**self.options, "ray_evidence": False},
         )
-        return apart.fit(scans, hyperparameters=dict(self.hyperparameters_)).predict_proba_gp
+
+    def _gp_apart(self, scans: ScanData) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
+        """This map's GP fitted on `scans` alone, its hyperparameters held: its
+        :meth:`predict_proba_gp`, which the ray-count calibration fits the surprise rate against
+        (:func:`gpomap.fusion.fit_calibration`)."""
+        return self._gp_like().fit(scans, hyperparameters=dict(self.hyperparameters_)).predict_proba_gp
 
     def check_fit_memory(self, length_scale: float) -> int:
         """Refuse tile fits whose largest GP, times the GPs fitted at once, needs more than `memory_limit`.
