@@ -622,6 +622,15 @@ def _peak_memory(peak: dict[str, float]) -> str:
     return ", ".join(f"{k} {v:.0f} MB" for k, v in known.items()) if known else "unknown on this system"
 
 
+def _ray_counts(evidence: dict[str, float]) -> str:
+    """What a map's ray-count calibration weighs (:meth:`gpomap.fusion.EvidenceLayer.summary`), in a line."""
+    return (
+        f"a hit weighs {evidence['hit_weight']:.3g} misses, the GP {evidence['prior_weight']:.3g}, "
+        f"a near miss {evidence['near_weight']:.3g} (and {evidence['near_hit_weight']:.3g} hits); "
+        f"surprise rate {evidence['surprise_rate']:.3g}"
+    )
+
+
 def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: str | None = None) -> None:
     per = summary["cells_per_tile"]
     lines = [
@@ -635,13 +644,8 @@ def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: s
         + f" ({source or summary['hyperparameter_source'].get('how', '')})",
         "ternary      free below {:g}, occupied above {:.3f}".format(*summary["thresholds"]),
     ]
-    evidence = summary.get("evidence")
-    if evidence:
-        lines.append(
-            f"ray counts   a hit weighs {evidence['hit_weight']:.3g} misses, the GP {evidence['prior_weight']:.3g}, "
-            f"a near miss {evidence['near_weight']:.3g} (and {evidence['near_hit_weight']:.3g} hits); "
-            f"surprise rate {evidence['surprise_rate']:.3g}"
-        )
+    if summary.get("evidence"):
+        lines.append("ray counts   " + _ray_counts(summary["evidence"]))
     lines += [
         "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
         "peak memory  " + _peak_memory(summary["peak_memory"]),
@@ -1081,6 +1085,8 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
     print(
         f"{'path occupied':<16}{counts}   (robot's path cells the ternary map calls occupied, above {result['occupied_threshold']:.3f})"
     )
+    if result.get("evidence"):
+        print("ray counts    " + _ray_counts(result["evidence"]))
     if result.get("truth"):
         for k, t in result["truth"].items():
             print(
