@@ -7,6 +7,7 @@ test_debug_shows_the_traceback (and, with signals, in test_outputs_atomic and te
 """
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -103,6 +104,7 @@ def test_map_and_info_on_a_real_log(tmp_path, run):
     assert "scans        30" in r.stdout
     # The ray counts' weights, and the prior surprise rate (not asked to fit it).
     assert "ray counts   a hit weighs" in r.stdout and "surprise rate 0.01\n" in r.stdout
+    assert re.search(r"a miss beside a hit [0-9.e-]+;", r.stdout)
     assert (tmp_path / "map.pgm").read_bytes().startswith(b"P5")
 
 

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
 from gpomap import _compiled_counts, lattice
 from gpomap.clouds import CloudScan
-from gpomap.evidence import NEAR_END, PATH_RADIUS, RayEvidence, lattice_grid
+from gpomap.evidence import NEAR_END, PATH_RADIUS, RayEvidence, lattice_grid, next_to_hits
 from gpomap.fusion import (
     CALIBRATION_BOUNDS,
     HIT_DISTANCE_REACHES,
@@ -18,6 +20,7 @@ from gpomap.fusion import (
     calibration_points,
     fit_calibration,
     gp_sampling_factor,
+    surface_misses,
 )
 from gpomap.grid import GridSpec, coarse_grid, interpolate_to
 from gpomap.mapping import AreaGPOM
@@ -187,6 +190,12 @@ def test_calibration_formula_by_hand() -> None:
     assert cal.posterior_mean(np.array([0.5]), h, m)[0] == pytest.approx(0.6)
     # No counts: the GP's probability.
     assert cal.posterior_mean(np.array([0.8]), np.array([0]), np.array([0]))[0] == pytest.approx(0.8)
+    # Surface misses worth a tenth of a miss: of 5 misses, 4 near (0.25 each) and the far one beside a
+    # hit (0.1), 1.1 weighted misses; away from hits the far one is a whole miss, 2.0.
+    walled = EvidenceCalibration(2.0, 2.0, 0.25, 0.5, surface_weight=0.1)
+    beside = surface_misses(np.array([5, 5]), np.array([4, 4]), np.array([True, False]))
+    np.testing.assert_array_equal(beside, [1.0, 0.0])
+    np.testing.assert_allclose(walled.misses(np.array([5, 5]), np.array([4, 4]), surface=beside), [1.1, 2.0])
     # A fitted surprise rate of 0.1 instead: 0.05 + 0.9 * 0.6.
     surprised = EvidenceCalibration(2.0, 2.0, 0.25, 0.5, surprise_rate=0.1)
     assert surprised(np.array([0.5]), np.array([2.0]), np.array([1]))[0] == pytest.approx(0.59)
@@ -196,6 +205,19 @@ def test_calibration_formula_by_hand() -> None:
     assert default.posterior_mean(np.array([0.5]), default.hits(np.array([3]), np.array([2])), np.array([5]))[0] == pytest.approx(
         0.4
     )
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_next_to_hits_by_hand(dim: int) -> None:
+    # One hit in the middle of a 5^d block, one in a corner: each cell with a hit and the cells round it.
+    hits = np.zeros((5,) * dim, dtype=np.int32)
+    hits[(2,) * dim] = 3
+    hits[(0,) * dim] = 1
+    want = np.zeros(hits.shape, bool)
+    want[(slice(1, 4),) * dim] = True
+    want[(slice(0, 2),) * dim] = True
+    np.testing.assert_array_equal(next_to_hits(hits), want)
+    assert not next_to_hits(np.zeros((4,) * dim, dtype=np.int32)).any()
 
 
 def test_hit_cells_distance_by_hand() -> None:
@@ -475,10 +497,17 @@ def _p_gp(points: np.ndarray) -> np.ndarray:
     return 0.2 + 0.6 / (1.0 + np.exp(-4.0 * (points[:, 0] - 0.55) + 3.0 * (points[:, 1] - 0.5)))
 
 
-def test_calibration_predicts_only_counted_points_and_matches_the_whole_sample_fit() -> None:
+def _room_scene() -> tuple[list[Scan], RayEvidence, GridSpec]:
+    """The paper room's first six scans on a 0.1 m lattice: far misses beside other scans' hits."""
+    scans = paper_room_scans()[:6]
+    return scans, RayEvidence.from_scans(scans), lattice_grid((-1.0, 11.0, -1.0, 11.0), 0.1)
+
+
+@pytest.mark.parametrize("scene", [_calibration_scene, _room_scene], ids=["small scene", "room"])
+def test_calibration_predicts_only_counted_points_and_matches_the_whole_sample_fit(scene: Callable[[], tuple]) -> None:
     from scipy.optimize import minimize
 
-    scans, ev, grid = _calibration_scene()
+    scans, ev, grid = scene()
     asked: list[np.ndarray] = []
 
     def predict_gp(points: np.ndarray) -> np.ndarray:
@@ -488,43 +517,59 @@ def test_calibration_predicts_only_counted_points_and_matches_the_whole_sample_f
     fitted, report = fit_calibration(scans, ev, grid, predict_gp, n_scans=len(scans), step=0.1)
     # Truth by brute force: every scan's points with the other scans' counts taken directly (not
     # all counts minus its own), the GP at every point, the plain mean log loss minimised.
-    pts, occ, h, m, n = [], [], [], [], []
+    # Surface misses: far misses of cells with one of those other scans' hits in their 3 x 3 block.
+    pts, occ, h, m, n, sf = [], [], [], [], [], []
     for k, s in enumerate(scans):
         p, o = calibration_points(s, 0.1)
         hits, misses, near = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
         cell, inside = lattice.flat_index(grid, p)
+        padded = np.pad(hits > 0, 1)
+        block = np.zeros(hits.shape, bool)
+        for dy in range(3):
+            for dx in range(3):
+                block |= padded[dy : dy + hits.shape[0], dx : dx + hits.shape[1]]
         pts.append(p)
         occ.append(o)
         h.append(np.where(inside, hits.reshape(-1)[cell], 0))
         m.append(np.where(inside, misses.reshape(-1)[cell], 0))
         n.append(np.where(inside, near.reshape(-1)[cell], 0))
-    P, O, H, M, N = (np.concatenate(a) for a in (pts, occ, h, m, n))
-    # The scene has points of both classes, counted and not, with near misses and far ones.
+        sf.append(np.where(inside & block.reshape(-1)[cell], (misses - near).reshape(-1)[cell], 0))
+    P, O, H, M, N, S = (np.concatenate(a) for a in (pts, occ, h, m, n, sf))
+    # The scene has points of both classes, counted and not, with near misses and far ones; the
+    # room's far misses are at a surface and away from one.
     counted = (H + M) > 0
     assert 0 < counted.sum() < counted.size and 0 < N.sum() < M.sum()
+    assert (0 < S.sum() < (M - N).sum()) == (scene is _room_scene)
     # Balance the classes as the fit does (its seed, its draw order) to get the sample's points.
     rng = np.random.default_rng(0)
     i_occ, i_free = np.flatnonzero(O), np.flatnonzero(~O)
     size = min(i_occ.size, i_free.size)
     keep = np.concatenate([rng.choice(i_occ, size, replace=False), rng.choice(i_free, size, replace=False)])
-    P, O, H, M, N, counted = P[keep], O[keep], H[keep], M[keep], N[keep], counted[keep]
+    P, O, H, M, N, S, counted = P[keep], O[keep], H[keep], M[keep], N[keep], S[keep], counted[keep]
     g = _p_gp(P)
 
     def loss(theta: np.ndarray) -> float:
         cal = EvidenceCalibration(*np.exp(theta))
-        p = cal(g, cal.hits(H, N), cal.misses(M, N))
+        p = cal(g, cal.hits(H, N), cal.misses(M, N, surface=S))
         return float(-np.mean(np.where(O, np.log(p), np.log1p(-p))))
 
     best = minimize(
-        loss, np.log([1.0, 2.0, 1.0, 1.0]), method="L-BFGS-B", bounds=CALIBRATION_BOUNDS, options={"ftol": 1e-14, "gtol": 1e-10}
+        loss,
+        np.log([1.0, 2.0, 1.0, 1.0, 1.0]),
+        method="L-BFGS-B",
+        bounds=CALIBRATION_BOUNDS,
+        options={"ftol": 1e-14, "gtol": 1e-10},
     )
     truth = np.exp(best.x)
-    got = np.array([fitted.hit_weight, fitted.prior_weight, fitted.near_weight, fitted.near_hit_weight])
+    got = np.array([fitted.hit_weight, fitted.prior_weight, fitted.near_weight, fitted.near_hit_weight, fitted.surface_weight])
     # The same minimum. On this small scene the near miss's two weights lie on a ridge (the
     # near misses decide, so their ratio does, not their size): the loss and the ratio are compared.
     assert loss(np.log(got)) == pytest.approx(best.fun, rel=1e-5)
-    np.testing.assert_allclose(got[:2], truth[:2], rtol=2e-3)
+    np.testing.assert_allclose(got[[0, 1, 4]], truth[[0, 1, 4]], rtol=2e-3)
     assert got[3] / got[2] == pytest.approx(truth[3] / truth[2], rel=2e-3)
+    # Where surface misses are, weighing them apart is a real degree of freedom: the fit moved it
+    # off a miss's; where none are, it stays a miss's.
+    assert (abs(np.log(fitted.surface_weight)) > 0.05) == (scene is _room_scene)
     # The GP was asked once, at exactly the counted points.
     assert len(asked) == 1 and len(asked[0]) == counted.sum() == report["n_predicted"]
     want = {tuple(np.round(q, 9)) for q in P[counted]}
@@ -687,9 +732,9 @@ def test_other_scans_counts_are_the_counts_without_each_points_own_scan() -> Non
     pts_all, scan_all = [], []
     for k in range(len(scans)):
         pts, _ = calibration_points(scans[k], 0.1)
-        pick = rng.choice(len(pts), 40, replace=False)
+        pick = rng.choice(len(pts), 400, replace=False)
         pts_all.append(pts[pick])
-        scan_all.append(np.full(40, k))
+        scan_all.append(np.full(400, k))
     pts, scan_of = np.concatenate(pts_all), np.concatenate(scan_all)
     got = _other_scans_counts(ev, grid, whole, pts, scan_of)
     cell, inside = lattice.flat_index(grid, pts)
@@ -697,9 +742,18 @@ def test_other_scans_counts_are_the_counts_without_each_points_own_scan() -> Non
     for k in range(len(scans)):
         others = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
         sel = scan_of == k
-        for mine, theirs in zip(got, others, strict=True):
+        for mine, theirs in zip(got[:3], others, strict=True):
             np.testing.assert_array_equal(mine[sel], np.where(inside[sel], theirs.reshape(-1)[cell[sel]], 0))
+        # Surface misses: the far misses of cells with one of the other scans' hits in their 3 x 3 block.
+        padded = np.pad(others.hits > 0, 1)
+        block = np.zeros(others.hits.shape, bool)
+        for dy in range(3):
+            for dx in range(3):
+                block |= padded[dy : dy + block.shape[0], dx : dx + block.shape[1]]
+        far = (others.misses - others.near).reshape(-1)[cell[sel]]
+        np.testing.assert_array_equal(got[3][sel], np.where(inside[sel] & block.reshape(-1)[cell[sel]], far, 0))
     assert got[0].sum() > 0 and got[1].sum() > 0  # the room's scans overlap: the test sees counts
+    assert 0 < got[3].sum() < (got[1] - got[2]).sum()  # and far misses beside hits and away from them
 
 
 def _wall_scans(jitter: float, n: int = 30) -> list[Scan]:
@@ -736,7 +790,7 @@ def test_a_near_miss_counts_as_a_hit_only_where_surfaces_fall_in_such_cells(monk
     # On the smeared wall the fourth weight is what lowers the held-out loss: the best fit with a
     # near miss worth no hit (its bounds pinned to the floor) is worse.
     low = CALIBRATION_BOUNDS[3][0]
-    monkeypatch.setattr(gpomap.fusion, "CALIBRATION_BOUNDS", (*CALIBRATION_BOUNDS[:3], (low, low)))
+    monkeypatch.setattr(gpomap.fusion, "CALIBRATION_BOUNDS", (*CALIBRATION_BOUNDS[:3], (low, low), *CALIBRATION_BOUNDS[4:]))
     pinned, loss_pinned = fit(_wall_scans(0.12))
     assert pinned.near_hit_weight == pytest.approx(floor)
     assert loss_smeared < loss_pinned - 0.01

@@ -9,7 +9,8 @@ import pytest
 
 import gpomap.tiles as tiles
 from gpomap.errors import NotFittedError
-from gpomap.fusion import EvidenceLayer, HitProximity
+from gpomap.evidence import next_to_hits
+from gpomap.fusion import EvidenceLayer, HitProximity, surface_misses
 from gpomap.grid import GridSpec
 from gpomap.scans import Scan
 from gpomap.simulate import paper_room_scans
@@ -53,7 +54,13 @@ def test_ray_counts_added_scan_by_scan_equal_counting_them_at_once(room):
     on = GridSpec((x0 + 0.5, y0 + 0.25), 0.05, (120, 150))
     hits, misses, near = inc.evidence.counts(on)
     np.testing.assert_array_equal(inc.grid_counts(on)[0], inc.calibration.hits(hits, near))
-    np.testing.assert_array_equal(inc.grid_counts(on)[1], inc.calibration.misses(misses, near, inc.evidence.path_passes(on)))
+    # Its surface misses are found from the hits of the cells round it as well (a grid one cell wider).
+    wider = GridSpec((on.origin[0] - 0.05, on.origin[1] - 0.05), 0.05, (122, 152))
+    surface = surface_misses(misses, near, next_to_hits(inc.evidence.counts(wider).hits)[1:-1, 1:-1])
+    assert inc.calibration.surface_weight != 1.0 and surface.sum() > 0
+    np.testing.assert_array_equal(
+        inc.grid_counts(on)[1], inc.calibration.misses(misses, near, inc.evidence.path_passes(on), surface)
+    )
 
 
 def test_tile_refit_reusing_covariances_matches_a_fresh_fit(room):

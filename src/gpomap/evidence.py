@@ -26,6 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import binary_dilation
 
 from gpomap import _compiled_counts
 from gpomap.clouds import CloudScan
@@ -157,6 +158,22 @@ class RayCounts(NamedTuple):
     hits: NDArray[np.int32]
     misses: NDArray[np.int32]
     near: NDArray[np.int32]
+
+
+def next_to_hits(hits: NDArray[np.integer]) -> NDArray[np.bool_]:
+    """Cells a beam ended in, or next to one (their 3 x 3, or 3 x 3 x 3, block), of the same shape.
+
+    Parameters
+    ----------
+    hits : ndarray of int, shape grid.shape
+        Hits per cell (:attr:`RayCounts.hits`).
+
+    Returns
+    -------
+    ndarray of bool, shape hits.shape
+    """
+    hit = np.asarray(hits) > 0
+    return np.asarray(binary_dilation(hit, structure=np.ones((3,) * hit.ndim, dtype=bool)), dtype=bool)
 
 
 # Traversal entries handled per batch of scans: bounds the temporary memory (~24 bytes each).

@@ -61,6 +61,7 @@ fitted for.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -75,7 +76,7 @@ from scipy.special import ndtr, ndtri
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
-from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, path_steps
+from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, next_to_hits, path_steps
 from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, row_bands
 from gpomap.lattice import (
     AnyGrid,
@@ -199,15 +200,21 @@ FIT_OCCUPIED_THRESHOLD: dict[int, bool] = {2: True, 3: False}
 #: at most ~9,000 hits); clouds do (la3dm: 31,500 hits in 9 scans, cut to a third).
 CALIBRATION_POINTS_PER_CLASS: int = 10_000
 
-#: Search bounds (log space) of the hit weight, the prior weight, the near-miss weight and the
+#: Search bounds (log space) of the hit weight, the prior weight, the near-miss weight, the
 #: near miss's weight as a surface (whose floor, 1e-3 of an observation, is nothing against the
-#: counts a log gives).
+#: counts a log gives) and the surface miss's weight.
 CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = (
     (np.log(0.1), np.log(1e3)),
     (np.log(0.1), np.log(1e2)),
     (np.log(1e-3), np.log(10.0)),
     (np.log(1e-3), np.log(1e2)),
+    (np.log(1e-3), np.log(10.0)),
 )
+
+#: Whether the calibration weighs surface misses apart (:attr:`EvidenceCalibration.surface_weight`),
+#: per dimension of the data; where not, a surface miss is a miss. Planar maps: measured on the
+#: shared and unseen logs (docs/choices.md). Not for point clouds, where it was not.
+FIT_SURFACE_WEIGHT: dict[int, bool] = {2: True, 3: False}
 
 
 @dataclass(frozen=True)
@@ -230,6 +237,11 @@ class EvidenceCalibration:
         Observations of a surface one near miss adds besides (a hit adds ``hit_weight``): a beam
         that ended its return within :data:`~gpomap.evidence.NEAR_END` of a cell says a surface
         is near it, and with range noise and pose error, often in it.
+    surface_weight : float
+        Misses one surface miss counts as: a far miss (not near) of a cell that a beam of another
+        scan ended in, or next to one (:func:`gpomap.evidence.next_to_hits`). Such a cell holds
+        part of a surface more often than its misses say: a beam passing along a wall crosses the
+        cell in front of it, which a beam from elsewhere ends in.
     surprise_rate : float
         Share of observations the counts cannot foresee (:func:`with_surprises`).
     """
@@ -238,6 +250,7 @@ class EvidenceCalibration:
     prior_weight: float = 2.0
     near_weight: float = 1.0
     near_hit_weight: float = 0.0
+    surface_weight: float = 1.0
     surprise_rate: float = SURPRISE_RATE
 
     def hits(self, hits: ArrayLike, near: ArrayLike) -> NDArray[np.float64]:
@@ -245,13 +258,19 @@ class EvidenceCalibration:
         (matching shapes)."""
         return self.hit_weight * np.asarray(hits, dtype=float) + self.near_hit_weight * np.asarray(near, dtype=float)
 
-    def misses(self, misses: ArrayLike, near: ArrayLike, path: ArrayLike = 0) -> NDArray[np.float64]:
+    def misses(self, misses: ArrayLike, near: ArrayLike, path: ArrayLike = 0, surface: ArrayLike = 0) -> NDArray[np.float64]:
         """Weighted misses of cells: each miss one, each near miss (counted among `misses`)
-        ``near_weight``, each step of the robot's path :data:`PATH_HITS` times ``hit_weight``
+        ``near_weight``, each surface miss (counted among `misses`, :func:`surface_misses`)
+        ``surface_weight``, each step of the robot's path :data:`PATH_HITS` times ``hit_weight``
         (matching shapes)."""
         near = np.asarray(near, dtype=float)
         path_weight = PATH_HITS * self.hit_weight
-        return np.asarray(misses, dtype=float) + (self.near_weight - 1.0) * near + path_weight * np.asarray(path, dtype=float)
+        return (
+            np.asarray(misses, dtype=float)
+            + (self.near_weight - 1.0) * near
+            + (self.surface_weight - 1.0) * np.asarray(surface, dtype=float)
+            + path_weight * np.asarray(path, dtype=float)
+        )
 
     def posterior_mean(self, p_gp: ArrayLike, hits: ArrayLike, misses: ArrayLike) -> NDArray[np.float64]:
         """The Beta-binomial posterior mean from the GP's probability, the weighted hits
@@ -265,6 +284,14 @@ class EvidenceCalibration:
     def __call__(self, p_gp: ArrayLike, hits: ArrayLike, misses: ArrayLike) -> NDArray[np.float64]:
         """Cell probability: :meth:`posterior_mean` mixed with the surprise rate (:func:`with_surprises`)."""
         return with_surprises(self.posterior_mean(p_gp, hits, misses), self.surprise_rate)
+
+
+def surface_misses(misses: ArrayLike, near: ArrayLike, at_surface: ArrayLike) -> NDArray[np.float64]:
+    """Surface misses of cells (:attr:`EvidenceCalibration.surface_weight`): their far misses
+    (`misses` less `near`) where `at_surface` (a hit in the cell or next to it), else 0 (matching
+    shapes)."""
+    far = np.maximum(np.asarray(misses, dtype=float) - np.asarray(near, dtype=float), 0.0)
+    return np.where(np.asarray(at_surface, dtype=bool), far, 0.0)
 
 
 def calibration_scans(n: int, n_scans: int) -> NDArray[np.intp]:
@@ -427,7 +454,8 @@ def fit_calibration(
     n = min(i_occ.size, i_free.size, CALIBRATION_POINTS_PER_CLASS)
     keep = np.concatenate([rng.choice(i_occ, n, replace=False), rng.choice(i_free, n, replace=False)])
     pts, occ = pts[keep], occ[keep]
-    h, m, near = _other_scans_counts(evidence, grid, whole, pts, scan_of[keep])
+    fit_surface = FIT_SURFACE_WEIGHT.get(pts.shape[1], False)
+    h, m, near, surface = _other_scans_counts(evidence, grid, whole, pts, scan_of[keep], fit_surface)
     # A point no other scan counted (no hit, no miss) has p = p_gp whatever the weights: a constant
     # of the loss, so the GP is not predicted there (44 % of la3dm sim_structured's 20,000 points,
     # 78 % of sim_unstructured's). The loss below is the whole sample's mean less that constant:
@@ -437,19 +465,19 @@ def fit_calibration(
     if not counted.any():
         return default, {"n_points": n_points, "n_predicted": 0}
     sample_pts, sample_occ = pts, occ
-    occ, h, m, near = occ[counted], h[counted], m[counted], near[counted]
+    occ, h, m, near, surface = occ[counted], h[counted], m[counted], near[counted], surface[counted]
     p_gp = np.asarray(predict_gp(pts[counted]), dtype=float)
 
     def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         cal = EvidenceCalibration(*np.exp(theta))
-        n0, a, b = cal.prior_weight, cal.near_weight, cal.near_hit_weight
+        n0, a, b, g = cal.prior_weight, cal.near_weight, cal.near_hit_weight, cal.surface_weight
         wh = cal.hit_weight * h
-        hits, weighted = cal.hits(h, near), cal.misses(m, near)
+        hits, weighted = cal.hits(h, near), cal.misses(m, near, surface=surface)
         q = cal.posterior_mean(p_gp, hits, weighted)
         p = with_surprises(q)
         den = hits + weighted + n0
         value = float(-np.sum(np.where(occ, np.log(p), np.log1p(-p))) / n_points)
-        # d loss / dq (dp / dq = 1 - SURPRISE_RATE); then dq / dlog w, dlog n0, dlog a, dlog b.
+        # d loss / dq (dp / dq = 1 - SURPRISE_RATE); then dq / dlog w, dlog n0, dlog a, dlog b, dlog g.
         dq = np.where(occ, -1.0 / p, 1.0 / (1.0 - p)) * (1.0 - SURPRISE_RATE) / n_points
         grad = np.array(
             [
@@ -457,17 +485,22 @@ def fit_calibration(
                 dq @ (n0 * (p_gp - q) / den),
                 dq @ (-a * near * q / den),
                 dq @ (b * near * (1.0 - q) / den),
+                dq @ (-g * surface * q / den),
             ]
         )
         return value, grad
 
     # The weights are fitted at the prior surprise rate (with_surprises' default), the rate after them.
     # The counting grid's weights, but for the near miss's hit weight: its floor (log space has no 0).
-    x0 = np.log([default.hit_weight, default.prior_weight, default.near_weight, np.exp(CALIBRATION_BOUNDS[3][0])])
+    x0 = np.log(
+        [default.hit_weight, default.prior_weight, default.near_weight, np.exp(CALIBRATION_BOUNDS[3][0]), default.surface_weight]
+    )
+    # Where surface misses are not weighed apart, their weight is held at a miss's.
+    bounds = CALIBRATION_BOUNDS if fit_surface else (*CALIBRATION_BOUNDS[:4], (0.0, 0.0))
     # With the exact gradient and a tight tolerance the weights are the optimum's, not where a
     # search on finite differences stopped (which, with three weights, left the hit weight 3e-6
     # apart for GP probabilities 1e-13 apart, tile factors of another BLAS thread count).
-    res = minimize(loss, x0, jac=True, method="L-BFGS-B", bounds=CALIBRATION_BOUNDS, options={"ftol": 1e-15, "gtol": 1e-10})
+    res = minimize(loss, x0, jac=True, method="L-BFGS-B", bounds=bounds, options={"ftol": 1e-15, "gtol": 1e-10})
     fitted = EvidenceCalibration(*(float(v) for v in np.exp(res.x)))
     scale = n_points / occ.size  # from the sample's sum to the mean over the counted points
     report = {
@@ -481,22 +514,27 @@ def fit_calibration(
         # Every point of the sample, those no other scan counted at the GP's probability alone.
         held = set(picked.tolist())
         p_apart = np.asarray(gp_apart([s for i, s in enumerate(scans) if i not in held])(sample_pts), dtype=float)
-        p_apart[counted] = fitted.posterior_mean(p_apart[counted], fitted.hits(h, near), fitted.misses(m, near))
+        p_apart[counted] = fitted.posterior_mean(p_apart[counted], fitted.hits(h, near), fitted.misses(m, near, surface=surface))
         fitted = replace(fitted, surprise_rate=fit_surprise_rate(p_apart, sample_occ))
         report["surprise_rate"] = fitted.surprise_rate
     if FIT_OCCUPIED_THRESHOLD.get(pts.shape[1], False):
         # The ternary map's occupied class, fitted where the probabilities were: on the same points,
         # the classes back at the log's own ratio (the sample balanced them).
-        p = fitted(p_gp, fitted.hits(h, near), fitted.misses(m, near))
+        p = fitted(p_gp, fitted.hits(h, near), fitted.misses(m, near, surface=surface))
         t, jaccard = occupied_threshold(p, occ, free_weight=i_free.size / i_occ.size)
         report["occupied_threshold"], report["occupied_iou"] = t, jaccard
     return fitted, report
 
 
 def _other_scans_counts(
-    evidence: RayEvidence, grid: AnyGrid, whole: RayCounts, points: NDArray[np.float64], scan_of: NDArray[np.intp]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Hits, misses and near misses that the scans other than each point's own counted in its cell.
+    evidence: RayEvidence,
+    grid: AnyGrid,
+    whole: RayCounts,
+    points: NDArray[np.float64],
+    scan_of: NDArray[np.intp],
+    surface: bool = True,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Hits, misses, near misses and surface misses that the scans other than each point's own counted in its cell.
 
     Parameters
     ----------
@@ -507,23 +545,41 @@ def _other_scans_counts(
     points : ndarray of shape (n, d)
     scan_of : ndarray of int, shape (n,)
         The scan each point comes from, whose own counts are taken out.
+    surface : bool
+        Whether to find the surface misses (else they are 0).
 
     Returns
     -------
-    hits, misses, near : ndarray of shape (n,)
+    hits, misses, near, surface : ndarray of shape (n,)
         0 outside `grid`. Never below zero: a scan counted before the lattice grew can fall one
         cell apart when recounted on the grown one, for a beam ending exactly on a cell border
         (the two origins round differently), and a negative count would make the calibration's
-        loss NaN and leave the weights at their defaults.
+        loss NaN and leave the weights at their defaults. `surface`: the far misses of cells
+        that the other scans' hits put next to a surface (:func:`surface_misses`), so that a
+        point's own hit does not make its neighbours' misses surface misses.
     """
     cell, inside = flat_index(grid, points)
-    hits, misses, near = np.zeros(points.shape[0]), np.zeros(points.shape[0]), np.zeros(points.shape[0])
+    n = points.shape[0]
+    hits, misses, near, at_a_surface = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    index = np.unravel_index(cell, grid.shape)
+    whole_hits = whole.hits.reshape(-1)
     for k in np.unique(scan_of):
         sel = np.flatnonzero(scan_of == k)
         own = evidence.scan_counts_at(grid, int(k), cell[sel])
         for total, mine, dest in zip(whole, own, (hits, misses, near), strict=True):
             dest[sel] = np.where(inside[sel], np.maximum(total.reshape(-1)[cell[sel]] - mine, 0), 0)
-    return hits, misses, near
+        if not surface:
+            continue
+        # The other scans' hits in each point's cell and its neighbours: all scans' less its own.
+        at_surface = np.zeros(sel.size, dtype=bool)
+        for step in itertools.product((-1, 0, 1), repeat=len(grid.shape)):
+            nb = tuple(i[sel] + o for i, o in zip(index, step, strict=True))
+            ok = inside[sel] & np.all([(j >= 0) & (j < m) for j, m in zip(nb, grid.shape, strict=True)], axis=0)
+            flat = np.ravel_multi_index(tuple(np.where(ok, j, 0) for j in nb), grid.shape)
+            others = whole_hits[flat] - evidence.scan_counts_at(grid, int(k), flat)[0]
+            at_surface |= ok & (others > 0)
+        at_a_surface[sel] = surface_misses(misses[sel], near[sel], at_surface)
+    return hits, misses, near, at_a_surface
 
 
 @dataclass(frozen=True)
@@ -749,6 +805,7 @@ class EvidenceLayer:
         self.proximity = proximity if proximity is not None else HitProximity()
         self.gp_apart = gp_apart
         self._hit_cells: HitCells | None = None  # of the counts so far, when asked
+        self._at_surface: NDArray[np.bool_] | None = None  # next_to_hits of the counts so far, when asked
         self.no_return_cap = no_return_cap
         self.calibration_scans = int(calibration_scans)
         self.seed = int(seed)
@@ -763,7 +820,7 @@ class EvidenceLayer:
         self._beam_misses = np.zeros((0, 0), dtype=np.int32)
         self._near_misses = np.zeros((0, 0), dtype=np.int32)
         self._path = np.zeros((0, 0), dtype=np.int32)
-        self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.int32]] | None = None
+        self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.int32], NDArray[np.bool_]] | None = None
         self.add_scans(scans)
         self.recalibrate(predict_gp)
 
@@ -835,6 +892,7 @@ class EvidenceLayer:
         self._joined = None
         self._grid_cache = None
         self._hit_cells = None
+        self._at_surface = None
 
     def _block(self, grid: AnyGrid) -> tuple[slice, ...]:
         """The slices of the lattice's arrays that `grid` (on the same cell lattice) covers."""
@@ -888,6 +946,8 @@ class EvidenceLayer:
             counts=RayCounts(self._hits, self._beam_misses, self._near_misses),
             gp_apart=self.gp_apart,
         )
+        # A cached grid's surface cells were found (or not) for the calibration before.
+        self._grid_cache = None
         for part in self._parts:
             part.forget()
 
@@ -901,9 +961,20 @@ class EvidenceLayer:
             return np.zeros(n), np.zeros(n)
         cell, inside = flat_index(self.lattice, points)
         hits, beam, near, path = (a.reshape(-1)[cell] for a in (self._hits, self._beam_misses, self._near_misses, self._path))
+        surface = surface_misses(beam, near, self.at_surface().reshape(-1)[cell]) if self._weighs_surface() else 0.0
         return np.where(inside, self.calibration.hits(hits, near), 0.0), np.where(
-            inside, self.calibration.misses(beam, near, path), 0.0
+            inside, self.calibration.misses(beam, near, path, surface), 0.0
         )
+
+    def _weighs_surface(self) -> bool:
+        """Whether the calibration weighs surface misses apart from other misses (else they need not be found)."""
+        return self.calibration.surface_weight != 1.0
+
+    def at_surface(self) -> NDArray[np.bool_]:
+        """Cells of the counted lattice a beam ended in or next to one (:func:`gpomap.evidence.next_to_hits`), shape lattice.shape."""
+        if self._at_surface is None or self._at_surface.shape != self._hits.shape:
+            self._at_surface = next_to_hits(self._hits)
+        return self._at_surface
 
     def proba(
         self, points: NDArray[np.float64], p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
@@ -966,18 +1037,25 @@ class EvidenceLayer:
         d = (np.asarray(grid.origin) - np.asarray(self.lattice.origin)) / self.resolution
         return bool(np.all(np.abs(d - np.round(d)) < 1e-6))
 
-    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[RayCounts, NDArray[np.int32]]:
-        """The beams' counts and the path's passes per cell of `grid`."""
+    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[RayCounts, NDArray[np.int32], NDArray[np.bool_]]:
+        """The beams' counts, the path's passes and the cells at a surface
+        (:func:`gpomap.evidence.next_to_hits`) per cell of `grid`."""
         if not self._on_lattice(grid):
-            return self.evidence.counts(grid), self.evidence.path_passes(grid)
-        # The grid's cells are lattice cells: read the running counts (zero beyond them).
+            counts = self.evidence.counts(grid)
+            at_surface = next_to_hits(counts.hits) if self._weighs_surface() else np.zeros(grid.shape, dtype=bool)
+            return counts, self.evidence.path_passes(grid), at_surface
+        # The grid's cells are lattice cells: read the running counts (zero beyond them), and
+        # whether a cell is at a surface from the whole lattice's hits, its window's edges too.
         assert self.lattice is not None
         out = [np.zeros(grid.shape, dtype=np.int32) for _ in range(4)]
+        at_surface = np.zeros(grid.shape, dtype=bool)
         where = overlap(cell_offset(grid, self.lattice), grid.shape, self.lattice.shape)
         if where is not None:
             for o, a in zip(out, (self._hits, self._beam_misses, self._near_misses, self._path), strict=True):
                 o[where[0]] = a[where[1]]
-        return RayCounts(out[0], out[1], out[2]), out[3]
+            if self._weighs_surface():
+                at_surface[where[0]] = self.at_surface()[where[1]]
+        return RayCounts(out[0], out[1], out[2]), out[3], at_surface
 
     def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Weighted hits (:meth:`EvidenceCalibration.hits`) and weighted misses
@@ -985,8 +1063,9 @@ class EvidenceLayer:
         grid's own cells (the last is cached)."""
         if self._grid_cache is None or self._grid_cache[0] != grid:
             self._grid_cache = (grid, *self._raw_grid_counts(grid))
-        _, counts, path = self._grid_cache
-        return self.calibration.hits(counts.hits, counts.near), self.calibration.misses(counts.misses, counts.near, path)
+        _, counts, path, at_surface = self._grid_cache
+        surface = surface_misses(counts.misses, counts.near, at_surface)
+        return self.calibration.hits(counts.hits, counts.near), self.calibration.misses(counts.misses, counts.near, path, surface)
 
     def grid_proba(
         self, grid: AnyGrid, p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
@@ -1046,8 +1125,8 @@ class EvidenceLayer:
         whole = None if self._on_lattice(grid) else self._raw_grid_counts(grid)
         for start, stop, band in row_bands(grid, rows):
             if whole is not None:
-                counts, path = whole
-                self._grid_cache = (band, RayCounts(*(c[start:stop] for c in counts)), path[start:stop])
+                counts, path, at_surface = whole
+                self._grid_cache = (band, RayCounts(*(c[start:stop] for c in counts)), path[start:stop], at_surface[start:stop])
             probability[start:stop], variance[start:stop] = self._written_block(band, factor, predict_gp, moments)
             if moments is not None:
                 # The next band's GP samples, and its variance's, reach at most 4.5 samples below its rows.
@@ -1087,6 +1166,7 @@ class EvidenceLayer:
             "prior_weight": c.prior_weight,
             "near_weight": c.near_weight,
             "near_hit_weight": c.near_hit_weight,
+            "surface_weight": c.surface_weight,
             **self.report,
             "surprise_rate": c.surprise_rate,
         }
