@@ -237,6 +237,10 @@ def test_truth_from_plan_by_hand():
     assert t.known.all()
     out = ev.score_truth(t, np.array([0.1, 0.2, 0.3, 0.7]))
     assert out["auc"] == 1.0 and out["iou"] == 1.0 and out["n_occupied_cells"] == 1
+    # A ternary map of its own (the map's, which may leave cells above the threshold unknown):
+    # it alone decides the IoU, here 1 / 2; the AUC stays the probability's.
+    out = ev.score_truth(t, np.array([0.1, 0.2, 0.3, 0.7]), occupied=np.array([False, False, True, True]))
+    assert out["auc"] == 1.0 and out["iou"] == 0.5
 
 
 def test_evaluate_against_truth_scores_the_room():
@@ -274,6 +278,21 @@ def test_path_points_and_path_occupied_by_hand():
     assert out["n_occupied"] == 2
     # The ternary map's threshold decides: 0.66 exactly is not occupied.
     assert ev.path_occupied(np.full(len(pts), 0.66), pts)["n_occupied"] == 0
+    # Or the map's own ternary map: occupied on cell 10 alone, whatever the probability.
+    assert ev.path_occupied(prob, pts, cell=0.05, occupied=(pts[:, 0] >= 0.5) & (pts[:, 0] < 0.55))["n_occupied"] == 1
+
+
+def test_lookup_occupied_reads_the_written_ternary_map():
+    from gpomap.grid import GridSpec, OccupancyMap
+
+    # Two cells above the occupied threshold, the second seen through by beams: only the first is
+    # occupied; a point off the map is not.
+    m = OccupancyMap(GridSpec((0.0, 0.0), 1.0, (1, 3)), np.array([[0.9, 0.9, 0.1]]), seen_through=np.array([[False, True, True]]))
+    np.testing.assert_array_equal(m.ternary, [[1, -1, 0]])
+    got = ev.lookup_occupied(m, np.array([[0.5, 0.5], [1.5, 0.5], [2.5, 0.5], [5.0, 0.5]]))
+    np.testing.assert_array_equal(got, [True, False, False, False])
+    with pytest.raises(ValueError, match="seen_through has shape"):
+        OccupancyMap(GridSpec((0.0, 0.0), 1.0, (1, 3)), np.zeros((1, 3)), seen_through=np.zeros((3, 1), bool))
 
 
 def test_truth_from_plan_lies_on_the_maps_lattice():

@@ -940,6 +940,14 @@ def test_occupied_threshold_is_the_brute_force_best():
         best = max(_jaccard(p, y, w, g) for g in grid)
         assert iou == pytest.approx(best) and _jaccard(p, y, w, t) == pytest.approx(best)
         assert t >= 0.66
+    # Points in cells other scans saw through are never called occupied: as if their p were 0.
+    seen = rng.random(400) < 0.3
+    for w in (1.0, 7.0):
+        t, iou = occupied_threshold(p, y, free_weight=w, seen_through=seen)
+        q = np.where(seen, 0.0, p)
+        grid = np.r_[0.66, np.unique(q[q > 0.66])]
+        best = max(_jaccard(q, y, w, g) for g in grid)
+        assert iou == pytest.approx(best) and _jaccard(q, y, w, t) == pytest.approx(best)
 
 
 def test_the_map_fits_its_ternary_occupied_threshold():
@@ -955,6 +963,25 @@ def test_the_map_fits_its_ternary_occupied_threshold():
     assert model.grid(0.5).thresholds == model.thresholds_
     q = np.array([[1.0, 1.0], [5.0, 5.0], [8.0, 2.0]])
     np.testing.assert_array_equal(model.predict_ternary(q), ternary(model.predict_proba(q), (DEFAULT_THRESHOLDS[0], fitted)))
+    # Cells beams crossed and none ended in are never occupied: unknown where the map's p is above
+    # the threshold (cells in front of the walls, beside their hits). By hand from the counts of a
+    # grid off the counted lattice (the room's walls lie on cell borders of the lattice itself).
+    m = model.grid(0.05, extent=(-0.487, 10.513, -0.479, 8.521))
+    hits, misses, _ = model.evidence_.evidence.counts(m.grid)
+    path = model.evidence_.evidence.path_passes(m.grid)
+    seen = (hits == 0) & ((misses > 0) | (path > 0))
+    np.testing.assert_array_equal(m.seen_through, seen)
+    above = m.probability > fitted
+    assert (above & seen).any() and (above & ~seen).any()
+    np.testing.assert_array_equal(m.ternary == 1, above & ~seen)
+    np.testing.assert_array_equal(m.ternary[above & seen], -1)
+    # The same at points: those of the map written on the counted lattice, at its cell centres.
+    on = model.grid(0.05)
+    centres = on.grid.centres()
+    seen_at = model.evidence_.seen_through_at(centres)
+    assert on.seen_through is not None and seen_at is not None
+    np.testing.assert_array_equal(seen_at, on.seen_through.ravel())
+    np.testing.assert_array_equal(model.predict_ternary(centres) == 1, (model.predict_proba(centres) > fitted) & ~seen_at)
     # Given thresholds are kept; without ray evidence there is nothing to fit them on.
     assert AreaGPOM(thresholds=(0.2, 0.7)).fit(scans).thresholds_ == (0.2, 0.7)
     assert AreaGPOM(ray_evidence=False).fit(scans).thresholds_ == DEFAULT_THRESHOLDS

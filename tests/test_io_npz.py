@@ -16,6 +16,7 @@ def _full_map():
         thresholds=(0.3, 0.7),
         path=rng.normal(size=(5, 2)),
         info={"method": "gpom", "lengthscale": np.float64(0.25), "sizes": np.arange(3), "ok": True, "n": None},
+        seen_through=rng.uniform(0, 1, grid.shape) < 0.5,
     )
 
 
@@ -38,7 +39,11 @@ def test_round_trip_everything(tmp_path):
     np.testing.assert_array_equal(back.probability, m.probability)
     np.testing.assert_array_equal(back.variance, m.variance)
     np.testing.assert_array_equal(back.path, m.path)
+    np.testing.assert_array_equal(back.seen_through, m.seen_through)
     np.testing.assert_array_equal(back.ternary, m.ternary)
+    # The seen-through cells are what keeps some cells above the threshold out of the occupied class.
+    assert ((m.probability > 0.7) & m.seen_through).any()
+    assert (m.ternary != OccupancyMap(m.grid, m.probability, thresholds=m.thresholds).ternary).any()
     assert back.thresholds == (0.3, 0.7)
     assert back.info == {"method": "gpom", "lengthscale": 0.25, "sizes": [0, 1, 2], "ok": True, "n": None}
     with np.load(out) as z:
@@ -49,7 +54,7 @@ def test_round_trip_minimal_and_exact_name(tmp_path):
     m = OccupancyMap(GridSpec((0, 0), 1.0, (1, 1)), np.array([[np.nan]]))
     save_map(m, tmp_path / "plain")  # no suffix added
     back = load_map(tmp_path / "plain")
-    assert back.variance is None and back.path is None and back.info == {}
+    assert back.variance is None and back.path is None and back.seen_through is None and back.info == {}
     assert np.isnan(back.probability[0, 0])
 
 
@@ -72,6 +77,16 @@ def test_variance_shape_disagrees(tmp_path):
     good = save_map(_full_map(), tmp_path / "good.npz")
     bad = _rewrite(good, tmp_path / "bad.npz", variance=np.zeros((3, 3)))
     with pytest.raises(InputFormatError, match=r"'variance' must have shape \(6, 8\).*got \(3, 3\)"):
+        load_map(bad)
+
+
+def test_seen_through_must_be_bool_of_the_probabilitys_shape(tmp_path):
+    src = save_map(_full_map(), tmp_path / "m.npz")
+    bad = _rewrite(src, tmp_path / "dtype.npz", seen_through=np.ones((6, 8)))
+    with pytest.raises(InputFormatError, match="'seen_through' has dtype float64; expected bool"):
+        load_map(bad)
+    bad = _rewrite(src, tmp_path / "shape.npz", seen_through=np.ones((6, 7), bool))
+    with pytest.raises(InputFormatError, match="seen_through"):
         load_map(bad)
 
 

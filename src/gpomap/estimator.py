@@ -225,8 +225,10 @@ class GPMapEstimator:
         return (p, var) if return_var else p
 
     def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
-        """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
-        return ternary(self.predict_proba(points), self.thresholds_)
+        """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,); never occupied
+        in a cell beams saw through (:meth:`gpomap.fusion.EvidenceLayer.seen_through_at`)."""
+        seen = self.evidence_.seen_through_at(points) if self.evidence_ is not None else None
+        return ternary(self.predict_proba(points), self.thresholds_, seen)
 
     def grid(self, resolution: float, extent: tuple[float, ...] | None = None, supersample: int = 1) -> Any:
         """The map sampled on a regular grid: an OccupancyMap in 2-D, a VoxelMap (:meth:`voxels`) in 3-D.
@@ -262,7 +264,9 @@ class GPMapEstimator:
         spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
         evidence = self.evidence_
         if evidence is not None:
-            probability, variance = evidence.written_grid(spec, self.gp_.kernel.base.length_scale, self._gp_probabilities)
+            probability, variance, seen_through = evidence.written_grid(
+                spec, self.gp_.kernel.base.length_scale, self._gp_probabilities
+            )
             return OccupancyMap(
                 grid=spec,
                 probability=probability,
@@ -270,6 +274,7 @@ class GPMapEstimator:
                 thresholds=self.thresholds_,
                 path=self.path_,
                 info=self.summary(),
+                seen_through=seen_through,
             )
         k = int(supersample)
         fine = GridSpec(spec.origin, spec.resolution / k, (spec.shape[0] * k, spec.shape[1] * k))
@@ -314,7 +319,7 @@ class GPMapEstimator:
         spec = VoxelSpec.from_extent(lo, hi, resolution)
         evidence = self.evidence_
         if evidence is not None:
-            probability, variance = evidence.written_grid(spec, self.gp_.kernel.base.length_scale, self._gp_probabilities)
+            probability, variance, _ = evidence.written_grid(spec, self.gp_.kernel.base.length_scale, self._gp_probabilities)
         else:
             p, var = self.predict_proba_gp(spec.centres(), return_var=True)
             probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)

@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import EmptyDataError
-from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap
+from gpomap.grid import DEFAULT_THRESHOLDS, OCCUPIED, GridSpec, OccupancyMap
 from gpomap.metrics import expected_calibration_error, fpr_at_tpr, iou, log_loss, reliability_bins, roc_auc, roc_curve
 from gpomap.observations import observations_from_scans
 from gpomap.resources import peak_rss_mb
@@ -319,6 +319,24 @@ def lookup(occupancy_map: OccupancyMap, points: NDArray[np.float64]) -> NDArray[
     return out
 
 
+def lookup_occupied(occupancy_map: OccupancyMap, points: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Whether the written map's ternary map calls the cell holding each point occupied (False
+    outside the map), shape (n,)."""
+    rows, cols, inside = occupancy_map.grid.index_of(np.asarray(points, dtype=float).reshape(-1, 2))
+    out = np.zeros(len(rows), dtype=bool)
+    out[inside] = occupancy_map.ternary[rows[inside], cols[inside]] == OCCUPIED
+    return out
+
+
+def occupied_at(model: Any, points: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Whether a fitted model's ternary map calls each point occupied, shape (n,): its own
+    ``predict_ternary`` where it has one (MSK-GPOM's fitted threshold, cells beams saw through
+    never occupied), else its probability above the paper's occupied threshold (the grids)."""
+    if hasattr(model, "predict_ternary"):
+        return np.asarray(model.predict_ternary(points)) == OCCUPIED
+    return np.asarray(model.predict_proba(points), dtype=float) > DEFAULT_THRESHOLDS[1]
+
+
 def reference_grid(train: Sequence[Scan], resolution: float = REFERENCE_RESOLUTION) -> Any:
     """The counting grid of the training scans: which cells any training beam crossed."""
     from gpomap.baselines.ogm import OccupancyGridMapper
@@ -359,6 +377,7 @@ def path_occupied(
     points: NDArray[np.float64],
     cell: float = REFERENCE_RESOLUTION,
     threshold: float = DEFAULT_THRESHOLDS[1],
+    occupied: NDArray[np.bool_] | None = None,
 ) -> dict[str, Any]:
     """How much of the robot's own path a map calls occupied (ternary threshold).
 
@@ -373,6 +392,9 @@ def path_occupied(
         stretch of path in one cell counts once.
     threshold : float
         The map's ternary occupied threshold (occupied above it).
+    occupied : ndarray of bool, shape (n,), optional
+        Whether the map's ternary map calls each point occupied (:func:`occupied_at`,
+        :func:`lookup_occupied`), in place of `prob` above `threshold`.
 
     Returns
     -------
@@ -384,9 +406,9 @@ def path_occupied(
     _, cell_of = np.unique(keys, axis=0, return_inverse=True)
     cell_of = cell_of.ravel()
     n = int(cell_of.max()) + 1 if cell_of.size else 0
-    occupied = np.zeros(n, bool)
-    np.logical_or.at(occupied, cell_of, np.asarray(prob) > threshold)
-    return {"n_cells": n, "n_occupied": int(occupied.sum()), "fraction": float(occupied.mean()) if n else 0.0}
+    occupied_cells = np.zeros(n, bool)
+    np.logical_or.at(occupied_cells, cell_of, np.asarray(prob) > threshold if occupied is None else np.asarray(occupied, bool))
+    return {"n_cells": n, "n_occupied": int(occupied_cells.sum()), "fraction": float(occupied_cells.mean()) if n else 0.0}
 
 
 @dataclass(frozen=True)
@@ -551,6 +573,7 @@ def score_truth(
     prob: NDArray[np.float64],
     observed: NDArray[np.bool_] | None = None,
     threshold: float = DEFAULT_THRESHOLDS[1],
+    occupied: NDArray[np.bool_] | None = None,
 ) -> dict[str, Any]:
     """Score probabilities at the truth grid's cell centres against it.
 
@@ -563,6 +586,9 @@ def score_truth(
         Cells the training data observed: also scored alone.
     threshold : float
         Occupied above this (the map's ternary threshold): the IoU's predicted class.
+    occupied : ndarray of bool, shape (ny * nx,), optional
+        The IoU's predicted class itself, the map's ternary map (:func:`occupied_at`,
+        :func:`lookup_occupied`), in place of `prob` above `threshold`.
 
     Returns
     -------
@@ -572,9 +598,10 @@ def score_truth(
     """
     known = np.ones(truth.occupied.size, bool) if truth.known is None else truth.known.ravel()
     y = truth.occupied.ravel()
+    called = prob > threshold if occupied is None else np.asarray(occupied, dtype=bool)
     out: dict[str, Any] = {
         "auc": _auc_or_none(y[known], prob[known]),
-        "iou": iou(prob[known] > threshold, y[known]),
+        "iou": iou(called[known], y[known]),
         "n_cells": int(known.sum()),
         "n_occupied_cells": int(y[known].sum()),
         "observed_auc": None,
@@ -583,7 +610,7 @@ def score_truth(
     if observed is not None:
         sel = known & observed
         out["observed_auc"] = _auc_or_none(y[sel], prob[sel])
-        out["observed_iou"] = iou(prob[sel] > threshold, y[sel])
+        out["observed_iou"] = iou(called[sel], y[sel])
         out["n_observed_cells"] = int(sel.sum())
     return out
 
@@ -858,15 +885,19 @@ def run_method(
     points_score = score(data.labels, prob, data.masks, roc=return_roc)
     far_lattice = np.asarray(model.predict_proba(data.far_points), dtype=float) if len(data.far_points) else np.zeros(0)
     far = {"test_points": {"points": _spread(prob[data.far_test])}, "lattice": {"points": _spread(far_lattice)}}
-    # Each map's ternary map is judged at its own occupied threshold (MSK-GPOM fits its own).
+    # Each map's own ternary map is judged (MSK-GPOM fits its occupied threshold).
     occupied_above = float(getattr(model, "thresholds_", DEFAULT_THRESHOLDS)[1])
-    path = {"points": path_occupied(np.asarray(model.predict_proba(data.path), dtype=float), data.path, threshold=occupied_above)}
+    path_prob = np.asarray(model.predict_proba(data.path), dtype=float)
+    path = {"points": path_occupied(path_prob, data.path, occupied=occupied_at(model, data.path))}
     truth_out: dict[str, Any] | None = None
     if data.truth is not None:
         centres = data.truth.grid.centres()
         truth_out = {
             "points": score_truth(
-                data.truth, np.asarray(model.predict_proba(centres), dtype=float), data.truth_observed, occupied_above
+                data.truth,
+                np.asarray(model.predict_proba(centres), dtype=float),
+                data.truth_observed,
+                occupied=occupied_at(model, centres),
             )
         }
 
@@ -882,11 +913,16 @@ def run_method(
         grid_score = score(data.labels, gprob, data.masks, roc=return_roc)
         far["test_points"]["grid"] = _spread(gprob[data.far_test])
         far["lattice"]["grid"] = _spread(lookup(occupancy_map, data.far_points))
-        written_above = occupancy_map.thresholds[1]
-        path["grid"] = path_occupied(lookup(occupancy_map, data.path), data.path, threshold=written_above)
+        path["grid"] = path_occupied(
+            lookup(occupancy_map, data.path), data.path, occupied=lookup_occupied(occupancy_map, data.path)
+        )
         if data.truth is not None and truth_out is not None:
+            centres = data.truth.grid.centres()
             truth_out["grid"] = score_truth(
-                data.truth, lookup(occupancy_map, data.truth.grid.centres()), data.truth_observed, written_above
+                data.truth,
+                lookup(occupancy_map, centres),
+                data.truth_observed,
+                occupied=lookup_occupied(occupancy_map, centres),
             )
         del occupancy_map
 

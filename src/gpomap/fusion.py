@@ -195,6 +195,14 @@ PATH_HITS: float = 10.0
 #: on the shared and unseen logs (docs/choices.md). Not for point clouds, where it was not.
 FIT_OCCUPIED_THRESHOLD: dict[int, bool] = {2: True, 3: False}
 
+#: Whether the ternary map, per dimension of the data, never calls occupied a cell that beams (or
+#: the robot) crossed and no beam ended in (:func:`gpomap.grid.ternary`'s ``seen_through``), as
+#: neither occupancy grid would: such a cell the map thinks likely occupied (a surface beside it,
+#: the GP's lean) is unknown instead. Planar maps, where the occupied threshold is fitted with the
+#: same rule: the cells in front of the Stage arena's walls, crossed by grazing beams, were called
+#: occupied (docs/choices.md). Not for point clouds, where it was not measured.
+SEEN_THROUGH_NOT_OCCUPIED: dict[int, bool] = {2: True, 3: False}
+
 #: Most calibration points of each class. Four weights need no more, and the GP's prediction at
 #: them is the calibration's cost. Planar logs never reach it (25 scans of at most 361 beams give
 #: at most ~9,000 hits); clouds do (la3dm: 31,500 hits in 9 scans, cut to a third).
@@ -326,14 +334,19 @@ def calibration_points(
 
 
 def occupied_threshold(
-    p: ArrayLike, occupied: ArrayLike, free_weight: float = 1.0, floor: float = DEFAULT_THRESHOLDS[1]
+    p: ArrayLike,
+    occupied: ArrayLike,
+    free_weight: float = 1.0,
+    floor: float = DEFAULT_THRESHOLDS[1],
+    seen_through: ArrayLike | None = None,
 ) -> tuple[float, float]:
     """The probability above which the ternary map's occupied cells best match where beams end.
 
     The threshold t (at least `floor`) that maximises the occupied class's IoU (Jaccard index)
     ``TP / (TP + FP + FN)`` of the decision ``p > t`` on held-out points, each free point weighing
     `free_weight` occupied ones (the points' class ratio before a class-balanced sample was drawn,
-    so that the IoU is the one at the data's own frequencies).
+    so that the IoU is the one at the data's own frequencies). Points in cells other scans saw
+    through (`seen_through`) are never called occupied, as the ternary map does not call them.
 
     Parameters
     ----------
@@ -342,6 +355,7 @@ def occupied_threshold(
     occupied : array_like of bool, shape (n,)
     free_weight : float
     floor : float
+    seen_through : array_like of bool, shape (n,), optional
 
     Returns
     -------
@@ -351,6 +365,8 @@ def occupied_threshold(
     """
     p = np.asarray(p, dtype=float).ravel()
     y = np.asarray(occupied, dtype=bool).ravel()
+    if seen_through is not None:
+        p = np.where(np.asarray(seen_through, dtype=bool).ravel(), -np.inf, p)  # below every threshold
     n_occ = float(y.sum())
     if n_occ == 0:
         return float(floor), 0.0
@@ -521,7 +537,8 @@ def fit_calibration(
         # The ternary map's occupied class, fitted where the probabilities were: on the same points,
         # the classes back at the log's own ratio (the sample balanced them).
         p = fitted(p_gp, fitted.hits(h, near), fitted.misses(m, near, surface=surface))
-        t, jaccard = occupied_threshold(p, occ, free_weight=i_free.size / i_occ.size)
+        seen = (h == 0) & (m > 0) if SEEN_THROUGH_NOT_OCCUPIED.get(pts.shape[1], False) else None
+        t, jaccard = occupied_threshold(p, occ, free_weight=i_free.size / i_occ.size, seen_through=seen)
         report["occupied_threshold"], report["occupied_iou"] = t, jaccard
     return fitted, report
 
@@ -996,6 +1013,28 @@ class EvidenceLayer:
             self.calibration.surprise_rate,
         )
 
+    def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
+        """Whether beams or the robot's path crossed the fine cell holding each point and no beam
+        ended in it, shape (m,) (False outside the counted area); None where the ternary map does
+        not use it (:data:`SEEN_THROUGH_NOT_OCCUPIED`)."""
+        if not SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False):
+            return None
+        if self.lattice is None:
+            return np.zeros(np.asarray(points).shape[0], dtype=bool)
+        cell, inside = flat_index(self.lattice, points)
+        hits, beam, path = (a.reshape(-1)[cell] for a in (self._hits, self._beam_misses, self._path))
+        return inside & (hits == 0) & ((beam > 0) | (path > 0))
+
+    def grid_seen_through(self, grid: AnyGrid) -> NDArray[np.bool_] | None:
+        """:meth:`seen_through_at` per cell of `grid`, counted on its own cells (the counts of
+        :meth:`grid_counts`, cached), shape grid.shape; None where not used."""
+        if not SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False):
+            return None
+        if self._grid_cache is None or self._grid_cache[0] != grid:
+            self._grid_cache = (grid, *self._raw_grid_counts(grid))
+        _, counts, path, _ = self._grid_cache
+        return (counts.hits == 0) & ((counts.misses > 0) | (path > 0))
+
     def hit_distance(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
         """Distance (m,) from each point (m, d) to the nearest centre of a cell a beam ended in
         (:class:`HitCells`), inf where the gain near hits is nil."""
@@ -1086,8 +1125,9 @@ class EvidenceLayer:
         length_scale: float,
         predict_gp: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
         moments: BlendedMoments | None = None,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Probability and latent variance per cell of `grid`, each of shape grid.shape.
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
+        """Probability and latent variance per cell of `grid`, each of shape grid.shape, and the
+        cells beams saw through (:meth:`grid_seen_through`, or None).
 
         The counts give each cell its detail; the smooth GP under them is sampled more coarsely
         (:func:`gp_sampling_factor`) and interpolated (bi- or trilinearly). A planar grid of more
@@ -1120,6 +1160,7 @@ class EvidenceLayer:
         if ny <= rows:
             return self._written_block(grid, factor, predict_gp, moments)
         probability, variance = np.empty(grid.shape), np.empty(grid.shape)
+        seen_through = np.zeros(grid.shape, dtype=bool) if SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False) else None
         # Cells off the counted lattice are counted afresh, a traversal of every beam: once for
         # the whole grid (16 bytes a cell), not once per band.
         whole = None if self._on_lattice(grid) else self._raw_grid_counts(grid)
@@ -1127,14 +1168,16 @@ class EvidenceLayer:
             if whole is not None:
                 counts, path, at_surface = whole
                 self._grid_cache = (band, RayCounts(*(c[start:stop] for c in counts)), path[start:stop], at_surface[start:stop])
-            probability[start:stop], variance[start:stop] = self._written_block(band, factor, predict_gp, moments)
+            probability[start:stop], variance[start:stop], seen = self._written_block(band, factor, predict_gp, moments)
+            if seen_through is not None and seen is not None:
+                seen_through[start:stop] = seen
             if moments is not None:
                 # The next band's GP samples, and its variance's, reach at most 4.5 samples below its rows.
                 moments.forget_below(grid.origin[1] + (stop - 3 * unit) * grid.resolution)
         if moments is not None:
             moments.forget_below(np.inf)
         self._grid_cache = None  # the last band's counts: of no use to the next grid
-        return probability, variance
+        return probability, variance, seen_through
 
     def _written_block(
         self,
@@ -1142,7 +1185,7 @@ class EvidenceLayer:
         factor: int,
         predict_gp: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
         moments: BlendedMoments | None,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
         """:meth:`written_grid` of a grid in one piece, its GP sampled every `factor` cells."""
         sampled = coarse(grid, factor)
         block = interpolation_block(sampled, grid)
@@ -1156,7 +1199,7 @@ class EvidenceLayer:
             # margins are a few rows of hundreds).
             p, var, p_unseen = predict_gp(grid_centres(sampled))
         probability = self.grid_proba(grid, interpolate(p, sampled, grid), interpolate(p_unseen, sampled, grid))
-        return probability, interpolate(var, sampled, grid)
+        return probability, interpolate(var, sampled, grid), self.grid_seen_through(grid)
 
     def summary(self) -> dict[str, float]:
         """The calibration and how it was fitted."""

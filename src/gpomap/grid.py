@@ -139,7 +139,11 @@ def row_bands(grid: GridSpec, rows: int) -> Iterator[tuple[int, int, GridSpec]]:
             bar.update()
 
 
-def ternary(probability: NDArray[np.float64], thresholds: tuple[float, float] = DEFAULT_THRESHOLDS) -> NDArray[np.int8]:
+def ternary(
+    probability: NDArray[np.float64],
+    thresholds: tuple[float, float] = DEFAULT_THRESHOLDS,
+    seen_through: NDArray[np.bool_] | None = None,
+) -> NDArray[np.int8]:
     """Free / unknown / occupied labels from occupancy probabilities.
 
     Parameters
@@ -147,6 +151,9 @@ def ternary(probability: NDArray[np.float64], thresholds: tuple[float, float] = 
     probability : ndarray of any shape
     thresholds : (free_below, occupied_above)
         Probability below the first is FREE (0), above the second OCCUPIED (1), between UNKNOWN (-1).
+    seen_through : ndarray of bool, the shape of `probability`, optional
+        Cells that beams (or the robot) crossed and no beam ended in: never OCCUPIED, UNKNOWN
+        where their probability is above the occupied threshold.
 
     Returns
     -------
@@ -159,6 +166,8 @@ def ternary(probability: NDArray[np.float64], thresholds: tuple[float, float] = 
     out = np.full(p.shape, UNKNOWN, dtype=np.int8)
     out[p < lo] = FREE
     out[p > hi] = OCCUPIED
+    if seen_through is not None:
+        out[(out == OCCUPIED) & np.asarray(seen_through, dtype=bool)] = UNKNOWN
     return out
 
 
@@ -179,6 +188,9 @@ class OccupancyMap:
         The robot's path (sensor positions), for figures.
     info : dict
         What made the map: method, hyperparameters, timings; written into outputs where they can hold it.
+    seen_through : ndarray of bool, shape (ny, nx), optional
+        Cells that beams or the robot's path crossed and no beam ended in, which the ternary map
+        never calls occupied (see :func:`ternary`); None: no such cells known.
     """
 
     grid: GridSpec
@@ -187,6 +199,7 @@ class OccupancyMap:
     thresholds: tuple[float, float] = DEFAULT_THRESHOLDS
     path: NDArray[np.float64] | None = None
     info: dict = field(default_factory=dict)
+    seen_through: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         self.probability = np.asarray(self.probability, dtype=float)
@@ -196,12 +209,16 @@ class OccupancyMap:
             self.variance = np.asarray(self.variance, dtype=float)
             if self.variance.shape != self.grid.shape:
                 raise ValueError(f"variance has shape {self.variance.shape}, grid has {self.grid.shape}")
+        if self.seen_through is not None:
+            self.seen_through = np.asarray(self.seen_through, dtype=bool)
+            if self.seen_through.shape != self.grid.shape:
+                raise ValueError(f"seen_through has shape {self.seen_through.shape}, grid has {self.grid.shape}")
         self.thresholds = (float(self.thresholds[0]), float(self.thresholds[1]))
 
     @property
     def ternary(self) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) per cell, ndarray of shape (ny, nx)."""
-        return ternary(self.probability, self.thresholds)
+        return ternary(self.probability, self.thresholds, self.seen_through)
 
 
 def coarse_grid(grid: GridSpec, factor: int) -> GridSpec:

@@ -115,7 +115,8 @@ def plot_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str] | None = 
     axes[1].set_title("latent variance")
 
     # The drawn cells' classes only (the whole map's would be sliced the same).
-    im = axes[2].imshow(ternary(probability, m.thresholds), cmap=_TERNARY_CMAP, norm=_TERNARY_NORM, **imshow)
+    seen = None if m.seen_through is None else _shown(m.seen_through, step)
+    im = axes[2].imshow(ternary(probability, m.thresholds, seen), cmap=_TERNARY_CMAP, norm=_TERNARY_NORM, **imshow)
     cbar = _colorbar(fig, axes[2], im, "")
     cbar.set_ticks([-1, 0, 1], labels=["unknown", "free", "occupied"])
     axes[2].set_title(f"ternary (free < {m.thresholds[0]:.3g}, occupied > {m.thresholds[1]:.3g})")

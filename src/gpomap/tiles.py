@@ -1960,8 +1960,10 @@ class TiledGPOM:
         return ternary_thresholds(self.base.thresholds, self.evidence_)
 
     def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
-        """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,)."""
-        return ternary(self.predict_proba(points), self.thresholds_)
+        """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,); never occupied
+        in a cell beams saw through (:meth:`gpomap.fusion.EvidenceLayer.seen_through_at`)."""
+        seen = self.evidence_.seen_through_at(points) if self.evidence_ is not None else None
+        return ternary(self.predict_proba(points), self.thresholds_, seen)
 
     @_blas_shared
     def grid(self, resolution: float, extent: tuple[float, ...] | None = None) -> Any:
@@ -1988,7 +1990,7 @@ class TiledGPOM:
             return self._voxels(resolution, extent)
         spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
         t = time.perf_counter()
-        probability, variance = self._sample(spec)
+        probability, variance, seen_through = self._sample(spec)
         self.timings_["grid"] = time.perf_counter() - t
         return OccupancyMap(
             grid=spec,
@@ -1997,6 +1999,7 @@ class TiledGPOM:
             thresholds=self.thresholds_,
             path=self.path_,
             info=self.summary(),
+            seen_through=seen_through,
         )
 
     def _gp_probabilities(
@@ -2006,15 +2009,16 @@ class TiledGPOM:
         p, _, var, p_unseen = self._predict_blended(points)
         return p, var, p_unseen
 
-    def _sample(self, spec: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Probability and latent variance per cell of a GridSpec or VoxelSpec."""
+    def _sample(self, spec: Any) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
+        """Probability and latent variance per cell of a GridSpec or VoxelSpec, and the cells beams
+        saw through (:meth:`gpomap.fusion.EvidenceLayer.written_grid`; None without ray counts)."""
         if self.evidence_ is not None:
             return self.evidence_.written_grid(spec, self.hyperparameters_["length_scale"], self._gp_probabilities, self)
         ny, nx = spec.shape[-2:]
         rows = max(1, WRITTEN_BAND_CELLS // nx)
         if not isinstance(spec, GridSpec) or ny <= rows:
             p, _, var, _ = self._predict_blended(spec.centres())
-            return p.reshape(spec.shape), var.reshape(spec.shape)
+            return p.reshape(spec.shape), var.reshape(spec.shape), None
         # The GP alone, in bands of rows as the written map with counts is (the same values).
         probability, variance = np.empty(spec.shape), np.empty(spec.shape)
         for start, stop, band in row_bands(spec, rows):
@@ -2022,7 +2026,7 @@ class TiledGPOM:
             probability[start:stop], variance[start:stop] = p.reshape(-1, nx), var.reshape(-1, nx)
             self.forget_below(spec.origin[1] + stop * spec.resolution)
         self.forget_below(np.inf)
-        return probability, variance
+        return probability, variance, None
 
     def _voxels(self, resolution: float, extent: tuple[float, ...]) -> Any:
         from gpomap.lattice import extent_bounds
@@ -2031,7 +2035,7 @@ class TiledGPOM:
         lo, hi = extent_bounds(extent)
         spec = VoxelSpec.from_extent(lo, hi, resolution)
         t = time.perf_counter()
-        probability, variance = self._sample(spec)
+        probability, variance, _ = self._sample(spec)
         self.timings_["grid"] = time.perf_counter() - t
         return VoxelMap(spec, probability, variance, thresholds=self.thresholds_, info=self.summary())
 

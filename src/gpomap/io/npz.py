@@ -13,6 +13,7 @@ key                shape / dtype     meaning
 ``thresholds``     (2,) float64      free-below, occupied-above
 ``ternary``        (ny, nx) int8     FREE 0 / OCCUPIED 1 / UNKNOWN -1 (for other tools; recomputed on load)
 ``variance``       (ny, nx) float64  optional: latent variance
+``seen_through``   (ny, nx) bool     optional: cells beams crossed and none ended in, never occupied
 ``path``           (k, 2) float64    optional: robot path
 ``info``           () str            optional: ``OccupancyMap.info`` as JSON
 =================  ================  ===========================================================
@@ -90,6 +91,8 @@ def save_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str]) -> Path:
     }
     if m.variance is not None:
         arrays["variance"] = np.asarray(m.variance, dtype=np.float64)
+    if m.seen_through is not None:
+        arrays["seen_through"] = np.asarray(m.seen_through, dtype=bool)
     if m.path is not None:
         arrays["path"] = np.asarray(m.path, dtype=np.float64)
     target = Path(path)
@@ -110,6 +113,14 @@ def _real(data: dict[str, np.ndarray], key: str, path: str) -> np.ndarray:
     return np.asarray(a, dtype=np.float64)
 
 
+def _flags(data: dict[str, np.ndarray], key: str, path: str) -> np.ndarray:
+    """`data[key]` as bool, refusing any dtype but bool (a map's own flags are saved as bool)."""
+    a = data[key]
+    if a.dtype != bool:
+        raise InputFormatError(f"array '{key}' has dtype {a.dtype}; expected bool", path=path)
+    return np.asarray(a, dtype=bool)
+
+
 def load_map(path: str | os.PathLike[str]) -> OccupancyMap:
     """Read a map written by :func:`save_map`.
 
@@ -120,14 +131,16 @@ def load_map(path: str | os.PathLike[str]) -> OccupancyMap:
     Returns
     -------
     OccupancyMap
-        With variance, path and info when the file has them (``info`` is ``{}`` otherwise).
+        With variance, seen-through cells, path and info when the file has them (``info`` is ``{}``
+        otherwise).
 
     Raises
     ------
     InputFormatError
         The file is missing or not an ``.npz``; a required array (probability, origin, resolution,
-        thresholds) is missing; shapes disagree (variance or ternary not the probability's shape,
-        origin not (2,), path not (k, 2)); resolution or thresholds are invalid; info is not JSON.
+        thresholds) is missing; shapes disagree (variance, ternary or seen_through not the
+        probability's shape, origin not (2,), path not (k, 2)); seen_through is not bool;
+        resolution or thresholds are invalid; info is not JSON.
     """
     name = str(path)
     p = regular_file(path, "gpomap .npz map file")
@@ -167,7 +180,7 @@ def load_map(path: str | os.PathLike[str]) -> OccupancyMap:
     thresholds = _real(data, "thresholds", name)
     if thresholds.shape != (2,):
         raise _shape_error("thresholds", "(2,)", thresholds.shape, name)
-    for key in ("variance", "ternary"):
+    for key in ("variance", "ternary", "seen_through"):
         if key in data and data[key].shape != probability.shape:
             raise _shape_error(key, f"{probability.shape} (the probability's)", data[key].shape, name)
     robot_path = None
@@ -187,9 +200,12 @@ def load_map(path: str | os.PathLike[str]) -> OccupancyMap:
     try:
         grid = GridSpec((origin[0], origin[1]), float(resolution.reshape(())), probability.shape)
         variance = _real(data, "variance", name) if "variance" in data else None
+        seen_through = _flags(data, "seen_through", name) if "seen_through" in data else None
         lo, hi = (float(t) for t in thresholds)
         if not 0.0 <= lo <= hi <= 1.0:
             raise ValueError(f"thresholds must satisfy 0 <= free <= occupied <= 1, got ({lo}, {hi})")
-        return OccupancyMap(grid, probability, variance=variance, thresholds=(lo, hi), path=robot_path, info=info)
+        return OccupancyMap(
+            grid, probability, variance=variance, thresholds=(lo, hi), path=robot_path, info=info, seen_through=seen_through
+        )
     except (ValueError, TypeError) as exc:
         raise InputFormatError(str(exc), path=name) from None
