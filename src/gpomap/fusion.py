@@ -2,13 +2,18 @@
 
 Model. The occupancy of a fine cell (5 cm by default) is a Beta variable whose mean is the GP's
 probability p_gp there, with an equivalent sample size n0; every scan that ended a beam in the cell
-is a hit worth ``hit_weight`` observations, every scan that saw through it a miss, and a scan
+is a hit worth ``hit_weight`` observations, every scan that saw through it a miss, a scan
 whose beams crossed it only just before their returned ends (a near miss,
 :data:`~gpomap.evidence.NEAR_END`) a miss worth ``near_weight`` and ``near_hit_weight``
-observations of a surface besides. Its posterior mean is
+observations of a surface besides, and a far miss of a cell with a hit in it or beside it (a
+surface miss, :func:`~gpomap.evidence.next_to_hits`) a miss worth ``surface_weight``. Its
+posterior mean is
 
     p = (hit_weight * hits + near_hit_weight * near misses + n0 * p_gp)
-        / (hit_weight * hits + near_hit_weight * near misses + far misses + near_weight * near misses + n0).
+        / (hit_weight * hits + near_hit_weight * near misses + far misses
+           + surface_weight * surface misses + near_weight * near misses + n0),
+
+the far misses here those that are not surface misses.
 
 Where no beam went, p is the GP's probability for unseen space (its latent variance scaled by the
 factor fitted on held-out stretches of the log, and raised near cells beams ended in by a gain
@@ -30,20 +35,23 @@ where every scan saw free space or a door that closed, so every probability is
 but against a GP that never saw the held-out scans (:func:`fit_surprise_rate`), never below the
 prior: a museum's visitors, a conference centre's crowd raise it to 0.015-0.04.
 
-Calibration. The four weights are fitted on the map's own data, never on a test set: for a
+Calibration. The five weights are fitted on the map's own data, never on a test set: for a
 sample of the training scans, the scan's own beams are removed from the counts (leave one scan
 out, exact because counts add over scans), and its hits and free points along its beams
-(class-balanced, as an evaluation would score them) are predicted from the rest. One hit comes
-out worth tens of misses on real logs: a beam ending in a cell is direct evidence of a surface,
-while beams crossing a wall's cell graze past it or pass through a gap of the range noise
-(OctoMap encodes the same asymmetry, more mildly, with +0.85 against -0.4 log-odds). Near misses
-come out worth 0.07-0.24 of a miss on the real logs: a beam ending a few centimetres past a cell
-says little of whether the surface is in it. Weighed apart, they let the hit weight fall (Intel, blocks of 40:
-68 -> 36; Belgioioso 80 -> 36), so fewer misses clear a cell a transient once stood in
-(``benchmarks/near_misses.py``). As evidence of a surface a near miss weighs nothing on about
-half the real logs and 0.2-0.9 observations on the rest, but a sixth of a hit on a log whose
-walls smear across scans (Acapulco: there the cell a beam ended just beyond is often another
-scan's hit, and counting it so took its held-out ECE from 0.074 to 0.033).
+(class-balanced, as an evaluation would score them) are predicted from the rest. The unit is a
+far miss of a cell with no hit in it or beside it: a beam saw through open space. Next to a
+surface a far miss says much less: a beam passing along a wall crosses the cell in front of it,
+which a beam from elsewhere ends in, so a surface miss comes out worth 0.02-0.3 of one on all
+but a museum's log (0.5-0.8), and one hit tens of surface misses (12-170 on the logs measured;
+OctoMap encodes the same asymmetry, more mildly, with +0.85 against -0.4 log-odds). Weighing
+them apart lowered the held-out log loss on 21 of 26 log-splits (docs/choices.md); planar maps
+only (:data:`FIT_SURFACE_WEIGHT`). Near misses come out worth at most 0.7 of a surface miss
+(0.003-0.7): a beam ending a few centimetres past a cell says little of whether the surface is
+in it, and weighed apart they let the hit weight fall, so fewer misses clear a cell a transient
+once stood in (``benchmarks/near_misses.py``). As evidence of a surface a near miss weighs next
+to nothing on most logs, but 2-6 % of a hit on a log whose walls smear across scans (Acapulco:
+there the cell a beam ended just beyond is often another scan's hit, and counting it so took its
+held-out ECE from 0.074 to 0.033).
 
 The GP's own probability is not re-tempered here: its points were part of the GP's training data,
 so a temperature fitted on them trusts the GP more than it deserves where no other scan looked
@@ -203,7 +211,7 @@ FIT_OCCUPIED_THRESHOLD: dict[int, bool] = {2: True, 3: False}
 #: occupied (docs/choices.md). Not for point clouds, where it was not measured.
 SEEN_THROUGH_NOT_OCCUPIED: dict[int, bool] = {2: True, 3: False}
 
-#: Most calibration points of each class. Four weights need no more, and the GP's prediction at
+#: Most calibration points of each class. Five weights need no more, and the GP's prediction at
 #: them is the calibration's cost. Planar logs never reach it (25 scans of at most 361 beams give
 #: at most ~9,000 hits); clouds do (la3dm: 31,500 hits in 9 scans, cut to a third).
 CALIBRATION_POINTS_PER_CLASS: int = 10_000
@@ -410,7 +418,7 @@ def fit_calibration(
     counts: RayCounts | None = None,
     gp_apart: GPApart | None = None,
 ) -> tuple[EvidenceCalibration, dict[str, float]]:
-    """Fit the hit, prior and near-miss weights (the near miss as a miss and as a surface) by leave-one-scan-out log likelihood, and the surprise rate.
+    """Fit the hit, prior, near-miss (as a miss and as a surface) and surface-miss weights by leave-one-scan-out log likelihood, and the surprise rate.
 
     Parameters
     ----------
@@ -577,7 +585,7 @@ def _other_scans_counts(
     """
     cell, inside = flat_index(grid, points)
     n = points.shape[0]
-    hits, misses, near, at_a_surface = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    hits, misses, near, surface_count = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     index = np.unravel_index(cell, grid.shape)
     whole_hits = whole.hits.reshape(-1)
     for k in np.unique(scan_of):
@@ -595,8 +603,8 @@ def _other_scans_counts(
             flat = np.ravel_multi_index(tuple(np.where(ok, j, 0) for j in nb), grid.shape)
             others = whole_hits[flat] - evidence.scan_counts_at(grid, int(k), flat)[0]
             at_surface |= ok & (others > 0)
-        at_a_surface[sel] = surface_misses(misses[sel], near[sel], at_surface)
-    return hits, misses, near, at_a_surface
+        surface_count[sel] = surface_misses(misses[sel], near[sel], at_surface)
+    return hits, misses, near, surface_count
 
 
 @dataclass(frozen=True)
@@ -941,7 +949,7 @@ class EvidenceLayer:
             setattr(self, name, arr)
 
     def recalibrate(self, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]) -> None:
-        """Refit the calibration's four weights and surprise rate on the scans counted so far (see :func:`fit_calibration`).
+        """Refit the calibration's five weights and surprise rate on the scans counted so far (see :func:`fit_calibration`).
 
         Parameters
         ----------
