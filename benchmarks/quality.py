@@ -311,8 +311,8 @@ def main(argv: list[str] | None = None) -> int:
         f"Written grids at {grid_res} m; at most {QUICK['max_test_points'] if args.quick else args.max_test_points} "
         "balanced test points per log and split; far p = predictions on lattice points > 5 m from any training beam; "
         "path occ = cells (0.05 m) of the robot's own path (training and held-out poses) the map's ternary map calls "
-        "occupied (gpomap: above its fitted threshold; the grids: p > 0.66), of all path cells; truth IoU at the same "
-        "thresholds.",
+        "occupied (gpomap: above its fitted threshold, never a cell beams saw through; the grids: p > 0.66), of all "
+        "path cells; truth IoU of the same occupied class.",
         flush=True,
     )
     results: list[dict[str, Any]] = []
