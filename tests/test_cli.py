@@ -103,8 +103,8 @@ def test_map_and_info_on_a_real_log(tmp_path, run):
     assert r.returncode == 0, r.stderr
     assert "scans        30" in r.stdout
     # The ray counts' weights, and the prior surprise rate (not asked to fit it).
-    assert "ray counts   a hit weighs" in r.stdout and "surprise rate 0.01\n" in r.stdout
-    assert re.search(r"a miss beside a hit [0-9.e-]+;", r.stdout)
+    assert "ray counts   against a miss in open space, a hit weighs" in r.stdout and "surprise rate 0.01\n" in r.stdout
+    assert re.search(r"a miss beside a hit [0-9.e-]+, a near miss", r.stdout)
     assert (tmp_path / "map.pgm").read_bytes().startswith(b"P5")
 
 

@@ -625,9 +625,9 @@ def _peak_memory(peak: dict[str, float]) -> str:
 def _ray_counts(evidence: dict[str, float]) -> str:
     """What a map's ray-count calibration weighs (:meth:`gpomap.fusion.EvidenceLayer.summary`), in a line."""
     return (
-        f"a hit weighs {evidence['hit_weight']:.3g} misses, the GP {evidence['prior_weight']:.3g}, "
-        f"a near miss {evidence['near_weight']:.3g} (and {evidence['near_hit_weight']:.3g} hits), "
-        f"a miss beside a hit {evidence['surface_weight']:.3g}; surprise rate {evidence['surprise_rate']:.3g}"
+        f"against a miss in open space, a hit weighs {evidence['hit_weight']:.3g}, a miss beside a hit "
+        f"{evidence['surface_weight']:.3g}, a near miss {evidence['near_weight']:.3g} (and {evidence['near_hit_weight']:.3g} "
+        f"hits), the GP {evidence['prior_weight']:.3g}; surprise rate {evidence['surprise_rate']:.3g}"
     )
 
 
