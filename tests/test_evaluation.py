@@ -279,7 +279,9 @@ def test_path_points_and_path_occupied_by_hand():
     # The ternary map's threshold decides: 0.66 exactly is not occupied.
     assert ev.path_occupied(np.full(len(pts), 0.66), pts)["n_occupied"] == 0
     # Or the map's own ternary map: occupied on cell 10 alone, whatever the probability.
-    assert ev.path_occupied(prob, pts, cell=0.05, occupied=(pts[:, 0] >= 0.5) & (pts[:, 0] < 0.55))["n_occupied"] == 1
+    assert ev.path_occupied(None, pts, cell=0.05, occupied=(pts[:, 0] >= 0.5) & (pts[:, 0] < 0.55))["n_occupied"] == 1
+    with pytest.raises(ValueError, match="probability or its occupied class"):
+        ev.path_occupied(None, pts)
 
 
 def test_lookup_occupied_reads_the_written_ternary_map():

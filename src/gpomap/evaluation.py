@@ -373,7 +373,7 @@ def path_points(scans: Sequence[Scan], step: float = PATH_STEP) -> NDArray[np.fl
 
 
 def path_occupied(
-    prob: NDArray[np.float64],
+    prob: NDArray[np.float64] | None,
     points: NDArray[np.float64],
     cell: float = REFERENCE_RESOLUTION,
     threshold: float = DEFAULT_THRESHOLDS[1],
@@ -383,8 +383,8 @@ def path_occupied(
 
     Parameters
     ----------
-    prob : ndarray of shape (n,)
-        The map's probability at `points`.
+    prob : ndarray of shape (n,), or None
+        The map's probability at `points` (None with `occupied`).
     points : ndarray of shape (n, 2)
         :func:`path_points`.
     cell : float
@@ -399,15 +399,19 @@ def path_occupied(
     Returns
     -------
     dict
-        ``n_cells`` on the path, ``n_occupied`` of them with a point above the occupied threshold
-        (the robot drove through them: they should be none), ``fraction``.
+        ``n_cells`` on the path, ``n_occupied`` of them with a point the map calls occupied (the
+        robot drove through them: they should be none), ``fraction``.
     """
+    if occupied is None:
+        if prob is None:
+            raise ValueError("path_occupied needs the map's probability or its occupied class")
+        occupied = np.asarray(prob) > threshold
     keys = np.floor(np.asarray(points, dtype=float) / cell).astype(np.int64)
     _, cell_of = np.unique(keys, axis=0, return_inverse=True)
     cell_of = cell_of.ravel()
     n = int(cell_of.max()) + 1 if cell_of.size else 0
     occupied_cells = np.zeros(n, bool)
-    np.logical_or.at(occupied_cells, cell_of, np.asarray(prob) > threshold if occupied is None else np.asarray(occupied, bool))
+    np.logical_or.at(occupied_cells, cell_of, np.asarray(occupied, dtype=bool))
     return {"n_cells": n, "n_occupied": int(occupied_cells.sum()), "fraction": float(occupied_cells.mean()) if n else 0.0}
 
 
@@ -887,8 +891,7 @@ def run_method(
     far = {"test_points": {"points": _spread(prob[data.far_test])}, "lattice": {"points": _spread(far_lattice)}}
     # Each map's own ternary map is judged (MSK-GPOM fits its occupied threshold).
     occupied_above = float(getattr(model, "thresholds_", DEFAULT_THRESHOLDS)[1])
-    path_prob = np.asarray(model.predict_proba(data.path), dtype=float)
-    path = {"points": path_occupied(path_prob, data.path, occupied=occupied_at(model, data.path))}
+    path = {"points": path_occupied(None, data.path, occupied=occupied_at(model, data.path))}
     truth_out: dict[str, Any] | None = None
     if data.truth is not None:
         centres = data.truth.grid.centres()
@@ -913,9 +916,7 @@ def run_method(
         grid_score = score(data.labels, gprob, data.masks, roc=return_roc)
         far["test_points"]["grid"] = _spread(gprob[data.far_test])
         far["lattice"]["grid"] = _spread(lookup(occupancy_map, data.far_points))
-        path["grid"] = path_occupied(
-            lookup(occupancy_map, data.path), data.path, occupied=lookup_occupied(occupancy_map, data.path)
-        )
+        path["grid"] = path_occupied(None, data.path, occupied=lookup_occupied(occupancy_map, data.path))
         if data.truth is not None and truth_out is not None:
             centres = data.truth.grid.centres()
             truth_out["grid"] = score_truth(
