@@ -376,7 +376,6 @@ def path_occupied(
     prob: NDArray[np.float64] | None,
     points: NDArray[np.float64],
     cell: float = REFERENCE_RESOLUTION,
-    threshold: float = DEFAULT_THRESHOLDS[1],
     occupied: NDArray[np.bool_] | None = None,
 ) -> dict[str, Any]:
     """How much of the robot's own path a map calls occupied (ternary threshold).
@@ -390,11 +389,9 @@ def path_occupied(
     cell : float
         Path points are counted per cell of this side (a lattice from the origin), so a long
         stretch of path in one cell counts once.
-    threshold : float
-        The map's ternary occupied threshold (occupied above it).
     occupied : ndarray of bool, shape (n,), optional
         Whether the map's ternary map calls each point occupied (:func:`occupied_at`,
-        :func:`lookup_occupied`), in place of `prob` above `threshold`.
+        :func:`lookup_occupied`), in place of `prob` above the paper's occupied threshold.
 
     Returns
     -------
@@ -405,7 +402,7 @@ def path_occupied(
     if occupied is None:
         if prob is None:
             raise ValueError("path_occupied needs the map's probability or its occupied class")
-        occupied = np.asarray(prob) > threshold
+        occupied = np.asarray(prob) > DEFAULT_THRESHOLDS[1]
     keys = np.floor(np.asarray(points, dtype=float) / cell).astype(np.int64)
     _, cell_of = np.unique(keys, axis=0, return_inverse=True)
     cell_of = cell_of.ravel()

@@ -310,6 +310,12 @@ def surface_misses(misses: ArrayLike, near: ArrayLike, at_surface: ArrayLike) ->
     return np.where(np.asarray(at_surface, dtype=bool), far, 0.0)
 
 
+def seen_through(hits: ArrayLike, misses: ArrayLike, path: ArrayLike = 0) -> NDArray[np.bool_]:
+    """Cells that beams (`misses`) or the robot's path crossed and no beam ended in (no `hits`),
+    which the ternary map never calls occupied (:data:`SEEN_THROUGH_NOT_OCCUPIED`; matching shapes)."""
+    return (np.asarray(hits) == 0) & ((np.asarray(misses) > 0) | (np.asarray(path) > 0))
+
+
 def calibration_scans(n: int, n_scans: int) -> NDArray[np.intp]:
     """Indices of the scans a calibration holds out in turn: `n_scans` evenly spaced among `n` (all when fewer)."""
     return np.unique(np.linspace(0, n - 1, min(n_scans, n)).round().astype(np.intp))
@@ -545,7 +551,7 @@ def fit_calibration(
         # The ternary map's occupied class, fitted where the probabilities were: on the same points,
         # the classes back at the log's own ratio (the sample balanced them).
         p = fitted(p_gp, fitted.hits(h, near), fitted.misses(m, near, surface=surface))
-        seen = (h == 0) & (m > 0) if SEEN_THROUGH_NOT_OCCUPIED.get(pts.shape[1], False) else None
+        seen = seen_through(h, m) if SEEN_THROUGH_NOT_OCCUPIED.get(pts.shape[1], False) else None
         t, jaccard = occupied_threshold(p, occ, free_weight=i_free.size / i_occ.size, seen_through=seen)
         report["occupied_threshold"], report["occupied_iou"] = t, jaccard
     return fitted, report
@@ -1031,7 +1037,7 @@ class EvidenceLayer:
             return np.zeros(np.asarray(points).shape[0], dtype=bool)
         cell, inside = flat_index(self.lattice, points)
         hits, beam, path = (a.reshape(-1)[cell] for a in (self._hits, self._beam_misses, self._path))
-        return inside & (hits == 0) & ((beam > 0) | (path > 0))
+        return inside & seen_through(hits, beam, path)
 
     def grid_seen_through(self, grid: AnyGrid) -> NDArray[np.bool_] | None:
         """:meth:`seen_through_at` per cell of `grid`, counted on its own cells (the counts of
@@ -1041,7 +1047,7 @@ class EvidenceLayer:
         if self._grid_cache is None or self._grid_cache[0] != grid:
             self._grid_cache = (grid, *self._raw_grid_counts(grid))
         _, counts, path, _ = self._grid_cache
-        return (counts.hits == 0) & ((counts.misses > 0) | (path > 0))
+        return seen_through(counts.hits, counts.misses, path)
 
     def hit_distance(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
         """Distance (m,) from each point (m, d) to the nearest centre of a cell a beam ended in
