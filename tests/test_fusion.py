@@ -298,7 +298,7 @@ def test_leave_one_scan_out_removes_the_scans_own_counts(dim: int) -> None:
         seen["points"] = points
         return np.full(len(points), 0.5)
 
-    _, report = fit_calibration([a, b], ev, GRID if dim == 2 else VOXELS, predict_gp, n_scans=2, step=0.1)
+    _, report, _ = fit_calibration([a, b], ev, GRID if dim == 2 else VOXELS, predict_gp, n_scans=2, step=0.1)
     assert report["n_points"] > 0
     # The scans' beams run along different rows, so with only the other scan's counts no point
     # is counted, and the GP is asked nothing: a leaked count of a scan's own would make its
@@ -514,7 +514,7 @@ def test_calibration_predicts_only_counted_points_and_matches_the_whole_sample_f
         asked.append(points)
         return _p_gp(points)
 
-    fitted, report = fit_calibration(scans, ev, grid, predict_gp, n_scans=len(scans), step=0.1)
+    fitted, report, _ = fit_calibration(scans, ev, grid, predict_gp, n_scans=len(scans), step=0.1)
     # Truth by brute force: every scan's points with the other scans' counts taken directly (not
     # all counts minus its own), the GP at every point, the plain mean log loss minimised.
     # Surface misses: far misses of cells with one of those other scans' hits in their 3 x 3 block.
@@ -672,7 +672,7 @@ def test_evidence_layer_calibrates_from_the_cells_its_counts_kept(monkeypatch: p
     # Truth: the calibration on evidence that kept nothing (every held-out scan traversed again).
     layer = EvidenceLayer(scans, 0.1, _p_gp, calibration_scans=len(scans))
     assert layer.lattice is not None
-    want, report = fit_calibration(scans, RE.from_scans(scans), layer.lattice, _p_gp, n_scans=len(scans), step=0.2)
+    want, report, _ = fit_calibration(scans, RE.from_scans(scans), layer.lattice, _p_gp, n_scans=len(scans), step=0.2)
     # The layer's own calibration never traverses a scan again, and drops the kept cells after.
     monkeypatch.setattr(RE, "_scan_cells", lambda *a: pytest.fail("a held-out scan was traversed again"))
     layer = EvidenceLayer(scans, 0.1, _p_gp, calibration_scans=len(scans))
@@ -779,7 +779,7 @@ def test_a_near_miss_counts_as_a_hit_only_where_surfaces_fall_in_such_cells(monk
 
     def fit(scans: list[Scan]) -> tuple[EvidenceCalibration, float]:
         ev = RayEvidence.from_scans(scans)
-        cal, report = fit_calibration(scans, ev, grid, lambda p: np.full(len(p), 0.5), n_scans=len(scans), step=0.1)
+        cal, report, _ = fit_calibration(scans, ev, grid, lambda p: np.full(len(p), 0.5), n_scans=len(scans), step=0.1)
         return cal, report["log_loss"]
 
     smeared, loss_smeared = fit(_wall_scans(0.12))
@@ -1032,7 +1032,7 @@ def test_calibration_fits_the_surprise_rate_against_a_gp_that_never_saw_the_held
         return p_apart
 
     # Three of the six scans held out: the GP apart is fitted on the other three.
-    fitted, report = fit_calibration(scans, ev, grid, _p_gp, n_scans=3, step=0.1, gp_apart=gp_apart)
+    fitted, report, _ = fit_calibration(scans, ev, grid, _p_gp, n_scans=3, step=0.1, gp_apart=gp_apart)
     held = [0, 2, 5]  # calibration_scans(6, 3)
     assert len(given) == 1 and [id(s) for s in given[0]] == [id(scans[k]) for k in (1, 3, 4)]
     # Truth: the held-out scans' points, each with the other scans' counts taken directly, the
@@ -1057,11 +1057,11 @@ def test_calibration_fits_the_surprise_rate_against_a_gp_that_never_saw_the_held
     assert fitted.surprise_rate == pytest.approx(fit_surprise_rate(q, O), rel=1e-9)
     assert report["surprise_rate"] == fitted.surprise_rate and fitted.surprise_rate >= SURPRISE_RATE
     # The weights are those fitted without it, at the prior rate.
-    plain, _ = fit_calibration(scans, ev, grid, _p_gp, n_scans=3, step=0.1)
+    plain, _, _ = fit_calibration(scans, ev, grid, _p_gp, n_scans=3, step=0.1)
     assert plain.surprise_rate == SURPRISE_RATE
     assert (plain.hit_weight, plain.prior_weight) == (fitted.hit_weight, fitted.prior_weight)
     # More scans held out than kept: the GP apart would not be the map's GP, the prior stays.
-    short, report = fit_calibration(scans, ev, grid, _p_gp, n_scans=4, step=0.1, gp_apart=gp_apart)
+    short, report, _ = fit_calibration(scans, ev, grid, _p_gp, n_scans=4, step=0.1, gp_apart=gp_apart)
     assert short.surprise_rate == SURPRISE_RATE and "surprise_rate" not in report and len(given) == 1
 
 

@@ -54,7 +54,10 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ),
     ("kernels", ("gpomap.kernels",)),
     ("gp", ("gpomap.gp", "gpomap._compiled_local")),
-    ("maps", ("gpomap.estimator", "gpomap.fusion", "gpomap.extrapolation", "gpomap.settings", "gpomap.baselines")),
+    (
+        "maps",
+        ("gpomap.estimator", "gpomap.fusion", "gpomap.extrapolation", "gpomap.revisit", "gpomap.settings", "gpomap.baselines"),
+    ),
     ("tiling", ("gpomap.tiles", "gpomap.mapping", "gpomap.streaming")),
     ("io", ("gpomap.io", "gpomap.plot")),
     (

@@ -301,6 +301,15 @@ def _add_model_options(p: argparse.ArgumentParser) -> None:
         help="fit the share of surprises (visitors where scans saw free space) on the log's own scans instead "
         "of the prior 0.01, its floor: for logs with crowds; refits the GP once more (planar scans)",
     )
+    g.add_argument(
+        "--no-revisit",
+        dest="fit_revisit",
+        action="store_false",
+        default=_Default(d.fit_revisit),
+        help="keep the probabilities as the log's own scans, held out one at a time, calibrate them, without "
+        "the recalibration for a later visit fitted on a held-out stretch (saves fitting the map a second time "
+        "on 70 %% of the scans; see gpomap.revisit)",
+    )
 
 
 def _map_config(args: argparse.Namespace) -> MapConfig:
@@ -642,10 +651,16 @@ def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: s
         "hyperparams  "
         + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
         + f" ({source or summary['hyperparameter_source'].get('how', '')})",
-        "ternary      free below {:g}, occupied above {:.3f}".format(*summary["thresholds"]),
+        "ternary      free below {:.3f}, occupied above {:.3f}".format(*summary["thresholds"]),
     ]
     if summary.get("evidence"):
         lines.append("ray counts   " + _ray_counts(summary["evidence"]))
+    later = summary.get("revisit") or {}
+    if "slope" in later:
+        lines.append(
+            f"later visit  log-odds times {later['slope']:.3g}, {later['shift']:+.3g} away from 1/2 (fitted on a held-out "
+            f"stretch, {later['n_points']} points a class)"
+        )
     lines += [
         "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
         "peak memory  " + _peak_memory(summary["peak_memory"]),
@@ -945,9 +960,12 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
 
 def _flag(dest: str) -> str:
     """The command-line spelling of the option stored as `dest`."""
-    return {"ray_evidence": "--no-ray-evidence", "scan_range": "--range", "test_points": "--test-points"}.get(
-        dest, "--" + dest.replace("_", "-")
-    )
+    return {
+        "ray_evidence": "--no-ray-evidence",
+        "fit_revisit": "--no-revisit",
+        "scan_range": "--range",
+        "test_points": "--test-points",
+    }.get(dest, "--" + dest.replace("_", "-"))
 
 
 def _given(args: argparse.Namespace, dests: Sequence[str]) -> list[str]:

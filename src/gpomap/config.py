@@ -110,6 +110,7 @@ class MapConfig(_Config):
     calibration_scans: int = 25
     evidence_resolution_3d: float = 0.1
     fit_surprise_rate: bool = False
+    fit_revisit: bool = True
 
 
 @dataclass(frozen=True)

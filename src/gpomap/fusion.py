@@ -73,7 +73,7 @@ import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -103,6 +103,7 @@ from gpomap.lattice import (
 )
 from gpomap.observations import ScanData, data_dim, observations_from_scans
 from gpomap.resources import WRITTEN_BAND_CELLS
+from gpomap.revisit import RevisitCalibration
 from gpomap.scans import Scan
 
 #: One observation in this many is a surprise the counts cannot foresee (a person standing where
@@ -316,6 +317,14 @@ def seen_through(hits: ArrayLike, misses: ArrayLike, path: ArrayLike = 0) -> NDA
     return (np.asarray(hits) == 0) & ((np.asarray(misses) > 0) | (np.asarray(path) > 0))
 
 
+class CalibrationSample(NamedTuple):
+    """A calibration's leave-one-scan-out points that other scans counted: the fitted
+    calibration's probability at each, and its class (each of shape (m,))."""
+
+    probability: NDArray[np.float64] = np.zeros(0)
+    occupied: NDArray[np.bool_] = np.zeros(0, dtype=bool)
+
+
 def calibration_scans(n: int, n_scans: int) -> NDArray[np.intp]:
     """Indices of the scans a calibration holds out in turn: `n_scans` evenly spaced among `n` (all when fewer)."""
     return np.unique(np.linspace(0, n - 1, min(n_scans, n)).round().astype(np.intp))
@@ -404,7 +413,11 @@ def ternary_thresholds(given: tuple[float, float] | None, evidence: EvidenceLaye
     if given is not None:
         return given
     fitted = evidence.report.get("occupied_threshold") if evidence is not None else None
-    return DEFAULT_THRESHOLDS if fitted is None else (DEFAULT_THRESHOLDS[0], float(fitted))
+    free, occupied = DEFAULT_THRESHOLDS if fitted is None else (DEFAULT_THRESHOLDS[0], float(fitted))
+    if evidence is None or evidence.revisit.identity:
+        return free, occupied
+    # Both classes keep their cells: the recalibration is monotone.
+    return float(evidence.revisit(free)), float(evidence.revisit(occupied))
 
 
 #: The map's GP fitted on some scans, its hyperparameters held, as a function from points of shape
@@ -423,7 +436,7 @@ def fit_calibration(
     seed: int = 0,
     counts: RayCounts | None = None,
     gp_apart: GPApart | None = None,
-) -> tuple[EvidenceCalibration, dict[str, float]]:
+) -> tuple[EvidenceCalibration, dict[str, float], CalibrationSample]:
     """Fit the hit, prior, near-miss (as a miss and as a surface) and surface-miss weights by leave-one-scan-out log likelihood, and the surprise rate.
 
     Parameters
@@ -460,6 +473,9 @@ def fit_calibration(
         with `gp_apart`, the ``"surprise_rate"``; for planar data (:data:`FIT_OCCUPIED_THRESHOLD`)
         the ternary map's ``"occupied_threshold"`` fitted on those points
         (:func:`occupied_threshold`) and the ``"occupied_iou"`` it gives.
+    sample : CalibrationSample
+        The fitted calibration's probabilities at the sample's points that other scans counted,
+        and their classes (empty when nothing was fitted).
     """
     whole = evidence.counts(grid) if counts is None else counts
     picked = calibration_scans(len(scans), n_scans)
@@ -473,10 +489,10 @@ def fit_calibration(
         scan_all.append(np.full(occ.size, k, dtype=np.intp))
     default = EvidenceCalibration()
     if not pts_all:
-        return default, {"n_points": 0}
+        return default, {"n_points": 0}, CalibrationSample()
     pts, occ, scan_of = np.concatenate(pts_all), np.concatenate(occ_all), np.concatenate(scan_all)
     if occ.all() or not occ.any():
-        return default, {"n_points": int(occ.size)}
+        return default, {"n_points": int(occ.size)}, CalibrationSample()
     # Balance the classes by subsampling the larger one (seeded), as an evaluation would; the
     # counts are then looked up at the sample only (la3dm: 20,000 of 10 million points).
     rng = np.random.default_rng(seed)
@@ -493,7 +509,7 @@ def fit_calibration(
     counted = (h > 0) | (m > 0)
     n_points = int(occ.size)
     if not counted.any():
-        return default, {"n_points": n_points, "n_predicted": 0}
+        return default, {"n_points": n_points, "n_predicted": 0}, CalibrationSample()
     sample_pts, sample_occ = pts, occ
     occ, h, m, near, surface = occ[counted], h[counted], m[counted], near[counted], surface[counted]
     p_gp = np.asarray(predict_gp(pts[counted]), dtype=float)
@@ -547,14 +563,14 @@ def fit_calibration(
         p_apart[counted] = fitted.posterior_mean(p_apart[counted], fitted.hits(h, near), fitted.misses(m, near, surface=surface))
         fitted = replace(fitted, surprise_rate=fit_surprise_rate(p_apart, sample_occ))
         report["surprise_rate"] = fitted.surprise_rate
+    p = fitted(p_gp, fitted.hits(h, near), fitted.misses(m, near, surface=surface))
     if FIT_OCCUPIED_THRESHOLD.get(pts.shape[1], False):
         # The ternary map's occupied class, fitted where the probabilities were: on the same points,
         # the classes back at the log's own ratio (the sample balanced them).
-        p = fitted(p_gp, fitted.hits(h, near), fitted.misses(m, near, surface=surface))
         seen = seen_through(h, m) if SEEN_THROUGH_NOT_OCCUPIED.get(pts.shape[1], False) else None
         t, jaccard = occupied_threshold(p, occ, free_weight=i_free.size / i_occ.size, seen_through=seen)
         report["occupied_threshold"], report["occupied_iou"] = t, jaccard
-    return fitted, report
+    return fitted, report, CalibrationSample(p, occ)
 
 
 def _other_scans_counts(
@@ -842,6 +858,8 @@ class EvidenceLayer:
         self.seed = int(seed)
         self.calibration = EvidenceCalibration()
         self.report: dict[str, float] = {}
+        self.sample = CalibrationSample()
+        self.revisit = RevisitCalibration()
         self._scans: list[Scan | CloudScan] = []
         self._parts: list[RayEvidence] = []
         self._joined: RayEvidence | None = None
@@ -963,9 +981,9 @@ class EvidenceLayer:
             Points of shape (m, 2) to the GP's probability, shape (m,).
         """
         if self.lattice is None:
-            self.calibration, self.report = EvidenceCalibration(), {"n_points": 0}
+            self.calibration, self.report, self.sample = EvidenceCalibration(), {"n_points": 0}, CalibrationSample()
             return
-        self.calibration, self.report = fit_calibration(
+        self.calibration, self.report, self.sample = fit_calibration(
             self._scans,
             self.evidence,
             self.lattice,
@@ -1017,7 +1035,7 @@ class EvidenceLayer:
         """
         h, m = self.counts_at(points)
         pts = np.asarray(points, dtype=float)
-        return _unseen_where_empty(
+        p = _unseen_where_empty(
             self.calibration(p_gp, h, m),
             h,
             m,
@@ -1026,6 +1044,7 @@ class EvidenceLayer:
             self.proximity,
             self.calibration.surprise_rate,
         )
+        return self.revisit(p)
 
     def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
         """Whether beams or the robot's path crossed the fine cell holding each point and no beam
@@ -1131,7 +1150,7 @@ class EvidenceLayer:
         def distance(mask: NDArray[np.bool_]) -> NDArray[np.float64]:
             return self.grid_hit_distance(grid).reshape(-1)[mask]
 
-        return _unseen_where_empty(p, h, m, unseen, distance, self.proximity, self.calibration.surprise_rate)
+        return self.revisit(_unseen_where_empty(p, h, m, unseen, distance, self.proximity, self.calibration.surprise_rate))
 
     def written_grid(
         self,
@@ -1226,4 +1245,6 @@ class EvidenceLayer:
             "surface_weight": c.surface_weight,
             **self.report,
             "surprise_rate": c.surprise_rate,
+            "revisit_slope": self.revisit.slope,
+            "revisit_shift": self.revisit.shift,
         }

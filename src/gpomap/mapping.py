@@ -48,7 +48,7 @@ class AreaGPOM(TiledGPOM):
         The GP (:class:`~gpomap.settings.MapSettings`).
     objective, optimise, n_restarts, hyper_subset, prior_std, class_weight, seed
         How its hyperparameters are learnt (:class:`~gpomap.settings.MapSettings`).
-    thresholds, chunk_size, ray_evidence, evidence_resolution, calibration_scans, evidence_resolution_3d, fit_surprise_rate
+    thresholds, chunk_size, ray_evidence, evidence_resolution, calibration_scans, evidence_resolution_3d, fit_surprise_rate, fit_revisit
         The map on top of the GP (:class:`~gpomap.settings.MapSettings`).
     tile_size, overlap, blend, origin, scheduler, hyper_sample, per_tile_hyperparameters, blas_threads, scheduler_timeout, worker_processes
         The local GPs: see :class:`~gpomap.tiles.TiledGPOM`.
@@ -90,6 +90,7 @@ class AreaGPOM(TiledGPOM):
         calibration_scans: int = MapConfig.calibration_scans,
         evidence_resolution_3d: float = MapConfig.evidence_resolution_3d,
         fit_surprise_rate: bool = MapConfig.fit_surprise_rate,
+        fit_revisit: bool = MapConfig.fit_revisit,
         tile_size: float | None = TilingConfig.tile_size,
         overlap: float | None = None,
         blend: float | None = None,

@@ -161,6 +161,7 @@ class MapSettings:
         calibration_scans: int = MapConfig.calibration_scans,
         evidence_resolution_3d: float = MapConfig.evidence_resolution_3d,
         fit_surprise_rate: bool = MapConfig.fit_surprise_rate,
+        fit_revisit: bool = MapConfig.fit_revisit,
     ) -> None:
         self.kernel = kernel
         self.area = area
@@ -193,6 +194,7 @@ class MapSettings:
         self.calibration_scans = calibration_scans
         self.evidence_resolution_3d = evidence_resolution_3d
         self.fit_surprise_rate = fit_surprise_rate
+        self.fit_revisit = fit_revisit
 
     def __repr__(self) -> str:
         return f"kernel={self.kernel!r}, area={self.area_method!r}, min_cell={self.min_cell}, max_cell={self.max_cell}"

@@ -1496,6 +1496,9 @@ class TiledGPOM:
         self._scans: list[Any] | None = None if isinstance(data, Observations) else list(data)
         self.evidence_ = self._make_evidence()
         timings["evidence"] = time.perf_counter() - t
+        t = time.perf_counter()
+        self.revisit_: dict[str, Any] = self._fit_revisit()
+        timings["revisit"] = time.perf_counter() - t
         timings["total_fit"] = time.perf_counter() - t0
         self.timings_ = timings
         self.last_refit_: list[tuple[int, int]] = sorted(self.tiles_)
@@ -1555,6 +1558,37 @@ class TiledGPOM:
         # _fit sets hit_shift; hit_reach may be missing where hit_shift alone was given.
         proximity = HitProximity(hp["hit_shift"], hp.get("hit_reach", HitProximity.reach))
         return self.base.make_evidence(self._scans, self.predict_proba_gp, proximity, self._gp_apart)
+
+    def _fit_revisit(self) -> dict[str, Any]:
+        """The ray evidence's recalibration for a later visit (:mod:`gpomap.revisit`), and its report."""
+        if self.evidence_ is None or self._scans is None or not self.base.fit_revisit:
+            return {"reason": "off" if not self.base.fit_revisit else "no ray evidence"}
+        from gpomap.revisit import fit_later_visit
+
+        fixed = dict(self.hyperparameters_)
+
+        def fit_rest(scans: list[Any]) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
+            # The same map on the other scans: its tiles, settings and hyperparameters, its own ray
+            # evidence and calibration, no recalibration of its own.
+            rest = TiledGPOM(
+                self.tile_size_,
+                self.overlap,
+                self.blend,
+                self.origin_,
+                n_workers=self.n_workers,
+                hyper_sample=self.hyper_sample,
+                blas_threads=self.blas_threads,
+                worker_processes=self.worker_processes,
+                memory_limit=self.memory_limit,
+                **{**self.options, "fit_revisit": False},
+            )
+            return rest.fit(scans, hyperparameters=fixed).predict_proba
+
+        sample = self.evidence_.sample
+        self.evidence_.revisit, report = fit_later_visit(
+            self._scans, (sample.probability, sample.occupied), fit_rest, self.base.no_return_cap, self.base.seed
+        )
+        return report
 
     def _gp_like(self) -> TiledGPOM:
         """An unfitted map with this one's tiles and settings but no ray evidence, on local
@@ -2121,6 +2155,7 @@ class TiledGPOM:
             "n_free_points_cleared": sum(b.n_cleared for b in self._block_points.values()),
             "hyperparameters": dict(self.hyperparameters_),
             "variance_scale_fit": dict(self.extrapolation_),
+            "revisit": dict(getattr(self, "revisit_", {})),
             "hyperparameter_source": dict(self.hyper_source_),
             "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
             "thresholds": list(self.thresholds_),

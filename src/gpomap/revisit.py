@@ -1,0 +1,184 @@
+"""The map's probabilities for a later visit: one recalibration, fitted on a held-out stretch of the log.
+
+A map's calibration is fitted on its own scans held out one at a time (:func:`gpomap.fusion.fit_calibration`):
+each held-out scan's neighbours in time are still counted, so the weights learn how a scan taken
+*among* the training scans sees the world. A user asks the map about a later visit, and a later
+visit meets what appeared since: people, a door that closed, the next room. Pooled over the
+written maps of 13 logs, a scan held out with its whole block of 40 found every probability
+level below 0.9 more occupied than the map said (its 0.005 held 1.5 % hits, balanced classes;
+its 0.15, 32 %; its 0.55, 73 %), while scans held out one in ten found them as the map said
+(docs/choices.md, "The map's probabilities for a later visit").
+
+So a planar map fits one monotone map of its probabilities,
+
+    logit p' = slope * logit p + shift * (1 - exp(-(logit p)^2 / (2 WIDTH^2))),
+
+which leaves 1/2 at 1/2 (far from all data the map still says it knows nothing) and moves the
+confident ends by up to ``shift`` in log-odds. It is fitted by maximum likelihood on two halves
+of equal weight: the held-out points of a stretch of the log the map never saw (every third of
+ten stretches, :func:`gpomap.extrapolation.holdout_stretches`), predicted by the same map fitted
+on the rest with the same hyperparameters, and the calibration's own leave-one-scan-out points,
+which stand for a visit among the training scans. On logs whose later stretches meet what the
+earlier ones did not (a museum's visitors, a campus's unexplored corridors) the shift comes out
+large; on a clean log, near 0 and the slope near 1.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import minimize
+from scipy.special import expit, log_expit, logit
+
+from gpomap.observations import data_dim
+
+#: Width, in log-odds, of the band round 1/2 that the shift leaves alone (at logit p = +-WIDTH the
+#: shift is 39 % of its full value, at +-2 WIDTH 86 %).
+WIDTH: float = 1.0
+#: Bounds of the slope.
+SLOPE_BOUNDS: tuple[float, float] = (0.5, 2.0)
+#: Largest shift, as a multiple of the slope. The map's derivative in log-odds,
+#: ``slope + shift * z / WIDTH^2 * exp(-z^2 / (2 WIDTH^2))``, is least at ``z = -+WIDTH``:
+#: ``slope - |shift| / (WIDTH sqrt(e))``; at this bound it is still a tenth of the slope, so
+#: the map keeps the order of every two probabilities (and the ternary map its classes).
+MAX_SHIFT_RATIO: float = 0.9 * WIDTH * float(np.sqrt(np.e))
+#: Whether a map of this dimension fits the recalibration (planar maps: measured on 26 log-splits).
+FIT_REVISIT: dict[int, bool] = {2: True, 3: False}
+#: Fewest scans a log needs for a held-out stretch to be a visit of its own (shorter logs keep the identity).
+MIN_SCANS: int = 100
+#: Most held-out points of each class predicted by the map of the rest.
+POINTS_PER_CLASS: int = 10_000
+#: Clip of probabilities before the log-odds (a map's probabilities are within [0.005, 0.995] anyway).
+_EPS: float = 1e-6
+
+
+@dataclass(frozen=True)
+class RevisitCalibration:
+    """A monotone map of probabilities that keeps 1/2: the identity by default.
+
+    Parameters
+    ----------
+    slope : float
+        Factor on the log-odds.
+    shift : float
+        Log-odds added away from 1/2 (positive: towards occupied).
+    """
+
+    slope: float = 1.0
+    shift: float = 0.0
+
+    @property
+    def identity(self) -> bool:
+        """Whether it leaves every probability as it is."""
+        return self.slope == 1.0 and self.shift == 0.0
+
+    def __call__(self, p: ArrayLike) -> NDArray[np.float64]:
+        """The recalibrated probabilities, the shape of `p`."""
+        p = np.asarray(p, dtype=float)
+        if self.identity:
+            return p
+        return expit(_log_odds(p, self.slope, self.shift))
+
+
+def _log_odds(p: NDArray[np.float64], slope: float, shift: float) -> NDArray[np.float64]:
+    z = logit(np.clip(p, _EPS, 1.0 - _EPS))
+    return slope * z + shift * (1.0 - np.exp(-0.5 * (z / WIDTH) ** 2))
+
+
+def fit_revisit(
+    p_later: ArrayLike, occupied_later: ArrayLike, p_among: ArrayLike, occupied_among: ArrayLike
+) -> RevisitCalibration:
+    """The recalibration that maximises the likelihood of both halves, each weighing one half.
+
+    Parameters
+    ----------
+    p_later, occupied_later : array_like of shape (m,)
+        The map's probabilities at the points of a stretch it never saw (fitted without it), and
+        their classes.
+    p_among, occupied_among : array_like of shape (k,)
+        The same at points of scans held out one at a time, and their classes.
+
+    Returns
+    -------
+    RevisitCalibration
+        The identity when either half lacks a class.
+    """
+    p_l, y_l = np.asarray(p_later, dtype=float), np.asarray(occupied_later, dtype=bool)
+    p_a, y_a = np.asarray(p_among, dtype=float), np.asarray(occupied_among, dtype=bool)
+    if any(y.all() or not y.any() for y in (y_l, y_a)):
+        return RevisitCalibration()
+    p = np.concatenate([p_l, p_a])
+    sign = np.where(np.concatenate([y_l, y_a]), 1.0, -1.0)
+    weight = np.concatenate([np.full(p_l.size, 0.5 / p_l.size), np.full(p_a.size, 0.5 / p_a.size)])
+    z = logit(np.clip(p, _EPS, 1.0 - _EPS))
+    bump = 1.0 - np.exp(-0.5 * (z / WIDTH) ** 2)
+
+    def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        # theta = (slope, shift / slope): the ratio's bounds keep the map monotone.
+        slope, ratio = theta
+        t = sign * (slope * z + slope * ratio * bump)
+        # d/dt of -log sigmoid(t) is -(1 - sigmoid(t)) = -sigmoid(-t).
+        d = -weight * expit(-t) * sign
+        return float(-np.sum(weight * log_expit(t))), np.array([d @ (z + ratio * bump), slope * (d @ bump)])
+
+    res = minimize(
+        loss, np.array([1.0, 0.0]), jac=True, method="L-BFGS-B", bounds=[SLOPE_BOUNDS, (-MAX_SHIFT_RATIO, MAX_SHIFT_RATIO)]
+    )
+    return RevisitCalibration(float(res.x[0]), float(res.x[0] * res.x[1]))
+
+
+def fit_later_visit(
+    scans: Sequence[Any],
+    sample: tuple[NDArray[np.float64], NDArray[np.bool_]],
+    fit_rest: Callable[[list[Any]], Callable[[NDArray[np.float64]], NDArray[np.float64]]],
+    no_return_cap: float | None = 10.0,
+    seed: int = 0,
+) -> tuple[RevisitCalibration, dict[str, Any]]:
+    """Fit the recalibration of a map of `scans` (see the module docstring).
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+        The map's scans, in log order.
+    sample : (probability, occupied)
+        The map's calibration's leave-one-scan-out points (:class:`gpomap.fusion.CalibrationSample`).
+    fit_rest : callable
+        Scans to the probability (points (m, d) to (m,)) of the same map fitted on them alone, its
+        hyperparameters held and without this recalibration.
+    no_return_cap : float or None
+        As the map's.
+    seed : int
+        Seeds the class-balancing subsample.
+
+    Returns
+    -------
+    revisit : RevisitCalibration
+    report : dict
+        ``"slope"`` and ``"shift"``, ``"n_points"`` per class of the held-out stretch, or
+        ``"reason"`` when it stays the identity.
+    """
+    from gpomap.extrapolation import holdout_stretches
+    from gpomap.fusion import calibration_points
+
+    if len(scans) < MIN_SCANS or not FIT_REVISIT.get(data_dim(scans), False):
+        return RevisitCalibration(), {"reason": f"{len(scans)} scans (fewer than {MIN_SCANS}) or not planar"}
+    kept, held = holdout_stretches(len(scans))
+    pts_l, occ_l = [], []
+    for k in held:
+        p, o = calibration_points(scans[k], no_return_cap=no_return_cap)
+        pts_l.append(p)
+        occ_l.append(o)
+    pts, occ = np.concatenate(pts_l), np.concatenate(occ_l)
+    n = min(int(occ.sum()), int((~occ).sum()), POINTS_PER_CLASS)
+    if n == 0:
+        return RevisitCalibration(), {"reason": "the held-out stretch has no point of a class"}
+    rng = np.random.default_rng(seed)
+    keep = np.concatenate([rng.choice(np.flatnonzero(occ), n, replace=False), rng.choice(np.flatnonzero(~occ), n, replace=False)])
+    pts, occ = pts[keep], occ[keep]
+    p_later = np.asarray(fit_rest([scans[i] for i in kept])(pts), dtype=float)
+    revisit = fit_revisit(p_later, occ, *sample)
+    return revisit, {"slope": revisit.slope, "shift": revisit.shift, "n_points": n}

@@ -1,0 +1,160 @@
+"""The recalibration for a later visit: its map of probabilities, its fit, its held-out stretch, and a map that uses it."""
+
+import math
+
+import numpy as np
+import pytest
+
+from gpomap import revisit as rv
+from gpomap.extrapolation import holdout_stretches
+from gpomap.fusion import calibration_points
+from gpomap.mapping import AreaGPOM
+from gpomap.simulate import paper_room, simulate_scans
+
+
+def _by_hand(p: float, slope: float, shift: float) -> float:
+    z = math.log(p / (1.0 - p))
+    z2 = slope * z + shift * (1.0 - math.exp(-0.5 * (z / rv.WIDTH) ** 2))
+    return 1.0 / (1.0 + math.exp(-z2))
+
+
+def test_recalibration_by_hand_keeps_one_half_and_keeps_order():
+    r = rv.RevisitCalibration(slope=0.8, shift=1.2)
+    for p in (0.005, 0.1, 0.3, 0.7, 0.9, 0.995):
+        assert r(p) == pytest.approx(_by_hand(p, 0.8, 1.2), rel=1e-12)
+    # Far from all data the map says 1/2; so it does after.
+    assert r(0.5) == pytest.approx(0.5, abs=1e-15)
+    p = np.linspace(0.001, 0.999, 2001)
+    # Every map the fit may return keeps the order of probabilities (the ternary map its classes).
+    for slope in rv.SLOPE_BOUNDS:
+        for shift in (-rv.MAX_SHIFT_RATIO * slope, rv.MAX_SHIFT_RATIO * slope):
+            assert np.all(np.diff(rv.RevisitCalibration(slope, shift)(p)) > 0), (slope, shift)
+    # Beyond the bound it would not: the fit's bound is needed.
+    assert not np.all(np.diff(rv.RevisitCalibration(0.5, 3.0 * 0.5 * rv.MAX_SHIFT_RATIO)(p)) > 0)
+    q = np.array([0.2, 0.6])
+    assert rv.RevisitCalibration()(q) is not None and np.array_equal(rv.RevisitCalibration()(q), q)
+    assert rv.RevisitCalibration().identity and not r.identity
+
+
+def _weighted_loss(slope, shift, p_l, y_l, p_a, y_a):
+    total = 0.0
+    for p, y in ((p_l, y_l), (p_a, y_a)):
+        q = rv.RevisitCalibration(slope, shift)(p)
+        total += 0.5 * np.mean(np.where(y, -np.log(q), -np.log1p(-q)))
+    return total
+
+
+def test_fit_is_the_brute_force_optimum_of_both_halves():
+    rng = np.random.default_rng(3)
+    # A later stretch more occupied than its map says, the points among the training scans as it says.
+    p_l = rng.uniform(0.01, 0.99, 4000)
+    y_l = rng.uniform(size=p_l.size) < rv.RevisitCalibration(0.8, 1.0)(p_l)
+    p_a = rng.uniform(0.01, 0.99, 3000)
+    y_a = rng.uniform(size=p_a.size) < p_a
+    got = rv.fit_revisit(p_l, y_l, p_a, y_a)
+    slopes, shifts = np.linspace(0.6, 1.4, 81), np.linspace(-0.5, 1.5, 81)
+    losses = np.array([[_weighted_loss(a, b, p_l, y_l, p_a, y_a) for b in shifts] for a in slopes])
+    i, j = np.unravel_index(np.argmin(losses), losses.shape)
+    assert got.slope == pytest.approx(slopes[i], abs=0.011)
+    assert got.shift == pytest.approx(shifts[j], abs=0.026)
+    assert _weighted_loss(got.slope, got.shift, p_l, y_l, p_a, y_a) <= losses.min() + 1e-9
+    # Between the later half's truth (0.8, 1.0) and the identity the other half wants.
+    assert 0.8 < got.slope < 1.0 and 0.0 < got.shift < 1.0
+
+
+def test_fit_is_the_identity_when_a_half_lacks_a_class():
+    p = np.array([0.2, 0.7, 0.9])
+    both, occupied = np.array([True, False, True]), np.ones(3, bool)
+    assert rv.fit_revisit(p, occupied, p, both).identity
+    assert rv.fit_revisit(p, both, p, ~occupied).identity
+
+
+def _tour(n: int, n_beams: int = 36):
+    """`n` noisy scans along the paper room's tour."""
+    world, poses = paper_room()
+    xy = poses[:, :2]
+    arc = np.r_[0.0, np.cumsum(np.hypot(*np.diff(xy, axis=0).T))]
+    s = np.linspace(0.0, arc[-1], n)
+    dense = np.column_stack([np.interp(s, arc, xy[:, 0]), np.interp(s, arc, xy[:, 1])])
+    step = np.gradient(dense, axis=0)
+    dense = np.column_stack([dense, np.arctan2(step[:, 1], step[:, 0])])
+    return simulate_scans(world, dense, n_beams, noise_std=0.02, seed=0)
+
+
+def test_later_visit_predicts_the_held_out_stretch_from_a_map_of_the_rest():
+    scans = _tour(rv.MIN_SCANS)
+    kept, held = holdout_stretches(len(scans))
+    asked = {}
+
+    def fit_rest(rest):
+        asked["scans"] = rest
+
+        def predict(points):
+            asked["points"] = points
+            return np.full(len(points), 0.3)
+
+        return predict
+
+    sample = (np.array([0.1, 0.8, 0.9, 0.2]), np.array([False, True, True, False]))
+    got, report = rv.fit_later_visit(scans, sample, fit_rest, seed=1)
+    assert [id(s) for s in asked["scans"]] == [id(scans[i]) for i in kept]
+    # The points are the held-out scans' protocol points, both classes equally.
+    parts = [calibration_points(scans[i], no_return_cap=10.0) for i in held]
+    pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
+    n = min(occ.sum(), (~occ).sum(), rv.POINTS_PER_CLASS)
+    assert report["n_points"] == n and len(asked["points"]) == 2 * n
+    known = {tuple(np.round(p, 9)) for p in pts}
+    assert all(tuple(np.round(p, 9)) in known for p in asked["points"])
+    # The fit is fit_revisit's on what the map of the rest said there (a constant 0.3 at balanced
+    # classes), beside the calibration's sample.
+    held_y = np.r_[np.ones(n, bool), np.zeros(n, bool)]
+    assert got == rv.fit_revisit(np.full(2 * n, 0.3), held_y, *sample)
+    assert not got.identity
+
+
+def test_short_logs_keep_the_identity():
+    scans = _tour(rv.MIN_SCANS - 1)
+    got, report = rv.fit_later_visit(scans, (np.zeros(2), np.array([True, False])), lambda rest: None)
+    assert got.identity and "reason" in report
+
+
+@pytest.fixture(scope="module")
+def fitted_tour():
+    scans = _tour(rv.MIN_SCANS + 20)
+    return AreaGPOM(kernel="se", min_cell=0.5, max_cell=1.0, free_step=0.3).fit(scans)
+
+
+def test_a_map_recalibrates_every_probability_it_gives_and_keeps_its_ternary_map(fitted_tour):
+    model = fitted_tour
+    ev = model.evidence_
+    assert not ev.revisit.identity and model.summary()["revisit"]["n_points"] > 0
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([0.0, 0.0], [20.0, 16.0], (500, 2))
+    with_it, thresholds = model.predict_proba(pts), model.thresholds_
+    grid = model.grid(0.1)
+    revisit, ev.revisit = ev.revisit, rv.RevisitCalibration()
+    try:
+        without, plain_thresholds = model.predict_proba(pts), model.thresholds_
+        plain_grid = model.grid(0.1)
+    finally:
+        ev.revisit = revisit
+    np.testing.assert_allclose(with_it, revisit(without), rtol=1e-12)
+    np.testing.assert_allclose(grid.probability, revisit(plain_grid.probability), rtol=1e-12)
+    assert thresholds == pytest.approx(tuple(float(revisit(t)) for t in plain_thresholds))
+    # The same cells free, unknown and occupied.
+    np.testing.assert_array_equal(grid.ternary, plain_grid.ternary)
+    assert (grid.ternary == 1).any() and (grid.ternary == 0).any()
+
+
+def test_the_map_of_the_rest_is_this_map_on_fewer_scans(fitted_tour):
+    # The fold the recalibration was fitted on, refitted by hand: the same predictions at the
+    # held-out stretch's points, so the stored recalibration is that fit's.
+    model = fitted_tour
+    scans = model._scans
+    kept, _ = holdout_stretches(len(scans))
+    rest = AreaGPOM(**{**model.get_params(), "fit_revisit": False, "tile_size": model.tile_size_, "origin": model.origin_})
+    rest.fit([scans[i] for i in kept], hyperparameters=dict(model.hyperparameters_))
+    sample = model.evidence_.sample
+    got, _ = rv.fit_later_visit(scans, (sample.probability, sample.occupied), lambda s: rest.predict_proba, seed=model.base.seed)
+    assert got.slope == pytest.approx(model.evidence_.revisit.slope, rel=1e-6)
+    assert got.shift == pytest.approx(model.evidence_.revisit.shift, rel=1e-6, abs=1e-9)
