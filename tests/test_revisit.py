@@ -81,7 +81,7 @@ def _tour(n: int, n_beams: int = 36):
     return simulate_scans(world, dense, n_beams, noise_std=0.02, seed=0)
 
 
-def test_later_visit_predicts_the_held_out_stretch_from_a_map_of_the_rest():
+def test_later_visit_points_are_a_held_out_stretch_predicted_by_a_map_of_the_rest():
     scans = _tour(rv.MIN_SCANS)
     kept, held = holdout_stretches(len(scans))
     asked = {}
@@ -91,31 +91,26 @@ def test_later_visit_predicts_the_held_out_stretch_from_a_map_of_the_rest():
 
         def predict(points):
             asked["points"] = points
-            return np.full(len(points), 0.3)
+            return np.linspace(0.1, 0.9, len(points))
 
         return predict
 
-    sample = (np.array([0.1, 0.8, 0.9, 0.2]), np.array([False, True, True, False]))
-    got, report = rv.fit_later_visit(scans, sample, fit_rest, seed=1)
+    p, occupied, report = rv.later_visit_points(scans, fit_rest, seed=1)
     assert [id(s) for s in asked["scans"]] == [id(scans[i]) for i in kept]
-    # The points are the held-out scans' protocol points, both classes equally.
+    # The held-out scans' protocol points, both classes equally, as many as the stretch allows.
     parts = [calibration_points(scans[i], no_return_cap=10.0) for i in held]
     pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
     n = min(occ.sum(), (~occ).sum(), rv.POINTS_PER_CLASS)
-    assert report["n_points"] == n and len(asked["points"]) == 2 * n
-    known = {tuple(np.round(p, 9)) for p in pts}
-    assert all(tuple(np.round(p, 9)) in known for p in asked["points"])
-    # The fit is fit_revisit's on what the map of the rest said there (a constant 0.3 at balanced
-    # classes), beside the calibration's sample.
-    held_y = np.r_[np.ones(n, bool), np.zeros(n, bool)]
-    assert got == rv.fit_revisit(np.full(2 * n, 0.3), held_y, *sample)
-    assert not got.identity
+    assert report["n_points"] == n and occupied.sum() == n and (~occupied).sum() == n
+    label = {tuple(np.round(q, 9)): o for q, o in zip(pts, occ)}
+    assert [label[tuple(np.round(q, 9))] for q in asked["points"]] == occupied.tolist()
+    np.testing.assert_array_equal(p, np.linspace(0.1, 0.9, 2 * n))
 
 
 def test_short_logs_keep_the_identity():
     scans = _tour(rv.MIN_SCANS - 1)
-    got, report = rv.fit_later_visit(scans, (np.zeros(2), np.array([True, False])), lambda rest: None)
-    assert got.identity and "reason" in report
+    p, occupied, report = rv.later_visit_points(scans, lambda rest: None)
+    assert p.size == 0 and occupied.size == 0 and "reason" in report
 
 
 @pytest.fixture(scope="module")
@@ -154,7 +149,8 @@ def test_the_map_of_the_rest_is_this_map_on_fewer_scans(fitted_tour):
     kept, _ = holdout_stretches(len(scans))
     rest = AreaGPOM(**{**model.get_params(), "fit_revisit": False, "tile_size": model.tile_size_, "origin": model.origin_})
     rest.fit([scans[i] for i in kept], hyperparameters=dict(model.hyperparameters_))
+    p, occupied, _ = rv.later_visit_points(scans, lambda s: rest.predict_proba, seed=model.base.seed)
     sample = model.evidence_.sample
-    got, _ = rv.fit_later_visit(scans, (sample.probability, sample.occupied), lambda s: rest.predict_proba, seed=model.base.seed)
+    got = rv.fit_revisit(p, occupied, sample.probability, sample.occupied)
     assert got.slope == pytest.approx(model.evidence_.revisit.slope, rel=1e-6)
     assert got.shift == pytest.approx(model.evidence_.revisit.shift, rel=1e-6, abs=1e-9)

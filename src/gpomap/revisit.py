@@ -131,21 +131,19 @@ def fit_revisit(
     return RevisitCalibration(float(res.x[0]), float(res.x[0] * res.x[1]))
 
 
-def fit_later_visit(
+def later_visit_points(
     scans: Sequence[Any],
-    sample: tuple[NDArray[np.float64], NDArray[np.bool_]],
     fit_rest: Callable[[list[Any]], Callable[[NDArray[np.float64]], NDArray[np.float64]]],
     no_return_cap: float | None = 10.0,
     seed: int = 0,
-) -> tuple[RevisitCalibration, dict[str, Any]]:
-    """Fit the recalibration of a map of `scans` (see the module docstring).
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]]:
+    """A map's probabilities at the points of a stretch of its log it never saw (the first half of
+    :func:`fit_revisit`'s data; see the module docstring).
 
     Parameters
     ----------
     scans : sequence of Scan
         The map's scans, in log order.
-    sample : (probability, occupied)
-        The map's calibration's leave-one-scan-out points (:class:`gpomap.fusion.CalibrationSample`).
     fit_rest : callable
         Scans to the probability (points (m, d) to (m,)) of the same map fitted on them alone, its
         hyperparameters held and without this recalibration.
@@ -156,29 +154,27 @@ def fit_later_visit(
 
     Returns
     -------
-    revisit : RevisitCalibration
+    probability : ndarray of shape (2 n,)
+        What the map of the other stretches says at the held-out stretches' hits and free points
+        (:func:`gpomap.fusion.calibration_points`), n of each class, at most :data:`POINTS_PER_CLASS`.
+    occupied : ndarray of bool, shape (2 n,)
     report : dict
-        ``"slope"`` and ``"shift"``, ``"n_points"`` per class of the held-out stretch, or
-        ``"reason"`` when it stays the identity.
+        ``"n_points"`` (n), or ``"reason"`` when there are none (a log under :data:`MIN_SCANS`
+        scans, point clouds, a held-out stretch without a class).
     """
     from gpomap.extrapolation import holdout_stretches
     from gpomap.fusion import calibration_points
 
+    none = np.zeros(0), np.zeros(0, dtype=bool)
     if len(scans) < MIN_SCANS or not FIT_REVISIT.get(data_dim(scans), False):
-        return RevisitCalibration(), {"reason": f"{len(scans)} scans (fewer than {MIN_SCANS}) or not planar"}
+        return *none, {"reason": f"{len(scans)} scans (fewer than {MIN_SCANS}) or not planar"}
     kept, held = holdout_stretches(len(scans))
-    pts_l, occ_l = [], []
-    for k in held:
-        p, o = calibration_points(scans[k], no_return_cap=no_return_cap)
-        pts_l.append(p)
-        occ_l.append(o)
-    pts, occ = np.concatenate(pts_l), np.concatenate(occ_l)
+    parts = [calibration_points(scans[k], no_return_cap=no_return_cap) for k in held]
+    pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
     n = min(int(occ.sum()), int((~occ).sum()), POINTS_PER_CLASS)
     if n == 0:
-        return RevisitCalibration(), {"reason": "the held-out stretch has no point of a class"}
+        return *none, {"reason": "the held-out stretch has no point of a class"}
     rng = np.random.default_rng(seed)
     keep = np.concatenate([rng.choice(np.flatnonzero(occ), n, replace=False), rng.choice(np.flatnonzero(~occ), n, replace=False)])
     pts, occ = pts[keep], occ[keep]
-    p_later = np.asarray(fit_rest([scans[i] for i in kept])(pts), dtype=float)
-    revisit = fit_revisit(p_later, occ, *sample)
-    return revisit, {"slope": revisit.slope, "shift": revisit.shift, "n_points": n}
+    return np.asarray(fit_rest([scans[i] for i in kept])(pts), dtype=float), occ, {"n_points": n}

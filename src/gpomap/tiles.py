@@ -1494,11 +1494,15 @@ class TiledGPOM:
         t = time.perf_counter()
         self.timings_ = timings
         self._scans: list[Any] | None = None if isinstance(data, Observations) else list(data)
+        # The map of the other stretches is fitted, asked and let go before this map's ray counts
+        # are taken, so the two are never in memory together (FR079's whole log: 2.04 GB peak
+        # the other way round, 1.7 GB without it).
+        later = self._later_visit_points()
+        timings["revisit"] = time.perf_counter() - t
+        t = time.perf_counter()
         self.evidence_ = self._make_evidence()
         timings["evidence"] = time.perf_counter() - t
-        t = time.perf_counter()
-        self.revisit_: dict[str, Any] = self._fit_revisit()
-        timings["revisit"] = time.perf_counter() - t
+        self.revisit_: dict[str, Any] = self._fit_revisit(later)
         timings["total_fit"] = time.perf_counter() - t0
         self.timings_ = timings
         self.last_refit_: list[tuple[int, int]] = sorted(self.tiles_)
@@ -1559,11 +1563,12 @@ class TiledGPOM:
         proximity = HitProximity(hp["hit_shift"], hp.get("hit_reach", HitProximity.reach))
         return self.base.make_evidence(self._scans, self.predict_proba_gp, proximity, self._gp_apart)
 
-    def _fit_revisit(self) -> dict[str, Any]:
-        """The ray evidence's recalibration for a later visit (:mod:`gpomap.revisit`), and its report."""
-        if self.evidence_ is None or self._scans is None or not self.base.fit_revisit:
-            return {"reason": "off" if not self.base.fit_revisit else "no ray evidence"}
-        from gpomap.revisit import fit_later_visit
+    def _later_visit_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None:
+        """This map's probabilities, fitted without them, at a held-out stretch's points
+        (:func:`gpomap.revisit.later_visit_points`); None when the map does not recalibrate."""
+        if self._scans is None or not self.base.ray_evidence or not self.base.fit_revisit:
+            return None
+        from gpomap.revisit import later_visit_points
 
         fixed = dict(self.hyperparameters_)
 
@@ -1584,11 +1589,21 @@ class TiledGPOM:
             )
             return rest.fit(scans, hyperparameters=fixed).predict_proba
 
+        return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
+
+    def _fit_revisit(self, later: tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None) -> dict[str, Any]:
+        """Fit the ray evidence's recalibration for a later visit (:func:`gpomap.revisit.fit_revisit`)
+        on the `later` points and the calibration's own; its report."""
+        if later is None or self.evidence_ is None:
+            return {"reason": "off" if not self.base.fit_revisit else "no ray evidence"}
+        from gpomap.revisit import fit_revisit
+
+        p_later, occupied, report = later
+        if "reason" in report:
+            return report
         sample = self.evidence_.sample
-        self.evidence_.revisit, report = fit_later_visit(
-            self._scans, (sample.probability, sample.occupied), fit_rest, self.base.no_return_cap, self.base.seed
-        )
-        return report
+        self.evidence_.revisit = fit_revisit(p_later, occupied, sample.probability, sample.occupied)
+        return {"slope": self.evidence_.revisit.slope, "shift": self.evidence_.revisit.shift, **report}
 
     def _gp_like(self) -> TiledGPOM:
         """An unfitted map with this one's tiles and settings but no ray evidence, on local
