@@ -35,6 +35,11 @@ where every scan saw free space or a door that closed, so every probability is
 but against a GP that never saw the held-out scans (:func:`fit_surprise_rate`), never below the
 prior: a museum's visitors, a conference centre's crowd raise it to 0.015-0.04.
 
+A later visit. Last, :class:`EvidenceLayer` maps every probability through its ``revisit``, a
+monotone recalibration that keeps 1/2, fitted on a stretch of the log held out from a second fit
+of the map (:mod:`gpomap.revisit`): the weights below are fitted on scans held out one at a time,
+whose neighbours in time still count, and a later visit meets what appeared since.
+
 Calibration. The five weights are fitted on the map's own data, never on a test set: for a
 sample of the training scans, the scan's own beams are removed from the counts (leave one scan
 out, exact because counts add over scans), and its hits and free points along its beams
