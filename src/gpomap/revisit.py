@@ -18,9 +18,9 @@ confident ends by up to ``shift`` in log-odds. It is fitted by maximum likelihoo
 of equal weight: the held-out points of a stretch of the log the map never saw (every third of
 ten stretches, :func:`gpomap.extrapolation.holdout_stretches`), predicted by the same map fitted
 on the rest with the same hyperparameters, and the calibration's own leave-one-scan-out points,
-which stand for a visit among the training scans. The shift came out 0.2-1.0 on the real logs
+which stand for a visit among the training scans. The shift came out 0.2-1.0 on most real logs
 measured (largest where later stretches meet people, doors and new ground: a university building,
-a museum, the Freiburg campus), about 0 on one, and below 0 on simulations, where nothing moves and
+a museum, the Freiburg campus), about 0 on two, and below 0 on simulations, where nothing moves and
 the map was under-confident; the slope 0.74-1.39. A map that grows online (:mod:`gpomap.streaming`) keeps the recalibration of its
 last whole fit.
 """
