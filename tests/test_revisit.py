@@ -32,7 +32,7 @@ def test_recalibration_by_hand_keeps_one_half_and_keeps_order():
     # Beyond the bound it would not: the fit's bound is needed.
     assert not np.all(np.diff(rv.RevisitCalibration(0.5, 3.0 * 0.5 * rv.MAX_SHIFT_RATIO)(p)) > 0)
     q = np.array([0.2, 0.6])
-    assert rv.RevisitCalibration()(q) is not None and np.array_equal(rv.RevisitCalibration()(q), q)
+    np.testing.assert_array_equal(rv.RevisitCalibration()(q), q)
     assert rv.RevisitCalibration().identity and not r.identity
 
 
