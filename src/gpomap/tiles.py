@@ -1575,19 +1575,7 @@ class TiledGPOM:
         def fit_rest(scans: list[Any]) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
             # The same map on the other scans: its tiles, settings and hyperparameters, its own ray
             # evidence and calibration, no recalibration of its own.
-            rest = TiledGPOM(
-                self.tile_size_,
-                self.overlap,
-                self.blend,
-                self.origin_,
-                n_workers=self.n_workers,
-                hyper_sample=self.hyper_sample,
-                blas_threads=self.blas_threads,
-                worker_processes=self.worker_processes,
-                memory_limit=self.memory_limit,
-                **{**self.options, "fit_revisit": False},
-            )
-            return rest.fit(scans, hyperparameters=fixed).predict_proba
+            return self._like(fit_revisit=False).fit(scans, hyperparameters=fixed).predict_proba
 
         return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
 
@@ -1605,10 +1593,9 @@ class TiledGPOM:
         self.evidence_.revisit = fit_revisit(p_later, occupied, sample.probability, sample.occupied)
         return {"slope": self.evidence_.revisit.slope, "shift": self.evidence_.revisit.shift, **report}
 
-    def _gp_like(self) -> TiledGPOM:
-        """An unfitted map with this one's tiles and settings but no ray evidence, on local
-        workers whatever the scheduler: fitted on other data with this map's hyperparameters, it is
-        this map's GP on those data."""
+    def _like(self, **options: Any) -> TiledGPOM:
+        """An unfitted map with this one's tiles and settings, `options` (of
+        :class:`~gpomap.settings.MapSettings`) changed, on local workers whatever the scheduler."""
         return TiledGPOM(
             self.tile_size_,
             self.overlap,
@@ -1619,8 +1606,13 @@ class TiledGPOM:
             blas_threads=self.blas_threads,
             worker_processes=self.worker_processes,
             memory_limit=self.memory_limit,
-            **{**self.options, "ray_evidence": False},
+            **{**self.options, **options},
         )
+
+    def _gp_like(self) -> TiledGPOM:
+        """An unfitted map with this one's tiles and settings but no ray evidence (:meth:`_like`):
+        fitted on other data with this map's hyperparameters, it is this map's GP on those data."""
+        return self._like(ray_evidence=False)
 
     def _gp_apart(self, scans: ScanData) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
         """This map's GP fitted on `scans` alone, its hyperparameters held: its
