@@ -1,4 +1,5 @@
-"""The memory a run reports using: ``gpomap.resources.rss_mb`` and ``peak_rss_mb``."""
+"""The memory a run reports using (``gpomap.resources.rss_mb``, ``peak_rss_mb``) and hands back
+(``release_freed_memory``)."""
 
 from __future__ import annotations
 
@@ -25,6 +26,26 @@ def test_peak_counts_an_array_just_touched() -> None:
     peak = resources.peak_rss_mb()
     assert now - 1 <= peak["self"] < 100 * now
     assert block.sum() == block.size
+
+
+@pytest.mark.skipif(resources._malloc_trim() is None, reason="glibc's malloc_trim is not there")
+def test_freed_heap_blocks_are_handed_back() -> None:
+    # 256 MiB in 64 KiB arrays: below glibc's mmap threshold, so they come from the heap; one
+    # array allocated after them keeps the heap's top in use, so freeing them returns nothing.
+    blocks = [np.ones(8192) for _ in range(4096)]
+    top = np.ones(8192)
+    del blocks
+    before = resources.rss_mb()
+    assert before is not None
+    assert resources.release_freed_memory()
+    after = resources.rss_mb()
+    assert after is not None and after < before - 128
+    assert top.sum() == top.size
+
+
+def test_release_is_a_no_op_without_malloc_trim(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(resources, "_malloc_trim", lambda: None)
+    assert resources.release_freed_memory() is False
 
 
 def _fake_resource(maxrss: int) -> types.SimpleNamespace:

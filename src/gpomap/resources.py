@@ -13,10 +13,13 @@ not matter; orders of magnitude do: a log with one pose at 1e9 m asks for a grid
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import math
 import os
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -36,6 +39,7 @@ __all__ = [
     "check_memory",
     "memory_limit",
     "peak_rss_mb",
+    "release_freed_memory",
     "rss_mb",
     "default_memory_limit",
     "fit_memory",
@@ -157,6 +161,32 @@ def peak_rss_mb() -> dict[str, float]:
         "self": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / per_mib,
         "children": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / per_mib,
     }
+
+
+def release_freed_memory() -> bool:
+    """Hand the memory this process has freed back to the system; whether it could be asked.
+
+    glibc's allocator raises its mmap threshold each time a large block is freed, so the arrays of
+    one stage that come after (tens of MB each) are carved from the heap, and freed they stay in
+    it: the whole Freiburg campus held 3 GB so after its second map was let go. ``malloc_trim``
+    returns them. A no-op (False) where the C library has no such call (macOS, Windows, musl).
+    """
+    trim = _malloc_trim()
+    if trim is None:
+        return False
+    trim(0)
+    return True
+
+
+@functools.cache
+def _malloc_trim() -> Any:
+    """glibc's ``malloc_trim``, or None where it is not there."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
 
 
 def default_memory_limit(fraction: float = DEFAULT_MEMORY_FRACTION) -> int | None:
