@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 import pytest
+from scipy.special import ndtr, ndtri
 
-from gpomap import _compiled_counts, lattice
+from gpomap import _compiled_counts, fusion, lattice
 from gpomap.clouds import CloudScan
 from gpomap.evidence import NEAR_END, PATH_RADIUS, RayEvidence, lattice_grid, next_to_hits
 from gpomap.fusion import (
@@ -273,6 +276,89 @@ def test_hit_proximity_by_hand() -> None:
     assert HitProximity()(p, d) is p
 
 
+def test_the_prior_behind_surfaces_by_hand() -> None:
+    both = HitProximity(shift=1.0, reach=0.5, behind_shift=1.5, behind_reach=0.7, behind_depth=0.2)
+    p = np.full(4, 0.5)
+    d = np.array([0.0, 0.7, 0.7, np.inf])
+    depth = np.array([0.0, 0.2, np.inf, np.inf])
+    # z = e^(-d / 0.5) + 1.5 e^(-d / 0.7) (1 - e^(-depth / 0.2)):
+    #   0.7 m from a hit, 0.2 m deep: e^-1.4 + 1.5 e^-1 (1 - e^-1) = 0.246597 + 0.348816 = 0.595413
+    #   deeper than the cap: e^-1.4 + 1.5 e^-1 = 0.246597 + 0.551819 = 0.798416
+    z = [1.0, 0.595413, 0.798416, 0.0]
+    want = [0.5 * (1.0 + math.erf(v / math.sqrt(2.0))) for v in z]  # Phi, apart from scipy's ndtr
+    np.testing.assert_allclose(both(p, d, depth), want, rtol=0, atol=3e-7)
+    # Without depths (the fit on held-out stretches), the fitted term alone.
+    np.testing.assert_allclose(both(p, d), HitProximity(1.0, 0.5)(p, d), rtol=0, atol=0)
+    # At the edge of what beams crossed, the prior adds nothing; far from every hit, nothing.
+    assert both.gain(np.array([0.0]), np.array([0.0]))[0] == pytest.approx(1.0)
+    assert both.distance_cap == pytest.approx(HIT_DISTANCE_REACHES * 0.7) and both.depth_cap == pytest.approx(1.0)
+    assert not HitProximity().active and HitProximity(behind_shift=0.5).active
+
+
+def test_seen_depth_of_points_and_grids_against_brute_force(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
+    # How deep into unseen space a cell lies: the distance to the nearest cell any beam or step
+    # of the path crossed, here by brute force over every counted cell of the lattice; the map
+    # reads it from a tree of the counted cells at the edge (points) and from a distance
+    # transform of the grid's window (grids on the lattice).
+    model, _ = half_room
+    ev = model.evidence_
+    assert ev.proximity.behind_shift > 0  # a planar map's default
+    lo = np.asarray(ev.lattice.origin)
+    counted = (ev._hits > 0) | (ev._beam_misses > 0) | (ev._near_misses > 0) | (ev._path > 0)
+    centres = (np.argwhere(counted)[:, ::-1] + np.rint(lo / ev.resolution) + 0.5) * ev.resolution
+    cap = ev.proximity.depth_cap
+    for corner, shape, res in (((-1.0, -1.0), (60, 80), 0.05), ((-3.0, 2.0), (120, 90), 0.05), ((-2.0, -2.0), (30, 40), 0.1)):
+        grid = GridSpec(tuple(lo + corner), res, shape)
+        pts = grid.centres()
+        near = np.all((centres >= pts.min(axis=0) - cap) & (centres <= pts.max(axis=0) + cap), axis=1)
+        want = np.min(np.hypot(pts[:, :1] - centres[near, 0], pts[:, 1:] - centres[near, 1]), axis=1, initial=np.inf)
+        # The cells the depth is asked for (nothing counted in them), not those exactly at the cap.
+        unseen = (want > 1e-9) & (np.abs(want - cap) > 1e-9)
+        want[want >= cap] = np.inf
+        assert np.isfinite(want[unseen]).sum() > 100 and np.isinf(want).sum() > 50
+        assert (want < 1e-9).sum() > 100 or res != ev.resolution  # counted cells, where on the lattice
+        np.testing.assert_allclose(ev.seen_depth(pts[unseen]), want[unseen], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(ev.grid_seen_depth(grid).ravel()[unseen], want[unseen], rtol=0, atol=1e-12)
+
+
+def test_the_prior_behind_surfaces_stops_at_the_occupied_threshold() -> None:
+    # Four cells nothing counted in and one counted, 0.2 m from a hit; the first three 1 m deep.
+    prox = HitProximity(shift=1.0, reach=0.5, behind_shift=1.5, behind_reach=0.7, behind_depth=0.2)
+    p_unseen = np.array([0.05, 0.5, 0.9, 0.5, 0.3])
+    counts = np.array([0.0, 0.0, 0.0, 0.0, 3.0])
+    near = np.full(4, 0.2)
+    deep = np.array([1.0, 1.0, 1.0, 0.0])
+    got = fusion._unseen_where_empty(
+        np.full(5, 0.3), counts, counts, p_unseen, lambda m: near, prox, 0.01, lambda m: deep, occupied_above=0.9
+    )
+    fitted = 0.005 + 0.99 * ndtr(ndtri(p_unseen[:4]) + np.exp(-0.2 / 0.5))
+    prior = 1.5 * np.exp(-0.2 / 0.7) * (1.0 - np.exp(-1.0 / 0.2))
+    both = 0.005 + 0.99 * ndtr(ndtri(p_unseen[:3]) + np.exp(-0.2 / 0.5) + prior)
+    assert both[0] < 0.9 and fitted[1] < 0.9 < both[1] and fitted[2] > 0.9  # the three cases
+    np.testing.assert_allclose(got[[0, 2]], both[[0, 2]], rtol=0, atol=1e-12)  # below, and occupied anyway
+    assert got[1] == 0.9  # lifted over the threshold by the prior alone: stops on it
+    np.testing.assert_allclose(got[3], fitted[3], rtol=0, atol=1e-12)  # at the edge: no prior
+    assert got[4] == 0.3  # counted: its own probability
+
+
+def test_the_prior_behind_surfaces_leaves_the_occupied_class_as_it_was(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
+    model, _ = half_room
+    ev = model.evidence_
+    with_prior = model.grid(0.05)
+    pts = with_prior.grid.centres()[::7]
+    exact = model.predict_ternary(pts)
+    kept, ev.proximity = ev.proximity, replace(ev.proximity, behind_shift=0.0)
+    try:
+        without = model.grid(0.05)
+        exact_without = model.predict_ternary(pts)
+    finally:
+        ev.proximity = kept
+    assert (with_prior.probability > without.probability + 0.05).sum() > 100  # behind the walls
+    assert (with_prior.probability < without.probability - 1e-12).sum() == 0
+    np.testing.assert_array_equal(with_prior.ternary == 1, without.ternary == 1)
+    np.testing.assert_array_equal(exact == 1, exact_without == 1)
+
+
 def test_calibration_points_follow_the_protocol() -> None:
     s = _scan(0.0, 0.0, [0.0, np.pi / 2], [1.0, 5.0], max_range=5.0)
     pts, occ = calibration_points(s, step=0.1, no_return_cap=0.5)
@@ -341,10 +427,10 @@ def test_written_grid_uses_its_own_cells_counts(half_room: tuple[AreaGPOM, list[
     p_gp, _, p_unseen = (a.reshape(om.grid.shape) for a in model._gp_probabilities(om.grid.centres()))
     factor = gp_sampling_factor(model.hyperparameters_["length_scale"], 0.05)
     assert factor > 1  # the GP was sampled coarsely and interpolated
-    # Cells no beam crossed take the GP's probability for unseen space (gpomap.extrapolation).
     # Cells no beam crossed take the GP's probability for unseen space (gpomap.extrapolation),
-    # raised near the cells beams ended in.
-    p_unseen = model.evidence_.proximity(p_unseen, model.evidence_.grid_hit_distance(om.grid))
+    # raised near the cells beams ended in, and more so deeper into unseen space.
+    evidence = model.evidence_
+    p_unseen = evidence.proximity(p_unseen, evidence.grid_hit_distance(om.grid), evidence.grid_seen_depth(om.grid))
     exact = np.where((hits == 0) & (misses == 0), p_unseen, model.evidence_.calibration(p_gp, hits, misses))
     # Interpolating the GP a third of a length scale apart moves the written map little, and
     # only in cells next to walls with few counts (measured on Intel scans 0-300, every 10th

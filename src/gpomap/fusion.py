@@ -82,7 +82,7 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.ndimage import distance_transform_edt
+from scipy.ndimage import binary_erosion, distance_transform_edt
 from scipy.optimize import brentq, minimize
 from scipy.spatial import cKDTree
 from scipy.special import ndtr, ndtri
@@ -645,11 +645,15 @@ class HitProximity:
     free cells on the seen side, gave them 0.32-0.68 (docs/choices.md). So the probit of unseen
     space gains
 
-        shift * exp(-d / reach),
+        shift * exp(-d / reach) + behind_shift * exp(-d / behind_reach) * (1 - exp(-depth / behind_depth)),
 
-    d the distance from the point to the nearest centre of a cell a beam ended in; both are fitted
-    with the variance scale on held-out stretches of the log (:mod:`gpomap.extrapolation`).
-    ``reach`` is bounded so the gain is nil far from the data.
+    d the distance from the point to the nearest centre of a cell a beam ended in, depth its
+    distance to the nearest cell any beam (or the robot's path) crossed. ``shift`` and ``reach``
+    are fitted with the variance scale on held-out stretches of the log
+    (:mod:`gpomap.extrapolation`); ``reach`` is bounded so the gain is nil far from the data.
+    The second term is a prior (:data:`BEHIND_SURFACES`): unseen space is what surfaces hide, so
+    a metre behind one it is mostly more of it, while the unseen cells at the edge of what the
+    beams crossed are mostly the same open space (docs/choices.md, "Unseen space behind surfaces").
 
     Parameters
     ----------
@@ -657,26 +661,70 @@ class HitProximity:
         Probit gain at a hit's own cell (0: none).
     reach : float
         Distance over which the gain falls by a factor e, metres.
+    behind_shift : float
+        Probit gain of the prior term deep in unseen space at a hit's cell (0: none).
+    behind_reach : float
+        Distance from the hit over which it falls by a factor e, metres.
+    behind_depth : float
+        Depth into unseen space over which it rises to within a factor e of its full value, metres.
     """
 
     shift: float = 0.0
     reach: float = 0.5
+    behind_shift: float = 0.0
+    behind_reach: float = 0.7
+    behind_depth: float = 0.2
 
-    def gain(self, distance: ArrayLike) -> NDArray[np.float64]:
-        """The probit's gain ``shift * exp(-distance / reach)`` at `distance` metres from the nearest hit's cell (inf: none)."""
-        return self.shift * np.exp(-np.asarray(distance, dtype=float) / self.reach)
+    @property
+    def active(self) -> bool:
+        """Whether either term raises any probability."""
+        return self.shift != 0.0 or self.behind_shift != 0.0
 
-    def __call__(self, p_unseen: NDArray[np.float64], distance: NDArray[np.float64]) -> NDArray[np.float64]:
-        """`p_unseen` at points `distance` metres from the nearest hit's cell (matching shapes; inf: none)."""
-        if self.shift == 0.0:
+    @property
+    def distance_cap(self) -> float:
+        """Distance from every hit beyond which both terms are taken as nil, metres."""
+        reach = max(self.reach, self.behind_reach if self.behind_shift != 0.0 else 0.0)
+        return HIT_DISTANCE_REACHES * reach
+
+    @property
+    def depth_cap(self) -> float:
+        """Depth into unseen space beyond which the prior term is taken as full, metres."""
+        return DEPTH_SCALES * self.behind_depth
+
+    def gain(self, distance: ArrayLike, depth: ArrayLike | None = None) -> NDArray[np.float64]:
+        """The probit's gain at `distance` metres from the nearest hit's cell (inf: none) and
+        `depth` metres into unseen space (inf: deeper than :attr:`depth_cap`; None: the fitted
+        term alone)."""
+        d = np.asarray(distance, dtype=float)
+        out = self.shift * np.exp(-d / self.reach)
+        if self.behind_shift != 0.0 and depth is not None:
+            rise = -np.expm1(-np.asarray(depth, dtype=float) / self.behind_depth)
+            out = out + self.behind_shift * np.exp(-d / self.behind_reach) * rise
+        return np.asarray(out, dtype=float)
+
+    def __call__(
+        self, p_unseen: NDArray[np.float64], distance: NDArray[np.float64], depth: NDArray[np.float64] | None = None
+    ) -> NDArray[np.float64]:
+        """`p_unseen` at points `distance` metres from the nearest hit's cell and `depth` metres into
+        unseen space (matching shapes; inf: none, and deeper than :attr:`depth_cap`)."""
+        if not self.active:
             return p_unseen
         # ndtri is exact enough to invert ndtr where the gain matters (|z| < 8).
         z = ndtri(np.clip(p_unseen, 1e-15, 1.0 - 1e-15))
-        return ndtr(z + self.gain(distance))
+        return ndtr(z + self.gain(distance, depth))
 
+
+#: The prior gain of unseen space behind surfaces (:class:`HitProximity`'s ``behind_shift``,
+#: ``behind_reach``, ``behind_depth``), per dimension of the data. Planar maps: chosen across
+#: the 13 logs we have, each log's values fitted on the other twelve's test points lying 1.13-1.93,
+#: 0.62-0.90 m, 0.11-0.32 m (docs/choices.md, "Unseen space behind surfaces"). Off for point
+#: clouds: not measured there.
+BEHIND_SURFACES: dict[int, tuple[float, float, float]] = {2: (1.5, 0.7, 0.2), 3: (0.0, 0.7, 0.2)}
 
 #: The gain near hits is taken as nil beyond this many of its reaches (at most 5 e^-10 < 3e-4 in probit).
 HIT_DISTANCE_REACHES: float = 10.0
+#: The prior gain behind surfaces is taken as full beyond this many of its depths (within e^-5 < 0.7 %).
+DEPTH_SCALES: float = 5.0
 
 
 class HitCells:
@@ -731,19 +779,35 @@ def _unseen_where_empty(
     distance: Callable[[NDArray[np.bool_]], NDArray[np.float64]] | None = None,
     proximity: HitProximity | None = None,
     surprise_rate: float = SURPRISE_RATE,
+    depth: Callable[[NDArray[np.bool_]], NDArray[np.float64]] | None = None,
+    occupied_above: float | None = None,
 ) -> NDArray[np.float64]:
     """`p`, with `p_unseen` (mixed with `surprise_rate`, as the counted cells are) where a cell has
-    no count at all, raised by `proximity` at those cells' `distance` (given their mask, flat)
-    from the nearest hit."""
+    no count at all, raised by `proximity` at those cells' `distance` from the nearest hit and
+    `depth` into unseen space (each given their mask, flat).
+
+    The prior behind surfaces moves probabilities, not classes: where it alone would lift a cell
+    above `occupied_above` (the ternary map's fitted threshold), the cell stops at it.
+    """
     if p_unseen is None:
         return p
     empty = (hits == 0) & (misses == 0)
-    if proximity is not None and proximity.shift != 0.0 and distance is not None:
+    capped = None
+    if proximity is not None and proximity.active and distance is not None:
         p_unseen = np.array(p_unseen, dtype=float)
         flat = p_unseen.reshape(-1)
         mask = empty.reshape(-1)
-        flat[mask] = proximity(flat[mask], distance(mask))
-    return np.where(empty, with_surprises(p_unseen, surprise_rate), p)
+        near, deep = distance(mask), None if depth is None else depth(mask)
+        raised = proximity(flat[mask], near, deep)
+        if deep is not None and occupied_above is not None:
+            fitted = with_surprises(proximity(flat[mask], near), surprise_rate)
+            over = (with_surprises(raised, surprise_rate) > occupied_above) & (fitted <= occupied_above)
+            capped = np.flatnonzero(mask)[over]
+        flat[mask] = raised
+    out = np.where(empty, with_surprises(p_unseen, surprise_rate), p)
+    if capped is not None and capped.size:
+        out.reshape(-1)[capped] = occupied_above  # at the threshold, not above it
+    return out
 
 
 #: A planar written map's GP variance is predicted this many GP samples apart and interpolated;
@@ -857,6 +921,7 @@ class EvidenceLayer:
         self.proximity = proximity if proximity is not None else HitProximity()
         self.gp_apart = gp_apart
         self._hit_cells: HitCells | None = None  # of the counts so far, when asked
+        self._seen_edge: HitCells | None = None  # counted cells next to uncounted ones, when asked
         self._at_surface: NDArray[np.bool_] | None = None  # next_to_hits of the counts so far, when asked
         self.no_return_cap = no_return_cap
         self.calibration_scans = int(calibration_scans)
@@ -946,6 +1011,7 @@ class EvidenceLayer:
         self._joined = None
         self._grid_cache = None
         self._hit_cells = None
+        self._seen_edge = None
         self._at_surface = None
 
     def _block(self, grid: AnyGrid) -> tuple[slice, ...]:
@@ -1048,6 +1114,8 @@ class EvidenceLayer:
             lambda mask: self.hit_distance(pts[mask]),
             self.proximity,
             self.calibration.surprise_rate,
+            (lambda mask: self.seen_depth(pts[mask])) if self.proximity.behind_shift != 0.0 else None,
+            self.report.get("occupied_threshold"),
         )
         return self.revisit(p)
 
@@ -1081,7 +1149,7 @@ class EvidenceLayer:
             return np.full(n, np.inf)
         if self._hit_cells is None:
             self._hit_cells = HitCells.of_counts(self._hits, self.lattice)
-        return self._hit_cells.distance(points, HIT_DISTANCE_REACHES * self.proximity.reach)
+        return self._hit_cells.distance(points, self.proximity.distance_cap)
 
     def grid_hit_distance(self, grid: AnyGrid) -> NDArray[np.float64]:
         """:meth:`hit_distance` at every cell centre of `grid`, shape grid.shape.
@@ -1090,19 +1158,54 @@ class EvidenceLayer:
         beyond which the gain is nil (every hit that counts lies in it): the same distances, at a
         cost that follows the grid read, not the whole map.
         """
-        upper = HIT_DISTANCE_REACHES * self.proximity.reach
         if self.lattice is None or not self._on_lattice(grid):
             return self.hit_distance(grid_centres(grid)).reshape(grid.shape)
+        return self._window_distance(grid, lambda block: self._hits[block] > 0, self.proximity.distance_cap)
+
+    def seen_depth(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Distance (m,) from each point (m, d) to the nearest centre of a cell any beam or step of
+        the path crossed (0 where one is its own), inf beyond :attr:`HitProximity.depth_cap`: how
+        deep into unseen space the point lies."""
+        n = np.asarray(points).shape[0]
+        if self.lattice is None:
+            return np.full(n, np.inf)
+        if self._seen_edge is None:
+            # The nearest counted cell to an uncounted point is one next to an uncounted cell.
+            counted = self._counted(tuple(slice(None) for _ in self.lattice.shape))
+            inner = binary_erosion(counted, np.ones((3,) * counted.ndim, dtype=bool), border_value=0)
+            self._seen_edge = HitCells.of_counts(counted & ~inner, self.lattice)
+        return self._seen_edge.distance(points, self.proximity.depth_cap)
+
+    def grid_seen_depth(self, grid: AnyGrid) -> NDArray[np.float64]:
+        """:meth:`seen_depth` at every cell centre of `grid`, shape grid.shape (a distance transform
+        of the grid's window grown by the depth cap, on the counted lattice)."""
+        if self.lattice is None or not self._on_lattice(grid):
+            return self.seen_depth(grid_centres(grid)).reshape(grid.shape)
+        return self._window_distance(grid, self._counted, self.proximity.depth_cap)
+
+    def _counted(self, block: tuple[slice, ...]) -> NDArray[np.bool_]:
+        """Whether any beam, near miss or step of the path counted in each lattice cell of `block`:
+        the cells :func:`_unseen_where_empty` does not take as unseen."""
+        return (self._hits[block] > 0) | (self._beam_misses[block] > 0) | (self._near_misses[block] > 0) | (self._path[block] > 0)
+
+    def _window_distance(
+        self, grid: AnyGrid, marked: Callable[[tuple[slice, ...]], NDArray[np.bool_]], upper: float
+    ) -> NDArray[np.float64]:
+        """Distance from every cell centre of `grid` (cells of the counted lattice) to the nearest
+        centre of a lattice cell `marked` (given a block of the lattice), inf at `upper` or beyond:
+        a distance transform of the grid's window grown by `upper`, which holds every marked cell
+        nearer than that, so it costs what the grid does, not the whole map."""
+        assert self.lattice is not None
         pad = int(np.ceil(upper / self.resolution)) + 1
         offset = tuple(o - pad for o in cell_offset(grid, self.lattice))
         shape = tuple(n + 2 * pad for n in grid.shape)
-        hit = np.zeros(shape, dtype=bool)
+        window = np.zeros(shape, dtype=bool)
         where = overlap(offset, shape, self.lattice.shape)
         if where is not None:
-            hit[where[0]] = self._hits[where[1]] > 0
-        if not hit.any():
+            window[where[0]] = marked(where[1])
+        if not window.any():
             return np.full(grid.shape, np.inf)
-        d = np.asarray(distance_transform_edt(~hit, sampling=self.resolution), dtype=float)
+        d = np.asarray(distance_transform_edt(~window, sampling=self.resolution), dtype=float)
         d = d[tuple(slice(pad, pad + n) for n in grid.shape)]
         d[d >= upper] = np.inf
         return d
@@ -1155,7 +1258,23 @@ class EvidenceLayer:
         def distance(mask: NDArray[np.bool_]) -> NDArray[np.float64]:
             return self.grid_hit_distance(grid).reshape(-1)[mask]
 
-        return self.revisit(_unseen_where_empty(p, h, m, unseen, distance, self.proximity, self.calibration.surprise_rate))
+        def depth(mask: NDArray[np.bool_]) -> NDArray[np.float64]:
+            return self.grid_seen_depth(grid).reshape(-1)[mask]
+
+        behind = depth if self.proximity.behind_shift != 0.0 else None
+        return self.revisit(
+            _unseen_where_empty(
+                p,
+                h,
+                m,
+                unseen,
+                distance,
+                self.proximity,
+                self.calibration.surprise_rate,
+                behind,
+                self.report.get("occupied_threshold"),
+            )
+        )
 
     def written_grid(
         self,

@@ -55,7 +55,7 @@ from gpomap.cells import build_cells
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
-from gpomap.fusion import EvidenceLayer, HitProximity, ternary_thresholds
+from gpomap.fusion import BEHIND_SURFACES, EvidenceLayer, HitProximity, ternary_thresholds
 from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, row_bands, ternary
 from gpomap.kernels.area import AreaKernel
@@ -1563,7 +1563,10 @@ class TiledGPOM:
             return None
         hp = self.hyperparameters_
         # _fit sets hit_shift; hit_reach may be missing where hit_shift alone was given.
-        proximity = HitProximity(hp["hit_shift"], hp.get("hit_reach", HitProximity.reach))
+        behind_shift, behind_reach, behind_depth = BEHIND_SURFACES[self._dim]
+        proximity = HitProximity(
+            hp["hit_shift"], hp.get("hit_reach", HitProximity.reach), behind_shift, behind_reach, behind_depth
+        )
         return self.base.make_evidence(self._scans, self.predict_proba_gp, proximity, self._gp_apart)
 
     def _later_visit_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None:
