@@ -634,6 +634,14 @@ def _other_scans_counts(
     return hits, misses, near, surface_count
 
 
+#: The prior gain of unseen space behind surfaces (:class:`HitProximity`'s ``behind_shift``,
+#: ``behind_reach``, ``behind_depth``), per dimension of the data. Planar maps: chosen across the
+#: 13 logs we have, on their test points with each log left out in turn (the other twelve's came
+#: out 1.13-1.93, 0.62-0.90 m and 0.11-0.32 m; docs/choices.md, "Unseen space behind surfaces").
+#: Off for point clouds: not measured there.
+BEHIND_SURFACES: dict[int, tuple[float, float, float]] = {2: (1.5, 0.7, 0.2), 3: (0.0, 0.7, 0.2)}
+
+
 @dataclass(frozen=True)
 class HitProximity:
     """How much a surface near unseen space raises its probability of being occupied.
@@ -672,8 +680,8 @@ class HitProximity:
     shift: float = 0.0
     reach: float = 0.5
     behind_shift: float = 0.0
-    behind_reach: float = 0.7
-    behind_depth: float = 0.2
+    behind_reach: float = BEHIND_SURFACES[2][1]
+    behind_depth: float = BEHIND_SURFACES[2][2]
 
     @property
     def active(self) -> bool:
@@ -713,13 +721,6 @@ class HitProximity:
         z = ndtri(np.clip(p_unseen, 1e-15, 1.0 - 1e-15))
         return ndtr(z + self.gain(distance, depth))
 
-
-#: The prior gain of unseen space behind surfaces (:class:`HitProximity`'s ``behind_shift``,
-#: ``behind_reach``, ``behind_depth``), per dimension of the data. Planar maps: chosen across
-#: the 13 logs we have, each log's values fitted on the other twelve's test points lying 1.13-1.93,
-#: 0.62-0.90 m, 0.11-0.32 m (docs/choices.md, "Unseen space behind surfaces"). Off for point
-#: clouds: not measured there.
-BEHIND_SURFACES: dict[int, tuple[float, float, float]] = {2: (1.5, 0.7, 0.2), 3: (0.0, 0.7, 0.2)}
 
 #: The gain near hits is taken as nil beyond this many of its reaches (at most 5 e^-10 < 3e-4 in probit).
 HIT_DISTANCE_REACHES: float = 10.0
