@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from gpomap.errors import EmptyDataError
 from gpomap.grid import DEFAULT_THRESHOLDS, OCCUPIED, GridSpec, OccupancyMap
 from gpomap.metrics import expected_calibration_error, fpr_at_tpr, iou, log_loss, reliability_bins, roc_auc, roc_curve
-from gpomap.observations import observations_from_scans
+from gpomap.observations import balanced_subsample, observations_from_scans
 from gpomap.resources import peak_rss_mb
 from gpomap.scans import Scan, select_scans
 
@@ -205,14 +205,14 @@ def test_points(
         True for occupied (a hit); m / 2 of each class.
     """
     obs = protocol_points(scans, free_step, hit_margin, no_return_cap)
-    occ, free = np.flatnonzero(obs.occupied), np.flatnonzero(~obs.occupied)
-    n = min(occ.size, free.size)
+    n_occ = int(np.count_nonzero(obs.occupied))
+    n_free = obs.occupied.size - n_occ
+    n = min(n_occ, n_free)
     if max_points is not None:
         n = min(n, int(max_points) // 2)
     if n == 0:
-        raise EmptyDataError(f"held-out scans give {occ.size} hits and {free.size} free points; need both")
-    rng = np.random.default_rng(seed)
-    keep = np.sort(np.concatenate([rng.choice(occ, n, replace=False), rng.choice(free, n, replace=False)]))
+        raise EmptyDataError(f"held-out scans give {n_occ} hits and {n_free} free points; need both")
+    keep = np.sort(balanced_subsample(obs.occupied, n, seed))
     return obs.points[keep], obs.occupied[keep]
 
 

@@ -60,7 +60,7 @@ from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.fusion import HIT_DISTANCE_REACHES, HitCells, HitProximity, calibration_points
 from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
-from gpomap.observations import Observations, beams_reach, data_dim, free_near_hits
+from gpomap.observations import Observations, balanced_subsample, beams_reach, data_dim, free_near_hits
 from gpomap.squash import unseen_probit
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
@@ -278,8 +278,7 @@ def fit_variance_scale(
     occ = np.concatenate([f[2] for f in folds])
     dist = np.concatenate([f[3] for f in folds])
     fold_of = np.concatenate([np.full(f[2].size, k) for k, f in enumerate(folds)])
-    rng = np.random.default_rng(seed)
-    keep = np.concatenate([rng.choice(np.flatnonzero(occ), n, replace=False), rng.choice(np.flatnonzero(~occ), n, replace=False)])
+    keep = balanced_subsample(occ, n, seed)
     pts, occ, fold_of, dist = pts[keep], occ[keep], fold_of[keep], dist[keep]
     # The region's points (grown by the clearance) cut once for every pattern: a whole log has
     # tens of millions.

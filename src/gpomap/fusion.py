@@ -106,7 +106,7 @@ from gpomap.lattice import (
     interpolation_block,
     overlap,
 )
-from gpomap.observations import ScanData, data_dim, observations_from_scans
+from gpomap.observations import ScanData, balanced_subsample, data_dim, observations_from_scans
 from gpomap.resources import WRITTEN_BAND_CELLS
 from gpomap.revisit import RevisitCalibration
 from gpomap.scans import Scan
@@ -500,10 +500,9 @@ def fit_calibration(
         return default, {"n_points": int(occ.size)}, CalibrationSample()
     # Balance the classes by subsampling the larger one (seeded), as an evaluation would; the
     # counts are then looked up at the sample only (la3dm: 20,000 of 10 million points).
-    rng = np.random.default_rng(seed)
-    i_occ, i_free = np.flatnonzero(occ), np.flatnonzero(~occ)
-    n = min(i_occ.size, i_free.size, CALIBRATION_POINTS_PER_CLASS)
-    keep = np.concatenate([rng.choice(i_occ, n, replace=False), rng.choice(i_free, n, replace=False)])
+    n_occ = int(np.count_nonzero(occ))
+    n_free = occ.size - n_occ
+    keep = balanced_subsample(occ, min(n_occ, n_free, CALIBRATION_POINTS_PER_CLASS), seed)
     pts, occ = pts[keep], occ[keep]
     fit_surface = FIT_SURFACE_WEIGHT.get(pts.shape[1], False)
     h, m, near, surface = _other_scans_counts(evidence, grid, whole, pts, scan_of[keep], fit_surface)
@@ -573,7 +572,7 @@ def fit_calibration(
         # The ternary map's occupied class, fitted where the probabilities were: on the same points,
         # the classes back at the log's own ratio (the sample balanced them).
         seen = seen_through(h, m) if SEEN_THROUGH_NOT_OCCUPIED.get(pts.shape[1], False) else None
-        t, jaccard = occupied_threshold(p, occ, free_weight=i_free.size / i_occ.size, seen_through=seen)
+        t, jaccard = occupied_threshold(p, occ, free_weight=n_free / n_occ, seen_through=seen)
         report["occupied_threshold"], report["occupied_iou"] = t, jaccard
     return fitted, report, CalibrationSample(p, occ)
 
@@ -1164,9 +1163,10 @@ class EvidenceLayer:
         return self._window_distance(grid, lambda block: self._hits[block] > 0, self.proximity.distance_cap)
 
     def seen_depth(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Distance (m,) from each point (m, d) to the nearest centre of a cell any beam or step of
-        the path crossed (0 where one is its own), inf beyond :attr:`HitProximity.depth_cap`: how
-        deep into unseen space the point lies."""
+        """Distance (m,) from each point (m, d) in a cell nothing counted in to the nearest centre of
+        a cell any beam or step of the path crossed, inf beyond :attr:`HitProximity.depth_cap`: how
+        deep into unseen space the point lies. (The tree holds only the counted cells at the edge of
+        what was counted, so a point in a counted cell gets its distance to that edge, not 0.)"""
         n = np.asarray(points).shape[0]
         if self.lattice is None:
             return np.full(n, np.inf)

@@ -404,6 +404,28 @@ def observations_from_scans(
     )
 
 
+def balanced_subsample(occupied: ArrayLike, n: int, seed: int) -> NDArray[np.intp]:
+    """Indices of `n` occupied and then `n` free points, each drawn without replacement by one
+    generator seeded with `seed`: classes balanced as an evaluation balances them.
+
+    Parameters
+    ----------
+    occupied : array_like of bool, shape (m,)
+    n : int
+        At most the size of the smaller class.
+    seed : int
+
+    Returns
+    -------
+    ndarray of int, shape (2 n,)
+    """
+    occupied = np.asarray(occupied, dtype=bool)
+    rng = np.random.default_rng(seed)
+    return np.concatenate(
+        [rng.choice(np.flatnonzero(occupied), n, replace=False), rng.choice(np.flatnonzero(~occupied), n, replace=False)]
+    )
+
+
 def sensor_positions(scans: ScanData) -> NDArray[np.float64]:
     """Where the sensor was for each scan, ndarray of shape (k, d): a planar pose's (x, y), a cloud's origin."""
     return np.array([s.origin if isinstance(s, CloudScan) else s.pose[:2] for s in scans], dtype=float)

@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 from scipy.special import expit, log_expit, logit
 
-from gpomap.observations import data_dim
+from gpomap.observations import balanced_subsample, data_dim
 
 #: Width, in log-odds, of the band round 1/2 that the shift leaves alone (at logit p = +-WIDTH the
 #: shift is 39 % of its full value, at +-2 WIDTH 86 %).
@@ -86,9 +86,18 @@ class RevisitCalibration:
         return expit(_log_odds(p, self.slope, self.shift))
 
 
+def _logit(p: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.asarray(logit(np.clip(p, _EPS, 1.0 - _EPS)), dtype=float)
+
+
+def _bump(z: NDArray[np.float64]) -> NDArray[np.float64]:
+    """How much of the shift applies at log-odds `z`: 0 at 1/2, towards 1 at the confident ends."""
+    return 1.0 - np.exp(-0.5 * (z / WIDTH) ** 2)
+
+
 def _log_odds(p: NDArray[np.float64], slope: float, shift: float) -> NDArray[np.float64]:
-    z = logit(np.clip(p, _EPS, 1.0 - _EPS))
-    return slope * z + shift * (1.0 - np.exp(-0.5 * (z / WIDTH) ** 2))
+    z = _logit(p)
+    return slope * z + shift * _bump(z)
 
 
 def fit_revisit(
@@ -116,8 +125,8 @@ def fit_revisit(
     p = np.concatenate([p_l, p_a])
     sign = np.where(np.concatenate([y_l, y_a]), 1.0, -1.0)
     weight = np.concatenate([np.full(p_l.size, 0.5 / p_l.size), np.full(p_a.size, 0.5 / p_a.size)])
-    z = logit(np.clip(p, _EPS, 1.0 - _EPS))
-    bump = 1.0 - np.exp(-0.5 * (z / WIDTH) ** 2)
+    z = _logit(p)
+    bump = _bump(z)
 
     def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         # theta = (slope, shift / slope): the ratio's bounds keep the map monotone.
@@ -176,7 +185,6 @@ def later_visit_points(
     n = min(int(occ.sum()), int((~occ).sum()), POINTS_PER_CLASS)
     if n == 0:
         return *none, {"reason": "the held-out stretch has no point of a class"}
-    rng = np.random.default_rng(seed)
-    keep = np.concatenate([rng.choice(np.flatnonzero(occ), n, replace=False), rng.choice(np.flatnonzero(~occ), n, replace=False)])
+    keep = balanced_subsample(occ, n, seed)
     pts, occ = pts[keep], occ[keep]
     return np.asarray(fit_rest([scans[i] for i in kept])(pts), dtype=float), occ, {"n_points": n}
