@@ -359,6 +359,25 @@ def test_the_prior_behind_surfaces_leaves_the_occupied_class_as_it_was(half_room
     np.testing.assert_array_equal(exact == 1, exact_without == 1)
 
 
+def test_the_prior_behind_surfaces_stops_at_the_users_occupied_threshold_too() -> None:
+    # Thresholds given below the fitted occupied one: the prior stops at the user's, so the
+    # occupied class of the map the user asked for is the same with and without it.
+    scans = paper_room_scans()[::2]
+    model = AreaGPOM(kernel="se", length_scale=0.4, optimise=False, thresholds=(0.2, 0.55)).fit(scans)
+    ev = model.evidence_
+    assert ev.thresholds == (0.2, 0.55) and model.thresholds_ == (0.2, 0.55)
+    assert ev.report["occupied_threshold"] > 0.6 and ev.occupied_cap() == pytest.approx(0.55, abs=1e-8)
+    with_prior = model.grid(0.05)
+    kept, ev.proximity = ev.proximity, replace(ev.proximity, behind_shift=0.0)
+    try:
+        without = model.grid(0.05)
+    finally:
+        ev.proximity = kept
+    stopped = (with_prior.probability == ev.occupied_cap()) & (without.probability < 0.55)
+    assert stopped.sum() > 20  # cells the prior alone would have made occupied
+    np.testing.assert_array_equal(with_prior.ternary == 1, without.ternary == 1)
+
+
 def test_calibration_points_follow_the_protocol() -> None:
     s = _scan(0.0, 0.0, [0.0, np.pi / 2], [1.0, 5.0], max_range=5.0)
     pts, occ = calibration_points(s, step=0.1, no_return_cap=0.5)

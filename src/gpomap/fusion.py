@@ -800,9 +800,10 @@ def _unseen_where_empty(
         near, deep = distance(mask), None if depth is None else depth(mask)
         raised = proximity(flat[mask], near, deep)
         if deep is not None and occupied_above is not None:
-            fitted = with_surprises(proximity(flat[mask], near), surprise_rate)
-            over = (with_surprises(raised, surprise_rate) > occupied_above) & (fitted <= occupied_above)
-            capped = np.flatnonzero(mask)[over]
+            # Of the cells the prior leaves over the threshold, those the fitted gain alone does not lift over it.
+            over = np.flatnonzero(with_surprises(raised, surprise_rate) > occupied_above)
+            fitted = with_surprises(proximity(flat[mask][over], near[over]), surprise_rate)
+            capped = np.flatnonzero(mask)[over[fitted <= occupied_above]]
         flat[mask] = raised
     out = np.where(empty, with_surprises(p_unseen, surprise_rate), p)
     if capped is not None and capped.size:
@@ -904,6 +905,9 @@ class EvidenceLayer:
     gp_apart : callable, optional
         The GP fitted on given scans, its hyperparameters held, that every calibration fits the
         surprise rate against (:func:`fit_calibration`); without it the rate is the prior.
+    thresholds : (float, float), optional
+        The ternary thresholds a user gave the map (:func:`ternary_thresholds`), if any: the
+        prior behind surfaces stops at their occupied one (:meth:`occupied_cap`).
     """
 
     def __init__(
@@ -916,8 +920,10 @@ class EvidenceLayer:
         seed: int = 0,
         proximity: HitProximity | None = None,
         gp_apart: GPApart | None = None,
+        thresholds: tuple[float, float] | None = None,
     ) -> None:
         self.resolution = float(resolution)
+        self.thresholds = thresholds
         self.proximity = proximity if proximity is not None else HitProximity()
         self.gp_apart = gp_apart
         self._hit_cells: HitCells | None = None  # of the counts so far, when asked
@@ -1115,9 +1121,19 @@ class EvidenceLayer:
             self.proximity,
             self.calibration.surprise_rate,
             (lambda mask: self.seen_depth(pts[mask])) if self.proximity.behind_shift != 0.0 else None,
-            self.report.get("occupied_threshold"),
+            self.occupied_cap(),
         )
         return self.revisit(p)
+
+    def occupied_cap(self) -> float | None:
+        """The ternary map's occupied threshold before :attr:`revisit`: where the prior behind
+        surfaces alone would lift a cell over it, the cell stops on it (the occupied class stays
+        what the counts and the GP make it). The user's threshold when given, else the fitted
+        one; None when neither is known."""
+        if self.thresholds is not None:
+            return self.revisit.inverse(self.thresholds[1])
+        fitted = self.report.get("occupied_threshold")
+        return None if fitted is None else float(fitted)
 
     def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
         """Whether beams or the robot's path crossed the fine cell holding each point and no beam
@@ -1273,7 +1289,7 @@ class EvidenceLayer:
                 self.proximity,
                 self.calibration.surprise_rate,
                 behind,
-                self.report.get("occupied_threshold"),
+                self.occupied_cap(),
             )
         )
 

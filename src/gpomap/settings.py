@@ -261,5 +261,5 @@ class MapSettings:
         resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
         apart = gp_apart if self.fit_surprise_rate else None
         return EvidenceLayer(
-            data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, proximity, apart
+            data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, proximity, apart, self.thresholds
         )
