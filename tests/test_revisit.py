@@ -50,6 +50,8 @@ def test_inverse_is_the_probability_the_map_takes_to_a_threshold_and_not_over_it
                 q = r.inverse(p)
                 assert r(q) <= p and q == pytest.approx(lo, rel=1e-7), (slope, shift, p)
     assert rv.RevisitCalibration().inverse(0.7) == 0.7
+    # Thresholds may be 0 or 1 (nothing free, nothing occupied): no probability crosses them.
+    assert rv.RevisitCalibration(0.8, 1.2).inverse(1.0) == 1.0 and rv.RevisitCalibration(0.8, 1.2).inverse(0.0) == 0.0
 
 
 def _weighted_loss(slope, shift, p_l, y_l, p_a, y_a):

@@ -88,8 +88,8 @@ class RevisitCalibration:
     def inverse(self, p: float) -> float:
         """The probability this map takes to `p` (in (0, 1)), less a hair so that its image is
         not above `p` by round-off (a ternary map's cell at a threshold stays on its side)."""
-        if self.identity:
-            return float(p)
+        if self.identity or not 0.0 < p < 1.0:
+            return float(p)  # at 0 or 1 the threshold is its own bound: no probability crosses it
         target = float(logit(p))
         # The map's log-odds rise by at least a tenth of the slope per unit (MAX_SHIFT_RATIO's
         # bound), so the root lies within this reach of 0.
