@@ -798,11 +798,12 @@ def _unseen_where_empty(
         flat = p_unseen.reshape(-1)
         mask = empty.reshape(-1)
         near, deep = distance(mask), None if depth is None else depth(mask)
-        raised = proximity(flat[mask], near, deep)
+        gp_unseen = flat[mask]
+        raised = proximity(gp_unseen, near, deep)
         if deep is not None and occupied_above is not None:
             # Of the cells the prior leaves over the threshold, those the fitted gain alone does not lift over it.
             over = np.flatnonzero(with_surprises(raised, surprise_rate) > occupied_above)
-            fitted = with_surprises(proximity(flat[mask][over], near[over]), surprise_rate)
+            fitted = with_surprises(proximity(gp_unseen[over], near[over]), surprise_rate)
             capped = np.flatnonzero(mask)[over[fitted <= occupied_above]]
         flat[mask] = raised
     out = np.where(empty, with_surprises(p_unseen, surprise_rate), p)
