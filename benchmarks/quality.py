@@ -1,30 +1,31 @@
-"""Map quality on every shared log: MSK-GPOM as ``gpomap map`` builds it against the standard grids.
+"""Map quality on every shared log and simulated world: gpomap as ``gpomap map`` builds it against the standard grids.
 
 For each log and each of the protocol's two splits (``blocks``: blocks of 40 consecutive scans,
 every 5th held out; ``every``: every 10th scan held out), every method is fitted on the training
-scans only and scored on the same balanced test points from the held-out scans
-(:mod:`gpomap.evaluation`): its exact-point predictions and its written map (``grid(0.05)`` then
-a cell lookup; a grid's written map is itself). Methods:
+scans only and scored on the same test points from the held-out scans, at their natural
+frequencies (:mod:`gpomap.evaluation`: every held-out hit and free points every 0.1 m along the
+held-out beams, uniformly subsampled: a few per cent are hits): its exact-point predictions and
+its written map (``grid(0.05)`` then a cell lookup; a grid's written map is itself). Where the
+log comes with its true plan (the Stage arena, the simulated worlds of ``sim-worlds/``, the
+synthetic room), the written maps are also scored against it, pixel by pixel where the log
+looked (:mod:`gpomap.truth`). Methods:
 
-- ``msk``: MSK-GPOM with the library's defaults, built exactly as ``gpomap map`` builds it (local
+- ``msk``: gpomap with the library's defaults, built exactly as ``gpomap map`` builds it (local
   GPs in tiles of 5 m, on every core: :func:`gpomap.evaluation.make_model`);
 - ``ogm-logodds-0.05``, ``ogm-logodds-0.1``: OctoMap's log-odds grid at 0.05 and 0.1 m;
 - ``ogm-counting-0.05``: the counting grid at 0.05 m.
 
-Logs: Intel, FR079 (every 3rd of its 4,791 scans: the whole log at full rate is 5x the others'
-size), CSAIL, Belgioioso, the Stage arena bag (also scored against its true floor plan) and a
-simulated tour of the synthetic room of :mod:`gpomap.simulate` (also scored against its true
-geometry). Each method runs in a forked child process (:func:`gpomap.comparison.run_apart`) so
-its peak memory is its own (reported as the child's peak RSS, which starts from the parent's,
-and the tile workers' peak).
+Logs: Intel, FR079 (every 3rd of its 4,791 scans), CSAIL, Belgioioso, the Stage arena bag, the
+simulated cave and hospital section, and a simulated tour of the synthetic room of
+:mod:`gpomap.simulate`. Each method runs in a forked child process
+(:func:`gpomap.comparison.run_apart`) so its peak memory is its own.
 
 Run from the repository root::
 
-    .venv/bin/python benchmarks/quality.py                    # everything (hours on 2 cores)
+    .venv/bin/python benchmarks/quality.py                    # everything (an hour or two on 2 cores)
     .venv/bin/python benchmarks/quality.py --quick            # a smoke run: a few scans per log
-    .venv/bin/python benchmarks/quality.py --logs intel,room --splits every --json out.json
+    .venv/bin/python benchmarks/quality.py --logs intel,cave --splits every --json out.json
     .venv/bin/python benchmarks/quality.py --log-file robot.log.gz --log-file lab.bag   # your own logs
-    .venv/bin/python benchmarks/quality.py --fit-surprise-rate   # gpomap as gpomap map --fit-surprise-rate makes it
 
 ``--log-file`` scores any log or bag :func:`gpomap.io.read_scans` reads (a CARMEN log, a ROS bag
 with one laser topic) the same way, named by its file; given alone, only those logs are run.
@@ -49,7 +50,8 @@ from typing import Any
 import numpy as np
 
 from gpomap.comparison import GPOMAP, METHODS, TARGET_NAMES, format_value, run_apart, score_curves, table, tally, targets
-from gpomap.evaluation import Truth, prepare, resolve_split
+from gpomap.evaluation import prepare, resolve_split
+from gpomap.truth import PlanTruth
 
 DATA = Path("..") / "shared" / "data"
 LOGS: dict[str, dict[str, Any]] = {
@@ -58,65 +60,65 @@ LOGS: dict[str, dict[str, Any]] = {
     "csail": {"path": DATA / "csail-robotlaser1" / "csail.log.gz", "title": "MIT CSAIL"},
     "belgioioso": {"path": DATA / "belgioioso" / "belgioioso-corrected.log.gz", "title": "Belgioioso castle"},
     "stage-arena": {"path": DATA / "stage-arena" / "robot1.bag", "title": "Stage arena (true plan)"},
+    "cave": {"path": DATA / "sim-worlds" / "cave" / "cave.log.gz", "title": "simulated cave (true plan)"},
+    "hospital_section": {
+        "path": DATA / "sim-worlds" / "hospital_section" / "hospital_section.log.gz",
+        "title": "simulated hospital section (true plan)",
+    },
     "room": {"path": None, "title": "synthetic room, 400 scans x 180 beams, 2 cm noise (true geometry)"},
 }
 SPLIT_NAMES = ("blocks", "every")
-#: Test points per log and split (a seeded, balanced subsample; the same for every method).
-MAX_TEST_POINTS = 20000
+#: Test points per log and split (a seeded uniform subsample at natural frequencies; the same for every method).
+MAX_TEST_POINTS = 40000
 GRID_RESOLUTION = 0.05
-#: The room's truth grid (20 x 16 m, 128,000 cells), at the written maps' 0.05 m as the arena's: a
-#: coarser truth is looked up at its cell centres, the corners of four written cells, of which
-#: the wall may hold one.
-ROOM_TRUTH_RESOLUTION = GRID_RESOLUTION
+#: The synthetic room's walls drawn one pixel thick at this pixel size (m), as the other plans' are.
+ROOM_PLAN_PIXEL = 0.01
 QUICK = {"scan_range": "0:120", "n_scans": 30, "n_beams": 90, "max_test_points": 2000, "grid_resolution": 0.2}
 
 
 # ------------------------------------------------------------------------------ data
-def _stage_truth(resolution: float) -> Truth:
-    from PIL import Image
-
-    img = np.asarray(Image.open(DATA / "stage-arena" / "mrl_arena.pgm"))
-    # The data README: Stage stretches the 406 x 460 bitmap to 4.06 m x 4.55 m centred at (1, 1).
-    return Truth.from_plan(img < 128, (-1.03, -1.275), (0.0100, 0.009891), resolution)
-
-
-def _room(seed: int = 0) -> tuple[list, Truth]:
+def _room(seed: int = 0) -> list[Any]:
+    """The synthetic room's simulated tour: 400 poses along the paper's 31-pose tour (evenly by
+    arc length), heading along the path."""
     from gpomap.simulate import paper_room, simulate_scans
 
     world, poses = paper_room()
-    # 400 poses along the paper's 31-pose tour (evenly by arc length), heading along the path.
     xy = poses[:, :2]
     arc = np.r_[0.0, np.cumsum(np.hypot(*np.diff(xy, axis=0).T))]
     s = np.linspace(0.0, arc[-1], 400)
     dense = np.column_stack([np.interp(s, arc, xy[:, 0]), np.interp(s, arc, xy[:, 1])])
     step = np.gradient(dense, axis=0)
     dense = np.column_stack([dense, np.arctan2(step[:, 1], step[:, 0])])
-    scans = simulate_scans(world, dense, 180, noise_std=0.02, seed=seed)
-    return scans, Truth.from_world(world, ROOM_TRUTH_RESOLUTION)
+    return simulate_scans(world, dense, 180, noise_std=0.02, seed=seed)
 
 
-def load(name: str, quick: bool) -> tuple[list, Truth | None]:
-    """The scans of a log and its true map (None for real logs)."""
+def load(name: str) -> tuple[list[Any], PlanTruth | None]:
+    """The scans of a log and its true plan (None for real logs)."""
     spec = LOGS[name]
     if name == "room":
-        scans, truth = _room()
-        return scans, (_room_truth_quick() if quick else truth)
+        from gpomap.simulate import paper_room
+
+        return _room(), PlanTruth.from_world(paper_room()[0], ROOM_PLAN_PIXEL)
     if name == "stage-arena":
+        from PIL import Image
+
         from gpomap.io.rosbag import STAGE_TIME_OFFSET, read_rosbag
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the last scan has no later pose and is dropped, with a warning
             scans = read_rosbag(spec["path"], time_offset=STAGE_TIME_OFFSET)
-        return scans, _stage_truth(QUICK["grid_resolution"] if quick else GRID_RESOLUTION)
+        img = np.asarray(Image.open(DATA / "stage-arena" / "mrl_arena.pgm"))
+        # The data README: Stage stretches the 406 x 460 bitmap to 4.06 m x 4.55 m centred at (1, 1).
+        return scans, PlanTruth(img < 128, (-1.03, -1.275), (0.0100, 0.009891))
     from gpomap.io import read_scans
 
-    return read_scans(spec["path"]), None
-
-
-def _room_truth_quick() -> Truth:
-    from gpomap.simulate import paper_room
-
-    return Truth.from_world(paper_room()[0], QUICK["grid_resolution"])
+    scans = read_scans(spec["path"])
+    folder = Path(spec["path"]).parent
+    if folder.parent.name == "sim-worlds":
+        # The worlds' README: square pixels of `resolution`, lower-left corner at `origin`, 0 = occupied.
+        meta = json.loads((folder / f"{name}.json").read_text())
+        return scans, PlanTruth.from_image(folder / f"{name}.truth.png", meta["resolution"], meta["origin"])
+    return scans, None
 
 
 # ------------------------------------------------------------------------------ tables
@@ -126,69 +128,53 @@ def _title(log: str) -> str:
 
 
 def summary_table(results: list[dict[str, Any]]) -> list[str]:
-    """One line per log and split: MSK-GPOM's written map against the best grid for each metric.
+    """One line per log and split: gpomap's written map against the best grid for each metric.
 
-    "Best grid" is the best of the grid methods for that metric (higher AUC, lower log loss and
-    ECE, fewer path cells called occupied); CPU is MSK-GPOM's fit plus its written map against the
-    log-odds grid at 0.05 m.
+    "Best grid" is the best of the grid methods for that metric (higher AUC, lower log loss, Brier
+    and ECE; against the true plan the same, higher IoU); CPU is gpomap's fit plus its written map
+    against the log-odds grid at 0.05 m.
     """
+    held = (("auc", True), ("boundary_auc", True), ("log_loss", False), ("brier", False), ("ece", False))
+    plan = (("auc", True), ("boundary_auc", True), ("log_loss", False), ("iou", True), ("ternary_iou", True))
     head = [
         "log, split",
-        "AUC gpomap / best grid",
-        "boundary AUC",
-        "AUC where the grid saw",
-        "log loss gpomap / best grid",
-        "ECE gpomap / best grid",
-        "truth AUC; IoU; IoU where seen (gpomap / best grid)",
-        "path cells occupied (gpomap / best grid, of all)",
+        "held out: AUC / boundary AUC / log loss / Brier / ECE (gpomap | best grid)",
+        "true plan: AUC / boundary AUC / log loss / IoU p>0.5 / IoU ternary (gpomap | best grid)",
+        "path cells occupied",
         "fit + map CPU s, gpomap / log-odds 0.05",
     ]
     out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    keys = list(dict.fromkeys((r["log"], r["split"]) for r in results))
-    for log, split in keys:
+    for log, split in dict.fromkeys((r["log"], r["split"]) for r in results):
         rows = {r["name"]: r for r in results if (r["log"], r["split"]) == (log, split)}
         if GPOMAP not in rows:
             continue
         msk = rows[GPOMAP]
         grids = [r for n, r in rows.items() if n != GPOMAP]
 
-        def pair(key: str, higher: bool, msk: dict[str, Any] = msk, grids: list[dict[str, Any]] = grids) -> str:
-            vals = [g["points"][key] for g in grids if g["points"].get(key) is not None]
-            best = (max(vals) if higher else min(vals)) if vals else None
-            return f"{format_value(msk['grid'][key])} / {format_value(best)}"
+        def pair(
+            where: str, metrics: tuple[tuple[str, bool], ...], msk: dict[str, Any] = msk, grids: list[dict[str, Any]] = grids
+        ) -> str:
+            if not msk.get(where):
+                return "-"
+            mine, best = [], []
+            for key, higher in metrics:
+                vals = [g[where][key] for g in grids if g.get(where) and g[where].get(key) is not None]
+                mine.append(format_value(msk[where].get(key)))
+                best.append(format_value((max(vals) if higher else min(vals)) if vals else None))
+            return f"{' / '.join(mine)} \\| {' / '.join(best)}"
 
-        truth = ""
-        if msk.get("truth"):
-            t_best_auc = max(g["truth"]["points"]["auc"] for g in grids) if grids else None
-            t_best_iou = max(g["truth"]["points"]["iou"] for g in grids) if grids else None
-            t_best_seen = max(g["truth"]["points"]["observed_iou"] for g in grids) if grids else None
-            t = msk["truth"]["grid"]
-            truth = (
-                f"{format_value(t['auc'])} / {format_value(t_best_auc)}; {format_value(t['iou'])} / {format_value(t_best_iou)}; "
-                f"{format_value(t['observed_iou'])} / {format_value(t_best_seen)}"
-            )
         path = msk["path"]["grid"]
-        best_path = min((g["path"]["points"]["n_occupied"] for g in grids), default=None)
         lo = rows.get("ogm-logodds-0.05")
         cpu = f"{msk['cpu_seconds']['fit'] + msk['cpu_seconds'].get('grid', 0):.0f}"
         cpu += f" / {lo['cpu_seconds']['fit']:.0f}" if lo else ""
-        out.append(
-            "| "
-            + " | ".join(
-                [
-                    f"{_title(log)}: {resolve_split(split)}",
-                    pair("auc", True),
-                    pair("boundary_auc", True),
-                    pair("observed_auc", True),
-                    pair("log_loss", False),
-                    pair("ece", False),
-                    truth,
-                    f"{path['n_occupied']} / {best_path} of {path['n_cells']}",
-                    cpu,
-                ]
-            )
-            + " |"
-        )
+        line = [
+            f"{_title(log)}: {resolve_split(split)}",
+            pair("grid", held),
+            pair("plan", plan),
+            f"{path['n_occupied']} of {path['n_cells']}",
+            cpu,
+        ]
+        out.append("| " + " | ".join(line) + " |")
     return out
 
 
@@ -309,10 +295,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(
         f"Written grids at {grid_res} m; at most {QUICK['max_test_points'] if args.quick else args.max_test_points} "
-        "balanced test points per log and split; far p = predictions on lattice points > 5 m from any training beam; "
-        "path occ = cells (0.05 m) of the robot's own path (training and held-out poses) the map's ternary map calls "
-        "occupied (gpomap: above its fitted threshold, never a cell beams saw through; the grids: p > 0.66), of all "
-        "path cells; truth IoU of the same occupied class.",
+        "test points per log and split, at their natural frequencies; far p = predictions on lattice points > 5 m from "
+        "any training beam; path occ = cells (0.05 m) of the robot's own path (training and held-out poses) the map's "
+        "ternary map calls occupied (gpomap: p > 0.5, never a cell beams saw through; the grids: p > 0.66), of all "
+        "path cells. Against a true plan: every plan pixel the whole log observed (gpomap.truth), the written map "
+        "fitted on the training scans; the grids' ternary map as map_server reads it (occupied above 0.65).",
         flush=True,
     )
     results: list[dict[str, Any]] = []
@@ -322,13 +309,13 @@ def main(argv: list[str] | None = None) -> int:
             print(f"\nskipping {log}: {spec['path']} not found", flush=True)
             continue
         t = time.perf_counter()
-        scans, truth = load(log, args.quick)
+        scans, plan = load(log)
         read_s = time.perf_counter() - t
         for split in splits:
             kw: dict[str, Any] = {
                 "scan_step": spec.get("scan_step", 1),
                 "seed": args.seed,
-                "truth": truth,
+                "plan": plan,
                 "max_test_points": args.max_test_points,
             }
             if args.quick:
@@ -358,7 +345,7 @@ def main(argv: list[str] | None = None) -> int:
                     else "\n"
                 )
             )
-            print("\n".join(table(rows, truth is not None)), flush=True)
+            print("\n".join(table(rows, plan is not None)), flush=True)
         if args.figures:
             args.figures.mkdir(parents=True, exist_ok=True)
             reliability_figure(results, log, args.figures / f"reliability-{log}.png")

@@ -38,9 +38,9 @@ def _cpu() -> float:
 
 def run(log: str, split: str) -> list[dict[str, Any]]:
     """Every variant on one log and split."""
-    scans, truth = quality.load(log, False)
+    scans, plan = quality.load(log)
     step = quality.LOGS[log].get("scan_step", 1)
-    data = prepare(scans, split, scan_step=step, max_test_points=quality.MAX_TEST_POINTS, truth=truth)
+    data = prepare(scans, split, scan_step=step, max_test_points=quality.MAX_TEST_POINTS, plan=plan)
     make_model("msk", n_workers=1).fit(data.train[:50])  # numba's compiled code loaded
     rows = []
     for label, n_workers, processes in VARIANTS:

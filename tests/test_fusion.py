@@ -360,20 +360,20 @@ def test_the_prior_behind_surfaces_leaves_the_occupied_class_as_it_was(half_room
 
 
 def test_the_prior_behind_surfaces_stops_at_the_users_occupied_threshold_too() -> None:
-    # Thresholds given below the fitted occupied one: the prior stops at the user's, so the
+    # Thresholds given below the calibrated occupied one: the prior stops at the user's, so the
     # occupied class of the map the user asked for is the same with and without it.
     scans = paper_room_scans()[::2]
-    model = AreaGPOM(kernel="se", length_scale=0.4, optimise=False, thresholds=(0.2, 0.55)).fit(scans)
+    model = AreaGPOM(kernel="se", length_scale=0.4, optimise=False, thresholds=(0.2, 0.4)).fit(scans)
     ev = model.evidence_
-    assert ev.thresholds == (0.2, 0.55) and model.thresholds_ == (0.2, 0.55)
-    assert ev.report["occupied_threshold"] > 0.6 and ev.occupied_cap() == pytest.approx(0.55, abs=1e-8)
+    assert ev.thresholds == (0.2, 0.4) and model.thresholds_ == (0.2, 0.4)
+    assert ev.revisit.identity and ev.occupied_cap() == pytest.approx(0.4, abs=1e-8)
     with_prior = model.grid(0.05)
     kept, ev.proximity = ev.proximity, replace(ev.proximity, behind_shift=0.0)
     try:
         without = model.grid(0.05)
     finally:
         ev.proximity = kept
-    stopped = (with_prior.probability == ev.occupied_cap()) & (without.probability < 0.55)
+    stopped = (with_prior.probability == ev.occupied_cap()) & (without.probability < 0.4)
     assert stopped.sum() > 20  # cells the prior alone would have made occupied
     np.testing.assert_array_equal(with_prior.ternary == 1, without.ternary == 1)
 
@@ -421,7 +421,7 @@ def half_room() -> tuple[AreaGPOM, list[Scan]]:
     return AreaGPOM(kernel="se", length_scale=0.4, optimise=False).fit(scans[::2]), scans[1::2]
 
 
-def test_fused_map_is_sharper_than_the_gp_and_half_far_away(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
+def test_fused_map_scores_better_than_the_gp_and_half_far_away(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
     model, test = half_room
     pts, occ = [], []
     for s in test:
@@ -429,11 +429,13 @@ def test_fused_map_is_sharper_than_the_gp_and_half_far_away(half_room: tuple[Are
         pts.append(p)
         occ.append(o)
     P, Y = np.concatenate(pts), np.concatenate(occ)
-    from gpomap.metrics import roc_auc
+    from gpomap.metrics import log_loss, roc_auc
 
-    fused = roc_auc(Y, model.predict_proba(P))
-    gp = roc_auc(Y, model.predict_proba_gp(P))
-    assert fused > gp
+    # Held-out points at their own frequencies: the counts halve the GP's log loss (0.08 against
+    # 0.16 when written) and rank about as well (a perfect simulation leaves the GP little to miss).
+    fused, gp = model.predict_proba(P), model.predict_proba_gp(P)
+    assert log_loss(Y, fused) < 0.7 * log_loss(Y, gp)
+    assert roc_auc(Y, fused) > roc_auc(Y, gp) - 0.005
     # Far from every observation: no counts, zero latent mean, p = 0.5.
     assert model.predict_proba(np.array([[1e4, 1e4]]))[0] == pytest.approx(0.5, abs=1e-9)
 
@@ -645,12 +647,8 @@ def test_calibration_predicts_only_counted_points_and_matches_the_whole_sample_f
     counted = (H + M) > 0
     assert 0 < counted.sum() < counted.size and 0 < N.sum() < M.sum()
     assert (0 < S.sum() < (M - N).sum()) == (scene is _room_scene)
-    # Balance the classes as the fit does (its seed, its draw order) to get the sample's points.
-    rng = np.random.default_rng(0)
-    i_occ, i_free = np.flatnonzero(O), np.flatnonzero(~O)
-    size = min(i_occ.size, i_free.size)
-    keep = np.concatenate([rng.choice(i_occ, size, replace=False), rng.choice(i_free, size, replace=False)])
-    P, O, H, M, N, S, counted = P[keep], O[keep], H[keep], M[keep], N[keep], S[keep], counted[keep]
+    # The fit takes every point at its own frequency (these scenes hold fewer than the cap).
+    assert O.size <= fusion.CALIBRATION_POINTS and report["n_points"] == O.size
     g = _p_gp(P)
 
     def loss(theta: np.ndarray) -> float:
@@ -890,15 +888,16 @@ def test_a_near_miss_counts_as_a_hit_only_where_surfaces_fall_in_such_cells(monk
     smeared, loss_smeared = fit(_wall_scans(0.12))
     steady, _ = fit(_wall_scans(0.0))
     floor = float(np.exp(CALIBRATION_BOUNDS[3][0]))
-    assert smeared.near_hit_weight > 100 * floor
-    assert steady.near_hit_weight < 10 * floor
+    # As a share of a hit: a tenth or more on the smeared wall, nothing on the steady one.
+    assert smeared.near_hit_weight > 0.1 * smeared.hit_weight and smeared.near_hit_weight > 10 * floor
+    assert steady.near_hit_weight < 10 * floor and steady.near_hit_weight < 1e-4 * steady.hit_weight
     # On the smeared wall the fourth weight is what lowers the held-out loss: the best fit with a
     # near miss worth no hit (its bounds pinned to the floor) is worse.
     low = CALIBRATION_BOUNDS[3][0]
     monkeypatch.setattr(gpomap.fusion, "CALIBRATION_BOUNDS", (*CALIBRATION_BOUNDS[:3], (low, low), *CALIBRATION_BOUNDS[4:]))
     pinned, loss_pinned = fit(_wall_scans(0.12))
     assert pinned.near_hit_weight == pytest.approx(floor)
-    assert loss_smeared < loss_pinned - 0.01
+    assert loss_smeared < loss_pinned - 5e-4
 
 
 @pytest.mark.parametrize("x0", [-0.5, -0.513], ids=["on the counted lattice", "off it"])
@@ -1010,67 +1009,24 @@ def test_a_map_built_in_bands_reports_its_bands_not_each_bands_tiles(
     assert "predicting tiles" in one_piece and "building the map" not in one_piece
 
 
-def _jaccard(p, y, w, t):
-    tp = np.sum(y & (p > t))
-    fp = w * np.sum(~y & (p > t))
-    fn = np.sum(y & (p <= t))
-    return tp / (tp + fp + fn)
-
-
-def test_occupied_threshold_by_hand():
-    from gpomap.fusion import occupied_threshold
-
-    # Hits at 0.99, 0.9, 0.7; free points at 0.95 and 0.8, each worth 3 (the log's ratio).
-    # Above 0.66: 3 / (3 + 6) = 1/3; above 0.7: 2 / (3 + 6) = 2/9; above 0.8: 2 / (3 + 3) = 1/3;
-    # above 0.9: 1 / (3 + 3) = 1/6; above 0.95: 1 / 3. Ties keep the lowest threshold: 0.66.
-    p = np.array([0.99, 0.9, 0.7, 0.95, 0.8])
-    y = np.array([True, True, True, False, False])
-    t, iou = occupied_threshold(p, y, free_weight=3.0)
-    assert t == 0.66 and iou == pytest.approx(1 / 3)
-    # With free points worth 4: 3/11, 2/11, 2/7, 1/7, 1/3 -> above 0.95.
-    t, iou = occupied_threshold(p, y, free_weight=4.0)
-    assert t == 0.95 and iou == pytest.approx(1 / 3)
-    assert occupied_threshold(p, np.zeros(5, bool)) == (0.66, 0.0)
-
-
-def test_occupied_threshold_is_the_brute_force_best():
-    from gpomap.fusion import occupied_threshold
-
-    rng = np.random.default_rng(3)
-    y = rng.random(400) < 0.5
-    p = np.clip(np.where(y, rng.beta(5, 2, 400), rng.beta(2, 4, 400)), 0, 1).round(3)  # ties included
-    for w in (0.5, 1.0, 7.0, 40.0):
-        t, iou = occupied_threshold(p, y, free_weight=w)
-        grid = np.r_[0.66, np.unique(p[p > 0.66])]
-        best = max(_jaccard(p, y, w, g) for g in grid)
-        assert iou == pytest.approx(best) and _jaccard(p, y, w, t) == pytest.approx(best)
-        assert t >= 0.66
-    # Points in cells other scans saw through are never called occupied: as if their p were 0.
-    seen = rng.random(400) < 0.3
-    for w in (1.0, 7.0):
-        t, iou = occupied_threshold(p, y, free_weight=w, seen_through=seen)
-        q = np.where(seen, 0.0, p)
-        grid = np.r_[0.66, np.unique(q[q > 0.66])]
-        best = max(_jaccard(q, y, w, g) for g in grid)
-        assert iou == pytest.approx(best) and _jaccard(q, y, w, t) == pytest.approx(best)
-
-
-def test_the_map_fits_its_ternary_occupied_threshold():
-    from gpomap.grid import DEFAULT_THRESHOLDS, ternary
+def test_a_calibrated_map_calls_occupied_what_is_more_likely_occupied_than_not():
+    from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS, ternary
     from gpomap.mapping import AreaGPOM
     from gpomap.simulate import paper_room_scans
 
     scans = paper_room_scans(n_beams=36, noise_std=0.02)
     model = AreaGPOM().fit(scans)
-    fitted = model.evidence_.report["occupied_threshold"]
-    assert DEFAULT_THRESHOLDS[1] <= fitted < 1.0 and 0.0 < model.evidence_.report["occupied_iou"] <= 1.0
-    assert model.thresholds_ == (DEFAULT_THRESHOLDS[0], fitted)
+    fitted = CALIBRATED_THRESHOLDS[1]
+    assert model.thresholds_ == CALIBRATED_THRESHOLDS == (0.196, 0.5)
     assert model.grid(0.5).thresholds == model.thresholds_
     q = np.array([[1.0, 1.0], [5.0, 5.0], [8.0, 2.0]])
-    np.testing.assert_array_equal(model.predict_ternary(q), ternary(model.predict_proba(q), (DEFAULT_THRESHOLDS[0], fitted)))
+    np.testing.assert_array_equal(model.predict_ternary(q), ternary(model.predict_proba(q), CALIBRATED_THRESHOLDS))
     # Cells beams crossed and none ended in are never occupied: unknown where the map's p is above
     # the threshold (cells in front of the walls, beside their hits). By hand from the counts of a
-    # grid off the counted lattice (the room's walls lie on cell borders of the lattice itself).
+    # grid off the counted lattice (the room's walls lie on cell borders of the lattice itself),
+    # with a low occupied threshold a user may give, which some such cells pass.
+    model = AreaGPOM(thresholds=(0.1, 0.2)).fit(scans)
+    fitted = 0.2
     m = model.grid(0.05, extent=(-0.487, 10.513, -0.479, 8.521))
     hits, misses, _ = model.evidence_.evidence.counts(m.grid)
     path = model.evidence_.evidence.path_passes(m.grid)
@@ -1087,7 +1043,7 @@ def test_the_map_fits_its_ternary_occupied_threshold():
     assert on.seen_through is not None and seen_at is not None
     np.testing.assert_array_equal(seen_at, on.seen_through.ravel())
     np.testing.assert_array_equal(model.predict_ternary(centres) == 1, (model.predict_proba(centres) > fitted) & ~seen_at)
-    # Given thresholds are kept; without ray evidence there is nothing to fit them on.
+    # Given thresholds are kept; without ray evidence the GP alone is not calibrated: the paper's.
     assert AreaGPOM(thresholds=(0.2, 0.7)).fit(scans).thresholds_ == (0.2, 0.7)
     assert AreaGPOM(ray_evidence=False).fit(scans).thresholds_ == DEFAULT_THRESHOLDS
 
@@ -1140,8 +1096,8 @@ def test_calibration_fits_the_surprise_rate_against_a_gp_that_never_saw_the_held
     fitted, report, _ = fit_calibration(scans, ev, grid, _p_gp, n_scans=3, step=0.1, gp_apart=gp_apart)
     held = [0, 2, 5]  # calibration_scans(6, 3)
     assert len(given) == 1 and [id(s) for s in given[0]] == [id(scans[k]) for k in (1, 3, 4)]
-    # Truth: the held-out scans' points, each with the other scans' counts taken directly, the
-    # same balanced sample; counted points at the fitted weights' posterior mean over the GP apart,
+    # Truth: the held-out scans' points, each with the other scans' counts taken directly, all
+    # of them; counted points at the fitted weights' posterior mean over the GP apart,
     # the others at the GP apart alone; the rate maximising their likelihood.
     pts, occ, h, m, n = [], [], [], [], []
     for k in held:
@@ -1153,11 +1109,7 @@ def test_calibration_fits_the_surprise_rate_against_a_gp_that_never_saw_the_held
         for dest, a in zip((h, m, n), (hits, misses, near)):
             dest.append(np.where(inside, a.reshape(-1)[cell], 0))
     P, O, H, M, N = (np.concatenate(a) for a in (pts, occ, h, m, n))
-    rng = np.random.default_rng(0)
-    i_occ, i_free = np.flatnonzero(O), np.flatnonzero(~O)
-    size = min(i_occ.size, i_free.size)
-    keep = np.concatenate([rng.choice(i_occ, size, replace=False), rng.choice(i_free, size, replace=False)])
-    P, O, H, M, N = P[keep], O[keep], H[keep], M[keep], N[keep]
+    assert O.size <= fusion.CALIBRATION_POINTS  # every point, at its own frequency
     q = np.where(H + M > 0, fitted.posterior_mean(p_apart(P), fitted.hits(H, N), fitted.misses(M, N)), p_apart(P))
     assert fitted.surprise_rate == pytest.approx(fit_surprise_rate(q, O), rel=1e-9)
     assert report["surprise_rate"] == fitted.surprise_rate and fitted.surprise_rate >= SURPRISE_RATE

@@ -66,6 +66,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.convert",
             "gpomap.convert3d",
             "gpomap.evaluation",
+            "gpomap.truth",
             "gpomap.comparison",
             "gpomap.benchmark",
             "gpomap.apps",

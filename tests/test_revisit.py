@@ -8,6 +8,7 @@ import pytest
 from gpomap import revisit as rv
 from gpomap.extrapolation import holdout_stretches
 from gpomap.fusion import calibration_points
+from gpomap.grid import CALIBRATED_THRESHOLDS
 from gpomap.mapping import AreaGPOM
 from gpomap.simulate import paper_room, simulate_scans
 
@@ -115,14 +116,17 @@ def test_later_visit_points_are_a_held_out_stretch_predicted_by_a_map_of_the_res
 
     p, occupied, report = rv.later_visit_points(scans, fit_rest, seed=1)
     assert [id(s) for s in asked["scans"]] == [id(scans[i]) for i in kept]
-    # The held-out scans' protocol points, both classes equally, as many as the stretch allows.
+    # The held-out scans' points at their own frequencies: a uniform sample of the cap's size.
     parts = [calibration_points(scans[i], no_return_cap=10.0) for i in held]
     pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
-    n = min(occ.sum(), (~occ).sum(), rv.POINTS_PER_CLASS)
-    assert report["n_points"] == n and occupied.sum() == n and (~occupied).sum() == n
+    assert occ.size > rv.POINTS
+    assert report["n_points"] == rv.POINTS == occupied.size
+    # Hits keep their share, within a binomial draw's four standard deviations.
+    share = occ.mean()
+    assert abs(occupied.mean() - share) < 4 * np.sqrt(share * (1 - share) / rv.POINTS)
     label = {tuple(np.round(q, 9)): o for q, o in zip(pts, occ)}
     assert [label[tuple(np.round(q, 9))] for q in asked["points"]] == occupied.tolist()
-    np.testing.assert_array_equal(p, np.linspace(0.1, 0.9, 2 * n))
+    np.testing.assert_array_equal(p, np.linspace(0.1, 0.9, rv.POINTS))
 
 
 def test_short_logs_keep_the_identity():
@@ -151,11 +155,13 @@ def test_a_map_recalibrates_every_probability_it_gives_and_keeps_its_ternary_map
         plain_grid = model.grid(0.1)
     finally:
         ev.revisit = revisit
-    np.testing.assert_allclose(with_it, revisit(without), rtol=1e-12)
-    np.testing.assert_allclose(grid.probability, revisit(plain_grid.probability), rtol=1e-12)
-    assert thresholds == pytest.approx(tuple(float(revisit(t)) for t in plain_thresholds))
-    # The same cells free, unknown and occupied.
-    np.testing.assert_array_equal(grid.ternary, plain_grid.ternary)
+    # The prior behind surfaces stops a hair under the occupied threshold taken back through the
+    # recalibration in force: cells on that cap differ by the hair.
+    np.testing.assert_allclose(with_it, revisit(without), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(grid.probability, revisit(plain_grid.probability), rtol=1e-12, atol=1e-9)
+    # The ternary thresholds hold on the probabilities the map gives, whatever recalibrated them.
+    assert thresholds == plain_thresholds == CALIBRATED_THRESHOLDS
+    np.testing.assert_array_equal(grid.ternary == 1, (grid.probability > thresholds[1]) & ~grid.seen_through)
     assert (grid.ternary == 1).any() and (grid.ternary == 0).any()
 
 

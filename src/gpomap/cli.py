@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar
 
 from gpomap import __version__
-from gpomap.config import DEFAULT_MAX_CELLS, DEFAULT_THRESHOLDS, MapConfig, TilingConfig
+from gpomap.config import CALIBRATED_THRESHOLDS, DEFAULT_MAX_CELLS, MapConfig, TilingConfig
 from gpomap.errors import GpomapError
 
 if TYPE_CHECKING:
@@ -415,10 +415,10 @@ def _add_output_options(p: argparse.ArgumentParser, default_resolution: Any) -> 
     g.add_argument(
         "--thresholds",
         type=_pair,
-        default=_Default(MapConfig.thresholds, show=lambda _: f"{DEFAULT_THRESHOLDS[0]:g},fitted"),
+        default=_Default(MapConfig.thresholds, show=lambda _: f"{CALIBRATED_THRESHOLDS[0]:g},{CALIBRATED_THRESHOLDS[1]:g}"),
         metavar="FREE,OCCUPIED",
-        help="ternary-map thresholds (default: %(default)s: free below 0.33, occupied above a "
-        "threshold fitted on the log's own scans, at least 0.66; 3-D maps 0.33,0.66)",
+        help="ternary-map thresholds on the map's calibrated probabilities (default: %(default)s: occupied where "
+        "more likely than not, free below map_server's free threshold)",
     )
     g.add_argument(
         "--pgm-mode",
@@ -659,7 +659,7 @@ def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: s
     if "slope" in later:
         lines.append(
             f"later visit  log-odds times {later['slope']:.3g}, {later['shift']:+.3g} away from 1/2 (fitted on a held-out "
-            f"stretch, {later['n_points']} points a class)"
+            f"stretch, {later['n_points']} points)"
         )
     lines += [
         "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
@@ -756,6 +756,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from gpomap.comparison import score_curves
     from gpomap.evaluation import Truth, evaluate, resolve_split
+    from gpomap.truth import PlanTruth
 
     if args.demo == (args.input is not None):
         raise GpomapError("give either INPUT or --demo")
@@ -764,24 +765,26 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.figure is not None:
         _check_figure_path(args.figure)
     arguments = _evaluate_arguments(args)  # refuses an option --method does not take, before any reading
-    truth = None
+    truth = plan = None
     if args.demo:
         from gpomap.simulate import paper_room, paper_room_scans
 
         scans, source = paper_room_scans(), "demo: the paper's synthetic room"
         truth = Truth.from_world(paper_room()[0], args.grid_resolution)
+        plan = PlanTruth.from_world(paper_room()[0])
     else:
         from gpomap.io import read_scans
 
         # The true map first: it is small, and a bad one should not wait for the log.
-        truth = _read_truth(args) if args.truth is not None else None
+        if args.truth is not None:
+            truth, plan = _read_truth(args)
         scans, source = read_scans(args.input, **_reader_options(args, args.input)), args.input
         if truth is not None:
             _check_truth_frame(args, truth, scans)
     if args.compare:
-        return _compare(args, scans, truth, arguments, source)
+        return _compare(args, scans, truth, plan, arguments, source)
     _status(args, f"evaluating {args.method} on {source} ({len(scans)} scans)...")
-    result = evaluate(scans, truth=truth, return_roc=args.figure is not None, **arguments)
+    result = evaluate(scans, truth=truth, plan=plan, return_roc=args.figure is not None, **arguments)
     result["settings"]["input"] = source
     if args.figure is not None:
         _evaluation_figure(args.figure, [(resolve_split(args.split), score_curves([result]))], source)
@@ -843,12 +846,15 @@ def _splits(text: str) -> list[str]:
     return specs
 
 
-def _read_truth(args: argparse.Namespace) -> Any:
-    """``--truth``: a ROS map_server map as the true map, on the written map's cells."""
+def _read_truth(args: argparse.Namespace) -> tuple[Any, Any]:
+    """``--truth``: a ROS map_server map as the true map, on the written map's cells and as a plan
+    (:class:`gpomap.truth.PlanTruth`, scored pixel by pixel where the log looked)."""
     from gpomap.evaluation import Truth
     from gpomap.io.rosmap import read_rosmap
+    from gpomap.truth import PlanTruth
 
-    truth = Truth.from_rosmap(read_rosmap(args.truth), args.grid_resolution)
+    rosmap = read_rosmap(args.truth)
+    truth = Truth.from_rosmap(rosmap, args.grid_resolution)
     assert truth.known is not None
     if not truth.occupied.any() or not (truth.known & ~truth.occupied).any():
         raise GpomapError(
@@ -856,7 +862,7 @@ def _read_truth(args: argparse.Namespace) -> Any:
             f"it has {int(truth.occupied.sum())} occupied and {int((truth.known & ~truth.occupied).sum())} free cells "
             f"at {args.grid_resolution:g} m"
         )
-    return truth
+    return truth, PlanTruth.from_rosmap(rosmap)
 
 
 #: Below this share of a log's hits near an occupied cell of its true map, the two are likely in
@@ -876,7 +882,9 @@ def _check_truth_frame(args: argparse.Namespace, truth: Any, scans: Sequence[Any
         _status(args, message)
 
 
-def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, arguments: dict[str, Any], source: str) -> int:
+def _compare(
+    args: argparse.Namespace, scans: Sequence[Any], truth: Any, plan: Any, arguments: dict[str, Any], source: str
+) -> int:
     """``gpomap evaluate --compare``: gpomap and the standard grids on each split, and the targets met."""
     from dataclasses import asdict
 
@@ -899,6 +907,7 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
             TEST_FREE_STEP,
             a["max_test_points"],
             truth,
+            plan,
         )
         results = compare(
             data,
@@ -944,7 +953,8 @@ def _compare(args: argparse.Namespace, scans: Sequence[Any], truth: Any, argumen
         print(f"\n## {split}\n")
         print(f"data          {source}: {len(data.train)} training scans, {len(data.test)} held-out scans")
         print(
-            f"test points   {data.labels.size} (balanced): {int(masks['boundary'].sum())} within 0.5 m of a held-out hit, "
+            f"test points   {data.labels.size} ({int(data.labels.sum())} hits, natural frequencies): "
+            f"{int(masks['boundary'].sum())} within 0.5 m of a held-out hit, "
             f"{int(masks['observed'].sum())} in cells a training beam crossed, {int(masks['unobserved'].sum())} not\n"
         )
         print("\n".join(table(results, truth is not None)))
@@ -1070,7 +1080,7 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
     print(f"data          {source}: {result['n_train_scans']} training scans, {result['n_test_scans']} held-out scans ({split})")
     print(f"inputs        {result['n_inputs']}" + (f" in {st['tiles']} tiles" if st.get("tiles") else ""))
     print(
-        f"test points   {result['n_test_points']} (balanced): {pts['n_boundary']} within 0.5 m of a held-out hit, "
+        f"test points   {result['n_test_points']} (natural frequencies): {pts['n_boundary']} within 0.5 m of a held-out hit, "
         f"{pts['n_observed']} in observed cells, {pts['n_unobserved']} not"
     )
 
@@ -1111,6 +1121,13 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
                 f"truth ({k:<6})  AUC {fmt(t['auc'])}, occupied IoU {fmt(t['iou'])} on {t['n_cells']} cells; "
                 f"observed cells AUC {fmt(t['observed_auc'])}, IoU {fmt(t['observed_iou'])}"
             )
+    if result.get("plan"):
+        t = result["plan"]
+        print(
+            f"true plan       written map on {t['n_points']} plan pixels the log observed: AUC {fmt(t['auc'])}, "
+            f"boundary AUC {fmt(t['boundary_auc'])}, log loss {fmt(t['log_loss'])}, Brier {fmt(t['brier'])}, "
+            f"ECE {fmt(t['ece'])}, occupied IoU {fmt(t['iou'])} (p > 0.5), {fmt(t['ternary_iou'])} (ternary)"
+        )
     print("seconds       " + ", ".join(f"{k} {v:.3f}" for k, v in result["seconds"].items()))
     print("cpu seconds   " + ", ".join(f"{k} {v:.3f}" for k, v in result["cpu_seconds"].items()))
     print("peak memory   " + _peak_memory(result["peak_rss_mb"]))
@@ -1357,7 +1374,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="K",
         help="use every K-th scan of the log (default: %(default)s)",
     )
-    p.add_argument("--test-points", type=_positive(int), metavar="N", help="at most N test points (balanced, seeded subsample)")
+    p.add_argument(
+        "--test-points",
+        type=_positive(int),
+        metavar="N",
+        help="at most N test points (a seeded uniform subsample: each class keeps its share)",
+    )
     p.add_argument("--workers", type=_positive(int), help="msk: workers for tiles (default: the CPU count)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     _add_reader_options(p)

@@ -25,13 +25,14 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any, Self
 
-from gpomap.grid import DEFAULT_THRESHOLDS
+from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS
 
 __all__ = [
     "MapConfig",
     "TilingConfig",
     "DEFAULT_MAX_CELLS",
     "DEFAULT_SCHEDULER_TIMEOUT",
+    "CALIBRATED_THRESHOLDS",
     "DEFAULT_THRESHOLDS",
     "VOXEL_MAP_DEFAULTS",
 ]

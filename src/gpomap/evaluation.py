@@ -12,8 +12,9 @@
 4. :func:`test_points`: every held-out hit (occupied) and free points every 0.1 m along each
    held-out beam up to 0.1 m short of its hit, with **no** clearance round hits (the GP methods
    drop free samples near walls when they train; the test does not, so a map that blurs walls
-   pays for it); no-return beams give free points to the 10 m cap. Classes are balanced by seeded
-   subsampling, and every method is scored on the same points.
+   pays for it); no-return beams give free points to the 10 m cap. A seeded uniform subsample
+   keeps each class at its natural frequency (a few per cent of the points are hits), and every
+   method is scored on the same points.
 5. :func:`run_method` fits a method and scores two predictions at those points: the exact-point
    one (``model.predict_proba(points)``) and the **written grid** (what ``gpomap map`` writes:
    ``model.grid(resolution)`` at the output resolution, 0.05 m by default, then a cell lookup of
@@ -21,7 +22,7 @@
    AUC, boundary AUC (test points within 0.5 m of a held-out hit: wall sharpness), AUC on the
    points in cells the reference grid observed (cells any training beam crossed, from the
    counting grid at 0.05 m) and on the rest, FPR at TPR 95 %, log loss (probabilities clipped at
-   1e-6), expected calibration error (10 equal-width bins) and the reliability diagram's bins.
+   1e-6), Brier score, expected calibration error (10 equal-width bins) and the reliability diagram's bins.
    Also what the map says far from all data (> 5 m from any cell a training beam crossed), how
    many cells of the robot's own path (training and held-out poses) it calls occupied, and,
    where a true map exists (:class:`Truth`), AUC and occupied-class IoU against it on its grid.
@@ -41,10 +42,20 @@ from numpy.typing import NDArray
 
 from gpomap.errors import EmptyDataError
 from gpomap.grid import DEFAULT_THRESHOLDS, OCCUPIED, GridSpec, OccupancyMap
-from gpomap.metrics import expected_calibration_error, fpr_at_tpr, iou, log_loss, reliability_bins, roc_auc, roc_curve
-from gpomap.observations import balanced_subsample, observations_from_scans
+from gpomap.metrics import (
+    brier_score,
+    expected_calibration_error,
+    fpr_at_tpr,
+    iou,
+    log_loss,
+    reliability_bins,
+    roc_auc,
+    roc_curve,
+)
+from gpomap.observations import natural_subsample, observations_from_scans
 from gpomap.resources import peak_rss_mb
 from gpomap.scans import Scan, select_scans
+from gpomap.truth import MAP_SERVER_THRESHOLDS, PlanTruth, TruthPoints, lookup_map, score_plan
 
 if TYPE_CHECKING:
     from gpomap.io.rosmap import RosMap
@@ -179,7 +190,7 @@ def test_points(
     hit_margin: float | None = TEST_HIT_MARGIN,
     no_return_cap: float | None = NO_RETURN_CAP,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Labelled test points from held-out scans, classes balanced.
+    """Labelled test points from held-out scans, at their natural frequencies.
 
     Parameters
     ----------
@@ -190,7 +201,8 @@ def test_points(
     seed : int
         Seed of the subsampling.
     max_points : int, optional
-        Most test points in all (half each class).
+        Most test points in all: a uniform, seeded subsample, so each class keeps its share (along
+        beams, a few per cent of the points are hits).
     hit_margin : float, optional
         Free points stop this short of a hit (0.1 m: the protocol; None: half of `free_step`).
         No clearance round other hits: a free point next to a wall stays a test point.
@@ -202,17 +214,13 @@ def test_points(
     -------
     points : ndarray of shape (m, 2)
     labels : ndarray of bool, shape (m,)
-        True for occupied (a hit); m / 2 of each class.
+        True for occupied (a hit).
     """
     obs = protocol_points(scans, free_step, hit_margin, no_return_cap)
     n_occ = int(np.count_nonzero(obs.occupied))
-    n_free = obs.occupied.size - n_occ
-    n = min(n_occ, n_free)
-    if max_points is not None:
-        n = min(n, int(max_points) // 2)
-    if n == 0:
-        raise EmptyDataError(f"held-out scans give {n_occ} hits and {n_free} free points; need both")
-    keep = np.sort(balanced_subsample(obs.occupied, n, seed))
+    if n_occ == 0 or n_occ == obs.occupied.size:
+        raise EmptyDataError(f"held-out scans give {n_occ} hits and {obs.occupied.size - n_occ} free points; need both")
+    keep = natural_subsample(obs.occupied.size, obs.occupied.size if max_points is None else int(max_points), seed)
     return obs.points[keep], obs.occupied[keep]
 
 
@@ -648,7 +656,7 @@ def score(
     Returns
     -------
     dict
-        ``auc``, ``fpr_at_tpr95``, ``log_loss``, ``ece``, the subset AUCs, ``reliability``
+        ``auc``, ``fpr_at_tpr95``, ``log_loss``, ``brier``, ``ece``, the subset AUCs, ``reliability``
         (``mean_prob``, ``frac_pos``, ``counts`` per bin; empty bins None) and, with `roc`,
         ``roc`` (``fpr`` and ``tpr`` lists, one point per distinct probability).
     """
@@ -658,6 +666,7 @@ def score(
         "auc": roc_auc(labels, p),
         "fpr_at_tpr95": fpr_at_tpr(labels, p, 0.95),
         "log_loss": log_loss(labels, p),
+        "brier": brier_score(labels, p),
         "ece": expected_calibration_error(labels, p, n_bins),
     }
     for name, m in (masks or {}).items():
@@ -697,7 +706,7 @@ class EvalData:
         Training scans (thinned as asked) and held-out scans (whole).
     points : ndarray of shape (n, 2)
     labels : ndarray of bool, shape (n,)
-        The balanced test points and their classes.
+        The test points (natural frequencies) and their classes.
     masks : dict of str to ndarray of bool, shape (n,)
         "boundary" (within BOUNDARY_RADIUS of a held-out hit), "observed" and "unobserved" (the
         reference grid's cells).
@@ -713,6 +722,8 @@ class EvalData:
     path : ndarray of shape (p, 2)
         Points along the robot's path through the whole window, training and held-out scans
         (:func:`path_points`).
+    plan : TruthPoints or None
+        A true plan's pixels that the window's scans observed (:mod:`gpomap.truth`).
     settings, seconds : dict
     """
 
@@ -727,6 +738,7 @@ class EvalData:
     truth: Truth | None = None
     truth_observed: NDArray[np.bool_] | None = None
     path: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    plan: TruthPoints | None = None
     settings: dict[str, Any] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
 
@@ -742,6 +754,7 @@ def prepare(
     test_free_step: float = TEST_FREE_STEP,
     max_test_points: int | None = None,
     truth: Truth | None = None,
+    plan: PlanTruth | None = None,
 ) -> EvalData:
     """Split a log, make the test points and everything scored about them, once for all methods.
 
@@ -762,9 +775,12 @@ def prepare(
     test_free_step : float
         Spacing of free test points (0.1 m: the protocol).
     max_test_points : int, optional
-        Cap on test points (half each class), seeded subsample.
+        Cap on test points, a seeded uniform subsample.
     truth : Truth, optional
-        True map to score against.
+        True map to score against, cell by cell.
+    plan : PlanTruth, optional
+        True plan to score the written maps against, pixel by pixel where the window's scans
+        looked (:class:`gpomap.truth.TruthPoints`).
 
     Returns
     -------
@@ -791,6 +807,9 @@ def prepare(
     masks = {"boundary": near(points, hits, BOUNDARY_RADIUS), "observed": observed, "unobserved": ~observed}
     truth_observed = observed_at(reference, truth.grid.centres()) if truth is not None else None
     seconds["reference"] = time.perf_counter() - t
+    t = time.perf_counter()
+    plan_points = TruthPoints.of(plan, window) if plan is not None else None
+    seconds["plan"] = time.perf_counter() - t
     settings = {
         "holdout": spec,
         "scan_range": scan_range if scan_range is None or isinstance(scan_range, str) else list(scan_range),
@@ -817,6 +836,7 @@ def prepare(
         truth,
         truth_observed,
         path_points(window),
+        plan_points,
         settings,
         seconds,
     )
@@ -865,6 +885,7 @@ def run_method(
         without `score_grid`), ``auc``, ``fpr_at_tpr95``, ``log_loss`` (the exact-point ones),
         ``far`` (mean and spread of the predictions far from the data: at far test points and on
         the far lattice, for both predictions), ``path`` (:func:`path_occupied` of both), ``truth`` (:func:`score_truth` of both, or None),
+        ``plan`` (the written map against ``data.plan``, :func:`gpomap.truth.score_plan`, or None),
         ``seconds`` and ``cpu_seconds`` (``fit``, ``predict``, ``grid``; the model's own stages),
         ``peak_rss_mb`` (this process's peak so far), ``n_inputs``, ``n_train_scans``,
         ``n_test_scans``, ``n_test_points``, ``hyperparameters`` (GP methods), ``evidence`` (the ray
@@ -903,6 +924,7 @@ def run_method(
 
     grid_score = None
     written_shape = None
+    plan_out: dict[str, Any] | None = None
     if score_grid:
         w3, c3 = _clock()
         occupancy_map = written_grid(model, grid_resolution)
@@ -922,6 +944,11 @@ def run_method(
                 data.truth_observed,
                 occupied=lookup_occupied(occupancy_map, centres),
             )
+        if data.plan is not None:
+            plan_prob, plan_occupied = lookup_map(occupancy_map, data.plan.points)
+            if method in GRID_METHODS:  # a grid's ternary map as map_server reads it
+                plan_occupied = plan_prob > MAP_SERVER_THRESHOLDS[1]
+            plan_out = score_plan(data.plan, plan_prob, plan_occupied)
         del occupancy_map
 
     is_grid = method in GRID_METHODS
@@ -936,6 +963,7 @@ def run_method(
         "far": far,
         "path": path,
         "truth": truth_out,
+        "plan": plan_out,
         "seconds": seconds,
         "cpu_seconds": cpu,
         "peak_rss_mb": peak_rss_mb(),
@@ -981,6 +1009,7 @@ def evaluate(
     scan_step: int = 1,
     truth: Truth | None = None,
     score_grid: bool = True,
+    plan: PlanTruth | None = None,
     **method_options: Any,
 ) -> dict[str, Any]:
     """Fit a method on training scans and score it on held-out scans (:func:`prepare` then
@@ -993,7 +1022,7 @@ def evaluate(
         ``reference`` and ``total``.
     """
     t = time.perf_counter()
-    data = prepare(scans, holdout, scan_range, scan_step, n_scans, n_beams, seed, test_free_step, max_test_points, truth)
+    data = prepare(scans, holdout, scan_range, scan_step, n_scans, n_beams, seed, test_free_step, max_test_points, truth, plan)
     result = run_method(
         data, method, kernel, seed, resolution, grid_resolution, n_workers, return_roc, score_grid, **method_options
     )

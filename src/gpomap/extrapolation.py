@@ -60,7 +60,7 @@ from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.fusion import HIT_DISTANCE_REACHES, HitCells, HitProximity, calibration_points
 from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
-from gpomap.observations import Observations, balanced_subsample, beams_reach, data_dim, free_near_hits
+from gpomap.observations import Observations, beams_reach, data_dim, free_near_hits, natural_subsample
 from gpomap.squash import unseen_probit
 
 #: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
@@ -85,11 +85,9 @@ HIT_REACH_BOUNDS: tuple[float, float] = (0.05, 1.0)
 #: Standard deviation of the zero-mean normal prior on that gain (probit units): the penalty is
 #: the prior's log density per point fitted, so it fades as the points grow in number.
 HIT_SHIFT_PRIOR_STD: float = 1.0
-#: Whether the gain near hits is fitted, per dimension of the data. Planar maps: measured on the
-#: 26 log-splits of the shared and seven unseen logs (docs/choices.md). Not for point clouds: on
-#: la3dm's worlds (nine training clouds) it lowered the written voxel grids' AUC by 0.004-0.008
-#: and raised sim_unstructured's log loss.
-HIT_GAIN: dict[int, bool] = {2: True, 3: False}
+#: Whether the gain near hits is fitted, per dimension of the data. Off: fitted on held-out points
+#: at their natural frequencies it comes out nil (docs/choices.md, the stage ablation).
+HIT_GAIN: dict[int, bool] = {2: False, 3: False}
 #: Fewest held-out points of each class where no kept beam went for the held-in GP's square round
 #: the hyperparameter sample to be enough; with fewer, a square twice as wide is taken (or the
 #: whole map, when that is smaller). Kappa needs few; the gain near hits is fitted with it.
@@ -278,7 +276,7 @@ def fit_variance_scale(
     occ = np.concatenate([f[2] for f in folds])
     dist = np.concatenate([f[3] for f in folds])
     fold_of = np.concatenate([np.full(f[2].size, k) for k, f in enumerate(folds)])
-    keep = balanced_subsample(occ, n, seed)
+    keep = natural_subsample(occ.size, 2 * n, seed)
     pts, occ, fold_of, dist = pts[keep], occ[keep], fold_of[keep], dist[keep]
     # The region's points (grown by the clearance) cut once for every pattern: a whole log has
     # tens of millions.

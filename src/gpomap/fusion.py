@@ -90,7 +90,7 @@ from scipy.special import ndtr, ndtri
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, next_to_hits, path_steps
-from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, row_bands
+from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS, GridSpec, row_bands
 from gpomap.lattice import (
     AnyGrid,
     bounds_extent,
@@ -106,7 +106,7 @@ from gpomap.lattice import (
     interpolation_block,
     overlap,
 )
-from gpomap.observations import ScanData, balanced_subsample, data_dim, observations_from_scans
+from gpomap.observations import ScanData, data_dim, natural_subsample, observations_from_scans
 from gpomap.resources import WRITTEN_BAND_CELLS
 from gpomap.revisit import RevisitCalibration
 from gpomap.scans import Scan
@@ -199,16 +199,6 @@ def gp_sampling_factor(length_scale: float, resolution: float) -> int:
 #: weight of about 32: one step worth one hit left them at p 0.66-0.78, ten leave them free.
 PATH_HITS: float = 10.0
 
-#: Whether the calibration also fits the ternary map's occupied threshold
-#: (:func:`occupied_threshold`), per dimension of the data. The map's probabilities are calibrated
-#: on class-balanced points, as an evaluation scores them, so a hit weighs about as much as the
-#: free points of a beam (hit weights of 12-330 against 13-200 free points every 0.1 m per hit on
-#: the Stage arena, Intel, CSAIL, Belgioioso, the room, the campus), and at the paper's 0.66 a cell
-#: one beam in a dozen or a hundred ended in is occupied: walls two or three cells thick, and the
-#: cells a robot later drove through called occupied after one visitor's hit. Planar maps: measured
-#: on the shared and unseen logs (docs/choices.md). Not for point clouds, where it was not.
-FIT_OCCUPIED_THRESHOLD: dict[int, bool] = {2: True, 3: False}
-
 #: Whether the ternary map, per dimension of the data, never calls occupied a cell that beams (or
 #: the robot) crossed and no beam ended in (:func:`gpomap.grid.ternary`'s ``seen_through``), as
 #: neither occupancy grid would: such a cell the map thinks likely occupied (a surface beside it,
@@ -217,10 +207,15 @@ FIT_OCCUPIED_THRESHOLD: dict[int, bool] = {2: True, 3: False}
 #: occupied (docs/choices.md). Not for point clouds, where it was not measured.
 SEEN_THROUGH_NOT_OCCUPIED: dict[int, bool] = {2: True, 3: False}
 
-#: Most calibration points of each class. Five weights need no more, and the GP's prediction at
-#: them is the calibration's cost. Planar logs never reach it (25 scans of at most 361 beams give
-#: at most ~9,000 hits); clouds do (la3dm: 31,500 hits in 9 scans, cut to a third).
-CALIBRATION_POINTS_PER_CLASS: int = 10_000
+#: Calibration points: free points along a returned beam stop this short of its end (m), about a
+#: lidar's range noise. Closer in, a point is free as the world is: a wall cell is mostly free
+#: space, and a map calibrated only on hits there makes every wall too thick (docs/choices.md).
+CALIBRATION_HIT_MARGIN: float = 0.02
+
+#: Most calibration points, drawn uniformly so each class keeps its share: a few per cent are
+#: hits, and five weights need a thousand or so of them; the GP's prediction at the points is the
+#: calibration's cost.
+CALIBRATION_POINTS: int = 40_000
 
 #: Search bounds (log space) of the hit weight, the prior weight, the near-miss weight, the
 #: near miss's weight as a surface (whose floor, 1e-3 of an observation, is nothing against the
@@ -338,7 +333,7 @@ def calibration_scans(n: int, n_scans: int) -> NDArray[np.intp]:
 def calibration_points(
     scan: Scan | CloudScan, step: float = 0.1, no_return_cap: float | None = 10.0
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """A scan's hits and its free points every `step` along each beam up to `step` short of the hit.
+    """A scan's hits and its free points every `step` along each beam up to :data:`CALIBRATION_HIT_MARGIN` short of the hit.
 
     Parameters
     ----------
@@ -354,75 +349,20 @@ def calibration_points(
     occupied : ndarray of bool, shape (n,)
     """
     try:
-        # The evaluation protocol's points: no clearance round hits, as a test would score them.
-        obs = observations_from_scans([scan], step, step, no_return_cap, free_clearance=0.0)
+        # Points as the world holds them: no clearance round hits, free up to the hit itself.
+        obs = observations_from_scans([scan], step, CALIBRATION_HIT_MARGIN, no_return_cap, free_clearance=0.0)
     except EmptyDataError:
         return np.zeros((0, data_dim([scan]))), np.zeros(0, bool)
     return obs.points, obs.occupied
 
 
-def occupied_threshold(
-    p: ArrayLike,
-    occupied: ArrayLike,
-    free_weight: float = 1.0,
-    floor: float = DEFAULT_THRESHOLDS[1],
-    seen_through: ArrayLike | None = None,
-) -> tuple[float, float]:
-    """The probability above which the ternary map's occupied cells best match where beams end.
-
-    The threshold t (at least `floor`) that maximises the occupied class's IoU (Jaccard index)
-    ``TP / (TP + FP + FN)`` of the decision ``p > t`` on held-out points, each free point weighing
-    `free_weight` occupied ones (the points' class ratio before a class-balanced sample was drawn,
-    so that the IoU is the one at the data's own frequencies). Points in cells other scans saw
-    through (`seen_through`) are never called occupied, as the ternary map does not call them.
-
-    Parameters
-    ----------
-    p : array_like of shape (n,)
-        Predicted probabilities.
-    occupied : array_like of bool, shape (n,)
-    free_weight : float
-    floor : float
-    seen_through : array_like of bool, shape (n,), optional
-
-    Returns
-    -------
-    threshold, iou : float
-        The best threshold (one of the probabilities, or `floor`) and the IoU it gives (0 without
-        occupied points).
-    """
-    p = np.asarray(p, dtype=float).ravel()
-    y = np.asarray(occupied, dtype=bool).ravel()
-    if seen_through is not None:
-        p = np.where(np.asarray(seen_through, dtype=bool).ravel(), -np.inf, p)  # below every threshold
-    n_occ = float(y.sum())
-    if n_occ == 0:
-        return float(floor), 0.0
-    # Candidates: the floor and every distinct probability above it; p > t then keeps the points
-    # strictly above each. Sorted descending, the weighted counts above each are cumulative sums.
-    order = np.argsort(-p, kind="stable")
-    ps, ys = p[order], y[order]
-    tp = np.r_[0.0, np.cumsum(ys.astype(float))]  # tp[k]: occupied among the first k points
-    fp = np.r_[0.0, np.cumsum(np.where(ys, 0.0, free_weight))]
-    cand = np.unique(np.r_[floor, ps[ps > floor]])
-    above = np.searchsorted(-ps, -cand, side="left")  # points strictly above each candidate
-    iou = tp[above] / (n_occ + fp[above])  # TP + FN = every occupied point
-    best = int(np.argmax(iou))
-    return float(cand[best]), float(iou[best])
-
-
 def ternary_thresholds(given: tuple[float, float] | None, evidence: EvidenceLayer | None) -> tuple[float, float]:
-    """A map's ternary (free below, occupied above) thresholds: those `given`, else the paper's
-    free threshold and the occupied one `evidence`'s calibration fitted (:func:`occupied_threshold`),
+    """A map's ternary (free below, occupied above) thresholds on the probabilities it gives: those
+    `given`, else a calibrated map's (with ray evidence, :data:`gpomap.grid.CALIBRATED_THRESHOLDS`),
     else the paper's (:data:`gpomap.grid.DEFAULT_THRESHOLDS`)."""
     if given is not None:
         return given
-    fitted = evidence.report.get("occupied_threshold") if evidence is not None else None
-    free, occupied = DEFAULT_THRESHOLDS if fitted is None else (DEFAULT_THRESHOLDS[0], float(fitted))
-    if evidence is None or evidence.revisit.identity:
-        return free, occupied
-    # Both classes keep their cells: the recalibration is monotone.
-    return float(evidence.revisit(free)), float(evidence.revisit(occupied))
+    return CALIBRATED_THRESHOLDS if evidence is not None else DEFAULT_THRESHOLDS
 
 
 #: The map's GP fitted on some scans, its hyperparameters held, as a function from points of shape
@@ -475,9 +415,7 @@ def fit_calibration(
         ``"n_points"`` in the balanced sample, ``"n_predicted"``: those other scans counted,
         where the GP was predicted, and their ``"log_loss"`` (the only points the weights
         change), before (the counting grid's weights, ``"log_loss_default"``) and after the fit;
-        with `gp_apart`, the ``"surprise_rate"``; for planar data (:data:`FIT_OCCUPIED_THRESHOLD`)
-        the ternary map's ``"occupied_threshold"`` fitted on those points
-        (:func:`occupied_threshold`) and the ``"occupied_iou"`` it gives.
+        with `gp_apart`, the ``"surprise_rate"``.
     sample : CalibrationSample
         The fitted calibration's probabilities at the sample's points that other scans counted,
         and their classes (empty when nothing was fitted).
@@ -498,11 +436,8 @@ def fit_calibration(
     pts, occ, scan_of = np.concatenate(pts_all), np.concatenate(occ_all), np.concatenate(scan_all)
     if occ.all() or not occ.any():
         return default, {"n_points": int(occ.size)}, CalibrationSample()
-    # Balance the classes by subsampling the larger one (seeded), as an evaluation would; the
-    # counts are then looked up at the sample only (la3dm: 20,000 of 10 million points).
-    n_occ = int(np.count_nonzero(occ))
-    n_free = occ.size - n_occ
-    keep = balanced_subsample(occ, min(n_occ, n_free, CALIBRATION_POINTS_PER_CLASS), seed)
+    # A uniform sample keeps each class's share (docs/choices.md); the counts are then looked up at the sample only.
+    keep = natural_subsample(occ.size, CALIBRATION_POINTS, seed)
     pts, occ = pts[keep], occ[keep]
     fit_surface = FIT_SURFACE_WEIGHT.get(pts.shape[1], False)
     h, m, near, surface = _other_scans_counts(evidence, grid, whole, pts, scan_of[keep], fit_surface)
@@ -568,12 +503,6 @@ def fit_calibration(
         fitted = replace(fitted, surprise_rate=fit_surprise_rate(p_apart, sample_occ))
         report["surprise_rate"] = fitted.surprise_rate
     p = fitted(p_gp, fitted.hits(h, near), fitted.misses(m, near, surface=surface))
-    if FIT_OCCUPIED_THRESHOLD.get(pts.shape[1], False):
-        # The ternary map's occupied class, fitted where the probabilities were: on the same points,
-        # the classes back at the log's own ratio (the sample balanced them).
-        seen = seen_through(h, m) if SEEN_THROUGH_NOT_OCCUPIED.get(pts.shape[1], False) else None
-        t, jaccard = occupied_threshold(p, occ, free_weight=n_free / n_occ, seen_through=seen)
-        report["occupied_threshold"], report["occupied_iou"] = t, jaccard
     return fitted, report, CalibrationSample(p, occ)
 
 
@@ -1126,15 +1055,12 @@ class EvidenceLayer:
         )
         return self.revisit(p)
 
-    def occupied_cap(self) -> float | None:
+    def occupied_cap(self) -> float:
         """The ternary map's occupied threshold before :attr:`revisit`: where the prior behind
         surfaces alone would lift a cell over it, the cell stops on it (the occupied class stays
-        what the counts and the GP make it). The user's threshold when given, else the fitted
-        one; None when neither is known."""
-        if self.thresholds is not None:
-            return self.revisit.inverse(self.thresholds[1])
-        fitted = self.report.get("occupied_threshold")
-        return None if fitted is None else float(fitted)
+        what the counts and the GP make it). The user's threshold when given, else the calibrated
+        map's (:func:`ternary_thresholds`)."""
+        return self.revisit.inverse(ternary_thresholds(self.thresholds, self)[1])
 
     def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
         """Whether beams or the robot's path crossed the fine cell holding each point and no beam

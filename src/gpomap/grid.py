@@ -23,6 +23,10 @@ UNKNOWN: int = -1
 
 #: The paper's thresholds: free below 0.33, occupied above 0.66, unknown between.
 DEFAULT_THRESHOLDS: tuple[float, float] = (0.33, 0.66)
+#: The ternary thresholds of a map whose probabilities are calibrated (one with ray evidence):
+#: occupied where a cell is more likely occupied than not, free below map_server's free threshold
+#: (a cell under 0.196 is free to a ROS navigation stack).
+CALIBRATED_THRESHOLDS: tuple[float, float] = (0.196, 0.5)
 
 
 @dataclass(frozen=True)

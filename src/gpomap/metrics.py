@@ -146,6 +146,28 @@ def log_loss(labels: ArrayLike, probs: ArrayLike, eps: float = LOG_LOSS_EPS) -> 
     return float(-np.mean(np.where(y, np.log(p), np.log1p(-p))))
 
 
+def brier_score(labels: ArrayLike, probs: ArrayLike) -> float:
+    """Mean squared difference between the predicted probabilities and the labels.
+
+    Parameters
+    ----------
+    labels : array_like of bool, shape (n,)
+    probs : array_like of shape (n,)
+        Predicted probability of the positive class, in [0, 1].
+
+    Returns
+    -------
+    float
+        ``mean((p - y)^2)``: 0 for a certain, right map; 0.25 for p = 1/2 everywhere.
+    """
+    y, p = _check(labels, probs, need_both=False)
+    if y.size == 0:
+        raise EmptyDataError("brier_score needs at least one label")
+    if ((p < 0) | (p > 1)).any():
+        raise ValueError("probabilities must lie in [0, 1]")
+    return float(np.mean((p - y) ** 2))
+
+
 def _check_probs(labels: ArrayLike, probs: ArrayLike) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
     y, p = _check(labels, probs, need_both=False)
     if y.size == 0:

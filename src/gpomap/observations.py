@@ -426,6 +426,28 @@ def balanced_subsample(occupied: ArrayLike, n: int, seed: int) -> NDArray[np.int
     )
 
 
+def natural_subsample(n_points: int, n: int, seed: int) -> NDArray[np.intp]:
+    """Sorted indices of at most `n` of `n_points` points drawn uniformly without replacement by a
+    generator seeded with `seed`: each class keeps the share it has in the data.
+
+    Every calibration is fitted on such a sample, so that its probabilities are right at the
+    frequencies a robot meets (along beams, a few per cent of points are hits), not at balanced classes.
+
+    Parameters
+    ----------
+    n_points : int
+    n : int
+    seed : int
+
+    Returns
+    -------
+    ndarray of int, shape (min(n, n_points),)
+    """
+    if n_points <= n:
+        return np.arange(n_points)
+    return np.sort(np.random.default_rng(seed).choice(n_points, n, replace=False))
+
+
 def sensor_positions(scans: ScanData) -> NDArray[np.float64]:
     """Where the sensor was for each scan, ndarray of shape (k, d): a planar pose's (x, y), a cloud's origin."""
     return np.array([s.origin if isinstance(s, CloudScan) else s.pose[:2] for s in scans], dtype=float)

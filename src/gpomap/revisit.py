@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import brentq, minimize
 from scipy.special import expit, log_expit, logit
 
-from gpomap.observations import balanced_subsample, data_dim
+from gpomap.observations import data_dim, natural_subsample
 
 #: Width, in log-odds, of the band round 1/2 that the shift leaves alone (at logit p = +-WIDTH the
 #: shift is 39 % of its full value, at +-2 WIDTH 86 %).
@@ -52,8 +52,8 @@ MAX_SHIFT_RATIO: float = 0.9 * WIDTH * float(np.sqrt(np.e))
 FIT_REVISIT: dict[int, bool] = {2: True, 3: False}
 #: Fewest scans a log needs for a held-out stretch to be a visit of its own (shorter logs keep the identity).
 MIN_SCANS: int = 100
-#: Most held-out points of each class predicted by the map of the rest.
-POINTS_PER_CLASS: int = 10_000
+#: Most held-out points predicted by the map of the rest (a uniform sample: each class keeps its share).
+POINTS: int = 20_000
 #: Clip of probabilities before the log-odds (a map's probabilities are within [0.005, 0.995] anyway).
 _EPS: float = 1e-6
 
@@ -179,14 +179,14 @@ def later_visit_points(
     no_return_cap : float or None
         As the map's.
     seed : int
-        Seeds the class-balancing subsample.
+        Seeds the uniform subsample.
 
     Returns
     -------
-    probability : ndarray of shape (2 n,)
+    probability : ndarray of shape (n,)
         What the map of the other stretches says at the held-out stretches' hits and free points
-        (:func:`gpomap.fusion.calibration_points`), n of each class, at most :data:`POINTS_PER_CLASS`.
-    occupied : ndarray of bool, shape (2 n,)
+        (:func:`gpomap.fusion.calibration_points`), at most :data:`POINTS` of them drawn uniformly.
+    occupied : ndarray of bool, shape (n,)
     report : dict
         ``"n_points"`` (n), or ``"reason"`` when there are none (a log under :data:`MIN_SCANS`
         scans, point clouds, a held-out stretch without a class).
@@ -200,9 +200,8 @@ def later_visit_points(
     kept, held = holdout_stretches(len(scans))
     parts = [calibration_points(scans[k], no_return_cap=no_return_cap) for k in held]
     pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
-    n = min(int(occ.sum()), int((~occ).sum()), POINTS_PER_CLASS)
-    if n == 0:
+    if occ.all() or not occ.any():
         return *none, {"reason": "the held-out stretch has no point of a class"}
-    keep = balanced_subsample(occ, n, seed)
+    keep = natural_subsample(occ.size, POINTS, seed)
     pts, occ = pts[keep], occ[keep]
-    return np.asarray(fit_rest([scans[i] for i in kept])(pts), dtype=float), occ, {"n_points": n}
+    return np.asarray(fit_rest([scans[i] for i in kept])(pts), dtype=float), occ, {"n_points": int(occ.size)}

@@ -99,10 +99,9 @@ class MapSettings:
         Gauss-Legendre nodes per cell side for ``area="quadrature"``. 2 measured as accurate as 3
         on the synthetic room's held-out AUC (0.9815 against 0.9819) at a quarter of the cost.
     thresholds : (float, float) or None
-        Free-below and occupied-above probabilities of the ternary map. None (the default): the
-        paper's free threshold, 0.33, and an occupied one fitted with the ray evidence's
-        calibration on the map's own scans, at least the paper's 0.66 (planar scans,
-        :func:`gpomap.fusion.occupied_threshold`; otherwise 0.66).
+        Free-below and occupied-above probabilities of the ternary map. None (the default): a
+        calibrated map's, free below 0.196 and occupied above 0.5 (with ray evidence,
+        :data:`gpomap.grid.CALIBRATED_THRESHOLDS`), else the paper's 0.33 and 0.66.
     chunk_size : int
         Query points per prediction chunk.
     ray_evidence : bool

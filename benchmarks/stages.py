@@ -1,0 +1,171 @@
+"""What each stage of the map's calibration is worth: every stage switched off in turn, the rest kept.
+
+Each row is gpomap's written map (``gpomap map``'s defaults, 0.05 m) with one stage off, scored
+as ``benchmarks/quality.py`` scores it, at natural frequencies:
+
+- against the true plan of each simulated world (the Stage arena, the sim-worlds cave and
+  hospital section, the synthetic room): every plan pixel the log observed (:mod:`gpomap.truth`);
+  the map is fitted on the whole log;
+- on held-out scans of the real logs (blocks of 40, every 5th held out; every 10th): held-out
+  hits and free points every 0.1 m along held-out beams, uniformly subsampled.
+
+A stage earns its place when switching it off makes the scores worse. Each map is fitted in a
+process of its own with the stage's module constants set (a stage is off when its fitted part
+is held at the value that leaves the map as it was without it). Run from the repository root::
+
+    .venv/bin/python benchmarks/stages.py                       # every stage, every dataset
+    .venv/bin/python benchmarks/stages.py --stages base,revisit --datasets cave,intel:blocks
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: Stage name: (what switching it off means, module constants to set, estimator options).
+STAGES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
+    "base": ("every stage on (the defaults)", {}, {}),
+    "revisit": ("no later-visit recalibration", {}, {"fit_revisit": False}),
+    "variance_scale": (
+        "no variance scale for unseen space (the GP's own variance)",
+        {"gpomap.extrapolation.MIN_POINTS_PER_CLASS": 10**9},
+        {},
+    ),
+    "unseen_free_cut": ("no cut of the GP's lean towards free in unseen space", {"gpomap.squash.UNSEEN_FREE_CUT": {2: 0.0}}, {}),
+    "hit_gain": ("no gain of unseen space near hits", {"gpomap.extrapolation.HIT_GAIN": {2: False}}, {}),
+    "behind": ("no prior gain behind surfaces", {"gpomap.fusion.BEHIND_SURFACES": {2: (0.0, 0.7, 0.2), 3: (0.0, 0.7, 0.2)}}, {}),
+    "surface": ("surface misses weigh as misses", {"gpomap.fusion.FIT_SURFACE_WEIGHT": {2: False}}, {}),
+    "near": (
+        "near misses weigh as misses, and as no hit",
+        {"gpomap.fusion.CALIBRATION_BOUNDS": "near"},
+        {},
+    ),
+    "path": ("the robot's path is no evidence", {"gpomap.fusion.PATH_HITS": 0.0}, {}),
+    "weights": (
+        "the counting grid's weights (one hit = one miss, the GP worth two)",
+        {"gpomap.fusion.CALIBRATION_BOUNDS": "fixed"},
+        {},
+    ),
+}
+TRUTH_WORLDS = ("stage-arena", "cave", "hospital_section", "room")
+HELD_OUT = ("intel:blocks", "intel:every", "fr079:blocks", "csail:blocks", "belgioioso:blocks")
+TEST_POINTS = 40_000
+
+
+def _bounds(kind: str) -> tuple[tuple[float, float], ...]:
+    from gpomap.fusion import CALIBRATION_BOUNDS
+
+    b = list(CALIBRATION_BOUNDS)
+    if kind == "near":
+        b[2] = (0.0, 0.0)
+        b[3] = (b[3][0], b[3][0])
+    else:  # the counting grid's: hit 1, prior 2, near miss a miss, no near hit, surface miss a miss
+        b = [(0.0, 0.0), (np.log(2.0), np.log(2.0)), (0.0, 0.0), (b[3][0], b[3][0]), (0.0, 0.0)]
+    return tuple(b)
+
+
+def _apply(patches: dict[str, Any]) -> None:
+    for key, value in patches.items():
+        module, attr = key.rsplit(".", 1)
+        if key.endswith("CALIBRATION_BOUNDS"):
+            value = _bounds(value)
+        setattr(importlib.import_module(module), attr, value)
+
+
+def child(stage: str, dataset: str) -> dict[str, Any]:
+    """Score one dataset with one stage off (in this process)."""
+    _, patches, options = STAGES[stage]
+    _apply(patches)
+    from gpomap.evaluation import lookup, make_model, prepare, written_grid
+    from gpomap.metrics import brier_score, expected_calibration_error, log_loss, roc_auc
+    from gpomap.truth import TruthPoints, lookup_map, score_plan
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import quality
+
+    t = time.process_time()
+    if ":" in dataset:
+        log, split = dataset.split(":")
+        scans, _ = quality.load(log)
+        data = prepare(scans, split, scan_step=quality.LOGS[log].get("scan_step", 1), seed=0, max_test_points=TEST_POINTS)
+        model = make_model("msk", None, 0, 0.05, None, **options).fit(data.train)
+        fit_cpu = time.process_time() - t
+        p = lookup(written_grid(model, 0.05), data.points)
+        y = data.labels
+        b = data.masks["boundary"]
+        return {
+            "log_loss": log_loss(y, p),
+            "brier": brier_score(y, p),
+            "ece": expected_calibration_error(y, p, 10),
+            "auc": roc_auc(y, p),
+            "boundary_auc": roc_auc(y[b], p[b]),
+            "fit_cpu": fit_cpu,
+        }
+    scans, plan = quality.load(dataset)
+    assert plan is not None, f"{dataset} has no true plan"
+    model = make_model("msk", None, 0, 0.05, None, **options).fit(scans)
+    fit_cpu = time.process_time() - t
+    truth = TruthPoints.of(plan, scans)
+    return {**score_plan(truth, *lookup_map(written_grid(model, 0.05), truth.points)), "fit_cpu": fit_cpu}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--stages", default=",".join(STAGES), help="comma-separated (default: all)")
+    ap.add_argument("--datasets", default=",".join(TRUTH_WORLDS + HELD_OUT), help="comma-separated (default: all)")
+    ap.add_argument("--json", type=Path, help="write the results here")
+    ap.add_argument("--child", nargs=2, metavar=("STAGE", "DATASET"), help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        print(json.dumps(child(*args.child)))
+        return 0
+    stages, datasets = args.stages.split(","), args.datasets.split(",")
+    unknown = sorted(set(stages) - set(STAGES))
+    if unknown:
+        ap.error(f"unknown stage(s) {', '.join(unknown)}; expected some of {', '.join(STAGES)}")
+    results: dict[str, dict[str, Any]] = {}
+    for stage in stages:
+        results[stage] = {}
+        for ds in datasets:
+            out = subprocess.run([sys.executable, __file__, "--child", stage, ds], capture_output=True, text=True)
+            if out.returncode != 0:
+                print(f"{stage} on {ds} failed:\n{out.stderr[-2000:]}", file=sys.stderr)
+                continue
+            results[stage][ds] = json.loads(out.stdout.strip().splitlines()[-1])
+            r = results[stage][ds]
+            print(f"{stage:16s} {ds:20s} " + " ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float)), flush=True)
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    print("\n## Each stage switched off (written map, natural frequencies)\n")
+    truth = [d for d in datasets if ":" not in d]
+    held = [d for d in datasets if ":" in d]
+    for title, group, keys in (
+        ("truth", truth, ("log_loss", "auc", "boundary_auc", "iou")),
+        ("held out", held, ("log_loss", "ece", "auc", "boundary_auc")),
+    ):
+        if not group:
+            continue
+        head = ["stage off", *(f"{d}: {' / '.join(keys)}" for d in group), "fit CPU s (sum)"]
+        print(f"### {title}\n")
+        print("| " + " | ".join(head) + " |\n|" + "---|" * len(head))
+        for stage in stages:
+            row = [f"{stage} ({STAGES[stage][0]})"]
+            for d in group:
+                r = results[stage].get(d)
+                row.append(" / ".join(f"{r[k]:.4f}" if r.get(k) is not None else "-" for k in keys) if r else "failed")
+            row.append(f"{sum(results[stage][d]['fit_cpu'] for d in group if d in results[stage]):.0f}")
+            print("| " + " | ".join(row) + " |")
+        print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
