@@ -145,6 +145,20 @@ def test_bad_input_is_one_clear_line(tmp_path, run):
 def test_debug_shows_the_traceback(tmp_path):
     r = gpomap("--debug", "info", tmp_path / "nope.log")
     assert r.returncode != 0 and "Traceback" in r.stderr
+    # After the command too.
+    r = gpomap("info", tmp_path / "nope.log", "--debug")
+    assert r.returncode != 0 and "Traceback" in r.stderr
+    assert "Traceback" not in gpomap("info", tmp_path / "nope.log").stderr
+
+
+def test_a_usage_error_is_the_error_and_where_the_options_are(run):
+    r = run("map", "--resolution", "0.05")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert lines == [
+        "gpomap map: error: the following arguments are required: input, -o/--output",
+        "(run 'gpomap map --help' for the options)",
+    ]
 
 
 def test_evaluate_demo_json(run):
@@ -275,3 +289,31 @@ def test_map_in_one_go_and_in_chunks(tmp_path, run):
 
     a, b = load_map(tmp_path / "auto" / "map.npz"), load_map(tmp_path / "chunks" / "map.npz")
     assert a.grid == b.grid
+
+
+def test_every_help_example_parses():
+    # Each example a command's --help prints is a command line the parser takes as it stands.
+    import shlex
+
+    from gpomap.cli import build_parser
+
+    parser = build_parser()
+    checked = 0
+    for action in parser._subparsers._group_actions:
+        for name, sub in action.choices.items():
+            for line in (sub.epilog or "").splitlines():
+                if not line.strip().startswith(f"gpomap {name}"):
+                    continue
+                words = shlex.split(re.sub(r"\s{2,}\(.*\)\s*$", "", line.strip()))
+                try:
+                    parser.parse_args(words[1:])
+                except SystemExit:
+                    pytest.fail(f"--help example of {name} does not parse: {line.strip()}")
+                checked += 1
+    assert checked >= 10
+
+
+def test_info_keeps_a_space_after_a_long_key(run):
+    r = run("info", DATA / "octomap" / "geb079.bt")
+    assert r.returncode == 0, r.stderr
+    assert re.search(r"^occupancy_threshold +0\.5$", r.stdout, flags=re.M), r.stdout

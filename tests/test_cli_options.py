@@ -110,6 +110,7 @@ COMMAND_OWN: dict[str, str] = {
     "slices": "the heights of map-slices.png (write_voxel_outputs)",
     "rate": "stream: the replay's pace (replay)",
     "every": "stream: how often the map is written (replay)",
+    "debug": "tracebacks on errors (main)",
 }
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -315,3 +316,18 @@ def test_directory_and_fifo_refused_before_opening(tmp_path: Path) -> None:
         read_scans(fifo)
     with pytest.raises(InputFormatError, match="FIFO"):
         read_carmen(fifo)
+
+
+def test_a_flaser_line_of_another_beam_count_is_warned_of(tmp_path: Path) -> None:
+    log = tmp_path / "odd.log"
+    log.write_text(_flaser([1.0] * 180) + "\n" + _flaser([1.0] * 10, stamp=11.0) + "\n" + _flaser([1.0] * 180, stamp=12.0) + "\n")
+    with pytest.warns(
+        UserWarning, match=r"odd\.log: 1 FLASER line\(s\) with another beam count than the log's 180 \(line 2: 10\)"
+    ):
+        scans = read_carmen(log)
+    assert [s.n_beams for s in scans] == [180, 10, 180]
+    # The usual count only: nothing to say.
+    log.write_text(_flaser([1.0] * 180) + "\n" + _flaser([1.0] * 180, stamp=11.0) + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_carmen(log)

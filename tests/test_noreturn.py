@@ -302,3 +302,15 @@ def test_info_prints_code_count_and_contradiction(tmp_path: Path, capsys: pytest
     assert d["no_return_code"] == [50.0] and d["n_no_return"] == n
     assert main(["info", str(path), "--max-range", "30"]) == 0
     assert "decided by      user" in capsys.readouterr().out
+
+
+def test_a_reading_near_the_float_limit_leaks_no_overflow_warning() -> None:
+    import warnings
+
+    from gpomap.io.noreturn import detect_no_return_code
+
+    ranges = np.r_[np.linspace(0.5, 20.0, 500), 1e308]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        found = detect_no_return_code(ranges)
+    assert found is None or found.value < 1e300  # a lone absurd reading is no sensor's code

@@ -1,5 +1,6 @@
 """The README's promises hold: its Python runs as printed, and it documents every option of every command."""
 
+import argparse
 import re
 import runpy
 from pathlib import Path
@@ -46,6 +47,8 @@ def test_every_option_of_every_command_is_documented():
         for name, sub in action.choices.items():
             text = _section(name)
             for act in sub._actions:
+                if act.help == argparse.SUPPRESS:  # hidden: a global option repeated after the command
+                    continue
                 for option in act.option_strings:
                     if option.startswith("--") and option != "--help" and not re.search(f"`{re.escape(option)}[`\\s]", text):
                         missing.append(f"{name} {option}")

@@ -20,7 +20,7 @@ import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, NoReturn
 
 from gpomap import __version__
 from gpomap.config import CALIBRATED_THRESHOLDS, DEFAULT_MAX_CELLS, MapConfig, TilingConfig
@@ -735,10 +735,11 @@ def cmd_info(args: argparse.Namespace) -> int:
     notes = info.pop("notes", [])
     for key in ("no_return_code", "no_return_source"):
         info.pop(key, None)
+    width = max([16, *(len(k) + 1 for k in info)])  # a long key keeps a space before its value
     for key, value in info.items():
         if isinstance(value, (tuple, list)) and value and all(isinstance(v, float) for v in value):
             value = ", ".join(f"{v:.3f}" for v in value)
-        print(f"{key:<16}{value}")
+        print(f"{key:<{width}}{value}")
     # The no-return decision, one block per laser (message type): code, count, how decided.
     for d in no_return if isinstance(no_return, list) else [no_return] if no_return else []:
         label = f" ({d['message']})" if "message" in d else ""
@@ -1229,9 +1230,9 @@ EPILOG_MAP = """examples:
   gpomap map ../shared/data/intel/intel-corrected.log.gz -o intel-map --scans 200 --beams 90
   gpomap map robot1.bag --topic /base_scan --fixed-frame odom --time-offset 0.1 -o arena --resolution 0.05
   gpomap map points.csv -o out --kernel se      (CSV with header x,y,occupied)
-  gpomap map fr079.log.gz -o fr079 --tiles --workers 2 --free-step 0.3
+  gpomap map fr079.log.gz -o fr079 --workers 2 --free-step 0.3
   gpomap map intel.log.gz -o intel --chunk-scans 100      (the map grows as scans come)
-  gpomap map intel.log.gz -o intel --tiles --scheduler tcp://127.0.0.1:8786
+  gpomap map intel.log.gz -o intel --scheduler tcp://127.0.0.1:8786
   gpomap map ../shared/data/la3dm-sim/sim_structured -o out3d --max-range 8 --slices 0.5,1.5
   gpomap map ../shared/data/3dmatch -o frames --stride 4 --resolution 0.05      (depth frames)
 """
@@ -1242,16 +1243,24 @@ EPILOG_EVALUATE = """examples:
 """
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose usage errors are two lines: what was wrong, and where the options are
+    (the whole usage of ``gpomap map`` is twenty lines above the one that matters)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n(run '{self.prog} --help' for the options)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``gpomap`` command."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="gpomap",
         description="Continuous occupancy maps from laser scans or occupancy grids with area-kernel Gaussian processes (MSK-GPOM).",
         epilog="Run 'gpomap COMMAND --help' for a command's options. Start with 'gpomap demo -o demo-output'.",
     )
     parser.add_argument("--version", action="version", version=f"gpomap {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     fmt = argparse.RawDescriptionHelpFormatter
 
     p = sub.add_parser(
@@ -1456,6 +1465,9 @@ def build_parser() -> argparse.ArgumentParser:
     from gpomap.apps.stream import add_parser as add_stream_parser
 
     add_stream_parser(sub)
+    # --debug after the command too ('gpomap map ... --debug'); hidden there, and unset unless given.
+    for command in sub.choices.values():
+        command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     return parser
 
 

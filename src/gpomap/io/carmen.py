@@ -40,6 +40,7 @@ import gzip
 import io
 import math
 import os
+import warnings
 import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -478,6 +479,7 @@ def read_carmen(
             info["message"] = kind
             decisions[kind] = (d.max_range, info)
 
+    _warn_odd_beam_counts(lasers, spath)
     angle_cache: dict[int, NDArray[np.float64]] = {}
     scans: list[Scan] = []
     for las in lasers:
@@ -512,6 +514,25 @@ def read_carmen(
             )
         )
     return scans
+
+
+def _warn_odd_beam_counts(lasers: list[_Laser], path: str) -> None:
+    """Warn of FLASER lines whose beam count is not the log's usual one: such a line carries no
+    angles, so its beams are spread over 180 degrees, which a truncated line's are not."""
+    counts = np.array([len(las.ranges) for las in lasers if las.kind == "FLASER"])
+    if counts.size == 0:
+        return
+    values, n = np.unique(counts, return_counts=True)
+    usual = int(values[n == n.max()].max())  # the most common; of equals, the longest
+    odd = [las for las in lasers if las.kind == "FLASER" and len(las.ranges) != usual]
+    if odd:
+        first = ", ".join(f"line {las.line}: {len(las.ranges)}" for las in odd[:3])
+        more = f" and {len(odd) - 3} more" if len(odd) > 3 else ""
+        warnings.warn(
+            f"{path}: {len(odd)} FLASER line(s) with another beam count than the log's {usual} ({first}{more}); "
+            "each is taken as a 180-degree sweep of its own beams (a truncated line is not: check the log)",
+            stacklevel=3,
+        )
 
 
 def is_carmen_text(head: bytes) -> bool:

@@ -138,6 +138,14 @@ def _valid(ranges: ArrayLike) -> NDArray[np.float64]:
         return r[np.isfinite(r) & (r > 0)]
 
 
+def _rounded(r: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Readings rounded to the codes' precision; one near the float limit (1e308), which
+    overflows when rounded, keeps its own value."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = np.round(r, _DECIMALS)
+    return np.where(np.isfinite(out), out, r)
+
+
 def _code_below(r: NDArray[np.float64], top_index: int) -> NoReturnCode | None:
     """The code whose highest value is ``r[top_index]`` (r sorted ascending), or None."""
     top = r[top_index]
@@ -148,12 +156,12 @@ def _code_below(r: NDArray[np.float64], top_index: int) -> NoReturnCode | None:
     if k < _MIN_COUNT:
         # Nothing (or almost nothing) else to compare with: a constant wall looks the same.
         return None
-    below = np.round(r[:lo], _DECIMALS)  # sorted, so distinct values are where it steps
+    below = _rounded(r[:lo])  # sorted, so distinct values are where it steps
     if np.count_nonzero(np.diff(below)) + 1 < _MIN_DISTINCT:
         return None
     span = max(float(top - _WINDOW - r[lo - k]), _BIN)
     background = k * _BIN / span
-    values, counts = np.unique(np.round(window, _DECIMALS), return_counts=True)
+    values, counts = np.unique(_rounded(window), return_counts=True)
     spike = (counts >= _MIN_COUNT) & (counts >= _RATIO * background)
     if not spike[-1]:
         return None
@@ -190,7 +198,7 @@ def detect_no_return_code(ranges: ArrayLike) -> NoReturnCode | None:
     NoReturnCode or None
     """
     r = np.sort(_valid(ranges))
-    values = np.round(r, _DECIMALS)
+    values = _rounded(r)
     # A sensor reports next to nothing beyond its own code: the code is the largest reading, or
     # lies under fewer stray readings than a code holds (MIT's infinite corridor: 51.06 m, 3,720
     # readings, under 2 at 51.16 m; Acapulco: 51.15 m under one each at 51.2 and 51.25 m).
