@@ -22,6 +22,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         (
             "gpomap",
             "gpomap.errors",
+            "gpomap.extras",
             "gpomap.config",
             "gpomap.progress",
             "gpomap.protocol",

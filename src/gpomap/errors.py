@@ -50,3 +50,7 @@ class EmptyDataError(GpomapError, ValueError):
 
 class DistributedError(GpomapError, RuntimeError):
     """A Dask distributed scheduler could not be reached, or had no workers left to run the tiles."""
+
+
+class MissingExtraError(GpomapError, ImportError):
+    """An optional dependency is not installed; the message names the extra that brings it."""

@@ -21,6 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError, NotFittedError
+from gpomap.extras import require
 
 __all__ = ["OctoMapBaseline"]
 
@@ -79,7 +80,7 @@ class OctoMapBaseline:
         -------
         self
         """
-        import pyoctomap
+        pyoctomap = require("pyoctomap", "the OctoMap baseline")
 
         tree = pyoctomap.OcTree(float(self.resolution))
         if self.prob_hit is not None:

@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.errors import InputFormatError
+from gpomap.extras import require
 from gpomap.grid import UNKNOWN
 from gpomap.io.atomic import atomic_write
 from gpomap.io.checks import regular_file
@@ -265,7 +266,7 @@ def _params(tree: Any) -> dict[str, float]:
 
 def load_pyoctomap_tree(path: str | os.PathLike[str]) -> tuple[Any, str, int]:
     """The file as a ``pyoctomap.OcTree`` (after :func:`check_octree_file`), its kind and node count."""
-    import pyoctomap
+    pyoctomap = require("pyoctomap", "reading OctoMap trees")
 
     kind, res, n = check_octree_file(path)
     spath = str(path)
@@ -327,7 +328,7 @@ def read_octree(path: str | os.PathLike[str]) -> Octree:
 
 def octree_from_voxels(voxel_map: VoxelMap) -> Any:
     """A ``pyoctomap.OcTree`` at the map's resolution holding its known voxels' log-odds."""
-    import pyoctomap
+    pyoctomap = require("pyoctomap", "writing map.bt")
 
     tree = pyoctomap.OcTree(voxel_map.spec.resolution)
     known = voxel_map.ternary != UNKNOWN

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan, cloud_from_points
 from gpomap.errors import InputFormatError
+from gpomap.extras import require
 from gpomap.io.checks import regular_file
 from gpomap.io.poses import pose_from_viewpoint, transform_points
 
@@ -212,7 +213,7 @@ def read_pcd(
         against POINTS); a VIEWPOINT that is not 7 numbers with a unit quaternion; data pypcd4
         cannot decode (bad ascii numbers, a corrupt compressed block).
     """
-    from pypcd4 import PointCloud
+    PointCloud = require("pypcd4", "reading PCD files").PointCloud
 
     if points_frame not in ("map", "sensor"):
         raise ValueError(f"points_frame must be 'map' or 'sensor', got {points_frame!r}")

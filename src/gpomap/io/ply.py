@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan, cloud_from_points
 from gpomap.errors import InputFormatError
+from gpomap.extras import require
 from gpomap.io.checks import regular_file
 from gpomap.io.poses import transform_points
 
@@ -57,7 +58,7 @@ def read_ply(
         Not a regular file, not a PLY file (plyfile's message), no ``vertex`` element, or no
         ``x``, ``y`` or ``z`` property.
     """
-    from plyfile import PlyData
+    PlyData = require("plyfile", "reading PLY files").PlyData
 
     if (pose is None) == (origin is None):
         raise ValueError(

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from gpomap.errors import InputFormatError
+from gpomap.extras import require
 from gpomap.grid import OCCUPIED
 from gpomap.io.atomic import atomic_write, file_written, output_set
 from gpomap.io.checks import load_npz, regular_file
@@ -118,8 +119,9 @@ def write_mesh(voxel_map: VoxelMap, path: str | os.PathLike[str], level: float =
     n_vertices, n_faces : int
         Zero and zero when no voxel crosses `level` (an empty mesh is still written).
     """
-    from plyfile import PlyData, PlyElement
-    from skimage.measure import marching_cubes
+    plyfile = require("plyfile", "writing map.ply")
+    PlyData, PlyElement = plyfile.PlyData, plyfile.PlyElement
+    marching_cubes = require("skimage.measure", "writing map.ply").marching_cubes
 
     p = voxel_map.probability
     r = voxel_map.spec.resolution
