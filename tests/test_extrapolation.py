@@ -7,7 +7,6 @@ import pytest
 from scipy.special import ndtr
 
 from gpomap import extrapolation as ex
-from gpomap.fusion import HIT_DISTANCE_REACHES, HitProximity
 from gpomap.mapping import AreaGPOM
 from gpomap.simulate import paper_room, paper_room_scans, simulate_scans
 from gpomap.squash import ProbitSquash
@@ -120,34 +119,11 @@ def test_the_fitted_scale_is_the_likelihoods_best_by_brute_force():
     grid = np.exp(np.linspace(np.log(0.1), np.log(1e4), 4001))
     p = ndtr(30.0 * mu[None, :] / np.sqrt(1.0 + 900.0 * grid[:, None] * var[None, :]))
     nll = -np.mean(np.where(y[None, :], np.log(p), np.log1p(-p)), axis=1)
-    # With no hit anywhere near, the gain has no say: kappa alone, the grid's best.
-    alone, shift, _, loss = ex.fit_unseen_squash(mu, var, y, np.full(y.size, np.inf), 30.0, 0.0)
-    assert shift == 0.0
+    alone, loss = ex.fit_unseen_squash(mu, var, y, 30.0, 0.0)
     assert alone == pytest.approx(grid[np.argmin(nll)], rel=0.01)
     assert loss == pytest.approx(nll.min(), abs=1e-4)
-    # The gain near hits is off by default (planar maps too): kappa alone, the grid's best.
-    assert report["hit_shift"] == 0.0
     assert report["log_loss"] == pytest.approx(nll.min(), abs=1e-4)
     assert report["log_loss"] <= report["log_loss_at_1"] + 1e-12
-
-
-def test_the_gain_near_hits_is_recovered_from_points_drawn_with_it():
-    # Points drawn from the model itself, with known kappa, gain and reach.
-    rng = np.random.default_rng(7)
-    n, alpha, beta = 40_000, 2.0, 0.1
-    mu, var = rng.normal(0.0, 1.0, n), rng.uniform(0.05, 1.0, n)
-    dist = rng.uniform(0.0, 3.0, n)
-    dist[rng.random(n) < 0.1] = np.inf  # no hit anywhere near
-    kappa, shift, reach = 4.0, 2.0, 0.4
-    p = ndtr((alpha * mu + beta) / np.sqrt(1 + alpha**2 * kappa * var) + shift * np.exp(-dist / reach))
-    y = rng.random(n) < p
-    got = ex.fit_unseen_squash(mu, var, y, dist, alpha, beta)
-    assert got[0] == pytest.approx(kappa, rel=0.25)
-    assert got[1] == pytest.approx(shift, rel=0.1)
-    assert got[2] == pytest.approx(reach, rel=0.15)
-    # Drawn without the gain, it is found to be (nearly) nil.
-    y0 = rng.random(n) < ndtr((alpha * mu + beta) / np.sqrt(1 + alpha**2 * kappa * var))
-    assert ex.fit_unseen_squash(mu, var, y0, dist, alpha, beta)[1] < 0.1
 
 
 def test_region_observations_equal_the_kept_scans_observed_alone():
@@ -188,7 +164,7 @@ def test_unseen_points_pass_over_only_scans_that_cannot_reach_the_square():
     # A square round a held-out pose, most of the room away from it.
     lo, hi, margin = poses[held[0], :2] - 2.0, poses[held[0], :2] + 3.0, 0.25
     kept_scans, held_scans = [scans[i] for i in kept], [scans[i] for i in held]
-    got_pts, got_occ, got_dist = ex._unseen_points(kept_scans, held_scans, lo, hi, margin, 10.0)
+    got_pts, got_occ = ex._unseen_points(kept_scans, held_scans, lo, hi, margin, 10.0)
     # By hand, every scan looked at.
     parts = [calibration_points(s, no_return_cap=10.0) for s in held_scans]
     pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
@@ -200,12 +176,6 @@ def test_unseen_points_pass_over_only_scans_that_cannot_reach_the_square():
     np.testing.assert_array_equal(got_pts, pts[~seen])
     np.testing.assert_array_equal(got_occ, occ[~seen])
     assert got_occ.any() and not got_occ.all()
-    # Each point's distance to the nearest centre of a kept hit's cell, by brute force.
-    res = grid.resolution
-    hits = np.concatenate([s.hits() for s in kept_scans])
-    hit_centres = np.unique((np.floor(hits / res) + 0.5) * res, axis=0)
-    brute = np.sqrt(((got_pts[:, None, :] - hit_centres[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
-    np.testing.assert_allclose(got_dist, brute, rtol=0, atol=1e-9)
     reach = [beams_reach(s, lo, hi, 10.0) for s in scans]
     assert any(reach) and not all(reach)  # the test passes some scans over
 
@@ -261,43 +231,28 @@ def test_the_scale_applies_only_where_no_beam_went(fitted_room: AreaGPOM) -> Non
     empty = (h == 0) & (m == 0)
     assert 100 < empty.sum() < len(pts) - 100
     mean, var = model.predict(pts, return_var=True)
-    # A gain near hits as a fit may find it (this room's held-out stretches give none).
-    fitted, model.evidence_.proximity = model.evidence_.proximity, HitProximity(1.5, 0.3)
-    try:
-        p = model.predict_proba(pts)
-    finally:
-        model.evidence_.proximity = fitted
+    p = model.predict_proba(pts)
     # Cells some beam crossed: the counts on top of the GP's own (leave-one-out) probability.
     seen = model.evidence_.calibration(squash(mean, var), h, m)
     np.testing.assert_allclose(p[~empty], seen[~empty], rtol=0, atol=1e-12)
-    # Cells none did: the probit with the latent variance scaled by kappa, its lean towards free
-    # cut in proportion to the variance's share of the prior's, and raised near the cells beams
-    # ended in (distances centre to centre by brute force), by hand.
-    a, kappa, shift, reach = squash.alpha, squash.variance_scale, 1.5, 0.3
-    ev = model.evidence_
-    lattice, res = ev.lattice, ev.resolution
-    origin = np.asarray(lattice.origin)
-    rows, cols = np.nonzero(ev._hits)
-    hit_centres = origin + (np.column_stack([cols, rows]) + 0.5) * res
-    assert hit_centres.shape[0] > 100
-    d = np.sqrt(((pts[empty][:, None, :] - hit_centres[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
-    assert (d < 1.0).sum() > 50  # unseen cells near walls, where the gain tells
-    d[d >= HIT_DISTANCE_REACHES * reach] = np.inf  # where the layer takes the gain as nil
+    # Cells none did: the probit with the latent variance scaled by kappa and its lean towards
+    # free cut in proportion to the variance's share of the prior's, by hand; nothing near a
+    # surface or behind one raises it.
+    a, kappa = squash.alpha, squash.variance_scale
     cut = hyp["unseen_free_cut"] * np.minimum(var[empty] / hyp["variance"], 1.0)
     z = a * mean[empty] / np.sqrt(1 + a * a * kappa * var[empty])
     assert ((z < 0) & (cut > 0.1 * np.abs(z))).sum() > 10  # free-leaning points the cut moves
-    z = np.where(z < 0, z * np.abs(z) / (np.abs(z) + cut), z) + shift * np.exp(-d / reach)
+    z = np.where(z < 0, z * np.abs(z) / (np.abs(z) + cut), z)
     np.testing.assert_allclose(p[empty], 0.005 + 0.99 * ndtr(z), rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("gain", [False, True])
-def test_point_clouds_fit_the_variance_scale_alone_unless_asked(monkeypatch: pytest.MonkeyPatch, gain: bool) -> None:
+def test_point_clouds_fit_the_variance_scale() -> None:
     from tests.world3d import ORIGINS, lidar_clouds
 
     clouds = lidar_clouds(np.tile(ORIGINS, (4, 1)), n_rays=300)
-    # A GP that knows nothing: where the data end, only the nearness of hits can tell.
+    # Held-out rays' points where no kept ray went, enough of each class to fit kappa on (the
+    # GP's moments have no say in finding them).
     moments = _Fixed(lambda p: (np.zeros(len(p)), np.ones(len(p))))
-    monkeypatch.setitem(ex.HIT_GAIN, 3, gain)
     _, report = ex.fit_variance_scale(
         clouds,
         {"alpha": 1.0, "beta": 0.0},
@@ -309,12 +264,6 @@ def test_point_clouds_fit_the_variance_scale_alone_unless_asked(monkeypatch: pyt
         0.0,
     )
     assert report["n_points"] >= ex.MIN_POINTS_PER_CLASS
-    if gain:
-        # Asked for, the gain is fitted with kappa: never worse than the coin at kappa = 1.
-        assert report["hit_shift"] >= 0.0 and report["log_loss"] <= report["log_loss_at_1"] + 1e-12
-    else:
-        assert report["hit_shift"] == 0.0
-        assert report["log_loss"] == pytest.approx(report["log_loss_at_1"], abs=1e-9)  # a coin, whatever kappa
 
 
 def test_a_region_with_too_few_unseen_points_gives_way_to_the_wider_one(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -2,24 +2,18 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 import pytest
-from scipy.special import ndtr, ndtri
 
 from gpomap import _compiled_counts, fusion, lattice
 from gpomap.clouds import CloudScan
 from gpomap.evidence import NEAR_END, PATH_RADIUS, RayEvidence, lattice_grid, next_to_hits
 from gpomap.fusion import (
     CALIBRATION_BOUNDS,
-    HIT_DISTANCE_REACHES,
     SURPRISE_RATE,
     EvidenceCalibration,
-    HitCells,
-    HitProximity,
     calibration_points,
     fit_calibration,
     gp_sampling_factor,
@@ -223,161 +217,6 @@ def test_next_to_hits_by_hand(dim: int) -> None:
     assert not next_to_hits(np.zeros((4,) * dim, dtype=np.int32)).any()
 
 
-def test_hit_cells_distance_by_hand() -> None:
-    hits = np.zeros((4, 5), dtype=np.int32)  # rows y, columns x; cells of 0.5 m from (0, 0)
-    hits[1, 2] = 3  # the cell centred on (1.25, 0.75)
-    cells = HitCells.of_counts(hits, GridSpec((0.0, 0.0), 0.5, (4, 5)))
-    points = np.array([[1.25, 0.75], [1.3, 0.6], [2.25, 1.75], [-0.25, 0.25]])
-    # From each point to the hit's cell centre; the last point lies outside the lattice.
-    want = [0.0, np.hypot(0.05, 0.15), np.sqrt(2.0), np.hypot(1.5, 0.5)]
-    np.testing.assert_allclose(cells.distance(points), want, rtol=0, atol=1e-12)
-    assert np.isinf(cells.distance(points, upper=1.2)[2:]).all()
-    hits[3, 0] = 1  # a second hit, centred on (0.25, 1.75)
-    two = HitCells.of_counts(hits, GridSpec((0.0, 0.0), 0.5, (4, 5)))
-    extra = np.array([[0.3, 1.9], [1.1, 1.3]])  # nearer the second hit; nearer the first (0.57 against 0.96 m)
-    np.testing.assert_allclose(two.distance(extra), [np.hypot(0.05, 0.15), np.hypot(0.15, 0.55)], rtol=0, atol=1e-12)
-    # Another extent of the same lattice (origin on a cell corner) gives the same numbers.
-    wider = np.zeros((6, 7), dtype=np.int32)
-    wider[2:6, 1:6] = hits
-    np.testing.assert_array_equal(
-        HitCells.of_counts(wider, GridSpec((-0.5, -1.0), 0.5, (6, 7))).distance(points), two.distance(points)
-    )
-    assert np.isinf(
-        HitCells.of_counts(np.zeros((2, 3), dtype=np.int32), GridSpec((0.0, 0.0), 0.5, (2, 3))).distance(points)
-    ).all()
-    # Two lattices of 5 cm cells from extents far apart (their origins' last bits differ, as a
-    # map's grows while it streams), the same hit cells: the same distances, to the bit, at
-    # points on the cells' borders too (a 0.1 m grid's centres lie on them).
-    a, b = lattice_grid((-26.93, 3.0, -3.31, 2.0), 0.05), lattice_grid((-1.07, 1.9, -0.77, 1.2), 0.05)
-    ends = np.array([[0.1234, 0.5123], [0.6011, -0.2377], [1.3999, 0.0501]])
-    grid_hits = []
-    for g in (a, b):
-        h = np.zeros(g.shape, dtype=np.int32)
-        i = np.floor((ends - np.asarray(g.origin)) / 0.05).astype(int)
-        h[i[:, 1], i[:, 0]] = 1
-        grid_hits.append(HitCells.of_counts(h, g))
-    borders = np.array([[0.15, 0.05], [0.35, -0.25], [1.05, 0.45], [-0.45, 1.15]])
-    np.testing.assert_array_equal(grid_hits[0].distance(borders), grid_hits[1].distance(borders))
-    # In 3-D, axes z, y, x.
-    vox = np.zeros((2, 3, 4), dtype=np.int32)
-    vox[1, 2, 3] = 1  # the voxel centred on (1.75, 1.25, 0.75)
-    cells3 = HitCells.of_counts(vox, VoxelSpec((0.0, 0.0, 0.0), 0.5, (2, 3, 4)))
-    assert cells3.distance(np.array([[0.25, 0.25, 0.25]]))[0] == pytest.approx(np.sqrt(1.5**2 + 1.0**2 + 0.5**2))
-
-
-def test_hit_proximity_by_hand() -> None:
-    near = HitProximity(shift=1.0, reach=0.5)
-    p = np.array([0.5, 0.5, 0.5, 0.3085375387259869])  # the last: Phi(-0.5)
-    d = np.array([0.0, 0.5, np.inf, 1.0])
-    # Phi(0 + 1), Phi(0 + e^-1), Phi(0), Phi(-0.5 + e^-2) (Phi by a table of the normal law).
-    want = [0.8413447460685429, 0.6435184347604058, 0.5, 0.3576808497161207]
-    np.testing.assert_allclose(near(p, d), want, rtol=0, atol=1e-8)
-    # No gain: the probabilities as they were, to the bit.
-    assert HitProximity()(p, d) is p
-
-
-def test_the_prior_behind_surfaces_by_hand() -> None:
-    both = HitProximity(shift=1.0, reach=0.5, behind_shift=1.5, behind_reach=0.7, behind_depth=0.2)
-    p = np.full(4, 0.5)
-    d = np.array([0.0, 0.7, 0.7, np.inf])
-    depth = np.array([0.0, 0.2, np.inf, np.inf])
-    # z = e^(-d / 0.5) + 1.5 e^(-d / 0.7) (1 - e^(-depth / 0.2)):
-    #   0.7 m from a hit, 0.2 m deep: e^-1.4 + 1.5 e^-1 (1 - e^-1) = 0.246597 + 0.348816 = 0.595413
-    #   deeper than the cap: e^-1.4 + 1.5 e^-1 = 0.246597 + 0.551819 = 0.798416
-    z = [1.0, 0.595413, 0.798416, 0.0]
-    want = [0.5 * (1.0 + math.erf(v / math.sqrt(2.0))) for v in z]  # Phi, apart from scipy's ndtr
-    np.testing.assert_allclose(both(p, d, depth), want, rtol=0, atol=3e-7)
-    # Without depths (the fit on held-out stretches), the fitted term alone.
-    np.testing.assert_allclose(both(p, d), HitProximity(1.0, 0.5)(p, d), rtol=0, atol=0)
-    # At the edge of what beams crossed, the prior adds nothing; far from every hit, nothing.
-    assert both.gain(np.array([0.0]), np.array([0.0]))[0] == pytest.approx(1.0)
-    assert both.distance_cap == pytest.approx(HIT_DISTANCE_REACHES * 0.7) and both.depth_cap == pytest.approx(1.0)
-    assert not HitProximity().active and HitProximity(behind_shift=0.5).active
-
-
-def test_seen_depth_of_points_and_grids_against_brute_force(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
-    # How deep into unseen space a cell lies: the distance to the nearest cell any beam or step
-    # of the path crossed, here by brute force over every counted cell of the lattice; the map
-    # reads it from a tree of the counted cells at the edge (points) and from a distance
-    # transform of the grid's window (grids on the lattice).
-    model, _ = half_room
-    ev = model.evidence_
-    assert ev.proximity.behind_shift > 0  # a planar map's default
-    lo = np.asarray(ev.lattice.origin)
-    counted = (ev._hits > 0) | (ev._beam_misses > 0) | (ev._near_misses > 0) | (ev._path > 0)
-    centres = (np.argwhere(counted)[:, ::-1] + np.rint(lo / ev.resolution) + 0.5) * ev.resolution
-    cap = ev.proximity.depth_cap
-    for corner, shape, res in (((-1.0, -1.0), (60, 80), 0.05), ((-3.0, 2.0), (120, 90), 0.05), ((-2.0, -2.0), (30, 40), 0.1)):
-        grid = GridSpec(tuple(lo + corner), res, shape)
-        pts = grid.centres()
-        near = np.all((centres >= pts.min(axis=0) - cap) & (centres <= pts.max(axis=0) + cap), axis=1)
-        want = np.min(np.hypot(pts[:, :1] - centres[near, 0], pts[:, 1:] - centres[near, 1]), axis=1, initial=np.inf)
-        # The cells the depth is asked for (nothing counted in them), not those exactly at the cap.
-        unseen = (want > 1e-9) & (np.abs(want - cap) > 1e-9)
-        want[want >= cap] = np.inf
-        assert np.isfinite(want[unseen]).sum() > 100 and np.isinf(want).sum() > 50
-        assert (want < 1e-9).sum() > 100 or res != ev.resolution  # counted cells, where on the lattice
-        np.testing.assert_allclose(ev.seen_depth(pts[unseen]), want[unseen], rtol=0, atol=1e-12)
-        np.testing.assert_allclose(ev.grid_seen_depth(grid).ravel()[unseen], want[unseen], rtol=0, atol=1e-12)
-
-
-def test_the_prior_behind_surfaces_stops_at_the_occupied_threshold() -> None:
-    # Four cells nothing counted in and one counted, 0.2 m from a hit; the first three 1 m deep.
-    prox = HitProximity(shift=1.0, reach=0.5, behind_shift=1.5, behind_reach=0.7, behind_depth=0.2)
-    p_unseen = np.array([0.05, 0.5, 0.9, 0.5, 0.3])
-    counts = np.array([0.0, 0.0, 0.0, 0.0, 3.0])
-    near = np.full(4, 0.2)
-    deep = np.array([1.0, 1.0, 1.0, 0.0])
-    got = fusion._unseen_where_empty(
-        np.full(5, 0.3), counts, counts, p_unseen, lambda m: near, prox, 0.01, lambda m: deep, occupied_above=0.9
-    )
-    fitted = 0.005 + 0.99 * ndtr(ndtri(p_unseen[:4]) + np.exp(-0.2 / 0.5))
-    prior = 1.5 * np.exp(-0.2 / 0.7) * (1.0 - np.exp(-1.0 / 0.2))
-    both = 0.005 + 0.99 * ndtr(ndtri(p_unseen[:3]) + np.exp(-0.2 / 0.5) + prior)
-    assert both[0] < 0.9 and fitted[1] < 0.9 < both[1] and fitted[2] > 0.9  # the three cases
-    np.testing.assert_allclose(got[[0, 2]], both[[0, 2]], rtol=0, atol=1e-12)  # below, and occupied anyway
-    assert got[1] == 0.9  # lifted over the threshold by the prior alone: stops on it
-    np.testing.assert_allclose(got[3], fitted[3], rtol=0, atol=1e-12)  # at the edge: no prior
-    assert got[4] == 0.3  # counted: its own probability
-
-
-def test_the_prior_behind_surfaces_leaves_the_occupied_class_as_it_was(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
-    model, _ = half_room
-    ev = model.evidence_
-    with_prior = model.grid(0.05)
-    pts = with_prior.grid.centres()[::7]
-    exact = model.predict_ternary(pts)
-    kept, ev.proximity = ev.proximity, replace(ev.proximity, behind_shift=0.0)
-    try:
-        without = model.grid(0.05)
-        exact_without = model.predict_ternary(pts)
-    finally:
-        ev.proximity = kept
-    assert (with_prior.probability > without.probability + 0.05).sum() > 100  # behind the walls
-    assert (with_prior.probability < without.probability - 1e-12).sum() == 0
-    np.testing.assert_array_equal(with_prior.ternary == 1, without.ternary == 1)
-    np.testing.assert_array_equal(exact == 1, exact_without == 1)
-
-
-def test_the_prior_behind_surfaces_stops_at_the_users_occupied_threshold_too() -> None:
-    # Thresholds given below the calibrated occupied one: the prior stops at the user's, so the
-    # occupied class of the map the user asked for is the same with and without it.
-    scans = paper_room_scans()[::2]
-    model = AreaGPOM(kernel="se", length_scale=0.4, optimise=False, thresholds=(0.2, 0.4)).fit(scans)
-    ev = model.evidence_
-    assert ev.thresholds == (0.2, 0.4) and model.thresholds_ == (0.2, 0.4)
-    assert ev.revisit.identity and ev.occupied_cap() == pytest.approx(0.4, abs=1e-8)
-    with_prior = model.grid(0.05)
-    kept, ev.proximity = ev.proximity, replace(ev.proximity, behind_shift=0.0)
-    try:
-        without = model.grid(0.05)
-    finally:
-        ev.proximity = kept
-    stopped = (with_prior.probability == ev.occupied_cap()) & (without.probability < 0.4)
-    assert stopped.sum() > 20  # cells the prior alone would have made occupied
-    np.testing.assert_array_equal(with_prior.ternary == 1, without.ternary == 1)
-
-
 def test_calibration_points_follow_the_protocol() -> None:
     s = _scan(0.0, 0.0, [0.0, np.pi / 2], [1.0, 5.0], max_range=5.0)
     pts, occ = calibration_points(s, step=0.1, no_return_cap=0.5)
@@ -448,10 +287,7 @@ def test_written_grid_uses_its_own_cells_counts(half_room: tuple[AreaGPOM, list[
     p_gp, _, p_unseen = (a.reshape(om.grid.shape) for a in model._gp_probabilities(om.grid.centres()))
     factor = gp_sampling_factor(model.hyperparameters_["length_scale"], 0.05)
     assert factor > 1  # the GP was sampled coarsely and interpolated
-    # Cells no beam crossed take the GP's probability for unseen space (gpomap.extrapolation),
-    # raised near the cells beams ended in, and more so deeper into unseen space.
-    evidence = model.evidence_
-    p_unseen = evidence.proximity(p_unseen, evidence.grid_hit_distance(om.grid), evidence.grid_seen_depth(om.grid))
+    # Cells no beam crossed take the GP's probability for unseen space (gpomap.extrapolation).
     exact = np.where((hits == 0) & (misses == 0), p_unseen, model.evidence_.calibration(p_gp, hits, misses))
     # Interpolating the GP a third of a length scale apart moves the written map little, and
     # only in cells next to walls with few counts (measured on Intel scans 0-300, every 10th
@@ -459,25 +295,6 @@ def test_written_grid_uses_its_own_cells_counts(half_room: tuple[AreaGPOM, list[
     diff = np.abs(om.probability - exact)
     assert diff.mean() < 0.01
     assert np.quantile(diff, 0.95) < 0.05
-
-
-def test_a_grids_hit_distance_equals_the_hit_cells_tree(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
-    # A grid on the counted lattice takes a distance transform of its window; the tree of hit
-    # cells is the independent reference, on grids inside, across and off the lattice.
-    model, _ = half_room
-    ev = model.evidence_
-    lo = np.asarray(ev.lattice.origin)
-    fitted, ev.proximity = ev.proximity, HitProximity(1.0, 0.15)  # the gain nil beyond 1.5 m
-    try:
-        for corner, shape, res in (((2.0, 3.0), (60, 80), 0.05), ((-3.0, -2.0), (120, 90), 0.05), ((1.0, 1.0), (30, 40), 0.1)):
-            grid = GridSpec(tuple(lo + corner), res, shape)
-            got = ev.grid_hit_distance(grid)
-            want = HitCells.of_counts(ev._hits, ev.lattice).distance(grid.centres(), HIT_DISTANCE_REACHES * 0.15).reshape(shape)
-            assert np.isfinite(want).sum() > 100 and np.isinf(want).sum() > 100
-            np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
-            assert ev.hit_distance(grid.centres()).reshape(shape) == pytest.approx(want)
-    finally:
-        ev.proximity = fitted
 
 
 def test_bilinear_interpolation_is_exact_on_a_plane() -> None:

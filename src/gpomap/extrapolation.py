@@ -16,20 +16,9 @@ fitted where the question is the same as a user's: the log's scans are cut into 
 stretches, every third stretch is held out, a GP with the map's hyperparameters is fitted on the
 rest, and kappa maximises the class-balanced likelihood of the held-out stretches' hits and free
 points (the evaluation protocol's points) that lie where no kept beam went. Near the data the
-latent variance is small and kappa changes little; far from it p tends to 1/2 sooner.
-
-Where no beam went but a beam ended close by, the space is mostly the same surface going on: a
-wall past the last metre a scan saw of it, the far side of an obstacle. On the evaluation's blocks
-splits of ACES and Belgioioso, such points within 0.5 m of a training hit were 73-100 % occupied, and the GP,
-pulled by the free cells on the seen side, gave them 0.32-0.68. In planar maps (:data:`HIT_GAIN`)
-the same held-out points fit a gain of the probit near hits with kappa
-(:class:`gpomap.fusion.HitProximity`):
-
-    p = Phi((alpha mu + beta) / sqrt(1 + alpha^2 kappa v) + shift exp(-d / reach)),
-
-d the distance from the point to the nearest centre of a cell a kept beam ended in. The gain is never
-negative, has a normal prior (a few dozen points of one room do not make unseen space next to
-walls certain), and its reach is at most 1 m, so that far from all data p is still 1/2.
+latent variance is small and kappa changes little; far from it p tends to 1/2 sooner. Kappa is
+all that is fitted: unseen space next to where beams ended gets no gain of its own, which fitted
+on held-out points at their natural frequencies came out nil (docs/choices.md).
 
 To bound the cost, the held-in GP covers one square region of side ``2 * region_half`` round a
 given centre (the hyperparameter sample's), and only points well inside it are used; where it
@@ -52,13 +41,13 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import minimize, minimize_scalar
+from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 from scipy.special import log_ndtr
 
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
-from gpomap.fusion import HIT_DISTANCE_REACHES, HitCells, HitProximity, calibration_points
+from gpomap.fusion import calibration_points
 from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
 from gpomap.observations import Observations, beams_reach, data_dim, free_near_hits, natural_subsample
 from gpomap.squash import unseen_probit
@@ -75,22 +64,9 @@ MIN_POINTS_PER_CLASS: int = 50
 MAX_POINTS_PER_CLASS: int = 5_000
 #: Search bounds of kappa.
 VARIANCE_SCALE_BOUNDS: tuple[float, float] = (0.1, 1e4)
-#: Bounds of the probit gain of unseen space at a hit's cell (:class:`gpomap.fusion.HitProximity`);
-#: never negative: a surface nearby does not make space freer.
-HIT_SHIFT_BOUNDS: tuple[float, float] = (0.0, 5.0)
-#: Bounds of the distance over which that gain falls by e, metres. At most 1 m, so that 5 m from
-#: every hit (where the map must return its prior) the largest gain is 5 e^-5 = 0.034 in probit,
-#: 0.013 in probability.
-HIT_REACH_BOUNDS: tuple[float, float] = (0.05, 1.0)
-#: Standard deviation of the zero-mean normal prior on that gain (probit units): the penalty is
-#: the prior's log density per point fitted, so it fades as the points grow in number.
-HIT_SHIFT_PRIOR_STD: float = 1.0
-#: Whether the gain near hits is fitted, per dimension of the data. Off: fitted on held-out points
-#: at their natural frequencies it comes out nil (docs/choices.md, the stage ablation).
-HIT_GAIN: dict[int, bool] = {2: False, 3: False}
 #: Fewest held-out points of each class where no kept beam went for the held-in GP's square round
 #: the hyperparameter sample to be enough; with fewer, a square twice as wide is taken (or the
-#: whole map, when that is smaller). Kappa needs few; the gain near hits is fitted with it.
+#: whole map, when that is smaller). Kappa needs few.
 REGION_POINTS_PER_CLASS: int = 500
 #: A held-out hit farther than this from every kept hit saw new ground (metres): where the first
 #: regions hold too few unseen points, the square where held-out stretches saw most of it is
@@ -125,16 +101,11 @@ def holdout_stretches(n_scans: int, first: int = FOLD_STARTS[0]) -> tuple[NDArra
     return idx[~held], idx[held]
 
 
-def _nll(
-    kappa: float, mu, var, occupied, alpha: float, beta: float, distance=None, shift: float = 0.0, reach: float = 1.0
-) -> float:
-    """Mean negative log probit likelihood at variance scale `kappa`, with the gain ``shift *
-    exp(-distance / reach)`` near hits (:class:`gpomap.fusion.HitProximity`); the classes are
-    balanced by subsampling. The probit is the map's where no beam went before its cut of the
-    lean towards free (:func:`gpomap.squash.unseen_probit`), which is a prior, not fitted."""
+def _nll(kappa: float, mu, var, occupied, alpha: float, beta: float) -> float:
+    """Mean negative log probit likelihood at variance scale `kappa`. The probit is the map's
+    where no beam went before its cut of the lean towards free
+    (:func:`gpomap.squash.unseen_probit`), which is a prior, not fitted."""
     z = unseen_probit(alpha * mu + beta, alpha * alpha * var, kappa)
-    if shift != 0.0 and distance is not None:
-        z = z + HitProximity(shift, reach).gain(distance)
     return float(-np.mean(np.where(occupied, log_ndtr(z), log_ndtr(-z))))
 
 
@@ -237,8 +208,7 @@ def fit_variance_scale(
     -------
     kappa : float
     report : dict
-        ``"kappa"``, ``"hit_shift"`` and ``"hit_reach"`` (the gain near hits),
-        ``"n_points"`` (per class), ``"n_patterns"``, ``"region_centre"`` and ``"region_half"``
+        ``"kappa"``, ``"n_points"`` (per class), ``"n_patterns"``, ``"region_centre"`` and ``"region_half"``
         (the square used), ``"log_loss_at_1"`` and ``"log_loss"`` (balanced, at kappa = 1 and
         at the fit), or ``"reason"`` when kappa stays 1.
     """
@@ -274,17 +244,16 @@ def fit_variance_scale(
         return 1.0, {"kappa": 1.0, "reason": reason}
     pts = np.concatenate([f[1] for f in folds])
     occ = np.concatenate([f[2] for f in folds])
-    dist = np.concatenate([f[3] for f in folds])
     fold_of = np.concatenate([np.full(f[2].size, k) for k, f in enumerate(folds)])
     keep = natural_subsample(occ.size, 2 * n, seed)
-    pts, occ, fold_of, dist = pts[keep], occ[keep], fold_of[keep], dist[keep]
+    pts, occ, fold_of = pts[keep], occ[keep], fold_of[keep]
     # The region's points (grown by the clearance) cut once for every pattern: a whole log has
     # tens of millions.
     near = _in_square(observations.points, lo, hi, free_clearance)
     observations = Observations(observations.points[near], observations.occupied[near], observations.scan_index[near])
     # Each pattern's points are predicted by the GP of that pattern's kept scans.
     mu, var = np.empty(occ.size), np.empty(occ.size)
-    for k, (kept, _, _, _) in enumerate(folds):
+    for k, (kept, _, _) in enumerate(folds):
         sel = fold_of == k
         if not sel.any():
             continue
@@ -297,13 +266,9 @@ def fit_variance_scale(
             return 1.0, {"kappa": 1.0, "reason": str(err)}
         mu[sel], var[sel] = model.predict(pts[sel], return_var=True)
     a, b = float(hyperparameters["alpha"]), float(hyperparameters["beta"])
-    # Without the gain, its distances are inf: kappa alone.
-    gain = HIT_GAIN.get(pts.shape[1], False)
-    kappa, shift, reach, loss = fit_unseen_squash(mu, var, occ, dist if gain else np.full(occ.size, np.inf), a, b)
+    kappa, loss = fit_unseen_squash(mu, var, occ, a, b)
     return kappa, {
         "kappa": kappa,
-        "hit_shift": shift,
-        "hit_reach": reach,
         "n_points": n,
         "n_patterns": len(folds),
         "region_centre": [float(v) for v in centre],
@@ -413,7 +378,7 @@ def _region_folds(
     margin: float,
     no_return_cap: float | None,
     observes: Callable[[NDArray[np.intp]], bool],
-) -> tuple[list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]], int]:
+) -> tuple[list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]], int]:
     """Per pattern of held-out stretches tried, the kept scans' indices and the held-out points in
     the square where none of them went (:func:`_unseen_points`); and the points per class to use.
 
@@ -423,14 +388,14 @@ def _region_folds(
     whatever the variance scale (a robot that drove past the square once, in a stretch this
     pattern holds out: MIT's infinite corridor kept the scale at 1 so).
     """
-    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]] = []
+    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]] = []
     n = 0
     for first in FOLD_STARTS:
         kept, held = holdout_stretches(len(scans), first)
         if not observes(kept):
             continue
-        pts, occ, dist = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
-        folds.append((kept, pts, occ, dist))
+        pts, occ = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
+        folds.append((kept, pts, occ))
         n_occ = sum(int(f[2].sum()) for f in folds)
         n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
         if n >= MIN_POINTS_PER_CLASS:
@@ -439,65 +404,35 @@ def _region_folds(
 
 
 def fit_unseen_squash(
-    mu: NDArray[np.float64],
-    var: NDArray[np.float64],
-    occupied: NDArray[np.bool_],
-    distance: NDArray[np.float64],
-    alpha: float,
-    beta: float,
-) -> tuple[float, float, float, float]:
-    """The variance scale and the gain near hits that maximise the likelihood of unseen points.
+    mu: NDArray[np.float64], var: NDArray[np.float64], occupied: NDArray[np.bool_], alpha: float, beta: float
+) -> tuple[float, float]:
+    """The variance scale that maximises the likelihood of unseen points.
 
     The probability of a point where no beam went is
-    ``Phi((alpha mu + beta) / sqrt(1 + alpha^2 kappa var) + shift exp(-distance / reach))``
-    (:class:`gpomap.fusion.HitProximity`). Kappa is fitted alone first, then all three together
-    from there; the better of the two is kept.
+    ``Phi((alpha mu + beta) / sqrt(1 + alpha^2 kappa var))`` (before the map's cut of the lean
+    towards free, :func:`gpomap.squash.unseen_probit`).
 
     Parameters
     ----------
     mu, var : ndarray of shape (m,)
         The held-in GP's latent mean and variance at the points.
     occupied : ndarray of bool, shape (m,)
-        Their classes, balanced.
-    distance : ndarray of shape (m,)
-        From each point to the nearest centre of a cell a kept beam ended in, metres (inf: none).
+        Their classes.
     alpha, beta : float
         The map's squash.
 
     Returns
     -------
-    kappa, shift, reach, log_loss : float
-        ``shift`` 0 (and ``reach`` 1) when the gain does not lower the loss.
+    kappa, log_loss : float
     """
-    a, b, occ, dist = alpha, beta, occupied, distance
     res = minimize_scalar(
-        lambda t: _nll(float(np.exp(t)), mu, var, occ, a, b),
+        lambda t: _nll(float(np.exp(t)), mu, var, occupied, alpha, beta),
         bounds=tuple(np.log(VARIANCE_SCALE_BOUNDS)),
         method="bounded",
         # Tight, so kappa is the optimum's and not moved by the last bits of the held-in maps.
         options={"xatol": 1e-10},
     )
-    kappa, loss, shift, reach = float(np.exp(res.x)), float(res.fun), 0.0, 1.0
-    if not np.isfinite(dist).any():
-        return kappa, shift, reach, loss  # no hit near any point: the gain has no say
-    # Then kappa and the gain near hits together, from kappa alone (where the gain is nil and its
-    # reach has no say, so the search starts at a gain of 1 over half a metre), the gain under
-    # its prior: a few dozen points of one room do not make unseen space next to walls certain.
-    prior = 1.0 / (2.0 * HIT_SHIFT_PRIOR_STD**2 * max(occ.size, 1))
-
-    def penalised(t: NDArray[np.float64]) -> float:
-        return _nll(float(np.exp(t[0])), mu, var, occ, a, b, dist, float(t[1]), float(np.exp(t[2]))) + prior * t[1] ** 2
-
-    both = minimize(
-        penalised,
-        np.array([np.log(kappa), 1.0, np.log(0.5)]),
-        method="L-BFGS-B",
-        bounds=[tuple(np.log(VARIANCE_SCALE_BOUNDS)), HIT_SHIFT_BOUNDS, tuple(np.log(HIT_REACH_BOUNDS))],
-    )
-    if float(both.fun) < loss:
-        kappa, shift, reach = float(np.exp(both.x[0])), float(both.x[1]), float(np.exp(both.x[2]))
-        loss = _nll(kappa, mu, var, occ, a, b, dist, shift, reach)
-    return kappa, shift, reach, loss
+    return float(np.exp(res.x)), float(res.fun)
 
 
 def _unseen_points(
@@ -507,11 +442,9 @@ def _unseen_points(
     hi: NDArray[np.float64],
     margin: float,
     no_return_cap: float | None,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """The held-out scans' protocol points in the square `lo`..`hi` (x, y) shrunk by `margin`, where
-    no kept beam went: points (m, d), classes (m,), and the distance (m,) from each point to the
-    nearest centre of a cell a kept beam ended in, as the map measures it
-    (:class:`gpomap.fusion.HitCells`; inf when no kept beam ended).
+    no kept beam went: points (m, d) and classes (m,).
 
     Scans whose beams cannot reach the square are passed over (a whole log's scans mostly look
     elsewhere: on FR079 they were most of the stage's time).
@@ -525,7 +458,7 @@ def _unseen_points(
         pts_l.append(p[sel])
         occ_l.append(o[sel])
     if not pts_l or sum(len(p) for p in pts_l) == 0:
-        return np.zeros((0, data_dim(held_scans))), np.zeros(0, bool), np.zeros(0)
+        return np.zeros((0, data_dim(held_scans))), np.zeros(0, bool)
     pts, occ = np.concatenate(pts_l), np.concatenate(occ_l)
     # Where no kept beam went: no hit and no miss on the evaluation's reference lattice.
     box_lo, box_hi = column_bounds(pts)
@@ -533,9 +466,4 @@ def _unseen_points(
     grid = lattice_grid(bounds_extent(box_lo, box_hi), UNSEEN_RESOLUTION[pts.shape[1]])
     cell, ok = flat_index(grid, pts)
     seen = ok & rays.seen(grid).reshape(-1)[cell]
-    pts, occ = pts[~seen], occ[~seen]
-    # Hits farther than the map looks for one (its reach at most, times HIT_DISTANCE_REACHES)
-    # change no distance that counts: a whole log's kept scans end millions of beams elsewhere.
-    hits = rays.ends[rays.hit]
-    hits = hits[_in_square(hits, box_lo, box_hi, HIT_DISTANCE_REACHES * HIT_REACH_BOUNDS[1])]
-    return pts, occ, HitCells.of_points(hits, grid.resolution).distance(pts)
+    return pts[~seen], occ[~seen]

@@ -16,11 +16,12 @@ posterior mean is
 the far misses here those that are not surface misses.
 
 Where no beam went, p is the GP's probability for unseen space (its latent variance scaled by the
-factor fitted on held-out stretches of the log, and raised near cells beams ended in by a gain
-fitted with it, :mod:`gpomap.extrapolation`; its lean towards free cut where its variance is
-large, :data:`gpomap.squash.UNSEEN_FREE_CUT`); where many did, the counts decide and walls are as
-sharp as the cells; the GP carries the map across gaps, and far from all data it returns its
-prior, 0.5.
+factor fitted on held-out stretches of the log, :mod:`gpomap.extrapolation`; its lean towards
+free cut where its variance is large, :data:`gpomap.squash.UNSEEN_FREE_CUT`), next to surfaces
+and behind them too: at natural class frequencies neither a gain near hits nor a prior behind
+surfaces paid for itself (docs/choices.md). Where many beams went, the counts decide and walls
+are as sharp as the cells; the GP carries the map across gaps, and far from all data it returns
+its prior, 0.5.
 
 The robot's own path is evidence too: the robot's body passed there, so each step of the path
 through a cell (or within :data:`~gpomap.evidence.PATH_RADIUS` of it) counts as
@@ -82,10 +83,7 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.ndimage import binary_erosion, distance_transform_edt
 from scipy.optimize import brentq, minimize
-from scipy.spatial import cKDTree
-from scipy.special import ndtr, ndtri
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
@@ -562,183 +560,19 @@ def _other_scans_counts(
     return hits, misses, near, surface_count
 
 
-#: The prior gain of unseen space behind surfaces (:class:`HitProximity`'s ``behind_shift``,
-#: ``behind_reach``, ``behind_depth``), per dimension of the data. Planar maps: chosen across the
-#: 13 logs we have, on their test points with each log left out in turn (the other twelve's came
-#: out 1.13-1.93, 0.62-0.90 m and 0.11-0.32 m; docs/choices.md, "Unseen space behind surfaces").
-#: Off for point clouds: not measured there.
-BEHIND_SURFACES: dict[int, tuple[float, float, float]] = {2: (1.5, 0.7, 0.2), 3: (0.0, 0.7, 0.2)}
-
-
-@dataclass(frozen=True)
-class HitProximity:
-    """How much a surface near unseen space raises its probability of being occupied.
-
-    Where no beam went, a point next to where beams ended is mostly the same surface going on
-    (a wall past the last metre a scan saw of it, the far side of an obstacle): on the blocks
-    splits of ACES and Belgioioso, held-out points no training beam reached were 73-100 %
-    occupied within 0.5 m of a training hit, and 34-58 % at 1-2 m, while the GP, pulled by the
-    free cells on the seen side, gave them 0.32-0.68 (docs/choices.md). So the probit of unseen
-    space gains
-
-        shift * exp(-d / reach) + behind_shift * exp(-d / behind_reach) * (1 - exp(-depth / behind_depth)),
-
-    d the distance from the point to the nearest centre of a cell a beam ended in, depth its
-    distance to the nearest cell any beam (or the robot's path) crossed. ``shift`` and ``reach``
-    are fitted with the variance scale on held-out stretches of the log
-    (:mod:`gpomap.extrapolation`); ``reach`` is bounded so the gain is nil far from the data.
-    The second term is a prior (:data:`BEHIND_SURFACES`): unseen space is what surfaces hide, so
-    a metre behind one it is mostly more of it, while the unseen cells at the edge of what the
-    beams crossed are mostly the same open space (docs/choices.md, "Unseen space behind surfaces").
-
-    Parameters
-    ----------
-    shift : float
-        Probit gain at a hit's own cell (0: none).
-    reach : float
-        Distance over which the gain falls by a factor e, metres.
-    behind_shift : float
-        Probit gain of the prior term deep in unseen space at a hit's cell (0: none).
-    behind_reach : float
-        Distance from the hit over which it falls by a factor e, metres.
-    behind_depth : float
-        Depth into unseen space over which it rises to within a factor e of its full value, metres.
-    """
-
-    shift: float = 0.0
-    reach: float = 0.5
-    behind_shift: float = 0.0
-    behind_reach: float = BEHIND_SURFACES[2][1]
-    behind_depth: float = BEHIND_SURFACES[2][2]
-
-    @property
-    def active(self) -> bool:
-        """Whether either term raises any probability."""
-        return self.shift != 0.0 or self.behind_shift != 0.0
-
-    @property
-    def distance_cap(self) -> float:
-        """Distance from every hit beyond which both terms are taken as nil, metres."""
-        reach = max(self.reach, self.behind_reach if self.behind_shift != 0.0 else 0.0)
-        return HIT_DISTANCE_REACHES * reach
-
-    @property
-    def depth_cap(self) -> float:
-        """Depth into unseen space beyond which the prior term is taken as full, metres."""
-        return DEPTH_SCALES * self.behind_depth
-
-    def gain(self, distance: ArrayLike, depth: ArrayLike | None = None) -> NDArray[np.float64]:
-        """The probit's gain at `distance` metres from the nearest hit's cell (inf: none) and
-        `depth` metres into unseen space (inf: deeper than :attr:`depth_cap`; None: the fitted
-        term alone)."""
-        d = np.asarray(distance, dtype=float)
-        out = self.shift * np.exp(-d / self.reach)
-        if self.behind_shift != 0.0 and depth is not None:
-            rise = -np.expm1(-np.asarray(depth, dtype=float) / self.behind_depth)
-            out = out + self.behind_shift * np.exp(-d / self.behind_reach) * rise
-        return np.asarray(out, dtype=float)
-
-    def __call__(
-        self, p_unseen: NDArray[np.float64], distance: NDArray[np.float64], depth: NDArray[np.float64] | None = None
-    ) -> NDArray[np.float64]:
-        """`p_unseen` at points `distance` metres from the nearest hit's cell and `depth` metres into
-        unseen space (matching shapes; inf: none, and deeper than :attr:`depth_cap`)."""
-        if not self.active:
-            return p_unseen
-        # ndtri is exact enough to invert ndtr where the gain matters (|z| < 8).
-        z = ndtri(np.clip(p_unseen, 1e-15, 1.0 - 1e-15))
-        return ndtr(z + self.gain(distance, depth))
-
-
-#: The gain near hits is taken as nil beyond this many of its reaches (at most 5 e^-10 < 3e-4 in probit).
-HIT_DISTANCE_REACHES: float = 10.0
-#: The prior gain behind surfaces is taken as full beyond this many of its depths (within e^-5 < 0.7 %).
-DEPTH_SCALES: float = 5.0
-
-
-class HitCells:
-    """The cells of a lattice that some beam ended in, and how far any point is from them.
-
-    A distance runs from the point to the nearest such cell's centre: at a cell centre, the
-    distance between the two cells, as :mod:`gpomap.extrapolation` measures it when it fits the
-    gain. The cells are those of the lattice through the origin (cell k spans ``[k r, (k + 1) r)``,
-    :func:`gpomap.evidence.lattice_grid`), so two lattices of other extents give the same numbers.
-
-    Parameters
-    ----------
-    cells : ndarray of int, shape (k, d)
-        The cells beams ended in, by index k on that lattice (x, y (, z)).
-    resolution : float
-        The lattice's side r, metres.
-    """
-
-    def __init__(self, cells: NDArray[np.integer] | NDArray[np.floating], resolution: float) -> None:
-        cells = np.asarray(cells, dtype=float)
-        self._tree = cKDTree((cells + 0.5) * float(resolution)) if cells.size else None
-
-    @classmethod
-    def of_counts(cls, hits: NDArray[np.integer], lattice: AnyGrid) -> HitCells:
-        """The cells of `lattice` (on the lattice through the origin) with hits, of `hits` (ndarray of int, shape lattice.shape)."""
-        r = float(lattice.resolution)
-        first = np.rint(np.asarray(lattice.origin, dtype=float) / r)
-        # Array axes run (z,) y, x; coordinates x, y (, z).
-        return cls(first + np.argwhere(np.asarray(hits) > 0)[:, ::-1], r)
-
-    @classmethod
-    def of_points(cls, points: NDArray[np.float64], resolution: float) -> HitCells:
-        """The cells of `resolution` holding `points` (m, d): as if they were counted as hits on a
-        lattice of that resolution."""
-        return cls(np.unique(np.floor(np.asarray(points, dtype=float) / resolution), axis=0), resolution)
-
-    def distance(self, points: NDArray[np.float64], upper: float = np.inf) -> NDArray[np.float64]:
-        """Distance (m,) from each point (m, d) to the nearest hit's cell centre, metres; inf where
-        none is nearer than `upper`."""
-        m = np.asarray(points).shape[0]
-        if self._tree is None or m == 0:
-            return np.full(m, np.inf)
-        d, _ = self._tree.query(np.asarray(points, dtype=float), distance_upper_bound=upper)
-        return np.asarray(d, dtype=float)
-
-
 def _unseen_where_empty(
     p: NDArray[np.float64],
     hits: NDArray[np.float64],
     misses: NDArray[np.float64],
     p_unseen: NDArray[np.float64] | None,
-    distance: Callable[[NDArray[np.bool_]], NDArray[np.float64]] | None = None,
-    proximity: HitProximity | None = None,
     surprise_rate: float = SURPRISE_RATE,
-    depth: Callable[[NDArray[np.bool_]], NDArray[np.float64]] | None = None,
-    occupied_above: float | None = None,
 ) -> NDArray[np.float64]:
     """`p`, with `p_unseen` (mixed with `surprise_rate`, as the counted cells are) where a cell has
-    no count at all, raised by `proximity` at those cells' `distance` from the nearest hit and
-    `depth` into unseen space (each given their mask, flat).
-
-    The prior behind surfaces moves probabilities, not classes: where it alone would lift a cell
-    above `occupied_above` (the ternary map's fitted threshold), the cell stops at it.
-    """
+    no count at all (matching shapes): the GP's probability for unseen space as it is, near
+    surfaces too (see the module docstring)."""
     if p_unseen is None:
         return p
-    empty = (hits == 0) & (misses == 0)
-    capped = None
-    if proximity is not None and proximity.active and distance is not None:
-        p_unseen = np.array(p_unseen, dtype=float)
-        flat = p_unseen.reshape(-1)
-        mask = empty.reshape(-1)
-        near, deep = distance(mask), None if depth is None else depth(mask)
-        gp_unseen = flat[mask]
-        raised = proximity(gp_unseen, near, deep)
-        if deep is not None and occupied_above is not None:
-            # Of the cells the prior leaves over the threshold, those the fitted gain alone does not lift over it.
-            over = np.flatnonzero(with_surprises(raised, surprise_rate) > occupied_above)
-            fitted = with_surprises(proximity(gp_unseen[over], near[over]), surprise_rate)
-            capped = np.flatnonzero(mask)[over[fitted <= occupied_above]]
-        flat[mask] = raised
-    out = np.where(empty, with_surprises(p_unseen, surprise_rate), p)
-    if capped is not None and capped.size:
-        out.reshape(-1)[capped] = occupied_above  # at the threshold, not above it
-    return out
+    return np.where((hits == 0) & (misses == 0), with_surprises(p_unseen, surprise_rate), p)
 
 
 #: A planar written map's GP variance is predicted this many GP samples apart and interpolated;
@@ -830,14 +664,9 @@ class EvidenceLayer:
     calibration_scans : int
         Scans held out in turn to fit the calibration.
     seed : int
-    proximity : HitProximity, optional
-        The gain of unseen space near hits (default none); settable after.
     gp_apart : callable, optional
         The GP fitted on given scans, its hyperparameters held, that every calibration fits the
         surprise rate against (:func:`fit_calibration`); without it the rate is the prior.
-    thresholds : (float, float), optional
-        The ternary thresholds a user gave the map (:func:`ternary_thresholds`), if any: the
-        prior behind surfaces stops at their occupied one (:meth:`occupied_cap`).
     """
 
     def __init__(
@@ -848,16 +677,10 @@ class EvidenceLayer:
         no_return_cap: float | None = 10.0,
         calibration_scans: int = 25,
         seed: int = 0,
-        proximity: HitProximity | None = None,
         gp_apart: GPApart | None = None,
-        thresholds: tuple[float, float] | None = None,
     ) -> None:
         self.resolution = float(resolution)
-        self.thresholds = thresholds
-        self.proximity = proximity if proximity is not None else HitProximity()
         self.gp_apart = gp_apart
-        self._hit_cells: HitCells | None = None  # of the counts so far, when asked
-        self._seen_edge: HitCells | None = None  # counted cells next to uncounted ones, when asked
         self._at_surface: NDArray[np.bool_] | None = None  # next_to_hits of the counts so far, when asked
         self.no_return_cap = no_return_cap
         self.calibration_scans = int(calibration_scans)
@@ -946,8 +769,6 @@ class EvidenceLayer:
         self._parts.append(part)
         self._joined = None
         self._grid_cache = None
-        self._hit_cells = None
-        self._seen_edge = None
         self._at_surface = None
 
     def _block(self, grid: AnyGrid) -> tuple[slice, ...]:
@@ -1041,26 +862,8 @@ class EvidenceLayer:
         the path) crossed the point's cell; default `p_gp`.
         """
         h, m = self.counts_at(points)
-        pts = np.asarray(points, dtype=float)
-        p = _unseen_where_empty(
-            self.calibration(p_gp, h, m),
-            h,
-            m,
-            p_unseen,
-            lambda mask: self.hit_distance(pts[mask]),
-            self.proximity,
-            self.calibration.surprise_rate,
-            (lambda mask: self.seen_depth(pts[mask])) if self.proximity.behind_shift != 0.0 else None,
-            self.occupied_cap(),
-        )
+        p = _unseen_where_empty(self.calibration(p_gp, h, m), h, m, p_unseen, self.calibration.surprise_rate)
         return self.revisit(p)
-
-    def occupied_cap(self) -> float:
-        """The ternary map's occupied threshold before :attr:`revisit`: where the prior behind
-        surfaces alone would lift a cell over it, the cell stops on it (the occupied class stays
-        what the counts and the GP make it). The user's threshold when given, else the calibrated
-        map's (:func:`ternary_thresholds`)."""
-        return self.revisit.inverse(ternary_thresholds(self.thresholds, self)[1])
 
     def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
         """Whether beams or the robot's path crossed the fine cell holding each point and no beam
@@ -1083,76 +886,6 @@ class EvidenceLayer:
             self._grid_cache = (grid, *self._raw_grid_counts(grid))
         _, counts, path, _ = self._grid_cache
         return seen_through(counts.hits, counts.misses, path)
-
-    def hit_distance(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Distance (m,) from each point (m, d) to the nearest centre of a cell a beam ended in
-        (:class:`HitCells`), inf where the gain near hits is nil."""
-        n = np.asarray(points).shape[0]
-        if self.lattice is None:
-            return np.full(n, np.inf)
-        if self._hit_cells is None:
-            self._hit_cells = HitCells.of_counts(self._hits, self.lattice)
-        return self._hit_cells.distance(points, self.proximity.distance_cap)
-
-    def grid_hit_distance(self, grid: AnyGrid) -> NDArray[np.float64]:
-        """:meth:`hit_distance` at every cell centre of `grid`, shape grid.shape.
-
-        On the counted lattice, a distance transform of the grid's window grown by the distance
-        beyond which the gain is nil (every hit that counts lies in it): the same distances, at a
-        cost that follows the grid read, not the whole map.
-        """
-        if self.lattice is None or not self._on_lattice(grid):
-            return self.hit_distance(grid_centres(grid)).reshape(grid.shape)
-        return self._window_distance(grid, lambda block: self._hits[block] > 0, self.proximity.distance_cap)
-
-    def seen_depth(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Distance (m,) from each point (m, d) in a cell nothing counted in to the nearest centre of
-        a cell any beam or step of the path crossed, inf beyond :attr:`HitProximity.depth_cap`: how
-        deep into unseen space the point lies. (The tree holds only the counted cells at the edge of
-        what was counted, so a point in a counted cell gets its distance to that edge, not 0.)"""
-        n = np.asarray(points).shape[0]
-        if self.lattice is None:
-            return np.full(n, np.inf)
-        if self._seen_edge is None:
-            # The nearest counted cell to an uncounted point is one next to an uncounted cell.
-            counted = self._counted(tuple(slice(None) for _ in self.lattice.shape))
-            inner = binary_erosion(counted, np.ones((3,) * counted.ndim, dtype=bool), border_value=0)
-            self._seen_edge = HitCells.of_counts(counted & ~inner, self.lattice)
-        return self._seen_edge.distance(points, self.proximity.depth_cap)
-
-    def grid_seen_depth(self, grid: AnyGrid) -> NDArray[np.float64]:
-        """:meth:`seen_depth` at every cell centre of `grid`, shape grid.shape (a distance transform
-        of the grid's window grown by the depth cap, on the counted lattice)."""
-        if self.lattice is None or not self._on_lattice(grid):
-            return self.seen_depth(grid_centres(grid)).reshape(grid.shape)
-        return self._window_distance(grid, self._counted, self.proximity.depth_cap)
-
-    def _counted(self, block: tuple[slice, ...]) -> NDArray[np.bool_]:
-        """Whether any beam, near miss or step of the path counted in each lattice cell of `block`:
-        the cells :func:`_unseen_where_empty` does not take as unseen."""
-        return (self._hits[block] > 0) | (self._beam_misses[block] > 0) | (self._near_misses[block] > 0) | (self._path[block] > 0)
-
-    def _window_distance(
-        self, grid: AnyGrid, marked: Callable[[tuple[slice, ...]], NDArray[np.bool_]], upper: float
-    ) -> NDArray[np.float64]:
-        """Distance from every cell centre of `grid` (cells of the counted lattice) to the nearest
-        centre of a lattice cell `marked` (given a block of the lattice), inf at `upper` or beyond:
-        a distance transform of the grid's window grown by `upper`, which holds every marked cell
-        nearer than that, so it costs what the grid does, not the whole map."""
-        assert self.lattice is not None
-        pad = int(np.ceil(upper / self.resolution)) + 1
-        offset = tuple(o - pad for o in cell_offset(grid, self.lattice))
-        shape = tuple(n + 2 * pad for n in grid.shape)
-        window = np.zeros(shape, dtype=bool)
-        where = overlap(offset, shape, self.lattice.shape)
-        if where is not None:
-            window[where[0]] = marked(where[1])
-        if not window.any():
-            return np.full(grid.shape, np.inf)
-        d = np.asarray(distance_transform_edt(~window, sampling=self.resolution), dtype=float)
-        d = d[tuple(slice(pad, pad + n) for n in grid.shape)]
-        d[d >= upper] = np.inf
-        return d
 
     def _on_lattice(self, grid: AnyGrid) -> bool:
         """Whether `grid`'s cells are cells of the counted lattice (same side, origin on a corner)."""
@@ -1198,27 +931,7 @@ class EvidenceLayer:
         h, m = self.grid_counts(grid)
         unseen = None if p_unseen is None else np.asarray(p_unseen).reshape(grid.shape)
         p = self.calibration(np.asarray(p_gp).reshape(grid.shape), h, m)
-
-        def distance(mask: NDArray[np.bool_]) -> NDArray[np.float64]:
-            return self.grid_hit_distance(grid).reshape(-1)[mask]
-
-        def depth(mask: NDArray[np.bool_]) -> NDArray[np.float64]:
-            return self.grid_seen_depth(grid).reshape(-1)[mask]
-
-        behind = depth if self.proximity.behind_shift != 0.0 else None
-        return self.revisit(
-            _unseen_where_empty(
-                p,
-                h,
-                m,
-                unseen,
-                distance,
-                self.proximity,
-                self.calibration.surprise_rate,
-                behind,
-                self.occupied_cap(),
-            )
-        )
+        return self.revisit(_unseen_where_empty(p, h, m, unseen, self.calibration.surprise_rate))
 
     def written_grid(
         self,

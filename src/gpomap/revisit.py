@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import brentq, minimize
+from scipy.optimize import minimize
 from scipy.special import expit, log_expit, logit
 
 from gpomap.observations import data_dim, natural_subsample
@@ -85,32 +85,14 @@ class RevisitCalibration:
             return p
         return expit(_log_odds(p, self.slope, self.shift))
 
-    def inverse(self, p: float) -> float:
-        """The probability this map takes to `p` (in (0, 1)), less a hair so that its image is
-        not above `p` by round-off (a ternary map's cell at a threshold stays on its side)."""
-        if self.identity or not 0.0 < p < 1.0:
-            return float(p)  # at 0 or 1 the threshold is its own bound: no probability crosses it
-        target = float(logit(p))
-        # The map's log-odds rise by at least a tenth of the slope per unit (MAX_SHIFT_RATIO's
-        # bound), so the root lies within this reach of 0.
-        reach = (abs(target) + abs(self.shift)) / (0.1 * self.slope) + 1.0
-
-        def gap(z: float) -> float:
-            return float(self.slope * z + self.shift * _bump(z) - target)
-
-        z = brentq(gap, -reach, reach, xtol=1e-12, rtol=1e-14) - 1e-9
-        while float(self(np.float64(expit(z)))) > p:
-            z -= 1e-9
-        return float(expit(z))
-
 
 def _logit(p: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.asarray(logit(np.clip(p, _EPS, 1.0 - _EPS)), dtype=float)
 
 
-def _bump(z: ArrayLike) -> NDArray[np.float64]:
+def _bump(z: NDArray[np.float64]) -> NDArray[np.float64]:
     """How much of the shift applies at log-odds `z`: 0 at 1/2, towards 1 at the confident ends."""
-    return np.asarray(1.0 - np.exp(-0.5 * (np.asarray(z, dtype=float) / WIDTH) ** 2), dtype=float)
+    return 1.0 - np.exp(-0.5 * (z / WIDTH) ** 2)
 
 
 def _log_odds(p: NDArray[np.float64], slope: float, shift: float) -> NDArray[np.float64]:

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from gpomap.cells import Cells, build_cells
 from gpomap.config import MapConfig
-from gpomap.fusion import EvidenceLayer, GPApart, HitProximity
+from gpomap.fusion import EvidenceLayer, GPApart
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.observations import Observations, ScanData, data_dim, labelled_observations
@@ -249,16 +249,13 @@ class MapSettings:
         self,
         data: ScanData | Observations,
         predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]],
-        proximity: HitProximity | None = None,
         gp_apart: GPApart | None = None,
     ) -> EvidenceLayer | None:
         """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off),
-        with `proximity` the gain of unseen space near hits and `gp_apart` the GP its surprise
-        rate is fitted against with ``fit_surprise_rate`` (:func:`gpomap.fusion.fit_calibration`)."""
+        with `gp_apart` the GP its surprise rate is fitted against with ``fit_surprise_rate``
+        (:func:`gpomap.fusion.fit_calibration`)."""
         if not self.ray_evidence or isinstance(data, Observations):
             return None
         resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
         apart = gp_apart if self.fit_surprise_rate else None
-        return EvidenceLayer(
-            data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, proximity, apart, self.thresholds
-        )
+        return EvidenceLayer(data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, apart)

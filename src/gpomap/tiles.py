@@ -55,7 +55,7 @@ from gpomap.cells import build_cells
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
-from gpomap.fusion import BEHIND_SURFACES, EvidenceLayer, HitProximity, ternary_thresholds
+from gpomap.fusion import EvidenceLayer, ternary_thresholds
 from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, row_bands, ternary
 from gpomap.kernels.area import AreaKernel
@@ -78,14 +78,14 @@ _KEY_CHUNK = 1 << 20
 
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 #: What a fit learns of unseen space besides, taken as given when passed with the hyperparameters:
-#: the variance scale and the gain near hits (:mod:`gpomap.extrapolation`), and the cut of the
-#: GP's lean towards free (:data:`gpomap.squash.UNSEEN_FREE_CUT`).
-UNSEEN_NAMES = ("variance_scale", "hit_shift", "hit_reach", "unseen_free_cut")
+#: the variance scale (:mod:`gpomap.extrapolation`) and the cut of the GP's lean towards free
+#: (:data:`gpomap.squash.UNSEEN_FREE_CUT`).
+UNSEEN_NAMES = ("variance_scale", "unseen_free_cut")
 #: Of the hyperparameters, those that must not be negative.
-_NON_NEGATIVE_HYPER = ("hit_shift", "unseen_free_cut")
+_NON_NEGATIVE_HYPER = ("unseen_free_cut",)
 
 #: Of the hyperparameters, those that must be positive; _NON_NEGATIVE_HYPER's not negative; beta is any number.
-_POSITIVE_HYPER = ("variance", "length_scale", "noise", "alpha", "variance_scale", "hit_reach")
+_POSITIVE_HYPER = ("variance", "length_scale", "noise", "alpha", "variance_scale")
 
 
 def given_hyperparameters(hyperparameters: dict[str, float]) -> dict[str, float]:
@@ -1473,9 +1473,6 @@ class TiledGPOM:
             else self._fit_variance_scale(data, obs)
         )
         self.hyperparameters_["variance_scale"] = float(self.extrapolation_["kappa"])
-        if "hit_shift" not in self.hyperparameters_:
-            self.hyperparameters_["hit_shift"] = float(self.extrapolation_.get("hit_shift", 0.0))
-            self.hyperparameters_["hit_reach"] = float(self.extrapolation_.get("hit_reach", HitProximity.reach))
         if "unseen_free_cut" not in self.hyperparameters_:
             # Rays, not labelled points, are what leave unseen space next to surfaces.
             cut = 0.0 if isinstance(data, Observations) else UNSEEN_FREE_CUT[self._dim]
@@ -1537,7 +1534,7 @@ class TiledGPOM:
             centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else np.median(obs.points[:, :2], axis=0)
             half, margin = self.block_size_, min(self.overlap_, 0.5 * self.block_size_)
             wider = whole if whole[1] <= 2.0 * half else (centre, 2.0 * half, margin)
-        fixed = {**self.hyperparameters_, "variance_scale": 1.0, "hit_shift": 0.0}
+        fixed = {**self.hyperparameters_, "variance_scale": 1.0}
 
         def fit_held_in(held: Observations) -> TiledGPOM:
             return self._gp_like().fit(held, hyperparameters=fixed)
@@ -1561,13 +1558,7 @@ class TiledGPOM:
         """Ray counts over every scan so far, calibrated against the tiles' GP (see gpomap.fusion)."""
         if self._scans is None:
             return None
-        hp = self.hyperparameters_
-        # _fit sets hit_shift; hit_reach may be missing where hit_shift alone was given.
-        behind_shift, behind_reach, behind_depth = BEHIND_SURFACES[self._dim]
-        proximity = HitProximity(
-            hp["hit_shift"], hp.get("hit_reach", HitProximity.reach), behind_shift, behind_reach, behind_depth
-        )
-        return self.base.make_evidence(self._scans, self.predict_proba_gp, proximity, self._gp_apart)
+        return self.base.make_evidence(self._scans, self.predict_proba_gp, self._gp_apart)
 
     def _later_visit_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None:
         """This map's probabilities, fitted without them, at a held-out stretch's points
