@@ -40,8 +40,6 @@ STAGES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
         {},
     ),
     "unseen_free_cut": ("no cut of the GP's lean towards free in unseen space", {"gpomap.squash.UNSEEN_FREE_CUT": {2: 0.0}}, {}),
-    "hit_gain": ("no gain of unseen space near hits", {"gpomap.extrapolation.HIT_GAIN": {2: False}}, {}),
-    "behind": ("no prior gain behind surfaces", {"gpomap.fusion.BEHIND_SURFACES": {2: (0.0, 0.7, 0.2), 3: (0.0, 0.7, 0.2)}}, {}),
     "surface": ("surface misses weigh as misses", {"gpomap.fusion.FIT_SURFACE_WEIGHT": {2: False}}, {}),
     "near": (
         "near misses weigh as misses, and as no hit",
@@ -75,9 +73,12 @@ def _bounds(kind: str) -> tuple[tuple[float, float], ...]:
 def _apply(patches: dict[str, Any]) -> None:
     for key, value in patches.items():
         module, attr = key.rsplit(".", 1)
+        target = importlib.import_module(module)
+        if not hasattr(target, attr):  # a stage renamed or removed: say so, not a run of the defaults
+            raise AttributeError(f"{key} does not exist; update STAGES")
         if key.endswith("CALIBRATION_BOUNDS"):
             value = _bounds(value)
-        setattr(importlib.import_module(module), attr, value)
+        setattr(target, attr, value)
 
 
 def child(stage: str, dataset: str) -> dict[str, Any]:

@@ -69,7 +69,17 @@ def test_demo_writes_every_output(tmp_path, run):
     from gpomap.io.rosmap import read_rosmap
 
     m = load_map(tmp_path / "out" / "map.npz")
-    assert m.grid.shape == (32, 40) and m.grid.resolution == 0.5
+    assert m.grid.shape == (36, 44) and m.grid.resolution == 0.5
+    # All four walls of the 20 x 16 m room, those on the data's box too: most of their cells occupied.
+    t = np.linspace(1.0, 15.0, 29)
+    for wall in (
+        np.c_[np.zeros_like(t), t],
+        np.c_[np.full_like(t, 20.0), t],
+        np.c_[t, np.zeros_like(t)],
+        np.c_[t, np.full_like(t, 16.0)],
+    ):
+        rows, cols, inside = m.grid.index_of(wall)
+        assert inside.all() and np.mean(m.ternary[rows, cols] == 1) > 0.6, wall[0]
     ros = read_rosmap(tmp_path / "out" / "map.yaml")
     np.testing.assert_array_equal(ros.occupied, m.ternary == 1)
 

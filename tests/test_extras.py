@@ -15,13 +15,17 @@ LA3DM = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "la3dm-
 def test_every_optional_module_names_an_extra_of_the_project():
     import tomllib
 
-    extras = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    extras = tomllib.loads((Path(__file__).resolve().parents[1] / "pyproject.toml").read_text())["project"][
+        "optional-dependencies"
+    ]
     assert set(EXTRA_OF.values()) <= set(extras)
 
 
 def test_a_missing_module_is_an_error_naming_its_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "pypcd4", None)  # import pypcd4 now raises ImportError
-    with pytest.raises(MissingExtraError, match=r"reading PCD files needs pypcd4, from gpomap's \[3d\] extra: pip install \"gpomap\[3d\]\""):
+    with pytest.raises(
+        MissingExtraError, match=r"reading PCD files needs pypcd4, from gpomap's \[3d\] extra: pip install \"gpomap\[3d\]\""
+    ):
         require("pypcd4", "reading PCD files")
 
 

@@ -67,16 +67,19 @@ def test_map_is_right_at_the_walls_and_in_open_space(fitted, room):
 
 def test_grid_and_ternary(fitted):
     m = fitted.grid(0.5)
-    assert m.grid.shape == (32, 40)
+    # The room's 20 x 16 m box and two cells round it: its walls on the box's edges are drawn whole.
+    assert m.grid.shape == (36, 44) and m.grid.extent == (-1.0, 21.0, -1.0, 17.0)
     assert np.all((m.probability >= 0) & (m.probability <= 1))
     assert np.all(m.variance >= 0)
     assert (m.ternary == FREE).sum() > (m.ternary == OCCUPIED).sum() > 0
     # The grid is the GP at the cell centres updated by each grid cell's own ray counts.
-    p, v = fitted.predict_proba_gp(m.grid.centres()[:50], return_var=True)
+    # Cells with counts (those without any take the GP's probability for unseen space).
     hits, misses = fitted.evidence_.grid_counts(m.grid)
-    fused = fitted.evidence_.calibration(p, hits.ravel()[:50], misses.ravel()[:50])
-    np.testing.assert_allclose(fused, m.probability.ravel()[:50], atol=0.03)
-    _, var = fitted.predict(m.grid.centres()[:50], return_var=True)
+    counted = np.flatnonzero((hits + misses).ravel() > 0)[:50]
+    p, v = fitted.predict_proba_gp(m.grid.centres()[counted], return_var=True)
+    fused = fitted.evidence_.calibration(p, hits.ravel()[counted], misses.ravel()[counted])
+    np.testing.assert_allclose(fused, m.probability.ravel()[counted], atol=0.03)
+    _, var = fitted.predict(m.grid.centres()[counted], return_var=True)
     np.testing.assert_allclose(var, v, rtol=0.05)
     summary = fitted.summary()
     assert summary["n_cells"] == fitted.n_inputs_ > 100

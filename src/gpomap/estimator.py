@@ -20,7 +20,7 @@ from gpomap.fusion import ternary_thresholds
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
 from gpomap.kernels.point import make_point_kernel
-from gpomap.lattice import extent_bounds
+from gpomap.lattice import data_extent, extent_bounds
 from gpomap.observations import Observations, labelled_observations
 
 if TYPE_CHECKING:
@@ -258,9 +258,7 @@ class GPMapEstimator:
             raise ValueError(f"supersample must be a positive integer, got {supersample}")
         aligned = extent is None  # the default grid's cells are the ray counts' (no recount)
         if extent is None:
-            lo = self.extent_points_.min(axis=0)
-            hi = self.extent_points_.max(axis=0)
-            extent = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+            extent = data_extent(self.extent_points_.min(axis=0), self.extent_points_.max(axis=0), resolution)
         spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
         evidence = self.evidence_
         if evidence is not None:
@@ -312,10 +310,9 @@ class GPMapEstimator:
         self._check_fitted()
         if self.dim_ != 3:
             raise ValueError(f"voxels() is for 3-D maps; this map is {self.dim_}-D: use grid()")
-        if extent is None:
-            lo, hi = self.extent_points_.min(axis=0), self.extent_points_.max(axis=0)
-        else:
-            lo, hi = extent_bounds(extent)
+        lo, hi = extent_bounds(
+            data_extent(self.extent_points_.min(axis=0), self.extent_points_.max(axis=0), resolution) if extent is None else extent
+        )
         spec = VoxelSpec.from_extent(lo, hi, resolution)
         evidence = self.evidence_
         if evidence is not None:

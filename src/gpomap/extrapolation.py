@@ -14,8 +14,8 @@ So the squash gets one more parameter, a variance scale kappa:
 
 fitted where the question is the same as a user's: the log's scans are cut into contiguous
 stretches, every third stretch is held out, a GP with the map's hyperparameters is fitted on the
-rest, and kappa maximises the class-balanced likelihood of the held-out stretches' hits and free
-points (the evaluation protocol's points) that lie where no kept beam went. Near the data the
+rest, and kappa maximises the likelihood of the held-out stretches' hits and free points (the
+evaluation protocol's points, at their natural frequencies) that lie where no kept beam went. Near the data the
 latent variance is small and kappa changes little; far from it p tends to 1/2 sooner. Kappa is
 all that is fitted: unseen space next to where beams ended gets no gain of its own, which fitted
 on held-out points at their natural frequencies came out nil (docs/choices.md).
@@ -60,8 +60,9 @@ HOLDOUT_EVERY: int = 3
 FOLD_STARTS: tuple[int, ...] = (1, 2, 0)
 #: Fewest held-out points of each class where no kept beam went for kappa to be fitted.
 MIN_POINTS_PER_CLASS: int = 50
-#: Most points of each class used (the held-in GP's prediction at them is the cost).
-MAX_POINTS_PER_CLASS: int = 5_000
+#: Most points used, drawn uniformly so each class keeps its share (the held-in GP's prediction at
+#: them is the cost).
+MAX_POINTS: int = 10_000
 #: Search bounds of kappa.
 VARIANCE_SCALE_BOUNDS: tuple[float, float] = (0.1, 1e4)
 #: Fewest held-out points of each class where no kept beam went for the held-in GP's square round
@@ -208,8 +209,8 @@ def fit_variance_scale(
     -------
     kappa : float
     report : dict
-        ``"kappa"``, ``"n_points"`` (per class), ``"n_patterns"``, ``"region_centre"`` and ``"region_half"``
-        (the square used), ``"log_loss_at_1"`` and ``"log_loss"`` (balanced, at kappa = 1 and
+        ``"kappa"``, ``"n_points"`` (in the sample), ``"n_patterns"``, ``"region_centre"`` and ``"region_half"``
+        (the square used), ``"log_loss_at_1"`` and ``"log_loss"`` (at kappa = 1 and
         at the fit), or ``"reason"`` when kappa stays 1.
     """
     if len(scans) < HOLDOUT_EVERY:
@@ -245,7 +246,7 @@ def fit_variance_scale(
     pts = np.concatenate([f[1] for f in folds])
     occ = np.concatenate([f[2] for f in folds])
     fold_of = np.concatenate([np.full(f[2].size, k) for k, f in enumerate(folds)])
-    keep = natural_subsample(occ.size, 2 * n, seed)
+    keep = natural_subsample(occ.size, MAX_POINTS, seed)
     pts, occ, fold_of = pts[keep], occ[keep], fold_of[keep]
     # The region's points (grown by the clearance) cut once for every pattern: a whole log has
     # tens of millions.
@@ -269,7 +270,7 @@ def fit_variance_scale(
     kappa, loss = fit_unseen_squash(mu, var, occ, a, b)
     return kappa, {
         "kappa": kappa,
-        "n_points": n,
+        "n_points": int(occ.size),
         "n_patterns": len(folds),
         "region_centre": [float(v) for v in centre],
         "region_half": float(region_half),
@@ -380,7 +381,7 @@ def _region_folds(
     observes: Callable[[NDArray[np.intp]], bool],
 ) -> tuple[list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]], int]:
     """Per pattern of held-out stretches tried, the kept scans' indices and the held-out points in
-    the square where none of them went (:func:`_unseen_points`); and the points per class to use.
+    the square where none of them went (:func:`_unseen_points`); and the smaller class's count.
 
     Patterns are tried in the order of :data:`FOLD_STARTS` until their points pooled hold
     :data:`MIN_POINTS_PER_CLASS` of each class. A pattern whose kept scans observed no point of a
@@ -397,7 +398,7 @@ def _region_folds(
         pts, occ = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
         folds.append((kept, pts, occ))
         n_occ = sum(int(f[2].sum()) for f in folds)
-        n = min(n_occ, sum(f[2].size for f in folds) - n_occ, MAX_POINTS_PER_CLASS)
+        n = min(n_occ, sum(f[2].size for f in folds) - n_occ)
         if n >= MIN_POINTS_PER_CLASS:
             break
     return folds, n

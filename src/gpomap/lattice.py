@@ -100,6 +100,18 @@ def bounds_extent(lower: ArrayLike, upper: ArrayLike) -> tuple[float, ...]:
     return tuple(float(v) for pair in zip(np.ravel(lower), np.ravel(upper), strict=True) for v in pair)
 
 
+#: Cells of margin round the data's bounding box in a map's default extent: a hit on the box's edge
+#: lies in the cell past it, and the wall there is drawn whole.
+EXTENT_MARGIN_CELLS: int = 2
+
+
+def data_extent(lower: ArrayLike, upper: ArrayLike, resolution: float) -> tuple[float, ...]:
+    """A map's default extent at `resolution`: the data's box, corners `lower` and `upper` of
+    shape (d,), grown by :data:`EXTENT_MARGIN_CELLS` cells on every side, as ``(xmin, xmax, ...)``."""
+    pad = EXTENT_MARGIN_CELLS * float(resolution)
+    return bounds_extent(np.asarray(lower, dtype=float) - pad, np.asarray(upper, dtype=float) + pad)
+
+
 def grid_dim(grid: AnyGrid) -> int:
     """Number of dimensions of `grid`."""
     return len(grid.shape)

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
+from gpomap.lattice import data_extent
 from gpomap.scans import Scan, scan_extent
 
 if TYPE_CHECKING:  # the engine is imported when a mapper is made: the CLI's --help stays light
@@ -288,9 +289,9 @@ class StreamingGPOM:
         res = float(model.base.evidence_resolution if resolution is None else resolution)
         xmin, xmax, ymin, ymax = self._whole_extent()
         # Corners on multiples of the resolution: successive maps line up cell for cell, and at
-        # the ray counts' resolution the written cells are the counted cells.
-        x0, y0 = np.floor(xmin / res) * res, np.floor(ymin / res) * res
-        return GridSpec.from_extent((float(x0), xmax + res, float(y0), ymax + res), res)
+        # the ray counts' resolution the written cells are the counted cells (as a batch map's).
+        x0, x1, y0, y1 = data_extent((xmin, ymin), (xmax, ymax), res)
+        return GridSpec.from_extent((x0, x1, y0, y1), res, align=True)
 
     def grid(self, resolution: float | None = None, extent: Extent | None = None, refresh: bool = True) -> OccupancyMap:
         """The map on a grid.

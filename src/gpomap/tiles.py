@@ -61,7 +61,7 @@ from gpomap.grid import GridSpec, OccupancyMap, row_bands, ternary
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas_threads
-from gpomap.lattice import column_bounds, stable_order
+from gpomap.lattice import column_bounds, data_extent, stable_order
 from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
 from gpomap.resources import WRITTEN_BAND_CELLS, peak_rss_mb, release_freed_memory
@@ -2012,7 +2012,8 @@ class TiledGPOM:
         resolution : float
             Grid cell side, metres.
         extent : (xmin, xmax, ymin, ymax), optional
-            Defaults to the bounding box of the observations; (..., zmin, zmax) in 3-D.
+            Defaults to the bounding box of the observations grown by two cells
+            (:func:`gpomap.lattice.data_extent`); (..., zmin, zmax) in 3-D.
 
         Returns
         -------
@@ -2022,8 +2023,7 @@ class TiledGPOM:
         aligned = extent is None  # the default grid's cells are the ray counts' (no recount)
         if extent is None:
             assert self._lower is not None and self._upper is not None
-            lo, hi = self._lower, self._upper
-            extent = tuple(float(v) for pair in zip(lo, hi) for v in pair)
+            extent = data_extent(self._lower, self._upper, resolution)
         if self._dim == 3:
             return self._voxels(resolution, extent)
         spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
