@@ -311,7 +311,9 @@ class GPMapEstimator:
         if self.dim_ != 3:
             raise ValueError(f"voxels() is for 3-D maps; this map is {self.dim_}-D: use grid()")
         lo, hi = extent_bounds(
-            data_extent(self.extent_points_.min(axis=0), self.extent_points_.max(axis=0), resolution) if extent is None else extent
+            data_extent(self.extent_points_.min(axis=0), self.extent_points_.max(axis=0), resolution)
+            if extent is None
+            else extent
         )
         spec = VoxelSpec.from_extent(lo, hi, resolution)
         evidence = self.evidence_
