@@ -336,3 +336,24 @@ def test_unreachable_scheduler_fails_before_local_work(tmp_path, monkeypatch, ca
     assert "--scheduler-timeout" in err
     assert not built  # the cells were never built: the address was checked first
     assert not (out / "map.npz").exists()
+
+
+def test_a_scheduler_address_of_no_known_scheme_is_refused_before_a_client_is_made(tmp_path, monkeypatch, capsys):
+    # A client made on such an address fails half-built and its clean-up waits minutes at exit.
+    import distributed
+
+    made: list[str] = []
+
+    class Recording(distributed.Client):
+        def __init__(self, *a, **k):
+            made.append(str(a))
+            super().__init__(*a, **k)
+
+    monkeypatch.setattr(distributed, "Client", Recording)
+    out = tmp_path / "never"
+    code = main(["map", str(LOG), "-o", str(out), "--scheduler", "garbage://foo", "-q", *MAP_ARGS])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_ERROR and err[-1].startswith(
+        "gpomap: error: Dask scheduler address 'garbage://foo': unknown address scheme"
+    )
+    assert made == [] and not (out / "map.npz").exists()
