@@ -4,8 +4,9 @@ The scans of a CARMEN log or a ROS bag go to :class:`gpomap.streaming.StreamingG
 time, paced by their time stamps (``--rate 1`` real time, ``--rate 2`` twice as fast, ``--rate 0``
 as fast as possible), as a robot would deliver them. Every ``--every`` seconds of wall time the
 current map replaces the previous set of outputs in OUTDIR as a whole
-(:func:`gpomap.io.atomic.output_set`), so OUTDIR always holds a complete map; the last one is
-written when the log ends. Ctrl-C (or SIGTERM) stops the replay between two steps: the summary so
+(:func:`gpomap.io.atomic.output_set`), so OUTDIR always holds a complete map; when the log ends,
+the map of all its scans is fitted as ``gpomap map`` fits it and written last, so the final outputs
+are ``gpomap map``'s. Ctrl-C (or SIGTERM) stops the replay between two steps: the summary so
 far is printed and OUTDIR keeps the last complete map.
 
 :func:`replay` is the loop, free of the command line; :func:`add_parser` and :func:`cmd_stream`
@@ -165,6 +166,7 @@ def replay(
     clock: Callable[[], float] = time.monotonic,
     sleep: Callable[[float], None] = time.sleep,
     result: ReplayResult | None = None,
+    finish: Callable[[], None] | None = None,
 ) -> ReplayResult:
     """Feed `scans` to `mapper` as recorded and write the map every `every` seconds.
 
@@ -189,6 +191,8 @@ def replay(
     result : ReplayResult, optional
         Filled as the replay goes, so a caller that catches the KeyboardInterrupt (re-raised
         here) still has the numbers so far.
+    finish : callable, optional
+        Called once the log has ended, before the last write.
 
     Returns
     -------
@@ -237,6 +241,9 @@ def replay(
                     f"{source}: {len(scans)} scans were not enough to learn the hyperparameters; "
                     "use a smaller --warmup or a longer log"
                 )
+            if finish is not None:
+                finish()
+                stop_if_asked()
             do_write()
     except KeyboardInterrupt:
         result.interrupted = True
@@ -355,8 +362,17 @@ def cmd_stream(args: argparse.Namespace) -> int:
     mapper = mapper_from_args(args)
     title = f"gpomap stream: {Path(args.input).name}"
 
+    ended: list[bool] = []
+
+    def relearn() -> None:
+        # The log has ended: every scan is in, so the last map is gpomap map's of the same scans
+        # (hyperparameters, variance scale and recalibration learnt on all of them, not the warm-up's).
+        cli._status(args, f"  the log has ended: fitting the map of all {len(scans)} scans, as gpomap map does...")
+        mapper.relearn()
+        ended.append(True)
+
     def write(n: int) -> list[Path]:
-        occupancy_map = mapper.grid(args.resolution, args.extent)
+        occupancy_map = mapper.model_.grid(args.resolution, args.extent) if ended else mapper.grid(args.resolution, args.extent)
         with cli._outputs(args) as outputs:
             staged = write_map_files(
                 occupancy_map, outputs.path, pgm_mode=args.pgm_mode, title=f"{title} ({n} of {len(scans)} scans)"
@@ -365,7 +381,9 @@ def cmd_stream(args: argparse.Namespace) -> int:
 
     result = ReplayResult()
     try:
-        replay(scans, mapper, args.rate, args.every, write, lambda m: cli._status(args, m), args.input, result=result)
+        replay(
+            scans, mapper, args.rate, args.every, write, lambda m: cli._status(args, m), args.input, result=result, finish=relearn
+        )
     except KeyboardInterrupt:
         _print_summary(args, mapper, result, len(scans))
         raise
