@@ -147,3 +147,22 @@ def test_convert_octree(tmp_path, capsys):
     truncated.write_bytes(bt.read_bytes()[:-20])
     assert main(["convert", str(truncated), "-o", str(tmp_path / "c2"), "-q"]) == 1
     assert "corrupt tree" in capsys.readouterr().err
+
+
+def test_info_reads_depth_frames_as_map_does_and_warns_of_depths_in_other_units(capsys):
+    from pathlib import Path
+
+    frames = Path(__file__).resolve().parents[2] / "shared" / "data" / "3dmatch"
+    if not frames.exists():
+        pytest.skip("shared 3DMatch frames not present")
+    assert main(["info", str(frames), "--stride", "8"]) == 0
+    out, err = capsys.readouterr()
+    assert "points_per_scan 4800" in out  # 640 x 480 pixels, every 8th along both axes
+    assert "warning" not in err
+    # Read as if in units five times smaller (TUM's 5000 a metre read as millimetres, reversed): a room 20 m deep.
+    assert main(["info", str(frames), "--stride", "8", "--depth-scale", "200"]) == 0
+    err = capsys.readouterr().err
+    assert "beyond a depth camera's reach" in err and "--depth-scale" in err
+    # A 2-D input refuses them, naming the option.
+    assert main(["info", str(frames.parent / "intel" / "intel-corrected.log.gz"), "--stride", "3"]) == 1
+    assert "--stride is for 3-D inputs" in capsys.readouterr().err

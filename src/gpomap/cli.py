@@ -725,9 +725,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
+    from gpomap.apps import map3d
     from gpomap.io import describe
 
-    info = describe(args.input, **_reader_options(args, args.input))
+    if map3d.is_cloud_input(args.input):
+        options = map3d.reader_options(args)
+    else:
+        map3d.check_2d_options(args)
+        options = _reader_options(args, args.input)
+    info = describe(args.input, **options)
     if args.json:
         print(json.dumps(info, indent=2, default=str))
         return EXIT_OK
@@ -1312,6 +1318,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("input")
     _add_reader_options(p)
+    from gpomap.apps.map3d import add_cloud_reader_options
+
+    add_cloud_reader_options(p)  # read as gpomap map reads them
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_info)

@@ -105,9 +105,14 @@ def add_output_options(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
 
 def add_cloud_options(p: argparse.ArgumentParser) -> None:
     """The reading and output options of 3-D inputs, added to the ``map`` parser."""
+    add_output_options(p)
+    add_cloud_reader_options(p)
+
+
+def add_cloud_reader_options(p: argparse.ArgumentParser) -> None:
+    """The reading options of 3-D inputs (``map`` and ``info`` take them alike)."""
     from gpomap import cli
 
-    add_output_options(p)
     g = p.add_argument_group("reading 3-D inputs")
     g.add_argument(
         "--poses",

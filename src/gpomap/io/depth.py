@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -182,4 +183,22 @@ def read_depth_frames(
         if not pose_path.is_file():
             raise InputFormatError(f"depth image {f.name} has no pose file {pose_path.name} beside it", path=str(d))
         clouds.append(read_depth_image(f, k, read_pose_matrix(pose_path), depth_scale, stride, max_range))
+    _warn_if_not_metres(clouds, depth_scale, str(d))
     return clouds
+
+
+#: A median depth beyond this (m) is not a depth camera's: the units are likely not `depth_scale`'s.
+DEPTH_CAMERA_REACH: float = 8.0
+
+
+def _warn_if_not_metres(clouds: list[CloudScan], depth_scale: float, path: str) -> None:
+    """Warn when the frames' median depth is beyond a depth camera's reach (TUM's 5000 units per
+    metre read as millimetres put a 4 m room 20 m across)."""
+    depths = [np.linalg.norm(c.points[c.valid()] - c.origin, axis=1) for c in clouds]
+    every = np.concatenate(depths) if depths else np.zeros(0)
+    if every.size and float(np.median(every)) > DEPTH_CAMERA_REACH:
+        warnings.warn(
+            f"{path}: the median depth is {float(np.median(every)):.1f} m at {depth_scale:g} units per metre, beyond a "
+            f"depth camera's reach; if the images are not in those units, give --depth-scale (TUM RGB-D: 5000)",
+            stacklevel=3,
+        )
