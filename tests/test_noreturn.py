@@ -314,3 +314,53 @@ def test_a_reading_near_the_float_limit_leaks_no_overflow_warning() -> None:
         warnings.simplefilter("error")
         found = detect_no_return_code(ranges)
     assert found is None or found.value < 1e300  # a lone absurd reading is no sensor's code
+
+
+def test_a_bag_whose_range_max_hides_a_smeared_code_trusts_the_data(tmp_path: Path) -> None:
+    # Built like a SICK bag seen in the wild: LaserScan range_max 80 m, but about 1 % of the
+    # readings at 51.05-51.12 m (the laser's no-return code, smeared over centimetres as float32
+    # and the sensor's jitter leave it) with a few strays above, to 51.22 m.
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    from tests.test_io_rosbag import _header, _tf
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+    types = store.types
+    rng = np.random.default_rng(7)
+    path = tmp_path / "sick.bag"
+    with Writer(path) as writer:
+        tf = writer.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=store)
+        scan = writer.add_connection("/scan", "sensor_msgs/msg/LaserScan", typestore=store)
+        for i in range(61):
+            t = 0.1 * i
+            msg = _tf(types, t, "odom", "laser", 0.01 * i, 0.0, 0.0)
+            writer.write(tf, int(t * 1e9) + 1, store.serialize_ros1(msg, "tf2_msgs/msg/TFMessage"))
+            if 0 < i < 60:
+                ranges = np.round(rng.uniform(0.5, 30.0, 181), 3)
+                code = rng.random(181) < 0.012
+                ranges[code] = rng.uniform(51.05, 51.12, int(code.sum()))
+                if i % 20 == 0:
+                    ranges[0] = rng.uniform(51.13, 51.22)
+                laser = types["sensor_msgs/msg/LaserScan"](
+                    header=_header(types, t, "laser"),
+                    angle_min=-math.pi / 2,
+                    angle_max=math.pi / 2,
+                    angle_increment=math.pi / 180,
+                    time_increment=0.0,
+                    scan_time=0.1,
+                    range_min=0.05,
+                    range_max=80.0,
+                    ranges=ranges.astype(np.float32),
+                    intensities=np.zeros(0, dtype=np.float32),
+                )
+                writer.write(scan, int(t * 1e9) + 2, store.serialize_ros1(laser, "sensor_msgs/msg/LaserScan"))
+    scans = read_scans(path)
+    decision = scans[0].meta["no_return"]
+    assert decision["source"] == "data" and 51.0 <= decision["max_range"] < 51.05
+    assert decision["contradiction"] and "range_max is 80 m" in decision["contradiction"]
+    # Every reading of the code, and the strays above it, is a no-return: none is a wall at 51 m.
+    assert all(not (s.hits() - s.pose[:2] > 50).any() for s in scans) and sum(int(s.no_return().sum()) for s in scans) > 100
+    info = describe(path)
+    assert info["no_return_source"] == "data" and any("51.05" in n for n in info["notes"])

@@ -5,8 +5,10 @@ Many lasers write "no return" as a fixed code instead of leaving the beam empty:
 top of the range distribution and is repeated far more often than any real range near it: in Intel
 4,172 readings are 81.83 while the nearest real ranges (around 25 m) hold one or two readings per
 centimetre. A few stray readings may lie above it (MIT's infinite corridor: 3,720 at 51.06 m, two
-at 51.16 m). A header value (CARMEN ``PARAM robot_front_laser_max``, the ``max_range`` field of
-``ROBOTLASER1``, a LaserScan's ``range_max``) may be missing, or say something else than the data
+at 51.16 m), and a code may be smeared over a few centimetres (51.05-51.12 m) with tens of strays
+above: then the densest 0.1 m near the top of the data is the code when it stands out as one.
+A header value (CARMEN ``PARAM robot_front_laser_max``, the ``max_range`` field of ``ROBOTLASER1``,
+a LaserScan's ``range_max``) may be missing, or say something else than the data
 (``PARAM robot_front_laser_max 10`` in a log with real returns out to 50 m), so the readers decide:
 
 1. an explicit ``max_range`` from the caller always wins;
@@ -48,6 +50,10 @@ _NEIGHBOURS = 50
 _MIN_DISTINCT = 20
 # Readings are grouped into values to the millimetre (float32 bags store 32.767 as 32.76699829).
 _DECIMALS = 3
+# A code smeared over centimetres is looked for this far (m) below the largest reading ...
+_SPREAD_REACH = 0.5
+# ... against the real readings of this much range (m) below it.
+_SPREAD_BACKGROUND = 1.0
 # A header threshold that would turn real-looking readings into no-returns is contradicted only by
 # this fraction of the valid readings (and at least _MIN_COUNT readings).
 _MIN_FRACTION = 0.001
@@ -209,7 +215,43 @@ def detect_no_return_code(ranges: ArrayLike) -> NoReturnCode | None:
         code = _code_below(r, top_index)
         if code is not None:
             return replace(code, strays=strays)
-    return None
+    return _spread_code(r)
+
+
+def _spread_code(r: NDArray[np.float64]) -> NoReturnCode | None:
+    """A code smeared over a few centimetres (a SICK's 51.05-51.12 m), under more strays than one
+    value's rule allows: the densest :data:`_WINDOW` within :data:`_SPREAD_REACH` of the top, when it
+    holds a code's share of the readings, :data:`_RATIO` times the real readings of a window just
+    below it, and :data:`_RATIO` times the readings above it (r sorted ascending)."""
+    if r.size < _MIN_COUNT:
+        return None
+    top = float(r[-1])
+    # Windows ending at each reading near the top: the densest one is the candidate.
+    near = np.flatnonzero(r >= top - _SPREAD_REACH)
+    starts = np.searchsorted(r, r[near] - _WINDOW, side="left")
+    counts = near - starts + 1
+    best = int(np.argmax(counts))
+    hi_index, lo_index, count = int(near[best]), int(starts[best]), int(counts[best])
+    while hi_index + 1 < r.size and r[hi_index + 1] == r[hi_index]:
+        hi_index += 1  # the window's last value whole
+    count = hi_index - lo_index + 1
+    above = r.size - 1 - hi_index
+    lo_value = float(r[lo_index])
+    if np.unique(_rounded(r[:lo_index])).size < _MIN_DISTINCT:
+        return None  # constant walls, not a code over real ranges
+    below = r[(r >= lo_value - _SPREAD_BACKGROUND) & (r < lo_value)]
+    background = below.size * _WINDOW / _SPREAD_BACKGROUND
+    share = count >= max(_MIN_COUNT, int(np.ceil(_MIN_FRACTION * r.size)))
+    if not (share and count >= _RATIO * max(background, 1.0) and count >= _RATIO * above):
+        return None
+    codes = _rounded(r[lo_index : hi_index + 1])
+    return NoReturnCode(
+        values=(float(codes.min()), float(codes.max())),
+        counts=(count,),
+        threshold=round(float(codes.min()) - TOLERANCE, 9),
+        background=float(background * _BIN / _WINDOW),
+        strays=above,
+    )
 
 
 def _fmt(x: float) -> str:
