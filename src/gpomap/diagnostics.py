@@ -40,11 +40,15 @@ PRIOR_BAND = (0.4, 0.6)
 ONE_CLASS_FRACTION = 0.95
 
 _WHY = {
-    "length_scale": "the data did not pin the length scale down",
-    "noise": "the data did not pin the noise down",
-    "variance": "the data did not pin the signal variance down",
-    "alpha": "the classes separate so cleanly that the probit slope is capped and the map turns hard 0 / 1",
-    "shift": "the free/occupied boundary of the probit (beta / alpha) ran to its limit",
+    "length_scale": "the data did not pin the length scale down; give --length-scale (metres) to fix it, or a --min-cell "
+    "nearer the scene's detail",
+    "noise": "the data did not pin the noise down; check the poses (a mislocalised log mixes the cells' classes) and "
+    "--free-clearance",
+    "variance": "the data did not pin the signal variance down; give the hyperparameters of a map of similar data",
+    "alpha": "the classes separate so cleanly that the probit slope is capped and the map turns hard 0 / 1 where no "
+    "beam went; read those parts as unknown, or add scans that see them",
+    "shift": "the free/occupied boundary of the probit (beta / alpha) ran to its limit; check that the data hold both "
+    "free space and surfaces",
 }
 
 
@@ -148,8 +152,9 @@ def hyperparameter_warnings(
     bounds: Mapping[str, tuple[float, float]],
     tolerance: float = BOUND_TOLERANCE,
     counted: bool = False,
+    tempered: bool = True,
 ) -> list[str]:
-    """Warnings about hyperparameters at their bounds and about the probability far from data.
+    """Warnings about hyperparameters at their bounds, with what to do, and about the probability far from data.
 
     Parameters
     ----------
@@ -165,6 +170,9 @@ def hyperparameter_warnings(
         no warning. Where beams went, the counts decide and the GP weighs a few observations;
         where none went, the variance scale fitted on held-out stretches tempers the squash; so
         the map does not turn hard 0 / 1 (it is what most real logs fit: the cells are pure).
+    tempered : bool
+        The variance scale for unseen space was fitted (it tempers the squash where no beam went);
+        when it was not, alpha at its cap is a warning even with counts.
 
     Returns
     -------
@@ -173,7 +181,7 @@ def hyperparameter_warnings(
     """
     out = []
     for name, (v, side, bound) in at_bounds(hyperparameters, bounds, tolerance).items():
-        if counted and name == "alpha" and side == "upper":
+        if counted and tempered and name == "alpha" and side == "upper":
             continue
         label = "beta / alpha" if name == "shift" else name
         cap = " (its cap)" if name == "alpha" and side == "upper" else ""
@@ -250,7 +258,9 @@ def fit_warnings(model: Any, occupancy_map: Any = None, tolerance: float = BOUND
         One sentence per finding, without a prefix.
     """
     counted = getattr(model, "evidence_", None) is not None
-    out = hyperparameter_warnings(model.hyperparameters_, search_bounds(model), tolerance, counted=counted)
+    # A variance scale left at 1 (too few held-out points where no beam went) tempers nothing.
+    tempered = "reason" not in (getattr(model, "extrapolation_", None) or {})
+    out = hyperparameter_warnings(model.hyperparameters_, search_bounds(model), tolerance, counted=counted, tempered=tempered)
     if occupancy_map is not None:
         out += map_warnings(occupancy_map.ternary)
     return out
