@@ -62,3 +62,25 @@ def test_output_set(tmp_path):
     tree = read_octree(tmp_path / "out" / "map.bt")
     # The octree's occupied voxels are the map's (p > 0.66), voxel for voxel.
     assert len(tree.voxel_centres(True)) == int((m.probability > 0.66).sum())
+
+
+def test_voxels_no_ray_went_to_are_left_out_of_the_tree_and_the_mesh(tmp_path):
+    from gpomap.io.octomap import write_octree
+
+    # Two occupied blocks on a free field; rays went only round the first (x below 1.2 m).
+    spec = VoxelSpec((0.0, 0.0, 0.0), 0.1, (12, 12, 24))
+    p = np.full(spec.shape, 0.1)
+    p[3:8, 3:8, 3:8] = 0.9
+    p[3:8, 3:8, 15:20] = 0.9
+    observed = np.zeros(spec.shape, bool)
+    observed[:, :, :12] = True
+    m = VoxelMap(spec, p, thresholds=(0.3, 0.6), observed=observed)
+    save_voxels(m, tmp_path / "m.npz")
+    np.testing.assert_array_equal(load_voxels(tmp_path / "m.npz").observed, observed)
+    tree = read_octree(write_octree(m, tmp_path / "m.bt"))
+    occupied = tree.centres[tree.occupied]
+    assert occupied.size and ((occupied > 0.3) & (occupied < 0.8)).all()  # the first block's voxels only
+    assert tree.extent()[1][0] <= 1.2 + 1e-6  # the unobserved half is unknown: not in the tree
+    _, n_vertices, _ = write_mesh(m, tmp_path / "m.ply")
+    vertex = PlyData.read(tmp_path / "m.ply")["vertex"]
+    assert n_vertices > 0 and float(np.max(vertex["x"])) < 1.25  # round the first block, nothing round the second

@@ -322,7 +322,8 @@ class GPMapEstimator:
         else:
             p, var = self.predict_proba_gp(spec.centres(), return_var=True)
             probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)
-        return VoxelMap(spec, probability, variance, thresholds=self.thresholds_, info=self.summary())
+        observed = evidence.grid_observed(spec) if evidence is not None else None
+        return VoxelMap(spec, probability, variance, thresholds=self.thresholds_, info=self.summary(), observed=observed)
 
     def summary(self) -> dict[str, Any]:
         """What was fitted: settings, data sizes, hyperparameters and stage timings."""

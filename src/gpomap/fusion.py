@@ -914,6 +914,11 @@ class EvidenceLayer:
                 at_surface[where[0]] = self.at_surface()[where[1]]
         return RayCounts(out[0], out[1], out[2]), out[3], at_surface
 
+    def grid_observed(self, grid: AnyGrid) -> NDArray[np.bool_]:
+        """Cells of `grid` a ray crossed or ended in, or the robot's path passed, shape grid.shape."""
+        hits, misses = self.grid_counts(grid)
+        return np.asarray((hits + misses) > 0)
+
     def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Weighted hits (:meth:`EvidenceCalibration.hits`) and weighted misses
         (:meth:`EvidenceCalibration.misses`, path included) per cell of `grid`, counted on that

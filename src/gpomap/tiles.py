@@ -2088,7 +2088,8 @@ class TiledGPOM:
         t = time.perf_counter()
         probability, variance, _ = self._sample(spec)
         self.timings_["grid"] = time.perf_counter() - t
-        return VoxelMap(spec, probability, variance, thresholds=self.thresholds_, info=self.summary())
+        observed = self.evidence_.grid_observed(spec) if self.evidence_ is not None else None
+        return VoxelMap(spec, probability, variance, thresholds=self.thresholds_, info=self.summary(), observed=observed)
 
     # ------------------------------------------------------------------ reporting
     @property

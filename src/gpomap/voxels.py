@@ -148,6 +148,9 @@ class VoxelMap:
         Free below the first, occupied above the second, unknown between (the ternary layer).
     info : dict
         What made the map (method, settings), written with it.
+    observed : ndarray of bool, shape (nz, ny, nx), optional
+        Voxels a ray crossed or ended in (None: not known, every voxel taken as observed). The
+        others hold the GP's guess only: an OctoMap tree and a mesh leave them out.
     """
 
     spec: VoxelSpec
@@ -155,6 +158,7 @@ class VoxelMap:
     variance: NDArray[np.float64] | None = None
     thresholds: tuple[float, float] = DEFAULT_THRESHOLDS
     info: dict[str, Any] = field(default_factory=dict)
+    observed: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         self.probability = np.asarray(self.probability, dtype=float)
@@ -164,10 +168,19 @@ class VoxelMap:
             self.variance = np.asarray(self.variance, dtype=float)
             if self.variance.shape != self.spec.shape:
                 raise ValueError(f"variance has shape {self.variance.shape}; the voxel grid is {self.spec.shape}")
+        if self.observed is not None:
+            self.observed = np.asarray(self.observed, dtype=bool)
+            if self.observed.shape != self.spec.shape:
+                raise ValueError(f"observed has shape {self.observed.shape}; the voxel grid is {self.spec.shape}")
         lo, hi = (float(t) for t in self.thresholds)
         if not 0.0 <= lo <= hi <= 1.0:
             raise ValueError(f"thresholds must satisfy 0 <= free <= occupied <= 1, got ({lo}, {hi})")
         self.thresholds = (lo, hi)
+
+    @property
+    def seen(self) -> NDArray[np.bool_]:
+        """:attr:`observed`, or every voxel when it is not known, shape (nz, ny, nx)."""
+        return np.ones(self.spec.shape, dtype=bool) if self.observed is None else self.observed
 
     @property
     def ternary(self) -> NDArray[np.int8]:

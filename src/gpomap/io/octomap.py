@@ -327,11 +327,12 @@ def read_octree(path: str | os.PathLike[str]) -> Octree:
 
 
 def octree_from_voxels(voxel_map: VoxelMap) -> Any:
-    """A ``pyoctomap.OcTree`` at the map's resolution holding its known voxels' log-odds."""
+    """A ``pyoctomap.OcTree`` at the map's resolution holding its known voxels' log-odds: those
+    neither unknown in the ternary map nor unobserved (no ray went there: left unknown in the tree)."""
     pyoctomap = require("pyoctomap", "writing map.bt")
 
     tree = pyoctomap.OcTree(voxel_map.spec.resolution)
-    known = voxel_map.ternary != UNKNOWN
+    known = (voxel_map.ternary != UNKNOWN) & voxel_map.seen
     p = np.clip(voxel_map.probability[known], 1e-6, 1 - 1e-6)
     log_odds = np.log(p / (1 - p))
     for c, lo in zip(voxel_map.spec.centres()[known.reshape(-1)], log_odds):

@@ -59,6 +59,7 @@ def save_voxels(voxel_map: VoxelMap, path: str | os.PathLike[str]) -> Path:
         "resolution": np.array(m.spec.resolution),
         "thresholds": np.asarray(m.thresholds, dtype=np.float64),
         "ternary": m.ternary,
+        **({} if m.observed is None else {"observed": m.observed}),
         "info": np.array(json.dumps(m.info, default=str)),
     }
     if m.variance is not None:
@@ -98,13 +99,17 @@ def load_voxels(path: str | os.PathLike[str]) -> VoxelMap:
         spec = VoxelSpec((o[0], o[1], o[2]), float(data["resolution"]), (p.shape[0], p.shape[1], p.shape[2]))
         variance = np.asarray(data["variance"], dtype=float) if "variance" in data else None
         lo, hi = (float(t) for t in data["thresholds"])
-        return VoxelMap(spec, p, variance=variance, thresholds=(lo, hi), info=info if isinstance(info, dict) else {})
+        observed = np.asarray(data["observed"], dtype=bool) if "observed" in data else None
+        return VoxelMap(
+            spec, p, variance=variance, thresholds=(lo, hi), info=info if isinstance(info, dict) else {}, observed=observed
+        )
     except (ValueError, TypeError) as exc:
         raise InputFormatError(str(exc), path=name) from None
 
 
 def write_mesh(voxel_map: VoxelMap, path: str | os.PathLike[str], level: float = 0.5) -> tuple[Path, int, int]:
-    """The ``p = level`` iso-surface as a binary PLY mesh, atomically.
+    """The ``p = level`` iso-surface through the observed voxels (:attr:`VoxelMap.observed`) as a
+    binary PLY mesh, atomically.
 
     Parameters
     ----------
@@ -127,8 +132,10 @@ def write_mesh(voxel_map: VoxelMap, path: str | os.PathLike[str], level: float =
     r = voxel_map.spec.resolution
     # Padded with "free" so surfaces close at the grid's border instead of being left open.
     padded = np.pad(p, 1, constant_values=min(0.0, level - 1e-3))
-    if padded.min() < level < padded.max():
-        verts, faces, _, _ = marching_cubes(padded, level=level, spacing=(r, r, r))
+    # Only where rays went: no surface across unseen space (the GP's guess there wraps it whole).
+    seen = np.pad(voxel_map.seen, 1, constant_values=True)
+    if padded[seen].min() < level < padded[seen].max():
+        verts, faces, _, _ = marching_cubes(padded, level=level, spacing=(r, r, r), mask=seen)
         # (z, y, x) sample coordinates of the padded grid to map (x, y, z): the first sample is a centre.
         xyz = verts[:, ::-1] + voxel_map.spec.lower + r / 2 - r
     else:
