@@ -166,3 +166,14 @@ def test_info_reads_depth_frames_as_map_does_and_warns_of_depths_in_other_units(
     # A 2-D input refuses them, naming the option.
     assert main(["info", str(frames.parent / "intel" / "intel-corrected.log.gz"), "--stride", "3"]) == 1
     assert "--stride is for 3-D inputs" in capsys.readouterr().err
+
+
+def test_evaluate_on_3d_scans_says_in_one_line_it_scores_planar_maps(capsys):
+    from pathlib import Path
+
+    clouds = Path(__file__).resolve().parents[2] / "shared" / "data" / "la3dm-sim" / "sim_structured"
+    if not clouds.exists():
+        pytest.skip("shared la3dm data not present")
+    assert main(["evaluate", str(clouds), "--method", "msk"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gpomap evaluate scores planar maps only" in err[0] and "volume_quality.py" in err[0]
