@@ -327,3 +327,19 @@ def test_info_keeps_a_space_after_a_long_key(run):
     r = run("info", DATA / "octomap" / "geb079.bt")
     assert r.returncode == 0, r.stderr
     assert re.search(r"^occupancy_threshold +0\.5$", r.stdout, flags=re.M), r.stdout
+
+
+def test_numba_compilation_is_timed_apart_from_fitting():
+    import numba
+
+    from gpomap.compiled import compile_time
+
+    @numba.njit
+    def twice(x):
+        return 2.0 * x
+
+    with compile_time() as first:
+        assert twice(1.5) == 3.0
+    with compile_time() as second:
+        assert twice(2.5) == 5.0
+    assert first[0] > 0.0 and second[0] == 0.0  # compiled once, on the first call

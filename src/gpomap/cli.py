@@ -599,9 +599,15 @@ def _model(args: argparse.Namespace) -> Any:
 
 def _fitted_model(args: argparse.Namespace, data: Any) -> Any:
     """:func:`_model` fitted on `data`, saying so (``gpomap map``, ``gpomap demo``)."""
+    from gpomap.compiled import compile_time
+
     model = _model(args)
     _status(args, f"fitting MSK-GPOM ({args.kernel})...")
-    model.fit(data)
+    with compile_time() as compiling:
+        model.fit(data)
+    if compiling[0] >= 0.05:
+        # A first run's compilation, not fitting: said apart (numba caches it for the next run).
+        model.timings_["compiling (first run)"] = compiling[0]
     _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
     return model
 

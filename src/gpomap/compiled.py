@@ -10,6 +10,8 @@ variable :data:`FORCE_NUMPY_ENV` is set (to anything but "" or "0") when gpomap 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 #: Environment variable that, set to anything but "" or "0", makes every compiled path use numpy.
@@ -36,3 +38,23 @@ except ImportError:  # pragma: no cover - numba is a dependency; the numpy paths
 def compiled_by_default() -> bool:
     """Whether a compiled path starts enabled: numba is there and the environment does not force numpy."""
     return NUMBA_AVAILABLE and os.environ.get(FORCE_NUMPY_ENV, "") in ("", "0")
+
+
+@contextmanager
+def compile_time() -> Iterator[list[float]]:
+    """Seconds numba spends compiling inside the block, summed into the one-element list it yields.
+
+    A first run compiles the fast paths (cached on disk after: ``cache=True``), which a fit's
+    timings would otherwise count as fitting.
+    """
+    total = [0.0]
+    if not NUMBA_AVAILABLE:
+        yield total
+        return
+    from numba.core import event
+
+    def add(seconds: float) -> None:
+        total[0] += seconds
+
+    with event.install_timer("numba:compile", add):
+        yield total
