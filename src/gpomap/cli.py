@@ -1259,7 +1259,8 @@ EPILOG_MAP = """examples:
 EPILOG_EVALUATE = """examples:
   gpomap evaluate --demo --method msk --kernel se
   gpomap evaluate ../shared/data/intel/intel-corrected.log.gz --compare
-  gpomap evaluate ../shared/data/belgioioso/belgioioso-corrected.log.gz --method gpomik --scans 52 --beams 37 --json
+  gpomap evaluate ../shared/data/belgioioso/belgioioso-corrected.log.gz --method ogm-counting --json
+      (the paper's GP baselines, --method gpomik and gpom, take many minutes even on a few scans)
 """
 
 
