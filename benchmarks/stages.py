@@ -39,7 +39,6 @@ STAGES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
         {"gpomap.extrapolation.MIN_POINTS_PER_CLASS": 10**9},
         {},
     ),
-    "unseen_free_cut": ("no cut of the GP's lean towards free in unseen space", {"gpomap.squash.UNSEEN_FREE_CUT": {2: 0.0}}, {}),
     "surface": ("surface misses weigh as misses", {"gpomap.fusion.FIT_SURFACE_WEIGHT": {2: False}}, {}),
     "near": (
         "near misses weigh as misses, and as no hit",

@@ -235,14 +235,10 @@ def test_the_scale_applies_only_where_no_beam_went(fitted_room: AreaGPOM) -> Non
     # Cells some beam crossed: the counts on top of the GP's own (leave-one-out) probability.
     seen = model.evidence_.calibration(squash(mean, var), h, m)
     np.testing.assert_allclose(p[~empty], seen[~empty], rtol=0, atol=1e-12)
-    # Cells none did: the probit with the latent variance scaled by kappa and its lean towards
-    # free cut in proportion to the variance's share of the prior's, by hand; nothing near a
-    # surface or behind one raises it.
+    # Cells none did: the probit with the latent variance scaled by kappa, by hand; nothing near a
+    # surface or behind one moves it.
     a, kappa = squash.alpha, squash.variance_scale
-    cut = hyp["unseen_free_cut"] * np.minimum(var[empty] / hyp["variance"], 1.0)
     z = a * mean[empty] / np.sqrt(1 + a * a * kappa * var[empty])
-    assert ((z < 0) & (cut > 0.1 * np.abs(z))).sum() > 10  # free-leaning points the cut moves
-    z = np.where(z < 0, z * np.abs(z) / (np.abs(z) + cut), z)
     np.testing.assert_allclose(p[empty], 0.005 + 0.99 * ndtr(z), rtol=0, atol=1e-9)
 
 
@@ -365,16 +361,11 @@ def test_too_few_in_both_regions_tries_where_held_out_stretches_saw_new_ground(m
     assert got["n_points"] == alone["ground"] and got["region_half"] == 3.0
 
 
-def test_the_cut_of_the_lean_towards_free_by_hand() -> None:
-    """``unseen_probit``: kappa scales the variance; a free-leaning probit z becomes
-    ``z |z| / (|z| + cut v / v0)``; a probit leaning towards occupied is left alone."""
+def test_the_unseen_probit_by_hand() -> None:
+    """``unseen_probit``: kappa scales the variance, num / sqrt(1 + kappa den)."""
     from gpomap.squash import unseen_probit
 
-    num = np.array([-2.0, -2.0, -0.5, 1.0, -2.0])
-    den = np.array([0.0, 2.0, 2.0, 2.0, 8.0])  # prior_den 4: no variance, half the prior's, above it
-    got = unseen_probit(num, den, 0.0, 1.0, 4.0)
-    # -2 with no variance; -2 * 2 / (2 + 1/2) = -1.6; -0.5 * 0.5 / (0.5 + 0.5) = -0.25; 1 as it
-    # was; -2 * 2 / (2 + 1), the share of the prior's variance at most 1.
-    np.testing.assert_allclose(got, [-2.0, -1.6, -0.25, 1.0, -4.0 / 3.0], rtol=0, atol=1e-15)
-    # Without the cut, kappa alone: num / sqrt(1 + kappa den).
-    np.testing.assert_allclose(unseen_probit(num, den, 2.0), num / np.sqrt(1.0 + 2.0 * den), rtol=0, atol=1e-15)
+    num = np.array([-2.0, -0.5, 1.0])
+    den = np.array([0.0, 3.0, 1.5])
+    # -2 with no variance; -0.5 / sqrt(1 + 2 * 3) = -0.5 / sqrt(7); 1 / sqrt(1 + 2 * 1.5) = 0.5.
+    np.testing.assert_allclose(unseen_probit(num, den, 2.0), [-2.0, -0.5 / np.sqrt(7.0), 0.5], rtol=0, atol=1e-15)

@@ -624,11 +624,8 @@ def test_written_grid_takes_the_variance_two_samples_apart(half_room: tuple[Area
     den = RegularGridInterpolator(axes, den_apart.reshape(apart.shape))(centres[:, ::-1])
     var = RegularGridInterpolator(axes, var_apart.reshape(apart.shape))(centres[:, ::-1])
     hp = model.hyperparameters_
-    # Unseen space: the variance scaled by kappa; a lean towards free cut in proportion to the
-    # variance's share of the prior's (alpha^2 times the kernel's).
+    # Unseen space: the variance scaled by kappa.
     z = num / np.sqrt(1.0 + hp["variance_scale"] * den)
-    cut = hp["unseen_free_cut"] * np.minimum(den / (hp["alpha"] ** 2 * hp["variance"]), 1.0)
-    z = np.where(z < 0, z * np.abs(z) / (np.abs(z) + cut), z)
     p_gp, p_unseen = ndtr(num / np.sqrt(1.0 + den)), ndtr(z)
     hits, misses = model.evidence_.grid_counts(om.grid)
     want = model.evidence_.grid_proba(

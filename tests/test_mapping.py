@@ -90,7 +90,6 @@ def test_grid_and_ternary(fitted):
         "alpha",
         "beta",
         "variance_scale",
-        "unseen_free_cut",
     }
     assert {"observations", "cells", "hyperparameters", "tile_fits", "prediction"} <= set(summary["timings"])
 

@@ -16,10 +16,9 @@ posterior mean is
 the far misses here those that are not surface misses.
 
 Where no beam went, p is the GP's probability for unseen space (its latent variance scaled by the
-factor fitted on held-out stretches of the log, :mod:`gpomap.extrapolation`; its lean towards
-free cut where its variance is large, :data:`gpomap.squash.UNSEEN_FREE_CUT`), next to surfaces
-and behind them too: at natural class frequencies neither a gain near hits nor a prior behind
-surfaces paid for itself (docs/choices.md). Where many beams went, the counts decide and walls
+factor fitted on held-out stretches of the log, :mod:`gpomap.extrapolation`), next to surfaces
+and behind them too: at natural class frequencies neither a gain near hits, nor a prior behind
+surfaces, nor a cut of the GP's lean towards free paid for itself (docs/choices.md). Where many beams went, the counts decide and walls
 are as sharp as the cells; the GP carries the map across gaps, and far from all data it returns
 its prior, 0.5.
 

@@ -11,8 +11,7 @@ whose moments are closed form from the inverse covariance:
 Where no beam went the map uses the same probit with the latent variance scaled by kappa
 (:meth:`ProbitSquash.unseen`, :func:`unseen_probit`). kappa is not fitted here: leave-one-out
 moments describe interpolation, and kappa is what extrapolation needs, fitted on held-out
-stretches of the log (:mod:`gpomap.extrapolation`). A planar map of scans also cuts the GP's lean
-towards free there, the more the larger its variance (:data:`UNSEEN_FREE_CUT`).
+stretches of the log (:mod:`gpomap.extrapolation`).
 """
 
 from __future__ import annotations
@@ -24,34 +23,10 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 from scipy.special import log_ndtr, ndtr
 
-#: How hard the GP's lean towards free is cut where no beam went, per dimension of a map of scans
-#: (:func:`unseen_probit`): a probit z < 0 becomes ``z |z| / (|z| + cut v / v0)``, v the latent
-#: variance and v0 the prior's. Near the data (v small) the GP's free calls stand; where its
-#: variance grows, a weak lean towards free fades to even odds and a strong one loses about
-#: ``cut v / v0``; it never passes even odds, and the GP's lean towards occupied is left alone.
-#: Why: a lidar crosses free space with every beam but sees a surface only from the side that
-#: faces it, so space that stays unseen past what a robot saw is more often surface than the GP,
-#: pulled by the free cells on the seen side, says (the walls a later visit meets first); on four
-#: of five blocks splits measured, the free side wanted a variance scale tens of times the
-#: occupied side's (docs/choices.md). A prior, not a fit: held-out stretches of the training log,
-#: on which kappa is fitted, said the opposite when two scales were fitted on them. Chosen on the
-#: shared logs' written maps (c = 1: the largest tried that made no more than one of their 20
-#: log-splits worse). 0 for point clouds: with 1, la3dm's two worlds lost log loss (0.488 ->
-#: 0.493, 0.523 -> 0.532) and geb079's simulated lidar gained (0.210 -> 0.207).
-UNSEEN_FREE_CUT: dict[int, float] = {2: 1.0, 3: 0.0}
 
-
-def unseen_probit(
-    num: NDArray[np.float64],
-    den: NDArray[np.float64],
-    variance_scale: float,
-    free_cut: float = 0.0,
-    prior_den: float = 1.0,
-) -> NDArray[np.float64]:
-    """The probit's argument where no beam went, from calibrated moments (any matching shapes).
-
-    ``z = num / sqrt(1 + kappa den)``, the latent variance scaled by kappa; where z < 0 its lean
-    towards free is then cut (:data:`UNSEEN_FREE_CUT`): ``z |z| / (|z| + free_cut den / prior_den)``.
+def unseen_probit(num: NDArray[np.float64], den: NDArray[np.float64], variance_scale: float) -> NDArray[np.float64]:
+    """The probit's argument where no beam went, from calibrated moments (any matching shapes):
+    ``z = num / sqrt(1 + kappa den)``, the latent variance scaled by kappa.
 
     Parameters
     ----------
@@ -61,18 +36,8 @@ def unseen_probit(
         ``alpha^2 v``, v the latent variance.
     variance_scale : float
         kappa.
-    free_cut : float
-        The cut where the variance is the prior's.
-    prior_den : float
-        ``alpha^2`` times the kernel's prior variance.
     """
-    z = np.asarray(num) / np.sqrt(1.0 + variance_scale * np.asarray(den))
-    if free_cut != 0.0:
-        z, cut = np.broadcast_arrays(z, free_cut * np.clip(np.asarray(den) / prior_den, 0.0, 1.0))
-        z = z.copy()
-        free = z < 0
-        z[free] = -(z[free] ** 2) / (cut[free] - z[free])
-    return z
+    return np.asarray(num) / np.sqrt(1.0 + variance_scale * np.asarray(den))
 
 
 def loo_moments(K_inv: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

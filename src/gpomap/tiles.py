@@ -67,7 +67,7 @@ from gpomap.progress import Progress, progress
 from gpomap.resources import WRITTEN_BAND_CELLS, peak_rss_mb, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
-from gpomap.squash import UNSEEN_FREE_CUT, ProbitSquash, unseen_probit
+from gpomap.squash import ProbitSquash, unseen_probit
 from gpomap.supports import Supports
 
 # Block keys pack (ix, iy) into one int64 so grouping millions of points is one argsort.
@@ -78,13 +78,10 @@ _KEY_CHUNK = 1 << 20
 
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 #: What a fit learns of unseen space besides, taken as given when passed with the hyperparameters:
-#: the variance scale (:mod:`gpomap.extrapolation`) and the cut of the GP's lean towards free
-#: (:data:`gpomap.squash.UNSEEN_FREE_CUT`).
-UNSEEN_NAMES = ("variance_scale", "unseen_free_cut")
-#: Of the hyperparameters, those that must not be negative.
-_NON_NEGATIVE_HYPER = ("unseen_free_cut",)
+#: the variance scale (:mod:`gpomap.extrapolation`).
+UNSEEN_NAMES = ("variance_scale",)
 
-#: Of the hyperparameters, those that must be positive; _NON_NEGATIVE_HYPER's not negative; beta is any number.
+#: Of the hyperparameters, those that must be positive; beta is any number.
 _POSITIVE_HYPER = ("variance", "length_scale", "noise", "alpha", "variance_scale")
 
 
@@ -107,8 +104,8 @@ def given_hyperparameters(hyperparameters: dict[str, float]) -> dict[str, float]
             v = float(hyperparameters[n])
         except (TypeError, ValueError):
             raise ValueError(f"hyperparameter {n} must be a number, got {hyperparameters[n]!r}") from None
-        if not np.isfinite(v) or (n in _POSITIVE_HYPER and v <= 0) or (n in _NON_NEGATIVE_HYPER and v < 0):
-            need = "positive" if n in _POSITIVE_HYPER else "at least 0" if n in _NON_NEGATIVE_HYPER else "finite"
+        if not np.isfinite(v) or (n in _POSITIVE_HYPER and v <= 0):
+            need = "positive" if n in _POSITIVE_HYPER else "finite"
             raise ValueError(f"hyperparameter {n} must be {need}, got {v}")
         out[n] = v
     return out
@@ -1486,10 +1483,6 @@ class TiledGPOM:
             else self._fit_variance_scale(data, obs)
         )
         self.hyperparameters_["variance_scale"] = float(self.extrapolation_["kappa"])
-        if "unseen_free_cut" not in self.hyperparameters_:
-            # Rays, not labelled points, are what leave unseen space next to surfaces.
-            cut = 0.0 if isinstance(data, Observations) else UNSEEN_FREE_CUT[self._dim]
-            self.hyperparameters_["unseen_free_cut"] = cut
         timings["variance_scale"] = time.perf_counter() - t
         # The blocks hold every point from here on: the log's points are let go before the ray
         # counts are taken (FR079's whole log: 24 M points, 600 MB with their labels and scans).
@@ -1840,11 +1833,8 @@ class TiledGPOM:
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Probability, and probability for unseen space, from :meth:`blended_moments`' calibrated moments, each (m,)."""
         p = ndtr(num / np.sqrt(1.0 + den))
-        # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation), and
-        # its lean towards free cut, the more the larger the variance.
-        hp = self.hyperparameters_
-        prior_den = hp["alpha"] ** 2 * hp["variance"]
-        p_unseen = ndtr(unseen_probit(num, den, hp.get("variance_scale", 1.0), hp.get("unseen_free_cut", 0.0), prior_den))
+        # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation).
+        p_unseen = ndtr(unseen_probit(num, den, self.hyperparameters_.get("variance_scale", 1.0)))
         return p, p_unseen
 
     def forget_below(self, y: float) -> None:
