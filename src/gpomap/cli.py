@@ -775,7 +775,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise GpomapError("give either INPUT or --demo")
     if args.demo and args.truth is not None:
         raise GpomapError("--demo is scored against the room's true geometry already; drop --truth")
-    if args.input is not None:
+    if args.figure is not None:
+        _check_figure_path(args.figure)
+    arguments = _evaluate_arguments(args)  # refuses an option --method does not take, before any reading
+    if args.input is not None and Path(args.input).exists():
         from gpomap.apps import map3d
 
         if map3d.is_cloud_input(args.input):
@@ -783,9 +786,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
                 f"{args.input} holds 3-D scans; gpomap evaluate scores planar maps only: score a voxel map on "
                 "held-out scans against OctoMap with benchmarks/volume_quality.py"
             )
-    if args.figure is not None:
-        _check_figure_path(args.figure)
-    arguments = _evaluate_arguments(args)  # refuses an option --method does not take, before any reading
     truth = plan = None
     if args.demo:
         from gpomap.simulate import paper_room, paper_room_scans
