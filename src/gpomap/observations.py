@@ -404,28 +404,6 @@ def observations_from_scans(
     )
 
 
-def balanced_subsample(occupied: ArrayLike, n: int, seed: int) -> NDArray[np.intp]:
-    """Indices of `n` occupied and then `n` free points, each drawn without replacement by one
-    generator seeded with `seed`: classes balanced as an evaluation balances them.
-
-    Parameters
-    ----------
-    occupied : array_like of bool, shape (m,)
-    n : int
-        At most the size of the smaller class.
-    seed : int
-
-    Returns
-    -------
-    ndarray of int, shape (2 n,)
-    """
-    occupied = np.asarray(occupied, dtype=bool)
-    rng = np.random.default_rng(seed)
-    return np.concatenate(
-        [rng.choice(np.flatnonzero(occupied), n, replace=False), rng.choice(np.flatnonzero(~occupied), n, replace=False)]
-    )
-
-
 def natural_subsample(n_points: int, n: int, seed: int) -> NDArray[np.intp]:
     """Sorted indices of at most `n` of `n_points` points drawn uniformly without replacement by a
     generator seeded with `seed`: each class keeps the share it has in the data.
