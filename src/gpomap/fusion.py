@@ -196,12 +196,12 @@ def gp_sampling_factor(length_scale: float, resolution: float) -> int:
 #: weight of about 32: one step worth one hit left them at p 0.66-0.78, ten leave them free.
 PATH_HITS: float = 10.0
 
-#: Whether the ternary map, per dimension of the data, never calls occupied a cell that beams (or
-#: the robot) crossed and no beam ended in (:func:`gpomap.grid.ternary`'s ``seen_through``), as
-#: neither occupancy grid would: such a cell the map thinks likely occupied (a surface beside it,
-#: the GP's lean) is unknown instead. Planar maps, where the occupied threshold is fitted with the
-#: same rule: the cells in front of the Stage arena's walls, crossed by grazing beams, were called
-#: occupied (docs/choices.md). Not for point clouds, where it was not measured.
+#: Whether the ternary map, per dimension of the data, never calls occupied a cell no beam ended in
+#: (:func:`gpomap.grid.ternary`'s ``seen_through``), as neither occupancy grid would: one beams or
+#: the robot crossed, or one nothing reached, that the map thinks likely occupied (a surface beside
+#: it, the GP's guess) is unknown instead. Planar maps: grazing beams cross the cells in front of
+#: walls, and unexplored space round a building takes the GP's guess (docs/choices.md). Point clouds
+#: mark what no ray reached in their outputs instead (:attr:`gpomap.voxels.VoxelMap.observed`).
 SEEN_THROUGH_NOT_OCCUPIED: dict[int, bool] = {2: True, 3: False}
 
 #: Calibration points: free points along a returned beam stop this short of its end (m), about a
@@ -308,10 +308,10 @@ def surface_misses(misses: ArrayLike, near: ArrayLike, at_surface: ArrayLike) ->
     return np.where(np.asarray(at_surface, dtype=bool), far, 0.0)
 
 
-def seen_through(hits: ArrayLike, misses: ArrayLike, path: ArrayLike = 0) -> NDArray[np.bool_]:
-    """Cells that beams (`misses`) or the robot's path crossed and no beam ended in (no `hits`),
-    which the ternary map never calls occupied (:data:`SEEN_THROUGH_NOT_OCCUPIED`; matching shapes)."""
-    return (np.asarray(hits) == 0) & ((np.asarray(misses) > 0) | (np.asarray(path) > 0))
+def without_hits(hits: ArrayLike) -> NDArray[np.bool_]:
+    """Cells no beam ended in (no `hits`), which the ternary map never calls occupied
+    (:data:`SEEN_THROUGH_NOT_OCCUPIED`; the shape of `hits`)."""
+    return np.asarray(hits) == 0
 
 
 class CalibrationSample(NamedTuple):
@@ -865,16 +865,14 @@ class EvidenceLayer:
         return self.revisit(p)
 
     def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
-        """Whether beams or the robot's path crossed the fine cell holding each point and no beam
-        ended in it, shape (m,) (False outside the counted area); None where the ternary map does
-        not use it (:data:`SEEN_THROUGH_NOT_OCCUPIED`)."""
+        """Whether no beam ended in the fine cell holding each point (True outside the counted
+        area), shape (m,); None where the ternary map does not use it (:data:`SEEN_THROUGH_NOT_OCCUPIED`)."""
         if not SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False):
             return None
         if self.lattice is None:
-            return np.zeros(np.asarray(points).shape[0], dtype=bool)
+            return np.ones(np.asarray(points).shape[0], dtype=bool)
         cell, inside = flat_index(self.lattice, points)
-        hits, beam, path = (a.reshape(-1)[cell] for a in (self._hits, self._beam_misses, self._path))
-        return inside & seen_through(hits, beam, path)
+        return ~inside | without_hits(self._hits.reshape(-1)[cell])
 
     def grid_seen_through(self, grid: AnyGrid) -> NDArray[np.bool_] | None:
         """:meth:`seen_through_at` per cell of `grid`, counted on its own cells (the counts of
@@ -883,8 +881,8 @@ class EvidenceLayer:
             return None
         if self._grid_cache is None or self._grid_cache[0] != grid:
             self._grid_cache = (grid, *self._raw_grid_counts(grid))
-        _, counts, path, _ = self._grid_cache
-        return seen_through(counts.hits, counts.misses, path)
+        _, counts, _, _ = self._grid_cache
+        return without_hits(counts.hits)
 
     def _on_lattice(self, grid: AnyGrid) -> bool:
         """Whether `grid`'s cells are cells of the counted lattice (same side, origin on a corner)."""

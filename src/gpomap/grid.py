@@ -156,8 +156,8 @@ def ternary(
     thresholds : (free_below, occupied_above)
         Probability below the first is FREE (0), above the second OCCUPIED (1), between UNKNOWN (-1).
     seen_through : ndarray of bool, the shape of `probability`, optional
-        Cells that beams (or the robot) crossed and no beam ended in: never OCCUPIED, UNKNOWN
-        where their probability is above the occupied threshold.
+        Cells no beam ended in (beams or the robot crossed them, or nothing reached them): never
+        OCCUPIED, UNKNOWN where their probability is above the occupied threshold.
 
     Returns
     -------
@@ -193,8 +193,8 @@ class OccupancyMap:
     info : dict
         What made the map: method, hyperparameters, timings; written into outputs where they can hold it.
     seen_through : ndarray of bool, shape (ny, nx), optional
-        Cells that beams or the robot's path crossed and no beam ended in, which the ternary map
-        never calls occupied (see :func:`ternary`); None: no such cells known.
+        Cells no beam ended in (crossed by beams or the robot's path, or reached by nothing),
+        which the ternary map never calls occupied (see :func:`ternary`); None: no such cells known.
     """
 
     grid: GridSpec
