@@ -42,6 +42,8 @@ BOUNDARY_RADIUS: float = 0.1
 _MERGE: float = 0.005
 #: map_server's default ternary thresholds (free below, occupied above): how a grid's users read it.
 MAP_SERVER_THRESHOLDS: tuple[float, float] = (0.196, 0.65)
+#: Most cells of the merge raster (bytes, as booleans): a larger plan merges on a coarser lattice.
+_MAX_RASTER_CELLS: int = 200_000_000
 #: Scans sampled at a time.
 _CHUNK: int = 100
 
@@ -115,27 +117,28 @@ class PlanTruth:
 
     def observed(self, scans: Sequence[Scan], radius: float = OBSERVED_RADIUS, step: float = OBSERVED_STEP) -> NDArray[np.bool_]:
         """Pixels whose centre lies within `radius` of a point `scans` observed, shape (h * w,)."""
-        # Points on the merge lattice, as cells of a raster over the plan (grown by the radius).
-        pad = radius + _MERGE
-        lo = np.asarray(self.lower_left) - pad
+        # Points on the merge lattice, as cells of a raster over the plan (grown by the radius); a
+        # plan of a whole building merges coarser, so the raster stays within _MAX_RASTER_CELLS.
         h, w = self.occupied.shape
-        shape = (
-            int(np.ceil((w * self.pixel_size[0] + 2 * pad) / _MERGE)),
-            int(np.ceil((h * self.pixel_size[1] + 2 * pad) / _MERGE)),
-        )
+        width, height = w * self.pixel_size[0] + 2 * radius, h * self.pixel_size[1] + 2 * radius
+        merge = max(_MERGE, float(np.sqrt(width * height / _MAX_RASTER_CELLS)))
+        pad = radius + merge
+        lo = np.asarray(self.lower_left) - pad
+        shape = (int(np.ceil((width + 2 * merge) / merge)), int(np.ceil((height + 2 * merge) / merge)))
         seen = np.zeros(shape[0] * shape[1], dtype=bool)
         for start in range(0, len(scans), _CHUNK):
             obs = observations_from_scans(list(scans[start : start + _CHUNK]), step, step, NO_RETURN_CAP, free_clearance=0.0)
-            q = np.floor((obs.points - lo) / _MERGE).astype(np.int64)
+            q = np.floor((obs.points - lo) / merge).astype(np.int64)
             inside = (q >= 0).all(axis=1) & (q[:, 0] < shape[0]) & (q[:, 1] < shape[1])
             seen[q[inside, 0] * shape[1] + q[inside, 1]] = True
         flat = np.flatnonzero(seen)
-        points = lo + (np.column_stack([flat // shape[1], flat % shape[1]]) + 0.5) * _MERGE
+        points = lo + (np.column_stack([flat // shape[1], flat % shape[1]]) + 0.5) * merge
         if points.size == 0:
             return np.zeros(self.occupied.size, dtype=bool)
         # The merge moves a point by at most half the lattice's diagonal: searched that much wider.
-        d, _ = cKDTree(points).query(self.centres(), distance_upper_bound=radius + _MERGE * np.sqrt(0.5))
-        return np.asarray(d <= radius + _MERGE * np.sqrt(0.5))
+        reach = radius + merge * np.sqrt(0.5)
+        d, _ = cKDTree(points).query(self.centres(), distance_upper_bound=reach)
+        return np.asarray(d <= reach)
 
 
 @dataclass(frozen=True)
