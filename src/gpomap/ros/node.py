@@ -96,8 +96,8 @@ def settings_from_params(get: Callable[[str, Any], Any]) -> NodeSettings:
         ``pose_wait`` (s a scan waits for its tf before it is dropped, 1.0), ``warmup_scans``
         (scans before the hyperparameters are learnt and the first map, 30), ``max_refits``
         (most tiles refitted per map published, oldest first; default no limit), ``tile_size`` (m,
-        5), ``thresholds`` ([free, occupied]; default 0.33 and an occupied threshold fitted on the scans so far,
-        :attr:`gpomap.tiles.TiledGPOM.thresholds_`), ``save_directory`` (``gpomap-map``),
+        5), ``thresholds`` ([free, occupied]; default a calibrated map's, 0.196 and 0.5,
+        :data:`gpomap.grid.CALIBRATED_THRESHOLDS`), ``save_directory`` (``gpomap-map``),
         ``save_on_shutdown`` (false), ``model`` (a dict of :class:`~gpomap.mapping.AreaGPOM`
         options, e.g. ``{kernel: se, free_step: 0.1}``).
 
