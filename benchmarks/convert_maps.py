@@ -5,8 +5,9 @@
 (b) The Stage arena's true plan ``mrl_arena.pgm`` (406 x 460 px, occupied = value < 128, everything
     else free). Its YAML is wrong and Stage really stretches it to 4.06 m x 4.55 m (0.0100 m x
     0.009891 m pixels); for simplicity we treat it as a square-pixel 0.01 m grid (4.06 m x 4.60 m,
-    lower-left corner (-1.03, -1.275)). It is down-sampled to a coarse grid (a coarse pixel is
-    occupied if any of its fine pixels is; the width is padded with free pixels to a whole number of
+    lower-left corner (-1.03, -1.275)). It is down-sampled to a coarse grid as occupancy grids are
+    made (``--pooling``: a coarse pixel occupied if any of its fine pixels is, if most are, or the
+    occupied share as its probability; the width is padded with free pixels to a whole number of
     coarse pixels), converted back to 0.01 m, and compared with the true fine plan, alongside
     nearest-neighbour and bilinear up-sampling of the coarse grid (scipy.ndimage.zoom, orders 0 and
     1, ``grid_mode=True`` so pixel edges line up). Measures on the 406 x 460 true pixels: ROC AUC of
@@ -164,20 +165,29 @@ def read_arena(path: Path) -> NDArray[np.bool_]:
     return np.flipud(top_down < 128).copy()
 
 
-def bench_arena(path: Path, coarse_resolutions: list[float]) -> None:
+#: How a coarse pixel is made from the fine pixels it holds, as occupancy grids are made: occupied
+#: if any is, if most are, or the occupied share as its probability.
+POOLING = {
+    "any": lambda block: block.any(axis=(1, 3)).astype(float),
+    "majority": lambda block: (block.mean(axis=(1, 3)) > 0.5).astype(float),
+    "mean": lambda block: block.mean(axis=(1, 3)),
+}
+
+
+def bench_arena(path: Path, coarse_resolutions: list[float], poolings: list[str]) -> None:
     """Part (b): down-sample the true plan, convert back to 0.01 m, compare with interpolation."""
     truth = read_arena(path)
     ny, nx = truth.shape
     rows = []
-    for coarse_res in coarse_resolutions:
+    for coarse_res, pooling in ((c, p) for c in coarse_resolutions for p in poolings):
         k = round(coarse_res / ARENA_RESOLUTION)
         if not np.isclose(k * ARENA_RESOLUTION, coarse_res):
             raise SystemExit(f"coarse resolution {coarse_res} is not a whole number of 0.01 m pixels")
         cy, cx = -(-ny // k), -(-nx // k)
         fine = np.zeros((cy * k, cx * k), dtype=bool)  # padding is free
         fine[:ny, :nx] = truth
-        coarse = fine.reshape(cy, k, cx, k).any(axis=(1, 3))
-        cmap = OccupancyMap(GridSpec(ARENA_ORIGIN, coarse_res, coarse.shape), coarse.astype(float))
+        coarse = POOLING[pooling](fine.reshape(cy, k, cx, k))
+        cmap = OccupancyMap(GridSpec(ARENA_ORIGIN, coarse_res, coarse.shape), coarse)
         t = time.perf_counter()
         res = convert_grid(cmap, resolution=ARENA_RESOLUTION)
         t_gp = time.perf_counter() - t
@@ -194,26 +204,27 @@ def bench_arena(path: Path, coarse_resolutions: list[float]) -> None:
         times["GP (convert_grid)"] = t_gp
         for name, s in scores.items():
             pred = s > 0.5
-            rows.append(_arena_row(coarse_res, name, truth, s, pred, times[name], res.report if name.startswith("GP") else None))
+            report = res.report if name.startswith("GP") else None
+            rows.append(_arena_row(f"{coarse_res:g} m, {pooling}", name, truth, s, pred, times[name], report))
         pred = res.map.ternary[:ny, :nx] == OCCUPIED
-        rows.append(_arena_row(coarse_res, "GP, occupied = p > 0.66", truth, p_gp, pred, t_gp, None))
+        rows.append(_arena_row(f"{coarse_res:g} m, {pooling}", "GP, occupied = p > 0.66", truth, p_gp, pred, t_gp, None))
     _table(
         f"(b) Stage arena plan {nx} x {ny} px (square 0.01 m pixels assumed), coarse -> 0.01 m; "
         "occupied = score > 0.5 unless stated",
-        ["coarse", "method", "AUC", "accuracy", "IoU occ", "occ frac", "s", "GP cells / l"],
+        ["coarse, pooling", "method", "AUC", "accuracy", "IoU occ", "occ frac", "s", "GP cells / l"],
         rows,
     )
     print(f"true occupied fraction: {truth.mean():.4f}")
 
 
-def _arena_row(coarse_res, name, truth, score, pred, seconds, report) -> list[str]:
+def _arena_row(coarse, name, truth, score, pred, seconds, report) -> list[str]:
     inter = int((pred & truth).sum())
     union = int((pred | truth).sum())
     extra = "-"
     if report is not None:
         extra = f"{report['cells']['n']} / {report['hyperparameters']['length_scale']:.3f} m"
     return [
-        f"{coarse_res:g} m",
+        coarse,
         name,
         f"{roc_auc(truth.ravel(), score.ravel()):.4f}",
         f"{(pred == truth).mean():.4f}",
@@ -229,13 +240,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--turtlebot", type=Path, default=DATA / "turtlebot3-world-map" / "map.yaml", help="ROS map YAML")
     ap.add_argument("--arena", type=Path, default=DATA / "stage-arena" / "mrl_arena.pgm", help="arena plan PGM")
     ap.add_argument("--coarse", type=float, nargs="+", default=[0.05], help="coarse resolutions for (b), metres")
+    ap.add_argument("--pooling", nargs="+", choices=list(POOLING), default=list(POOLING), help="how (b)'s coarse grids are made")
     ap.add_argument("--skip-turtlebot", action="store_true")
     ap.add_argument("--skip-arena", action="store_true")
     args = ap.parse_args(argv)
     if not args.skip_turtlebot:
         bench_turtlebot(args.turtlebot)
     if not args.skip_arena:
-        bench_arena(args.arena, args.coarse)
+        bench_arena(args.arena, args.coarse, args.pooling)
     return 0
 
 
