@@ -111,16 +111,17 @@ def _tf(types, t: float, parent: str, child: str, x: float, y: float, yaw: float
     return types["tf2_msgs/msg/TFMessage"](transforms=[ts])
 
 
-def _scan(types, t: float, frame: str, ranges: list[float]):
+def _scan(types, t: float, frame: str, ranges, angle_increment: float = math.pi / 2, range_max: float = 4.0):
+    """A LaserScan from -90 to 90 degrees in steps of `angle_increment`."""
     return types["sensor_msgs/msg/LaserScan"](
         header=_header(types, t, frame),
         angle_min=-math.pi / 2,
         angle_max=math.pi / 2,
-        angle_increment=math.pi / 2,
+        angle_increment=angle_increment,
         time_increment=0.0,
         scan_time=0.1,
         range_min=0.05,
-        range_max=4.0,
+        range_max=range_max,
         ranges=np.asarray(ranges, dtype=np.float32),
         intensities=np.zeros(0, dtype=np.float32),
     )

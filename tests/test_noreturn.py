@@ -323,7 +323,7 @@ def test_a_bag_whose_range_max_hides_a_smeared_code_trusts_the_data(tmp_path: Pa
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-    from tests.test_io_rosbag import _header, _tf
+    from tests.test_io_rosbag import _scan, _tf
 
     store = get_typestore(Stores.ROS1_NOETIC)
     store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
@@ -343,18 +343,7 @@ def test_a_bag_whose_range_max_hides_a_smeared_code_trusts_the_data(tmp_path: Pa
                 ranges[code] = rng.uniform(51.05, 51.12, int(code.sum()))
                 if i % 20 == 0:
                     ranges[0] = rng.uniform(51.13, 51.22)
-                laser = types["sensor_msgs/msg/LaserScan"](
-                    header=_header(types, t, "laser"),
-                    angle_min=-math.pi / 2,
-                    angle_max=math.pi / 2,
-                    angle_increment=math.pi / 180,
-                    time_increment=0.0,
-                    scan_time=0.1,
-                    range_min=0.05,
-                    range_max=80.0,
-                    ranges=ranges.astype(np.float32),
-                    intensities=np.zeros(0, dtype=np.float32),
-                )
+                laser = _scan(types, t, "laser", ranges, angle_increment=math.pi / 180, range_max=80.0)
                 writer.write(scan, int(t * 1e9) + 2, store.serialize_ros1(laser, "sensor_msgs/msg/LaserScan"))
     scans = read_scans(path)
     decision = scans[0].meta["no_return"]

@@ -111,12 +111,10 @@ def given_hyperparameters(hyperparameters: dict[str, float]) -> dict[str, float]
     return out
 
 
-#: Most cells of the compact sample the hyperparameters are learnt on, by the map's dimension.
-#: Planar maps: 800 (Intel and CSAIL, blocks split, at 2cf7589: held-out log loss of the written
-#: map 0.1297 / 0.162 against 0.1314 / 0.1667 with 300). Voxel maps: 300, as the 3-D defaults were
-#: measured (la3dm sim_structured / sim_unstructured, every 4th scan held out: written-grid log
-#: loss 0.4962 / 0.5218 against 0.4935 / 0.5249 with 800, exact points 0.5033 / 0.5523 against
-#: 0.5110 / 0.5373; the search 8-11x faster, each step of the cuboid kernel being dearer).
+#: Most cells of the compact sample the hyperparameters are learnt on, by the map's dimension:
+#: a larger sample pinned planar maps' hyperparameters better, while in 3-D each step of the cuboid
+#: kernel is dearer and 300 scored as well (the measurements: docs/choices.md, "The hyperparameter
+#: search in groups of 200 cells").
 DEFAULT_HYPER_SAMPLE: dict[int, int] = {2: 800, 3: 300}
 
 #: Most cells of each compact group the hyperparameter sample is cut into for the search, each
