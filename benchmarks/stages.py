@@ -84,9 +84,8 @@ def child(stage: str, dataset: str) -> dict[str, Any]:
     """Score one dataset with one stage off (in this process)."""
     _, patches, options = STAGES[stage]
     _apply(patches)
-    from gpomap.evaluation import lookup, make_model, prepare, written_grid
-    from gpomap.metrics import brier_score, expected_calibration_error, log_loss, roc_auc
-    from gpomap.truth import TruthPoints, lookup_map, score_plan
+    from gpomap.evaluation import lookup, lookup_occupied, make_model, prepare, score, written_grid
+    from gpomap.truth import TruthPoints, score_plan
 
     sys.path.insert(0, str(Path(__file__).parent))
     import quality
@@ -98,23 +97,15 @@ def child(stage: str, dataset: str) -> dict[str, Any]:
         data = prepare(scans, split, scan_step=quality.LOGS[log].get("scan_step", 1), seed=0, max_test_points=TEST_POINTS)
         model = make_model("msk", None, 0, 0.05, None, **options).fit(data.train)
         fit_cpu = time.process_time() - t
-        p = lookup(written_grid(model, 0.05), data.points)
-        y = data.labels
-        b = data.masks["boundary"]
-        return {
-            "log_loss": log_loss(y, p),
-            "brier": brier_score(y, p),
-            "ece": expected_calibration_error(y, p, 10),
-            "auc": roc_auc(y, p),
-            "boundary_auc": roc_auc(y[b], p[b]),
-            "fit_cpu": fit_cpu,
-        }
+        scores = score(data.labels, lookup(written_grid(model, 0.05), data.points), {"boundary": data.masks["boundary"]})
+        return {**{k: scores[k] for k in ("log_loss", "brier", "ece", "auc", "boundary_auc")}, "fit_cpu": fit_cpu}
     scans, plan = quality.load(dataset)
     assert plan is not None, f"{dataset} has no true plan"
     model = make_model("msk", None, 0, 0.05, None, **options).fit(scans)
     fit_cpu = time.process_time() - t
     truth = TruthPoints.of(plan, scans)
-    return {**score_plan(truth, *lookup_map(written_grid(model, 0.05), truth.points)), "fit_cpu": fit_cpu}
+    written = written_grid(model, 0.05)
+    return {**score_plan(truth, lookup(written, truth.points), lookup_occupied(written, truth.points)), "fit_cpu": fit_cpu}
 
 
 def main(argv: list[str] | None = None) -> int:

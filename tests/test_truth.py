@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from gpomap.evaluation import lookup, lookup_occupied
 from gpomap.grid import GridSpec, OccupancyMap
 from gpomap.metrics import brier_score
 from gpomap.scans import Scan
-from gpomap.truth import PlanTruth, TruthPoints, lookup_map, score_plan
+from gpomap.truth import PlanTruth, TruthPoints, score_plan
 
 
 def _segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -81,7 +82,8 @@ def test_score_plan_by_hand() -> None:
 def test_a_written_map_is_read_at_the_pixels_cells() -> None:
     grid = GridSpec((0.0, 0.0), 0.5, (2, 2))
     om = OccupancyMap(grid, np.array([[0.1, 0.9], [0.3, 0.7]]), thresholds=(0.2, 0.5))
-    prob, called = lookup_map(om, np.array([[0.1, 0.1], [0.9, 0.1], [0.2, 0.8], [5.0, 5.0]]))
+    points = np.array([[0.1, 0.1], [0.9, 0.1], [0.2, 0.8], [5.0, 5.0]])
+    prob, called = lookup(om, points), lookup_occupied(om, points)
     np.testing.assert_allclose(prob, [0.1, 0.9, 0.3, 0.5])  # outside the map: a coin
     np.testing.assert_array_equal(called, [False, True, False, False])
 

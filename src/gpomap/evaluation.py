@@ -55,7 +55,7 @@ from gpomap.metrics import (
 from gpomap.observations import natural_subsample, observations_from_scans
 from gpomap.resources import peak_rss_mb
 from gpomap.scans import Scan, select_scans
-from gpomap.truth import MAP_SERVER_THRESHOLDS, PlanTruth, TruthPoints, lookup_map, score_plan
+from gpomap.truth import MAP_SERVER_THRESHOLDS, PlanTruth, TruthPoints, score_plan
 
 if TYPE_CHECKING:
     from gpomap.io.rosmap import RosMap
@@ -945,9 +945,12 @@ def run_method(
                 occupied=lookup_occupied(occupancy_map, centres),
             )
         if data.plan is not None:
-            plan_prob, plan_occupied = lookup_map(occupancy_map, data.plan.points)
-            if method in GRID_METHODS:  # a grid's ternary map as map_server reads it
-                plan_occupied = plan_prob > MAP_SERVER_THRESHOLDS[1]
+            plan_prob = lookup(occupancy_map, data.plan.points)
+            # A grid's ternary map as map_server reads it; gpomap's its own.
+            grid_method = method in GRID_METHODS
+            plan_occupied = (
+                plan_prob > MAP_SERVER_THRESHOLDS[1] if grid_method else lookup_occupied(occupancy_map, data.plan.points)
+            )
             plan_out = score_plan(data.plan, plan_prob, plan_occupied)
         del occupancy_map
 

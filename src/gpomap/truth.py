@@ -24,7 +24,6 @@ from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
-from gpomap.grid import OCCUPIED, OccupancyMap
 from gpomap.metrics import brier_score, expected_calibration_error, iou, log_loss, roc_auc
 from gpomap.observations import observations_from_scans
 from gpomap.scans import Scan
@@ -164,16 +163,6 @@ class TruthPoints:
         if plan.known is not None:
             seen &= plan.known.ravel()
         return cls(plan.centres()[seen], plan.occupied.ravel()[seen], plan.boundary()[seen])
-
-
-def lookup_map(occupancy_map: OccupancyMap, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """A written map's probability (0.5 outside it) and ternary occupied class at `points`, each shape (n,)."""
-    rows, cols, inside = occupancy_map.grid.index_of(np.asarray(points, dtype=float).reshape(-1, 2))
-    prob = np.full(len(rows), 0.5)
-    prob[inside] = occupancy_map.probability[rows[inside], cols[inside]]
-    called = np.zeros(len(rows), dtype=bool)
-    called[inside] = occupancy_map.ternary[rows[inside], cols[inside]] == OCCUPIED
-    return prob, called
 
 
 def score_plan(truth: TruthPoints, prob: NDArray[np.float64], occupied: NDArray[np.bool_] | None = None) -> dict[str, Any]:
