@@ -104,6 +104,23 @@ def test_stream_then_finish_equals_the_batch_map(room):
     assert stream.stats()["add_scan"]["n"] == len(room) - 6
 
 
+def test_the_calibration_is_refitted_when_the_scans_have_doubled(room):
+    stream = StreamingGPOM(warmup_scans=5, **OPTS)
+    stream.add_scans(room[:5])
+    warmup = stream.model_.evidence_.calibration
+    stream.add_scans(room[5:9])
+    stream.refresh()
+    assert stream.model_.evidence_.calibration is warmup  # 9 scans: not yet twice the 5 it was fitted on
+    stream.add_scan(room[9])
+    stream.refresh()
+    # Ten scans: refitted on all of them, as a batch fit of the ten with the same hyperparameters.
+    batch = TiledGPOM(n_workers=1, **OPTS).fit(room[:10], hyperparameters=stream.hyperparameters_)
+    refitted, expected = stream.model_.evidence_.calibration, batch.evidence_.calibration
+    assert refitted != warmup
+    for field in dataclasses.fields(expected):
+        assert getattr(refitted, field.name) == pytest.approx(getattr(expected, field.name), rel=1e-6, abs=1e-9)
+
+
 def test_refresh_is_bounded_and_catches_up(room):
     stream = StreamingGPOM(warmup_scans=8, max_refits=1, **OPTS)
     stream.add_scans(room[:8])

@@ -8,8 +8,11 @@ is read, or when asked: the blocks absorbed since the last refresh get their cel
 the tiles whose cells changed are refitted, optionally at most ``max_refits`` tiles per refresh
 (oldest first), so a reader never waits for more than that many tile fits.
 
-Hyperparameters (and the ray-count calibration) are learnt once, on the first ``warmup_scans``
-scans, or given; :meth:`StreamingGPOM.relearn` learns them again on every scan so far. After
+Hyperparameters are learnt once, on the first ``warmup_scans`` scans, or given;
+:meth:`StreamingGPOM.relearn` learns them again on every scan so far. The ray-count calibration
+is learnt with them and refitted on every scan so far each time the scans have doubled since it
+was last fitted (a few warm-up scans calibrate the counts poorly; its points are capped, so each
+refit costs about the same and the refits stay a bounded share of the work). After
 :meth:`StreamingGPOM.finish` the map equals the batch map of the same scans with the same
 hyperparameters (the tests check it to 1e-9).
 
@@ -118,6 +121,7 @@ class StreamingGPOM:
         self._add_seconds: list[float] = []
         self._refresh_seconds: list[float] = []
         self._warmup_seconds = 0.0
+        self._calibrated_scans = 0
 
     def __repr__(self) -> str:
         return f"StreamingGPOM(warmup_scans={self.warmup_scans}, max_refits={self.max_refits}, {self.options})"
@@ -154,6 +158,7 @@ class StreamingGPOM:
             if len(self._buffer) >= self.warmup_scans:
                 self.model_ = TiledGPOM(**self.options).fit(self._buffer, self.hyperparameters)
                 self._buffer = []
+                self._calibrated_scans = self.n_scans_
                 self._warmup_seconds = time.perf_counter() - t0
                 self._record_change(self._whole_extent())
             return
@@ -170,6 +175,9 @@ class StreamingGPOM:
     def refresh(self, max_refits: int | None = None) -> list[tuple[int, int]]:
         """Bring the GP up to date with the scans absorbed (at most `max_refits` tile fits).
 
+        Once the scans have doubled since the ray-count calibration was fitted, it is refitted
+        on all of them (:meth:`recalibrate`).
+
         Parameters
         ----------
         max_refits : int, optional
@@ -185,6 +193,8 @@ class StreamingGPOM:
         refitted = model.refresh(self.max_refits if max_refits is None else max_refits)
         for key in refitted:
             self._record_change(model._blend_region(key))
+        if self.n_scans_ >= 2 * self._calibrated_scans:
+            self.recalibrate()
         self._refresh_seconds.append(time.perf_counter() - t0)
         return refitted
 
@@ -196,6 +206,7 @@ class StreamingGPOM:
     def recalibrate(self) -> None:
         """Refit the ray-count calibration on every scan so far, against the current GP."""
         model = self._model()
+        self._calibrated_scans = self.n_scans_
         if model.evidence_ is not None:
             model.evidence_.recalibrate(model.predict_proba_gp)
             self._record_change(self._whole_extent())
@@ -213,6 +224,7 @@ class StreamingGPOM:
         model = self._model()
         assert model._scans is not None
         self.model_ = TiledGPOM(**self.options).fit(model._scans)
+        self._calibrated_scans = self.n_scans_
         self._record_change(self._whole_extent())
         return dict(self.model_.hyperparameters_)
 
@@ -328,6 +340,7 @@ class StreamingGPOM:
             "n_scans": self.n_scans_,
             "warmup_scans": self.warmup_scans,
             "warmup_seconds": self._warmup_seconds,
+            "calibrated_scans": self._calibrated_scans,
             "add_scan": _percentiles(self._add_seconds),
             "refresh": _percentiles(self._refresh_seconds),
             "pending_tiles": self.model_.pending_tiles_ if self.model_ is not None else None,
