@@ -94,3 +94,19 @@ def test_brier_score_by_hand() -> None:
     assert brier_score([True, False], [0.8, 0.4]) == pytest.approx((0.04 + 0.16) / 2)
     with pytest.raises(ValueError):
         brier_score([True], [1.5])
+
+
+def test_a_world_drawn_as_a_plan_marks_every_pixel_its_geometry_says_is_occupied() -> None:
+    from matplotlib.path import Path
+
+    from gpomap.simulate import World
+
+    # Walls at odd angles and a solid triangle; a pixel is occupied within half a pixel of a wall
+    # (measured to every wall) or inside the triangle (matplotlib's point-in-polygon test).
+    triangle = np.array([(2.0, 2.2), (2.8, 2.4), (2.3, 2.9)])
+    world = World(segments=[(0.0, 0.0, 3.0, 0.4), (0.3, 2.9, 2.7, 1.1), (1.5, 0.0, 1.5, 3.0)], obstacles=[triangle])
+    plan = PlanTruth.from_world(world, 0.01)
+    centres = plan.centres()
+    expected = (world.distance_to_walls(centres) <= 0.005) | Path(triangle).contains_points(centres)
+    assert expected.sum() > 1000
+    np.testing.assert_array_equal(plan.occupied.ravel(), expected)

@@ -156,15 +156,20 @@ class World:
         p = np.asarray(points, dtype=float).reshape(-1, 2)
         inside = np.zeros(len(p), dtype=bool)
         for poly in self.obstacles:
+            # Only points in the polygon's bounding box can be inside it.
+            lo, hi = poly.min(axis=0), poly.max(axis=0)
+            box = np.flatnonzero(((p >= lo) & (p <= hi)).all(axis=1))
+            if box.size == 0:
+                continue
             v0, v1 = poly, np.roll(poly, -1, axis=0)
-            x, y = p[:, 0:1], p[:, 1:2]
+            x, y = p[box, 0:1], p[box, 1:2]
             # Count crossings of a ray to +x: edges straddling the point's y (half-open so a
             # vertex on the ray is counted once) whose crossing lies to the right of the point.
             straddle = (v0[None, :, 1] > y) != (v1[None, :, 1] > y)
             with np.errstate(divide="ignore", invalid="ignore"):
                 xc = v0[None, :, 0] + (y - v0[None, :, 1]) * (v1[None, :, 0] - v0[None, :, 0]) / (v1[None, :, 1] - v0[None, :, 1])
             crossings = (straddle & (x < xc)).sum(axis=1)
-            inside |= crossings % 2 == 1
+            inside[box] |= crossings % 2 == 1
         return inside
 
     def occupancy(self, points: ArrayLike, wall_thickness: float = 0.1) -> NDArray[np.bool_]:

@@ -46,6 +46,9 @@ _MAX_RASTER_CELLS: int = 200_000_000
 #: Scans sampled at a time.
 _CHUNK: int = 100
 
+#: Side, in pixels, of the blocks :meth:`PlanTruth.from_world` screens for walls before it measures each pixel.
+_WALL_BLOCK: int = 16
+
 
 @dataclass(frozen=True)
 class PlanTruth:
@@ -83,8 +86,22 @@ class PlanTruth:
         w, h = int(np.ceil((x1 - x0) / resolution)), int(np.ceil((y1 - y0) / resolution))
         rows, cols = np.indices((h, w))
         centres = np.column_stack([x0 + (cols.ravel() + 0.5) * resolution, y0 + (h - rows.ravel() - 0.5) * resolution])
-        occupied = np.asarray(world.occupancy(centres, resolution), dtype=bool).reshape(h, w)
-        return cls(occupied, (float(x0), float(y0)), (float(resolution), float(resolution)))
+        # Walls are measured only in blocks whose centre lies near one: a pixel is at least its
+        # block centre's distance less half the block's diagonal from every wall.
+        block = _WALL_BLOCK
+        brow, bcol = rows.ravel() // block, cols.ravel() // block
+        nbc = (w + block - 1) // block
+        bcx = x0 + (np.arange(nbc) + 0.5) * block * resolution
+        nbr = (h + block - 1) // block
+        bcy = y0 + h * resolution - (np.arange(nbr) + 0.5) * block * resolution
+        bx, by = np.meshgrid(bcx, bcy)
+        near = world.distance_to_walls(
+            np.column_stack([bx.ravel(), by.ravel()])
+        ) <= 0.5 * resolution + block * resolution * np.sqrt(0.5)
+        candidates = np.flatnonzero(near[brow * nbc + bcol])
+        occupied = world.inside_obstacle(centres)
+        occupied[candidates] |= world.distance_to_walls(centres[candidates]) <= 0.5 * resolution
+        return cls(occupied.reshape(h, w), (float(x0), float(y0)), (float(resolution), float(resolution)))
 
     @classmethod
     def from_rosmap(cls, rosmap: Any) -> PlanTruth:
