@@ -19,7 +19,7 @@ import numpy as np
 
 from gpomap.baselines.ogm import OccupancyGridMapper
 from gpomap.cells import build_cells
-from gpomap.fusion import calibration_points
+from gpomap.heldout import calibration_points
 from gpomap.io import read_clouds
 from gpomap.mapping import AreaGPOM
 from gpomap.metrics import roc_auc

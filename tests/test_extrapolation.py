@@ -6,21 +6,22 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from gpomap import extrapolation as ex
+import gpomap.extrapolation as ex
+import gpomap.heldout as heldout
 from gpomap.mapping import AreaGPOM
 from gpomap.simulate import paper_room, paper_room_scans, simulate_scans
 from gpomap.squash import ProbitSquash
 
 
 def test_holdout_stretches_by_hand():
-    kept, held = ex.holdout_stretches(20)
+    kept, held = heldout.holdout_stretches(20)
     # Ten stretches of two scans; the 2nd, 5th and 8th are held out.
     assert held.tolist() == [2, 3, 8, 9, 14, 15]
     assert sorted(kept.tolist() + held.tolist()) == list(range(20))
     # Nine scans: one per stretch.
-    assert ex.holdout_stretches(9)[1].tolist() == [1, 4, 7]
+    assert heldout.holdout_stretches(9)[1].tolist() == [1, 4, 7]
     # Too short to hold anything out.
-    assert ex.holdout_stretches(2)[1].size == 0
+    assert heldout.holdout_stretches(2)[1].size == 0
 
 
 class _Fixed:
@@ -62,7 +63,7 @@ def _room_scans():
     scans = paper_room_scans(n_beams=90, seed=0)
     # Drop the first third of the beams of the kept stretches' scans, so the held-out stretches
     # see space no kept beam went (as when a robot enters a room only later).
-    kept, _ = ex.holdout_stretches(len(scans))
+    kept, _ = heldout.holdout_stretches(len(scans))
     for i in kept:
         s = scans[i]
         keep = np.arange(s.n_beams) >= s.n_beams // 3
@@ -130,7 +131,7 @@ def test_region_observations_equal_the_kept_scans_observed_alone():
     scans = paper_room_scans(n_beams=90, seed=0)
     settings = AreaGPOM().base
     whole = settings.make_observations(scans, clearance=False)
-    kept, _ = ex.holdout_stretches(len(scans))
+    kept, _ = heldout.holdout_stretches(len(scans))
     # A square cutting through the room: hits just outside it clear free points just inside.
     lo, hi = np.array([0.1, 2.0]), np.array([12.0, 9.5])  # the outer wall x = 0 just outside
     got = ex.region_observations(whole, kept, lo, hi, settings.free_clearance)
@@ -153,14 +154,14 @@ def test_unseen_points_pass_over_only_scans_that_cannot_reach_the_square():
     # Short beams (3 m) round the paper room, and a square round one pose: most scans cannot
     # reach it, and skipping them changes nothing.
     from gpomap.evidence import RayEvidence, lattice_grid
-    from gpomap.fusion import calibration_points
+    from gpomap.heldout import calibration_points
     from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
     from gpomap.observations import beams_reach
     from gpomap.simulate import paper_room, simulate_scans
 
     world, poses = paper_room()
     scans = simulate_scans(world, poses, 90, max_range=3.0, seed=0)
-    kept, held = ex.holdout_stretches(len(scans))
+    kept, held = heldout.holdout_stretches(len(scans))
     # A square round a held-out pose, most of the room away from it.
     lo, hi, margin = poses[held[0], :2] - 2.0, poses[held[0], :2] + 3.0, 0.25
     kept_scans, held_scans = [scans[i] for i in kept], [scans[i] for i in held]
@@ -335,7 +336,7 @@ def _visit_scans():
     n = 5  # scans per stretch
     left = np.c_[np.linspace(2.0, 10.0, n), np.full(n, 7.5), np.zeros(n)]  # sees through the doorway
     right = np.c_[np.full(n, 14.0), np.linspace(3.0, 14.0, n), np.full(n, np.pi / 2)]
-    poses = [right if k == 1 else left for k in range(ex.N_STRETCHES)]
+    poses = [right if k == 1 else left for k in range(heldout.N_STRETCHES)]
     return simulate_scans(world, np.concatenate(poses), n_beams=180, seed=0)
 
 

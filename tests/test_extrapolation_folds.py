@@ -7,14 +7,15 @@ import dataclasses
 import numpy as np
 import pytest
 
-from gpomap import extrapolation as ex
+import gpomap.extrapolation as ex
+import gpomap.heldout as heldout
 from gpomap.mapping import AreaGPOM
 from gpomap.simulate import paper_room_scans
 from tests.test_extrapolation import _room_scans, _truth
 
 
 def test_the_three_patterns_by_hand():
-    held = {first: ex.holdout_stretches(20, first)[1].tolist() for first in ex.FOLD_STARTS}
+    held = {first: heldout.holdout_stretches(20, first)[1].tolist() for first in heldout.FOLD_STARTS}
     # Ten stretches of two scans: the 2nd, 5th, 8th; the 3rd, 6th, 9th; the 1st, 4th, 7th, 10th.
     assert held[1] == [2, 3, 8, 9, 14, 15]
     assert held[2] == [4, 5, 10, 11, 16, 17]
@@ -46,7 +47,7 @@ def _only_one_stretch_moves():
     and what it saw is the only space no kept beam went.
     """
     tour = paper_room_scans(n_beams=90, seed=0)
-    moving = set(np.array_split(np.arange(len(tour)), ex.N_STRETCHES)[2].tolist())
+    moving = set(np.array_split(np.arange(len(tour)), heldout.N_STRETCHES)[2].tolist())
     scans = [tour[i] if i in moving else tour[0] for i in range(len(tour))]
     return scans, _truth(scans)
 
@@ -93,12 +94,12 @@ def test_a_pattern_whose_kept_scans_never_saw_the_region_is_passed_over():
     # the copy, so it has no GP there and is passed over (it used to end the fit, the scale at 1);
     # the other two keep the stretch and hold out nothing that reaches the copy.
     tour = paper_room_scans(n_beams=90, seed=0)
-    away = set(np.array_split(np.arange(len(tour)), ex.N_STRETCHES)[1].tolist())
+    away = set(np.array_split(np.arange(len(tour)), heldout.N_STRETCHES)[1].tolist())
     scans = [
         dataclasses.replace(tour[i], pose=tour[i].pose + np.array([100.0, 0.0, 0.0])) if i in away else tour[0]
         for i in range(len(tour))
     ]
-    assert set(ex.holdout_stretches(len(scans), ex.FOLD_STARTS[0])[1].tolist()) >= away
+    assert set(heldout.holdout_stretches(len(scans), heldout.FOLD_STARTS[0])[1].tolist()) >= away
     settings = AreaGPOM(ray_evidence=False).base
     points = settings.make_observations(scans, clearance=False)
     stand_in = _Fixed(lambda p: (np.zeros(len(p)), np.ones(len(p))))

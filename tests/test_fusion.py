@@ -14,12 +14,12 @@ from gpomap.fusion import (
     CALIBRATION_BOUNDS,
     SURPRISE_RATE,
     EvidenceCalibration,
-    calibration_points,
     fit_calibration,
     gp_sampling_factor,
     surface_misses,
 )
 from gpomap.grid import GridSpec, coarse_grid, interpolate_to
+from gpomap.heldout import calibration_points
 from gpomap.mapping import AreaGPOM
 from gpomap.scans import Scan
 from gpomap.simulate import paper_room_scans

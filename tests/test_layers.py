@@ -47,6 +47,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.observations",
             "gpomap.cells",
             "gpomap.evidence",
+            "gpomap.heldout",
             "gpomap._compiled_counts",
             "gpomap._compiled_clearance",
             "gpomap._compiled_cells",

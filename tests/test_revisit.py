@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 
 from gpomap import revisit as rv
-from gpomap.extrapolation import holdout_stretches
-from gpomap.fusion import calibration_points
 from gpomap.grid import CALIBRATED_THRESHOLDS
+from gpomap.heldout import calibration_points, holdout_stretches
 from gpomap.mapping import AreaGPOM
 from gpomap.simulate import paper_room, simulate_scans
 

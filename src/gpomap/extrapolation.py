@@ -47,17 +47,11 @@ from scipy.special import log_ndtr
 
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
-from gpomap.fusion import calibration_points
+from gpomap.heldout import FOLD_STARTS, HOLDOUT_EVERY, calibration_points, holdout_stretches
 from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
 from gpomap.observations import Observations, beams_reach, data_dim, free_near_hits, natural_subsample
 from gpomap.squash import unseen_probit
 
-#: The log is cut into this many contiguous stretches (or one per scan, when shorter) ...
-N_STRETCHES: int = 10
-#: ... and every this-many-th stretch is held out (3 of 10, starting at the second) ...
-HOLDOUT_EVERY: int = 3
-#: ... starting at these stretches in turn, while fewer than MIN_POINTS_PER_CLASS points are found.
-FOLD_STARTS: tuple[int, ...] = (1, 2, 0)
 #: Fewest held-out points of each class where no kept beam went for kappa to be fitted.
 MIN_POINTS_PER_CLASS: int = 50
 #: Most points used, drawn uniformly so each class keeps its share (the held-in GP's prediction at
@@ -76,30 +70,6 @@ NEW_HIT_DISTANCE: float = 1.0
 #: Cell side of the lattice on which "no kept beam went" is decided, as the evaluation's
 #: reference grid decides it, metres (planar maps; voxel maps use 0.1 m).
 UNSEEN_RESOLUTION: dict[int, float] = {2: 0.05, 3: 0.1}
-
-
-def holdout_stretches(n_scans: int, first: int = FOLD_STARTS[0]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Indices of the kept and the held-out scans: every third of ten contiguous stretches held out.
-
-    Parameters
-    ----------
-    n_scans : int
-    first : int
-        The first stretch held out (0-based); then every :data:`HOLDOUT_EVERY`-th.
-
-    Returns
-    -------
-    kept, held_out : ndarray of int
-        Sorted; together they are ``0 .. n_scans - 1``. Fewer than 3 scans: nothing held out.
-    """
-    idx = np.arange(n_scans)
-    if n_scans < HOLDOUT_EVERY:
-        return idx, idx[:0]
-    stretches = np.array_split(idx, min(N_STRETCHES, n_scans))
-    held = np.zeros(n_scans, bool)
-    for s in stretches[first::HOLDOUT_EVERY]:
-        held[s] = True
-    return idx[~held], idx[held]
 
 
 def _nll(kappa: float, mu, var, occupied, alpha: float, beta: float) -> float:

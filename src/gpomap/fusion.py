@@ -85,9 +85,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import brentq, minimize
 
 from gpomap.clouds import CloudScan
-from gpomap.errors import EmptyDataError
 from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, next_to_hits, path_steps
 from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS, GridSpec, row_bands
+from gpomap.heldout import calibration_points, calibration_scans
 from gpomap.lattice import (
     AnyGrid,
     bounds_extent,
@@ -103,7 +103,7 @@ from gpomap.lattice import (
     interpolation_block,
     overlap,
 )
-from gpomap.observations import ScanData, data_dim, natural_subsample, observations_from_scans
+from gpomap.observations import ScanData, data_dim, natural_subsample
 from gpomap.resources import WRITTEN_BAND_CELLS
 from gpomap.revisit import RevisitCalibration
 from gpomap.scans import Scan
@@ -203,11 +203,6 @@ PATH_HITS: float = 10.0
 #: walls, and unexplored space round a building takes the GP's guess (docs/choices.md). Point clouds
 #: mark what no ray reached in their outputs instead (:attr:`gpomap.voxels.VoxelMap.observed`).
 SEEN_THROUGH_NOT_OCCUPIED: dict[int, bool] = {2: True, 3: False}
-
-#: Calibration points: free points along a returned beam stop this short of its end (m), about a
-#: lidar's range noise. Closer in, a point is free as the world is: a wall cell is mostly free
-#: space, and a map calibrated only on hits there makes every wall too thick (docs/choices.md).
-CALIBRATION_HIT_MARGIN: float = 0.02
 
 #: Most calibration points, drawn uniformly so each class keeps its share: a few per cent are
 #: hits, and five weights need a thousand or so of them; the GP's prediction at the points is the
@@ -320,37 +315,6 @@ class CalibrationSample(NamedTuple):
 
     probability: NDArray[np.float64] = np.zeros(0)
     occupied: NDArray[np.bool_] = np.zeros(0, dtype=bool)
-
-
-def calibration_scans(n: int, n_scans: int) -> NDArray[np.intp]:
-    """Indices of the scans a calibration holds out in turn: `n_scans` evenly spaced among `n` (all when fewer)."""
-    return np.unique(np.linspace(0, n - 1, min(n_scans, n)).round().astype(np.intp))
-
-
-def calibration_points(
-    scan: Scan | CloudScan, step: float = 0.1, no_return_cap: float | None = 10.0
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """A scan's hits and its free points every `step` along each beam up to :data:`CALIBRATION_HIT_MARGIN` short of the hit.
-
-    Parameters
-    ----------
-    scan : Scan or CloudScan
-    step : float
-        Spacing of the free points, metres.
-    no_return_cap : float or None
-        No-return beams give free points this far (never beyond the max range; None: to it).
-
-    Returns
-    -------
-    points : ndarray of shape (n, d)
-    occupied : ndarray of bool, shape (n,)
-    """
-    try:
-        # Points as the world holds them: no clearance round hits, free up to the hit itself.
-        obs = observations_from_scans([scan], step, CALIBRATION_HIT_MARGIN, no_return_cap, free_clearance=0.0)
-    except EmptyDataError:
-        return np.zeros((0, data_dim([scan]))), np.zeros(0, bool)
-    return obs.points, obs.occupied
 
 
 def ternary_thresholds(given: tuple[float, float] | None, evidence: EvidenceLayer | None) -> tuple[float, float]:

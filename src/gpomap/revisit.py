@@ -16,7 +16,7 @@ So a planar map fits one monotone map of its probabilities,
 which leaves 1/2 at 1/2 (far from all data the map still says it knows nothing) and moves the
 confident ends by up to ``shift`` in log-odds. It is fitted by maximum likelihood on two halves
 of equal weight: the held-out points of a stretch of the log the map never saw (every third of
-ten stretches, :func:`gpomap.extrapolation.holdout_stretches`), predicted by the same map fitted
+ten stretches, :func:`gpomap.heldout.holdout_stretches`), predicted by the same map fitted
 on the rest with the same hyperparameters, and the calibration's own leave-one-scan-out points,
 which stand for a visit among the training scans. The shift came out 0.2-1.0 on most real logs
 measured (largest where later stretches meet people, doors and new ground: a university building,
@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 from scipy.special import expit, log_expit, logit
 
+from gpomap.heldout import calibration_points, holdout_stretches
 from gpomap.observations import data_dim, natural_subsample
 
 #: Width, in log-odds, of the band round 1/2 that the shift leaves alone (at logit p = +-WIDTH the
@@ -167,15 +168,12 @@ def later_visit_points(
     -------
     probability : ndarray of shape (n,)
         What the map of the other stretches says at the held-out stretches' hits and free points
-        (:func:`gpomap.fusion.calibration_points`), at most :data:`POINTS` of them drawn uniformly.
+        (:func:`gpomap.heldout.calibration_points`), at most :data:`POINTS` of them drawn uniformly.
     occupied : ndarray of bool, shape (n,)
     report : dict
         ``"n_points"`` (n), or ``"reason"`` when there are none (a log under :data:`MIN_SCANS`
         scans, point clouds, a held-out stretch without a class).
     """
-    from gpomap.extrapolation import holdout_stretches
-    from gpomap.fusion import calibration_points
-
     none = np.zeros(0), np.zeros(0, dtype=bool)
     if len(scans) < MIN_SCANS or not FIT_REVISIT.get(data_dim(scans), False):
         return *none, {"reason": f"{len(scans)} scans (fewer than {MIN_SCANS}) or not planar"}
