@@ -4,8 +4,8 @@
 laser scans wait until the pose of their frame is known at their stamp, then go to the streaming
 mapper (:class:`gpomap.streaming.StreamingGPOM`) in the order they came; the map is sampled as
 the three grid layers on request, and saved in the project's formats. The ROS 1 node
-(:mod:`gpomap.ros.node`) wires it to rospy and tf2; a ROS 2 node would wire the same object to
-rclpy. Every method may be called from any thread: a lock keeps the mapper to one caller at a time.
+(:mod:`gpomap.ros.node`) wires it to rospy and tf2; the ROS 2 node (:mod:`gpomap.ros2.node`) wires
+the same object to rclpy. Every method may be called from any thread: a lock keeps the mapper to one caller at a time.
 """
 
 from __future__ import annotations
@@ -165,6 +165,80 @@ class LiveMap:
             prior = self.mapper.hyperparameters_.get("variance")
         return grid_layers(occupancy_map, prior)
 
+    def query(self, points: Any) -> tuple[Any, Any]:
+        """Occupancy probability and latent variance at points, from the current map.
+
+        Parameters
+        ----------
+        points : array-like of shape (m, 2)
+            x, y in the fixed frame, metres.
+
+        Returns
+        -------
+        probability, variance : ndarray of shape (m,)
+            Outside the observed region the map's prior: 0.5 and the prior variance.
+
+        Raises
+        ------
+        NotFittedError
+            Before the mapper is ready.
+        """
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        with self._lock:
+            self._require_ready()
+            probability, variance = self.mapper.predict_proba(pts, return_var=True)
+        return np.asarray(probability, dtype=float), np.asarray(variance, dtype=float)
+
+    def render(
+        self, resolution: float, extent: tuple[float, float, float, float] | None = None, memory_limit: int | None = None
+    ) -> GridLayers:
+        """The map's layers on any grid: `resolution` over `extent` (default the data's).
+
+        Parameters
+        ----------
+        resolution : float
+            Cell side, metres.
+        extent : (xmin, xmax, ymin, ymax), optional
+        memory_limit : int, optional
+            Bytes; default :func:`gpomap.resources.memory_limit`'s. A grid that would need more
+            is refused before any prediction.
+
+        Returns
+        -------
+        GridLayers
+
+        Raises
+        ------
+        NotFittedError
+            Before the mapper is ready.
+        MemoryLimitError
+            The grid would not fit in `memory_limit`.
+        """
+        from gpomap.resources import check_memory, grid_memory, grid_shape
+        from gpomap.resources import memory_limit as default_limit
+
+        if not (np.isfinite(resolution) and resolution > 0):
+            raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
+        with self._lock:
+            self._require_ready()
+            if extent is None:
+                extent = self.mapper.default_grid(resolution).extent
+            limit, source = (memory_limit, f"{memory_limit} bytes") if memory_limit is not None else default_limit()
+            ny, nx = grid_shape(extent, resolution)
+            what = f"a {nx} x {ny} grid ({nx * ny:.3g} cells) at resolution {resolution:g} m"
+            check_memory(grid_memory((ny, nx)), limit, what, "ask for a coarser resolution or a smaller extent", source)
+            occupancy_map = self.mapper.grid(resolution, extent)
+            prior = self.mapper.hyperparameters_.get("variance")
+        return grid_layers(occupancy_map, prior)
+
+    def _require_ready(self) -> None:
+        from gpomap.errors import NotFittedError
+
+        if not self.ready:
+            raise NotFittedError(
+                f"no map yet: {self.mapper.n_scans_} scans seen, the hyperparameters are learnt after the warm-up scans"
+            )
+
     def save(self, directory: str | os.PathLike[str], pgm_mode: str = "trinary") -> list[Path]:
         """Write the current map as one set: ``map.yaml`` + ``map.pgm``, ``map.npz``, ``map.png``.
 
@@ -184,14 +258,10 @@ class LiveMap:
         NotFittedError
             Before the mapper is ready.
         """
-        from gpomap.errors import NotFittedError
         from gpomap.io.export import write_map_outputs
 
         with self._lock:
-            if not self.ready:
-                raise NotFittedError(
-                    f"no map yet: {self.mapper.n_scans_} scans seen, the hyperparameters are learnt after the warm-up scans"
-                )
+            self._require_ready()
             occupancy_map = self._grid()
         return write_map_outputs(occupancy_map, directory, pgm_mode=pgm_mode, title="gpomap: live map")
 
