@@ -233,3 +233,25 @@ def test_signals_mid_write_leave_the_previous_set_byte_for_byte(tmp_path):
 
     assert load_map(out / "map.npz").grid.resolution == 0.5 and read_rosmap(out / "map.yaml").grid.resolution == 0.5
     assert staging_dirs(out) == []
+
+
+# A run that has finished and said so, then a Ctrl-C while the interpreter waits for a thread at exit.
+_CTRL_C_AT_EXIT = """
+import os, signal, threading, time
+import gpomap.cli as cli
+
+def finished(argv=None):
+    threading.Thread(target=time.sleep, args=(1.5,)).start()
+    threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT)).start()
+    print("wrote outputs")
+    return 0
+
+cli.main = finished
+cli.console()
+"""
+
+
+def test_ctrl_c_after_a_finished_run_keeps_its_exit_code() -> None:
+    r = subprocess.run([sys.executable, "-c", _CTRL_C_AT_EXIT], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, (r.returncode, r.stderr)
+    assert r.stdout == "wrote outputs\n" and "Traceback" not in r.stderr

@@ -1574,9 +1574,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous_sigterm)
 
 
-if __name__ == "__main__":
-    # `python -m gpomap.cli`: run the imported module's main, not this __main__ copy, so that
-    # modules which build their options with gpomap.cli's helpers (gpomap.apps.stream) share its classes.
-    from gpomap.cli import main as _main
+def console() -> NoReturn:
+    """The ``gpomap`` command: :func:`main`, then exit with its code."""
+    code = main()
+    # The run is over and has said how it ended: a Ctrl-C while the interpreter shuts down (pools
+    # and threads joining) must not turn it into a silent exit by SIGINT.
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(code)
 
-    sys.exit(_main())
+
+if __name__ == "__main__":
+    # `python -m gpomap.cli`: run the imported module's entry point, not this __main__ copy, so that
+    # modules which build their options with gpomap.cli's helpers (gpomap.apps.stream) share its classes.
+    from gpomap.cli import console as _console
+
+    _console()
