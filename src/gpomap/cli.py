@@ -585,9 +585,23 @@ def cmd_map(args: argparse.Namespace) -> int:
     if args.chunk_scans is not None:
         return _map_in_chunks(args, data, title)
     model = _fitted_model(args, data)
-    files = _write_map(args, model, title)
-    _print_map_summary(model.summary(), files, _bound_source(model))
+    saved: list[Path] = []
+    files = _write_map(args, model, title, _fitted_map_file(model, saved))
+    _print_map_summary(model.summary(), files + saved, _bound_source(model))
     return EXIT_OK
+
+
+def _fitted_map_file(model: Any, saved: list[Path]) -> Callable[[Any], None]:
+    """Adds the fitted map, ``map.gpom`` (:mod:`gpomap.io.mapfile`), to an output set; its final path to `saved`."""
+
+    def save(outputs: Any) -> None:
+        from gpomap.io.atomic import file_written
+        from gpomap.io.mapfile import FILENAME, save_fitted_map
+
+        saved[:] = [outputs.final(save_fitted_map(model, outputs.path / FILENAME))]
+        file_written()
+
+    return save
 
 
 def _model(args: argparse.Namespace) -> Any:
@@ -688,6 +702,7 @@ def _map_in_chunks(args: argparse.Namespace, scans: list, title: str) -> int:
     model = _model(args)
     k = args.chunk_scans
     files: list[Path] = []
+    saved: list[Path] = []
     for start in range(0, len(scans), k):
         chunk = scans[start : start + k]
         t = time.perf_counter()
@@ -698,8 +713,8 @@ def _map_in_chunks(args: argparse.Namespace, scans: list, title: str) -> int:
             model.update(chunk)
             refit = len(model.last_refit_)
         _status(args, f"scans {start}..{start + len(chunk) - 1}: {refit} tile(s) fitted in {time.perf_counter() - t:.2f} s")
-        files = _write_map(args, model, f"{title} ({start + len(chunk)} of {len(scans)} scans)")
-    _print_map_summary(model.summary(), files, _bound_source(model))
+        files = _write_map(args, model, f"{title} ({start + len(chunk)} of {len(scans)} scans)", _fitted_map_file(model, saved))
+    _print_map_summary(model.summary(), files + saved, _bound_source(model))
     return EXIT_OK
 
 
@@ -1290,7 +1305,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG_MAP,
         formatter_class=fmt,
         description="Fit MSK-GPOM to range data and write map.yaml/.pgm (ROS map_server), map.npz and map.png; "
-        "from 3-D scans, a voxel map: map.npz, map.bt (OctoMap), map.ply (surface mesh), map-slices.png and map-3d.png.",
+        "from 3-D scans, a voxel map: map.npz, map.bt (OctoMap), map.ply (surface mesh), map-slices.png and map-3d.png; "
+        "and the fitted map itself, map.gpom, for gpomap render, query and update.",
     )
     p.add_argument(
         "input",
@@ -1489,6 +1505,12 @@ def build_parser() -> argparse.ArgumentParser:
     from gpomap.apps.stream import add_parser as add_stream_parser
 
     add_stream_parser(sub)
+    # A saved map (map.gpom) read again: gpomap.apps.render, .query and .update.
+    from gpomap.apps import query, render, update
+
+    render.add_parser(sub)
+    query.add_parser(sub)
+    update.add_parser(sub)
     # --debug after the command too ('gpomap map ... --debug'); hidden there, and unset unless given.
     for command in sub.choices.values():
         command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)

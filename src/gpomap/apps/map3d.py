@@ -12,8 +12,8 @@ The steps mirror the 2-D command:
    map is built by the local GPs of every map, in x, y columns of ``--tile-size``;
 3. the voxel map at ``--resolution`` (0.1 m by default, OctoMap's usual) is written as one output
    set by :func:`gpomap.io.voxel_outputs.write_voxel_outputs`: ``map.npz``, ``map.bt``,
-   ``map.ply`` (the p = 0.5 surface), ``map-slices.png`` (at ``--slices`` heights) and
-   ``map-3d.png``.
+   ``map.ply`` (the p = 0.5 surface), ``map-slices.png`` (at ``--slices`` heights),
+   ``map-3d.png`` and ``map.gpom`` (the fitted map, :mod:`gpomap.io.mapfile`).
 
 :func:`build_model` and :func:`load_clouds` are free of printing so that benchmarks use the very
 model ``gpomap map`` builds (``benchmarks/volume_quality.py``).
@@ -409,7 +409,9 @@ def cmd_map3d(args: argparse.Namespace) -> int:
     cli._status(args, f"  {nx} x {ny} x {nz} voxels in {grid_s:.2f} s; writing {args.output}/")
     cli._Run.outdir = args.output  # for a true message if interrupted while writing
     t = time.perf_counter()
-    files = write_voxel_outputs(voxel_map, args.output, heights=args.slices, title=f"gpomap: {Path(args.input).name}")
+    files = write_voxel_outputs(
+        voxel_map, args.output, heights=args.slices, title=f"gpomap: {Path(args.input).name}", model=model
+    )
     write_s = time.perf_counter() - t
     cli._report_fit(model, voxel_map)
     summary = model.summary()

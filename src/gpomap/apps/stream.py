@@ -314,6 +314,19 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         type=cli._positive(int),
         help="workers refitting tiles (default: the mapper's, one: a scan's refits are too small for a pool)",
     )
+    g = p.add_argument_group("saving and resuming")
+    g.add_argument(
+        "--save-state",
+        metavar="FILE",
+        help="when the replay stops (Ctrl-C, SIGTERM, or the end of the log, before its last fit), save the streaming "
+        "mapper's state to FILE (a map file: gpomap render and query read its map) to carry on with --resume FILE",
+    )
+    g.add_argument(
+        "--resume",
+        metavar="FILE",
+        help="carry on from a state saved with --save-state: the input's first scans must be those it holds (the same "
+        "log and selection); the replay goes on from the next one with the state's settings",
+    )
     cli._add_reader_options(p)
     cli._add_selection_options(p)
     cli._add_model_options(p)
@@ -340,6 +353,86 @@ def mapper_from_args(args: argparse.Namespace) -> Any:
     )
 
 
+def _same_scan(a: Any, b: Any) -> bool:
+    """Whether two planar scans are the same reading (pose, angles, ranges, max range)."""
+    return (
+        np.array_equal(a.pose, b.pose)
+        and np.array_equal(a.angles, b.angles)
+        and np.array_equal(a.ranges, b.ranges, equal_nan=True)
+        and a.max_range == b.max_range
+    )
+
+
+def resumed_mapper(args: argparse.Namespace, scans: Sequence[Scan]) -> Any:
+    """The :class:`~gpomap.streaming.StreamingGPOM` saved in ``--resume FILE``, checked against this run.
+
+    The input's first scans must be those the state holds, and a model or replay option given on
+    the command line must be the state's (those left out take the state's); ``--workers`` may change.
+
+    Raises
+    ------
+    GpomapError
+        Naming the first scan that differs, or the option and both values.
+    """
+    from gpomap import cli
+    from gpomap.io.mapfile import load_streaming_state
+
+    mapper = load_streaming_state(args.resume)
+    held = mapper.model_._scans if mapper.model_ is not None else mapper._buffer
+    n = int(mapper.n_scans_)
+    where = f"--resume {args.resume}"
+    if n > len(scans):
+        raise GpomapError(f"{where}: the state holds {n} scans; {args.input} gives only {len(scans)} with these options")
+    for i, (a, b) in enumerate(zip(held, scans, strict=False)):
+        if not _same_scan(a, b):
+            raise GpomapError(
+                f"{where}: scan {i} of {args.input} is not the state's: resume with the log and the reading and "
+                "selecting options (--range, --scans, --beams, --time-offset, ...) the state was saved from"
+            )
+    fresh = mapper_from_args(args)
+    given = set(cli._given(args, [*cli._model_option_dests(), "tile_size", "warmup", "max_refits"]))
+    pairs = {"warmup": (mapper.warmup_scans, fresh.warmup_scans), "max_refits": (mapper.max_refits, fresh.max_refits)}
+    for key in mapper.options:
+        if key != "n_workers":
+            pairs[key] = (mapper.options[key], fresh.options.get(key))
+    if "length_scale" in given:
+        given.add("optimise")
+    for dest in sorted(given & set(pairs)):
+        saved, now = pairs[dest]
+        if saved != now:
+            raise GpomapError(
+                f"{where}: the state was saved with {cli._flag(dest)} {saved!r}; this command line gives {now!r} "
+                "(leave it out to keep the state's)"
+            )
+    if args.workers is not None:
+        mapper.options["n_workers"] = args.workers
+        if mapper.model_ is not None:
+            mapper.model_.n_workers = args.workers
+    return mapper
+
+
+def _save_state(args: argparse.Namespace, mapper: Any, saved: list[str]) -> None:
+    """``--save-state FILE``: the mapper's state written there; what was written noted in `saved`."""
+    from gpomap import cli
+    from gpomap.io.mapfile import save_streaming_state
+
+    if args.save_state is not None:
+        save_streaming_state(mapper, args.save_state)
+        saved[:] = [f"{args.save_state}: {mapper.n_scans_} scans (carry on with --resume {args.save_state})"]
+        cli._status(args, f"  saved the state of {mapper.n_scans_} scans to {args.save_state}")
+
+
+def _check_state_path(args: argparse.Namespace) -> None:
+    """``--save-state FILE``: a file in an existing directory (checked before any work)."""
+    if args.save_state is None:
+        return
+    p = Path(args.save_state)
+    if p.is_dir():
+        raise GpomapError(f"--save-state {p}: is a directory; expected a file to write")
+    if not p.resolve().parent.is_dir():
+        raise GpomapError(f"--save-state {p}: the directory {p.parent} does not exist")
+
+
 def cmd_stream(args: argparse.Namespace) -> int:
     """Run ``gpomap stream``."""
     from gpomap import cli
@@ -347,6 +440,7 @@ def cmd_stream(args: argparse.Namespace) -> int:
     from gpomap.resources import grid_shape
 
     cli._check_before_work(args)
+    _check_state_path(args)
     cli._resolution_from_evidence(args)  # as gpomap map writes them
     cli._status(args, f"reading scans from {args.input}...")
     scans = cli._load_scans(args)
@@ -359,14 +453,19 @@ def cmd_stream(args: argparse.Namespace) -> int:
         args.extent if args.extent is not None else scan_extent(scans, include_no_return=True, no_return_cap=args.no_return_cap)
     )
     cli._check_grid_memory(args, grid_shape(extent, args.resolution), extent, 0)
-    mapper = mapper_from_args(args)
+    mapper = resumed_mapper(args, scans) if args.resume is not None else mapper_from_args(args)
+    done = int(mapper.n_scans_)  # scans the state resumed from holds already
+    if done:
+        cli._status(args, f"  resuming after scan {done} of {len(scans)} ({args.resume})")
     title = f"gpomap stream: {Path(args.input).name}"
 
     ended: list[bool] = []
+    saved: list[str] = []
 
     def relearn() -> None:
         # The log has ended: every scan is in, so the last map is gpomap map's of the same scans
         # (hyperparameters, variance scale and recalibration learnt on all of them, not the warm-up's).
+        _save_state(args, mapper, saved)
         cli._status(args, f"  the log has ended: fitting the map of all {len(scans)} scans, as gpomap map does...")
         mapper.relearn()
         ended.append(True)
@@ -375,27 +474,40 @@ def cmd_stream(args: argparse.Namespace) -> int:
         occupancy_map = mapper.model_.grid(args.resolution, args.extent) if ended else mapper.grid(args.resolution, args.extent)
         with cli._outputs(args) as outputs:
             staged = write_map_files(
-                occupancy_map, outputs.path, pgm_mode=args.pgm_mode, title=f"{title} ({n} of {len(scans)} scans)"
+                occupancy_map, outputs.path, pgm_mode=args.pgm_mode, title=f"{title} ({done + n} of {len(scans)} scans)"
             )
         return [outputs.final(f) for f in staged]
 
     result = ReplayResult()
     try:
         replay(
-            scans, mapper, args.rate, args.every, write, lambda m: cli._status(args, m), args.input, result=result, finish=relearn
+            scans[done:],
+            mapper,
+            args.rate,
+            args.every,
+            write,
+            lambda m: cli._status(args, m),
+            args.input,
+            result=result,
+            finish=relearn,
         )
     except KeyboardInterrupt:
-        _print_summary(args, mapper, result, len(scans))
+        if not ended:  # after the last fit, the state was saved before it
+            _save_state(args, mapper, saved)
+        _print_summary(args, mapper, result, len(scans), done, saved)
         raise
-    _print_summary(args, mapper, result, len(scans))
+    _print_summary(args, mapper, result, len(scans), done, saved)
     return cli.EXIT_OK
 
 
-def _print_summary(args: argparse.Namespace, mapper: Any, result: ReplayResult, n_total: int) -> None:
+def _print_summary(
+    args: argparse.Namespace, mapper: Any, result: ReplayResult, n_total: int, done: int = 0, saved: Sequence[str] = ()
+) -> None:
     lat = result.latency_ms()
     rate = "as fast as possible" if args.rate == 0 else f"at rate {args.rate:g}"
+    resumed = f" ({done} from {args.resume})" if done else ""
     lines = [
-        f"scans        {result.n_scans} of {n_total}" + (" (interrupted)" if result.interrupted else ""),
+        f"scans        {done + result.n_scans} of {n_total}{resumed}" + (" (interrupted)" if result.interrupted else ""),
         f"replay       {rate}: {result.wall:.2f} s wall, {result.n_scans / result.wall if result.wall > 0 else math.nan:.1f} scans/s"
         + (f", at most {result.lag:.2f} s behind the recording" if args.rate > 0 else ""),
         f"latency      add_scan median {lat['median']:.2f} ms, p95 {lat['p95']:.2f} ms, max {lat['max']:.2f} ms",
@@ -407,4 +519,5 @@ def _print_summary(args: argparse.Namespace, mapper: Any, result: ReplayResult, 
         hp = mapper.hyperparameters_
         lines.append("hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()))
     lines += [f"wrote        {f}" for f in result.files]
+    lines += [f"state        {line}" for line in saved]
     print("\n".join(lines), flush=True)

@@ -202,8 +202,10 @@ def write_voxel_outputs(
     stem: str = "map",
     heights: Sequence[float] | None = None,
     title: str | None = None,
+    model: Any = None,
 ) -> list[Path]:
-    """Write ``STEM.npz``, ``STEM.bt``, ``STEM.ply`` (mesh), ``STEM-slices.png`` and ``STEM-3d.png`` as one set.
+    """Write ``STEM.npz``, ``STEM.bt``, ``STEM.ply`` (mesh), ``STEM-slices.png`` and ``STEM-3d.png`` as one set,
+    with ``STEM.gpom``, the fitted `model` (:func:`gpomap.io.mapfile.save_fitted_map`), when it is given.
 
     Returns
     -------
@@ -225,4 +227,9 @@ def write_voxel_outputs(
         file_written()
         staged.append(Path(save_figure(plot_3d(voxel_map, title), out / f"{stem}-3d.png")))
         file_written()
+        if model is not None:
+            from gpomap.io.mapfile import save_fitted_map
+
+            staged.append(save_fitted_map(model, out / f"{stem}.gpom"))
+            file_written()
     return [outputs.final(p) for p in staged]
