@@ -430,7 +430,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     thread = threading.Thread(target=serve, name="gpomap-ros2-executor", daemon=True)
     thread.start()
     try:
-        adapter.spin(rclpy.ok)
+        # SIGINT: rclpy shuts its context down and passes the signal on; end as on SIGTERM.
+        with contextlib.suppress(KeyboardInterrupt):
+            adapter.spin(rclpy.ok)
     finally:
         if s.save_on_shutdown and adapter.live.ready:
             files = adapter.live.save(s.save_directory)
