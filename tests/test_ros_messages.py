@@ -19,6 +19,7 @@ import pytest
 
 from gpomap.errors import GpomapError, InputFormatError, NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
+from gpomap.io.mapfile import load_fitted_map
 from gpomap.io.npz import load_map
 from gpomap.io.rosbag import STAGE_TIME_OFFSET, read_rosbag
 from gpomap.ros.live import LiveMap
@@ -222,8 +223,11 @@ def test_live_map_from_bag_messages_is_the_streaming_map_of_the_bag_reader(tmp_p
     assert layers is not None and layers.grid == expected.grid
     assert np.array_equal(layers.trinary, grid_layers(expected).trinary)
     files = live.save(tmp_path / "saved")
-    assert sorted(f.name for f in files) == ["map.npz", "map.pgm", "map.png", "map.yaml"]
+    assert sorted(f.name for f in files) == ["map.gpom", "map.npz", "map.pgm", "map.png", "map.yaml"]
     np.testing.assert_allclose(load_map(tmp_path / "saved" / "map.npz").probability, expected.probability, atol=1e-12)
+    # The fitted map saved beside the grids is the live model: the same grid, to the bit.
+    fitted = load_fitted_map(tmp_path / "saved" / "map.gpom").grid(0.1, expected.grid.extent)
+    assert np.array_equal(fitted.probability, expected.probability)
 
 
 @needs_bag

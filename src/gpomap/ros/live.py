@@ -240,13 +240,14 @@ class LiveMap:
             )
 
     def save(self, directory: str | os.PathLike[str], pgm_mode: str = "trinary") -> list[Path]:
-        """Write the current map as one set: ``map.yaml`` + ``map.pgm``, ``map.npz``, ``map.png``.
+        """Write the current map as one set: ``map.yaml`` + ``map.pgm``, ``map.npz``, ``map.png``,
+        and the fitted map itself, ``map.gpom`` (:mod:`gpomap.io.mapfile`: render, query, update later).
 
         Parameters
         ----------
         directory : path-like
             Created if missing; the previous set there is replaced as a whole
-            (:func:`gpomap.io.export.write_map_outputs`).
+            (:func:`gpomap.io.atomic.output_set`).
         pgm_mode : {"trinary", "scale"}
 
         Returns
@@ -258,12 +259,17 @@ class LiveMap:
         NotFittedError
             Before the mapper is ready.
         """
-        from gpomap.io.export import write_map_outputs
+        from gpomap.io.atomic import output_set
+        from gpomap.io.export import write_map_files
+        from gpomap.io.mapfile import FILENAME, save_fitted_map
 
-        with self._lock:
+        with self._lock, output_set(directory) as outputs:
+            # Under the lock: the model must not take a scan while it is written.
             self._require_ready()
             occupancy_map = self._grid()
-        return write_map_outputs(occupancy_map, directory, pgm_mode=pgm_mode, title="gpomap: live map")
+            staged = [save_fitted_map(self.mapper.model_, outputs.path / FILENAME)]
+            staged += write_map_files(occupancy_map, outputs.path, pgm_mode=pgm_mode, title="gpomap: live map")
+        return [outputs.final(p) for p in staged]
 
     def status(self) -> dict[str, Any]:
         """Counts, and the latency of the mapper's ``add_scan`` over the latest 1,000 scans (milliseconds)."""

@@ -13,8 +13,8 @@ Topics (relative names, remap them as usual):
   percent of the prior variance, 100 = nothing known), and ``~status`` (``std_msgs/String``,
   JSON: scans used, dropped, latency).
 
-Service ``~save_map`` (``std_srvs/Trigger``): writes ``map.yaml`` + ``map.pgm``, ``map.npz`` and
-``map.png`` into ``~save_directory`` as one set.
+Service ``~save_map`` (``std_srvs/Trigger``): writes ``map.yaml`` + ``map.pgm``, ``map.npz``,
+``map.png`` and the fitted map ``map.gpom`` into ``~save_directory`` as one set.
 
 Parameters: see :func:`settings_from_params`. The settings are read and checked without rospy,
 so a wrong value is one clear line and exit code 1 before any subscription.

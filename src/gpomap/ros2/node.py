@@ -19,8 +19,8 @@ Topics (relative names, remap them as usual):
 - ``~/query_result`` (``sensor_msgs/PointCloud2``): the answer to each ``~/query`` message, under
   its header, fields x, y, probability, variance (FLOAT64; NaN before the first map).
 
-Services: ``~/save_map`` (``std_srvs/Trigger``) writes ``map.yaml`` + ``map.pgm``, ``map.npz`` and
-``map.png`` into ``save_directory`` as one set; ``~/render`` (``nav_msgs/LoadMap``) returns the map
+Services: ``~/save_map`` (``std_srvs/Trigger``) writes ``map.yaml`` + ``map.pgm``, ``map.npz``,
+``map.png`` and the fitted map ``map.gpom`` into ``save_directory`` as one set; ``~/render`` (``nav_msgs/LoadMap``) returns the map
 on any grid, the request's ``map_url`` holding ``resolution=R extent=xmin,xmax,ymin,ymax
 layer=probability|trinary|variance`` (:func:`gpomap.ros2.queries.parse_render_request`).
 
