@@ -55,7 +55,8 @@ def _why_skip() -> str | None:
 
 
 _SKIP = _why_skip()
-pytestmark = pytest.mark.skipif(_SKIP is not None, reason=_SKIP or "")
+needs_ros2 = pytest.mark.skipif(_SKIP is not None, reason=_SKIP or "")
+needs_bag = pytest.mark.skipif(not BAG.exists(), reason=f"shared Stage arena bag not present ({BAG})")
 
 # Replays the bag's scans and odometry at 10x once the node listens; exits when all are acknowledged.
 PLAYER = r"""
@@ -282,6 +283,7 @@ def _stage_truth() -> Any:
 
 
 # --------------------------------------------------------------------------- the test
+@needs_ros2
 @pytest.mark.slow
 def test_ros2_node_maps_the_stage_arena_and_answers_its_services(ros2_env, start, tmp_path):
     from gpomap.evaluation import lookup, make_model, score_truth, written_grid
@@ -450,3 +452,176 @@ def test_ros2_node_maps_the_stage_arena_and_answers_its_services(ros2_env, start
     )
     for k in scores:
         assert scores[k] >= reference[k] - 0.01, k
+
+
+# --------------------------------------------------------------------------- without rclpy
+def _bag_odometry() -> list[tuple[float, tuple[float, float, float]]]:
+    """The bag's tf edge odom -> base_footprint as (stamp, (x, y, yaw)), in bag order."""
+    from rosbags.highlevel import AnyReader
+
+    from gpomap.ros.messages import pose_from_transform, stamp_seconds
+
+    out = []
+    with AnyReader([BAG]) as reader:
+        for c, _, raw in reader.messages(connections=[c for c in reader.connections if c.topic == "/tf"]):
+            for tr in reader.deserialize(raw, c.msgtype).transforms:
+                if (tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/")) == ("odom", "base_footprint"):
+                    out.append(
+                        (stamp_seconds(tr.header.stamp), pose_from_transform(tr.transform.translation, tr.transform.rotation))
+                    )
+    return out
+
+
+@needs_bag
+def test_pose_buffer_gives_the_bag_readers_laser_poses():
+    """Odometry (the tf edge odom -> base_footprint) plus sensor_pose: the poses `gpomap map` takes from the whole tf tree."""
+    from gpomap.io.rosbag import STAGE_TIME_OFFSET, read_rosbag
+    from gpomap.ros2.poses import PoseBuffer
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scans = read_rosbag(BAG, topic="/base_scan", time_offset=STAGE_TIME_OFFSET)
+    buffer = PoseBuffer(tuple(SENSOR_POSE))
+    for t, pose in _bag_odometry():
+        buffer.add(t, *pose)
+    got = np.array([buffer.lookup("base_laser_link", s.time + STAGE_TIME_OFFSET)[:3] for s in scans])
+    want = np.array([s.pose for s in scans])
+    assert np.abs(got[:, :2] - want[:, :2]).max() < 1e-9
+    assert np.abs(np.angle(np.exp(1j * (got[:, 2] - want[:, 2])))).max() < 1e-9
+    # The bag's last scan: no odometry after its stamp, so no pose (the node drops it after pose_wait).
+    assert buffer.lookup("base_laser_link", scans[-1].time + 0.2) is None
+
+
+def test_pose_buffer_interpolates_along_the_shorter_arc_and_forgets_old_poses():
+    from gpomap.ros2.poses import PoseBuffer
+
+    buffer = PoseBuffer((1.0, 0.0, np.pi / 2), upside_down=True, cache_seconds=10.0)
+    assert buffer.lookup("laser", 0.0) is None
+    buffer.add(1.0, 0.0, 0.0, 3.0)
+    buffer.add(3.0, 2.0, 4.0, -3.0)  # 0.283 rad on from 3.0 through pi, not 6 rad back
+    x, y, yaw, flipped = buffer.lookup("laser", 2.0)
+    # Robot at (1, 2) heading pi; the laser 1 m ahead of it, turned a quarter left.
+    assert (x, y) == pytest.approx((0.0, 2.0)) and yaw == pytest.approx(-np.pi / 2) and flipped
+    assert buffer.robot_pose(1.5) == pytest.approx((0.5, 1.0, 3.0 + (2 * np.pi - 6.0) / 4))
+    assert buffer.lookup("laser", 0.5) is None and buffer.lookup("laser", 3.5) is None
+    buffer.add(2.0, 9.0, 9.0, 0.0)  # out of order: filed by its stamp
+    assert buffer.robot_pose(2.0) == pytest.approx((9.0, 9.0, 0.0))
+    buffer.add(12.5, 0.0, 0.0, 0.0)  # 10 s of cache: the poses at 1 and 2 s are forgotten
+    assert len(buffer) == 2 and buffer.robot_pose(2.5) is None and buffer.robot_pose(3.0) is not None
+    with pytest.raises(ValueError, match="sensor_pose"):
+        PoseBuffer((0.0, float("nan"), 0.0))
+
+
+def test_render_requests_are_read_or_refused_naming_the_item():
+    from gpomap.errors import InputFormatError
+    from gpomap.ros2.queries import RenderRequest, parse_render_request
+
+    assert parse_render_request("") == RenderRequest()
+    assert parse_render_request("gpomap:render?resolution=0.01&extent=0,2,-1,1.5&layer=Trinary") == RenderRequest(
+        0.01, (0.0, 2.0, -1.0, 1.5), "trinary"
+    )
+    assert parse_render_request(" resolution=0.1 ; layer=variance ") == RenderRequest(0.1, None, "variance")
+    for text, what in (
+        ("resolution=0", "resolution must be > 0"),
+        ("resolution=abc", "resolution must be a finite number"),
+        ("resolution=nan", "resolution must be a finite number"),
+        ("extent=0,1,2", "extent must be xmin,xmax,ymin,ymax"),
+        ("extent=1,0,0,1", "xmin < xmax"),
+        ("layer=heat", "layer must be one of probability, trinary, variance"),
+        ("size=3", "unknown key 'size'"),
+        ("resolution", "is not key=value"),
+    ):
+        with pytest.raises(InputFormatError, match=what):
+            parse_render_request(text)
+
+
+def _cloud(fields: list[tuple[str, int, int]], step: int, rows: np.ndarray, big: bool = False, h: int = 1) -> Any:
+    from types import SimpleNamespace
+
+    data = rows.tobytes()
+    w = len(rows) // h
+    return SimpleNamespace(
+        fields=[SimpleNamespace(name=n, offset=o, datatype=d) for n, o, d in fields],
+        is_bigendian=big,
+        point_step=step,
+        row_step=step * w,
+        height=h,
+        width=w,
+        data=data,
+    )
+
+
+def test_query_clouds_are_read_whatever_their_layout_and_answered_as_a_table():
+    from gpomap.errors import InputFormatError
+    from gpomap.ros2.queries import RESULT_FIELDS, RESULT_POINT_STEP, points_from_cloud, result_cloud_data
+
+    xy = np.array([[0.5, -1.25], [3.0, 2.0], [-7.5, 0.125], [1.0, 1.0]])
+    # x, y, z FLOAT32 and an intensity, as a laser driver's cloud; two rows of two points.
+    table = np.zeros(4, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("i", "<f4")])
+    table["x"], table["y"], table["z"] = xy[:, 0], xy[:, 1], 9.0
+    cloud = _cloud([("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7)], 16, table, h=2)
+    assert np.array_equal(points_from_cloud(cloud), xy)
+    # y before x, FLOAT64, big-endian.
+    table64 = np.zeros(4, dtype=[("y", ">f8"), ("x", ">f8")])
+    table64["x"], table64["y"] = xy[:, 0], xy[:, 1]
+    assert np.array_equal(points_from_cloud(_cloud([("y", 0, 8), ("x", 8, 8)], 16, table64, big=True)), xy)
+    assert points_from_cloud(_cloud([("x", 0, 7), ("y", 4, 7)], 8, np.zeros(0, "<f4"))).shape == (0, 2)
+    with pytest.raises(InputFormatError, match="no field 'y'"):
+        points_from_cloud(_cloud([("x", 0, 7)], 4, table["x"]))
+    with pytest.raises(InputFormatError, match="datatype 2"):
+        points_from_cloud(_cloud([("x", 0, 2), ("y", 4, 7)], 8, table[["x", "y"]]))
+    short = _cloud([("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7)], 16, table)
+    short.data = short.data[:-1]
+    with pytest.raises(InputFormatError, match="63 data bytes"):
+        points_from_cloud(short)
+    data = result_cloud_data(xy, np.array([0.1, 0.2, 0.5, 0.9]), np.array([1.0, 0.5, 0.25, 0.125]))
+    assert len(data) == 4 * RESULT_POINT_STEP and [f for f, _ in RESULT_FIELDS] == ["x", "y", "probability", "variance"]
+    back = np.frombuffer(data, "<f8").reshape(4, 4)
+    assert np.array_equal(back[:, :2], xy) and np.array_equal(back[:, 3], [1.0, 0.5, 0.25, 0.125])
+
+
+def test_a_render_over_the_memory_limit_is_refused_before_any_prediction():
+    from types import SimpleNamespace
+
+    from gpomap.errors import NotFittedError
+    from gpomap.resources import MemoryLimitError
+    from gpomap.ros.live import LiveMap
+
+    def no_prediction(*args: Any) -> Any:
+        raise AssertionError("predicted")
+
+    mapper = SimpleNamespace(ready_=True, n_scans_=50, grid=no_prediction, predict_proba=no_prediction)
+    live = LiveMap(mapper, 0.05)
+    with pytest.raises(
+        MemoryLimitError,
+        match=r"a 20000 x 10000 grid .* at resolution 0.001 m would need about .* limit of 1.0 GB \(the limit given\)",
+    ):
+        live.render(0.001, (0.0, 20.0, 0.0, 10.0), memory_limit=10**9)
+    with pytest.raises(ValueError, match="resolution must be a positive number"):
+        live.render(0.0)
+    with pytest.raises(NotFittedError, match="3 scans seen"):
+        LiveMap(SimpleNamespace(ready_=False, n_scans_=3), 0.05).query(np.zeros((1, 2)))
+
+
+def test_ros2_settings_are_the_ros1_nodes_checks_plus_its_own():
+    from gpomap.errors import GpomapError
+    from gpomap.ros2.node import PARAMETERS, ros2_settings
+
+    d = ros2_settings(lambda name, default: default)
+    assert d.node.resolution == 0.05 and d.node.fixed_frame == "odom" and d.odom_topic == "odom"
+    assert d.sensor_pose == (0.0, 0.0, 0.0) and not d.sensor_upside_down and d.sensor_qos == "best_effort"
+    given = {"resolution": 1, "extent": [0.0, 4.0, -1.0, 1.0], "sensor_pose": [0.2, 0, 0.5], "sensor_qos": "RELIABLE"}
+    s = ros2_settings(lambda name, default: given.get(name, default), model={"kernel": "se"})
+    assert s.node.resolution == 1.0 and s.node.extent == (0.0, 4.0, -1.0, 1.0) and s.node.model == {"kernel": "se"}
+    assert s.sensor_pose == (0.2, 0.0, 0.5) and s.sensor_qos == "reliable"
+    for name, value, what in (
+        ("resolution", -1, "parameter resolution must be a finite number > 0"),
+        ("warmup_scans", 0.5, "parameter warmup_scans must be an integer"),
+        ("sensor_pose", [1.0, 2.0], "parameter sensor_pose must be"),
+        ("sensor_pose", [1.0, "a", 2.0], "parameter sensor_pose must be three finite numbers"),
+        ("sensor_upside_down", "yes", "parameter sensor_upside_down must be true or false"),
+        ("sensor_qos", "fast", "parameter sensor_qos must be best_effort or reliable"),
+    ):
+        with pytest.raises(GpomapError, match=what):
+            ros2_settings(lambda n, default, name=name, value=value: value if n == name else default)
+    assert set(PARAMETERS) >= {"scan_topic", "publish_rate", "save_on_shutdown", "odom_topic", "sensor_pose"}

@@ -223,7 +223,7 @@ class LiveMap:
             self._require_ready()
             if extent is None:
                 extent = self.mapper.default_grid(resolution).extent
-            limit, source = (memory_limit, f"{memory_limit} bytes") if memory_limit is not None else default_limit()
+            limit, source = (memory_limit, "the limit given") if memory_limit is not None else default_limit()
             ny, nx = grid_shape(extent, resolution)
             what = f"a {nx} x {ny} grid ({nx * ny:.3g} cells) at resolution {resolution:g} m"
             check_memory(grid_memory((ny, nx)), limit, what, "ask for a coarser resolution or a smaller extent", source)
