@@ -24,6 +24,7 @@ import pytest
 #: the recorded rate). A file not listed runs after these, in its usual order.
 LONGEST_FIRST = [
     "test_ros_node.py",
+    "test_ros2_node.py",
     "test_cli.py",
     "test_tiles.py",
     "test_mapping.py",
