@@ -326,6 +326,8 @@ def test_ros2_node_maps_the_stage_arena_and_answers_its_services(ros2_env, start
             "-p",
             "sensor_qos:=reliable",
             "-p",
+            "pose_wait:=3.0",  # a loaded machine may run the odometry callback late; the last scan waits this long
+            "-p",
             f"save_directory:={saved}",
             "-p",
             "save_on_shutdown:=true",
