@@ -7,6 +7,10 @@ the segments (:class:`gpomap.kernels.line.LineKernel`); the GP core (hyperparame
 noise, probit squash) is :class:`gpomap.gp.SupportGP`, the same as MSK-GPOM's. The original
 pre-selects "relevant" readings per kernel; here ``n_beams_per_scan`` thins each scan to evenly
 spaced beams instead, as MSK-GPOM does.
+
+The Gram matrices are compiled (:class:`CompiledLineKernel`, :mod:`gpomap._compiled_line`) where
+numba is enabled; :class:`~gpomap.kernels.line.LineKernel`'s numpy passes are the reference, the
+same numbers to round-off.
 """
 
 from __future__ import annotations
@@ -18,10 +22,12 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap import _compiled_line
 from gpomap.errors import EmptyDataError
 from gpomap.estimator import GPMapEstimator
 from gpomap.grid import DEFAULT_THRESHOLDS
-from gpomap.kernels.line import LineKernel, Segments, concatenate_segments
+from gpomap.kernels._compiled import MATERN32, profile_id
+from gpomap.kernels.line import PARALLEL_SIN, POINT_LENGTH, LineKernel, Segments, as_segments, concatenate_segments
 from gpomap.kernels.point import make_point_kernel
 from gpomap.scans import Scan, evenly_spaced
 from gpomap.supports import Supports
@@ -80,6 +86,104 @@ def beam_segments(
     free = Segments(np.concatenate(starts), np.concatenate(ends)) if starts else Segments(np.zeros((0, 2)), np.zeros((0, 2)))
     hit_pts = Segments.from_points(np.concatenate(hits) if hits else np.zeros((0, 2)))
     return free, hit_pts, {"n_beams": n_beams, "n_invalid": n_invalid, "n_no_return": n_no_return}
+
+
+class CompiledLineKernel(LineKernel):
+    """:class:`~gpomap.kernels.line.LineKernel` with its Gram matrices compiled (:mod:`gpomap._compiled_line`).
+
+    The same parameters and the same numbers to round-off: Matern 3/2's node sums (an input set
+    against itself with or without the length-scale gradient, or against another without it) and
+    the squared exponential's closed forms and quadrature (every case) are compiled; other base
+    kernels, and whenever ``gpomap._compiled_line.ENABLED`` is off, take LineKernel's numpy path.
+    """
+
+    def _takes_compiled(self, same: bool, eval_gradient: bool) -> bool:
+        if not _compiled_line.ENABLED:
+            return False
+        if self.closed_form:
+            return True
+        return profile_id(self.base) == MATERN32 and (same or not eval_gradient)
+
+    def _se_arrays(self, X: Segments) -> _compiled_line.SegmentArrays:
+        nodes = self.nodes(X)
+        return X.starts, X.ends, X.lengths, nodes.nodes, nodes.weights, np.asarray(nodes.offsets, dtype=np.intp)
+
+    def _compiled_gram(
+        self, A: Segments, B: Segments | None, eval_gradient: bool
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """K(A, B) (B None: A against itself) and d K / d log l with `eval_gradient`, normalisation applied."""
+        var, l = self.base.variance, self.base.length_scale
+        dL: NDArray[np.float64] | None
+        if self.closed_form:
+            F, dF = _compiled_line.se_gram(
+                self._se_arrays(A), None if B is None else self._se_arrays(B), l, POINT_LENGTH, PARALLEL_SIN, eval_gradient
+            )
+            K = var * F
+            dL = None if dF is None else var * dF
+        else:
+            na = self.nodes(A)
+            if B is None:
+                K, dL = _compiled_line.matern32_gram(na.nodes, na.weights, na.offsets, var, l, eval_gradient)
+            else:
+                nb = self.nodes(B)
+                K, dL = (
+                    _compiled_line.matern32_cross(na.nodes, na.weights, na.offsets, nb.nodes, nb.weights, nb.offsets, var, l),
+                    None,
+                )
+        if self.normalisation == "sum":
+            scale = np.outer(self._weights(A), self._weights(A if B is None else B))
+            K = K * scale
+            if dL is not None:
+                dL = dL * scale
+        return K, dL
+
+    def __call__(self, A: Any, B: Any = None, eval_gradient: bool = False) -> Any:
+        """Covariances between two sets of segments (or points), as :meth:`LineKernel.__call__`.
+
+        Parameters
+        ----------
+        A : Segments
+            n inputs (an (n, 2) array or point Supports are taken as points).
+        B : Segments, optional
+            m inputs; defaults to `A`.
+        eval_gradient : bool
+            Also return dK/dtheta.
+
+        Returns
+        -------
+        K : ndarray of shape (n, m)
+        dK : ndarray of shape (n, m, 2), only with `eval_gradient`
+        """
+        if not self._takes_compiled(B is None, eval_gradient):
+            return super().__call__(A, B, eval_gradient)
+        A = as_segments(A)
+        K, dL = self._compiled_gram(A, None if B is None else as_segments(B), eval_gradient)
+        if not eval_gradient:
+            return K
+        assert dL is not None  # asked for
+        return K, np.stack([K, dL], axis=-1)
+
+    def gram_and_length_scale_gradient(self, X: Any, prepared: Any = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """K(X, X) and d K / d log(length_scale), both exactly symmetric (what :class:`gpomap.gp.SupportGP`'s search asks).
+
+        Parameters
+        ----------
+        X : Segments
+            n inputs.
+        prepared : None
+            Nothing is prepared (the protocol of :meth:`gpomap.kernels.area.AreaKernel.gram_and_length_scale_gradient`).
+
+        Returns
+        -------
+        K, dL : ndarray of shape (n, n)
+        """
+        X = as_segments(X)
+        if not self._takes_compiled(True, True):
+            K, dK = super().__call__(X, eval_gradient=True)
+            return K, np.ascontiguousarray(dK[:, :, 1])
+        K, dL = self._compiled_gram(X, None, True)
+        assert dL is not None  # asked for
+        return K, dL
 
 
 class GPOMIK(GPMapEstimator):
@@ -161,12 +265,12 @@ class GPOMIK(GPMapEstimator):
         return (order if self.order is None else int(self.order), panel if self.max_panel is None else self.max_panel)
 
     def make_kernel(self) -> LineKernel:
-        """The line kernel these settings describe, at the starting hyperparameters."""
+        """The line kernel these settings describe, at the starting hyperparameters (compiled where numba is)."""
         base = make_point_kernel(
             self.kernel, variance=self.variance, length_scale=self.length_scale, length_scale_bounds=self.length_scale_bounds
         )
         order, panel = self.rule()
-        return LineKernel(base, self.normalisation, order, panel)
+        return CompiledLineKernel(base, self.normalisation, order, panel)
 
     def fit(self, scans: Sequence[Scan]) -> GPOMIK:
         """Build the map from scans.
