@@ -1,14 +1,27 @@
-"""Whole logs as ``gpomap map`` makes them, against the project's log-odds grid on the same log.
+"""Whole logs as ``gpomap map`` makes them, against the project's occupancy grids on the same log.
 
-For each shared log, two fresh processes (so each peak RSS is its own): MSK-GPOM with the
-defaults of ``gpomap map LOG -o OUT --resolution 0.05 --workers W`` (the model the command builds
-from those options, fitted and sampled at 0.05 m), and OctoMap's log-odds grid at 0.05 m
-(:class:`gpomap.baselines.ogm.OccupancyGridMapper`, its defaults). Each process reads the log,
-fits, and builds the map it would write; CPU seconds include every thread of the process. The
-ratio is the GP's fit + map CPU over the grid's, from the same run. Usage::
+Two tables, each case in fresh processes (so each peak RSS and CPU figure is its own):
 
-    .venv/bin/python benchmarks/whole_logs.py                 # intel, fr079, csail, belgioioso
-    .venv/bin/python benchmarks/whole_logs.py --logs fr079 --workers 1
+- **process**: the command itself, ``gpomap map LOG -o OUT -q`` with its defaults, timed as a
+  whole process (imports, reading, numba's compilation or its cache, fitting, the written files),
+  against a process that reads the same scans the same way, builds the numpy counting grid at the
+  map's 0.05 m (:class:`gpomap.baselines.ogm.OccupancyGridMapper`, ``sensor_model="counting"``)
+  and writes the same four files. ``gpomap map`` runs first with an empty numba cache
+  (``NUMBA_CACHE_DIR`` a new directory: the first run after an install), then ``--repeat`` times
+  with that cache filled, alternating with the grid's runs; the ratio is the median of the warm
+  runs' CPU over the median of the grid's, from the same sitting, with the spread (min-max) beside.
+  CPU seconds are the process's user + system time, every thread included; the stage timings are
+  the wall seconds ``gpomap map`` records in ``map.npz``.
+- **fit**: MSK-GPOM with the defaults of ``gpomap map LOG -o OUT --resolution 0.05 --workers W``
+  (the model the command builds from those options, fitted and sampled at 0.05 m) against OctoMap's
+  log-odds grid at 0.05 m: each process reads the log, fits and builds the map it would write; the
+  ratio is the GP's fit + map CPU over the grid's.
+
+Usage::
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/whole_logs.py                  # every shared 2-D log, both tables
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/whole_logs.py --tables process --logs belgioioso,stage-arena
+    .venv/bin/python benchmarks/whole_logs.py --tables fit --logs fr079 --workers 1
     .venv/bin/python benchmarks/whole_logs.py --logs none --log-file robot.log.gz   # your own logs
 """
 
@@ -18,8 +31,11 @@ import argparse
 import json
 import os
 import resource
+import shutil
+import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -31,9 +47,13 @@ LOGS = {
     "fr079": DATA / "fr079" / "freiburg-079-corrected.log.gz",
     "csail": DATA / "csail-robotlaser1" / "csail.log.gz",
     "belgioioso": DATA / "belgioioso" / "belgioioso-corrected.log.gz",
+    "stage-arena": DATA / "stage-arena" / "robot1.bag",
+    "cave": DATA / "sim-worlds" / "cave" / "cave.log.gz",
+    "hospital_section": DATA / "sim-worlds" / "hospital_section" / "hospital_section.log.gz",
 }
 METHODS = ("ogm-logodds", "gpomap")
 RESOLUTION = 0.05
+TABLES = ("process", "fit")
 
 
 def _clock() -> tuple[float, float]:
@@ -76,45 +96,152 @@ def child(log: str, method: str, workers: int) -> dict[str, Any]:
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--logs", default=",".join(LOGS), help="comma-separated: " + ", ".join(LOGS) + ", or none")
-    parser.add_argument(
-        "--log-file",
-        type=Path,
-        action="append",
-        default=[],
-        metavar="PATH",
-        help="also any log gpomap reads (repeatable), named by its file",
+def grid_child(log: str, out: str) -> dict[str, Any]:
+    """The counting grid as a process: the scans read as ``gpomap map`` reads them, fitted, the four files written."""
+    c0 = time.process_time()
+    from gpomap import cli
+    from gpomap.baselines.ogm import OccupancyGridMapper
+    from gpomap.io.export import write_map_outputs
+
+    c1 = time.process_time()
+    args = cli.build_parser().parse_args(["map", log, "-o", out, "-q"])
+    cli._resolve_library_defaults(args)
+    scans = cli._load_scans(args)
+    c2 = time.process_time()
+    occupancy_map = OccupancyGridMapper(resolution=RESOLUTION, sensor_model="counting").fit(scans).grid_map()
+    c3 = time.process_time()
+    write_map_outputs(occupancy_map, out, title=f"counting grid: {Path(log).name}")
+    c4 = time.process_time()
+    return {"scans": len(scans), "import": c1 - c0, "read": c2 - c1, "fit": c3 - c2, "write": c4 - c3}
+
+
+def _gpomap_command() -> list[str]:
+    """``gpomap`` as a user runs it: the console script beside this Python, or the same entry point."""
+    script = Path(sys.executable).with_name("gpomap")
+    if script.exists():
+        return [str(script)]
+    return [sys.executable, "-c", "import sys; from gpomap.cli import console; sys.exit(console())"]
+
+
+def _timed_process(cmd: list[str], env: dict[str, str], logs: Path) -> dict[str, Any]:
+    """Run `cmd` to the end; its CPU (user + system, every thread), wall and peak RSS, and its stdout."""
+    with open(logs / "stdout", "w+") as out, open(logs / "stderr", "w+") as err:
+        t = time.perf_counter()
+        proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=err)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        stdout, stderr = out.read(), err.read()
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed ({proc.returncode}):\n{stderr}")
+    return {"cpu": usage.ru_utime + usage.ru_stime, "wall": wall, "peak_mb": usage.ru_maxrss / 1024.0, "stdout": stdout}
+
+
+def _map_info(outdir: Path) -> dict[str, Any]:
+    """The stage timings and cell size ``gpomap map`` recorded in its ``map.npz``."""
+    import numpy as np
+
+    with np.load(outdir / "map.npz") as z:
+        info = json.loads(str(z["info"]))
+        resolution = float(z["resolution"])
+    return {"timings": info.get("timings", {}), "resolution": resolution}
+
+
+def process_runs(name: str, path: Path, repeat: int, scratch: Path) -> dict[str, Any]:
+    """``gpomap map`` (a cold numba cache, then `repeat` warm runs) and the counting grid (`repeat` runs), alternated."""
+    cache = scratch / "numba-cache"
+    shutil.rmtree(cache, ignore_errors=True)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
+    out = scratch / "out"
+    gpomap_cmd = [*_gpomap_command(), "map", str(path), "-o", str(out), "-q"]
+    grid_cmd = [sys.executable, __file__, "--grid-child", str(path), str(out)]
+
+    def gpomap_run() -> dict[str, Any]:
+        shutil.rmtree(out, ignore_errors=True)
+        r = _timed_process(gpomap_cmd, env, scratch)
+        r.update(_map_info(out))
+        return r
+
+    def grid_run() -> dict[str, Any]:
+        shutil.rmtree(out, ignore_errors=True)
+        r = _timed_process(grid_cmd, env, scratch)
+        r.update(json.loads(r.pop("stdout").strip().splitlines()[-1]))
+        return r
+
+    runs: dict[str, Any] = {"name": name, "cold": gpomap_run(), "warm": [], "grid": []}
+    for _ in range(repeat):
+        runs["grid"].append(grid_run())
+        runs["warm"].append(gpomap_run())
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(cache, ignore_errors=True)
+    for r in [runs["cold"], *runs["warm"]]:
+        r.pop("stdout", None)
+    runs["scans"] = runs["grid"][0]["scans"]
+    return runs
+
+
+def _spread(values: list[float]) -> str:
+    """``median (min-max)`` of a few timings, or the one value."""
+    med = statistics.median(values)
+    return f"{med:.1f}" if len(values) == 1 else f"{med:.1f} ({min(values):.1f}-{max(values):.1f})"
+
+
+def print_process_table(results: list[dict[str, Any]]) -> None:
+    """The process table and, per log, the warm run's stages."""
+    print()
+    print(
+        "| log | scans | counting grid CPU s | gpomap map first run CPU s (of it compiling, wall s) | / grid | gpomap map later runs CPU s "
+        "| / grid (min-max) | peak MB gpomap / grid |"
     )
-    parser.add_argument("--workers", type=int, default=2, help="gpomap map --workers (default: 2)")
-    parser.add_argument("--child", nargs=2, metavar=("LOG", "METHOD"), help=argparse.SUPPRESS)
-    parser.add_argument("--json", type=Path, help="also write the results here")
-    args = parser.parse_args()
-    if args.child:
-        print(json.dumps(child(args.child[0], args.child[1], args.workers)))
-        return
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    print(f"# Whole logs (commit {commit}, {os.cpu_count()} CPUs, gpomap map --resolution {RESOLUTION} --workers {args.workers})")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in results:
+        grid = [g["cpu"] for g in r["grid"]]
+        warm = [w["cpu"] for w in r["warm"]]
+        g_med = statistics.median(grid)
+        cold = r["cold"]
+        compiling = cold["timings"].get("compiling (first run)", 0.0)
+        # The warm runs' ratio to the grid, each warm run against the grid run beside it.
+        pair = [w / g for w, g in zip(warm, grid, strict=True)]
+        print(
+            f"| {r['name']} | {r['scans']} | {_spread(grid)} | {cold['cpu']:.1f} ({compiling:.1f}) | {cold['cpu'] / g_med:.1f}x "
+            f"| {_spread(warm)} | {statistics.median(warm) / g_med:.1f}x ({min(pair):.1f}-{max(pair):.1f}) "
+            f"| {statistics.median(w['peak_mb'] for w in r['warm']):.0f} / {statistics.median(g['peak_mb'] for g in r['grid']):.0f} |"
+        )
+    print()
+    for r in results:
+        g = r["grid"][0]
+        grid_parts = ", ".join(f"{k} {g[k]:.2f}" for k in ("import", "read", "fit", "write"))
+        fastest = min(r["warm"], key=lambda w: w["cpu"])
+        stages = ", ".join(f"{k} {v:.2f}" for k, v in fastest["timings"].items())
+        cold = ", ".join(f"{k} {v:.2f}" for k, v in r["cold"]["timings"].items())
+        print(f"{r['name']}: counting grid CPU s: {grid_parts}")
+        print(
+            f"{r['name']}: gpomap map, fastest later run ({fastest['cpu']:.1f} CPU s, {fastest['wall']:.1f} wall s), wall s per stage: {stages}"
+        )
+        print(
+            f"{r['name']}: gpomap map, first run ({r['cold']['cpu']:.1f} CPU s, {r['cold']['wall']:.1f} wall s), wall s per stage: {cold}"
+        )
+
+
+def fit_runs(name: str, path: Path, workers: int) -> list[dict[str, Any]]:
+    """The fit table's two processes on one log: the log-odds grid and MSK-GPOM, fit + map timed inside."""
     results = []
-    names = [] if args.logs == "none" else args.logs.split(",")
-    unknown = [n for n in names if n not in LOGS]
-    if unknown:
-        raise SystemExit(f"unknown log(s) {', '.join(unknown)}: --logs takes {', '.join(LOGS)} or none")
-    chosen = [(n, LOGS[n]) for n in names] + [(p.name, p) for p in args.log_file]
-    for name, path in chosen:
-        if not path.exists():
-            print(f"skipping {name}: {path} not found", flush=True)
-            continue
-        for method in METHODS:
-            cmd = [sys.executable, __file__, "--child", str(path), method, "--workers", str(args.workers)]
-            out = subprocess.run(cmd, capture_output=True, text=True, check=False)
-            if out.returncode != 0:
-                raise SystemExit(f"{name} {method} failed:\n{out.stderr}")
-            r = json.loads(out.stdout.strip().splitlines()[-1])
-            r["name"] = name
-            results.append(r)
-            print(f"done {name} {method}: fit + map {r['fit'][1] + r['map'][1]:.1f} CPU s", file=sys.stderr, flush=True)
+    for method in METHODS:
+        cmd = [sys.executable, __file__, "--child", str(path), method, "--workers", str(workers)]
+        out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        if out.returncode != 0:
+            raise SystemExit(f"{name} {method} failed:\n{out.stderr}")
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        r["name"] = name
+        results.append(r)
+        print(f"done {name} {method}: fit + map {r['fit'][1] + r['map'][1]:.1f} CPU s", file=sys.stderr, flush=True)
+    return results
+
+
+def print_fit_table(results: list[dict[str, Any]]) -> None:
+    """The fit table and, per log, MSK-GPOM's stages."""
     print()
     print(
         "| log | scans | method | read CPU s | fit CPU / wall s | map CPU / wall s | fit + map CPU s | / log-odds grid | peak MB | largest stage |"
@@ -136,8 +263,77 @@ def main() -> None:
         if r["stages"]:
             stages = ", ".join(f"{k} {v:.2f}" for k, v in r["stages"].items())
             print(f"{r['name']} {r['method']}: {r['cells']} cells, wall s per stage: {stages}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--logs", default=",".join(LOGS), help="comma-separated: " + ", ".join(LOGS) + ", or none")
+    parser.add_argument(
+        "--log-file",
+        type=Path,
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="also any log gpomap reads (repeatable), named by its file",
+    )
+    parser.add_argument("--tables", default=",".join(TABLES), help="comma-separated: " + ", ".join(TABLES) + " (default: both)")
+    parser.add_argument(
+        "--repeat", type=int, default=3, help="process table: warm gpomap map runs and grid runs per log (default: 3)"
+    )
+    parser.add_argument("--workers", type=int, default=2, help="fit table: gpomap map --workers (default: 2)")
+    parser.add_argument("--child", nargs=2, metavar=("LOG", "METHOD"), help=argparse.SUPPRESS)
+    parser.add_argument("--grid-child", nargs=2, metavar=("LOG", "OUT"), help=argparse.SUPPRESS)
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args()
+    if args.child:
+        print(json.dumps(child(args.child[0], args.child[1], args.workers)))
+        return
+    if args.grid_child:
+        print(json.dumps(grid_child(*args.grid_child)))
+        return
+    tables = args.tables.split(",")
+    if not tables or any(t not in TABLES for t in tables):
+        raise SystemExit(f"--tables takes some of {', '.join(TABLES)}, got {args.tables!r}")
+    if args.repeat < 1:
+        raise SystemExit(f"--repeat must be at least 1, got {args.repeat}")
+    names = [] if args.logs == "none" else args.logs.split(",")
+    unknown = [n for n in names if n not in LOGS]
+    if unknown:
+        raise SystemExit(f"unknown log(s) {', '.join(unknown)}: --logs takes {', '.join(LOGS)} or none")
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    threads = os.environ.get("OMP_NUM_THREADS", "unset")
+    print(f"# Whole logs (commit {commit}, {os.cpu_count()} CPUs, OMP_NUM_THREADS {threads})")
+    chosen = [(n, LOGS[n]) for n in names] + [(p.name, p) for p in args.log_file]
+    process: list[dict[str, Any]] = []
+    fit: list[dict[str, Any]] = []
+    for name, path in chosen:
+        if not path.exists():
+            print(f"skipping {name}: {path} not found", flush=True)
+            continue
+        if "process" in tables:
+            with tempfile.TemporaryDirectory(prefix="gpomap-whole-logs-") as scratch:
+                process.append(process_runs(name, path, args.repeat, Path(scratch)))
+            r = process[-1]
+            print(
+                f"done {name} processes: grid {_spread([g['cpu'] for g in r['grid']])}, gpomap map first "
+                f"{r['cold']['cpu']:.1f}, later {_spread([w['cpu'] for w in r['warm']])} CPU s",
+                file=sys.stderr,
+                flush=True,
+            )
+        if "fit" in tables:
+            fit += fit_runs(name, path, args.workers)
+    if process:
+        print(
+            f"\n## gpomap map LOG -o OUT (defaults) against the counting grid at {RESOLUTION} m, whole processes, {args.repeat} runs each"
+        )
+        print_process_table(process)
+    if fit:
+        print(
+            f"\n## Fit + map inside one process (gpomap map --resolution {RESOLUTION} --workers {args.workers}) against the log-odds grid"
+        )
+        print_fit_table(fit)
     if args.json:
-        args.json.write_text(json.dumps(results, indent=1))
+        args.json.write_text(json.dumps({"process": process, "fit": fit}, indent=1))
 
 
 if __name__ == "__main__":
