@@ -6,7 +6,7 @@ per point, is the loaded map's ``predict_proba(points, return_var=True)``: the o
 and the GP's latent variance, the live model's to the bit. A point far from the data gets what the
 map says there, the prior: probability 1/2 (the squash's offset, 0 for the maps of the shared logs,
 through the unseen-space variance scale) and the kernel's variance. It is printed as CSV
-(``x,y[,z],probability,variance``, numbers written to round-trip exactly), or written with ``-o`` to a
+(``x,y[,z],probability,variance``, each number the shortest decimal that reads back to it exactly), or written with ``-o`` to a
 CSV or an NPZ (``points``, ``probability``, ``variance``), atomically.
 
 :func:`read_query_points` reads POINTS; :func:`add_parser` and :func:`cmd_query` are the subcommand.
@@ -111,8 +111,9 @@ def _csv(points: NDArray[np.float64], probability: NDArray[np.float64], variance
     dim = points.shape[1]
     out = io.StringIO()
     out.write(f"{_columns(dim)},probability,variance\n")
-    table = np.column_stack([points, probability, variance])
-    np.savetxt(out, table, fmt="%.17g", delimiter=",")
+    # Each number as its shortest decimal that reads back to the same float.
+    for row in np.column_stack([points, probability, variance]).tolist():
+        out.write(",".join(map(repr, row)) + "\n")
     return out.getvalue()
 
 

@@ -9,12 +9,19 @@ What the result is:
 
 - by default (:meth:`gpomap.tiles.TiledGPOM.update`), the new scans are absorbed with the saved
   hyperparameters (the variance scale among them): the cell trees of the blocks they reach are
-  rebuilt, every tile whose cells changed is refitted afresh, and the ray counts' calibration is
-  refitted on every scan. The map is then the batch map of all the scans with the saved
-  hyperparameters (``TiledGPOM.fit(old + new, hyperparameters=saved)``), with one exception: the
-  recalibration for a later visit (:mod:`gpomap.revisit`) stays the saved map's, as a streaming map
-  keeps that of its last whole fit (a batch fit of 100 scans or more fits it again, on a second
-  map of 70 % of the scans). The tests check it to 1e-9 on the Stage arena bag;
+  rebuilt, every tile whose cells changed is refitted afresh, the new beams are counted, and the
+  ray counts' calibration is refitted on every scan. The map is then the batch map of all the scans
+  with the saved hyperparameters on the saved map's tile grid (``fit(old + new,
+  hyperparameters=saved)`` with ``origin`` the saved ``origin_``; a batch fit chooses its own grid,
+  centred on the data of a small map), as :meth:`gpomap.streaming.StreamingGPOM.finish` is, up to
+  two things. The recalibration for a later visit (:mod:`gpomap.revisit`) stays the saved map's, as
+  a streaming map keeps that of its last whole fit (a batch fit of 100 scans or more fits it again,
+  on a second map of 70 % of the scans). And the new scans are counted on a lattice of their own
+  before they are added in, so a beam end or a step of the robot's path lying exactly on a cell
+  border may be counted in the cell beside (as on the simulated Stage arena's path).
+  ``tests/test_mapfile.py`` checks the map against the batch map to 1e-9 (the
+  paper's room, off the lattice), and on the Stage arena the GP to 1e-9 and the beams' counts
+  exactly;
 - with ``--relearn``, everything is fitted again on all the scans, hyperparameters included: the map
   ``gpomap map`` makes of the saved scans followed by the new ones with the saved map's settings,
   to the bit.

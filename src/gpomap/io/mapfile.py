@@ -47,6 +47,7 @@ import json
 import math
 import os
 import zipfile
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -569,17 +570,27 @@ def _summary(model: Any) -> dict[str, Any]:
     }
 
 
+#: Bytes of an array deflate is tried on before the whole array is (:func:`_deflates`).
+_DEFLATE_SAMPLE = 1 << 16
+
+
+def _deflates(array: NDArray[Any]) -> bool:
+    """Whether to deflate `array`'s member: when its first bytes shrink by a fifth at least (ray
+    counts, flags, offsets, beam angles repeated scan after scan, the header). Cholesky factors and
+    ranges barely shrink, and deflating them would cost more time than it saves bytes."""
+    raw = np.ascontiguousarray(array).view(np.uint8).reshape(-1)[:_DEFLATE_SAMPLE].tobytes()
+    return len(raw) < 1024 or len(zlib.compress(raw, 1)) < 0.8 * len(raw)
+
+
 def _write(path: str | os.PathLike[str], header: dict[str, Any], arrays: dict[str, NDArray[Any]]) -> Path:
-    """The archive: the header, then every array; numbers deflated where that pays (counts, flags,
-    offsets, the header), floating-point arrays stored (deflate shrinks them little and slowly)."""
+    """The archive: the header, then every array, each deflated where that pays (:func:`_deflates`)."""
     target = Path(path)
     text = json.dumps(header, allow_nan=True, separators=(",", ":"))
     members = [(_HEADER, np.array(text)), *arrays.items()]
     with atomic_write(target, "wb") as f, zipfile.ZipFile(f, "w", allowZip64=True) as zf:
         for key, array in members:
             info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            floating = np.issubdtype(array.dtype, np.floating) and array.size > 0
-            info.compress_type = zipfile.ZIP_STORED if floating else zipfile.ZIP_DEFLATED
+            info.compress_type = zipfile.ZIP_DEFLATED if _deflates(array) else zipfile.ZIP_STORED
             with zf.open(info, "w", force_zip64=array.nbytes > (1 << 30)) as member:
                 np.lib.format.write_array(member, array, allow_pickle=False)
     return target
