@@ -38,6 +38,9 @@ BASE: dict[str, list[str]] = {
     "convert": ["convert", "map.yaml", "-o", "out"],
     "benchmark": ["benchmark", "--paper", "-o", "out"],
     "stream": ["stream", "x.log", "-o", "out"],
+    "render": ["render", "map.gpom", "-o", "out"],
+    "query": ["query", "map.gpom", "points.csv"],
+    "update": ["update", "map.gpom", "x.log", "-o", "out"],
 }
 
 #: A value other than the default for each option that takes one (choices are picked from the
@@ -89,6 +92,9 @@ VALUES: dict[str, str] = {
     "max_refits": "4",
     "timed_runs": "2",
     "figure": "scores.png",
+    "save_state": "state.gpom",
+    "resume": "state.gpom",
+    "answers": "answers.npz",
 }
 
 #: Options the command uses itself, not handed to the library as a setting: why, by dest.
@@ -111,6 +117,10 @@ COMMAND_OWN: dict[str, str] = {
     "rate": "stream: the replay's pace (replay)",
     "every": "stream: how often the map is written (replay)",
     "debug": "tracebacks on errors (main)",
+    "save_state": "stream: where the mapper's state is saved (gpomap.io.mapfile.save_streaming_state)",
+    "resume": "stream: the saved state the replay goes on from (resumed_mapper)",
+    "relearn": "update: everything fitted again instead of the scans absorbed (cmd_update)",
+    "answers": "query: the file the answers are written to (cmd_query)",
 }
 
 
@@ -225,6 +235,21 @@ def _handed_to_library(command: str, args: argparse.Namespace, monkeypatch: pyte
         args.input = "input.log"
         return {
             "mapper": stream.mapper_from_args(args),
+            "readers": _reader_snapshot(args, monkeypatch),
+            "scans": [(s.n_beams, s.time) for s in cli._load_scans(args)],
+        }
+    if command in ("render", "query", "update"):
+        # A saved map, loaded: the command's settings put on it (gpomap.apps.render.configure).
+        from gpomap.apps.render import configure
+        from gpomap.mapping import AreaGPOM
+
+        model = AreaGPOM()
+        configure(args, model)
+        if command != "update":
+            return {"model": model}
+        args.input = "input.log"
+        return {
+            "model": model,
             "readers": _reader_snapshot(args, monkeypatch),
             "scans": [(s.n_beams, s.time) for s in cli._load_scans(args)],
         }

@@ -142,6 +142,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "-o",
         "--output",
+        dest="answers",
         type=_output_kind,
         metavar="OUT.csv|OUT.npz",
         help="write the answers here (CSV: x,y[,z],probability,variance; NPZ: points, probability, variance) instead of printing them",
@@ -160,18 +161,18 @@ def cmd_query(args: argparse.Namespace) -> int:
 
     summary = map_header(args.mapfile)["summary"]
     points = read_query_points(args.points, int(summary["dim"]), args.mapfile)
-    if args.output is not None and args.output.is_dir():
-        raise GpomapError(f"-o {args.output}: is a directory; expected a .csv or .npz file to write")
+    if args.answers is not None and args.answers.is_dir():
+        raise GpomapError(f"-o {args.answers}: is a directory; expected a .csv or .npz file to write")
     model = load_for_command(args, args.mapfile)
     probability, variance = model.predict_proba(points, return_var=True)
-    if args.output is None:
+    if args.answers is None:
         sys.stdout.write(_csv(points, probability, variance))
         return cli.EXIT_OK
-    if args.output.suffix.lower() == ".npz":
-        with atomic_write(args.output, "wb") as f:
+    if args.answers.suffix.lower() == ".npz":
+        with atomic_write(args.answers, "wb") as f:
             np.savez(f, points=points, probability=probability, variance=variance)
     else:
-        with atomic_write(args.output, "w") as f:
+        with atomic_write(args.answers, "w") as f:
             f.write(_csv(points, probability, variance))
-    cli._status(args, f"wrote {args.output}: {points.shape[0]} points")
+    cli._status(args, f"wrote {args.answers}: {points.shape[0]} points")
     return cli.EXIT_OK

@@ -25,7 +25,7 @@ import numpy as np
 
 from gpomap.errors import GpomapError
 
-__all__ = ["add_parser", "cmd_render", "map_header", "load_for_command", "check_map_memory", "write_outputs"]
+__all__ = ["add_parser", "cmd_render", "map_header", "load_for_command", "check_map_memory", "write_outputs", "configure"]
 
 EPILOG = """examples:
   gpomap render arena/map.gpom -o arena-1cm --resolution 0.01
@@ -47,15 +47,14 @@ def map_header(path: str) -> dict[str, Any]:
 
 
 def load_for_command(args: argparse.Namespace, path: str) -> Any:
-    """The fitted map of `path`, its workers set by ``--workers`` when given, said on stderr."""
+    """The fitted map of `path`, with ``--workers`` and ``--thresholds`` when given (:func:`configure`), said on stderr."""
     from gpomap import cli
     from gpomap.io.mapfile import load_fitted_map
 
     cli._status(args, f"loading the map from {path}...")
     t = time.perf_counter()
     model = load_fitted_map(path)
-    if getattr(args, "workers", None) is not None:
-        model.n_workers = args.workers
+    configure(args, model)
     cli._status(
         args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells, {model._n_scans} scans in {time.perf_counter() - t:.2f} s"
     )
@@ -168,9 +167,11 @@ def write_outputs(args: argparse.Namespace, model: Any, title: str, save_model: 
     return grid, [outputs.final(f) for f in staged]
 
 
-def apply_thresholds(args: argparse.Namespace, model: Any) -> None:
-    """``--thresholds``, when given, in place of the map's own."""
-    if "thresholds" not in getattr(args, "library_defaults", ()) and args.thresholds is not None:
+def configure(args: argparse.Namespace, model: Any) -> None:
+    """``--workers`` and ``--thresholds``, when given, in place of the loaded map's own."""
+    if getattr(args, "workers", None) is not None:
+        model.n_workers = args.workers
+    if getattr(args, "thresholds", None) is not None and "thresholds" not in getattr(args, "library_defaults", ()):
         model.base.thresholds = tuple(args.thresholds)
 
 
@@ -216,7 +217,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     default_resolution(args, summary)
     check_map_memory(args, summary)
     model = load_for_command(args, args.mapfile)
-    apply_thresholds(args, model)
     _, files = write_outputs(args, model, f"gpomap: {Path(args.mapfile).name} at {args.resolution:g} m")
     print(f"map          {Path(args.mapfile)}: {summary['dim']}-D, {summary['n_scans']} scans, {summary['n_tiles']} tiles")
     print("ternary      free below {:.3f}, occupied above {:.3f}".format(*model.thresholds_))

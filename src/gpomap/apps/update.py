@@ -152,8 +152,8 @@ def cmd_update(args: argparse.Namespace) -> int:
     """Run ``gpomap update``."""
     from gpomap import cli
     from gpomap.apps.render import (
-        apply_thresholds,
         check_dimension_options,
+        configure,
         default_resolution,
         load_for_command,
         map_header,
@@ -181,7 +181,7 @@ def cmd_update(args: argparse.Namespace) -> int:
     t = time.perf_counter()
     if args.relearn:
         cli._status(args, f"fitting the map of all {len(saved) + len(new)} scans again, hyperparameters included...")
-        model = unfitted_like(model).fit(saved + new)
+        model = unfitted_like(model).fit(saved + new)  # its settings, --workers and --thresholds included
         how = f"all {len(saved) + len(new)} scans fitted again (--relearn)"
     else:
         cli._status(args, f"adding {len(new)} scans with the saved hyperparameters...")
@@ -189,7 +189,7 @@ def cmd_update(args: argparse.Namespace) -> int:
         how = f"{len(new)} scans added to {len(saved)}, {len(model.last_refit_)} of {len(model.tiles_)} tiles refitted"
     seconds = time.perf_counter() - t
     cli._status(args, f"  done in {seconds:.2f} s")
-    apply_thresholds(args, model)
+    configure(args, model)
     grid, files = write_outputs(args, model, f"gpomap: {Path(args.mapfile).name} + {Path(args.input).name}", save_model=True)
     cli._report_fit(model, grid)
     print(f"update       {how} in {seconds:.2f} s")
