@@ -31,13 +31,31 @@ AVAILABLE: bool = NUMBA_AVAILABLE
 ENABLED: bool = compiled_by_default()
 
 
+# Every copy below is an explicit loop, not a slice assignment (``out[:k] = a``): numba compiles a
+# slice assignment with its shape-mismatch error, whose message formatting (strings) took 6 of the
+# 11.6 CPU seconds this module's first compilation cost; loops bring it to 4.
+
+
 @jit(cache=True, nogil=True)
-def _grow(a: NDArray, n: int) -> NDArray:  # pragma: no cover - compiled
-    """`a` with room for at least `n` rows (its first rows kept)."""
+def _grow_rows(a: NDArray, n: int) -> NDArray:  # pragma: no cover - compiled
+    """The 2-D `a` with room for at least `n` rows (its first rows kept)."""
     if a.shape[0] >= n:
         return a
-    out = np.empty((max(n, 2 * a.shape[0]), *a.shape[1:]), dtype=a.dtype)
-    out[: a.shape[0]] = a
+    out = np.empty((max(n, 2 * a.shape[0]), a.shape[1]), dtype=a.dtype)
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            out[i, j] = a[i, j]
+    return out
+
+
+@jit(cache=True, nogil=True)
+def _grow_flat(a: NDArray, n: int) -> NDArray:  # pragma: no cover - compiled
+    """The 1-D `a` with room for at least `n` entries (its first ones kept)."""
+    if a.shape[0] >= n:
+        return a
+    out = np.empty(max(n, 2 * a.shape[0]), dtype=a.dtype)
+    for i in range(a.shape[0]):
+        out[i] = a[i]
     return out
 
 
@@ -67,9 +85,12 @@ def _partition(
                 m += 1
         if want:
             split = m
-    order[a:b] = s_order[a:b]
-    oc[a:b] = s_oc[a:b]
-    xs[:, a:b] = s_xs[:, a:b]
+    for k in range(a, b):
+        order[k] = s_order[k]
+        oc[k] = s_oc[k]
+    for j in range(xs.shape[0]):
+        for k in range(a, b):
+            xs[j, k] = s_xs[j, k]
     return split
 
 
@@ -87,11 +108,14 @@ def _tree(
     n, d = pts.shape
     # The points' indices, coordinates (column by column) and classes, partitioned together so
     # that every node's points lie contiguous and are read in order.
-    order = np.arange(n)
+    order = np.empty(n, dtype=np.intp)
     xs = np.empty((d, n))
-    for j in range(d):
-        xs[j] = pts[:, j]
-    oc = occ.copy()
+    oc = np.empty(n, dtype=np.bool_)
+    for k in range(n):
+        order[k] = k
+        oc[k] = occ[k]
+        for j in range(d):
+            xs[j, k] = pts[k, j]
     s_order = np.empty(n, dtype=np.intp)
     s_xs = np.empty((d, n))
     s_oc = np.empty(n, dtype=np.bool_)
@@ -105,8 +129,8 @@ def _tree(
     stack_range = np.empty((64, 2), dtype=np.intp)
     stack_box = np.empty((64, 2 * d))
     stack_range[0, 0], stack_range[0, 1] = 0, n
-    stack_box[0, :d] = lo0
-    stack_box[0, d:] = hi0
+    for j in range(d):
+        stack_box[0, j], stack_box[0, d + j] = lo0[j], hi0[j]
     top = 1
     lo = np.empty(d)
     hi = np.empty(d)
@@ -139,9 +163,9 @@ def _tree(
                 s, e, label = part
                 if e == s:
                     continue
-                ranges = _grow(ranges, n_cells + 1)
-                boxes = _grow(boxes, n_cells + 1)
-                flags = _grow(flags, n_cells + 1)
+                ranges = _grow_rows(ranges, n_cells + 1)
+                boxes = _grow_rows(boxes, n_cells + 1)
+                flags = _grow_flat(flags, n_cells + 1)
                 ranges[n_cells, 0], ranges[n_cells, 1] = s, e
                 bounding = tight or not pure
                 for j in range(d):
@@ -162,8 +186,8 @@ def _tree(
         # The points left of the midpoint first.
         split = _partition(xs[axis, a:b] < mid, a, order, xs, oc, s_order, s_xs, s_oc)
         # The right half is pushed first, so the left one is walked first (the Python tree's order).
-        stack_range = _grow(stack_range, top + 2)
-        stack_box = _grow(stack_box, top + 2)
+        stack_range = _grow_rows(stack_range, top + 2)
+        stack_box = _grow_rows(stack_box, top + 2)
         stack_range[top, 0], stack_range[top, 1] = split, b
         stack_range[top + 1, 0], stack_range[top + 1, 1] = a, split
         for j in range(d):
