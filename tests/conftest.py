@@ -32,6 +32,8 @@ LONGEST_FIRST = [
     "test_local_prediction.py",
     "test_outputs_atomic.py",
     "test_convert.py",
+    "test_mapfile_cli.py",
+    "test_mapfile.py",
     "test_stream_cli.py",
     "test_streaming.py",
     "test_fusion.py",
