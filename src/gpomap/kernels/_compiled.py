@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.compiled import compiled_by_default, plain_decorator
+from gpomap.compiled import compiled_by_default, jit, plain_decorator
 
 _jit: Any = plain_decorator
 _intrinsic: Any = plain_decorator
@@ -42,7 +42,7 @@ try:
     from llvmlite import ir as _ir  # type: ignore[import-untyped]
     from numba.extending import intrinsic
 
-    _jit, _intrinsic, _types = numba.njit, intrinsic, numba.types
+    _jit, _intrinsic, _types = jit, intrinsic, numba.types
     AVAILABLE: bool = True
 except ImportError:  # pragma: no cover - numba is a dependency; the numpy path remains the reference
     AVAILABLE = False

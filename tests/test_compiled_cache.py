@@ -1,0 +1,72 @@
+"""numba's compile cache across processes: a second run loads what the first compiled, and a machine
+where nothing can be cached still runs (compiling each time) instead of failing at import."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from gpomap import compiled
+
+pytestmark = pytest.mark.skipif(not compiled.NUMBA_AVAILABLE, reason="numba is not installed")
+
+# One scan of two beams on a grid of four cells: beam 0 crosses cells 0 and 1 near its end and ends
+# in cell 2; beam 1 returned nothing and crosses cell 1 (not near) and cell 3. By hand: one hit in
+# cell 2; one miss in cells 0, 1 and 3, near only in cell 0 (cell 1 was also crossed far from an end).
+CHILD = textwrap.dedent(
+    """
+    import json
+    import numpy as np
+    from gpomap import _compiled_counts
+
+    counts = tuple(np.zeros(4, dtype=np.int32) for _ in range(3))
+    _compiled_counts.count_entries(
+        np.array([0, 0, 1, 1]), np.array([0, 1, 1, 3]), np.array([True, True, False, False]),
+        np.array([0, 0]), np.array([2, -1]), counts, np.full(4, -1, dtype=np.int64),
+    )
+    stats = _compiled_counts._count_entries.stats
+    print(json.dumps({
+        "hits": sum(stats.cache_hits.values()),
+        "misses": sum(stats.cache_misses.values()),
+        "cache_path": stats.cache_path,
+        "counts": [c.tolist() for c in counts],
+    }))
+    """
+)
+EXPECTED = [[0, 0, 1, 0], [1, 1, 0, 1], [1, 0, 0, 0]]
+
+
+def _run(env: dict[str, str]) -> dict:
+    out = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _env(**changes: str | None) -> dict[str, str]:
+    env = {
+        k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "NUMBA_CACHE_LOCATOR_CLASSES", "NUMBA_DISABLE_JIT")
+    }
+    env.update({k: v for k, v in changes.items() if v is not None})
+    return env
+
+
+def test_second_process_loads_from_the_cache(tmp_path):
+    cache = tmp_path / "numba-cache"
+    first = _run(_env(NUMBA_CACHE_DIR=str(cache)))
+    second = _run(_env(NUMBA_CACHE_DIR=str(cache)))
+    assert (first["misses"], first["hits"]) == (1, 0)  # compiled, and written
+    assert (second["misses"], second["hits"]) == (0, 1)  # loaded, nothing compiled
+    assert first["cache_path"].startswith(str(cache)) and list(cache.rglob("*.nbi"))
+    assert first["counts"] == second["counts"] == EXPECTED
+
+
+def test_nowhere_to_cache_compiles_each_time():
+    """numba finds no cache location (as for a read-only install run without a writable home)."""
+    result = _run(_env(NUMBA_CACHE_LOCATOR_CLASSES="numba.core.caching.IPythonCacheLocator"))
+    assert result["cache_path"] is None and result["misses"] == 1
+    assert result["counts"] == EXPECTED
