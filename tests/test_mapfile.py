@@ -402,6 +402,21 @@ def test_files_that_are_not_map_files_are_refused(room, tmp_path):
     assert "file not found" in _one_line_error(tmp_path / "missing.gpom")
 
 
+def test_an_altered_state_is_a_one_line_error(saved, tmp_path):
+    path = tmp_path / "altered.gpom"
+    path.write_bytes(saved.read_bytes())
+
+    def poses_are_offsets(header):  # the scans' poses read from another array
+        scans = header["state"]["state"]["_scans"]["$scans"]["arrays"]
+        scans["pose"] = scans["offsets"]
+
+    _rewrite_header(path, poses_are_offsets)
+    assert "an altered file" in _one_line_error(path)
+    path.write_bytes(saved.read_bytes())
+    _rewrite_header(path, lambda h: h["state"]["state"].update(tiles_={"$array": "nowhere"}))
+    assert "array 'nowhere' is missing (a truncated or altered file)" in _one_line_error(path)
+
+
 def test_a_map_file_is_not_a_streaming_state(saved):
     assert "holds a fitted map, not a streaming state" in _one_line_error(saved, load_streaming_state)
 

@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.errors import InputFormatError
+from gpomap.errors import GpomapError, InputFormatError
 from gpomap.io.atomic import atomic_write
 from gpomap.io.checks import MAX_NPZ_ARRAY_BYTES, load_npz, regular_file
 
@@ -767,7 +767,7 @@ def _load_state(path: str | os.PathLike[str], header: dict[str, Any]) -> Any:
         return _Reader(arrays).decode(header["state"])
     except _StateError as exc:
         raise InputFormatError(f"map file state: {exc}", path=str(path)) from None
-    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+    except (GpomapError, KeyError, TypeError, ValueError, AttributeError, IndexError, ArithmeticError, RecursionError) as exc:
         raise InputFormatError(
             f"map file state is not what gpomap writes ({type(exc).__name__}: {str(exc)[:160]}): an altered file", path=str(path)
         ) from None
