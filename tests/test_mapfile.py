@@ -237,6 +237,58 @@ def _rewrite_header(path, change):
             zf.writestr(name, data)
 
 
+#: What a map file of format version 1 holds of each class (its attributes, or a dataclass's fields).
+LAYOUT_V1 = {
+    "gpomap.mapping.AreaGPOM": {
+        "tile_size", "overlap", "blend", "origin", "n_workers", "hyper_sample", "per_tile_hyperparameters",
+        "blas_threads", "worker_processes", "scheduler_timeout", "memory_limit", "base", "options", "_clearance",
+        "_block_points", "_blocks", "_tiles_with_points", "_lower", "_upper", "_n_points", "_n_occupied_points",
+        "_dim", "tile_size_", "origin_", "_dirty", "_n_scans", "_n_invalid", "_n_no_return", "path_",
+        "hyper_source_", "hyperparameters_", "overlap_", "blend_", "extrapolation_", "_scans", "tiles_",
+        "_signatures", "timings_", "evidence_", "revisit_", "last_refit_", "_stale", "_reused",
+    },
+    "gpomap.fusion.EvidenceLayer": {
+        "resolution", "gp_apart", "no_return_cap", "calibration_scans", "seed", "calibration", "report",
+        "sample", "revisit", "_scans", "_parts", "_dim", "lattice", "_hits", "_beam_misses", "_near_misses", "_path",
+    },
+    "gpomap.fusion.EvidenceCalibration": {
+        "hit_weight", "prior_weight", "near_weight", "near_hit_weight", "surface_weight", "surprise_rate",
+    },
+    "gpomap.revisit.RevisitCalibration": {"slope", "shift"},
+    "gpomap.tiles.TileState": {"key", "posterior", "hyperparameters", "seconds"},
+    "gpomap.gp.GPPosterior": {"inputs", "L", "weights", "kernel", "squash", "jitter"},
+    "gpomap.tiles._BlockPoints": {"_parts", "_near", "_n_checked"},
+}  # fmt: skip
+
+
+def _layout(state, out=None):
+    """Class name to the attribute or field names the encoded `state` holds of it."""
+    out = {} if out is None else out
+    if isinstance(state, dict):
+        for tag, names in (("$object", "state"), ("$dataclass", "fields")):
+            if tag in state:
+                out.setdefault(state[tag], set()).update(state[names])
+        for v in state.values():
+            _layout(v, out)
+    elif isinstance(state, list):
+        for v in state:
+            _layout(v, out)
+    return out
+
+
+def test_the_saved_layout_is_the_format_versions(room, tmp_path):
+    # A change to what is saved (an attribute or a field added, renamed or dropped) must come with
+    # a new gpomap.io.mapfile.VERSION, so that older files are refused instead of loaded without it:
+    # raise it, and pin the new layout here.
+    model = AreaGPOM(n_workers=1, **ROOM_OPTS).fit(room[::3])
+    path = save_fitted_map(model, tmp_path / "map.gpom")
+    with np.load(path, allow_pickle=False) as archive:
+        layout = _layout(json.loads(str(archive["header"]))["state"])
+    assert VERSION == 1
+    for name, names in LAYOUT_V1.items():
+        assert layout[name] == names, f"{name}: {sorted(layout[name] ^ names)} changed: raise the format VERSION"
+
+
 def test_a_calibration_dataclass_whose_fields_changed_is_refused_by_name(room, tmp_path):
     model = TiledGPOM(n_workers=1, **ROOM_OPTS).fit(room[:10])
     path = save_fitted_map(model, tmp_path / "map.gpom")

@@ -27,10 +27,12 @@ The header holds
 
 So a field added to a calibration dataclass, or an attribute added to the model, is saved without
 a change here; a dataclass whose fields are not those the file holds is refused on loading, naming
-the class and the fields. Three things are stored in a form of their own: each tile's Cholesky
-factor by its lower triangle (``$tril``), the scans as arrays (``$scans``: poses, beam angles,
-ranges; a cloud's origin, points and hit flags), and what follows from the scans is recomputed
-from them on loading instead of stored: the labelled points along the beams
+the class and the fields, and :data:`VERSION` is raised with any such change so that files of the
+old layout are refused too (``tests/test_mapfile.py`` pins the layout and says so). Some things
+are stored in a form of their own: each tile's Cholesky factor by its lower triangle (``$tril``),
+the scans as arrays (``$scans``: poses, beam angles, ranges; a cloud's origin, points and hit
+flags), and what follows from the scans is recomputed from them on loading instead of stored: the
+labelled points along the beams
 (:func:`gpomap.observations.observations_from_scans`, filed under their blocks as the fit filed
 them, ``$from_scans``) and the beams of the ray counts (:meth:`gpomap.evidence.RayEvidence.from_scans`;
 their scan indices and the robot's path between scans are stored, ``$rays``). Both are checked
