@@ -17,6 +17,7 @@ from gpomap.io.atomic import MANIFEST
 from gpomap.io.npz import load_map as load_grid
 from gpomap.io.rosbag import STAGE_TIME_OFFSET, read_rosbag
 from gpomap.io.voxel_outputs import load_voxels
+from gpomap.lattice import EXTENT_MARGIN_CELLS
 from tests import world3d
 from tests.test_map3d_cli import FAST, write_pcd
 from tests.test_mapfile import _rewrite_header
@@ -235,8 +236,10 @@ def test_a_3d_map_is_rendered_and_queried(voxel_map, tmp_path, capsys):
     out = tmp_path / "render"
     code = main(["render", str(voxel_map / "map.gpom"), "-o", str(out), "--resolution", "0.2", "--z-range", "0.5,1.5", "-q"])
     assert code == 0 and manifest(out) == ["map-3d.png", "map-slices.png", "map.bt", "map.npz", "map.ply"]
+    # x and y: the data's box grown by the default's margin of cells; z: --z-range as given.
     lo, hi = model.bounds_
-    expected = model.grid(0.2, (lo[0], hi[0], lo[1], hi[1], 0.5, 1.5))
+    pad = EXTENT_MARGIN_CELLS * 0.2
+    expected = model.grid(0.2, (lo[0] - pad, hi[0] + pad, lo[1] - pad, hi[1] + pad, 0.5, 1.5))
     got = load_voxels(out / "map.npz")
     assert got.spec == expected.spec
     np.testing.assert_array_equal(got.probability, expected.probability)

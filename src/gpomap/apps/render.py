@@ -72,12 +72,13 @@ def _padded_bounds(summary: dict[str, Any], resolution: float) -> tuple[np.ndarr
 
 def written_extent(args: argparse.Namespace, summary: dict[str, Any]) -> tuple[float, ...] | None:
     """The extent to pass to ``grid``: None for the map's default, else ``--extent`` (2-D), or the
-    data's box with x, y from ``--extent`` and z from ``--z-range`` (3-D)."""
+    data's box grown as the default grows it, with x, y from ``--extent`` and z from ``--z-range``
+    (3-D)."""
     if summary["dim"] == 2:
         return None if args.extent is None else tuple(args.extent)
     if args.extent is None and args.z_range is None:
         return None
-    lo, hi = (np.asarray(b, dtype=float) for b in summary["bounds"])
+    lo, hi = _padded_bounds(summary, args.resolution)
     if args.extent is not None:
         lo[:2], hi[:2] = (args.extent[0], args.extent[2]), (args.extent[1], args.extent[3])
     if args.z_range is not None:
