@@ -244,14 +244,20 @@ def voxel_bounds(
     points: NDArray[np.float64],
     extent: tuple[float, float, float, float] | None,
     z_range: tuple[float, float] | None,
+    resolution: float,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Lower and upper corners (x, y, z), shape (3,) each, of the written voxel map.
 
-    The observation points' bounding box (the models' own default), with x and y from `extent`
-    and z from `z_range` where given.
+    The observation points' bounding box grown by :data:`gpomap.lattice.EXTENT_MARGIN_CELLS`
+    voxels of side `resolution` on every side (as a planar map's default extent: a surface hit on
+    the box's edge reaches into the voxel past it), with x and y from `extent` and z from
+    `z_range` where given, as they are.
     """
-    lo = np.asarray(points, dtype=float).min(axis=0)
-    hi = np.asarray(points, dtype=float).max(axis=0)
+    from gpomap.lattice import EXTENT_MARGIN_CELLS
+
+    pad = EXTENT_MARGIN_CELLS * float(resolution)
+    lo = np.asarray(points, dtype=float).min(axis=0) - pad
+    hi = np.asarray(points, dtype=float).max(axis=0) + pad
     if extent is not None:
         lo[:2], hi[:2] = (extent[0], extent[2]), (extent[1], extent[3])
     if z_range is not None:
@@ -373,7 +379,7 @@ def _plan(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, N
     from gpomap.tiles import DEFAULT_TILE_SIZE, tile_reach
 
     model, obs, cells = model_from_args(args, clouds)
-    lo, hi = voxel_bounds(obs.points, args.extent, args.z_range)
+    lo, hi = voxel_bounds(obs.points, args.extent, args.z_range, args.resolution)
     check_voxel_memory(args, lo, hi, 0)
     # The fit refuses tiles too large for the memory itself, once its cells exist; the voxel
     # grid's prediction chunks are sized by the largest column too.

@@ -1,0 +1,49 @@
+"""The voxel map gpomap map writes on depth frames: its extent, and its surfaces against a scene's true boxes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpomap import simulate3d as s3
+from gpomap.apps.map3d import voxel_bounds
+from gpomap.cli import main
+from gpomap.grid import OCCUPIED
+from gpomap.io.voxel_outputs import load_voxels
+
+
+def test_voxel_bounds_grow_the_data_box_by_two_voxels():
+    points = np.array([[0.03, -1.0, 0.2], [2.5, 1.07, 1.3], [1.0, 0.0, 0.5]])
+    lo, hi = voxel_bounds(points, None, None, 0.1)
+    assert lo == pytest.approx([0.03 - 0.2, -1.2, 0.0]) and hi == pytest.approx([2.7, 1.27, 1.5])
+    # Given bounds are kept as they are.
+    lo, hi = voxel_bounds(points, (0.0, 1.0, -0.5, 0.5), (0.1, 0.9), 0.1)
+    assert lo.tolist() == [0.0, -0.5, 0.1] and hi.tolist() == [1.0, 0.5, 0.9]
+
+
+@pytest.fixture(scope="module")
+def office_frames(tmp_path_factory):
+    """Four 48 x 36 depth frames of the simulated office's first room, written as gpomap map reads them."""
+    frames = s3.render_frames(s3.office_scene(), s3.PinholeCamera.from_fov(48, 36, 60), s3.office_poses()[:3])
+    return s3.write_depth_frames(frames, tmp_path_factory.mktemp("office"))
+
+
+def test_written_map_covers_every_hit_and_its_surfaces_hold_boxes(office_frames, tmp_path):
+    out = tmp_path / "out"
+    assert main(["map", str(office_frames), "-o", str(out), "--kernel", "se", "-q"]) == 0
+    m = load_voxels(out / "map.npz")
+    clouds = s3.frame_clouds(s3.render_frames(s3.office_scene(), s3.PinholeCamera.from_fov(48, 36, 60), s3.office_poses()[:3]))
+    hits = np.concatenate([c.points[c.valid()] for c in clouds])
+    # Every hit's voxel and the voxel beyond it (inside the wall it hit) are in the map.
+    assert (m.spec.lower <= hits.min(axis=0) - m.spec.resolution).all()
+    assert (m.spec.upper >= hits.max(axis=0) + m.spec.resolution).all()
+    # The voxels map.bt calls occupied (occupied where rays went) each hold part of a box: no
+    # surface grows into free space a ray saw.
+    occupied = ((m.ternary == OCCUPIED) & m.seen).reshape(-1)
+    centres = m.spec.centres()[occupied]
+    scene = s3.office_scene()
+    half = m.spec.resolution / 2
+    holds = np.zeros(len(centres), dtype=bool)
+    for lo, hi in zip(scene.lower, scene.upper):
+        holds |= np.all((centres + half > lo) & (centres - half < hi), axis=1)
+    assert occupied.sum() > 100 and holds.all()
