@@ -1444,7 +1444,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Read a ROS map_server map (or a gpomap .npz), merge its known pixels into cells, fit "
         "the GP and write the continuous map at any resolution.",
         epilog="examples:\n  gpomap convert ../shared/data/turtlebot3-world-map/map.yaml -o tb3 --resolution 0.025\n"
-        "  gpomap convert ../shared/data/octomap/geb079.bt -o geb --resolution 0.04 --extent 5,6,-1.5,1.5 --max-cells 5000",
+        "  gpomap convert ../shared/data/octomap/geb079.bt -o geb --resolution 0.04 --extent 5,6,-1.5,1.5",
     )
     p.add_argument("input", help="map.yaml (ROS map_server), map.npz, or an OctoMap tree (.bt, .ot)")
     p.add_argument("--kernel", choices=["se", "matern32"], help="point kernel (default: se, measured best for grids)")
@@ -1457,7 +1457,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-cells",
         type=_positive(int),
         default=_Default(DEFAULT_MAX_CELLS),
-        help="octree: refuse a region whose cell tree has more cells than one GP should hold (default: %(default)s)",
+        help="octree: most cells of one GP; a larger region is converted in tiles of at most this many (default: %(default)s)",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=cmd_convert)

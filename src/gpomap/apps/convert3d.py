@@ -1,8 +1,10 @@
 """``gpomap convert MAP.bt -o OUTDIR``: an OctoMap octree to a continuous 3-D map (:mod:`gpomap.convert3d`).
 
 :mod:`gpomap.cli` hands a ``convert`` run here when the input is an OctoMap ``.bt`` / ``.ot``
-file. The region converted is the tree's extent, or ``--extent`` (x, y) and ``--z-range`` (z);
-the voxel grid and then the GP are checked against the memory limit before the fit; the map is
+file. The region converted is the tree's extent, or ``--extent`` (x, y) and ``--z-range`` (z), one GP
+or, when its cells are more than ``--max-cells``, tiles of at most that many
+(:class:`gpomap.convert3d.TiledOctreeModel`); the voxel grid and then the largest GP are checked
+against the memory limit before the fit; the map is
 written as the 3-D output set of ``gpomap map`` (:func:`gpomap.io.voxel_outputs.write_voxel_outputs`)
 and the agreement with the octree's known voxels is printed.
 """
@@ -53,7 +55,7 @@ def cmd_convert3d(args: argparse.Namespace) -> int:
     def before_fit(n_cells: int) -> None:
         cli._check_fit_memory(args, n_cells, 1, f"one GP over the cells of {args.input}")
         check_voxel_memory(args, lo, hi, n_cells)
-        cli._status(args, f"  {n_cells} cells; fitting the GP...")
+        cli._status(args, f"  at most {n_cells} cells in one GP; fitting...")
 
     options = cli._convert_options(args)
     result = convert_octree(tree, args.resolution, lo, hi, max_cells=args.max_cells, before_fit=before_fit, **options)
@@ -82,6 +84,12 @@ def _text(report: dict[str, Any]) -> str:
             f"agreement    {100 * agree['ternary']:.2f} % of {agree['n_checked']} known voxels keep their label "
             f"(free {100 * agree['free']:.2f} %, occupied {100 * agree['occupied']:.2f} %; AUC {agree['auc']:.4f})"
             + (f", a sample of {agree['n_known']}" if agree["n_checked"] < agree["n_known"] else "")
+        )
+    tiles = report.get("tiles")
+    if tiles:
+        lines.append(
+            f"tiles        {tiles['tiles_fitted']} columns of {tiles['tile_size']:g} m fitted one after another "
+            f"(at most {tiles['largest_tile_cells']} cells each; {tiles['tiles']} blended)"
         )
     lines.append(f"voxels       {nx} x {ny} x {nz} of {report['grid']['resolution']:g} m")
     lines.append("timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in report["timings"].items()))
