@@ -21,7 +21,10 @@ Run from the project root:  ``OMP_NUM_THREADS=1 .venv/bin/python benchmarks/conv
 from __future__ import annotations
 
 import argparse
+import itertools
+import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -165,89 +168,199 @@ def read_arena(path: Path) -> NDArray[np.bool_]:
     return np.flipud(top_down < 128).copy()
 
 
-#: How a coarse pixel is made from the fine pixels it holds, as occupancy grids are made: occupied
-#: if any is, if most are, or the occupied share as its probability.
+@dataclass
+class Plan:
+    """A fine occupancy grid taken as the truth: pooled to a coarse grid, converted back, scored.
+
+    Attributes
+    ----------
+    name : str
+    occupied : ndarray of bool, shape (ny, nx)
+        Row 0 = lowest y.
+    known : ndarray of bool, shape (ny, nx)
+        Pixels with a label (unknown ones are pooled as unknown and not scored).
+    origin : (float, float)
+        Lower-left corner, metres.
+    resolution : float
+        Fine pixel side, metres.
+    factor : int
+        Fine pixels per coarse pixel side, by default.
+    """
+
+    name: str
+    occupied: NDArray[np.bool_]
+    known: NDArray[np.bool_]
+    origin: tuple[float, float]
+    resolution: float
+    factor: int
+
+
+def load_plans(data: Path, names: list[str]) -> list[Plan]:
+    """The fine grids scored: the Stage arena plan, the sim-worlds plans, the TurtleBot3 ROS map."""
+    plans = []
+    for name in names:
+        if name == "arena":
+            occ = read_arena(data / "stage-arena" / "mrl_arena.pgm")
+            plans.append(Plan(name, occ, np.ones_like(occ), ARENA_ORIGIN, ARENA_RESOLUTION, 5))
+        elif name in SIM_WORLDS:
+            world = data / "sim-worlds" / name
+            meta = json.loads((world / f"{name}.json").read_text())
+            top_down, _ = read_map_image(world / f"{name}.truth.png")
+            occ = np.flipud(top_down < 128).copy()
+            res, (x0, y0) = float(meta["resolution"]), meta["origin"]
+            # A plan wider than WINDOW_PIXELS is scored in windows that far apart (one GP each).
+            n = -(-occ.shape[1] // WINDOW_PIXELS)
+            cuts = np.linspace(0, occ.shape[1], n + 1).round().astype(int)
+            for i, (c0, c1) in enumerate(itertools.pairwise(cuts)):
+                part = f"{name} {i + 1}/{n}" if n > 1 else name
+                plans.append(Plan(part, occ[:, c0:c1], np.ones((occ.shape[0], c1 - c0), dtype=bool), (x0 + c0 * res, y0), res, 5))
+        elif name == "turtlebot":
+            ros = read_rosmap(data / "turtlebot3-world-map" / "map.yaml")
+            # Cropped to the known pixels and a coarse pixel or two round them.
+            rows, cols = np.nonzero(~ros.unknown)
+            r0, c0 = max(rows.min() - 4, 0), max(cols.min() - 4, 0)
+            r1, c1 = rows.max() + 5, cols.max() + 5
+            g = ros.grid
+            origin = (g.origin[0] + c0 * g.resolution, g.origin[1] + r0 * g.resolution)
+            plans.append(Plan(name, ros.occupied[r0:r1, c0:c1], ~ros.unknown[r0:r1, c0:c1], origin, g.resolution, 2))
+        else:
+            raise SystemExit(f"unknown plan {name!r}; expected one of {', '.join(PLANS)}")
+    return plans
+
+
+SIM_WORLDS = ("cave", "hospital_section")
+#: The converter is one GP over its inputs: the hospital plan (1,086 pixels wide) is scored in
+#: three windows of 362 pixels.
+WINDOW_PIXELS = 400
+PLANS = ("arena", *SIM_WORLDS, "turtlebot")
+
+
+#: How a coarse pixel is made from the known fine pixels it holds, as occupancy grids are made:
+#: occupied if any is, if most are, or the occupied share as its probability (NaN: none known).
 POOLING = {
-    "any": lambda block: block.any(axis=(1, 3)).astype(float),
-    "majority": lambda block: (block.mean(axis=(1, 3)) > 0.5).astype(float),
-    "mean": lambda block: block.mean(axis=(1, 3)),
+    "any": lambda occ, n: np.where(n > 0, occ > 0, np.nan),
+    "majority": lambda occ, n: np.where(n > 0, occ > 0.5 * n, np.nan),
+    "mean": lambda occ, n: np.where(n > 0, occ / np.maximum(n, 1), np.nan),
 }
 
 
-def bench_arena(path: Path, coarse_resolutions: list[float], poolings: list[str]) -> None:
-    """Part (b): down-sample the true plan, convert back to 0.01 m, compare with interpolation."""
-    truth = read_arena(path)
-    ny, nx = truth.shape
-    rows = []
-    for coarse_res, pooling in ((c, p) for c in coarse_resolutions for p in poolings):
-        k = round(coarse_res / ARENA_RESOLUTION)
-        if not np.isclose(k * ARENA_RESOLUTION, coarse_res):
-            raise SystemExit(f"coarse resolution {coarse_res} is not a whole number of 0.01 m pixels")
-        cy, cx = -(-ny // k), -(-nx // k)
-        fine = np.zeros((cy * k, cx * k), dtype=bool)  # padding is free
-        fine[:ny, :nx] = truth
-        coarse = POOLING[pooling](fine.reshape(cy, k, cx, k))
-        cmap = OccupancyMap(GridSpec(ARENA_ORIGIN, coarse_res, coarse.shape), coarse)
-        t = time.perf_counter()
-        res = convert_grid(cmap, resolution=ARENA_RESOLUTION)
-        t_gp = time.perf_counter() - t
-        assert res.map.grid.origin == ARENA_ORIGIN and res.map.grid.shape == fine.shape
-        p_gp = res.map.probability[:ny, :nx]
-        scores = {}
-        times = {}
-        for order, name in ((0, "nearest (zoom order 0)"), (1, "bilinear (zoom order 1)")):
-            t = time.perf_counter()
-            up = ndimage.zoom(coarse.astype(float), k, order=order, grid_mode=True, mode="nearest")
-            times[name] = time.perf_counter() - t
-            scores[name] = up[:ny, :nx]
-        scores["GP (convert_grid)"] = p_gp
-        times["GP (convert_grid)"] = t_gp
-        for name, s in scores.items():
-            pred = s > 0.5
-            report = res.report if name.startswith("GP") else None
-            rows.append(_arena_row(f"{coarse_res:g} m, {pooling}", name, truth, s, pred, times[name], report))
-        pred = res.map.ternary[:ny, :nx] == OCCUPIED
-        rows.append(_arena_row(f"{coarse_res:g} m, {pooling}", "GP, occupied = p > 0.66", truth, p_gp, pred, t_gp, None))
+def pool(plan: Plan, k: int, pooling: str) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
+    """The coarse grid of `plan`, cropped to whole coarse pixels (a partial one at the edge would
+    stand for a sliver of the plan), and the fine truth and known mask cropped the same way."""
+    cy, cx = plan.occupied.shape[0] // k, plan.occupied.shape[1] // k
+    occ = plan.occupied[: cy * k, : cx * k] & plan.known[: cy * k, : cx * k]
+    known = plan.known[: cy * k, : cx * k]
+    n_occ = occ.reshape(cy, k, cx, k).sum(axis=(1, 3))
+    n_known = known.reshape(cy, k, cx, k).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore"):
+        coarse = POOLING[pooling](n_occ, n_known).astype(float)
+    return coarse, occ, known
+
+
+def bench_plans(plans: list[Plan], factors: list[int] | None, poolings: list[str]) -> list[dict]:
+    """Part (b): pool each plan, convert back to its fine pixels, compare with interpolation."""
+    rows, records = [], []
+    for plan in plans:
+        for k in factors or [plan.factor]:
+            for pooling in poolings:
+                coarse, occ, known = pool(plan, k, pooling)
+                cmap = OccupancyMap(GridSpec(plan.origin, plan.resolution * k, coarse.shape), coarse)
+                t = time.perf_counter()
+                res = convert_grid(cmap, resolution=plan.resolution)
+                t_gp = time.perf_counter() - t
+                assert res.map.grid.shape == occ.shape
+                scores, times = {}, {}
+                # Interpolation reads an unknown coarse pixel as 0.5.
+                filled = np.where(np.isfinite(coarse), coarse, 0.5)
+                for order, name in ((0, "nearest"), (1, "bilinear")):
+                    t = time.perf_counter()
+                    scores[name] = ndimage.zoom(filled, k, order=order, grid_mode=True, mode="nearest")
+                    times[name] = time.perf_counter() - t
+                scores["GP"], times["GP"] = res.map.probability, t_gp
+                label = f"{plan.name}, {plan.resolution * k:.3g} m, {pooling}"
+                for name, score in scores.items():
+                    rec = _scores(occ[known], score[known], score[known] > 0.5)
+                    rec.update(plan=plan.name, coarse=plan.resolution * k, pooling=pooling, method=name, seconds=times[name])
+                    records.append(rec)
+                    extra = "-"
+                    if name == "GP":
+                        hp = res.report["hyperparameters"]
+                        extra = f"{res.report['cells']['n']} / {hp['length_scale'] / (plan.resolution * k):.2f} px"
+                    rows.append(_row(label, name, rec, extra))
+                ternary_occ = (res.map.ternary == OCCUPIED)[known]
+                rec = _scores(occ[known], res.map.probability[known], ternary_occ)
+                rows.append(_row(label, "GP, occupied = p > 0.66", rec, "-"))
+                print(f"  {label}: GP {records[-1]['auc']:.4f} / {records[-1]['iou']:.3f} ({t_gp:.1f} s)", flush=True)
     _table(
-        f"(b) Stage arena plan {nx} x {ny} px (square 0.01 m pixels assumed), coarse -> 0.01 m; "
-        "occupied = score > 0.5 unless stated",
-        ["coarse, pooling", "method", "AUC", "accuracy", "IoU occ", "occ frac", "s", "GP cells / l"],
+        "(b) plans pooled to coarse grids and converted back to their fine pixels; occupied = score > 0.5 unless stated",
+        ["plan, coarse, pooling", "method", "AUC", "IoU occ", "occ frac", "true frac", "s", "GP inputs / l"],
         rows,
     )
-    print(f"true occupied fraction: {truth.mean():.4f}")
+    return records
 
 
-def _arena_row(coarse, name, truth, score, pred, seconds, report) -> list[str]:
-    inter = int((pred & truth).sum())
-    union = int((pred | truth).sum())
-    extra = "-"
-    if report is not None:
-        extra = f"{report['cells']['n']} / {report['hyperparameters']['length_scale']:.3f} m"
+def _scores(truth: NDArray[np.bool_], score: NDArray[np.float64], pred: NDArray[np.bool_]) -> dict:
+    return {
+        "auc": float(roc_auc(truth, score)),
+        "iou": float((pred & truth).sum() / max((pred | truth).sum(), 1)),
+        "occ_frac": float(pred.mean()),
+        "true_frac": float(truth.mean()),
+    }
+
+
+def _row(label: str, name: str, rec: dict, extra: str) -> list[str]:
     return [
-        coarse,
+        label,
         name,
-        f"{roc_auc(truth.ravel(), score.ravel()):.4f}",
-        f"{(pred == truth).mean():.4f}",
-        f"{inter / union:.4f}",
-        f"{pred.mean():.4f}",
-        f"{seconds:.2f}",
+        f"{rec['auc']:.4f}",
+        f"{rec['iou']:.4f}",
+        f"{rec['occ_frac']:.4f}",
+        f"{rec['true_frac']:.4f}",
+        f"{rec.get('seconds', 0.0):.2f}",
         extra,
     ]
+
+
+def summary(records: list[dict]) -> None:
+    """Where the GP beats both interpolations, in AUC and in IoU, per plan and pooling."""
+    rows = []
+    keys = list(dict.fromkeys((r["plan"], r["coarse"], r["pooling"]) for r in records))
+    for key in keys:
+        by = {r["method"]: r for r in records if (r["plan"], r["coarse"], r["pooling"]) == key}
+        best_auc = max(by["nearest"]["auc"], by["bilinear"]["auc"])
+        best_iou = max(by["nearest"]["iou"], by["bilinear"]["iou"])
+        rows.append(
+            [
+                f"{key[0]}, {key[1]:.3g} m, {key[2]}",
+                f"{by['nearest']['auc']:.4f} / {by['nearest']['iou']:.3f}",
+                f"{by['bilinear']['auc']:.4f} / {by['bilinear']['iou']:.3f}",
+                f"{by['GP']['auc']:.4f} / {by['GP']['iou']:.3f}",
+                "yes" if by["GP"]["auc"] > best_auc and by["GP"]["iou"] > best_iou else "no",
+            ]
+        )
+    _table("summary: AUC / occupied IoU (p > 0.5)", ["plan, coarse, pooling", "nearest", "bilinear", "GP", "GP beats both"], rows)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--turtlebot", type=Path, default=DATA / "turtlebot3-world-map" / "map.yaml", help="ROS map YAML")
-    ap.add_argument("--arena", type=Path, default=DATA / "stage-arena" / "mrl_arena.pgm", help="arena plan PGM")
-    ap.add_argument("--coarse", type=float, nargs="+", default=[0.05], help="coarse resolutions for (b), metres")
+    ap.add_argument("--data", type=Path, default=DATA, help="the shared data folder")
+    ap.add_argument("--plans", nargs="+", choices=PLANS, default=list(PLANS), help="fine grids for (b)")
+    ap.add_argument(
+        "--factor", type=int, nargs="+", help="fine pixels per coarse pixel side for (b) (default: 5, the TurtleBot3 map 2)"
+    )
     ap.add_argument("--pooling", nargs="+", choices=list(POOLING), default=list(POOLING), help="how (b)'s coarse grids are made")
-    ap.add_argument("--skip-turtlebot", action="store_true")
-    ap.add_argument("--skip-arena", action="store_true")
+    ap.add_argument("--skip-turtlebot", action="store_true", help="skip (a) and (c)")
+    ap.add_argument("--skip-plans", action="store_true", help="skip (b)")
+    ap.add_argument("--json", type=Path, help="also write (b)'s scores to this JSON file")
     args = ap.parse_args(argv)
     if not args.skip_turtlebot:
         bench_turtlebot(args.turtlebot)
-    if not args.skip_arena:
-        bench_arena(args.arena, args.coarse, args.pooling)
+    if not args.skip_plans:
+        records = bench_plans(load_plans(args.data, args.plans), args.factor, args.pooling)
+        summary(records)
+        if args.json:
+            args.json.write_text(json.dumps(records, indent=1))
     return 0
 
 

@@ -74,7 +74,8 @@ from scipy import ndimage
 from gpomap.cells import Cells
 from gpomap.errors import EmptyDataError, InputFormatError
 from gpomap.estimator import GPMapEstimator
-from gpomap.grid import FREE, OCCUPIED, UNKNOWN, GridSpec, OccupancyMap, ternary
+from gpomap.gp import SupportGP, inverse_diagonal
+from gpomap.grid import FREE, OCCUPIED, GridSpec, OccupancyMap, ternary
 from gpomap.io.npz import load_map
 from gpomap.io.rosmap import RosMap, read_rosmap
 from gpomap.kernels.point import make_point_kernel
@@ -108,11 +109,19 @@ FOOTPRINT_PIXELS = 0.5
 #: own; only free pixels farther away are merged into larger cells.
 WALL_REACH_PIXELS = 3
 #: Width, in source pixels, of the free strip put inside a free pixel along each edge it shares
-#: with an occupied pixel.
-EDGE_STRIP_PIXELS = 0.1
-#: Noise of an occupied pixel's centre point relative to a one-pixel cell's.
+#: with an occupied pixel: none by default (docs/convert.md: they pinned the map to -1 at the
+#: edge of a free pixel that majority pooling leaves up to half occupied).
+EDGE_STRIP_PIXELS = 0.0
+#: Noise of the point where an occupied pixel's obstacle most likely is, relative to a one-pixel cell's.
 CENTRE_NOISE = 3.0
-#: Starting length scale and its search bounds, in source pixels.
+#: What a wholly occupied pixel of a grid of 0s and 1s is taken to hold: any-pixel pooling marks
+#: pixels a thin wall grazes (the arena plan at 0.05 m: 38 % of an occupied pixel is wall on
+#: average), majority pooling pixels mostly filled (docs/convert.md).
+OCCUPIED_FRACTION = 0.7
+#: Length scale of a converted grid, in source pixels, not learnt: the search chose 2-6 pixels on
+#: grids of fractions, which blurred thin walls away (docs/convert.md).
+GRID_LENGTH_SCALE_PIXELS = 1.0
+#: Starting length scale and its search bounds, in source (octree) voxels, where they are learnt.
 LENGTH_SCALE_PIXELS = 3.0
 LENGTH_SCALE_BOUNDS_PIXELS = (1.0, 50.0)
 
@@ -181,6 +190,12 @@ def load_grid(source: GridSource) -> RosMap | OccupancyMap:
     raise TypeError(f"source must be a RosMap, an OccupancyMap or a path, got {type(source).__name__}")
 
 
+#: How a grid's pixel values are read (:func:`grid_fractions`).
+VALUE_READINGS = ("auto", "fraction", "ternary")
+#: Values this close to 0 or 1 are wholly free or occupied (an 8-bit image's grey step is 1/255).
+FRACTION_TOLERANCE = 0.005
+
+
 def _labels(grid_map: RosMap | OccupancyMap) -> NDArray[np.int8]:
     """FREE / OCCUPIED / UNKNOWN per source pixel, ndarray of int8, shape (ny, nx)."""
     # RosMap.ternary keeps map_server's own reading (thresholds, modes, transparency);
@@ -188,46 +203,112 @@ def _labels(grid_map: RosMap | OccupancyMap) -> NDArray[np.int8]:
     return np.asarray(grid_map.ternary, dtype=np.int8)
 
 
-def grid_to_observations(grid_map: RosMap | OccupancyMap) -> Observations:
-    """Known pixels of a grid as labelled points at their centres.
+def value_reading(grid_map: RosMap | OccupancyMap, values: str = "auto") -> str:
+    """How :func:`grid_fractions` reads `grid_map` with ``values``: ``"fraction"`` or ``"ternary"``.
+
+    ``"auto"`` reads a ROS map in trinary mode (its values are codes) and a map with a latent
+    variance (a GP's belief, such as gpomap's own ``.npz``) as ``"ternary"``; any other grid (a
+    scale or raw ROS map, an OccupancyMap of plain values) as ``"fraction"``.
+    """
+    if values not in VALUE_READINGS:
+        raise ValueError(f"values must be one of {VALUE_READINGS}, got {values!r}")
+    if values != "auto":
+        return values
+    if isinstance(grid_map, RosMap):
+        return "ternary" if grid_map.mode == "trinary" else "fraction"
+    return "ternary" if grid_map.variance is not None else "fraction"
+
+
+def grid_fractions(grid_map: RosMap | OccupancyMap, values: str = "auto") -> NDArray[np.float64]:
+    """The occupied fraction of every source pixel, NaN where it is unknown, shape (ny, nx).
+
+    Read as ``"fraction"``, a pixel's value is the fraction of its area that is occupied: a grid
+    made by averaging a finer one (a 0.05 m pixel holding a 2 cm wall is 0.4) keeps its thin
+    walls, where thresholding called them free. Values within :data:`FRACTION_TOLERANCE` of 0 or
+    1 are wholly free or occupied; pixels the grid marks unknown (NaN in an
+    :class:`~gpomap.grid.OccupancyMap`, transparent pixels of a scale-mode ROS map, raw values
+    above 100) are unknown. Read as ``"ternary"``, pixels below the free threshold are free (0),
+    above the occupied threshold occupied (1), between them unknown, as map_server reads a
+    trinary map. ``"auto"``: see :func:`value_reading`.
 
     Parameters
     ----------
     grid_map : RosMap or OccupancyMap
-        Row 0 at the lowest y. Free and occupied pixels are evidence; unknown pixels are not and
-        give no point.
+    values : {"auto", "fraction", "ternary"}
 
     Returns
     -------
-    Observations
-        ``points`` of shape (n_known, 2) in row-major pixel order, ``occupied`` of shape
-        (n_known,), ``scan_index`` all 0 (a grid has no scans).
+    ndarray of float64, shape (ny, nx)
+    """
+    if value_reading(grid_map, values) == "ternary":
+        labels = _labels(grid_map)
+        return np.where(labels == OCCUPIED, 1.0, np.where(labels == FREE, 0.0, np.nan))
+    p = np.array(grid_map.probability, dtype=float)
+    if isinstance(grid_map, RosMap):
+        p[grid_map.unknown] = np.nan
+    p[~np.isfinite(p)] = np.nan
+    p = np.clip(p, 0.0, 1.0)
+    p[p <= FRACTION_TOLERANCE] = 0.0
+    p[p >= 1.0 - FRACTION_TOLERANCE] = 1.0
+    return p
+
+
+@dataclass(frozen=True)
+class GridObservations(Observations):
+    """Known pixel centres with the occupied fraction of each pixel.
+
+    Attributes
+    ----------
+    fraction : ndarray of shape (n,)
+        The occupied fraction of each pixel, in [0, 1] (:func:`grid_fractions`); ``occupied`` is
+        ``fraction > 0`` (something in the pixel is occupied).
+    """
+
+    fraction: NDArray[np.float64] | None = None
+
+
+def grid_to_observations(grid_map: RosMap | OccupancyMap, values: str = "auto") -> GridObservations:
+    """Known pixels of a grid as labelled points at their centres, with their occupied fractions.
+
+    Parameters
+    ----------
+    grid_map : RosMap or OccupancyMap
+        Row 0 at the lowest y. Free, occupied and partly occupied pixels are evidence; unknown pixels are not and give no point.
+    values : {"auto", "fraction", "ternary"}
+        How the pixels' values are read (:func:`grid_fractions`).
+
+    Returns
+    -------
+    GridObservations
+        ``points`` of shape (n_known, 2) in row-major pixel order, ``fraction`` and ``occupied``
+        (fraction > 0) of shape (n_known,), ``scan_index`` all 0 (a grid has no scans).
 
     Raises
     ------
     EmptyDataError
-        No known pixel, or only one class of them (a GP occupancy map needs free and occupied
-        evidence).
+        No known pixel, or no wholly free one, or none with anything occupied (a GP occupancy map
+        needs free and occupied evidence).
     """
-    labels = _labels(grid_map)
-    n_free = int((labels == FREE).sum())
-    n_occ = int((labels == OCCUPIED).sum())
-    n_unknown = int(labels.size - n_free - n_occ)
-    shape = f"{labels.shape[0]} x {labels.shape[1]}"
-    if n_free + n_occ == 0:
+    fraction = grid_fractions(grid_map, values)
+    known = np.isfinite(fraction)
+    n_free = int((fraction == 0.0).sum())
+    n_occ = int((fraction == 1.0).sum())
+    n_partial = int(known.sum()) - n_free - n_occ
+    n_unknown = int(fraction.size - known.sum())
+    shape = f"{fraction.shape[0]} x {fraction.shape[1]}"
+    if not known.any():
         raise EmptyDataError(f"the {shape} grid has no known pixels (all {n_unknown} unknown): nothing to convert")
-    if n_free == 0 or n_occ == 0:
-        only = "free" if n_occ == 0 else "occupied"
+    if n_free == 0 or n_occ + n_partial == 0:
+        only = "free" if n_free else "occupied"
         raise EmptyDataError(
-            f"the {shape} grid has only {only} known pixels ({n_free} free, {n_occ} occupied, {n_unknown} unknown): "
-            "a GP occupancy map needs both free and occupied pixels"
+            f"the {shape} grid has only {only} known pixels ({n_free} free, {n_occ} occupied, {n_partial} partly "
+            f"occupied, {n_unknown} unknown): a GP occupancy map needs both free and occupied pixels"
         )
-    known = labels != UNKNOWN
     rows, cols = np.nonzero(known)
     g = grid_map.grid
     points = np.column_stack([g.x_centres()[cols], g.y_centres()[rows]])
-    occupied = labels[rows, cols] == OCCUPIED
-    return Observations(points=points, occupied=occupied, scan_index=np.zeros(points.shape[0], dtype=np.intp))
+    f = fraction[rows, cols]
+    return GridObservations(points=points, occupied=f > 0.0, scan_index=np.zeros(points.shape[0], dtype=np.intp), fraction=f)
 
 
 def _cells_along(length: float, resolution: float) -> tuple[int, bool]:
@@ -286,6 +367,12 @@ class GridCells(Cells):
     """
 
     weight: NDArray[np.float64] | None = None
+    target: NDArray[np.float64] | None = None
+
+    @property
+    def labels(self) -> NDArray[np.float64]:
+        """GP targets, ndarray of shape (n,): :attr:`target` when given, else +1 occupied, -1 free."""
+        return super().labels if self.target is None else self.target
 
     def to_supports(self) -> Supports:
         """The cells as GP inputs, their counts multiplied by :attr:`weight`."""
@@ -314,36 +401,82 @@ def _extra_inputs(
     )
 
 
+def _core_centres(
+    pts: NDArray[np.float64], frac: NDArray[np.float64], free: NDArray[np.bool_], ij: NDArray[np.intp], pixel: float
+) -> NDArray[np.float64]:
+    """Where the occupied part of each pixel holding anything occupied most likely is, shape (m, 2).
+
+    A wholly occupied pixel's is its centre. A partly occupied one (fraction f) is taken to be
+    occupied away from the sides it shares with wholly free pixels: a strip `delta` pixels deep
+    along each such side is free, `delta` such that the rest, its core, has area f; the point is
+    the core's centre (a pixel with no free side: its centre). A 2 cm wall in a 0.05 m pixel
+    between free ones is at its centre; one straddling two pixels (0.2 each) at their shared edge.
+
+    Parameters
+    ----------
+    pts : ndarray of shape (m, 2)
+        The pixels' centres.
+    frac : ndarray of shape (m,)
+        Their occupied fractions, each > 0.
+    free : ndarray of bool, shape (ny, nx)
+        Wholly free known pixels, on the lattice of `ij`.
+    ij : ndarray of int, shape (m, 2)
+        (column, row) of each pixel on that lattice.
+    pixel : float
+        Pixel side, metres.
+    """
+    padded = np.pad(free, 1)
+    c, r = ij[:, 0], ij[:, 1]
+    left = padded[1 + r, c].astype(float)
+    right = padded[1 + r, 2 + c].astype(float)
+    down = padded[r, 1 + c].astype(float)
+    up = padded[2 + r, 1 + c].astype(float)
+    a, b = left + right, down + up
+    # (1 - a delta)(1 - b delta) = f: the smaller root, or the linear one when a or b is 0.
+    ab = a * b
+    disc = np.sqrt(np.maximum((a + b) ** 2 - 4.0 * ab * (1.0 - frac), 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        delta = np.where(ab > 0, ((a + b) - disc) / (2.0 * ab), (1.0 - frac) / (a + b))
+    delta = np.where(a + b > 0, np.clip(np.nan_to_num(delta), 0.0, 1.0 / np.maximum(np.maximum(a, b), 1.0)), 0.0)
+    shift = 0.5 * delta * pixel  # the core's centre moves half a strip away from each free side
+    return pts + np.column_stack([(left - right) * shift, (down - up) * shift])
+
+
 def grid_cells(
     points: NDArray[np.float64],
-    occupied: NDArray[np.bool_],
+    occupied: NDArray[np.float64] | NDArray[np.bool_],
     pixel: float,
     max_cell: float,
     wall_reach: int = WALL_REACH_PIXELS,
     edge_strip: float = EDGE_STRIP_PIXELS,
     centre_noise: float | None = CENTRE_NOISE,
+    occupied_fraction: float = OCCUPIED_FRACTION,
 ) -> GridCells:
-    """Wall-aware GP inputs for the known pixels of a grid.
+    """Wall-aware GP inputs for the known pixels of a grid, each pixel read as an occupied fraction.
 
-    - Every known pixel within `wall_reach` pixels (chessboard distance) of an occupied pixel,
-      occupied ones included, is a cell of its own, covering its square. Free pixels farther away
-      are merged by a quadtree on the pixel lattice into square-ish blocks of at most `max_cell`
-      whose pixels are all known and free. (Cells much larger than the length scale constrain only
+    - Every known pixel within `wall_reach` pixels (chessboard distance) of one holding anything
+      occupied is a cell of its own, covering its square, its target the mean of the +-1
+      occupancy over it: 2 f - 1 for a pixel of occupied fraction f. Free pixels farther away are
+      merged by a quadtree on the pixel lattice into square-ish blocks of at most `max_cell` whose
+      pixels are all known and free. (Cells much larger than the length scale constrain only
       their average, and the map rang inside them: ghost walls beside real ones.)
-    - A free pixel says its whole square is free, its edges included. Along each edge it shares
-      with an occupied pixel it gets a free strip `edge_strip` pixels wide, so the map turns occupied
-      inside the occupied pixel rather than at (or beyond) its edge.
-    - An occupied pixel says only that something inside its square is occupied. Its obstacle is
-      taken to be most likely at its centre: a point input there, labelled occupied, with
-      `centre_noise` times the noise of a one-pixel cell (every other input's count is multiplied
-      by `centre_noise`, see :class:`GridCells`). Without it the strips pulled thin and diagonal
-      walls' centres down to p ~ 0.5.
+    - A grid whose every known pixel is wholly free or wholly occupied (0 or 1) does not say how
+      much of an occupied pixel is occupied: any-pixel pooling marks a pixel a thin wall grazes,
+      majority pooling one mostly filled. Its occupied pixels are taken to be `occupied_fraction`
+      occupied.
+    - Each pixel holding anything occupied also gets a point input, labelled occupied, where its
+      obstacle most likely is (:func:`_core_centres`), with `centre_noise` times the noise of a
+      one-pixel cell (every other input's count is multiplied by `centre_noise`, see
+      :class:`GridCells`): the pixel's average says how much is occupied, the point where.
+    - With `edge_strip` > 0, a wholly free pixel gets a free strip that many pixels wide along each
+      edge it shares with a pixel holding anything occupied (a free pixel is free up to its edge).
 
     Parameters
     ----------
     points : ndarray of shape (m, 2)
         Known pixel centres, on a lattice of pitch `pixel` (as :func:`grid_to_observations` gives).
-    occupied : ndarray of bool, shape (m,)
+    occupied : ndarray of shape (m,)
+        The occupied fraction of each pixel in [0, 1], or bool (wholly occupied or free).
     pixel : float
         Source pixel side, metres.
     max_cell : float
@@ -353,23 +486,31 @@ def grid_cells(
     edge_strip : float
         Strip width in pixels; 0: no strips.
     centre_noise : float or None
-        Noise of the centre points relative to a one-pixel cell; None: no centre points.
+        Noise of the points relative to a one-pixel cell; None: no points.
+    occupied_fraction : float
+        What a wholly occupied pixel of a grid of 0s and 1s is taken to hold, in (0, 1].
 
     Returns
     -------
     GridCells
-        The pixel cells first, then the strips (free), then the centre points (occupied). Strips
-        and centre points have their pixel as their single member.
+        The pixel cells first, then the strips (free), then the points (occupied), each with its
+        target (:attr:`GridCells.target`, None when every target is +-1). Strips and points have
+        their pixel as their single member.
 
     Raises
     ------
     ValueError
-        The points are not on a lattice of pitch `pixel`.
+        The points are not on a lattice of pitch `pixel`, or a fraction is outside [0, 1].
     """
     pts = np.asarray(points, dtype=float)
-    occ = np.asarray(occupied, dtype=bool)
-    if pts.ndim != 2 or pts.shape[1] != 2 or occ.shape != (pts.shape[0],) or pts.shape[0] == 0:
-        raise ValueError(f"points must have shape (m, 2) with m > 0 and occupied (m,), got {pts.shape} and {occ.shape}")
+    frac = np.asarray(occupied, dtype=float)
+    if pts.ndim != 2 or pts.shape[1] != 2 or frac.shape != (pts.shape[0],) or pts.shape[0] == 0:
+        raise ValueError(f"points must have shape (m, 2) with m > 0 and occupied (m,), got {pts.shape} and {frac.shape}")
+    if not ((frac >= 0.0) & (frac <= 1.0)).all():
+        raise ValueError("occupied fractions must lie in [0, 1]")
+    if not 0.0 < occupied_fraction <= 1.0:
+        raise ValueError(f"occupied_fraction must be in (0, 1], got {occupied_fraction}")
+    some = frac > 0.0  # anything occupied
     origin = pts.min(axis=0)
     f = (pts - origin) / pixel
     ij = np.rint(f).astype(np.intp)  # (column, row)
@@ -378,12 +519,13 @@ def grid_cells(
     nx, ny = ij.max(axis=0) + 1
     index = np.full((ny, nx), -1, dtype=np.intp)
     index[ij[:, 1], ij[:, 0]] = np.arange(pts.shape[0])
-    occ_grid = np.zeros((ny, nx), dtype=bool)
-    occ_grid[ij[:, 1], ij[:, 0]] = occ
+    some_grid = np.zeros((ny, nx), dtype=bool)
+    some_grid[ij[:, 1], ij[:, 0]] = some
     known = index >= 0
-    if occ_grid.any():
-        dist = ndimage.distance_transform_cdt(~occ_grid, metric="chessboard")
-        far_free = known & ~occ_grid & (dist > wall_reach)
+    free_grid = known & ~some_grid
+    if some_grid.any():
+        dist = ndimage.distance_transform_cdt(~some_grid, metric="chessboard")
+        far_free = free_grid & (dist > wall_reach)
     else:
         far_free = known.copy()
     max_side = max(1, math.floor(max_cell / pixel + 1e-9))
@@ -391,7 +533,6 @@ def grid_cells(
     half = 0.5 * pixel
     lower: list[NDArray[np.float64]] = []
     upper: list[NDArray[np.float64]] = []
-    labels: list[bool] = []
     members: list[NDArray[np.intp]] = []
     stack = [(0, int(ny), 0, int(nx))]
     while stack:
@@ -405,7 +546,6 @@ def grid_cells(
             p = pts[idx]
             lower.append(p.min(axis=0) - half)
             upper.append(p.max(axis=0) + half)
-            labels.append(bool(occ[idx[0]]))
             members.append(idx)
             continue
         if h >= w:
@@ -415,27 +555,32 @@ def grid_cells(
             m = c0 + w // 2
             stack += [(r0, r1, m, c1), (r0, r1, c0, m)]
     counts = np.array([m.size for m in members], dtype=np.intp)
+    first = np.array([m[0] for m in members], dtype=np.intp)
     lo_a, hi_a = np.array(lower), np.array(upper)
     cells = Cells(
         lower=lo_a,
         upper=hi_a,
         node_lower=lo_a.copy(),
         node_upper=hi_a.copy(),
-        occupied=np.array(labels, dtype=bool),
-        ambiguous=np.zeros(len(labels), dtype=bool),
+        occupied=some[first],
+        ambiguous=np.zeros(len(members), dtype=bool),
         member_offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.intp),
         member_order=np.concatenate(members).astype(np.intp),
         points=pts,
     )
+    # Merged cells are wholly free; a grid of 0s and 1s says only that an occupied pixel holds
+    # something, taken to be `occupied_fraction` of it.
+    binary = bool(np.all((frac == 0.0) | (frac == 1.0)))
+    read = np.where(binary & (frac == 1.0), occupied_fraction, frac)
+    targets = [2.0 * read[first] - 1.0]
 
     if edge_strip > 0:
         s_lo, s_hi, s_idx = [], [], []
-        padded_occ = np.pad(occ_grid, 1)
-        free_grid = known & ~occ_grid
+        padded = np.pad(some_grid, 1)
         width = edge_strip * pixel
         for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
-            # Free pixels whose neighbour at (row + dy, column + dx) is occupied.
-            neighbour = padded_occ[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx]
+            # Wholly free pixels whose neighbour at (row + dy, column + dx) holds something occupied.
+            neighbour = padded[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx]
             rows, cols = np.nonzero(free_grid & neighbour)
             idx = index[rows, cols]
             c = pts[idx]
@@ -452,16 +597,41 @@ def grid_cells(
             s_idx.append(idx)
         idx_all = np.concatenate(s_idx)
         cells = _extra_inputs(cells, np.vstack(s_lo), np.vstack(s_hi), np.zeros(idx_all.size, dtype=bool), idx_all)
+        targets.append(np.full(idx_all.size, -1.0))
 
     n_inputs = len(cells)
     if centre_noise is not None:
-        occ_idx = np.flatnonzero(occ)
-        centres = pts[occ_idx]
+        occ_idx = np.flatnonzero(some)
+        centres = _core_centres(pts[occ_idx], frac[occ_idx], free_grid, ij[occ_idx], pixel)
         cells = _extra_inputs(cells, centres, centres.copy(), np.ones(occ_idx.size, dtype=bool), occ_idx)
+        targets.append(np.ones(occ_idx.size))
     weight = np.ones(len(cells))
     if centre_noise is not None:
         weight[:n_inputs] = float(centre_noise)
-    return GridCells(**{name: getattr(cells, name) for name in Cells.__dataclass_fields__}, weight=weight)
+    target = np.concatenate(targets)
+    fields = {name: getattr(cells, name) for name in Cells.__dataclass_fields__}
+    return GridCells(**fields, weight=weight, target=None if np.all(np.abs(target) == 1.0) else target)
+
+
+def _fit_soft_squash(gp: SupportGP, y: NDArray[np.float64], class_weight: str | None) -> None:
+    """Refit the fitted `gp`'s squash to soft targets `y` in [-1, 1] (shape (n,)).
+
+    An input whose target is 2 f - 1 counts as occupied with weight f and free with weight
+    1 - f in the leave-one-out log predictive probability (a cross-entropy with soft labels);
+    with ``"balanced"`` class weights the occupied and the free weights each total half.
+    """
+    post = gp.posterior_
+    d = inverse_diagonal(post.L)
+    mu, var = y - post.weights / d, 1.0 / d
+    f = 0.5 * (y + 1.0)
+    w_occ, w_free = f, 1.0 - f
+    if class_weight == "balanced" and w_occ.sum() > 0 and w_free.sum() > 0:
+        n = y.size
+        w_occ, w_free = w_occ * n / (2.0 * w_occ.sum()), w_free * n / (2.0 * w_free.sum())
+    labels = np.concatenate([np.ones(y.size), -np.ones(y.size)])
+    weights = np.concatenate([w_occ, w_free])
+    keep = weights > 0
+    gp.squash.fit(labels[keep], np.concatenate([mu, mu])[keep], np.concatenate([var, var])[keep], weights[keep])
 
 
 class GridGPOM(MapSettings, GPMapEstimator):
@@ -490,6 +660,8 @@ class GridGPOM(MapSettings, GPMapEstimator):
     centre_noise : float or None
         See :func:`grid_cells`. The weights go through the member counts, so they assume the
         ``"per_count"`` noise model and ``"mean"`` normalisation (the defaults).
+    occupied_fraction : float
+        See :func:`grid_cells`.
     **options
         :class:`~gpomap.settings.MapSettings` arguments (``min_cell`` is used only by the cell tree).
     """
@@ -504,6 +676,7 @@ class GridGPOM(MapSettings, GPMapEstimator):
         wall_reach: int | None = None,
         edge_strip: float = EDGE_STRIP_PIXELS,
         centre_noise: float | None = CENTRE_NOISE,
+        occupied_fraction: float = OCCUPIED_FRACTION,
         **options: Any,
     ) -> None:
         super().__init__(**options)
@@ -511,13 +684,14 @@ class GridGPOM(MapSettings, GPMapEstimator):
         self.wall_reach = wall_reach
         self.edge_strip = edge_strip
         self.centre_noise = centre_noise
+        self.occupied_fraction = float(occupied_fraction)
 
     def __repr__(self) -> str:
         return f"GridGPOM(pixel_pad={self.pixel_pad}, wall_reach={self.wall_reach}, {MapSettings.__repr__(self)})"
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """The constructor arguments, by name (the map settings and the grid ones)."""
-        own = {n: getattr(self, n) for n in ("pixel_pad", "wall_reach", "edge_strip", "centre_noise")}
+        own = {n: getattr(self, n) for n in ("pixel_pad", "wall_reach", "edge_strip", "centre_noise", "occupied_fraction")}
         return {**own, **MapSettings.get_params(self)}
 
     def fit(self, data: Observations) -> GridGPOM:
@@ -538,7 +712,12 @@ class GridGPOM(MapSettings, GPMapEstimator):
         cells = self.make_cells(obs)
         timings["cells"] = time.perf_counter() - t
         gp = self._make_gp(self.make_kernel())
-        gp.fit(cells.to_supports(), cells.labels)
+        y = cells.labels
+        gp.fit(cells.to_supports(), y)
+        if not np.all(np.abs(y) == 1.0):
+            t = time.perf_counter()
+            _fit_soft_squash(gp, y, self.class_weight)
+            timings["soft_squash"] = time.perf_counter() - t
         timings.update(gp.timings_)
         self.observations_: Observations = obs
         self.cells_: Cells = cells
@@ -566,8 +745,16 @@ class GridGPOM(MapSettings, GPMapEstimator):
     def make_cells(self, obs: Observations) -> Cells:
         """The GP inputs over the pixel centres `obs` (see the class docstring)."""
         if self.pixel_pad > 0 and self.wall_reach is not None:
+            frac = getattr(obs, "fraction", None)
             return grid_cells(
-                obs.points, obs.occupied, 2.0 * self.pixel_pad, self.max_cell, self.wall_reach, self.edge_strip, self.centre_noise
+                obs.points,
+                obs.occupied if frac is None else frac,
+                2.0 * self.pixel_pad,
+                self.max_cell,
+                self.wall_reach,
+                self.edge_strip,
+                self.centre_noise,
+                self.occupied_fraction,
             )
         cells = MapSettings.make_cells(self, obs)
         if self.pixel_pad > 0:
@@ -651,11 +838,16 @@ def converter_for(resolution: float, **model_options: Any) -> GridGPOM:
     resolution : float
         Source pixel side, metres.
     **model_options
-        Override :func:`model_defaults` and the pixel footprint and wall-aware inputs.
+        Override :func:`model_defaults`, the pixel footprint and wall-aware inputs, and the
+        fixed length scale (:data:`GRID_LENGTH_SCALE_PIXELS`; ``optimise=True`` learns it).
     """
     options = model_defaults(resolution)
     options["pixel_pad"] = FOOTPRINT_PIXELS * resolution
     options["wall_reach"] = WALL_REACH_PIXELS
+    # The length scale is the pixel's and the noise the map settings' own: only the squash is
+    # fitted (GRID_LENGTH_SCALE_PIXELS).
+    options["length_scale"] = GRID_LENGTH_SCALE_PIXELS * resolution
+    options["optimise"] = False
     options.update(model_options)
     return GridGPOM(**options)
 
@@ -664,6 +856,7 @@ def convert_grid(
     source: GridSource,
     resolution: float | None = None,
     extent: tuple[float, float, float, float] | None = None,
+    values: str = "auto",
     **model_options: Any,
 ) -> ConversionResult:
     """Turn an occupancy grid into a continuous GP occupancy map, sampled on a grid.
@@ -700,10 +893,9 @@ def convert_grid(
     t_read = time.perf_counter() - t_start
 
     t = time.perf_counter()
-    obs = grid_to_observations(grid_map)
+    obs = grid_to_observations(grid_map, values)
     t_obs = time.perf_counter() - t
     src = grid_map.grid
-    labels = _labels(grid_map)
 
     model = converter_for(src.resolution, **model_options)
     t = time.perf_counter()
@@ -721,16 +913,24 @@ def convert_grid(
     t_pred = time.perf_counter() - t
 
     t = time.perf_counter()
-    # On the source grid itself the known pixels are in the observations' row-major order.
-    p_known = prob[labels != UNKNOWN] if spec == src else model.predict_proba(obs.points)
-    agreement = _agreement(p_known, obs.occupied, model.thresholds_)
+    # Wholly free or occupied pixels are scored (a partly occupied one has no single label);
+    # on the source grid itself they are in the observations' row-major order.
+    assert obs.fraction is not None
+    hard = (obs.fraction == 0.0) | (obs.fraction == 1.0)
+    p_known = prob[np.isfinite(grid_fractions(grid_map, values))] if spec == src else model.predict_proba(obs.points)
+    agreement = _agreement(p_known[hard], obs.fraction[hard] == 1.0, model.thresholds_)
     t_agree = time.perf_counter() - t
 
     cells = model.cells_
     tol = 1e-6 * spec.resolution
     edges = all(math.isclose(a, b, rel_tol=0.0, abs_tol=tol) for a, b in zip(spec.extent, src.extent))
     report: dict[str, Any] = {
-        "pixels": {"free": obs.n_free, "occupied": obs.n_occupied, "unknown": int(labels.size - obs.points.shape[0])},
+        "pixels": {
+            "free": int((obs.fraction == 0.0).sum()),
+            "occupied": int((obs.fraction == 1.0).sum()),
+            "partial": int((~hard).sum()),
+            "unknown": int(src.shape[0] * src.shape[1] - obs.points.shape[0]),
+        },
         "cells": {
             "n": len(cells),
             "occupied": int(cells.occupied.sum()),
@@ -771,7 +971,7 @@ def _agreement(
     ----------
     probability : ndarray of shape (n,)
     occupied : ndarray of bool, shape (n,)
-        Known labels (both classes present).
+        Known labels (a class absent gives NaN for it and for the AUC).
     thresholds : (float, float)
         Ternary thresholds; a pixel agrees when its ternary label equals its known label (an
         "unknown" answer never agrees).
@@ -784,9 +984,10 @@ def _agreement(
     lab = ternary(probability, thresholds)
     truth = np.where(occupied, OCCUPIED, FREE)
     match = lab == truth
+    both = bool(occupied.any() and not occupied.all())
     return {
-        "ternary": float(match.mean()),
-        "free": float(match[~occupied].mean()),
-        "occupied": float(match[occupied].mean()),
-        "auc": float(roc_auc(occupied, probability)),
+        "ternary": float(match.mean()) if match.size else math.nan,
+        "free": float(match[~occupied].mean()) if (~occupied).any() else math.nan,
+        "occupied": float(match[occupied].mean()) if occupied.any() else math.nan,
+        "auc": float(roc_auc(occupied, probability)) if both else math.nan,
     }
