@@ -115,6 +115,7 @@ class Case:
     boundary: NDArray[np.bool_]
     max_range: float | None
     info: dict[str, Any] = field(default_factory=dict)
+    scene: Any = None  # the true boxes of a simulated case
 
 
 # --------------------------------------------------------------------------- the CLI's reading
@@ -165,7 +166,7 @@ def sim_case(name: str, workdir: Path, resolution: float, max_truth: int, quick:
         "n_observed_truth": truth.n_observed,
         "sensor_positions": [c.origin.tolist() for c in clouds],
     }
-    return Case(name, "truth", command, clouds, truth.points, truth.occupied, truth.boundary, None, info)
+    return Case(name, "truth", command, clouds, truth.points, truth.occupied, truth.boundary, None, info, scene)
 
 
 def _held_out_points(
@@ -249,6 +250,16 @@ def build_gpomap(case: Case, resolution: float) -> tuple[Lookup, dict[str, Any]]
     occupied = (voxel_map.ternary == OCCUPIED) & voxel_map.seen
     n_occ = int((voxel_map.ternary == OCCUPIED).sum())
     summary = model.summary()
+    if case.scene is not None:
+        # map.bt's occupied voxels that hold no part of a box: surfaces grown into free space.
+        centres = voxel_map.spec.centres()[occupied.reshape(-1)]
+        half = voxel_map.spec.resolution / 2
+        holds = np.zeros(len(centres), dtype=bool)
+        for lo_box, hi_box in zip(case.scene.lower, case.scene.upper):
+            holds |= np.all((centres + half > lo_box) & (centres - half < hi_box), axis=1)
+        false_surfaces = float(np.mean(~holds)) if len(centres) else 0.0
+    else:
+        false_surfaces = None
     stats = {
         "fit_s": t1 - t0 - compiling[0],
         "map_s": t2 - t1,
@@ -256,6 +267,8 @@ def build_gpomap(case: Case, resolution: float) -> tuple[Lookup, dict[str, Any]]
         "voxels": int(voxel_map.probability.size),
         "occupied_voxels": n_occ,
         "occupied_unseen_share": (n_occ - int(occupied.sum())) / max(n_occ, 1),
+        "occupied_observed_voxels": int(occupied.sum()),
+        "false_surface_share": false_surfaces,
         "thresholds": list(voxel_map.thresholds),
         "hyperparameters": summary["hyperparameters"],
         "evidence": summary["evidence"],
@@ -335,6 +348,73 @@ def score_case(case: Case, method: str, result: dict[str, Any]) -> dict[str, Any
     row.update({k: scores[k] for k, *_ in METRICS})
     row.update({k: v for k, v in result.items() if k not in ("p", "occupied")})
     return row
+
+
+# --------------------------------------------------------------------------- where the scores come from
+#: The voxels the scored points fall in, by what the training scans' rays did there, counted as
+#: gpomap's ray evidence counts them (:meth:`gpomap.evidence.RayEvidence.counts`: each scan once
+#: per voxel, a hit winning over a miss).
+CATEGORIES = ("outside", "no ray", "misses only", "hits only", "hits and misses")
+
+
+def voxel_categories(case: Case, resolution: float) -> NDArray[np.int8]:
+    """Index into :data:`CATEGORIES` of each scored point's voxel (faces on multiples of `resolution`), shape (n,)."""
+    from gpomap.evidence import RayEvidence
+    from gpomap.voxels import VoxelSpec
+
+    lo = np.minimum(case.points.min(axis=0), np.array([c.origin for c in case.train]).min(axis=0))
+    hi = np.maximum(case.points.max(axis=0), np.array([c.origin for c in case.train]).max(axis=0))
+    spec = VoxelSpec.from_extent(lo - resolution, hi + resolution, resolution)
+    counts = RayEvidence.from_scans(case.train, case.max_range or 10.0).counts(spec)
+    k, j, i, inside = spec.index_of(case.points)
+    h, m = counts.hits[k, j, i] > 0, counts.misses[k, j, i] > 0
+    out = np.select([~inside, ~h & ~m, ~h, ~m], [0, 1, 2, 3], 4)
+    return out.astype(np.int8)
+
+
+def breakdown(case: Case, category: NDArray[np.int8], results: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per voxel category: its share of the points, their occupied share, each map's mean
+    probability there and its part of the map's log loss (summed over the category, divided by all points)."""
+    from gpomap.metrics import log_loss
+
+    n = len(case.occupied)
+    rows = []
+    for c, name in enumerate(CATEGORIES):
+        sel = category == c
+        if not sel.any():
+            continue
+        y = case.occupied[sel]
+        row: dict[str, Any] = {"dataset": case.name, "voxels": name, "share": float(sel.mean()), "occupied": float(y.mean())}
+        for method, r in results.items():
+            if "error" in r:
+                continue
+            p = np.clip(np.asarray(r["p"])[sel], 0.0, 1.0)
+            row[f"{method}_p"] = float(p.mean())
+            row[f"{method}_log_loss"] = float(log_loss(y, p)) * int(sel.sum()) / n
+        rows.append(row)
+    return rows
+
+
+def print_breakdown(rows: Sequence[dict[str, Any]], methods: Sequence[str]) -> None:
+    print("\n### Where the log loss comes from (voxels by what the training rays did there, each scan counted once per voxel)\n")
+    head = " | ".join(f"{m} p / log loss" for m in methods)
+    print(f"| dataset | voxels | share of points | occupied | {head} |")
+    print("|---|---|---|---|" + "---|" * len(methods))
+    for r in rows:
+        vals = " | ".join(f"{_fmt(r.get(f'{m}_p'), 3)} / {_fmt(r.get(f'{m}_log_loss'), 4)}" for m in methods)
+        print(f"| {r['dataset']} | {r['voxels']} | {r['share']:.3f} | {r['occupied']:.3f} | {vals} |")
+
+
+def print_surfaces(rows: Sequence[dict[str, Any]]) -> None:
+    print("\n### gpomap's occupied voxels: where rays went (map.bt) and where the GP guessed (map.npz)\n")
+    print("| dataset | p > occupied threshold | of them where no ray went | in map.bt | of those, holding no true box |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        if r["method"] == "gpomap" and "error" not in r:
+            print(
+                f"| {r['dataset']} | {r['occupied_voxels']:,} | {r['occupied_unseen_share']:.1%} | {r['occupied_observed_voxels']:,} | "
+                f"{'-' if r['false_surface_share'] is None else format(r['false_surface_share'], '.1%')} |"
+            )
 
 
 # --------------------------------------------------------------------------- targets and tables
@@ -461,25 +541,38 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="quality3d-") as tmp:
         cases = make_cases([n.strip() for n in names if n.strip()], Path(tmp), args.resolution, max_truth, max_test, args.quick)
-        rows = []
+        rows: list[dict[str, Any]] = []
+        parts: list[dict[str, Any]] = []
         for case in cases:
+            results = {}
             for method in methods:
-                rows.append(score_case(case, method, run_method(method, case, args.resolution)))
+                results[method] = run_method(method, case, args.resolution)
+                rows.append(score_case(case, method, results[method]))
                 r = rows[-1]
                 print(
                     f"{case.name}: {method} {'failed' if 'error' in r else 'in %.1f s' % (r['fit_s'] + r['map_s'])}",
                     file=sys.stderr,
                 )
+            parts += breakdown(case, voxel_categories(case, args.resolution), results)
     changed = "".join(f", {k}={v!r}" for k, v in OVERRIDES.items())
     print(f"# 3-D map quality at {args.resolution:g} m voxels{changed} ({time.perf_counter() - t0:.0f} s in all)")
     print_tables(cases, rows)
     found = targets(rows)
     print_targets(found)
+    print_surfaces(rows)
+    print_breakdown(parts, methods)
     if args.json:
         info = {c.name: {k: v for k, v in c.info.items() if k != "sensor_positions"} for c in cases}
         args.json.write_text(
             json.dumps(
-                {"resolution": args.resolution, "overrides": OVERRIDES, "cases": info, "rows": rows, "targets": found},
+                {
+                    "resolution": args.resolution,
+                    "overrides": OVERRIDES,
+                    "cases": info,
+                    "rows": rows,
+                    "targets": found,
+                    "breakdown": parts,
+                },
                 indent=1,
                 default=float,
             )
