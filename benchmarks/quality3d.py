@@ -250,16 +250,6 @@ def build_gpomap(case: Case, resolution: float) -> tuple[Lookup, dict[str, Any]]
     occupied = (voxel_map.ternary == OCCUPIED) & voxel_map.seen
     n_occ = int((voxel_map.ternary == OCCUPIED).sum())
     summary = model.summary()
-    if case.scene is not None:
-        # map.bt's occupied voxels that hold no part of a box: surfaces grown into free space.
-        centres = voxel_map.spec.centres()[occupied.reshape(-1)]
-        half = voxel_map.spec.resolution / 2
-        holds = np.zeros(len(centres), dtype=bool)
-        for lo_box, hi_box in zip(case.scene.lower, case.scene.upper):
-            holds |= np.all((centres + half > lo_box) & (centres - half < hi_box), axis=1)
-        false_surfaces = float(np.mean(~holds)) if len(centres) else 0.0
-    else:
-        false_surfaces = None
     stats = {
         "fit_s": t1 - t0 - compiling[0],
         "map_s": t2 - t1,
@@ -268,7 +258,6 @@ def build_gpomap(case: Case, resolution: float) -> tuple[Lookup, dict[str, Any]]
         "occupied_voxels": n_occ,
         "occupied_unseen_share": (n_occ - int(occupied.sum())) / max(n_occ, 1),
         "occupied_observed_voxels": int(occupied.sum()),
-        "false_surface_share": false_surfaces,
         "thresholds": list(voxel_map.thresholds),
         "hyperparameters": summary["hyperparameters"],
         "evidence": summary["evidence"],
@@ -315,6 +304,23 @@ BUILDERS: dict[str, Callable[[Case, float], tuple[Lookup, dict[str, Any]]]] = {
 }
 
 
+def false_surfaces(scene: Any, lookup: Lookup, resolution: float) -> dict[str, Any]:
+    """The voxels (faces on multiples of `resolution`) over a scene that a map calls occupied (its
+    ternary map), and the share of them that hold no part of a box: surfaces grown into free space."""
+    from gpomap.voxels import VoxelSpec
+
+    lo, hi = scene.bounds
+    spec = VoxelSpec.from_extent(lo, hi, resolution)
+    centres = spec.centres()
+    occupied = lookup(centres)[1]
+    half = resolution / 2
+    holds = np.zeros(len(centres), dtype=bool)
+    for lo_box, hi_box in zip(scene.lower, scene.upper):
+        holds |= np.all((centres + half > lo_box) & (centres - half < hi_box), axis=1)
+    n = int(occupied.sum())
+    return {"occupied_in_scene": n, "false_surface_share": float(np.mean(~holds[occupied])) if n else 0.0}
+
+
 def _method_in_child(method: str, case: Case, resolution: float) -> dict[str, Any]:
     """Build one map and look it up at the case's points and sensor positions (in a forked child)."""
     start = rss_mb() or 0.0
@@ -324,6 +330,8 @@ def _method_in_child(method: str, case: Case, resolution: float) -> dict[str, An
     stats["lookup_s"] = time.perf_counter() - t
     origins = np.array(case.info["sensor_positions"], dtype=float)
     stats["sensors_occupied"] = int(lookup(origins)[1].sum())
+    if case.scene is not None:
+        stats.update(false_surfaces(case.scene, lookup, resolution))
     stats["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0 - start
     return {"p": p, "occupied": occupied, **stats}
 
@@ -406,15 +414,27 @@ def print_breakdown(rows: Sequence[dict[str, Any]], methods: Sequence[str]) -> N
 
 
 def print_surfaces(rows: Sequence[dict[str, Any]]) -> None:
-    print("\n### gpomap's occupied voxels: where rays went (map.bt) and where the GP guessed (map.npz)\n")
-    print("| dataset | p > occupied threshold | of them where no ray went | in map.bt | of those, holding no true box |")
+    print(
+        "\n### Occupied voxels: gpomap's where no ray went (map.npz) and where rays went (map.bt); every map's that hold no true box\n"
+    )
+    print(
+        "| dataset | gpomap p > threshold | of them where no ray went | in map.bt | holding no box: gpomap / octomap / counting |"
+    )
     print("|---|---|---|---|---|")
-    for r in rows:
-        if r["method"] == "gpomap" and "error" not in r:
-            print(
-                f"| {r['dataset']} | {r['occupied_voxels']:,} | {r['occupied_unseen_share']:.1%} | {r['occupied_observed_voxels']:,} | "
-                f"{'-' if r['false_surface_share'] is None else format(r['false_surface_share'], '.1%')} |"
-            )
+    for dataset in dict.fromkeys(r["dataset"] for r in rows):
+        by = {r["method"]: r for r in rows if r["dataset"] == dataset and "error" not in r}
+        g = by.get("gpomap")
+        if g is None:
+            continue
+        false = " / ".join(
+            f"{by[m]['false_surface_share']:.1%} of {by[m]['occupied_in_scene']:,}"
+            if m in by and "false_surface_share" in by[m]
+            else "-"
+            for m in METHODS
+        )
+        print(
+            f"| {dataset} | {g['occupied_voxels']:,} | {g['occupied_unseen_share']:.1%} | {g['occupied_observed_voxels']:,} | {false} |"
+        )
 
 
 # --------------------------------------------------------------------------- targets and tables
