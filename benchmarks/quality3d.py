@@ -42,6 +42,13 @@ positions the ternary map calls occupied. Each map is built in a forked child pr
 and map times (wall seconds; numba's compilation on a first run timed apart) and the memory the
 child added to what it was forked with (peak resident MiB).
 
+Then, to see where the scores come from: on the simulated scenes, the share of each map's
+occupied voxels that hold no part of a box (surfaces grown into free space), with how many of
+gpomap's occupied voxels lie where no ray went (map.npz's GP guess, left out of map.bt); and
+per case, the scored points by what the training rays did in their voxel (no ray; misses only;
+hits only; hits and misses, each scan counted once per voxel as gpomap's ray evidence counts
+it), with each map's mean probability there and its part of the log loss.
+
 Targets (issue 52, item 3, with OctoMap as the grid): log loss, Brier and ECE below OctoMap's;
 AUC and boundary AUC at least OctoMap's; against the truth, occupied IoU at p > 0.5 and of the
 ternary map at least OctoMap's; no sensor position occupied.
@@ -51,6 +58,11 @@ Run from the repository root::
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/quality3d.py [--json q3d.json]   # every case
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/quality3d.py --quick             # a smoke run
     .venv/bin/python benchmarks/quality3d.py --cases office,sim_structured --resolution 0.05
+    .venv/bin/python benchmarks/quality3d.py --cases office --frames frames   # keep frames/office
+    .venv/bin/python benchmarks/quality3d.py --methods gpomap --set free_clearance=0.1   # another setting
+
+``--set NAME=VALUE`` changes one of gpomap's options (a :class:`gpomap.config.MapConfig` field,
+as ``gpomap map``'s option of that name would) to measure other settings than the defaults.
 """
 
 from __future__ import annotations
@@ -545,6 +557,9 @@ def main(argv: list[str] | None = None) -> int:
         "--set", action="append", default=[], metavar="NAME=VALUE", help="a gpomap option, as a Python literal (repeatable)"
     )
     ap.add_argument("--json", type=Path, help="also write the rows and targets as JSON")
+    ap.add_argument(
+        "--frames", type=Path, metavar="DIR", help="keep the simulated cases' depth frames in DIR/NAME (gpomap map reads them)"
+    )
     args = ap.parse_args(argv)
     for item in args.set:
         name, _, text = item.partition("=")
@@ -560,7 +575,8 @@ def main(argv: list[str] | None = None) -> int:
     max_truth, max_test = (200_000, 20_000) if args.quick else (args.max_truth, args.max_test)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="quality3d-") as tmp:
-        cases = make_cases([n.strip() for n in names if n.strip()], Path(tmp), args.resolution, max_truth, max_test, args.quick)
+        workdir = args.frames if args.frames is not None else Path(tmp)
+        cases = make_cases([n.strip() for n in names if n.strip()], workdir, args.resolution, max_truth, max_test, args.quick)
         rows: list[dict[str, Any]] = []
         parts: list[dict[str, Any]] = []
         for case in cases:
