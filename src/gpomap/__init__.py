@@ -5,11 +5,11 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from gpomap._version import __version__
 from gpomap.errors import GpomapError
 from gpomap.scans import Scan
 
-__all__ = ["GpomapError", "Scan", "load_map"]
-__version__ = "0.1.0"
+__all__ = ["GpomapError", "Scan", "load_map", "__version__"]
 
 
 def load_map(path: str | os.PathLike[str]) -> Any:

@@ -22,7 +22,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, NoReturn
 
-from gpomap import __version__
+from gpomap._version import __version__
 from gpomap.config import CALIBRATED_THRESHOLDS, DEFAULT_MAX_CELLS, MapConfig, TilingConfig
 from gpomap.errors import GpomapError
 

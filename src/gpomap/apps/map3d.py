@@ -22,6 +22,7 @@ model ``gpomap map`` builds (``benchmarks/volume_quality.py``).
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import time
@@ -415,8 +416,14 @@ def cmd_map3d(args: argparse.Namespace) -> int:
     cli._status(args, f"  {nx} x {ny} x {nz} voxels in {grid_s:.2f} s; writing {args.output}/")
     cli._Run.outdir = args.output  # for a true message if interrupted while writing
     t = time.perf_counter()
+    from gpomap.io.mapfile import save_fitted_map
+
     files = write_voxel_outputs(
-        voxel_map, args.output, heights=args.slices, title=f"gpomap: {Path(args.input).name}", model=model
+        voxel_map,
+        args.output,
+        heights=args.slices,
+        title=f"gpomap: {Path(args.input).name}",
+        save_model=functools.partial(save_fitted_map, model),
     )
     write_s = time.perf_counter() - t
     cli._report_fit(model, voxel_map)

@@ -16,6 +16,7 @@ checked against ``--memory-limit`` from the file's header alone, before the map 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import time
 from pathlib import Path
@@ -160,7 +161,13 @@ def write_outputs(args: argparse.Namespace, model: Any, title: str, save_model: 
     if model.dim_ == 3:
         from gpomap.io.voxel_outputs import write_voxel_outputs
 
-        return grid, write_voxel_outputs(grid, args.output, heights=args.slices, title=title, model=model if save_model else None)
+        return grid, write_voxel_outputs(
+            grid,
+            args.output,
+            heights=args.slices,
+            title=title,
+            save_model=functools.partial(save_fitted_map, model) if save_model else None,
+        )
     with cli._outputs(args) as outputs:
         staged = write_map_files(grid, outputs.path, pgm_mode=args.pgm_mode, title=title)
         if save_model:

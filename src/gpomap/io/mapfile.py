@@ -627,7 +627,7 @@ def save_fitted_map(model: Any, path: str | os.PathLike[str]) -> Path:
     NotFittedError
         `model` is not fitted.
     """
-    from gpomap import __version__
+    from gpomap._version import __version__
     from gpomap.tiles import TiledGPOM
 
     if not isinstance(model, TiledGPOM):
@@ -666,7 +666,7 @@ def save_streaming_state(mapper: Any, path: str | os.PathLike[str]) -> Path:
     -------
     Path
     """
-    from gpomap import __version__
+    from gpomap._version import __version__
     from gpomap.streaming import StreamingGPOM
 
     if not isinstance(mapper, StreamingGPOM):

@@ -29,7 +29,7 @@ from __future__ import annotations
 import io
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -202,10 +202,11 @@ def write_voxel_outputs(
     stem: str = "map",
     heights: Sequence[float] | None = None,
     title: str | None = None,
-    model: Any = None,
+    save_model: Callable[[Path], Path] | None = None,
 ) -> list[Path]:
     """Write ``STEM.npz``, ``STEM.bt``, ``STEM.ply`` (mesh), ``STEM-slices.png`` and ``STEM-3d.png`` as one set,
-    with ``STEM.gpom``, the fitted `model` (:func:`gpomap.io.mapfile.save_fitted_map`), when it is given.
+    with ``STEM.gpom`` written by `save_model` when it is given (the fitted map:
+    ``functools.partial(gpomap.io.mapfile.save_fitted_map, model)``; a writer of grids knows no model).
 
     Returns
     -------
@@ -227,9 +228,7 @@ def write_voxel_outputs(
         file_written()
         staged.append(Path(save_figure(plot_3d(voxel_map, title), out / f"{stem}-3d.png")))
         file_written()
-        if model is not None:
-            from gpomap.io.mapfile import save_fitted_map
-
-            staged.append(save_fitted_map(model, out / f"{stem}.gpom"))
+        if save_model is not None:
+            staged.append(save_model(out / f"{stem}.gpom"))
             file_written()
     return [outputs.final(p) for p in staged]
