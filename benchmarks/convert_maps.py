@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from gpomap.convert import convert_grid
+from gpomap.errors import EmptyDataError
 from gpomap.grid import FREE, OCCUPIED, UNKNOWN, GridSpec, OccupancyMap
 from gpomap.io.rosmap import read_map_image, read_rosmap
 from gpomap.metrics import roc_auc
@@ -257,8 +258,11 @@ def pool(plan: Plan, k: int, pooling: str) -> tuple[NDArray[np.float64], NDArray
     return coarse, occ, known
 
 
-def bench_plans(plans: list[Plan], factors: list[int] | None, poolings: list[str]) -> list[dict]:
-    """Part (b): pool each plan, convert back to its fine pixels, compare with interpolation."""
+def bench_plans(plans: list[Plan], factors: list[int] | None, poolings: list[str], options: dict | None = None) -> list[dict]:
+    """Part (b): pool each plan, convert back to its fine pixels, compare with interpolation.
+
+    `options` are :func:`gpomap.convert.convert_grid` model options (a length in source pixels is
+    given as ``length_scale_px``)."""
     rows, records = [], []
     for plan in plans:
         for k in factors or [plan.factor]:
@@ -266,9 +270,15 @@ def bench_plans(plans: list[Plan], factors: list[int] | None, poolings: list[str
                 coarse, occ, known = pool(plan, k, pooling)
                 cmap = OccupancyMap(GridSpec(plan.origin, plan.resolution * k, coarse.shape), coarse)
                 t = time.perf_counter()
-                res = convert_grid(cmap, resolution=plan.resolution)
+                opts = dict(options or {})
+                if "length_scale_px" in opts:
+                    opts["length_scale"] = float(opts.pop("length_scale_px")) * plan.resolution * k
+                try:
+                    res = convert_grid(cmap, resolution=plan.resolution, **opts)
+                except EmptyDataError as e:
+                    res = None  # scored as a map of p = 0.5 everywhere, and said
+                    print(f"  GP refused: {e}", flush=True)
                 t_gp = time.perf_counter() - t
-                assert res.map.grid.shape == occ.shape
                 scores, times = {}, {}
                 # Interpolation reads an unknown coarse pixel as 0.5.
                 filled = np.where(np.isfinite(coarse), coarse, 0.5)
@@ -276,7 +286,10 @@ def bench_plans(plans: list[Plan], factors: list[int] | None, poolings: list[str
                     t = time.perf_counter()
                     scores[name] = ndimage.zoom(filled, k, order=order, grid_mode=True, mode="nearest")
                     times[name] = time.perf_counter() - t
-                scores["GP"], times["GP"] = res.map.probability, t_gp
+                if res is not None:
+                    assert res.map.grid.shape == occ.shape
+                scores["GP"] = res.map.probability if res is not None else np.full(occ.shape, 0.5)
+                times["GP"] = t_gp
                 label = f"{plan.name}, {plan.resolution * k:.3g} m, {pooling}"
                 for name, score in scores.items():
                     rec = _scores(occ[known], score[known], score[known] > 0.5)
@@ -284,12 +297,17 @@ def bench_plans(plans: list[Plan], factors: list[int] | None, poolings: list[str
                     records.append(rec)
                     extra = "-"
                     if name == "GP":
-                        hp = res.report["hyperparameters"]
-                        extra = f"{res.report['cells']['n']} / {hp['length_scale'] / (plan.resolution * k):.2f} px"
+                        rec["refused"] = res is None
+                        if res is not None:
+                            hp = res.report["hyperparameters"]
+                            extra = f"{res.report['cells']['n']} / {hp['length_scale'] / (plan.resolution * k):.2f} px"
+                        else:
+                            extra = "refused"
                     rows.append(_row(label, name, rec, extra))
-                ternary_occ = (res.map.ternary == OCCUPIED)[known]
-                rec = _scores(occ[known], res.map.probability[known], ternary_occ)
-                rows.append(_row(label, "GP, occupied = p > 0.66", rec, "-"))
+                if res is not None:
+                    ternary_occ = (res.map.ternary == OCCUPIED)[known]
+                    rec = _scores(occ[known], res.map.probability[known], ternary_occ)
+                    rows.append(_row(label, "GP, occupied = p > 0.66", rec, "-"))
                 print(f"  {label}: GP {records[-1]['auc']:.4f} / {records[-1]['iou']:.3f} ({t_gp:.1f} s)", flush=True)
     _table(
         "(b) plans pooled to coarse grids and converted back to their fine pixels; occupied = score > 0.5 unless stated",
@@ -334,7 +352,7 @@ def summary(records: list[dict]) -> None:
                 f"{key[0]}, {key[1]:.3g} m, {key[2]}",
                 f"{by['nearest']['auc']:.4f} / {by['nearest']['iou']:.3f}",
                 f"{by['bilinear']['auc']:.4f} / {by['bilinear']['iou']:.3f}",
-                f"{by['GP']['auc']:.4f} / {by['GP']['iou']:.3f}",
+                "refused" if by["GP"].get("refused") else f"{by['GP']['auc']:.4f} / {by['GP']['iou']:.3f}",
                 "yes" if by["GP"]["auc"] > best_auc and by["GP"]["iou"] > best_iou else "no",
             ]
         )
@@ -353,11 +371,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--skip-turtlebot", action="store_true", help="skip (a) and (c)")
     ap.add_argument("--skip-plans", action="store_true", help="skip (b)")
     ap.add_argument("--json", type=Path, help="also write (b)'s scores to this JSON file")
+    ap.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a convert_grid model option for (b), VALUE as JSON (optimise=true, occupied_fraction=1.0, length_scale_px=3)",
+    )
     args = ap.parse_args(argv)
+    options = {}
+    for item in args.option:
+        name, _, value = item.partition("=")
+        options[name] = json.loads(value)
     if not args.skip_turtlebot:
         bench_turtlebot(args.turtlebot)
     if not args.skip_plans:
-        records = bench_plans(load_plans(args.data, args.plans), args.factor, args.pooling)
+        records = bench_plans(load_plans(args.data, args.plans), args.factor, args.pooling, options)
         summary(records)
         if args.json:
             args.json.write_text(json.dumps(records, indent=1))

@@ -370,3 +370,23 @@ def test_upsampled_wall_is_where_the_coarse_pixels_fractions_put_it():
     # The straddling wall is at the shared edge (x = 0.55 m): its probability peaks there.
     peak = 50 + int(np.argmax(p[:, 50:60].mean(axis=0)))
     assert peak in (54, 55)
+
+
+def test_cli_reads_values_as_fractions_or_by_thresholds(tmp_path, capsys):
+    # A 20 x 20 grid of 0.05 m pixels averaged from a finer plan: a wall at 0.4 in column 10.
+    # Read as fractions (the default for a map without a variance layer) the wall is evidence;
+    # read by the thresholds (0.33, 0.66) its pixels are unknown and only free ones are left.
+    from gpomap.cli import main
+
+    values = np.zeros((20, 20))
+    values[:, 10] = 0.4
+    path = save_map(OccupancyMap(GridSpec((0.0, 0.0), 0.05, values.shape), values), tmp_path / "mean.npz")
+    assert main(["convert", str(path), "-o", str(tmp_path / "a"), "--resolution", "0.01", "-q", "--json"]) == 0
+    import json
+
+    report = json.loads(capsys.readouterr().out.split("\nwrote")[0])
+    assert report["pixels"] == {"free": 380, "occupied": 0, "partial": 20, "unknown": 0}
+    assert main(["convert", str(path), "-o", str(tmp_path / "b"), "--values", "ternary", "-q"]) == 1
+    assert "only free known pixels" in capsys.readouterr().err
+    assert main(["convert", str(path), "-o", str(tmp_path / "c"), "--occupied-fraction", "1.5", "-q"]) == 1
+    assert "--occupied-fraction must be in (0, 1]" in capsys.readouterr().err

@@ -1190,10 +1190,10 @@ def cmd_convert(args: argparse.Namespace) -> int:
         args.resolution = spec.resolution  # the source's pixel size (named in the messages)
     _check_grid_memory(args, spec.shape, spec.extent, 0)
     # The converter's own inputs (wall-aware, several per wall pixel), not a plain cell tree's.
-    n_cells = len(converter_for(source.grid.resolution, **options).make_cells(grid_to_observations(source)))
+    n_cells = len(converter_for(source.grid.resolution, **options).make_cells(grid_to_observations(source, args.values)))
     _check_fit_memory(args, n_cells, 1, f"one GP over the cells of {args.input}")
     _check_grid_memory(args, spec.shape, spec.extent, n_cells)
-    result = convert_grid(source, resolution=args.resolution, extent=args.extent, **options)
+    result = convert_grid(source, resolution=args.resolution, extent=args.extent, values=args.values, **options)
     with _outputs(args) as outputs:
         staged = write_map_files(
             result.map, outputs.path, pgm_mode=args.pgm_mode, title=f"gpomap convert: {Path(args.input).name}"
@@ -1212,6 +1212,10 @@ def _convert_options(args: argparse.Namespace) -> dict[str, Any]:
     options: dict[str, Any] = {"thresholds": args.thresholds}
     if args.kernel:
         options["kernel"] = args.kernel
+    if args.occupied_fraction is not None:
+        if args.occupied_fraction > 1:
+            raise GpomapError(f"--occupied-fraction must be in (0, 1], got {args.occupied_fraction:g}")
+        options["occupied_fraction"] = args.occupied_fraction
     return options
 
 
@@ -1448,6 +1452,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("input", help="map.yaml (ROS map_server), map.npz, or an OctoMap tree (.bt, .ot)")
     p.add_argument("--kernel", choices=["se", "matern32"], help="point kernel (default: se, measured best for grids)")
+    p.add_argument(
+        "--values",
+        choices=["auto", "fraction", "ternary"],
+        default="auto",
+        help="grids: a pixel's value is the fraction of it that is occupied, or free / occupied / unknown by the "
+        "thresholds (auto: ternary for trinary ROS maps and gpomap's own maps, else fraction; docs/convert.md)",
+    )
+    p.add_argument(
+        "--occupied-fraction",
+        type=_positive(float),
+        metavar="F",
+        help="grids of 0s and 1s: what an occupied pixel holds (default: 0.7; 1.0 for grids pooled by majority)",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     _add_output_options(p, None)
     # Octrees' own options: gpomap.apps.map3d / gpomap.apps.convert3d.

@@ -1,11 +1,11 @@
 """From an occupancy grid to a continuous GP occupancy map.
 
 A grid (a ROS map_server map, or an :class:`~gpomap.grid.OccupancyMap` such as one read from an
-``.npz``) already says which pixels are free and which occupied. Each known pixel becomes one
-labelled point at its centre; unknown pixels are not evidence and give no point. The cell tree then
-merges neighbourhoods of same-label pixels into larger cells, each covering its pixels' squares,
-the MSK-GPOM model is fitted on those cells, and the continuous map is sampled back onto a grid at
-any resolution.
+``.npz``) already says how much of each pixel is occupied. Each known pixel's value is read as the
+fraction of its area that is occupied (:func:`grid_fractions`): 0 free, 1 occupied, between them
+partly occupied, as a grid made by averaging a finer one has it; unknown pixels are not evidence.
+The pixels become GP inputs over their squares (:func:`grid_cells`), the MSK-GPOM model is fitted
+on them, and the continuous map is sampled back onto a grid at any resolution.
 
     >>> result = convert_grid("map.yaml", resolution=0.01)      # doctest: +SKIP
     >>> write_rosmap(result.map, "map_fine.yaml")               # doctest: +SKIP
@@ -21,39 +21,28 @@ edges lie up to one output cell beyond the source's (they are never cropped shor
 
 Defaults (measured with benchmarks/convert_maps.py; see docs/convert.md)
 -------------------------------------------------------------------------
-- wall-aware GP inputs (:func:`grid_cells`): pixels within 3 pixels of an occupied one are cells
-  of their own (each its pixel's square), free pixels farther away are merged into blocks of at
-  most ``max_cell`` = 4 pixels; every free pixel gets a free strip 0.1 pixel wide along each edge
-  it shares with an occupied pixel (a free pixel is free up to its edge), and every occupied pixel
-  a point at its centre, 3 times noisier than a pixel cell (the obstacle most likely sits there).
-  Arena plan down-sampled to 0.05 m and converted to 0.01 m: AUC 0.993, occupied IoU 0.43 at
-  p > 0.5 (bilinear 0.9885 / 0.379); at 0.1 m 0.985 / 0.31 (bilinear 0.9817 / 0.233).
-  TurtleBot3 map: 99.9 % of known pixels keep their label, occupied 100 %. Before (the cell tree
-  with 4-pixel cells over footprints) free cells much larger than the length scale constrained
-  only their average and the map rang inside them (ghost walls), and the 0 crossing sat at the
-  occupied pixels' edges or beyond, so walls came out a coarse pixel wide or wider;
-- ``min_cell`` = 1.2 pixels: used only with ``wall_reach=None`` (the plain cell tree);
+- values read as fractions (``values="auto"``): a ROS map in trinary mode, whose values are codes,
+  and a map with a latent variance (a GP's belief, such as gpomap's own ``.npz``) are read as
+  free / occupied / unknown by their thresholds instead;
+- wall-aware GP inputs (:func:`grid_cells`): pixels within 3 pixels of one holding anything
+  occupied are cells of their own (each its pixel's square, its target 2 f - 1, the mean of the
+  +-1 occupancy over it), free pixels farther away are merged into blocks of at most
+  ``max_cell`` = 4 pixels; each pixel holding anything occupied also gets a point where its
+  obstacle most likely is (its centre, or the centre of the part away from its free sides that
+  its fraction fills), 3 times noisier than a pixel cell. A grid of 0s and 1s does not say how
+  much of an occupied pixel is occupied (any-pixel pooling marks pixels a thin wall grazes,
+  majority pooling pixels mostly filled): its occupied pixels are taken as
+  :data:`OCCUPIED_FRACTION` occupied;
 - squared-exponential kernel with the exact closed-form area kernel; on a grid it is a product of
   per-axis factors, which the prediction on the output grid tables once per row and column;
-- length scale started at 3 pixels and bounded to 1..50 pixels; the default ``objective="loo"``;
-  no restarts.
-
-Trade-off: unknown pixels next to the map's walls are no longer painted occupied (the
-outward bleed of before), but small gaps between wall pixels are no longer closed either: the
-learnt length scale is now about one pixel (TurtleBot3: 84 % of unknown pixels between occupied
-ones 1 pixel apart come out occupied, 42 % of those up to 2 apart; before 100 %). The merged far
-free cells are still 4 times the length scale: where they meet the map's edge the SE map can ring
-(a 24 x 24-pixel test map with one wall: spots of p up to 0.57 at the bottom edge, 12 pixels from
-the wall).
-
-Known weakness: on a perfectly separable grid (a clean synthetic map) the leave-one-out objective
-has no finite optimum (alpha and beta can grow without bound), and where the optimiser stops
-decides whether a wall 1, 2 or 4 pixels thick comes out occupied or "unknown" (p ~ 0.5). Real maps
-(TurtleBot3: alpha ~ 6.4) are not separable and do not show it.
+- length scale one source pixel and noise 0.1, not learnt (``optimise=False``); the squash's
+  alpha and beta are fitted, to the soft targets where there are any (an input of target
+  2 f - 1 counts as occupied with weight f and free with weight 1 - f).
 
 Any of these can be overridden through ``**model_options`` (the :class:`GridGPOM` constructor
-arguments: those of :class:`~gpomap.settings.MapSettings`, ``pixel_pad``, ``wall_reach``, ``edge_strip``
-and ``centre_noise``; ``wall_reach=None`` gives the cell tree over footprints of before,
+arguments: those of :class:`~gpomap.settings.MapSettings`, ``pixel_pad``, ``wall_reach``,
+``edge_strip``, ``centre_noise`` and ``occupied_fraction``; ``optimise=True`` learns the length
+scale and noise; ``wall_reach=None`` gives the cell tree over footprints of before,
 ``pixel_pad=0`` the centre boxes of before that). ``free_step``, ``hit_margin`` and
 ``no_return_cap`` concern laser beams and have no effect here.
 """
@@ -109,17 +98,16 @@ FOOTPRINT_PIXELS = 0.5
 #: own; only free pixels farther away are merged into larger cells.
 WALL_REACH_PIXELS = 3
 #: Width, in source pixels, of the free strip put inside a free pixel along each edge it shares
-#: with an occupied pixel: none by default (docs/convert.md: they pinned the map to -1 at the
-#: edge of a free pixel that majority pooling leaves up to half occupied).
+#: with an occupied pixel: none by default, since a free pixel of a majority-pooled grid may be
+#: up to half occupied (docs/convert.md).
 EDGE_STRIP_PIXELS = 0.0
 #: Noise of the point where an occupied pixel's obstacle most likely is, relative to a one-pixel cell's.
 CENTRE_NOISE = 3.0
 #: What a wholly occupied pixel of a grid of 0s and 1s is taken to hold: any-pixel pooling marks
-#: pixels a thin wall grazes (the arena plan at 0.05 m: 38 % of an occupied pixel is wall on
-#: average), majority pooling pixels mostly filled (docs/convert.md).
+#: pixels a thin wall grazes, majority pooling pixels mostly filled (docs/convert.md).
 OCCUPIED_FRACTION = 0.7
-#: Length scale of a converted grid, in source pixels, not learnt: the search chose 2-6 pixels on
-#: grids of fractions, which blurred thin walls away (docs/convert.md).
+#: Length scale of a converted grid, in source pixels, not learnt: the maps with a learnt one
+#: scored lower on most pooled plans (docs/convert.md).
 GRID_LENGTH_SCALE_PIXELS = 1.0
 #: Starting length scale and its search bounds, in source (octree) voxels, where they are learnt.
 LENGTH_SCALE_PIXELS = 3.0

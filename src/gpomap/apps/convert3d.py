@@ -41,9 +41,13 @@ def cmd_convert3d(args: argparse.Namespace) -> int:
     from gpomap import cli
     from gpomap.apps.map3d import check_voxel_memory
     from gpomap.convert3d import convert_octree, region
+    from gpomap.errors import GpomapError
     from gpomap.io.octomap import read_octree
     from gpomap.io.voxel_outputs import write_voxel_outputs
 
+    for name in ("values", "occupied_fraction"):
+        if getattr(args, name, None) not in (None, "auto"):
+            raise GpomapError(f"--{name.replace('_', '-')} is for grids; {args.input} is an OctoMap tree")
     cli._status(args, f"reading the octree {args.input}...")
     tree = read_octree(args.input)
     lo, hi = region(tree, *_corners(args))
