@@ -54,6 +54,9 @@ def test_tiled_agrees_with_one_gp_on_a_real_region(geb079, one_gp):
     a1, a2 = one.report["agreement"], tiled.report["agreement"]
     assert a2["n_checked"] == a1["n_checked"] > 8000
     assert abs(a2["ternary"] - a1["ternary"]) < 0.002 and a2["auc"] > 0.999
+    # Two tiles in flight on threads: the same map (the tiles are added in the same order).
+    two = convert_octree(geb079, 0.08, *REGION, tile_size=0.75, hyperparameters=given, n_workers=2)
+    np.testing.assert_allclose(two.map.probability, tiled.map.probability, rtol=0, atol=1e-12)
     # The model answers anywhere by fitting the tiles it needs again: the voxels' own numbers.
     pts = np.array([[5.5, -0.3, 1.0], [6.1, 0.2, 0.4]])
     np.testing.assert_allclose(tiled.model.predict_proba(pts), tiled.map.lookup(pts), atol=0.05)
