@@ -627,3 +627,41 @@ def test_ros2_settings_are_the_ros1_nodes_checks_plus_its_own():
         with pytest.raises(GpomapError, match=what):
             ros2_settings(lambda n, default, name=name, value=value: value if n == name else default)
     assert set(PARAMETERS) >= {"scan_topic", "publish_rate", "save_on_shutdown", "odom_topic", "sensor_pose"}
+
+
+def _quaternion_z(yaw: float) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a turn by `yaw` about z."""
+    return (0.0, 0.0, float(np.sin(yaw / 2)), float(np.cos(yaw / 2)))
+
+
+def test_a_pointcloud2_becomes_a_cloud_at_the_interpolated_6dof_sensor_pose():
+    from types import SimpleNamespace
+
+    from gpomap.errors import InputFormatError
+    from gpomap.ros.messages import cloud_from_pointcloud2
+    from gpomap.ros2.poses import PoseBuffer3D
+
+    # Robot at x 0 then 2 (t = 0, 2 s), z 0.5, facing +y; the sensor 0.2 m ahead and 0.3 m up,
+    # pitched 90 degrees (its x axis points down, its z axis forward).
+    poses = PoseBuffer3D((0.2, 0.0, 0.3, 0.0, np.pi / 2, 0.0))
+    poses.add(0.0, (0.0, 2.0, 0.5), _quaternion_z(np.pi / 2))
+    poses.add(2.0, (2.0, 2.0, 0.5), _quaternion_z(np.pi / 2))
+    assert poses.lookup("lidar", 2.5) is None
+    pose = poses.lookup("lidar", 1.0)
+    assert pose is not None
+    # x, y, z FLOAT32 and an intensity: 16 bytes a point; a NaN point and one 5 m away.
+    rows = np.array([[1, 0, 0, 7], [0, 1, 0, 7], [0, 0, 2, 7], [np.nan, 0, 0, 7], [0, 0, 5, 7]], dtype="<f4")
+    msg = _cloud([("x", 0, 7), ("y", 4, 7), ("z", 8, 7), ("intensity", 12, 7)], 16, rows)
+    msg.header = SimpleNamespace(stamp=SimpleNamespace(sec=1, nanosec=0), frame_id="lidar")
+    cloud = cloud_from_pointcloud2(msg, pose, max_range=3.0, source="/points")
+    # By hand: sensor (a, b, c) -> mount (c + 0.2, b, -a + 0.3) -> robot turned +90 deg at (1, 2, 0.5).
+    np.testing.assert_allclose(cloud.origin, [1.0, 2.2, 0.8], atol=1e-12)
+    np.testing.assert_allclose(cloud.points[[0, 1, 2]], [[1.0, 2.2, -0.2], [0.0, 2.2, 0.8], [1.0, 4.2, 0.8]], atol=1e-6)
+    assert np.isnan(cloud.points[3]).any() and not cloud.valid()[3]
+    # Beyond max_range: a no-return ray ending 3 m from the sensor, along its beam.
+    np.testing.assert_allclose(cloud.points[4], [1.0, 5.2, 0.8], atol=1e-6)
+    assert cloud.hit.tolist() == [True, True, True, True, False]
+    assert cloud.time == 1.0 and cloud.meta["frame_id"] == "lidar"
+    msg.fields = msg.fields[:2]
+    with pytest.raises(InputFormatError, match=r"/points.*no field z"):
+        cloud_from_pointcloud2(msg, pose, source="/points")

@@ -3,7 +3,9 @@
 :class:`LiveMap` holds what a mapping node does between its subscriptions and its publications:
 laser scans wait until the pose of their frame is known at their stamp, then go to the streaming
 mapper (:class:`gpomap.streaming.StreamingGPOM`) in the order they came; the map is sampled as
-the three grid layers on request, and saved in the project's formats. The ROS 1 node
+the three grid layers on request, and saved in the project's formats. With ``kind="cloud"`` it maps
+``sensor_msgs/PointCloud2`` clouds in 3-D instead: the pose is the sensor's 4 x 4 matrix, the map
+is read as a voxel map (:meth:`LiveMap.voxels`) and saved as the voxel output set. The ROS 1 node
 (:mod:`gpomap.ros.node`) wires it to rospy and tf2; the ROS 2 node (:mod:`gpomap.ros2.node`) wires
 the same object to rclpy. Every method may be called from any thread: a lock keeps the mapper to one caller at a time.
 """
@@ -21,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from gpomap.errors import InputFormatError
-from gpomap.ros.messages import GridLayers, grid_layers, scan_from_laserscan, stamp_seconds
+from gpomap.ros.messages import GridLayers, cloud_from_pointcloud2, grid_layers, scan_from_laserscan, stamp_seconds
 
 __all__ = ["LiveMap", "PoseLookup"]
 
@@ -55,6 +57,10 @@ class LiveMap:
         The scan topic, for error messages.
     clock : callable
         Monotonic seconds (``time.monotonic``); tests pass their own.
+    kind : {"scan", "cloud"}
+        ``scan``: ``sensor_msgs/LaserScan`` messages, planar poses, a 2-D map. ``cloud``:
+        ``sensor_msgs/PointCloud2`` messages, the lookup gives the sensor's pose as a 4 x 4 matrix,
+        a 3-D map (`extent` then x, y only; the voxels span the data's height).
     """
 
     def __init__(
@@ -67,7 +73,10 @@ class LiveMap:
         pose_wait: float = 1.0,
         source: str = "scan",
         clock: Callable[[], float] = time.monotonic,
+        kind: str = "scan",
     ) -> None:
+        if kind not in ("scan", "cloud"):
+            raise ValueError(f"kind must be 'scan' or 'cloud', got {kind!r}")
         if not resolution > 0:
             raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
         if not pose_wait >= 0:
@@ -80,6 +89,12 @@ class LiveMap:
         self.pose_wait = float(pose_wait)
         self.source = source
         self.clock = clock
+        self.kind = kind
+        #: The map's dimension: 2 for scans, 3 for clouds.
+        self.dim = 3 if kind == "cloud" else 2
+        # Corners of every valid cloud point and origin so far (3-D): the voxel map's default box.
+        self._lower: np.ndarray | None = None
+        self._upper: np.ndarray | None = None
         self._waiting: deque[tuple[Any, float]] = deque()
         self._lock = threading.Lock()
         self.n_received = 0
@@ -132,8 +147,13 @@ class LiveMap:
                     continue
                 self._waiting.popleft()
                 try:
-                    flipped = len(pose) == 4 and bool(pose[3])
-                    scan = scan_from_laserscan(msg, pose[:3], self.max_range, source=self.source, upside_down=flipped)
+                    scan: Any
+                    if self.kind == "cloud":
+                        scan = cloud_from_pointcloud2(msg, np.asarray(pose), self.max_range, source=self.source)
+                        self._grow(scan)
+                    else:
+                        flipped = len(pose) == 4 and bool(pose[3])
+                        scan = scan_from_laserscan(msg, pose[:3], self.max_range, source=self.source, upside_down=flipped)
                 except InputFormatError as exc:
                     # One bad message must not stop a robot's map: count it, keep its reason.
                     self.n_rejected += 1
@@ -147,6 +167,12 @@ class LiveMap:
                 added += 1
         return added
 
+    def _grow(self, cloud: Any) -> None:
+        pts = np.vstack([cloud.points[cloud.valid()], cloud.origin[None, :]])
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        self._lower = lo if self._lower is None else np.minimum(self._lower, lo)
+        self._upper = hi if self._upper is None else np.maximum(self._upper, hi)
+
     # ------------------------------------------------------------------ out
     @property
     def ready(self) -> bool:
@@ -157,7 +183,9 @@ class LiveMap:
         return self.mapper.grid(self.resolution, self.extent)
 
     def layers(self) -> GridLayers | None:
-        """The trinary, probability and variance layers of the current map; None before it is ready."""
+        """The trinary, probability and variance layers of the current map; None before it is ready (or in 3-D)."""
+        if self.dim == 3:
+            return None
         with self._lock:
             if not self.ready:
                 return None
@@ -165,13 +193,55 @@ class LiveMap:
             prior = self.mapper.hyperparameters_.get("variance")
         return grid_layers(occupancy_map, prior)
 
+    def voxel_bounds(self) -> tuple[Any, Any]:
+        """Lower and upper corners (x, y, z), shape (3,) each, of the voxel map: the clouds' box grown
+        by :data:`gpomap.lattice.EXTENT_MARGIN_CELLS` voxels, x and y from `extent` where given (as ``gpomap map``)."""
+        from gpomap.lattice import EXTENT_MARGIN_CELLS
+
+        if self._lower is None or self._upper is None:
+            raise self._not_ready()
+        pad = EXTENT_MARGIN_CELLS * self.resolution
+        lo, hi = self._lower - pad, self._upper + pad
+        if self.extent is not None:
+            lo[:2], hi[:2] = (self.extent[0], self.extent[2]), (self.extent[1], self.extent[3])
+        return lo, hi
+
+    def voxels(self, memory_limit: int | None = None) -> Any:
+        """The current 3-D map as a :class:`~gpomap.voxels.VoxelMap` at `resolution` over :meth:`voxel_bounds`.
+
+        Raises
+        ------
+        NotFittedError
+            Before the mapper is ready.
+        MemoryLimitError
+            The voxel grid would not fit in `memory_limit` (default :func:`gpomap.resources.memory_limit`'s).
+        """
+        with self._lock:
+            return self._voxels(memory_limit)
+
+    def _voxels(self, memory_limit: int | None = None) -> Any:
+        from gpomap.lattice import bounds_extent
+        from gpomap.resources import check_memory, voxel_grid_memory, voxel_shape
+        from gpomap.resources import memory_limit as default_limit
+
+        if self.dim != 3:
+            raise ValueError("a voxel map needs clouds (kind='cloud')")
+        self._require_ready()
+        lo, hi = self.voxel_bounds()
+        limit, source = (memory_limit, "the limit given") if memory_limit is not None else default_limit()
+        nz, ny, nx = voxel_shape(lo, hi, self.resolution)
+        what = f"a {nx} x {ny} x {nz} voxel grid at resolution {self.resolution:g} m"
+        check_memory(voxel_grid_memory((nz, ny, nx)), limit, what, "set a coarser resolution or an x, y extent", source)
+        self.mapper.refresh()
+        return self.mapper.model_.grid(self.resolution, bounds_extent(lo, hi))
+
     def query(self, points: Any) -> tuple[Any, Any]:
         """Occupancy probability and latent variance at points, from the current map.
 
         Parameters
         ----------
-        points : array-like of shape (m, 2)
-            x, y in the fixed frame, metres.
+        points : array-like of shape (m, 2), or (m, 3) for clouds
+            x, y (z) in the fixed frame, metres.
 
         Returns
         -------
@@ -183,7 +253,7 @@ class LiveMap:
         NotFittedError
             Before the mapper is ready.
         """
-        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        pts = np.asarray(points, dtype=float).reshape(-1, self.dim)
         with self._lock:
             self._require_ready()
             probability, variance = self.mapper.predict_proba(pts, return_var=True)
@@ -219,6 +289,8 @@ class LiveMap:
 
         if not (np.isfinite(resolution) and resolution > 0):
             raise ValueError(f"resolution must be a positive number of metres, got {resolution}")
+        if self.dim == 3:
+            raise ValueError("a planar render of a 3-D map: read its voxels (map_cloud) or query points")
         with self._lock:
             self._require_ready()
             if extent is None:
@@ -232,16 +304,22 @@ class LiveMap:
         return grid_layers(occupancy_map, prior)
 
     def _require_ready(self) -> None:
+        if not self.ready:
+            raise self._not_ready()
+
+    def _not_ready(self) -> Exception:
         from gpomap.errors import NotFittedError
 
-        if not self.ready:
-            raise NotFittedError(
-                f"no map yet: {self.mapper.n_scans_} scans seen, the hyperparameters are learnt after the warm-up scans"
-            )
+        return NotFittedError(
+            f"no map yet: {self.mapper.n_scans_} scans seen, the hyperparameters are learnt after the warm-up scans"
+        )
 
     def save(self, directory: str | os.PathLike[str], pgm_mode: str = "trinary") -> list[Path]:
         """Write the current map as one set: ``map.yaml`` + ``map.pgm``, ``map.npz``, ``map.png``,
         and the fitted map itself, ``map.gpom`` (:mod:`gpomap.io.mapfile`: render, query, update later).
+
+        In 3-D: the voxel output set of ``gpomap map`` (:func:`gpomap.io.voxel_outputs.write_voxel_outputs`:
+        ``map.npz``, ``map.bt``, ``map.ply``, the two figures, ``map.gpom``).
 
         Parameters
         ----------
@@ -263,6 +341,20 @@ class LiveMap:
         from gpomap.io.export import write_map_files
         from gpomap.io.mapfile import FILENAME, save_fitted_map
 
+        if self.dim == 3:
+            import functools
+
+            from gpomap.io.voxel_outputs import write_voxel_outputs
+
+            with self._lock:
+                # Under the lock: the model must not take a cloud while it is written.
+                voxel_map = self._voxels()
+                return write_voxel_outputs(
+                    voxel_map,
+                    directory,
+                    title="gpomap: live map",
+                    save_model=functools.partial(save_fitted_map, self.mapper.model_),
+                )
         with self._lock, output_set(directory) as outputs:
             # Under the lock: the model must not take a scan while it is written.
             self._require_ready()

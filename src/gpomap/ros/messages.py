@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,6 +25,9 @@ from gpomap.grid import FREE, OCCUPIED, GridSpec, OccupancyMap
 from gpomap.io.rosbag import laserscan_angles, up_component, yaw_from_quaternion
 from gpomap.scans import Scan
 
+if TYPE_CHECKING:
+    from gpomap.clouds import CloudScan
+
 __all__ = [
     "UNKNOWN_CELL",
     "GridLayers",
@@ -32,6 +35,8 @@ __all__ = [
     "pose_from_transform",
     "is_upside_down",
     "scan_from_laserscan",
+    "cloud_from_pointcloud2",
+    "euler_matrix",
     "grid_layers",
 ]
 
@@ -151,6 +156,70 @@ def scan_from_laserscan(
         time=time,
         meta=meta,
     )
+
+
+def euler_matrix(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]:
+    """Rotation matrix (3, 3) of fixed-axis roll, pitch, yaw (radians): ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``, as tf's RPY."""
+    cr, sr, cp, sp, cy, sy = (f(a) for a in (roll, pitch, yaw) for f in (math.cos, math.sin))
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    return rz @ ry @ rx
+
+
+class _CloudView:
+    """A PointCloud2's layout fields with its data as a uint8 array."""
+
+    def __init__(self, msg: Any, data: NDArray[np.uint8]) -> None:
+        self.fields, self.is_bigendian, self.data = msg.fields, msg.is_bigendian, data
+        self.point_step, self.row_step, self.height, self.width = msg.point_step, msg.row_step, msg.height, msg.width
+
+
+def cloud_from_pointcloud2(
+    msg: Any, pose: NDArray[np.float64], max_range: float | None = None, source: str = "PointCloud2"
+) -> CloudScan:
+    """A :class:`~gpomap.clouds.CloudScan` from a ``sensor_msgs/PointCloud2`` and the sensor's pose.
+
+    The fields are decoded as the bag reader decodes them (:mod:`gpomap.io.pointcloud2`: x, y, z
+    FLOAT32 or FLOAT64, either byte order, any padding); NaN points stay as invalid rays.
+
+    Parameters
+    ----------
+    msg : PointCloud2-like
+        ``fields`` (name, offset, datatype), ``is_bigendian``, ``point_step``, ``row_step``,
+        ``height``, ``width``, ``data``, and a ``header``.
+    pose : ndarray of shape (4, 4)
+        The sensor frame (the message's ``frame_id``) in the map's fixed frame at the stamp.
+    max_range : float, optional
+        Points farther than this from the sensor become no-return rays ending at it.
+    source : str
+        The topic, for error messages.
+
+    Returns
+    -------
+    CloudScan
+        Points in the fixed frame, the origin at the pose's translation; ``time`` the header stamp.
+
+    Raises
+    ------
+    InputFormatError
+        No field x, y or z, non-float coordinates, data shorter than the geometry, or a pose that
+        is not a finite 4 x 4 matrix; naming `source`.
+    """
+    from gpomap.clouds import cloud_from_points
+    from gpomap.io.pointcloud2 import _xyz
+    from gpomap.io.poses import transform_points
+
+    t = np.asarray(pose, dtype=float)
+    if t.shape != (4, 4) or not np.isfinite(t).all():
+        raise InputFormatError(f"{source}: the sensor pose must be a finite 4 x 4 matrix, got shape {t.shape}")
+    # The decoder reads `data` as a uint8 array: rclpy gives array('B'), other sources bytes.
+    view = _CloudView(msg, np.frombuffer(bytes(msg.data), dtype=np.uint8))
+    points = transform_points(t, _xyz(view, source, None))  # type: ignore[arg-type]  # no file: the topic names it
+    header = getattr(msg, "header", None)
+    stamp = stamp_seconds(header.stamp) if header is not None else None
+    meta = {"frame_id": str(header.frame_id).lstrip("/"), "topic": source} if header is not None else {"topic": source}
+    return cloud_from_points(t[:3, 3], points, max_range=max_range, time=stamp, meta=meta)
 
 
 @dataclass(frozen=True)
