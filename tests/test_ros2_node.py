@@ -665,3 +665,82 @@ def test_a_pointcloud2_becomes_a_cloud_at_the_interpolated_6dof_sensor_pose():
     msg.fields = msg.fields[:2]
     with pytest.raises(InputFormatError, match=r"/points.*no field z"):
         cloud_from_pointcloud2(msg, pose, source="/points")
+
+
+def _cloud_message(points: np.ndarray, stamp: float, frame: str = "lidar") -> Any:
+    """A PointCloud2-like message of `points` (n, 3) in the sensor frame: FLOAT64 x, y, z, big-endian."""
+    from types import SimpleNamespace
+
+    msg = _cloud([("x", 0, 8), ("y", 8, 8), ("z", 16, 8)], 24, np.asarray(points, dtype=">f8"), big=True)
+    sec = int(stamp)
+    msg.header = SimpleNamespace(stamp=SimpleNamespace(sec=sec, nanosec=round((stamp - sec) * 1e9)), frame_id=frame)
+    return msg
+
+
+def test_the_live_map_of_clouds_finds_the_room_and_saves_the_voxel_set(tmp_path):
+    import gpomap
+    from gpomap.config import VOXEL_MAP_DEFAULTS
+    from gpomap.grid import OCCUPIED
+    from gpomap.ros2.node import make_cloud_map, ros2_settings
+    from gpomap.ros2.poses import PoseBuffer3D
+    from tests.world3d import ORIGINS, ROOM, lidar_clouds, occupied
+
+    settings = ros2_settings(lambda name, default: {"cloud_topic": "points", "warmup_scans": 3}.get(name, default))
+    # gpomap map's 3-D defaults where the parameters are unset.
+    assert settings.node.resolution == VOXEL_MAP_DEFAULTS["resolution"]
+    assert settings.node.model["min_cell"] == VOXEL_MAP_DEFAULTS["min_cell"] and settings.sensor_pose == (0.0,) * 6
+    live = make_cloud_map(settings.node, source="/points")
+    poses = PoseBuffer3D((0.0, 0.0, 0.1, 0.0, 0.0, 0.0))
+    clouds = lidar_clouds(ORIGINS, n_rays=300)
+    for t, cloud in enumerate(clouds):
+        # Odometry puts the robot 0.1 m below the sensor, turned 30 degrees; the message is in the sensor frame.
+        yaw = np.pi / 6
+        rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+        poses.add(float(t), tuple(cloud.origin - [0, 0, 0.1]), _quaternion_z(yaw))
+        live.receive(_cloud_message((cloud.points - cloud.origin) @ rot, float(t)))
+    assert live.process(poses.lookup) == len(clouds) and live.n_rejected == 0
+    voxels = live.voxels()
+    centres = voxels.spec.centres()
+    lo, hi = live.voxel_bounds()
+    # The room's box, by the margin of gpomap map's voxel bounds.
+    assert np.all(lo <= ROOM[0] + 1e-9) and np.all(hi >= ROOM[1] - 1e-9)
+    taken = (voxels.ternary == OCCUPIED).ravel()
+    assert taken.sum() > 50
+    # Occupied voxels lie on the walls, floor, ceiling or pillar (within a voxel and a half of one)
+    # as often as in gpomap map's batch voxel map of the same clouds, on the same voxels.
+    from gpomap.apps.map3d import default_model
+    from gpomap.lattice import bounds_extent
+
+    batch, resolution = default_model(clouds, workers=1)
+    assert resolution == settings.node.resolution
+    batch_voxels = batch.fit(clouds).grid(resolution, bounds_extent(lo, hi))
+    batch_taken = (batch_voxels.ternary == OCCUPIED).ravel()
+    on_surface = occupied(centres[taken], thickness=0.15).mean()
+    assert on_surface > 0.8 and on_surface >= occupied(centres[batch_taken], thickness=0.15).mean() - 0.05
+    # Queries in 3-D, and the saved map file answers them as the live map does.
+    pts = np.array([[3.0, 2.0, 1.2], [0.0, 2.0, 1.2], [5.9, 3.9, 2.4]])
+    probability, variance = live.query(pts)
+    assert probability[0] < 0.5 and variance.shape == (3,)
+    files = {f.name for f in live.save(tmp_path / "saved")}
+    assert {"map.npz", "map.bt", "map.ply", "map.gpom"} <= files
+    np.testing.assert_allclose(gpomap.load_map(tmp_path / "saved" / "map.gpom").predict_proba(pts), probability, atol=1e-12)
+    with pytest.raises(ValueError, match="3-D map"):
+        live.render(0.1)
+
+
+def test_ros2_settings_in_3d_take_six_numbers_and_keep_what_is_set():
+    from gpomap.errors import GpomapError
+    from gpomap.ros2.node import ros2_settings
+
+    given = {"cloud_topic": "points", "resolution": 0.2, "sensor_pose": [0.1, 0.0, 0.3, 0.0, 0.1, 0.2]}
+    s = ros2_settings(lambda name, default: given.get(name, default), {"min_cell": 0.5})
+    assert s.cloud_topic == "points" and s.sensor_pose == (0.1, 0.0, 0.3, 0.0, 0.1, 0.2)
+    # Set values stay; unset ones take gpomap map's 3-D defaults.
+    assert s.node.resolution == 0.2 and s.node.model == {"min_cell": 0.5, "max_cell": 1.0} and s.node.tile_size == 3.0
+    assert ros2_settings(lambda n, d: {"cloud_topic": "p", "sensor_pose": [1, 2, 3]}.get(n, d)).sensor_pose == (1, 2, 0, 0, 0, 3)
+    for pose, what in (([0.0] * 6, "must be \\[x, y, yaw\\]"), ([0.0] * 4, "x, y, z, roll, pitch, yaw")):
+        topic = "" if len(pose) == 6 else "points"
+        with pytest.raises(GpomapError, match=what):
+            ros2_settings(lambda n, d, pose=pose, topic=topic: {"cloud_topic": topic, "sensor_pose": pose}.get(n, d))
+    with pytest.raises(GpomapError, match="six finite numbers"):
+        ros2_settings(lambda n, d: {"cloud_topic": "p", "sensor_pose": [0, 0, 0, 0, "a", 0]}.get(n, d))

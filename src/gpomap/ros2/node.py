@@ -24,6 +24,14 @@ Services: ``~/save_map`` (``std_srvs/Trigger``) writes ``map.yaml`` + ``map.pgm`
 on any grid, the request's ``map_url`` holding ``resolution=R extent=xmin,xmax,ymin,ymax
 layer=probability|trinary|variance`` (:func:`gpomap.ros2.queries.parse_render_request`).
 
+3-D (``cloud_topic`` set): the node subscribes to ``sensor_msgs/PointCloud2`` on ``cloud_topic``
+instead of the scans, takes the odometry's full 6-DoF pose (:class:`gpomap.ros2.poses.PoseBuffer3D`;
+``sensor_pose`` then [x, y, z, roll, pitch, yaw], or [x, y, yaw]), maps with the 3-D defaults of
+``gpomap map`` (:data:`gpomap.config.VOXEL_MAP_DEFAULTS` where a parameter is unset, 3-D tiles),
+and publishes the occupied voxel centres on ``map_cloud`` (``sensor_msgs/PointCloud2``, FLOAT32
+x, y, z, probability) in place of the grids; ``~/save_map`` writes the voxel output set,
+``~/query`` takes x, y, z and answers x, y, z, probability, variance; ``~/render`` is refused.
+
 Parameters: those of the ROS 1 node (:func:`gpomap.ros.node.settings_from_params`, checked by the
 same code) and :data:`ROS2_DEFAULTS`; AreaGPOM options as ``model.<option>``.
 """
@@ -53,6 +61,7 @@ _INSTALL = 'pip install "gpomap[ros2]"'
 #: The ROS 2 node's own parameters and their defaults.
 ROS2_DEFAULTS: dict[str, Any] = {
     "odom_topic": "odom",
+    "cloud_topic": "",
     "sensor_pose": [0.0, 0.0, 0.0],
     "sensor_upside_down": False,
     "sensor_qos": "best_effort",
@@ -72,9 +81,11 @@ class Ros2Settings:
 
     node: NodeSettings
     odom_topic: str = "odom"
-    sensor_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    sensor_pose: tuple[float, ...] = (0.0, 0.0, 0.0)
     sensor_upside_down: bool = False
     sensor_qos: str = "best_effort"
+    #: The PointCloud2 topic; empty: map LaserScan messages in 2-D.
+    cloud_topic: str = ""
 
 
 def ros2_settings(get: Callable[[str, Any], Any], model: dict[str, Any] | None = None) -> Ros2Settings:
@@ -92,7 +103,8 @@ def ros2_settings(get: Callable[[str, Any], Any], model: dict[str, Any] | None =
     Ros2Settings
         ``node``: :func:`gpomap.ros.node.settings_from_params`'s settings; ``odom_topic``
         (``odom``), ``sensor_pose`` ([x, y, yaw] of the laser in the odometry's child frame,
-        metres and radians; [0, 0, 0]), ``sensor_upside_down`` (false), ``sensor_qos``
+        metres and radians; [0, 0, 0]; with ``cloud_topic``, [x, y, z, roll, pitch, yaw] or
+        [x, y, yaw], always returned as six values), ``cloud_topic`` (empty: 2-D), ``sensor_upside_down`` (false), ``sensor_qos``
         (``best_effort``, which receives from any publisher, or ``reliable``, which loses no
         message but does not hear best-effort publishers).
 
@@ -106,15 +118,23 @@ def ros2_settings(get: Callable[[str, Any], Any], model: dict[str, Any] | None =
     except GpomapError as exc:
         # The shared checks name parameters the ROS 1 way (~name); ROS 2 has no ~ in a parameter's name.
         raise GpomapError(str(exc).replace("parameter ~", "parameter ", 1)) from None
+    cloud_topic = str(get("cloud_topic", "") or "")
     pose = get("sensor_pose", ROS2_DEFAULTS["sensor_pose"])
-    if isinstance(pose, str) or not isinstance(pose, Sequence) or len(pose) != 3:
-        raise GpomapError(f"parameter sensor_pose must be [x, y, yaw] (metres, radians), got {pose!r}")
+    sizes = (3, 6) if cloud_topic else (3,)
+    if isinstance(pose, str) or not isinstance(pose, Sequence) or len(pose) not in sizes:
+        expected = "[x, y, z, roll, pitch, yaw] or [x, y, yaw]" if cloud_topic else "[x, y, yaw]"
+        raise GpomapError(f"parameter sensor_pose must be {expected} (metres, radians), got {pose!r}")
     try:
         values = [float(v) for v in pose]
     except (TypeError, ValueError):
         values = [math.nan]
     if not all(math.isfinite(v) for v in values):
-        raise GpomapError(f"parameter sensor_pose must be three finite numbers [x, y, yaw], got {pose!r}")
+        expected = "six finite numbers [x, y, z, roll, pitch, yaw]" if len(pose) == 6 else "three finite numbers [x, y, yaw]"
+        raise GpomapError(f"parameter sensor_pose must be {expected}, got {pose!r}")
+    if cloud_topic:
+        if len(values) == 3:
+            values = [values[0], values[1], 0.0, 0.0, 0.0, values[2]]
+        node = _with_3d_defaults(node, get, model or {})
     upside_down = get("sensor_upside_down", False)
     if not isinstance(upside_down, bool):
         raise GpomapError(f"parameter sensor_upside_down must be true or false, got {upside_down!r}")
@@ -124,10 +144,30 @@ def ros2_settings(get: Callable[[str, Any], Any], model: dict[str, Any] | None =
     return Ros2Settings(
         node=node,
         odom_topic=str(get("odom_topic", ROS2_DEFAULTS["odom_topic"])),
-        sensor_pose=(values[0], values[1], values[2]),
+        sensor_pose=tuple(values),
         sensor_upside_down=upside_down,
         sensor_qos=qos,
+        cloud_topic=cloud_topic,
     )
+
+
+def _with_3d_defaults(node: NodeSettings, get: Callable[[str, Any], Any], model: dict[str, Any]) -> NodeSettings:
+    """`node` with ``gpomap map``'s 3-D defaults where the parameter is unset: resolution, cells, 3-D tiles."""
+    import dataclasses
+
+    from gpomap.config import VOXEL_MAP_DEFAULTS
+    from gpomap.tiles import DEFAULT_TILE_SIZE
+
+    unset = object()
+    changes: dict[str, Any] = {}
+    if get("resolution", unset) is unset:
+        changes["resolution"] = VOXEL_MAP_DEFAULTS["resolution"]
+    if get("tile_size", unset) is unset:
+        changes["tile_size"] = DEFAULT_TILE_SIZE[3]
+    cells = {k: v for k, v in VOXEL_MAP_DEFAULTS.items() if k != "resolution" and k not in model}
+    if cells:
+        changes["model"] = {**node.model, **cells}
+    return dataclasses.replace(node, **changes)
 
 
 def read_settings(node: Any) -> Ros2Settings:
@@ -154,6 +194,9 @@ def read_settings(node: Any) -> Ros2Settings:
             node.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
 
     def get(name: str, default: Any) -> Any:
+        if name not in given:
+            # Unset: the caller's default (the 3-D defaults differ from the declared 2-D ones).
+            return default
         value = node.get_parameter(name).value
         if value is None:
             return default
@@ -190,9 +233,18 @@ class Ros2Node:
         s = settings.node
         self._grid_type, self._string_type, self._cloud_type, self._field_type = OccupancyGrid, String, PointCloud2, PointField
         self._load_map = LoadMap
-        self.scan_topic = node.resolve_topic_name(s.scan_topic)
-        self.live = make_live_map(s, source=self.scan_topic)
-        self.poses = PoseBuffer(settings.sensor_pose, settings.sensor_upside_down)
+        self.three_d = bool(settings.cloud_topic)
+        self.scan_topic = node.resolve_topic_name(settings.cloud_topic or s.scan_topic)
+        self.poses: Any
+        if self.three_d:
+            from gpomap.ros2.poses import PoseBuffer3D
+
+            self.live = make_cloud_map(s, source=self.scan_topic)
+            self.poses = PoseBuffer3D(settings.sensor_pose)
+        else:
+            self.live = make_live_map(s, source=self.scan_topic)
+            p = settings.sensor_pose
+            self.poses = PoseBuffer((p[0], p[1], p[2]), settings.sensor_upside_down)
         self.n_odometry = 0
         self.n_odometry_rejected = 0
         self._wake = threading.Event()
@@ -205,13 +257,15 @@ class Ros2Node:
         reliability = ReliabilityPolicy.RELIABLE if settings.sensor_qos == "reliable" else ReliabilityPolicy.BEST_EFFORT
         # A deep queue: the callbacks only append, the main loop drains it.
         sensor = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=reliability)
-        self.publishers = {
-            name: node.create_publisher(OccupancyGrid, name, latched) for name in ("map", "map_probability", "map_variance")
-        }
+        layers = () if self.three_d else ("map", "map_probability", "map_variance")
+        self.publishers = {name: node.create_publisher(OccupancyGrid, name, latched) for name in layers}
+        self.cloud_publisher = node.create_publisher(PointCloud2, "map_cloud", latched) if self.three_d else None
         self.status_publisher = node.create_publisher(String, "~/status", latched)
         self.query_publisher = node.create_publisher(PointCloud2, "~/query_result", 10)
         self.subscriptions = [
-            node.create_subscription(LaserScan, s.scan_topic, self._on_scan, sensor),
+            node.create_subscription(PointCloud2, settings.cloud_topic, self._on_scan, sensor)
+            if self.three_d
+            else node.create_subscription(LaserScan, s.scan_topic, self._on_scan, sensor),
             node.create_subscription(Odometry, settings.odom_topic, self._on_odometry, sensor),
             node.create_subscription(PointCloud2, "~/query", self._on_query, 10),
         ]
@@ -237,7 +291,11 @@ class Ros2Node:
             self.live.last_error = f"odometry in frame {frame!r}, expected fixed_frame {self.settings.node.fixed_frame!r}"
             return
         pose = msg.pose.pose
-        self.poses.add(stamp_seconds(msg.header.stamp), *pose_from_transform(pose.position, pose.orientation))
+        if self.three_d:
+            p, q = pose.position, pose.orientation
+            self.poses.add(stamp_seconds(msg.header.stamp), (p.x, p.y, p.z), (q.x, q.y, q.z, q.w))
+        else:
+            self.poses.add(stamp_seconds(msg.header.stamp), *pose_from_transform(pose.position, pose.orientation))
         self.n_odometry += 1
         self._wake.set()
 
@@ -273,6 +331,8 @@ class Ros2Node:
             self.status_publisher.publish(self._string_type(data=json.dumps(status)))
             return False
         t = time.perf_counter()
+        if self.three_d:
+            return self._publish_voxels(status, t)
         layers = self.live.layers()
         if layers is None:
             return False
@@ -282,6 +342,40 @@ class Ros2Node:
         self._published_scans = status["n_used"]
         status["publish_seconds"] = time.perf_counter() - t
         status["width"], status["height"] = layers.width, layers.height
+        self.status_publisher.publish(self._string_type(data=json.dumps(status)))
+        return True
+
+    def _publish_voxels(self, status: dict[str, Any], t: float) -> bool:
+        from gpomap.grid import OCCUPIED
+
+        try:
+            voxels = self.live.voxels()
+        except GpomapError as exc:
+            # A voxel grid over the memory limit: say so on the status, keep mapping.
+            self.live.last_error = str(exc)
+            self.status_publisher.publish(self._string_type(data=json.dumps(self.status())))
+            return False
+        occupied = (voxels.ternary == OCCUPIED).ravel()
+        table = np.column_stack([voxels.spec.centres()[occupied], voxels.probability.ravel()[occupied]])
+        out = self._cloud_type()
+        out.header.frame_id = self.settings.node.fixed_frame
+        out.header.stamp = _time(self.live.stamp or 0.0)
+        out.height, out.width = 1, len(table)
+        out.fields = [
+            self._field_type(name=name, offset=4 * i, datatype=7, count=1)
+            for i, name in enumerate(("x", "y", "z", "probability"))
+        ]
+        out.is_bigendian = False
+        out.point_step = 16
+        out.row_step = 16 * len(table)
+        out.data = array.array("B", np.ascontiguousarray(table, dtype="<f4").tobytes())
+        out.is_dense = True
+        assert self.cloud_publisher is not None
+        self.cloud_publisher.publish(out)
+        self._published_scans = status["n_used"]
+        status["publish_seconds"] = time.perf_counter() - t
+        status["n_occupied_voxels"] = len(table)
+        status["voxel_shape"] = list(voxels.spec.shape)
         self.status_publisher.publish(self._string_type(data=json.dumps(status)))
         return True
 
@@ -328,11 +422,11 @@ class Ros2Node:
                 raise InputFormatError(
                     f"{source}: points in frame {frame!r}, expected fixed_frame {self.settings.node.fixed_frame!r}"
                 )
-            points = points_from_cloud(msg, source)
+            points = points_from_cloud(msg, source, dim=self.live.dim)
         except InputFormatError as exc:
             # The answer still goes out, empty, so that a caller waiting for it is not left hanging.
             self.node.get_logger().warning(str(exc))
-            points = np.empty((0, 2))
+            points = np.empty((0, self.live.dim))
         try:
             probability, variance = self.live.query(points) if len(points) else (np.empty(0), np.empty(0))
         except NotFittedError:
@@ -340,10 +434,12 @@ class Ros2Node:
         out = self._cloud_type()
         out.header = msg.header
         out.height, out.width = 1, len(points)
-        out.fields = [self._field_type(name=name, offset=offset, datatype=8, count=1) for name, offset in RESULT_FIELDS]
+        names = ("x", "y", "z")[: self.live.dim] + tuple(name for name, _ in RESULT_FIELDS[2:])
+        step = RESULT_POINT_STEP + 8 * (self.live.dim - 2)
+        out.fields = [self._field_type(name=name, offset=8 * i, datatype=8, count=1) for i, name in enumerate(names)]
         out.is_bigendian = False
-        out.point_step = RESULT_POINT_STEP
-        out.row_step = RESULT_POINT_STEP * len(points)
+        out.point_step = step
+        out.row_step = step * len(points)
         out.data = array.array("B", result_cloud_data(points, probability, variance))
         out.is_dense = bool(np.isfinite(probability).all())
         self.query_publisher.publish(out)
@@ -361,6 +457,31 @@ class Ros2Node:
             if time.monotonic() >= next_publish:
                 self.publish()
                 next_publish = time.monotonic() + period
+
+
+def make_cloud_map(settings: NodeSettings, source: str) -> Any:
+    """The :class:`~gpomap.ros.live.LiveMap` of clouds over a new 3-D streaming mapper with these settings."""
+    from gpomap.ros.cloudmap import CloudStreamingGPOM
+    from gpomap.ros.live import LiveMap
+
+    mapper = CloudStreamingGPOM(
+        warmup_scans=settings.warmup_scans,
+        max_refits=settings.max_refits,
+        tile_size=settings.tile_size,
+        n_workers=1,
+        thresholds=settings.thresholds,
+        **settings.model,
+    )
+    return LiveMap(
+        mapper,
+        settings.resolution,
+        extent=settings.extent,
+        time_offset=settings.time_offset,
+        max_range=settings.max_range,
+        pose_wait=settings.pose_wait,
+        source=source,
+        kind="cloud",
+    )
 
 
 def _usage() -> str:

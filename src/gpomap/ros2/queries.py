@@ -113,8 +113,8 @@ def parse_render_request(text: str) -> RenderRequest:
     return RenderRequest(resolution, extent, layer)
 
 
-def points_from_cloud(msg: Any, source: str = "query") -> NDArray[np.float64]:
-    """The x, y of a ``sensor_msgs/PointCloud2``'s points (other fields ignored).
+def points_from_cloud(msg: Any, source: str = "query", dim: int = 2) -> NDArray[np.float64]:
+    """The x, y (and z with `dim` 3) of a ``sensor_msgs/PointCloud2``'s points (other fields ignored).
 
     Parameters
     ----------
@@ -123,10 +123,12 @@ def points_from_cloud(msg: Any, source: str = "query") -> NDArray[np.float64]:
         ``height``, ``width``, ``data``.
     source : str
         The topic, for error messages.
+    dim : {2, 3}
+        Read x, y or x, y, z.
 
     Returns
     -------
-    ndarray of shape (height * width, 2)
+    ndarray of shape (height * width, dim)
 
     Raises
     ------
@@ -136,10 +138,11 @@ def points_from_cloud(msg: Any, source: str = "query") -> NDArray[np.float64]:
     fields = {f.name: f for f in msg.fields}
     order = ">" if msg.is_bigendian else "<"
     names, formats, offsets = [], [], []
-    for k in ("x", "y"):
+    axes = ("x", "y", "z")[:dim]
+    for k in axes:
         if k not in fields:
             raise InputFormatError(
-                f"{source}: PointCloud2 has no field {k!r} (fields: {', '.join(fields) or '(none)'}); expected x, y"
+                f"{source}: PointCloud2 has no field {k!r} (fields: {', '.join(fields) or '(none)'}); expected {', '.join(axes)}"
             )
         f = fields[k]
         if f.datatype not in _FLOAT_TYPES:
@@ -155,14 +158,14 @@ def points_from_cloud(msg: Any, source: str = "query") -> NDArray[np.float64]:
     if not fits or row < w * step or data.size < h * row:
         raise InputFormatError(
             f"{source}: PointCloud2 of {data.size} data bytes for height {h}, width {w}, point_step {step}, row_step {row}, "
-            f"fields x, y at offsets {offsets[0]}, {offsets[1]}; expected height x row_step bytes and fields inside each point"
+            f"fields {', '.join(axes)} at offsets {', '.join(map(str, offsets))}; expected height x row_step bytes and fields inside each point"
         )
     if h * w == 0:
-        return np.empty((0, 2))
+        return np.empty((0, dim))
     dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": step})
     rows = data[: h * row].reshape(h, row)[:, : w * step]
     pts = np.frombuffer(np.ascontiguousarray(rows).tobytes(), dtype=dtype)
-    return np.column_stack([pts["x"], pts["y"]]).astype(float)
+    return np.column_stack([pts[k] for k in axes]).astype(float)
 
 
 def result_cloud_data(points: NDArray[np.float64], probability: NDArray[np.float64], variance: NDArray[np.float64]) -> bytes:
@@ -170,13 +173,15 @@ def result_cloud_data(points: NDArray[np.float64], probability: NDArray[np.float
 
     Parameters
     ----------
-    points : ndarray of shape (m, 2)
+    points : ndarray of shape (m, 2), or (m, 3) for a 3-D map (then z follows y and every field moves 8 bytes on)
     probability, variance : ndarray of shape (m,)
 
     Returns
     -------
     bytes
-        ``m * RESULT_POINT_STEP`` bytes, little-endian float64.
+        ``m * RESULT_POINT_STEP`` bytes (8 more a point in 3-D), little-endian float64.
     """
-    table = np.column_stack([np.asarray(points, float).reshape(-1, 2), np.ravel(probability), np.ravel(variance)])
+    pts = np.asarray(points, float)
+    pts = pts.reshape(-1, pts.shape[-1] if pts.ndim == 2 else 2)
+    table = np.column_stack([pts, np.ravel(probability), np.ravel(variance)])
     return np.ascontiguousarray(table, dtype="<f8").tobytes()
