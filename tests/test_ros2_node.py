@@ -744,3 +744,172 @@ def test_ros2_settings_in_3d_take_six_numbers_and_keep_what_is_set():
             ros2_settings(lambda n, d, pose=pose, topic=topic: {"cloud_topic": topic, "sensor_pose": pose}.get(n, d))
     with pytest.raises(GpomapError, match="six finite numbers"):
         ros2_settings(lambda n, d: {"cloud_topic": "p", "sensor_pose": [0, 0, 0, 0, "a", 0]}.get(n, d))
+
+
+# Publishes the simulated room's six lidar clouds (sensor frame, FLOAT32 with an intensity) and their odometry.
+PLAYER_3D = r"""
+import sys, time
+import numpy as np
+import rclpy
+from rclpy.duration import Duration
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from builtin_interfaces.msg import Time
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import PointCloud2, PointField
+
+sys.path.insert(0, sys.argv[1])
+from tests.world3d import ORIGINS, lidar_clouds
+
+yaw = float(sys.argv[2])
+rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+rclpy.init()
+node = rclpy.create_node("gpomap_test_cloud_player")
+qos = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+odom, points = node.create_publisher(Odometry, "/odom", qos), node.create_publisher(PointCloud2, "/points", qos)
+deadline = time.monotonic() + 60
+while odom.get_subscription_count() == 0 or points.get_subscription_count() == 0:
+    assert time.monotonic() < deadline, "the node never subscribed"
+    time.sleep(0.05)
+for t, cloud in enumerate(lidar_clouds(ORIGINS, n_rays=300), start=1):
+    o = Odometry(child_frame_id="base_link")
+    o.header.stamp, o.header.frame_id = Time(sec=t), "odom"
+    p = cloud.origin - [0.0, 0.0, 0.1]
+    o.pose.pose.position.x, o.pose.pose.position.y, o.pose.pose.position.z = (float(v) for v in p)
+    o.pose.pose.orientation.z, o.pose.pose.orientation.w = float(np.sin(yaw / 2)), float(np.cos(yaw / 2))
+    odom.publish(o)
+    table = np.column_stack([(cloud.points - cloud.origin) @ rot, np.full(cloud.n_points, 7.0)]).astype("<f4")
+    m = PointCloud2(height=1, width=len(table), is_bigendian=False, point_step=16, row_step=16 * len(table), is_dense=True)
+    m.header.stamp, m.header.frame_id = Time(sec=t), "lidar"
+    m.fields = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1) for i, n in enumerate(("x", "y", "z", "intensity"))]
+    m.data = table.tobytes()
+    points.publish(m)
+    time.sleep(0.05)
+for p in (odom, points):
+    assert p.wait_for_all_acked(Duration(seconds=60)), "messages not acknowledged"
+node.destroy_node()
+rclpy.shutdown()
+"""
+
+# Records map_cloud and the status; once every cloud is used and mapped, saves, queries x, y, z, writes JSON.
+CLIENT_3D = r"""
+import base64, json, sys, time
+import numpy as np
+import rclpy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+out_path, ready_path, n_clouds, pts = sys.argv[1], sys.argv[2], int(sys.argv[3]), np.array(json.loads(sys.argv[4]))
+rclpy.init()
+node = rclpy.create_node("gpomap_test_cloud_client")
+latched = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+clouds, statuses, answers = [], [], {}
+
+def cloud(m):
+    return {"frame_id": m.header.frame_id, "fields": [(f.name, f.offset, f.datatype) for f in m.fields],
+            "point_step": m.point_step, "width": m.width, "data": base64.b64encode(bytes(m.data)).decode()}
+
+subs = [node.create_subscription(PointCloud2, "/map_cloud", lambda m: clouds.append(cloud(m)), latched),
+        node.create_subscription(String, "/gpomap/status", lambda m: statuses.append(json.loads(m.data)), latched),
+        node.create_subscription(PointCloud2, "/gpomap/query_result", lambda m: answers.update({1: cloud(m)}), 10)]
+query = node.create_publisher(PointCloud2, "/gpomap/query", 10)
+deadline = time.monotonic() + 60
+while any(s.get_publisher_count() == 0 for s in subs) or query.get_subscription_count() == 0:
+    assert time.monotonic() < deadline, "the node's topics never matched"
+    rclpy.spin_once(node, timeout_sec=0.1)
+open(ready_path, "w").close()
+deadline = time.monotonic() + 120
+while not (statuses and statuses[-1]["n_used"] == n_clouds and "n_occupied_voxels" in statuses[-1]):
+    assert time.monotonic() < deadline, f"no final map; last status {statuses[-1:]}"
+    rclpy.spin_once(node, timeout_sec=0.1)
+for _ in range(10):  # the map may trail its status by a few callbacks
+    rclpy.spin_once(node, timeout_sec=0.1)
+client = node.create_client(Trigger, "/gpomap/save_map")
+assert client.wait_for_service(timeout_sec=30)
+future = client.call_async(Trigger.Request())
+rclpy.spin_until_future_complete(node, future, timeout_sec=120)
+save = future.result()
+m = PointCloud2(height=1, width=len(pts), is_bigendian=False, point_step=24, row_step=24 * len(pts), is_dense=True)
+m.header.stamp.sec, m.header.frame_id = 1, "odom"
+m.fields = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1) for i, n in enumerate("xyz")]
+m.data = pts.astype("<f8").tobytes()
+query.publish(m)
+deadline = time.monotonic() + 60
+while 1 not in answers:
+    assert time.monotonic() < deadline, "no query result"
+    rclpy.spin_once(node, timeout_sec=0.1)
+with open(out_path, "w") as f:
+    json.dump({"clouds": clouds, "statuses": statuses, "save": {"success": save.success, "message": save.message},
+               "answer": answers[1]}, f)
+node.destroy_node()
+rclpy.shutdown()
+"""
+
+
+@needs_ros2
+@pytest.mark.slow
+def test_ros2_node_maps_pointclouds_in_3d_and_answers_its_services(ros2_env, start, tmp_path):
+    import gpomap
+    from gpomap.apps.map3d import default_model
+    from gpomap.grid import OCCUPIED
+    from gpomap.lattice import bounds_extent
+    from gpomap.ros.live import LiveMap
+    from tests.world3d import ORIGINS, lidar_clouds, occupied
+
+    yaw = np.pi / 6
+    saved = tmp_path / "saved"
+    args = ["cloud_topic:=points", "warmup_scans:=3", "publish_rate:=5.0", "sensor_qos:=reliable", "pose_wait:=3.0"]
+    args += ["sensor_pose:=[0.0, 0.0, 0.1, 0.0, 0.0, 0.0]", f"save_directory:={saved}"]
+    node = start("node", [sys.executable, "-m", "gpomap.ros2", "--ros-args", *(x for a in args for x in ("-p", a))], ros2_env)
+    pts = [[3.0, 2.0, 1.2], [0.0, 2.0, 1.2], [5.9, 3.9, 2.4], [100.0, 100.0, 1.0]]
+    out, ready = tmp_path / "client.json", tmp_path / "client.ready"
+    (tmp_path / "client.py").write_text(CLIENT_3D)
+    client_args = [str(out), str(ready), str(len(ORIGINS)), json.dumps(pts)]
+    client = start("client", [sys.executable, str(tmp_path / "client.py"), *client_args], ros2_env)
+    _wait("the client's subscriptions", ready.exists, 90, (node, client), tmp_path)
+    (tmp_path / "player.py").write_text(PLAYER_3D)
+    play = subprocess.run(
+        [sys.executable, str(tmp_path / "player.py"), str(ROOT), repr(yaw)],
+        env=ros2_env,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert play.returncode == 0, play.stdout + play.stderr[-3000:]
+    _wait("the client's report", lambda: client.poll() is not None, 180, (node,), tmp_path)
+    assert client.returncode == 0, (tmp_path / "client.log").read_text()[-3000:]
+    report = json.loads(out.read_text())
+
+    status = report["statuses"][-1]
+    assert status["n_used"] == len(ORIGINS) and status["n_rejected"] == 0 and status["n_dropped_no_pose"] == 0
+    last = report["clouds"][-1]
+    assert last["frame_id"] == "odom" and last["point_step"] == 16
+    assert last["fields"] == [["x", 0, 7], ["y", 4, 7], ["z", 8, 7], ["probability", 12, 7]]
+    table = np.frombuffer(base64.b64decode(last["data"]), dtype="<f4").reshape(-1, 4).astype(float)
+    assert len(table) == status["n_occupied_voxels"] > 50 and np.all(table[:, 3] >= 0.5)
+    # The published voxels lie on the room's surfaces as often as gpomap map's batch voxels of the
+    # same clouds (same voxels: the node's box, the 3-D defaults' resolution).
+    clouds = lidar_clouds(ORIGINS, n_rays=300)
+    live = LiveMap(None, 0.1, kind="cloud")
+    for c in clouds:
+        live._grow(c)
+    batch, resolution = default_model(clouds, workers=1)
+    voxels = batch.fit(clouds).grid(resolution, bounds_extent(*live.voxel_bounds()))
+    batch_centres = voxels.spec.centres()[(voxels.ternary == OCCUPIED).ravel()]
+    on_surface = occupied(table[:, :3], thickness=0.15).mean()
+    batch_on_surface = occupied(batch_centres, thickness=0.15).mean()
+    print(
+        f"occupied voxels on a surface, node / batch: {on_surface:.3f} / {batch_on_surface:.3f} ({len(table)} / {len(batch_centres)})"
+    )
+    assert on_surface > 0.8 and on_surface >= batch_on_surface - 0.05
+    # The saved voxel set, and its map file answers the x, y, z query as the node did.
+    assert report["save"]["success"], report["save"]["message"]
+    assert {"map.npz", "map.bt", "map.ply", "map.gpom"} <= {p.name for p in saved.iterdir()}
+    answer = report["answer"]
+    assert [f[0] for f in answer["fields"]] == ["x", "y", "z", "probability", "variance"] and answer["width"] == len(pts)
+    result = np.frombuffer(base64.b64decode(answer["data"]), dtype="<f8").reshape(-1, 5)
+    np.testing.assert_array_equal(result[:, :3], pts)
+    np.testing.assert_allclose(gpomap.load_map(saved / "map.gpom").predict_proba(np.array(pts)), result[:, 3], rtol=0, atol=1e-12)
+    assert result[3, 3] == 0.5  # far outside: the prior
