@@ -796,6 +796,7 @@ import base64, json, sys, time
 import numpy as np
 import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from nav_msgs.srv import LoadMap
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -830,6 +831,11 @@ assert client.wait_for_service(timeout_sec=30)
 future = client.call_async(Trigger.Request())
 rclpy.spin_until_future_complete(node, future, timeout_sec=120)
 save = future.result()
+render = node.create_client(LoadMap, "/gpomap/render")
+assert render.wait_for_service(timeout_sec=30)
+future = render.call_async(LoadMap.Request(map_url="resolution=0.1"))
+rclpy.spin_until_future_complete(node, future, timeout_sec=60)
+render_result = future.result().result
 m = PointCloud2(height=1, width=len(pts), is_bigendian=False, point_step=24, row_step=24 * len(pts), is_dense=True)
 m.header.stamp.sec, m.header.frame_id = 1, "odom"
 m.fields = [PointField(name=n, offset=8 * i, datatype=PointField.FLOAT64, count=1) for i, n in enumerate("xyz")]
@@ -841,7 +847,7 @@ while 1 not in answers:
     rclpy.spin_once(node, timeout_sec=0.1)
 with open(out_path, "w") as f:
     json.dump({"clouds": clouds, "statuses": statuses, "save": {"success": save.success, "message": save.message},
-               "answer": answers[1]}, f)
+               "render": render_result, "answer": answers[1]}, f)
 node.destroy_node()
 rclpy.shutdown()
 """
@@ -913,3 +919,5 @@ def test_ros2_node_maps_pointclouds_in_3d_and_answers_its_services(ros2_env, sta
     np.testing.assert_array_equal(result[:, :3], pts)
     np.testing.assert_allclose(gpomap.load_map(saved / "map.gpom").predict_proba(np.array(pts)), result[:, 3], rtol=0, atol=1e-12)
     assert result[3, 3] == 0.5  # far outside: the prior
+    # A planar render of a 3-D map is refused with LoadMap's undefined-failure code.
+    assert report["render"] == 255
