@@ -48,11 +48,10 @@ DEFAULT_SCHEDULER_TIMEOUT = 60.0
 
 #: What a 3-D map (``gpomap map`` on point clouds) uses in place of the defaults measured on 2-D
 #: logs, for the options the user leaves unset. Cells of 1 m, not 0.5 m: a cube has 8 times as many
-#: cells per volume as a square has 4, so the 2-D default gave 4,775 cells on la3dm
-#: sim_structured's 9 training scans, tiles, and a fit not done in 15 minutes on this 2-core
-#: machine; 1 m gives 1,026 cells, one GP, and held-out AUC 0.817 (docs/3d.md has the
-#: measurements). Voxels of 0.1 m, OctoMap's usual (a planar map's default is the ray counts'
-#: cells, :attr:`MapConfig.evidence_resolution`).
+#: cells per volume as a square has 4, so half the side costs a 3-D map several times the fit
+#: for no gain across the 3-D cases of ``benchmarks/quality3d.py`` (docs/3d.md). Voxels of 0.1 m,
+#: OctoMap's usual (a planar map's default is the ray counts' cells,
+#: :attr:`MapConfig.evidence_resolution`).
 VOXEL_MAP_DEFAULTS: dict[str, float] = {"min_cell": 1.0, "max_cell": 1.0, "resolution": 0.1}
 
 

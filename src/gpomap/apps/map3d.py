@@ -16,7 +16,7 @@ The steps mirror the 2-D command:
    ``map-3d.png`` and ``map.gpom`` (the fitted map, :mod:`gpomap.io.mapfile`).
 
 :func:`build_model` and :func:`load_clouds` are free of printing so that benchmarks use the very
-model ``gpomap map`` builds (``benchmarks/volume_quality.py``).
+model ``gpomap map`` builds (``benchmarks/quality3d.py``, ``benchmarks/volume_quality.py``).
 """
 
 from __future__ import annotations
