@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.clouds import CloudScan
 from gpomap.errors import NotFittedError
 from gpomap.grid import GridSpec, OccupancyMap
 from gpomap.lattice import data_extent
@@ -113,7 +114,7 @@ class StreamingGPOM:
 
         self.options = {"n_workers": 1, "tile_size": DEFAULT_TILE_SIZE, **options}
         TiledGPOM(**self.options)  # checks the options now, not at the end of the warm-up
-        self._buffer: list[Scan] = []
+        self._buffer: list[Scan | CloudScan] = []
         self.model_: TiledGPOM | None = None
         self.n_scans_ = 0
         self._version = 0
@@ -132,11 +133,11 @@ class StreamingGPOM:
         """Whether the map can be read (the warm-up fit is done)."""
         return self.model_ is not None
 
-    def add_scan(self, scan: Scan) -> None:
+    def add_scan(self, scan: Scan | CloudScan) -> None:
         """Add one scan (see :meth:`add_scans`)."""
         self.add_scans([scan])
 
-    def add_scans(self, scans: Sequence[Scan]) -> None:
+    def add_scans(self, scans: Sequence[Scan | CloudScan]) -> None:
         """Add scans, in the order the robot took them.
 
         During the warm-up they are kept until `warmup_scans` have arrived, then the first map
@@ -144,7 +145,7 @@ class StreamingGPOM:
 
         Parameters
         ----------
-        scans : sequence of Scan
+        scans : sequence of Scan or CloudScan (one kind throughout)
         """
         scans = list(scans)
         if not scans:
@@ -163,8 +164,19 @@ class StreamingGPOM:
                 self._record_change(self._whole_extent())
             return
         self.model_.absorb(scans)
-        self._record_change(scan_extent(scans, include_no_return=True, no_return_cap=self.model_.base.no_return_cap))
+        self._record_change(self._scans_extent(scans))
         self._add_seconds.append((time.perf_counter() - t0) / len(scans))
+
+    def _scans_extent(self, scans: Sequence[Scan | CloudScan]) -> Extent:
+        """(xmin, xmax, ymin, ymax) the scans may change: their beams' ends and origins (a cloud's in x, y)."""
+        assert self.model_ is not None
+        clouds = [c for c in scans if isinstance(c, CloudScan)]
+        if not clouds:
+            planar = [s for s in scans if isinstance(s, Scan)]
+            return scan_extent(planar, include_no_return=True, no_return_cap=self.model_.base.no_return_cap)
+        pts = np.concatenate([c.points[c.valid(), :2] for c in clouds] + [np.array([c.origin[:2] for c in clouds])])
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
 
     # ------------------------------------------------------------------ keeping the GP current
     def _model(self) -> TiledGPOM:

@@ -1697,7 +1697,7 @@ class TiledGPOM:
                 self.timings_["update_calibration"] = time.perf_counter() - t
             return self
 
-    def absorb(self, scans: Sequence[Scan]) -> set[tuple[int, int]]:
+    def absorb(self, scans: ScanData) -> set[tuple[int, int]]:
         """Take in scans at a cost proportional to them: their points are filed under their
         blocks and their rays counted, but no cell tree is rebuilt and no tile refitted until
         :meth:`refresh`. Predictions use the new ray counts at once, over the GP as it was.
@@ -1717,7 +1717,7 @@ class TiledGPOM:
         self._absorb(scans)
         return {self._decode(k) for k in self._dirty}
 
-    def _absorb(self, scans: Sequence[Scan]) -> None:
+    def _absorb(self, scans: ScanData) -> None:
         t0 = time.perf_counter()
         scans = list(scans)
         if not scans:

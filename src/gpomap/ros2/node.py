@@ -461,10 +461,10 @@ class Ros2Node:
 
 def make_cloud_map(settings: NodeSettings, source: str) -> Any:
     """The :class:`~gpomap.ros.live.LiveMap` of clouds over a new 3-D streaming mapper with these settings."""
-    from gpomap.ros.cloudmap import CloudStreamingGPOM
     from gpomap.ros.live import LiveMap
+    from gpomap.streaming import StreamingGPOM
 
-    mapper = CloudStreamingGPOM(
+    mapper = StreamingGPOM(
         warmup_scans=settings.warmup_scans,
         max_refits=settings.max_refits,
         tile_size=settings.tile_size,
