@@ -34,7 +34,7 @@ from gpomap.observations import observations_from_scans
 from gpomap.scans import Scan
 from gpomap.simulate import paper_room_scans
 from gpomap.streaming import StreamingGPOM
-from gpomap.tiles import TiledGPOM, _BlockPoints
+from gpomap.tiles import TiledGPOM, TileStore, _BlockPoints
 from tests import world3d
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -71,6 +71,11 @@ def assert_same(a, b, where="model", ignore=frozenset()):
         assert len(a) == len(b), f"{where}: {len(a)} items against {len(b)}"
         for i, (x, y) in enumerate(zip(a, b, strict=True)):
             assert_same(x, y, f"{where}[{i}]", ignore)
+    elif isinstance(a, TileStore):
+        # Tile by tile, whichever factors wait in the store's file.
+        assert sorted(a) == sorted(b), f"{where}: keys {sorted(a)[:8]} against {sorted(b)[:8]}"
+        for k in sorted(a):
+            assert_same(a[k], b[k], f"{where}[{k!r}]", ignore)
     elif isinstance(a, dict):
         # The blocks' points are filed in another order when recomputed (no reader depends on it).
         ka, kb = (sorted(a), sorted(b)) if where.endswith("_block_points") else (list(a), list(b))

@@ -535,3 +535,75 @@ def test_bad_given_hyperparameters_are_named_before_any_work(room, monkeypatch, 
     monkeypatch.setattr(tiles.MapSettings, "make_observations", no_work)
     with pytest.raises(ValueError, match=message):
         TiledGPOM(n_workers=1, **OPTS).fit(room, hyperparameters=given)
+
+
+def _state(key, n, rng, order="F"):
+    """A tile state whose factor is a random lower-triangular n x n matrix (a -0.0 on its diagonal's left)."""
+    L = np.tril(rng.normal(size=(n, n)))
+    if n > 1:
+        L[1, 0] = -0.0
+    L = np.asfortranarray(L) if order == "F" else np.ascontiguousarray(L)
+    lower = rng.normal(size=(n, 2))
+    X = Supports(lower, lower + 0.5, np.ones(n))
+    from gpomap.gp import GPPosterior
+    from gpomap.squash import ProbitSquash
+
+    post = GPPosterior(X, L, rng.normal(size=n), MapSettings(**OPTS).make_kernel(), ProbitSquash(1.0, 0.0))
+    return tiles.TileState(key, post, {"noise": 0.1}, 0.5)
+
+
+def test_a_tile_store_gives_back_every_factor_to_the_bit_whatever_waits_in_its_file():
+    rng = np.random.default_rng(3)
+    states = {(i, -i): _state((i, -i), 20 + 3 * i, rng, "F" if i % 2 else "C") for i in range(12)}
+    # Room for about two factors: the rest go to the file, least recently used first.
+    store = tiles.TileStore(budget=2 * 2 * 8 * 40 * 40, tiles=states)
+    assert store.spilled_bytes > 0 and len(store.resident()) < len(states)
+    assert sorted(store) == sorted(states) and len(store) == 12 and (3, -3) in store
+    for key, state in states.items():
+        got = store[key]
+        L = state.posterior.L
+        assert got.posterior.L.tobytes(order="A") == L.tobytes(order="A")
+        assert got.posterior.L.flags.f_contiguous == L.flags.f_contiguous
+        assert np.signbit(got.posterior.L[1, 0])  # the -0.0 below the diagonal kept
+        assert got.posterior.weights is state.posterior.weights and got.hyperparameters == state.hyperparameters
+        assert store.light(key).posterior.L.size == 0 and store.light(key).n_cells == state.n_cells
+    # A factor with something above its diagonal is kept whole.
+    full = _state((99, 0), 30, rng)
+    full.posterior.L[0, 5] = 2.5
+    store[(99, 0)] = full
+    for key in list(states)[:6]:
+        store[key]
+    assert store[(99, 0)].posterior.L.tobytes() == full.posterior.L.tobytes()
+    # Replaced and deleted tiles free their segments, which a factor of the same size takes again.
+    size = store.spilled_bytes
+    for key in list(states)[:6]:
+        store[key] = states[key]
+        store[key]
+    for key in list(states)[6:]:
+        store[key]
+    assert store.spilled_bytes == size
+    del store[(0, 0)]
+    assert (0, 0) not in store and len(store) == 12
+
+
+def test_a_map_whose_tiles_wait_in_a_file_is_the_map_kept_in_memory(room, reference, monkeypatch, tmp_path):
+    from gpomap.io.mapfile import load_fitted_map, save_fitted_map
+
+    hyp, _ = reference
+    whole = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    monkeypatch.setattr(tiles, "TILE_MEMORY", 1)  # one factor in memory at a time
+    spilled = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
+    assert spilled.tiles_.spilled_bytes > 0 and len(spilled.tiles_.resident()) == 1
+    a, b = whole.grid(0.25, (0.0, 20.0, 0.0, 16.0)), spilled.grid(0.25, (0.0, 20.0, 0.0, 16.0))
+    np.testing.assert_array_equal(a.probability, b.probability)
+    np.testing.assert_array_equal(a.variance, b.variance)
+    pts = np.random.default_rng(1).uniform((-2.0, -2.0), (22.0, 18.0), (3000, 2))
+    for x, y in zip(whole.predict_proba(pts, return_var=True), spilled.predict_proba(pts, return_var=True), strict=True):
+        np.testing.assert_array_equal(x, y)
+    # Updated, and saved and loaded: the same as the map kept in memory.
+    whole.update(room[:5])
+    spilled.update(room[:5])
+    np.testing.assert_array_equal(whole.predict_proba(pts), spilled.predict_proba(pts))
+    loaded = load_fitted_map(save_fitted_map(spilled, tmp_path / "map.gpom"))
+    np.testing.assert_array_equal(loaded.predict_proba(pts), whole.predict_proba(pts))
+    assert spilled.summary()["cells_per_tile"] == whole.summary()["cells_per_tile"]

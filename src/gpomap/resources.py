@@ -18,6 +18,8 @@ import functools
 import math
 import os
 import sys
+import tempfile
+import threading
 from collections.abc import Sequence
 from typing import Any
 
@@ -41,6 +43,8 @@ __all__ = [
     "peak_rss_mb",
     "release_freed_memory",
     "rss_mb",
+    "SpillFile",
+    "TILE_MEMORY",
     "default_memory_limit",
     "fit_memory",
     "format_bytes",
@@ -58,6 +62,12 @@ __all__ = [
 
 #: Fraction of the physical memory a run may plan to use by default (``--memory-limit``).
 DEFAULT_MEMORY_FRACTION = 0.5
+
+#: Bytes of fitted tiles' Cholesky factors (with the inverses prediction forms from them) a map
+#: keeps in memory; the least recently used beyond it wait in a temporary file
+#: (:class:`SpillFile`, :class:`gpomap.tiles.TileStore`), so a building's thousands of tiles
+#: cost the memory of the tiles in use, not of the building.
+TILE_MEMORY: int = 256 * 2**20
 
 #: A planar written map is built in bands of rows of at most about this many cells
 #: (:meth:`gpomap.fusion.EvidenceLayer.written_grid`): its temporaries (GP samples, counts,
@@ -187,6 +197,72 @@ def _malloc_trim() -> Any:
         return ctypes.CDLL("libc.so.6").malloc_trim
     except (OSError, AttributeError):
         return None
+
+
+class SpillFile:
+    """An unnamed temporary file that arrays are written to and read back from, exactly.
+
+    What a map holds but does not use all at once (the Cholesky factors of tiles not being
+    predicted) waits here instead of in memory. The file lives in :func:`tempfile.gettempdir`
+    (``TMPDIR``) and disappears with this object or the process. A segment freed (:meth:`free`)
+    is reused by the next array of the same size (a refitted tile is often as large as before).
+    Safe to use from several threads.
+    """
+
+    def __init__(self) -> None:
+        self._file: Any = None
+        self._end = 0
+        self._free: dict[int, list[int]] = {}
+        self._lock = threading.Lock()
+
+    @property
+    def size(self) -> int:
+        """Bytes the file holds, freed segments included."""
+        return self._end
+
+    def put(self, array: NDArray[Any]) -> tuple[int, int]:
+        """Write `array`'s bytes (C order); returns their (offset, length) for :meth:`get`."""
+        data = memoryview(np.ascontiguousarray(array).view(np.uint8).reshape(-1).data)
+        n = len(data)
+        with self._lock:
+            if self._file is None:
+                self._file = tempfile.TemporaryFile(prefix="gpomap-spill-")  # noqa: SIM115 (lives with the object)
+            reuse = self._free.get(n)
+            if reuse:
+                offset = reuse.pop()
+            else:
+                offset, self._end = self._end, self._end + n
+        fd = self._file.fileno()
+        done = 0
+        while done < n:
+            done += os.pwrite(fd, data[done:], offset + done)
+        return offset, n
+
+    def get(self, where: tuple[int, int], dtype: Any, shape: tuple[int, ...]) -> NDArray[Any]:
+        """The array written at `where` (:meth:`put`'s answer), of `dtype` and `shape` (C order)."""
+        offset, n = where
+        out = np.empty(n, dtype=np.uint8)
+        view = memoryview(out.data)
+        fd = self._file.fileno()
+        done = 0
+        while done < n:
+            got = os.preadv(fd, [view[done:]], offset + done)
+            if got <= 0:
+                raise OSError(f"the spill file ended {n - done} bytes short of an array")
+            done += got
+        return out.view(dtype).reshape(shape)
+
+    def free(self, where: tuple[int, int]) -> None:
+        """Let the segment at `where` be written over by a later array of its size."""
+        with self._lock:
+            self._free.setdefault(where[1], []).append(where[0])
+
+    def close(self) -> None:
+        """Delete the file now (it goes with the object otherwise)."""
+        with self._lock:
+            if self._file is not None:
+                self._file.close()
+            self._file, self._end, self._free = None, 0, {}
 
 
 def default_memory_limit(fraction: float = DEFAULT_MEMORY_FRACTION) -> int | None:

@@ -36,15 +36,18 @@ block is one GP over that block's cells.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import functools
 import math
 import multiprocessing
 import os
+import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator, Sequence
+from collections import OrderedDict
+from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any, Concatenate, ParamSpec, TypeVar, overload
 
 import numpy as np
@@ -64,7 +67,7 @@ from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas
 from gpomap.lattice import column_bounds, data_extent, stable_order
 from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
-from gpomap.resources import WRITTEN_BAND_CELLS, peak_rss_mb, release_freed_memory
+from gpomap.resources import TILE_MEMORY, WRITTEN_BAND_CELLS, SpillFile, peak_rss_mb, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
 from gpomap.squash import ProbitSquash, unseen_probit
@@ -257,6 +260,164 @@ class TileState:
     def n_cells(self) -> int:
         """Number of training cells."""
         return self.posterior.n_inputs
+
+
+#: A factor's place in a state that waits in a :class:`TileStore`'s file.
+_NO_FACTOR = np.zeros((0, 0))
+
+
+class TileStore(MutableMapping[tuple[int, int], TileState]):
+    """A map's fitted tiles by key, their Cholesky factors in memory within a budget.
+
+    A building holds thousands of tiles, each with an n x n factor (a megabyte at 380 cells),
+    and uses a few hundred at a time: the rows of a written map's band, the tiles round a
+    calibration's points. The factors of the tiles read or stored last are kept while they and
+    the inverses prediction forms beside them (counted as much again) fit in `budget` bytes; the
+    least recently used beyond it wait in a temporary file (:class:`~gpomap.resources.SpillFile`:
+    their lower triangle, the rest being zero as factors are, else the whole matrix) and are
+    read back when asked, the same numbers to the bit and in the same memory order. Everything
+    else of a state (cells, weights, hyperparameters, a few kilobytes) stays in memory:
+    :meth:`light` gives it without its factor.
+
+    Reading a tile moves it to the front; the states handed out stay valid whatever is evicted
+    after. Safe to use from several threads.
+
+    Parameters
+    ----------
+    budget : int, optional
+        Bytes of factors (twice each factor's size) kept in memory; the last tile stored or read
+        is kept whatever its size. Default :data:`gpomap.resources.TILE_MEMORY`.
+    tiles : mapping, optional
+        States to store first.
+    """
+
+    def __init__(self, budget: int | None = None, tiles: Mapping[tuple[int, int], TileState] | None = None) -> None:
+        self.budget = int(TILE_MEMORY if budget is None else budget)
+        self._light: dict[tuple[int, int], TileState] = {}
+        self._resident: OrderedDict[tuple[int, int], TileState] = OrderedDict()
+        # Where each factor waiting in the file is: (segment, rows, "C" or "F", lower triangle only).
+        self._spilled: dict[tuple[int, int], tuple[tuple[int, int], int, str, bool]] = {}
+        self._bytes = 0
+        self._file: SpillFile | None = None
+        self._lock = threading.RLock()
+        if tiles is not None:
+            self.update(tiles)
+
+    @staticmethod
+    def _cost(state: TileState) -> int:
+        # The factor and the K^-1 a prediction forms beside it (as large).
+        return 2 * int(state.posterior.L.nbytes)
+
+    @staticmethod
+    def _spillable(L: Any) -> bool:
+        return isinstance(L, np.ndarray) and L.ndim == 2 and L.shape[0] == L.shape[1] and L.dtype == np.float64
+
+    def __setitem__(self, key: tuple[int, int], state: TileState) -> None:
+        with self._lock:
+            self._forget(key)
+            if not self._spillable(state.posterior.L):
+                self._light[key] = state  # nothing to spill: kept whole
+                return
+            light = replace(state.posterior, L=_NO_FACTOR, precision=None)
+            self._light[key] = TileState(state.key, light, state.hyperparameters, state.seconds)
+            self._resident[key] = state
+            self._bytes += self._cost(state)
+            self._evict()
+
+    def _forget(self, key: tuple[int, int]) -> None:
+        state = self._resident.pop(key, None)
+        if state is not None:
+            self._bytes -= self._cost(state)
+        spilled = self._spilled.pop(key, None)
+        if spilled is not None and self._file is not None:
+            self._file.free(spilled[0])
+        self._light.pop(key, None)
+
+    def __delitem__(self, key: tuple[int, int]) -> None:
+        with self._lock:
+            if key not in self._light:
+                raise KeyError(key)
+            self._forget(key)
+
+    def __getitem__(self, key: tuple[int, int]) -> TileState:
+        with self._lock:
+            state = self._resident.get(key)
+            if state is not None:
+                self._resident.move_to_end(key)
+                return state
+            light = self._light[key]
+            if key not in self._spilled:
+                return light  # kept whole
+            assert self._file is not None
+            where, n, order, lower = self._spilled[key]
+            if lower:
+                L = np.zeros((n, n))
+                L[np.tri(n, dtype=bool)] = self._file.get(where, np.float64, (n * (n + 1) // 2,))
+            else:
+                L = self._file.get(where, np.float64, (n, n))
+            if order == "F":
+                L = np.asfortranarray(L)
+            state = TileState(light.key, replace(light.posterior, L=L), light.hyperparameters, light.seconds)
+            self._resident[key] = state
+            self._bytes += self._cost(state)
+            self._evict()
+            return state
+
+    def _evict(self) -> None:
+        """Send the least recently used factors to the file until the rest fit in the budget."""
+        while self._bytes > self.budget and len(self._resident) > 1:
+            key, state = self._resident.popitem(last=False)
+            self._bytes -= self._cost(state)
+            if key in self._spilled:
+                continue  # its factor is in the file already (factors never change)
+            L = state.posterior.L
+            order = "F" if L.flags.f_contiguous and not L.flags.c_contiguous else "C"
+            below = np.tri(L.shape[0], dtype=bool)
+            # Bit by bit, so a -0.0 above the diagonal is kept too.
+            lower = not np.ascontiguousarray(L).view(np.uint64)[~below].any()
+            if self._file is None:
+                self._file = SpillFile()
+            where = self._file.put(L[below] if lower else np.ascontiguousarray(L))
+            self._spilled[key] = (where, int(L.shape[0]), order, lower)
+
+    def __iter__(self) -> Iterator[tuple[int, int]]:
+        return iter(list(self._light))
+
+    def __len__(self) -> int:
+        return len(self._light)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._light
+
+    def light(self, key: tuple[int, int]) -> TileState:
+        """Tile `key`'s state without its factor (an empty ``posterior.L``): cells, weights,
+        hyperparameters, fit time; never read from the file."""
+        return self._light[key]
+
+    def light_states(self) -> list[TileState]:
+        """Every tile's :meth:`light` state, in key order of storing."""
+        with self._lock:
+            return list(self._light.values())
+
+    def resident(self) -> list[TileState]:
+        """The states whose factors are in memory now."""
+        with self._lock:
+            return list(self._resident.values())
+
+    @property
+    def spilled_bytes(self) -> int:
+        """Bytes of the temporary file (0 while every factor is in memory)."""
+        return 0 if self._file is None else self._file.size
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Pickled whole: a plain dict's worth of states.
+        return (TileStore, (self.budget, dict(self.items())))
+
+
+def light_tiles(tiles: Mapping[tuple[int, int], TileState]) -> Iterable[TileState]:
+    """The states of `tiles` as far as their cells, weights and hyperparameters go, without
+    reading factors back (:meth:`TileStore.light_states`; a plain dict's own values)."""
+    return tiles.light_states() if isinstance(tiles, TileStore) else tiles.values()
 
 
 @dataclass(frozen=True)
@@ -526,10 +687,11 @@ def _few_queries(fn: Callable[..., Any], jobs: list[tuple[tuple[int, int], tuple
 
 
 def _collect(
-    futures: dict[cf.Future, tuple[int, int]], bar: Progress
-) -> tuple[dict[tuple[int, int], Any], dict[tuple[int, int], Exception]]:
-    """Each tile's result, as its task finishes, and the exception of each task that failed."""
-    results: dict[tuple[int, int], Any] = {}
+    futures: dict[cf.Future, tuple[int, int]], bar: Progress, results: MutableMapping[tuple[int, int], Any] | None = None
+) -> tuple[MutableMapping[tuple[int, int], Any], dict[tuple[int, int], Exception]]:
+    """Each tile's result into `results` (a new dict by default), as its task finishes, and the
+    exception of each task that failed."""
+    results = {} if results is None else results
     failed: dict[tuple[int, int], Exception] = {}
     for f in cf.as_completed(futures):
         key = futures[f]
@@ -1218,8 +1380,13 @@ class TiledGPOM:
             client.close()
 
     def _run(
-        self, fn: Callable[..., Any], jobs: list[tuple[tuple[int, int], tuple[Any, ...]]], what: str, desc: str
-    ) -> dict[tuple[int, int], Any]:
+        self,
+        fn: Callable[..., Any],
+        jobs: list[tuple[tuple[int, int], tuple[Any, ...]]],
+        what: str,
+        desc: str,
+        into: MutableMapping[tuple[int, int], Any] | None = None,
+    ) -> MutableMapping[tuple[int, int], Any]:
         """Run ``fn(*args)`` for every (tile, args); each failed task is retried once.
 
         Parameters
@@ -1231,10 +1398,13 @@ class TiledGPOM:
             The stage, for error messages ("tile fit").
         desc : str
             The stage, for progress ("fitting tiles").
+        into : mutable mapping, optional
+            Where each result goes as its task finishes (a :class:`TileStore`: a fit's factors
+            never all in memory at once); default a new dict.
 
         Returns
         -------
-        dict
+        dict or `into`
             Tile key to ``fn``'s result, for every job.
 
         Raises
@@ -1245,7 +1415,9 @@ class TiledGPOM:
             When the scheduler had no workers for `scheduler_timeout` seconds.
         """
         if not jobs:
-            return {}
+            return {} if into is None else into
+        # Results go straight into `into` when given (a runner's own dict otherwise).
+        where: dict[str, Any] = {} if into is None else {"results": into}
         if self.scheduler is not None:
             runner = self._run_dask
         elif self.n_workers_ <= 1 or len(jobs) == 1 or _few_queries(fn, jobs):
@@ -1255,19 +1427,21 @@ class TiledGPOM:
         else:
             runner = self._run_threads
         with self._connected(), progress(len(jobs), desc, unit="tile") as bar:
-            results, failed = runner(fn, jobs, bar, what)
+            results, failed = runner(fn, jobs, bar, what, **where)
             if failed:
                 retry = [j for j in jobs if j[0] in failed]
-                more, failed2 = runner(fn, retry, bar, what)
-                results.update(more)
+                more, failed2 = runner(fn, retry, bar, what, **where)
+                if into is None:
+                    results.update(more)
                 if failed2:
                     names = ", ".join(f"tile {k} ({type(e).__name__}: {e})" for k, e in failed2.items())
                     raise GpomapError(f"{what} failed twice (retried once) for {len(failed2)} tile(s): {names}")
         return results
 
     @staticmethod
-    def _run_inprocess(fn, jobs, bar: Progress, what: str):
-        results, failed = {}, {}
+    def _run_inprocess(fn, jobs, bar: Progress, what: str, results=None):
+        results = {} if results is None else results
+        failed = {}
         for key, args in jobs:
             try:
                 results[key] = fn(*args)
@@ -1281,13 +1455,13 @@ class TiledGPOM:
         workers = min(self.n_workers_, n_jobs)
         return workers, self.blas_threads if self.blas_threads is not None else cores_share(workers)
 
-    def _run_threads(self, fn, jobs, bar: Progress, what: str):
+    def _run_threads(self, fn, jobs, bar: Progress, what: str, results=None):
         """The jobs on threads of this process, BLAS held to the cores' share of each meanwhile."""
         workers, threads = self._workers_and_threads(len(jobs))
         with blas_limited(threads), cf.ThreadPoolExecutor(workers) as pool:
-            return _collect({pool.submit(fn, *args): key for key, args in jobs}, bar)
+            return _collect({pool.submit(fn, *args): key for key, args in jobs}, bar, results)
 
-    def _run_pool(self, fn, jobs, bar: Progress, what: str):
+    def _run_pool(self, fn, jobs, bar: Progress, what: str, results=None):
         ctx = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
         workers, threads = self._workers_and_threads(len(jobs))
         # With fork, the workers are forked after the tasks are filed and read them from there.
@@ -1300,11 +1474,11 @@ class TiledGPOM:
                     futs = {pool.submit(_inherited_task, token, i): key for i, (key, _) in enumerate(jobs)}
                 else:
                     futs = {pool.submit(fn, *args): key for key, args in jobs}
-                return _collect(futs, bar)  # a dead worker breaks the pool: its tasks are retried
+                return _collect(futs, bar, results)  # a dead worker breaks the pool: its tasks are retried
         finally:
             _INHERITED.pop(token, None)
 
-    def _run_dask(self, fn, jobs, bar: Progress, what: str):
+    def _run_dask(self, fn, jobs, bar: Progress, what: str, results=None):
         """Run the jobs on the scheduler of ``self._client`` (see :meth:`_connected`).
 
         A task whose worker dies is rescheduled by the scheduler itself onto another worker (same
@@ -1325,7 +1499,9 @@ class TiledGPOM:
         # background: a result lost with its worker before we fetched it is recomputed there,
         # while this loop keeps watching for workers (a blocking f.result() would hang).
         pending = as_completed(list(futs), loop=client.loop, with_results=True, raise_errors=False)
-        results, failed = {}, {}
+        results = {} if results is None else results
+        failed = {}
+        n_done = 0
         timeout = self.scheduler_timeout
         alive = time.monotonic()  # last time a worker was seen or a task finished
         next_check = alive
@@ -1336,6 +1512,7 @@ class TiledGPOM:
                     key = futs[f]
                     if f.status == "finished":
                         results[key] = res
+                        n_done += 1
                         bar.update()
                     elif f.status == "error":  # res is (type, exception, traceback): retried
                         failed[key] = res[1]
@@ -1348,11 +1525,11 @@ class TiledGPOM:
                     continue
                 if now >= next_check:
                     next_check = now + min(1.0, timeout / 5)
-                    self._check_client(client, what, len(jobs) - len(results) - len(failed), len(jobs))
+                    self._check_client(client, what, len(jobs) - n_done - len(failed), len(jobs))
                     if self._n_dask_workers(client) > 0:
                         alive = now
                     elif now - alive > timeout:
-                        left = len(jobs) - len(results) - len(failed)
+                        left = len(jobs) - n_done - len(failed)
                         raise DistributedError(
                             f"{what}: no Dask worker has been connected to the scheduler at {self._scheduler_address()} "
                             f"for {timeout:g} s, with {left} of {len(jobs)} tile(s) left; start workers "
@@ -1499,7 +1676,9 @@ class TiledGPOM:
         t = time.perf_counter()
         tiles = [self._decode(k) for k in sorted(self._tiles_with_points)]
         jobs, gathered = self._fit_jobs(tiles)
-        self.tiles_: dict[tuple[int, int], TileState] = self._run(fit_tile_task, jobs, "tile fit", "fitting tiles")
+        self.tiles_: MutableMapping[tuple[int, int], TileState] = self._run(
+            fit_tile_task, jobs, "tile fit", "fitting tiles", into=TileStore()
+        )
         self._signatures = {t: g.signature() for t, g in gathered.items()}
         timings["tile_fits"] = time.perf_counter() - t
         self.timings_ = timings
@@ -1793,7 +1972,7 @@ class TiledGPOM:
         t1 = time.perf_counter()
         jobs, gathered = self._fit_jobs(take, reuse=not exact)
         todo = [j for j in jobs if j[0] in self._reused or self._signatures.get(j[0]) != gathered[j[0]].signature()]
-        self.tiles_.update(self._run(fit_tile_task, todo, "tile fit", "refitting tiles"))
+        self._run(fit_tile_task, todo, "tile fit", "refitting tiles", into=self.tiles_)
         for key, (task,) in todo:
             self._signatures[key] = gathered[key].signature()
             if task.previous is not None:
@@ -1843,9 +2022,35 @@ class TiledGPOM:
         again, and its K^-1 is as large as its factor (1.7 GB over the Freiburg campus log's
         1,877 tiles). Asked again, a tile forms the same K^-1 afresh.
         """
-        for key, tile in self.tiles_.items():
-            if self._blend_region(key)[3] < y:
+        tiles = self.tiles_
+        states = tiles.resident() if isinstance(tiles, TileStore) else tiles.values()
+        for tile in states:
+            if self._blend_region(tile.key)[3] < y:
                 tile.posterior.precision = None
+
+    def _light_tile(self, key: tuple[int, int]) -> TileState:
+        """Tile `key`'s state, its factor left where it is (:meth:`TileStore.light`)."""
+        tiles = self.tiles_
+        return tiles.light(key) if isinstance(tiles, TileStore) else tiles[key]
+
+    def _prediction_batches(self, keys: list[tuple[int, int]]) -> list[list[tuple[int, int]]]:
+        """`keys` in consecutive batches whose factors (and the inverses prediction forms) fit in
+        the tile store's budget together; one batch when the tiles are in a plain dict."""
+        tiles = self.tiles_
+        if not isinstance(tiles, TileStore):
+            return [keys] if keys else []
+        batches: list[list[tuple[int, int]]] = []
+        size = tiles.budget  # a full batch: the next key starts a new one
+        for key in keys:
+            n = tiles.light(key).posterior.n_inputs
+            cost = 2 * 8 * n * n
+            if batches and size + cost <= tiles.budget:
+                batches[-1].append(key)
+                size += cost
+            else:
+                batches.append([key])
+                size = cost
+        return batches
 
     def blended_moments(
         self, points: NDArray[np.float64], variance: bool = True
@@ -1908,16 +2113,26 @@ class TiledGPOM:
                 else:
                     members[key] = (sel, np.ones(sel.size))
                 wsum[sel] = 1.0
-        jobs = [(key, (self.tiles_[key], pts[idx], chunk, variance)) for key, (idx, _) in members.items()]
         # A written map predicts the mean at every GP sample, then both moments at fewer: say which.
-        res = self._run(predict_tile_task, jobs, "tile prediction", "predicting tiles" if variance else "predicting tile means")
+        desc = "predicting tiles" if variance else "predicting tile means"
+        # Tiles in batches whose factors fit in a TileStore's budget, each batch's states read
+        # (from the store's file, if there) only while it runs.
+        batches = self._prediction_batches(list(members))
+        res: MutableMapping[tuple[int, int], Any] = {}
+        with progress(len(members), desc, unit="tile") if len(batches) > 1 else contextlib.nullcontext() as bar:
+            for batch in batches:
+                jobs = [(key, (self.tiles_[key], pts[members[key][0]], chunk, variance)) for key in batch]
+                res.update(self._run(predict_tile_task, jobs, "tile prediction", desc))
+                del jobs
+                if bar is not None:
+                    bar.update(len(batch))
         num = np.zeros(m)
         lat_m = np.zeros(m)
         den = np.zeros(m) if variance else None
         lat_v = np.zeros(m) if variance else None
         for key, (idx, w) in members.items():
             mu, var = res[key]
-            hp = self.tiles_[key].hyperparameters
+            hp = self._light_tile(key).hyperparameters
             a, b = hp["alpha"], hp["beta"]
             # Blend the calibrated latent moments so per-tile alpha and beta blend too; with
             # global alpha and beta this is exactly squash(blended mean, blended variance).
@@ -2132,8 +2347,9 @@ class TiledGPOM:
     def summary(self) -> dict[str, Any]:
         """Tiles, cells per tile, hyperparameters and where they came from, stage timings, peak memory."""
         self._check_fitted()
-        per = np.array([s.n_cells for s in self.tiles_.values()])
-        secs = np.array([s.seconds for s in self.tiles_.values()])
+        states = list(light_tiles(self.tiles_))
+        per = np.array([s.n_cells for s in states])
+        secs = np.array([s.seconds for s in states])
         out: dict[str, Any] = {
             "method": "msk-gpom",
             "kernel": make_point_kernel(self.base.kernel).name,
@@ -2179,6 +2395,6 @@ class TiledGPOM:
             out["per_tile_hyperparameters"] = {
                 n: {"min": float(np.min(v)), "median": float(np.median(v)), "max": float(np.max(v))}
                 for n in HYPER_NAMES
-                for v in [[s.hyperparameters[n] for s in self.tiles_.values()]]
+                for v in [[s.hyperparameters[n] for s in states]]
             }
         return out

@@ -50,7 +50,7 @@ import math
 import os
 import zipfile
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -206,28 +206,30 @@ def _pack_lower(L: NDArray[np.float64]) -> NDArray[np.float64] | None:
     n = L.shape[0]
     if L.ndim != 2 or L.shape[1] != n or L.dtype != np.float64:
         return None
-    if any(L[i, i + 1 :].any() for i in range(n - 1)):
+    below = np.tri(n, dtype=bool)
+    if L[~below].any():
         return None
-    return np.concatenate([L[i, : i + 1] for i in range(n)]) if n else np.zeros(0)
+    return L[below]  # row by row: the lower triangle's order
 
 
 def _unpack_lower(packed: NDArray[np.float64], n: int) -> NDArray[np.float64]:
     if packed.shape != (n * (n + 1) // 2,):
         raise ValueError(f"a packed lower triangle of {n} rows needs {n * (n + 1) // 2} numbers, got {packed.shape}")
     L = np.zeros((n, n))
-    start = 0
-    for i in range(n):
-        L[i, : i + 1] = packed[start : start + i + 1]
-        start += i + 1
+    L[np.tri(n, dtype=bool)] = packed
     return L
 
 
 # --------------------------------------------------------------------------- encoding
 class _Writer:
-    """Turns a model into JSON-able state and a dict of arrays (their archive members)."""
+    """Turns a model into JSON-able state and its arrays (the archive members), each handed to
+    `sink` as it is met (written at once, so a map's tiles are never all in memory; kept in
+    :attr:`arrays` without a sink)."""
 
-    def __init__(self) -> None:
+    def __init__(self, sink: Callable[[str, NDArray[Any]], None] | None = None) -> None:
         self.arrays: dict[str, NDArray[Any]] = {}
+        self._sink = sink
+        self._keys: set[str] = set()
         self._scans: dict[tuple[int, ...], dict[str, Any]] = {}
         self._models: list[Any] = []  # the TiledGPOMs being encoded, innermost last
         self._classes = saved_classes()
@@ -236,10 +238,14 @@ class _Writer:
     def add(self, where: str, array: NDArray[Any]) -> str:
         key = where
         i = 1
-        while key in self.arrays or key == _HEADER:
+        while key in self._keys or key == _HEADER:
             i += 1
             key = f"{where}~{i}"
-        self.arrays[key] = np.ascontiguousarray(array)
+        self._keys.add(key)
+        if self._sink is not None:
+            self._sink(key, np.ascontiguousarray(array))
+        else:
+            self.arrays[key] = np.ascontiguousarray(array)
         return key
 
     def scans(self, scans: list[Any] | None, where: str) -> Any:
@@ -255,6 +261,8 @@ class _Writer:
         return {"$scans": self._scans[ids]}
 
     def encode(self, value: Any, where: str) -> Any:
+        from gpomap.tiles import TileStore
+
         if value is None or isinstance(value, (bool, str)):
             return value
         if isinstance(value, np.bool_):
@@ -278,6 +286,11 @@ class _Writer:
             return [self.encode(v, f"{where}/{i}") for i, v in enumerate(value)]
         if isinstance(value, (set, frozenset)):
             return {"$set": [self.encode(v, f"{where}/{i}") for i, v in enumerate(sorted(value))]}
+        if isinstance(value, TileStore):
+            # Read back tile by tile (their factors are written as they come).
+            return {
+                "$items": [[self.encode(k, f"{where}/{i}k"), self.encode(value[k], f"{where}/{i}")] for i, k in enumerate(value)]
+            }
         if isinstance(value, dict):
             if all(isinstance(k, str) and not k.startswith("$") for k in value):
                 return {k: self.encode(v, f"{where}/{k}") for k, v in value.items()}
@@ -472,7 +485,7 @@ class _Reader:
 
     def _object(self, cls: Any, state: Any) -> Any:
         from gpomap.fusion import EvidenceLayer
-        from gpomap.tiles import TiledGPOM, _BlockPoints
+        from gpomap.tiles import TiledGPOM, TileStore, _BlockPoints
 
         if not isinstance(state, dict):
             raise _StateError(f"{_name(cls)}: its state must be an object")
@@ -495,6 +508,8 @@ class _Reader:
             if isinstance(obj, EvidenceLayer) and isinstance(values.get("_parts"), _Pending):
                 _restore_rays(obj, values["_parts"].value, self)
             if isinstance(obj, TiledGPOM):
+                if isinstance(values.get("tiles_"), dict):
+                    obj.tiles_ = TileStore(tiles=values["tiles_"])  # saved as a dict of its states
                 _restore_points(obj, [(bp, n) for m, bp, n in self._points if m is obj])
                 self._points = [p for p in self._points if p[0] is not obj]
         finally:
@@ -554,7 +569,9 @@ def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:
 # --------------------------------------------------------------------------- the file
 def _summary(model: Any) -> dict[str, Any]:
     lo, hi = model.bounds_
-    cells = [s.n_cells for s in model.tiles_.values()]
+    from gpomap.tiles import light_tiles
+
+    cells = [s.n_cells for s in light_tiles(model.tiles_)]
     return {
         "class": _name(type(model)),
         "dim": int(model.dim_),
@@ -584,23 +601,22 @@ def _deflates(array: NDArray[Any]) -> bool:
     return len(raw) < 1024 or len(zlib.compress(raw, 1)) < 0.8 * len(raw)
 
 
-def _write(path: str | os.PathLike[str], header: dict[str, Any], arrays: dict[str, NDArray[Any]]) -> Path:
-    """The archive: the header, then every array, each deflated where that pays (:func:`_deflates`)."""
+def _write_member(zf: zipfile.ZipFile, key: str, array: NDArray[Any]) -> None:
+    """One array as the member ``KEY.npy``, deflated where that pays (:func:`_deflates`)."""
+    info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+    info.compress_type = zipfile.ZIP_DEFLATED if _deflates(array) else zipfile.ZIP_STORED
+    with zf.open(info, "w", force_zip64=array.nbytes > (1 << 30)) as member:
+        np.lib.format.write_array(member, array, allow_pickle=False)
+
+
+def _write(path: str | os.PathLike[str], obj: Any, where: str, header: Callable[[Any], dict[str, Any]]) -> Path:
+    """The archive of `obj`: every array as the state is encoded, then the header (``header(state)``)."""
     target = Path(path)
-    text = json.dumps(header, allow_nan=True, separators=(",", ":"))
-    members = [(_HEADER, np.array(text)), *arrays.items()]
     with atomic_write(target, "wb") as f, zipfile.ZipFile(f, "w", allowZip64=True) as zf:
-        for key, array in members:
-            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED if _deflates(array) else zipfile.ZIP_STORED
-            with zf.open(info, "w", force_zip64=array.nbytes > (1 << 30)) as member:
-                np.lib.format.write_array(member, array, allow_pickle=False)
+        state = _Writer(lambda key, array: _write_member(zf, key, array)).encode(obj, where)
+        text = json.dumps(header(state), allow_nan=True, separators=(",", ":"))
+        _write_member(zf, _HEADER, np.array(text))
     return target
-
-
-def _writer_state(obj: Any, where: str) -> tuple[Any, dict[str, NDArray[Any]]]:
-    w = _Writer()
-    return w.encode(obj, where), w.arrays
 
 
 def save_fitted_map(model: Any, path: str | os.PathLike[str]) -> Path:
@@ -638,16 +654,19 @@ def save_fitted_map(model: Any, path: str | os.PathLike[str]) -> Path:
         )
         raise TypeError(f"save_fitted_map takes a fitted TiledGPOM or AreaGPOM, got {type(model).__name__}{hint}")
     model._check_fitted()
-    state, arrays = _writer_state(model, "map")
-    header = {
-        "format": FORMAT,
-        "version": VERSION,
-        "written_by": f"gpomap {__version__}",
-        "kind": "map",
-        "summary": _summary(model),
-        "state": state,
-    }
-    return _write(path, header, arrays)
+    summary = _summary(model)
+
+    def header(state: Any) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "written_by": f"gpomap {__version__}",
+            "kind": "map",
+            "summary": summary,
+            "state": state,
+        }
+
+    return _write(path, model, "map", header)
 
 
 def save_streaming_state(mapper: Any, path: str | os.PathLike[str]) -> Path:
@@ -671,21 +690,23 @@ def save_streaming_state(mapper: Any, path: str | os.PathLike[str]) -> Path:
 
     if not isinstance(mapper, StreamingGPOM):
         raise TypeError(f"save_streaming_state takes a StreamingGPOM, got {type(mapper).__name__}")
-    state, arrays = _writer_state(mapper, "stream")
     summary: dict[str, Any] = {"ready": mapper.model_ is not None, "n_scans_added": int(mapper.n_scans_)}
     if mapper.model_ is not None:
         summary.update(_summary(mapper.model_))
     else:
         summary["warmup"] = [len(mapper._buffer), mapper.warmup_scans]
-    header = {
-        "format": FORMAT,
-        "version": VERSION,
-        "written_by": f"gpomap {__version__}",
-        "kind": "stream",
-        "summary": summary,
-        "state": state,
-    }
-    return _write(path, header, arrays)
+
+    def header(state: Any) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "written_by": f"gpomap {__version__}",
+            "kind": "stream",
+            "summary": summary,
+            "state": state,
+        }
+
+    return _write(path, mapper, "stream", header)
 
 
 def _not_a_map(path: str, found: str) -> InputFormatError:
