@@ -178,4 +178,4 @@ def test_evaluate_on_3d_scans_says_in_one_line_it_scores_planar_maps(capsys):
         pytest.skip("shared la3dm data not present")
     assert main(["evaluate", str(clouds), "--method", "msk"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "gpomap evaluate scores planar maps only" in err[0] and "volume_quality.py" in err[0]
+    assert len(err) == 1 and "gpomap evaluate scores planar maps only" in err[0] and "quality3d.py" in err[0]

@@ -799,7 +799,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         if map3d.is_cloud_input(args.input):
             raise GpomapError(
                 f"{args.input} holds 3-D scans; gpomap evaluate scores planar maps only: score a voxel map on "
-                "held-out scans against OctoMap with benchmarks/volume_quality.py"
+                "held-out scans and simulated scenes against OctoMap with benchmarks/quality3d.py"
             )
     truth = plan = None
     if args.demo:
