@@ -95,6 +95,7 @@ VALUES: dict[str, str] = {
     "save_state": "state.gpom",
     "resume": "state.gpom",
     "answers": "answers.npz",
+    "occupied_fraction": "0.5",
 }
 
 #: Options the command uses itself, not handed to the library as a setting: why, by dest.
@@ -121,6 +122,7 @@ COMMAND_OWN: dict[str, str] = {
     "resume": "stream: the saved state the replay goes on from (resumed_mapper)",
     "relearn": "update: everything fitted again instead of the scans absorbed (cmd_update)",
     "answers": "query: the file the answers are written to (cmd_query)",
+    "values": "convert: how a grid's pixel values are read (convert_grid's values, beside the model options)",
 }
 
 
