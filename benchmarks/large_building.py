@@ -75,8 +75,10 @@ class Building:
 
 
 #: The cases: a hospital-sized building (about 400 x 260 m, a scan every metre: 7,500 scans, 1.4 M
-#: beams) and the same tour scanned every 0.3 m (25,000 scans, 4.6 M beams).
+#: beams), the same tour scanned every 0.3 m (25,000 scans, 4.6 M beams), and a small building
+#: of 8 x 5 blocks (190 x 120 m) for a quick look.
 CASES = {
+    "small": Building(blocks_x=8, blocks_y=5),
     "hospital": Building(),
     "hospital-dense": Building(step=0.3),
 }
@@ -346,7 +348,7 @@ def print_table(results: list[dict[str, Any]]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", default=",".join(CASES), help="comma-separated: " + ", ".join(CASES) + ", or none")
+    parser.add_argument("--cases", default="hospital,hospital-dense", help="comma-separated: " + ", ".join(CASES) + ", or none")
     parser.add_argument("--log-file", type=Path, action="append", default=[], metavar="PATH", help="also any log gpomap reads")
     parser.add_argument("--methods", default="grid,gpomap", help="comma-separated: grid, gpomap (default: both)")
     parser.add_argument(

@@ -8,6 +8,7 @@ from scipy.special import ndtr
 
 import gpomap.extrapolation as ex
 import gpomap.heldout as heldout
+import gpomap.observations as observations
 from gpomap.mapping import AreaGPOM
 from gpomap.simulate import paper_room, paper_room_scans, simulate_scans
 from gpomap.squash import ProbitSquash
@@ -360,6 +361,22 @@ def test_too_few_in_both_regions_tries_where_held_out_stretches_saw_new_ground(m
     got = fit(corner, wider=(outside, 3.0, 0.0))
     np.testing.assert_allclose(got["region_centre"], ground)
     assert got["n_points"] == alone["ground"] and got["region_half"] == 3.0
+    # The same from the points made again a few scans at a time (never all held): to the bit.
+    monkeypatch.setattr(observations, "PART_POINTS", 3000)
+    again = observations.ScanPoints(scans, SETTINGS.free_step, SETTINGS.hit_margin, SETTINGS.no_return_cap)
+    np.testing.assert_array_equal(ex.new_ground_centre(again, len(scans), 6.0), ground)
+    redo = ex.fit_variance_scale(
+        scans,
+        {"alpha": 30.0, "beta": 0.0},
+        again,
+        SETTINGS.free_clearance,
+        model.fit,
+        corner,
+        3.0,
+        0.0,
+        wider=(outside, 3.0, 0.0),
+    )[1]
+    assert redo == got
 
 
 def test_the_unseen_probit_by_hand() -> None:

@@ -115,3 +115,33 @@ def test_paper_subselection_counts():
     # Beams symmetric about the heading: first, middle and last kept.
     np.testing.assert_allclose(chosen[0].angles[[0, 18, 36]], [-np.pi / 2, 0.0, np.pi / 2])
     assert list(evenly_spaced(5, None)) == [0, 1, 2, 3, 4]
+
+
+def test_points_made_a_part_at_a_time_are_the_whole_logs(monkeypatch):
+    # observation_parts and ScanPoints against observations_from_scans: the same points, labels
+    # and scans in the same order; a square's points as the whole's cut to it; counts and bounds.
+    import gpomap.observations as observations
+    from gpomap.lattice import in_box
+    from gpomap.simulate import paper_room_scans
+
+    scans = paper_room_scans(n_beams=72)
+    scans = [*scans[:5], Scan(scans[5].pose, scans[5].angles, np.full(72, np.nan), 30.0), *scans[6:]]  # one without points
+    whole = observations_from_scans(scans, 0.3, None, 5.0)
+    monkeypatch.setattr(observations, "PART_POINTS", 500)
+    parts = list(observations.observation_parts(scans, 0.3, None, 5.0))
+    assert len(parts) > 5 and all(p.occupied.size >= 500 for p in parts[:-1])
+    for name in ("points", "occupied", "scan_index"):
+        joined = np.concatenate([getattr(p, name) for p in parts])
+        assert joined.dtype == getattr(whole, name).dtype and joined.tobytes() == getattr(whole, name).tobytes()
+    assert sum(p.n_invalid for p in parts) == whole.n_invalid == 72
+    assert sum(p.n_no_return for p in parts) == whole.n_no_return
+    made = observations.ScanPoints(scans, 0.3, None, 5.0)
+    assert (made.n_free, made.n_occupied, made.n_scans) == (whole.n_free, whole.n_occupied, len(scans))
+    np.testing.assert_array_equal(made.lower, whole.points.min(axis=0))
+    np.testing.assert_array_equal(made.upper, whole.points.max(axis=0))
+    assert np.isinf(made.scan_lower[5]).all()
+    lo, hi = np.array([3.0, 2.0]), np.array([9.0, 6.5])
+    square = made.square(lo, hi, 0.3)
+    inside = in_box(whole.points, lo - 0.3, hi + 0.3)
+    for name in ("points", "occupied", "scan_index"):
+        assert getattr(square, name).tobytes() == getattr(whole, name)[inside].tobytes()

@@ -607,3 +607,32 @@ def test_a_map_whose_tiles_wait_in_a_file_is_the_map_kept_in_memory(room, refere
     loaded = load_fitted_map(save_fitted_map(spilled, tmp_path / "map.gpom"))
     np.testing.assert_array_equal(loaded.predict_proba(pts), whole.predict_proba(pts))
     assert spilled.summary()["cells_per_tile"] == whole.summary()["cells_per_tile"]
+
+
+def test_a_log_whose_points_wait_in_a_file_maps_as_one_held_in_memory(monkeypatch):
+    # Points made a part at a time (a few scans each) and filed under their blocks in a temporary
+    # file: the same cells, variance scale and map as the whole log's points held in memory.
+    import gpomap.observations as observations
+
+    world = World(outlines=[[(0.0, 0.0), (24.0, 0.0), (24.0, 14.0), (0.0, 14.0)]], segments=[(12.0, 0.0, 12.0, 9.0)])
+    xs = np.linspace(2.0, 22.0, 50)
+    poses = np.column_stack([xs, 11.0 + np.sin(xs), 0.3 * np.cos(xs)])
+    scans = simulate_scans(world, poses, 60, max_range=12.0, noise_std=0.01, seed=1)
+    opts = dict(kernel="se", free_step=0.4, min_cell=0.5, max_cell=2.0, n_workers=1, calibration_scans=5)
+    held = TiledGPOM(**opts).fit(scans)
+    monkeypatch.setattr(tiles, "POINT_MEMORY", 1)
+    monkeypatch.setattr(observations, "PART_POINTS", 2000)
+    spilled = TiledGPOM(**opts).fit(scans)
+    assert all(isinstance(p, tiles._SpilledPart) for b in spilled._block_points.values() for p in b._parts)
+    assert spilled.extrapolation_ == held.extrapolation_ and spilled.hyperparameters_ == held.hyperparameters_
+    for k in held._blocks:
+        np.testing.assert_array_equal(spilled._blocks[k].lower, held._blocks[k].lower)
+        np.testing.assert_array_equal(spilled._blocks[k].counts, held._blocks[k].counts)
+    a, b = held.grid(0.2), spilled.grid(0.2)
+    np.testing.assert_array_equal(a.probability, b.probability)
+    np.testing.assert_array_equal(a.variance, b.variance)
+    # An update appends points in memory to the blocks' parts in the file: the same again.
+    more = simulate_scans(world, poses[::-7] + np.array([0.0, -4.0, 1.0]), 60, max_range=12.0, seed=2)
+    held.update(more)
+    spilled.update(more)
+    np.testing.assert_array_equal(held.grid(0.2).probability, spilled.grid(0.2).probability)

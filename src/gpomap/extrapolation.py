@@ -49,7 +49,7 @@ from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.heldout import FOLD_STARTS, HOLDOUT_EVERY, calibration_points, holdout_stretches
 from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
-from gpomap.observations import Observations, beams_reach, data_dim, free_near_hits, natural_subsample
+from gpomap.observations import Observations, ScanPoints, beams_reach, data_dim, free_near_hits, natural_subsample
 from gpomap.squash import unseen_probit
 
 #: Fewest held-out points of each class where no kept beam went for kappa to be fitted.
@@ -80,14 +80,16 @@ def _nll(kappa: float, mu, var, occupied, alpha: float, beta: float) -> float:
     return float(-np.mean(np.where(occupied, log_ndtr(z), log_ndtr(-z))))
 
 
-def whole_map_region(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
-    """Centre (x, y) and half side of a square holding every point with a metre to spare.
+def whole_map_region(points: NDArray[np.float64] | ScanPoints) -> tuple[NDArray[np.float64], float]:
+    """Centre (x, y) and half side of a square holding every point (n, d) with a metre to spare.
 
     A held-in GP over it has the whole map, so no point is near an edge the data do not have
     (``margin`` 0 in :func:`fit_variance_scale`).
     """
-    xy = np.asarray(points, dtype=float)[:, :2]
-    lo, hi = column_bounds(xy)
+    if isinstance(points, ScanPoints):
+        lo, hi = points.lower[:2], points.upper[:2]
+    else:
+        lo, hi = column_bounds(np.asarray(points, dtype=float)[:, :2])
     return 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) + 1.0
 
 
@@ -96,6 +98,25 @@ def _in_square(
 ) -> NDArray[np.bool_]:
     """Which points (m, d) lie in the square lo..hi (x, y) grown by `grow` on every side (negative: shrunk)."""
     return in_box(points, np.asarray(lo)[:2] - grow, np.asarray(hi)[:2] + grow)
+
+
+class _HeldPoints:
+    """Labelled points held in memory, asked as :class:`~gpomap.observations.ScanPoints` is."""
+
+    def __init__(self, obs: Observations) -> None:
+        self.obs = obs
+        self.lower, self.upper = column_bounds(obs.points)
+
+    def square(self, lo: NDArray[np.float64], hi: NDArray[np.float64], grow: float = 0.0) -> Observations:
+        inside = _in_square(self.obs.points, lo, hi, grow)
+        return Observations(self.obs.points[inside], self.obs.occupied[inside], self.obs.scan_index[inside])
+
+    def parts(self) -> Iterator[Observations]:
+        yield self.obs
+
+
+def _source(observations: Observations | ScanPoints) -> ScanPoints | _HeldPoints:
+    return observations if isinstance(observations, ScanPoints) else _HeldPoints(observations)
 
 
 def region_observations(
@@ -131,7 +152,7 @@ def region_observations(
 def fit_variance_scale(
     scans: Sequence[Any],
     hyperparameters: dict[str, float],
-    observations: Observations,
+    observations: Observations | ScanPoints,
     free_clearance: float,
     fit_held_in: Callable[[Observations], Any],
     centre: NDArray[np.float64],
@@ -149,9 +170,10 @@ def fit_variance_scale(
         The map's scans, in log order.
     hyperparameters : dict
         The map's variance, length_scale, noise, alpha and beta (kept fixed).
-    observations : Observations
-        The map's labelled points from `scans` (its free step, ...), before the clearance; each
-        pattern's held-in points are cut from them (:func:`region_observations`).
+    observations : Observations or ScanPoints
+        The map's labelled points from `scans` (its free step, ...), before the clearance, or
+        what makes them again a square at a time; each pattern's held-in points are cut from
+        them (:func:`region_observations`).
     free_clearance : float
         The map's free clearance, metres.
     fit_held_in : callable
@@ -187,6 +209,7 @@ def fit_variance_scale(
         return 1.0, {"kappa": 1.0, "reason": f"only {len(scans)} scans"}
 
     first = (np.asarray(centre, dtype=float)[:2], float(region_half), float(margin))
+    source = _source(observations)
 
     def regions() -> Iterator[tuple[NDArray[np.float64], float, float]]:
         yield first
@@ -195,7 +218,7 @@ def fit_variance_scale(
         yield np.asarray(wider[0], dtype=float)[:2], float(wider[1]), float(wider[2])
         # A robot that passes the sample's square in every stretch (MIT's infinite corridor):
         # where held-out stretches saw new ground, the square is first's size.
-        ground = new_ground_centre(observations, len(scans), 2.0 * first[1])
+        ground = new_ground_centre(source, len(scans), 2.0 * first[1])
         if ground is not None:
             yield ground, first[1], first[2]
 
@@ -203,7 +226,8 @@ def fit_variance_scale(
     tried: list[tuple[int, NDArray[np.float64], float, float, list[Any]]] = []
     for c, h, g in regions():
         lo, hi = c - h, c + h
-        observes = functools.partial(_observes_both, observations, _in_square(observations.points, lo, hi))
+        inside = source.square(lo, hi)
+        observes = functools.partial(_observes_both, inside, np.ones(inside.occupied.size, dtype=bool))
         folds, n = _region_folds(scans, lo, hi, g, no_return_cap, observes)
         tried.append((n, c, h, g, folds))
         if n >= REGION_POINTS_PER_CLASS:
@@ -220,8 +244,7 @@ def fit_variance_scale(
     pts, occ, fold_of = pts[keep], occ[keep], fold_of[keep]
     # The region's points (grown by the clearance) cut once for every pattern: a whole log has
     # tens of millions.
-    near = _in_square(observations.points, lo, hi, free_clearance)
-    observations = Observations(observations.points[near], observations.occupied[near], observations.scan_index[near])
+    observations = source.square(lo, hi, free_clearance)
     # Each pattern's points are predicted by the GP of that pattern's kept scans.
     mu, var = np.empty(occ.size), np.empty(occ.size)
     for k, (kept, _, _) in enumerate(folds):
@@ -249,7 +272,9 @@ def fit_variance_scale(
     }
 
 
-def new_ground_centre(observations: Observations, n_scans: int, side: float) -> NDArray[np.float64] | None:
+def new_ground_centre(
+    observations: Observations | ScanPoints | _HeldPoints, n_scans: int, side: float
+) -> NDArray[np.float64] | None:
     """Where the first pattern's held-out stretches saw most that its kept stretches did not.
 
     The centre (x, y) of the square of side `side` (on a lattice from the origin) that holds the
@@ -259,8 +284,9 @@ def new_ground_centre(observations: Observations, n_scans: int, side: float) -> 
 
     Parameters
     ----------
-    observations : Observations
-        The map's labelled points; ``scan_index`` numbers the scans.
+    observations : Observations or ScanPoints
+        The map's labelled points (or what makes them again, a part at a time); ``scan_index``
+        numbers the scans.
     n_scans : int
         Scans in the log.
     side : float
@@ -270,17 +296,26 @@ def new_ground_centre(observations: Observations, n_scans: int, side: float) -> 
     -------
     ndarray of shape (2,) or None
     """
-    from_kept = _from_kept(observations.scan_index, holdout_stretches(n_scans, FOLD_STARTS[0])[0])
-    xy, occupied = observations.points[:, :2], observations.occupied
-    hits_kept, hits_held = xy[occupied & from_kept], xy[occupied & ~from_kept]
+    source = observations if isinstance(observations, (ScanPoints, _HeldPoints)) else _HeldPoints(observations)
+    kept = holdout_stretches(n_scans, FOLD_STARTS[0])[0]
+    squares = _SquareLattice(np.vstack([source.lower[:2], source.upper[:2]]), side)
+    # The hits, and the squares of the kept free points, a part of the log at a time.
+    kept_parts, held_parts = [], []
+    free_kept = np.zeros(squares.size, dtype=bool)
+    for part in source.parts():
+        from_kept = _from_kept(part.scan_index, kept)
+        xy, occupied = part.points[:, :2], part.occupied
+        kept_parts.append(xy[occupied & from_kept])
+        held_parts.append(xy[occupied & ~from_kept])
+        free_kept |= squares.holding(xy, ~occupied & from_kept)
+    hits_kept, hits_held = np.concatenate(kept_parts), np.concatenate(held_parts)
     if hits_kept.size == 0 or hits_held.size == 0:
         return None
     # Kept hits to the decimetre: a whole log repeats each wall thousands of times.
     distance, _ = cKDTree(np.unique(np.round(hits_kept, 1), axis=0)).query(hits_held, distance_upper_bound=NEW_HIT_DISTANCE)
-    squares = _SquareLattice(xy, side)
     counts = np.bincount(squares.index(hits_held[np.isinf(distance)]), minlength=squares.size)
     # Only squares where the kept scans observed both classes (a few hundred squares per log).
-    counts[~(squares.holding(hits_kept) & squares.holding(xy, ~occupied & from_kept))] = 0
+    counts[~(squares.holding(hits_kept) & free_kept)] = 0
     if not counts.any():
         return None
     return squares.centre(int(np.argmax(counts)))

@@ -12,7 +12,7 @@ through one sampler (:func:`ray_free_points`), in their own dimension.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 from gpomap import _compiled_clearance
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError
-from gpomap.lattice import box_index, box_shape, column_bounds
+from gpomap.lattice import box_index, box_shape, column_bounds, in_box
 from gpomap.scans import Scan
 
 #: What the map is made from: planar scans (2-D) or point clouds (3-D), one kind at a time.
@@ -366,22 +366,15 @@ def observations_from_scans(
     -------
     Observations
     """
-    if hit_margin is None:
-        hit_margin = 0.5 * free_step
     pts_all: list[NDArray[np.float64]] = []
     occ_all: list[NDArray[np.bool_]] = []
     idx_all: list[NDArray[np.int32]] = []
     n_invalid = 0
     n_no_return = 0
     for i, scan in enumerate(scans):
-        rays = Rays.of(scan)
-        n_invalid += rays.n_invalid
-        n_no_return += int((~rays.hit).sum())
-        free_len = rays.free_lengths(hit_margin, no_return_cap)
-        use = free_len > 0
-        origins = np.broadcast_to(rays.origin, (int(use.sum()), rays.origin.size))
-        fp, _ = ray_free_points(origins, rays.directions[use], free_len[use], free_step)
-        hp = rays.ends[rays.hit]
+        fp, hp, invalid, no_return = _scan_points(scan, free_step, hit_margin, no_return_cap)
+        n_invalid += invalid
+        n_no_return += no_return
         pts_all += [fp, hp]
         occ_all += [np.zeros(len(fp), bool), np.ones(len(hp), bool)]
         idx_all.append(np.full(len(fp) + len(hp), i, dtype=np.int32))
@@ -402,6 +395,161 @@ def observations_from_scans(
         n_no_return=n_no_return,
         n_cleared=n_cleared,
     )
+
+
+def _scan_points(
+    scan: Scan | CloudScan, free_step: float, hit_margin: float | None, no_return_cap: float | None
+) -> tuple[NDArray[np.float64], NDArray[np.float64], int, int]:
+    """One scan's free points and hits (:func:`observations_from_scans`' per scan), its invalid
+    readings and its no-return ones."""
+    if hit_margin is None:
+        hit_margin = 0.5 * free_step
+    rays = Rays.of(scan)
+    free_len = rays.free_lengths(hit_margin, no_return_cap)
+    use = free_len > 0
+    origins = np.broadcast_to(rays.origin, (int(use.sum()), rays.origin.size))
+    fp, _ = ray_free_points(origins, rays.directions[use], free_len[use], free_step)
+    return fp, rays.ends[rays.hit], rays.n_invalid, int((~rays.hit).sum())
+
+
+#: Most points a part of :func:`observation_parts` holds (whole scans are added until it is
+#: reached): about 70 MB of planar points with their labels and scans.
+PART_POINTS: int = 1 << 22
+
+
+def observation_parts(
+    scans: ScanData,
+    free_step: float = 0.2,
+    hit_margin: float | None = None,
+    no_return_cap: float | None = None,
+    indices: Sequence[int] | None = None,
+) -> Iterator[Observations]:
+    """:func:`observations_from_scans` (without a clearance) a part at a time, never all at once.
+
+    Each part holds the points of consecutive whole scans, at least :data:`PART_POINTS` of them
+    but for the last: joined, the parts are the whole's points, the same numbers in the same
+    order. Only the last part may be empty, holding the counts of scans without points.
+
+    Parameters
+    ----------
+    scans : sequence of Scan, or sequence of CloudScan
+    free_step, hit_margin, no_return_cap : float
+        As :func:`observations_from_scans`'.
+    indices : sequence of int, optional
+        The number each scan's points take as ``scan_index`` (default: its place in `scans`).
+
+    Yields
+    ------
+    Observations
+        With its scans' ``n_invalid`` and ``n_no_return``.
+    """
+    parts: list[tuple[NDArray[np.float64], NDArray[np.float64], int]] = []
+    held = n_invalid = n_no_return = 0
+    for i, scan in enumerate(scans):
+        fp, hp, invalid, no_return = _scan_points(scan, free_step, hit_margin, no_return_cap)
+        n_invalid += invalid
+        n_no_return += no_return
+        if len(fp) + len(hp):
+            parts.append((fp, hp, i if indices is None else int(indices[i])))
+            held += len(fp) + len(hp)
+        if held >= PART_POINTS or (i == len(scans) - 1 and (parts or n_invalid or n_no_return)):
+            d = parts[0][0].shape[1] if parts else (3 if isinstance(scan, CloudScan) else 2)
+            yield Observations(
+                np.concatenate([a for fp, hp, _ in parts for a in (fp, hp)], axis=0) if parts else np.zeros((0, d)),
+                np.concatenate([np.arange(len(fp) + len(hp)) >= len(fp) for fp, hp, _ in parts]) if parts else np.zeros(0, bool),
+                np.concatenate([np.full(len(fp) + len(hp), k, dtype=np.int32) for fp, hp, k in parts])
+                if parts
+                else np.zeros(0, np.int32),
+                n_invalid,
+                n_no_return,
+            )
+            parts, held, n_invalid, n_no_return = [], 0, 0, 0
+
+
+class ScanPoints:
+    """The labelled points of a log (:func:`observations_from_scans`, no clearance), known by
+    their counts and bounds and made again where asked, never all held at once.
+
+    A building's log gives tens of millions of points (a gigabyte with their labels and scans);
+    what a fit asks of them besides filing them (its variance scale's squares, its new ground) is
+    answered by making the points of the scans concerned again, the same numbers in the same
+    order as the whole log's. One pass over the log (:func:`observation_parts`) counts them; each
+    part is handed to `each_part` as it is made.
+
+    Parameters
+    ----------
+    scans : sequence of Scan, or sequence of CloudScan
+    free_step, hit_margin, no_return_cap : float
+        As :func:`observations_from_scans`'.
+    each_part : callable, optional
+        Called with every part of the first pass, in order.
+
+    Attributes
+    ----------
+    n_free, n_occupied, n_invalid, n_no_return : int
+    n_scans : int
+        One past the last scan with a point (0 without points).
+    lower, upper : ndarray of shape (d,)
+        Bounds of every point (NaN without points).
+    scan_lower, scan_upper : ndarray of shape (len(scans), d)
+        Bounds of each scan's points (+inf / -inf for a scan without points).
+    """
+
+    def __init__(
+        self,
+        scans: ScanData,
+        free_step: float,
+        hit_margin: float | None,
+        no_return_cap: float | None,
+        each_part: Callable[[Observations], None] | None = None,
+    ) -> None:
+        self.scans = scans
+        self._how = (free_step, hit_margin, no_return_cap)
+        d = data_dim(scans) if len(scans) else 2
+        self.scan_lower = np.full((len(scans), d), np.inf)
+        self.scan_upper = np.full((len(scans), d), -np.inf)
+        self.n_free = self.n_occupied = self.n_invalid = self.n_no_return = self.n_scans = 0
+        for part in self.parts():
+            self.n_invalid += part.n_invalid
+            self.n_no_return += part.n_no_return
+            if part.occupied.size == 0:
+                continue
+            self.n_occupied += int(part.occupied.sum())
+            self.n_free += int(part.occupied.size) - int(part.occupied.sum())
+            self.n_scans = int(part.scan_index[-1]) + 1
+            # A part's points are in scan order: each scan's points one run of it.
+            first = np.flatnonzero(np.concatenate([[True], part.scan_index[1:] != part.scan_index[:-1]]))
+            which = part.scan_index[first]
+            self.scan_lower[which] = np.minimum.reduceat(part.points, first, axis=0)
+            self.scan_upper[which] = np.maximum.reduceat(part.points, first, axis=0)
+            if each_part is not None:
+                each_part(part)
+        seen = np.isfinite(self.scan_lower[:, 0])
+        self.lower = self.scan_lower[seen].min(axis=0) if seen.any() else np.full(d, np.nan)
+        self.upper = self.scan_upper[seen].max(axis=0) if seen.any() else np.full(d, np.nan)
+
+    def parts(self, indices: Sequence[int] | None = None) -> Iterator[Observations]:
+        """The points of every scan (or of the scans at `indices`, in their order), a part at a time."""
+        scans = self.scans if indices is None else [self.scans[i] for i in indices]
+        return observation_parts(scans, *self._how, indices=indices)
+
+    def square(self, lower: ArrayLike, upper: ArrayLike, grow: float = 0.0) -> Observations:
+        """The points inside the box `lower`..`upper` (its first axes; x, y for a square) grown by
+        `grow`, in the log's order: the scans whose points reach it, made again and cut."""
+        lo = np.ravel(np.asarray(lower, dtype=float)) - grow
+        hi = np.ravel(np.asarray(upper, dtype=float)) + grow
+        k = lo.size
+        meets = np.flatnonzero(np.all((self.scan_lower[:, :k] <= hi) & (self.scan_upper[:, :k] >= lo), axis=1))
+        parts = [p for p in self.parts(meets.tolist())] if meets.size else []
+        d = self.scan_lower.shape[1]
+        if not parts:
+            return Observations(np.zeros((0, d)), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int32))
+        cut = [in_box(p.points, lo, hi) for p in parts]
+        return Observations(
+            np.concatenate([p.points[c] for p, c in zip(parts, cut, strict=True)]),
+            np.concatenate([p.occupied[c] for p, c in zip(parts, cut, strict=True)]),
+            np.concatenate([p.scan_index[c] for p, c in zip(parts, cut, strict=True)]),
+        )
 
 
 def natural_subsample(n_points: int, n: int, seed: int) -> NDArray[np.intp]:

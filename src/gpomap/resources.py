@@ -44,6 +44,7 @@ __all__ = [
     "release_freed_memory",
     "rss_mb",
     "SpillFile",
+    "POINT_MEMORY",
     "TILE_MEMORY",
     "default_memory_limit",
     "fit_memory",
@@ -62,6 +63,11 @@ __all__ = [
 
 #: Fraction of the physical memory a run may plan to use by default (``--memory-limit``).
 DEFAULT_MEMORY_FRACTION = 0.5
+
+#: Bytes of labelled points (coordinates and labels) a fit keeps in memory: a log with more
+#: files them under their blocks in a temporary file (:class:`SpillFile`), each block's read back
+#: while its cells are built (a building's log gives tens of millions, a gigabyte).
+POINT_MEMORY: int = 256 * 2**20
 
 #: Bytes of fitted tiles' Cholesky factors (with the inverses prediction forms from them) a map
 #: keeps in memory; the least recently used beyond it wait in a temporary file

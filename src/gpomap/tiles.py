@@ -65,9 +65,16 @@ from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas_threads
 from gpomap.lattice import column_bounds, data_extent, stable_order
-from gpomap.observations import Observations, ScanData, free_near_hits, observations_from_scans, sensor_positions
+from gpomap.observations import (
+    Observations,
+    ScanData,
+    ScanPoints,
+    free_near_hits,
+    observations_from_scans,
+    sensor_positions,
+)
 from gpomap.progress import Progress, progress
-from gpomap.resources import TILE_MEMORY, WRITTEN_BAND_CELLS, SpillFile, peak_rss_mb, release_freed_memory
+from gpomap.resources import POINT_MEMORY, TILE_MEMORY, WRITTEN_BAND_CELLS, SpillFile, peak_rss_mb, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
 from gpomap.squash import ProbitSquash, unseen_probit
@@ -694,7 +701,8 @@ def _collect(
     results = {} if results is None else results
     failed: dict[tuple[int, int], Exception] = {}
     for f in cf.as_completed(futures):
-        key = futures[f]
+        # Each future let go once read: it holds its result (a fit's factor) as long as it lives.
+        key = futures.pop(f)
         try:
             results[key] = f.result()
             bar.update()
@@ -835,19 +843,46 @@ class _BlockCells:
     member_offsets: NDArray[np.intp] | None
 
 
-class _BlockPoints:
-    """The observation points of one block in arrival order; updates append, reads join them once."""
+@dataclass(frozen=True)
+class _SpilledPart:
+    """Points of a block waiting in a :class:`~gpomap.resources.SpillFile` (a whole log's
+    points filed under their blocks would be a gigabyte in memory)."""
 
-    def __init__(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
-        self._parts = [(points, occupied)]
+    file: SpillFile
+    points: tuple[int, int]
+    occupied: tuple[int, int]
+    shape: tuple[int, int]
+
+    @classmethod
+    def put(cls, file: SpillFile, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> _SpilledPart:
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        return cls(
+            file, file.put(pts), file.put(np.ascontiguousarray(occupied, dtype=bool)), (int(pts.shape[0]), int(pts.shape[1]))
+        )
+
+    def load(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        return self.file.get(self.points, np.float64, self.shape), self.file.get(self.occupied, np.bool_, (self.shape[0],))
+
+
+class _BlockPoints:
+    """The observation points of one block in arrival order; updates append, reads join them once
+    (points waiting in a spill file are read back at each read instead, and let go after)."""
+
+    def __init__(self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None) -> None:
+        self._parts: list[Any] = [points if isinstance(points, _SpilledPart) else (points, occupied)]
         # Which of the first `_n_checked` points are free within the clearance of a hit among them.
         self._near = np.zeros(0, dtype=bool)
         self._n_checked = 0
 
-    def append(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
-        self._parts.append((points, occupied))
+    def append(self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None) -> None:
+        self._parts.append(points if isinstance(points, _SpilledPart) else (points, occupied))
 
     def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        if any(isinstance(p, _SpilledPart) for p in self._parts):
+            parts = [p.load() if isinstance(p, _SpilledPart) else p for p in self._parts]
+            if len(parts) == 1:
+                return parts[0]
+            return np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
         if len(self._parts) > 1:
             self._parts = [(np.concatenate([p for p, _ in self._parts]), np.concatenate([o for _, o in self._parts]))]
         return self._parts[0]
@@ -857,15 +892,17 @@ class _BlockPoints:
         """Free points found within the clearance of a hit at the last :meth:`free_near_hits`."""
         return int(self._near.sum())
 
-    def free_near_hits(self, clearance: float) -> NDArray[np.bool_]:
+    def free_near_hits(
+        self, clearance: float, arrays: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None
+    ) -> NDArray[np.bool_]:
         """:func:`~gpomap.observations.free_near_hits` of the block's points, worked out for the new ones only.
 
         Hits are only ever added, so a free point once near a hit stays so. Of the points seen
         at the last call, the free ones not yet near a hit are checked against the new hits; the
         new free points against every hit. The answer is the whole computation's, at the cost
-        of the points appended since.
+        of the points appended since. `arrays`: the block's :meth:`arrays`, when read already.
         """
-        points, occupied = self.arrays()
+        points, occupied = self.arrays() if arrays is None else arrays
         n0 = self._n_checked
         if n0 == 0:
             near = free_near_hits(points, occupied, clearance)
@@ -880,6 +917,46 @@ class _BlockPoints:
             near[new_free] = _near_any(points[new_free], points[occupied], clearance)
         self._near, self._n_checked = near, int(occupied.size)
         return near
+
+
+class _HeldParts:
+    """A log's labelled points, a part at a time, held until the grid of blocks is known.
+
+    In memory while they come within `budget` bytes; past it every part waits in a temporary
+    file instead, and the blocks they are filed under keep theirs in another
+    (:attr:`blocks_file`), so that a building's points are never all in memory.
+    """
+
+    def __init__(self, budget: int) -> None:
+        self.budget = int(budget)
+        self._parts: list[Any] = []
+        self._bytes = 0
+        self._file: SpillFile | None = None
+        self.blocks_file: SpillFile | None = None
+        self.dim = 2
+
+    def add(self, part: Observations) -> None:
+        if part.occupied.size == 0:
+            return
+        self.dim = int(part.points.shape[1])
+        self._bytes += int(part.points.nbytes + part.occupied.nbytes)
+        if self._file is None and self._bytes > self.budget:
+            self._file, self.blocks_file = SpillFile(), SpillFile()
+            self._parts = [_SpilledPart.put(self._file, p, o) for p, o in self._parts]
+        self._parts.append(
+            _SpilledPart.put(self._file, part.points, part.occupied) if self._file is not None else (part.points, part.occupied)
+        )
+
+    def parts(self) -> Iterator[Observations]:
+        """The parts in order, each read back (if it waited in the file) as it is asked."""
+        for p in self._parts:
+            points, occupied = p.load() if isinstance(p, _SpilledPart) else p
+            yield Observations(points, occupied, np.zeros(0, dtype=np.int32))
+
+    def close(self) -> None:
+        self._parts = []
+        if self._file is not None:
+            self._file.close()
 
 
 def _near_any(free: NDArray[np.float64], hits: NDArray[np.float64], clearance: float) -> NDArray[np.bool_]:
@@ -1109,13 +1186,13 @@ class TiledGPOM:
         o = self.overlap_
         return (x0 - o, y0 - o), (x1 + o, y1 + o)
 
-    def _default_origin(self, points: NDArray[np.float64]) -> tuple[float, float]:
-        """Corner of tile (0, 0) and block (0, 0) for `points` (n, d): one tile centred on them if
-        their x, y extent fits in one, else one block centred on them if it fits in one (one cell
-        tree), else the map frame's origin."""
-        if points.shape[0] == 0:
+    def _default_origin(self, lower: NDArray[np.float64] | None, upper: NDArray[np.float64] | None) -> tuple[float, float]:
+        """Corner of tile (0, 0) and block (0, 0) for points within `lower`..`upper` (d,): one tile
+        centred on them if their x, y extent fits in one, else one block centred on them if it
+        fits in one (one cell tree), else the map frame's origin (also without points: None)."""
+        if lower is None or upper is None:
             return (0.0, 0.0)
-        lo, hi = column_bounds(points[:, :2])
+        lo, hi = np.asarray(lower)[:2], np.asarray(upper)[:2]
         for side in (self.tile_size_, self.block_size_):
             if np.all(hi - lo < side):
                 corner = 0.5 * (lo + hi) - 0.5 * side
@@ -1163,7 +1240,7 @@ class TiledGPOM:
         b = self.base
         block = self._block_points[key]
         points, occupied = block.arrays()
-        keep = ~block.free_near_hits(self._clearance)
+        keep = ~block.free_near_hits(self._clearance, (points, occupied))
         c = build_cells(points[keep], occupied[keep], b.min_cell, b.max_cell, b.cell_box)
         summed = b.area_method == "summed"
         return _BlockCells(
@@ -1176,8 +1253,10 @@ class TiledGPOM:
             member_offsets=c.member_offsets if summed else None,
         )
 
-    def _add_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> set[int]:
-        """File points under their blocks (in observation order within each) and note their tiles; returns the blocks touched."""
+    def _add_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_], spill: SpillFile | None = None) -> set[int]:
+        """File points under their blocks (in observation order within each) and note their tiles; returns the blocks touched.
+
+        With `spill`, each block's new points wait in that file (:class:`_SpilledPart`) instead of in memory."""
         # Keys per chunk of points, blocks then numbered 0..b-1 in key order: a whole log's int64
         # keys and their sorted copy would be hundreds of megabytes (FR079: 24 M points).
         chunks = range(0, points.shape[0], _KEY_CHUNK)
@@ -1212,10 +1291,12 @@ class TiledGPOM:
         for k, grp in zip(block_keys.tolist(), np.split(order, cuts)):
             if grp.size == 0:
                 continue
+            filed: Any = _SpilledPart.put(spill, points[grp], occupied[grp]) if spill is not None else points[grp]
+            labels = None if spill is not None else occupied[grp]
             if k in self._block_points:
-                self._block_points[k].append(points[grp], occupied[grp])
+                self._block_points[k].append(filed, labels)
             else:
-                self._block_points[k] = _BlockPoints(points[grp], occupied[grp])
+                self._block_points[k] = _BlockPoints(filed, labels)
             touched.add(k)
         if points.shape[0]:
             lo, hi = column_bounds(points)
@@ -1616,8 +1697,27 @@ class TiledGPOM:
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         t = t0
-        # No clearance here: it is applied per block (see _observations).
-        obs = self.base.make_observations(data, clearance=False)
+        # No clearance here: it is applied per block (see _observations). Scans' points are made
+        # a part at a time and counted, held (in memory, or a temporary file for a large log)
+        # until the grid of blocks is known, then filed; never all in memory at once.
+        held = _HeldParts(POINT_MEMORY)
+        source: Observations | ScanPoints
+        if isinstance(data, Observations):
+            source = self.base.make_observations(data, clearance=False)
+            held.add(source)
+            n_free, n_occupied, n_scans = source.n_free, source.n_occupied, source.scan_index.max(initial=-1) + 1
+            lower, upper = column_bounds(source.points) if source.occupied.size else (None, None)
+            n_invalid, n_no_return = source.n_invalid, source.n_no_return
+        else:
+            b = self.base
+            source = ScanPoints(data, b.free_step, b.hit_margin, b.no_return_cap, each_part=held.add)
+            n_free, n_occupied, n_scans = source.n_free, source.n_occupied, source.n_scans
+            lower, upper = source.lower, source.upper
+            n_invalid, n_no_return = source.n_invalid, source.n_no_return
+            if n_free + n_occupied == 0:
+                raise EmptyDataError(f"no usable readings in {len(data)} scan(s) ({n_invalid} invalid): nothing to map")
+            if n_occupied == 0 or n_free == 0:
+                raise EmptyDataError(f"need both free and occupied observations, got {n_free} free and {n_occupied} occupied")
         # The clearance applies to points sampled from scans, not to given points.
         self._clearance = 0.0 if isinstance(data, Observations) else float(self.base.free_clearance)
         self._block_points = {}
@@ -1626,18 +1726,19 @@ class TiledGPOM:
         self._lower = None
         self._upper = None
         self._n_points = self._n_occupied_points = 0
-        self._dim = int(obs.points.shape[1])
+        self._dim = held.dim
         self.tile_size_ = self.tile_size if self.tile_size is not None else DEFAULT_TILE_SIZE[self._dim]
-        points = np.asarray(obs.points, dtype=float)
-        self.origin_ = self.origin if self.origin is not None else self._default_origin(points)
+        self.origin_ = self.origin if self.origin is not None else self._default_origin(lower, upper)
         self._dirty: set[int] = set()
-        self._n_scans = int(obs.scan_index.max()) + 1 if obs.scan_index.size else 0
-        self._n_invalid, self._n_no_return = obs.n_invalid, obs.n_no_return
+        self._n_scans = int(n_scans)
+        self._n_invalid, self._n_no_return = n_invalid, n_no_return
         self.path_ = None if isinstance(data, Observations) else sensor_positions(data)
         timings["observations"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        self._add_points(points, np.asarray(obs.occupied, dtype=bool))
+        for part in held.parts():
+            self._add_points(np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool), held.blocks_file)
+        held.close()
         self._build_blocks()
         timings["cells"] = time.perf_counter() - t
         start = hyperparameters.get("length_scale") if hyperparameters is not None else None
@@ -1655,13 +1756,13 @@ class TiledGPOM:
         self.extrapolation_: dict[str, Any] = (
             {"kappa": self.hyperparameters_["variance_scale"], "reason": "given to fit()"}
             if "variance_scale" in self.hyperparameters_
-            else self._fit_variance_scale(data, obs)
+            else self._fit_variance_scale(data, source)
         )
         self.hyperparameters_["variance_scale"] = float(self.extrapolation_["kappa"])
         timings["variance_scale"] = time.perf_counter() - t
-        # The blocks hold every point from here on: the log's points are let go before the ray
-        # counts are taken (FR079's whole log: 24 M points, 600 MB with their labels and scans).
-        del obs, points
+        # The blocks hold every point from here on (FR079's whole log: 24 M points, 600 MB with
+        # their labels and scans): labelled points given are let go before the ray counts.
+        del source
         release_freed_memory()
         self._scans: list[Any] | None = None if isinstance(data, Observations) else list(data)
 
@@ -1693,7 +1794,7 @@ class TiledGPOM:
         self._reused: set[tuple[int, int]] = set()  # tiles last fitted reusing covariances
         return self
 
-    def _fit_variance_scale(self, data: ScanData | Observations, obs: Observations) -> dict[str, Any]:
+    def _fit_variance_scale(self, data: ScanData | Observations, obs: Observations | ScanPoints) -> dict[str, Any]:
         """The squash's variance scale from held-out stretches of the scans, and its report.
 
         See :mod:`gpomap.extrapolation`. The held-in GP covers the whole map when it is within a
@@ -1706,7 +1807,7 @@ class TiledGPOM:
             return {"kappa": 1.0, "reason": "labelled points given, not scans"}
         from gpomap.extrapolation import fit_variance_scale, whole_map_region
 
-        centre, half = whole_map_region(obs.points)
+        centre, half = whole_map_region(obs if isinstance(obs, ScanPoints) else obs.points)
         margin = 0.0
         wider: tuple[NDArray[np.float64], float, float] | None = None
         if half > self.block_size_:
@@ -1714,7 +1815,7 @@ class TiledGPOM:
             # region twice as wide (or the whole map) where that holds too few unseen points.
             whole = (centre, half, 0.0)
             source = getattr(self, "hyper_source_", {})
-            centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else np.median(obs.points[:, :2], axis=0)
+            centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else self._median_point(obs)
             half, margin = self.block_size_, min(self.overlap_, 0.5 * self.block_size_)
             wider = whole if whole[1] <= 2.0 * half else (centre, 2.0 * half, margin)
         fixed = {**self.hyperparameters_, "variance_scale": 1.0}
@@ -1736,6 +1837,13 @@ class TiledGPOM:
             wider=wider,
         )
         return report
+
+    @staticmethod
+    def _median_point(obs: Observations | ScanPoints) -> NDArray[np.float64]:
+        """The median x, y of every point (made again, a part at a time, from scans)."""
+        if isinstance(obs, ScanPoints):
+            return np.median(np.concatenate([p.points[:, :2] for p in obs.parts()]), axis=0)
+        return np.median(obs.points[:, :2], axis=0)
 
     def _make_evidence(self) -> EvidenceLayer | None:
         """Ray counts over every scan so far, calibrated against the tiles' GP (see gpomap.fusion)."""
