@@ -160,71 +160,33 @@ def _spread(values: list[float]) -> str:
     return f"{med:.2f}" if len(values) == 1 else f"{med:.2f} ({min(values):.2f}-{max(values):.2f})"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--experiments", default=",".join(EXPERIMENTS), help="comma-separated: " + ", ".join(EXPERIMENTS))
-    parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated: " + ", ".join(METHODS))
-    parser.add_argument("--kernels", default=",".join(KERNELS), help="comma-separated: " + ", ".join(KERNELS))
-    parser.add_argument("--sizes", default="benchmark", help="comma-separated: " + ", ".join(SIZES) + " (default: benchmark)")
-    parser.add_argument("--threads", type=int, default=1, help="thread pools capped at this many threads (default: 1)")
-    parser.add_argument("--repeat", type=int, default=1, help="timed fits and predictions per case (default: 1)")
-    parser.add_argument("--reference", action="store_true", help="also time the numpy path the compiled one replaced")
-    parser.add_argument("--child", nargs=4, metavar=("EXPERIMENT", "METHOD", "KERNEL", "SIZE"), help=argparse.SUPPRESS)
-    parser.add_argument("--json", type=Path, help="also write the results here")
-    args = parser.parse_args()
-    if args.child:
-        print(json.dumps(child(*args.child, args.threads, args.reference, args.repeat)))
-        return
-    chosen = {}
-    for name, allowed in (("experiments", EXPERIMENTS), ("methods", METHODS), ("kernels", KERNELS), ("sizes", SIZES)):
-        values = getattr(args, name).split(",")
-        bad = [v for v in values if v not in allowed]
-        if bad:
-            raise SystemExit(f"--{name}: unknown {', '.join(bad)}; expected some of {', '.join(allowed)}")
-        chosen[name] = values
-    if args.repeat < 1 or args.threads < 1:
-        raise SystemExit("--repeat and --threads must be at least 1")
+def print_tables(results: list[dict[str, Any]]) -> None:
+    """The table of every case and a line of details per case."""
     from gpomap.benchmark import PAPER
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    print(
-        f"# The paper's GP baselines (commit {commit}, {os.cpu_count()} CPUs, threads capped at {args.threads}, {args.repeat} run(s) each)"
-    )
-    results = []
-    for experiment in chosen["experiments"]:
-        for size in chosen["sizes"]:
-            for method in chosen["methods"]:
-                for kernel in chosen["kernels"]:
-                    cmd = [sys.executable, __file__, "--child", experiment, method, kernel, size]
-                    cmd += ["--threads", str(args.threads), "--repeat", str(args.repeat)] + (
-                        ["--reference"] if args.reference else []
-                    )
-                    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
-                    if out.returncode != 0:
-                        raise SystemExit(f"{experiment} {method} {kernel} {size} failed:\n{out.stderr}")
-                    r = json.loads(out.stdout.strip().splitlines()[-1])
-                    results.append(r)
-                    walls = [_total(run, 0) for run in r["compiled"]["runs"]]
-                    print(f"done {experiment} {method} {kernel} {size}: {_spread(walls)} s", file=sys.stderr, flush=True)
+    reference = any("reference" in r for r in results)
     print()
     print(
-        "| experiment | method | kernel | size | inputs | fit + predict wall s | CPU s | paper's GPOMIK s | / 10 | within | AUC "
-        + ("| numpy reference wall s | speed-up | max abs diff of p " if args.reference else "")
+        "| experiment | method | kernel | size | inputs | fit + predict wall s | CPU s | paper's GPOMIK s | / 10 | within: wall / CPU | AUC "
+        + ("| numpy reference wall s | CPU s | CPU speed-up | max abs diff of p " if reference else "")
         + "|"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if args.reference else ""))
+    print("|---|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|---|" if reference else ""))
     for r in results:
         paper = PAPER[(r["experiment"], "gpomik", r["kernel"])][0]
         runs = r["compiled"]["runs"]
         walls, cpus = [_total(x, 0) for x in runs], [_total(x, 1) for x in runs]
+        within = " / ".join("yes" if max(v) <= paper / 10 else "no" for v in (walls, cpus))
         line = (
             f"| {r['experiment']} | {r['method']} | {r['kernel']} | {r['size']} | {r['compiled']['inputs']} | {_spread(walls)} "
-            f"| {_spread(cpus)} | {paper:.2f} | {paper / 10:.2f} | {'yes' if max(walls) <= paper / 10 else 'no'} "
-            f"| {r['compiled']['auc']:.4f} |"
+            f"| {_spread(cpus)} | {paper:.2f} | {paper / 10:.2f} | {within} | {r['compiled']['auc']:.4f} |"
         )
-        if args.reference:
+        if reference and "reference" in r:
             ref = [_total(x, 0) for x in r["reference"]["runs"]]
-            line += f" {_spread(ref)} | {statistics.median(ref) / statistics.median(walls):.1f}x | {r['max_dp']:.1e} |"
+            ref_cpu = [_total(x, 1) for x in r["reference"]["runs"]]
+            line += f" {_spread(ref)} | {_spread(ref_cpu)} | {statistics.median(ref_cpu) / statistics.median(cpus):.1f}x | {r['max_dp']:.1e} |"
+        elif reference:
+            line += " - | - | - | - |"
         print(line)
     print()
     for r in results:
@@ -249,6 +211,58 @@ def main() -> None:
             f"test points; fit wall s {fit}; predict wall s {pred}; {c['evaluations']} objective evaluations, theta "
             f"{np.round(c['theta'], 6).tolist()}{extra}{per}{load}"
         )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--experiments", default=",".join(EXPERIMENTS), help="comma-separated: " + ", ".join(EXPERIMENTS))
+    parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated: " + ", ".join(METHODS))
+    parser.add_argument("--kernels", default=",".join(KERNELS), help="comma-separated: " + ", ".join(KERNELS))
+    parser.add_argument("--sizes", default="benchmark", help="comma-separated: " + ", ".join(SIZES) + " (default: benchmark)")
+    parser.add_argument("--threads", type=int, default=1, help="thread pools capped at this many threads (default: 1)")
+    parser.add_argument("--repeat", type=int, default=1, help="timed fits and predictions per case (default: 1)")
+    parser.add_argument("--reference", action="store_true", help="also time the numpy path the compiled one replaced")
+    parser.add_argument("--child", nargs=4, metavar=("EXPERIMENT", "METHOD", "KERNEL", "SIZE"), help=argparse.SUPPRESS)
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--from-json", type=Path, help="print the tables of results written by --json, running nothing")
+    args = parser.parse_args()
+    if args.child:
+        print(json.dumps(child(*args.child, args.threads, args.reference, args.repeat)))
+        return
+    if args.from_json:
+        print_tables(json.loads(args.from_json.read_text()))
+        return
+    chosen = {}
+    for name, allowed in (("experiments", EXPERIMENTS), ("methods", METHODS), ("kernels", KERNELS), ("sizes", SIZES)):
+        values = getattr(args, name).split(",")
+        bad = [v for v in values if v not in allowed]
+        if bad:
+            raise SystemExit(f"--{name}: unknown {', '.join(bad)}; expected some of {', '.join(allowed)}")
+        chosen[name] = values
+    if args.repeat < 1 or args.threads < 1:
+        raise SystemExit("--repeat and --threads must be at least 1")
+
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    print(
+        f"# The paper's GP baselines (commit {commit}, {os.cpu_count()} CPUs, threads capped at {args.threads}, {args.repeat} run(s) each)"
+    )
+    results = []
+    for experiment in chosen["experiments"]:
+        for size in chosen["sizes"]:
+            for method in chosen["methods"]:
+                for kernel in chosen["kernels"]:
+                    cmd = [sys.executable, __file__, "--child", experiment, method, kernel, size]
+                    cmd += ["--threads", str(args.threads), "--repeat", str(args.repeat)] + (
+                        ["--reference"] if args.reference else []
+                    )
+                    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+                    if out.returncode != 0:
+                        raise SystemExit(f"{experiment} {method} {kernel} {size} failed:\n{out.stderr}")
+                    r = json.loads(out.stdout.strip().splitlines()[-1])
+                    results.append(r)
+                    walls = [_total(run, 0) for run in r["compiled"]["runs"]]
+                    print(f"done {experiment} {method} {kernel} {size}: {_spread(walls)} s", file=sys.stderr, flush=True)
+    print_tables(results)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 
