@@ -27,6 +27,7 @@ last whole fit.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -48,7 +49,7 @@ SLOPE_BOUNDS: tuple[float, float] = (0.5, 2.0)
 #: ``slope + shift * z / WIDTH^2 * exp(-z^2 / (2 WIDTH^2))``, is least at ``z = -+WIDTH``:
 #: ``slope - |shift| / (WIDTH sqrt(e))``; at this bound it is still a tenth of the slope, so
 #: the map keeps the order of every two probabilities (and the ternary map its classes).
-MAX_SHIFT_RATIO: float = 0.9 * WIDTH * float(np.sqrt(np.e))
+MAX_SHIFT_RATIO: float = 0.9 * WIDTH * math.sqrt(math.e)
 #: Whether a map of this dimension fits the recalibration (planar maps: measured on 26 log-splits).
 FIT_REVISIT: dict[int, bool] = {2: True, 3: False}
 #: Fewest scans a log needs for a held-out stretch to be a visit of its own (shorter logs keep the identity).
