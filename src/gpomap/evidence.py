@@ -22,7 +22,7 @@ The rays of 3-D point clouds are counted the same way on a voxel lattice
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -143,7 +143,8 @@ def _segment_distances(points: NDArray[np.float64], a: NDArray[np.float64], b: N
 
 
 class RayCounts(NamedTuple):
-    """Counts per cell of a grid, each ndarray of int32 of shape grid.shape.
+    """Counts per cell of a grid, each ndarray of int32 (or uint16: a map's lattice,
+    :func:`gpomap.fusion.count_dtype`) of shape grid.shape.
 
     Attributes
     ----------
@@ -155,9 +156,9 @@ class RayCounts(NamedTuple):
         Those misses whose every beam through the cell ended its return within :data:`NEAR_END`.
     """
 
-    hits: NDArray[np.int32]
-    misses: NDArray[np.int32]
-    near: NDArray[np.int32]
+    hits: NDArray[np.integer[Any]]
+    misses: NDArray[np.integer[Any]]
+    near: NDArray[np.integer[Any]]
 
 
 def next_to_hits(hits: NDArray[np.integer]) -> NDArray[np.bool_]:
@@ -241,18 +242,20 @@ class RayEvidence:
         """Number of spatial dimensions of the rays."""
         return int(self.starts.shape[1])
 
-    def path_passes(self, grid: AnyGrid) -> NDArray[np.int32]:
+    def path_passes(self, grid: AnyGrid, out: NDArray[np.integer[Any]] | None = None) -> NDArray[np.integer[Any]]:
         """How many steps of the robot's path passed each cell of `grid`, shape grid.shape.
 
         A step passes the cells it crosses when shifted by any whole number of cells up to
         :data:`PATH_RADIUS` (the robot's body round the sensor's track), each cell once per step,
-        so the passes add over the path's steps.
+        so the passes add over the path's steps. With `out` (of the grid's shape) they are added
+        into it, and it is returned.
         """
         d = self.dim
         starts, ends = self.path[:, :d].reshape(-1, d), self.path[:, d:].reshape(-1, d)
         size = grid_size(grid)
+        passes = np.zeros(grid.shape, dtype=np.int32) if out is None else out
         if starts.shape[0] == 0:
-            return np.zeros(grid.shape, dtype=np.int32)
+            return passes
         reach = int(np.floor(PATH_RADIUS / grid.resolution + 1e-9))
         steps = np.arange(-reach, reach + 1)
         offsets = np.stack(np.meshgrid(*([steps] * d), indexing="ij"), axis=-1).reshape(-1, d)
@@ -261,8 +264,10 @@ class RayEvidence:
         for shift in offsets:
             seg, *idx = traverse(grid, starts + shift, ends + shift)
             keys.append(seg.astype(np.int64) * size + np.ravel_multi_index(tuple(idx), grid.shape))
-        flat = np.unique(np.concatenate(keys)) % size
-        return np.bincount(flat, minlength=size).astype(np.int32).reshape(grid.shape)
+        # Counted over the cells passed only: a building's lattice has tens of millions.
+        cells, n = np.unique(np.unique(np.concatenate(keys)) % size, return_counts=True)
+        passes.reshape(-1)[cells] += n.astype(passes.dtype)
+        return passes
 
     @property
     def n_scans(self) -> int:
@@ -274,7 +279,13 @@ class RayEvidence:
         pts = np.concatenate([self.starts, self.ends])
         return bounds_extent(*column_bounds(pts))
 
-    def counts(self, grid: AnyGrid, scans: NDArray[np.intp] | None = None, keep: NDArray[np.intp] | None = None) -> RayCounts:
+    def counts(
+        self,
+        grid: AnyGrid,
+        scans: NDArray[np.intp] | None = None,
+        keep: NDArray[np.intp] | None = None,
+        out: RayCounts | None = None,
+    ) -> RayCounts:
         """Hits, misses and near misses per cell of `grid`, one update per cell per scan, a hit winning.
 
         Parameters
@@ -288,14 +299,25 @@ class RayEvidence:
             :meth:`scan_counts_at` on this grid reads them instead of traversing the scan's beams
             again (a leave-one-scan-out calibration asks it of the scans it holds out, right after
             the whole counts); :meth:`forget` drops them.
+        out : RayCounts, optional
+            Arrays of int32 or uint16 (wide enough for the scans: each cell is counted at most
+            once per scan) of `grid`'s shape, C-contiguous, the counts are added into, and
+            returned: a lattice over a building is counted in place instead of beside a copy.
 
         Returns
         -------
         RayCounts
         """
-        counts = RayCounts(*(np.zeros(grid_size(grid), dtype=np.int32) for _ in range(3)))
-        # The compiled path's scratch: the last scan that touched each cell (kept across batches).
-        mark = np.full(grid_size(grid), -1, dtype=np.int64) if _compiled_counts.ENABLED else None
+        if out is None:
+            counts = RayCounts(*(np.zeros(grid_size(grid), dtype=np.int32) for _ in range(3)))
+        else:
+            if any(a.dtype not in (np.int32, np.uint16) or a.shape != grid.shape or not a.flags.c_contiguous for a in out):
+                raise ValueError(f"counts are added into C-contiguous int32 or uint16 arrays of the grid's shape {grid.shape}")
+            counts = RayCounts(*(a.reshape(-1) for a in out))
+        # The compiled path's scratch: the last scan that touched each cell (kept across batches),
+        # as 3 scan + state: int32 while that fits (half a building's lattice of int64).
+        wide = 3 * (int(self.scan[-1]) + 1 if self.scan.size else 0) + 3 >= 2**31
+        mark = np.full(grid_size(grid), -1, dtype=np.int64 if wide else np.int32) if _compiled_counts.ENABLED else None
         select = np.ones(self.scan.size, bool) if scans is None else np.isin(self.scan, scans)
         idx = np.flatnonzero(select)
         if idx.size == 0:
@@ -430,7 +452,7 @@ class RayEvidence:
         beams: NDArray[np.intp],
         counts: RayCounts,
         keep: NDArray[np.intp] | None = None,
-        mark: NDArray[np.int64] | None = None,
+        mark: Any = None,
     ) -> None:
         """Add the counts of `beams` (whole scans) into `counts`; with `mark` (the compiled path's
         scratch, see :func:`gpomap._compiled_counts.count_entries`) in one compiled pass."""
@@ -440,7 +462,9 @@ class RayEvidence:
         ended = inside & self.hit[beams]
         b, cell, near_entry = self._entries(grid, beams)
         if mark is not None:
-            _compiled_counts.count_entries(b, cell, near_entry, scan, np.where(ended, end_cell, -1), counts, mark)
+            # uint16 counts too: the compiled pass adds one at a time, each within the type.
+            arrays: Any = tuple(counts)
+            _compiled_counts.count_entries(b, cell, near_entry, scan, np.where(ended, end_cell, -1), arrays, mark)
             mine = np.zeros(scan.size, dtype=bool) if keep is None else np.isin(scan, keep)
             if not mine.any():
                 return
@@ -455,7 +479,7 @@ class RayEvidence:
             miss_keys = crossed[~_sorted_in_sorted(crossed, hit_keys)]
             near_keys = near[~_sorted_in_sorted(near, hit_keys)]
             for total, keys in zip(counts, (hit_keys, miss_keys, near_keys), strict=True):
-                total += np.bincount(keys % ncell, minlength=ncell).astype(np.int32)
+                np.add(total, np.bincount(keys % ncell, minlength=ncell), out=total, casting="unsafe")
         if keep is not None:
             # Keys are scan * ncell + cell, sorted: each kept scan's cells are one slice (copied,
             # so the batch's arrays are not kept alive).

@@ -78,7 +78,7 @@ import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -605,6 +605,17 @@ def _predict_block(
 #: counts are copied into a larger array then, so a margin keeps that rare as the robot drives on.
 LATTICE_GROWTH: float = 10.0
 
+#: The lattice's counts are 16-bit while fewer scans than this are counted: a cell is counted at
+#: most once per scan and passed once per step of the path, so none can overflow, and a
+#: building's lattice (tens of millions of cells, four counts each) takes half the memory of
+#: 32-bit counts. A log that grows past it (a long stream) widens them to 32 bits.
+NARROW_COUNT_SCANS: int = 2**16 - 1
+
+
+def count_dtype(n_scans: int) -> type[np.integer[Any]]:
+    """The lattice's count type for `n_scans` scans: uint16 below :data:`NARROW_COUNT_SCANS`, else int32."""
+    return np.uint16 if n_scans < NARROW_COUNT_SCANS else np.int32
+
 
 class EvidenceLayer:
     """Ray counts and their calibration, applied on top of a fitted GP map.
@@ -657,11 +668,12 @@ class EvidenceLayer:
         self._joined: RayEvidence | None = None
         self._dim = 2  # of the scans counted (set by add_scans)
         self.lattice: AnyGrid | None = None
-        self._hits = np.zeros((0, 0), dtype=np.int32)
-        self._beam_misses = np.zeros((0, 0), dtype=np.int32)
-        self._near_misses = np.zeros((0, 0), dtype=np.int32)
-        self._path = np.zeros((0, 0), dtype=np.int32)
-        self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.int32], NDArray[np.bool_]] | None = None
+        # Counts per lattice cell, of count_dtype (16-bit for most logs).
+        self._hits: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
+        self._beam_misses: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
+        self._near_misses: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
+        self._path: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
+        self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None = None
         self.add_scans(scans)
         self.recalibrate(predict_gp)
 
@@ -716,18 +728,25 @@ class EvidenceLayer:
         # The margin holds the robot's body round a path at the data's edge.
         margin = self.resolution + PATH_RADIUS
         local = lattice_grid(bounds_extent(*column_bounds(pts)), self.resolution, margin=margin)
-        self._cover(local)
+        self._cover(local, count_dtype(len(self._scans) + len(scans)))
         # The first scans' counts are on the lattice itself: the calibration's held-out scans keep
         # their cells, so their leave-one-scan-out counts need no second traversal.
         keep = calibration_scans(len(scans), self.calibration_scans) if not self._scans else None
-        counts = part.counts(local, keep=keep)
-        passes = part.path_passes(local)
         assert self.lattice is not None
         block = self._block(local)
-        self._hits[block] += counts.hits
-        self._beam_misses[block] += counts.misses
-        self._near_misses[block] += counts.near
-        self._path[block] += passes
+        if local.shape == self.lattice.shape and all(b.start == 0 for b in block):
+            # The lattice is the new scans' own: counted into it, not beside it (a building's
+            # lattice is tens of millions of cells, each array of them hundreds of megabytes).
+            part.counts(local, keep=keep, out=RayCounts(self._hits, self._beam_misses, self._near_misses))
+            part.path_passes(local, out=self._path)
+        else:
+            counts = part.counts(local, keep=keep)
+            for total, new in zip((self._hits, self._beam_misses, self._near_misses), counts, strict=True):
+                window = total[block]
+                np.add(window, new, out=window, casting="unsafe")  # within the type (count_dtype)
+            del counts
+            window = self._path[block]
+            np.add(window, part.path_passes(local), out=window, casting="unsafe")
         self._scans.extend(scans)
         self._parts.append(part)
         self._joined = None
@@ -739,15 +758,19 @@ class EvidenceLayer:
         assert self.lattice is not None
         return tuple(slice(o, o + n) for o, n in zip(cell_offset(grid, self.lattice), grid.shape, strict=True))
 
-    def _cover(self, local: AnyGrid) -> None:
-        """Grow the counted lattice (a copy, with :data:`LATTICE_GROWTH` to spare) to hold `local`."""
+    def _cover(self, local: AnyGrid, dtype: Any = np.int32) -> None:
+        """Grow the counted lattice (a copy, with :data:`LATTICE_GROWTH` to spare) to hold `local`,
+        its counts of `dtype` (:func:`count_dtype`) or wider."""
         if self.lattice is None:
             self.lattice = local
-            self._hits = np.zeros(local.shape, dtype=np.int32)
-            self._beam_misses = np.zeros(local.shape, dtype=np.int32)
-            self._near_misses = np.zeros(local.shape, dtype=np.int32)
-            self._path = np.zeros(local.shape, dtype=np.int32)
+            self._hits = np.zeros(local.shape, dtype=dtype)
+            self._beam_misses = np.zeros(local.shape, dtype=dtype)
+            self._near_misses = np.zeros(local.shape, dtype=dtype)
+            self._path = np.zeros(local.shape, dtype=dtype)
             return
+        if np.iinfo(dtype).max > np.iinfo(self._hits.dtype).max:
+            for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
+                setattr(self, name, getattr(self, name).astype(dtype))
         offset = cell_offset(local, self.lattice)
         if all(o >= 0 and o + n <= m for o, n, m in zip(offset, local.shape, self.lattice.shape, strict=True)):
             return
@@ -759,7 +782,7 @@ class EvidenceLayer:
         self.lattice = grown
         block = self._block(old)
         for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
-            arr = np.zeros(grown.shape, dtype=np.int32)
+            arr = np.zeros(grown.shape, dtype=getattr(self, name).dtype)
             arr[block] = getattr(self, name)
             setattr(self, name, arr)
 
@@ -855,7 +878,7 @@ class EvidenceLayer:
         d = (np.asarray(grid.origin) - np.asarray(self.lattice.origin)) / self.resolution
         return bool(np.all(np.abs(d - np.round(d)) < 1e-6))
 
-    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[RayCounts, NDArray[np.int32], NDArray[np.bool_]]:
+    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]]:
         """The beams' counts, the path's passes and the cells at a surface
         (:func:`gpomap.evidence.next_to_hits`) per cell of `grid`."""
         if not self._on_lattice(grid):

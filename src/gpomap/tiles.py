@@ -1065,6 +1065,8 @@ class TiledGPOM:
         length scale and noise; alpha and beta are then still fitted once on the sample.
     """
 
+    #: Fit each tile when a prediction first needs it (set on a map asked at a few points only).
+    _tiles_when_asked: bool = False
     # Set by fit: the observation points per block, their cell trees, and the points' extent.
     _block_points: dict[int, _BlockPoints]
     _blocks: dict[int, _BlockCells]
@@ -1777,14 +1779,21 @@ class TiledGPOM:
         t = time.perf_counter()
         tiles = [self._decode(k) for k in sorted(self._tiles_with_points)]
         jobs, gathered = self._fit_jobs(tiles)
-        self.tiles_: MutableMapping[tuple[int, int], TileState] = self._run(
-            fit_tile_task, jobs, "tile fit", "fitting tiles", into=TileStore()
-        )
+        self.tiles_: MutableMapping[tuple[int, int], TileState] = TileStore()
+        if self._tiles_when_asked:
+            # A map asked at a few points (the later visit's map of the other stretches): each
+            # tile is fitted when a prediction first needs it (:meth:`_fit_waiting`).
+            self._waiting: dict[tuple[int, int], tuple[TileFitTask]] = dict(jobs)
+        else:
+            self._run(fit_tile_task, jobs, "tile fit", "fitting tiles", into=self.tiles_)
         self._signatures = {t: g.signature() for t, g in gathered.items()}
+        del jobs, gathered
+        release_freed_memory()  # the fits' matrices, most of them gone to the tile store's file
         timings["tile_fits"] = time.perf_counter() - t
         self.timings_ = timings
         t = time.perf_counter()
         self.evidence_ = self._make_evidence()
+        release_freed_memory()  # the traversals' temporaries
         timings["evidence"] = time.perf_counter() - t
         self.revisit_: dict[str, Any] = self._fit_revisit(later)
         timings["total_fit"] = time.perf_counter() - t0
@@ -1862,8 +1871,11 @@ class TiledGPOM:
 
         def fit_rest(scans: list[Any]) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
             # The same map on the other scans: its tiles, settings and hyperparameters, its own ray
-            # evidence and calibration, no recalibration of its own.
-            return self._like(fit_revisit=False).fit(scans, hyperparameters=fixed).predict_proba
+            # evidence and calibration, no recalibration of its own. Asked at a few points only,
+            # it fits the tiles those need when they are asked (the same tiles, so the same answers).
+            rest = self._like(fit_revisit=False)
+            rest._tiles_when_asked = True
+            return rest.fit(scans, hyperparameters=fixed).predict_proba
 
         return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
 
@@ -2136,6 +2148,11 @@ class TiledGPOM:
             if self._blend_region(tile.key)[3] < y:
                 tile.posterior.precision = None
 
+    def _fit_waiting(self, keys: list[tuple[int, int]]) -> None:
+        """Fit the tiles of `keys` that wait to be asked (a map fitted with ``_tiles_when_asked``)."""
+        if keys:
+            self._run(fit_tile_task, [(k, self._waiting.pop(k)) for k in keys], "tile fit", "fitting tiles", into=self.tiles_)
+
     def _light_tile(self, key: tuple[int, int]) -> TileState:
         """Tile `key`'s state, its factor left where it is (:meth:`TileStore.light`)."""
         tiles = self.tiles_
@@ -2179,7 +2196,8 @@ class TiledGPOM:
         # tile scans only the few squares its blend region reaches: strips of x alone made each
         # tile of a map 300 m tall scan sixty tiles' points (the Freiburg campus log's written
         # map: 42 s of 114). Squares as narrow as a short blend would be millions (a hard switch).
-        keys = sorted(self.tiles_)
+        waiting = getattr(self, "_waiting", {})
+        keys = sorted([*self.tiles_, *waiting]) if waiting else sorted(self.tiles_)
         side = 0.5 * self.tile_size_
         regions = np.array([self._blend_region(k) for k in keys])
         lo = regions[:, [0, 2]].min(axis=0)
@@ -2223,13 +2241,17 @@ class TiledGPOM:
                 wsum[sel] = 1.0
         # A written map predicts the mean at every GP sample, then both moments at fewer: say which.
         desc = "predicting tiles" if variance else "predicting tile means"
-        # Tiles in batches whose factors fit in a TileStore's budget, each batch's states read
+        if waiting:
+            self._fit_waiting([k for k in members if k in waiting])
+        # The mean needs no factor: the tiles' states without theirs, all at once. The variance:
+        # tiles in batches whose factors fit in a TileStore's budget, each batch's states read
         # (from the store's file, if there) only while it runs.
-        batches = self._prediction_batches(list(members))
+        batches = self._prediction_batches(list(members)) if variance else [list(members)]
+        state = self.tiles_.__getitem__ if variance else self._light_tile
         res: MutableMapping[tuple[int, int], Any] = {}
         with progress(len(members), desc, unit="tile") if len(batches) > 1 else contextlib.nullcontext() as bar:
             for batch in batches:
-                jobs = [(key, (self.tiles_[key], pts[members[key][0]], chunk, variance)) for key in batch]
+                jobs = [(key, (state(key), pts[members[key][0]], chunk, variance)) for key in batch]
                 res.update(self._run(predict_tile_task, jobs, "tile prediction", desc))
                 del jobs
                 if bar is not None:

@@ -589,8 +589,9 @@ def _summary(model: Any) -> dict[str, Any]:
     }
 
 
-#: Bytes of an array deflate is tried on before the whole array is (:func:`_deflates`).
-_DEFLATE_SAMPLE = 1 << 16
+#: Bytes of an array deflate is tried on before the whole array is (:func:`_deflates`): a building's
+#: map file holds tens of thousands of arrays (each tile's factor, cells and weights).
+_DEFLATE_SAMPLE = 1 << 13
 
 
 def _deflates(array: NDArray[Any]) -> bool:
