@@ -960,3 +960,33 @@ def test_a_map_fits_its_surprise_rate_when_asked_against_its_gp_fitted_on_the_ot
     np.testing.assert_allclose(model.evidence_.gp_apart(kept)(q), held.predict_proba_gp(q), rtol=1e-12)
     # And it is not the map's own GP, which saw the other scans too.
     assert not np.allclose(model.evidence_.gp_apart(kept)(q), model.predict_proba_gp(q))
+
+
+def test_sixteen_bit_counts_are_the_thirty_two_bit_ones_and_widen_as_scans_add_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The lattice's counts by count_dtype: 16-bit for a log under NARROW_COUNT_SCANS scans, widened
+    # to 32 bits when added scans reach it; every count the same as 32-bit counts from the start.
+    room = paper_room_scans(n_beams=72)
+    monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 0)  # 32-bit throughout: the reference
+    wide = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
+    wide.add_scans(room[10:])
+    monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 12)
+    narrow = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
+    assert narrow._hits.dtype == np.uint16 and narrow._path.dtype == np.uint16
+    narrow.add_scans(room[10:])  # 31 scans: past 12
+    for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
+        a, b = getattr(narrow, name), getattr(wide, name)
+        assert a.dtype == b.dtype == np.int32
+        np.testing.assert_array_equal(a, b)
+    assert wide._hits.max() > 1 and wide._path.max() > 0
+    pts = np.random.default_rng(0).uniform((0.0, 0.0), (20.0, 16.0), (4000, 2))
+    grid = GridSpec.from_extent((0.0, 20.0, 0.0, 16.0), 0.1)
+    monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 0)
+    # A whole log at once, its calibration fitted on 16-bit counts: the 32-bit layer's numbers.
+    whole = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
+    monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 2**16 - 1)
+    short = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
+    assert short._hits.dtype == np.uint16 and whole._hits.dtype == np.int32
+    np.testing.assert_array_equal(short.proba(pts, _p_gp(pts)), whole.proba(pts, _p_gp(pts)))
+    for x, y in zip(short.grid_counts(grid), whole.grid_counts(grid), strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert short.summary() == whole.summary()

@@ -157,3 +157,34 @@ def test_the_map_of_the_rest_is_this_map_on_fewer_scans(fitted_tour):
     got = rv.fit_revisit(p, occupied, sample.probability, sample.occupied)
     assert got.slope == pytest.approx(model.evidence_.revisit.slope, rel=1e-6)
     assert got.shift == pytest.approx(model.evidence_.revisit.shift, rel=1e-6, abs=1e-9)
+
+
+def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(fitted_tour):
+    # The later visit's map of the other stretches fits a tile when a prediction first needs it:
+    # fewer tiles, the same probabilities to the bit as the map with every tile fitted up front.
+    model = fitted_tour
+    scans = model._scans
+    kept, _ = holdout_stretches(len(scans))
+    fixed = dict(model.hyperparameters_)
+    eager = model._like(fit_revisit=False).fit([scans[i] for i in kept], hyperparameters=fixed)
+    lazy = model._like(fit_revisit=False)
+    lazy._tiles_when_asked = True
+    lazy.fit([scans[i] for i in kept], hyperparameters=fixed)
+    args = (model.base.no_return_cap, model.base.seed)
+    p_eager, occ, _ = rv.later_visit_points(scans, lambda s: eager.predict_proba, *args)
+    p_lazy, occ_lazy, _ = rv.later_visit_points(scans, lambda s: lazy.predict_proba, *args)
+    np.testing.assert_array_equal(p_lazy, p_eager)
+    np.testing.assert_array_equal(occ_lazy, occ)
+    assert len(eager.tiles_) == len(lazy.tiles_) + len(lazy._waiting)
+    # What the map itself took for its recalibration.
+    p_model, _, _ = model._later_visit_points()
+    np.testing.assert_array_equal(p_model, p_eager)
+    # Without ray counts nothing is predicted while fitting: no tile is fitted until asked.
+    gp = model._like(fit_revisit=False, ray_evidence=False)
+    gp._tiles_when_asked = True
+    gp.fit(scans, hyperparameters=fixed)
+    assert len(gp.tiles_) == 0
+    point = np.array([[6.0, 7.5]])
+    whole = model._like(fit_revisit=False, ray_evidence=False).fit(scans, hyperparameters=fixed)
+    np.testing.assert_array_equal(gp.predict_proba(point), whole.predict_proba(point))
+    assert 1 <= len(gp.tiles_) <= 4 < len(whole.tiles_)
