@@ -104,7 +104,7 @@ from gpomap.lattice import (
     overlap,
 )
 from gpomap.observations import ScanData, data_dim, natural_subsample
-from gpomap.resources import WRITTEN_BAND_CELLS
+from gpomap.resources import WRITTEN_BAND_CELLS, release_freed_memory
 from gpomap.revisit import RevisitCalibration
 from gpomap.scans import Scan
 
@@ -977,6 +977,7 @@ class EvidenceLayer:
             if moments is not None:
                 # The next band's GP samples, and its variance's, reach at most 4.5 samples below its rows.
                 moments.forget_below(grid.origin[1] + (stop - 3 * unit) * grid.resolution)
+            release_freed_memory()  # the band's tiles' inverses, freed among what the map keeps
         if moments is not None:
             moments.forget_below(np.inf)
         self._grid_cache = None  # the last band's counts: of no use to the next grid

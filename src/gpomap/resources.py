@@ -72,8 +72,9 @@ POINT_MEMORY: int = 256 * 2**20
 #: Bytes of fitted tiles' Cholesky factors (with the inverses prediction forms from them) a map
 #: keeps in memory; the least recently used beyond it wait in a temporary file
 #: (:class:`SpillFile`, :class:`gpomap.tiles.TileStore`), so a building's thousands of tiles
-#: cost the memory of the tiles in use, not of the building.
-TILE_MEMORY: int = 256 * 2**20
+#: cost the memory of the tiles in use, not of the building. A band of a building's written map
+#: needs a few hundred tiles' variances, predicted a batch within this at a time.
+TILE_MEMORY: int = 128 * 2**20
 
 #: A planar written map is built in bands of rows of at most about this many cells
 #: (:meth:`gpomap.fusion.EvidenceLayer.written_grid`): its temporaries (GP samples, counts,

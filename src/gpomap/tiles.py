@@ -38,6 +38,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import contextlib
 import functools
+import hashlib
 import math
 import multiprocessing
 import os
@@ -514,8 +515,14 @@ class TileCells:
         return Supports(self.lower, self.upper, self.counts, self.member_points, self.member_offsets)
 
     def signature(self) -> tuple[bytes, ...]:
-        """The cells' bytes: equal signatures, the same GP (an update refits a tile only when it changes)."""
-        return (self.lower.tobytes(), self.upper.tobytes(), self.counts.tobytes(), self.labels.tobytes())
+        """A digest of the cells' bytes (SHA-256 of their boxes, counts and labels; the bytes
+        themselves would be the cells again): equal signatures, the same GP (an update refits a
+        tile only when it changes)."""
+        digest = hashlib.sha256()
+        for a in (self.lower, self.upper, self.counts, self.labels):
+            digest.update(np.ascontiguousarray(a).tobytes())
+            digest.update(str(a.shape).encode())
+        return (digest.digest(),)
 
 
 @dataclass
