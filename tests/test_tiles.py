@@ -584,6 +584,11 @@ def test_a_tile_store_gives_back_every_factor_to_the_bit_whatever_waits_in_its_f
     assert store.spilled_bytes == size
     del store[(0, 0)]
     assert (0, 0) not in store and len(store) == 12
+    # A peek reads a tile back without keeping it.
+    resident = [s.key for s in store.resident()]
+    waiting = next(k for k in states if k not in resident and k in store)
+    assert store.peek(waiting).posterior.L.tobytes() == states[waiting].posterior.L.tobytes()
+    assert [s.key for s in store.resident()] == resident
 
 
 def test_a_map_whose_tiles_wait_in_a_file_is_the_map_kept_in_memory(room, reference, monkeypatch, tmp_path):

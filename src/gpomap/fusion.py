@@ -104,7 +104,7 @@ from gpomap.lattice import (
     overlap,
 )
 from gpomap.observations import ScanData, data_dim, natural_subsample
-from gpomap.resources import WRITTEN_BAND_CELLS, release_freed_memory
+from gpomap.resources import WRITTEN_BAND_CELLS, SpillFile, release_freed_memory
 from gpomap.revisit import RevisitCalibration
 from gpomap.scans import Scan
 
@@ -962,8 +962,12 @@ class EvidenceLayer:
         rows = max(unit, WRITTEN_BAND_CELLS // nx // unit * unit)
         if ny <= rows:
             return self._written_block(grid, factor, predict_gp, moments)
-        probability, variance = np.empty(grid.shape), np.empty(grid.shape)
-        seen_through = np.zeros(grid.shape, dtype=bool) if SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False) else None
+        seen = SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False)
+        # Each band's rows wait in a temporary file until the last band is done, so the whole
+        # grid (16 bytes a cell, 0.75 GB over a building at 0.05 m) and one band's temporaries
+        # are never in memory together.
+        done = SpillFile()
+        bands: list[tuple[int, int, tuple[int, int], tuple[int, int], tuple[int, int] | None]] = []
         # Cells off the counted lattice are counted afresh, a traversal of every beam: once for
         # the whole grid (16 bytes a cell), not once per band.
         whole = None if self._on_lattice(grid) else self._raw_grid_counts(grid)
@@ -971,9 +975,14 @@ class EvidenceLayer:
             if whole is not None:
                 counts, path, at_surface = whole
                 self._grid_cache = (band, RayCounts(*(c[start:stop] for c in counts)), path[start:stop], at_surface[start:stop])
-            probability[start:stop], variance[start:stop], seen = self._written_block(band, factor, predict_gp, moments)
-            if seen_through is not None and seen is not None:
-                seen_through[start:stop] = seen
+            p, var, seen_band = self._written_block(band, factor, predict_gp, moments)
+            rows_of = (stop - start, *grid.shape[1:])
+            kept = (
+                done.put(np.broadcast_to(np.asarray(seen_band, dtype=bool), rows_of)) if seen and seen_band is not None else None
+            )
+            cells = (np.broadcast_to(np.asarray(a, dtype=np.float64), rows_of) for a in (p, var))
+            bands.append((start, stop, done.put(next(cells)), done.put(next(cells)), kept))
+            del p, var, seen_band
             if moments is not None:
                 # The next band's GP samples, and its variance's, reach at most 4.5 samples below its rows.
                 moments.forget_below(grid.origin[1] + (stop - 3 * unit) * grid.resolution)
@@ -981,6 +990,16 @@ class EvidenceLayer:
         if moments is not None:
             moments.forget_below(np.inf)
         self._grid_cache = None  # the last band's counts: of no use to the next grid
+        whole = None
+        release_freed_memory()
+        probability, variance = np.empty(grid.shape), np.empty(grid.shape)
+        seen_through = np.zeros(grid.shape, dtype=bool) if seen else None
+        for start, stop, p_at, var_at, seen_at in bands:
+            done.read_into(p_at, probability[start:stop])
+            done.read_into(var_at, variance[start:stop])
+            if seen_through is not None and seen_at is not None:
+                done.read_into(seen_at, seen_through[start:stop])
+        done.close()
         return probability, variance, seen_through
 
     def _written_block(

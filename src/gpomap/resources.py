@@ -247,9 +247,18 @@ class SpillFile:
 
     def get(self, where: tuple[int, int], dtype: Any, shape: tuple[int, ...]) -> NDArray[Any]:
         """The array written at `where` (:meth:`put`'s answer), of `dtype` and `shape` (C order)."""
+        out = np.empty(where[1], dtype=np.uint8)
+        self.read_into(where, out)
+        return out.view(dtype).reshape(shape)
+
+    def read_into(self, where: tuple[int, int], out: NDArray[Any]) -> None:
+        """Read the array written at `where` into `out` (C-contiguous, as many bytes), in place."""
         offset, n = where
-        out = np.empty(n, dtype=np.uint8)
-        view = memoryview(out.data)
+        if n == 0 and out.nbytes == 0:
+            return
+        if not out.flags.c_contiguous or out.nbytes != n:
+            raise ValueError(f"reading {n} bytes into a C-contiguous array of as many, got {out.nbytes} bytes")
+        view = memoryview(out.reshape(-1).view(np.uint8).data)
         fd = self._file.fileno()
         done = 0
         while done < n:
@@ -257,7 +266,6 @@ class SpillFile:
             if got <= 0:
                 raise OSError(f"the spill file ended {n - done} bytes short of an array")
             done += got
-        return out.view(dtype).reshape(shape)
 
     def free(self, where: tuple[int, int]) -> None:
         """Let the segment at `where` be written over by a later array of its size."""

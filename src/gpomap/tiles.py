@@ -353,23 +353,36 @@ class TileStore(MutableMapping[tuple[int, int], TileState]):
             if state is not None:
                 self._resident.move_to_end(key)
                 return state
-            light = self._light[key]
             if key not in self._spilled:
-                return light  # kept whole
-            assert self._file is not None
-            where, n, order, lower = self._spilled[key]
-            if lower:
-                L = np.zeros((n, n))
-                L[np.tri(n, dtype=bool)] = self._file.get(where, np.float64, (n * (n + 1) // 2,))
-            else:
-                L = self._file.get(where, np.float64, (n, n))
-            if order == "F":
-                L = np.asfortranarray(L)
-            state = TileState(light.key, replace(light.posterior, L=L), light.hyperparameters, light.seconds)
+                return self._light[key]  # kept whole
+            state = self._read(key)
             self._resident[key] = state
             self._bytes += self._cost(state)
             self._evict()
             return state
+
+    def peek(self, key: tuple[int, int]) -> TileState:
+        """Tile `key`'s whole state, as reading it gives, but not kept in memory after (nor moved
+        to the front): for a pass over every tile, such as the map file's."""
+        with self._lock:
+            state = self._resident.get(key)
+            if state is not None:
+                return state
+            return self._read(key) if key in self._spilled else self._light[key]
+
+    def _read(self, key: tuple[int, int]) -> TileState:
+        """Tile `key`'s state with its factor read back from the file."""
+        assert self._file is not None
+        light = self._light[key]
+        where, n, order, lower = self._spilled[key]
+        if lower:
+            L = np.zeros((n, n))
+            L[np.tri(n, dtype=bool)] = self._file.get(where, np.float64, (n * (n + 1) // 2,))
+        else:
+            L = self._file.get(where, np.float64, (n, n))
+        if order == "F":
+            L = np.asfortranarray(L)
+        return TileState(light.key, replace(light.posterior, L=L), light.hyperparameters, light.seconds)
 
     def _evict(self) -> None:
         """Send the least recently used factors to the file until the rest fit in the budget."""

@@ -287,9 +287,11 @@ class _Writer:
         if isinstance(value, (set, frozenset)):
             return {"$set": [self.encode(v, f"{where}/{i}") for i, v in enumerate(sorted(value))]}
         if isinstance(value, TileStore):
-            # Read back tile by tile (their factors are written as they come).
+            # Read back tile by tile, each let go once written (their factors are written as they come).
             return {
-                "$items": [[self.encode(k, f"{where}/{i}k"), self.encode(value[k], f"{where}/{i}")] for i, k in enumerate(value)]
+                "$items": [
+                    [self.encode(k, f"{where}/{i}k"), self.encode(value.peek(k), f"{where}/{i}")] for i, k in enumerate(value)
+                ]
             }
         if isinstance(value, dict):
             if all(isinstance(k, str) and not k.startswith("$") for k in value):
