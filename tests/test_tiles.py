@@ -589,6 +589,9 @@ def test_a_tile_store_gives_back_every_factor_to_the_bit_whatever_waits_in_its_f
     waiting = next(k for k in states if k not in resident and k in store)
     assert store.peek(waiting).posterior.L.tobytes() == states[waiting].posterior.L.tobytes()
     assert [s.key for s in store.resident()] == resident
+    store.shrink()  # every factor to the file, and read back the same
+    assert store.resident() == []
+    assert all(store[k].posterior.L.tobytes() == states[k].posterior.L.tobytes() for k in resident if k in states)
 
 
 def test_a_map_whose_tiles_wait_in_a_file_is_the_map_kept_in_memory(room, reference, monkeypatch, tmp_path):

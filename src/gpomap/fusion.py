@@ -990,6 +990,7 @@ class EvidenceLayer:
         if moments is not None:
             moments.forget_below(np.inf)
         self._grid_cache = None  # the last band's counts: of no use to the next grid
+        self._at_surface = None  # a bool a lattice cell, found again when asked
         whole = None
         release_freed_memory()
         probability, variance = np.empty(grid.shape), np.empty(grid.shape)

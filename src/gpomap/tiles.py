@@ -306,6 +306,7 @@ class TileStore(MutableMapping[tuple[int, int], TileState]):
         # Where each factor waiting in the file is: (segment, rows, "C" or "F", lower triangle only).
         self._spilled: dict[tuple[int, int], tuple[tuple[int, int], int, str, bool]] = {}
         self._bytes = 0
+        self._peeks = 0
         self._file: SpillFile | None = None
         self._lock = threading.RLock()
         if tiles is not None:
@@ -368,7 +369,12 @@ class TileStore(MutableMapping[tuple[int, int], TileState]):
             state = self._resident.get(key)
             if state is not None:
                 return state
-            return self._read(key) if key in self._spilled else self._light[key]
+            if key not in self._spilled:
+                return self._light[key]
+            self._peeks += 1
+            if self._peeks % 256 == 0:
+                release_freed_memory()  # the factors read and let go, scattered in the heap
+            return self._read(key)
 
     def _read(self, key: tuple[int, int]) -> TileState:
         """Tile `key`'s state with its factor read back from the file."""
@@ -376,17 +382,19 @@ class TileStore(MutableMapping[tuple[int, int], TileState]):
         light = self._light[key]
         where, n, order, lower = self._spilled[key]
         if lower:
-            L = np.zeros((n, n))
+            L = np.zeros((n, n), order="F" if order == "F" else "C")
             L[np.tri(n, dtype=bool)] = self._file.get(where, np.float64, (n * (n + 1) // 2,))
         else:
             L = self._file.get(where, np.float64, (n, n))
-        if order == "F":
-            L = np.asfortranarray(L)
+            if order == "F":
+                L = np.asfortranarray(L)
         return TileState(light.key, replace(light.posterior, L=L), light.hyperparameters, light.seconds)
 
-    def _evict(self) -> None:
-        """Send the least recently used factors to the file until the rest fit in the budget."""
-        while self._bytes > self.budget and len(self._resident) > 1:
+    def _evict(self, budget: int | None = None, keep: int = 1) -> None:
+        """Send the least recently used factors to the file until the rest fit in the budget
+        (or `budget`), keeping at least `keep`."""
+        budget = self.budget if budget is None else budget
+        while self._bytes > budget and len(self._resident) > keep:
             key, state = self._resident.popitem(last=False)
             self._bytes -= self._cost(state)
             if key in self._spilled:
@@ -409,6 +417,12 @@ class TileStore(MutableMapping[tuple[int, int], TileState]):
 
     def __contains__(self, key: object) -> bool:
         return key in self._light
+
+    def shrink(self) -> None:
+        """Send every factor in memory to the file, as if the budget were nothing (a map done
+        predicting for now: the files of its written grid come next)."""
+        with self._lock:
+            self._evict(budget=0, keep=0)
 
     def light(self, key: tuple[int, int]) -> TileState:
         """Tile `key`'s state without its factor (an empty ``posterior.L``): cells, weights,
@@ -2396,6 +2410,9 @@ class TiledGPOM:
         t = time.perf_counter()
         probability, variance, seen_through = self._sample(spec)
         self.timings_["grid"] = time.perf_counter() - t
+        if isinstance(self.tiles_, TileStore) and self.tiles_.spilled_bytes:
+            # A map larger than the store's budget: the grid's files come next, its last tiles wait in the file meanwhile.
+            self.tiles_.shrink()
         return OccupancyMap(
             grid=spec,
             probability=probability,
