@@ -1,13 +1,11 @@
 """The cell tree compiled with numba (:func:`gpomap.cells.build_cells`'s fast path).
 
 The Python tree visits each node with a few numpy calls on its points (a count, a comparison, two
-fancy-indexed copies), so on small maps its cost is per node more than per point: on the paper's
-two rooms the trees took 0.024 s of a 0.26 s fit (0.009 s here; 25 blocks of 3,000 points 0.30
-against 0.016 s). Here one compiled pass walks the same tree depth first over the points'
-indices, coordinates and classes, partitioned together in place and stably, so every node's
-points lie contiguous and keep their order. Over a block of millions of points both walks cost
-about the same (a million points: 0.15 s against 0.18), the work being per point there. The
-cells, their order, their boxes and their members are the Python tree's exactly
+fancy-indexed copies), so on small maps its cost is per node more than per point. Here one
+compiled pass walks the same tree depth first over the points' indices, coordinates and classes,
+partitioned together in place and stably, so every node's points lie contiguous and keep their
+order. Over a block of millions of points both walks cost about the same, the work being per
+point there (timings: docs/choices.md, "Measured for the code"). The cells, their order, their boxes and their members are the Python tree's exactly
 (``tests/test_cells.py`` compares the two): the same comparisons and the same IEEE arithmetic on
 the same numbers.
 

@@ -1,9 +1,9 @@
 """Free samples near hits compiled with numba (:func:`gpomap.observations.free_near_hits`'s fast path).
 
 The numpy path settles most free samples with a distance transform over a lattice of boxes and
-asks a k-d tree about the band it leaves; in 3-D that band is most of the samples (la3dm
-sim_structured: 194,000 of 321,000 free samples, 0.24 s of k-d tree queries per call, three
-calls a fit), and for a single scan the lattice spans the scan's whole reach. Here the hits are
+asks a k-d tree about the band it leaves; in 3-D that band is most of the samples, and for a
+single scan the lattice spans the scan's whole reach (figures: docs/choices.md, "Measured for
+the code"). Here the hits are
 filed by boxes, each with the bounding box of its hits, and one compiled pass asks each free
 sample about the boxes round it, stopping at the first hit within the clearance. The answer is
 the numpy path's exactly (``tests/test_clearance.py`` checks both against brute force).
@@ -38,10 +38,8 @@ SIDE_MARGIN: float = 1e-6
 #: Boxes per clearance. A box's hits are skipped at once when their bounding box is a clearance
 #: away, and taken at once when its farthest corner is nearer, so only samples at about a
 #: clearance from a box's hits read them one by one; smaller boxes leave fewer such reads but
-#: more boxes to look up. Seconds, 1 / 2 / 3 boxes (numpy path): a 10 m block of FR079 (1,500
-#: scans, 423 hits a box) 0.39 / 0.23 / 0.29 (0.31); 800 scans of FR079 0.72 / 0.69 / 0.88
-#: (1.38); la3dm sim_structured 0.061 / 0.064 / 0.137 (0.20); one FR079 scan 0.0004 / 0.0007 /
-#: 0.0010 (0.005-0.07).
+#: more boxes to look up. Two was the fastest or near it on planar blocks, planar logs, 3-D
+#: scans and single scans (timings of 1, 2 and 3: docs/choices.md, "Measured for the code").
 BOXES_PER_CLEARANCE: int = 2
 
 

@@ -4,9 +4,9 @@
 passes: for Matern 3/2 every node pair's squared distance, profile and derivative as (block, block)
 arrays, reduced per input with ``np.add.reduceat``; for the squared exponential every (node,
 segment) entry of every pair of inputs, gathered by fancy indexing, evaluated in closed form and
-reduced with ``np.bincount``. On the paper's two rooms (52 scans x 37 beams, 3,835 inputs) these
-passes took 5.8 s per evaluation of the hyperparameter objective, more than its Cholesky
-factorisation and inverse. Here one compiled loop per row input does the same sums with no
+reduced with ``np.bincount``. On the paper's two rooms these passes cost more per evaluation of
+the hyperparameter objective than its Cholesky factorisation and inverse (docs/choices.md,
+"Measured for the code"). Here one compiled loop per row input does the same sums with no
 temporaries beyond a row of nodes:
 
 - **Matern 3/2**: per row input and each of its nodes, one vectorised pass over the nodes of the

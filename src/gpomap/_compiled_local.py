@@ -3,9 +3,9 @@
 A local prediction visits spatial blocks of queries, each with the inputs near it (J, the inner
 ones I first): it forms the exact SE kernel between the block's boxes and points, the mean
 k_J^T w_J and the variance's reduction k_I^T (K^-1)_II k_I. In numpy each block is some twenty
-calls (the kernel's distinct sides and ends, a table of erf, gathers, products), and on the
-paper's room at 200,000 random points (971 blocks of about 200 points and 190 inputs) the calls
-other than the variance's matrix product took 0.43 of 0.73 s. Here one compiled call per tile
+calls (the kernel's distinct sides and ends, a table of erf, gathers, products), and those
+calls, not the variance's matrix product, took most of the time (docs/choices.md, "Measured for
+the code"). Here one compiled call per tile
 walks every block: each axis's distinct sides of the block, their factors (one table of G1 over
 the sides' distinct ends, at the block's distinct coordinates, or, where the points are
 scattered, at a few Chebyshev nodes across the block and interpolated), the factors multiplied

@@ -2,9 +2,7 @@
 
 scipy's wrappers (``scipy.linalg.lapack``, ``scipy.linalg.blas``) hold the GIL while the routine
 runs, so the tiles that :class:`~gpomap.tiles.TiledGPOM` fits on threads of one process factorised
-one at a time: measured on this project's 2-core machines (one BLAS thread each), twenty 600 x 600
-Cholesky factorisations on each of two threads took 0.093 s against 0.099 s for all forty on one,
-and 0.052 s when called as here. Here the same routines of the LAPACK and BLAS that scipy was built
+one at a time (docs/choices.md, "Measured for the code"). Here the same routines of the LAPACK and BLAS that scipy was built
 with (exported for compiled callers by ``scipy.linalg.cython_lapack`` and ``cython_blas``) are
 called through :mod:`ctypes`, which lets go of the GIL for the call: the same numbers, to the bit,
 as scipy's wrappers give (``tests/test_lapack.py``).
@@ -144,9 +142,8 @@ def blas_libraries() -> int:
 
     numpy's and scipy's wheels each bring their own OpenBLAS, with a thread pool of its own whose
     threads spin for a while after each call: a numpy product and a scipy factorisation in turn
-    then run four threads on two cores. Measured on the paper's two rooms with one worker on 2
-    cores: the hyperparameter stage took 0.80-0.86 s with both libraries at 2 threads, 0.08-0.13 s
-    with either at 1 (and the fit's CPU time was twice its wall time while any had 2).
+    then run four threads on two cores, and a small fit's hyperparameter stage slows several
+    times over (docs/choices.md, "BLAS threads").
     """
     controller = blas_controller()
     if controller is None:
@@ -165,8 +162,8 @@ def blas_controller() -> Any:
     """threadpoolctl's view of this process's BLAS and OpenMP libraries, found once (None without
     threadpoolctl).
 
-    Finding them walks every loaded library: 1-2 ms a time, which the two rooms' 0.3 s map paid
-    on each of its five stages (:class:`~gpomap.tiles.TiledGPOM`); a limit set through the found controller takes 0.01 ms.
+    Finding them walks every loaded library, which a small map would pay again on each stage of
+    :class:`~gpomap.tiles.TiledGPOM`; a limit set through the found controller is cheap.
     """
     try:
         from threadpoolctl import ThreadpoolController

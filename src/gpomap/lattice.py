@@ -27,9 +27,9 @@ AnyGrid = GridSpec | VoxelSpec
 def column_bounds(points: ArrayLike) -> tuple[NDArray[Any], NDArray[Any]]:
     """``points.min(axis=0)`` and ``points.max(axis=0)`` of an array of shape (n, d), each (d,).
 
-    Column by column: numpy reduces an (n, 2) array along its first axis some 30 times slower
-    than it reduces each column in turn (a million planar points: 25 ms against 0.8 ms), and a
-    whole log's points are reduced so in several places. An empty array raises ValueError, as
+    Column by column: numpy reduces an (n, 2) array along its first axis many times slower than
+    it reduces each column in turn (docs/choices.md, "Measured for the code"), and a whole log's
+    points are reduced so in several places. An empty array raises ValueError, as
     ``min`` does.
     """
     a = np.asarray(points)
@@ -41,8 +41,8 @@ def column_bounds(points: ArrayLike) -> tuple[NDArray[Any], NDArray[Any]]:
 def stable_order(keys: NDArray[np.integer[Any]]) -> NDArray[np.intp]:
     """``np.argsort(keys, kind="stable")`` of non-negative integers (-1 allowed), ndarray of shape (n,).
 
-    Keys below 2^15 are sorted as int16, which numpy radix-sorts: 17,000 bin keys took 46 us
-    against 590 us as int64 (and 970 us for a lexsort of the two coordinates).
+    Keys below 2^15 are sorted as int16, which numpy radix-sorts, an order of magnitude faster
+    than int64 keys or a lexsort of the coordinates (docs/choices.md, "Measured for the code").
     """
     small = keys.size == 0 or int(keys.max()) < np.iinfo(np.int16).max
     return np.argsort(keys.astype(np.int16) if small else keys, kind="stable")
@@ -52,7 +52,7 @@ def in_box(points: ArrayLike, lower: ArrayLike, upper: ArrayLike) -> NDArray[np.
     """Which points (n, d) lie in the closed box `lower`..`upper` along its k <= d axes, ndarray of bool (n,).
 
     Column by column, for the reason :func:`column_bounds` gives (``np.all(..., axis=1)`` on
-    (n, 2) comparisons: 10 million points, 0.35 s against 0.03 s). A box of fewer axes than the
+    (n, 2) comparisons is as slow). A box of fewer axes than the
     points (k < d) bounds their first k coordinates: a square bounds 3-D points as a column.
     NaN coordinates are outside.
     """
@@ -184,7 +184,7 @@ def interpolate(values: ArrayLike, source: AnyGrid, target: AnyGrid) -> NDArray[
     Both are regular lattices, so the interpolation is separable: linear along x (every source
     row to the target's x centres), then along y, then z; each pass takes two neighbours and two
     weights per output value (a point-by-point interpolator finds 2^d corners and their weights
-    for every target cell: 0.6 s for 913,000 voxels, against tens of milliseconds here). The
+    for every target cell, an order of magnitude slower). The
     result equals the point-by-point multilinear interpolation up to round-off.
 
     Parameters

@@ -14,8 +14,8 @@ from gpomap.lattice import AnyGrid, grid_dim
 __all__ = ["ENTRIES_PER_CHUNK", "traverse"]
 
 # Traversal entries (grid-line crossings) handled per chunk: bounds temporary memory (about 120
-# bytes an entry), and small chunks stay in cache. 150,000 random beams of 0.5-10 m on a 0.05 m
-# grid (40 M entries), CPU seconds, best of 3: 3.1 at 2^22, 1.5 at 2^20, 1.3 at 2^18, 1.2 at 2^16.
+# bytes an entry), and small chunks stay in cache (timings by chunk size: docs/choices.md,
+# "Measured for the code").
 ENTRIES_PER_CHUNK: int = 1 << 17
 
 

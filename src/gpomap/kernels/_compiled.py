@@ -10,16 +10,14 @@ summation order; ``tests/test_tensor_compiled.py`` compares the two and both aga
 :func:`gpomap.kernels.nodes.weighted_gram`, ``tests/test_tensor_kernel.py`` runs on both).
 
 The exponential is evaluated here (:func:`_exp`): numba's ``np.exp`` is glibc's scalar one, and a
-loop of ``sqrt`` and ``exp`` with it ran 2.4x slower than numpy's SIMD passes; this branch-free
-polynomial vectorises (1.25 ns per value against ``np.exp``'s 1.0 ns on the AVX-512 machine of
-the measurements) and is within 2 ulp of ``np.exp`` (the tests check it). Below ``EXP_MIN`` it
+loop of ``sqrt`` and ``exp`` with it is slower than numpy's SIMD passes; this branch-free
+polynomial vectorises and is within 2 ulp of ``np.exp`` (the tests check it). Below ``EXP_MIN`` it
 returns 0 where numpy returns a subnormal (under 3e-308 absolute). Products and sums may be fused
 into one multiply-add (rounded once); nothing is reassociated.
 
-Measured (one process, one BLAS thread, numpy path against this one in the same session): the
-CSAIL log (``make_model("msk")``, fit and ``grid(0.05)``) spent 16.8-17.3 s of 45-46 s CPU in
-``tensor_gram_length_scale``, now 6.7-7.0 s of 36-37 s. The first call compiles in about 2 s;
-``cache=True`` keeps the machine code in ``__pycache__``, and later processes load it in 0.3 s.
+``cache=True`` keeps the machine code in ``__pycache__``, so only a process's first call
+compiles (what the path saves, and the compile and load times: docs/choices.md, "Measured for
+the code"; docs/benchmarks.md, "numba's compile cache").
 
 ``AVAILABLE``: numba imports. ``ENABLED``: the tensor kernel takes this path (the environment
 variable ``GPOMAP_NUMPY_KERNELS=1`` at import, or setting ``ENABLED = False``, forces numpy).
@@ -116,7 +114,7 @@ def _exp(x: float) -> float:  # pragma: no cover - compiled
     k = np.floor(y * _LOG2E + 0.5)
     r = (y - k * _LN2_HI) - k * _LN2_LO
     # Estrin's scheme: the same polynomial in 4 dependent steps instead of Horner's 13, so that
-    # consecutive vectors overlap (Horner's latency chain measured 15-20 % slower in the kernel).
+    # consecutive vectors overlap (Horner's latency chain is slower in the kernel).
     r2 = r * r
     r4 = r2 * r2
     s0 = (_C0 + _C1 * r) + (_C2 + _C3 * r) * r2

@@ -3,17 +3,14 @@
 :func:`~gpomap.kernels.closed_form.se_box_gram` finds each axis's distinct intervals, tables the
 1-D kernel between them from one table of G2 over their distinct ends, and gathers the tables into
 the n x n Gram matrix (and its length-scale derivative) in about forty numpy passes. A map's
-hyperparameter search evaluates it on 200-cell groups sixty times, and every tile fit once: on the
-paper's two rooms it was a fifth of the fit (0.042 of 0.22 s). Here one compiled call does the
+hyperparameter search evaluates it on 200-cell groups sixty times, and every tile fit once, so on
+small maps it is a good part of the fit. Here one compiled call does the
 same: the distinct intervals and ends by stable sorts, the G2 table, the 1-D tables and the
 products, written straight into K. The numbers are the numpy path's to round-off (the 1-D tables
 are formed once per pair and mirrored instead of averaged with their transpose, and libm's erf
 stands for scipy's); ``tests/test_kernels.py`` compares the two, and both with the box average.
 
-Measured (one thread): the two rooms' 200-cell groups with the length-scale derivative, 0.28-0.42
-ms a call in numpy against 0.07-0.10 ms here; the paper benchmark's fit and prediction, both paths
-alternated six times in one process (a `/tmp` harness), 0.397 -> 0.347 s on the two rooms (SE),
-0.319 -> 0.285 s on the synthetic room (SE).
+What it saves per call and per paper-benchmark fit: docs/choices.md, "Measured for the code".
 
 Sides narrower than :data:`~gpomap.kernels.closed_form.POINT_WIDTH` of the length scale take
 the point formulas, as in the numpy path (a cell of the tree over hits on one line is a point

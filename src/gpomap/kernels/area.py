@@ -31,9 +31,8 @@ AREA_METHODS = ("exact", "quadrature", "summed")
 NORMALISATIONS = ("mean", "sum")
 
 #: Dimensions whose quadrature kernel is evaluated through the rule's tensor structure
-#: (:mod:`gpomap.kernels.tensor`: the same node values, summed in another order; 3-4x faster on
-#: la3dm cells, and the whole Intel log's `gpomap map` took 41 s of CPU against 91 s through the
-#: node sums, written probabilities within 5e-8, no ternary cell changed). The node sums
+#: (:mod:`gpomap.kernels.tensor`: the same node values, summed in another order, several times
+#: faster with the same written map to round-off; docs/choices.md, "Measured for the code"). The node sums
 #: (:func:`~gpomap.kernels.nodes.weighted_gram`) stay as the tests' reference.
 TENSOR_DIMS: tuple[int, ...] = (2, 3)
 

@@ -36,8 +36,8 @@ from gpomap.kernels.point import PointKernel
 from gpomap.supports import Supports
 
 #: Node pairs formed at once. About 64k doubles (0.5 MB) per array: the few arrays of one block
-#: stay in a core's L2 cache. Measured on la3dm cells against 4096 queries: 0.75 s at 2^16 pairs,
-#: 1.0 s at 2^14 and 1.2-1.5 s at 2^18-2^20 (the untiled node sum took 2.4 s).
+#: stay in a core's L2 cache; smaller and larger blocks were slower (docs/choices.md, "Measured
+#: for the code").
 BLOCK_PAIRS: int = 1 << 16
 
 
@@ -132,7 +132,7 @@ class _Work:
 
     Fresh arrays per block would cost more than the arithmetic: the allocator hands blocks of
     this size back to the system when freed, and every new one page-faults on first use
-    (measured: ``np.exp`` of a temporary of 2^16 doubles 7x slower than into a reused array).
+    (docs/choices.md, "Measured for the code").
     """
 
     def __init__(self, size: int, term_size: int, d: int, gradient: bool) -> None:
