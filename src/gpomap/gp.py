@@ -203,7 +203,7 @@ def inverse_diagonal(L: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 #: Rows per block when :func:`_fill_lower` mirrors a triangle: blocks this size transpose in
-#: cache (n = 800: 2 ms against 6 ms for ``np.tril(inv) + np.tril(inv, -1).T``).
+#: cache, faster than ``np.tril(inv) + np.tril(inv, -1).T`` (docs/choices.md, "Measured for the code").
 FILL_BLOCK: int = 128
 
 
@@ -273,22 +273,17 @@ def _weighted_outer_upper(C: NDArray[np.float64], w: NDArray[np.float64]) -> NDA
 
 #: Local prediction treats covariances below this fraction of the signal variance as zero. The
 #: latent mean then moves by at most LOCAL_TOL * variance * sum(|weights|) of the cells left out.
-#: Measured against the dense prediction (benchmarks/prediction.py, one thread): at 1e-6 the
-#: probabilities moved by 2e-5 at most (the paper's room, SE, 128,000 cell centres) and 3e-6 on
-#: Intel, and the SE rates rose 1.3-2.1x over 1e-9's (the room's random points 107 -> 224 k/s,
-#: Intel's 404 -> 514 k/s, its written grid's GP 0.86 -> 1.45 M/s), the reach being 5.3 length
-#: scales instead of 6.4; Matern 3/2, whose reach is 9.6 length scales at 1e-6 (13.8 at 1e-9), mostly
-#: keeps the dense path and its rates.
+#: Tight enough that probabilities barely move against the dense prediction, loose enough that
+#: most SE tiles predict locally (docs/choices.md, "Local prediction leaves out covariances").
 LOCAL_TOL = 1e-6
 
 #: The variance's reduction k_J^T (K^-1)_JJ k_J takes only the inputs whose covariance with the
 #: block reaches this fraction of the signal variance (a subset of the mean's). An input left out
 #: changes the reduction by its covariance with the query times its weight in the query's kriging
-#: predictor (K^-1 k)_i, and both decay with distance, so the error is second order: on the paper's
-#: room's largest tile (20,000 random points, SE) the reduction moved by 3e-9 at 1e-6, 6e-7 at
-#: 1e-4 and 4e-5 at 1e-3, against the mean's 6e-6 in probability at LOCAL_TOL. The product over
-#: |J|^2 inputs per query is most of the local prediction's work, and 1e-4 takes a block's
-#: inputs from about 185 to 143.
+#: predictor (K^-1 k)_i, and both decay with distance, so the error is second order and a looser
+#: tolerance than the mean's costs little. The product over |J|^2 inputs per query is most of the
+#: local prediction's work, so fewer inputs pay (docs/choices.md, "Local prediction leaves out
+#: covariances", the variance's own tolerance).
 LOCAL_VARIANCE_TOL = 1e-4
 
 #: Side of the local-prediction blocks, in cutoff distances r. A block's inputs lie within r of
@@ -298,18 +293,16 @@ LOCAL_VARIANCE_TOL = 1e-4
 LOCAL_BLOCK_SIDE: float = 0.25
 
 #: Taking a block's (K^-1)_JJ costs about what this many of its queries' products with it do
-#: (a gather of |J|^2 entries against |J|^2 fused multiply-adds per query; measured 0.6-0.8 ms
-#: against 0.9 ms for 108 queries at |J| = 365).
+#: (a gather of |J|^2 entries against |J|^2 fused multiply-adds per query; docs/choices.md,
+#: "Measured for the code").
 LOCAL_GATHER_QUERIES: int = 64
 
 #: Local prediction is taken where its work (:func:`local_blocks`' estimate, plus n^3 for K^-1)
 #: is at most this share of the dense n^2 m: half with numpy's block loop, whose products are the
 #: dense path's own; twice with the compiled walk (:mod:`gpomap._compiled_local`), whose kernel
-#: costs a small part of the dense path's numpy one (an erf per side end and point): on the paper's
-#: room's edge tiles (about 120 cells, every cell within reach of every block, so a local work
-#: of about 1.3 n^2 m) the dense path took 2.2 us per point and the walk about 0.8
-#: (`benchmarks/prediction.py`, one sitting: the room's random points 462 k/s with a half, 509 k/s
-#: with four times; Intel's 924 and 987 k/s).
+#: costs a small part of the dense path's numpy one (an erf per side end and point), so it wins
+#: even on tiles whose every cell is within reach of every block (docs/choices.md, "Local
+#: prediction leaves out covariances", the compiled walk).
 LOCAL_WORK_SHARE: float = 0.5
 COMPILED_LOCAL_WORK_SHARE: float = 2.0
 
@@ -468,9 +461,9 @@ def local_blocks(
 
 
 #: Dimensions whose predictions whiten the cross-covariances with an explicit L^-1 (a matrix
-#: product) instead of a triangular solve per chunk: the product ran 1.6x faster than the solve
-#: on la3dm's 1,026 cells and 4,096 queries (one thread), the variances equal to 1e-14; planar
-#: maps take it too (the written grid's tiles predict many more points than they have cells).
+#: product) instead of a triangular solve per chunk: the product is faster, the variances equal
+#: to round-off (docs/3d.md, "one dense GP"); planar maps take it too (the written grid's
+#: tiles predict many more points than they have cells).
 WHITEN_BY_PRODUCT_DIMS: tuple[int, ...] = (2, 3)
 
 
@@ -487,8 +480,8 @@ def triangular_inverse_for(L: NDArray[np.float64], n_queries: int, dim: int) -> 
 
 
 #: Row blocks of :func:`lower_product`: each block's product skips the zeros right of its
-#: diagonal block, (1 + 1 / 8) / 2 of the full product's work. Measured on la3dm's 1,026 cells and
-#: 4,096 queries: 0.19 s against 0.28 s for the full product (4 and 16 blocks: 0.20 s).
+#: diagonal block, (1 + 1 / 8) / 2 of the full product's work (timings: docs/3d.md, "one dense GP"
+#: and docs/choices.md, "Measured for the code").
 LOWER_PRODUCT_BLOCKS: int = 8
 
 
@@ -546,14 +539,13 @@ def compact_groups(centres: NDArray[np.float64], max_size: int) -> list[NDArray[
 LOCAL_KERNEL_POINTS: int = 256
 
 #: Queries per local block aimed at, and the bounds of the block side (in cutoff distances r):
-#: where queries are sparse the kernel call's fixed cost dominates (Intel's random points: about
-#: 40 per block of side r / 4).
+#: where queries are sparse the kernel call's fixed cost dominates, so sparse blocks grow.
 LOCAL_BLOCK_QUERIES: int = 256
 LOCAL_SIDE_RANGE: tuple[float, float] = (0.25, 1.0)
 
 #: Query coordinates the local blocks bin on, per dimension (None: all). 3-D tiles are columns
-#: and bin in x, y: la3dm sim_structured (AreaGPOM se defaults, 6 tiles of up to 9,059 cells,
-#: r = 0.32 m), 100k random points: 21,100 points/s against 5,700 binned in x, y, z (one CPU).
+#: and bin in x, y: several times faster than binning in z too (docs/choices.md, "Measured for
+#: the code").
 LOCAL_AXES: dict[int, int | None] = {2: None, 3: 2}
 
 
@@ -824,7 +816,7 @@ class SupportGP:
         optimum. L-BFGS-B's first step is the gradient itself (its first quadratic model has unit
         curvature), which on a sum over hundreds of inputs runs to a corner of the bounds; per
         input MSK-GPOM's searches take fewer evaluations (docs/choices.md). False (the sum) for
-        the baselines, whose searches it lengthens (GPOMIK's on the paper's two rooms 18 -> 28).
+        the baselines, whose searches it lengthens.
     n_threads : int
         Threads of this process the search's groups are evaluated on (their factorisations,
         inverses and kernel sums run without the GIL), BLAS held to the cores' share of each
@@ -1205,7 +1197,7 @@ class SupportGP:
             # The squash is profiled out: at each length scale and noise it is fitted to the
             # leave-one-out moments (O(n) an evaluation, from the last one's alpha), so the search
             # runs over two numbers instead of four, in fewer evaluations of the O(n^3) objective
-            # (Intel every 10th, 800 cells: 27 -> 16; the synthetic room: 23 -> 13).
+            # (docs/choices.md, "Measured for the code").
             free = np.concatenate([free, [False, False]])
         x0 = np.asarray(x0_list, dtype=float)
         profiled = ProbitSquash(max(self.squash.alpha, 1e-3), self.squash.beta) if loo else None
