@@ -38,8 +38,8 @@ __all__ = [
 ]
 
 #: Most cells of the one GP of a grid or octree conversion (``gpomap convert --max-cells``; maps
-#: from scans are local GPs in tiles whatever their size): a dense GP over 3,000 cells factorises
-#: in about a second; at 8,000 one Matern 3/2 GP took 57 s and 2 GB.
+#: from scans are local GPs in tiles whatever their size): a dense GP of this size factorises in
+#: about a second, and its cost grows with the cube (docs/choices.md, "Measured for the code").
 DEFAULT_MAX_CELLS = 3000
 
 #: Seconds to wait for a Dask scheduler to answer, and for workers when none is connected

@@ -44,28 +44,23 @@ class MapSettings:
         Free points stop this short of a hit (default half of `free_step`).
     no_return_cap : float or None
         Free points along a no-return beam go this far (never beyond the max range; None: to the
-        max range). 10 m by default: the SICK logs record no-return as 80 m, and trusting free
-        space that far filled a 160 m square around the Intel lab (a 14 GB, 10-minute run instead
-        of 1 GB and 37 s); on Belgioioso it measured as well or better (Matern 3/2: AUC 0.897
-        against 0.890 uncapped).
+        max range). 10 m by default: laser logs record no-return at their far code (tens of
+        metres), and trusting free space that far fills a huge square around a building for no
+        gain in held-out AUC (docs/choices.md, "Measured for the code").
     free_clearance : float
         Free points closer than this (metres) to any hit are dropped, so beams grazing a wall do
         not mark the wall free (see :func:`gpomap.observations.free_near_hits`); applies to scans,
-        not to labelled points given to ``fit``. 0.3 m by default, chosen on Intel and CSAIL
-        (scans 300-364, every 5th held out, 37 beams): held-out AUC 0.856 / 0.836 with none, 0.959 /
-        0.954 at 0.2 m, 0.970 / 0.963 at 0.3 m, 0.942 / 0.955 at 0.5 m. In 3-D too (la3dm
-        sim_structured, every 4th scan held out, SE, 0.5 m cells: AUC 0.828, log loss 0.656
-        against 0.784, 0.730 with none), though there it drops over half the free points (rays
-        grazing the floor) and the kd-tree query takes about 1 s of the observations' 1.1 s.
+        not to labelled points given to ``fit``. 0.3 m by default, the best held-out AUC on
+        windows of real logs (docs/choices.md, "Measured on more logs"); it helps in 3-D too,
+        though there it drops over half the free points (rays grazing the floor; docs/choices.md,
+        "Measured for the code").
     min_cell, max_cell : float
         Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`). ``max_cell`` is 0.5 m by
         default: with mean normalisation a cell much larger than the length scale has a small
         prior variance and says little about the points inside it, and real logs learn length
-        scales of 0.3-0.7 m. Held-out AUC (SE), 0.5 m against 1 m, on windows of 65 scans (every
-        5th held out, 37 beams): Intel 0.976 / 0.949 against 0.970 / 0.813, CSAIL 0.971 against
-        0.963, FR079 0.978 against 0.965, Belgioioso's two rooms 0.982 against 0.976, at about
-        twice the cells. The synthetic room, whose length scale is longer, prefers 1 m (0.9955
-        against 0.9937, in half the time). See docs/choices.md.
+        scales shorter than 1 m: 0.5 m was better on every real log for about twice the cells,
+        while the synthetic room, whose length scale is longer, prefers 1 m (docs/choices.md,
+        "Measured on more logs").
     cell_box : {"node", "tight"}
         Each cell's box: the tree node ("node") or its points' bounding box ("tight").
     variance, length_scale, noise : float
@@ -74,7 +69,7 @@ class MapSettings:
         Bounds of the hyperparameter search.
     noise_model : {"constant", "per_count"}
         Noise per cell: one level for all, or divided by the cell's member count (default: a cell
-        averaging m points is m times surer than one; synthetic room SE AUC 0.98 against 0.88).
+        averaging m points is m times surer than one; docs/choices.md, "The answers").
     objective : {"loo", "lml"}
         Hyperparameter objective: leave-one-out probit predictive probability (default; the
         marginal likelihood collapses on real cells, see the docs) or log marginal likelihood.
@@ -91,13 +86,12 @@ class MapSettings:
         Weighting of free and occupied cells in the leave-one-out objective and the squash fit.
         "balanced" (default) weighs both classes equally: free cells outnumber occupied ones
         several times over, and unweighted the search can settle on maps that call everything
-        free (held-out AUC, unweighted against balanced: Belgioioso whole log 0.920 / 0.925
-        against 0.943 / 0.946 (SE / Matern 3/2), an Intel window 0.31 against 0.79).
+        free (docs/choices.md, "Class weights").
     seed : int
         Seed of those starts.
     quadrature_order : int
-        Gauss-Legendre nodes per cell side for ``area="quadrature"``. 2 measured as accurate as 3
-        on the synthetic room's held-out AUC (0.9815 against 0.9819) at a quarter of the cost.
+        Gauss-Legendre nodes per cell side for ``area="quadrature"``. 2 is as accurate as 3 at a
+        fraction of the cost (docs/choices.md, "Results").
     thresholds : (float, float) or None
         Free-below and occupied-above probabilities of the ternary map. None (the default): a
         calibrated map's, free below 0.196 and occupied above 0.5 (with ray evidence,
@@ -122,15 +116,16 @@ class MapSettings:
         Fit the surprise rate (the share of observations the counts cannot foresee: a visitor where
         every scan saw free space) on the map's own scans instead of taking the prior one in a
         hundred, which stays its floor (planar scans, :func:`gpomap.fusion.fit_calibration`). It
-        refits the GP without the calibration's held-out scans: 14-40 % more time and up to a third
-        more memory. Off by default: it changed no shared log's map; on logs with crowds it lowers
-        the held-out log loss (a museum's 0.394 -> 0.347 with blocks of scans held out).
+        refits the GP without the calibration's held-out scans, so a fit costs more time and
+        memory. Off by default: it changes little where nothing moves and pays on logs with
+        crowds (docs/choices.md, "The surprise rate, fitted per map").
     fit_revisit : bool
         Recalibrate the map's probabilities for a later visit (:mod:`gpomap.revisit`): the same map
         fitted on seven tenths of the scans predicts the other three (a stretch of the log), and
         a monotone map of the probabilities that keeps 1/2 is fitted on those points and the
         calibration's own, half each. Planar maps of 100 scans or more; on by default (it costs a
-        second fit of the tiles and the ray counts on 70 % of the scans).
+        second fit of the tiles and the ray counts on seven tenths of the scans; docs/choices.md,
+        "The map's probabilities for a later visit").
     """
 
     def __init__(
