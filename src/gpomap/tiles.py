@@ -131,20 +131,16 @@ DEFAULT_HYPER_SAMPLE: dict[int, int] = {2: 800, 3: 300}
 #: Most cells of each compact group the hyperparameter sample is cut into for the search, each
 #: group its own GP (:class:`gpomap.gp.SupportGP`'s ``hyper_group``), by the map's dimension;
 #: None: one GP over the sample. Planar maps: 200, so the 800 cells are four groups and each
-#: evaluation of the objective is 16 times cheaper (the synthetic room's search 0.47 -> 0.11 s,
-#: SE), while the written maps of every shared log and split score as with one GP
-#: (docs/choices.md). Voxel maps: one GP; their 300-cell search costs mostly kernel evaluations,
-#: which groups do not make fewer (la3dm sim_unstructured's stage 0.26 s either way), and groups
-#: of 150 moved sim_structured's exact-point log loss from 0.492 to 0.507.
+#: evaluation of the objective is 16 times cheaper, while the written maps score as with one GP.
+#: Voxel maps: one GP; their 300-cell search costs mostly kernel evaluations, which groups do not
+#: make fewer, and smaller groups cost log loss (docs/choices.md, "The hyperparameter search in
+#: groups of 200 cells").
 HYPER_GROUP_CELLS: dict[int, int | None] = {2: 200, 3: None}
 
 #: The hyperparameter sample is anchored only in a block whose share of occupied cells is at
 #: least this fraction of the whole map's (when any block is): a sample of one class says nothing
-#: of how occupied and free cells differ. On a log nobody tuned on (the Acapulco convention
-#: centre, every 10th scan held out) the typical block by size was an open hall, 2.3 % of its
-#: sample's 800 cells occupied against 12 % of the map's; the search stopped after two
-#: evaluations on a flat objective and the squash took its lowest alpha (0.001), so the GP
-#: added nothing to the map.
+#: of how occupied and free cells differ: the objective is flat there, the squash takes its lowest
+#: alpha and the GP adds nothing to the map (docs/choices.md, "The hyperparameter sample").
 MIN_SAMPLE_OCCUPIED_SHARE: float = 0.5
 
 
@@ -171,40 +167,29 @@ def hyper_anchor_block(sizes: ArrayLike, occupied_fractions: ArrayLike, map_occu
     sizes = np.asarray(sizes, dtype=float)
     mixed = np.asarray(occupied_fractions, dtype=float) >= MIN_SAMPLE_OCCUPIED_SHARE * map_occupied_fraction
     candidates = np.flatnonzero(mixed) if mixed.any() else np.arange(sizes.size)
-    # Dense but typical: the single densest block of FR079 packs 800 tiny mixed cells into a 2 m
-    # radius where the robot lingered, and the squash fitted there came out flat (alpha ~ 0.02).
+    # Dense but typical: the densest block can be one spot where the robot lingered, many tiny
+    # cells whose squash comes out flat (docs/choices.md, "The hyperparameter sample").
     return int(candidates[np.argmin(np.abs(sizes[candidates] - np.quantile(sizes, 0.75)))])
 
 
 #: Tile side by the map's dimension, metres. A tile's GP costs the cube of the cells it sees, its
 #: square grown by the overlap, so tiles not much larger than the overlap are cheapest in all;
 #: the cells, hyperparameters and variance scale do not depend on them (:data:`BLOCK_SIZE`).
-#: Planar maps: 5 m (CSAIL every 10th scan, one process: fit 22.1 -> 17.7 s and written 0.05 m
-#: grid 15.7 -> 7.6 s against 10 m, every metric the same to 4 digits; 3.5 m and 2.5 m no
-#: faster). Voxel maps: 3 m columns, which hold every height, so they fill faster than planar
-#: squares (benchmarks/volume_quality.py, fit wall seconds on la3dm sim_structured /
-#: sim_unstructured / geb079: 10 m 2.85 / 1.36 / 2.48, 5 m 1.69 / 0.88 / 1.79, 3 m 1.23 / 0.78 /
-#: 1.39, 2 m 1.58 / 0.84 / 1.61; every score the same to 3 digits).
+#: Planar maps: 5 m squares; voxel maps: 3 m columns, which hold every height, so they fill
+#: faster than planar squares. Both the fastest sizes tried, scores unchanged (docs/choices.md,
+#: "Tiles: 5 m squares (3 m columns in 3-D)").
 DEFAULT_TILE_SIZE: dict[int, float] = {2: 5.0, 3: 3.0}
 
 #: A tile's GP sees the cells this many learnt length scales beyond its square, by default. 1.5
 #: (it was 2.5, about where the SE kernel has decayed to 4 %): the scores did not move
-#: with it while the time did, since a tile's cells grow with the square of the side it sees.
-#: Planar maps (benchmarks/quality.py, the written 0.05 m map, 12 shared and 14 unseen
-#: log-splits): AUC within 0.0003, log loss within 0.0027 (Edmonton's blocks split 0.418 ->
-#: 0.421; CSAIL's 0.172 -> 0.171), ECE within 0.0015, the path cells the same; fit and map CPU
-#: 3-40 % lower (CSAIL blocks 8.5 -> 5.1 s). Voxel maps (benchmarks/volume_quality.py, la3dm
-#: sim_structured / sim_unstructured / geb079, best of three fits): AUC 0.8677 / 0.8402 / 0.9744
-#: at 2.5, 0.8725 / 0.8435 / 0.9744 at 1.5, 0.8717 / 0.8423 / 0.9747 at 1.0; log loss 0.4916 /
-#: 0.5335 / 0.2119, 0.4901 / 0.5300 / 0.2110, 0.4904 / 0.5304 / 0.2100; fit 1.11 / 0.78 / 1.55 s,
-#: 0.90 / 0.65 / 1.30 s, 0.78 / 0.59 / 1.61 s.
+#: with it while the time did, since a tile's cells grow with the square of the side it sees
+#: (planar and voxel maps: docs/choices.md, "Tiles: 5 m squares"; docs/3d.md).
 OVERLAP_LENGTH_SCALES: float = 1.5
 
 #: Default blend width, as a fraction of the overlap (or of the tile, if smaller). A tile predicts
 #: within half the blend of its square, where it still sees at least 3/4 of the overlap beyond,
-#: and fewer tiles predict each point: CSAIL every 10th scan (learnt length scale 1.14 m, 5 m
-#: tiles), fit and written map 27.2 -> 23.1 CPU s against a blend of the whole overlap, the
-#: written map's AUC, log loss and ECE the same to 4 digits (Belgioioso's blocks split too).
+#: and fewer tiles predict each point: less CPU, the same scores (docs/choices.md, "Tiles: 5 m
+#: squares").
 BLEND_FRACTION: float = 0.5
 
 #: The map settings a TiledGPOM answers as its own attributes (read from its ``base``).
@@ -214,8 +199,8 @@ _SETTING_NAMES = frozenset(MapConfig.__dataclass_fields__)
 #: tree, whatever the tile size: the cells, the hyperparameter sample anchored in a typical block,
 #: and the variance scale's region (one block from its centre each way, gpomap.extrapolation)
 #: are then the same for any tiles, and smaller tiles only make the tiles' GPs cheaper. Smaller
-#: blocks would cut the trees more often (at 4 m and 3 m CSAIL's learnt noise and squash moved
-#: to other optima: alpha 3.0 -> 30, the variance scale 31 -> 600-1,100).
+#: blocks would cut the trees more often and moved the learnt noise and squash to other optima
+#: (docs/choices.md, "Tiles: 5 m squares").
 BLOCK_SIZE: float = 10.0
 
 
@@ -713,12 +698,8 @@ def predict_tile_task(
 #: A prediction stage of fewer query points than this over all its tiles (one chunk of
 #: :func:`predict_tile_task`; a point in the blend of several tiles counts once for each) runs
 #: in this process: its tasks are too small for threads, which then
-#: contend for the GIL more than they share the work. Measured on the paper's two rooms (fit and
-#: prediction, both settings alternated six times, best and median): the variance scale's held-in
-#: predictions (a few hundred points over 39 tiles) 0.038 -> 0.029 s with SE, the ray evidence's
-#: calibration (1,459 points) 0.062 -> 0.048 s; the whole, SE 0.296 / 0.355 -> 0.294 / 0.337 s,
-#: Matern 3/2 0.322 / 0.363 -> 0.290 / 0.338 s. The 20,000 test points stay on the threads, which
-#: served Matern 3/2's dense predictions better than this process alone (0.310 against 0.290 s).
+#: contend for the GIL more than they share the work; larger stages (a benchmark's test points)
+#: stay on the threads (docs/choices.md, "Measured for the code").
 SMALL_PREDICTION_POINTS: int = 4096
 
 
@@ -752,9 +733,8 @@ def _worker_init(blas_threads: int) -> None:
 
 #: The tasks of each local pool stage running now, by a token: forked workers read them from the
 #: memory they inherit (:func:`_inherited_task`) instead of each task's arguments being pickled
-#: to them. A prediction stage sends every tile's state (its Cholesky factor: n^2 numbers), a
-#: third of a whole log's CPU on two workers (CSAIL every 10th scan: 33 s against 25 s in one
-#: process).
+#: to them. A prediction stage sends every tile's state (its Cholesky factor: n^2 numbers), which
+#: pickled cost a large share of a whole log's CPU (docs/choices.md, "Measured for the code").
 _INHERITED: dict[str, tuple[Callable[..., Any], list[tuple[Any, ...]]]] = {}
 
 
@@ -782,8 +762,8 @@ def nearest_box(points: NDArray[np.float64], boxes: NDArray[np.float64]) -> NDAr
     distance from the square exceeds the least, over boxes, of the farthest a point of the
     square can be from it cannot be nearest to any of its points; the points are measured against
     the few boxes left. A written map's points that no tile reaches are millions, its tiles
-    thousands (the Freiburg campus log: 36 million cells, 1,869 tiles, 390 s when every point
-    was measured against every box; the squares and the boxes alone are a few million pairs).
+    thousands, so every point against every box is minutes; the squares and the boxes alone
+    are a few million pairs (docs/choices.md, "Measured for the code").
 
     Parameters
     ----------
@@ -1058,8 +1038,8 @@ class TiledGPOM:
         is one GP over one cell tree instead of being cut into up to four where the map frame's
         origin falls in it; else, when it fits in one block, that block centred on them (one
         cell tree, several tiles); otherwise the map frame's origin. Moving the grid of a larger map only moves its
-        borders, and changes the cell trees (each grown from its block's points) at random: on
-        la3dm sim_unstructured a centred grid scored AUC 0.755 against 0.838. The grid then
+        borders, and changes the cell trees (each grown from its block's points) at random, and a
+        centred grid scored worse on a 3-D case (docs/choices.md, "Measured for the code"). The grid then
         stays fixed, so incremental updates line up with it.
     n_workers : int, optional
         Local workers (threads, or processes with `worker_processes`); 1 runs in this process without a pool; default the CPU count.
@@ -1084,10 +1064,8 @@ class TiledGPOM:
     worker_processes : bool
         Local workers are processes (forked where the platform can: they read their tasks from
         the memory they inherit; a worker that dies is retried) instead of threads of this
-        process (the default). Measured on 2 cores, fit and written 0.05 m map, CPU / wall
-        seconds against one worker's 16.9 / 16.9 (CSAIL every 10th) and 7.9 / 8.0 (Intel blocks
-        of 40): threads 17.8 / 13.9 and 7.5 / 6.7, processes 20.6 / 14.4 and 9.5 / 8.1 (the
-        factors pickled back from tile fits, and each stage's fork).
+        process (the default): processes pay for the factors pickled back from tile fits and
+        each stage's fork (docs/choices.md, "Local workers: threads of the process").
     memory_limit : float, optional
         Gigabytes the tile fits may plan to use (default: half of this machine's memory). Once
         the cells are built, before anything costlier, a fit whose largest tile's GP, times the
@@ -1294,7 +1272,7 @@ class TiledGPOM:
 
         With `spill`, each block's new points wait in that file (:class:`_SpilledPart`) instead of in memory."""
         # Keys per chunk of points, blocks then numbered 0..b-1 in key order: a whole log's int64
-        # keys and their sorted copy would be hundreds of megabytes (FR079: 24 M points).
+        # keys and their sorted copy would be hundreds of megabytes.
         chunks = range(0, points.shape[0], _KEY_CHUNK)
         found = [np.zeros(0, dtype=np.int64)]
         for s in chunks:
@@ -1796,15 +1774,16 @@ class TiledGPOM:
         )
         self.hyperparameters_["variance_scale"] = float(self.extrapolation_["kappa"])
         timings["variance_scale"] = time.perf_counter() - t
-        # The blocks hold every point from here on (FR079's whole log: 24 M points, 600 MB with
-        # their labels and scans): labelled points given are let go before the ray counts.
+        # The blocks hold every point from here on (a large log's hundreds of megabytes with their
+        # labels and scans): labelled points given are let go before the ray counts.
         del source
         release_freed_memory()
         self._scans: list[Any] | None = None if isinstance(data, Observations) else list(data)
 
         # The map of the other stretches is fitted, asked and let go before this map's tiles are
         # fitted and its rays counted, so the two are never in memory together; the allocator
-        # keeps what it freed until told (3 GB on the Freiburg campus).
+        # keeps what it freed until told (docs/choices.md, "The map's probabilities for a later
+        # visit").
         t = time.perf_counter()
         later = self._later_visit_points()
         release_freed_memory()
@@ -2173,8 +2152,8 @@ class TiledGPOM:
 
         A planar written map is built in bands of rows, upwards (:meth:`EvidenceLayer.written_grid
         <gpomap.fusion.EvidenceLayer.written_grid>`): a tile the bands have passed is not asked
-        again, and its K^-1 is as large as its factor (1.7 GB over the Freiburg campus log's
-        1,877 tiles). Asked again, a tile forms the same K^-1 afresh.
+        again, and its K^-1 is as large as its factor (gigabytes over a building; docs/choices.md,
+        "The written map in bands"). Asked again, a tile forms the same K^-1 afresh.
         """
         tiles = self.tiles_
         states = tiles.resident() if isinstance(tiles, TileStore) else tiles.values()
@@ -2228,8 +2207,8 @@ class TiledGPOM:
         wsum = np.zeros(m)
         # Points bucketed once in squares of half a tile (a stable sort of integers), so each
         # tile scans only the few squares its blend region reaches: strips of x alone made each
-        # tile of a map 300 m tall scan sixty tiles' points (the Freiburg campus log's written
-        # map: 42 s of 114). Squares as narrow as a short blend would be millions (a hard switch).
+        # tile of a tall map scan dozens of tiles' points (docs/choices.md, "Measured for the
+        # code"). Squares as narrow as a short blend would be millions (a hard switch).
         waiting = getattr(self, "_waiting", {})
         keys = sorted([*self.tiles_, *waiting]) if waiting else sorted(self.tiles_)
         side = 0.5 * self.tile_size_
