@@ -4,9 +4,8 @@ The probit squash is fitted on leave-one-out moments of the cells (:mod:`gpomap.
 left out has its neighbours on every side, so those moments describe interpolation, and the
 squash comes out sure of itself (alpha often at its cap). Where no beam went, behind a wall or in
 a room seen only later, the GP extrapolates, and its latent variance there understates how wrong
-its mean can be: measured before this step, the Stage arena's written map called the unseen space
-behind its outer wall occupied at p ~ 0.97, and on Belgioioso's held-out stretches the GP alone
-scored AUC 0.62 where no training beam went, with a log loss of 1.4.
+its mean can be: before this step, maps called unseen space confidently occupied or free
+(docs/choices.md, "Where no beam went").
 
 So the squash gets one more parameter, a variance scale kappa:
 
@@ -24,12 +23,12 @@ To bound the cost, the held-in GP covers one square region of side ``2 * region_
 given centre (the hyperparameter sample's), and only points well inside it are used; where it
 holds fewer than :data:`REGION_POINTS_PER_CLASS` of a class, a wider square is taken, and where
 that holds too few as well, a square of the first's size where the held-out stretches saw most
-new ground next to what the kept ones saw (:func:`new_ground_centre`: on MIT's infinite corridor
-the robot passes the sample's square in every stretch, which left no unseen point there). When one
-pattern of held-out stretches finds too few such points of a class (on Intel, CSAIL and FR079
-with blocks of their scans held out, 24-27), the other two patterns (the stretches after, then
+new ground next to what the kept ones saw (:func:`new_ground_centre`: a robot that passes the
+sample's square in every stretch leaves no unseen point there). When one pattern of held-out
+stretches finds too few such points of a class, the other two patterns (the stretches after, then
 the rest) are tried in turn and their points pooled, each with its own held-in GP: a robot that
-enters new space only once in its log is unseen in one pattern alone. With too few points in
+enters new space only once in its log is unseen in one pattern alone (the logs where each case
+arose: docs/choices.md, "Where no beam went" and its subsections). With too few points in
 all three (a short log, a robot that never left one room), kappa stays 1.
 """
 
@@ -216,8 +215,8 @@ def fit_variance_scale(
         if wider is None:
             return  # the first region is the whole map
         yield np.asarray(wider[0], dtype=float)[:2], float(wider[1]), float(wider[2])
-        # A robot that passes the sample's square in every stretch (MIT's infinite corridor):
-        # where held-out stretches saw new ground, the square is first's size.
+        # A robot that passes the sample's square in every stretch (a long corridor): where
+        # held-out stretches saw new ground, the square is first's size.
         ground = new_ground_centre(source, len(scans), 2.0 * first[1])
         if ground is not None:
             yield ground, first[1], first[2]
@@ -325,8 +324,8 @@ class _SquareLattice:
     """Squares of side `side` on a lattice from the origin, over the extent of some points (n, 2),
     numbered x-major (so the first of equal counts is the one of least x, then least y).
 
-    Squares are marked in a boolean array, not found by sorting: a whole log's tens of millions
-    of points took np.unique 37 s on the Freiburg campus."""
+    Squares are marked in a boolean array, not found by sorting: ``np.unique`` over a whole log's
+    tens of millions of points takes tens of seconds (docs/choices.md, "Measured for the code")."""
 
     #: Points handled at a time when marking squares (bounds the temporaries to ~100 MB).
     CHUNK = 1 << 22
@@ -392,7 +391,7 @@ def _region_folds(
     :data:`MIN_POINTS_PER_CLASS` of each class. A pattern whose kept scans observed no point of a
     class in the square (`observes` says no) is passed over: its GP there would be its prior,
     whatever the variance scale (a robot that drove past the square once, in a stretch this
-    pattern holds out: MIT's infinite corridor kept the scale at 1 so).
+    pattern holds out, would otherwise keep the scale at 1).
     """
     folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]] = []
     n = 0
@@ -453,7 +452,7 @@ def _unseen_points(
     no kept beam went: points (m, d) and classes (m,).
 
     Scans whose beams cannot reach the square are passed over (a whole log's scans mostly look
-    elsewhere: on FR079 they were most of the stage's time).
+    elsewhere, and would be most of the stage's time).
     """
     pts_l, occ_l = [], []
     for scan in held_scans:

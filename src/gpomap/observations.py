@@ -157,9 +157,8 @@ def ray_free_points(
 MAX_CLEARANCE_BOXES: int = 4_000_000
 #: ... and most boxes per clearance, by dimension: finer boxes leave a thinner band of points to
 #: ask the tree about (about 2 sqrt(d) boxes wide round the clearance's distance), but the
-#: distance transform grows with the cube in 3-D: la3dm sim_structured's cells stage took 1.23 s
-#: with 2, 3.26 s with 10 (1.26 s with the earlier pre-filter); FR079's planar blocks' clearance
-#: 3.4 s with 10, 11.3 s with the earlier one.
+#: distance transform grows with the cube in 3-D, so voxel maps take coarser boxes
+#: (docs/choices.md, "Measured for the code").
 CLEARANCE_SUBDIVISIONS: dict[int, int] = {2: 10, 3: 2}
 
 
@@ -385,7 +384,7 @@ def observations_from_scans(
     keep = ~free_near_hits(points, occupied, free_clearance)
     n_cleared = int(keep.size - keep.sum())
     if n_cleared:
-        # Only then a copy: a whole log's points are hundreds of megabytes (FR079: 24 M).
+        # Only then a copy: a whole log's points are hundreds of megabytes.
         points, occupied, scan_index = points[keep], occupied[keep], scan_index[keep]
     return Observations(
         points=points,

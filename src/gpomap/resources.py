@@ -78,14 +78,14 @@ TILE_MEMORY: int = 128 * 2**20
 
 #: A planar written map is built in bands of rows of at most about this many cells
 #: (:meth:`gpomap.fusion.EvidenceLayer.written_grid`): its temporaries (GP samples, counts,
-#: distances to hits, :data:`BYTES_PER_BAND_CELL`) then follow the band, not the map. The
-#: Freiburg campus log's map at 0.05 m has 36 million cells; built whole, they took 6.1 GB.
+#: distances to hits, :data:`BYTES_PER_BAND_CELL`) then follow the band, not the map: a campus
+#: map at 0.05 m has tens of millions of cells (docs/choices.md, "The written map in bands").
 WRITTEN_BAND_CELLS: int = 2**21
 
 #: A map's figure draws at most this many cells a side: every k-th row and column of a larger
 #: map (:func:`gpomap.plot.plot_map`). A panel is about 600 pixels wide (4 inches at 150 dpi)
 #: and nearest-neighbour drawing shows one cell a pixel anyway, while matplotlib draws from float
-#: copies of the whole array (a 6,000 by 6,000-cell map took 3 GB and 20 s to draw whole).
+#: copies of the whole array (docs/choices.md, "Measured for the code").
 FIGURE_CELLS: int = 2048
 
 #: Bytes per cell of a written map: probability and variance (float64, 8 + 8), the ternary map
@@ -94,9 +94,9 @@ FIGURE_CELLS: int = 2048
 BYTES_PER_MAP_CELL = 8 + 8 + 1 + 1 + 8 + 8 + 4 * 4
 
 #: Bytes per cell of one band of a written map while it is built (GP samples, ray counts, distances
-#: to hits and their interpolations; :data:`WRITTEN_BAND_CELLS` cells a band):
-#: the Freiburg campus log's map, built whole at 0.05 m, took 6.1 GB over its 36.5 million cells
-#: above the fitted model, its 16 bytes a cell of probability and variance among them.
+#: to hits and their interpolations; :data:`WRITTEN_BAND_CELLS` cells a band), measured over a
+#: campus map built whole, its 16 bytes a cell of probability and variance among them
+#: (docs/choices.md, "The written map in bands").
 BYTES_PER_BAND_CELL = 150
 
 
@@ -185,7 +185,8 @@ def release_freed_memory() -> bool:
 
     glibc's allocator raises its mmap threshold each time a large block is freed, so the arrays of
     one stage that come after (tens of MB each) are carved from the heap, and freed they stay in
-    it: the whole Freiburg campus held 3 GB so after its second map was let go. ``malloc_trim``
+    it: gigabytes on a campus log (docs/choices.md, "The map's probabilities for a later
+    visit"). ``malloc_trim``
     returns them. A no-op (False) where the C library has no such call (macOS, Windows, musl).
     """
     trim = _malloc_trim()

@@ -3,11 +3,9 @@
 A map's calibration is fitted on its own scans held out one at a time (:func:`gpomap.fusion.fit_calibration`):
 each held-out scan's neighbours in time are still counted, so the weights learn how a scan taken
 *among* the training scans sees the world. A user asks the map about a later visit, and a later
-visit meets what appeared since: people, a door that closed, the next room. Pooled over the
-written maps of 13 logs, a scan held out with its whole block of 40 found every probability
-level below 0.9 more occupied than the map said (its 0.005 held 1.5 % hits, balanced classes;
-its 0.15, 32 %; its 0.55, 73 %), while scans held out one in ten found them as the map said
-(docs/choices.md, "The map's probabilities for a later visit").
+visit meets what appeared since: people, a door that closed, the next room. Scans held out in
+blocks find the map's probabilities too low, while scans held out one in ten find them as the
+map says (docs/choices.md, "The map's probabilities for a later visit").
 
 So a planar map fits one monotone map of its probabilities,
 
@@ -18,11 +16,11 @@ confident ends by up to ``shift`` in log-odds. It is fitted by maximum likelihoo
 of equal weight: the held-out points of a stretch of the log the map never saw (every third of
 ten stretches, :func:`gpomap.heldout.holdout_stretches`), predicted by the same map fitted
 on the rest with the same hyperparameters, and the calibration's own leave-one-scan-out points,
-which stand for a visit among the training scans. The shift came out 0.2-1.0 on most real logs
-measured (largest where later stretches meet people, doors and new ground: a university building,
-a museum, the Freiburg campus), about 0 on two, and below 0 on simulations, where nothing moves and
-the map was under-confident; the slope 0.74-1.39. A map that grows online (:mod:`gpomap.streaming`) keeps the recalibration of its
-last whole fit.
+which stand for a visit among the training scans. The shift comes out positive on most real
+logs (largest where later stretches meet people, doors and new ground), about 0 on some, and
+below 0 on simulations, where nothing moves and the map was under-confident (the fitted values:
+the same section). A map that grows online (:mod:`gpomap.streaming`) keeps the recalibration of
+its last whole fit.
 """
 
 from __future__ import annotations
@@ -50,7 +48,8 @@ SLOPE_BOUNDS: tuple[float, float] = (0.5, 2.0)
 #: ``slope - |shift| / (WIDTH sqrt(e))``; at this bound it is still a tenth of the slope, so
 #: the map keeps the order of every two probabilities (and the ternary map its classes).
 MAX_SHIFT_RATIO: float = 0.9 * WIDTH * math.sqrt(math.e)
-#: Whether a map of this dimension fits the recalibration (planar maps: measured on 26 log-splits).
+#: Whether a map of this dimension fits the recalibration (planar maps: measured on the quality
+#: benchmark's log-splits, docs/choices.md, "The map's probabilities for a later visit").
 FIT_REVISIT: dict[int, bool] = {2: True, 3: False}
 #: Fewest scans a log needs for a held-out stretch to be a visit of its own (shorter logs keep the identity).
 MIN_SCANS: int = 100

@@ -112,8 +112,8 @@ def class_weights(y: NDArray[np.float64], class_weight: str | None = "balanced")
 
     ``"balanced"`` gives each class the same total weight (n / (2 n_class) per input, as in
     scikit-learn). Free cells outnumber occupied ones several times over on real logs, and an
-    unweighted objective then prefers maps that call everything free: on Intel windows the length
-    scale ran to its bound and held-out AUC fell below chance (0.31); balanced, 0.79.
+    unweighted objective then prefers maps that call everything free, on some logs ranking worse
+    than chance (docs/choices.md, "Class weights").
     """
     if class_weight is None:
         return None
@@ -193,12 +193,12 @@ class ProbitSquash:
 #: Search bounds of (log alpha, beta / alpha). The shift beta / alpha is the latent value where
 #: the map turns from free to occupied; searching over it keeps the problem well scaled. alpha is
 #: capped at 30: where the leave-one-out predictions separate the classes, the objective rises
-#: with alpha for ever (seen on tiled Intel samples and on clean grids: alpha ran to 1e4 and the
-#: map became hard 0 / 1 with no unknown band), while well-posed data settles far below the cap
-#: (the synthetic room: ~2; Belgioioso: ~0.7). The shift is held at 0: the GP's prior mean is 0,
-#: so with beta = 0 the map far from every observation is exactly p = 0.5 ("unknown"), as an
-#: occupancy map must be; learnt, beta made unobserved space lean occupied (p 0.57-0.73 on real
-#: logs, above the occupied threshold on some), and the classes are balanced by weights instead.
+#: with alpha for ever (the map then turns hard 0 / 1 with no unknown band), while well-posed data
+#: settles far below the cap. The shift is held at 0: the GP's prior mean is 0, so with beta = 0
+#: the map far from every observation is exactly p = 0.5 ("unknown"), as an occupancy map must
+#: be; learnt, beta made unobserved space lean occupied, and the classes are balanced by weights
+#: instead (docs/choices.md, "The map is the GP as the prior of a fine grid"; "Measured for the
+#: code").
 SQUASH_BOUNDS: tuple[tuple[float, float], tuple[float, float]] = ((np.log(1e-3), np.log(30.0)), (0.0, 0.0))
 
 

@@ -44,9 +44,7 @@ DEFAULT_WARMUP_SCANS = 30
 #: Tile side of a streaming map, metres: the planar batch map's (``gpomap.tiles.DEFAULT_TILE_SIZE``,
 #: not imported here so that the command's ``--help`` needs no SciPy). A refresh refits the tiles
 #: round the new scans, and a tile's fit grows with the cube of its cells, so smaller tiles refit
-#: faster in all (Intel's first 250 scans, refresh every 10: 127 ms of CPU per scan at 5 m
-#: against 184 ms at 10 m, `benchmarks/streaming.py --tile-size`); much smaller and the overlap
-#: dominates.
+#: faster in all (docs/choices.md, "Streaming maps"); much smaller and the overlap dominates.
 DEFAULT_TILE_SIZE = 5.0
 
 #: Change records kept for :meth:`StreamingGPOM.changed_since`; older versions get the whole map.
