@@ -14,22 +14,20 @@ wins, as with CARMEN's parameter server).
 
 Poses. In the corrected logs this reader targets (GMapping outputs) both ``FLASER`` pose triples
 hold the same corrected pose; we read the one at the end of the line (``odom_*``). Is that the
-robot pose, with the laser ``robot_frontlaser_offset`` (-0.04 m in Belgioioso and FR079) ahead of
-it, or already the laser pose? The data answers: counting the 2 cm cells hit by all end points
-(fewer = sharper walls), FR079 gives 195,303 cells with offset 0 against 216,136 with -0.04 and
-209,693 with +0.04; Belgioioso 65,345 against 70,207 / 70,187. So by default the pose is used as the
-laser pose (offset 0), and the PARAM value is kept in ``Scan.meta["frontlaser_offset_param"]``;
+robot pose, with the laser ``robot_frontlaser_offset`` ahead of it, or already the laser pose?
+The data answers: the end points draw the sharpest walls (fewest 2 cm cells hit) with no offset
+(docs/choices.md, "Measured for the code"). So by default the pose is used as the laser pose
+(offset 0), and the PARAM value is kept in ``Scan.meta["frontlaser_offset_param"]``;
 pass ``laser_offset="param"`` to apply it (for raw logs whose poses are robot poses) or a number.
 ``ROBOTLASER1`` carries the laser pose explicitly and rays are cast from it.
 
 Scan order is line order. Time stamps (``ipc_timestamp`` / ``timestamp``) go to ``Scan.time``
-only where they look usable: finite, not all equal and almost never repeated (Belgioioso's, printed
-to 6 significant digits, are all the same number and are dropped).
+only where they look usable: finite, not all equal and almost never repeated (stamps printed to
+6 significant digits can all be the same number, and are then dropped).
 
 No-return. The threshold (``Scan.max_range``) is decided per message type from the readings
-(:mod:`gpomap.io.noreturn`): the shared logs all carry a SICK code (81.83 in Intel, 81.91 in
-Belgioioso, FR079 and CSAIL), and keep the header's 80.99 / 80 m where they have one since the data
-agree with it; a log whose code is 50 m and has no PARAM no longer turns every no-return into a
+(:mod:`gpomap.io.noreturn`): a log whose header states the range keeps it where the data agree
+(the codes the shared logs carry: docs/choices.md, "Measured for the code"); a log whose code is 50 m and has no PARAM no longer turns every no-return into a
 hit, and ``PARAM robot_front_laser_max 10`` in a log with real returns out to 50 m is overruled
 (and the contradiction reported in ``Scan.meta["no_return"]``).
 """
@@ -411,12 +409,12 @@ def read_carmen(
         No-return threshold, metres: readings at or above it become no-return beams; always wins.
         Default: decided from the data (:func:`gpomap.io.noreturn.decide_max_range`), separately
         for the ``FLASER`` and the ``ROBOTLASER1`` lines: the header value (the ``max_range``
-        field of ``ROBOTLASER1`` lines, else ``PARAM robot_front_laser_max``, 80.99 in
-        Belgioioso and FR079) when the readings agree with it, else the no-return code found in
-        the readings (81.83 in Intel, which has no PARAM), else no reading is no-return.
+        field of ``ROBOTLASER1`` lines, else ``PARAM robot_front_laser_max``) when the readings
+        agree with it, else the no-return code found in the readings, else no reading is
+        no-return.
     laser_offset : float or "param", optional
         Distance of the laser ahead of the ``FLASER`` pose along its heading, metres. Default 0:
-        in corrected logs the pose already is the laser pose (see the module notes, measured).
+        in corrected logs the pose already is the laser pose (see the module notes).
         ``"param"`` applies ``PARAM robot_frontlaser_offset`` (last value in the file; 0 if absent).
 
     Returns

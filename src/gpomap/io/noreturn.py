@@ -2,10 +2,9 @@
 
 Many lasers write "no return" as a fixed code instead of leaving the beam empty: 81.83 / 81.91 m
 (SICK, 80 m family), 50.0 m, 51.05 / 51.1 m, 32.767 / 32.76 m, 5.0 / 5.6 m. Such a code sits at the
-top of the range distribution and is repeated far more often than any real range near it: in Intel
-4,172 readings are 81.83 while the nearest real ranges (around 25 m) hold one or two readings per
-centimetre. A few stray readings may lie above it (MIT's infinite corridor: 3,720 at 51.06 m, two
-at 51.16 m), and a code may be smeared over a few centimetres (51.05-51.12 m) with tens of strays
+top of the range distribution and is repeated far more often than any real range near it: thousands
+of readings on the code, against one or two per centimetre among the real ranges below it. A few
+stray readings may lie above it, and a code may be smeared over a few centimetres (51.05-51.12 m) with tens of strays
 above: then the densest 0.1 m near the top of the data is the code when it stands out as one.
 A header value (CARMEN ``PARAM robot_front_laser_max``, the ``max_range`` field of ``ROBOTLASER1``,
 a LaserScan's ``range_max``) may be missing, or say something else than the data
@@ -206,8 +205,8 @@ def detect_no_return_code(ranges: ArrayLike) -> NoReturnCode | None:
     r = np.sort(_valid(ranges))
     values = _rounded(r)
     # A sensor reports next to nothing beyond its own code: the code is the largest reading, or
-    # lies under fewer stray readings than a code holds (MIT's infinite corridor: 51.06 m, 3,720
-    # readings, under 2 at 51.16 m; Acapulco: 51.15 m under one each at 51.2 and 51.25 m).
+    # lies under fewer stray readings than a code holds (logs where it does: docs/choices.md,
+    # "Measured for the code").
     for strays in range(min(_MIN_COUNT, r.size)):
         top_index = r.size - 1 - strays
         if strays and values[top_index] == values[top_index + 1]:

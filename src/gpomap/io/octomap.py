@@ -305,7 +305,7 @@ def read_octree(path: str | os.PathLike[str]) -> Octree:
     for leaf in tree.begin_leafs():
         centres.append(leaf.getCoordinate())
         sizes.append(leaf.getSize())
-        # A .bt leaf is occupied or free, nothing more: asking OctoMap that is 3x faster than
+        # A .bt leaf is occupied or free, nothing more: asking OctoMap that is faster than
         # fetching the node's value.
         values.append(tree.isNodeOccupied(leaf) if kind == "bt" else leaf.current_node.getOccupancy())
     if kind == "bt":

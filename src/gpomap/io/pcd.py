@@ -7,8 +7,8 @@ anything is allocated.
 
 Pose. ``VIEWPOINT tx ty tz qw qx qy qz`` is the sensor pose. By default the points are taken as
 already in the map frame and the rays start at the viewpoint's position (``points_frame="map"``):
-the la3dm simulated scans store them so (their ``VIEWPOINT`` rotation is the identity and the
-points are world coordinates). With ``points_frame="sensor"`` the points are transformed by the
+simulated benchmark scans are often stored so (their ``VIEWPOINT`` rotation the identity and the
+points world coordinates). With ``points_frame="sensor"`` the points are transformed by the
 viewpoint pose first. A `pose` given by the caller (a row of a poses file) replaces the
 viewpoint, and the points are then in the sensor frame.
 
@@ -194,7 +194,7 @@ def read_pcd(
         frame and are transformed by it.
     points_frame : {"map", "sensor"}
         With the ``VIEWPOINT`` pose: whether the stored points are already in the map frame (the
-        default, as in the la3dm scans) or in the sensor frame.
+        default, as simulated benchmark scans often are) or in the sensor frame.
     max_range : float, optional
         Points farther than this from the sensor become no-return rays ending at `max_range`.
     time : float, optional

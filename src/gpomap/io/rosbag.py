@@ -15,16 +15,11 @@ arc in yaw. An edge from ``/tf_static``, or whose published values never change,
 Scans outside the time range of the moving edges are dropped and counted. Frame names lose any
 leading slash (ROS1 ``/odom`` and ROS2 ``odom`` are the same frame).
 
-Stage arena (``stage-arena/robot1.bag``, 433 scans on ``/base_scan``, poses on tf every 0.1 s with
-the scans' stamps): Stage stamps each scan with the pose of the step *before* the one it matches.
-Fraction of hit end points within 3 cm of an occupied pixel (taken as a 0.0100 x 0.009891 m area)
-of the true plan ``mrl_arena.pgm``, by `time_offset`: 0.0 s -> 76.8 %, 0.05 s -> 78.6 %,
-0.08 s -> 85.3 %, 0.09 s -> 86.8 %, 0.1 s -> 87.1 %, 0.11 s -> 85.8 % (pixel centres instead of
-areas: 74.1 % at 0, 84.6 % at 0.1 s). With 0.1 s the last scan has no later pose and is dropped
-(432 left). Use :data:`STAGE_TIME_OFFSET` = 0.1 s. (The data README quotes 83 % / 91 % for the two
-cases; we did not reproduce its exact figures, but the same 0.1 s step wins. Per scan, the best
-offset varies between 0 and 0.2 s, so part of the remaining misses is stamp jitter, which no
-constant offset removes.)
+Stage bags (the simulator's, e.g. ``stage-arena/robot1.bag``): Stage stamps each scan with the
+pose of the step *before* the one it matches, so their scans want a `time_offset` of one step,
+:data:`STAGE_TIME_OFFSET`; the last scan then has no later pose and is dropped. Part of what is
+left is stamp jitter, which no constant offset removes (the fit of hits to the true plan by
+offset: docs/choices.md, "Measured for the code").
 """
 
 from __future__ import annotations
@@ -56,7 +51,7 @@ __all__ = [
 ]
 
 #: Suggested `time_offset` (seconds) for Stage bags such as ``stage-arena/robot1.bag``: the scan
-#: matches the pose one 10 Hz step later (91 % of hits within 3 cm of a wall, against 83 % at 0).
+#: matches the pose one 10 Hz step later (docs/choices.md, "Measured for the code").
 STAGE_TIME_OFFSET = 0.1
 
 _LASERSCAN = "sensor_msgs/msg/LaserScan"
