@@ -3,12 +3,13 @@
 
 Two experiments, each method fitted on training data only and scored on held-out data:
 
-- **synthetic**: the paper's room (31 poses x 36 beams over 360 degrees) for training; test
+- ``synthetic``: the paper's room (31 poses x 36 beams over 360 degrees) for training; test
   points from scans simulated at the training poses jittered by 0.3 m with 90 beams (seeded),
   never trained on; maps on the paper's 0.5 grid.
-- **belgioioso**: every 5th scan of the whole log held out (seeded), the other scans thinned to the
-  paper's 52 poses x 37 beams for training; test points from the held-out scans; maps at 0.1 m.
-- **belgioioso-rooms**: the paper's own setting, two adjacent rooms: the log's first 65 scans
+- ``belgioioso``: the paper's real log; every 5th scan of the whole log held out (seeded), the
+  other scans thinned to the paper's 52 poses x 37 beams for training; test points from the
+  held-out scans; maps at 0.1 m.
+- ``belgioioso-rooms``: the paper's own setting, two adjacent rooms: the log's first 65 scans
   (`ROOMS_RANGE`), every 5th held out, which leaves exactly the paper's 52 training poses (37
   beams each); test points from the 13 held-out scans, in the same rooms.
 
@@ -18,8 +19,8 @@ use `GPOMIK_BEAMS` beams per scan and `GPOM_POINTS` points, stated in the table.
 timed alike: an untimed fit on `WARMUP_SCANS` training scans, so no method is charged for what a
 process does once (imports, loading compiled code), then at least `TIMED_RUNS` fits and
 predictions, and as many more as fill `MIN_TIMED_SECONDS` (at most `MAX_TIMED_RUNS`), as timeit's
-autorange does; the fastest is reported (a 0.3 s fit on a shared machine moves by a third between
-runs, and by half in a slow minute).
+autorange does; the fastest is reported (a fit of a fraction of a second on a shared machine moves
+a lot between runs; docs/paper-benchmark.md).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from gpomap.scans import Scan, select_scans
 
 METHODS = ("msk", "gpomik", "gpom", "ogm")
 EXPERIMENTS = ("synthetic", "belgioioso", "belgioioso-rooms")
-#: Scans of the Belgioioso log covering the paper's two adjacent rooms.
+#: Scans of the paper's real log covering its two adjacent rooms.
 ROOMS_RANGE = "0:65"
 KERNELS = ("se", "matern32")
 LABELS = {"msk": "MSK-GPOM", "gpomik": "GPOMIK", "gpom": "GPOM", "ogm": "OGM"}
@@ -48,14 +49,14 @@ GPOMIK_BEAMS = 12
 GPOM_POINTS = 1500
 #: Training scans of the untimed fit that precedes each timed one (see :func:`run_paper_benchmark`).
 WARMUP_SCANS = 3
-#: Timed fits and predictions of each method; the fastest is reported. One timing of MSK-GPOM's
-#: two-rooms fit ranged over 0.24-0.39 s on the 2-core machine; GPOMIK's 11-15 s fits move by a
-#: tenth. The same fits give the same maps, so only the times differ between them.
+#: Timed fits and predictions of each method; the fastest is reported, since one timing of a short
+#: fit on a shared machine moves a lot (docs/paper-benchmark.md). The same fits give the same
+#: maps, so only the times differ between them.
 TIMED_RUNS = 3
 #: ... and more, up to MAX_TIMED_RUNS, until the timed runs add up to this many seconds: three
-#: runs of MSK-GPOM's two rooms take under a second, and a slow second of the shared machine
-#: took all three from 0.16-0.17 s to 0.26-0.31 s (docs/paper-benchmark.md), while GPOMIK's 12 s
-#: runs each average over such seconds. Every method alike: GPOMIK's three runs fill it.
+#: runs of MSK-GPOM's two rooms take under a second, which one slow second of a shared machine
+#: can spoil, while GPOMIK's runs of several seconds each average over such seconds. Every method
+#: alike: GPOMIK's three runs fill it (docs/paper-benchmark.md).
 MIN_TIMED_SECONDS = 2.0
 MAX_TIMED_RUNS = 20
 T = TypeVar("T")
@@ -109,7 +110,7 @@ PAPER = {
     ("belgioioso", "msk", "matern32"): (52.07, 0.9918, 3.30),
     ("belgioioso", "msk", "se"): (37.29, 0.9947, 2.00),
 }
-# The paper's Belgioioso experiment is the two-room one; the whole-log variant is ours.
+# The paper's real-log experiment is the two-room one; the whole-log variant is ours.
 PAPER.update({("belgioioso-rooms", m, k): v for (e, m, k), v in list(PAPER.items()) if e == "belgioioso"})
 TITLES = {
     "synthetic": "Table II: synthetic room (31 poses x 36 beams, grid 0.5)",
@@ -173,11 +174,11 @@ def run_paper_benchmark(
     experiments : sequence of str
         Any of :data:`EXPERIMENTS`.
     belgioioso_path : path-like
-        The Belgioioso CARMEN log.
+        The paper's real CARMEN log (:data:`DEFAULT_BELGIOIOSO`).
     seed : int
         Seeds test data, hold-out and methods.
     quick : bool
-        A small run (the synthetic room, fewer test points, Belgioioso thinned further).
+        A small run (the synthetic room, fewer test points, the real log thinned further).
     progress : callable, optional
         Called with a line of text as each run finishes.
     timed_runs : int
@@ -202,7 +203,7 @@ def run_paper_benchmark(
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     say = progress or (lambda _m: None)
-    log: list[list[Scan]] = []  # the Belgioioso log, read once for both of its experiments
+    log: list[list[Scan]] = []  # the paper's real log, read once for both of its experiments
 
     def belgioioso_scans() -> list[Scan]:
         from gpomap.io import read_scans

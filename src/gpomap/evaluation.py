@@ -502,9 +502,8 @@ class Truth:
         The cells are those of every map written at `resolution` (corners on multiples of it, as
         ``gpomap map`` and the occupancy grids place theirs), not cells from the bitmap's corner:
         a map is scored cell for cell. Off that lattice every map cell straddles two true cells,
-        and a wall one cell thick in the map is scored as two half-right cells (the Stage arena's
-        plan, whose corner is 0.4 and 0.5 cells off at 0.05 m, gave the 0.05 m log-odds grid an
-        occupied-class IoU of 0.42-0.43 against 0.56 on the maps' lattice).
+        and a wall one cell thick in the map is scored as two half-right cells, which costs a
+        grid a good part of its IoU (docs/choices.md, "Measured for the code").
 
         Parameters
         ----------
