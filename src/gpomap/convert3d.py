@@ -10,8 +10,8 @@ half a voxel so that it covers its voxels' cubes (a voxel is a volume observatio
 the exact box kernel is fitted with :func:`gpomap.convert.model_defaults` (cell sizes and length
 scale in source voxels), and the map is sampled on a voxel grid of any resolution.
 
-Size. One GP holds a few thousand cells, and a real octree gives far more: ``geb079.bt`` (428,144
-leaves, 1.14 million known voxels of 0.08 m) makes 197,283 cells at these settings. A region whose
+Size. One GP holds a few thousand cells, and a real octree gives tens or hundreds of thousands
+(docs/convert.md, "OctoMap trees, whole"). A region whose
 cells one GP holds (at most ``max_cells``) is converted by one GP, trained on the known voxels
 inside it grown by a margin of :data:`MARGIN_VOXELS` voxels (so the map at the region's faces sees
 the data beyond them). A larger one, up to the whole tree, is converted in tiles
@@ -175,7 +175,7 @@ def region(tree: Octree, lower: ArrayLike | None, upper: ArrayLike | None) -> tu
 #: Tile sides tried for a tree too large for one GP, largest first (metres): the first whose
 #: densest column's GP holds at most ``max_cells`` cells. 3 m is a voxel map's tile
 #: (:data:`gpomap.tiles.DEFAULT_TILE_SIZE`); an octree's known voxels are denser than a map's
-#: cells, so most trees take a smaller one (geb079: 0.75 m, see docs/convert.md).
+#: cells, so most trees take a smaller one (docs/convert.md, "OctoMap trees, whole").
 TILE_SIDES: tuple[float, ...] = (3.0, 2.0, 1.5, 1.0, 0.75, 0.5)
 #: A tiled conversion predicts the latent mean at every output voxel, and the latent variance
 #: this many source voxels apart (at least every output voxel), interpolated trilinearly: the

@@ -126,7 +126,7 @@ def evenly_spaced(n_total: int, n_keep: int | None) -> NDArray[np.intp]:
 def select_scans(scans: Sequence[Scan], n_scans: int | None = None, n_beams: int | None = None) -> list[Scan]:
     """Thin a sequence of scans to `n_scans` evenly spaced scans of `n_beams` evenly spaced beams.
 
-    The paper trains on 52 of Belgioioso's 395 poses with 37 of their 361 beams:
+    The paper trains on 52 of its real log's 395 poses with 37 of their 361 beams:
     ``select_scans(scans, 52, 37)``.
 
     Parameters

@@ -102,7 +102,7 @@ class GPOM(GPMapEstimator):
             self.kernel, variance=self.variance, length_scale=self.length_scale, length_scale_bounds=self.length_scale_bounds
         )
         # On points every area method is the point kernel itself; the one-node quadrature takes the
-        # compiled tensor path for both kernels (SE's closed form costs erfs per pair: 20x slower).
+        # compiled tensor path for both kernels (SE's closed form costs erfs per pair, far slower).
         return AreaKernel(base, "quadrature", "mean", 1)
 
     def subsample(self, occupied: NDArray[np.bool_]) -> NDArray[np.intp]:

@@ -35,7 +35,7 @@ class OctoMapBaseline:
     Parameters
     ----------
     resolution : float
-        Voxel side, metres (0.1: the la3dm benchmark's).
+        Voxel side, metres (0.1: the 3-D benchmarks' usual voxel).
     max_range : float, optional
         Rays are cut at this range (free only beyond it). Default: each cloud's ``max_range``,
         else the longest no-return ray, else unlimited.

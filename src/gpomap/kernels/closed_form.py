@@ -255,8 +255,8 @@ def distinct_intervals(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
     """The distinct intervals [lo_i, hi_i], sorted by (lo, hi), and which one each input is.
 
-    What ``np.unique`` of the stacked ends with ``axis=0`` gives, by one lexsort (ten times faster
-    on a few hundred cells: ``unique`` with an axis sorts a structured view).
+    What ``np.unique`` of the stacked ends with ``axis=0`` gives, by one lexsort (much faster on a
+    few hundred cells: ``unique`` with an axis sorts a structured view).
 
     Parameters
     ----------
