@@ -108,8 +108,9 @@ class MapSettings:
         Side of the fine cells of exact-point predictions, metres (a written grid counts on its
         own cells).
     evidence_resolution_3d : float
-        The same for 3-D maps (voxels). 0.1 m, OctoMap's resolution on the la3dm scans: a 3-D
-        lidar's rays are sparse, and at 5 cm few voxels would be crossed by more than one scan.
+        The same for 3-D maps (voxels). 0.1 m, OctoMap's usual resolution: a 3-D lidar's rays are
+        sparse, and at 5 cm few voxels would be crossed by more than one scan (docs/3d.md, "At
+        0.05 m voxels").
     calibration_scans : int
         Scans held out in turn to fit the evidence calibration.
     fit_surprise_rate : bool
