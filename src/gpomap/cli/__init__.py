@@ -8,470 +8,64 @@ shows the traceback instead.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import inspect
 import json
-import math
 import signal
 import sys
 import threading
 import time
-import warnings
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, ClassVar, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from gpomap._version import __version__
-from gpomap.config import CALIBRATED_THRESHOLDS, DEFAULT_MAX_CELLS, MapConfig, TilingConfig
+from gpomap.cli.common import EXIT_ERROR, EXIT_OK, EXIT_USAGE, GRID_ADVICE, Run, run_command
+from gpomap.cli.common import Parser as _Parser
+from gpomap.cli.common import bound_source as _bound_source
+from gpomap.cli.common import check_before_work as _check_before_work
+from gpomap.cli.common import check_fit_memory as _check_fit_memory
+from gpomap.cli.common import check_grid_memory as _check_grid_memory
+from gpomap.cli.common import limit_threads as _limit_threads
+from gpomap.cli.common import load_scans as _load_scans
+from gpomap.cli.common import outputs as _outputs
+from gpomap.cli.common import peak_memory as _peak_memory
+from gpomap.cli.common import print_map_summary as _print_map_summary
+from gpomap.cli.common import ray_counts as _ray_counts
+from gpomap.cli.common import report_fit as _report_fit
+from gpomap.cli.common import status as _status
+from gpomap.cli.common import warn as _warn
+from gpomap.cli.options import Default as _Default
+from gpomap.cli.options import add_model_options as _add_model_options
+from gpomap.cli.options import add_output_options as _add_output_options
+from gpomap.cli.options import add_reader_options as _add_reader_options
+from gpomap.cli.options import add_selection_options as _add_selection_options
+from gpomap.cli.options import add_tiling_options as _add_tiling_options
+from gpomap.cli.options import flag as _flag
+from gpomap.cli.options import given as _given
+from gpomap.cli.options import map_config as _map_config
+from gpomap.cli.options import model_option_dests as _model_option_dests
+from gpomap.cli.options import module_default as _module_default
+from gpomap.cli.options import non_negative as _non_negative  # noqa: F401 (gpomap.apps, until it moves)
+from gpomap.cli.options import number as _number  # noqa: F401 (tests, until they move)
+from gpomap.cli.options import positive as _positive
+from gpomap.cli.options import reader_options as _reader_options
+from gpomap.cli.options import resolution_from_evidence as _resolution_from_evidence
+from gpomap.cli.options import resolve_library_defaults as _resolve_library_defaults
+from gpomap.cli.options import signature_default as _signature_default
+from gpomap.cli.options import tiling_config as _tiling_config
+from gpomap.config import DEFAULT_MAX_CELLS, MapConfig
 from gpomap.errors import GpomapError
 
 if TYPE_CHECKING:
     from gpomap.plot import ScoreCurve
 
-EXIT_OK = 0
-EXIT_ERROR = 1
-EXIT_USAGE = 2
+# Until every command has its module, gpomap.apps reaches these by their old names.
+_Run = Run
+_GRID_ADVICE = GRID_ADVICE
+
 
 #: Cell side of the map ``gpomap demo`` writes, metres (the paper's synthetic room is 20 x 16 m: a 40 x 32 grid).
 DEMO_RESOLUTION = 0.5
-
-
-# --------------------------------------------------------------------------- parsing helpers
-def _extent(text: str) -> tuple[float, float, float, float]:
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"extent must be XMIN,XMAX,YMIN,YMAX in metres, got {text!r}") from None
-    if not all(math.isfinite(v) for v in values):
-        raise argparse.ArgumentTypeError(f"extent must be four finite numbers XMIN,XMAX,YMIN,YMAX, got {text!r}")
-    if len(values) != 4 or not (values[0] < values[1] and values[2] < values[3]):
-        raise argparse.ArgumentTypeError(f"extent must be XMIN,XMAX,YMIN,YMAX with XMIN<XMAX and YMIN<YMAX, got {text!r}")
-    return values[0], values[1], values[2], values[3]
-
-
-def _pair(text: str) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected two numbers FREE,OCCUPIED, got {text!r}") from None
-    # Written out so that nan (for which every comparison is false) is refused too.
-    if not (math.isfinite(lo) and math.isfinite(hi) and 0 <= lo <= hi <= 1):
-        raise argparse.ArgumentTypeError(f"thresholds must satisfy 0 <= FREE <= OCCUPIED <= 1, got {text!r}")
-    return lo, hi
-
-
-def _scan_range(text: str) -> tuple[int | None, int | None]:
-    parts = text.split(":")
-    try:
-        if len(parts) != 2:
-            raise ValueError
-        return tuple(int(p) if p else None for p in parts)  # type: ignore[return-value]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"range must be FIRST:LAST (scan indices, LAST excluded), got {text!r}") from None
-
-
-def _number(kind: type, low: float | None = None, strict: bool = True) -> Any:
-    """An argparse type: a finite `kind` (int or float), above `low` (or at least `low` if not `strict`).
-
-    nan and inf are refused: ``float("nan") <= 0`` is false, so a plain sign test lets nan through.
-    """
-    if low is None:
-        expected = "a finite number"
-    elif low == 0:
-        expected = "a positive number" if strict else "a number >= 0"
-    else:
-        expected = f"a number {'>' if strict else '>='} {low:g}"
-    if kind is int:
-        expected = expected.replace("number", "integer")
-
-    def parse(text: str) -> Any:
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
-        if not math.isfinite(v) or (low is not None and (v <= low if strict else v < low)):
-            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
-        return v
-
-    return parse
-
-
-def _positive(kind: type) -> Any:
-    """An argparse type: a finite number > 0."""
-    return _number(kind, 0.0)
-
-
-def _non_negative(kind: type) -> Any:
-    """An argparse type: a finite number >= 0."""
-    return _number(kind, 0.0, strict=False)
-
-
-class _Default:
-    """An option's default, stated in one place: a config field (:mod:`gpomap.config`) or a library module.
-
-    argparse keeps a default that is not a string as it is, so an option still holding a
-    ``_Default`` after parsing was not given: :func:`main` replaces it by its value and names it
-    in ``args.library_defaults`` (a 3-D map replaces some of them, gpomap.apps.map3d). A default
-    found in a module that imports SciPy is looked up only when shown or used (`lookup`), so that
-    ``gpomap --help`` stays fast.
-
-    Parameters
-    ----------
-    value : object, optional
-        The default itself.
-    lookup : callable, optional
-        Returns the default (instead of `value`).
-    show : callable, optional
-        Formats the value for ``--help`` (default: ``str``).
-    """
-
-    def __init__(self, value: Any = None, lookup: Callable[[], Any] | None = None, show: Callable[[Any], str] = str) -> None:
-        self._value, self._lookup, self._show = value, lookup, show
-
-    @property
-    def value(self) -> Any:
-        return self._lookup() if self._lookup is not None else self._value
-
-    def __str__(self) -> str:
-        return self._show(self.value)
-
-
-def _signature_default(module: str, name: str, parameter: str) -> _Default:
-    """The default of `parameter` of the function or class `name` in `module`, looked up when needed."""
-
-    def lookup() -> Any:
-        import importlib
-
-        return inspect.signature(getattr(importlib.import_module(module), name)).parameters[parameter].default
-
-    return _Default(lookup=lookup)
-
-
-def _module_default(module: str, name: str, convert: Callable[[Any], Any] | None = None) -> _Default:
-    """The constant `name` of `module` (through `convert`, if given), looked up when needed."""
-
-    def lookup() -> Any:
-        import importlib
-
-        value = getattr(importlib.import_module(module), name)
-        return value if convert is None else convert(value)
-
-    return _Default(lookup=lookup)
-
-
-def _status(args: argparse.Namespace, message: str) -> None:
-    if not getattr(args, "quiet", False):
-        print(message, file=sys.stderr, flush=True)
-
-
-# --------------------------------------------------------------------------- shared options
-def _add_reader_options(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("reading the input")
-    g.add_argument(
-        "--angles",
-        choices=["gmapping", "linspace"],
-        default=_signature_default("gpomap.io.carmen", "read_carmen", "angles"),
-        help="CARMEN FLASER beam-angle convention (default: %(default)s)",
-    )
-    g.add_argument(
-        "--max-range", type=_positive(float), help="sensor max range in metres (readings at or above it are no-return)"
-    )
-    g.add_argument("--topic", help="ROS bag: sensor_msgs/LaserScan topic (default: the only one)")
-    g.add_argument("--fixed-frame", help="ROS bag: fixed frame of the poses, from /tf (default: odom)")
-    g.add_argument("--odom-topic", help="ROS bag: take poses from this nav_msgs/Odometry topic instead of /tf")
-    g.add_argument(
-        "--time-offset",
-        type=_number(float),
-        default=_signature_default("gpomap.io.rosbag", "read_rosbag", "time_offset"),
-        help="ROS bag: seconds added to scan stamps before the pose lookup (default: %(default)s)",
-    )
-
-
-def _reader_options(args: argparse.Namespace, path: str) -> dict[str, Any]:
-    from gpomap.io import detect_format
-
-    fmt = detect_format(path)
-    if fmt == "carmen":
-        opts: dict[str, Any] = {"angles": args.angles}
-    else:
-        opts = {
-            "topic": args.topic,
-            "fixed_frame": args.fixed_frame,
-            "odom_topic": args.odom_topic,
-            "time_offset": args.time_offset,
-        }
-    if args.max_range is not None:
-        opts["max_range"] = args.max_range
-    return opts
-
-
-def _add_selection_options(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("selecting data")
-    g.add_argument(
-        "--range",
-        dest="scan_range",
-        type=_scan_range,
-        metavar="FIRST:LAST",
-        help="use only this window of consecutive scans (LAST excluded)",
-    )
-    g.add_argument("--scans", type=_positive(int), metavar="N", help="thin to N evenly spaced scans")
-    g.add_argument("--beams", type=_positive(int), metavar="M", help="keep M evenly spaced beams per scan")
-
-
-def _add_model_options(p: argparse.ArgumentParser) -> None:
-    """The options of :class:`~gpomap.config.MapConfig` a user sets, each defaulting to its field (:func:`_map_config`)."""
-    d = MapConfig()
-    g = p.add_argument_group("the model")
-    g.add_argument("--kernel", choices=["matern32", "se"], default=_Default(d.kernel), help="point kernel (default: %(default)s)")
-    g.add_argument(
-        "--area",
-        choices=["exact", "quadrature", "summed"],
-        default=d.area,
-        help="area-kernel computation (default: exact for se, quadrature for matern32)",
-    )
-    g.add_argument(
-        "--normalisation",
-        choices=["mean", "sum"],
-        default=_Default(d.normalisation),
-        help="area-kernel normalisation (default: %(default)s)",
-    )
-    g.add_argument(
-        "--objective",
-        choices=["loo", "lml"],
-        default=_Default(d.objective),
-        help="hyperparameter objective (default: %(default)s)",
-    )
-    g.add_argument(
-        "--class-weight",
-        choices=["balanced", "none"],
-        default=_Default(d.class_weight, show=lambda v: str(v).lower()),
-        help="weigh free and occupied cells equally in the leave-one-out fit, or each cell once (default: %(default)s)",
-    )
-    g.add_argument(
-        "--free-step",
-        type=_positive(float),
-        default=_Default(d.free_step),
-        help="free-point spacing along beams, m (default: %(default)s)",
-    )
-    g.add_argument(
-        "--free-clearance",
-        type=_non_negative(float),
-        default=_Default(d.free_clearance),
-        metavar="M",
-        help="drop free points closer than M metres to a hit (beams grazing walls; default: %(default)s; 0 keeps all)",
-    )
-    g.add_argument(
-        "--no-return-cap",
-        type=_non_negative(float),
-        default=_Default(d.no_return_cap),
-        metavar="M",
-        help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)",
-    )
-    g.add_argument(
-        "--min-cell", type=_positive(float), default=_Default(d.min_cell), help="smallest cell side, m (default: %(default)s)"
-    )
-    g.add_argument(
-        "--max-cell", type=_positive(float), default=_Default(d.max_cell), help="largest pure cell side, m (default: %(default)s)"
-    )
-    g.add_argument(
-        "--length-scale",
-        type=_positive(float),
-        help=f"fix the length scale (m) instead of learning it (default: learnt, from {d.length_scale:g})",
-    )
-    g.add_argument("--seed", type=int, default=_Default(d.seed), help="seed of restarts and samples (default: %(default)s)")
-    g.add_argument(
-        "--no-ray-evidence",
-        dest="ray_evidence",
-        action="store_false",
-        default=_Default(d.ray_evidence),
-        help="the GP alone, without each fine cell's hit and miss counts on top (see gpomap.fusion)",
-    )
-    g.add_argument(
-        "--evidence-resolution",
-        type=_positive(float),
-        default=_Default(d.evidence_resolution),
-        metavar="M",
-        help="fine cells whose ray counts update exact-point predictions, m (default: %(default)s; a written map counts on its own cells)",
-    )
-    g.add_argument(
-        "--fit-surprise-rate",
-        action="store_true",
-        default=_Default(d.fit_surprise_rate),
-        help="fit the share of surprises (visitors where scans saw free space) on the log's own scans instead "
-        "of the prior 0.01, its floor: for logs with crowds; refits the GP once more (planar scans)",
-    )
-    g.add_argument(
-        "--no-revisit",
-        dest="fit_revisit",
-        action="store_false",
-        default=_Default(d.fit_revisit),
-        help="keep the probabilities as the log's own scans, held out one at a time, calibrate them, without "
-        "the recalibration for a later visit fitted on a held-out stretch (saves fitting the map a second time "
-        "on 70 %% of the scans; see gpomap.revisit)",
-    )
-
-
-def _map_config(args: argparse.Namespace) -> MapConfig:
-    """The :class:`~gpomap.config.MapConfig` of the parsed options: each field from the option of its name, if any.
-
-    Two options are not their field: ``--class-weight none`` is None, and ``--length-scale``
-    fixes the length scale (``optimise=False``) rather than setting where the search starts.
-    Fields without an option (and options left out, as ``--length-scale`` by default) keep
-    the config's default.
-    """
-    given = {f.name: getattr(args, f.name) for f in dataclasses.fields(MapConfig) if hasattr(args, f.name)}
-    if "class_weight" in given:
-        given["class_weight"] = None if given["class_weight"] == "none" else given["class_weight"]
-    if given.get("length_scale") is not None:
-        given["optimise"] = False
-    else:
-        given.pop("length_scale", None)
-    # Also checked before any work (_check_before_work); here for callers that set the values (map3d.default_model).
-    if "min_cell" in given and "max_cell" in given and given["min_cell"] > given["max_cell"]:
-        raise GpomapError(f"--min-cell ({given['min_cell']}) must not exceed --max-cell ({given['max_cell']})")
-    return MapConfig(**given)
-
-
-def _resolution_from_evidence(args: argparse.Namespace) -> None:
-    """A 2-D written map's cell, when not given: the ray counts' (``--evidence-resolution``, given or not)."""
-    if "resolution" in getattr(args, "library_defaults", ()):
-        args.resolution = args.evidence_resolution
-
-
-def _tiling_config(args: argparse.Namespace) -> TilingConfig:
-    """The :class:`~gpomap.config.TilingConfig` of the tiling options (``--workers`` is ``n_workers``, ``--threads`` ``blas_threads``)."""
-    return TilingConfig(
-        tile_size=args.tile_size,
-        n_workers=args.workers,
-        blas_threads=args.threads,
-        worker_processes=args.processes,
-        scheduler=args.scheduler,
-        scheduler_timeout=args.scheduler_timeout,
-        memory_limit=args.memory_limit,
-    )
-
-
-def _tile_sizes(_: None) -> str:
-    """The default tile sides (by the map's dimension) for ``--help``: "5 in 2-D, 10 in 3-D"."""
-    from gpomap.tiles import DEFAULT_TILE_SIZE
-
-    return ", ".join(f"{v:g} in {d}-D" for d, v in sorted(DEFAULT_TILE_SIZE.items()))
-
-
-def _add_tiling_options(p: argparse.ArgumentParser, chunks: bool = True) -> None:
-    """The options of :class:`~gpomap.config.TilingConfig` (and ``--chunk-scans`` with `chunks`)."""
-    g = p.add_argument_group("the local GPs (one per tile, blended without seams)")
-    g.add_argument(
-        "--tile-size",
-        type=_positive(float),
-        default=_Default(TilingConfig.tile_size, show=_tile_sizes),
-        help="tile side, m (default: %(default)s)",
-    )
-    g.add_argument("--workers", type=_positive(int), help="local workers for tiles (default: the CPU count)")
-    g.add_argument(
-        "--processes",
-        action="store_true",
-        default=_Default(TilingConfig.worker_processes),
-        help="run the workers as processes, so that one that dies is retried (default: threads of this process)",
-    )
-    g.add_argument(
-        "--threads",
-        type=_positive(int),
-        metavar="N",
-        help="BLAS threads of each tile worker and of the map's stages in this process (default: the cores "
-        "divided by the workers and by the BLAS libraries loaded, at least 1)",
-    )
-    g.add_argument("--scheduler", metavar="ADDRESS", help="run tiles on this Dask distributed scheduler (tcp://host:port)")
-    g.add_argument(
-        "--scheduler-timeout",
-        type=_positive(float),
-        default=_Default(TilingConfig.scheduler_timeout),
-        metavar="SECONDS",
-        help="give up when the scheduler does not answer, or has no workers, for this long (default: %(default)s)",
-    )
-    if not chunks:
-        return
-    g.add_argument(
-        "--chunk-scans",
-        type=_positive(int),
-        metavar="K",
-        help="map incrementally, K scans at a time, rewriting the map after each chunk",
-    )
-
-
-def _add_output_options(p: argparse.ArgumentParser, default_resolution: Any) -> None:
-    g = p.add_argument_group("the output")
-    g.add_argument("-o", "--output", required=True, metavar="OUTDIR", help="directory for map.yaml, map.pgm, map.npz, map.png")
-    g.add_argument(
-        "--resolution",
-        type=_positive(float),
-        default=default_resolution,
-        help="grid cell side of the written map, m" + (" (default: %(default)s)" if default_resolution else ""),
-    )
-    g.add_argument(
-        "--extent", type=_extent, metavar="XMIN,XMAX,YMIN,YMAX", help="region of the written map (default: the data's)"
-    )
-    g.add_argument(
-        "--thresholds",
-        type=_pair,
-        default=_Default(MapConfig.thresholds, show=lambda _: f"{CALIBRATED_THRESHOLDS[0]:g},{CALIBRATED_THRESHOLDS[1]:g}"),
-        metavar="FREE,OCCUPIED",
-        help="ternary-map thresholds on the map's calibrated probabilities (default: %(default)s: occupied where "
-        "more likely than not, free below map_server's free threshold)",
-    )
-    g.add_argument(
-        "--pgm-mode",
-        choices=["trinary", "scale"],
-        default="trinary",
-        help="map_server image: ternary map or probability grey levels (default: %(default)s)",
-    )
-    g.add_argument(
-        "--memory-limit",
-        type=_positive(float),
-        metavar="GB",
-        help="refuse, before fitting, a run estimated to need more memory than this (default: half of this machine's)",
-    )
-
-
-# --------------------------------------------------------------------------- checks before any work
-def _check_before_work(args: argparse.Namespace) -> None:
-    """The cheap checks, run before anything is read or fitted: the output directory, option pairs."""
-    from gpomap.io.atomic import check_output_dir, recover_output_dir
-
-    if getattr(args, "min_cell", None) is not None and args.min_cell > args.max_cell:
-        raise GpomapError(f"--min-cell ({args.min_cell}) must not exceed --max-cell ({args.max_cell})")
-    if getattr(args, "output", None) is not None:
-        check_output_dir(args.output, "-o")
-        # A run killed earlier (SIGKILL) may have left its staging directory: finish or remove it.
-        for note in recover_output_dir(args.output):
-            _status(args, f"  {note}")
-
-
-_GRID_ADVICE = "use a coarser --resolution, a smaller --extent, or a larger --memory-limit GB if the machine has the memory"
-
-
-def _check_grid_memory(args: argparse.Namespace, shape: tuple[int, int], extent: Sequence[float], n_cells: int) -> None:
-    from gpomap.resources import check_memory, grid_memory, memory_limit
-
-    limit, source = memory_limit(args.memory_limit)
-    ny, nx = shape
-    xmin, xmax, ymin, ymax = extent
-    origin = "--extent" if args.extent is not None else "the data's extent"
-    what = (
-        f"a {nx} x {ny} grid ({nx * ny:.3g} cells) at --resolution {args.resolution:g} m over x {xmin:.6g}..{xmax:.6g}, "
-        f"y {ymin:.6g}..{ymax:.6g} m ({origin})"
-    )
-    check_memory(grid_memory(shape, 1, n_cells), limit, what, _GRID_ADVICE, source)
-
-
-def _check_fit_memory(args: argparse.Namespace, n_cells: int, n_at_once: int, where: str) -> None:
-    from gpomap.resources import check_memory, fit_memory, memory_limit
-
-    limit, source = memory_limit(args.memory_limit)
-    what = f"fitting {n_at_once} GP(s) of {n_cells} cells at once ({where})"
-    advice = "use a larger --min-cell, a smaller --tile-size, fewer --workers, or a larger --memory-limit GB"
-    check_memory(fit_memory(n_cells, n_at_once), limit, what, advice, source)
 
 
 def _plan_map(args: argparse.Namespace, data: Any) -> None:
@@ -494,68 +88,7 @@ def _plan_map(args: argparse.Namespace, data: Any) -> None:
     _check_grid_memory(args, grid_shape(extent, args.resolution), extent, 0)
 
 
-# --------------------------------------------------------------------------- writing outputs
-class _Run:
-    """What this process has written (for a true message on interrupt)."""
-
-    outdir: str | None = None
-    sets: ClassVar[list[Any]] = []
-
-
-@contextmanager
-def _outputs(args: argparse.Namespace) -> Iterator[Any]:
-    """One set of outputs in ``args.output``, put in place together at the end of the block."""
-    from gpomap.io.atomic import output_set
-
-    _Run.outdir = args.output
-    with output_set(args.output) as outputs:
-        _Run.sets.append(outputs)
-        yield outputs
-
-
-def _warn(message: str) -> None:
-    """A one-line warning on stderr."""
-    print("warning: " + " ".join(str(message).split()), file=sys.stderr, flush=True)
-
-
-def _report_fit(model: Any, occupancy_map: Any) -> None:
-    """Print what the fit's numbers say about the map's trustworthiness (see gpomap.diagnostics)."""
-    from gpomap.diagnostics import fit_warnings
-
-    for message in fit_warnings(model, occupancy_map):
-        _warn(message)
-
-
 # --------------------------------------------------------------------------- subcommands
-def _load_scans(args: argparse.Namespace) -> list:
-    from gpomap.io import read_scans
-    from gpomap.scans import select_scans
-
-    scans = read_scans(args.input, **_reader_options(args, args.input))
-    above = scans[0].meta.get("frames_above") if scans and getattr(args, "fixed_frame", None) is None else None
-    if above:
-        # A bag recorded while a SLAM ran: the corrected frame is there for the asking.
-        _status(
-            args,
-            f"  poses in {scans[0].meta['fixed_frame']!r}, which tf places in {above[-1]!r}: --fixed-frame {above[-1]} maps in that frame",
-        )
-    if args.scan_range is not None:
-        first, last = args.scan_range
-        n_all = len(scans)
-        scans = scans[slice(first, last)]
-        if not scans:
-            raise GpomapError(f"--range {first}:{last} selects no scans from {args.input}, which has {n_all} scans")
-    return select_scans(scans, args.scans, args.beams)
-
-
-def _limit_threads(args: argparse.Namespace) -> None:
-    """Cap this process's BLAS threads at ``--threads`` (the workers get theirs from TiledGPOM)."""
-    if getattr(args, "threads", None) is not None:
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(limits=args.threads)  # for the rest of the run, not as a context
-
-
 def cmd_map(args: argparse.Namespace) -> int:
     from gpomap.apps import map3d
 
@@ -643,58 +176,6 @@ def _write_map(args: argparse.Namespace, model: Any, title: str, extra: Callable
             extra(outputs)
     _report_fit(model, occupancy_map)
     return [outputs.final(f) for f in staged]
-
-
-def _peak_memory(peak: dict[str, float]) -> str:
-    """``"self 663 MB, children 0 MB"`` from :func:`gpomap.resources.peak_rss_mb`; "unknown" where the system keeps no record."""
-    known = {k: v for k, v in peak.items() if math.isfinite(v)}
-    return ", ".join(f"{k} {v:.0f} MB" for k, v in known.items()) if known else "unknown on this system"
-
-
-def _ray_counts(evidence: dict[str, float]) -> str:
-    """What a map's ray-count calibration weighs (:meth:`gpomap.fusion.EvidenceLayer.summary`), in a line."""
-    return (
-        f"against a miss in open space, a hit weighs {evidence['hit_weight']:.3g}, a miss beside a hit "
-        f"{evidence['surface_weight']:.3g}, a near miss {evidence['near_weight']:.3g} (and {evidence['near_hit_weight']:.3g} "
-        f"hits), the GP {evidence['prior_weight']:.3g}; surprise rate {evidence['surprise_rate']:.3g}"
-    )
-
-
-def _print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: str | None = None) -> None:
-    per = summary["cells_per_tile"]
-    lines = [
-        f"scans        {summary['n_scans']}",
-        f"points       {summary['n_points'] - summary['n_occupied_points']} free, {summary['n_occupied_points']} occupied",
-        f"tiles        {summary['n_tiles']} of {summary['tile_size']:g} m (overlap {summary['overlap']:.2f} m), "
-        f"{summary['n_cells']} cells, {per['min']}/{per['median']:.0f}/{per['max']} per tile (min/median/max), {summary['executor']}",
-        f"model        {summary['kernel']} kernel, {summary['area']} area kernel",
-        "hyperparams  "
-        + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
-        + f" ({source or summary['hyperparameter_source'].get('how', '')})",
-        "ternary      free below {:.3f}, occupied above {:.3f}".format(*summary["thresholds"]),
-    ]
-    if summary.get("evidence"):
-        lines.append("ray counts   " + _ray_counts(summary["evidence"]))
-    later = summary.get("revisit") or {}
-    if "slope" in later:
-        lines.append(
-            f"later visit  log-odds times {later['slope']:.3g}, {later['shift']:+.3g} away from 1/2 (fitted on a held-out "
-            f"stretch, {later['n_points']} points)"
-        )
-    lines += [
-        "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in summary["timings"].items()),
-        "peak memory  " + _peak_memory(summary["peak_memory"]),
-    ]
-    lines += [f"wrote        {f}" for f in files]
-    print("\n".join(lines))
-
-
-def _bound_source(model: Any) -> str | None:
-    """ "at bound: ..." when a learnt hyperparameter sits at a bound, else None (the model's own words)."""
-    from gpomap.diagnostics import hyperparameter_source
-
-    source = hyperparameter_source(model)
-    return source if source.startswith("at bound") else None
 
 
 def _map_in_chunks(args: argparse.Namespace, scans: list, title: str) -> int:
@@ -1004,28 +485,6 @@ def _compare(
     return EXIT_OK
 
 
-def _flag(dest: str) -> str:
-    """The command-line spelling of the option stored as `dest`."""
-    return {
-        "ray_evidence": "--no-ray-evidence",
-        "fit_revisit": "--no-revisit",
-        "scan_range": "--range",
-        "test_points": "--test-points",
-    }.get(dest, "--" + dest.replace("_", "-"))
-
-
-def _given(args: argparse.Namespace, dests: Sequence[str]) -> list[str]:
-    """Which of `dests` the command line set (a default is a :class:`_Default` or None)."""
-    return [d for d in dests if d not in args.library_defaults and getattr(args, d) is not None]
-
-
-def _model_option_dests() -> tuple[str, ...]:
-    """The dests of :func:`_add_model_options`."""
-    p = argparse.ArgumentParser(add_help=False)
-    _add_model_options(p)
-    return tuple(a.dest for a in p._actions)
-
-
 def _method_options(args: argparse.Namespace) -> dict[str, Any]:
     """Constructor arguments of ``--method`` from the model options (``gpomap evaluate``).
 
@@ -1283,14 +742,6 @@ EPILOG_EVALUATE = """examples:
 """
 
 
-class _Parser(argparse.ArgumentParser):
-    """An argument parser whose usage errors are two lines: what was wrong, and where the options are
-    (the whole usage of ``gpomap map`` is twenty lines above the one that matters)."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n(run '{self.prog} --help' for the options)\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``gpomap`` command."""
     parser = _Parser(
@@ -1534,38 +985,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-class _Terminated(KeyboardInterrupt):
-    """SIGTERM, turned into the same clean path as Ctrl-C (staging removed, previous outputs kept)."""
-
-
-def _on_sigterm(signum: int, frame: Any) -> None:
-    raise _Terminated()
-
-
-def _show_warning(
-    message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None, line: str | None = None
-) -> None:
-    """Python warnings (a library's, a reader's) as one ``warning: ...`` line, without a source path."""
-    _warn(str(message))
-
-
-def _resolve_library_defaults(args: argparse.Namespace) -> None:
-    """Replace each :class:`_Default` by its value; ``args.library_defaults`` names the options left at one."""
-    defaulted = {name for name, value in vars(args).items() if isinstance(value, _Default)}
-    for name in defaulted:
-        setattr(args, name, getattr(args, name).value)
-    args.library_defaults = frozenset(defaulted)
-
-
-def _where_outputs_stand() -> str:
-    """What the output directory holds now, for a message that must be true."""
-    if _Run.outdir is None:
-        return "nothing was written"
-    if any(s.committed for s in _Run.sets):
-        return f"{_Run.outdir} holds the last complete set of outputs this run wrote"
-    return f"the previous outputs in {_Run.outdir} are unchanged"
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``gpomap`` command; returns the exit code."""
     from gpomap.progress import set_progress_mode
@@ -1577,40 +996,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     _resolve_library_defaults(args)
     set_progress_mode("quiet" if getattr(args, "quiet", False) else "auto")
-    _Run.outdir, _Run.sets = None, []
-    # Signal handlers can only be installed from the main thread (main() may be called from others).
-    in_main_thread = threading.current_thread() is threading.main_thread()
-    previous_sigterm = signal.signal(signal.SIGTERM, _on_sigterm) if in_main_thread else None
-    try:
-        with warnings.catch_warnings():
-            warnings.showwarning = _show_warning
-            return args.func(args)
-    except (GpomapError, OSError, ValueError) as exc:
-        if args.debug:
-            raise
-        message = str(exc)
-        if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in message:
-            message = f"{exc.filename}: {message}"
-        print(f"gpomap: error: {message}", file=sys.stderr)
-        return EXIT_ERROR
-    except MemoryError:
-        if args.debug:
-            raise
-        print(
-            f"gpomap: error: out of memory ({_where_outputs_stand()}); use a coarser --resolution or a smaller --extent, "
-            "or a lower --memory-limit GB so that such a run is refused before it starts",
-            file=sys.stderr,
-        )
-        return EXIT_ERROR
-    except KeyboardInterrupt as exc:
-        print(
-            f"gpomap: interrupted{' (SIGTERM)' if isinstance(exc, _Terminated) else ''}; {_where_outputs_stand()}",
-            file=sys.stderr,
-        )
-        return 128 + (signal.SIGTERM if isinstance(exc, _Terminated) else signal.SIGINT)
-    finally:
-        if previous_sigterm is not None:
-            signal.signal(signal.SIGTERM, previous_sigterm)
+    return run_command(args.func, args)
 
 
 def console() -> NoReturn:
@@ -1621,11 +1007,3 @@ def console() -> NoReturn:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     sys.exit(code)
-
-
-if __name__ == "__main__":
-    # `python -m gpomap.cli`: run the imported module's entry point, not this __main__ copy, so that
-    # modules which build their options with gpomap.cli's helpers (gpomap.apps.stream) share its classes.
-    from gpomap.cli import console as _console
-
-    _console()

@@ -1,0 +1,5 @@
+"""``python -m gpomap.cli``: the ``gpomap`` command."""
+
+from gpomap.cli import console
+
+console()
