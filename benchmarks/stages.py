@@ -33,6 +33,11 @@ import numpy as np
 #: Stage name: (what switching it off means, module constants to set, estimator options).
 STAGES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
     "base": ("every stage on (the defaults)", {}, {}),
+    "shares": (
+        "a scan's hit wins its whole update of a cell (OctoMap's rule)",
+        {"gpomap.evidence.SHARED_UPDATES": False},
+        {},
+    ),
     "revisit": ("no later-visit recalibration", {}, {"fit_revisit": False}),
     "variance_scale": (
         "no variance scale for unseen space (the GP's own variance)",

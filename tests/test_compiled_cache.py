@@ -15,19 +15,20 @@ from gpomap import compiled
 
 pytestmark = pytest.mark.skipif(not compiled.NUMBA_AVAILABLE, reason="numba is not installed")
 
-# One scan of two beams on a grid of four cells: beam 0 crosses cells 0 and 1 near its end and ends
-# in cell 2; beam 1 returned nothing and crosses cell 1 (not near) and cell 3. By hand: one hit in
-# cell 2; one miss in cells 0, 1 and 3, near only in cell 0 (cell 1 was also crossed far from an end).
+# One scan of two beams on a grid of four cells: beam 0 crosses cell 0, then cell 1 near its end, and
+# ends in cell 2; beam 1 returned nothing and crosses cells 1, 2 and 3. By hand, the scan's one update
+# per cell shared among its beams there: cell 2 half a hit (beam 0) and half a miss (beam 1); cells
+# 0, 1 and 3 a whole miss, half of cell 1's near (beam 0's, not beam 1's).
 CHILD = textwrap.dedent(
     """
     import json
     import numpy as np
     from gpomap import _compiled_counts
 
-    counts = tuple(np.zeros(4, dtype=np.int32) for _ in range(3))
+    counts = tuple(np.zeros(4) for _ in range(3))
     _compiled_counts.count_entries(
-        np.array([0, 0, 1, 1]), np.array([0, 1, 1, 3]), np.array([True, True, False, False]),
-        np.array([0, 0]), np.array([2, -1]), counts, np.full(4, -1, dtype=np.int64),
+        np.array([0, 0, 0, 1, 1, 1]), np.array([0, 1, 2, 1, 2, 3]), np.array([False, True, True, False, False, False]),
+        np.array([0, 0]), np.array([2, -1]), counts, np.full(4, -1, dtype=np.int32),
     )
     stats = _compiled_counts._count_entries.stats
     print(json.dumps({
@@ -38,7 +39,7 @@ CHILD = textwrap.dedent(
     }))
     """
 )
-EXPECTED = [[0, 0, 1, 0], [1, 1, 0, 1], [1, 0, 0, 0]]
+EXPECTED = [[0, 0, 0.5, 0], [1, 1, 0.5, 1], [0, 0.5, 0, 0]]
 
 
 def _run(env: dict[str, str]) -> dict:

@@ -71,33 +71,43 @@ def test_counts_along_one_beam_by_hand(dim: int, counting: str) -> None:
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_a_scan_that_sees_through_a_cell_on_any_beam_counts_no_near_miss(dim: int, counting: str) -> None:
+def test_a_scans_near_share_is_its_beams_that_end_near(dim: int, counting: str) -> None:
     # One beam ends at x = 0.57 (cell 5), another of the same scan at 0.64 (cell 6): cell 4
-    # (centre 0.45) is within 0.2 m of both ends, so a near miss, cell 3 (0.35) of neither; cell 5
-    # is the first beam's hit.
+    # (centre 0.45) is within 0.2 m of both ends, so a whole near miss; cell 3 (0.35) of neither;
+    # cell 5 is half the first beam's hit, half the second's near miss.
     grid = GRID if dim == 2 else VOXELS
-    _, _, near = RayEvidence.from_scans([_along_x(dim, [0.52, 0.59])]).counts(grid)
-    assert np.flatnonzero(_row(near, dim)).tolist() == [4] and near.sum() == 1
-    # A third beam of the same scan going on to x = 1.57 sees through cells 4 and 5: no near miss
-    # there; only cell 14 is near its own end.
+    hits, misses, near = RayEvidence.from_scans([_along_x(dim, [0.52, 0.59])]).counts(grid)
+    assert np.flatnonzero(_row(near, dim)).tolist() == [4, 5] and _row(near, dim)[[4, 5]].tolist() == [1.0, 0.5]
+    assert _row(hits, dim)[[5, 6]].tolist() == [0.5, 1.0] and _row(misses, dim)[[3, 4, 5]].tolist() == [1.0, 1.0, 0.5]
+    # A third beam of the same scan going on to x = 1.57 sees through cells 4 to 6: a third of each
+    # of cells 4 and 5's updates is a far miss; cell 14 is near its own end only.
     hits, misses, near = RayEvidence.from_scans([_along_x(dim, [0.52, 0.59, 1.52])]).counts(grid)
-    assert _row(hits, dim)[[5, 6, 15]].tolist() == [1, 1, 1] and _row(misses, dim)[[4, 5, 6]].tolist() == [1, 0, 0]
-    assert np.flatnonzero(_row(near, dim)).tolist() == [14]
+    # (Shares are whole 256ths: a third is 85 of them.)
+    np.testing.assert_array_equal(_row(hits, dim)[[4, 5, 6, 15]], [0, 85 / 256, 1 / 2, 1])
+    np.testing.assert_array_equal(_row(misses, dim)[[4, 5, 6, 14]], [1, 171 / 256, 1 / 2, 1])
+    np.testing.assert_array_equal(_row(near, dim)[[3, 4, 5, 6, 13, 14]], [0, 171 / 256, 85 / 256, 0, 0, 1])
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-def test_one_update_per_cell_per_scan_and_hit_wins(dim: int, counting: str) -> None:
+def test_one_update_per_cell_per_scan_shared_among_its_beams(dim: int, counting: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    from gpomap import evidence
+
     # Two beams of one scan: one ends in cell 5, the other passes through it to cell 12.
     s = _along_x(dim, [0.5, 1.2])
     grid = GRID if dim == 2 else VOXELS
     hits, misses, _ = RayEvidence.from_scans([s]).counts(grid)
-    assert _row(hits, dim)[5] == 1 and _row(misses, dim)[5] == 0  # the hit wins over the same scan's miss
+    assert _row(hits, dim)[5] == 0.5 and _row(misses, dim)[5] == 0.5  # one beam of two ended there
     assert _row(hits, dim)[12] == 1
     assert _row(misses, dim)[0:5].tolist() == [1] * 5  # crossed by both beams, counted once
+    np.testing.assert_array_equal((hits + misses)[(hits + misses) > 0], 1.0)  # one update a cell
     # The same scan twice: every count doubles.
     h2, m2, _ = RayEvidence.from_scans([s, s]).counts(grid)
     np.testing.assert_array_equal(h2, 2 * hits)
     np.testing.assert_array_equal(m2, 2 * misses)
+    # OctoMap's rule: the hit wins the whole update over the same scan's miss.
+    monkeypatch.setattr(evidence, "SHARED_UPDATES", False)
+    hits, misses, _ = RayEvidence.from_scans([s]).counts(grid)
+    assert _row(hits, dim)[5] == 1 and _row(misses, dim)[5] == 0 and _row(misses, dim)[0:5].tolist() == [1] * 5
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -554,21 +564,26 @@ def test_seen_cells_and_one_scans_counts_at_cells_equal_the_whole_grid_counts(
             got = ev.scan_counts_at(grid, k, cells)
             for j in range(3):
                 np.testing.assert_array_equal(got[j], want[j])
-        # The near misses by brute force: beam by beam, a cell is near while every beam of the
-        # scan crossing it returned and ended within NEAR_END of its centre, and it is no hit.
+        # The scan's update by brute force, beam by beam: each cell's share of hits is the scan's
+        # beams that returned and ended in it over all its beams there, its near share those that
+        # crossed it and ended their return within NEAR_END of its centre.
         lo, hi = np.searchsorted(ev.scan, [k, k + 1])
-        all_near: dict[int, bool] = {}
+        tally: dict[int, list[int]] = {}
         for j in range(lo, hi):
             _, *idx = evidence.traverse(grid, ev.starts[j : j + 1], ev.ends[j : j + 1])
+            end = tuple(np.floor((ev.ends[j] - np.asarray(grid.origin)) / grid.resolution).astype(int)[::-1])
             for cell in zip(*idx, strict=True):
                 centre = np.asarray(grid.origin) + (np.array(cell[::-1]) + 0.5) * grid.resolution
-                close = bool(ev.hit[j]) and float(np.linalg.norm(centre - ev.ends[j])) < NEAR_END
-                flat = int(np.ravel_multi_index(cell, grid.shape))
-                all_near[flat] = all_near.get(flat, True) and close
-        near = np.zeros(grid.shape, dtype=np.int32).reshape(-1)
-        near[[c for c, v in all_near.items() if v]] = 1
-        near[counts.hits.reshape(-1) > 0] = 0
-        np.testing.assert_array_equal(counts.near.reshape(-1), near)
+                ended = bool(ev.hit[j]) and tuple(int(c) for c in cell) == end
+                close = bool(ev.hit[j]) and not ended and float(np.linalg.norm(centre - ev.ends[j])) < NEAR_END
+                t = tally.setdefault(int(np.ravel_multi_index(cell, grid.shape)), [0, 0, 0])
+                t[0], t[1], t[2] = t[0] + 1, t[1] + ended, t[2] + close
+        brute = np.zeros((3, int(np.prod(grid.shape))))
+        for flat, (through, ended, close) in tally.items():
+            brute[:, flat] = ended / through, (through - ended) / through, close / through
+        for j in range(3):  # whole 256ths of the update: within half of one
+            np.testing.assert_allclose(counts[j].reshape(-1), brute[j], rtol=0, atol=0.5 / evidence.SHARE_UNITS)
+        np.testing.assert_array_equal((counts.hits + counts.misses).reshape(-1), brute[0] + brute[1])
     # The cells the whole counts kept (batches of whole scans, one or a few a batch) give the same.
     for budget in (1 << 22, 50):
         monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", budget)
@@ -594,7 +609,7 @@ def test_evidence_layer_calibrates_from_the_cells_its_counts_kept(monkeypatch: p
     assert layer.lattice is not None
     want, report, _ = fit_calibration(scans, RE.from_scans(scans), layer.lattice, _p_gp, n_scans=len(scans), step=0.2)
     # The layer's own calibration never traverses a scan again, and drops the kept cells after.
-    monkeypatch.setattr(RE, "_scan_cells", lambda *a: pytest.fail("a held-out scan was traversed again"))
+    monkeypatch.setattr(RE, "_scan_updates", lambda *a: pytest.fail("a held-out scan was traversed again"))
     layer = EvidenceLayer(scans, 0.1, _p_gp, calibration_scans=len(scans))
     assert (layer.calibration, layer.report) == (want, report)
     assert not layer.evidence._kept
@@ -962,30 +977,29 @@ def test_a_map_fits_its_surprise_rate_when_asked_against_its_gp_fitted_on_the_ot
     assert not np.allclose(model.evidence_.gp_apart(kept)(q), model.predict_proba_gp(q))
 
 
-def test_sixteen_bit_counts_are_the_thirty_two_bit_ones_and_widen_as_scans_add_up(monkeypatch: pytest.MonkeyPatch) -> None:
-    # The lattice's counts by count_dtype: 16-bit for a log under NARROW_COUNT_SCANS scans, widened
-    # to 32 bits when added scans reach it; every count the same as 32-bit counts from the start.
+def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_add_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The lattice's path passes by path_dtype: 16-bit for a log under NARROW_COUNT_SCANS scans,
+    # widened to 32 bits when added scans reach it; every count the same as 32-bit ones from the start.
     room = paper_room_scans(n_beams=72)
     monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 0)  # 32-bit throughout: the reference
     wide = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
     wide.add_scans(room[10:])
     monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 12)
     narrow = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
-    assert narrow._hits.dtype == np.uint16 and narrow._path.dtype == np.uint16
+    assert narrow._path.dtype == np.uint16 and narrow._hits.dtype == fusion.COUNT_DTYPE
     narrow.add_scans(room[10:])  # 31 scans: past 12
+    assert narrow._path.dtype == wide._path.dtype == np.int32
     for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
-        a, b = getattr(narrow, name), getattr(wide, name)
-        assert a.dtype == b.dtype == np.int32
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(getattr(narrow, name), getattr(wide, name))
     assert wide._hits.max() > 1 and wide._path.max() > 0
     pts = np.random.default_rng(0).uniform((0.0, 0.0), (20.0, 16.0), (4000, 2))
     grid = GridSpec.from_extent((0.0, 20.0, 0.0, 16.0), 0.1)
     monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 0)
-    # A whole log at once, its calibration fitted on 16-bit counts: the 32-bit layer's numbers.
+    # A whole log at once, its calibration fitted with 16-bit passes: the 32-bit layer's numbers.
     whole = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
     monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 2**16 - 1)
     short = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
-    assert short._hits.dtype == np.uint16 and whole._hits.dtype == np.int32
+    assert short._path.dtype == np.uint16 and whole._path.dtype == np.int32
     np.testing.assert_array_equal(short.proba(pts, _p_gp(pts)), whole.proba(pts, _p_gp(pts)))
     for x, y in zip(short.grid_counts(grid), whole.grid_counts(grid), strict=True):
         np.testing.assert_array_equal(x, y)

@@ -2,18 +2,21 @@
 
 The GP over cells is a smooth prior over the whole map; what it cannot keep is the count of beams
 that crossed a particular 5 cm cell, which is what makes a plain occupancy grid sharp where the
-robot has data. :class:`RayEvidence` keeps the beams and counts, on any grid, the scans that
-ended a beam in each cell (hits) and the scans that crossed it without ending there (misses). As
-in OctoMap, a scan updates a cell once, and a hit wins over a miss of the same scan. It also keeps
-the robot's own path: space the robot drove through was free when it did.
+robot has data. :class:`RayEvidence` keeps the beams and counts, on any grid, what each scan
+said of each cell: a scan whose beams touch a cell adds one update there, shared between a hit and
+a miss in proportion to its beams that ended in the cell and those that crossed it
+(:data:`SHARED_UPDATES`). A cell a wall runs through at a grazing angle is crossed by most of the
+beams that reach it and ended in by a few: a hit winning the whole update, as in OctoMap, made
+such cells read occupied and walls thicker than they are. It also keeps the robot's own path:
+space the robot drove through was free when it did.
 :mod:`gpomap.fusion` combines these counts with the GP's probability.
 
 Misses are told apart by where they fall on their beam. A beam that crossed a cell and ended its
 return within :data:`NEAR_END` of it says little about that cell: the surface may lie in it, the
 range noise and the beam's width put the end a cell or two either side. A beam that went on
-well beyond the cell saw through it. The counts keep, beside all misses, the ``near`` ones: those
-of scans whose every beam through the cell ended within :data:`NEAR_END` (a scan that saw
-through the cell on any beam counts a plain miss); :mod:`gpomap.fusion` weighs them apart.
+well beyond the cell saw through it. The counts keep, beside all misses, the ``near`` share:
+the part of a scan's update that came from beams crossing the cell and ending within
+:data:`NEAR_END` of it; :mod:`gpomap.fusion` weighs it apart.
 
 The rays of 3-D point clouds are counted the same way on a voxel lattice
 (:class:`~gpomap.voxels.VoxelSpec`): every array here has the data's own dimension d.
@@ -84,6 +87,15 @@ PATH_RADIUS: float = 0.1
 #: it less on 11 of 12 (``benchmarks/near_misses.py``, docs/choices.md).
 NEAR_END: float = 0.2
 
+#: Whether a scan's update of a cell is shared between hit, miss and near miss in proportion to its
+#: beams there (True), or is one whole hit if any of its beams ended in the cell, else one miss,
+#: near if every crossing was near (False, OctoMap's rule; docs/choices.md, "Shared updates").
+SHARED_UPDATES: bool = True
+
+#: A scan's update of a cell is shared in whole parts of this many (:func:`scan_shares`): sums of
+#: them stay exact in float32 up to 2**24 / SHARE_UNITS updates of a cell.
+SHARE_UNITS: int = 256
+
 
 def path_steps(scans: ScanData) -> NDArray[np.float64]:
     """The robot's path between consecutive scans, as segments (x0, y0, x1, y1), shape (k, 2 d).
@@ -143,30 +155,70 @@ def _segment_distances(points: NDArray[np.float64], a: NDArray[np.float64], b: N
 
 
 class RayCounts(NamedTuple):
-    """Counts per cell of a grid, each ndarray of int32 (or uint16: a map's lattice,
-    :func:`gpomap.fusion.count_dtype`) of shape grid.shape.
+    """Counts per cell of a grid, each ndarray of float64 (float32: a map's lattice) of shape grid.shape.
+
+    Each scan adds at most one update to a cell (:func:`scan_shares`), so the three add up to the
+    number of scans that touched it.
 
     Attributes
     ----------
     hits : ndarray
-        Scans that ended a beam in the cell.
+        The scans' shares of beams that ended in the cell.
     misses : ndarray
-        Scans that crossed the cell without ending a beam there (the near ones included).
+        The scans' shares of beams that crossed the cell without ending there (the near ones included).
     near : ndarray
-        Those misses whose every beam through the cell ended its return within :data:`NEAR_END`.
+        The part of `misses` from beams that ended their return within :data:`NEAR_END` of the cell.
     """
 
-    hits: NDArray[np.integer[Any]]
-    misses: NDArray[np.integer[Any]]
-    near: NDArray[np.integer[Any]]
+    hits: NDArray[np.floating[Any]]
+    misses: NDArray[np.floating[Any]]
+    near: NDArray[np.floating[Any]]
 
 
-def next_to_hits(hits: NDArray[np.integer]) -> NDArray[np.bool_]:
+def scan_shares(
+    through: NDArray[np.integer[Any]], ended: NDArray[np.integer[Any]], near: NDArray[np.integer[Any]]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """One scan's update of cells from its beams there (:data:`SHARED_UPDATES`), each of the inputs' shape.
+
+    A share is a whole number of :data:`SHARE_UNITS`-ths of the update, at least one where any beam
+    gave it: sums of them are exact in float32, so counts add up the same whatever the order of
+    the scans (a map updated later equals the map of all its scans at once).
+
+    Parameters
+    ----------
+    through : ndarray of int
+        The scan's beams that crossed or ended in each cell.
+    ended : ndarray of int
+        Those that returned and ended in it.
+    near : ndarray of int
+        Those that crossed it, did not end in it and ended their return within :data:`NEAR_END`.
+
+    Returns
+    -------
+    hits, misses, near : ndarray of float64
+        Shares of one update (0 where no beam touched the cell).
+    """
+    through = np.maximum(through, ended)
+    touched = through > 0
+    if not SHARED_UPDATES:
+        hit = ended > 0
+        miss = touched & ~hit
+        return hit.astype(np.float64), miss.astype(np.float64), (miss & (near == through)).astype(np.float64)
+    total = np.where(touched, through, 1)
+    hit_units = np.clip(
+        np.floor(ended / total * SHARE_UNITS + 0.5), ended > 0, np.where(through > ended, SHARE_UNITS - 1, SHARE_UNITS)
+    )
+    miss_units = np.where(touched, SHARE_UNITS - hit_units, 0)
+    near_units = np.clip(np.floor(near / total * SHARE_UNITS + 0.5), near > 0, miss_units)
+    return hit_units / SHARE_UNITS, miss_units / SHARE_UNITS, near_units / SHARE_UNITS
+
+
+def next_to_hits(hits: NDArray[np.number[Any]]) -> NDArray[np.bool_]:
     """Cells a beam ended in, or next to one (their 3 x 3, or 3 x 3 x 3, block), of the same shape.
 
     Parameters
     ----------
-    hits : ndarray of int, shape grid.shape
+    hits : ndarray, shape grid.shape
         Hits per cell (:attr:`RayCounts.hits`).
 
     Returns
@@ -203,10 +255,10 @@ class RayEvidence:
     hit: NDArray[np.bool_]
     scan: NDArray[np.intp]
     path: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)))
-    #: Cells that :meth:`counts` saw some scans count, kept for :meth:`scan_counts_at` (``keep``):
-    #: ``{(grid, scan): (ended, crossed, crossed near the end only)}``, sorted distinct flat cell indices.
-    _kept: dict[tuple[AnyGrid, int], tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = field(
-        default_factory=dict, init=False, repr=False, compare=False
+    #: Updates that :meth:`counts` saw some scans make, kept for :meth:`scan_counts_at` (``keep``):
+    #: ``{(grid, scan): (cells, hits, misses, near)}``, the cells sorted distinct flat indices.
+    _kept: dict[tuple[AnyGrid, int], tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] = (
+        field(default_factory=dict, init=False, repr=False, compare=False)
     )
 
     @classmethod
@@ -286,7 +338,7 @@ class RayEvidence:
         keep: NDArray[np.intp] | None = None,
         out: RayCounts | None = None,
     ) -> RayCounts:
-        """Hits, misses and near misses per cell of `grid`, one update per cell per scan, a hit winning.
+        """Hits, misses and near misses per cell of `grid`, one update per cell per scan (:func:`scan_shares`).
 
         Parameters
         ----------
@@ -295,29 +347,26 @@ class RayEvidence:
         scans : ndarray of int, optional
             Count only these scans (default: all).
         keep : ndarray of int, optional
-            Scans (among those counted) whose cells are remembered, so that
+            Scans (among those counted) whose updates are remembered, so that
             :meth:`scan_counts_at` on this grid reads them instead of traversing the scan's beams
             again (a leave-one-scan-out calibration asks it of the scans it holds out, right after
             the whole counts); :meth:`forget` drops them.
         out : RayCounts, optional
-            Arrays of int32 or uint16 (wide enough for the scans: each cell is counted at most
-            once per scan) of `grid`'s shape, C-contiguous, the counts are added into, and
-            returned: a lattice over a building is counted in place instead of beside a copy.
+            Arrays of float32 or float64 of `grid`'s shape, C-contiguous, the counts are added
+            into, and returned: a lattice over a building is counted in place instead of beside a copy.
 
         Returns
         -------
         RayCounts
         """
         if out is None:
-            counts = RayCounts(*(np.zeros(grid_size(grid), dtype=np.int32) for _ in range(3)))
+            counts = RayCounts(*(np.zeros(grid_size(grid)) for _ in range(3)))
         else:
-            if any(a.dtype not in (np.int32, np.uint16) or a.shape != grid.shape or not a.flags.c_contiguous for a in out):
-                raise ValueError(f"counts are added into C-contiguous int32 or uint16 arrays of the grid's shape {grid.shape}")
+            if any(a.dtype not in (np.float32, np.float64) or a.shape != grid.shape or not a.flags.c_contiguous for a in out):
+                raise ValueError(f"counts are added into C-contiguous float32 or float64 arrays of the grid's shape {grid.shape}")
             counts = RayCounts(*(a.reshape(-1) for a in out))
-        # The compiled path's scratch: the last scan that touched each cell (kept across batches),
-        # as 3 scan + state: int32 while that fits (half a building's lattice of int64).
-        wide = 3 * (int(self.scan[-1]) + 1 if self.scan.size else 0) + 3 >= 2**31
-        mark = np.full(grid_size(grid), -1, dtype=np.int64 if wide else np.int32) if _compiled_counts.ENABLED else None
+        # The compiled path's scratch: each cell's row in the scan's table, -1 between scans.
+        slot = np.full(grid_size(grid), -1, dtype=np.int32) if _compiled_counts.ENABLED else None
         select = np.ones(self.scan.size, bool) if scans is None else np.isin(self.scan, scans)
         idx = np.flatnonzero(select)
         if idx.size == 0:
@@ -336,12 +385,12 @@ class RayEvidence:
                 # Round down to a scan boundary, keeping at least one whole scan.
                 boundary = int(np.searchsorted(scan_of, scan_of[hi], side="left"))
                 hi = boundary if boundary > lo else int(np.searchsorted(scan_of, scan_of[lo], side="right"))
-            self._accumulate(grid, idx[lo:hi], counts, keep, mark)
+            self._accumulate(grid, idx[lo:hi], counts, keep, slot)
             lo = hi
         return RayCounts(*(a.reshape(grid.shape) for a in counts))
 
     def forget(self) -> None:
-        """Drop the cells :meth:`counts` kept for :meth:`scan_counts_at` (their memory)."""
+        """Drop the updates :meth:`counts` kept for :meth:`scan_counts_at` (their memory)."""
         self._kept.clear()
 
     def seen(self, grid: AnyGrid) -> NDArray[np.bool_]:
@@ -359,14 +408,14 @@ class RayEvidence:
 
     def scan_counts_at(
         self, grid: AnyGrid, scan: int, cells: NDArray[np.intp]
-    ) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """What one scan alone counts at some cells: ``counts(grid, scans=[scan])`` read at `cells`.
 
         Without arrays of the grid's size: the cells asked for are looked up (a binary search
-        each) among the sorted cells the scan crossed and ended in, which :meth:`counts` kept
-        when asked to (``keep``), or else come from traversing the scan's beams in batches. A
-        leave-one-scan-out calibration asks this of each held-out scan at its own points, on a
-        lattice of millions of cells.
+        each) among the sorted cells the scan touched, which :meth:`counts` kept when asked to
+        (``keep``), or else come from traversing the scan's beams in batches. A leave-one-scan-out
+        calibration asks this of each held-out scan at its own points, on a lattice of millions
+        of cells.
 
         Parameters
         ----------
@@ -378,47 +427,59 @@ class RayEvidence:
 
         Returns
         -------
-        hits, misses, near : ndarray of int32, shape cells.shape
-            1 where the scan ended a beam in the cell (a hit), or crossed it without ending a beam
-            there (a miss; a near miss too if its every beam through the cell ended within
-            :data:`NEAR_END`); else 0.
+        hits, misses, near : ndarray of float64, shape cells.shape
+            The scan's update of each cell (:func:`scan_shares`); 0 where it touched none.
         """
         cells = np.asarray(cells, dtype=np.intp)
         kept = self._kept.get((grid, int(scan)))
-        ended, crossed, near = self._scan_cells(grid, int(scan)) if kept is None else kept
-        hit = _in_sorted(cells, ended)
-        miss = _in_sorted(cells, crossed) & ~hit
-        return hit.astype(np.int32), miss.astype(np.int32), (miss & _in_sorted(cells, near)).astype(np.int32)
+        touched, *shares = self._scan_updates(grid, int(scan)) if kept is None else kept
+        if touched.size == 0:
+            return np.zeros(cells.shape), np.zeros(cells.shape), np.zeros(cells.shape)
+        at = np.minimum(np.searchsorted(touched, cells), touched.size - 1)
+        found = touched[at] == cells
+        hits, misses, near = (np.where(found, share[at], 0.0) for share in shares)
+        return hits, misses, near
 
-    def _scan_cells(self, grid: AnyGrid, scan: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
-        """The cells one scan ended a beam in (hits), crossed, and crossed only near a beam's end,
-        each sorted distinct flat indices."""
+    def _scan_updates(
+        self, grid: AnyGrid, scan: int
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The cells one scan touched (sorted distinct flat indices) and its hits, misses and near
+        misses there (:func:`scan_shares`)."""
         lo, hi = np.searchsorted(self.scan, [scan, scan + 1])
-        if hi <= lo:
+        parts = [
+            self._tallies(grid, np.arange(lo + first, lo + last))
+            for first, last in _batches(grid, self.starts[lo:hi], self.ends[lo:hi])
+        ]
+        if not parts:
             empty = np.zeros(0, dtype=np.int64)
-            return empty, empty, empty
-        end_cell, inside = flat_index(grid, self.ends[lo:hi])
-        ended = _unique(end_cell[inside & self.hit[lo:hi]].astype(np.int64))
-        crossed, near, far = [], [], []
-        for first, last in _batches(grid, self.starts[lo:hi], self.ends[lo:hi]):
-            c, n = self._crossed(grid, np.arange(lo + first, lo + last), np.zeros(last - first, dtype=np.int64), 1)
-            crossed.append(c)
-            near.append(n)
-            far.append(c[~_sorted_in_sorted(c, n)])
-        # A cell crossed near an end in one batch of beams may be seen through in another.
-        near_all, far_all = _unique(np.concatenate(near)), _unique(np.concatenate(far))
-        return ended, _unique(np.concatenate(crossed)), near_all[~_sorted_in_sorted(near_all, far_all)]
+            return empty, np.zeros(0), np.zeros(0), np.zeros(0)
+        # A cell's beams may fall in more than one batch: their tallies add before the shares.
+        keys = np.concatenate([p[0] for p in parts]) % grid_size(grid)
+        cells, row = np.unique(keys, return_inverse=True)
+        through, ended, near = (
+            np.bincount(row, weights=np.concatenate([p[k] for p in parts]), minlength=cells.size) for k in (1, 2, 3)
+        )
+        return (cells.astype(np.int64), *scan_shares(through.astype(np.int64), ended.astype(np.int64), near.astype(np.int64)))
 
-    def _crossed(
-        self, grid: AnyGrid, beams: NDArray[np.intp], group: NDArray[np.int64], ncell: int
-    ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """Keys ``group * ncell + cell`` of the cells `beams` crossed, and of those crossed only
-        near a returned end (within :data:`NEAR_END`), each sorted distinct.
-
-        `group` (one per beam) is the beam's scan for whole counts, or 0 for one scan's cells.
-        """
-        b, cell, near = self._entries(grid, beams)
-        return _crossed_keys(group[b] * ncell + cell, near)
+    def _tallies(
+        self, grid: AnyGrid, beams: NDArray[np.intp]
+    ) -> tuple[NDArray[np.int64], NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+        """Per distinct key ``scan * cells + cell`` that `beams` touched (sorted): how many of them
+        crossed or ended in the cell, how many returned and ended there, and how many crossed it
+        near their returned end (:data:`NEAR_END`) without ending there."""
+        ncell = grid_size(grid)
+        scan = self.scan[beams].astype(np.int64)
+        end_cell, inside = flat_index(grid, self.ends[beams])
+        ended = inside & self.hit[beams]
+        b, cell, near_entry = self._entries(grid, beams)
+        own_end = ended[b] & (cell == end_cell[b])
+        entry_keys = scan[b] * ncell + cell
+        end_keys = scan[ended] * ncell + end_cell[ended]
+        keys = _unique(np.concatenate([entry_keys, end_keys]))
+        through = np.bincount(np.searchsorted(keys, entry_keys), minlength=keys.size)
+        n_ended = np.bincount(np.searchsorted(keys, end_keys), minlength=keys.size)
+        near = np.bincount(np.searchsorted(keys, entry_keys[near_entry & ~own_end]), minlength=keys.size)
+        return keys, through, n_ended, near
 
     def _entries(self, grid: AnyGrid, beams: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.int64], NDArray[np.bool_]]:
         """Every cell `beams` crossed (:func:`~gpomap.raycast.traverse`): the entry's beam (index
@@ -452,45 +513,44 @@ class RayEvidence:
         beams: NDArray[np.intp],
         counts: RayCounts,
         keep: NDArray[np.intp] | None = None,
-        mark: Any = None,
+        slot: NDArray[np.int32] | None = None,
     ) -> None:
-        """Add the counts of `beams` (whole scans) into `counts`; with `mark` (the compiled path's
+        """Add the updates of `beams` (whole scans) into `counts`; with `slot` (the compiled path's
         scratch, see :func:`gpomap._compiled_counts.count_entries`) in one compiled pass."""
         ncell = grid_size(grid)
         scan = self.scan[beams]
-        end_cell, inside = flat_index(grid, self.ends[beams])
-        ended = inside & self.hit[beams]
-        b, cell, near_entry = self._entries(grid, beams)
-        if mark is not None:
-            # uint16 counts too: the compiled pass adds one at a time, each within the type.
-            arrays: Any = tuple(counts)
-            _compiled_counts.count_entries(b, cell, near_entry, scan, np.where(ended, end_cell, -1), arrays, mark)
-            mine = np.zeros(scan.size, dtype=bool) if keep is None else np.isin(scan, keep)
+        mine = np.zeros(scan.size, dtype=bool) if keep is None else np.isin(scan, keep)
+        if slot is not None:
+            end_cell, inside = flat_index(grid, self.ends[beams])
+            b, cell, near_entry = self._entries(grid, beams)
+            _compiled_counts.count_entries(
+                b,
+                cell,
+                near_entry,
+                scan,
+                np.where(inside & self.hit[beams], end_cell, -1),
+                (counts.hits, counts.misses, counts.near),
+                slot,
+                SHARED_UPDATES,
+                SHARE_UNITS,
+            )
             if not mine.any():
                 return
-            # The kept scans' own cells, from their entries alone.
-            sub = mine[b]
-            b, cell, near_entry = b[sub], cell[sub], near_entry[sub]
-            ended &= mine
-        crossed, near = _crossed_keys(scan[b].astype(np.int64) * ncell + cell, near_entry)
-        hit_keys = _unique(scan[ended].astype(np.int64) * ncell + end_cell[ended])
-        if mark is None:
-            # A scan that ended a beam in a cell counts a hit there, not also a miss.
-            miss_keys = crossed[~_sorted_in_sorted(crossed, hit_keys)]
-            near_keys = near[~_sorted_in_sorted(near, hit_keys)]
-            for total, keys in zip(counts, (hit_keys, miss_keys, near_keys), strict=True):
-                np.add(total, np.bincount(keys % ncell, minlength=ncell), out=total, casting="unsafe")
+            # The kept scans' own updates, from their beams alone.
+            beams = beams[mine]
+        keys, through, ended, near = self._tallies(grid, beams)
+        shares = scan_shares(through, ended, near)
+        if slot is None:
+            cell = keys % ncell
+            for total, share in zip(counts, shares, strict=True):
+                np.add(total, np.bincount(cell, weights=share, minlength=ncell), out=total, casting="unsafe")
         if keep is not None:
             # Keys are scan * ncell + cell, sorted: each kept scan's cells are one slice (copied,
             # so the batch's arrays are not kept alive).
             for k in np.intersect1d(keep, scan):
-                base = int(k) * ncell
-
-                def own(keys: NDArray[np.int64], base: int = base) -> NDArray[np.int64]:
-                    lo, hi = np.searchsorted(keys, [base, base + ncell])
-                    return keys[lo:hi] - base
-
-                self._kept[(grid, int(k))] = (own(hit_keys), own(crossed), own(near))
+                lo, hi = np.searchsorted(keys, [int(k) * ncell, (int(k) + 1) * ncell])
+                kept_hits, kept_misses, kept_near = (s[lo:hi].copy() for s in shares)
+                self._kept[(grid, int(k))] = (keys[lo:hi] - int(k) * ncell, kept_hits, kept_misses, kept_near)
 
 
 def _batches(grid: AnyGrid, starts: NDArray[np.float64], ends: NDArray[np.float64]) -> list[tuple[int, int]]:
@@ -505,29 +565,6 @@ def _batches(grid: AnyGrid, starts: NDArray[np.float64], ends: NDArray[np.float6
     return out
 
 
-def _in_sorted(values: NDArray[np.integer], sorted_keys: NDArray[np.integer]) -> NDArray[np.bool_]:
-    """Whether each of `values` is among `sorted_keys` (sorted ascending), shape values.shape.
-
-    A binary search per value: ``np.isin`` sorts both arrays together, which costs far more when
-    the values are many and the keys few, or the keys already sorted.
-    """
-    if sorted_keys.size == 0:
-        return np.zeros(values.shape, dtype=bool)
-    i = np.minimum(np.searchsorted(sorted_keys, values), sorted_keys.size - 1)
-    return sorted_keys[i] == values
-
-
-def _sorted_in_sorted(values: NDArray[np.int64], keys: NDArray[np.int64]) -> NDArray[np.bool_]:
-    """:func:`_in_sorted` when `values` too are sorted and distinct: a binary search per key
-    instead of per value (a whole log's millions of crossed cells against its hits)."""
-    mask = np.zeros(values.shape, dtype=bool)
-    pos = np.searchsorted(values, keys)
-    ok = pos < values.size
-    ok[ok] = values[pos[ok]] == keys[ok]
-    mask[pos[ok]] = True
-    return mask
-
-
 def _unique(keys: NDArray[np.int64]) -> NDArray[np.int64]:
     """Sorted distinct values: one sort and a comparison (numpy's hash-based unique measured
     several times slower on the tens of millions of keys a whole log gives)."""
@@ -539,27 +576,6 @@ def _distinct(s: NDArray[np.int64]) -> NDArray[np.int64]:
     if s.size == 0:
         return s
     return s[np.concatenate([[True], s[1:] != s[:-1]])]
-
-
-def _crossed_keys(keys: NDArray[np.int64], near: NDArray[np.bool_]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """The distinct `keys`, and those whose every entry is `near`, each sorted.
-
-    A key's near entries are counted against all its entries (the few near keys sorted apart:
-    tagging every key with its flag made the one large sort slower).
-    """
-    ordered = np.sort(keys)
-    near_keys, near_entries = _unique_counts(keys[near])
-    entries = np.searchsorted(ordered, near_keys, side="right") - np.searchsorted(ordered, near_keys, side="left")
-    return _distinct(ordered), near_keys[near_entries == entries]
-
-
-def _unique_counts(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.intp]]:
-    """:func:`_unique` and how many times each value occurs."""
-    s = np.sort(keys)
-    if s.size == 0:
-        return s, np.zeros(0, dtype=np.intp)
-    first = np.flatnonzero(np.concatenate([[True], s[1:] != s[:-1]]))
-    return s[first], np.diff(np.append(first, s.size))
 
 
 def lattice_grid(extent: tuple[float, ...], resolution: float, margin: float = 0.0) -> AnyGrid:

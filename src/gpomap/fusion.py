@@ -605,15 +605,18 @@ def _predict_block(
 #: counts are copied into a larger array then, so a margin keeps that rare as the robot drives on.
 LATTICE_GROWTH: float = 10.0
 
-#: The lattice's counts are 16-bit while fewer scans than this are counted: a cell is counted at
-#: most once per scan and passed once per step of the path, so none can overflow, and a
-#: building's lattice (tens of millions of cells, four counts each) takes half the memory of
-#: 32-bit counts. A log that grows past it (a long stream) widens them to 32 bits.
+#: The robot's path passes per lattice cell are 16-bit while fewer scans than this are counted: a
+#: cell is passed at most once per step of the path, so none can overflow, and a building's lattice
+#: (tens of millions of cells) takes half the memory of 32-bit counts. A log that grows past it (a
+#: long stream) widens them to 32 bits.
 NARROW_COUNT_SCANS: int = 2**16 - 1
 
+#: The type of the lattice's ray counts: shares of one update per scan (:func:`gpomap.evidence.scan_shares`).
+COUNT_DTYPE: type[np.floating[Any]] = np.float32
 
-def count_dtype(n_scans: int) -> type[np.integer[Any]]:
-    """The lattice's count type for `n_scans` scans: uint16 below :data:`NARROW_COUNT_SCANS`, else int32."""
+
+def path_dtype(n_scans: int) -> type[np.integer[Any]]:
+    """The lattice's path-pass type for `n_scans` scans: uint16 below :data:`NARROW_COUNT_SCANS`, else int32."""
     return np.uint16 if n_scans < NARROW_COUNT_SCANS else np.int32
 
 
@@ -668,10 +671,10 @@ class EvidenceLayer:
         self._joined: RayEvidence | None = None
         self._dim = 2  # of the scans counted (set by add_scans)
         self.lattice: AnyGrid | None = None
-        # Counts per lattice cell, of count_dtype (16-bit for most logs).
-        self._hits: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
-        self._beam_misses: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
-        self._near_misses: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
+        # Counts per lattice cell (COUNT_DTYPE) and the path's passes (path_dtype: 16-bit for most logs).
+        self._hits: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
+        self._beam_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
+        self._near_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
         self._path: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
         self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None = None
         self.add_scans(scans)
@@ -728,7 +731,7 @@ class EvidenceLayer:
         # The margin holds the robot's body round a path at the data's edge.
         margin = self.resolution + PATH_RADIUS
         local = lattice_grid(bounds_extent(*column_bounds(pts)), self.resolution, margin=margin)
-        self._cover(local, count_dtype(len(self._scans) + len(scans)))
+        self._cover(local, path_dtype(len(self._scans) + len(scans)))
         # The first scans' counts are on the lattice itself: the calibration's held-out scans keep
         # their cells, so their leave-one-scan-out counts need no second traversal.
         keep = calibration_scans(len(scans), self.calibration_scans) if not self._scans else None
@@ -743,10 +746,10 @@ class EvidenceLayer:
             counts = part.counts(local, keep=keep)
             for total, new in zip((self._hits, self._beam_misses, self._near_misses), counts, strict=True):
                 window = total[block]
-                np.add(window, new, out=window, casting="unsafe")  # within the type (count_dtype)
+                np.add(window, new, out=window, casting="unsafe")
             del counts
-            window = self._path[block]
-            np.add(window, part.path_passes(local), out=window, casting="unsafe")
+            passes = self._path[block]
+            np.add(passes, part.path_passes(local), out=passes, casting="unsafe")
         self._scans.extend(scans)
         self._parts.append(part)
         self._joined = None
@@ -758,19 +761,18 @@ class EvidenceLayer:
         assert self.lattice is not None
         return tuple(slice(o, o + n) for o, n in zip(cell_offset(grid, self.lattice), grid.shape, strict=True))
 
-    def _cover(self, local: AnyGrid, dtype: Any = np.int32) -> None:
+    def _cover(self, local: AnyGrid, path: Any = np.int32) -> None:
         """Grow the counted lattice (a copy, with :data:`LATTICE_GROWTH` to spare) to hold `local`,
-        its counts of `dtype` (:func:`count_dtype`) or wider."""
+        its path's passes of type `path` (:func:`path_dtype`) or wider."""
         if self.lattice is None:
             self.lattice = local
-            self._hits = np.zeros(local.shape, dtype=dtype)
-            self._beam_misses = np.zeros(local.shape, dtype=dtype)
-            self._near_misses = np.zeros(local.shape, dtype=dtype)
-            self._path = np.zeros(local.shape, dtype=dtype)
+            self._hits = np.zeros(local.shape, dtype=COUNT_DTYPE)
+            self._beam_misses = np.zeros(local.shape, dtype=COUNT_DTYPE)
+            self._near_misses = np.zeros(local.shape, dtype=COUNT_DTYPE)
+            self._path = np.zeros(local.shape, dtype=path)
             return
-        if np.iinfo(dtype).max > np.iinfo(self._hits.dtype).max:
-            for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
-                setattr(self, name, getattr(self, name).astype(dtype))
+        if np.iinfo(path).max > np.iinfo(self._path.dtype).max:
+            self._path = self._path.astype(path)
         offset = cell_offset(local, self.lattice)
         if all(o >= 0 and o + n <= m for o, n, m in zip(offset, local.shape, self.lattice.shape, strict=True)):
             return
@@ -888,15 +890,16 @@ class EvidenceLayer:
         # The grid's cells are lattice cells: read the running counts (zero beyond them), and
         # whether a cell is at a surface from the whole lattice's hits, its window's edges too.
         assert self.lattice is not None
-        out = [np.zeros(grid.shape, dtype=np.int32) for _ in range(4)]
+        out = [np.zeros(grid.shape, dtype=COUNT_DTYPE) for _ in range(3)]
+        path = np.zeros(grid.shape, dtype=np.int32)
         at_surface = np.zeros(grid.shape, dtype=bool)
         where = overlap(cell_offset(grid, self.lattice), grid.shape, self.lattice.shape)
         if where is not None:
-            for o, a in zip(out, (self._hits, self._beam_misses, self._near_misses, self._path), strict=True):
+            for o, a in zip((*out, path), (self._hits, self._beam_misses, self._near_misses, self._path), strict=True):
                 o[where[0]] = a[where[1]]
             if self._weighs_surface():
                 at_surface[where[0]] = self.at_surface()[where[1]]
-        return RayCounts(out[0], out[1], out[2]), out[3], at_surface
+        return RayCounts(*out), path, at_surface
 
     def grid_observed(self, grid: AnyGrid) -> NDArray[np.bool_]:
         """Cells of `grid` a ray crossed or ended in, or the robot's path passed, shape grid.shape."""
