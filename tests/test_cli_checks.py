@@ -60,9 +60,9 @@ def test_threads_reach_the_tile_workers():
     cli._resolve_library_defaults(args)
     model = cli._model(args)
     assert (model.blas_threads, model.n_workers) == (3, 2)
-    from gpomap.apps.map3d import tile_options
+    from gpomap.cli.options import tiling_config
 
-    assert tile_options(args)["blas_threads"] == 3
+    assert tiling_config(args).kwargs()["blas_threads"] == 3
     args = cli.build_parser().parse_args(["map", "x.log", "-o", "out"])
     cli._resolve_library_defaults(args)
     assert cli._model(args).blas_threads is None  # the cores divided by the workers
@@ -275,7 +275,6 @@ def test_memory_error_is_one_line(tmp_path, capsys, monkeypatch):
     def boom(args):
         raise MemoryError
 
-    monkeypatch.setattr(cli, "cmd_demo", boom)
     parser = cli.build_parser
     monkeypatch.setattr(cli, "build_parser", lambda: _with_func(parser(), boom))
     code, _, err = run_main(["demo", "-o", tmp_path / "o"], capsys)

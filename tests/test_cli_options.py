@@ -23,7 +23,8 @@ import numpy as np
 import pytest
 
 from gpomap import cli
-from gpomap.apps import map3d, stream
+from gpomap.apps import stream
+from gpomap.cli.options import cloud_reader_options
 from gpomap.config import MapConfig, TilingConfig
 from gpomap.errors import GpomapError
 
@@ -202,7 +203,7 @@ def _reader_snapshot(args: argparse.Namespace, monkeypatch: pytest.MonkeyPatch) 
         for fmt in ("pcd", "depth-directory", "rosbag1"):
             monkeypatch.setattr(gpomap.io, "detect_format", lambda path, fmt=fmt: fmt)
             try:
-                out["3d-" + fmt] = map3d.reader_options(args)
+                out["3d-" + fmt] = cloud_reader_options(args)
             except GpomapError as exc:  # an option that format refuses (by name), e.g. --stride on a PCD
                 out["3d-" + fmt] = str(exc)
     return out

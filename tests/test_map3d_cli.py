@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from plyfile import PlyData
 
-from gpomap.apps.map3d import default_model, is_cloud_input, select_clouds
+from gpomap.apps.map3d import is_cloud_input, select_clouds
 from gpomap.cli import main
+from gpomap.cli.map import default_model
 from gpomap.clouds import CloudScan
 from gpomap.grid import FREE, OCCUPIED
 from gpomap.io.octomap import read_octree, write_octree

@@ -708,7 +708,7 @@ def test_the_live_map_of_clouds_finds_the_room_and_saves_the_voxel_set(tmp_path)
     assert taken.sum() > 50
     # Occupied voxels lie on the walls, floor, ceiling or pillar (within a voxel and a half of one)
     # as often as in gpomap map's batch voxel map of the same clouds, on the same voxels.
-    from gpomap.apps.map3d import default_model
+    from gpomap.cli.map import default_model
     from gpomap.lattice import bounds_extent
 
     batch, resolution = default_model(clouds, workers=1)
@@ -857,7 +857,7 @@ rclpy.shutdown()
 @pytest.mark.slow
 def test_ros2_node_maps_pointclouds_in_3d_and_answers_its_services(ros2_env, start, tmp_path):
     import gpomap
-    from gpomap.apps.map3d import default_model
+    from gpomap.cli.map import default_model
     from gpomap.grid import OCCUPIED
     from gpomap.lattice import bounds_extent
     from gpomap.ros.live import LiveMap

@@ -39,7 +39,7 @@ def _corners(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
 def cmd_convert3d(args: argparse.Namespace) -> int:
     """Run ``gpomap convert`` on an OctoMap file (the output directory is checked already)."""
     from gpomap import cli
-    from gpomap.apps.map3d import check_voxel_memory
+    from gpomap.cli.common import check_voxel_memory
     from gpomap.convert3d import convert_octree, region
     from gpomap.errors import GpomapError
     from gpomap.io.octomap import read_octree

@@ -92,7 +92,7 @@ def written_extent(args: argparse.Namespace, summary: dict[str, Any]) -> tuple[f
 def check_map_memory(args: argparse.Namespace, summary: dict[str, Any]) -> None:
     """Refuse, from the header alone, a written grid that needs more than ``--memory-limit`` (as ``gpomap map`` does)."""
     from gpomap import cli
-    from gpomap.apps.map3d import check_voxel_memory
+    from gpomap.cli.common import check_voxel_memory
     from gpomap.lattice import extent_bounds
     from gpomap.resources import grid_shape
 
@@ -186,7 +186,7 @@ def configure(args: argparse.Namespace, model: Any) -> None:
 def add_output_arguments(p: argparse.ArgumentParser, what: str) -> None:
     """The output options of ``render`` and ``update``: those of ``gpomap map``, 3-D ones included, and ``--workers``."""
     from gpomap import cli
-    from gpomap.apps.map3d import add_output_options
+    from gpomap.cli.options import add_3d_output_options as add_output_options
 
     cli._add_output_options(p, None)
     for action in p._actions:

@@ -88,16 +88,18 @@ def repeated_scans(saved: Sequence[Any], new: Sequence[Any]) -> int:
 
 def _read_new_scans(args: argparse.Namespace, dim: int) -> list[Any]:
     from gpomap import cli
-    from gpomap.apps import map3d
+    from gpomap.apps.map3d import is_cloud_input
+    from gpomap.cli.map3d import load_clouds
+    from gpomap.cli.options import check_2d_options
 
-    clouds = map3d.is_cloud_input(args.input)
+    clouds = is_cloud_input(args.input)
     if clouds != (dim == 3):
         holds = "3-D scans (point clouds)" if clouds else "planar scans"
         raise GpomapError(f"{args.input} holds {holds}; {args.mapfile} is a {dim}-D map")
     cli._status(args, f"reading the new scans from {args.input}...")
     if dim == 3:
-        return map3d.load_clouds(args)
-    map3d.check_2d_options(args)
+        return load_clouds(args)
+    check_2d_options(args)
     return cli._load_scans(args)
 
 
@@ -120,8 +122,8 @@ def _check_memory(args: argparse.Namespace, summary: dict[str, Any], scans: Sequ
 def add_parser(sub: Any) -> argparse.ArgumentParser:
     """Register ``gpomap update`` on the subparsers of :func:`gpomap.cli.build_parser`."""
     from gpomap import cli
-    from gpomap.apps.map3d import add_cloud_reader_options
     from gpomap.apps.render import add_output_arguments
+    from gpomap.cli.options import add_cloud_reader_options
 
     p: argparse.ArgumentParser = sub.add_parser(
         "update",

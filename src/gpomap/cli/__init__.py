@@ -5,6 +5,7 @@ errors into one line on stderr (``gpomap: error: ...``) with a non-zero exit cod
 shows the traceback instead.
 """
 
+# ruff: noqa: F401 (the old names, which gpomap.apps and the tests reach until they move)
 from __future__ import annotations
 
 import argparse
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NoReturn
 
 from gpomap._version import __version__
+from gpomap.cli import demo, info, map
 from gpomap.cli.common import EXIT_ERROR, EXIT_OK, EXIT_USAGE, GRID_ADVICE, Run, run_command
 from gpomap.cli.common import Parser as _Parser
 from gpomap.cli.common import bound_source as _bound_source
@@ -34,19 +36,24 @@ from gpomap.cli.common import ray_counts as _ray_counts
 from gpomap.cli.common import report_fit as _report_fit
 from gpomap.cli.common import status as _status
 from gpomap.cli.common import warn as _warn
+from gpomap.cli.map import fitted_model as _fitted_model
+from gpomap.cli.map import model as _model
+from gpomap.cli.map import write_map as _write_map
 from gpomap.cli.options import Default as _Default
+from gpomap.cli.options import add_3d_output_options
 from gpomap.cli.options import add_model_options as _add_model_options
 from gpomap.cli.options import add_output_options as _add_output_options
 from gpomap.cli.options import add_reader_options as _add_reader_options
 from gpomap.cli.options import add_selection_options as _add_selection_options
 from gpomap.cli.options import add_tiling_options as _add_tiling_options
+from gpomap.cli.options import check_2d_options as _check_2d_options
 from gpomap.cli.options import flag as _flag
 from gpomap.cli.options import given as _given
 from gpomap.cli.options import map_config as _map_config
 from gpomap.cli.options import model_option_dests as _model_option_dests
 from gpomap.cli.options import module_default as _module_default
-from gpomap.cli.options import non_negative as _non_negative  # noqa: F401 (gpomap.apps, until it moves)
-from gpomap.cli.options import number as _number  # noqa: F401 (tests, until they move)
+from gpomap.cli.options import non_negative as _non_negative
+from gpomap.cli.options import number as _number
 from gpomap.cli.options import positive as _positive
 from gpomap.cli.options import reader_options as _reader_options
 from gpomap.cli.options import resolution_from_evidence as _resolution_from_evidence
@@ -64,202 +71,7 @@ _Run = Run
 _GRID_ADVICE = GRID_ADVICE
 
 
-#: Cell side of the map ``gpomap demo`` writes, metres (the paper's synthetic room is 20 x 16 m: a 40 x 32 grid).
-DEMO_RESOLUTION = 0.5
-
-
-def _plan_map(args: argparse.Namespace, data: Any) -> None:
-    """Check the written grid's memory before fitting, over the box of the sensor and its beams' ends.
-
-    The box comes from the scans (:func:`gpomap.scans.scan_extent`, no-return beams to the cap),
-    not from the points they make (a whole log's are gigabytes with the cell tree); the tiles' GP
-    sizes are checked by the fit once its cells exist (:meth:`gpomap.tiles.TiledGPOM.check_fit_memory`).
-    """
-    from gpomap.observations import Observations
-    from gpomap.resources import grid_shape, points_extent
-    from gpomap.scans import scan_extent
-
-    if args.extent is not None:
-        extent = args.extent
-    elif isinstance(data, Observations):
-        extent = points_extent(data.points)
-    else:
-        extent = scan_extent(data, include_no_return=True, no_return_cap=_map_config(args).no_return_cap)
-    _check_grid_memory(args, grid_shape(extent, args.resolution), extent, 0)
-
-
 # --------------------------------------------------------------------------- subcommands
-def cmd_map(args: argparse.Namespace) -> int:
-    from gpomap.apps import map3d
-
-    _check_before_work(args)
-    _limit_threads(args)
-    path = Path(args.input)
-    title = f"gpomap: {path.name}"
-    # Point clouds and depth frames make a voxel map: gpomap.apps.map3d.
-    if path.suffix.lower() not in (".csv", ".npz") and map3d.is_cloud_input(path):
-        return map3d.cmd_map3d(args)
-    map3d.check_2d_options(args)
-    _resolution_from_evidence(args)
-    if path.suffix.lower() in (".csv", ".npz"):
-        from gpomap.io import read_points
-
-        _status(args, f"reading labelled points from {path}...")
-        data: Any = read_points(path)
-        n_scans: int | None = None
-    else:
-        _status(args, f"reading scans from {path}...")
-        data = _load_scans(args)
-        n_scans = len(data)
-        _status(args, f"  {n_scans} scans of {data[0].n_beams} beams")
-    if args.chunk_scans is not None and n_scans is None:
-        raise GpomapError("--chunk-scans needs scans (a CARMEN log or ROS bag), not labelled points")
-    _plan_map(args, data)
-    if args.chunk_scans is not None:
-        return _map_in_chunks(args, data, title)
-    model = _fitted_model(args, data)
-    saved: list[Path] = []
-    files = _write_map(args, model, title, _fitted_map_file(model, saved))
-    _print_map_summary(model.summary(), files + saved, _bound_source(model))
-    return EXIT_OK
-
-
-def _fitted_map_file(model: Any, saved: list[Path]) -> Callable[[Any], None]:
-    """Adds the fitted map, ``map.gpom`` (:mod:`gpomap.io.mapfile`), to an output set; its final path to `saved`."""
-
-    def save(outputs: Any) -> None:
-        from gpomap.io.atomic import file_written
-        from gpomap.io.mapfile import FILENAME, save_fitted_map
-
-        saved[:] = [outputs.final(save_fitted_map(model, outputs.path / FILENAME))]
-        file_written()
-
-    return save
-
-
-def _model(args: argparse.Namespace) -> Any:
-    """The unfitted map of the parsed options (``gpomap map``, ``gpomap demo``)."""
-    from gpomap.mapping import AreaGPOM
-
-    return AreaGPOM(**_tiling_config(args).kwargs(), **_map_config(args).kwargs())
-
-
-def _fitted_model(args: argparse.Namespace, data: Any) -> Any:
-    """:func:`_model` fitted on `data`, saying so (``gpomap map``, ``gpomap demo``)."""
-    from gpomap.compiled import compile_time
-
-    model = _model(args)
-    _status(args, f"fitting MSK-GPOM ({args.kernel})...")
-    with compile_time() as compiling:
-        model.fit(data)
-    if compiling[0] >= 0.05:
-        # A first run's compilation, not fitting: said apart (numba caches it for the next run).
-        model.timings_["compiling (first run)"] = compiling[0]
-    _status(args, f"  {len(model.tiles_)} tiles, {model.n_inputs_} cells in {model.timings_['total_fit']:.2f} s")
-    return model
-
-
-def _write_map(args: argparse.Namespace, model: Any, title: str, extra: Callable[[Any], None] | None = None) -> list[Path]:
-    """Predict the model's grid and replace the output set with it; returns the files written.
-
-    `extra`, if given, is called with the output set to add files of its own to it.
-    """
-    from gpomap.io.export import write_map_files
-
-    t = time.perf_counter()
-    occupancy_map = model.grid(args.resolution, args.extent)
-    ny, nx = occupancy_map.grid.shape
-    _status(args, f"  {nx} x {ny} cells predicted in {time.perf_counter() - t:.2f} s; writing {args.output}/")
-    with _outputs(args) as outputs:
-        staged = write_map_files(occupancy_map, outputs.path, pgm_mode=args.pgm_mode, title=title)
-        if extra is not None:
-            extra(outputs)
-    _report_fit(model, occupancy_map)
-    return [outputs.final(f) for f in staged]
-
-
-def _map_in_chunks(args: argparse.Namespace, scans: list, title: str) -> int:
-    """Fit the first K scans, then add K at a time with ``update``, rewriting the map each time."""
-    model = _model(args)
-    k = args.chunk_scans
-    files: list[Path] = []
-    saved: list[Path] = []
-    for start in range(0, len(scans), k):
-        chunk = scans[start : start + k]
-        t = time.perf_counter()
-        if start == 0:
-            model.fit(chunk)
-            refit = len(model.tiles_)
-        else:
-            model.update(chunk)
-            refit = len(model.last_refit_)
-        _status(args, f"scans {start}..{start + len(chunk) - 1}: {refit} tile(s) fitted in {time.perf_counter() - t:.2f} s")
-        files = _write_map(args, model, f"{title} ({start + len(chunk)} of {len(scans)} scans)", _fitted_map_file(model, saved))
-    _print_map_summary(model.summary(), files + saved, _bound_source(model))
-    return EXIT_OK
-
-
-def cmd_demo(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from gpomap.io.atomic import file_written
-    from gpomap.plot import plot_inputs, save_figure
-    from gpomap.simulate import paper_room_scans
-
-    _check_before_work(args)
-    scans = paper_room_scans()
-    _status(args, f"simulated the paper's synthetic room: {len(scans)} poses x {scans[0].n_beams} beams over 360 degrees")
-    _plan_map(args, scans)
-    model = _fitted_model(args, scans)
-    cells_png: list[Path] = []
-
-    def cell_figure(outputs: Any) -> None:
-        # The cell tree as a figure too (the paper's Fig. 5a), in the same set of outputs.
-        lower, upper, labels = model.cell_boxes()
-        points, occupied = model.training_points()
-        fig = plot_inputs(points, occupied, boxes=np.stack([lower, upper], axis=1), box_labels=labels)
-        cells_png.append(outputs.final(save_figure(fig, outputs.path / "cells.png")))
-        file_written()
-
-    files = _write_map(args, model, "gpomap demo: the paper's synthetic room", cell_figure)
-    _print_map_summary(model.summary(), files + cells_png, _bound_source(model))
-    return EXIT_OK
-
-
-def cmd_info(args: argparse.Namespace) -> int:
-    from gpomap.apps import map3d
-    from gpomap.io import describe
-
-    if map3d.is_cloud_input(args.input):
-        options = map3d.reader_options(args)
-    else:
-        map3d.check_2d_options(args)
-        options = _reader_options(args, args.input)
-    info = describe(args.input, **options)
-    if args.json:
-        print(json.dumps(info, indent=2, default=str))
-        return EXIT_OK
-    no_return = info.pop("no_return", None)
-    notes = info.pop("notes", [])
-    for key in ("no_return_code", "no_return_source"):
-        info.pop(key, None)
-    width = max([16, *(len(k) + 1 for k in info)])  # a long key keeps a space before its value
-    for key, value in info.items():
-        if isinstance(value, (tuple, list)) and value and all(isinstance(v, float) for v in value):
-            value = ", ".join(f"{v:.3f}" for v in value)
-        print(f"{key:<{width}}{value}")
-    # The no-return decision, one block per laser (message type): code, count, how decided.
-    for d in no_return if isinstance(no_return, list) else [no_return] if no_return else []:
-        label = f" ({d['message']})" if "message" in d else ""
-        code = ", ".join(f"{c:g}" for c in d["code"]) + " m" if d["code"] else "none found in the data"
-        print(f"{'no-return code':<16}{code}{label}")
-        print(f"{'no-return count':<16}{d['n_no_return']} of {d['n_readings']} readings (>= {d['max_range']:g} m)")
-        print(f"{'decided by':<16}{d['source']}" + (f" ({d['header']['name']} {d['header']['value']:g})" if d["header"] else ""))
-        if d["contradiction"]:
-            print(f"{'contradiction':<16}{d['contradiction']}")
-    for note in notes:
-        print(f"{'note':<16}{note}")
-    return EXIT_OK
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -275,9 +87,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         _check_figure_path(args.figure)
     arguments = _evaluate_arguments(args)  # refuses an option --method does not take, before any reading
     if args.input is not None and Path(args.input).exists():
-        from gpomap.apps import map3d
+        from gpomap.apps.map3d import is_cloud_input
 
-        if map3d.is_cloud_input(args.input):
+        if is_cloud_input(args.input):
             raise GpomapError(
                 f"{args.input} holds 3-D scans; gpomap evaluate scores planar maps only: score a voxel map on "
                 "held-out scans and simulated scenes against OctoMap with benchmarks/quality3d.py"
@@ -629,7 +441,7 @@ def _print_evaluation(args: argparse.Namespace, result: dict[str, Any], source: 
 
 
 def cmd_convert(args: argparse.Namespace) -> int:
-    from gpomap.apps import convert3d, map3d
+    from gpomap.apps import convert3d
     from gpomap.convert import convert_grid, converter_for, grid_to_observations, load_grid, output_grid
     from gpomap.io.export import write_map_files
 
@@ -637,7 +449,7 @@ def cmd_convert(args: argparse.Namespace) -> int:
     # OctoMap trees become voxel maps: gpomap.apps.convert3d.
     if convert3d.is_octree_input(args.input):
         return convert3d.cmd_convert3d(args)
-    map3d.check_2d_options(args)
+    _check_2d_options(args)
     if "max_cells" not in args.library_defaults:
         raise GpomapError(f"--max-cells is for OctoMap trees; {args.input} is converted as one GP over its cells")
     _status(args, f"converting {args.input}...")
@@ -724,16 +536,6 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- the parser
-EPILOG_MAP = """examples:
-  gpomap map ../shared/data/intel/intel-corrected.log.gz -o intel-map --scans 200 --beams 90
-  gpomap map robot1.bag --topic /base_scan --fixed-frame odom --time-offset 0.1 -o arena --resolution 0.05
-  gpomap map points.csv -o out --kernel se      (CSV with header x,y,occupied)
-  gpomap map fr079.log.gz -o fr079 --workers 2 --free-step 0.3
-  gpomap map intel.log.gz -o intel --chunk-scans 100      (the map grows as scans come)
-  gpomap map intel.log.gz -o intel --scheduler tcp://127.0.0.1:8786
-  gpomap map ../shared/data/la3dm-sim/sim_structured -o out3d --max-range 8 --slices 0.5,1.5
-  gpomap map ../shared/data/3dmatch -o frames --stride 4 --resolution 0.05      (depth frames)
-"""
 EPILOG_EVALUATE = """examples:
   gpomap evaluate --demo --method msk --kernel se
   gpomap evaluate ../shared/data/intel/intel-corrected.log.gz --compare
@@ -754,62 +556,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     fmt = argparse.RawDescriptionHelpFormatter
 
-    p = sub.add_parser(
-        "map",
-        help="map a CARMEN log, ROS bag or labelled points",
-        epilog=EPILOG_MAP,
-        formatter_class=fmt,
-        description="Fit MSK-GPOM to range data and write map.yaml/.pgm (ROS map_server), map.npz and map.png; "
-        "from 3-D scans, a voxel map: map.npz, map.bt (OctoMap), map.ply (surface mesh), map-slices.png and map-3d.png; "
-        "and the fitted map itself, map.gpom, for gpomap render, query and update.",
-    )
-    p.add_argument(
-        "input",
-        help="CARMEN log (.log, .gz), ROS bag (.bag, ROS2 directory, .db3, .mcap), points (.csv, .npz), "
-        "or 3-D scans: PCD / PLY files or a directory of them, depth frames, an OctoMap ScanGraph, a PointCloud2 bag",
-    )
-    _add_reader_options(p)
-    _add_selection_options(p)
-    _add_model_options(p)
-    # The written map's cells are the ray counts' cells unless asked otherwise: that is the map
-    # the quality benchmark scores (a voxel map's default is gpomap.apps.map3d.DEFAULTS_3D's).
-    _add_output_options(p, _Default(MapConfig.evidence_resolution))
-    _add_tiling_options(p)
-    # The 3-D inputs' own options: gpomap.apps.map3d.
-    from gpomap.apps.map3d import add_cloud_options
-
-    add_cloud_options(p)
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
-    p.set_defaults(func=cmd_map)
-
-    p = sub.add_parser(
-        "demo",
-        help="map the paper's synthetic room (built-in simulator)",
-        formatter_class=fmt,
-        description="The paper's synthetic room: 31 poses x 36 noiseless beams, mapped end to end.",
-        epilog="example:\n  gpomap demo -o demo-output",
-    )
-    _add_model_options(p)
-    _add_tiling_options(p, chunks=False)
-    _add_output_options(p, _Default(DEMO_RESOLUTION))
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
-    p.set_defaults(func=cmd_demo)
-
-    p = sub.add_parser(
-        "info",
-        help="what a range-data file holds",
-        formatter_class=fmt,
-        description="Format, scans, beams, extent and max range of a CARMEN log or ROS bag.",
-        epilog="example:\n  gpomap info ../shared/data/fr079/freiburg-079-corrected.log.gz",
-    )
-    p.add_argument("input")
-    _add_reader_options(p)
-    from gpomap.apps.map3d import add_cloud_reader_options
-
-    add_cloud_reader_options(p)  # read as gpomap map reads them
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
-    p.set_defaults(func=cmd_info)
+    for command in (map, demo, info):
+        command.add_parser(sub)
 
     p = sub.add_parser(
         "evaluate",
@@ -918,9 +666,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     _add_output_options(p, None)
-    # Octrees' own options: gpomap.apps.map3d / gpomap.apps.convert3d.
-    from gpomap.apps.map3d import add_output_options as add_3d_output_options
-
+    # Octrees' own options: gpomap.apps.convert3d.
     add_3d_output_options(p).add_argument(
         "--max-cells",
         type=_positive(int),
@@ -980,8 +726,8 @@ def build_parser() -> argparse.ArgumentParser:
     query.add_parser(sub)
     update.add_parser(sub)
     # --debug after the command too ('gpomap map ... --debug'); hidden there, and unset unless given.
-    for command in sub.choices.values():
-        command.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    for subparser in sub.choices.values():
+        subparser.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     return parser
 
 

@@ -1,0 +1,131 @@
+"""``gpomap map`` on 3-D inputs: point clouds and depth frames to a continuous voxel map.
+
+:mod:`gpomap.cli.map` hands a run here when :func:`gpomap.apps.map3d.is_cloud_input` says the input
+holds 3-D scans. The steps mirror the 2-D command:
+
+1. the clouds are read (``--poses``, ``--max-range``, ``--stride``, ``--depth-scale``,
+   ``--points-frame``, the bag options) and selected (``--range``, ``--scans``, ``--beams``: rays
+   per cloud);
+2. before anything is fitted, the voxel grid and the GP are checked against the memory limit, and
+   the map is built by the local GPs of every map, in x, y columns of ``--tile-size``;
+3. the voxel map at ``--resolution`` (:data:`gpomap.config.VOXEL_MAP_DEFAULTS` when not given) is
+   written as one output set by :func:`gpomap.io.voxel_outputs.write_voxel_outputs`, with the
+   fitted map, ``map.gpom``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from gpomap.apps.map3d import build_model, read_selected_clouds, voxel_bounds
+from gpomap.cli.common import EXIT_OK, Run, bound_source, check_voxel_memory, print_map_summary, report_fit, status
+from gpomap.cli.options import cloud_reader_options, map_config, tiling_config
+from gpomap.clouds import CloudScan
+from gpomap.config import VOXEL_MAP_DEFAULTS
+from gpomap.errors import GpomapError
+
+__all__ = ["apply_3d_defaults", "load_clouds", "model_from_args", "run"]
+
+#: Options of ``gpomap map`` that only 2-D inputs take, refused on clouds with this reason.
+_TWO_D_ONLY = {
+    "chunk_scans": ("--chunk-scans", "incremental mapping takes planar scans"),
+}
+
+
+def apply_3d_defaults(args: argparse.Namespace) -> None:
+    """Put :data:`gpomap.config.VOXEL_MAP_DEFAULTS` in place of the library defaults (chosen on 2-D logs) the user left unset."""
+    for name, value in VOXEL_MAP_DEFAULTS.items():
+        if name in getattr(args, "library_defaults", ()):
+            setattr(args, name, value)
+
+
+def load_clouds(args: argparse.Namespace) -> list[CloudScan]:
+    """Read and select the clouds of ``args.input`` as ``gpomap map`` does (:func:`gpomap.apps.map3d.read_selected_clouds`)."""
+    return read_selected_clouds(args.input, cloud_reader_options(args), args.scan_range, args.scans, args.beams)
+
+
+def model_from_args(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, Any, Any]:
+    """:func:`gpomap.apps.map3d.build_model` with the options of a parsed ``gpomap map`` command line."""
+    return build_model(clouds, tiling_config(args).kwargs(), **map_config(args).kwargs())
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    for name, (option, why) in _TWO_D_ONLY.items():
+        if getattr(args, name, None) is not None:
+            raise GpomapError(f"{option} is for 2-D inputs ({why}); {args.input} holds 3-D scans")
+
+
+def _plan(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, Any, Any, int]:
+    """The model, the voxel map's corners (shape (3,) each) and the cell count, with the memory checked before fitting."""
+    from gpomap.resources import largest_tile_cells
+    from gpomap.tiles import DEFAULT_TILE_SIZE, tile_reach
+
+    model, obs, cells = model_from_args(args, clouds)
+    lo, hi = voxel_bounds(obs.points, args.extent, args.z_range, args.resolution)
+    check_voxel_memory(args, lo, hi, 0)
+    # The fit refuses tiles too large for the memory itself, once its cells exist; the voxel
+    # grid's prediction chunks are sized by the largest column too.
+    tile = args.tile_size if args.tile_size is not None else DEFAULT_TILE_SIZE[3]
+    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], tile, tile_reach(tile, model.length_scale))
+    check_voxel_memory(args, lo, hi, per_tile)
+    return model, lo, hi, len(cells)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``gpomap map`` on a 3-D input (the output directory is checked already)."""
+    from gpomap.io.mapfile import save_fitted_map
+    from gpomap.io.voxel_outputs import write_voxel_outputs
+    from gpomap.lattice import bounds_extent
+
+    _check_options(args)
+    apply_3d_defaults(args)
+    status(args, f"reading 3-D scans from {args.input}...")
+    clouds = load_clouds(args)
+    n_rays = sum(c.n_points for c in clouds)
+    status(args, f"  {len(clouds)} scans, {n_rays} rays")
+    model, lo, hi, n_cells = _plan(args, clouds)
+    status(args, f"fitting MSK-GPOM in 3-D ({args.kernel}, about {n_cells} cells)...")
+    t = time.perf_counter()
+    model.fit(clouds)
+    fit_s = time.perf_counter() - t
+    status(args, f"  fitted in {fit_s:.2f} s; predicting voxels of {args.resolution:g} m...")
+    t = time.perf_counter()
+    voxel_map = model.grid(args.resolution, bounds_extent(lo, hi))
+    grid_s = time.perf_counter() - t
+    nz, ny, nx = voxel_map.spec.shape
+    status(args, f"  {nx} x {ny} x {nz} voxels in {grid_s:.2f} s; writing {args.output}/")
+    Run.outdir = args.output  # for a true message if interrupted while writing
+    t = time.perf_counter()
+    files = write_voxel_outputs(
+        voxel_map,
+        args.output,
+        heights=args.slices,
+        title=f"gpomap: {Path(args.input).name}",
+        save_model=functools.partial(save_fitted_map, model),
+    )
+    write_s = time.perf_counter() - t
+    report_fit(model, voxel_map)
+    print_map_summary(model.summary(), [], bound_source(model))
+    print(_voxel_line(voxel_map, grid_s, write_s))
+    print("\n".join(f"wrote        {f}" for f in files))
+    return EXIT_OK
+
+
+def _voxel_line(voxel_map: Any, grid_s: float, write_s: float) -> str:
+    """The summary's line on the voxels: how many of each class, and the seconds to predict and write them."""
+    from gpomap.grid import FREE, OCCUPIED
+
+    t = voxel_map.ternary
+    nz, ny, nx = voxel_map.spec.shape
+    n_occ, n_free = int((t == OCCUPIED).sum()), int((t == FREE).sum())
+    seen_occ = int(((t == OCCUPIED) & voxel_map.seen).sum())
+    return (
+        f"voxels       {nx} x {ny} x {nz} of {voxel_map.spec.resolution:g} m: {n_occ} occupied ({seen_occ} where rays went; "
+        f"map.bt and map.ply hold only those), {n_free} free, {t.size - n_occ - n_free} unknown; "
+        f"predicted in {grid_s:.2f} s, written in {write_s:.2f} s"
+    )
