@@ -62,8 +62,6 @@ BEING_REWRITTEN: frozenset[str] = frozenset(
     {
         "apps/stream.py",
         "apps/update.py",
-        "evidence.py",
-        "fusion.py",
     }
 )
 

@@ -40,51 +40,47 @@ from gpomap.scans import Scan
 
 #: Longest step between consecutive scans' poses taken as the robot driving (metres); longer
 #: steps are jumps in the log (a new session, a relocalisation), not a path. Logs thinned by
-#: distance keep a scan every 0.5-1 m (Intel: median 0.67 m, 99 % under 1.06 m; MIT's infinite
-#: corridor, the Freiburg campus and five other public logs: median 0.97-1.04 m, 99 % at most
-#: 1.25 m). A scan lost, or held out, doubles a step there: at 1.5 m, those steps were jumps and
-#: the robot's path had a gap at each (the corridor's every-10th split called 28 path cells
-#: occupied, none at 2.5 m). A longer step is driving only where the robot drove straight along
-#: it (:data:`STRAIGHT_STEP_STRAY`): Örebro loses one or two scans in a row (3 m steps).
+#: distance keep a scan about every metre, and a scan lost or held out doubles a step there:
+#: with a lower limit such steps were jumps, and the path had a gap at each. A longer step is
+#: driving only where the robot drove straight along it (:data:`STRAIGHT_STEP_STRAY`). The logs'
+#: steps: docs/choices.md, "The robot's body round its path" and "Measured for the code".
 MAX_PATH_STEP: float = 2.5
 
 #: Longest step (metres) taken as driving where the robot drove straight along it: twice
-#: :data:`MAX_PATH_STEP`. Longer gaps may hide a detour whatever the ends' headings (a block of 40
-#: scans held out spans 10-40 m on the logs here).
+#: :data:`MAX_PATH_STEP`. Longer gaps, such as a held-out block of scans, may hide a detour
+#: whatever the ends' headings (docs/choices.md, "The robot's body round its path").
 MAX_STRAIGHT_STEP: float = 2 * MAX_PATH_STEP
 
 #: Steps up to this long (metres) are the robot's path as they are. A longer one may not be
-#: where the robot drove (a loop in a stretch held out, whose ends are 2.2 m apart across Intel's
-#: wall, facing 85 degrees off the step): it is the path only where the robot drove straight
-#: along it (:data:`STRAIGHT_STEP_ANGLE`) or neither end's scan has a hit within
-#: :data:`PATH_RADIUS` of it. On the shared logs' every-10th splits, the steps over a held-out
-#: scan keep 0.33 m or more from their ends' hits; on the corridor's, three straight ones pass
-#: within 0.06 m of a hit (something the robot then drove through: a person, a door).
+#: where the robot drove (a loop in a held-out stretch whose ends face each other across a
+#: wall): it is the path only where the robot drove straight along it
+#: (:data:`STRAIGHT_STEP_ANGLE`) or neither end's scan has a hit within :data:`PATH_RADIUS` of it
+#: (a straight step may pass close to a hit the robot then drove through: a person, a door).
+#: Measured in docs/choices.md, "The robot's body round its path".
 SURE_PATH_STEP: float = 1.5
 
 #: A planar scan's step is straight driving when both ends' headings lie within this many degrees
-#: of the step's direction, forward or backward (the corridor's straight steps over a held-out
-#: scan: 2-10 degrees; turns in the logs' every-10th splits: up to 73).
+#: of the step's direction, forward or backward: between the few degrees of straight steps over a
+#: held-out scan and the tens of degrees of turns (docs/choices.md, "The robot's body round its
+#: path" and "Measured for the code").
 STRAIGHT_STEP_ANGLE: float = 30.0
 
 #: How far (metres) the robot may have strayed from a straight step. An arc that leaves and
 #: reaches a step of length L at an angle a to it lies at most (L / 2) tan(a / 2) from it; this
-#: is that distance for the longest step and the angle above (0.33 m), so a straight step longer
-#: than :data:`MAX_PATH_STEP` holds its ends' headings closer to it (19 degrees at 4 m, 15 at 5 m).
+#: is that distance for :data:`MAX_PATH_STEP` and the angle above, so a longer straight step
+#: holds its ends' headings closer to it.
 STRAIGHT_STEP_STRAY: float = MAX_PATH_STEP / 2 * float(np.tan(np.radians(STRAIGHT_STEP_ANGLE) / 2))
 
 #: The robot's body round its path (metres): the cells the path crosses, shifted by up to this
 #: much, count its steps (:meth:`RayEvidence.path_passes`). Any robot that carries a planar lidar
-#: is wider than 0.2 m, so these cells were inside it. Held-out hits this close to a log's training
-#: path are 0-0.15 % of them on the shared logs (FR079's people beside the robot); the Stage
-#: arena's robot passes closer to its walls (1 held-out hit within 0.1 m, 10 within 0.15 m).
+#: is wider than twice this, so these cells were inside it; few held-out hits lie this close to a
+#: training path (docs/choices.md, "The robot's body round its path").
 PATH_RADIUS: float = 0.1
 
 #: A miss whose cell centre lies within this distance (metres) of its beam's returned end is a
 #: near miss (see the module's docstring): about the range noise and footprint of a 2-D or 3-D
-#: lidar's return at a few metres, a few cells of the 5 cm (10 cm in 3-D) count lattices. On
-#: every shared log and split, 0.1 and 0.2 m both cut the held-out log loss and tie; 0.3 m cuts
-#: it less on 11 of 12 (``benchmarks/near_misses.py``, docs/choices.md).
+#: lidar's return at a few metres, a few cells of the count lattices. Chosen with
+#: ``benchmarks/near_misses.py`` (docs/choices.md, "Near misses").
 NEAR_END: float = 0.2
 
 #: Whether a scan's update of a cell is shared between hit, miss and near miss in proportion to its
@@ -566,8 +562,8 @@ def _batches(grid: AnyGrid, starts: NDArray[np.float64], ends: NDArray[np.float6
 
 
 def _unique(keys: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Sorted distinct values: one sort and a comparison (numpy's hash-based unique measured
-    several times slower on the tens of millions of keys a whole log gives)."""
+    """Sorted distinct values: one sort and a comparison, much cheaper than :func:`numpy.unique`
+    on the tens of millions of keys a whole log gives (docs/choices.md, "Measured for the code")."""
     return _distinct(np.sort(keys))
 
 

@@ -1,75 +1,31 @@
 """The GP map as the prior of a fine grid: the GP's probability updated by each cell's ray counts.
 
-Model. The occupancy of a fine cell (5 cm by default) is a Beta variable whose mean is the GP's
-probability p_gp there, with an equivalent sample size n0; every scan that ended a beam in the cell
-is a hit worth ``hit_weight`` observations, every scan that saw through it a miss, a scan
-whose beams crossed it only just before their returned ends (a near miss,
-:data:`~gpomap.evidence.NEAR_END`) a miss worth ``near_weight`` and ``near_hit_weight``
-observations of a surface besides, and a far miss of a cell with a hit in it or beside it (a
-surface miss, :func:`~gpomap.evidence.next_to_hits`) a miss worth ``surface_weight``. Its
-posterior mean is
+The GP is smooth and carries the map across gaps; the counts of :mod:`gpomap.evidence` are what
+make walls as sharp as the cells where beams went. Each fine cell's probability is the posterior
+mean of a Beta prior centred on the GP's probability p_gp, with n0 the prior's weight, updated by
+its weighted hits and misses (:class:`EvidenceCalibration`):
 
     p = (hit_weight * hits + near_hit_weight * near misses + n0 * p_gp)
         / (hit_weight * hits + near_hit_weight * near misses + far misses
            + surface_weight * surface misses + near_weight * near misses + n0),
 
-the far misses here those that are not surface misses.
+the far misses here those that are not surface misses (:func:`surface_misses`); each step of the
+robot's path through a cell adds :data:`PATH_HITS` hits' worth of misses. Where no beam went, p
+is the GP's probability for unseen space (:mod:`gpomap.extrapolation`); far from all data, 0.5.
+Every probability is then mixed with a surprise rate (:func:`with_surprises`) and mapped
+through a later visit's recalibration (:mod:`gpomap.revisit`).
 
-Where no beam went, p is the GP's probability for unseen space (its latent variance scaled by the
-factor fitted on held-out stretches of the log, :mod:`gpomap.extrapolation`), next to surfaces
-and behind them too: at natural class frequencies neither a gain near hits, nor a prior behind
-surfaces, nor a cut of the GP's lean towards free paid for itself (docs/choices.md). Where many beams went, the counts decide and walls
-are as sharp as the cells; the GP carries the map across gaps, and far from all data it returns
-its prior, 0.5.
+The weights are fitted on the map's own scans, a sample of them held out in turn from the
+counts (exact: counts add over scans), never on a test set (:func:`fit_calibration`). The GP's
+own probability is not re-tempered there, as its points were the GP's training data, and its
+variance scale for unseen space is kept to the cells it was fitted for. :class:`EvidenceLayer`
+keeps the counts on a growing lattice, adds scans and writes grids.
 
-The robot's own path is evidence too: the robot's body passed there, so each step of the path
-through a cell (or within :data:`~gpomap.evidence.PATH_RADIUS` of it) counts as
-:data:`PATH_HITS` hits' worth of misses. Whatever ended beams in a cell the robot drove through
-had moved (a person walking by, a door) or was a pose error, so a few such hits cannot make the
-robot's own corridor an obstacle.
-
-Surprises. A share eps of observations is taken to be ones the counts cannot foresee, a person
-where every scan saw free space or a door that closed, so every probability is
-``eps / 2 + (1 - eps) p``, eps one in a hundred (:data:`SURPRISE_RATE`), so no cell is surer than
-0.995. Asked to (``fit_surprise_rate``), a planar map fits eps on its own scans, as the weights are
-but against a GP that never saw the held-out scans (:func:`fit_surprise_rate`), never below the
-prior: a museum's visitors, a conference centre's crowd raise it to 0.015-0.04.
-
-A later visit. Last, :class:`EvidenceLayer` maps every probability through its ``revisit``, a
-monotone recalibration that keeps 1/2, fitted on a stretch of the log held out from a second fit
-of the map (:mod:`gpomap.revisit`): the weights below are fitted on scans held out one at a time,
-whose neighbours in time still count, and a later visit meets what appeared since.
-
-Calibration. The five weights are fitted on the map's own data, never on a test set: for a
-sample of the training scans, the scan's own beams are removed from the counts (leave one scan
-out, exact because counts add over scans), and its hits and free points along its beams
-(class-balanced, as an evaluation would score them) are predicted from the rest. The unit is a
-far miss of a cell with no hit in it or beside it: a beam saw through open space. Next to a
-surface a far miss says much less: a beam passing along a wall crosses the cell in front of it,
-which a beam from elsewhere ends in, so a surface miss comes out worth 0.02-0.3 of one on all
-but a museum's log (0.5-0.8), and one hit tens of surface misses (12-170 on the logs measured;
-OctoMap encodes the same asymmetry, more mildly, with +0.85 against -0.4 log-odds). Weighing
-them apart lowered the held-out log loss on 21 of 26 log-splits (docs/choices.md); planar maps
-only (:data:`FIT_SURFACE_WEIGHT`). Near misses come out worth at most 0.7 of a surface miss
-(0.003-0.7): a beam ending a few centimetres past a cell says little of whether the surface is
-in it, and weighed apart they let the hit weight fall, so fewer misses clear a cell a transient
-once stood in (``benchmarks/near_misses.py``). As evidence of a surface a near miss weighs next
-to nothing on most logs, but 2-6 % of a hit on a log whose walls smear across scans (Acapulco:
-there the cell a beam ended just beyond is often another scan's hit, and counting it so took its
-held-out ECE from 0.074 to 0.033).
-
-The GP's own probability is not re-tempered here: its points were part of the GP's training data,
-so a temperature fitted on them trusts the GP more than it deserves where no other scan looked
-(measured on Intel scans 0-400, blocks of 40: a fitted temperature of 1.6 gave held-out log loss
-0.177 overall and 0.86 on points no training beam reached, against 0.165 and 0.66 without). The
-GP is calibrated by its own squash, fitted on leave-one-out moments of its cells.
-
-That squash is too sure in large gaps, where no training beam went: there the map takes the GP's
-probability for unseen space instead, whose variance scale was fitted on exactly such points of
-held-out stretches of the log (:mod:`gpomap.extrapolation`). Applied everywhere, a scale of 290
-blurred the cells next to walls that have few counts (MIT CSAIL, blocks of 40: log loss 0.168 ->
-0.237, measured with another change; see docs/choices.md), so it is kept to the cells it was
-fitted for.
+Why each part, and what it was measured to be worth: docs/choices.md, "The map is the GP as the
+prior of a fine grid" and the sections after it ("Shared updates", "Near misses", "A near miss is
+part of a hit too", "A far miss beside a hit is weighed apart", "The robot's body round its
+path"), "One observation in a hundred is a surprise" and "The map's probabilities for a later
+visit"; for point clouds, docs/3d.md.
 """
 
 from __future__ import annotations
@@ -108,18 +64,12 @@ from gpomap.resources import WRITTEN_BAND_CELLS, SpillFile, release_freed_memory
 from gpomap.revisit import RevisitCalibration
 from gpomap.scans import Scan
 
-#: One observation in this many is a surprise the counts cannot foresee (a person standing where
+#: The share of observations that are surprises the counts cannot foresee (a person standing where
 #: every scan saw free space, a door, a pose error), so a map's probabilities are
-#: ``SURPRISE_RATE / 2 + (1 - SURPRISE_RATE) * p``: within [0.005, 0.995], as OctoMap clamps its
-#: log-odds (to [0.12, 0.97]), if far less tightly. A prior, not a fit: the training log does not
-#: show the visitors a later stretch meets (fitted on its own data it came out 1e-4 to 1e-3).
-#: Chosen on the written 0.05 m maps of 26 log-splits (the shared logs and seven unseen Radish
-#: logs, both splits of benchmarks/quality.py, the weights refitted with each rate): mean log
-#: loss 0.1666 at 1e-3, 0.1628 at 4e-3, 0.1611 at 1e-2 and 0.1612 at 2e-2 (mean ECE 0.0289,
-#: 0.0290, 0.0299, 0.0321); 1e-2 is the smallest of them at which every log-split's log loss is
-#: below every grid's (a museum's blocks split, whose visitors stood where the training scans saw
-#: free space: 0.486, 0.433, 0.396; the best grid's 0.433). The cost falls on the cleanest maps,
-#: up to 0.004 in log loss and ECE (docs/choices.md).
+#: ``SURPRISE_RATE / 2 + (1 - SURPRISE_RATE) * p``, as OctoMap clamps its log-odds, if far less
+#: tightly. A prior, not a fit: the training log does not show the visitors a later stretch
+#: meets. Chosen across logs for the lowest mean held-out log loss of the written maps
+#: (docs/choices.md, "One observation in a hundred is a surprise").
 SURPRISE_RATE: float = 1e-2
 
 #: Largest surprise rate a map may fit (:func:`fit_surprise_rate`); its floor is :data:`SURPRISE_RATE`.
@@ -128,10 +78,9 @@ MAX_SURPRISE_RATE: float = 0.3
 #: Whether a map of this dimension can fit its surprise rate on its own scans, when its settings ask
 #: (``fit_surprise_rate``; :func:`fit_surprise_rate`). The calibration's leave-one-scan-out points,
 #: predicted by a GP fitted without those scans, show how often a log's observations are surprises:
-#: 0.015-0.033 on a museum's and a conference centre's logs, where the prior's 0.01 had made the map
-#: too sure of cells visitors later stood in (the museum's held-out log loss 0.394 -> 0.347 with
-#: blocks of scans held out, 0.213 -> 0.204 with every 10th), below the prior on the other logs
-#: measured (docs/choices.md). Planar maps: not measured on point clouds, which keep the prior.
+#: above the prior where visitors crowd a log, where the prior had made the map too sure of cells
+#: they later stood in (docs/choices.md, "The surprise rate, fitted per map"). Planar maps: not
+#: measured on point clouds, which keep the prior.
 FIT_SURPRISE_RATE: dict[int, bool] = {2: True, 3: False}
 
 
@@ -191,9 +140,8 @@ def gp_sampling_factor(length_scale: float, resolution: float) -> int:
 
 #: Hits one step of the robot's path through a cell outweighs (as misses, :meth:`EvidenceCalibration.misses`).
 #: The robot's body was there, which no beam can say; but a pose error or a cell shared with a
-#: wall's edge should not be cleared outright. The cells the robot drove through that the map
-#: still called occupied held 3-4 training hits against 20-36 misses (FR079, Intel), at a hit
-#: weight of about 32: one step worth one hit left them at p 0.66-0.78, ten leave them free.
+#: wall's edge should not be cleared outright. One hit's worth left the path cells that held a
+#: few hits occupied; ten clear them (docs/choices.md, "The robot's body round its path").
 PATH_HITS: float = 10.0
 
 #: Whether the ternary map, per dimension of the data, never calls occupied a cell no beam ended in
@@ -403,9 +351,9 @@ def fit_calibration(
     fit_surface = FIT_SURFACE_WEIGHT.get(pts.shape[1], False)
     h, m, near, surface = _other_scans_counts(evidence, grid, whole, pts, scan_of[keep], fit_surface)
     # A point no other scan counted (no hit, no miss) has p = p_gp whatever the weights: a constant
-    # of the loss, so the GP is not predicted there (44 % of la3dm sim_structured's 20,000 points,
-    # 78 % of sim_unstructured's). The loss below is the whole sample's mean less that constant:
-    # the same minimiser, the same optimiser steps.
+    # of the loss, so the GP is not predicted there (most of a point cloud's points; docs/3d.md).
+    # The loss below is the whole sample's mean less that constant: the same minimiser, the same
+    # optimiser steps.
     counted = (h > 0) | (m > 0)
     n_points = int(occ.size)
     if not counted.any():
@@ -444,8 +392,8 @@ def fit_calibration(
     # Where surface misses are not weighed apart, their weight is held at a miss's.
     bounds = CALIBRATION_BOUNDS if fit_surface else (*CALIBRATION_BOUNDS[:4], (0.0, 0.0))
     # With the exact gradient and a tight tolerance the weights are the optimum's, not where a
-    # search on finite differences stopped (which, with three weights, left the hit weight 3e-6
-    # apart for GP probabilities 1e-13 apart, tile factors of another BLAS thread count).
+    # search on finite differences stopped, which moved with the GP's round-off (tile factors of
+    # another BLAS thread count; docs/choices.md, "Measured for the code").
     res = minimize(loss, x0, jac=True, method="L-BFGS-B", bounds=bounds, options={"ftol": 1e-15, "gtol": 1e-10})
     fitted = EvidenceCalibration(*(float(v) for v in np.exp(res.x)))
     scale = n_points / occ.size  # from the sample's sum to the mean over the counted points
@@ -580,9 +528,9 @@ def _predict_block(
     """`predict_gp` at the centres of `block` of `sampled` only, each result of shape sampled.shape.
 
     The cells outside the block (the :func:`~gpomap.lattice.coarse` lattice's outer samples,
-    which the interpolation reads with weight 0 or not at all: 23 % of la3dm sim_structured's
-    21,756 GP samples, 9 % of geb079's 725,841) take their nearest block cell's values, so that
-    they are finite and the interpolated grid is the same as with every sample predicted.
+    which the interpolation reads with weight 0 or not at all; their share is in docs/3d.md)
+    take their nearest block cell's values, so that they are finite and the interpolated grid is
+    the same as with every sample predicted.
 
     Parameters
     ----------
@@ -941,9 +889,8 @@ class EvidenceLayer:
         the whole grid would take (the band's rows a whole number of variance samples): the
         same map, up to the local prediction's tolerance and the round-off of the samples'
         coordinates. That round-off can turn which of two tiles' cores is nearer to a sample
-        no tile reaches, when they are as near to it (the nearest predicts it alone): on the
-        Freiburg campus log's 36 million cells, 202 far from the data moved by more than 1e-4,
-        by 0.024 at most, and one changed its ternary class.
+        no tile reaches, when they are as near to it (the nearest predicts it alone), which moves
+        a few cells far from the data (docs/choices.md, "The written map in bands of rows").
 
         Parameters
         ----------
@@ -967,8 +914,8 @@ class EvidenceLayer:
             return self._written_block(grid, factor, predict_gp, moments)
         seen = SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False)
         # Each band's rows wait in a temporary file until the last band is done, so the whole
-        # grid (16 bytes a cell, 0.75 GB over a building at 0.05 m) and one band's temporaries
-        # are never in memory together.
+        # grid (16 bytes a cell) and one band's temporaries are never in memory together
+        # (docs/choices.md, "Measured for the code").
         done = SpillFile()
         bands: list[tuple[int, int, tuple[int, int], tuple[int, int], tuple[int, int] | None]] = []
         # Cells off the counted lattice are counted afresh, a traversal of every beam: once for
