@@ -1,0 +1,221 @@
+"""``gpomap convert INPUT -o OUTDIR``: an occupancy grid or an OctoMap tree turned into a continuous GP map.
+
+A ROS map_server map or a gpomap ``.npz`` becomes one GP over its cells (:mod:`gpomap.convert`),
+written as ``gpomap map`` writes a planar map; an OctoMap ``.bt`` / ``.ot`` becomes a voxel map
+(:mod:`gpomap.convert3d`), one GP or, when its cells are more than ``--max-cells``, tiles of at
+most that many, written as ``gpomap map`` writes a 3-D map. The output grid and the GP are
+checked against the memory limit before the fit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpomap.cli.common import (
+    EXIT_OK,
+    Run,
+    check_before_work,
+    check_fit_memory,
+    check_grid_memory,
+    check_voxel_memory,
+    outputs,
+    report_fit,
+    status,
+)
+from gpomap.cli.options import Default, add_3d_output_options, add_output_options, check_2d_options, positive
+from gpomap.config import DEFAULT_MAX_CELLS
+from gpomap.errors import GpomapError
+
+__all__ = ["add_parser", "run", "convert_options"]
+
+
+def add_parser(sub: Any) -> argparse.ArgumentParser:
+    """Register ``gpomap convert`` on the subparsers of :func:`gpomap.cli.build_parser`."""
+    p: argparse.ArgumentParser = sub.add_parser(
+        "convert",
+        help="turn an occupancy grid into a continuous GP map",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Read a ROS map_server map (or a gpomap .npz), merge its known pixels into cells, fit "
+        "the GP and write the continuous map at any resolution.",
+        epilog="examples:\n  gpomap convert ../shared/data/turtlebot3-world-map/map.yaml -o tb3 --resolution 0.025\n"
+        "  gpomap convert ../shared/data/octomap/geb079.bt -o geb --resolution 0.04 --extent 5,6,-1.5,1.5",
+    )
+    p.add_argument("input", help="map.yaml (ROS map_server), map.npz, or an OctoMap tree (.bt, .ot)")
+    p.add_argument("--kernel", choices=["se", "matern32"], help="point kernel (default: se, measured best for grids)")
+    p.add_argument(
+        "--values",
+        choices=["auto", "fraction", "ternary"],
+        default="auto",
+        help="grids: a pixel's value is the fraction of it that is occupied, or free / occupied / unknown by the "
+        "thresholds (auto: ternary for trinary ROS maps and gpomap's own maps, else fraction; docs/convert.md)",
+    )
+    p.add_argument(
+        "--occupied-fraction",
+        type=positive(float),
+        metavar="F",
+        help="grids of 0s and 1s: what an occupied pixel holds (default: 0.7; 1.0 for grids pooled by majority)",
+    )
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_output_options(p, None)
+    # The options of octrees only.
+    add_3d_output_options(p).add_argument(
+        "--max-cells",
+        type=positive(int),
+        default=Default(DEFAULT_MAX_CELLS),
+        help="octree: most cells of one GP; a larger region is converted in tiles of at most this many (default: %(default)s)",
+    )
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``gpomap convert``."""
+    from gpomap.convert import convert_grid, converter_for, grid_to_observations, load_grid, output_grid
+    from gpomap.io.export import write_map_files
+
+    check_before_work(args)
+    if _is_octree_input(args.input):
+        return _convert_octree(args)
+    check_2d_options(args)
+    if "max_cells" not in args.library_defaults:
+        raise GpomapError(f"--max-cells is for OctoMap trees; {args.input} is converted as one GP over its cells")
+    status(args, f"converting {args.input}...")
+    options = convert_options(args)
+    # Read once, check the memory the output grid and the GP need, then convert what was read.
+    source = load_grid(args.input)
+    spec = output_grid(source.grid, args.resolution, args.extent)
+    if args.resolution is None:
+        args.resolution = spec.resolution  # the source's pixel size (named in the messages)
+    check_grid_memory(args, spec.shape, spec.extent, 0)
+    # The converter's own inputs (wall-aware, several per wall pixel), not a plain cell tree's.
+    n_cells = len(converter_for(source.grid.resolution, **options).make_cells(grid_to_observations(source, args.values)))
+    check_fit_memory(args, n_cells, 1, f"one GP over the cells of {args.input}")
+    check_grid_memory(args, spec.shape, spec.extent, n_cells)
+    result = convert_grid(source, resolution=args.resolution, extent=args.extent, values=args.values, **options)
+    with outputs(args) as output:
+        staged = write_map_files(
+            result.map, output.path, pgm_mode=args.pgm_mode, title=f"gpomap convert: {Path(args.input).name}"
+        )
+    files = [output.final(f) for f in staged]
+    report_fit(result.model, result.map)
+    r = result.report
+    print(json.dumps(r, indent=2, default=str) if args.json else _convert_text(r))
+    for f in files:
+        print(f"wrote        {f}")
+    return EXIT_OK
+
+
+def convert_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The model options of ``gpomap convert`` (the rest are the converter's own, see gpomap.convert.model_defaults)."""
+    options: dict[str, Any] = {"thresholds": args.thresholds}
+    if args.kernel:
+        options["kernel"] = args.kernel
+    if args.occupied_fraction is not None:
+        if args.occupied_fraction > 1:
+            raise GpomapError(f"--occupied-fraction must be in (0, 1], got {args.occupied_fraction:g}")
+        options["occupied_fraction"] = args.occupied_fraction
+    return options
+
+
+def _convert_text(report: dict[str, Any]) -> str:
+    """The report of a grid's conversion (:attr:`gpomap.convert.ConversionResult.report`) as text."""
+    px, cells, agree = report["pixels"], report["cells"], report["agreement"]
+    hp = report["hyperparameters"]
+    return "\n".join(
+        [
+            f"pixels       {px.get('free')} free, {px.get('occupied')} occupied, {px.get('unknown')} unknown",
+            f"cells        {cells.get('n')}",
+            "hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()),
+            f"agreement    {100 * agree['ternary']:.2f} % of known pixels keep their label (AUC {agree['auc']:.4f})",
+            "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in report["timings"].items() if isinstance(v, float)),
+        ]
+    )
+
+
+# --------------------------------------------------------------------------- OctoMap trees
+def _is_octree_input(path: str) -> bool:
+    """Whether `path` names an OctoMap file (by its suffix; the reader checks the content)."""
+    return Path(path).suffix.lower() in (".bt", ".ot")
+
+
+def _corners(args: argparse.Namespace) -> tuple[np.ndarray, np.ndarray]:
+    """The region's corners, shape (3,) each, from ``--extent`` and ``--z-range`` (NaN: the tree's bound)."""
+    lo, hi = np.full(3, np.nan), np.full(3, np.nan)
+    if args.extent is not None:
+        lo[:2], hi[:2] = (args.extent[0], args.extent[2]), (args.extent[1], args.extent[3])
+    if args.z_range is not None:
+        lo[2], hi[2] = args.z_range
+    return lo, hi
+
+
+def _convert_octree(args: argparse.Namespace) -> int:
+    """Run ``gpomap convert`` on an OctoMap file (the output directory is checked already).
+
+    The region converted is the tree's extent, or ``--extent`` (x, y) and ``--z-range`` (z); the
+    voxel grid and then the largest GP are checked against the memory limit before the fit, and
+    the agreement with the octree's known voxels is printed.
+    """
+    from gpomap.convert3d import convert_octree, region
+    from gpomap.io.octomap import read_octree
+    from gpomap.io.voxel_outputs import write_voxel_outputs
+
+    for name in ("values", "occupied_fraction"):
+        if getattr(args, name, None) not in (None, "auto"):
+            raise GpomapError(f"--{name.replace('_', '-')} is for grids; {args.input} is an OctoMap tree")
+    status(args, f"reading the octree {args.input}...")
+    tree = read_octree(args.input)
+    lo, hi = region(tree, *_corners(args))
+    if args.resolution is None:
+        args.resolution = tree.resolution  # the tree's voxel (named in the messages)
+    check_voxel_memory(args, lo, hi, 0)
+    status(args, f"  {tree.n_leaves} leaves of {tree.resolution:g} m; converting at {args.resolution:g} m...")
+
+    def before_fit(n_cells: int) -> None:
+        check_fit_memory(args, n_cells, 1, f"one GP over the cells of {args.input}")
+        check_voxel_memory(args, lo, hi, n_cells)
+        status(args, f"  at most {n_cells} cells in one GP; fitting...")
+
+    options = convert_options(args)
+    result = convert_octree(tree, args.resolution, lo, hi, max_cells=args.max_cells, before_fit=before_fit, **options)
+    Run.outdir = args.output
+    files = write_voxel_outputs(result.map, args.output, heights=args.slices, title=f"gpomap convert: {Path(args.input).name}")
+    report_fit(result.model, result.map)
+    r = result.report
+    print(json.dumps(r, indent=2, default=str) if args.json else _octree_text(r))
+    print("\n".join(f"wrote        {f}" for f in files))
+    return EXIT_OK
+
+
+def _octree_text(report: dict[str, Any]) -> str:
+    """The report of an octree's conversion (:func:`gpomap.convert3d.convert_octree`) as text."""
+    lv, vx, cells, agree = report["leaves"], report["voxels"], report["cells"], report["agreement"]
+    lo, hi = report["region"]["lower"], report["region"]["upper"]
+    nz, ny, nx = report["grid"]["shape"]
+    lines = [
+        f"octree       {lv['n']} leaves ({lv['occupied']} occupied, {lv['free']} free) of {vx['resolution']:g} m",
+        f"region       x {lo[0]:.4g}..{hi[0]:.4g}, y {lo[1]:.4g}..{hi[1]:.4g}, z {lo[2]:.4g}..{hi[2]:.4g} m; "
+        f"trained on {vx['occupied']} occupied and {vx['free']} free voxels in it and around it",
+        f"cells        {cells['n']} ({cells['occupied']} occupied, {cells['ambiguous']} from ambiguous min-size cells)",
+        "hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in report["hyperparameters"].items()),
+    ]
+    if "ternary" in agree:
+        lines.append(
+            f"agreement    {100 * agree['ternary']:.2f} % of {agree['n_checked']} known voxels keep their label "
+            f"(free {100 * agree['free']:.2f} %, occupied {100 * agree['occupied']:.2f} %; AUC {agree['auc']:.4f})"
+            + (f", a sample of {agree['n_known']}" if agree["n_checked"] < agree["n_known"] else "")
+        )
+    tiles = report.get("tiles")
+    if tiles:
+        lines.append(
+            f"tiles        {tiles['tiles_fitted']} columns of {tiles['tile_size']:g} m fitted one after another "
+            f"(at most {tiles['largest_tile_cells']} cells each; {tiles['tiles']} blended)"
+        )
+    lines.append(f"voxels       {nx} x {ny} x {nz} of {report['grid']['resolution']:g} m")
+    lines.append("timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in report["timings"].items()))
+    return "\n".join(lines)
