@@ -16,8 +16,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.cm import ScalarMappable
 from matplotlib.collections import PatchCollection
+from matplotlib.colorbar import Colorbar
 from matplotlib.colors import BoundaryNorm, ListedColormap, to_rgb
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
@@ -52,15 +55,15 @@ def _new_figure(width: float, height: float) -> Figure:
     return fig
 
 
-def _colorbar(fig: Figure, ax, mappable, label: str):
+def _colorbar(fig: Figure, ax: Axes, mappable: ScalarMappable, label: str) -> Colorbar:
     """A colour bar in an inset beside `ax`, so that ``fig.axes`` holds only the panels."""
-    cax = ax.inset_axes([1.03, 0.0, 0.045, 1.0])
+    cax = ax.inset_axes((1.03, 0.0, 0.045, 1.0))
     cbar = fig.colorbar(mappable, cax=cax)
     cbar.set_label(label)
     return cbar
 
 
-def _draw_path(ax, path: NDArray[np.float64], legend: bool) -> None:
+def _draw_path(ax: Axes, path: NDArray[np.float64], legend: bool) -> None:
     ax.plot(path[:, 0], path[:, 1], "-", color=_PATH_COLOUR, lw=1.3, label="robot path" if legend else None)
     ax.plot(path[0, 0], path[0, 1], "o", color=_PATH_COLOUR, ms=5, mec="k", mew=0.6, label="start" if legend else None)
 

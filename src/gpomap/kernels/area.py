@@ -155,9 +155,12 @@ class AreaKernel:
         if self.normalisation == "sum":
             scale = np.outer(A.counts, B.counts)
             K = K * scale
-            if eval_gradient:
+            if dK is not None:  # with eval_gradient
                 dK = dK * scale[:, :, None]
-        return (K, dK) if eval_gradient else K
+        if not eval_gradient:
+            return K
+        assert dK is not None  # returned with eval_gradient
+        return K, dK
 
     def prepare(self, A: Supports) -> TensorDistances | None:
         """What :meth:`gram_and_length_scale_gradient` of `A` can reuse from one set of hyperparameters to the next.
@@ -254,7 +257,7 @@ class AreaKernel:
             )
         return K
 
-    def _exact(self, A: Supports, B: Supports, eval_gradient: bool):
+    def _exact(self, A: Supports, B: Supports, eval_gradient: bool) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         if not eval_gradient and len(A) and len(B):
             # Boxes against points (prediction): one erf table per axis, the same numbers.
             if np.array_equal(B.lower, B.upper):

@@ -95,7 +95,16 @@ def interval_average(
     return F, dF
 
 
-def _block(a_lo, a_hi, a_point, b_lo, b_hi, b_point, l, eval_gradient):
+def _block(
+    a_lo: NDArray[np.float64],
+    a_hi: NDArray[np.float64],
+    a_point: bool,
+    b_lo: NDArray[np.float64],
+    b_hi: NDArray[np.float64],
+    b_point: bool,
+    l: float,
+    eval_gradient: bool,
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
     """One block of `interval_average` where each side is all points or all intervals."""
     if a_point and b_point:
         u = 0.5 * (a_lo + a_hi)[:, None] - 0.5 * (b_lo + b_hi)[None, :]

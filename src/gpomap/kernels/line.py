@@ -281,7 +281,14 @@ def se_point_segment(
     return F, gauss * (q * inner + dinner)
 
 
-def _interval_pairs(a0, a1, b0, b1, l, eval_gradient):
+def _interval_pairs(
+    a0: NDArray[np.float64],
+    a1: NDArray[np.float64],
+    b0: NDArray[np.float64],
+    b1: NDArray[np.float64],
+    l: float,
+    eval_gradient: bool,
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
     """Elementwise mean of exp(-(s - t)^2 / (2 l^2)) over s in [a0, a1], t in [b0, b1].
 
     All arrays of one shape, ``a1 >= a0`` and ``b1 >= b0``; returns (F, dF / dlog l or None).
@@ -295,7 +302,7 @@ def _interval_pairs(a0, a1, b0, b1, l, eval_gradient):
         a, b, c, d = a0[both], a1[both], b0[both], b1[both]
         area = (b - a) * (d - c)
         F[both] = (_g2(b - c, l) - _g2(a - c, l) - _g2(b - d, l) + _g2(a - d, l)) / area
-        if eval_gradient:
+        if dF is not None:
             dF[both] = (_dg2_dlogl(b - c, l) - _dg2_dlogl(a - c, l) - _dg2_dlogl(b - d, l) + _dg2_dlogl(a - d, l)) / area
     one = pa ^ pb
     if one.any():
@@ -305,13 +312,13 @@ def _interval_pairs(a0, a1, b0, b1, l, eval_gradient):
         c = np.where(apt, b0[one], a0[one])
         d = np.where(apt, b1[one], a1[one])
         F[one] = (_g1(d - x, l) - _g1(c - x, l)) / (d - c)
-        if eval_gradient:
+        if dF is not None:
             dF[one] = (_dg1_dlogl(d - x, l) - _dg1_dlogl(c - x, l)) / (d - c)
     none = pa & pb
     if none.any():
         q = ((0.5 * (a0[none] + a1[none] - b0[none] - b1[none])) / l) ** 2
         F[none] = np.exp(-0.5 * q)
-        if eval_gradient:
+        if dF is not None:
             dF[none] = F[none] * q
     return F, dF
 
@@ -355,7 +362,7 @@ def se_parallel_pairs(
     gauss = np.exp(-0.5 * q)
     inner, dinner = _interval_pairs(np.zeros_like(La), La, np.minimum(ts, te), np.maximum(ts, te), l, eval_gradient)
     F = gauss * inner
-    return F, (gauss * (q * inner + dinner) if eval_gradient else None)
+    return F, (gauss * (q * inner + dinner) if dinner is not None else None)  # dinner: with eval_gradient
 
 
 def _lex_less_equal(A: Segments, B: Segments, ia: NDArray[np.intp], ib: NDArray[np.intp]) -> NDArray[np.bool_]:
@@ -500,9 +507,14 @@ class LineKernel:
             K = K * scale
             if dK is not None:
                 dK = dK * scale[:, :, None]
-        return (K, dK) if eval_gradient else K
+        if not eval_gradient:
+            return K
+        assert dK is not None  # returned with eval_gradient
+        return K, dK
 
-    def _se(self, A: Segments, B: Segments, eval_gradient: bool, same: bool):
+    def _se(
+        self, A: Segments, B: Segments, eval_gradient: bool, same: bool
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """SE: closed form for point and parallel pairs, GL along the shorter segment otherwise."""
         var, l = self.base.variance, self.base.length_scale
         n, m = len(A), len(B)

@@ -244,7 +244,9 @@ class SquaredExponential(PointKernel):
 
     name = "se"
 
-    def values(self, d2, eval_gradient=False):
+    def values(
+        self, d2: NDArray[np.float64], eval_gradient: bool = False
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         l2 = self.length_scale**2
         K = self.variance * np.exp(-0.5 * d2 / l2)
         # d/dlog(l) = K * r^2 / l^2.
@@ -255,7 +257,13 @@ class SquaredExponential(PointKernel):
         """1 / l: k = variance * exp(-u^2 / 2) with u = r / l (see :meth:`PointKernel.unit_scale`)."""
         return 1.0 / self.length_scale
 
-    def unit_profile_into(self, u2, out, grad=None, work=None):
+    def unit_profile_into(
+        self,
+        u2: NDArray[np.float64],
+        out: NDArray[np.float64],
+        grad: NDArray[np.float64] | None = None,
+        work: NDArray[np.float64] | None = None,
+    ) -> None:
         np.multiply(u2, -0.5, out=out)
         np.exp(out, out=out)
         if grad is not None:
@@ -268,7 +276,9 @@ class Matern32(PointKernel):
 
     name = "matern32"
 
-    def values(self, d2, eval_gradient=False):
+    def values(
+        self, d2: NDArray[np.float64], eval_gradient: bool = False
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         s = np.sqrt(3.0 * d2) / self.length_scale
         e = np.exp(-s)
         K = self.variance * (1.0 + s) * e
@@ -280,7 +290,13 @@ class Matern32(PointKernel):
         """sqrt(3) / l: k = variance * (1 + u) exp(-u) with u = sqrt(3) r / l (see :meth:`PointKernel.unit_scale`)."""
         return math.sqrt(3.0) / self.length_scale
 
-    def unit_profile_into(self, u2, out, grad=None, work=None):
+    def unit_profile_into(
+        self,
+        u2: NDArray[np.float64],
+        out: NDArray[np.float64],
+        grad: NDArray[np.float64] | None = None,
+        work: NDArray[np.float64] | None = None,
+    ) -> None:
         u = np.empty_like(u2) if work is None else work
         np.sqrt(u2, out=u)
         # e^-u into grad when the gradient is asked for (it needs u^2 after), else where u^2 was.
@@ -293,7 +309,13 @@ class Matern32(PointKernel):
             # d/dlog(l) of (1 + u) e^-u with du/dlog(l) = -u is u^2 e^-u.
             grad *= u2
 
-    def unit_profile_from_negated_distance_into(self, v, out, grad=None, work=None):
+    def unit_profile_from_negated_distance_into(
+        self,
+        v: NDArray[np.float64],
+        out: NDArray[np.float64],
+        grad: NDArray[np.float64] | None = None,
+        work: NDArray[np.float64] | None = None,
+    ) -> None:
         e = np.empty_like(v) if work is None else work
         np.exp(v, out=e)
         # (1 + u) e^-u = e^-u - v e^-u and u^2 e^-u = (v e^-u) v, with v = -u.
