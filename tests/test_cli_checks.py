@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from gpomap import cli, resources
+from gpomap.cli.map import model as map_model
+from gpomap.cli.options import non_negative, number, positive, resolve_library_defaults, tiling_config
 from gpomap.errors import GpomapError
 from gpomap.resources import MemoryLimitError
 
@@ -57,26 +59,24 @@ def test_bad_numbers_are_usage_errors_before_anything_is_read(tmp_path, capsys, 
 
 def test_threads_reach_the_tile_workers():
     args = cli.build_parser().parse_args(["map", "x.log", "-o", "out", "--threads", "3", "--workers", "2"])
-    cli._resolve_library_defaults(args)
-    model = cli._model(args)
+    resolve_library_defaults(args)
+    model = map_model(args)
     assert (model.blas_threads, model.n_workers) == (3, 2)
-    from gpomap.cli.options import tiling_config
-
     assert tiling_config(args).kwargs()["blas_threads"] == 3
     args = cli.build_parser().parse_args(["map", "x.log", "-o", "out"])
-    cli._resolve_library_defaults(args)
-    assert cli._model(args).blas_threads is None  # the cores divided by the workers
+    resolve_library_defaults(args)
+    assert map_model(args).blas_threads is None  # the cores divided by the workers
 
 
 def test_number_type_edges():
-    positive, non_negative = cli._positive(float), cli._non_negative(float)
-    assert positive("1e-9") == 1e-9 and non_negative("0") == 0.0 and cli._number(float)("-3") == -3.0
+    positive_float, non_negative_float = positive(float), non_negative(float)
+    assert positive_float("1e-9") == 1e-9 and non_negative_float("0") == 0.0 and number(float)("-3") == -3.0
     for parse, text in [
-        (positive, "0"),
-        (non_negative, "-0.1"),
-        (positive, "nan"),
-        (cli._number(float), "inf"),
-        (cli._positive(int), "1.5"),
+        (positive_float, "0"),
+        (non_negative_float, "-0.1"),
+        (positive_float, "nan"),
+        (number(float), "inf"),
+        (positive(int), "1.5"),
     ]:
         with pytest.raises(Exception, match="expected"):
             parse(text)
@@ -346,7 +346,7 @@ def test_one_default_kernel():
     default = signature(AreaGPOM).parameters["kernel"].default
     for cmd in (["map", "x", "-o", "o"], ["demo", "-o", "o"], ["evaluate", "--demo"]):
         args = parser.parse_args(cmd)
-        cli._resolve_library_defaults(args)
+        resolve_library_defaults(args)
         assert args.kernel == default, cmd
 
 

@@ -23,10 +23,17 @@ import numpy as np
 import pytest
 
 from gpomap import cli
-from gpomap.apps import stream
-from gpomap.cli.options import cloud_reader_options
+from gpomap.cli.benchmark import benchmark_arguments
+from gpomap.cli.common import load_scans
+from gpomap.cli.convert import convert_options
+from gpomap.cli.evaluate import evaluate_arguments, method_options
+from gpomap.cli.map import model as map_model
+from gpomap.cli.options import Default, cloud_reader_options, map_config, reader_options, resolve_library_defaults, tiling_config
+from gpomap.cli.render import configure
+from gpomap.cli.stream import mapper_from_args
 from gpomap.config import MapConfig, TilingConfig
 from gpomap.errors import GpomapError
+from gpomap.streaming import DEFAULT_TILE_SIZE as STREAM_TILE_SIZE
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "gpomap"
 
@@ -136,7 +143,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _parse(argv: list[str]) -> argparse.Namespace:
     args = _parser().parse_args(argv)
-    cli._resolve_library_defaults(args)
+    resolve_library_defaults(args)
     return args
 
 
@@ -198,7 +205,7 @@ def _reader_snapshot(args: argparse.Namespace, monkeypatch: pytest.MonkeyPatch) 
     out: dict[str, Any] = {}
     for fmt in ("carmen", "rosbag1"):
         monkeypatch.setattr(gpomap.io, "detect_format", lambda path, fmt=fmt: fmt)
-        out[fmt] = cli._reader_options(args, "input")
+        out[fmt] = reader_options(args, "input")
     if hasattr(args, "poses"):  # the 3-D readers of gpomap map
         for fmt in ("pcd", "depth-directory", "rosbag1"):
             monkeypatch.setattr(gpomap.io, "detect_format", lambda path, fmt=fmt: fmt)
@@ -214,36 +221,35 @@ def _handed_to_library(command: str, args: argparse.Namespace, monkeypatch: pyte
     if command == "map":
         args.input = "input.log"
         return {
-            "config": cli._map_config(args),
-            "tiling": cli._tiling_config(args),
-            "model": cli._model(args),
+            "config": map_config(args),
+            "tiling": tiling_config(args),
+            "model": map_model(args),
             "readers": _reader_snapshot(args, monkeypatch),
-            "scans": [(s.n_beams, s.time) for s in cli._load_scans(args)],
+            "scans": [(s.n_beams, s.time) for s in load_scans(args)],
         }
     if command == "demo":
-        return {"config": cli._map_config(args), "tiling": cli._tiling_config(args), "model": cli._model(args)}
+        return {"config": map_config(args), "tiling": tiling_config(args), "model": map_model(args)}
     if command == "info":
         return _reader_snapshot(args, monkeypatch)
     if command == "evaluate":
         return {
-            "arguments": cli._evaluate_arguments(args),
+            "arguments": evaluate_arguments(args),
             "model": _evaluated_model(args),
             "readers": _reader_snapshot(args, monkeypatch),
         }
     if command == "convert":
-        return {"options": cli._convert_options(args), "max_cells": args.max_cells}
+        return {"options": convert_options(args), "max_cells": args.max_cells}
     if command == "benchmark":
-        return cli._benchmark_arguments(args)
+        return benchmark_arguments(args)
     if command == "stream":
         args.input = "input.log"
         return {
-            "mapper": stream.mapper_from_args(args),
+            "mapper": mapper_from_args(args),
             "readers": _reader_snapshot(args, monkeypatch),
-            "scans": [(s.n_beams, s.time) for s in cli._load_scans(args)],
+            "scans": [(s.n_beams, s.time) for s in load_scans(args)],
         }
     if command in ("render", "query", "update"):
-        # A saved map, loaded: the command's settings put on it (gpomap.apps.render.configure).
-        from gpomap.apps.render import configure
+        # A saved map, loaded: the command's settings put on it (gpomap.cli.render.configure).
         from gpomap.mapping import AreaGPOM
 
         model = AreaGPOM()
@@ -254,7 +260,7 @@ def _handed_to_library(command: str, args: argparse.Namespace, monkeypatch: pyte
         return {
             "model": model,
             "readers": _reader_snapshot(args, monkeypatch),
-            "scans": [(s.n_beams, s.time) for s in cli._load_scans(args)],
+            "scans": [(s.n_beams, s.time) for s in load_scans(args)],
         }
     raise AssertionError(f"no check for gpomap {command}: add one to _handed_to_library")
 
@@ -263,8 +269,8 @@ def _evaluated_model(args: argparse.Namespace) -> Any:
     """The unfitted model ``gpomap evaluate`` scores."""
     from gpomap.evaluation import make_model
 
-    a = cli._evaluate_arguments(args)
-    return make_model(a["method"], a["kernel"], a["seed"], a["resolution"], a["n_workers"], **cli._method_options(args))
+    a = evaluate_arguments(args)
+    return make_model(a["method"], a["kernel"], a["seed"], a["resolution"], a["n_workers"], **method_options(args))
 
 
 def _evaluate_methods() -> list[str]:
@@ -324,15 +330,15 @@ def test_map_resolution_reaches_the_written_grid(monkeypatch):
 def test_defaults_are_the_configs(command):
     """Left unset, the model options give the config's defaults: nothing is re-stated in the parser."""
     args = _parse(BASE[command])
-    assert cli._map_config(args) == MapConfig()
+    assert map_config(args) == MapConfig()
     if command == "map":
-        assert cli._tiling_config(args) == TilingConfig()
-    own = {"tile_size": stream.DEFAULT_TILE_SIZE} if command == "stream" else {}  # a streaming map's own tiles
+        assert tiling_config(args) == TilingConfig()
+    own = {"tile_size": STREAM_TILE_SIZE} if command == "stream" else {}  # a streaming map's own tiles
     help_text = " ".join(_subparsers()[command].format_help().split())
     for action in _options(command):
         for config in (MapConfig(), TilingConfig()):
             if action.dest in {f.name for f in dataclasses.fields(config)} and action.default is not None:
-                assert isinstance(action.default, cli._Default), (command, action.dest)
+                assert isinstance(action.default, Default), (command, action.dest)
                 assert action.default.value == own.get(action.dest, getattr(config, action.dest)), (command, action.dest)
                 if action.nargs != 0:  # a flag's help says what it does instead
                     assert f"default: {action.default}" in help_text, (command, action.dest)

@@ -77,7 +77,7 @@ def test_peak_unknown_without_resource_module(monkeypatch: pytest.MonkeyPatch) -
 
 
 def test_cli_line_says_unknown_rather_than_nan() -> None:
-    from gpomap.cli import _peak_memory
+    from gpomap.cli.common import peak_memory as _peak_memory
 
     assert _peak_memory({"self": 663.4, "children": 0.0}) == "self 663 MB, children 0 MB"
     assert _peak_memory({"self": math.nan, "children": math.nan}) == "unknown on this system"

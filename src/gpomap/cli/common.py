@@ -202,7 +202,7 @@ def report_fit(model: Any, occupancy_map: Any) -> None:
 
 
 def peak_memory(peak: dict[str, float]) -> str:
-    """``"self 663 MB, children 0 MB"`` from :func:`gpomap.resources.peak_rss_mb`; "unknown" where the system keeps no record."""
+    """``"self N MB, children M MB"`` from :func:`gpomap.resources.peak_rss_mb`; "unknown" where the system keeps no record."""
     known = {k: v for k, v in peak.items() if math.isfinite(v)}
     return ", ".join(f"{k} {v:.0f} MB" for k, v in known.items()) if known else "unknown on this system"
 

@@ -1,0 +1,87 @@
+"""``gpomap query MAPFILE POINTS``: the saved map's probability and variance at given points.
+
+The points are read by :func:`gpomap.apps.query.read_query_points`; the answers are the loaded
+map's ``predict_proba(points, return_var=True)``, printed as CSV or written with ``-o`` to a CSV or
+an NPZ, atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gpomap.apps.query import answers_csv, read_query_points
+from gpomap.apps.render import map_header
+from gpomap.cli.common import EXIT_OK, status
+from gpomap.cli.options import positive
+from gpomap.cli.render import load_for_command
+from gpomap.errors import GpomapError
+
+__all__ = ["add_parser", "run"]
+
+EPILOG = """examples:
+  gpomap query arena/map.gpom points.csv
+  gpomap query arena/map.gpom points.npz -o answers.npz
+"""
+
+
+def _output_kind(text: str) -> Path:
+    """``-o``: the answers file, a .csv or an .npz."""
+    p = Path(text)
+    if p.suffix.lower() not in (".csv", ".npz"):
+        raise argparse.ArgumentTypeError(f"the answers file must end in .csv or .npz, got {text!r}")
+    return p
+
+
+def add_parser(sub: Any) -> argparse.ArgumentParser:
+    """Register ``gpomap query`` on the subparsers of :func:`gpomap.cli.build_parser`."""
+    p: argparse.ArgumentParser = sub.add_parser(
+        "query",
+        help="probability and variance of a saved map (map.gpom) at given points",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Load a fitted map written by gpomap map (map.gpom) and print, for each point of POINTS (a CSV of "
+        "x,y or x,y,z per line, a header optional, or an NPZ of one (m, d) array), its occupancy probability and "
+        "latent variance, or write them with -o.",
+    )
+    p.add_argument("mapfile", metavar="MAPFILE", help="a fitted map file (map.gpom, written by gpomap map)")
+    p.add_argument("points", metavar="POINTS", help="CSV (x,y[,z] per line) or NPZ of points")
+    p.add_argument(
+        "-o",
+        "--output",
+        dest="answers",
+        type=_output_kind,
+        metavar="OUT.csv|OUT.npz",
+        help="write the answers here (CSV: x,y[,z],probability,variance; NPZ: points, probability, variance) instead of printing them",
+    )
+    p.add_argument("--workers", type=positive(int), help="local workers for the tiles (default: the map's own)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``gpomap query``."""
+    from gpomap.io.atomic import atomic_write
+
+    summary = map_header(args.mapfile)["summary"]
+    points = read_query_points(args.points, int(summary["dim"]), args.mapfile)
+    if args.answers is not None and args.answers.is_dir():
+        raise GpomapError(f"-o {args.answers}: is a directory; expected a .csv or .npz file to write")
+    model = load_for_command(args, args.mapfile)
+    probability, variance = model.predict_proba(points, return_var=True)
+    if args.answers is None:
+        sys.stdout.write(answers_csv(points, probability, variance))
+        return EXIT_OK
+    if args.answers.suffix.lower() == ".npz":
+        with atomic_write(args.answers, "wb") as f:
+            np.savez(f, points=points, probability=probability, variance=variance)
+    else:
+        with atomic_write(args.answers, "w") as f:
+            f.write(answers_csv(points, probability, variance))
+    status(args, f"wrote {args.answers}: {points.shape[0]} points")
+    return EXIT_OK
