@@ -1,14 +1,18 @@
-"""Layers import one way: the core never reaches up into maps, tiling, file formats, apps or the CLI.
+"""Layers import one way, and no module imports itself round a loop.
 
 Each module of ``src/gpomap`` belongs to one layer; every ``gpomap`` import it makes (at the top
 or inside a function) must name a module of its own layer or a lower one. Readers and writers
 (``gpomap.io`` and the figures) sit beside the engine, not on it: they may use the foundation and
-the data layer only, so a file format never depends on how maps are fitted.
+the data layer only, so a file format never depends on how maps are fitted. The command line
+(``gpomap.cli``) is the top: no other module imports it. And the imports, function-level ones
+included, form no cycle, inside a layer or across layers: each module can be read knowing only
+what it imports.
 """
 
 from __future__ import annotations
 
 import ast
+from collections.abc import Mapping
 from pathlib import Path
 
 import pytest
@@ -76,10 +80,11 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.benchmark",
             "gpomap.ros",
             "gpomap.ros2",
+            # The jobs only a command does, with typed arguments; their options are parsed in gpomap.cli.
+            "gpomap.apps",
         ),
     ),
-    # The commands' modules (gpomap.apps) import the CLI's option helpers: one layer with it.
-    ("cli", ("gpomap.cli", "gpomap.apps")),
+    ("cli", ("gpomap.cli",)),
     # The package's face (its __init__) gives the user-facing names of every layer.
     ("public", ("gpomap",)),
 ]
@@ -148,6 +153,80 @@ def _modules() -> list[tuple[str, Path]]:
     return out
 
 
+def import_graph(sources: Mapping[str, tuple[str, bool]]) -> dict[str, set[str]]:
+    """Module -> the modules of `sources` it imports; `sources` maps a module to its text and whether it is a package.
+
+    An import of a name inside a module (``from gpomap.io.carmen import read_carmen``) is an
+    import of that module; one naming no module of `sources` goes to its longest prefix that is one.
+    """
+    graph: dict[str, set[str]] = {}
+    for module, (source, is_package) in sources.items():
+        targets = set()
+        for target in gpomap_imports(source, module, is_package):
+            while target not in sources and "." in target:
+                target = target.rpartition(".")[0]
+            if target in sources:
+                targets.add(target)
+        graph[module] = targets
+    return graph
+
+
+def cycles(graph: Mapping[str, set[str]]) -> list[list[str]]:
+    """One import cycle for each group of modules that reach one another, as ``[a, b, ..., a]``."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    groups: list[set[str]] = []
+
+    def visit(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = set()
+            while True:
+                w = stack.pop()
+                group.add(w)
+                if w == v:
+                    break
+            if len(group) > 1 or v in graph.get(v, ()):
+                groups.append(group)
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    out = []
+    for group in groups:
+        start = min(group)
+        # The shortest way back to `start` inside its group.
+        came_from: dict[str, str] = {}
+        frontier = [start]
+        while start not in came_from:
+            reached = []
+            for v in frontier:
+                for w in sorted(graph[v] & group):
+                    if w not in came_from:
+                        came_from[w] = v
+                        reached.append(w)
+            frontier = reached
+        path = [start]
+        while True:
+            path.append(came_from[path[-1]])
+            if path[-1] == start:
+                break
+        out.append(path[::-1])
+    return sorted(out)
+
+
+def _sources() -> dict[str, tuple[str, bool]]:
+    return {name: (path.read_text(encoding="utf-8"), path.name == "__init__.py") for name, path in _modules()}
+
+
 def test_every_module_has_a_layer():
     for name, _ in _modules():
         layer_of(name)
@@ -157,9 +236,59 @@ def test_every_module_has_a_layer():
 
 def test_imports_go_one_way():
     bad = []
-    for name, path in _modules():
-        bad += violations(path.read_text(encoding="utf-8"), name, path.name == "__init__.py")
+    for name, (source, is_package) in _sources().items():
+        bad += violations(source, name, is_package)
     assert not bad, "imports against the layers:\n" + "\n".join(bad)
+
+
+def test_no_import_cycles():
+    found = cycles(import_graph(_sources()))
+    assert not found, "import cycles (each module reached again through the others):\n" + "\n".join(" -> ".join(c) for c in found)
+
+
+@pytest.mark.parametrize(
+    ("sources", "expected"),
+    [
+        # Inside a layer, through a function-level import and `from gpomap import X`.
+        (
+            {
+                "gpomap.fusion": ("from gpomap import revisit", False),
+                "gpomap.revisit": ("def f():\n    from gpomap.extrapolation import g\n", False),
+                "gpomap.extrapolation": ("def g():\n    import gpomap.fusion\n", False),
+            },
+            [["gpomap.extrapolation", "gpomap.fusion", "gpomap.revisit", "gpomap.extrapolation"]],
+        ),
+        # Across layers: the CLI's package and a module of the apps that imports it back.
+        (
+            {
+                "gpomap.cli": ("from gpomap.cli import render", True),
+                "gpomap.cli.render": ("from gpomap.apps.render import map_header", False),
+                "gpomap.apps.render": ("def f():\n    from gpomap import cli\n", False),
+            },
+            [["gpomap.apps.render", "gpomap.cli", "gpomap.cli.render", "gpomap.apps.render"]],
+        ),
+        # A module importing its own package's name, a name of the package (not a module of it).
+        (
+            {
+                "gpomap.io": ("from gpomap.io.carmen import read_carmen", True),
+                "gpomap.io.carmen": ("from gpomap.io import x", False),
+            },
+            [["gpomap.io", "gpomap.io.carmen", "gpomap.io"]],
+        ),
+        # One way only: no cycle.
+        (
+            {
+                "gpomap.cli": ("from gpomap.cli import render", True),
+                "gpomap.cli.render": ("from gpomap.apps.render import map_header", False),
+                "gpomap.apps.render": ("from gpomap.io.mapfile import read_map_header", False),
+                "gpomap.io.mapfile": ("import json", False),
+            },
+            [],
+        ),
+    ],
+)
+def test_the_cycle_check_itself(sources, expected):
+    assert cycles(import_graph(sources)) == expected
 
 
 @pytest.mark.parametrize(
@@ -177,6 +306,9 @@ def test_imports_go_one_way():
         ("from gpomap import errors, scans", "gpomap.fusion", True),
         ("from gpomap import GpomapError", "gpomap.fusion", False),
         ("from gpomap.tiles import TiledGPOM", "gpomap", True),
+        ("def f():\n    from gpomap import cli\n", "gpomap.apps.render", False),
+        ("from gpomap.cli.options import positive", "gpomap.apps.stream", False),
+        ("from gpomap.apps.render import map_header", "gpomap.cli.render", True),
     ],
 )
 def test_the_check_itself(source, module, ok):
