@@ -33,7 +33,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
-from typing import Any, Union
+from typing import Any, Literal, Union, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -547,7 +547,22 @@ class TiledOctreeModel:
         return np.asarray(ndtr((a * mean + b) / np.sqrt(1.0 + a * a * var)))
 
     # ------------------------------------------------------------------ prediction
-    def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
+    @overload
+    def predict_proba(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
+
+    @overload
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: Literal[True]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Occupancy probability at points, blended across tiles (each fitted for it and let go).
 
         Parameters

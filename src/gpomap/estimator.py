@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import inspect
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -152,6 +152,19 @@ class GPMapEstimator:
             "variance_scale": gp.squash.variance_scale,
         }
 
+    @overload
+    def predict(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
+
+    @overload
+    def predict(
+        self, points: NDArray[np.float64], return_var: Literal[True]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def predict(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
     def predict(
         self, points: NDArray[np.float64], return_var: bool = False
     ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -177,7 +190,22 @@ class GPMapEstimator:
         assert var is not None  # predict_latent returns it when asked
         return mean, var
 
-    def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
+    @overload
+    def predict_proba(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
+
+    @overload
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: Literal[True]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Occupancy probability at points (the calibrated probit of the latent GP).
 
         Parameters
@@ -207,7 +235,22 @@ class GPMapEstimator:
         mean, var = self.predict(points, return_var=True)
         return self.gp_.squash(mean, var), var, self.gp_.squash.unseen(mean, var)
 
-    def predict_proba_gp(self, points: NDArray[np.float64], return_var: bool = False):
+    @overload
+    def predict_proba_gp(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
+
+    @overload
+    def predict_proba_gp(
+        self, points: NDArray[np.float64], return_var: Literal[True]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def predict_proba_gp(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    def predict_proba_gp(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The GP's own probability at points (the calibrated probit, before any ray evidence).
 
         Parameters

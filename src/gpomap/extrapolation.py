@@ -71,7 +71,9 @@ NEW_HIT_DISTANCE: float = 1.0
 UNSEEN_RESOLUTION: dict[int, float] = {2: 0.05, 3: 0.1}
 
 
-def _nll(kappa: float, mu, var, occupied, alpha: float, beta: float) -> float:
+def _nll(
+    kappa: float, mu: NDArray[np.float64], var: NDArray[np.float64], occupied: NDArray[np.bool_], alpha: float, beta: float
+) -> float:
     """Mean negative log probit likelihood at variance scale `kappa`. The probit is the map's
     where no beam went before its cut of the lean towards free
     (:func:`gpomap.squash.unseen_probit`), which is a prior, not fitted."""

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal, overload
 
 import numpy as np
 from numpy.typing import NDArray
@@ -285,7 +285,24 @@ class StreamingGPOM:
         return self._version, [e for v, e in self._changes if v > version]
 
     # ------------------------------------------------------------------ reading the map
-    def predict_proba(self, points: NDArray[np.float64], return_var: bool = False, refresh: bool = True):
+    @overload
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: Literal[False] = False, refresh: bool = True
+    ) -> NDArray[np.float64]: ...
+
+    @overload
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: Literal[True], refresh: bool = True
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: bool = False, refresh: bool = True
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: bool = False, refresh: bool = True
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Occupancy probability (and latent variance) at points.
 
         Parameters

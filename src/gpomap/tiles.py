@@ -49,7 +49,7 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, fields, replace
-from typing import Any, Concatenate, ParamSpec, TypeVar, overload
+from typing import Any, Concatenate, Literal, ParamSpec, TypeVar, overload
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -986,6 +986,11 @@ def _near_any(free: NDArray[np.float64], hits: NDArray[np.float64], clearance: f
 _Tiled = TypeVar("_Tiled", bound="TiledGPOM")
 _P = ParamSpec("_P")
 _R = TypeVar("_R")
+#: A stage's tasks (each tile's key and its task's arguments), where their results go, and what
+#: a runner gives back: the results and each failed task's exception (:meth:`TiledGPOM._run`).
+_Jobs = list[tuple[tuple[int, int], tuple[Any, ...]]]
+_Results = MutableMapping[tuple[int, int], Any]
+_Outcome = tuple[_Results, Mapping[tuple[int, int], BaseException]]
 
 
 def _blas_shared(method: Callable[Concatenate[_Tiled, _P], _R]) -> Callable[Concatenate[_Tiled, _P], _R]:
@@ -1534,9 +1539,11 @@ class TiledGPOM:
         return results
 
     @staticmethod
-    def _run_inprocess(fn, jobs, bar: Progress, what: str, results=None):
+    def _run_inprocess(
+        fn: Callable[..., Any], jobs: _Jobs, bar: Progress, what: str, results: _Results | None = None
+    ) -> _Outcome:
         results = {} if results is None else results
-        failed = {}
+        failed: dict[tuple[int, int], Exception] = {}
         for key, args in jobs:
             try:
                 results[key] = fn(*args)
@@ -1550,13 +1557,17 @@ class TiledGPOM:
         workers = min(self.n_workers_, n_jobs)
         return workers, self.blas_threads if self.blas_threads is not None else cores_share(workers)
 
-    def _run_threads(self, fn, jobs, bar: Progress, what: str, results=None):
+    def _run_threads(
+        self, fn: Callable[..., Any], jobs: _Jobs, bar: Progress, what: str, results: _Results | None = None
+    ) -> _Outcome:
         """The jobs on threads of this process, BLAS held to the cores' share of each meanwhile."""
         workers, threads = self._workers_and_threads(len(jobs))
         with blas_limited(threads), cf.ThreadPoolExecutor(workers) as pool:
             return _collect({pool.submit(fn, *args): key for key, args in jobs}, bar, results)
 
-    def _run_pool(self, fn, jobs, bar: Progress, what: str, results=None):
+    def _run_pool(
+        self, fn: Callable[..., Any], jobs: _Jobs, bar: Progress, what: str, results: _Results | None = None
+    ) -> _Outcome:
         ctx = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
         workers, threads = self._workers_and_threads(len(jobs))
         # With fork, the workers are forked after the tasks are filed and read them from there.
@@ -1573,7 +1584,9 @@ class TiledGPOM:
         finally:
             _INHERITED.pop(token, None)
 
-    def _run_dask(self, fn, jobs, bar: Progress, what: str, results=None):
+    def _run_dask(
+        self, fn: Callable[..., Any], jobs: _Jobs, bar: Progress, what: str, results: _Results | None = None
+    ) -> _Outcome:
         """Run the jobs on the scheduler of ``self._client`` (see :meth:`_connected`).
 
         A task whose worker dies is rescheduled by the scheduler itself onto another worker (same
@@ -1585,7 +1598,7 @@ class TiledGPOM:
         client = self._client
         self._check_client(client, what, len(jobs), len(jobs))
         tag = uuid.uuid4().hex[:8]
-        futs = {}
+        futs: dict[Any, tuple[int, int]] = {}  # Dask futures to their tiles
         for key, args in jobs:
             f = client.submit(fn, *args, key=f"gpomap-{fn.__name__}-{key[0]}_{key[1]}-{tag}", pure=False)
             futs[f] = key
@@ -1595,7 +1608,7 @@ class TiledGPOM:
         # while this loop keeps watching for workers (a blocking f.result() would hang).
         pending = as_completed(list(futs), loop=client.loop, with_results=True, raise_errors=False)
         results = {} if results is None else results
-        failed = {}
+        failed: dict[tuple[int, int], BaseException] = {}
         n_done = 0
         timeout = self.scheduler_timeout
         alive = time.monotonic()  # last time a worker was seen or a task finished
@@ -2287,8 +2300,23 @@ class TiledGPOM:
                 lat_v[idx] += w * var
         return num / wsum, None if den is None else den / wsum, lat_m / wsum, None if lat_v is None else lat_v / wsum
 
+    @overload
+    def predict(self, /, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
+
+    @overload
+    def predict(
+        self, /, points: NDArray[np.float64], return_var: Literal[True]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def predict(
+        self, /, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
     @_blas_shared
-    def predict(self, points: NDArray[np.float64], return_var: bool = False):
+    def predict(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Blended latent mean (and variance) at points.
 
         Parameters
@@ -2305,7 +2333,22 @@ class TiledGPOM:
         _, mu, var, _ = self._predict_blended(points)
         return (mu, var) if return_var else mu
 
-    def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
+    @overload
+    def predict_proba(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
+
+    @overload
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: Literal[True]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    def predict_proba(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Occupancy probability at points, blended across tiles.
 
         Parameters
@@ -2324,7 +2367,22 @@ class TiledGPOM:
             p = self.evidence_.proba(np.asarray(points, dtype=float).reshape(-1, self._dim), p, p_unseen)
         return (p, var) if return_var else p
 
-    def predict_proba_gp(self, points: NDArray[np.float64], return_var: bool = False):
+    @overload
+    def predict_proba_gp(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
+
+    @overload
+    def predict_proba_gp(
+        self, points: NDArray[np.float64], return_var: Literal[True]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    @overload
+    def predict_proba_gp(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
+
+    def predict_proba_gp(
+        self, points: NDArray[np.float64], return_var: bool = False
+    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The tiles' blended GP probability at points, before any ray evidence.
 
         Parameters
