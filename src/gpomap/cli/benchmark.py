@@ -72,6 +72,7 @@ def benchmark_arguments(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``gpomap benchmark``: the tables, ROC curves and maps written as one output set, the tables printed."""
     from gpomap.benchmark import run_paper_benchmark
 
     if not args.paper:

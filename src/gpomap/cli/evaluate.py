@@ -130,6 +130,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    """Run ``gpomap evaluate``."""
     from gpomap.comparison import score_curves
     from gpomap.evaluation import Truth, evaluate, resolve_split
     from gpomap.truth import PlanTruth

@@ -55,6 +55,7 @@ def model_from_args(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tu
 
 
 def _check_options(args: argparse.Namespace) -> None:
+    """Refuse the options of ``gpomap map`` that only 2-D inputs take."""
     for name, (option, why) in _TWO_D_ONLY.items():
         if getattr(args, name, None) is not None:
             raise GpomapError(f"{option} is for 2-D inputs ({why}); {args.input} holds 3-D scans")
