@@ -259,12 +259,14 @@ def grid_child(log: str, out: str) -> dict[str, Any]:
     c0 = time.process_time()
     from gpomap import cli
     from gpomap.baselines.ogm import OccupancyGridMapper
+    from gpomap.cli.common import load_scans
+    from gpomap.cli.options import resolve_library_defaults
     from gpomap.io.export import write_map_outputs
 
     c1 = time.process_time()
     args = cli.build_parser().parse_args(["map", log, "-o", out, "-q"])
-    cli._resolve_library_defaults(args)
-    scans = cli._load_scans(args)
+    resolve_library_defaults(args)
+    scans = load_scans(args)
     c2 = time.process_time()
     occupancy_map = OccupancyGridMapper(resolution=RESOLUTION, sensor_model="counting").fit(scans).grid_map()
     c3 = time.process_time()

@@ -23,7 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gpomap.cli import _model, _resolve_library_defaults, build_parser
+from gpomap.cli import build_parser
+from gpomap.cli.map import model as _model
+from gpomap.cli.options import resolve_library_defaults as _resolve_library_defaults
 from gpomap.io.export import write_map_files
 from gpomap.io.mapfile import load_fitted_map, save_fitted_map
 from gpomap.progress import set_progress_mode
@@ -61,7 +63,7 @@ def _sizes(path: Path) -> dict[str, int]:
 
 
 def run(name: str, resolution: float, workers: int, repeat: int, directory: Path) -> None:
-    from gpomap.cli import _load_scans
+    from gpomap.cli.common import load_scans as _load_scans
 
     log, options = LOGS[name]
     args = build_parser().parse_args(["map", str(log), *options, "-o", str(directory / "out"), "--workers", str(workers)])

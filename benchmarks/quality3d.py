@@ -24,7 +24,7 @@ Two kinds of case:
 Maps, each at ``--resolution`` (0.1 m, ``gpomap map``'s default), from the same training scans:
 
 - ``gpomap``: read and built exactly as ``gpomap map INPUT -o OUT [options]`` does
-  (:func:`gpomap.apps.map3d.load_clouds`, :func:`~gpomap.apps.map3d.model_from_args`, its
+  (:func:`gpomap.cli.map3d.load_clouds`, :func:`~gpomap.cli.map3d.model_from_args`, its
   defaults), and the voxel map it writes over the data's extent (``map.npz``), looked up at the
   scored points: the map a user gets, not exact-point predictions. Its ternary map is the one
   ``map.bt`` holds: occupied where the ternary layer says so and a ray went
@@ -134,10 +134,11 @@ class Case:
 def cli_args(command: Sequence[str], resolution: float) -> argparse.Namespace:
     """The parsed options of ``gpomap map COMMAND -o OUT --resolution R``, defaults resolved as ``gpomap map`` resolves them."""
     from gpomap import cli
-    from gpomap.apps.map3d import apply_3d_defaults
+    from gpomap.cli.map3d import apply_3d_defaults
+    from gpomap.cli.options import resolve_library_defaults
 
     args = cli.build_parser().parse_args(["map", *command, "-o", "unused", "--resolution", f"{resolution:g}"])
-    cli._resolve_library_defaults(args)
+    resolve_library_defaults(args)
     apply_3d_defaults(args)
     for name, value in OVERRIDES.items():
         setattr(args, name, value)
@@ -145,8 +146,8 @@ def cli_args(command: Sequence[str], resolution: float) -> argparse.Namespace:
 
 
 def read_as_cli(command: Sequence[str], resolution: float) -> list[CloudScan]:
-    """The clouds ``gpomap map COMMAND`` reads (:func:`gpomap.apps.map3d.load_clouds`)."""
-    from gpomap.apps.map3d import load_clouds
+    """The clouds ``gpomap map COMMAND`` reads (:func:`gpomap.cli.map3d.load_clouds`)."""
+    from gpomap.cli.map3d import load_clouds
 
     return load_clouds(cli_args(command, resolution))
 
@@ -246,7 +247,8 @@ def _voxel_lookup(voxel_map: Any, occupied: NDArray[np.bool_]) -> Lookup:
 
 def build_gpomap(case: Case, resolution: float) -> tuple[Lookup, dict[str, Any]]:
     """The map ``gpomap map`` writes from the case's training scans (as ``cmd_map3d`` builds it)."""
-    from gpomap.apps.map3d import model_from_args, voxel_bounds
+    from gpomap.apps.map3d import voxel_bounds
+    from gpomap.cli.map3d import model_from_args
     from gpomap.compiled import compile_time
     from gpomap.lattice import bounds_extent
 

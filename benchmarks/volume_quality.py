@@ -20,7 +20,7 @@ the shipped OctoMap predictions (``sim_structured_octomap.csv``, the only one sh
 the voxel holding each point; made by the
 la3dm authors from *all* 12 scans, so it saw the test scans: a reference, not a competitor);
 and gpomap's 3-D map as ``gpomap map`` builds it with its defaults
-(:func:`gpomap.apps.map3d.default_model`: the same options, one GP or x, y columns of tiles),
+(:func:`gpomap.cli.map.default_model`: the same options, one GP or x, y columns of tiles),
 scored twice: its exact-point predictions, and the voxel grid it writes at the default
 resolution (0.1 m), looked up at each test point. ``--set KEY=VALUE`` changes a model option
 (``min_cell=1.0``, ``kernel=se``) to measure other settings.
@@ -375,7 +375,7 @@ def _value(text: str) -> Any:
 
 def gpomap_factories(overrides: dict[str, Any] | None = None) -> dict[str, Factory]:
     """gpomap's 3-D map as ``gpomap map`` builds it (its defaults, `overrides` on top), and its grid resolution."""
-    from gpomap.apps.map3d import default_model
+    from gpomap.cli.map import default_model
 
     label = "gpomap map" + "".join(f" {k}={v}" for k, v in (overrides or {}).items())
 

@@ -65,6 +65,8 @@ def child(log: str, method: str, workers: int) -> dict[str, Any]:
     """One method on one whole log in this process; the results as a flat dict."""
     from gpomap import cli
     from gpomap.baselines.ogm import OccupancyGridMapper
+    from gpomap.cli import map as map_command
+    from gpomap.cli.options import resolve_library_defaults
     from gpomap.io import read_scans
 
     w0, c0 = _clock()
@@ -73,8 +75,8 @@ def child(log: str, method: str, workers: int) -> dict[str, Any]:
     if method == "gpomap":
         argv = ["map", log, "-o", "unused", "--resolution", str(RESOLUTION), "--workers", str(workers)]
         args = cli.build_parser().parse_args(argv)
-        cli._resolve_library_defaults(args)
-        model: Any = cli._model(args)
+        resolve_library_defaults(args)
+        model: Any = map_command.model(args)
     else:
         model = OccupancyGridMapper(resolution=RESOLUTION, sensor_model="logodds")
     model.fit(scans)
@@ -101,12 +103,14 @@ def grid_child(log: str, out: str) -> dict[str, Any]:
     c0 = time.process_time()
     from gpomap import cli
     from gpomap.baselines.ogm import OccupancyGridMapper
+    from gpomap.cli.common import load_scans
+    from gpomap.cli.options import resolve_library_defaults
     from gpomap.io.export import write_map_outputs
 
     c1 = time.process_time()
     args = cli.build_parser().parse_args(["map", log, "-o", out, "-q"])
-    cli._resolve_library_defaults(args)
-    scans = cli._load_scans(args)
+    resolve_library_defaults(args)
+    scans = load_scans(args)
     c2 = time.process_time()
     occupancy_map = OccupancyGridMapper(resolution=RESOLUTION, sensor_model="counting").fit(scans).grid_map()
     c3 = time.process_time()
@@ -138,9 +142,11 @@ def map_child(log: str, out: str) -> dict[str, Any]:
 
         return wrapper
 
-    cli._load_scans = timed("read", cli._load_scans)
-    cli._fitted_model = timed("fit", cli._fitted_model)
-    cli._write_map = timed("write", cli._write_map)
+    from gpomap.cli import map as map_command
+
+    map_command.load_scans = timed("read", map_command.load_scans)
+    map_command.fitted_model = timed("fit", map_command.fitted_model)
+    map_command.write_map = timed("write", map_command.write_map)
     code = cli.main(["map", log, "-o", out, "-q"])
     if code != 0:
         raise SystemExit(f"gpomap map {log} exited with {code}")

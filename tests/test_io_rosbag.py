@@ -412,6 +412,8 @@ def test_frames_above_the_default_fixed_frame_are_named(tmp_path: Path) -> None:
 
 def test_map_command_says_where_a_corrected_frame_is(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from gpomap import cli
+    from gpomap.cli.common import load_scans
+    from gpomap.cli.options import resolve_library_defaults
 
     path = _write_bag(tmp_path / "slam.bag", map_frame=True)
     for argv, said in (
@@ -420,9 +422,9 @@ def test_map_command_says_where_a_corrected_frame_is(tmp_path: Path, capsys: pyt
     ):
         capsys.readouterr()
         args = cli.build_parser().parse_args(argv)
-        cli._resolve_library_defaults(args)
+        resolve_library_defaults(args)
         with pytest.warns(UserWarning, match="dropped 1 of 4 scans"):
-            scans = cli._load_scans(args)
+            scans = load_scans(args)
         assert scans[0].meta["frames_above"] == ["map"] and scans[0].meta["fixed_frame"] == "odom"
         err = capsys.readouterr().err
         assert ("poses in 'odom', which tf places in 'map': --fixed-frame map maps in that frame" in err) == said

@@ -23,18 +23,13 @@ from typing import NoReturn
 
 from gpomap._version import __version__
 from gpomap.cli import benchmark, convert, demo, evaluate, info, map, query, render, stream, update
-from gpomap.cli.common import EXIT_ERROR, EXIT_OK, EXIT_USAGE, Parser, load_scans, run_command
+from gpomap.cli.common import EXIT_ERROR, EXIT_OK, EXIT_USAGE, Parser, run_command
 from gpomap.cli.options import resolve_library_defaults
 
 __all__ = ["COMMANDS", "EXIT_OK", "EXIT_ERROR", "EXIT_USAGE", "build_parser", "main", "console"]
 
 #: The commands' modules, in the order ``gpomap --help`` lists them.
 COMMANDS = (map, demo, info, evaluate, convert, benchmark, stream, render, query, update)
-
-# benchmarks/ reach these by the names they had when the CLI was one module.
-_load_scans = load_scans
-_model = map.model
-_resolve_library_defaults = resolve_library_defaults
 
 
 def build_parser() -> argparse.ArgumentParser:
