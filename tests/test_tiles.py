@@ -12,6 +12,11 @@ from threadpoolctl import threadpool_limits
 
 import gpomap.lapack as lapack
 import gpomap.tiles as tiles
+import gpomap.tiles.blending as tile_blending
+import gpomap.tiles.executors as tile_executors
+import gpomap.tiles.points as tile_points
+import gpomap.tiles.store as tile_store
+import gpomap.tiles.tiled as tiled
 from gpomap.errors import GpomapError
 from gpomap.gp import SupportGP
 from gpomap.observations import Observations
@@ -247,7 +252,7 @@ def test_a_prediction_of_few_points_runs_in_process_and_of_many_on_the_threads(r
     model.predict_proba(many)
     assert [w for w, _ in stages] == ["tile prediction"] and stages[0][1] >= tiles.SMALL_PREDICTION_POINTS
     # The same numbers on the threads: the few points again, with no stage kept in process.
-    monkeypatch.setattr(tiles, "SMALL_PREDICTION_POINTS", 0)
+    monkeypatch.setattr(tile_executors, "SMALL_PREDICTION_POINTS", 0)
     np.testing.assert_allclose(model.predict_proba(few), p_few, rtol=0, atol=1e-12)
     assert len(stages) == 2
 
@@ -263,14 +268,14 @@ def test_pool_workers_inherit_the_tile_states_instead_of_receiving_them(room, re
 
     monkeypatch.setattr(tiles.TileState, "__reduce_ex__", no_pickling, raising=False)
     _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
-    assert not tiles._INHERITED  # the stage's tasks let go
+    assert not tile_executors._INHERITED  # the stage's tasks let go
 
 
 def test_dead_worker_is_retried(room, reference, tmp_path, monkeypatch):
     hyp, ref = reference
     marker = tmp_path / "died"
     monkeypatch.setenv(MARKER_ENV, str(marker))
-    monkeypatch.setattr(tiles, "fit_tile_task", _dying_fit)
+    monkeypatch.setattr(tiled, "fit_tile_task", _dying_fit)
     model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, worker_processes=True, **OPTS).fit(room, hyperparameters=hyp)
     assert marker.exists()  # a worker really died
     assert (1, 1) in model.tiles_
@@ -280,7 +285,7 @@ def test_dead_worker_is_retried(room, reference, tmp_path, monkeypatch):
 @pytest.mark.parametrize("n_workers", [1, 2])
 def test_failing_tile_raises_naming_it(room, reference, monkeypatch, n_workers):
     hyp, _ = reference
-    monkeypatch.setattr(tiles, "fit_tile_task", _always_failing_fit)
+    monkeypatch.setattr(tiled, "fit_tile_task", _always_failing_fit)
     with pytest.raises(GpomapError, match=r"tile \(1, 1\).*disk on fire"):
         TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=n_workers, **OPTS).fit(room, hyperparameters=hyp)
 
@@ -300,7 +305,7 @@ def test_dask_local_cluster_matches_in_process(room, reference, tmp_path, monkey
         by_address = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=cluster.scheduler_address, **OPTS)
         _same(by_address.fit(room, hyperparameters=hyp).grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
         # A worker dies mid-run: Dask (or our one retry) reruns the tile; nothing goes missing.
-        monkeypatch.setattr(tiles, "fit_tile_task", _dying_fit)
+        monkeypatch.setattr(tiled, "fit_tile_task", _dying_fit)
         model = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=client, **OPTS).fit(room, hyperparameters=hyp)
         assert marker.exists()
         _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
@@ -350,7 +355,7 @@ def _blas_threads_fit(task):
 def test_pool_workers_share_the_cores_for_blas(room, reference, monkeypatch, worker_processes):
     threadpoolctl = pytest.importorskip("threadpoolctl")
     hyp, _ = reference
-    monkeypatch.setattr(tiles, "fit_tile_task", _blas_threads_fit)
+    monkeypatch.setattr(tiled, "fit_tile_task", _blas_threads_fit)
     opts = {"tile_size": 6.0, "overlap": 2.5, "n_workers": 2, "worker_processes": worker_processes, **OPTS}
     before = threadpoolctl.threadpool_info()
     # As if on 4 or 2 cores with one or two BLAS libraries (both are counted in gpomap.lapack):
@@ -367,7 +372,7 @@ def test_stages_in_this_process_share_the_cores_for_blas(room, reference, monkey
     # One worker: the tiles are fitted in this process, within the fit's own limit.
     threadpoolctl = pytest.importorskip("threadpoolctl")
     hyp, _ = reference
-    monkeypatch.setattr(tiles, "fit_tile_task", _blas_threads_fit)
+    monkeypatch.setattr(tiled, "fit_tile_task", _blas_threads_fit)
     before = threadpoolctl.threadpool_info()
     for libraries, threads in ((1, 4), (2, 2)):
         monkeypatch.setattr(lapack, "available_cores", lambda: 4)
@@ -390,7 +395,7 @@ def test_per_tile_hyperparameters_run_and_are_reported(room):
 
 @pytest.mark.parametrize("pairs", [1, 7, 1 << 20])
 def test_nearest_box_is_the_brute_force_nearest_in_any_chunking(monkeypatch, pairs):
-    monkeypatch.setattr(tiles, "NEAREST_BOX_PAIRS", pairs)
+    monkeypatch.setattr(tile_blending, "NEAREST_BOX_PAIRS", pairs)
     rng = np.random.default_rng(3)
     # Unit squares on a lattice with gaps, as a map's tiles are; points inside, between and far out.
     corners = np.array([(x, y) for x in range(0, 10, 2) for y in range(0, 6, 3)], dtype=float)
@@ -532,7 +537,7 @@ def test_bad_given_hyperparameters_are_named_before_any_work(room, monkeypatch, 
     def no_work(*args, **kwargs):
         raise AssertionError("observations made before the hyperparameters were checked")
 
-    monkeypatch.setattr(tiles.MapSettings, "make_observations", no_work)
+    monkeypatch.setattr(MapSettings, "make_observations", no_work)
     with pytest.raises(ValueError, match=message):
         TiledGPOM(n_workers=1, **OPTS).fit(room, hyperparameters=given)
 
@@ -599,7 +604,7 @@ def test_a_map_whose_tiles_wait_in_a_file_is_the_map_kept_in_memory(room, refere
 
     hyp, _ = reference
     whole = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
-    monkeypatch.setattr(tiles, "TILE_MEMORY", 1)  # one factor in memory at a time
+    monkeypatch.setattr(tile_store, "TILE_MEMORY", 1)  # one factor in memory at a time
     spilled = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, **OPTS).fit(room, hyperparameters=hyp)
     assert spilled.tiles_.spilled_bytes > 0 and len(spilled.tiles_.resident()) == 1
     a, b = whole.grid(0.25, (0.0, 20.0, 0.0, 16.0)), spilled.grid(0.25, (0.0, 20.0, 0.0, 16.0))
@@ -628,10 +633,10 @@ def test_a_log_whose_points_wait_in_a_file_maps_as_one_held_in_memory(monkeypatc
     scans = simulate_scans(world, poses, 60, max_range=12.0, noise_std=0.01, seed=1)
     opts = dict(kernel="se", free_step=0.4, min_cell=0.5, max_cell=2.0, n_workers=1, calibration_scans=5)
     held = TiledGPOM(**opts).fit(scans)
-    monkeypatch.setattr(tiles, "POINT_MEMORY", 1)
+    monkeypatch.setattr(tiled, "POINT_MEMORY", 1)
     monkeypatch.setattr(observations, "PART_POINTS", 2000)
     spilled = TiledGPOM(**opts).fit(scans)
-    assert all(isinstance(p, tiles._SpilledPart) for b in spilled._block_points.values() for p in b._parts)
+    assert all(isinstance(p, tile_points._SpilledPart) for b in spilled._block_points.values() for p in b._parts)
     assert spilled.extrapolation_ == held.extrapolation_ and spilled.hyperparameters_ == held.hyperparameters_
     for k in held._blocks:
         np.testing.assert_array_equal(spilled._blocks[k].lower, held._blocks[k].lower)

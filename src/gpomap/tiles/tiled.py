@@ -1,58 +1,22 @@
-"""Tiled MSK-GPOM: maps larger than one GP can hold, as many small GPs blended without seams.
-
-One dense GP over every cell of a real log does not fit (tens of thousands of cells, O(N^3)
-time and O(N^2) memory). :class:`TiledGPOM` cuts the plane into square tiles on a fixed grid
-(anchored at the map frame's origin, or one tile centred on the data when they fit in one), and
-fits one GP per tile on the cells near it:
-
-1. **Observations once** for the whole log (beams to labelled points).
-2. **Cells per block**: the points of each block (a square of :data:`BLOCK_SIZE`, or of the tile
-   if larger, on the tile grid's origin) get their own cell tree (:func:`gpomap.cells.build_cells`
-   on that block's points), whatever the tile size. A block's cells therefore depend only on the
-   points inside it, so new data changes the cells of the blocks it falls in and
-   nowhere else; that is what makes ``update`` give exactly the batch answer. The trees are cut
-   at block borders, which costs a few extra cells there and nothing else.
-3. **Hyperparameters once**: the signal variance, length scale, noise, and the squash's alpha and
-   beta are learnt by one :class:`~gpomap.gp.SupportGP` on a compact sample of at most
-   `hyper_sample` cells (the cells nearest the centroid of a block at the upper quartile of
-   cells per block: a dense but typical patch; in planar maps the search treats it as compact
-   groups of :data:`HYPER_GROUP_CELLS`, each its own GP), then every tile uses them as they are.
-   With ``per_tile_hyperparameters=True`` each tile learns its own instead.
-4. **One GP per tile**, fitted on the cells whose boxes meet the tile grown by `overlap` on each
-   side. Tiles are independent tasks run in this process, in a local process pool, or on a Dask
-   distributed cluster (:func:`fit_tile_task` and :func:`predict_tile_task` are plain picklable
-   functions of arrays and settings).
-5. **Blending**: a query point is predicted by every tile whose blend region (the core grown by
-   `blend` / 2) holds it, with weights that are products of 1-D smoothstep tapers, zero at the
-   edge of the blend region and summing to one (a partition of unity); the calibrated latent
-   moments ``alpha m + beta`` and ``alpha^2 v`` are averaged with those weights and then
-   squashed, so neither probability nor variance jumps at a tile border.
-
-This is the one engine of every MSK-GPOM map, a room or a building, 2-D or 3-D
-(:class:`~gpomap.mapping.AreaGPOM` is its scikit-learn style face). A map whose data fall in one
-block is one GP over that block's cells.
-"""
+"""TiledGPOM: the tiled map (see :mod:`gpomap.tiles`)."""
 
 from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
 import functools
-import hashlib
 import math
 import multiprocessing
 import os
-import threading
 import time
 import uuid
-from collections import OrderedDict
-from collections.abc import Callable, Iterable, Iterator, Mapping, MutableMapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, MutableMapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, fields, replace
+from dataclasses import fields
 from typing import Any, Concatenate, Literal, ParamSpec, TypeVar, overload
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from scipy.special import ndtr
 
 from gpomap.cells import build_cells
@@ -60,929 +24,43 @@ from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import DistributedError, EmptyDataError, GpomapError, NotFittedError
 from gpomap.estimator import as_points
 from gpomap.fusion import EvidenceLayer, ternary_thresholds
-from gpomap.gp import GPPosterior, SupportGP, cholesky_solve, noisy_cholesky
 from gpomap.grid import GridSpec, OccupancyMap, row_bands, ternary
-from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
-from gpomap.lapack import available_cores, blas_limited, cores_share, limit_blas_threads
+from gpomap.lapack import available_cores, blas_limited, cores_share
 from gpomap.lattice import column_bounds, data_extent, stable_order
-from gpomap.observations import (
-    Observations,
-    ScanData,
-    ScanPoints,
-    free_near_hits,
-    observations_from_scans,
-    sensor_positions,
-)
+from gpomap.observations import Observations, ScanData, ScanPoints, observations_from_scans, sensor_positions
 from gpomap.progress import Progress, progress
-from gpomap.resources import POINT_MEMORY, TILE_MEMORY, WRITTEN_BAND_CELLS, SpillFile, peak_rss_mb, release_freed_memory
+from gpomap.resources import POINT_MEMORY, WRITTEN_BAND_CELLS, SpillFile, peak_rss_mb, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
-from gpomap.squash import ProbitSquash, unseen_probit
+from gpomap.squash import unseen_probit
 from gpomap.supports import Supports
-
-# Block keys pack (ix, iy) into one int64 so grouping millions of points is one argsort.
-_KEY_OFFSET = 1 << 30
-_KEY_BASE = 1 << 31
-# Points given block and tile keys at once (bounds the temporaries of a whole log's points).
-_KEY_CHUNK = 1 << 20
-
-HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
-#: What a fit learns of unseen space besides, taken as given when passed with the hyperparameters:
-#: the variance scale (:mod:`gpomap.extrapolation`).
-UNSEEN_NAMES = ("variance_scale",)
-
-#: Of the hyperparameters, those that must be positive; beta is any number.
-_POSITIVE_HYPER = ("variance", "length_scale", "noise", "alpha", "variance_scale")
-
-
-def given_hyperparameters(hyperparameters: dict[str, float]) -> dict[str, float]:
-    """The hyperparameters a fit is given (:data:`HYPER_NAMES`, and any of :data:`UNSEEN_NAMES`), as floats.
-
-    Raises
-    ------
-    ValueError
-        Naming the hyperparameter missing, not a finite number, or out of its range.
-    """
-    missing = [n for n in HYPER_NAMES if n not in hyperparameters]
-    if missing:
-        raise ValueError(f"hyperparameters must give {HYPER_NAMES}; missing {missing}")
-    out: dict[str, float] = {}
-    for n in (*HYPER_NAMES, *UNSEEN_NAMES):
-        if n not in hyperparameters:
-            continue
-        try:
-            v = float(hyperparameters[n])
-        except (TypeError, ValueError):
-            raise ValueError(f"hyperparameter {n} must be a number, got {hyperparameters[n]!r}") from None
-        if not np.isfinite(v) or (n in _POSITIVE_HYPER and v <= 0):
-            need = "positive" if n in _POSITIVE_HYPER else "finite"
-            raise ValueError(f"hyperparameter {n} must be {need}, got {v}")
-        out[n] = v
-    return out
-
-
-#: Most cells of the compact sample the hyperparameters are learnt on, by the map's dimension:
-#: a larger sample pinned planar maps' hyperparameters better, while in 3-D each step of the cuboid
-#: kernel is dearer and 300 scored as well (the measurements: docs/choices.md, "The hyperparameter
-#: search in groups of 200 cells").
-DEFAULT_HYPER_SAMPLE: dict[int, int] = {2: 800, 3: 300}
-
-#: Most cells of each compact group the hyperparameter sample is cut into for the search, each
-#: group its own GP (:class:`gpomap.gp.SupportGP`'s ``hyper_group``), by the map's dimension;
-#: None: one GP over the sample. Planar maps: 200, so the 800 cells are four groups and each
-#: evaluation of the objective is 16 times cheaper, while the written maps score as with one GP.
-#: Voxel maps: one GP; their 300-cell search costs mostly kernel evaluations, which groups do not
-#: make fewer, and smaller groups cost log loss (docs/choices.md, "The hyperparameter search in
-#: groups of 200 cells").
-HYPER_GROUP_CELLS: dict[int, int | None] = {2: 200, 3: None}
-
-#: The hyperparameter sample is anchored only in a block whose share of occupied cells is at
-#: least this fraction of the whole map's (when any block is): a sample of one class says nothing
-#: of how occupied and free cells differ: the objective is flat there, the squash takes its lowest
-#: alpha and the GP adds nothing to the map (docs/choices.md, "The hyperparameter sample").
-MIN_SAMPLE_OCCUPIED_SHARE: float = 0.5
-
-
-def hyper_anchor_block(sizes: ArrayLike, occupied_fractions: ArrayLike, map_occupied_fraction: float) -> int:
-    """Index of the block the hyperparameter sample is anchored in: a dense, typical, mixed block.
-
-    Among the blocks whose occupied fraction is at least :data:`MIN_SAMPLE_OCCUPIED_SHARE` of
-    the map's (all blocks when none is), the one whose cell count is nearest the upper quartile
-    of every block's (the first such in order on ties).
-
-    Parameters
-    ----------
-    sizes : array_like of shape (b,)
-        Cells per block.
-    occupied_fractions : array_like of shape (b,)
-        Fraction of each block's cells that are occupied.
-    map_occupied_fraction : float
-        Fraction of the map's cells that are occupied.
-
-    Returns
-    -------
-    int
-    """
-    sizes = np.asarray(sizes, dtype=float)
-    mixed = np.asarray(occupied_fractions, dtype=float) >= MIN_SAMPLE_OCCUPIED_SHARE * map_occupied_fraction
-    candidates = np.flatnonzero(mixed) if mixed.any() else np.arange(sizes.size)
-    # Dense but typical: the densest block can be one spot where the robot lingered, many tiny
-    # cells whose squash comes out flat (docs/choices.md, "The hyperparameter sample").
-    return int(candidates[np.argmin(np.abs(sizes[candidates] - np.quantile(sizes, 0.75)))])
-
-
-#: Tile side by the map's dimension, metres. A tile's GP costs the cube of the cells it sees, its
-#: square grown by the overlap, so tiles not much larger than the overlap are cheapest in all;
-#: the cells, hyperparameters and variance scale do not depend on them (:data:`BLOCK_SIZE`).
-#: Planar maps: 5 m squares; voxel maps: 3 m columns, which hold every height, so they fill
-#: faster than planar squares. Both the fastest sizes tried, scores unchanged (docs/choices.md,
-#: "Tiles: 5 m squares (3 m columns in 3-D)").
-DEFAULT_TILE_SIZE: dict[int, float] = {2: 5.0, 3: 3.0}
-
-#: A tile's GP sees the cells this many learnt length scales beyond its square, by default. 1.5
-#: (it was 2.5, about where the SE kernel has decayed to 4 %): the scores did not move
-#: with it while the time did, since a tile's cells grow with the square of the side it sees
-#: (planar and voxel maps: docs/choices.md, "Tiles: 5 m squares"; docs/3d.md).
-OVERLAP_LENGTH_SCALES: float = 1.5
-
-#: Default blend width, as a fraction of the overlap (or of the tile, if smaller). A tile predicts
-#: within half the blend of its square, where it still sees at least 3/4 of the overlap beyond,
-#: and fewer tiles predict each point: less CPU, the same scores (docs/choices.md, "Tiles: 5 m
-#: squares").
-BLEND_FRACTION: float = 0.5
+from gpomap.tiles.blending import nearest_box, taper
+from gpomap.tiles.executors import _INHERITED, _collect, _few_queries, _inherited_task, _worker_init
+from gpomap.tiles.geometry import (
+    _KEY_BASE,
+    _KEY_CHUNK,
+    _KEY_OFFSET,
+    BLEND_FRACTION,
+    DEFAULT_TILE_SIZE,
+    _box_offset,
+    block_side,
+    tile_reach,
+)
+from gpomap.tiles.hyperparameters import (
+    DEFAULT_HYPER_SAMPLE,
+    HYPER_GROUP_CELLS,
+    HYPER_NAMES,
+    given_hyperparameters,
+    hyper_anchor_block,
+)
+from gpomap.tiles.points import _BlockCells, _BlockPoints, _HeldParts, _SpilledPart
+from gpomap.tiles.store import TileStore, light_tiles
+from gpomap.tiles.tasks import TileCells, TileFitTask, TileSettings, TileState, fit_tile_task, predict_tile_task
 
 #: The map settings a TiledGPOM answers as its own attributes (read from its ``base``).
 _SETTING_NAMES = frozenset(MapConfig.__dataclass_fields__)
 
-#: Side of the blocks (metres), squares on the tile grid's origin whose points get their own cell
-#: tree, whatever the tile size: the cells, the hyperparameter sample anchored in a typical block,
-#: and the variance scale's region (one block from its centre each way, gpomap.extrapolation)
-#: are then the same for any tiles, and smaller tiles only make the tiles' GPs cheaper. Smaller
-#: blocks would cut the trees more often and moved the learnt noise and squash to other optima
-#: (docs/choices.md, "Tiles: 5 m squares").
-BLOCK_SIZE: float = 10.0
-
-
-def block_side(tile_size: float) -> float:
-    """Side of the blocks that get their own cell tree for tiles of `tile_size`: :data:`BLOCK_SIZE`, or the tiles' if larger."""
-    return max(BLOCK_SIZE, float(tile_size))
-
-
-def capped_overlap(overlap: float, tile_size: float) -> float:
-    """How far a tile's GP sees past its square: `overlap`, at most one block (:func:`block_side`)."""
-    return float(min(max(overlap, 1e-9), block_side(tile_size)))
-
-
-def tile_reach(tile_size: float, length_scale: float, overlap: float | None = None) -> float:
-    """How far a tile's GP sees past its square: `overlap`, by default :data:`OVERLAP_LENGTH_SCALES`
-    length scales, at most one block (:func:`capped_overlap`)."""
-    return capped_overlap(OVERLAP_LENGTH_SCALES * length_scale if overlap is None else float(overlap), tile_size)
-
-
-def _box_offset(ij: NDArray[np.int64], lo: NDArray[np.int64], span: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Row-major offset of each square index (ix, iy) (shape (n, 2)) in the index box from `lo`
-    spanning `span` squares per axis: ix major, the order of the squares' keys."""
-    return (ij[:, 0] - lo[0]) * span[1] + (ij[:, 1] - lo[1])
-
-
-# --------------------------------------------------------------------------- tasks (picklable)
-@dataclass
-class TileState:
-    """A fitted tile: its GP's posterior and the hyperparameters it was fitted with.
-
-    Attributes
-    ----------
-    key : (int, int)
-        Tile index (ix, iy) on the tile grid.
-    posterior : GPPosterior
-        The tile's training cells (their member points only for the ``"summed"`` area kernel,
-        which needs them), the Cholesky factor, the weights, the kernel and the squash.
-    hyperparameters : dict
-        variance, length_scale, noise, alpha, beta used by this tile.
-    seconds : float
-        Time the fit took on its worker.
-    """
-
-    key: tuple[int, int]
-    posterior: GPPosterior
-    hyperparameters: dict[str, float]
-    seconds: float
-
-    @property
-    def n_cells(self) -> int:
-        """Number of training cells."""
-        return self.posterior.n_inputs
-
-
-#: A factor's place in a state that waits in a :class:`TileStore`'s file.
-_NO_FACTOR = np.zeros((0, 0))
-
-
-class TileStore(MutableMapping[tuple[int, int], TileState]):
-    """A map's fitted tiles by key, their Cholesky factors in memory within a budget.
-
-    A building holds thousands of tiles, each with an n x n factor (a megabyte at 380 cells),
-    and uses a few hundred at a time: the rows of a written map's band, the tiles round a
-    calibration's points. The factors of the tiles read or stored last are kept while they and
-    the inverses prediction forms beside them (counted as much again) fit in `budget` bytes; the
-    least recently used beyond it wait in a temporary file (:class:`~gpomap.resources.SpillFile`:
-    their lower triangle, the rest being zero as factors are, else the whole matrix) and are
-    read back when asked, the same numbers to the bit and in the same memory order. Everything
-    else of a state (cells, weights, hyperparameters, a few kilobytes) stays in memory:
-    :meth:`light` gives it without its factor.
-
-    Reading a tile moves it to the front; the states handed out stay valid whatever is evicted
-    after. Safe to use from several threads.
-
-    Parameters
-    ----------
-    budget : int, optional
-        Bytes of factors (twice each factor's size) kept in memory; the last tile stored or read
-        is kept whatever its size. Default :data:`gpomap.resources.TILE_MEMORY`.
-    tiles : mapping, optional
-        States to store first.
-    """
-
-    def __init__(self, budget: int | None = None, tiles: Mapping[tuple[int, int], TileState] | None = None) -> None:
-        self.budget = int(TILE_MEMORY if budget is None else budget)
-        self._light: dict[tuple[int, int], TileState] = {}
-        self._resident: OrderedDict[tuple[int, int], TileState] = OrderedDict()
-        # Where each factor waiting in the file is: (segment, rows, "C" or "F", lower triangle only).
-        self._spilled: dict[tuple[int, int], tuple[tuple[int, int], int, str, bool]] = {}
-        self._bytes = 0
-        self._peeks = 0
-        self._file: SpillFile | None = None
-        self._lock = threading.RLock()
-        if tiles is not None:
-            self.update(tiles)
-
-    @staticmethod
-    def _cost(state: TileState) -> int:
-        # The factor and the K^-1 a prediction forms beside it (as large).
-        return 2 * int(state.posterior.L.nbytes)
-
-    @staticmethod
-    def _spillable(L: Any) -> bool:
-        return isinstance(L, np.ndarray) and L.ndim == 2 and L.shape[0] == L.shape[1] and L.dtype == np.float64
-
-    def __setitem__(self, key: tuple[int, int], state: TileState) -> None:
-        with self._lock:
-            self._forget(key)
-            if not self._spillable(state.posterior.L):
-                self._light[key] = state  # nothing to spill: kept whole
-                return
-            light = replace(state.posterior, L=_NO_FACTOR, precision=None)
-            self._light[key] = TileState(state.key, light, state.hyperparameters, state.seconds)
-            self._resident[key] = state
-            self._bytes += self._cost(state)
-            self._evict()
-
-    def _forget(self, key: tuple[int, int]) -> None:
-        state = self._resident.pop(key, None)
-        if state is not None:
-            self._bytes -= self._cost(state)
-        spilled = self._spilled.pop(key, None)
-        if spilled is not None and self._file is not None:
-            self._file.free(spilled[0])
-        self._light.pop(key, None)
-
-    def __delitem__(self, key: tuple[int, int]) -> None:
-        with self._lock:
-            if key not in self._light:
-                raise KeyError(key)
-            self._forget(key)
-
-    def __getitem__(self, key: tuple[int, int]) -> TileState:
-        with self._lock:
-            state = self._resident.get(key)
-            if state is not None:
-                self._resident.move_to_end(key)
-                return state
-            if key not in self._spilled:
-                return self._light[key]  # kept whole
-            state = self._read(key)
-            self._resident[key] = state
-            self._bytes += self._cost(state)
-            self._evict()
-            return state
-
-    def peek(self, key: tuple[int, int]) -> TileState:
-        """Tile `key`'s whole state, as reading it gives, but not kept in memory after (nor moved
-        to the front): for a pass over every tile, such as the map file's."""
-        with self._lock:
-            state = self._resident.get(key)
-            if state is not None:
-                return state
-            if key not in self._spilled:
-                return self._light[key]
-            self._peeks += 1
-            if self._peeks % 256 == 0:
-                release_freed_memory()  # the factors read and let go, scattered in the heap
-            return self._read(key)
-
-    def _read(self, key: tuple[int, int]) -> TileState:
-        """Tile `key`'s state with its factor read back from the file."""
-        assert self._file is not None
-        light = self._light[key]
-        where, n, order, lower = self._spilled[key]
-        if lower:
-            L = np.zeros((n, n), order="F" if order == "F" else "C")
-            L[np.tri(n, dtype=bool)] = self._file.get(where, np.float64, (n * (n + 1) // 2,))
-        else:
-            L = self._file.get(where, np.float64, (n, n))
-            if order == "F":
-                L = np.asfortranarray(L)
-        return TileState(light.key, replace(light.posterior, L=L), light.hyperparameters, light.seconds)
-
-    def _evict(self, budget: int | None = None, keep: int = 1) -> None:
-        """Send the least recently used factors to the file until the rest fit in the budget
-        (or `budget`), keeping at least `keep`."""
-        budget = self.budget if budget is None else budget
-        while self._bytes > budget and len(self._resident) > keep:
-            key, state = self._resident.popitem(last=False)
-            self._bytes -= self._cost(state)
-            if key in self._spilled:
-                continue  # its factor is in the file already (factors never change)
-            L = state.posterior.L
-            order = "F" if L.flags.f_contiguous and not L.flags.c_contiguous else "C"
-            below = np.tri(L.shape[0], dtype=bool)
-            # Bit by bit, so a -0.0 above the diagonal is kept too.
-            lower = not np.ascontiguousarray(L).view(np.uint64)[~below].any()
-            if self._file is None:
-                self._file = SpillFile()
-            where = self._file.put(L[below] if lower else np.ascontiguousarray(L))
-            self._spilled[key] = (where, int(L.shape[0]), order, lower)
-
-    def __iter__(self) -> Iterator[tuple[int, int]]:
-        return iter(list(self._light))
-
-    def __len__(self) -> int:
-        return len(self._light)
-
-    def __contains__(self, key: object) -> bool:
-        return key in self._light
-
-    def shrink(self) -> None:
-        """Send every factor in memory to the file, as if the budget were nothing (a map done
-        predicting for now: the files of its written grid come next)."""
-        with self._lock:
-            self._evict(budget=0, keep=0)
-
-    def light(self, key: tuple[int, int]) -> TileState:
-        """Tile `key`'s state without its factor (an empty ``posterior.L``): cells, weights,
-        hyperparameters, fit time; never read from the file."""
-        return self._light[key]
-
-    def light_states(self) -> list[TileState]:
-        """Every tile's :meth:`light` state, in key order of storing."""
-        with self._lock:
-            return list(self._light.values())
-
-    def resident(self) -> list[TileState]:
-        """The states whose factors are in memory now."""
-        with self._lock:
-            return list(self._resident.values())
-
-    @property
-    def spilled_bytes(self) -> int:
-        """Bytes of the temporary file (0 while every factor is in memory)."""
-        return 0 if self._file is None else self._file.size
-
-    def __reduce__(self) -> tuple[Any, ...]:
-        # Pickled whole: a plain dict's worth of states.
-        return (TileStore, (self.budget, dict(self.items())))
-
-
-def light_tiles(tiles: Mapping[tuple[int, int], TileState]) -> Iterable[TileState]:
-    """The states of `tiles` as far as their cells, weights and hyperparameters go, without
-    reading factors back (:meth:`TileStore.light_states`; a plain dict's own values)."""
-    return tiles.light_states() if isinstance(tiles, TileStore) else tiles.values()
-
-
-@dataclass(frozen=True)
-class TileSettings:
-    """What a tile's tasks need of the map's settings: the kernel and noise and, for per-tile
-    hyperparameters, how to learn them (the fields of :class:`~gpomap.config.MapConfig` they come from).
-
-    Attributes
-    ----------
-    area : str
-        The area kernel's method, resolved ("exact", "quadrature" or "summed"; the map's
-        ``area_method``).
-    per_tile : bool
-        Learn each tile's hyperparameters, starting from the map's; False: use the map's.
-    """
-
-    area: str
-    kernel: str = MapConfig.kernel
-    normalisation: str = MapConfig.normalisation
-    quadrature_order: int = MapConfig.quadrature_order
-    length_scale_bounds: tuple[float, float] = MapConfig.length_scale_bounds
-    noise_bounds: tuple[float, float] = MapConfig.noise_bounds
-    noise_model: str = MapConfig.noise_model
-    objective: str = MapConfig.objective
-    n_restarts: int = MapConfig.n_restarts
-    seed: int = MapConfig.seed
-    hyper_subset: int | None = MapConfig.hyper_subset
-    prior_std: float | None = MapConfig.prior_std
-    class_weight: str | None = MapConfig.class_weight
-    per_tile: bool = False
-
-    def search_gp(
-        self,
-        kernel: AreaKernel,
-        noise: float,
-        optimise: bool,
-        hyper_subset: int | None,
-        hyper_group: int | None = None,
-        n_threads: int = 1,
-    ) -> SupportGP:
-        """The GP that learns hyperparameters with these settings: MSK-GPOM's search, its objective
-        per input, its groups on `n_threads` threads."""
-        return SupportGP(
-            kernel,
-            noise=noise,
-            noise_bounds=self.noise_bounds,
-            noise_model=self.noise_model,
-            objective=self.objective,
-            optimise=optimise,
-            n_restarts=self.n_restarts,
-            seed=self.seed,
-            hyper_subset=hyper_subset,
-            prior_std=self.prior_std,
-            class_weight=self.class_weight,
-            hyper_group=hyper_group,
-            objective_per_input=True,
-            n_threads=n_threads,
-        )
-
-
-@dataclass
-class TileCells:
-    """The cells a tile's GP is fitted on (those meeting its grown square, in canonical order).
-
-    Attributes
-    ----------
-    lower, upper : ndarray of shape (n, d)
-        Boxes.
-    counts : ndarray of shape (n,)
-        Member points per cell.
-    labels : ndarray of shape (n,)
-        +1 occupied, -1 free.
-    member_points : ndarray of shape (m, d) or None
-        Only for the ``"summed"`` area kernel.
-    member_offsets : ndarray of int, shape (n + 1,) or None
-    """
-
-    lower: NDArray[np.float64]
-    upper: NDArray[np.float64]
-    counts: NDArray[np.float64]
-    labels: NDArray[np.float64]
-    member_points: NDArray[np.float64] | None = None
-    member_offsets: NDArray[np.intp] | None = None
-
-    def supports(self) -> Supports:
-        """The cells as GP inputs."""
-        return Supports(self.lower, self.upper, self.counts, self.member_points, self.member_offsets)
-
-    def signature(self) -> tuple[bytes, ...]:
-        """A digest of the cells' bytes (SHA-256 of their boxes, counts and labels; the bytes
-        themselves would be the cells again): equal signatures, the same GP (an update refits a
-        tile only when it changes)."""
-        digest = hashlib.sha256()
-        for a in (self.lower, self.upper, self.counts, self.labels):
-            digest.update(np.ascontiguousarray(a).tobytes())
-            digest.update(str(a.shape).encode())
-        return (digest.digest(),)
-
-
-@dataclass
-class TileFitTask:
-    """One tile's fit, as it is shipped to a worker (:func:`fit_tile_task`).
-
-    Attributes
-    ----------
-    key : (int, int)
-        Tile index (ix, iy).
-    cells : TileCells
-    settings : TileSettings
-    hyperparameters : dict
-        variance, length_scale, noise, alpha, beta: used as they are, or as the start with
-        ``settings.per_tile``.
-    previous : TileState or None
-        This tile's last fit, whose covariances of the cells still there are reused (same
-        hyperparameters only); None: every entry computed afresh.
-    """
-
-    key: tuple[int, int]
-    cells: TileCells
-    settings: TileSettings
-    hyperparameters: dict[str, float]
-    previous: TileState | None = None
-
-
-def _area_kernel(settings: TileSettings, variance: float, length_scale: float) -> AreaKernel:
-    base = make_point_kernel(
-        settings.kernel, variance=variance, length_scale=length_scale, length_scale_bounds=settings.length_scale_bounds
-    )
-    kern = AreaKernel(base, settings.area, settings.normalisation, settings.quadrature_order)
-    # Same path as SupportGP's factorisation (clone from log theta), so a one-tile map matches
-    # one SupportGP over its cells to the last bits.
-    return kern.clone_with_theta(kern.theta)
-
-
-def _noise_vector(settings: TileSettings, noise: float, counts: NDArray[np.float64]) -> NDArray[np.float64]:
-    scale = 1.0 / np.maximum(counts, 1.0) if settings.noise_model == "per_count" else np.ones(counts.size)
-    return np.exp(np.log(noise)) * scale
-
-
-def _box_keys(lower: NDArray[np.float64], upper: NDArray[np.float64]) -> list[bytes]:
-    return [row.tobytes() for row in np.ascontiguousarray(np.concatenate([lower, upper], axis=1))]
-
-
-def _gram_reusing(kern: AreaKernel, X: Supports, previous: TileState, settings: TileSettings) -> NDArray[np.float64] | None:
-    """K(X, X), with the entries of cells the previous fit of this tile had copied from it.
-
-    The previous covariance is recovered from its factor (``L L^T`` less its noise and jitter):
-    a few matrix products instead of the kernel's quadrature, which is most of a tile fit. The
-    copied entries carry rounding of about 1e-15 relative; :meth:`TiledGPOM.refresh` with
-    ``exact=True`` refits without them. The caller checks that the hyperparameters are the same.
-    None when too little can be reused: a kernel whose entries depend on more than the boxes
-    (member points, counts), or fewer than half the cells in common.
-    """
-    if settings.area == "summed" or settings.normalisation == "sum":
-        return None
-    old_index = {k: i for i, k in enumerate(_box_keys(previous.posterior.inputs.lower, previous.posterior.inputs.upper))}
-    new_keys = _box_keys(X.lower, X.upper)
-    pairs = [(j, old_index[k]) for j, k in enumerate(new_keys) if k in old_index]
-    if len(pairs) < 0.5 * len(new_keys):
-        return None
-    keep_new = np.array([j for j, _ in pairs], dtype=np.intp)
-    keep_old = np.array([i for _, i in pairs], dtype=np.intp)
-    before = previous.posterior
-    Lk = before.L[keep_old]
-    K = np.empty((len(X), len(X)))
-    old_diag = _noise_vector(settings, previous.hyperparameters["noise"], before.inputs.counts[keep_old]) + before.jitter
-    K_old = Lk @ Lk.T
-    K_old[np.diag_indices_from(K_old)] -= old_diag
-    K[np.ix_(keep_new, keep_new)] = K_old
-    fresh = np.setdiff1d(np.arange(len(X)), keep_new)
-    if fresh.size:
-        rows = kern(X.subset(fresh), X)
-        K[fresh, :] = rows
-        K[:, fresh] = rows.T
-        # The fresh-fresh block as the full Gram would give it (symmetrised).
-        K[np.ix_(fresh, fresh)] = kern(X.subset(fresh))
-    return K
-
-
-def fit_tile_task(task: TileFitTask) -> TileState:
-    """Fit one tile's GP (a top-level function so process pools and Dask can ship it).
-
-    Parameters
-    ----------
-    task : TileFitTask
-
-    Returns
-    -------
-    TileState
-    """
-    t0 = time.perf_counter()
-    st = task.settings
-    hyp = dict(task.hyperparameters)
-    X = task.cells.supports()
-    y = np.asarray(task.cells.labels, dtype=float)
-    kern = _area_kernel(st, hyp["variance"], hyp["length_scale"])
-    if st.per_tile:
-        gp = st.search_gp(kern, hyp["noise"], optimise=True, hyper_subset=st.hyper_subset)
-        gp.squash = ProbitSquash(hyp["alpha"], hyp["beta"])
-        gp.fit(X, y)
-        kern, L, weights, jitter = gp.kernel, gp.posterior_.L, gp.posterior_.weights, gp.posterior_.jitter
-        hyp = {
-            "variance": gp.kernel.base.variance,
-            "length_scale": gp.kernel.base.length_scale,
-            "noise": gp.noise,
-            "alpha": gp.squash.alpha,
-            "beta": gp.squash.beta,
-        }
-    else:
-        # Fixed hyperparameters: one factorisation, no leave-one-out pass (alpha and beta are
-        # global), which halves the work of SupportGP.fit.
-        previous = task.previous
-        same_hyp = previous is not None and all(
-            previous.hyperparameters.get(n) == hyp[n] for n in ("variance", "length_scale", "noise")
-        )
-        K = _gram_reusing(kern, X, previous, st) if previous is not None and same_hyp else None
-        if K is None:
-            K = kern(X)
-        L, jitter = noisy_cholesky(K, _noise_vector(st, hyp["noise"], X.counts), lambda: kern(X))
-        weights = cholesky_solve(L, y)
-    # Member points only where the kernel reads them.
-    kept = X if st.area == "summed" else Supports(X.lower, X.upper, X.counts)
-    hyp = {k: float(v) for k, v in hyp.items()}
-    posterior = GPPosterior(kept, L, weights, kern, ProbitSquash(hyp["alpha"], hyp["beta"]), jitter)
-    return TileState((int(task.key[0]), int(task.key[1])), posterior, hyp, time.perf_counter() - t0)
-
-
-def predict_tile_task(
-    state: TileState,
-    points: NDArray[np.float64],
-    chunk_size: int = 4096,
-    variance: bool = True,
-    local: bool = True,
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """Latent mean and variance of one tile's GP at points (top-level, picklable):
-    :meth:`~gpomap.gp.GPPosterior.latent` of its posterior.
-
-    Parameters
-    ----------
-    state : TileState
-    points : ndarray of shape (m, d)
-    chunk_size : int
-        Query points per block, bounding memory at ``n * chunk_size``.
-    variance : bool
-        Also the variance (the costly part); False gives None.
-    local : bool
-        Local prediction where it pays (equal to the dense one to :data:`gpomap.gp.LOCAL_TOL` and
-        :data:`gpomap.gp.LOCAL_VARIANCE_TOL`); False: always dense (the reference).
-
-    Returns
-    -------
-    mean, var : ndarray of shape (m,)
-    """
-    pts = np.asarray(points, dtype=float).reshape(-1, state.posterior.inputs.dim)
-    return state.posterior.latent(Supports.from_points(pts), variance, local, chunk_size)
-
-
-#: A prediction stage of fewer query points than this over all its tiles (one chunk of
-#: :func:`predict_tile_task`; a point in the blend of several tiles counts once for each) runs
-#: in this process: its tasks are too small for threads, which then
-#: contend for the GIL more than they share the work; larger stages (a benchmark's test points)
-#: stay on the threads (docs/choices.md, "Measured for the code").
-SMALL_PREDICTION_POINTS: int = 4096
-
-
-def _few_queries(fn: Callable[..., Any], jobs: list[tuple[tuple[int, int], tuple[Any, ...]]]) -> bool:
-    """Whether `jobs` are tile predictions of fewer than :data:`SMALL_PREDICTION_POINTS` points, summed over the tiles."""
-    return fn is predict_tile_task and sum(len(args[1]) for _, args in jobs) < SMALL_PREDICTION_POINTS
-
-
-def _collect(
-    futures: dict[cf.Future, tuple[int, int]], bar: Progress, results: MutableMapping[tuple[int, int], Any] | None = None
-) -> tuple[MutableMapping[tuple[int, int], Any], dict[tuple[int, int], Exception]]:
-    """Each tile's result into `results` (a new dict by default), as its task finishes, and the
-    exception of each task that failed."""
-    results = {} if results is None else results
-    failed: dict[tuple[int, int], Exception] = {}
-    for f in cf.as_completed(futures):
-        # Each future let go once read: it holds its result (a fit's factor) as long as it lives.
-        key = futures.pop(f)
-        try:
-            results[key] = f.result()
-            bar.update()
-        except Exception as e:  # reported per tile after the retry
-            failed[key] = e
-    return results, failed
-
-
-def _worker_init(blas_threads: int) -> None:
-    """Initialiser of the local pool's worker processes."""
-    limit_blas_threads(blas_threads)
-
-
-#: The tasks of each local pool stage running now, by a token: forked workers read them from the
-#: memory they inherit (:func:`_inherited_task`) instead of each task's arguments being pickled
-#: to them. A prediction stage sends every tile's state (its Cholesky factor: n^2 numbers), which
-#: pickled cost a large share of a whole log's CPU (docs/choices.md, "Measured for the code").
-_INHERITED: dict[str, tuple[Callable[..., Any], list[tuple[Any, ...]]]] = {}
-
-
-def _inherited_task(token: str, index: int) -> Any:
-    """Run task `index` of the stage `token` of :data:`_INHERITED` (in a forked pool worker)."""
-    fn, args = _INHERITED[token]
-    return fn(*args[index])
-
-
-# --------------------------------------------------------------------------- helpers
-#: Square-box pairs :func:`nearest_box` bounds at once (its temporaries stay at a few MB: a map
-#: can hold thousands of tiles).
-NEAREST_BOX_PAIRS: int = 1 << 20
-
-
-def _axis_gap(lo: NDArray[np.float64], hi: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Distance along one axis from coordinates `x` to the intervals `lo`..`hi` (0 inside), broadcast."""
-    return np.maximum(np.maximum(lo - x, x - hi), 0.0)
-
-
-def nearest_box(points: NDArray[np.float64], boxes: NDArray[np.float64]) -> NDArray[np.intp]:
-    """Index of the box nearest each point in x, y (distance 0 inside; the first box on ties).
-
-    The points are grouped in squares as wide as the widest box. For each square, a box whose
-    distance from the square exceeds the least, over boxes, of the farthest a point of the
-    square can be from it cannot be nearest to any of its points; the points are measured against
-    the few boxes left. A written map's points that no tile reaches are millions, its tiles
-    thousands, so every point against every box is minutes; the squares and the boxes alone
-    are a few million pairs (docs/choices.md, "Measured for the code").
-
-    Parameters
-    ----------
-    points : ndarray of shape (m, d)
-        Only x and y are used.
-    boxes : ndarray of shape (k, 4)
-        ``x0, x1, y0, y1`` per box, k >= 1.
-
-    Returns
-    -------
-    ndarray of int, shape (m,)
-    """
-    out = np.empty(points.shape[0], dtype=np.intp)
-    if points.shape[0] == 0:
-        return out
-    x, y = points[:, 0], points[:, 1]
-    side = max(float(np.max(boxes[:, 1] - boxes[:, 0])), float(np.max(boxes[:, 3] - boxes[:, 2])))
-    if not side > 0:
-        side = 1.0  # point boxes: any square side gives the same answers
-    origin = np.array([x.min(), y.min()])
-    ix = np.floor((x - origin[0]) / side).astype(np.int64)
-    iy = np.floor((y - origin[1]) / side).astype(np.int64)
-    key = ix * (int(iy.max()) + 1) + iy
-    order = np.argsort(key, kind="stable")
-    sorted_key = key[order]
-    bounds = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1], True])
-    first = order[bounds[:-1]]
-    squares = np.column_stack([ix[first], iy[first]])
-    bx0, bx1, by0, by1 = (boxes[None, :, j] for j in range(4))
-    step = max(1, NEAREST_BOX_PAIRS // max(1, boxes.shape[0]))
-    for s in range(0, squares.shape[0], step):
-        sq = squares[s : s + step]
-        sx0 = (origin[0] + sq[:, 0] * side)[:, None]
-        sy0 = (origin[1] + sq[:, 1] * side)[:, None]
-        sx1, sy1 = sx0 + side, sy0 + side
-        # Squared distance from the square to each box (a lower bound for its points), and the
-        # farthest its points can be from each box (at a corner: the distance is convex).
-        lower = np.maximum(np.maximum(bx0 - sx1, sx0 - bx1), 0.0) ** 2 + np.maximum(np.maximum(by0 - sy1, sy0 - by1), 0.0) ** 2
-        upper = (
-            np.maximum(_axis_gap(bx0, bx1, sx0), _axis_gap(bx0, bx1, sx1)) ** 2
-            + np.maximum(_axis_gap(by0, by1, sy0), _axis_gap(by0, by1, sy1)) ** 2
-        )
-        # A little slack: the bounds and the points' distances round differently.
-        keep = lower <= upper.min(axis=1, keepdims=True) * (1 + 1e-9) + 1e-12
-        for j in range(sq.shape[0]):
-            cand = np.flatnonzero(keep[j])  # ascending: argmin keeps the first box on ties
-            sel = order[bounds[s + j] : bounds[s + j + 1]]
-            c = boxes[cand]
-            dx = _axis_gap(c[None, :, 0], c[None, :, 1], x[sel, None])
-            dy = _axis_gap(c[None, :, 2], c[None, :, 3], y[sel, None])
-            out[sel] = cand[np.argmin(dx * dx + dy * dy, axis=1)]
-    return out
-
-
-def _smoothstep(t: NDArray[np.float64]) -> NDArray[np.float64]:
-    t = np.clip(t, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
-
-
-def taper(x: NDArray[np.float64], a: float, b: float, half: float) -> NDArray[np.float64]:
-    """1-D partition-of-unity weight of the core interval [a, b].
-
-    Rises from 0 at ``a - half`` to 1 at ``a + half`` and falls back to 0 from ``b - half`` to
-    ``b + half`` (smoothstep, C1). With neighbouring cores sharing an edge and ``2 half <= b - a``
-    the weights of neighbours sum to exactly one, since s(t) + s(1 - t) = 1.
-
-    Parameters
-    ----------
-    x : ndarray of shape (m,)
-    a, b : float
-    half : float
-        Half-width of the ramp, > 0.
-
-    Returns
-    -------
-    ndarray of shape (m,)
-    """
-    return _smoothstep((x - (a - half)) / (2 * half)) * _smoothstep(((b + half) - x) / (2 * half))
-
-
-@dataclass
-class _BlockCells:
-    """The cells of one block (tile square), in tree order."""
-
-    lower: NDArray[np.float64]
-    upper: NDArray[np.float64]
-    counts: NDArray[np.float64]
-    occupied: NDArray[np.bool_]
-    n_ambiguous: int
-    member_points: NDArray[np.float64] | None
-    member_offsets: NDArray[np.intp] | None
-
-
-@dataclass(frozen=True)
-class _SpilledPart:
-    """Points of a block waiting in a :class:`~gpomap.resources.SpillFile` (a whole log's
-    points filed under their blocks would be a gigabyte in memory)."""
-
-    file: SpillFile
-    points: tuple[int, int]
-    occupied: tuple[int, int]
-    shape: tuple[int, int]
-
-    @classmethod
-    def put(cls, file: SpillFile, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> _SpilledPart:
-        pts = np.ascontiguousarray(points, dtype=np.float64)
-        return cls(
-            file, file.put(pts), file.put(np.ascontiguousarray(occupied, dtype=bool)), (int(pts.shape[0]), int(pts.shape[1]))
-        )
-
-    def load(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        return self.file.get(self.points, np.float64, self.shape), self.file.get(self.occupied, np.bool_, (self.shape[0],))
-
-
-class _BlockPoints:
-    """The observation points of one block in arrival order; updates append, reads join them once
-    (points waiting in a spill file are read back at each read instead, and let go after)."""
-
-    def __init__(self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None) -> None:
-        self._parts: list[Any] = [points if isinstance(points, _SpilledPart) else (points, occupied)]
-        # Which of the first `_n_checked` points are free within the clearance of a hit among them.
-        self._near = np.zeros(0, dtype=bool)
-        self._n_checked = 0
-
-    def append(self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None) -> None:
-        self._parts.append(points if isinstance(points, _SpilledPart) else (points, occupied))
-
-    def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        if any(isinstance(p, _SpilledPart) for p in self._parts):
-            parts = [p.load() if isinstance(p, _SpilledPart) else p for p in self._parts]
-            if len(parts) == 1:
-                return parts[0]
-            return np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
-        if len(self._parts) > 1:
-            self._parts = [(np.concatenate([p for p, _ in self._parts]), np.concatenate([o for _, o in self._parts]))]
-        return self._parts[0]
-
-    @property
-    def n_cleared(self) -> int:
-        """Free points found within the clearance of a hit at the last :meth:`free_near_hits`."""
-        return int(self._near.sum())
-
-    def free_near_hits(
-        self, clearance: float, arrays: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None
-    ) -> NDArray[np.bool_]:
-        """:func:`~gpomap.observations.free_near_hits` of the block's points, worked out for the new ones only.
-
-        Hits are only ever added, so a free point once near a hit stays so. Of the points seen
-        at the last call, the free ones not yet near a hit are checked against the new hits; the
-        new free points against every hit. The answer is the whole computation's, at the cost
-        of the points appended since. `arrays`: the block's :meth:`arrays`, when read already.
-        """
-        points, occupied = self.arrays() if arrays is None else arrays
-        n0 = self._n_checked
-        if n0 == 0:
-            near = free_near_hits(points, occupied, clearance)
-        else:
-            near = np.zeros(occupied.shape, dtype=bool)
-            near[:n0] = self._near
-            new_hits = points[n0:][occupied[n0:]]
-            if new_hits.size:
-                old_free = np.flatnonzero(~occupied[:n0] & ~self._near)
-                near[old_free] = _near_any(points[old_free], new_hits, clearance)
-            new_free = n0 + np.flatnonzero(~occupied[n0:])
-            near[new_free] = _near_any(points[new_free], points[occupied], clearance)
-        self._near, self._n_checked = near, int(occupied.size)
-        return near
-
-
-class _HeldParts:
-    """A log's labelled points, a part at a time, held until the grid of blocks is known.
-
-    In memory while they come within `budget` bytes; past it every part waits in a temporary
-    file instead, and the blocks they are filed under keep theirs in another
-    (:attr:`blocks_file`), so that a building's points are never all in memory.
-    """
-
-    def __init__(self, budget: int) -> None:
-        self.budget = int(budget)
-        self._parts: list[Any] = []
-        self._bytes = 0
-        self._file: SpillFile | None = None
-        self.blocks_file: SpillFile | None = None
-        self.dim = 2
-
-    def add(self, part: Observations) -> None:
-        if part.occupied.size == 0:
-            return
-        self.dim = int(part.points.shape[1])
-        self._bytes += int(part.points.nbytes + part.occupied.nbytes)
-        if self._file is None and self._bytes > self.budget:
-            self._file, self.blocks_file = SpillFile(), SpillFile()
-            self._parts = [_SpilledPart.put(self._file, p, o) for p, o in self._parts]
-        self._parts.append(
-            _SpilledPart.put(self._file, part.points, part.occupied) if self._file is not None else (part.points, part.occupied)
-        )
-
-    def parts(self) -> Iterator[Observations]:
-        """The parts in order, each read back (if it waited in the file) as it is asked."""
-        for p in self._parts:
-            points, occupied = p.load() if isinstance(p, _SpilledPart) else p
-            yield Observations(points, occupied, np.zeros(0, dtype=np.int32))
-
-    def close(self) -> None:
-        self._parts = []
-        if self._file is not None:
-            self._file.close()
-
-
-def _near_any(free: NDArray[np.float64], hits: NDArray[np.float64], clearance: float) -> NDArray[np.bool_]:
-    """Which of the free points, shape (m, d), lie within `clearance` of one of the hits, shape (h, d)."""
-    if free.shape[0] == 0 or hits.shape[0] == 0:
-        return np.zeros(free.shape[0], dtype=bool)
-    both = np.concatenate([free, hits])
-    occupied = np.concatenate([np.zeros(free.shape[0], bool), np.ones(hits.shape[0], bool)])
-    return free_near_hits(both, occupied, clearance)[: free.shape[0]]
-
-
-# --------------------------------------------------------------------------- estimator
 _Tiled = TypeVar("_Tiled", bound="TiledGPOM")
 _P = ParamSpec("_P")
 _R = TypeVar("_R")
@@ -1082,6 +160,9 @@ class TiledGPOM:
         length scale and noise; alpha and beta are then still fitted once on the sample.
     """
 
+    # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
+    __module__ = "gpomap.tiles"
+
     #: Fit each tile when a prediction first needs it (set on a map asked at a few points only).
     _tiles_when_asked: bool = False
     # Set by fit: the observation points per block, their cell trees, and the points' extent.
@@ -1142,7 +223,6 @@ class TiledGPOM:
             return getattr(self.__dict__["base"], name)
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
-    # ------------------------------------------------------------------ settings
     def _settings(self) -> TileSettings:
         b = self.base
         # Every field but these two is the map setting of the same name.
@@ -1154,7 +234,6 @@ class TiledGPOM:
         """Local workers used."""
         return int(self.n_workers) if self.n_workers is not None else max(1, os.cpu_count() or 1)
 
-    # ------------------------------------------------------------------ geometry
     @property
     def block_size_(self) -> float:
         """Side of the blocks that get their own cell tree: :data:`BLOCK_SIZE`, or the tiles' if larger."""
@@ -1254,7 +333,6 @@ class TiledGPOM:
         y0 = self.origin_[1] + index[1] * side
         return x0, x0 + side, y0, y0 + side
 
-    # ------------------------------------------------------------------ cells
     def _build_block(self, key: int) -> _BlockCells:
         b = self.base
         block = self._block_points[key]
@@ -1380,7 +458,6 @@ class TiledGPOM:
         lab = np.concatenate([np.where(self._blocks[k].occupied, 1.0, -1.0) for k in keys])
         return lo, hi, cnt, lab, keys
 
-    # ------------------------------------------------------------------ hyperparameters
     def _learn_hyperparameters(self) -> dict[str, float]:
         """Learn all five hyperparameters once, on a compact sample round a dense, typical block."""
         b = self.base
@@ -1433,7 +510,6 @@ class TiledGPOM:
         }
         return hyp
 
-    # ------------------------------------------------------------------ task running
     def _scheduler_address(self) -> str:
         s = self.scheduler
         return str(s) if isinstance(s, str) else str(getattr(getattr(s, "scheduler", None), "address", s))
@@ -1668,7 +744,6 @@ class TiledGPOM:
         except Exception:  # a lost scheduler counts as no workers
             return 0
 
-    # ------------------------------------------------------------------ fitting
     def make_observations(self, data: ScanData | Observations) -> Observations:
         """The labelled points this map's settings make of `data` (free points near hits dropped); see
         :meth:`gpomap.settings.MapSettings.make_observations`."""
@@ -2132,7 +1207,6 @@ class TiledGPOM:
         self.timings_["update_tile_fits"] = time.perf_counter() - t1
         return self.last_refit_
 
-    # ------------------------------------------------------------------ prediction
     def _check_fitted(self) -> None:
         if not hasattr(self, "tiles_"):
             raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit() first")
@@ -2498,7 +1572,6 @@ class TiledGPOM:
         observed = self.evidence_.grid_observed(spec) if self.evidence_ is not None else None
         return VoxelMap(spec, probability, variance, thresholds=self.thresholds_, info=self.summary(), observed=observed)
 
-    # ------------------------------------------------------------------ reporting
     @property
     def bounds_(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Lower and upper corners of the labelled points' bounding box (the default map extent), each (d,)."""

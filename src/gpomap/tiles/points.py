@@ -1,0 +1,162 @@
+"""The points a map holds per block, the cells grown from them, and a log's points held until the blocks are known.
+
+A block's points come in observation order and only grow (an update appends); which free points
+lie within the clearance of a hit is worked out for the new points only. Where a log's points
+would not fit in memory they wait in a :class:`~gpomap.resources.SpillFile`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.observations import Observations, free_near_hits
+from gpomap.resources import SpillFile
+
+
+@dataclass
+class _BlockCells:
+    """The cells of one block (tile square), in tree order."""
+
+    # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
+    __module__ = "gpomap.tiles"
+
+    lower: NDArray[np.float64]
+    upper: NDArray[np.float64]
+    counts: NDArray[np.float64]
+    occupied: NDArray[np.bool_]
+    n_ambiguous: int
+    member_points: NDArray[np.float64] | None
+    member_offsets: NDArray[np.intp] | None
+
+
+@dataclass(frozen=True)
+class _SpilledPart:
+    """Points of a block waiting in a :class:`~gpomap.resources.SpillFile` (a whole log's
+    points filed under their blocks would be a gigabyte in memory)."""
+
+    file: SpillFile
+    points: tuple[int, int]
+    occupied: tuple[int, int]
+    shape: tuple[int, int]
+
+    @classmethod
+    def put(cls, file: SpillFile, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> _SpilledPart:
+        pts = np.ascontiguousarray(points, dtype=np.float64)
+        return cls(
+            file, file.put(pts), file.put(np.ascontiguousarray(occupied, dtype=bool)), (int(pts.shape[0]), int(pts.shape[1]))
+        )
+
+    def load(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        return self.file.get(self.points, np.float64, self.shape), self.file.get(self.occupied, np.bool_, (self.shape[0],))
+
+
+class _BlockPoints:
+    """The observation points of one block in arrival order; updates append, reads join them once
+    (points waiting in a spill file are read back at each read instead, and let go after)."""
+
+    # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
+    __module__ = "gpomap.tiles"
+
+    def __init__(self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None) -> None:
+        self._parts: list[Any] = [points if isinstance(points, _SpilledPart) else (points, occupied)]
+        # Which of the first `_n_checked` points are free within the clearance of a hit among them.
+        self._near = np.zeros(0, dtype=bool)
+        self._n_checked = 0
+
+    def append(self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None) -> None:
+        self._parts.append(points if isinstance(points, _SpilledPart) else (points, occupied))
+
+    def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        if any(isinstance(p, _SpilledPart) for p in self._parts):
+            parts = [p.load() if isinstance(p, _SpilledPart) else p for p in self._parts]
+            if len(parts) == 1:
+                return parts[0]
+            return np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
+        if len(self._parts) > 1:
+            self._parts = [(np.concatenate([p for p, _ in self._parts]), np.concatenate([o for _, o in self._parts]))]
+        return self._parts[0]
+
+    @property
+    def n_cleared(self) -> int:
+        """Free points found within the clearance of a hit at the last :meth:`free_near_hits`."""
+        return int(self._near.sum())
+
+    def free_near_hits(
+        self, clearance: float, arrays: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None
+    ) -> NDArray[np.bool_]:
+        """:func:`~gpomap.observations.free_near_hits` of the block's points, worked out for the new ones only.
+
+        Hits are only ever added, so a free point once near a hit stays so. Of the points seen
+        at the last call, the free ones not yet near a hit are checked against the new hits; the
+        new free points against every hit. The answer is the whole computation's, at the cost
+        of the points appended since. `arrays`: the block's :meth:`arrays`, when read already.
+        """
+        points, occupied = self.arrays() if arrays is None else arrays
+        n0 = self._n_checked
+        if n0 == 0:
+            near = free_near_hits(points, occupied, clearance)
+        else:
+            near = np.zeros(occupied.shape, dtype=bool)
+            near[:n0] = self._near
+            new_hits = points[n0:][occupied[n0:]]
+            if new_hits.size:
+                old_free = np.flatnonzero(~occupied[:n0] & ~self._near)
+                near[old_free] = _near_any(points[old_free], new_hits, clearance)
+            new_free = n0 + np.flatnonzero(~occupied[n0:])
+            near[new_free] = _near_any(points[new_free], points[occupied], clearance)
+        self._near, self._n_checked = near, int(occupied.size)
+        return near
+
+
+class _HeldParts:
+    """A log's labelled points, a part at a time, held until the grid of blocks is known.
+
+    In memory while they come within `budget` bytes; past it every part waits in a temporary
+    file instead, and the blocks they are filed under keep theirs in another
+    (:attr:`blocks_file`), so that a building's points are never all in memory.
+    """
+
+    def __init__(self, budget: int) -> None:
+        self.budget = int(budget)
+        self._parts: list[Any] = []
+        self._bytes = 0
+        self._file: SpillFile | None = None
+        self.blocks_file: SpillFile | None = None
+        self.dim = 2
+
+    def add(self, part: Observations) -> None:
+        if part.occupied.size == 0:
+            return
+        self.dim = int(part.points.shape[1])
+        self._bytes += int(part.points.nbytes + part.occupied.nbytes)
+        if self._file is None and self._bytes > self.budget:
+            self._file, self.blocks_file = SpillFile(), SpillFile()
+            self._parts = [_SpilledPart.put(self._file, p, o) for p, o in self._parts]
+        self._parts.append(
+            _SpilledPart.put(self._file, part.points, part.occupied) if self._file is not None else (part.points, part.occupied)
+        )
+
+    def parts(self) -> Iterator[Observations]:
+        """The parts in order, each read back (if it waited in the file) as it is asked."""
+        for p in self._parts:
+            points, occupied = p.load() if isinstance(p, _SpilledPart) else p
+            yield Observations(points, occupied, np.zeros(0, dtype=np.int32))
+
+    def close(self) -> None:
+        self._parts = []
+        if self._file is not None:
+            self._file.close()
+
+
+def _near_any(free: NDArray[np.float64], hits: NDArray[np.float64], clearance: float) -> NDArray[np.bool_]:
+    """Which of the free points, shape (m, d), lie within `clearance` of one of the hits, shape (h, d)."""
+    if free.shape[0] == 0 or hits.shape[0] == 0:
+        return np.zeros(free.shape[0], dtype=bool)
+    both = np.concatenate([free, hits])
+    occupied = np.concatenate([np.zeros(free.shape[0], bool), np.ones(hits.shape[0], bool)])
+    return free_near_hits(both, occupied, clearance)[: free.shape[0]]
