@@ -92,3 +92,15 @@ def test_autorange_times_until_the_minimum_then_stops_at_the_cap():
     assert [s for s, _ in autorange(runs_of([0.3] * 30), 3, min_seconds=2.0, max_runs=20)] == [0.3] * 7
     # Never more than the cap, however short the runs.
     assert len(autorange(runs_of([0.01] * 30), 1, min_seconds=2.0, max_runs=5)) == 5
+
+
+def test_the_papers_methods_are_registered_and_keep_their_labels():
+    from gpomap.evaluation import REGISTRY
+
+    assert set(gpomap.benchmark.METHODS) <= set(REGISTRY)
+    assert {m: gpomap.benchmark.LABELS[m] for m in gpomap.benchmark.METHODS} == {
+        "msk": "MSK-GPOM",
+        "gpomik": "GPOMIK",
+        "gpom": "GPOM",
+        "ogm": "OGM",
+    }

@@ -210,3 +210,14 @@ def test_evaluate_checks_its_splits_before_reading(capsys, tmp_path, split, mess
     # A log that does not exist: the split is refused before any reading.
     assert main(["evaluate", str(tmp_path / "absent.log"), "--split", split]) == 1
     assert message in capsys.readouterr().err
+
+
+def test_labels_come_from_the_registry():
+    from gpomap.comparison import LABELS
+
+    assert LABELS == {
+        GPOMAP: "MSK-GPOM",
+        "ogm-logodds-0.05": "OGM log-odds 0.05",
+        "ogm-logodds-0.1": "OGM log-odds 0.1",
+        "ogm-counting-0.05": "OGM counting 0.05",
+    }

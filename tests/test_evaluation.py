@@ -325,3 +325,34 @@ def test_truth_from_plan_lies_on_the_maps_lattice():
 
     written = GridSpec.from_extent((0.01, 0.39, 0.0, 0.1), 0.2, align=True)
     assert written.origin == t.grid.origin
+
+
+def test_the_registry_names_every_method_once():
+    assert ev.METHODS == tuple(ev.REGISTRY) == ("msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting")
+    assert ev.GRID_METHODS == ("ogm", "ogm-logodds", "ogm-counting")
+    assert ev.GP_METHODS == ("msk", "gpomik", "gpom")
+    assert all(name == m.name and m.label and m.description for name, m in ev.REGISTRY.items())
+    with pytest.raises(ValueError, match="unknown method 'ogm-bayes'; expected one of"):
+        ev.make_model("ogm-bayes")
+
+
+def test_make_model_hands_each_method_its_arguments():
+    from gpomap.baselines.gpom import GPOM
+    from gpomap.baselines.ogm import OccupancyGridMapper
+    from gpomap.mapping import AreaGPOM
+
+    # A grid: the cell side and the name's sensor model; no seed, no kernel.
+    grid = ev.make_model("ogm-counting", "matern32", seed=3, resolution=0.25, max_range_free=4.0)
+    assert isinstance(grid, OccupancyGridMapper)
+    assert (grid.resolution, grid.sensor_model, grid.max_range_free) == (0.25, "counting", 4.0)
+    assert ev.make_model("ogm").sensor_model == ev.make_model("ogm-logodds").sensor_model == "logodds"
+    # A GP method: the seed, and the kernel when given (else its own default).
+    gp = ev.make_model("gpom", "matern32", 5, resolution=0.25)
+    assert isinstance(gp, GPOM) and (gp.kernel, gp.seed) == ("matern32", 5)
+    assert ev.make_model("gpom").kernel == GPOM().kernel
+    # The tiled map takes workers too.
+    msk = ev.make_model("msk", "se", 2, n_workers=3)
+    assert isinstance(msk, AreaGPOM) and msk.n_workers == 3 and msk.seed == 2
+    # An option the method has no argument for is refused by its constructor, not dropped.
+    with pytest.raises(TypeError):
+        ev.make_model("ogm", no_such_option=1)

@@ -34,17 +34,28 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from gpomap.evaluation import holdout_split, make_model, n_inputs, scan_window, score_against_truth, test_points
+from gpomap.evaluation import (
+    REGISTRY,
+    holdout_split,
+    make_model,
+    method_named,
+    n_inputs,
+    scan_window,
+    score_against_truth,
+    test_points,
+)
 from gpomap.io.atomic import atomic_write
 from gpomap.metrics import fpr_at_tpr, log_loss, roc_auc, roc_curve
 from gpomap.scans import Scan, select_scans
 
+#: The paper's methods, as :data:`gpomap.evaluation.methods.REGISTRY` names them.
 METHODS = ("msk", "gpomik", "gpom", "ogm")
 EXPERIMENTS = ("synthetic", "belgioioso", "belgioioso-rooms")
 #: Scans of the paper's real log covering its two adjacent rooms.
 ROOMS_RANGE = "0:65"
 KERNELS = ("se", "matern32")
-LABELS = {"msk": "MSK-GPOM", "gpomik": "GPOMIK", "gpom": "GPOM", "ogm": "OGM"}
+#: How the tables and figures name each method (the registry's labels).
+LABELS = {name: m.label for name, m in REGISTRY.items()}
 GPOMIK_BEAMS = 12
 GPOM_POINTS = 1500
 #: Training scans of the untimed fit that precedes each timed one (see :func:`run_paper_benchmark`).
@@ -226,7 +237,7 @@ def run_paper_benchmark(
         points, labels = test_points(test, free_step=0.2, seed=seed, max_points=2000 if quick else 20000)
         maps: dict[str, dict[str, Any]] = {}
         for method in methods:
-            for kernel in kernels if method != "ogm" else ("-",):
+            for kernel in kernels if not method_named(method).own_grid else ("-",):
                 # MSK-GPOM as `gpomap map` runs it: local GPs in tiles, on every core.
                 build = functools.partial(
                     make_model, method, kernel if kernel != "-" else "se", seed, resolution, None, **_options(method, quick)

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from gpomap.evaluation import GRID_METHODS, GRID_RESOLUTION, EvalData, run_method
+from gpomap.evaluation import GRID_METHODS, GRID_RESOLUTION, REGISTRY, EvalData, run_method
 from gpomap.resources import rss_mb
 
 if TYPE_CHECKING:
@@ -27,20 +27,17 @@ if TYPE_CHECKING:
 
 #: gpomap's name in a comparison.
 GPOMAP: str = "msk"
-#: Every method of a comparison, name: (evaluation method, grid cell side in metres; None for
-#: gpomap, which predicts anywhere and is scored on the map it writes).
+#: Every method of a comparison, name: (method of :data:`gpomap.evaluation.methods.REGISTRY`,
+#: grid cell side in metres; None for gpomap, which predicts anywhere and is scored on the map it writes).
 METHODS: dict[str, tuple[str, float | None]] = {
     GPOMAP: ("msk", None),
     "ogm-logodds-0.05": ("ogm-logodds", 0.05),
     "ogm-logodds-0.1": ("ogm-logodds", 0.1),
     "ogm-counting-0.05": ("ogm-counting", 0.05),
 }
-#: How tables name them.
+#: How tables name them: the method's label, and a grid's cell side.
 LABELS: dict[str, str] = {
-    GPOMAP: "MSK-GPOM",
-    "ogm-logodds-0.05": "OGM log-odds 0.05",
-    "ogm-logodds-0.1": "OGM log-odds 0.1",
-    "ogm-counting-0.05": "OGM counting 0.05",
+    name: REGISTRY[method].label + ("" if cell is None else f" {cell:g}") for name, (method, cell) in METHODS.items()
 }
 #: How figures draw them.
 COLOURS: dict[str, str] = {

@@ -32,8 +32,9 @@ The rooms, each with one job: :mod:`~gpomap.evaluation.splits` (windows and hold
 a log), :mod:`~gpomap.evaluation.points` (test points and the boundary mask),
 :mod:`~gpomap.evaluation.reference` (where the training scans reached: observed cells, far
 field, the robot's path), :mod:`~gpomap.evaluation.scoring` (metrics on points),
-:mod:`~gpomap.evaluation.gridtruth` (a true map on a grid), :mod:`~gpomap.evaluation.maps`
-(a method's model, its written grid, lookups), :mod:`~gpomap.evaluation.data` (one split made
+:mod:`~gpomap.evaluation.gridtruth` (a true map on a grid), :mod:`~gpomap.evaluation.methods`
+(the registry of methods, by name), :mod:`~gpomap.evaluation.maps` (a method's model, its
+written grid, lookups), :mod:`~gpomap.evaluation.data` (one split made
 ready: :func:`prepare`) and :mod:`~gpomap.evaluation.driver` (:func:`run_method`,
 :func:`evaluate`). Every name is importable from ``gpomap.evaluation`` itself.
 """
@@ -44,9 +45,7 @@ from gpomap.evaluation.data import EvalData, prepare
 from gpomap.evaluation.driver import evaluate, run_method
 from gpomap.evaluation.gridtruth import Truth, score_against_truth, score_truth
 from gpomap.evaluation.maps import (
-    GRID_METHODS,
     GRID_RESOLUTION,
-    METHODS,
     lookup,
     lookup_occupied,
     make_model,
@@ -54,6 +53,7 @@ from gpomap.evaluation.maps import (
     occupied_at,
     written_grid,
 )
+from gpomap.evaluation.methods import GP_METHODS, GRID_METHODS, METHODS, REGISTRY, Method, method_named
 from gpomap.evaluation.points import (
     BOUNDARY_RADIUS,
     NO_RETURN_CAP,
@@ -83,17 +83,20 @@ __all__ = [
     "FAR_DISTANCE",
     "FAR_LATTICE",
     "FAR_MAX_POINTS",
+    "GP_METHODS",
     "GRID_METHODS",
     "GRID_RESOLUTION",
     "METHODS",
     "NO_RETURN_CAP",
     "PATH_STEP",
     "REFERENCE_RESOLUTION",
+    "REGISTRY",
     "SPLITS",
     "TEST_FREE_STEP",
     "TEST_HIT_MARGIN",
     "EvalData",
     "FarField",
+    "Method",
     "Truth",
     "check_split",
     "evaluate",
@@ -101,6 +104,7 @@ __all__ = [
     "lookup",
     "lookup_occupied",
     "make_model",
+    "method_named",
     "n_inputs",
     "near",
     "observed_at",

@@ -18,7 +18,6 @@ from numpy.typing import NDArray
 from gpomap.evaluation.data import EvalData, prepare
 from gpomap.evaluation.gridtruth import Truth, score_truth
 from gpomap.evaluation.maps import (
-    GRID_METHODS,
     GRID_RESOLUTION,
     lookup,
     lookup_occupied,
@@ -27,6 +26,7 @@ from gpomap.evaluation.maps import (
     occupied_at,
     written_grid,
 )
+from gpomap.evaluation.methods import method_named
 from gpomap.evaluation.points import TEST_FREE_STEP
 from gpomap.evaluation.scoring import path_occupied, score
 from gpomap.grid import DEFAULT_THRESHOLDS
@@ -101,6 +101,8 @@ def run_method(
     cpu: dict[str, float] = {}
     w0, c0 = _clock()
     model = make_model(method, kernel, seed, resolution, n_workers, **method_options)
+    # A grid has a cell side and no kernel, and the map it writes is its own cells.
+    own_grid = method_named(method).own_grid
     model.fit(data.train)
     w1, c1 = _clock()
     prob = np.asarray(model.predict_proba(data.points), dtype=float)
@@ -153,14 +155,10 @@ def run_method(
         if data.plan is not None:
             plan_prob = lookup(occupancy_map, data.plan.points)
             # A grid's ternary map as map_server reads it; gpomap's its own.
-            grid_method = method in GRID_METHODS
-            plan_occupied = (
-                plan_prob > MAP_SERVER_THRESHOLDS[1] if grid_method else lookup_occupied(occupancy_map, data.plan.points)
-            )
+            plan_occupied = plan_prob > MAP_SERVER_THRESHOLDS[1] if own_grid else lookup_occupied(occupancy_map, data.plan.points)
             plan_out = score_plan(data.plan, plan_prob, plan_occupied)
         del occupancy_map
 
-    is_grid = method in GRID_METHODS
     result: dict[str, Any] = {
         "method": method,
         "occupied_threshold": occupied_above,
@@ -183,9 +181,9 @@ def run_method(
         "settings": {
             **data.settings,
             "method": method,
-            "kernel": None if is_grid else getattr(model, "kernel", getattr(getattr(model, "base", None), "kernel", kernel)),
-            "resolution": resolution if is_grid else None,
-            "grid_resolution": (resolution if is_grid else grid_resolution) if score_grid else None,
+            "kernel": None if own_grid else getattr(model, "kernel", getattr(getattr(model, "base", None), "kernel", kernel)),
+            "resolution": resolution if own_grid else None,
+            "grid_resolution": (resolution if own_grid else grid_resolution) if score_grid else None,
             "written_grid_shape": written_shape,
             "tiles": len(model.tiles_) if hasattr(model, "tiles_") else None,
             "method_options": _jsonable(method_options),
@@ -193,8 +191,9 @@ def run_method(
     }
     if hasattr(model, "hyperparameters_"):
         result["hyperparameters"] = {k: float(v) for k, v in model.hyperparameters_.items()}
-    if getattr(model, "evidence_", None) is not None:
-        result["evidence"] = _jsonable(model.evidence_.summary())
+    evidence = getattr(model, "evidence_", None)
+    if evidence is not None:
+        result["evidence"] = _jsonable(evidence.summary())
     if return_roc:
         result["roc"] = points_score["roc"]
     return result

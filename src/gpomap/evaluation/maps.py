@@ -1,6 +1,7 @@
 """The maps an evaluation scores: a method's model, its written grid, and reading both at points.
 
-:func:`make_model` builds the estimator a method names; :func:`written_grid` is the map
+:func:`make_model` builds the estimator a method of the registry names
+(:mod:`gpomap.evaluation.methods`); :func:`written_grid` is the map
 ``gpomap map`` writes for a fitted model (an occupancy grid's is its own grid);
 :func:`lookup` and :func:`lookup_occupied` read a written map's cell at each point;
 :func:`occupied_at` is a fitted model's own ternary call at points.
@@ -13,19 +14,19 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.evaluation.methods import method_named
 from gpomap.grid import DEFAULT_THRESHOLDS, OCCUPIED, OccupancyMap
+from gpomap.protocol import Mapper, OwnGrid, TernaryPredictor
 
-#: "ogm" is the log-odds grid (OctoMap's model); "ogm-counting" the counting grid.
-METHODS = ("msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting")
-GRID_METHODS = ("ogm", "ogm-logodds", "ogm-counting")
 #: The written map's resolution (m) unless told otherwise.
 GRID_RESOLUTION = 0.05
 
 
 def make_model(
     method: str, kernel: str | None = None, seed: int = 0, resolution: float = 0.1, n_workers: int | None = None, **options: Any
-) -> Any:
-    """The estimator `method` names, with `options` passed to its constructor.
+) -> Mapper:
+    """The estimator `method` names (:data:`gpomap.evaluation.methods.REGISTRY`), with `options`
+    passed to its constructor.
 
     Parameters
     ----------
@@ -39,26 +40,13 @@ def make_model(
         Cell side of the grids (the GP methods predict anywhere).
     n_workers : int, optional
         "msk": workers for its tiles (default: the CPU count, as ``gpomap map``).
+
+    Raises
+    ------
+    ValueError
+        An unknown method.
     """
-    gp_opts = dict(options, seed=seed, **({"kernel": kernel} if kernel is not None else {}))
-    if method == "msk":
-        from gpomap.mapping import AreaGPOM
-
-        return AreaGPOM(n_workers=n_workers, **gp_opts)
-    if method == "gpomik":
-        from gpomap.baselines.gpomik import GPOMIK
-
-        return GPOMIK(**gp_opts)
-    if method == "gpom":
-        from gpomap.baselines.gpom import GPOM
-
-        return GPOM(**gp_opts)
-    if method in GRID_METHODS:
-        from gpomap.baselines.ogm import OccupancyGridMapper
-
-        model = "counting" if method == "ogm-counting" else "logodds"
-        return OccupancyGridMapper(resolution=resolution, sensor_model=model, **options)
-    raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
+    return method_named(method).build(kernel, seed, resolution, n_workers, **options)
 
 
 def n_inputs(model: Any) -> int:
@@ -69,15 +57,13 @@ def n_inputs(model: Any) -> int:
     return int((model.observed_ > 0).sum())
 
 
-def written_grid(model: Any, resolution: float = GRID_RESOLUTION) -> OccupancyMap:
+def written_grid(model: Mapper, resolution: float = GRID_RESOLUTION) -> OccupancyMap:
     """The map ``gpomap map`` writes for a fitted model, at `resolution` over the data's extent.
 
-    MSK-GPOM and the GP baselines: ``grid(resolution)``; an occupancy grid: its own grid (it has
-    no finer map to give).
+    MSK-GPOM and the GP baselines: ``grid(resolution)``; an occupancy grid
+    (:class:`~gpomap.protocol.OwnGrid`): its own grid (it has no finer map to give).
     """
-    from gpomap.baselines.ogm import OccupancyGridMapper
-
-    if isinstance(model, OccupancyGridMapper):
+    if isinstance(model, OwnGrid):
         return model.grid_map()
     return model.grid(resolution)
 
@@ -99,10 +85,11 @@ def lookup_occupied(occupancy_map: OccupancyMap, points: NDArray[np.float64]) ->
     return out
 
 
-def occupied_at(model: Any, points: NDArray[np.float64]) -> NDArray[np.bool_]:
+def occupied_at(model: Mapper, points: NDArray[np.float64]) -> NDArray[np.bool_]:
     """Whether a fitted model's ternary map calls each point occupied, shape (n,): its own
-    ``predict_ternary`` where it has one (MSK-GPOM's fitted threshold, cells beams saw through
-    never occupied), else its probability above the paper's occupied threshold (the grids)."""
-    if hasattr(model, "predict_ternary"):
+    ``predict_ternary`` where it has one (:class:`~gpomap.protocol.TernaryPredictor`: MSK-GPOM's
+    fitted threshold, cells beams saw through never occupied), else its probability above the
+    paper's occupied threshold (the grids)."""
+    if isinstance(model, TernaryPredictor):
         return np.asarray(model.predict_ternary(points)) == OCCUPIED
     return np.asarray(model.predict_proba(points), dtype=float) > DEFAULT_THRESHOLDS[1]
