@@ -38,14 +38,14 @@ DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 @contextmanager
 def dense_prediction() -> Any:
     """Every tile predicted by the dense path (``predict_tile_task(..., local=False)``) inside the block."""
-    from gpomap.tiles import tiled
+    from gpomap.tiles import blending
 
-    original = tiled.predict_tile_task
-    tiled.predict_tile_task = partial(original, local=False)  # type: ignore[assignment]
+    original = blending.predict_tile_task
+    blending.predict_tile_task = partial(original, local=False)  # type: ignore[assignment]
     try:
         yield
     finally:
-        tiled.predict_tile_task = original
+        blending.predict_tile_task = original
 
 
 def timed(fn: Any, repeat: int) -> tuple[float, float, float, Any]:

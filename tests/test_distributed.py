@@ -31,7 +31,7 @@ from threadpoolctl import threadpool_limits
 pytest.importorskip("distributed", reason="dask[distributed] is not installed: pip install 'gpomap[distributed]'")
 
 import gpomap.tiles as tiles
-import gpomap.tiles.tiled as tiled
+import gpomap.tiles.executors as tile_executors
 from gpomap.cli import EXIT_ERROR, EXIT_OK, main
 
 LOG = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "intel" / "intel-corrected.log.gz"
@@ -232,7 +232,7 @@ def _assert_same_map(out: Path, reference: dict[str, np.ndarray]) -> None:
 def _on_first_tile_done(monkeypatch, action) -> Iterator[list[str]]:
     """Call `action()` once, when the first tile fit of the map itself has come back (through the
     progress hook); the variance scale's held-in maps, fitted before it, fit tiles too."""
-    real = tiled.progress
+    real = tile_executors.progress
     fired: list[str] = []
 
     @contextmanager
@@ -250,7 +250,7 @@ def _on_first_tile_done(monkeypatch, action) -> Iterator[list[str]]:
             bar.update = update_then_act
             yield bar
 
-    monkeypatch.setattr(tiled, "progress", hooked)
+    monkeypatch.setattr(tile_executors, "progress", hooked)
     yield fired
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import gpomap.gp
-import gpomap.tiles.tiled as tiled
+import gpomap.tiles.blending as tile_blending
 from gpomap import _compiled_local
 from gpomap.gp import LOCAL_TOL, LOCAL_VARIANCE_TOL, local_blocks
 from gpomap.simulate import paper_room_scans
@@ -39,12 +39,12 @@ def _both(model: TiledGPOM, key: tuple[int, int], points: np.ndarray):
 
 def _dense_blended(model: TiledGPOM, points: np.ndarray) -> np.ndarray:
     """The map's blended probability at points with every tile predicted densely (the reference)."""
-    tiles_before = tiled.predict_tile_task
+    tiles_before = tile_blending.predict_tile_task
     try:
-        tiled.predict_tile_task = lambda *a: tiles_before(*a, local=False)
+        tile_blending.predict_tile_task = lambda *a: tiles_before(*a, local=False)
         return model.predict_proba_gp(points)
     finally:
-        tiled.predict_tile_task = tiles_before
+        tile_blending.predict_tile_task = tiles_before
 
 
 @pytest.fixture(params=["numpy", "compiled"])

@@ -14,9 +14,10 @@ import gpomap.lapack as lapack
 import gpomap.tiles as tiles
 import gpomap.tiles.blending as tile_blending
 import gpomap.tiles.executors as tile_executors
+import gpomap.tiles.fits as tile_fits
 import gpomap.tiles.points as tile_points
 import gpomap.tiles.store as tile_store
-import gpomap.tiles.tiled as tiled
+import gpomap.tiles.tiled as tiled_map
 from gpomap.errors import GpomapError
 from gpomap.gp import SupportGP
 from gpomap.observations import Observations
@@ -275,7 +276,7 @@ def test_dead_worker_is_retried(room, reference, tmp_path, monkeypatch):
     hyp, ref = reference
     marker = tmp_path / "died"
     monkeypatch.setenv(MARKER_ENV, str(marker))
-    monkeypatch.setattr(tiled, "fit_tile_task", _dying_fit)
+    monkeypatch.setattr(tile_fits, "fit_tile_task", _dying_fit)
     model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=2, worker_processes=True, **OPTS).fit(room, hyperparameters=hyp)
     assert marker.exists()  # a worker really died
     assert (1, 1) in model.tiles_
@@ -285,7 +286,7 @@ def test_dead_worker_is_retried(room, reference, tmp_path, monkeypatch):
 @pytest.mark.parametrize("n_workers", [1, 2])
 def test_failing_tile_raises_naming_it(room, reference, monkeypatch, n_workers):
     hyp, _ = reference
-    monkeypatch.setattr(tiled, "fit_tile_task", _always_failing_fit)
+    monkeypatch.setattr(tile_fits, "fit_tile_task", _always_failing_fit)
     with pytest.raises(GpomapError, match=r"tile \(1, 1\).*disk on fire"):
         TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=n_workers, **OPTS).fit(room, hyperparameters=hyp)
 
@@ -305,7 +306,7 @@ def test_dask_local_cluster_matches_in_process(room, reference, tmp_path, monkey
         by_address = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=cluster.scheduler_address, **OPTS)
         _same(by_address.fit(room, hyperparameters=hyp).grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
         # A worker dies mid-run: Dask (or our one retry) reruns the tile; nothing goes missing.
-        monkeypatch.setattr(tiled, "fit_tile_task", _dying_fit)
+        monkeypatch.setattr(tile_fits, "fit_tile_task", _dying_fit)
         model = TiledGPOM(tile_size=6.0, overlap=2.5, scheduler=client, **OPTS).fit(room, hyperparameters=hyp)
         assert marker.exists()
         _same(model.grid(0.25, (0.0, 20.0, 0.0, 16.0)), ref)
@@ -355,7 +356,7 @@ def _blas_threads_fit(task):
 def test_pool_workers_share_the_cores_for_blas(room, reference, monkeypatch, worker_processes):
     threadpoolctl = pytest.importorskip("threadpoolctl")
     hyp, _ = reference
-    monkeypatch.setattr(tiled, "fit_tile_task", _blas_threads_fit)
+    monkeypatch.setattr(tile_fits, "fit_tile_task", _blas_threads_fit)
     opts = {"tile_size": 6.0, "overlap": 2.5, "n_workers": 2, "worker_processes": worker_processes, **OPTS}
     before = threadpoolctl.threadpool_info()
     # As if on 4 or 2 cores with one or two BLAS libraries (both are counted in gpomap.lapack):
@@ -372,7 +373,7 @@ def test_stages_in_this_process_share_the_cores_for_blas(room, reference, monkey
     # One worker: the tiles are fitted in this process, within the fit's own limit.
     threadpoolctl = pytest.importorskip("threadpoolctl")
     hyp, _ = reference
-    monkeypatch.setattr(tiled, "fit_tile_task", _blas_threads_fit)
+    monkeypatch.setattr(tile_fits, "fit_tile_task", _blas_threads_fit)
     before = threadpoolctl.threadpool_info()
     for libraries, threads in ((1, 4), (2, 2)):
         monkeypatch.setattr(lapack, "available_cores", lambda: 4)
@@ -633,7 +634,7 @@ def test_a_log_whose_points_wait_in_a_file_maps_as_one_held_in_memory(monkeypatc
     scans = simulate_scans(world, poses, 60, max_range=12.0, noise_std=0.01, seed=1)
     opts = dict(kernel="se", free_step=0.4, min_cell=0.5, max_cell=2.0, n_workers=1, calibration_scans=5)
     held = TiledGPOM(**opts).fit(scans)
-    monkeypatch.setattr(tiled, "POINT_MEMORY", 1)
+    monkeypatch.setattr(tiled_map, "POINT_MEMORY", 1)
     monkeypatch.setattr(observations, "PART_POINTS", 2000)
     spilled = TiledGPOM(**opts).fit(scans)
     assert all(isinstance(p, tile_points._SpilledPart) for b in spilled._block_points.values() for p in b._parts)

@@ -32,12 +32,25 @@ This is the one engine of every MSK-GPOM map, a room or a building, 2-D or 3-D
 (:class:`~gpomap.mapping.AreaGPOM` is its scikit-learn style face). A map whose data fall in one
 block is one GP over that block's cells.
 
-The package's rooms: :mod:`~gpomap.tiles.geometry` (the tile and block squares, how far a tile's
-GP sees), :mod:`~gpomap.tiles.hyperparameters` (given or learnt once),
-:mod:`~gpomap.tiles.tasks` (a tile's fit and prediction as picklable functions of arrays),
-:mod:`~gpomap.tiles.store` (the fitted tiles within a memory budget), :mod:`~gpomap.tiles.points`
-(the points and cells per block), :mod:`~gpomap.tiles.executors` (where tasks run),
-:mod:`~gpomap.tiles.blending` (the blending weights), :mod:`~gpomap.tiles.tiled` (TiledGPOM).
+The package's rooms, from the ground up (TiledGPOM is put together from the mixins):
+
+- :mod:`~gpomap.tiles.geometry`: the tile and block squares on the grid's origin, their keys, how
+  far a tile's GP sees (``TileGrid``).
+- :mod:`~gpomap.tiles.tasks`: one tile's fit and prediction as picklable functions of arrays.
+- :mod:`~gpomap.tiles.store`: the fitted tiles, their factors in memory within a budget.
+- :mod:`~gpomap.tiles.points`: a block's points and cells; a log's points held until filed.
+- :mod:`~gpomap.tiles.attributes`: the map's arguments and fitted state, typed once.
+- :mod:`~gpomap.tiles.executors`: where a stage's tasks run (this process, threads, a process
+  pool, a Dask cluster) and the Dask client's lifetime (``TileExecutors``).
+- :mod:`~gpomap.tiles.blocks`: points filed under blocks, their cell trees, a tile's cells (``BlockCells``).
+- :mod:`~gpomap.tiles.fits`: the tiles' fits as jobs, and the memory they take (``TileFits``).
+- :mod:`~gpomap.tiles.hyperparameters`: given and checked, or learnt once on a sample (``HyperparameterSearch``).
+- :mod:`~gpomap.tiles.report`: what a fitted map says of itself (``MapReport``).
+- :mod:`~gpomap.tiles.blending`: the tiles' latent moments blended (``TileBlending``).
+- :mod:`~gpomap.tiles.prediction`: points, the ternary map, grids and voxels (``MapPrediction``).
+- :mod:`~gpomap.tiles.updates`: new scans absorbed, changed tiles refitted (``TileUpdates``).
+- :mod:`~gpomap.tiles.tiled`: :class:`TiledGPOM`, its arguments and its fit in order.
+
 The classes a map file names (:mod:`gpomap.io.mapfile`: :class:`TiledGPOM`, :class:`TileState`,
 the blocks' points and cells) give this package as their module, where they are found by name.
 """

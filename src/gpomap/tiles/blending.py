@@ -7,8 +7,22 @@ predicts it alone.
 
 from __future__ import annotations
 
+import contextlib
+import math
+from collections.abc import MutableMapping
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import ndtr
+
+from gpomap.estimator import as_points
+from gpomap.lattice import stable_order
+from gpomap.progress import progress
+from gpomap.squash import unseen_probit
+from gpomap.tiles.fits import TileFits
+from gpomap.tiles.store import TileStore
+from gpomap.tiles.tasks import TileState, predict_tile_task
 
 #: Square-box pairs :func:`nearest_box` bounds at once (its temporaries stay at a few MB: a map
 #: can hold thousands of tiles).
@@ -107,3 +121,160 @@ def taper(x: NDArray[np.float64], a: float, b: float, half: float) -> NDArray[np
     ndarray of shape (m,)
     """
     return _smoothstep((x - (a - half)) / (2 * half)) * _smoothstep(((b + half) - x) / (2 * half))
+
+
+class TileBlending(TileFits):
+    """The tiles' latent moments at points, blended (a part of :class:`~gpomap.tiles.TiledGPOM`)."""
+
+    def _predict_blended(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Blended probability, latent mean, latent variance and probability for unseen space at points, each (m,)."""
+        num, den, lat_m, lat_v = self.blended_moments(points)
+        assert den is not None and lat_v is not None
+        p, p_unseen = self.squash_moments(num, den)
+        return p, lat_m, lat_v, p_unseen
+
+    def squash_moments(
+        self, num: NDArray[np.float64], den: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Probability, and probability for unseen space, from :meth:`blended_moments`' calibrated moments, each (m,)."""
+        p = ndtr(num / np.sqrt(1.0 + den))
+        # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation).
+        p_unseen = ndtr(unseen_probit(num, den, self.hyperparameters_.get("variance_scale", 1.0)))
+        return p, p_unseen
+
+    def forget_below(self, y: float) -> None:
+        """Drop the K^-1 that tiles whose blend region ends below `y` formed when they predicted.
+
+        A planar written map is built in bands of rows, upwards (:meth:`EvidenceLayer.written_grid
+        <gpomap.fusion.EvidenceLayer.written_grid>`): a tile the bands have passed is not asked
+        again, and its K^-1 is as large as its factor (gigabytes over a building; docs/choices.md,
+        "The written map in bands"). Asked again, a tile forms the same K^-1 afresh.
+        """
+        tiles = self.tiles_
+        states = tiles.resident() if isinstance(tiles, TileStore) else tiles.values()
+        for tile in states:
+            if self._blend_region(tile.key)[3] < y:
+                tile.posterior.precision = None
+
+    def _light_tile(self, key: tuple[int, int]) -> TileState:
+        """Tile `key`'s state, its factor left where it is (:meth:`TileStore.light`)."""
+        tiles = self.tiles_
+        return tiles.light(key) if isinstance(tiles, TileStore) else tiles[key]
+
+    def _prediction_batches(self, keys: list[tuple[int, int]]) -> list[list[tuple[int, int]]]:
+        """`keys` in consecutive batches whose factors (and the inverses prediction forms) fit in
+        the tile store's budget together; one batch when the tiles are in a plain dict."""
+        tiles = self.tiles_
+        if not isinstance(tiles, TileStore):
+            return [keys] if keys else []
+        batches: list[list[tuple[int, int]]] = []
+        size = tiles.budget  # a full batch: the next key starts a new one
+        for key in keys:
+            n = tiles.light(key).posterior.n_inputs
+            cost = 2 * 8 * n * n
+            if batches and size + cost <= tiles.budget:
+                batches[-1].append(key)
+                size += cost
+            else:
+                batches.append([key])
+                size = cost
+        return batches
+
+    def blended_moments(
+        self, points: NDArray[np.float64], variance: bool = True
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64], NDArray[np.float64] | None]:
+        """The tiles' calibrated latent moments at points, blended: alpha mu + beta, alpha^2 var, mu, var.
+
+        Each of shape (m,); the two variances None without `variance` (the mean costs a small
+        part of a prediction). :meth:`squash_moments` turns the first two into probabilities.
+        """
+        pts = as_points(points, self._dim)
+        m = pts.shape[0]
+        h = 0.5 * self.blend_
+        chunk = self.base.chunk_size
+        # Per tile: which points it predicts and with what weight.
+        members: dict[tuple[int, int], tuple[NDArray[np.intp], NDArray[np.float64]]] = {}
+        wsum = np.zeros(m)
+        # Points bucketed once in squares of half a tile (a stable sort of integers), so each
+        # tile scans only the few squares its blend region reaches: strips of x alone made each
+        # tile of a tall map scan dozens of tiles' points (docs/choices.md, "Measured for the
+        # code"). Squares as narrow as a short blend would be millions (a hard switch).
+        waiting = getattr(self, "_waiting", {})
+        keys = sorted([*self.tiles_, *waiting]) if waiting else sorted(self.tiles_)
+        side = 0.5 * self.tile_size_
+        regions = np.array([self._blend_region(k) for k in keys])
+        lo = regions[:, [0, 2]].min(axis=0)
+        n_sq = np.ceil((regions[:, [1, 3]].max(axis=0) - lo) / side).astype(np.int64) + 1
+        # Square indices -1..n (points beyond every region are clipped to the edge squares).
+        sq_x = np.clip(np.floor((pts[:, 0] - lo[0]) / side), -1, n_sq[0]).astype(np.int64) + 1
+        sq_y = np.clip(np.floor((pts[:, 1] - lo[1]) / side), -1, n_sq[1]).astype(np.int64) + 1
+        row = int(n_sq[1]) + 2
+        sq_key = sq_x * row + sq_y
+        by_square = stable_order(sq_key)
+        sorted_key = sq_key[by_square]
+        for key, (bx0, bx1, by0, by1) in zip(keys, regions, strict=True):
+            fx, lx = (math.floor((v - lo[0]) / side) + 1 for v in (bx0, bx1))
+            fy, ly = (math.floor((v - lo[1]) / side) + 1 for v in (by0, by1))
+            # One slice of the sorted points per column of squares the region reaches.
+            starts = np.searchsorted(sorted_key, np.arange(fx, lx + 1) * row + fy, side="left")
+            stops = np.searchsorted(sorted_key, np.arange(fx, lx + 1) * row + ly, side="right")
+            near = np.concatenate([by_square[a:b] for a, b in zip(starts, stops, strict=True)])
+            inside = (pts[near, 0] > bx0) & (pts[near, 0] < bx1) & (pts[near, 1] > by0) & (pts[near, 1] < by1)
+            idx = np.sort(near[inside])
+            if idx.size == 0:
+                continue
+            x0, x1, y0, y1 = self._core(key)
+            w = taper(pts[idx, 0], x0, x1, h) * taper(pts[idx, 1], y0, y1, h)
+            nz = w > 0
+            if nz.any():
+                members[key] = (idx[nz], w[nz])
+                wsum[idx[nz]] += w[nz]  # indices distinct within a tile
+        # Points no tile reaches (blocks without data): the tile whose core is nearest, alone.
+        orphans = np.flatnonzero(wsum <= 0)
+        if orphans.size:
+            nearest = nearest_box(pts[orphans], np.array([self._core(k) for k in keys]))
+            for j in np.unique(nearest):
+                sel = orphans[nearest == j]
+                key = keys[int(j)]
+                if key in members:
+                    idx, w = members[key]
+                    members[key] = (np.concatenate([idx, sel]), np.concatenate([w, np.ones(sel.size)]))
+                else:
+                    members[key] = (sel, np.ones(sel.size))
+                wsum[sel] = 1.0
+        # A written map predicts the mean at every GP sample, then both moments at fewer: say which.
+        desc = "predicting tiles" if variance else "predicting tile means"
+        if waiting:
+            self._fit_waiting([k for k in members if k in waiting])
+        # The mean needs no factor: the tiles' states without theirs, all at once. The variance:
+        # tiles in batches whose factors fit in a TileStore's budget, each batch's states read
+        # (from the store's file, if there) only while it runs.
+        batches = self._prediction_batches(list(members)) if variance else [list(members)]
+        state = self.tiles_.__getitem__ if variance else self._light_tile
+        res: MutableMapping[tuple[int, int], Any] = {}
+        with progress(len(members), desc, unit="tile") if len(batches) > 1 else contextlib.nullcontext() as bar:
+            for batch in batches:
+                jobs = [(key, (state(key), pts[members[key][0]], chunk, variance)) for key in batch]
+                res.update(self._run(predict_tile_task, jobs, "tile prediction", desc))
+                del jobs
+                if bar is not None:
+                    bar.update(len(batch))
+        num = np.zeros(m)
+        lat_m = np.zeros(m)
+        den = np.zeros(m) if variance else None
+        lat_v = np.zeros(m) if variance else None
+        for key, (idx, w) in members.items():
+            mu, var = res[key]
+            hp = self._light_tile(key).hyperparameters
+            a, b = hp["alpha"], hp["beta"]
+            # Blend the calibrated latent moments so per-tile alpha and beta blend too; with
+            # global alpha and beta this is exactly squash(blended mean, blended variance).
+            # idx is distinct within a tile, so fancy-index sums add each once, in tile order.
+            num[idx] += w * (a * mu + b)
+            lat_m[idx] += w * mu
+            if den is not None and lat_v is not None and var is not None:
+                den[idx] += w * (a * a * var)
+                lat_v[idx] += w * var
+        return num / wsum, None if den is None else den / wsum, lat_m / wsum, None if lat_v is None else lat_v / wsum

@@ -5,6 +5,10 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+from gpomap.lapack import available_cores
+from gpomap.supports import Supports
+from gpomap.tiles.fits import TileFits
+
 HYPER_NAMES = ("variance", "length_scale", "noise", "alpha", "beta")
 #: What a fit learns of unseen space besides, taken as given when passed with the hyperparameters:
 #: the variance scale (:mod:`gpomap.extrapolation`).
@@ -88,3 +92,59 @@ def hyper_anchor_block(sizes: ArrayLike, occupied_fractions: ArrayLike, map_occu
     # Dense but typical: the densest block can be one spot where the robot lingered, many tiny
     # cells whose squash comes out flat (docs/choices.md, "The hyperparameter sample").
     return int(candidates[np.argmin(np.abs(sizes[candidates] - np.quantile(sizes, 0.75)))])
+
+
+class HyperparameterSearch(TileFits):
+    """Learns a map's hyperparameters on its cells (a part of :class:`~gpomap.tiles.TiledGPOM`)."""
+
+    def _learn_hyperparameters(self) -> dict[str, float]:
+        """Learn all five hyperparameters once, on a compact sample round a dense, typical block."""
+        b = self.base
+        keys = sorted(self._blocks)
+        lo, hi, cnt, lab, _ = self._all_cells()
+        sizes = np.array([len(self._blocks[k].counts) for k in keys])
+        shares = np.array([float(np.mean(self._blocks[k].occupied)) if n else 0.0 for k, n in zip(keys, sizes, strict=True)])
+        bc = self._blocks[keys[hyper_anchor_block(sizes, shares, float(np.mean(lab > 0)))]]
+        anchor = 0.5 * (bc.lower + bc.upper).mean(axis=0)
+        n = lab.size
+        k = self.hyper_sample if self.hyper_sample is not None else DEFAULT_HYPER_SAMPLE[self._dim]
+        if n <= k:
+            idx = np.arange(n)
+        else:
+            d = np.sum((0.5 * (lo + hi) - anchor) ** 2, axis=1)
+            idx = np.sort(np.argpartition(d, k - 1)[:k])
+        if b.area_method == "summed":
+            blocks = [self._blocks[k] for k in keys]
+            from gpomap.supports import concatenate
+
+            X = concatenate([Supports(c.lower, c.upper, c.counts, c.member_points, c.member_offsets) for c in blocks]).subset(idx)
+        else:
+            X = Supports(lo[idx], hi[idx], cnt[idx])
+        # The search runs in this process, its groups on the local workers' cores.
+        gp = self._settings().search_gp(
+            b.make_kernel(),
+            b.noise,
+            optimise=b.optimise,
+            hyper_subset=None,
+            hyper_group=HYPER_GROUP_CELLS[self._dim],
+            n_threads=min(self.n_workers_, available_cores()),
+        )
+        gp.fit(X, lab[idx])
+        hyp = {
+            "variance": float(gp.kernel.base.variance),
+            "length_scale": float(gp.kernel.base.length_scale),
+            "noise": float(gp.noise),
+            "alpha": float(gp.squash.alpha),
+            "beta": float(gp.squash.beta),
+        }
+        r = np.sqrt(np.max(np.sum((0.5 * (lo[idx] + hi[idx]) - anchor) ** 2, axis=1)))
+        self.hyper_source_ = {
+            "how": "learnt" if b.optimise else "given (alpha, beta fitted)",
+            "sample_cells": int(idx.size),
+            "sample_centre": [round(float(anchor[0]), 2), round(float(anchor[1]), 2)],
+            "sample_radius_m": round(float(r), 2),
+            "sample_occupied_fraction": round(float(np.mean(lab[idx] > 0)), 4),
+            "evaluations": gp.fit_report_.n_evaluations if gp.fit_report_ is not None else 0,
+            "sample_groups": gp.fit_report_.groups if gp.fit_report_ is not None else 1,
+        }
+        return hyp

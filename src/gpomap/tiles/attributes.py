@@ -1,0 +1,84 @@
+"""The attributes of a tiled map, typed once for the parts of :class:`~gpomap.tiles.TiledGPOM`.
+
+Each part of the class (a mixin of this package) reads some of them and sets others. The map file
+(:mod:`gpomap.io.mapfile`) saves them by these names: a name changed here is a new file format.
+"""
+
+from __future__ import annotations
+
+from collections.abc import MutableMapping
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.fusion import EvidenceLayer
+from gpomap.settings import MapSettings
+from gpomap.tiles.points import _BlockCells, _BlockPoints
+from gpomap.tiles.tasks import TileFitTask, TileState
+
+
+class TiledAttributes:
+    """The arguments and fitted state of a :class:`~gpomap.tiles.TiledGPOM`, declared only (the
+    instance sets them): a part of the class that reads one need not be the part that sets it."""
+
+    # The arguments (TiledGPOM.__init__), and the map's settings.
+    tile_size: float | None
+    overlap: float | None
+    blend: float | None
+    origin: tuple[float, float] | None
+    n_workers: int | None
+    scheduler: Any
+    hyper_sample: int | None
+    per_tile_hyperparameters: bool
+    blas_threads: int | None
+    worker_processes: bool
+    scheduler_timeout: float
+    memory_limit: float | None
+    base: MapSettings
+    options: dict[str, Any]
+    #: The distributed.Client of the stage running, if any.
+    _client: Any
+
+    # Set by fit: the grids, and the observation points per block, their cell trees and extent.
+    _dim: int
+    tile_size_: float
+    origin_: tuple[float, float]
+    overlap_: float
+    blend_: float
+    _clearance: float
+    _block_points: dict[int, _BlockPoints]
+    _blocks: dict[int, _BlockCells]
+    _tiles_with_points: set[int]
+    _lower: NDArray[np.float64] | None
+    _upper: NDArray[np.float64] | None
+    _n_points: int
+    _n_occupied_points: int
+    _n_scans: int
+    _n_invalid: int
+    _n_no_return: int
+    path_: NDArray[np.float64] | None
+    _scans: list[Any] | None
+
+    # The fit's results: hyperparameters, calibrations, tiles, ray evidence.
+    hyperparameters_: dict[str, float]
+    hyper_source_: dict[str, Any]
+    extrapolation_: dict[str, Any]
+    revisit_: dict[str, Any]
+    tiles_: MutableMapping[tuple[int, int], TileState]
+    #: Each tile's cells' digest when it was fitted (an update refits a tile only when it changes).
+    _signatures: dict[tuple[int, int], tuple[bytes, ...]]
+    evidence_: EvidenceLayer | None
+    timings_: dict[str, float]
+
+    # Updates: blocks absorbed and not yet rebuilt, tiles waiting for a refit (oldest first), tiles
+    # last fitted reusing covariances, and the tiles the last fit or refresh fitted.
+    _dirty: set[int]
+    _stale: dict[tuple[int, int], None]
+    _reused: set[tuple[int, int]]
+    last_refit_: list[tuple[int, int]]
+
+    #: Fit each tile when a prediction first needs it (set on a map asked at a few points only).
+    _tiles_when_asked: bool = False
+    #: The tasks of the tiles that wait to be asked, by tile (a map fitted with ``_tiles_when_asked``).
+    _waiting: dict[tuple[int, int], tuple[TileFitTask]]

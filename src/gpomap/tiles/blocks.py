@@ -1,0 +1,150 @@
+"""Points filed under their blocks, each block's cell tree, and the cells a tile's GP sees.
+
+A block's cells depend only on the points inside it, so new data rebuild the trees of the blocks
+they fall in and nowhere else: that is what makes an update give the batch answer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.cells import build_cells
+from gpomap.lattice import column_bounds
+from gpomap.resources import SpillFile
+from gpomap.supports import Supports
+from gpomap.tiles.geometry import _KEY_CHUNK, TileGrid, _box_offset
+from gpomap.tiles.points import _BlockCells, _BlockPoints, _SpilledPart
+from gpomap.tiles.tasks import TileCells
+
+
+class BlockCells(TileGrid):
+    """A map's points by block and the cells grown from them (a part of :class:`~gpomap.tiles.TiledGPOM`)."""
+
+    def _build_block(self, key: int) -> _BlockCells:
+        b = self.base
+        block = self._block_points[key]
+        points, occupied = block.arrays()
+        keep = ~block.free_near_hits(self._clearance, (points, occupied))
+        c = build_cells(points[keep], occupied[keep], b.min_cell, b.max_cell, b.cell_box)
+        summed = b.area_method == "summed"
+        return _BlockCells(
+            lower=c.lower,
+            upper=c.upper,
+            counts=c.counts.astype(float),
+            occupied=c.occupied,
+            n_ambiguous=int(c.ambiguous.sum()),
+            member_points=c.points[c.member_order] if summed else None,
+            member_offsets=c.member_offsets if summed else None,
+        )
+
+    def _add_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_], spill: SpillFile | None = None) -> set[int]:
+        """File points under their blocks (in observation order within each) and note their tiles; returns the blocks touched.
+
+        With `spill`, each block's new points wait in that file (:class:`_SpilledPart`) instead of in memory."""
+        # Keys per chunk of points, blocks then numbered 0..b-1 in key order: a whole log's int64
+        # keys and their sorted copy would be hundreds of megabytes.
+        chunks = range(0, points.shape[0], _KEY_CHUNK)
+        found = [np.zeros(0, dtype=np.int64)]
+        for s in chunks:
+            part = points[s : s + _KEY_CHUNK]
+            self._tiles_with_points.update(self._present_keys(part, self.tile_size_).tolist())
+            found.append(self._present_keys(part, self.block_size_))
+        block_keys = np.unique(np.concatenate(found))
+        ids = np.empty(points.shape[0], dtype=np.int16 if block_keys.size <= np.iinfo(np.int16).max else np.int32)
+        # Each block's id looked up in a table over the blocks' index box (a search per point
+        # where that box is too large for a table).
+        table = None
+        if block_keys.size:
+            bxy = np.column_stack(self._decode(block_keys))
+            b_lo, b_hi = column_bounds(bxy)
+            b_span = b_hi - b_lo + 1
+            if int(b_span[0]) * int(b_span[1]) <= _KEY_CHUNK:
+                table = np.zeros(int(b_span.prod()), dtype=ids.dtype)
+                table[_box_offset(bxy, b_lo, b_span)] = np.arange(block_keys.size)
+        for s in chunks:
+            part = points[s : s + _KEY_CHUNK]
+            if table is None:
+                ids[s : s + _KEY_CHUNK] = np.searchsorted(block_keys, self._block_keys(part))
+            else:
+                ids[s : s + _KEY_CHUNK] = table[_box_offset(self._square_indices(part, self.block_size_), b_lo, b_span)]
+        # Stable (a radix sort for 16-bit ids): keeps observation order per block.
+        order = np.argsort(ids, kind="stable")
+        cuts = np.cumsum(np.bincount(ids, minlength=block_keys.size))[:-1]
+        del ids
+        touched = set()
+        for k, grp in zip(block_keys.tolist(), np.split(order, cuts)):
+            if grp.size == 0:
+                continue
+            filed: Any = _SpilledPart.put(spill, points[grp], occupied[grp]) if spill is not None else points[grp]
+            labels = None if spill is not None else occupied[grp]
+            if k in self._block_points:
+                self._block_points[k].append(filed, labels)
+            else:
+                self._block_points[k] = _BlockPoints(filed, labels)
+            touched.add(k)
+        if points.shape[0]:
+            lo, hi = column_bounds(points)
+            self._lower = lo if self._lower is None else np.minimum(self._lower, lo)
+            self._upper = hi if self._upper is None else np.maximum(self._upper, hi)
+        self._n_points += int(points.shape[0])
+        self._n_occupied_points += int(occupied.sum())
+        return touched
+
+    def _build_blocks(self, keys: Sequence[int] | None = None) -> None:
+        """(Re)build the cell trees of the given blocks (all when None)."""
+        if keys is None:
+            self._blocks = {}
+            keys = list(self._block_points)
+        for k in keys:
+            self._blocks[int(k)] = self._build_block(int(k))
+
+    def _blocks_seen_by(self, tile: tuple[int, int]) -> list[int]:
+        """Keys of the blocks whose squares meet the tile's grown square (those it gathers cells from)."""
+        return [self._encode(*b) for b in self._meeting(*self._grown(self._core(tile)), self.block_size_)]
+
+    def _tiles_seeing(self, block: int) -> list[tuple[int, int]]:
+        """The tiles holding points whose grown squares meet the block's square."""
+        lo, hi = self._grown(self._square(self._decode(block), self.block_size_))
+        return [t for t in self._meeting(lo, hi, self.tile_size_) if self._encode(*t) in self._tiles_with_points]
+
+    def _gather(self, tile: tuple[int, int]) -> TileCells | None:
+        """The cells meeting the tile's grown square, in canonical (block key, tree) order."""
+        (gx0, gy0), (gx1, gy1) = self._grown(self._core(tile))
+        parts = []
+        for key in self._blocks_seen_by(tile):
+            bc = self._blocks.get(key)
+            if bc is None:
+                continue
+            keep = (bc.lower[:, 0] <= gx1) & (bc.upper[:, 0] >= gx0) & (bc.lower[:, 1] <= gy1) & (bc.upper[:, 1] >= gy0)
+            if keep.any():
+                parts.append((key, bc, np.flatnonzero(keep)))
+        if not parts:
+            return None
+        parts.sort(key=lambda p: p[0])
+        out = TileCells(
+            lower=np.concatenate([bc.lower[k] for _, bc, k in parts]),
+            upper=np.concatenate([bc.upper[k] for _, bc, k in parts]),
+            counts=np.concatenate([bc.counts[k] for _, bc, k in parts]),
+            labels=np.concatenate([np.where(bc.occupied[k], 1.0, -1.0) for _, bc, k in parts]),
+        )
+        if self.base.area_method == "summed":
+            sup = [Supports(bc.lower, bc.upper, bc.counts, bc.member_points, bc.member_offsets).subset(k) for _, bc, k in parts]
+            from gpomap.supports import concatenate
+
+            s = concatenate(sup)
+            out.member_points, out.member_offsets = s.member_points, s.member_offsets
+        return out
+
+    def _all_cells(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], list[int]]:
+        keys = sorted(self._blocks)
+        lo = np.concatenate([self._blocks[k].lower for k in keys])
+        hi = np.concatenate([self._blocks[k].upper for k in keys])
+        cnt = np.concatenate([self._blocks[k].counts for k in keys])
+        lab = np.concatenate([np.where(self._blocks[k].occupied, 1.0, -1.0) for k in keys])
+        return lo, hi, cnt, lab, keys
