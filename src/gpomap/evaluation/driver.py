@@ -65,7 +65,8 @@ def run_method(
     Parameters
     ----------
     data : EvalData
-    method : {"msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting"}
+    method : str
+        A name of :data:`gpomap.evaluation.methods.METHODS`.
     kernel : {"se", "matern32"}, optional
         Point kernel of the GP methods (default: the library's).
     seed : int

@@ -30,8 +30,8 @@ def make_model(
 
     Parameters
     ----------
-    method : {"msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting"}
-        "ogm" is "ogm-logodds".
+    method : str
+        A name of :data:`gpomap.evaluation.methods.METHODS` ("ogm" is "ogm-logodds").
     kernel : {"se", "matern32"}, optional
         Point kernel of the GP methods (default: each method's own default). Ignored by the grids.
     seed : int
