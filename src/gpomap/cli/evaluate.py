@@ -30,6 +30,7 @@ from gpomap.cli.options import (
     signature_default,
 )
 from gpomap.errors import GpomapError
+from gpomap.evaluation.methods import GP_METHODS, GRID_METHODS, METHODS, REGISTRY
 
 if TYPE_CHECKING:
     from gpomap.plot import ScoreCurve
@@ -59,7 +60,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--demo", action="store_true", help="use the built-in synthetic room (scored against its true geometry too)")
     p.add_argument(
         "--method",
-        choices=["msk", "gpomik", "gpom", "ogm", "ogm-logodds", "ogm-counting"],
+        choices=METHODS,
         default="msk",
         help="ogm = ogm-logodds, OctoMap's model; ogm-counting: (hits+1)/(hits+misses+2) (default: %(default)s)",
     )
@@ -361,8 +362,6 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
     for the rest; ``--no-return-cap`` is the grids' ``max_range_free``); an option given that
     the method has no use for is refused.
     """
-    from gpomap.evaluation import GRID_METHODS
-
     config = map_config(args)
     if args.method == "msk":
         return {k: v for k, v in config.kwargs().items() if k not in ("kernel", "seed")}  # evaluate()'s own arguments
@@ -372,10 +371,7 @@ def method_options(args: argparse.Namespace) -> dict[str, Any]:
     if args.method in GRID_METHODS:
         takes = {"no_return_cap": "max_range_free"}
     else:
-        from gpomap.baselines.gpom import GPOM
-        from gpomap.baselines.gpomik import GPOMIK
-
-        params = inspect.signature({"gpom": GPOM, "gpomik": GPOMIK}[args.method]).parameters
+        params = inspect.signature(REGISTRY[args.method].estimator()).parameters
         takes = {d: d for d in dests if d in params}
     set_here = given(args, dests)
     refused = [d for d in set_here if d not in takes]
@@ -399,12 +395,10 @@ def evaluate_arguments(args: argparse.Namespace) -> dict[str, Any]:
         An option given that ``--method`` does not take; ``--compare`` with another method than
         msk, or with ``--no-grid``.
     """
-    from gpomap.evaluation import GRID_METHODS, METHODS
-
-    gp_methods = tuple(m for m in METHODS if m not in GRID_METHODS)
     # The options only some methods take (refused on the others, not ignored): the grids' cell
     # side, the GP methods' written map, the tiles of MSK-GPOM.
-    only = {"resolution": GRID_METHODS, "grid_resolution": gp_methods, "workers": ("msk",)}
+    tiled = tuple(name for name, method in REGISTRY.items() if method.tiles)
+    only = {"resolution": GRID_METHODS, "grid_resolution": GP_METHODS, "workers": tiled}
     for dest, methods in only.items():
         if args.method not in methods and given(args, [dest]):
             raise GpomapError(f"{flag(dest)} is for --method {', '.join(methods)}, not {args.method}")

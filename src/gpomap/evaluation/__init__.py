@@ -41,41 +41,104 @@ ready: :func:`prepare`) and :mod:`~gpomap.evaluation.driver` (:func:`run_method`
 
 from __future__ import annotations
 
-from gpomap.evaluation.data import EvalData, prepare
-from gpomap.evaluation.driver import evaluate, run_method
-from gpomap.evaluation.gridtruth import Truth, score_against_truth, score_truth
-from gpomap.evaluation.maps import (
-    GRID_RESOLUTION,
-    lookup,
-    lookup_occupied,
-    make_model,
-    n_inputs,
-    occupied_at,
-    written_grid,
-)
-from gpomap.evaluation.methods import GP_METHODS, GRID_METHODS, METHODS, REGISTRY, Method, method_named
-from gpomap.evaluation.points import (
-    BOUNDARY_RADIUS,
-    NO_RETURN_CAP,
-    TEST_FREE_STEP,
-    TEST_HIT_MARGIN,
-    near,
-    protocol_points,
-    test_points,
-)
-from gpomap.evaluation.reference import (
-    FAR_DISTANCE,
-    FAR_LATTICE,
-    FAR_MAX_POINTS,
-    PATH_STEP,
-    REFERENCE_RESOLUTION,
-    FarField,
-    observed_at,
-    path_points,
-    reference_grid,
-)
-from gpomap.evaluation.scoring import path_occupied, score
-from gpomap.evaluation.splits import DEFAULT_BLOCK_PERIOD, SPLITS, check_split, holdout_split, resolve_split, scan_window
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from gpomap.evaluation.data import EvalData, prepare
+    from gpomap.evaluation.driver import evaluate, run_method
+    from gpomap.evaluation.gridtruth import Truth, score_against_truth, score_truth
+    from gpomap.evaluation.maps import (
+        GRID_RESOLUTION,
+        lookup,
+        lookup_occupied,
+        make_model,
+        n_inputs,
+        occupied_at,
+        written_grid,
+    )
+    from gpomap.evaluation.methods import GP_METHODS, GRID_METHODS, METHODS, REGISTRY, Method, method_named
+    from gpomap.evaluation.points import (
+        BOUNDARY_RADIUS,
+        NO_RETURN_CAP,
+        TEST_FREE_STEP,
+        TEST_HIT_MARGIN,
+        near,
+        protocol_points,
+        test_points,
+    )
+    from gpomap.evaluation.reference import (
+        FAR_DISTANCE,
+        FAR_LATTICE,
+        FAR_MAX_POINTS,
+        PATH_STEP,
+        REFERENCE_RESOLUTION,
+        FarField,
+        observed_at,
+        path_points,
+        reference_grid,
+    )
+    from gpomap.evaluation.scoring import path_occupied, score
+    from gpomap.evaluation.splits import DEFAULT_BLOCK_PERIOD, SPLITS, check_split, holdout_split, resolve_split, scan_window
+
+#: Each public name's module, imported when the name is first asked for (PEP 562), so that the
+#: registry of methods (:mod:`~gpomap.evaluation.methods`) is read without loading the engine.
+_HOMES: dict[str, str] = {
+    "EvalData": "gpomap.evaluation.data",
+    "prepare": "gpomap.evaluation.data",
+    "evaluate": "gpomap.evaluation.driver",
+    "run_method": "gpomap.evaluation.driver",
+    "Truth": "gpomap.evaluation.gridtruth",
+    "score_against_truth": "gpomap.evaluation.gridtruth",
+    "score_truth": "gpomap.evaluation.gridtruth",
+    "GRID_RESOLUTION": "gpomap.evaluation.maps",
+    "lookup": "gpomap.evaluation.maps",
+    "lookup_occupied": "gpomap.evaluation.maps",
+    "make_model": "gpomap.evaluation.maps",
+    "n_inputs": "gpomap.evaluation.maps",
+    "occupied_at": "gpomap.evaluation.maps",
+    "written_grid": "gpomap.evaluation.maps",
+    "GP_METHODS": "gpomap.evaluation.methods",
+    "GRID_METHODS": "gpomap.evaluation.methods",
+    "METHODS": "gpomap.evaluation.methods",
+    "REGISTRY": "gpomap.evaluation.methods",
+    "Method": "gpomap.evaluation.methods",
+    "method_named": "gpomap.evaluation.methods",
+    "BOUNDARY_RADIUS": "gpomap.evaluation.points",
+    "NO_RETURN_CAP": "gpomap.evaluation.points",
+    "TEST_FREE_STEP": "gpomap.evaluation.points",
+    "TEST_HIT_MARGIN": "gpomap.evaluation.points",
+    "near": "gpomap.evaluation.points",
+    "protocol_points": "gpomap.evaluation.points",
+    "test_points": "gpomap.evaluation.points",
+    "FAR_DISTANCE": "gpomap.evaluation.reference",
+    "FAR_LATTICE": "gpomap.evaluation.reference",
+    "FAR_MAX_POINTS": "gpomap.evaluation.reference",
+    "PATH_STEP": "gpomap.evaluation.reference",
+    "REFERENCE_RESOLUTION": "gpomap.evaluation.reference",
+    "FarField": "gpomap.evaluation.reference",
+    "observed_at": "gpomap.evaluation.reference",
+    "path_points": "gpomap.evaluation.reference",
+    "reference_grid": "gpomap.evaluation.reference",
+    "path_occupied": "gpomap.evaluation.scoring",
+    "score": "gpomap.evaluation.scoring",
+    "DEFAULT_BLOCK_PERIOD": "gpomap.evaluation.splits",
+    "SPLITS": "gpomap.evaluation.splits",
+    "check_split": "gpomap.evaluation.splits",
+    "holdout_split": "gpomap.evaluation.splits",
+    "resolve_split": "gpomap.evaluation.splits",
+    "scan_window": "gpomap.evaluation.splits",
+}
+
+
+def __getattr__(name: str) -> Any:
+    """The public names of :data:`_HOMES`, imported from their module when first asked for."""
+    if name in _HOMES:
+        value = getattr(importlib.import_module(_HOMES[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'gpomap.evaluation' has no attribute {name!r}")
+
 
 __all__ = [
     "BOUNDARY_RADIUS",
