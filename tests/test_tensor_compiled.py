@@ -147,6 +147,6 @@ def test_without_numba_the_numpy_path_is_taken():
         "from gpomap.simulate import paper_room_scans\n"
         "ev = RayEvidence.from_scans(paper_room_scans()[:2])\n"
         "hits = ev.counts(lattice_grid(ev.extent(), 0.1)).hits\n"
-        "print(_compiled.AVAILABLE, _compiled.ENABLED, K.shape, _compiled_counts.ENABLED, hits.sum())"
+        "print(_compiled.AVAILABLE, _compiled.ENABLED, K.shape, _compiled_counts.ENABLED, int(hits.sum()))"
     )
     assert _run(code, **{FORCE_NUMPY_ENV: ""}).split() == ["False", "False", "(6,", "6)", "False", "72"]
