@@ -78,9 +78,27 @@ def test_default_model_is_the_commands(room_pcds):
     model, resolution = default_model(clouds)
     # The command's engine with its options: 3-D cells, tiles of the default size, every core.
     assert resolution == 0.1 and type(model).__name__ == "AreaGPOM"
-    assert (model.max_cell, model.tile_size, model.n_workers) == (1.0, None, None)  # None: the 3-D default
+    assert (model.max_cell, model.tile_size, model.n_workers) == (None, None, None)  # None: the 3-D default
+    assert model.base.cell_sides(3) == (1.0, 1.0) and model.base.cell_sides(2) == (0.5, 0.5)
     assert default_model(clouds, workers=1, tile_size=4.0)[0].get_params()["tile_size"] == 4.0
     assert is_cloud_input(room_pcds)
+
+
+def test_the_library_applies_the_voxel_profile_as_the_command_does() -> None:
+    # AreaGPOM() on clouds builds the map `gpomap map CLOUDS` builds: the same cells, bit for bit
+    # the same probabilities; a planar profile's 0.5 m cells would give three times as many.
+    from gpomap.mapping import AreaGPOM
+
+    clouds = select_clouds(world3d.lidar_clouds(world3d.ORIGINS[:2], n_rays=300), n_rays=150)
+    command, _ = default_model(clouds, workers=1)
+    library = AreaGPOM(n_workers=1)
+    command.fit(clouds)
+    library.fit(clouds)
+    q = np.random.default_rng(0).uniform(*command.bounds_, (500, 3))
+    assert library.n_inputs_ == command.n_inputs_
+    np.testing.assert_array_equal(library.predict_proba(q), command.predict_proba(q))
+    planar_cells = AreaGPOM(n_workers=1, min_cell=0.5, max_cell=0.5).fit(clouds).n_inputs_
+    assert planar_cells > 2 * library.n_inputs_
 
 
 @pytest.mark.parametrize(

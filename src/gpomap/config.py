@@ -8,8 +8,8 @@ builds one config from the parsed options; the library receives it as keyword ar
 (:meth:`MapConfig.kwargs`), so a script and the command build the same model:
 
     >>> config = MapConfig(kernel="se", free_step=0.1)
-    >>> config.free_step, config.max_cell
-    (0.1, 0.5)
+    >>> config.free_step, config.max_cell, PROFILES[2].max_cell
+    (0.1, None, 0.5)
     >>> from gpomap.mapping import AreaGPOM
     >>> model = AreaGPOM(**config.kwargs())  # doctest: +SKIP
 
@@ -35,6 +35,8 @@ __all__ = [
     "CALIBRATED_THRESHOLDS",
     "DEFAULT_THRESHOLDS",
     "VOXEL_MAP_DEFAULTS",
+    "MapProfile",
+    "PROFILES",
 ]
 
 #: Most cells of the one GP of a grid or octree conversion (``gpomap convert --max-cells``; maps
@@ -46,13 +48,40 @@ DEFAULT_MAX_CELLS = 3000
 #: (``gpomap map --scheduler-timeout``).
 DEFAULT_SCHEDULER_TIMEOUT = 60.0
 
-#: What a 3-D map (``gpomap map`` on point clouds) uses in place of the defaults measured on 2-D
-#: logs, for the options the user leaves unset. Cells of 1 m, not 0.5 m: a cube has 8 times as many
-#: cells per volume as a square has 4, so half the side costs a 3-D map several times the fit
-#: for no gain across the 3-D cases of ``benchmarks/quality3d.py`` (docs/3d.md). Voxels of 0.1 m,
-#: OctoMap's usual (a planar map's default is the ray counts' cells,
-#: :attr:`MapConfig.evidence_resolution`).
-VOXEL_MAP_DEFAULTS: dict[str, float] = {"min_cell": 1.0, "max_cell": 1.0, "resolution": 0.1}
+
+@dataclass(frozen=True)
+class MapProfile:
+    """The defaults that differ between planar maps and voxel maps, applied by the library from the
+    data's dimension wherever a setting is left unset (None).
+
+    Attributes
+    ----------
+    min_cell, max_cell : float
+        The cell tree's size thresholds, metres (:class:`MapConfig`).
+    resolution : float
+        The side of the written map's cells, metres (``gpomap map --resolution``).
+    """
+
+    min_cell: float
+    max_cell: float
+    resolution: float
+
+
+#: The profile of each data dimension. Planar maps: 0.5 m cells (docs/choices.md, "Measured on more
+#: logs") written on the ray counts' 0.05 m cells. Voxel maps: cells of 1 m, since a cube holds 8
+#: times as many cells per volume at half the side where a square holds 4, for no gain across the
+#: 3-D cases of ``benchmarks/quality3d.py`` (docs/3d.md, "3-D defaults"); voxels of 0.1 m, OctoMap's usual.
+PROFILES: dict[int, MapProfile] = {
+    2: MapProfile(min_cell=0.5, max_cell=0.5, resolution=0.05),
+    3: MapProfile(min_cell=1.0, max_cell=1.0, resolution=0.1),
+}
+
+#: The voxel maps' profile as the options it sets (``gpomap map`` on point clouds, the ROS 2 node).
+VOXEL_MAP_DEFAULTS: dict[str, float] = {
+    "min_cell": PROFILES[3].min_cell,
+    "max_cell": PROFILES[3].max_cell,
+    "resolution": PROFILES[3].resolution,
+}
 
 
 class _Config:
@@ -72,7 +101,9 @@ class MapConfig(_Config):
     """The settings of one MSK-GPOM map: the arguments of :class:`~gpomap.settings.MapSettings`.
 
     The fields, their order and their meaning are MapSettings' (see its parameters); grouped here
-    as the pipeline runs: beams to points, points to cells, cells to a GP, the GP to a map.
+    as the pipeline runs: beams to points, points to cells, cells to a GP, the GP to a map. A field
+    left None that :class:`MapProfile` holds takes the profile of the data's dimension
+    (:data:`PROFILES`) when the map is fitted, so a planar log and point clouds each get theirs.
     """
 
     # the points: beams to free points and hits
@@ -81,8 +112,8 @@ class MapConfig(_Config):
     no_return_cap: float | None = 10.0
     free_clearance: float = 0.3
     # the cells
-    min_cell: float = 0.5
-    max_cell: float = 0.5
+    min_cell: float | None = None
+    max_cell: float | None = None
     cell_box: str = "node"
     # the GP and its hyperparameters
     kernel: str = "matern32"

@@ -62,7 +62,7 @@ from scipy import ndimage
 
 from gpomap.cells import Cells
 from gpomap.errors import EmptyDataError, InputFormatError
-from gpomap.estimator import GPMapEstimator
+from gpomap.estimator import GPMapEstimator, as_points
 from gpomap.gp import SupportGP, inverse_diagonal
 from gpomap.grid import FREE, OCCUPIED, GridSpec, OccupancyMap, ternary
 from gpomap.io.npz import load_map
@@ -103,9 +103,25 @@ WALL_REACH_PIXELS = 3
 EDGE_STRIP_PIXELS = 0.0
 #: Noise of the point where an occupied pixel's obstacle most likely is, relative to a one-pixel cell's.
 CENTRE_NOISE = 3.0
-#: What a wholly occupied pixel of a grid of 0s and 1s is taken to hold: any-pixel pooling marks
-#: pixels a thin wall grazes, majority pooling pixels mostly filled (docs/convert.md).
+#: What an occupied pixel of a grid of 0s and 1s is taken to hold: any-pixel pooling marks pixels
+#: a thin wall grazes, majority pooling pixels more than half filled (docs/convert.md).
 OCCUPIED_FRACTION = 0.7
+#: What a free pixel of a majority-pooled grid within :data:`MAJORITY_REACH` pixels (chessboard)
+#: of an occupied one is taken to hold: up to half of it may be a wall that continues from its
+#: neighbour, and such walls vanish from the grid (docs/convert.md).
+MAJORITY_NEIGHBOUR_SHARE = 0.2
+MAJORITY_REACH = 1
+#: A grid of 0s and 1s more than this share of whose occupied pixels end a wall or touch another
+#: only at a corner is read as majority-pooled (:func:`infer_pooling`).
+BROKEN_SHARE = 0.1
+#: How a grid of 0s and 1s was made from a finer one (:func:`read_pixels`); "auto": see
+#: :func:`infer_pooling`.
+POOLINGS = ("auto", "any", "majority", "mean")
+#: What the map keeps of the GP's probability in a pixel the grid holds wholly free (and of its
+#: complement in one it holds wholly occupied): nothing there is otherwise, and the GP's order is kept.
+HELD_SCALE = 1e-3
+#: Samples per pixel side over which a pixel's mean probability is measured (:class:`GridGPOM`).
+SHARE_SAMPLES = 8
 #: Length scale of a converted grid, in source pixels, not learnt: the maps with a learnt one
 #: scored lower on most pooled plans (docs/convert.md).
 GRID_LENGTH_SCALE_PIXELS = 1.0
@@ -250,9 +266,12 @@ class GridObservations(Observations):
     fraction : ndarray of shape (n,)
         The occupied fraction of each pixel, in [0, 1] (:func:`grid_fractions`); ``occupied`` is
         ``fraction > 0`` (something in the pixel is occupied).
+    values : str
+        How the values were read (:func:`value_reading`): ``"fraction"`` or ``"ternary"``.
     """
 
     fraction: NDArray[np.float64] | None = None
+    values: str = "fraction"
 
 
 def grid_to_observations(grid_map: RosMap | OccupancyMap, values: str = "auto") -> GridObservations:
@@ -296,7 +315,13 @@ def grid_to_observations(grid_map: RosMap | OccupancyMap, values: str = "auto") 
     g = grid_map.grid
     points = np.column_stack([g.x_centres()[cols], g.y_centres()[rows]])
     f = fraction[rows, cols]
-    return GridObservations(points=points, occupied=f > 0.0, scan_index=np.zeros(points.shape[0], dtype=np.intp), fraction=f)
+    return GridObservations(
+        points=points,
+        occupied=f > 0.0,
+        scan_index=np.zeros(points.shape[0], dtype=np.intp),
+        fraction=f,
+        values=value_reading(grid_map, values),
+    )
 
 
 def _cells_along(length: float, resolution: float) -> tuple[int, bool]:
@@ -352,10 +377,15 @@ class GridCells(Cells):
         noise model an input's noise is the noise level divided by that count, so a weight of w
         makes the input w times surer (counts below 1 are read as 1 there, so weights are >= 1).
         None: every weight 1.
+    target : ndarray of shape (n,) or None
+        Each input's target in [-1, 1]; None: +1 occupied, -1 free.
+    reading : PixelReading or None
+        What each pixel was read as (:func:`read_pixels`), when the inputs were made from one.
     """
 
     weight: NDArray[np.float64] | None = None
     target: NDArray[np.float64] | None = None
+    reading: PixelReading | None = None
 
     @property
     def labels(self) -> NDArray[np.float64]:
@@ -430,6 +460,172 @@ def _core_centres(
     return pts + np.column_stack([(left - right) * shift, (down - up) * shift])
 
 
+@dataclass(frozen=True)
+class PixelReading:
+    """What each known pixel of a grid says about the fine occupancy within it (:func:`read_pixels`).
+
+    Attributes
+    ----------
+    origin : ndarray of shape (2,)
+        Centre of the lattice's pixel (column 0, row 0), metres.
+    pixel : float
+        Pixel side, metres.
+    index : ndarray of int, shape (ny, nx)
+        The observation (known pixel) at each lattice pixel, -1 where the grid has none.
+    pooling : str
+        How the grid was read: ``"any"``, ``"majority"`` or ``"mean"``.
+    value : ndarray of shape (m,)
+        Each known pixel's occupied fraction as the grid gives it (:func:`grid_fractions`).
+    share : ndarray of shape (m,)
+        The occupied share the GP is given for each pixel (its input's target is 2 share - 1);
+        NaN: the pixel is not evidence (known, but its value bounds its share too loosely).
+    lower, upper : ndarray of shape (m,)
+        Bounds on each pixel's occupied share that the pooling rule implies; the map's mean
+        probability over the pixel is kept within them (:class:`GridGPOM`).
+    """
+
+    origin: NDArray[np.float64]
+    pixel: float
+    index: NDArray[np.intp]
+    pooling: str
+    value: NDArray[np.float64]
+    share: NDArray[np.float64]
+    lower: NDArray[np.float64]
+    upper: NDArray[np.float64]
+
+    @property
+    def ij(self) -> NDArray[np.intp]:
+        """(column, row) of every known pixel on the lattice, ndarray of shape (m, 2)."""
+        rows, cols = np.nonzero(self.index >= 0)
+        out = np.empty((self.value.size, 2), dtype=np.intp)
+        out[self.index[rows, cols]] = np.column_stack([cols, rows])
+        return out
+
+    def locate(self, points: NDArray[np.float64]) -> NDArray[np.intp]:
+        """The known pixel holding each of `points` (shape (n, 2)), -1 outside them; shape (n,)."""
+        f = np.floor((np.asarray(points, dtype=float) - self.origin) / self.pixel + 0.5)
+        ny, nx = self.index.shape
+        inside = (f[:, 0] >= 0) & (f[:, 0] < nx) & (f[:, 1] >= 0) & (f[:, 1] < ny)
+        out = np.full(f.shape[0], -1, dtype=np.intp)
+        c, r = f[inside, 0].astype(np.intp), f[inside, 1].astype(np.intp)
+        out[inside] = self.index[r, c]
+        return out
+
+
+def _lattice(points: NDArray[np.float64], pixel: float) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp]]:
+    """The pixel lattice of known pixel centres: its origin (2,), each point's (column, row) (m, 2)
+    and the point index at every lattice pixel (ny, nx), -1 where none."""
+    origin = points.min(axis=0)
+    f = (points - origin) / pixel
+    ij = np.rint(f).astype(np.intp)  # (column, row)
+    if np.abs(f - ij).max() > 1e-3:
+        raise ValueError(f"the points are not the centres of a grid of {pixel} m pixels")
+    nx, ny = ij.max(axis=0) + 1
+    index = np.full((ny, nx), -1, dtype=np.intp)
+    index[ij[:, 1], ij[:, 0]] = np.arange(points.shape[0])
+    return origin, ij, index
+
+
+def infer_pooling(values: NDArray[np.float64]) -> str:
+    """The pooling ``"auto"`` reads a grid by, from its values (ndarray of shape (ny, nx), NaN unknown).
+
+    A grid with values between 0 and 1 holds occupied shares: ``"mean"``. A grid of 0s and 1s is
+    read as ``"any"`` (an occupancy grid marks the cell a beam ended in, wherever in it), unless
+    its walls are broken: more than :data:`BROKEN_SHARE` of its occupied pixels end a wall (at
+    most one occupied pixel among their eight neighbours) or touch an occupied pixel only at a
+    corner. Any-pixel pooling keeps a wall's pixels edge to edge; majority pooling drops the
+    stretches of a thin wall that fill less than half of a pixel, and what is left are ends and
+    diagonal steps (docs/convert.md).
+    """
+    v = np.asarray(values, dtype=float)
+    if np.any((v > 0.0) & (v < 1.0)):
+        return "mean"
+    occ = v == 1.0
+    if not occ.any():
+        return "any"
+    padded = np.pad(occ, 1)
+    ny, nx = occ.shape
+
+    def shifted(dy: int, dx: int) -> NDArray[np.bool_]:
+        return padded[1 + dy : 1 + dy + ny, 1 + dx : 1 + dx + nx]
+
+    neighbours = sum(shifted(dy, dx).astype(int) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
+    corner_only = np.zeros_like(occ)
+    for dy, dx in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        corner_only |= shifted(dy, dx) & ~shifted(dy, 0) & ~shifted(0, dx)
+    broken = occ & ((neighbours <= 1) | corner_only)
+    return "majority" if broken.sum() > BROKEN_SHARE * occ.sum() else "any"
+
+
+def read_pixels(
+    points: NDArray[np.float64],
+    value: NDArray[np.float64],
+    pixel: float,
+    pooling: str = "auto",
+    occupied_fraction: float | None = None,
+) -> PixelReading:
+    """What each known pixel says about its fine occupancy, given how the grid was made.
+
+    A pixel value between 0 and 1 is its occupied share, whatever the pooling. A grid of 0s and 1s
+    says less, and what it says depends on how it was made from a finer one:
+
+    - ``"any"`` (a pixel occupied if any of its fine pixels is; an occupancy grid marking the cell
+      a beam ended in): a 0 is wholly free; a 1 holds something, anywhere from a sliver to all of
+      it: its share is taken as `occupied_fraction` (default :data:`OCCUPIED_FRACTION`), bounded
+      only by (0, 1].
+    - ``"majority"`` (occupied if more than half is): a 1 holds more than half (taken as
+      `occupied_fraction`, default :data:`OCCUPIED_FRACTION`, bounded to [0.5, 1]); a 0 at most
+      half. Walls thinner than half a pixel vanish from such a grid between the pixels where they
+      cross or thicken, so a 0 within :data:`MAJORITY_REACH` of a 1 is not evidence (its share is
+      left to the GP, within [0, 0.5]); farther 0s are free, bounded to [0, 0.5].
+    - ``"mean"`` (the occupied share as the value): every value is exact, bounds included.
+
+    Parameters
+    ----------
+    points : ndarray of shape (m, 2)
+        Known pixel centres on a lattice of pitch `pixel`.
+    value : ndarray of shape (m,)
+        Each pixel's occupied fraction in [0, 1] (:func:`grid_fractions`).
+    pixel : float
+        Pixel side, metres.
+    pooling : {"auto", "any", "majority", "mean"}
+        ``"auto"``: :func:`infer_pooling` on the grid's values.
+    occupied_fraction : float, optional
+        The share taken for a 1 of an any- or majority-pooled grid, in (0, 1].
+
+    Returns
+    -------
+    PixelReading
+    """
+    if pooling not in POOLINGS:
+        raise ValueError(f"pooling must be one of {POOLINGS}, got {pooling!r}")
+    if occupied_fraction is not None and not 0.0 < occupied_fraction <= 1.0:
+        raise ValueError(f"occupied_fraction must be in (0, 1], got {occupied_fraction}")
+    pts = np.asarray(points, dtype=float)
+    v = np.asarray(value, dtype=float)
+    origin, ij, index = _lattice(pts, pixel)
+    if pooling == "auto":
+        grid = np.full(index.shape, np.nan)
+        grid[ij[:, 1], ij[:, 0]] = v
+        read = infer_pooling(grid)
+    else:
+        read = pooling
+    share, lower, upper = v.copy(), v.copy(), v.copy()  # mean pooling, and any value between 0 and 1
+    ones, zeros = v == 1.0, v == 0.0
+    if read == "any":
+        share[ones] = OCCUPIED_FRACTION if occupied_fraction is None else occupied_fraction
+        lower[ones] = 0.0
+    elif read == "majority":
+        share[ones] = OCCUPIED_FRACTION if occupied_fraction is None else occupied_fraction
+        lower[ones] = 0.5
+        upper[zeros] = 0.5
+        ones_grid = np.zeros(index.shape, dtype=bool)
+        ones_grid[ij[ones, 1], ij[ones, 0]] = True
+        near = ndimage.binary_dilation(ones_grid, structure=np.ones((3, 3), dtype=bool), iterations=MAJORITY_REACH)
+        share[zeros & near[ij[:, 1], ij[:, 0]]] = MAJORITY_NEIGHBOUR_SHARE
+    return PixelReading(origin, float(pixel), index, read, v, share, lower, upper)
+
+
 def grid_cells(
     points: NDArray[np.float64],
     occupied: NDArray[np.float64] | NDArray[np.bool_],
@@ -438,20 +634,19 @@ def grid_cells(
     wall_reach: int = WALL_REACH_PIXELS,
     edge_strip: float = EDGE_STRIP_PIXELS,
     centre_noise: float | None = CENTRE_NOISE,
-    occupied_fraction: float = OCCUPIED_FRACTION,
+    occupied_fraction: float | None = None,
+    pooling: str = "auto",
 ) -> GridCells:
-    """Wall-aware GP inputs for the known pixels of a grid, each pixel read as an occupied fraction.
+    """Wall-aware GP inputs for the known pixels of a grid, each pixel read as an occupied share.
 
+    - Each pixel is read by :func:`read_pixels` (`pooling`, `occupied_fraction`): the share of it
+      taken as occupied, or none where its value says too little to be evidence.
     - Every known pixel within `wall_reach` pixels (chessboard distance) of one holding anything
       occupied is a cell of its own, covering its square, its target the mean of the +-1
-      occupancy over it: 2 f - 1 for a pixel of occupied fraction f. Free pixels farther away are
+      occupancy over it: 2 s - 1 for a pixel of occupied share s. Free pixels farther away are
       merged by a quadtree on the pixel lattice into square-ish blocks of at most `max_cell` whose
       pixels are all known and free. (Cells much larger than the length scale constrain only
       their average, and the map rang inside them: ghost walls beside real ones.)
-    - A grid whose every known pixel is wholly free or wholly occupied (0 or 1) does not say how
-      much of an occupied pixel is occupied: any-pixel pooling marks a pixel a thin wall grazes,
-      majority pooling one mostly filled. Its occupied pixels are taken to be `occupied_fraction`
-      occupied.
     - Each pixel holding anything occupied also gets a point input, labelled occupied, where its
       obstacle most likely is (:func:`_core_centres`), with `centre_noise` times the noise of a
       one-pixel cell (every other input's count is multiplied by `centre_noise`, see
@@ -475,20 +670,23 @@ def grid_cells(
         Strip width in pixels; 0: no strips.
     centre_noise : float or None
         Noise of the points relative to a one-pixel cell; None: no points.
-    occupied_fraction : float
-        What a wholly occupied pixel of a grid of 0s and 1s is taken to hold, in (0, 1].
+    occupied_fraction : float, optional
+        The share taken for a 1 of a grid of 0s and 1s (:func:`read_pixels`), in (0, 1].
+    pooling : {"auto", "any", "majority", "mean"}
+        How the grid was made (:func:`read_pixels`).
 
     Returns
     -------
     GridCells
         The pixel cells first, then the strips (free), then the points (occupied), each with its
-        target (:attr:`GridCells.target`, None when every target is +-1). Strips and points have
-        their pixel as their single member.
+        target (:attr:`GridCells.target`, None when every target is +-1), and the reading
+        (:attr:`GridCells.reading`). Strips and points have their pixel as their single member.
 
     Raises
     ------
     ValueError
-        The points are not on a lattice of pitch `pixel`, or a fraction is outside [0, 1].
+        The points are not on a lattice of pitch `pixel`, a fraction is outside [0, 1], or the
+        pooling or `occupied_fraction` is not one of those allowed.
     """
     pts = np.asarray(points, dtype=float)
     frac = np.asarray(occupied, dtype=float)
@@ -496,17 +694,13 @@ def grid_cells(
         raise ValueError(f"points must have shape (m, 2) with m > 0 and occupied (m,), got {pts.shape} and {frac.shape}")
     if not ((frac >= 0.0) & (frac <= 1.0)).all():
         raise ValueError("occupied fractions must lie in [0, 1]")
-    if not 0.0 < occupied_fraction <= 1.0:
-        raise ValueError(f"occupied_fraction must be in (0, 1], got {occupied_fraction}")
+    reading = read_pixels(pts, frac, pixel, pooling, occupied_fraction)
+    _, ij, all_index = _lattice(pts, pixel)
+    evidence = np.isfinite(reading.share)
     some = frac > 0.0  # anything occupied
-    origin = pts.min(axis=0)
-    f = (pts - origin) / pixel
-    ij = np.rint(f).astype(np.intp)  # (column, row)
-    if np.abs(f - ij).max() > 1e-3:
-        raise ValueError(f"the points are not the centres of a grid of {pixel} m pixels")
-    nx, ny = ij.max(axis=0) + 1
-    index = np.full((ny, nx), -1, dtype=np.intp)
-    index[ij[:, 1], ij[:, 0]] = np.arange(pts.shape[0])
+    ny, nx = all_index.shape
+    # Pixels that are not evidence get no input: for the inputs they are unknown.
+    index = np.where(evidence[np.maximum(all_index, 0)] & (all_index >= 0), all_index, -1)
     some_grid = np.zeros((ny, nx), dtype=bool)
     some_grid[ij[:, 1], ij[:, 0]] = some
     known = index >= 0
@@ -556,11 +750,8 @@ def grid_cells(
         member_order=np.concatenate(members).astype(np.intp),
         points=pts,
     )
-    # Merged cells are wholly free; a grid of 0s and 1s says only that an occupied pixel holds
-    # something, taken to be `occupied_fraction` of it.
-    binary = bool(np.all((frac == 0.0) | (frac == 1.0)))
-    read = np.where(binary & (frac == 1.0), occupied_fraction, frac)
-    targets = [2.0 * read[first] - 1.0]
+    # Merged cells are wholly free, and free pixels' shares 0.
+    targets = [2.0 * reading.share[first] - 1.0]
 
     if edge_strip > 0:
         s_lo, s_hi, s_idx = [], [], []
@@ -598,7 +789,7 @@ def grid_cells(
         weight[:n_inputs] = float(centre_noise)
     target = np.concatenate(targets)
     fields = {name: getattr(cells, name) for name in Cells.__dataclass_fields__}
-    return GridCells(**fields, weight=weight, target=None if np.all(np.abs(target) == 1.0) else target)
+    return GridCells(**fields, weight=weight, target=None if np.all(np.abs(target) == 1.0) else target, reading=reading)
 
 
 def _fit_soft_squash(gp: SupportGP, y: NDArray[np.float64], class_weight: str | None) -> None:
@@ -648,8 +839,18 @@ class GridGPOM(MapSettings, GPMapEstimator):
     centre_noise : float or None
         See :func:`grid_cells`. The weights go through the member counts, so they assume the
         ``"per_count"`` noise model and ``"mean"`` normalisation (the defaults).
-    occupied_fraction : float
-        See :func:`grid_cells`.
+    occupied_fraction : float, optional
+        See :func:`read_pixels`.
+    pooling : {"auto", "any", "majority", "mean"}
+        How the grid was made from a finer one (:func:`read_pixels`). The map keeps what the
+        pooling says of each pixel: a pixel the grid holds wholly free (a 0 of an any- or
+        mean-pooled grid) keeps :data:`HELD_SCALE` of the GP's probability, a wholly occupied one
+        (a 1 of a mean-pooled grid) as much of its complement, and elsewhere the probability is
+        scaled within each pixel so that its mean over the pixel (measured on
+        :data:`SHARE_SAMPLES` x :data:`SHARE_SAMPLES` points) is the pixel's share (a mean-pooled
+        value) or within the pooling's bounds (at least half for a 1 of a majority-pooled grid,
+        at most half for a 0); where the scaling would move a point across p = 0.5 it is held
+        beside 0.5 on the GP's side, so the occupied region (p > 0.5) is the GP's.
     **options
         :class:`~gpomap.settings.MapSettings` arguments (``min_cell`` is used only by the cell tree).
     """
@@ -664,22 +865,27 @@ class GridGPOM(MapSettings, GPMapEstimator):
         wall_reach: int | None = None,
         edge_strip: float = EDGE_STRIP_PIXELS,
         centre_noise: float | None = CENTRE_NOISE,
-        occupied_fraction: float = OCCUPIED_FRACTION,
+        occupied_fraction: float | None = None,
+        pooling: str = "auto",
         **options: Any,
     ) -> None:
         super().__init__(**options)
+        if pooling not in POOLINGS:
+            raise ValueError(f"pooling must be one of {POOLINGS}, got {pooling!r}")
         self.pixel_pad = float(pixel_pad)
         self.wall_reach = wall_reach
         self.edge_strip = edge_strip
         self.centre_noise = centre_noise
-        self.occupied_fraction = float(occupied_fraction)
+        self.occupied_fraction = None if occupied_fraction is None else float(occupied_fraction)
+        self.pooling = pooling
 
     def __repr__(self) -> str:
         return f"GridGPOM(pixel_pad={self.pixel_pad}, wall_reach={self.wall_reach}, {MapSettings.__repr__(self)})"
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """The constructor arguments, by name (the map settings and the grid ones)."""
-        own = {n: getattr(self, n) for n in ("pixel_pad", "wall_reach", "edge_strip", "centre_noise", "occupied_fraction")}
+        names = ("pixel_pad", "wall_reach", "edge_strip", "centre_noise", "occupied_fraction", "pooling")
+        own = {n: getattr(self, n) for n in names}
         return {**own, **MapSettings.get_params(self)}
 
     def fit(self, data: Observations) -> GridGPOM:
@@ -716,7 +922,128 @@ class GridGPOM(MapSettings, GPMapEstimator):
         # Pixels are not rays: no held-out stretches (the variance scale stays 1), no ray counts.
         self.extrapolation_: dict[str, Any] = {"kappa": 1.0, "reason": "labelled points given, not scans"}
         self.evidence_ = None
+        self.reading_: PixelReading | None = getattr(cells, "reading", None)
+        self.share_scale_: NDArray[np.float64] | None = None
+        self.pixel_variance_: float | None = None
+        if self.reading_ is not None:
+            t = time.perf_counter()
+            self.pixel_variance_ = self._pixel_variance(cells, self.reading_.pixel)
+            self.share_scale_ = self._share_scales(self.reading_)
+            timings["shares"] = time.perf_counter() - t
         return self
+
+    def _pixel_variance(self, cells: Cells, pixel: float) -> float:
+        """The median latent variance at the centres of the one-pixel cells of `cells`."""
+        side = cells.upper - cells.lower
+        single = np.all(np.abs(side - pixel) <= 1e-6 * pixel, axis=1)
+        centres = 0.5 * (cells.lower[single] + cells.upper[single])
+        if centres.shape[0] == 0:
+            return 0.0
+        # A sample is enough for a median.
+        step = max(1, centres.shape[0] // 2000)
+        _, var = self.predict(centres[::step], return_var=True)
+        return float(np.median(var))
+
+    def _pixel_proba(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
+        """The probability at `points` (m, 2) before it is held to the pixels, the latent
+        variance and the known pixel of each point (-1 outside them), each of shape (m,).
+
+        Within a known pixel the latent mean is squashed at the variance of a one-pixel input
+        (:attr:`pixel_variance_`): the free blocks merged far from walls save inputs, they are not
+        weaker evidence, and the variance they leave inside would rank open space above the free
+        pixels beside walls. Outside, at the GP's own variance.
+        """
+        mean, var = self.predict(points, return_var=True)
+        reading, v_px = getattr(self, "reading_", None), getattr(self, "pixel_variance_", None)
+        if reading is None or v_px is None:
+            return self.gp_.squash(mean, var), var, np.full(mean.shape, -1, dtype=np.intp)
+        k = reading.locate(points)
+        return self.gp_.squash(mean, np.where(k >= 0, v_px, var)), var, k
+
+    def _share_scales(self, reading: PixelReading) -> NDArray[np.float64]:
+        """The factor on the GP's probability in each known pixel, shape (m,) (see the class docstring).
+
+        1 where the GP's mean probability over the pixel is within the pixel's bounds; else the
+        factor s that brings the mean of min(s p, 1) to the nearer bound.
+        """
+        lo, hi = reading.lower, reading.upper
+        scale = np.ones(lo.size)
+        bounded = ((lo > 0.0) | (hi < 1.0)) & (hi > 0.0) & (lo < 1.0)
+        some_grid = np.zeros(reading.index.shape, dtype=bool)
+        ij = reading.ij
+        some_grid[ij[:, 1], ij[:, 0]] = reading.value > 0.0
+        if some_grid.any() and self.wall_reach is not None:
+            # A pixel far from everything occupied holds the prior's free mean, far below any bound.
+            near = ndimage.distance_transform_cdt(~some_grid, metric="chessboard") <= self.wall_reach
+            bounded &= near[ij[:, 1], ij[:, 0]] | (lo > 0.0)
+        idx = np.flatnonzero(bounded)
+        if idx.size == 0:
+            return scale
+        n = SHARE_SAMPLES
+        offsets = ((np.arange(n) + 0.5) / n - 0.5) * reading.pixel
+        ox, oy = np.meshgrid(offsets, offsets)
+        centres = reading.origin + ij[idx] * reading.pixel
+        samples = (centres[:, None, :] + np.column_stack([ox.ravel(), oy.ravel()])[None, :, :]).reshape(-1, 2)
+        p = self._pixel_proba(samples)[0].reshape(idx.size, n * n)
+        mean = p.mean(axis=1)
+        low, high = mean < lo[idx], mean > hi[idx]
+        s = np.ones(idx.size)
+        s[high] = hi[idx][high] / mean[high]
+        if low.any():
+            # mean(min(s p, 1)) grows with s: bisection on log s, every low pixel at once.
+            pl, target = p[low], lo[idx][low]
+            a, b = np.zeros(pl.shape[0]), np.full(pl.shape[0], math.log(1e12))
+            for _ in range(60):
+                mid = 0.5 * (a + b)
+                below = np.minimum(pl * np.exp(mid)[:, None], 1.0).mean(axis=1) < target
+                a, b = np.where(below, mid, a), np.where(below, b, mid)
+            s[low] = np.exp(b)
+        scale[idx] = s
+        return scale
+
+    def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
+        """Occupancy probability at points: the GP's, held to what each pixel's value says.
+
+        Parameters
+        ----------
+        points : ndarray of shape (m, 2)
+        return_var : bool
+            Also return the GP's latent variance.
+
+        Returns
+        -------
+        probability : ndarray of shape (m,)
+        var : ndarray of shape (m,), only with `return_var`
+        """
+        pts = as_points(points, self.dim_)
+        p, var, k = self._pixel_proba(pts)
+        p = self._held(p, k)
+        return (p, var) if return_var else p
+
+    def _held(self, p: NDArray[np.float64], k: NDArray[np.intp]) -> NDArray[np.float64]:
+        """Probabilities `p` (shape (m,)) in known pixels `k` (shape (m,), -1: none) held to the pixels.
+
+        In a pixel the grid holds wholly free, :data:`HELD_SCALE` p; wholly occupied,
+        1 - :data:`HELD_SCALE` (1 - p); elsewhere min(s p, 1) with the pixel's share scale s
+        (:meth:`_share_scales`), held beside 0.5 on p's side where it would cross it. Outside the
+        known pixels, p.
+        """
+        reading, scale = getattr(self, "reading_", None), getattr(self, "share_scale_", None)
+        if reading is None or scale is None:
+            return p
+        inside = k >= 0
+        kk, pi = k[inside], p[inside]
+        q = np.minimum(pi * scale[kk], 1.0)
+        # The occupied region stays the GP's: a point the scaling moves across 0.5 stays beside it.
+        up, down = (pi > 0.5) & (q <= 0.5), (pi <= 0.5) & (q > 0.5)
+        q[up] = 0.5 + HELD_SCALE * np.maximum(q[up], 1e-12)
+        q[down] = 0.5 - HELD_SCALE * np.maximum(1.0 - q[down], 1e-12)
+        free, full = reading.upper[kk] == 0.0, reading.lower[kk] == 1.0
+        q[free] = HELD_SCALE * pi[free]
+        q[full] = 1.0 - HELD_SCALE * (1.0 - pi[full])
+        out = p.copy()
+        out[inside] = q
+        return out
 
     @property
     def n_inputs_(self) -> int:
@@ -734,15 +1061,19 @@ class GridGPOM(MapSettings, GPMapEstimator):
         """The GP inputs over the pixel centres `obs` (see the class docstring)."""
         if self.pixel_pad > 0 and self.wall_reach is not None:
             frac = getattr(obs, "fraction", None)
+            # A grid read by its thresholds is an occupancy grid: its occupied cells are where
+            # beams ended, anywhere in them.
+            pooling = "any" if self.pooling == "auto" and getattr(obs, "values", "fraction") == "ternary" else self.pooling
             return grid_cells(
                 obs.points,
                 obs.occupied if frac is None else frac,
                 2.0 * self.pixel_pad,
-                self.max_cell,
+                self.cell_sides(2)[1],
                 self.wall_reach,
                 self.edge_strip,
                 self.centre_noise,
                 self.occupied_fraction,
+                pooling,
             )
         cells = MapSettings.make_cells(self, obs)
         if self.pixel_pad > 0:
@@ -923,8 +1254,8 @@ def convert_grid(
             "n": len(cells),
             "occupied": int(cells.occupied.sum()),
             "ambiguous": int(cells.ambiguous.sum()),
-            "min_cell": float(model.min_cell),
-            "max_cell": float(model.max_cell),
+            "min_cell": model.cell_sides(2)[0],
+            "max_cell": model.cell_sides(2)[1],
         },
         "hyperparameters": dict(model.hyperparameters_),
         "agreement": agreement,

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.cells import Cells, build_cells
-from gpomap.config import MapConfig
+from gpomap.config import PROFILES, MapConfig
 from gpomap.fusion import EvidenceLayer, GPApart
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
@@ -54,9 +54,10 @@ class MapSettings:
         windows of real logs (docs/choices.md, "Measured on more logs"); it helps in 3-D too,
         though there it drops over half the free points (rays grazing the floor; docs/choices.md,
         "Measured for the code").
-    min_cell, max_cell : float
-        Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`). ``max_cell`` is 0.5 m by
-        default: with mean normalisation a cell much larger than the length scale has a small
+    min_cell, max_cell : float or None
+        Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`); None takes the data
+        dimension's profile (:meth:`cell_sides`, :data:`gpomap.config.PROFILES`): 0.5 m for planar
+        data, 1 m for point clouds. ``max_cell`` is 0.5 m on planar data: with mean normalisation a cell much larger than the length scale has a small
         prior variance and says little about the points inside it, and real logs learn length
         scales shorter than 1 m: 0.5 m was better on every real log for about twice the cells,
         while the synthetic room, whose length scale is longer, prefers 1 m (docs/choices.md,
@@ -138,8 +139,8 @@ class MapSettings:
         hit_margin: float | None = MapConfig.hit_margin,
         no_return_cap: float | None = MapConfig.no_return_cap,
         free_clearance: float = MapConfig.free_clearance,
-        min_cell: float = MapConfig.min_cell,
-        max_cell: float = MapConfig.max_cell,
+        min_cell: float | None = MapConfig.min_cell,
+        max_cell: float | None = MapConfig.max_cell,
         cell_box: str = MapConfig.cell_box,
         variance: float = MapConfig.variance,
         length_scale: float = MapConfig.length_scale,
@@ -237,9 +238,22 @@ class MapSettings:
             data, self.free_step, self.hit_margin, self.no_return_cap, self.free_clearance if clearance else 0.0
         )
 
+    def cell_sides(self, dim: int) -> tuple[float, float]:
+        """``(min_cell, max_cell)`` for data of dimension `dim`: those given, the rest from the
+        dimension's profile (:data:`gpomap.config.PROFILES`); one given alone beyond the profile's
+        other bound moves it along, so that the pair stays ordered."""
+        profile = PROFILES[dim]
+        if self.min_cell is not None and self.max_cell is not None:
+            return float(self.min_cell), float(self.max_cell)
+        if self.min_cell is not None:
+            return float(self.min_cell), max(profile.max_cell, float(self.min_cell))
+        if self.max_cell is not None:
+            return min(profile.min_cell, float(self.max_cell)), float(self.max_cell)
+        return profile.min_cell, profile.max_cell
+
     def make_cells(self, obs: Observations) -> Cells:
         """The GP's inputs: the cell tree over `obs` with these settings."""
-        return build_cells(obs.points, obs.occupied, self.min_cell, self.max_cell, self.cell_box)
+        return build_cells(obs.points, obs.occupied, *self.cell_sides(obs.points.shape[1]), self.cell_box)
 
     def make_evidence(
         self,

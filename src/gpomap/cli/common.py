@@ -102,7 +102,11 @@ def check_before_work(args: argparse.Namespace) -> None:
     """The cheap checks, run before anything is read or fitted: the output directory, option pairs."""
     from gpomap.io.atomic import check_output_dir, recover_output_dir
 
-    if getattr(args, "min_cell", None) is not None and args.min_cell > args.max_cell:
+    if (
+        getattr(args, "min_cell", None) is not None
+        and getattr(args, "max_cell", None) is not None
+        and args.min_cell > args.max_cell
+    ):
         raise GpomapError(f"--min-cell ({args.min_cell}) must not exceed --max-cell ({args.max_cell})")
     if getattr(args, "output", None) is not None:
         check_output_dir(args.output, "-o")

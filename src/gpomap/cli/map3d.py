@@ -8,7 +8,7 @@ holds 3-D scans. The steps mirror the 2-D command:
    per cloud);
 2. before anything is fitted, the voxel grid and the GP are checked against the memory limit, and
    the map is built by the local GPs of every map, in x, y columns of ``--tile-size``;
-3. the voxel map at ``--resolution`` (:data:`gpomap.config.VOXEL_MAP_DEFAULTS` when not given) is
+3. the voxel map at ``--resolution`` (the voxel profile's, :data:`gpomap.config.PROFILES`, when not given) is
    written as one output set by :func:`gpomap.io.voxel_outputs.write_voxel_outputs`, with the
    fitted map, ``map.gpom``.
 """
@@ -26,7 +26,7 @@ from gpomap.apps.map3d import build_model, read_selected_clouds, voxel_bounds
 from gpomap.cli.common import EXIT_OK, Run, bound_source, check_voxel_memory, print_map_summary, report_fit, status
 from gpomap.cli.options import cloud_reader_options, map_config, tiling_config
 from gpomap.clouds import CloudScan
-from gpomap.config import VOXEL_MAP_DEFAULTS
+from gpomap.config import PROFILES
 from gpomap.errors import GpomapError
 
 __all__ = ["apply_3d_defaults", "load_clouds", "model_from_args", "run"]
@@ -38,10 +38,10 @@ _TWO_D_ONLY = {
 
 
 def apply_3d_defaults(args: argparse.Namespace) -> None:
-    """Put :data:`gpomap.config.VOXEL_MAP_DEFAULTS` in place of the library defaults (chosen on 2-D logs) the user left unset."""
-    for name, value in VOXEL_MAP_DEFAULTS.items():
-        if name in getattr(args, "library_defaults", ()):
-            setattr(args, name, value)
+    """The voxel maps' written resolution (:data:`gpomap.config.PROFILES`) in place of the planar
+    default, where the user left it unset; the library applies the rest of the profile itself."""
+    if "resolution" in getattr(args, "library_defaults", ()):
+        args.resolution = PROFILES[3].resolution
 
 
 def load_clouds(args: argparse.Namespace) -> list[CloudScan]:

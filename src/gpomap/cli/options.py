@@ -15,7 +15,7 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from gpomap.config import CALIBRATED_THRESHOLDS, MapConfig, TilingConfig
+from gpomap.config import CALIBRATED_THRESHOLDS, PROFILES, MapConfig, TilingConfig
 from gpomap.errors import GpomapError
 
 __all__ = [
@@ -383,10 +383,16 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
         help="free points along no-return beams reach M metres (default: %(default)s; 0 ignores such beams)",
     )
     g.add_argument(
-        "--min-cell", type=positive(float), default=Default(d.min_cell), help="smallest cell side, m (default: %(default)s)"
+        "--min-cell",
+        type=positive(float),
+        default=Default(d.min_cell),
+        help=f"smallest cell side, m (default: {PROFILES[2].min_cell:g} for scans, {PROFILES[3].min_cell:g} for point clouds)",
     )
     g.add_argument(
-        "--max-cell", type=positive(float), default=Default(d.max_cell), help="largest pure cell side, m (default: %(default)s)"
+        "--max-cell",
+        type=positive(float),
+        default=Default(d.max_cell),
+        help=f"largest pure cell side, m (default: {PROFILES[2].max_cell:g} for scans, {PROFILES[3].max_cell:g} for point clouds)",
     )
     g.add_argument(
         "--length-scale",
@@ -454,7 +460,7 @@ def map_config(args: argparse.Namespace) -> MapConfig:
     else:
         fields.pop("length_scale", None)
     # Also checked before any work (check_before_work); here for callers that set the values (default_model).
-    if "min_cell" in fields and "max_cell" in fields and fields["min_cell"] > fields["max_cell"]:
+    if fields.get("min_cell") is not None and fields.get("max_cell") is not None and fields["min_cell"] > fields["max_cell"]:
         raise GpomapError(f"--min-cell ({fields['min_cell']}) must not exceed --max-cell ({fields['max_cell']})")
     return MapConfig(**fields)
 

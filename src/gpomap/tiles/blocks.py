@@ -29,7 +29,7 @@ class BlockCells(TileGrid):
         block = self._block_points[key]
         points, occupied = block.arrays()
         keep = ~block.free_near_hits(self._clearance, (points, occupied))
-        c = build_cells(points[keep], occupied[keep], b.min_cell, b.max_cell, b.cell_box)
+        c = build_cells(points[keep], occupied[keep], *b.cell_sides(points.shape[1]), b.cell_box)
         summed = b.area_method == "summed"
         return _BlockCells(
             lower=c.lower,
