@@ -145,13 +145,16 @@ def test_a_map_recalibrates_every_probability_it_gives_and_keeps_its_ternary_map
 
 
 def test_the_map_of_the_rest_is_this_map_on_fewer_scans(fitted_tour):
-    # The fold the recalibration was fitted on, refitted by hand: the same predictions at the
-    # held-out stretch's points, so the stored recalibration is that fit's.
+    # The fold the recalibration was fitted on, refitted by hand (the map's settings, tiles,
+    # hyperparameters and calibration of the ray counts): the same predictions at the held-out
+    # stretch's points, so the stored recalibration is that fit's.
     model = fitted_tour
     scans = model._scans
     kept, _ = holdout_stretches(len(scans))
     rest = AreaGPOM(**{**model.get_params(), "fit_revisit": False, "tile_size": model.tile_size_, "origin": model.origin_})
+    rest._given_calibration = model.evidence_.calibration
     rest.fit([scans[i] for i in kept], hyperparameters=dict(model.hyperparameters_))
+    assert rest.evidence_.calibration == model.evidence_.calibration and rest.evidence_.report == {"given": 1.0}
     p, occupied, _ = rv.later_visit_points(scans, lambda s: rest.predict_proba, seed=model.base.seed)
     sample = model.evidence_.sample
     got = rv.fit_revisit(p, occupied, sample.probability, sample.occupied)
@@ -166,9 +169,12 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     scans = model._scans
     kept, _ = holdout_stretches(len(scans))
     fixed = dict(model.hyperparameters_)
-    eager = model._like(fit_revisit=False).fit([scans[i] for i in kept], hyperparameters=fixed)
+    eager = model._like(fit_revisit=False)
+    eager._given_calibration = model.evidence_.calibration
+    eager.fit([scans[i] for i in kept], hyperparameters=fixed)
     lazy = model._like(fit_revisit=False)
     lazy._tiles_when_asked = True
+    lazy._given_calibration = model.evidence_.calibration
     lazy.fit([scans[i] for i in kept], hyperparameters=fixed)
     args = (model.base.no_return_cap, model.base.seed)
     p_eager, occ, _ = rv.later_visit_points(scans, lambda s: eager.predict_proba, *args)

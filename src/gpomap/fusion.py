@@ -592,6 +592,8 @@ class EvidenceLayer:
     gp_apart : callable, optional
         The GP fitted on given scans, its hyperparameters held, that every calibration fits the
         surprise rate against (:func:`fit_calibration`); without it the rate is the prior.
+    calibration : EvidenceCalibration, optional
+        Taken as it is instead of fitted (a map of part of a log, calibrated as the whole log's).
     """
 
     def __init__(
@@ -603,6 +605,7 @@ class EvidenceLayer:
         calibration_scans: int = 25,
         seed: int = 0,
         gp_apart: GPApart | None = None,
+        calibration: EvidenceCalibration | None = None,
     ) -> None:
         self.resolution = float(resolution)
         self.gp_apart = gp_apart
@@ -626,7 +629,12 @@ class EvidenceLayer:
         self._path: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
         self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None = None
         self.add_scans(scans)
-        self.recalibrate(predict_gp)
+        if calibration is None:
+            self.recalibrate(predict_gp)
+        else:
+            self.calibration, self.report = calibration, {"given": 1.0}
+            for part in self._parts:
+                part.forget()
 
     # ------------------------------------------------------------------ counting
     @property

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from gpomap.cells import Cells, build_cells
 from gpomap.config import PROFILES, MapConfig
-from gpomap.fusion import EvidenceLayer, GPApart
+from gpomap.fusion import EvidenceCalibration, EvidenceLayer, GPApart
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
 from gpomap.observations import Observations, ScanData, data_dim, labelled_observations
@@ -260,12 +260,15 @@ class MapSettings:
         data: ScanData | Observations,
         predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]],
         gp_apart: GPApart | None = None,
+        calibration: EvidenceCalibration | None = None,
     ) -> EvidenceLayer | None:
         """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off),
         with `gp_apart` the GP its surprise rate is fitted against with ``fit_surprise_rate``
-        (:func:`gpomap.fusion.fit_calibration`)."""
+        (:func:`gpomap.fusion.fit_calibration`), or `calibration` taken as it is."""
         if not self.ray_evidence or isinstance(data, Observations):
             return None
         resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
         apart = gp_apart if self.fit_surprise_rate else None
-        return EvidenceLayer(data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, apart)
+        return EvidenceLayer(
+            data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, apart, calibration
+        )

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.fusion import EvidenceLayer
+from gpomap.fusion import EvidenceCalibration, EvidenceLayer
 from gpomap.settings import MapSettings
 from gpomap.tiles.points import _BlockCells, _BlockPoints
 from gpomap.tiles.tasks import TileFitTask, TileState
@@ -80,5 +80,7 @@ class TiledAttributes:
 
     #: Fit each tile when a prediction first needs it (set on a map asked at a few points only).
     _tiles_when_asked: bool = False
+    #: The ray counts' calibration to take instead of fitting one (set on a map of part of a log).
+    _given_calibration: EvidenceCalibration | None = None
     #: The tasks of the tiles that wait to be asked, by tile (a map fitted with ``_tiles_when_asked``).
     _waiting: dict[tuple[int, int], tuple[TileFitTask]]

@@ -254,15 +254,6 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         release_freed_memory()
         self._scans = None if isinstance(data, Observations) else list(data)
 
-        # The map of the other stretches is fitted, asked and let go before this map's tiles are
-        # fitted and its rays counted, so the two are never in memory together; the allocator
-        # keeps what it freed until told (docs/choices.md, "The map's probabilities for a later
-        # visit").
-        t = time.perf_counter()
-        later = self._later_visit_points()
-        release_freed_memory()
-        timings["revisit"] = time.perf_counter() - t
-
         t = time.perf_counter()
         tiles = [self._decode(k) for k in sorted(self._tiles_with_points)]
         jobs, gathered = self._fit_jobs(tiles)
@@ -282,7 +273,15 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         self.evidence_ = self._make_evidence()
         release_freed_memory()  # the traversals' temporaries
         timings["evidence"] = time.perf_counter() - t
+        # The map of the other stretches takes this map's calibration of the ray counts, so it
+        # fits only the tiles the held-out stretches' points need (docs/choices.md, "The map's
+        # probabilities for a later visit").
+        t = time.perf_counter()
+        later = self._later_visit_points()
         self.revisit_ = self._fit_revisit(later)
+        del later
+        release_freed_memory()
+        timings["revisit"] = time.perf_counter() - t
         timings["total_fit"] = time.perf_counter() - t0
         self.timings_ = timings
         self.last_refit_ = sorted(self.tiles_)
@@ -345,7 +344,7 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         """Ray counts over every scan so far, calibrated against the tiles' GP (see gpomap.fusion)."""
         if self._scans is None:
             return None
-        return self.base.make_evidence(self._scans, self.predict_proba_gp, self._gp_apart)
+        return self.base.make_evidence(self._scans, self.predict_proba_gp, self._gp_apart, self._given_calibration)
 
     def _later_visit_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None:
         """This map's probabilities, fitted without them, at a held-out stretch's points
@@ -358,10 +357,12 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
 
         def fit_rest(scans: list[Any]) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
             # The same map on the other scans: its tiles, settings and hyperparameters, its own ray
-            # evidence and calibration, no recalibration of its own. Asked at a few points only,
-            # it fits the tiles those need when they are asked (the same tiles, so the same answers).
+            # counts with this map's calibration, no recalibration of its own. Asked at a few
+            # points only, it fits the tiles those need when they are asked (the same tiles, so the
+            # same answers).
             rest = self._like(fit_revisit=False)
             rest._tiles_when_asked = True
+            rest._given_calibration = None if self.evidence_ is None else self.evidence_.calibration
             return rest.fit(scans, hyperparameters=fixed).predict_proba
 
         return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
