@@ -216,7 +216,7 @@ def test_stream_saved_and_resumed_ends_as_an_uninterrupted_run(tmp_path, capsys)
     code = main(
         ["stream", *replay, "--range", "0:24", "-o", str(tmp_path / "x"), "--resume", str(states["first"]), "--max-cell", "1"]
     )
-    assert "the state was saved with --max-cell 0.5; this command line gives 1.0" in one_line_error(capsys, code)
+    assert "the state was saved with --max-cell its default; this command line gives 1.0" in one_line_error(capsys, code)
 
 
 @pytest.fixture(scope="module")

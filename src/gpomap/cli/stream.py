@@ -176,8 +176,9 @@ def resumed_mapper(args: argparse.Namespace, scans: Sequence[Scan]) -> Any:
     for dest in sorted(set_here & set(pairs)):
         saved, now = pairs[dest]
         if saved != now:
+            said = "its default" if saved is None else repr(saved)
             raise GpomapError(
-                f"{where}: the state was saved with {flag(dest)} {saved!r}; this command line gives {now!r} "
+                f"{where}: the state was saved with {flag(dest)} {said}; this command line gives {now!r} "
                 "(leave it out to keep the state's)"
             )
     if args.workers is not None:
