@@ -30,8 +30,9 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import quality
-from gpomap import evidence, fusion
+from gpomap import evidence
 from gpomap.evaluation import lookup, make_model, path_occupied, prepare, score, score_truth
+from gpomap.fusion import calibration
 
 VARIANTS: tuple[float | None, ...] = (None, 0.1, 0.2, 0.3)
 GRID_RESOLUTION = 0.05
@@ -39,15 +40,15 @@ GRID_RESOLUTION = 0.05
 
 def _calibrate(model: Any, near_end: float | None) -> None:
     """Rebuild `model`'s ray evidence with near misses within `near_end` (None: no near misses)."""
-    saved_end, saved_bounds = evidence.NEAR_END, fusion.CALIBRATION_BOUNDS
+    saved_end, saved_bounds = evidence.NEAR_END, calibration.CALIBRATION_BOUNDS
     try:
         if near_end is None:
-            fusion.CALIBRATION_BOUNDS = (*saved_bounds[:2], (0.0, 0.0))  # near weight held at 1
+            calibration.CALIBRATION_BOUNDS = (*saved_bounds[:2], (0.0, 0.0))  # near weight held at 1
         else:
             evidence.NEAR_END = near_end
         model.evidence_ = model._make_evidence()
     finally:
-        evidence.NEAR_END, fusion.CALIBRATION_BOUNDS = saved_end, saved_bounds
+        evidence.NEAR_END, calibration.CALIBRATION_BOUNDS = saved_end, saved_bounds
 
 
 def run(log: str, split: str, seed: int = 0) -> list[dict[str, Any]]:

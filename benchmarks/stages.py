@@ -44,16 +44,16 @@ STAGES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
         {"gpomap.extrapolation.MIN_POINTS_PER_CLASS": 10**9},
         {},
     ),
-    "surface": ("surface misses weigh as misses", {"gpomap.fusion.FIT_SURFACE_WEIGHT": {2: False}}, {}),
+    "surface": ("surface misses weigh as misses", {"gpomap.fusion.calibration.FIT_SURFACE_WEIGHT": {2: False}}, {}),
     "near": (
         "near misses weigh as misses, and as no hit",
-        {"gpomap.fusion.CALIBRATION_BOUNDS": "near"},
+        {"gpomap.fusion.calibration.CALIBRATION_BOUNDS": "near"},
         {},
     ),
-    "path": ("the robot's path is no evidence", {"gpomap.fusion.PATH_HITS": 0.0}, {}),
+    "path": ("the robot's path is no evidence", {"gpomap.fusion.calibration.PATH_HITS": 0.0}, {}),
     "weights": (
         "the counting grid's weights (one hit = one miss, the GP worth two)",
-        {"gpomap.fusion.CALIBRATION_BOUNDS": "fixed"},
+        {"gpomap.fusion.calibration.CALIBRATION_BOUNDS": "fixed"},
         {},
     ),
 }
@@ -63,7 +63,7 @@ TEST_POINTS = 40_000
 
 
 def _bounds(kind: str) -> tuple[tuple[float, float], ...]:
-    from gpomap.fusion import CALIBRATION_BOUNDS
+    from gpomap.fusion.calibration import CALIBRATION_BOUNDS
 
     b = list(CALIBRATION_BOUNDS)
     if kind == "near":

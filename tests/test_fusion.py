@@ -705,7 +705,7 @@ def test_a_near_miss_counts_as_a_hit_only_where_surfaces_fall_in_such_cells(monk
     # Walls smeared across scans by pose error: a cell one scan nearly missed just before the
     # wall is another scan's hit, and the fit finds near misses worth hits. A wall seen in the same
     # place by every scan: the cells before it are never hit, and a near miss is worth no hit.
-    import gpomap.fusion
+    import gpomap.fusion.calibration
 
     grid = GridSpec((0.0, 0.0), 0.05, (100, 60))
 
@@ -723,7 +723,9 @@ def test_a_near_miss_counts_as_a_hit_only_where_surfaces_fall_in_such_cells(monk
     # On the smeared wall the fourth weight is what lowers the held-out loss: the best fit with a
     # near miss worth no hit (its bounds pinned to the floor) is worse.
     low = CALIBRATION_BOUNDS[3][0]
-    monkeypatch.setattr(gpomap.fusion, "CALIBRATION_BOUNDS", (*CALIBRATION_BOUNDS[:3], (low, low), *CALIBRATION_BOUNDS[4:]))
+    monkeypatch.setattr(
+        gpomap.fusion.calibration, "CALIBRATION_BOUNDS", (*CALIBRATION_BOUNDS[:3], (low, low), *CALIBRATION_BOUNDS[4:])
+    )
     pinned, loss_pinned = fit(_wall_scans(0.12))
     assert pinned.near_hit_weight == pytest.approx(floor)
     assert loss_smeared < loss_pinned - 5e-4
@@ -752,7 +754,7 @@ def test_a_large_planar_written_grid_is_built_in_bands_and_is_the_same_map(
         bands.append(grid.shape)
         return build(self, grid, *args)  # type: ignore[arg-type]
 
-    monkeypatch.setattr(fusion, "WRITTEN_BAND_CELLS", 5_000)
+    monkeypatch.setattr(fusion.written, "WRITTEN_BAND_CELLS", 5_000)
     monkeypatch.setattr(fusion.EvidenceLayer, "_written_block", counted)
     traversals: list[tuple[int, ...]] = []
     count = RayEvidence.counts
@@ -822,7 +824,7 @@ def test_a_map_built_in_bands_reports_its_bands_not_each_bands_tiles(
 
     monkeypatch.setattr(progress, "LINES_AFTER_SECONDS", 0.0)  # lines from the first step: the bands are quick
     model, _ = half_room
-    monkeypatch.setattr(fusion, "WRITTEN_BAND_CELLS", 5_000)
+    monkeypatch.setattr(fusion.written, "WRITTEN_BAND_CELLS", 5_000)
     before = get_progress_mode()
     set_progress_mode("lines")
     try:
@@ -981,10 +983,10 @@ def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_
     # The lattice's path passes by path_dtype: 16-bit for a log under NARROW_COUNT_SCANS scans,
     # widened to 32 bits when added scans reach it; every count the same as 32-bit ones from the start.
     room = paper_room_scans(n_beams=72)
-    monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 0)  # 32-bit throughout: the reference
+    monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 0)  # 32-bit throughout: the reference
     wide = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
     wide.add_scans(room[10:])
-    monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 12)
+    monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 12)
     narrow = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
     assert narrow._path.dtype == np.uint16 and narrow._hits.dtype == fusion.COUNT_DTYPE
     narrow.add_scans(room[10:])  # 31 scans: past 12
@@ -994,10 +996,10 @@ def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_
     assert wide._hits.max() > 1 and wide._path.max() > 0
     pts = np.random.default_rng(0).uniform((0.0, 0.0), (20.0, 16.0), (4000, 2))
     grid = GridSpec.from_extent((0.0, 20.0, 0.0, 16.0), 0.1)
-    monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 0)
+    monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 0)
     # A whole log at once, its calibration fitted with 16-bit passes: the 32-bit layer's numbers.
     whole = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
-    monkeypatch.setattr(fusion, "NARROW_COUNT_SCANS", 2**16 - 1)
+    monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 2**16 - 1)
     short = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
     assert short._path.dtype == np.uint16 and whole._path.dtype == np.int32
     np.testing.assert_array_equal(short.proba(pts, _p_gp(pts)), whole.proba(pts, _p_gp(pts)))

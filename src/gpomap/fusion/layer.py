@@ -1,0 +1,502 @@
+"""The evidence layer: a fitted GP map's fine cells, their ray counts on a growing lattice, and the calibration applied.
+
+:class:`EvidenceLayer` counts the beams and the robot's path of every scan on a lattice that
+grows as scans arrive, fits its calibration (:mod:`gpomap.fusion.calibration`) when asked, and
+turns the GP's probability at points or per cell of a grid into the map's (the formula in
+:mod:`gpomap.fusion`); written grids are built through :mod:`gpomap.fusion.written`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gpomap.clouds import CloudScan
+from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, next_to_hits, path_steps
+from gpomap.fusion.calibration import (
+    SURPRISE_RATE,
+    CalibrationSample,
+    EvidenceCalibration,
+    GPApart,
+    fit_calibration,
+    surface_misses,
+    with_surprises,
+)
+from gpomap.fusion.written import BlendedMoments, GPPredict, band_rows, gp_samples, gp_sampling_factor, in_bands
+from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS, GridSpec
+from gpomap.heldout import calibration_scans
+from gpomap.lattice import (
+    AnyGrid,
+    bounds_extent,
+    cell_offset,
+    column_bounds,
+    extent_bounds,
+    flat_index,
+    grid_extent,
+    interpolate,
+    overlap,
+)
+from gpomap.observations import ScanData, data_dim
+from gpomap.revisit import RevisitCalibration
+from gpomap.scans import Scan
+
+#: Whether the ternary map, per dimension of the data, never calls occupied a cell no beam ended in
+#: (:func:`gpomap.grid.ternary`'s ``seen_through``), as neither occupancy grid would: one beams or
+#: the robot crossed, or one nothing reached, that the map thinks likely occupied (a surface beside
+#: it, the GP's guess) is unknown instead. Planar maps: grazing beams cross the cells in front of
+#: walls, and unexplored space round a building takes the GP's guess (docs/choices.md). Point clouds
+#: mark what no ray reached in their outputs instead (:attr:`gpomap.voxels.VoxelMap.observed`).
+SEEN_THROUGH_NOT_OCCUPIED: dict[int, bool] = {2: True, 3: False}
+
+
+def without_hits(hits: ArrayLike) -> NDArray[np.bool_]:
+    """Cells no beam ended in (no `hits`), which the ternary map never calls occupied
+    (:data:`SEEN_THROUGH_NOT_OCCUPIED`; the shape of `hits`)."""
+    return np.asarray(hits) == 0
+
+
+def ternary_thresholds(given: tuple[float, float] | None, evidence: EvidenceLayer | None) -> tuple[float, float]:
+    """A map's ternary (free below, occupied above) thresholds on the probabilities it gives: those
+    `given`, else a calibrated map's (with ray evidence, :data:`gpomap.grid.CALIBRATED_THRESHOLDS`),
+    else the paper's (:data:`gpomap.grid.DEFAULT_THRESHOLDS`)."""
+    if given is not None:
+        return given
+    return CALIBRATED_THRESHOLDS if evidence is not None else DEFAULT_THRESHOLDS
+
+
+def _unseen_where_empty(
+    p: NDArray[np.float64],
+    hits: NDArray[np.float64],
+    misses: NDArray[np.float64],
+    p_unseen: NDArray[np.float64] | None,
+    surprise_rate: float = SURPRISE_RATE,
+) -> NDArray[np.float64]:
+    """`p`, with `p_unseen` (mixed with `surprise_rate`, as the counted cells are) where a cell has
+    no count at all (matching shapes): the GP's probability for unseen space as it is, near
+    surfaces too (see :mod:`gpomap.fusion`)."""
+    if p_unseen is None:
+        return p
+    return np.where((hits == 0) & (misses == 0), with_surprises(p_unseen, surprise_rate), p)
+
+
+#: How far (metres) the counted lattice reaches beyond the beams when scans arrive outside it: the
+#: counts are copied into a larger array then, so a margin keeps that rare as the robot drives on.
+LATTICE_GROWTH: float = 10.0
+
+#: The robot's path passes per lattice cell are 16-bit while fewer scans than this are counted: a
+#: cell is passed at most once per step of the path, so none can overflow, and a building's lattice
+#: (tens of millions of cells) takes half the memory of 32-bit counts. A log that grows past it (a
+#: long stream) widens them to 32 bits.
+NARROW_COUNT_SCANS: int = 2**16 - 1
+
+#: The type of the lattice's ray counts: shares of one update per scan (:func:`gpomap.evidence.scan_shares`).
+COUNT_DTYPE: type[np.floating[Any]] = np.float32
+
+
+def path_dtype(n_scans: int) -> type[np.integer[Any]]:
+    """The lattice's path-pass type for `n_scans` scans: uint16 below :data:`NARROW_COUNT_SCANS`, else int32."""
+    return np.uint16 if n_scans < NARROW_COUNT_SCANS else np.int32
+
+
+class EvidenceLayer:
+    """Ray counts and their calibration, applied on top of a fitted GP map.
+
+    Counts add over scans, so new scans are counted on their own and added in
+    (:meth:`add_scans`, at a cost proportional to the new beams); the calibration is refitted
+    only when asked (:meth:`recalibrate`). Counts taken so equal counts taken at once, except
+    where a beam ends exactly on a cell border, which lattices of different origins may round
+    to either side (seen only in simulated worlds with walls on multiples of the cell side).
+
+    Parameters
+    ----------
+    scans : sequence of Scan, or sequence of CloudScan
+        The scans the GP was fitted on.
+    resolution : float
+        Side of the fine cells the counts of exact-point predictions are taken on, metres.
+    predict_gp : callable
+        Points of shape (m, 2) to the GP's probability, shape (m,) (used to calibrate).
+    no_return_cap : float or None
+    calibration_scans : int
+        Scans held out in turn to fit the calibration.
+    seed : int
+    gp_apart : callable, optional
+        The GP fitted on given scans, its hyperparameters held, that every calibration fits the
+        surprise rate against (:func:`fit_calibration`); without it the rate is the prior.
+    calibration : EvidenceCalibration, optional
+        Taken as it is instead of fitted (a map of part of a log, calibrated as the whole log's).
+    """
+
+    # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
+    __module__ = "gpomap.fusion"
+
+    def __init__(
+        self,
+        scans: ScanData,
+        resolution: float,
+        predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+        no_return_cap: float | None = 10.0,
+        calibration_scans: int = 25,
+        seed: int = 0,
+        gp_apart: GPApart | None = None,
+        calibration: EvidenceCalibration | None = None,
+    ) -> None:
+        self.resolution = float(resolution)
+        self.gp_apart = gp_apart
+        self._at_surface: NDArray[np.bool_] | None = None  # next_to_hits of the counts so far, when asked
+        self.no_return_cap = no_return_cap
+        self.calibration_scans = int(calibration_scans)
+        self.seed = int(seed)
+        self.calibration = EvidenceCalibration()
+        self.report: dict[str, float] = {}
+        self.sample = CalibrationSample()
+        self.revisit = RevisitCalibration()
+        self._scans: list[Scan | CloudScan] = []
+        self._parts: list[RayEvidence] = []
+        self._joined: RayEvidence | None = None
+        self._dim = 2  # of the scans counted (set by add_scans)
+        self.lattice: AnyGrid | None = None
+        # Counts per lattice cell (COUNT_DTYPE) and the path's passes (path_dtype: 16-bit for most logs).
+        self._hits: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
+        self._beam_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
+        self._near_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
+        self._path: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
+        self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None = None
+        self.add_scans(scans)
+        if calibration is None:
+            self.recalibrate(predict_gp)
+        else:
+            self.calibration, self.report = calibration, {"given": 1.0}
+            for part in self._parts:
+                part.forget()
+
+    # ------------------------------------------------------------------ counting
+    @property
+    def n_scans(self) -> int:
+        """Scans counted so far."""
+        return len(self._scans)
+
+    @property
+    def evidence(self) -> RayEvidence:
+        """The beams and path of every scan counted, as one :class:`RayEvidence`."""
+        if self._joined is None and len(self._parts) == 1:
+            # One part is its own join, with the cells its counts kept for the calibration.
+            self._joined = self._parts[0]
+        if self._joined is None:
+            offsets = np.cumsum([0] + [p.n_scans for p in self._parts[:-1]])
+            parts = self._parts
+            self._joined = RayEvidence(
+                np.concatenate([p.starts for p in parts]).reshape(-1, self._dim),
+                np.concatenate([p.ends for p in parts]).reshape(-1, self._dim),
+                np.concatenate([p.hit for p in parts]).astype(bool),
+                np.concatenate([p.scan + o for p, o in zip(parts, offsets)]).astype(np.intp),
+                np.concatenate([p.path for p in parts]).reshape(-1, 2 * self._dim),
+            )
+            self._parts = [self._joined]
+        return self._joined
+
+    def add_scans(self, scans: ScanData) -> None:
+        """Count the beams of `scans` (and the path to them from the last scan) and add them in.
+
+        Parameters
+        ----------
+        scans : sequence of Scan
+            Scans that follow those counted so far, in order.
+        """
+        scans = list(scans)
+        if not scans:
+            return
+        part = RayEvidence.from_scans(scans, self.no_return_cap)
+        d = self._dim = data_dim(scans)
+        if self._scans:
+            # The step from the last scan counted to the first new one is part of the path too.
+            link = path_steps([self._scans[-1], scans[0]]).reshape(-1, 2 * d)
+            part = RayEvidence(part.starts, part.ends, part.hit, part.scan, np.concatenate([link, part.path]))
+        pts = np.concatenate([part.starts, part.ends, part.path[:, :d], part.path[:, d:]])
+        if pts.size == 0:
+            self._scans.extend(scans)
+            self._parts.append(part)
+            self._joined = None
+            return
+        # The margin holds the robot's body round a path at the data's edge.
+        margin = self.resolution + PATH_RADIUS
+        local = lattice_grid(bounds_extent(*column_bounds(pts)), self.resolution, margin=margin)
+        self._cover(local, path_dtype(len(self._scans) + len(scans)))
+        # The first scans' counts are on the lattice itself: the calibration's held-out scans keep
+        # their cells, so their leave-one-scan-out counts need no second traversal.
+        keep = calibration_scans(len(scans), self.calibration_scans) if not self._scans else None
+        assert self.lattice is not None
+        block = self._block(local)
+        if local.shape == self.lattice.shape and all(b.start == 0 for b in block):
+            # The lattice is the new scans' own: counted into it, not beside it (a building's
+            # lattice is tens of millions of cells, each array of them hundreds of megabytes).
+            part.counts(local, keep=keep, out=RayCounts(self._hits, self._beam_misses, self._near_misses))
+            part.path_passes(local, out=self._path)
+        else:
+            counts = part.counts(local, keep=keep)
+            for total, new in zip((self._hits, self._beam_misses, self._near_misses), counts, strict=True):
+                window = total[block]
+                np.add(window, new, out=window, casting="unsafe")
+            del counts
+            passes = self._path[block]
+            np.add(passes, part.path_passes(local), out=passes, casting="unsafe")
+        self._scans.extend(scans)
+        self._parts.append(part)
+        self._joined = None
+        self._grid_cache = None
+        self._at_surface = None
+
+    def _block(self, grid: AnyGrid) -> tuple[slice, ...]:
+        """The slices of the lattice's arrays that `grid` (on the same cell lattice) covers."""
+        assert self.lattice is not None
+        return tuple(slice(o, o + n) for o, n in zip(cell_offset(grid, self.lattice), grid.shape, strict=True))
+
+    def _cover(self, local: AnyGrid, path: Any = np.int32) -> None:
+        """Grow the counted lattice (a copy, with :data:`LATTICE_GROWTH` to spare) to hold `local`,
+        its path's passes of type `path` (:func:`path_dtype`) or wider."""
+        if self.lattice is None:
+            self.lattice = local
+            self._hits = np.zeros(local.shape, dtype=COUNT_DTYPE)
+            self._beam_misses = np.zeros(local.shape, dtype=COUNT_DTYPE)
+            self._near_misses = np.zeros(local.shape, dtype=COUNT_DTYPE)
+            self._path = np.zeros(local.shape, dtype=path)
+            return
+        if np.iinfo(path).max > np.iinfo(self._path.dtype).max:
+            self._path = self._path.astype(path)
+        offset = cell_offset(local, self.lattice)
+        if all(o >= 0 and o + n <= m for o, n, m in zip(offset, local.shape, self.lattice.shape, strict=True)):
+            return
+        (alo, ahi), (blo, bhi) = extent_bounds(grid_extent(self.lattice)), extent_bounds(grid_extent(local))
+        inner = self.resolution / 2  # the old edges, pulled in half a cell so they stay on the lattice
+        union = bounds_extent(np.minimum(alo + inner, blo), np.maximum(ahi - inner, bhi))
+        grown = lattice_grid(union, self.resolution, margin=LATTICE_GROWTH)
+        old = self.lattice
+        self.lattice = grown
+        block = self._block(old)
+        for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
+            arr = np.zeros(grown.shape, dtype=getattr(self, name).dtype)
+            arr[block] = getattr(self, name)
+            setattr(self, name, arr)
+
+    def recalibrate(self, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]) -> None:
+        """Refit the calibration's five weights and surprise rate on the scans counted so far (see :func:`fit_calibration`).
+
+        Parameters
+        ----------
+        predict_gp : callable
+            Points of shape (m, 2) to the GP's probability, shape (m,).
+        """
+        if self.lattice is None:
+            self.calibration, self.report, self.sample = EvidenceCalibration(), {"n_points": 0}, CalibrationSample()
+            return
+        self.calibration, self.report, self.sample = fit_calibration(
+            self._scans,
+            self.evidence,
+            self.lattice,
+            predict_gp,
+            self.calibration_scans,
+            2 * self.resolution,
+            self.no_return_cap,
+            self.seed,
+            counts=RayCounts(self._hits, self._beam_misses, self._near_misses),
+            gp_apart=self.gp_apart,
+        )
+        # A cached grid's surface cells were found (or not) for the calibration before.
+        self._grid_cache = None
+        for part in self._parts:
+            part.forget()
+
+    # ------------------------------------------------------------------ applying
+    def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Weighted hits (:meth:`EvidenceCalibration.hits`) and weighted misses
+        (:meth:`EvidenceCalibration.misses`, path included) of the fine cell holding each point (0
+        outside the counted area)."""
+        if self.lattice is None:
+            n = np.asarray(points).shape[0]
+            return np.zeros(n), np.zeros(n)
+        cell, inside = flat_index(self.lattice, points)
+        hits, beam, near, path = (a.reshape(-1)[cell] for a in (self._hits, self._beam_misses, self._near_misses, self._path))
+        surface = surface_misses(beam, near, self.at_surface().reshape(-1)[cell]) if self._weighs_surface() else 0.0
+        return np.where(inside, self.calibration.hits(hits, near), 0.0), np.where(
+            inside, self.calibration.misses(beam, near, path, surface), 0.0
+        )
+
+    def _weighs_surface(self) -> bool:
+        """Whether the calibration weighs surface misses apart from other misses (else they need not be found)."""
+        return self.calibration.surface_weight != 1.0
+
+    def at_surface(self) -> NDArray[np.bool_]:
+        """Cells of the counted lattice a beam ended in or next to one (:func:`gpomap.evidence.next_to_hits`), shape lattice.shape."""
+        if self._at_surface is None or self._at_surface.shape != self._hits.shape:
+            self._at_surface = next_to_hits(self._hits)
+        return self._at_surface
+
+    def proba(
+        self, points: NDArray[np.float64], p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
+    ) -> NDArray[np.float64]:
+        """Probability at points, ndarray of shape (m,), from the GP's probability there.
+
+        `p_unseen`, the GP's probability for unseen space, is taken where no beam (and no step of
+        the path) crossed the point's cell; default `p_gp`.
+        """
+        h, m = self.counts_at(points)
+        p = _unseen_where_empty(self.calibration(p_gp, h, m), h, m, p_unseen, self.calibration.surprise_rate)
+        return self.revisit(p)
+
+    def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
+        """Whether no beam ended in the fine cell holding each point (True outside the counted
+        area), shape (m,); None where the ternary map does not use it (:data:`SEEN_THROUGH_NOT_OCCUPIED`)."""
+        if not SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False):
+            return None
+        if self.lattice is None:
+            return np.ones(np.asarray(points).shape[0], dtype=bool)
+        cell, inside = flat_index(self.lattice, points)
+        return ~inside | without_hits(self._hits.reshape(-1)[cell])
+
+    def grid_seen_through(self, grid: AnyGrid) -> NDArray[np.bool_] | None:
+        """:meth:`seen_through_at` per cell of `grid`, counted on its own cells (the counts of
+        :meth:`grid_counts`, cached), shape grid.shape; None where not used."""
+        if not SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False):
+            return None
+        if self._grid_cache is None or self._grid_cache[0] != grid:
+            self._grid_cache = (grid, *self._raw_grid_counts(grid))
+        _, counts, _, _ = self._grid_cache
+        return without_hits(counts.hits)
+
+    def _on_lattice(self, grid: AnyGrid) -> bool:
+        """Whether `grid`'s cells are cells of the counted lattice (same side, origin on a corner)."""
+        if self.lattice is None or not math.isclose(grid.resolution, self.resolution, rel_tol=1e-12):
+            return False
+        d = (np.asarray(grid.origin) - np.asarray(self.lattice.origin)) / self.resolution
+        return bool(np.all(np.abs(d - np.round(d)) < 1e-6))
+
+    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]]:
+        """The beams' counts, the path's passes and the cells at a surface
+        (:func:`gpomap.evidence.next_to_hits`) per cell of `grid`."""
+        if not self._on_lattice(grid):
+            counts = self.evidence.counts(grid)
+            at_surface = next_to_hits(counts.hits) if self._weighs_surface() else np.zeros(grid.shape, dtype=bool)
+            return counts, self.evidence.path_passes(grid), at_surface
+        # The grid's cells are lattice cells: read the running counts (zero beyond them), and
+        # whether a cell is at a surface from the whole lattice's hits, its window's edges too.
+        assert self.lattice is not None
+        out = [np.zeros(grid.shape, dtype=COUNT_DTYPE) for _ in range(3)]
+        path = np.zeros(grid.shape, dtype=np.int32)
+        at_surface = np.zeros(grid.shape, dtype=bool)
+        where = overlap(cell_offset(grid, self.lattice), grid.shape, self.lattice.shape)
+        if where is not None:
+            for o, a in zip((*out, path), (self._hits, self._beam_misses, self._near_misses, self._path), strict=True):
+                o[where[0]] = a[where[1]]
+            if self._weighs_surface():
+                at_surface[where[0]] = self.at_surface()[where[1]]
+        return RayCounts(*out), path, at_surface
+
+    def grid_observed(self, grid: AnyGrid) -> NDArray[np.bool_]:
+        """Cells of `grid` a ray crossed or ended in, or the robot's path passed, shape grid.shape."""
+        hits, misses = self.grid_counts(grid)
+        return np.asarray((hits + misses) > 0)
+
+    def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Weighted hits (:meth:`EvidenceCalibration.hits`) and weighted misses
+        (:meth:`EvidenceCalibration.misses`, path included) per cell of `grid`, counted on that
+        grid's own cells (the last is cached)."""
+        if self._grid_cache is None or self._grid_cache[0] != grid:
+            self._grid_cache = (grid, *self._raw_grid_counts(grid))
+        _, counts, path, at_surface = self._grid_cache
+        surface = surface_misses(counts.misses, counts.near, at_surface)
+        return self.calibration.hits(counts.hits, counts.near), self.calibration.misses(counts.misses, counts.near, path, surface)
+
+    def grid_proba(
+        self, grid: AnyGrid, p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
+    ) -> NDArray[np.float64]:
+        """Probability per cell of `grid`, shape grid.shape, from the GP's probabilities per cell (see :meth:`proba`)."""
+        h, m = self.grid_counts(grid)
+        unseen = None if p_unseen is None else np.asarray(p_unseen).reshape(grid.shape)
+        p = self.calibration(np.asarray(p_gp).reshape(grid.shape), h, m)
+        return self.revisit(_unseen_where_empty(p, h, m, unseen, self.calibration.surprise_rate))
+
+    def written_grid(
+        self,
+        grid: AnyGrid,
+        length_scale: float,
+        predict_gp: GPPredict,
+        moments: BlendedMoments | None = None,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
+        """Probability and latent variance per cell of `grid`, each of shape grid.shape, and the
+        cells beams saw through (:meth:`grid_seen_through`, or None).
+
+        The counts give each cell its detail; the smooth GP under them is sampled more coarsely
+        (:func:`gp_sampling_factor`) and interpolated (bi- or trilinearly). A planar grid of more
+        than :data:`~gpomap.resources.WRITTEN_BAND_CELLS` cells is built in bands of rows
+        (:func:`~gpomap.fusion.written.in_bands`), each on the GP samples
+        the whole grid would take (the band's rows a whole number of variance samples): the
+        same map, up to the local prediction's tolerance and the round-off of the samples'
+        coordinates. That round-off can turn which of two tiles' cores is nearer to a sample
+        no tile reaches, when they are as near to it (the nearest predicts it alone), which moves
+        a few cells far from the data (docs/choices.md, "The written map in bands of rows").
+
+        Parameters
+        ----------
+        grid : GridSpec or VoxelSpec
+        length_scale : float
+            The GP's length scale, metres.
+        predict_gp : callable
+            Points of shape (m, d) to the GP's probability, its latent variance and its probability
+            for unseen space, each (m,).
+        moments : BlendedMoments, optional
+            The same GP's moments: a planar grid then takes the GP's variance
+            :data:`~gpomap.fusion.written.VARIANCE_STEP_SAMPLES` samples apart instead of
+            `predict_gp` at every sample.
+        """
+        factor = gp_sampling_factor(length_scale, grid.resolution)
+        if not isinstance(grid, GridSpec) or grid.shape[0] <= band_rows(grid, factor):
+            return self._written_block(grid, factor, predict_gp, moments)
+        # Cells off the counted lattice are counted afresh, a traversal of every beam: once for
+        # the whole grid (16 bytes a cell), not once per band.
+        whole = None if self._on_lattice(grid) else self._raw_grid_counts(grid)
+
+        def band(
+            start: int, stop: int, rows: GridSpec
+        ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
+            if whole is not None:
+                counts, path, at_surface = whole
+                self._grid_cache = (rows, RayCounts(*(c[start:stop] for c in counts)), path[start:stop], at_surface[start:stop])
+            return self._written_block(rows, factor, predict_gp, moments)
+
+        def finished() -> None:
+            nonlocal whole
+            self._grid_cache = None  # the last band's counts: of no use to the next grid
+            self._at_surface = None  # a bool a lattice cell, found again when asked
+            whole = None
+
+        return in_bands(grid, factor, band, moments, SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False), finished)
+
+    def _written_block(
+        self,
+        grid: AnyGrid,
+        factor: int,
+        predict_gp: GPPredict,
+        moments: BlendedMoments | None,
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
+        """:meth:`written_grid` of a grid in one piece, its GP sampled every `factor` cells."""
+        sampled, p, var, p_unseen = gp_samples(grid, factor, predict_gp, moments)
+        probability = self.grid_proba(grid, interpolate(p, sampled, grid), interpolate(p_unseen, sampled, grid))
+        return probability, interpolate(var, sampled, grid), self.grid_seen_through(grid)
+
+    def summary(self) -> dict[str, float]:
+        """The calibration and how it was fitted."""
+        c = self.calibration
+        return {
+            "hit_weight": c.hit_weight,
+            "prior_weight": c.prior_weight,
+            "near_weight": c.near_weight,
+            "near_hit_weight": c.near_hit_weight,
+            "surface_weight": c.surface_weight,
+            **self.report,
+            "surprise_rate": c.surprise_rate,
+            "revisit_slope": self.revisit.slope,
+            "revisit_shift": self.revisit.shift,
+        }
