@@ -114,6 +114,7 @@ MAJORITY_REACH = 1
 #: A grid of 0s and 1s more than this share of whose occupied pixels end a wall or touch another
 #: only at a corner is read as majority-pooled (:func:`infer_pooling`).
 BROKEN_SHARE = 0.1
+_CORE_FROM_SHARE = True
 #: How a grid of 0s and 1s was made from a finer one (:func:`read_pixels`); "auto": see
 #: :func:`infer_pooling`.
 POOLINGS = ("auto", "any", "majority", "mean")
@@ -781,7 +782,10 @@ def grid_cells(
     n_inputs = len(cells)
     if centre_noise is not None:
         occ_idx = np.flatnonzero(some)
-        centres = _core_centres(pts[occ_idx], frac[occ_idx], free_grid, ij[occ_idx], pixel)
+        # The share the pixel is read as, not its value: a 1 of a grid of 0s and 1s fills
+        # `occupied_fraction` of it, away from its free sides.
+        core = np.where(np.isfinite(reading.share) & (reading.share > 0.0), reading.share, frac) if _CORE_FROM_SHARE else frac
+        centres = _core_centres(pts[occ_idx], core[occ_idx], free_grid, ij[occ_idx], pixel)
         cells = _extra_inputs(cells, centres, centres.copy(), np.ones(occ_idx.size, dtype=bool), occ_idx)
         targets.append(np.ones(occ_idx.size))
     weight = np.ones(len(cells))
