@@ -182,10 +182,10 @@ def test_local_prediction_equals_dense(kernel, monkeypatch):
     # the map, so local prediction is taken, and must agree with the dense solve (covariances
     # below 1e-9 of the variance left out, so to 1e-9; the default tolerances are checked in
     # test_local_prediction).
-    import gpomap.gp
+    import gpomap.gp.posterior
 
-    monkeypatch.setattr(gpomap.gp, "LOCAL_TOL", 1e-9)
-    monkeypatch.setattr(gpomap.gp, "LOCAL_VARIANCE_TOL", 1e-9)
+    monkeypatch.setattr(gpomap.gp.posterior, "LOCAL_TOL", 1e-9)
+    monkeypatch.setattr(gpomap.gp.posterior, "LOCAL_VARIANCE_TOL", 1e-9)
     rng = np.random.default_rng(6)
     lo = np.column_stack([rng.uniform(0, 40, 500), rng.uniform(0, 4, 500)])
     X = Supports.from_boxes(lo, lo + rng.uniform(0.1, 0.5, (500, 2)), rng.integers(1, 20, 500).astype(float))

@@ -7,7 +7,7 @@ import pickle
 import numpy as np
 import pytest
 
-import gpomap.gp
+import gpomap.gp.posterior
 import gpomap.tiles.blending as tile_blending
 from gpomap import _compiled_local
 from gpomap.gp import LOCAL_TOL, LOCAL_VARIANCE_TOL, local_blocks
@@ -24,8 +24,8 @@ def tight(monkeypatch):
     """Covariances below 1e-9 of the variance left out, not LOCAL_TOL's and LOCAL_VARIANCE_TOL's: the
     blocks' bookkeeping (which cells, which entries of K^-1) is then checked against the dense
     prediction to 1e-8."""
-    monkeypatch.setattr(gpomap.gp, "LOCAL_TOL", 1e-9)
-    monkeypatch.setattr(gpomap.gp, "LOCAL_VARIANCE_TOL", 1e-9)
+    monkeypatch.setattr(gpomap.gp.posterior, "LOCAL_TOL", 1e-9)
+    monkeypatch.setattr(gpomap.gp.posterior, "LOCAL_VARIANCE_TOL", 1e-9)
 
 
 def _both(model: TiledGPOM, key: tuple[int, int], points: np.ndarray):
