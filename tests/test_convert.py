@@ -429,11 +429,11 @@ def test_grid_prediction_equals_the_models(tol, atol, monkeypatch):
     # gives the model's own probabilities and variances at a few of its cells' centres predicted
     # alone (other blocks, other inputs left out): to 1e-6 when covariances below 1e-9 of the
     # variance are left out; at the default tolerances they differed by 1.4e-6 at most.
-    import gpomap.gp
+    import gpomap.gp.posterior
 
     if tol is not None:
-        monkeypatch.setattr(gpomap.gp, "LOCAL_TOL", tol)
-        monkeypatch.setattr(gpomap.gp, "LOCAL_VARIANCE_TOL", tol)
+        monkeypatch.setattr(gpomap.gp.posterior, "LOCAL_TOL", tol)
+        monkeypatch.setattr(gpomap.gp.posterior, "LOCAL_VARIANCE_TOL", tol)
     res = convert_grid(_wall_map(n=24, thickness=2), resolution=0.02)
     g = res.map.grid
     rng = np.random.default_rng(1)

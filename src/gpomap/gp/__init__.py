@@ -26,16 +26,11 @@ The package's rooms:
 
 Every name is importable from ``gpomap.gp``; :class:`GPPosterior`, which a map file names
 (:mod:`gpomap.io.mapfile`), gives this package as its module. A module constant is read where it
-is used (``gpomap.gp.posterior.LOCAL_TOL``); the local prediction's two tolerances set on this
-package are set there too (:class:`_Package`), as code written before the split sets them here.
+is used: set it there (``gpomap.gp.posterior.LOCAL_TOL``).
 """
 
 from __future__ import annotations
 
-import sys
-import types
-
-from gpomap.gp import posterior
 from gpomap.gp.linalg import (
     FILL_BLOCK,
     LOWER_PRODUCT_BLOCKS,
@@ -84,19 +79,6 @@ from gpomap.gp.support import (
     FitReport,
     SupportGP,
 )
-
-
-class _Package(types.ModuleType):
-    """This package, whose local prediction's tolerances set here are set where they are read."""
-
-    def __setattr__(self, name: str, value: object) -> None:
-        # A test that tightens gpomap.gp.LOCAL_TOL means the tolerance GPPosterior reads.
-        if name in ("LOCAL_TOL", "LOCAL_VARIANCE_TOL"):
-            setattr(posterior, name, value)
-        super().__setattr__(name, value)
-
-
-sys.modules[__name__].__class__ = _Package
 
 __all__ = [
     "COMPILED_LOCAL_WORK_SHARE",
