@@ -43,7 +43,9 @@ def _calibrate(model: Any, near_end: float | None) -> None:
     saved_end, saved_bounds = evidence.NEAR_END, calibration.CALIBRATION_BOUNDS
     try:
         if near_end is None:
-            calibration.CALIBRATION_BOUNDS = (*saved_bounds[:2], (0.0, 0.0))  # near weight held at 1
+            # A near miss weighs as a miss (its weight held at 1) and adds no hit (held at the floor).
+            near_hit = (saved_bounds[3][0], saved_bounds[3][0])
+            calibration.CALIBRATION_BOUNDS = (*saved_bounds[:2], (0.0, 0.0), near_hit, *saved_bounds[4:])
         else:
             evidence.NEAR_END = near_end
         model.evidence_ = model._make_evidence()
