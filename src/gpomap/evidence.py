@@ -33,6 +33,7 @@ from scipy.ndimage import binary_dilation
 
 from gpomap import _compiled_counts
 from gpomap.clouds import CloudScan
+from gpomap.config import MapConfig
 from gpomap.lattice import AnyGrid, bounds_extent, column_bounds, extent_bounds, flat_index, grid_size, make_grid
 from gpomap.observations import Rays, ScanData, sensor_positions
 from gpomap.raycast import traverse
@@ -258,7 +259,7 @@ class RayEvidence:
     )
 
     @classmethod
-    def from_scans(cls, scans: ScanData, no_return_cap: float | None = 10.0) -> RayEvidence:
+    def from_scans(cls, scans: ScanData, no_return_cap: float | None = MapConfig.no_return_cap) -> RayEvidence:
         """Collect the usable beams of planar scans or the rays of point clouds.
 
         Parameters

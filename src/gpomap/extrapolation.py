@@ -44,6 +44,7 @@ from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 from scipy.special import log_ndtr
 
+from gpomap.config import MapConfig
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.heldout import FOLD_STARTS, HOLDOUT_EVERY, calibration_points, holdout_stretches
@@ -159,7 +160,7 @@ def fit_variance_scale(
     centre: NDArray[np.float64],
     region_half: float,
     margin: float,
-    no_return_cap: float | None = 10.0,
+    no_return_cap: float | None = MapConfig.no_return_cap,
     seed: int = 0,
     wider: tuple[NDArray[np.float64], float, float] | None = None,
 ) -> tuple[float, dict[str, Any]]:

@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan
+from gpomap.config import MapConfig
 from gpomap.errors import EmptyDataError
 from gpomap.observations import data_dim, observations_from_scans
 from gpomap.scans import Scan
@@ -70,7 +71,7 @@ def holdout_stretches(n_scans: int, first: int = FOLD_STARTS[0]) -> tuple[NDArra
 
 
 def calibration_points(
-    scan: Scan | CloudScan, step: float = 0.1, no_return_cap: float | None = 10.0
+    scan: Scan | CloudScan, step: float = 0.1, no_return_cap: float | None = MapConfig.no_return_cap
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """A scan's hits and its free points every `step` along each beam up to :data:`CALIBRATION_HIT_MARGIN` short of the hit.
 

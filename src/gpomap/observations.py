@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from gpomap import _compiled_clearance
 from gpomap.clouds import CloudScan
+from gpomap.config import MapConfig
 from gpomap.errors import EmptyDataError
 from gpomap.lattice import box_index, box_shape, column_bounds, in_box
 from gpomap.scans import Scan
@@ -339,7 +340,7 @@ def labelled_observations(
 
 def observations_from_scans(
     scans: ScanData,
-    free_step: float = 0.2,
+    free_step: float = MapConfig.free_step,
     hit_margin: float | None = None,
     no_return_cap: float | None = None,
     free_clearance: float = 0.0,
@@ -418,7 +419,7 @@ PART_POINTS: int = 1 << 22
 
 def observation_parts(
     scans: ScanData,
-    free_step: float = 0.2,
+    free_step: float = MapConfig.free_step,
     hit_margin: float | None = None,
     no_return_cap: float | None = None,
     indices: Sequence[int] | None = None,

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.config import MapConfig
 from gpomap.errors import GpomapError
 
 __all__ = [
@@ -325,12 +326,12 @@ def grid_shape(extent: Sequence[float], resolution: float) -> tuple[int, int]:
     return ny, nx
 
 
-def prediction_chunk_memory(n_cells: int, chunk_size: int = 4096) -> int:
+def prediction_chunk_memory(n_cells: int, chunk_size: int = MapConfig.chunk_size) -> int:
     """Bytes of one prediction chunk's cross-covariance arrays: ``chunk_size x n_cells`` float64 each."""
     return PREDICTION_MATRICES * int(chunk_size) * int(n_cells) * 8
 
 
-def grid_memory(shape: tuple[int, int], supersample: int = 1, n_cells: int = 0, chunk_size: int = 4096) -> int:
+def grid_memory(shape: tuple[int, int], supersample: int = 1, n_cells: int = 0, chunk_size: int = MapConfig.chunk_size) -> int:
     """Bytes needed to predict and write a map on a grid of `shape`.
 
     Parameters
@@ -397,7 +398,7 @@ def voxel_shape(
     return n[2], n[1], n[0]
 
 
-def voxel_grid_memory(shape: tuple[int, int, int], n_cells: int = 0, chunk_size: int = 4096) -> int:
+def voxel_grid_memory(shape: tuple[int, int, int], n_cells: int = 0, chunk_size: int = MapConfig.chunk_size) -> int:
     """Bytes needed to predict and write a voxel map of `shape` (nz, ny, nx).
 
     ``nz * ny * nx * BYTES_PER_VOXEL`` plus one prediction chunk against `n_cells` cells.

@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 from scipy.special import expit, log_expit, logit
 
+from gpomap.config import MapConfig
 from gpomap.heldout import calibration_points, holdout_stretches
 from gpomap.observations import data_dim, natural_subsample
 
@@ -146,7 +147,7 @@ def fit_revisit(
 def later_visit_points(
     scans: Sequence[Any],
     fit_rest: Callable[[list[Any]], Callable[[NDArray[np.float64]], NDArray[np.float64]]],
-    no_return_cap: float | None = 10.0,
+    no_return_cap: float | None = MapConfig.no_return_cap,
     seed: int = 0,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]]:
     """A map's probabilities at the points of a stretch of its log it never saw (the first half of

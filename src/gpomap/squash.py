@@ -23,6 +23,8 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize
 from scipy.special import log_ndtr, ndtr
 
+from gpomap.config import MapConfig
+
 
 def unseen_probit(num: NDArray[np.float64], den: NDArray[np.float64], variance_scale: float) -> NDArray[np.float64]:
     """The probit's argument where no beam went, from calibrated moments (any matching shapes):
@@ -107,7 +109,7 @@ def loo_probit(
 CLASS_WEIGHTS = ("balanced", None)
 
 
-def class_weights(y: NDArray[np.float64], class_weight: str | None = "balanced") -> NDArray[np.float64] | None:
+def class_weights(y: NDArray[np.float64], class_weight: str | None = MapConfig.class_weight) -> NDArray[np.float64] | None:
     """Weights of the leave-one-out terms, ndarray of shape (n,), or None for equal weights.
 
     ``"balanced"`` gives each class the same total weight (n / (2 n_class) per input, as in

@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import brentq, minimize
 
+from gpomap.config import MapConfig
 from gpomap.evidence import RayCounts, RayEvidence
 from gpomap.heldout import calibration_points, calibration_scans
 from gpomap.lattice import AnyGrid, flat_index
@@ -216,7 +217,7 @@ def fit_calibration(
     predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]],
     n_scans: int = 25,
     step: float = 0.1,
-    no_return_cap: float | None = 10.0,
+    no_return_cap: float | None = MapConfig.no_return_cap,
     seed: int = 0,
     counts: RayCounts | None = None,
     gp_apart: GPApart | None = None,

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gpomap.clouds import CloudScan
+from gpomap.config import MapConfig
 from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, next_to_hits, path_steps
 from gpomap.fusion.calibration import (
     SURPRISE_RATE,
@@ -138,8 +139,8 @@ class EvidenceLayer:
         scans: ScanData,
         resolution: float,
         predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]],
-        no_return_cap: float | None = 10.0,
-        calibration_scans: int = 25,
+        no_return_cap: float | None = MapConfig.no_return_cap,
+        calibration_scans: int = MapConfig.calibration_scans,
         seed: int = 0,
         gp_apart: GPApart | None = None,
         calibration: EvidenceCalibration | None = None,

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from scipy.linalg import solve_triangular
 
 from gpomap import _compiled_local
+from gpomap.config import MapConfig
 from gpomap.gp.linalg import cholesky_inverse, lower_product, triangular_inverse_for
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.closed_form import POINT_WIDTH, BoxPointFactors
@@ -276,7 +277,7 @@ class GPPosterior:
         return int(self.weights.size)
 
     def latent(
-        self, queries: Supports, variance: bool = True, local: bool = True, chunk_size: int = 4096
+        self, queries: Supports, variance: bool = True, local: bool = True, chunk_size: int = MapConfig.chunk_size
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """Latent mean and (with `variance`) variance at the queries, each ndarray of shape (m,).
 

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize
 
+from gpomap.config import MapConfig
 from gpomap.errors import NotFittedError, NumericalError
 from gpomap.gp.linalg import cholesky_solve, inverse_diagonal
 from gpomap.gp.objective import NOISE_MODELS, OBJECTIVES, HyperparameterObjective, ObjectivePart, compact_groups
@@ -104,17 +105,17 @@ class SupportGP(HyperparameterObjective):
     def __init__(
         self,
         kernel: AreaKernel,
-        noise: float = 0.1,
+        noise: float = MapConfig.noise,
         noise_bounds: tuple[float, float] = (1e-4, 10.0),
         noise_model: str = "constant",
-        objective: str = "loo",
-        optimise: bool = True,
+        objective: str = MapConfig.objective,
+        optimise: bool = MapConfig.optimise,
         n_restarts: int = 1,
         seed: int = 0,
         max_iter: int = 100,
-        hyper_subset: int | None = 300,
-        prior_std: float | None = 1.0,
-        class_weight: str | None = "balanced",
+        hyper_subset: int | None = MapConfig.hyper_subset,
+        prior_std: float | None = MapConfig.prior_std,
+        class_weight: str | None = MapConfig.class_weight,
         hyper_group: int | None = None,
         objective_per_input: bool = False,
         n_threads: int = 1,
@@ -312,7 +313,7 @@ class SupportGP(HyperparameterObjective):
 
     # ----------------------------------------------------------------- prediction
     def predict_latent(
-        self, X: Supports, return_var: bool = True, chunk_size: int = 4096, local: bool = True
+        self, X: Supports, return_var: bool = True, chunk_size: int = MapConfig.chunk_size, local: bool = True
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """Latent mean and variance at new inputs: :meth:`GPPosterior.latent` of the fitted posterior.
 
@@ -335,7 +336,9 @@ class SupportGP(HyperparameterObjective):
         """
         return self._posterior().latent(X, return_var, local, chunk_size)
 
-    def predict_proba(self, X: Supports, chunk_size: int = 4096) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def predict_proba(
+        self, X: Supports, chunk_size: int = MapConfig.chunk_size
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Occupancy probability and latent variance at new inputs, each ndarray of shape (m,)."""
         mean, var = self.predict_latent(X, True, chunk_size)
         assert var is not None  # asked for with return_var=True

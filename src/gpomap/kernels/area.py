@@ -21,6 +21,7 @@ from typing import Literal, overload
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.config import MapConfig
 from gpomap.kernels.closed_form import BoxPointFactors, se_box_average, se_box_gram, se_box_point_average, se_box_self_average
 from gpomap.kernels.nodes import NodeSet, member_nodes, quadrature_nodes, weighted_gram, weighted_self
 from gpomap.kernels.point import PointKernel, SquaredExponential, make_point_kernel
@@ -58,7 +59,7 @@ class AreaKernel:
         self,
         base: PointKernel | str = "se",
         method: str = "exact",
-        normalisation: str = "mean",
+        normalisation: str = MapConfig.normalisation,
         quadrature_order: int = 3,
         max_block: int = 4_000_000,
     ) -> None:

@@ -51,6 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import erf
 
+from gpomap.config import MapConfig
 from gpomap.kernels.nodes import NodeSet, weighted_gram, weighted_self
 from gpomap.kernels.point import PointKernel, SquaredExponential, make_point_kernel
 
@@ -404,7 +405,7 @@ class LineKernel:
     def __init__(
         self,
         base: PointKernel | str = "se",
-        normalisation: str = "mean",
+        normalisation: str = MapConfig.normalisation,
         order: int = 4,
         max_panel: float | None = 1.0,
         max_block: int = 2_000_000,

@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.config import MapConfig
+
 HYPERPARAMETERS: tuple[str, str] = ("variance", "length_scale")
 
 
@@ -52,8 +54,8 @@ class PointKernel(ABC):
 
     def __init__(
         self,
-        variance: float = 1.0,
-        length_scale: float = 1.0,
+        variance: float = MapConfig.variance,
+        length_scale: float = MapConfig.length_scale,
         variance_bounds: tuple[float, float] = (1e-3, 1e3),
         length_scale_bounds: tuple[float, float] = (1e-2, 1e2),
     ) -> None:

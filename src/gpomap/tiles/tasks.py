@@ -283,7 +283,7 @@ def fit_tile_task(task: TileFitTask) -> TileState:
 def predict_tile_task(
     state: TileState,
     points: NDArray[np.float64],
-    chunk_size: int = 4096,
+    chunk_size: int = MapConfig.chunk_size,
     variance: bool = True,
     local: bool = True,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
