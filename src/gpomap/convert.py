@@ -24,15 +24,22 @@ Defaults (measured with benchmarks/convert_maps.py; see docs/convert.md)
 - values read as fractions (``values="auto"``): a ROS map in trinary mode, whose values are codes,
   and a map with a latent variance (a GP's belief, such as gpomap's own ``.npz``) are read as
   free / occupied / unknown by their thresholds instead;
+- each pixel read by how the grid was made from a finer one (``pooling="auto"``,
+  :func:`read_pixels`, :func:`infer_pooling`): values between 0 and 1 are occupied shares (mean
+  pooling); a grid of 0s and 1s is any-pixel pooled (a 0 wholly free, a 1 holding something,
+  taken as :data:`OCCUPIED_FRACTION` occupied) unless its walls are broken as majority pooling
+  breaks thin walls (a 1 more than half occupied, a 0 at most half, and a 0 beside a 1 taken as
+  :data:`MAJORITY_NEIGHBOUR_SHARE` occupied); a grid read by its thresholds is any-pixel pooled;
 - wall-aware GP inputs (:func:`grid_cells`): pixels within 3 pixels of one holding anything
-  occupied are cells of their own (each its pixel's square, its target 2 f - 1, the mean of the
-  +-1 occupancy over it), free pixels farther away are merged into blocks of at most
-  ``max_cell`` = 4 pixels; each pixel holding anything occupied also gets a point where its
+  occupied are cells of their own (each its pixel's square, its target 2 s - 1, the mean of the
+  +-1 occupancy over it for a share s), free pixels farther away are merged into blocks of at
+  most ``max_cell`` = 4 pixels; each pixel holding anything occupied also gets a point where its
   obstacle most likely is (its centre, or the centre of the part away from its free sides that
-  its fraction fills), 3 times noisier than a pixel cell. A grid of 0s and 1s does not say how
-  much of an occupied pixel is occupied (any-pixel pooling marks pixels a thin wall grazes,
-  majority pooling pixels mostly filled): its occupied pixels are taken as
-  :data:`OCCUPIED_FRACTION` occupied;
+  its share fills), 3 times noisier than a pixel cell;
+- the map keeps what each pixel says (:class:`GridGPOM`): nothing occupied in a pixel the grid
+  holds wholly free, each pixel's mean probability its share or within the pooling's bounds,
+  and an occupied region (p > 0.5) that, pooled again the same way, gives back the grid; within
+  the known pixels the latent mean is squashed at a one-pixel input's variance;
 - squared-exponential kernel with the exact closed-form area kernel; on a grid it is a product of
   per-axis factors, which the prediction on the output grid tables once per row and column;
 - length scale one source pixel and noise 0.1, not learnt (``optimise=False``); the squash's
@@ -41,7 +48,7 @@ Defaults (measured with benchmarks/convert_maps.py; see docs/convert.md)
 
 Any of these can be overridden through ``**model_options`` (the :class:`GridGPOM` constructor
 arguments: those of :class:`~gpomap.settings.MapSettings`, ``pixel_pad``, ``wall_reach``,
-``edge_strip``, ``centre_noise`` and ``occupied_fraction``; ``optimise=True`` learns the length
+``edge_strip``, ``centre_noise``, ``occupied_fraction`` and ``pooling``; ``optimise=True`` learns the length
 scale and noise; ``wall_reach=None`` gives the cell tree over footprints of before,
 ``pixel_pad=0`` the centre boxes of before that). ``free_step``, ``hit_margin`` and
 ``no_return_cap`` concern laser beams and have no effect here.
@@ -114,7 +121,6 @@ MAJORITY_REACH = 1
 #: A grid of 0s and 1s more than this share of whose occupied pixels end a wall or touch another
 #: only at a corner is read as majority-pooled (:func:`infer_pooling`).
 BROKEN_SHARE = 0.1
-_CORE_FROM_SHARE = True
 #: How a grid of 0s and 1s was made from a finer one (:func:`read_pixels`); "auto": see
 #: :func:`infer_pooling`.
 POOLINGS = ("auto", "any", "majority", "mean")
@@ -149,7 +155,8 @@ class ConversionResult:
         The fitted estimator; ask it anywhere with ``predict_proba(points)``.
     report : dict
         ``pixels`` (``free``, ``occupied``, ``unknown`` counts of the source), ``cells`` (``n``,
-        ``occupied``, ``ambiguous``, ``min_cell``, ``max_cell``), ``hyperparameters``, ``timings``
+        ``occupied``, ``ambiguous``, ``min_cell``, ``max_cell``), ``pooling`` (how the pixels were
+        read, :func:`read_pixels`), ``hyperparameters``, ``timings``
         (seconds: ``read``, ``observations``, ``fit`` with its stages, ``prediction``,
         ``agreement``, ``total``), ``agreement`` (``ternary``: fraction of known source pixels
         whose ternary label in the continuous map equals theirs; ``free`` and ``occupied``: the
@@ -784,7 +791,7 @@ def grid_cells(
         occ_idx = np.flatnonzero(some)
         # The share the pixel is read as, not its value: a 1 of a grid of 0s and 1s fills
         # `occupied_fraction` of it, away from its free sides.
-        core = np.where(np.isfinite(reading.share) & (reading.share > 0.0), reading.share, frac) if _CORE_FROM_SHARE else frac
+        core = np.where(np.isfinite(reading.share) & (reading.share > 0.0), reading.share, frac)
         centres = _core_centres(pts[occ_idx], core[occ_idx], free_grid, ij[occ_idx], pixel)
         cells = _extra_inputs(cells, centres, centres.copy(), np.ones(occ_idx.size, dtype=bool), occ_idx)
         targets.append(np.ones(occ_idx.size))
@@ -847,14 +854,23 @@ class GridGPOM(MapSettings, GPMapEstimator):
         See :func:`read_pixels`.
     pooling : {"auto", "any", "majority", "mean"}
         How the grid was made from a finer one (:func:`read_pixels`). The map keeps what the
-        pooling says of each pixel: a pixel the grid holds wholly free (a 0 of an any- or
-        mean-pooled grid) keeps :data:`HELD_SCALE` of the GP's probability, a wholly occupied one
-        (a 1 of a mean-pooled grid) as much of its complement, and elsewhere the probability is
-        scaled within each pixel so that its mean over the pixel (measured on
-        :data:`SHARE_SAMPLES` x :data:`SHARE_SAMPLES` points) is the pixel's share (a mean-pooled
-        value) or within the pooling's bounds (at least half for a 1 of a majority-pooled grid,
-        at most half for a 0); where the scaling would move a point across p = 0.5 it is held
-        beside 0.5 on the GP's side, so the occupied region (p > 0.5) is the GP's.
+        pooling says of each pixel, measured on :data:`SHARE_SAMPLES` x :data:`SHARE_SAMPLES`
+        points in it (:meth:`_share_scales`):
+
+        - a pixel the grid holds wholly free (a 0 of an any- or mean-pooled grid) keeps
+          :data:`HELD_SCALE` of the GP's probability, a wholly occupied one (a 1 of a mean-pooled
+          grid) as much of its complement;
+        - elsewhere the probability is scaled within each pixel so that its mean over the pixel
+          is the pixel's share (a mean-pooled value) or within the pooling's bounds (at least
+          half for a 1 of a majority-pooled grid, at most half for a 0);
+        - the occupied region (p > 0.5) is the GP's (where its probability passes 0.5), except
+          where that covers less of a pixel than the bounds allow (a mean-pooled value, half of a
+          majority-pooled 1, some of a pixel holding anything) or more: there it is the part of
+          the pixel where the GP's probability is highest, as much as the bound allows. A point
+          the scaling would put on the other side of 0.5 is held beside it.
+
+        So the map's occupied region, pooled again the way the grid was made, gives back the
+        grid (to a sample's area).
     **options
         :class:`~gpomap.settings.MapSettings` arguments (``min_cell`` is used only by the cell tree).
     """
@@ -928,11 +944,12 @@ class GridGPOM(MapSettings, GPMapEstimator):
         self.evidence_ = None
         self.reading_: PixelReading | None = getattr(cells, "reading", None)
         self.share_scale_: NDArray[np.float64] | None = None
+        self.share_threshold_: NDArray[np.float64] | None = None
         self.pixel_variance_: float | None = None
         if self.reading_ is not None:
             t = time.perf_counter()
             self.pixel_variance_ = self._pixel_variance(cells, self.reading_.pixel)
-            self.share_scale_ = self._share_scales(self.reading_)
+            self.share_scale_, self.share_threshold_ = self._share_scales(self.reading_)
             timings["shares"] = time.perf_counter() - t
         return self
 
@@ -964,15 +981,19 @@ class GridGPOM(MapSettings, GPMapEstimator):
         k = reading.locate(points)
         return self.gp_.squash(mean, np.where(k >= 0, v_px, var)), var, k
 
-    def _share_scales(self, reading: PixelReading) -> NDArray[np.float64]:
-        """The factor on the GP's probability in each known pixel, shape (m,) (see the class docstring).
+    def _share_scales(self, reading: PixelReading) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The factor on the GP's probability and the occupied threshold in each known pixel, each
+        of shape (m,) (see the class docstring).
 
-        1 where the GP's mean probability over the pixel is within the pixel's bounds; else the
-        factor s that brings the mean of min(s p, 1) to the nearer bound.
+        The factor is 1 where the GP's mean probability over the pixel is within the pixel's
+        bounds, else the factor s that brings the mean of min(s p, 1) to the nearer bound. The
+        threshold is 0.5 where the share of the pixel with p > 0.5 is within the bounds, else the
+        probability that cuts the pixel's samples at the nearer bound.
         """
         lo, hi = reading.lower, reading.upper
-        scale = np.ones(lo.size)
-        bounded = ((lo > 0.0) | (hi < 1.0)) & (hi > 0.0) & (lo < 1.0)
+        scale, threshold = np.ones(lo.size), np.full(lo.size, 0.5)
+        some = reading.value > 0.0
+        bounded = ((lo > 0.0) | (hi < 1.0) | some) & (hi > 0.0) & (lo < 1.0)
         some_grid = np.zeros(reading.index.shape, dtype=bool)
         ij = reading.ij
         some_grid[ij[:, 1], ij[:, 0]] = reading.value > 0.0
@@ -982,7 +1003,7 @@ class GridGPOM(MapSettings, GPMapEstimator):
             bounded &= near[ij[:, 1], ij[:, 0]] | (lo > 0.0)
         idx = np.flatnonzero(bounded)
         if idx.size == 0:
-            return scale
+            return scale, threshold
         n = SHARE_SAMPLES
         offsets = ((np.arange(n) + 0.5) / n - 0.5) * reading.pixel
         ox, oy = np.meshgrid(offsets, offsets)
@@ -1003,7 +1024,23 @@ class GridGPOM(MapSettings, GPMapEstimator):
                 a, b = np.where(below, mid, a), np.where(below, b, mid)
             s[low] = np.exp(b)
         scale[idx] = s
-        return scale
+        # The occupied region: the samples above 0.5, unless they fill less of the pixel than its
+        # lower bound or more than its upper one; then the samples ranked highest, as many as the
+        # bound allows.
+        ranked = -np.sort(-p, axis=1)
+        m = n * n
+        area = (p > 0.5).mean(axis=1)
+        t = np.full(idx.size, 0.5)
+        # A pixel holding anything holds some of the occupied region.
+        need = np.maximum(np.ceil(lo[idx] * m - 1e-9).astype(np.intp), some[idx].astype(np.intp))
+        few = area < need / m
+        # Just below the need-th highest sample: it and those above it are in.
+        t[few] = np.nextafter(ranked[few, need[few] - 1], -np.inf)
+        allow = np.floor(hi[idx] * m + 1e-9).astype(np.intp)
+        many = area > hi[idx]
+        t[many] = ranked[many, np.minimum(allow[many], m - 1)]
+        threshold[idx] = t
+        return scale, threshold
 
     def predict_proba(self, points: NDArray[np.float64], return_var: bool = False):
         """Occupancy probability at points: the GP's, held to what each pixel's value says.
@@ -1028,18 +1065,21 @@ class GridGPOM(MapSettings, GPMapEstimator):
         """Probabilities `p` (shape (m,)) in known pixels `k` (shape (m,), -1: none) held to the pixels.
 
         In a pixel the grid holds wholly free, :data:`HELD_SCALE` p; wholly occupied,
-        1 - :data:`HELD_SCALE` (1 - p); elsewhere min(s p, 1) with the pixel's share scale s
-        (:meth:`_share_scales`), held beside 0.5 on p's side where it would cross it. Outside the
-        known pixels, p.
+        1 - :data:`HELD_SCALE` (1 - p); elsewhere min(s p, 1) with the pixel's share scale s,
+        held beside 0.5 on the side of the pixel's occupied threshold t (p > t: occupied; both
+        from :meth:`_share_scales`) where it would cross it. Outside the known pixels, p.
         """
         reading, scale = getattr(self, "reading_", None), getattr(self, "share_scale_", None)
-        if reading is None or scale is None:
+        threshold = getattr(self, "share_threshold_", None)
+        if reading is None or scale is None or threshold is None:
             return p
         inside = k >= 0
         kk, pi = k[inside], p[inside]
         q = np.minimum(pi * scale[kk], 1.0)
-        # The occupied region stays the GP's: a point the scaling moves across 0.5 stays beside it.
-        up, down = (pi > 0.5) & (q <= 0.5), (pi <= 0.5) & (q > 0.5)
+        # The occupied region is where p passes the pixel's threshold: a point the scaling puts
+        # on the other side of 0.5 stays beside it.
+        occupied = pi > threshold[kk]
+        up, down = occupied & (q <= 0.5), ~occupied & (q > 0.5)
         q[up] = 0.5 + HELD_SCALE * np.maximum(q[up], 1e-12)
         q[down] = 0.5 - HELD_SCALE * np.maximum(1.0 - q[down], 1e-12)
         free, full = reading.upper[kk] == 0.0, reading.lower[kk] == 1.0
@@ -1195,8 +1235,9 @@ def convert_grid(
         when the outer edges coincide with the source's.
     **model_options
         :class:`GridGPOM` arguments (those of :class:`~gpomap.settings.MapSettings`, and
-        ``pixel_pad``, default half a source pixel), overriding :func:`model_defaults` (which are
-        relative to the source's pixel size).
+        ``pixel_pad``, default half a source pixel; ``pooling``, how the grid was made from a
+        finer one, default inferred), overriding :func:`model_defaults` (which are relative to
+        the source's pixel size).
 
     Returns
     -------
@@ -1261,6 +1302,7 @@ def convert_grid(
             "min_cell": model.cell_sides(2)[0],
             "max_cell": model.cell_sides(2)[1],
         },
+        "pooling": model.reading_.pooling if model.reading_ is not None else None,
         "hyperparameters": dict(model.hyperparameters_),
         "agreement": agreement,
         "grid": {
@@ -1280,7 +1322,7 @@ def convert_grid(
     }
     info = dict(model.summary())
     info["source"] = "grid conversion"
-    info["conversion"] = {k: report[k] for k in ("pixels", "cells", "agreement", "grid")}
+    info["conversion"] = {k: report[k] for k in ("pixels", "cells", "pooling", "agreement", "grid")}
     occupancy_map = OccupancyMap(spec, prob, variance=var, thresholds=model.thresholds_, info=info)
     return ConversionResult(map=occupancy_map, model=model, report=report)
 
