@@ -44,7 +44,9 @@ def literal_defaults(source: str) -> list[tuple[int, str, object]]:
 
 
 def test_the_check_finds_a_literal_default() -> None:
-    source = "def f(x, free_step: float = 0.2, *, noise=MapConfig.noise, kernel='matern32', area=None, variance=True):\n    pass\n"
+    source = (
+        "def f(x, free_step: float = 0.2, *, noise=MapConfig.noise, kernel='matern32', area=None, variance=True):\n    pass\n"
+    )
     assert literal_defaults(source) == [(1, "free_step", 0.2), (1, "kernel", "matern32")]
     assert literal_defaults("def g(free_step=0.1, kernel='se'):\n    pass\n") == []  # defaults of its own
 
