@@ -793,11 +793,11 @@ def test_the_gp_alone_grid_is_built_in_bands_of_the_same_values(monkeypatch: pyt
     """Without ray evidence a large planar grid is predicted in bands of rows: each cell is still
     the blended GP's prediction at its centre (here against the prediction of every centre at
     once, to the local prediction's tolerance)."""
-    from gpomap.tiles import prediction
+    from gpomap import fitted
 
     scans = paper_room_scans()[::4]
     model = AreaGPOM(kernel="se", length_scale=0.4, optimise=False, ray_evidence=False).fit(scans)
-    monkeypatch.setattr(prediction, "WRITTEN_BAND_CELLS", 3_000)
+    monkeypatch.setattr(fitted, "WRITTEN_BAND_CELLS", 3_000)
     calls: list[int] = []
     predict = type(model)._predict_blended
 

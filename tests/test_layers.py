@@ -62,7 +62,15 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("gp", ("gpomap.gp", "gpomap._compiled_local", "gpomap._compiled_line")),
     (
         "maps",
-        ("gpomap.estimator", "gpomap.fusion", "gpomap.extrapolation", "gpomap.revisit", "gpomap.settings", "gpomap.baselines"),
+        (
+            "gpomap.fitted",
+            "gpomap.estimator",
+            "gpomap.fusion",
+            "gpomap.extrapolation",
+            "gpomap.revisit",
+            "gpomap.settings",
+            "gpomap.baselines",
+        ),
     ),
     ("tiling", ("gpomap.tiles", "gpomap.mapping", "gpomap.streaming")),
     ("io", ("gpomap.io", "gpomap.plot")),

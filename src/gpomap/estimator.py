@@ -1,42 +1,102 @@
 """What every GP occupancy-map estimator shares: the scikit-learn style protocol.
 
 :class:`GPMapEstimator` gives the estimators built on one dense GP (the GP baselines GPOM and
-GPOMIK, and grid conversion's :class:`gpomap.convert.GridGPOM`) one interface: ``get_params`` / ``set_params``, ``predict`` (latent mean and
-variance), ``predict_proba``, ``predict_ternary``, ``grid`` and the learnt ``hyperparameters_``.
+GPOMIK, and grid conversion's :class:`gpomap.convert.GridGPOM`) one interface: ``get_params`` /
+``set_params``, the learnt ``hyperparameters_``, and the fitted map ``map_``
+(:class:`~gpomap.fitted.FittedMap`, over a :class:`DenseField`) whose answers (``predict``,
+``predict_proba``, ``predict_ternary``, ``grid``) are the estimator's.
 """
 
 from __future__ import annotations
 
+import contextlib
 import inspect
-import time
-from typing import TYPE_CHECKING, Any, Literal, overload
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.config import MapConfig
 from gpomap.errors import NotFittedError
-from gpomap.fusion import ternary_thresholds
+from gpomap.fitted import FittedMap, GPHyperparameters, MapAnswers, as_points
 from gpomap.gp import SupportGP
-from gpomap.grid import DEFAULT_THRESHOLDS, GridSpec, OccupancyMap, ternary
+from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.point import make_point_kernel
-from gpomap.lattice import data_extent, extent_bounds
 from gpomap.observations import Observations, labelled_observations
+from gpomap.squash import ProbitSquash
 
 if TYPE_CHECKING:
     from gpomap.fusion import EvidenceLayer
-    from gpomap.voxels import VoxelMap
+
+__all__ = ["DenseField", "GPMapEstimator", "as_points"]
 
 
-def as_points(points: NDArray[np.float64], dim: int = 2) -> NDArray[np.float64]:
-    """`points` as a float ndarray of shape (m, dim), or a ValueError saying what was wrong."""
-    p = np.asarray(points, dtype=float)
-    if p.ndim != 2 or p.shape[1] != dim:
-        raise ValueError(f"points must have shape (m, {dim}) for this {dim}-D map, got {p.shape}")
-    return p
+class DenseField:
+    """One dense GP, as a fitted map asks it (:class:`~gpomap.fitted.LatentField`).
+
+    Parameters
+    ----------
+    gp : SupportGP
+        The fitted GP.
+    queries : callable
+        Points of shape (m, d) to the GP's inputs (points, or zero-size supports).
+    dim : int
+        The map's dimension d.
+    chunk_size : int
+        Points predicted at once.
+    """
+
+    def __init__(self, gp: SupportGP, queries: Callable[[NDArray[np.float64]], Any], dim: int, chunk_size: int) -> None:
+        self.gp = gp
+        self._queries = queries
+        self._dim = dim
+        self._chunk_size = chunk_size
+
+    @property
+    def dim(self) -> int:
+        """2 for a planar map, 3 for point clouds."""
+        return self._dim
+
+    @property
+    def hyperparameters(self) -> GPHyperparameters:
+        """The GP's hyperparameters."""
+        return GPHyperparameters(self.gp.kernel.base.variance, self.gp.kernel.base.length_scale, self.gp.noise)
+
+    @property
+    def squash(self) -> ProbitSquash:
+        """The GP's calibrated probit."""
+        return self.gp.squash
+
+    @property
+    def blended(self) -> None:
+        """None: a dense GP's written grid takes its variance at every sample."""
+        return None
+
+    def latent(self, points: NDArray[np.float64], return_var: bool) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Latent mean at points, shape (m,), and variance (m,) when asked."""
+        return self.gp.predict_latent(self._queries(points), return_var, self._chunk_size)
+
+    def gp_probabilities(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The GP's probability, latent variance and probability for unseen space, each (m,)."""
+        mean, var = self.latent(points, True)
+        assert var is not None  # asked for
+        return self.gp.squash(mean, var), var, self.gp.squash.unseen(mean, var)
+
+    def limited(self) -> contextlib.AbstractContextManager[Any]:
+        """No limit: a dense GP runs in this process with its BLAS as it is."""
+        return contextlib.nullcontext()
+
+    def forget_below(self, y: float) -> None:
+        """Nothing to let go of: the GP's factor is its whole state."""
+
+    def grid_done(self) -> None:
+        """Nothing to give back."""
 
 
-class GPMapEstimator:
+class GPMapEstimator(MapAnswers):
     """What the GP map estimators share: parameters protocol, prediction, grid and summary.
 
     Subclasses set ``gp_`` (a fitted :class:`SupportGP`), ``timings_``, ``extent_points_``
@@ -76,9 +136,20 @@ class GPMapEstimator:
     path_: NDArray[np.float64] | None
 
     @property
-    def thresholds_(self) -> tuple[float, float]:
-        """The ternary map's (free below, occupied above) probabilities (:func:`gpomap.fusion.ternary_thresholds`)."""
-        return ternary_thresholds(self.thresholds, self.evidence_)
+    def map_(self) -> FittedMap:
+        """The fitted map: the dense GP under the ray evidence, if any (:class:`~gpomap.fitted.FittedMap`)."""
+        self._check_fitted()
+        pts = self.extent_points_
+        return FittedMap(
+            DenseField(self.gp_, self._queries, self.extent_points_.shape[1], self.chunk_size),
+            self.evidence_,
+            self.thresholds,
+            pts.min(axis=0),
+            pts.max(axis=0),
+            self.path_,
+            self.summary,
+            self.timings_,
+        )
 
     @property
     def n_inputs_(self) -> int:
@@ -151,222 +222,6 @@ class GPMapEstimator:
             "beta": gp.squash.beta,
             "variance_scale": gp.squash.variance_scale,
         }
-
-    @overload
-    def predict(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
-
-    @overload
-    def predict(
-        self, points: NDArray[np.float64], return_var: Literal[True]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    @overload
-    def predict(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    def predict(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Latent GP mean (and variance) at points.
-
-        Parameters
-        ----------
-        points : ndarray of shape (m, d)
-            d the map's dimension (:attr:`dim_`).
-        return_var : bool
-
-        Returns
-        -------
-        mean : ndarray of shape (m,)
-        var : ndarray of shape (m,), only with `return_var`
-        """
-        self._check_fitted()
-        t = time.perf_counter()
-        mean, var = self.gp_.predict_latent(self._queries(as_points(points, self.dim_)), return_var, self.chunk_size)
-        self.timings_["prediction"] = time.perf_counter() - t
-        if not return_var:
-            return mean
-        assert var is not None  # predict_latent returns it when asked
-        return mean, var
-
-    @overload
-    def predict_proba(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
-
-    @overload
-    def predict_proba(
-        self, points: NDArray[np.float64], return_var: Literal[True]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    @overload
-    def predict_proba(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    def predict_proba(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Occupancy probability at points (the calibrated probit of the latent GP).
-
-        Parameters
-        ----------
-        points : ndarray of shape (m, d)
-            d the map's dimension (:attr:`dim_`).
-        return_var : bool
-            Also return the latent variance.
-
-        Returns
-        -------
-        probability : ndarray of shape (m,)
-        var : ndarray of shape (m,), only with `return_var`
-        """
-        pts = as_points(points, self.dim_)
-        evidence = self.evidence_
-        if evidence is None:
-            return self.predict_proba_gp(pts, return_var=return_var)
-        p, var, p_unseen = self._gp_probabilities(pts)
-        p = evidence.proba(pts, p, p_unseen)
-        return (p, var) if return_var else p
-
-    def _gp_probabilities(
-        self, points: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """The GP's probability, latent variance and probability for unseen space at points, each (m,)."""
-        mean, var = self.predict(points, return_var=True)
-        return self.gp_.squash(mean, var), var, self.gp_.squash.unseen(mean, var)
-
-    @overload
-    def predict_proba_gp(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
-
-    @overload
-    def predict_proba_gp(
-        self, points: NDArray[np.float64], return_var: Literal[True]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    @overload
-    def predict_proba_gp(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    def predict_proba_gp(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The GP's own probability at points (the calibrated probit, before any ray evidence).
-
-        Parameters
-        ----------
-        points : ndarray of shape (m, d)
-        return_var : bool
-
-        Returns
-        -------
-        probability : ndarray of shape (m,)
-        var : ndarray of shape (m,), only with `return_var`
-        """
-        mean, var = self.predict(points, return_var=True)
-        p = self.gp_.squash(mean, var)
-        return (p, var) if return_var else p
-
-    def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
-        """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,); never occupied
-        in a cell beams saw through (:meth:`gpomap.fusion.EvidenceLayer.seen_through_at`)."""
-        seen = self.evidence_.seen_through_at(points) if self.evidence_ is not None else None
-        return ternary(self.predict_proba(points), self.thresholds_, seen)
-
-    def grid(self, resolution: float, extent: tuple[float, ...] | None = None, supersample: int = 1) -> Any:
-        """The map sampled on a regular grid: an OccupancyMap in 2-D, a VoxelMap (:meth:`voxels`) in 3-D.
-
-        Parameters
-        ----------
-        resolution : float
-            Grid cell side, metres.
-        extent : (xmin, xmax, ymin, ymax), optional
-            Defaults to the bounding box of the training inputs ((..., zmin, zmax) in 3-D).
-        supersample : int
-            Samples per cell side. 1 samples each cell's centre. K > 1 samples K x K points
-            spread over the cell and keeps the largest probability (a cell is as occupied as its
-            most occupied part, as an occupancy grid marks a cell a wall crosses anywhere) and
-            the mean variance; it costs K^2 as many predictions.
-
-        Returns
-        -------
-        OccupancyMap, or VoxelMap for a 3-D map
-        """
-        self._check_fitted()
-        if self.dim_ == 3:
-            if supersample != 1:
-                raise ValueError("supersample is for 2-D maps; a voxel map samples each voxel's centre")
-            return self.voxels(resolution, extent)
-        if supersample < 1:
-            raise ValueError(f"supersample must be a positive integer, got {supersample}")
-        aligned = extent is None  # the default grid's cells are the ray counts' (no recount)
-        if extent is None:
-            extent = data_extent(self.extent_points_.min(axis=0), self.extent_points_.max(axis=0), resolution)
-        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
-        evidence = self.evidence_
-        if evidence is not None:
-            probability, variance, seen_through = evidence.written_grid(
-                spec, self.gp_.kernel.base.length_scale, self._gp_probabilities
-            )
-            return OccupancyMap(
-                grid=spec,
-                probability=probability,
-                variance=variance,
-                thresholds=self.thresholds_,
-                path=self.path_,
-                info=self.summary(),
-                seen_through=seen_through,
-            )
-        k = int(supersample)
-        fine = GridSpec(spec.origin, spec.resolution / k, (spec.shape[0] * k, spec.shape[1] * k))
-        p, var = self.predict_proba_gp(fine.centres(), return_var=True)
-        # Fine row-major (ny*k, nx*k) -> (ny, k, nx, k): one k x k block per output cell.
-        blocks = (spec.shape[0], k, spec.shape[1], k)
-        return OccupancyMap(
-            grid=spec,
-            probability=p.reshape(blocks).max(axis=(1, 3)),
-            variance=var.reshape(blocks).mean(axis=(1, 3)),
-            thresholds=self.thresholds_,
-            path=self.path_,
-            info=self.summary(),
-        )
-
-    def voxels(self, resolution: float, extent: tuple[float, ...] | None = None) -> VoxelMap:
-        """A 3-D map sampled on a voxel grid.
-
-        Parameters
-        ----------
-        resolution : float
-            Voxel side, metres.
-        extent : (xmin, xmax, ymin, ymax, zmin, zmax), optional
-            Defaults to the bounding box of the training inputs. The voxel faces are put on
-            multiples of `resolution`, where OctoMap puts its own.
-
-        Returns
-        -------
-        VoxelMap
-            Probability and latent variance per voxel, each of shape (nz, ny, nx). With ray
-            evidence, each voxel's own hit and miss counts update the GP's probability there.
-        """
-        from gpomap.voxels import VoxelMap, VoxelSpec
-
-        self._check_fitted()
-        if self.dim_ != 3:
-            raise ValueError(f"voxels() is for 3-D maps; this map is {self.dim_}-D: use grid()")
-        lo, hi = extent_bounds(
-            data_extent(self.extent_points_.min(axis=0), self.extent_points_.max(axis=0), resolution)
-            if extent is None
-            else extent
-        )
-        spec = VoxelSpec.from_extent(lo, hi, resolution)
-        evidence = self.evidence_
-        if evidence is not None:
-            probability, variance, _ = evidence.written_grid(spec, self.gp_.kernel.base.length_scale, self._gp_probabilities)
-        else:
-            p, var = self.predict_proba_gp(spec.centres(), return_var=True)
-            probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)
-        observed = evidence.grid_observed(spec) if evidence is not None else None
-        return VoxelMap(spec, probability, variance, thresholds=self.thresholds_, info=self.summary(), observed=observed)
 
     def summary(self) -> dict[str, Any]:
         """What was fitted: settings, data sizes, hyperparameters and stage timings."""

@@ -47,7 +47,8 @@ The package's rooms, from the ground up (TiledGPOM is put together from the mixi
 - :mod:`~gpomap.tiles.hyperparameters`: given and checked, or learnt once on a sample (``HyperparameterSearch``).
 - :mod:`~gpomap.tiles.report`: what a fitted map says of itself (``MapReport``).
 - :mod:`~gpomap.tiles.blending`: the tiles' latent moments blended (``TileBlending``).
-- :mod:`~gpomap.tiles.prediction`: points, the ternary map, grids and voxels (``MapPrediction``).
+- :mod:`~gpomap.tiles.prediction`: the tiles' blended GP as a fitted map's field (``TiledField``),
+  and the map's :class:`~gpomap.fitted.FittedMap` (``MapPrediction.map_``), which answers.
 - :mod:`~gpomap.tiles.updates`: new scans absorbed, changed tiles refitted (``TileUpdates``).
 - :mod:`~gpomap.tiles.tiled`: :class:`TiledGPOM`, its arguments and its fit in order.
 

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import ndtr
 
-from gpomap.estimator import as_points
+from gpomap.fitted import as_points
 from gpomap.lattice import stable_order
 from gpomap.progress import progress
 from gpomap.squash import unseen_probit

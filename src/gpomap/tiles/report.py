@@ -25,11 +25,6 @@ class MapReport(BlockCells, TileExecutors):
             raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit() first")
 
     @property
-    def thresholds_(self) -> tuple[float, float]:
-        """The ternary map's (free below, occupied above) probabilities (:func:`gpomap.fusion.ternary_thresholds`)."""
-        return ternary_thresholds(self.base.thresholds, self.evidence_)
-
-    @property
     def bounds_(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Lower and upper corners of the labelled points' bounding box (the default map extent), each (d,)."""
         self._check_fitted()
@@ -114,7 +109,7 @@ class MapReport(BlockCells, TileExecutors):
             "revisit": dict(getattr(self, "revisit_", {})),
             "hyperparameter_source": dict(self.hyper_source_),
             "evidence": self.evidence_.summary() if self.evidence_ is not None else None,
-            "thresholds": list(self.thresholds_),
+            "thresholds": list(ternary_thresholds(self.base.thresholds, self.evidence_)),
             "timings": dict(self.timings_),
             "peak_memory": peak_rss_mb(),
             "executor": "dask"

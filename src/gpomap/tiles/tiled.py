@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
-from gpomap.errors import EmptyDataError
+from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.fusion import EvidenceLayer
 from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, ScanPoints, sensor_positions
@@ -148,6 +148,9 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         # The map's settings read as the model's own (model.kernel, model.thresholds, ...).
         if name in _SETTING_NAMES and "base" in self.__dict__:
             return getattr(self.__dict__["base"], name)
+        if name.endswith("_") and not name.startswith("_") and "tiles_" not in self.__dict__:
+            # A fitted attribute (map_, hyperparameters_, ...) asked before fit.
+            raise NotFittedError(f"this {type(self).__name__} is not fitted yet: call fit() first")
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def make_observations(self, data: ScanData | Observations) -> Observations:
@@ -344,7 +347,7 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         """Ray counts over every scan so far, calibrated against the tiles' GP (see gpomap.fusion)."""
         if self._scans is None:
             return None
-        return self.base.make_evidence(self._scans, self.predict_proba_gp, self._gp_apart, self._given_calibration)
+        return self.base.make_evidence(self._scans, self._gp_map().predict_proba_gp, self._gp_apart, self._given_calibration)
 
     def _later_visit_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None:
         """This map's probabilities, fitted without them, at a held-out stretch's points
