@@ -35,7 +35,9 @@ class SlopeField:
     def latent(self, points: NDArray[np.float64], return_var: bool) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         return points[:, 0].copy(), points[:, 1].copy() if return_var else None
 
-    def gp_probabilities(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    def gp_probabilities(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         self.asked += 1
         p = np.clip(points[:, 0] / 10.0, 0.0, 1.0)
         return p, points[:, 1].copy(), np.full(len(points), 0.5)
