@@ -1,8 +1,9 @@
 """gpomap: continuous occupancy maps with multi-support Gaussian processes.
 
 The names a user needs are here: the estimator (:class:`AreaGPOM`) and its streaming form
-(:class:`StreamingGPOM`), the readers (:func:`read_scans`, :func:`read_clouds`), the maps a fit
-gives (:class:`OccupancyMap`, :class:`VoxelMap`), the writers (:func:`write_map_outputs`,
+(:class:`StreamingGPOM`), the readers (:func:`read_scans`, :func:`read_clouds`), the fitted map
+every answer comes from (:class:`FittedMap`, an estimator's ``map_``), the maps it writes
+(:class:`OccupancyMap`, :class:`VoxelMap`), the writers (:func:`write_map_outputs`,
 :func:`write_voxel_outputs`) and the map file (:func:`save_map`, :func:`load_map`). Each is
 imported when first asked for, so ``import gpomap`` stays light.
 """
@@ -19,6 +20,7 @@ from gpomap.scans import Scan
 
 if TYPE_CHECKING:
     from gpomap.clouds import CloudScan
+    from gpomap.fitted import FittedMap
     from gpomap.grid import OccupancyMap
     from gpomap.io import read_clouds, read_scans
     from gpomap.io.export import write_map_outputs
@@ -34,6 +36,7 @@ _LAZY: dict[str, tuple[str, str]] = {
     "AreaGPOM": ("gpomap.mapping", "AreaGPOM"),
     "StreamingGPOM": ("gpomap.streaming", "StreamingGPOM"),
     "CloudScan": ("gpomap.clouds", "CloudScan"),
+    "FittedMap": ("gpomap.fitted", "FittedMap"),
     "OccupancyMap": ("gpomap.grid", "OccupancyMap"),
     "VoxelMap": ("gpomap.voxels", "VoxelMap"),
     "read_scans": ("gpomap.io", "read_scans"),
@@ -47,6 +50,7 @@ _LAZY: dict[str, tuple[str, str]] = {
 __all__ = [
     "AreaGPOM",
     "CloudScan",
+    "FittedMap",
     "GpomapError",
     "OccupancyMap",
     "Scan",
