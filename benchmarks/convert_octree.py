@@ -1,8 +1,8 @@
-"""Benchmark converting a whole OctoMap tree (gpomap.convert3d): time and peak memory by region size.
+"""Benchmark converting a whole OctoMap tree (gpomap.convert.octree): time and peak memory by region size.
 
 Each region, the tree's first WIDTH metres along x (all of y and z), or the whole tree, is
 converted in a fresh process (so each peak resident memory is its own), tiled as
-:class:`gpomap.convert3d.TiledOctreeModel` tiles it. Printed per region: known voxels, cells,
+:class:`gpomap.convert.TiledOctreeModel` tiles it. Printed per region: known voxels, cells,
 tiles (side, most cells in one, fitted), the agreement with the tree's known voxels, wall and CPU
 seconds, the peak resident memory, and what of it the output holds (probability and variance,
 8 bytes each per voxel). With ``--write`` the process also writes the output set of
@@ -30,7 +30,7 @@ def child(tree_path: Path, resolution: float, width: float | None, workers: int,
     """Convert one region in this process and measure it."""
     import numpy as np
 
-    from gpomap.convert3d import convert_octree
+    from gpomap.convert import convert_octree
     from gpomap.io.octomap import read_octree
 
     t0, c0 = time.perf_counter(), time.process_time()

@@ -390,7 +390,7 @@ def test_core_centres_follow_the_free_sides():
     # The 0.4 pixel has free pixels on both sides: its wall is at its centre. The two 0.2 pixels
     # each have one free side: the free 0.8 of each lies there, so each one's occupied fifth is
     # along the edge they share, its centre 0.1 m from that edge (x = 5 -+ 0.1).
-    from gpomap.convert import _core_centres
+    from gpomap.convert.inputs import _core_centres
 
     frac = np.array([0.0, 0.4, 0.0, 0.0, 0.2, 0.2, 0.0])
     ij = np.column_stack([np.arange(7), np.zeros(7, dtype=int)])

@@ -1,4 +1,4 @@
-"""Tests of gpomap.convert3d: OctoMap trees to continuous maps, one GP or tiles."""
+"""Tests of gpomap.convert.octree: OctoMap trees to continuous maps, one GP or tiles."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gpomap.convert3d import TiledOctreeModel, convert_octree
+from gpomap.convert import TiledOctreeModel, convert_octree
 from gpomap.errors import GpomapError
 from gpomap.grid import OCCUPIED
 from gpomap.io.octomap import read_octree, write_octree

@@ -2,7 +2,7 @@
 
 A ROS map_server map or a gpomap ``.npz`` becomes one GP over its cells (:mod:`gpomap.convert`),
 written as ``gpomap map`` writes a planar map; an OctoMap ``.bt`` / ``.ot`` becomes a voxel map
-(:mod:`gpomap.convert3d`), one GP or, when its cells are more than ``--max-cells``, tiles of at
+(:mod:`gpomap.convert.octree`), one GP or, when its cells are more than ``--max-cells``, tiles of at
 most that many, written as ``gpomap map`` writes a 3-D map. The output grid and the GP are
 checked against the memory limit before the fit.
 """
@@ -177,7 +177,7 @@ def _convert_octree(args: argparse.Namespace) -> int:
     voxel grid and then the largest GP are checked against the memory limit before the fit, and
     the agreement with the octree's known voxels is printed.
     """
-    from gpomap.convert3d import convert_octree, region
+    from gpomap.convert import convert_octree, region
     from gpomap.io.octomap import read_octree
     from gpomap.io.voxel_outputs import write_voxel_outputs
 
@@ -209,7 +209,7 @@ def _convert_octree(args: argparse.Namespace) -> int:
 
 
 def _octree_text(report: dict[str, Any]) -> str:
-    """The report of an octree's conversion (:func:`gpomap.convert3d.convert_octree`) as text."""
+    """The report of an octree's conversion (:func:`gpomap.convert.convert_octree`) as text."""
     lv, vx, cells, agree = report["leaves"], report["voxels"], report["cells"], report["agreement"]
     lo, hi = report["region"]["lower"], report["region"]["upper"]
     nz, ny, nx = report["grid"]["shape"]
