@@ -11,6 +11,7 @@ scikit-learn style face is :class:`~gpomap.mapping.AreaGPOM`) and grid conversio
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,11 +25,14 @@ from gpomap.kernels.point import make_point_kernel
 from gpomap.observations import Observations, ScanData, data_dim, labelled_observations
 
 
-class MapSettings:
+@dataclass(frozen=True, repr=False)
+class MapSettings(MapConfig):
     """The settings of one MSK-GPOM map, and what they build: observations, cells, kernel, ray evidence.
 
-    Not an estimator: :class:`~gpomap.mapping.AreaGPOM` holds one and fits with it. Every default
-    comes from :class:`~gpomap.config.MapConfig`; why each was chosen is said below.
+    Not an estimator: :class:`~gpomap.mapping.AreaGPOM` holds one and fits with it. Its fields are
+    :class:`~gpomap.config.MapConfig`'s, defaults included (written there once); why each was
+    chosen is said below. Frozen, as the config is: settings changed are a new object
+    (:meth:`~gpomap.config.MapConfig.replace`).
 
     Parameters
     ----------
@@ -129,74 +133,6 @@ class MapSettings:
         second fit of the tiles and the ray counts on seven tenths of the scans; docs/choices.md,
         "The map's probabilities for a later visit").
     """
-
-    def __init__(
-        self,
-        kernel: str = MapConfig.kernel,
-        area: str | None = MapConfig.area,
-        normalisation: str = MapConfig.normalisation,
-        free_step: float = MapConfig.free_step,
-        hit_margin: float | None = MapConfig.hit_margin,
-        no_return_cap: float | None = MapConfig.no_return_cap,
-        free_clearance: float = MapConfig.free_clearance,
-        min_cell: float | None = MapConfig.min_cell,
-        max_cell: float | None = MapConfig.max_cell,
-        cell_box: str = MapConfig.cell_box,
-        variance: float = MapConfig.variance,
-        length_scale: float = MapConfig.length_scale,
-        noise: float = MapConfig.noise,
-        length_scale_bounds: tuple[float, float] = MapConfig.length_scale_bounds,
-        noise_bounds: tuple[float, float] = MapConfig.noise_bounds,
-        noise_model: str = MapConfig.noise_model,
-        objective: str = MapConfig.objective,
-        optimise: bool = MapConfig.optimise,
-        n_restarts: int = MapConfig.n_restarts,
-        hyper_subset: int | None = MapConfig.hyper_subset,
-        prior_std: float | None = MapConfig.prior_std,
-        class_weight: str | None = MapConfig.class_weight,
-        seed: int = MapConfig.seed,
-        quadrature_order: int = MapConfig.quadrature_order,
-        thresholds: tuple[float, float] | None = MapConfig.thresholds,
-        chunk_size: int = MapConfig.chunk_size,
-        ray_evidence: bool = MapConfig.ray_evidence,
-        evidence_resolution: float = MapConfig.evidence_resolution,
-        calibration_scans: int = MapConfig.calibration_scans,
-        evidence_resolution_3d: float = MapConfig.evidence_resolution_3d,
-        fit_surprise_rate: bool = MapConfig.fit_surprise_rate,
-        fit_revisit: bool = MapConfig.fit_revisit,
-    ) -> None:
-        self.kernel = kernel
-        self.area = area
-        self.normalisation = normalisation
-        self.free_step = free_step
-        self.hit_margin = hit_margin
-        self.no_return_cap = no_return_cap
-        self.free_clearance = free_clearance
-        self.min_cell = min_cell
-        self.max_cell = max_cell
-        self.cell_box = cell_box
-        self.variance = variance
-        self.length_scale = length_scale
-        self.noise = noise
-        self.length_scale_bounds = length_scale_bounds
-        self.noise_bounds = noise_bounds
-        self.noise_model = noise_model
-        self.objective = objective
-        self.optimise = optimise
-        self.n_restarts = n_restarts
-        self.hyper_subset = hyper_subset
-        self.prior_std = prior_std
-        self.class_weight = class_weight
-        self.seed = seed
-        self.quadrature_order = quadrature_order
-        self.thresholds = thresholds
-        self.chunk_size = chunk_size
-        self.ray_evidence = ray_evidence
-        self.evidence_resolution = evidence_resolution
-        self.calibration_scans = calibration_scans
-        self.evidence_resolution_3d = evidence_resolution_3d
-        self.fit_surprise_rate = fit_surprise_rate
-        self.fit_revisit = fit_revisit
 
     def __repr__(self) -> str:
         return f"kernel={self.kernel!r}, area={self.area_method!r}, min_cell={self.min_cell}, max_cell={self.max_cell}"

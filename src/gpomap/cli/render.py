@@ -93,7 +93,7 @@ def configure(args: argparse.Namespace, model: Any) -> None:
     if getattr(args, "workers", None) is not None:
         model.n_workers = args.workers
     if getattr(args, "thresholds", None) is not None and "thresholds" not in getattr(args, "library_defaults", ()):
-        model.base.thresholds = tuple(args.thresholds)
+        model.base = model.base.replace(thresholds=tuple(args.thresholds))
 
 
 def load_for_command(args: argparse.Namespace, path: str) -> Any:
