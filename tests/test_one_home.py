@@ -59,3 +59,40 @@ def test_no_model_default_is_written_twice(path: str) -> None:
     assert not found, f"src/gpomap/{path}: " + "; ".join(
         f"line {line}: {name} = {value!r} (use MapConfig.{name})" for line, name, value in found
     )
+
+
+#: Tables by dimension that are how the code computes, not defaults of the map (a traversal's
+#: subdivisions, the axes a local prediction sorts on).
+COMPUTATIONAL_TABLES: frozenset[str] = frozenset({"CLEARANCE_SUBDIVISIONS", "LOCAL_AXES"})
+
+
+def dimension_tables(source: str) -> list[tuple[int, str]]:
+    """(line, name) of every module-level table written as a literal keyed by the dimensions 2 and 3."""
+    found = []
+    for node in ast.parse(source).body:
+        target, value = (node.target, node.value) if isinstance(node, ast.AnnAssign) else (None, None)
+        if isinstance(node, ast.Assign) and len(node.targets) == 1:
+            target, value = node.targets[0], node.value
+        if not isinstance(target, ast.Name) or not isinstance(value, ast.Dict):
+            continue
+        keys = {k.value for k in value.keys if isinstance(k, ast.Constant)}
+        if keys == {2, 3} and target.id not in COMPUTATIONAL_TABLES:
+            found.append((node.lineno, target.id))
+    return found
+
+
+def test_the_check_finds_a_table_by_dimension() -> None:
+    source = "A: dict[int, float] = {2: 5.0, 3: 3.0}\nB = {2: True, 3: False}\nC = {d: p for d, p in X.items()}\nD = {1: 2}\n"
+    assert dimension_tables(source) == [(1, "A"), (2, "B")]
+
+
+@pytest.mark.parametrize("path", sorted(p.relative_to(SRC).as_posix() for p in SRC.rglob("*.py")))
+def test_every_default_by_dimension_lives_in_the_profiles(path: str) -> None:
+    """What differs between planar and voxel maps is written once, in :data:`gpomap.config.PROFILES`;
+    a stage's table by dimension is read from it."""
+    if path == "config.py":
+        return
+    found = dimension_tables((SRC / path).read_text(encoding="utf-8"))
+    assert not found, f"src/gpomap/{path}: " + "; ".join(
+        f"line {line}: {name} (a field of config.MapProfile)" for line, name in found
+    )

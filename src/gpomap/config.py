@@ -52,7 +52,11 @@ DEFAULT_SCHEDULER_TIMEOUT = 60.0
 @dataclass(frozen=True)
 class MapProfile:
     """The defaults that differ between planar maps and voxel maps, applied by the library from the
-    data's dimension wherever a setting is left unset (None).
+    data's dimension wherever a setting is left unset (None), and the stages each kind of map runs.
+
+    Each stage reads its own field from :data:`PROFILES` (its module names it, e.g.
+    :data:`gpomap.tiles.DEFAULT_TILE_SIZE`); why each value was chosen is said there and in
+    docs/choices.md.
 
     Attributes
     ----------
@@ -60,20 +64,69 @@ class MapProfile:
         The cell tree's size thresholds, metres (:class:`MapConfig`).
     resolution : float
         The side of the written map's cells, metres (``gpomap map --resolution``).
+    tile_size : float
+        The side of a tile's square (a column in 3-D), metres (:class:`TilingConfig`).
+    hyper_sample : int
+        Most cells of the compact sample the hyperparameters are learnt on.
+    hyper_group_cells : int or None
+        Most cells of each group the hyperparameter search cuts its sample into (None: one GP).
+    unseen_resolution : float
+        Cell side on which "no kept beam went" is decided for the variance scale, metres.
+    fit_surface_weight : bool
+        The ray counts' calibration weighs a miss beside a surface apart.
+    surprise_rate_fitted : bool
+        The surprise rate can be fitted on the map's own scans (when ``fit_surprise_rate`` asks).
+    seen_through_not_occupied : bool
+        The ternary map never calls occupied a cell no beam ended in.
+    fit_revisit : bool
+        The map is recalibrated for a later visit (when ``fit_revisit`` asks).
     """
 
     min_cell: float
     max_cell: float
     resolution: float
+    tile_size: float
+    hyper_sample: int
+    hyper_group_cells: int | None
+    unseen_resolution: float
+    fit_surface_weight: bool
+    surprise_rate_fitted: bool
+    seen_through_not_occupied: bool
+    fit_revisit: bool
 
 
 #: The profile of each data dimension. Planar maps: 0.5 m cells (docs/choices.md, "Measured on more
 #: logs") written on the ray counts' 0.05 m cells. Voxel maps: cells of 1 m, since a cube holds 8
 #: times as many cells per volume at half the side where a square holds 4, for no gain across the
-#: 3-D cases of ``benchmarks/quality3d.py`` (docs/3d.md, "3-D defaults"); voxels of 0.1 m, OctoMap's usual.
+#: 3-D cases of ``benchmarks/quality3d.py`` (docs/3d.md, "3-D defaults"); voxels of 0.1 m, OctoMap's
+#: usual. The calibration stages that were measured only on planar logs are off for voxel maps.
 PROFILES: dict[int, MapProfile] = {
-    2: MapProfile(min_cell=0.5, max_cell=0.5, resolution=0.05),
-    3: MapProfile(min_cell=1.0, max_cell=1.0, resolution=0.1),
+    2: MapProfile(
+        min_cell=0.5,
+        max_cell=0.5,
+        resolution=0.05,
+        tile_size=5.0,
+        hyper_sample=800,
+        hyper_group_cells=200,
+        unseen_resolution=0.05,
+        fit_surface_weight=True,
+        surprise_rate_fitted=True,
+        seen_through_not_occupied=True,
+        fit_revisit=True,
+    ),
+    3: MapProfile(
+        min_cell=1.0,
+        max_cell=1.0,
+        resolution=0.1,
+        tile_size=3.0,
+        hyper_sample=300,
+        hyper_group_cells=None,
+        unseen_resolution=0.1,
+        fit_surface_weight=False,
+        surprise_rate_fitted=False,
+        seen_through_not_occupied=False,
+        fit_revisit=False,
+    ),
 }
 
 #: The voxel maps' profile as the options it sets (``gpomap map`` on point clouds, the ROS 2 node).

@@ -44,7 +44,7 @@ from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
 from scipy.special import log_ndtr
 
-from gpomap.config import MapConfig
+from gpomap.config import PROFILES, MapConfig
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.heldout import FOLD_STARTS, HOLDOUT_EVERY, calibration_points, holdout_stretches
@@ -69,7 +69,7 @@ REGION_POINTS_PER_CLASS: int = 500
 NEW_HIT_DISTANCE: float = 1.0
 #: Cell side of the lattice on which "no kept beam went" is decided, as the evaluation's
 #: reference grid decides it, metres (planar maps; voxel maps use 0.1 m).
-UNSEEN_RESOLUTION: dict[int, float] = {2: 0.05, 3: 0.1}
+UNSEEN_RESOLUTION: dict[int, float] = {d: p.unseen_resolution for d, p in PROFILES.items()}
 
 
 def _nll(

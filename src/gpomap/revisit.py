@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import minimize
 from scipy.special import expit, log_expit, logit
 
-from gpomap.config import MapConfig
+from gpomap.config import PROFILES, MapConfig
 from gpomap.heldout import calibration_points, holdout_stretches
 from gpomap.observations import data_dim, natural_subsample
 
@@ -51,7 +51,7 @@ SLOPE_BOUNDS: tuple[float, float] = (0.5, 2.0)
 MAX_SHIFT_RATIO: float = 0.9 * WIDTH * math.sqrt(math.e)
 #: Whether a map of this dimension fits the recalibration (planar maps: measured on the quality
 #: benchmark's log-splits, docs/choices.md, "The map's probabilities for a later visit").
-FIT_REVISIT: dict[int, bool] = {2: True, 3: False}
+FIT_REVISIT: dict[int, bool] = {d: p.fit_revisit for d, p in PROFILES.items()}
 #: Fewest scans a log needs for a held-out stretch to be a visit of its own (shorter logs keep the identity).
 MIN_SCANS: int = 100
 #: Most held-out points predicted by the map of the rest (a uniform sample: each class keeps its share).

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import brentq, minimize
 
-from gpomap.config import MapConfig
+from gpomap.config import PROFILES, MapConfig
 from gpomap.evidence import RayCounts, RayEvidence
 from gpomap.heldout import calibration_points, calibration_scans
 from gpomap.lattice import AnyGrid, flat_index
@@ -41,7 +41,7 @@ MAX_SURPRISE_RATE: float = 0.3
 #: above the prior where visitors crowd a log, where the prior had made the map too sure of cells
 #: they later stood in (docs/choices.md, "The surprise rate, fitted per map"). Planar maps: not
 #: measured on point clouds, which keep the prior.
-FIT_SURPRISE_RATE: dict[int, bool] = {2: True, 3: False}
+FIT_SURPRISE_RATE: dict[int, bool] = {d: p.surprise_rate_fitted for d, p in PROFILES.items()}
 
 
 def with_surprises(p: ArrayLike, rate: float = SURPRISE_RATE) -> NDArray[np.float64]:
@@ -109,7 +109,7 @@ CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = (
 #: Whether the calibration weighs surface misses apart (:attr:`EvidenceCalibration.surface_weight`),
 #: per dimension of the data; where not, a surface miss is a miss. Planar maps: measured on the
 #: shared and unseen logs (docs/choices.md). Not for point clouds, where it was not.
-FIT_SURFACE_WEIGHT: dict[int, bool] = {2: True, 3: False}
+FIT_SURFACE_WEIGHT: dict[int, bool] = {d: p.fit_surface_weight for d, p in PROFILES.items()}
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gpomap.clouds import CloudScan
-from gpomap.config import MapConfig
+from gpomap.config import PROFILES, MapConfig
 from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, next_to_hits, path_steps
 from gpomap.fusion.calibration import (
     SURPRISE_RATE,
@@ -51,7 +51,7 @@ from gpomap.scans import Scan
 #: it, the GP's guess) is unknown instead. Planar maps: grazing beams cross the cells in front of
 #: walls, and unexplored space round a building takes the GP's guess (docs/choices.md). Point clouds
 #: mark what no ray reached in their outputs instead (:attr:`gpomap.voxels.VoxelMap.observed`).
-SEEN_THROUGH_NOT_OCCUPIED: dict[int, bool] = {2: True, 3: False}
+SEEN_THROUGH_NOT_OCCUPIED: dict[int, bool] = {d: p.seen_through_not_occupied for d, p in PROFILES.items()}
 
 
 def without_hits(hits: ArrayLike) -> NDArray[np.bool_]:

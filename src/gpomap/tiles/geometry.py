@@ -14,6 +14,7 @@ from typing import Any, overload
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.config import PROFILES
 from gpomap.lattice import column_bounds
 from gpomap.tiles.attributes import TiledAttributes
 
@@ -29,7 +30,7 @@ _KEY_CHUNK = 1 << 20
 #: Planar maps: 5 m squares; voxel maps: 3 m columns, which hold every height, so they fill
 #: faster than planar squares. Both the fastest sizes tried, scores unchanged (docs/choices.md,
 #: "Tiles: 5 m squares (3 m columns in 3-D)").
-DEFAULT_TILE_SIZE: dict[int, float] = {2: 5.0, 3: 3.0}
+DEFAULT_TILE_SIZE: dict[int, float] = {d: p.tile_size for d, p in PROFILES.items()}
 
 #: A tile's GP sees the cells this many learnt length scales beyond its square, by default. 1.5
 #: (it was 2.5, about where the SE kernel has decayed to 4 %): the scores did not move

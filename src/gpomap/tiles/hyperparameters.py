@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+from gpomap.config import PROFILES
 from gpomap.lapack import available_cores
 from gpomap.supports import Supports
 from gpomap.tiles.fits import TileFits
@@ -48,7 +49,7 @@ def given_hyperparameters(hyperparameters: dict[str, float]) -> dict[str, float]
 #: a larger sample pinned planar maps' hyperparameters better, while in 3-D each step of the cuboid
 #: kernel is dearer and 300 scored as well (the measurements: docs/choices.md, "The hyperparameter
 #: search in groups of 200 cells").
-DEFAULT_HYPER_SAMPLE: dict[int, int] = {2: 800, 3: 300}
+DEFAULT_HYPER_SAMPLE: dict[int, int] = {d: p.hyper_sample for d, p in PROFILES.items()}
 
 #: Most cells of each compact group the hyperparameter sample is cut into for the search, each
 #: group its own GP (:class:`gpomap.gp.SupportGP`'s ``hyper_group``), by the map's dimension;
@@ -57,7 +58,7 @@ DEFAULT_HYPER_SAMPLE: dict[int, int] = {2: 800, 3: 300}
 #: Voxel maps: one GP; their 300-cell search costs mostly kernel evaluations, which groups do not
 #: make fewer, and smaller groups cost log loss (docs/choices.md, "The hyperparameter search in
 #: groups of 200 cells").
-HYPER_GROUP_CELLS: dict[int, int | None] = {2: 200, 3: None}
+HYPER_GROUP_CELLS: dict[int, int | None] = {d: p.hyper_group_cells for d, p in PROFILES.items()}
 
 #: The hyperparameter sample is anchored only in a block whose share of occupied cells is at
 #: least this fraction of the whole map's (when any block is): a sample of one class says nothing
