@@ -12,6 +12,7 @@ the bit. Exit status 1 when anything differs. Usage::
     .venv/bin/python benchmarks/identical_maps.py write /tmp/maps-after           # at another
     .venv/bin/python benchmarks/identical_maps.py compare /tmp/maps-before /tmp/maps-after
     .venv/bin/python benchmarks/identical_maps.py write /tmp/m --logs intel --option=--resolution=0.1
+    .venv/bin/python benchmarks/identical_maps.py write /tmp/m --logs sim_structured,3dmatch-stride4   # 3-D inputs
 """
 
 from __future__ import annotations
@@ -35,6 +36,9 @@ LOGS: dict[str, tuple[Path, list[str]]] = {
     "fr079": (DATA / "fr079" / "freiburg-079-corrected.log.gz", []),
     "cave": (DATA / "sim-worlds" / "cave" / "cave.log.gz", []),
     "hospital_section": (DATA / "sim-worlds" / "hospital_section" / "hospital_section.log.gz", []),
+    # 3-D inputs, at the voxel maps' defaults: a point cloud directory and depth frames.
+    "sim_structured": (DATA / "la3dm-sim" / "sim_structured", ["--max-range", "8"]),
+    "3dmatch-stride4": (DATA / "3dmatch", ["--stride", "4"]),
 }
 DEFAULT_LOGS = "intel,stage-arena"
 
@@ -68,10 +72,9 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def _query_points(probability_shape: tuple[int, ...], origin: np.ndarray, resolution: float) -> np.ndarray:
-    """A fixed set of points over a map: 2,000 drawn uniformly over its extent (seed 0)."""
-    ny, nx = probability_shape
+    """A fixed set of points over a map (planar or voxel): 2,000 drawn uniformly over its extent (seed 0)."""
     rng = np.random.default_rng(0)
-    return origin + rng.uniform(0, 1, size=(2000, 2)) * np.array([nx, ny]) * resolution
+    return origin + rng.uniform(0, 1, size=(2000, len(probability_shape))) * np.array(probability_shape[::-1]) * resolution
 
 
 def compare(first: Path, second: Path, names: list[str]) -> bool:

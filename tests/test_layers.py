@@ -41,6 +41,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.metrics",
             "gpomap.diagnostics",
             "gpomap.raycast",
+            "gpomap._compiled_raycast",
             "gpomap.compiled",
             "gpomap.lapack",
         ),

@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.ndimage import maximum_filter
 
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
 from gpomap.lattice import box_index, box_shape, column_bounds
@@ -56,6 +57,7 @@ def _mark_near(
     steps: NDArray[np.int64],
     pad: int,
     clearance: float,
+    hits_around: NDArray[np.bool_],
     out: NDArray[np.bool_],
 ) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
     n, dim = free_points.shape
@@ -65,9 +67,15 @@ def _mark_near(
     skip_beyond = c2 * (1.0 + 1e-9)
     take_within = c2 * (1.0 - 1e-9)
     for i in range(n):
+        own = np.int64(0)
         for a in range(dim):
             index[a] = min(np.int64((free_points[i, a] - lo[a]) * scale) + pad, shape[a] - 1 - pad)
+            own = own * shape[a] + index[a]
         found = False
+        if not hits_around[own]:
+            # No box round the sample's holds a hit: most samples, far from any surface.
+            out[i] = False
+            continue
         for s in range(steps.shape[0]):
             c = np.int64(0)
             for a in range(dim):
@@ -150,6 +158,8 @@ def near_hits(
         hits_hi[first, j] = np.maximum.reduceat(hits[:, j], first)
     # The sample's own box first: most samples near a hit find it there.
     steps = sorted(itertools.product(range(-pad, pad + 1), repeat=dim), key=lambda s: sum(map(abs, s)))
+    # Which boxes have a box with hits among the (2 pad + 1)^d round them (themselves included).
+    hits_around = maximum_filter((per_box > 0).reshape(shape), size=2 * pad + 1, mode="constant", cval=False).reshape(-1)
     out = np.zeros(free_points.shape[0], dtype=bool)
     _mark_near(
         np.ascontiguousarray(free_points, dtype=float),
@@ -163,6 +173,7 @@ def near_hits(
         np.array(steps, dtype=np.int64),
         pad,
         float(clearance),
+        hits_around,
         out,
     )
     return out

@@ -17,13 +17,55 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap._compiled_raycast import most_crossings, walk_segment
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
+from gpomap.lattice import AnyGrid
+from gpomap.raycast import Segments
 
 #: Whether numba imports here.
 AVAILABLE: bool = NUMBA_AVAILABLE
 
 #: Whether :meth:`gpomap.evidence.RayEvidence.counts` takes the compiled path (read at each call).
 ENABLED: bool = compiled_by_default()
+
+
+@jit(cache=True, nogil=True)
+def _add_scan(
+    cells: NDArray[np.int64],
+    through: NDArray[np.int64],
+    ended: NDArray[np.int64],
+    close: NDArray[np.int64],
+    rows: int,
+    hits: Any,
+    misses: Any,
+    near: Any,
+    slot: NDArray[np.int32],
+    shared: bool,
+    units: int,
+) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+    """One scan's update of each cell of its table (the first `rows` rows) added into the counts,
+    and the cells' slots reset."""
+    for k in range(rows):
+        c = cells[k]
+        slot[c] = -1
+        t = max(through[k], ended[k])
+        if shared:
+            # Whole units, as gpomap.evidence.scan_shares rounds them.
+            h = np.floor(ended[k] / t * units + 0.5)
+            h = max(h, 1.0) if ended[k] > 0 else h
+            h = min(h, units - 1.0) if t > ended[k] else h
+            n = np.floor(close[k] / t * units + 0.5)
+            n = max(n, 1.0) if close[k] > 0 else n
+            n = min(n, units - h)
+            hits[c] += h / units
+            misses[c] += (units - h) / units
+            near[c] += n / units
+        elif ended[k] > 0:
+            hits[c] += 1
+        else:
+            misses[c] += 1
+            if close[k] == t:
+                near[c] += 1
 
 
 @jit(cache=True, nogil=True)
@@ -81,27 +123,7 @@ def _count_entries(
             if entry_near[e] and c != beam_end[entry_beam[e]]:
                 close[k] += 1
             e += 1
-        for k in range(rows):
-            c = cells[k]
-            slot[c] = -1
-            t = max(through[k], ended[k])
-            if shared:
-                # Whole units, as gpomap.evidence.scan_shares rounds them.
-                h = np.floor(ended[k] / t * units + 0.5)
-                h = max(h, 1.0) if ended[k] > 0 else h
-                h = min(h, units - 1.0) if t > ended[k] else h
-                n = np.floor(close[k] / t * units + 0.5)
-                n = max(n, 1.0) if close[k] > 0 else n
-                n = min(n, units - h)
-                hits[c] += h / units
-                misses[c] += (units - h) / units
-                near[c] += n / units
-            elif ended[k] > 0:
-                hits[c] += 1
-            else:
-                misses[c] += 1
-                if close[k] == t:
-                    near[c] += 1
+        _add_scan(cells, through, ended, close, rows, hits, misses, near, slot, shared, units)
         first = last
 
 
@@ -144,6 +166,174 @@ def count_entries(
         np.ascontiguousarray(entry_near, dtype=np.bool_),
         np.ascontiguousarray(beam_scan, dtype=np.intp),
         np.ascontiguousarray(beam_end, dtype=np.int64),
+        *counts,
+        slot,
+        bool(shared),
+        int(units),
+    )
+
+
+@jit(cache=True, nogil=True)
+def _count_beams(
+    p0: NDArray[np.float64],
+    p1: NDArray[np.float64],
+    length: NDArray[np.float64],
+    place: NDArray[np.intp],
+    kept: NDArray[np.intp],
+    beam_scan: NDArray[np.intp],
+    beam_end: NDArray[np.int64],
+    beam_hit: NDArray[np.bool_],
+    ends: NDArray[np.float64],
+    origin: NDArray[np.float64],
+    resolution: float,
+    shape: NDArray[np.int64],
+    near2: float,
+    tail: int,
+    hits: Any,
+    misses: Any,
+    near: Any,
+    slot: NDArray[np.int32],
+    shared: bool,
+    units: int,
+) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+    n_beams = beam_scan.size
+    d = p0.shape[1]
+    _, longest = most_crossings(p0, p1)
+    t_cross = np.empty(longest, dtype=np.float64)
+    key_cross = np.empty(longest, dtype=np.float64)
+    work = np.empty((4, d), dtype=np.int64)
+    walked = np.empty((d, longest + 1), dtype=np.intp)
+    strides = np.ones(d, dtype=np.int64)
+    for a in range(d - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    size = 1 << 12
+    cells = np.empty(size, dtype=np.int64)
+    through = np.empty(size, dtype=np.int64)
+    ended = np.empty(size, dtype=np.int64)
+    close = np.empty(size, dtype=np.int64)
+    j = 0  # the next kept segment
+    first = 0
+    while first < n_beams:
+        s = beam_scan[first]
+        last = first
+        while last < n_beams and beam_scan[last] == s:
+            last += 1
+        # The scan's table: a row per cell its beams touched.
+        rows = 0
+        for b in range(first, last):
+            if rows + 1 > size:
+                size *= 2
+                cells, through, ended, close = _grown(cells, through, ended, close, rows, size)
+            c = beam_end[b]
+            if c >= 0:
+                k = slot[c]
+                if k < 0:
+                    k = rows
+                    slot[c] = k
+                    cells[k] = c
+                    through[k] = 0
+                    ended[k] = 0
+                    close[k] = 0
+                    rows += 1
+                ended[k] += 1
+        while j < kept.size and kept[j] < last:
+            b = kept[j]
+            n = walk_segment(p0, p1, j, place[j], length[j], shape, t_cross, key_cross, work, walked, 0)
+            j += 1
+            if rows + n > size:
+                while rows + n > size:
+                    size *= 2
+                cells, through, ended, close = _grown(cells, through, ended, close, rows, size)
+            for e in range(n):
+                c = np.int64(0)
+                for a in range(d):
+                    c += walked[a, e] * strides[a]
+                k = slot[c]
+                if k < 0:
+                    k = rows
+                    slot[c] = k
+                    cells[k] = c
+                    through[k] = 0
+                    ended[k] = 0
+                    close[k] = 0
+                    rows += 1
+                through[k] += 1
+                # Only a returned beam's last `tail` cells can lie within the near distance of
+                # its end (the centre's squared distance summed x first, as the numpy path does).
+                if beam_hit[b] and e >= n - tail and c != beam_end[b]:
+                    d2 = 0.0
+                    for q in range(d):
+                        v = origin[q] + (np.float64(walked[d - 1 - q, e]) + 0.5) * resolution - ends[b, q]
+                        d2 += v * v
+                    if d2 < near2:
+                        close[k] += 1
+        _add_scan(cells, through, ended, close, rows, hits, misses, near, slot, shared, units)
+        first = last
+
+
+@jit(cache=True, nogil=True)
+def _grown(
+    cells: NDArray[np.int64], through: NDArray[np.int64], ended: NDArray[np.int64], close: NDArray[np.int64], rows: int, size: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:  # pragma: no cover - compiled
+    """The table's arrays of `size` rows, the first `rows` kept."""
+    out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64))
+    for k in range(rows):
+        out[0][k] = cells[k]
+        out[1][k] = through[k]
+        out[2][k] = ended[k]
+        out[3][k] = close[k]
+    return out
+
+
+def count_beams(
+    grid: AnyGrid,
+    starts: NDArray[np.float64],
+    ends: NDArray[np.float64],
+    hit: NDArray[np.bool_],
+    beam_scan: NDArray[np.intp],
+    beam_end: NDArray[np.int64],
+    near_end: float,
+    tail: int,
+    counts: tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]],
+    slot: NDArray[np.int32],
+    shared: bool = True,
+    units: int = 256,
+) -> None:
+    """:func:`count_entries` of beams walked here: each beam's cells found
+    (:func:`gpomap.raycast.traverse`'s, by :func:`gpomap._compiled_raycast.walk_segment`) and
+    tallied as they are found, never listed.
+
+    Parameters
+    ----------
+    grid : GridSpec or VoxelSpec
+    starts, ends : ndarray of shape (b, d)
+        The beams, map frame.
+    hit : ndarray of bool, shape (b,)
+        Whether each beam returned.
+    beam_scan, beam_end, counts, slot, shared, units
+        As :func:`count_entries`'.
+    near_end : float
+        :data:`gpomap.evidence.NEAR_END`: a cell whose centre is closer to a returned beam's end
+        (and not its end's cell) is a near miss.
+    tail : int
+        How many of a returned beam's last cells can be that close (the numpy path's bound).
+    """
+    walk = Segments.of(grid, starts, ends)
+    _count_beams(
+        walk.p0,
+        walk.p1,
+        walk.lengths(),
+        walk.places(),
+        walk.kept,
+        np.ascontiguousarray(beam_scan, dtype=np.intp),
+        np.ascontiguousarray(beam_end, dtype=np.int64),
+        np.ascontiguousarray(hit, dtype=np.bool_),
+        np.ascontiguousarray(ends, dtype=np.float64),
+        np.asarray(grid.origin, dtype=np.float64),
+        float(grid.resolution),
+        np.array(grid.shape, dtype=np.int64),
+        float(near_end) ** 2,
+        int(tail),
         *counts,
         slot,
         bool(shared),

@@ -31,12 +31,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import binary_dilation
 
-from gpomap import _compiled_counts
+from gpomap import _compiled_counts, _compiled_raycast
 from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
-from gpomap.lattice import AnyGrid, bounds_extent, column_bounds, extent_bounds, flat_index, grid_size, make_grid
+from gpomap.lattice import AnyGrid, bounds_extent, column_bounds, extent_bounds, flat_index, grid_dim, grid_size, make_grid
 from gpomap.observations import Rays, ScanData, sensor_positions
-from gpomap.raycast import traverse
+from gpomap.raycast import Segments, traverse
 from gpomap.scans import Scan
 
 #: Longest step between consecutive scans' poses taken as the robot driving (metres); longer
@@ -399,6 +399,11 @@ class RayEvidence:
         end_cell, inside = flat_index(grid, self.ends)
         mark[end_cell[inside & self.hit]] = True
         for first, last in _batches(grid, self.starts, self.ends):
+            if _compiled_raycast.ENABLED:
+                _compiled_raycast.mark_crossed(
+                    Segments.of(grid, self.starts[first:last], self.ends[first:last]), grid.shape, mark
+                )
+                continue
             _, *idx = traverse(grid, self.starts[first:last], self.ends[first:last])
             mark[np.ravel_multi_index(tuple(idx), grid.shape)] = True
         return mark.reshape(grid.shape)
@@ -483,11 +488,7 @@ class RayEvidence:
         into `beams`, non-decreasing), its cell's flat index, and whether the cell's centre lies
         within :data:`NEAR_END` of the beam's returned end."""
         b, *idx = traverse(grid, self.starts[beams], self.ends[beams])
-        d = len(idx)
-        # Only a beam's last few cells can lie within NEAR_END of its end: a cell whose centre is
-        # within it meets the last NEAR_END + half a diagonal of the beam, and each cell there
-        # takes at least one of the d axes a step further.
-        tail = d * (int(np.ceil(NEAR_END / grid.resolution + np.sqrt(d) / 2)) + 1)
+        tail = _near_tail(grid)
         per_beam = np.bincount(b, minlength=len(beams))
         stop = np.cumsum(per_beam)  # one past each beam's last entry
         start = stop - per_beam
@@ -519,13 +520,16 @@ class RayEvidence:
         mine = np.zeros(scan.size, dtype=bool) if keep is None else np.isin(scan, keep)
         if slot is not None:
             end_cell, inside = flat_index(grid, self.ends[beams])
-            b, cell, near_entry = self._entries(grid, beams)
-            _compiled_counts.count_entries(
-                b,
-                cell,
-                near_entry,
+            # Each beam's cells tallied as they are walked, never listed.
+            _compiled_counts.count_beams(
+                grid,
+                self.starts[beams],
+                self.ends[beams],
+                self.hit[beams],
                 scan,
                 np.where(inside & self.hit[beams], end_cell, -1),
+                NEAR_END,
+                _near_tail(grid),
                 (counts.hits, counts.misses, counts.near),
                 slot,
                 SHARED_UPDATES,
@@ -548,6 +552,14 @@ class RayEvidence:
                 lo, hi = np.searchsorted(keys, [int(k) * ncell, (int(k) + 1) * ncell])
                 kept_hits, kept_misses, kept_near = (s[lo:hi].copy() for s in shares)
                 self._kept[(grid, int(k))] = (keys[lo:hi] - int(k) * ncell, kept_hits, kept_misses, kept_near)
+
+
+def _near_tail(grid: AnyGrid) -> int:
+    """How many of a beam's last cells can lie within :data:`NEAR_END` of its end: a cell whose
+    centre is within it meets the last NEAR_END + half a diagonal of the beam, and each cell there
+    takes at least one of the d axes a step further."""
+    d = grid_dim(grid)
+    return d * (int(np.ceil(NEAR_END / grid.resolution + np.sqrt(d) / 2)) + 1)
 
 
 def _batches(grid: AnyGrid, starts: NDArray[np.float64], ends: NDArray[np.float64]) -> list[tuple[int, int]]:

@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
-from gpomap import _compiled_clearance
+from gpomap import _compiled_clearance, _compiled_raycast
 from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
 from gpomap.errors import EmptyDataError
@@ -142,6 +142,8 @@ def ray_free_points(
     # Points at step, 2 step, ..., floor(length / step) * step; a tiny slack keeps a
     # sample that lands exactly on the limit despite rounding.
     counts = np.floor(lengths / step + 1e-9).astype(np.intp)
+    if _compiled_raycast.ENABLED:
+        return _compiled_raycast.free_samples(np.asarray(origins, dtype=float), np.asarray(directions, dtype=float), counts, step)
     total = int(counts.sum())
     ray = np.repeat(np.arange(lengths.size, dtype=np.intp), counts)
     # Position of each sample within its ray: 1, 2, ..., count.

@@ -6,12 +6,15 @@ Shared by the occupancy grids (:mod:`gpomap.baselines.ogm`) and the ray evidence
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from gpomap import _compiled_raycast
 from gpomap.lattice import AnyGrid, grid_dim
 
-__all__ = ["ENTRIES_PER_CHUNK", "traverse"]
+__all__ = ["ENTRIES_PER_CHUNK", "Segments", "traverse"]
 
 # Traversal entries (grid-line crossings) handled per chunk: bounds temporary memory (about 120
 # bytes an entry), and small chunks stay in cache (timings by chunk size: docs/choices.md,
@@ -46,6 +49,71 @@ def _line_crossings(u0: NDArray[np.float64], u1: NDArray[np.float64]) -> tuple[N
     return seg, t
 
 
+@dataclass(frozen=True)
+class Segments:
+    """Segments in a grid's cell units, cut into the chunks :func:`traverse` walks them in.
+
+    Both traversals (numpy and compiled) merge a segment's crossings by a key holding its index
+    within its chunk, so the chunks decide the rounding they share; whatever walks segments the
+    way :func:`traverse` does takes them from here.
+
+    Attributes
+    ----------
+    p0, p1 : ndarray of shape (k, d)
+        Start and end of each segment that comes near the grid, in cell units (the grid's origin
+        at 0, coordinates x first).
+    kept : ndarray of int, shape (k,)
+        Index of each among the segments given.
+    chunks : list of (int, int)
+        Consecutive ranges [lo, hi) of the kept segments, each at most about
+        :data:`ENTRIES_PER_CHUNK` entries (at least one segment).
+    """
+
+    p0: NDArray[np.float64]
+    p1: NDArray[np.float64]
+    kept: NDArray[np.intp]
+    chunks: list[tuple[int, int]]
+
+    @classmethod
+    def of(cls, grid: AnyGrid, starts: ArrayLike, ends: ArrayLike) -> Segments:
+        """The segments `starts` -> `ends` (shape (b, d), map frame) on `grid`."""
+        d = grid_dim(grid)
+        origin = np.asarray(grid.origin, dtype=float)
+        p0 = (np.asarray(starts, dtype=float).reshape(-1, d) - origin) / grid.resolution
+        p1 = (np.asarray(ends, dtype=float).reshape(-1, d) - origin) / grid.resolution
+        # Segments that never come near the grid visit none of its cells: left out before the
+        # walk (a region's grid among a whole log's beams).
+        near = _near_box(p0, p1, grid.shape)
+        if near.all():
+            kept = np.arange(len(p0), dtype=np.intp)
+        else:
+            kept = np.flatnonzero(near)
+            p0, p1 = p0[kept], p1[kept]
+        # Crossings per segment (an upper bound), to cut the work into chunks of bounded memory.
+        cost = np.cumsum(np.abs(np.floor(p1) - np.floor(p0)).sum(axis=1) + 2)
+        chunks = []
+        lo = 0
+        while lo < len(p0):
+            base = cost[lo - 1] if lo > 0 else 0.0
+            hi = max(lo + 1, int(np.searchsorted(cost, base + ENTRIES_PER_CHUNK, side="right")))
+            chunks.append((lo, hi))
+            lo = hi
+        return cls(p0, p1, kept, chunks)
+
+    def lengths(self) -> NDArray[np.float64]:
+        """Each kept segment's length in cell units, computed chunk by chunk as the numpy walk does, shape (k,)."""
+        return np.concatenate(
+            [np.sqrt(((self.p1[lo:hi] - self.p0[lo:hi]) ** 2).sum(axis=1)) for lo, hi in self.chunks] or [np.zeros(0)]
+        )
+
+    def places(self) -> NDArray[np.intp]:
+        """Each kept segment's index within its chunk, shape (k,)."""
+        place = np.arange(len(self.p0), dtype=np.intp)
+        for lo, hi in self.chunks:
+            place[lo:hi] -= lo
+        return place
+
+
 def traverse(grid: AnyGrid, starts: ArrayLike, ends: ArrayLike) -> tuple[NDArray[np.intp], ...]:
     """Every grid cell each segment passes through, in order from start to end.
 
@@ -74,26 +142,12 @@ def traverse(grid: AnyGrid, starts: ArrayLike, ends: ArrayLike) -> tuple[NDArray
         are distinct.
     """
     d = grid_dim(grid)
-    origin = np.asarray(grid.origin, dtype=float)
-    p0 = (np.asarray(starts, dtype=float).reshape(-1, d) - origin) / grid.resolution
-    p1 = (np.asarray(ends, dtype=float).reshape(-1, d) - origin) / grid.resolution
-    # Segments that never come near the grid visit none of its cells: left out before the walk
-    # (a region's grid among a whole log's beams).
-    near = _near_box(p0, p1, grid.shape)
-    kept = None if near.all() else np.flatnonzero(near)
-    if kept is not None:
-        p0, p1 = p0[kept], p1[kept]
-    b = len(p0)
-    # Crossings per segment (an upper bound), to cut the work into chunks of bounded memory.
-    cost = np.cumsum(np.abs(np.floor(p1) - np.floor(p0)).sum(axis=1) + 2)
+    walk = Segments.of(grid, starts, ends)
     out: list[tuple[NDArray[np.intp], ...]] = []
-    lo = 0
-    while lo < b:
-        base = cost[lo - 1] if lo > 0 else 0.0
-        hi = max(lo + 1, int(np.searchsorted(cost, base + ENTRIES_PER_CHUNK, side="right")))
-        seg, *idx = _traverse_chunk(p0[lo:hi], p1[lo:hi], grid.shape)
-        out.append((seg + lo if kept is None else kept[seg + lo], *idx))
-        lo = hi
+    chunk = _compiled_raycast.traverse_chunk if _compiled_raycast.ENABLED else _traverse_chunk
+    for lo, hi in walk.chunks:
+        seg, *idx = chunk(walk.p0[lo:hi], walk.p1[lo:hi], grid.shape)
+        out.append((walk.kept[seg + lo], *idx))
     if not out:
         return tuple(np.zeros(0, dtype=np.intp) for _ in range(d + 1))
     return tuple(np.concatenate([part[j] for part in out]) for j in range(d + 1))

@@ -1,0 +1,253 @@
+"""Ray traversal of grid cells compiled with numba (:func:`gpomap.raycast.traverse`'s fast path).
+
+The numpy path lists every segment's grid-line crossings per axis, merges them by one stable sort
+of the key ``4 seg + 2 t`` and takes the cell holding the midpoint of each interval between
+consecutive entries. Here one compiled pass per segment does the same arithmetic in the same
+order: the crossings of each axis as the numpy path computes them, merged by the same key (ties
+to the earlier list: the start, the axes in order, the end, as the stable sort leaves them), the
+same zero-length test and the same midpoint cells, without the numpy path's temporaries (about
+120 bytes an entry). The cells are the numpy path's exactly (``tests/test_raycast.py`` compares
+the two on random and grid-aligned segments).
+
+``ENABLED``: :func:`gpomap.raycast.traverse` takes this path (read at each call;
+:func:`gpomap.compiled.compiled_by_default` at import, tests switch it).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
+
+__all__ = ["AVAILABLE", "ENABLED", "mark_crossed", "most_crossings", "traverse_chunk", "walk_segment"]
+
+#: Whether numba imports here.
+AVAILABLE: bool = NUMBA_AVAILABLE
+
+#: Whether :func:`gpomap.raycast.traverse` takes the compiled path.
+ENABLED: bool = compiled_by_default()
+
+
+@jit(cache=True, nogil=True)
+def crossings(u0: float, u1: float) -> int:  # pragma: no cover - compiled
+    """How many integer lines the segment u0 -> u1 (cell units, one axis) crosses strictly inside."""
+    n = np.int64(math.ceil(max(u0, u1)) - (math.floor(min(u0, u1)) + 1.0))
+    return int(n) if n > 0 else 0
+
+
+@jit(cache=True, nogil=True)
+def walk_segment(
+    p0: NDArray[np.float64],
+    p1: NDArray[np.float64],
+    s: int,
+    place: int,
+    length: float,
+    shape: NDArray[np.int64],
+    t_cross: NDArray[np.float64],
+    key_cross: NDArray[np.float64],
+    work: NDArray[np.int64],
+    out: NDArray[np.intp],
+    at: int,
+) -> int:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+    """The cells segment `s` of `p0` -> `p1` crosses inside the grid, written as columns of `out`
+    (d, n) from `at` (array order, x last); how many. `place` is its index within its chunk
+    (:class:`gpomap.raycast.Segments`); `t_cross`, `key_cross` hold at least its crossings;
+    `work` is scratch of shape (4, d)."""
+    d = p0.shape[1]
+    count, run, pos, cell = work[0], work[1], work[2], work[3]
+    # Each axis's crossings in travel order, as the numpy path computes them: the lines are
+    # whole numbers, exact whichever way they are summed.
+    m = 0
+    for k in range(d):
+        u0, u1 = p0[s, k], p1[s, k]
+        first = math.floor(min(u0, u1)) + 1.0
+        count[k] = max(np.int64(math.ceil(max(u0, u1)) - first), 0)
+        run[k] = m
+        pos[k] = 0
+        down = u1 < u0
+        for j in range(count[k]):
+            line = (first + np.float64(count[k]) - 1.0) - np.float64(j) if down else first + np.float64(j)
+            t_cross[m] = (line - u0) / (u1 - u0)
+            m += 1
+    # Merged by the key 4 place + 2 t, ties to the earlier list, as the numpy path's stable sort
+    # leaves them: the start (t = 0, the smallest key) first, the end (t = 1: a crossing's t never
+    # rounds above it) last, the axes' crossings between, ties to the lower axis.
+    base = 4.0 * np.float64(place)
+    for j in range(m):
+        key_cross[j] = base + 2.0 * t_cross[j]
+    n = 0
+    prev = 0.0
+    for step in range(m + 1):
+        if step < m:
+            best = -1
+            best_key = 0.0
+            for k in range(d):
+                if pos[k] < count[k]:
+                    key = key_cross[run[k] + pos[k]]
+                    if best < 0 or key < best_key:
+                        best, best_key = k, key
+            t = t_cross[run[best] + pos[best]]
+            pos[best] += 1
+        else:
+            t = 1.0
+        # The interval from the previous entry, unless of zero length (two lines crossed at
+        # once); a zero-length segment keeps its one interval. Its cell holds its midpoint.
+        if (t - prev) * length > 1e-9 or length == 0:
+            tm = 0.5 * (prev + t)
+            inside = True
+            for a in range(d):
+                k = d - 1 - a  # array order is coordinate order reversed (x last)
+                i = np.intp(math.floor(p0[s, k] + tm * (p1[s, k] - p0[s, k])))
+                if i < 0 or i >= shape[a]:
+                    inside = False
+                cell[a] = i
+            if inside:
+                for a in range(d):
+                    out[a, at + n] = cell[a]
+                n += 1
+        prev = t
+    return n
+
+
+@jit(cache=True, nogil=True)
+def most_crossings(p0: NDArray[np.float64], p1: NDArray[np.float64]) -> tuple[int, int]:  # pragma: no cover - compiled
+    """The crossings of all segments (plus one each: an upper bound of their cells) and of the longest."""
+    total = 0
+    longest = 0
+    for s in range(p0.shape[0]):
+        m = 0
+        for k in range(p0.shape[1]):
+            m += crossings(p0[s, k], p1[s, k])
+        total += m + 1
+        longest = max(longest, m)
+    return total, longest
+
+
+@jit(cache=True, nogil=True)
+def _traverse(
+    p0: NDArray[np.float64], p1: NDArray[np.float64], length: NDArray[np.float64], shape: NDArray[np.int64]
+) -> tuple[NDArray[np.intp], NDArray[np.intp], int]:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+    b, d = p0.shape
+    capacity, longest = most_crossings(p0, p1)
+    seg_out = np.empty(capacity, dtype=np.intp)
+    idx_out = np.empty((d, capacity), dtype=np.intp)
+    t_cross = np.empty(longest, dtype=np.float64)
+    key_cross = np.empty(longest, dtype=np.float64)
+    work = np.empty((4, d), dtype=np.int64)
+    n_out = 0
+    for s in range(b):
+        n = walk_segment(p0, p1, s, s, length[s], shape, t_cross, key_cross, work, idx_out, n_out)
+        for j in range(n_out, n_out + n):
+            seg_out[j] = s
+        n_out += n
+    return seg_out, idx_out, n_out
+
+
+def traverse_chunk(p0: NDArray[np.float64], p1: NDArray[np.float64], shape: tuple[int, ...]) -> tuple[NDArray[np.intp], ...]:
+    """:func:`gpomap.raycast._traverse_chunk` compiled: the cells segments p0 -> p1 (cell units) cross.
+
+    Parameters
+    ----------
+    p0, p1 : ndarray of shape (b, d)
+        Segment ends in cell units (the grid's origin at 0), coordinates x first.
+    shape : tuple of int
+        The grid's shape, array order (x last).
+
+    Returns
+    -------
+    seg : ndarray of int, shape (m,)
+        Segment of each visited cell, non-decreasing.
+    index : d ndarrays of int, shape (m,)
+        The cells' array indices (x last), inside the grid, in order along each segment.
+    """
+    p0 = np.ascontiguousarray(p0, dtype=np.float64)
+    p1 = np.ascontiguousarray(p1, dtype=np.float64)
+    # The lengths as the numpy path computes them (its sum's order is numpy's own).
+    length = np.sqrt(((p1 - p0) ** 2).sum(axis=1))
+    seg, idx, n = _traverse(p0, p1, length, np.array(shape, dtype=np.int64))
+    return (seg[:n], *(idx[a, :n] for a in range(p0.shape[1])))
+
+
+@jit(cache=True, nogil=True)
+def _mark_cells(
+    p0: NDArray[np.float64],
+    p1: NDArray[np.float64],
+    length: NDArray[np.float64],
+    place: NDArray[np.intp],
+    shape: NDArray[np.int64],
+    mark: NDArray[np.bool_],
+) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+    d = p0.shape[1]
+    _, longest = most_crossings(p0, p1)
+    t_cross = np.empty(longest, dtype=np.float64)
+    key_cross = np.empty(longest, dtype=np.float64)
+    work = np.empty((4, d), dtype=np.int64)
+    walked = np.empty((d, longest + 1), dtype=np.intp)
+    strides = np.ones(d, dtype=np.int64)
+    for a in range(d - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    for s in range(p0.shape[0]):
+        n = walk_segment(p0, p1, s, place[s], length[s], shape, t_cross, key_cross, work, walked, 0)
+        for e in range(n):
+            c = np.int64(0)
+            for a in range(d):
+                c += walked[a, e] * strides[a]
+            mark[c] = True
+
+
+def mark_crossed(walk: Any, shape: tuple[int, ...], mark: NDArray[np.bool_]) -> None:
+    """Set `mark` (flat, of the grid's size) at every cell the segments of `walk` (a
+    :class:`gpomap.raycast.Segments` on a grid of `shape`) cross: the cells of
+    :func:`gpomap.raycast.traverse`, never listed."""
+    _mark_cells(walk.p0, walk.p1, walk.lengths(), walk.places(), np.array(shape, dtype=np.int64), mark)
+
+
+@jit(cache=True, nogil=True)
+def _samples(
+    origins: NDArray[np.float64],
+    directions: NDArray[np.float64],
+    counts: NDArray[np.intp],
+    step: float,
+    points: NDArray[np.float64],
+    ray: NDArray[np.intp],
+) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+    d = origins.shape[1]
+    m = 0
+    for r in range(counts.size):
+        for k in range(1, counts[r] + 1):
+            dist = np.float64(k) * step
+            for a in range(d):
+                points[m, a] = origins[r, a] + dist * directions[r, a]
+            ray[m] = r
+            m += 1
+
+
+def free_samples(
+    origins: NDArray[np.float64], directions: NDArray[np.float64], counts: NDArray[np.intp], step: float
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Points at ``step, 2 step, ..., counts[r] step`` along each ray r, written where they go:
+    :func:`gpomap.observations.ray_free_points`'s points and rays (the same products and sums),
+    without its gathered copies of the origins and directions per point.
+
+    Parameters
+    ----------
+    origins, directions : ndarray of shape (b, d)
+    counts : ndarray of int, shape (b,)
+    step : float
+
+    Returns
+    -------
+    points : ndarray of shape (counts.sum(), d)
+    ray : ndarray of int, shape (counts.sum(),)
+    """
+    origins = np.ascontiguousarray(np.broadcast_to(origins, directions.shape), dtype=np.float64)
+    counts = np.ascontiguousarray(counts, dtype=np.intp)
+    total = int(counts.sum())
+    points = np.empty((total, directions.shape[1]), dtype=np.float64)
+    ray = np.empty(total, dtype=np.intp)
+    _samples(origins, np.ascontiguousarray(directions, dtype=np.float64), counts, float(step), points, ray)
+    return points, ray
