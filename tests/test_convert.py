@@ -253,10 +253,11 @@ def test_the_map_keeps_what_each_pixel_says(pooling):
     # grid holds wholly free (a 0 of an any- or mean-pooled grid; nothing of the plan is in it)
     # is free at every fine pixel, far below any pixel holding something; a mean-pooled pixel's
     # fine probabilities average to its value (to the points held beside 0.5); a 1 of a
-    # majority-pooled grid averages at least a half, a 0 at most a half; and the occupied region
-    # (p > 0.5) is the GP's own wherever the grid does not hold a pixel wholly free or occupied and
-    # its bounds allow, and pooled again the same way it gives back the grid (a mean-pooled value
-    # to one of the 8 x 8 samples per pixel the shares are measured on).
+    # majority-pooled grid averages at least a half and is occupied throughout, a 0 averages at most
+    # a half; and the occupied region (p > 0.5) is the GP's own wherever the grid does not hold a
+    # pixel wholly free or occupied and its bounds allow, and pooled again the same way it gives
+    # back the grid (a mean-pooled value to one of the 8 x 8 samples per pixel the shares are
+    # measured on).
     from gpomap.convert import SHARE_SAMPLES
 
     fine = _thin_wall_plan()
@@ -279,6 +280,9 @@ def test_the_map_keeps_what_each_pixel_says(pooling):
         assert np.median(np.abs(mean[part] - coarse[part])) < 1e-3
     if pooling == "majority":
         assert (mean[coarse == 1.0] >= 0.5 - 1e-3).all() and (mean[coarse == 0.0] <= 0.5 + 1e-3).all()
+        # A 1 is more than half occupied, and which of its parts are free the grid does not say:
+        # the occupied region covers all of it.
+        assert (p[np.kron(coarse == 1.0, np.ones((k, k), dtype=bool))] > 0.5).all()
     g = res.map.grid
     xx, yy = np.meshgrid(g.x_centres(), g.y_centres())
     own = res.model.predict_proba_gp(np.column_stack([xx.ravel(), yy.ravel()])).reshape(p.shape)

@@ -112,10 +112,11 @@ class GridGPOM(MapSettings, GPMapEstimator):
           is the pixel's share (a mean-pooled value) or within the pooling's bounds (at least
           half for a 1 of a majority-pooled grid, at most half for a 0);
         - the occupied region (p > 0.5) is the GP's (where its probability passes 0.5), except
-          where that covers less of a pixel than the bounds allow (a mean-pooled value, half of a
-          majority-pooled 1, some of a pixel holding anything) or more: there it is the part of
-          the pixel where the GP's probability is highest, as much as the bound allows. A point
-          the scaling would put on the other side of 0.5 is held beside it.
+          where that covers less of a pixel than the bounds allow (a mean-pooled value, all of a
+          majority-pooled 1, some of a pixel holding anything; :attr:`~gpomap.convert.pooling.PixelReading.region_lower`)
+          or more: there it is the part of the pixel where the GP's probability is highest, as
+          much as the bound allows. A point the scaling would put on the other side of 0.5 is
+          held beside it.
 
         So the map's occupied region, pooled again the way the grid was made, gives back the
         grid (to a sample's area).
@@ -272,15 +273,15 @@ class GridGPOM(MapSettings, GPMapEstimator):
                 a, b = np.where(below, mid, a), np.where(below, b, mid)
             s[low] = np.exp(b)
         scale[idx] = s
-        # The occupied region: the samples above 0.5, unless they fill less of the pixel than its
-        # lower bound or more than its upper one; then the samples ranked highest, as many as the
-        # bound allows.
+        # The occupied region: the samples above 0.5, unless they fill less of the pixel than the
+        # region's lower bound or more than the share's upper one; then the samples ranked
+        # highest, as many as the bound allows.
         ranked = -np.sort(-p, axis=1)
         m = n * n
         area = (p > 0.5).mean(axis=1)
         t = np.full(idx.size, 0.5)
         # A pixel holding anything holds some of the occupied region.
-        need = np.maximum(np.ceil(lo[idx] * m - 1e-9).astype(np.intp), some[idx].astype(np.intp))
+        need = np.maximum(np.ceil(reading.region_lower[idx] * m - 1e-9).astype(np.intp), some[idx].astype(np.intp))
         few = area < need / m
         # Just below the need-th highest sample: it and those above it are in.
         t[few] = np.nextafter(ranked[few, need[few] - 1], -np.inf)

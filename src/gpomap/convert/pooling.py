@@ -65,7 +65,9 @@ class PixelReading:
         NaN: the pixel is not evidence (known, but its value bounds its share too loosely).
     lower, upper : ndarray of shape (m,)
         Bounds on each pixel's occupied share that the pooling rule implies; the map's mean
-        probability over the pixel is kept within them (:class:`~gpomap.convert.estimator.GridGPOM`).
+        probability over the pixel is kept within them (:class:`~gpomap.convert.estimator.GridGPOM`),
+        and its occupied region covers at least :attr:`region_lower` of the pixel and at most
+        `upper`.
     """
 
     origin: NDArray[np.float64]
@@ -76,6 +78,18 @@ class PixelReading:
     share: NDArray[np.float64]
     lower: NDArray[np.float64]
     upper: NDArray[np.float64]
+
+    @property
+    def region_lower(self) -> NDArray[np.float64]:
+        """The least share of each pixel the map's occupied region (p > 0.5) covers, shape (m,).
+
+        :attr:`lower`, but all of a majority-pooled 1: more than half of such a pixel is occupied,
+        so a part of it is more likely occupied than not, and which of its parts make up the
+        free rest the grid does not say (docs/convert.md).
+        """
+        if self.pooling != "majority":
+            return self.lower
+        return np.where(self.value == 1.0, 1.0, self.lower)
 
     @property
     def ij(self) -> NDArray[np.intp]:
