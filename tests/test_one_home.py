@@ -15,8 +15,8 @@ from gpomap.config import MapConfig
 SRC = Path(__file__).resolve().parents[1] / "src" / "gpomap"
 
 #: Modules whose signatures may state these names with their own values: the config itself, and
-#: the paper's baselines and the grid conversion, other methods with defaults of their own.
-OWN_DEFAULTS: frozenset[str] = frozenset({"config.py", "baselines/gpom.py", "baselines/gpomik.py", "convert.py", "convert3d.py"})
+#: the paper's baselines, another method with defaults of its own.
+OWN_DEFAULTS: frozenset[str] = frozenset({"config.py", "baselines/gpom.py", "baselines/gpomik.py"})
 
 #: A random seed is every sampler's argument, not a setting of the map alone.
 FIELDS = frozenset(f.name for f in dataclasses.fields(MapConfig)) - {"seed"}
