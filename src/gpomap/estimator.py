@@ -141,7 +141,7 @@ class GPMapEstimator(MapAnswers):
         self._check_fitted()
         pts = self.extent_points_
         return FittedMap(
-            DenseField(self.gp_, self._queries, self.extent_points_.shape[1], self.chunk_size),
+            DenseField(self.gp_, self._queries, pts.shape[1], self.chunk_size),
             self.evidence_,
             self.thresholds,
             pts.min(axis=0),
