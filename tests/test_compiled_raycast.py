@@ -84,15 +84,24 @@ def test_walked_counts_equal_numpys(budget: int, resolution: float, monkeypatch:
         clouds.append(CloudScan(o, ends, hit=np.linalg.norm(ends - o, axis=1) < 1.6, max_range=1.6))
     ev = RayEvidence.from_scans(clouds)
     grid = lattice_grid(ev.extent(), resolution, margin=resolution)
-    got = {}
+    got, kept = {}, {}
     for compiled in (False, True):
         monkeypatch.setattr(_compiled_counts, "ENABLED", compiled)
         monkeypatch.setattr(_compiled_raycast, "ENABLED", compiled)
-        got[compiled] = ev.counts(grid)
+        ev.forget()
+        got[compiled] = ev.counts(grid, keep=np.array([0, 2, 5]))
+        kept[compiled] = dict(ev._kept)
     assert got[True].hits.sum() > 0 and 0 < got[True].near.sum() < got[True].misses.sum()
     for a, b in zip(got[False], got[True], strict=True):
         assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
+    # The kept scans' own updates (what a leave-one-scan-out calibration reads) alike.
+    assert sorted(k for _, k in kept[True]) == sorted(k for _, k in kept[False]) == [0, 2, 5]
+    for key, arrays in kept[False].items():
+        assert arrays[0].size > 0
+        for a, b in zip(arrays, kept[True][key], strict=True):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

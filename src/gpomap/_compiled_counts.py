@@ -183,6 +183,7 @@ def _count_beams(
     beam_scan: NDArray[np.intp],
     beam_end: NDArray[np.int64],
     beam_hit: NDArray[np.bool_],
+    beam_kept: NDArray[np.bool_],
     ends: NDArray[np.float64],
     origin: NDArray[np.float64],
     resolution: float,
@@ -195,9 +196,20 @@ def _count_beams(
     slot: NDArray[np.int32],
     shared: bool,
     units: int,
-) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+) -> tuple[
+    NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], int
+]:  # pragma: no cover
+    # (compiled; the numpy path is the tests' reference)
     n_beams = beam_scan.size
     d = p0.shape[1]
+    # The kept scans' tables, one after another: scan, cell, through, ended, close.
+    kept_size = 0
+    for b in range(n_beams):
+        if beam_kept[b]:
+            kept_size = 1 << 12
+            break
+    kept_rows = np.empty((5, kept_size), dtype=np.int64)
+    n_kept = 0
     _, longest = most_crossings(p0, p1)
     t_cross = np.empty(longest, dtype=np.float64)
     key_cross = np.empty(longest, dtype=np.float64)
@@ -267,8 +279,25 @@ def _count_beams(
                         d2 += v * v
                     if d2 < near2:
                         close[k] += 1
+        if beam_kept[first]:
+            if n_kept + rows > kept_size:
+                while n_kept + rows > kept_size:
+                    kept_size *= 2
+                more = np.empty((5, kept_size), dtype=np.int64)
+                for q in range(5):
+                    for k in range(n_kept):
+                        more[q, k] = kept_rows[q, k]
+                kept_rows = more
+            for k in range(rows):
+                kept_rows[0, n_kept] = s
+                kept_rows[1, n_kept] = cells[k]
+                kept_rows[2, n_kept] = through[k]
+                kept_rows[3, n_kept] = ended[k]
+                kept_rows[4, n_kept] = close[k]
+                n_kept += 1
         _add_scan(cells, through, ended, close, rows, hits, misses, near, slot, shared, units)
         first = last
+    return kept_rows[0], kept_rows[1], kept_rows[2], kept_rows[3], kept_rows[4], n_kept
 
 
 @jit(cache=True, nogil=True)
@@ -298,10 +327,11 @@ def count_beams(
     slot: NDArray[np.int32],
     shared: bool = True,
     units: int = 256,
-) -> None:
+    kept: NDArray[np.bool_] | None = None,
+) -> tuple[NDArray[np.int64], ...]:
     """:func:`count_entries` of beams walked here: each beam's cells found
     (:func:`gpomap.raycast.traverse`'s, by :func:`gpomap._compiled_raycast.walk_segment`) and
-    tallied as they are found, never listed.
+    tallied as they are found, never listed; and the tallies of the scans whose beams are `kept`.
 
     Parameters
     ----------
@@ -317,9 +347,20 @@ def count_beams(
         (and not its end's cell) is a near miss.
     tail : int
         How many of a returned beam's last cells can be that close (the numpy path's bound).
+    kept : ndarray of bool, shape (b,), optional
+        Beams whose scans' tallies are returned (all of a scan's beams alike).
+
+    Returns
+    -------
+    scan, cell, through, ended, near : ndarray of int64, shape (r,)
+        Per cell a kept scan touched (grouped by scan, in the order of the beams, the cells of a
+        scan in no order): how many of its beams crossed or ended in the cell, how many returned
+        and ended there, and how many crossed it near their returned end without ending there
+        (:meth:`gpomap.evidence.RayEvidence._tallies`' counts).
     """
     walk = Segments.of(grid, starts, ends)
-    _count_beams(
+    keep = np.zeros(len(beam_scan), dtype=np.bool_) if kept is None else np.ascontiguousarray(kept, dtype=np.bool_)
+    *rows, n = _count_beams(
         walk.p0,
         walk.p1,
         walk.lengths(),
@@ -328,6 +369,7 @@ def count_beams(
         np.ascontiguousarray(beam_scan, dtype=np.intp),
         np.ascontiguousarray(beam_end, dtype=np.int64),
         np.ascontiguousarray(hit, dtype=np.bool_),
+        keep,
         np.ascontiguousarray(ends, dtype=np.float64),
         np.asarray(grid.origin, dtype=np.float64),
         float(grid.resolution),
@@ -339,3 +381,4 @@ def count_beams(
         bool(shared),
         int(units),
     )
+    return tuple(r[:n].copy() for r in rows)

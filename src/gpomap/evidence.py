@@ -520,8 +520,9 @@ class RayEvidence:
         mine = np.zeros(scan.size, dtype=bool) if keep is None else np.isin(scan, keep)
         if slot is not None:
             end_cell, inside = flat_index(grid, self.ends[beams])
-            # Each beam's cells tallied as they are walked, never listed.
-            _compiled_counts.count_beams(
+            # Each beam's cells tallied as they are walked, never listed; the kept scans' tallies
+            # as well, which the numpy path below gives as their sorted keys.
+            k_scan, k_cell, k_through, k_ended, k_near = _compiled_counts.count_beams(
                 grid,
                 self.starts[beams],
                 self.ends[beams],
@@ -534,12 +535,15 @@ class RayEvidence:
                 slot,
                 SHARED_UPDATES,
                 SHARE_UNITS,
+                mine,
             )
             if not mine.any():
                 return
-            # The kept scans' own updates, from their beams alone.
-            beams = beams[mine]
-        keys, through, ended, near = self._tallies(grid, beams)
+            order = np.lexsort((k_cell, k_scan))
+            keys = k_scan[order] * ncell + k_cell[order]
+            through, ended, near = k_through[order], k_ended[order], k_near[order]
+        else:
+            keys, through, ended, near = self._tallies(grid, beams)
         shares = scan_shares(through, ended, near)
         if slot is None:
             cell = keys % ncell
