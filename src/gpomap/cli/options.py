@@ -466,10 +466,8 @@ def map_config(args: argparse.Namespace) -> MapConfig:
 
 
 def _tile_sizes(_: None) -> str:
-    """The default tile sides by the map's dimension, for ``--help``."""
-    from gpomap.tiles import DEFAULT_TILE_SIZE
-
-    return ", ".join(f"{v:g} in {d}-D" for d, v in sorted(DEFAULT_TILE_SIZE.items()))
+    """The default tile sides by the data's profile, for ``--help``."""
+    return f"{PROFILES[2].tile_size:g} for scans, {PROFILES[3].tile_size:g} for point clouds"
 
 
 def add_tiling_options(p: argparse.ArgumentParser, chunks: bool = True) -> None:
