@@ -507,3 +507,16 @@ def test_cli_reads_values_as_fractions_or_by_thresholds(tmp_path, capsys):
     assert "only free known pixels" in capsys.readouterr().err
     assert main(["convert", str(path), "-o", str(tmp_path / "c"), "--occupied-fraction", "1.5", "-q"]) == 1
     assert "--occupied-fraction must be in (0, 1]" in capsys.readouterr().err
+
+
+def test_the_converted_grid_is_the_fitted_maps_and_its_points_answers(wall_result: ConversionResult) -> None:
+    """The conversion's written map, the fitted map's grid and its answers at the cell centres are
+    one: every one of them is held to the pixels (the fitted map is the only code that answers)."""
+    model, written = wall_result.model, wall_result.map
+    again = model.grid(written.grid.resolution, written.grid.extent)
+    p = model.predict_proba(written.grid.centres()).reshape(written.grid.shape)
+    np.testing.assert_allclose(again.probability, p, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(written.probability, p, rtol=0, atol=1e-12)
+    # Held: a wall pixel's centre is occupied, a free pixel's far from it free.
+    occupied = _wall_map().ternary == OCCUPIED
+    assert p[occupied].min() > 0.5 and p[:, :5][3:].max() < 0.5

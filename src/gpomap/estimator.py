@@ -141,7 +141,7 @@ class GPMapEstimator(MapAnswers):
         self._check_fitted()
         pts = self.extent_points_
         return FittedMap(
-            DenseField(self.gp_, self._queries, pts.shape[1], self.chunk_size),
+            self._field(),
             self.evidence_,
             self.thresholds,
             pts.min(axis=0),
@@ -196,6 +196,10 @@ class GPMapEstimator(MapAnswers):
             class_weight=self.class_weight,
             objective_per_input=self.objective_per_input,
         )
+
+    def _field(self) -> DenseField:
+        """The GP under the fitted map (a subclass that answers otherwise gives its own field)."""
+        return DenseField(self.gp_, self._queries, self.extent_points_.shape[1], self.chunk_size)
 
     def make_observations(self, data: Any) -> Observations:
         """Labelled points from scans (this estimator's ``free_step``, ``hit_margin``,

@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import replace
-from typing import Any, Literal, overload
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,7 +17,7 @@ from scipy import ndimage
 from gpomap.cells import Cells
 from gpomap.convert.inputs import CENTRE_NOISE, EDGE_STRIP_PIXELS, grid_cells
 from gpomap.convert.pooling import POOLINGS, PixelReading
-from gpomap.estimator import GPMapEstimator, as_points
+from gpomap.estimator import DenseField, GPMapEstimator
 from gpomap.gp import SupportGP, inverse_diagonal
 from gpomap.observations import Observations
 from gpomap.settings import MapSettings
@@ -291,39 +291,9 @@ class GridGPOM(MapSettings, GPMapEstimator):
         threshold[idx] = t
         return scale, threshold
 
-    @overload
-    def predict_proba(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
-
-    @overload
-    def predict_proba(
-        self, points: NDArray[np.float64], return_var: Literal[True]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    @overload
-    def predict_proba(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    def predict_proba(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Occupancy probability at points: the GP's, held to what each pixel's value says.
-
-        Parameters
-        ----------
-        points : ndarray of shape (m, 2)
-        return_var : bool
-            Also return the GP's latent variance.
-
-        Returns
-        -------
-        probability : ndarray of shape (m,)
-        var : ndarray of shape (m,), only with `return_var`
-        """
-        pts = as_points(points, self.dim_)
-        p, var, k = self._pixel_proba(pts)
-        p = self._held(p, k)
-        return (p, var) if return_var else p
+    def _field(self) -> HeldField:
+        """The GP held to the pixels: every answer of the fitted map (``map_``) is held."""
+        return HeldField(self)
 
     def _held(self, p: NDArray[np.float64], k: NDArray[np.intp]) -> NDArray[np.float64]:
         """Probabilities `p` (shape (m,)) in known pixels `k` (shape (m,), -1: none) held to the pixels.
@@ -413,3 +383,28 @@ def model_defaults(resolution: float) -> dict[str, Any]:
         "length_scale_bounds": (LENGTH_SCALE_BOUNDS_PIXELS[0] * r, LENGTH_SCALE_BOUNDS_PIXELS[1] * r),
         "n_restarts": 0,
     }
+
+
+class HeldField(DenseField):
+    """The conversion's GP as its fitted map asks it (:class:`~gpomap.fitted.LatentField`): its
+    probability in each known pixel squashed at a pixel's variance and held to what the pixel's
+    value says (:meth:`GridGPOM._pixel_proba`, :meth:`GridGPOM._held`); elsewhere the GP's own.
+
+    Parameters
+    ----------
+    model : GridGPOM
+        A fitted conversion.
+    """
+
+    def __init__(self, model: GridGPOM) -> None:
+        super().__init__(model.gp_, model._queries, model.extent_points_.shape[1], model.chunk_size)
+        self._model = model
+
+    def gp_probabilities(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The held probability, the latent variance, and the held probability again (a grid has
+        no unseen space apart), each (m,)."""
+        p, var, k = self._model._pixel_proba(points)
+        p = self._model._held(p, k)
+        return p, var, p
