@@ -169,10 +169,10 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     scans = model._scans
     kept, _ = holdout_stretches(len(scans))
     fixed = dict(model.hyperparameters_)
-    eager = model._like(fit_revisit=False)
+    eager = model._refit().unfitted(fit_revisit=False)
     eager._given_calibration = model.evidence_.calibration
     eager.fit([scans[i] for i in kept], hyperparameters=fixed)
-    lazy = model._like(fit_revisit=False)
+    lazy = model._refit().unfitted(fit_revisit=False)
     lazy._tiles_when_asked = True
     lazy._given_calibration = model.evidence_.calibration
     lazy.fit([scans[i] for i in kept], hyperparameters=fixed)
@@ -186,11 +186,11 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     p_model, _, _ = model._later_visit_points()
     np.testing.assert_array_equal(p_model, p_eager)
     # Without ray counts nothing is predicted while fitting: no tile is fitted until asked.
-    gp = model._like(fit_revisit=False, ray_evidence=False)
+    gp = model._refit().unfitted(fit_revisit=False, ray_evidence=False)
     gp._tiles_when_asked = True
     gp.fit(scans, hyperparameters=fixed)
     assert len(gp.tiles_) == 0
     point = np.array([[6.0, 7.5]])
-    whole = model._like(fit_revisit=False, ray_evidence=False).fit(scans, hyperparameters=fixed)
+    whole = model._refit().unfitted(fit_revisit=False, ray_evidence=False).fit(scans, hyperparameters=fixed)
     np.testing.assert_array_equal(gp.predict_proba(point), whole.predict_proba(point))
     assert 1 <= len(gp.tiles_) <= 4 < len(whole.tiles_)

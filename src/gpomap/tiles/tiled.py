@@ -30,6 +30,7 @@ from gpomap.tiles.geometry import DEFAULT_TILE_SIZE
 from gpomap.tiles.hyperparameters import HyperparameterSearch, given_hyperparameters
 from gpomap.tiles.points import _HeldParts
 from gpomap.tiles.prediction import MapPrediction
+from gpomap.tiles.refit import Refit
 from gpomap.tiles.store import TileStore
 from gpomap.tiles.updates import TileUpdates
 
@@ -316,10 +317,10 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
             centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else self._median_point(obs)
             half, margin = self.block_size_, min(self.overlap_, 0.5 * self.block_size_)
             wider = whole if whole[1] <= 2.0 * half else (centre, 2.0 * half, margin)
-        fixed = {**self.hyperparameters_, "variance_scale": 1.0}
+        refit = self._refit()
 
         def fit_held_in(held: Observations) -> TiledGPOM:
-            return self._gp_like().fit(held, hyperparameters=fixed)
+            return refit.gp(held, variance_scale=1.0)
 
         _, report = fit_variance_scale(
             data,
@@ -356,17 +357,11 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
             return None
         from gpomap.revisit import later_visit_points
 
-        fixed = dict(self.hyperparameters_)
+        refit = self._refit()
+        calibration = None if self.evidence_ is None else self.evidence_.calibration
 
         def fit_rest(scans: list[Any]) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
-            # The same map on the other scans: its tiles, settings and hyperparameters, its own ray
-            # counts with this map's calibration, no recalibration of its own. Asked at a few
-            # points only, it fits the tiles those need when they are asked (the same tiles, so the
-            # same answers).
-            rest = self._like(fit_revisit=False)
-            rest._tiles_when_asked = True
-            rest._given_calibration = None if self.evidence_ is None else self.evidence_.calibration
-            return rest.fit(scans, hyperparameters=fixed).predict_proba
+            return refit.map_proba(scans, calibration)
 
         return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
 
@@ -384,32 +379,28 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         self.evidence_.revisit = fit_revisit(p_later, occupied, sample.probability, sample.occupied)
         return {"slope": self.evidence_.revisit.slope, "shift": self.evidence_.revisit.shift, **report}
 
-    def _like(self, **options: Any) -> TiledGPOM:
-        """An unfitted map with this one's tiles and settings, `options` (of
-        :class:`~gpomap.settings.MapSettings`) changed, on local workers whatever the scheduler."""
-        return TiledGPOM(
-            self.tile_size_,
-            self.overlap,
-            self.blend,
-            self.origin_,
-            n_workers=self.n_workers,
-            hyper_sample=self.hyper_sample,
-            blas_threads=self.blas_threads,
-            worker_processes=self.worker_processes,
-            memory_limit=self.memory_limit,
-            **{**self.options, **options},
-        )
-
-    def _gp_like(self) -> TiledGPOM:
-        """An unfitted map with this one's tiles and settings but no ray evidence (:meth:`_like`):
-        fitted on other data with this map's hyperparameters, it is this map's GP on those data."""
-        return self._like(ray_evidence=False)
+    def _refit(self) -> Refit:
+        """This map's tiles, settings and hyperparameters so far, to fit again on part of its data
+        (:class:`~gpomap.tiles.refit.Refit`), on local workers whatever the scheduler."""
+        tiling = {
+            "tile_size": self.tile_size_,
+            "overlap": self.overlap,
+            "blend": self.blend,
+            "origin": self.origin_,
+            "n_workers": self.n_workers,
+            "hyper_sample": self.hyper_sample,
+            "blas_threads": self.blas_threads,
+            "worker_processes": self.worker_processes,
+            "memory_limit": self.memory_limit,
+        }
+        return Refit(TiledGPOM, tiling, dict(self.options), dict(self.hyperparameters_))
 
     def _gp_apart(self, scans: ScanData) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
         """This map's GP fitted on `scans` alone, its hyperparameters held: its
         :meth:`predict_proba_gp`, which the ray-count calibration fits the surprise rate against
-        (:func:`gpomap.fusion.fit_calibration`)."""
-        return self._gp_like().fit(scans, hyperparameters=dict(self.hyperparameters_)).predict_proba_gp
+        (:func:`gpomap.fusion.fit_calibration`; the evidence layer keeps it for later updates, and
+        a map file saves it as this method)."""
+        return self._refit().gp_proba(scans)
 
     @_blas_shared
     def update(self, scans: Sequence[Scan]) -> TiledGPOM:

@@ -1,0 +1,68 @@
+"""The map fitted again on part of its data: what three of its calibration stages ask.
+
+The variance scale (:mod:`gpomap.extrapolation`) asks the GP of kept stretches of the scans; the
+fitted surprise rate (:func:`gpomap.fusion.fit_surprise_rate`) asks the GP without the
+calibration's held-out scans; the later visit (:mod:`gpomap.revisit`) asks the whole map of the
+other stretches. Each is the same map (its tiles, settings and hyperparameters) fitted on those
+data: :class:`Refit` holds what they share, taken from the fitted map when a stage asks, so no
+stage needs the map itself.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.fusion import EvidenceCalibration
+from gpomap.observations import Observations, ScanData
+
+Predict = Callable[[NDArray[np.float64]], NDArray[np.float64]]
+
+
+@dataclass(frozen=True)
+class Refit:
+    """A fitted map's tiles, settings and hyperparameters, to fit again on other data.
+
+    Parameters
+    ----------
+    make : callable
+        The map's class: ``make(**tiling, **options)`` is an unfitted map.
+    tiling : dict
+        Its tiling arguments as fitted (the tile side and origin the fit chose), on local workers.
+    options : dict
+        Its map settings (:class:`~gpomap.settings.MapSettings` options) as given.
+    hyperparameters : dict
+        Its hyperparameters as fitted so far, held in every refit.
+    """
+
+    make: Callable[..., Any]
+    tiling: dict[str, Any]
+    options: dict[str, Any]
+    hyperparameters: dict[str, float]
+
+    def unfitted(self, **changes: Any) -> Any:
+        """An unfitted map with these tiles and settings, `changes` (MapSettings options) applied."""
+        return self.make(**self.tiling, **{**self.options, **changes})
+
+    def gp(self, data: ScanData | Observations, **hyperparameters: float) -> Any:
+        """The map's GP alone (no ray evidence) fitted on `data`, the hyperparameters held
+        (`hyperparameters` given here replacing theirs): this map's GP had it seen only `data`."""
+        return self.unfitted(ray_evidence=False).fit(data, hyperparameters={**self.hyperparameters, **hyperparameters})
+
+    def gp_proba(self, scans: ScanData) -> Predict:
+        """The GP's probability (before ray evidence) of the map fitted on `scans` alone."""
+        return self.gp(scans).predict_proba_gp
+
+    def map_proba(self, scans: ScanData, calibration: EvidenceCalibration | None) -> Predict:
+        """The probability of the whole map fitted on `scans` alone, with its own ray counts
+        calibrated as `calibration` says and no later-visit recalibration of its own. Asked at a
+        few points, it fits only the tiles they need, when they are asked (the same tiles, so the
+        same answers)."""
+        rest = self.unfitted(fit_revisit=False)
+        rest._tiles_when_asked = True
+        rest._given_calibration = calibration
+        return rest.fit(scans, hyperparameters=dict(self.hyperparameters)).predict_proba
