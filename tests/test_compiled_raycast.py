@@ -121,3 +121,24 @@ def test_compiled_free_samples_equal_numpys(dim: int, monkeypatch: pytest.Monkey
         for a, b in zip(got[False], got[True], strict=True):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(a, b)
+
+
+def test_compiled_voxel_index_equals_numpys(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Inside, outside, on voxel faces and corners, non-finite.
+    spec = VoxelSpec.from_extent(np.array([-3.0, -2.5, -1.0]), np.array([4.0, 5.0, 3.0]), 0.1)
+    rng = np.random.default_rng(11)
+    p = rng.uniform(-5, 6, (20_000, 3))
+    p[:5] = np.nan
+    p[5:10, 1] = np.inf
+    p[10:20, 2] = -np.inf
+    p[20:200] = np.round(p[20:200] / 0.1) * 0.1
+    p[200:210] = spec.lower
+    p[210:220] = spec.upper
+    got = {}
+    for compiled in (False, True):
+        monkeypatch.setattr(_compiled_raycast, "ENABLED", compiled)
+        got[compiled] = spec.index_of(p)
+    assert 0 < got[True][3].sum() < p.shape[0]
+    for a, b in zip(got[False], got[True], strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)

@@ -4,8 +4,10 @@ The numpy path settles most free samples with a distance transform over a lattic
 asks a k-d tree about the band it leaves; in 3-D that band is most of the samples, and for a
 single scan the lattice spans the scan's whole reach (figures: docs/choices.md, "Measured for
 the code"). Here the hits are
-filed by boxes, each with the bounding box of its hits, and one compiled pass asks each free
-sample about the boxes round it, stopping at the first hit within the clearance. The answer is
+filed by boxes, each with the bounding box of its hits; each box is given the list of the boxes
+round it that hold hits (nearest first), and one compiled pass asks each free sample about those
+of its own box, stopping at the first hit within the clearance (most samples, far from any
+surface, have none to ask). The answer is
 the numpy path's exactly (``tests/test_clearance.py`` checks both against brute force).
 
 ``ENABLED``: :func:`gpomap.observations.free_near_hits` takes this path (read at each call;
@@ -19,7 +21,6 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.ndimage import maximum_filter
 
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
 from gpomap.lattice import box_index, box_shape, column_bounds
@@ -45,6 +46,49 @@ BOXES_PER_CLEARANCE: int = 2
 
 
 @jit(cache=True, nogil=True)
+def _boxes_around(
+    per_box: NDArray[np.int64], shape: NDArray[np.int64], steps: NDArray[np.int64], pad: int
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:  # pragma: no cover - compiled
+    """For each box a sample can fall in (`pad` boxes from the lattice's faces), the boxes among
+    those `steps` away that hold hits, in the steps' order: where each box's list starts (one
+    past the last box's end at the end) and the lists, flat indices."""
+    dim = shape.shape[0]
+    n_boxes = per_box.shape[0]
+    offset = np.zeros(steps.shape[0], dtype=np.int64)
+    for s in range(steps.shape[0]):
+        for a in range(dim):
+            offset[s] = offset[s] * shape[a] + steps[s, a]
+    # Which boxes samples can fall in: `pad` boxes or more from every face.
+    interior = np.ones(n_boxes, dtype=np.bool_)
+    for b in range(n_boxes):
+        rest = b
+        for a in range(dim - 1, -1, -1):
+            i = rest % shape[a]
+            rest //= shape[a]
+            if i < pad or i > shape[a] - 1 - pad:
+                interior[b] = False
+    count = np.zeros(n_boxes + 1, dtype=np.int64)
+    total = 0
+    for b in range(n_boxes):
+        count[b] = total
+        if interior[b]:
+            for s in range(steps.shape[0]):
+                if per_box[b + offset[s]] > 0:
+                    total += 1
+    count[n_boxes] = total
+    around = np.empty(total, dtype=np.int64)
+    for b in range(n_boxes):
+        q = count[b]
+        if interior[b]:
+            for s in range(steps.shape[0]):
+                c = b + offset[s]
+                if per_box[c] > 0:
+                    around[q] = c
+                    q += 1
+    return count, around
+
+
+@jit(cache=True, nogil=True)
 def _mark_near(
     free_points: NDArray[np.float64],
     hit_points: NDArray[np.float64],
@@ -54,14 +98,13 @@ def _mark_near(
     lo: NDArray[np.float64],
     scale: float,
     shape: NDArray[np.int64],
-    steps: NDArray[np.int64],
     pad: int,
     clearance: float,
-    hits_around: NDArray[np.bool_],
+    around_start: NDArray[np.int64],
+    around: NDArray[np.int64],
     out: NDArray[np.bool_],
 ) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
     n, dim = free_points.shape
-    index = np.empty(dim, dtype=np.int64)
     c2 = clearance * clearance
     # The bounds are widened a little so that rounding never decides a box wrongly.
     skip_beyond = c2 * (1.0 + 1e-9)
@@ -69,20 +112,13 @@ def _mark_near(
     for i in range(n):
         own = np.int64(0)
         for a in range(dim):
-            index[a] = min(np.int64((free_points[i, a] - lo[a]) * scale) + pad, shape[a] - 1 - pad)
-            own = own * shape[a] + index[a]
+            own = own * shape[a] + min(np.int64((free_points[i, a] - lo[a]) * scale) + pad, shape[a] - 1 - pad)
         found = False
-        if not hits_around[own]:
-            # No box round the sample's holds a hit: most samples, far from any surface.
-            out[i] = False
-            continue
-        for s in range(steps.shape[0]):
-            c = np.int64(0)
-            for a in range(dim):
-                c = c * shape[a] + index[a] + steps[s, a]
+        # Only the boxes round the sample's that hold hits (none for most samples, far from any
+        # surface), nearest first.
+        for q in range(around_start[own], around_start[own + 1]):
+            c = around[q]
             j0, j1 = starts[c], starts[c + 1]
-            if j0 == j1:
-                continue
             # The box's hits lie in their bounding box (kept at the box's first hit): none is
             # near if it is a clearance away, all are if its farthest corner is nearer.
             near2 = 0.0
@@ -158,8 +194,9 @@ def near_hits(
         hits_hi[first, j] = np.maximum.reduceat(hits[:, j], first)
     # The sample's own box first: most samples near a hit find it there.
     steps = sorted(itertools.product(range(-pad, pad + 1), repeat=dim), key=lambda s: sum(map(abs, s)))
-    # Which boxes have a box with hits among the (2 pad + 1)^d round them (themselves included).
-    hits_around = maximum_filter((per_box > 0).reshape(shape), size=2 * pad + 1, mode="constant", cval=False).reshape(-1)
+    around_start, around = _boxes_around(
+        per_box.astype(np.int64), np.array(shape, dtype=np.int64), np.array(steps, dtype=np.int64), pad
+    )
     out = np.zeros(free_points.shape[0], dtype=bool)
     _mark_near(
         np.ascontiguousarray(free_points, dtype=float),
@@ -170,10 +207,10 @@ def near_hits(
         lo,
         scale,
         np.array(shape, dtype=np.int64),
-        np.array(steps, dtype=np.int64),
         pad,
         float(clearance),
-        hits_around,
+        around_start,
+        around,
         out,
     )
     return out

@@ -251,3 +251,52 @@ def free_samples(
     ray = np.empty(total, dtype=np.intp)
     _samples(origins, np.ascontiguousarray(directions, dtype=np.float64), counts, float(step), points, ray)
     return points, ray
+
+
+@jit(cache=True, nogil=True)
+def _voxel_index(
+    points: NDArray[np.float64],
+    lower: NDArray[np.float64],
+    resolution: float,
+    size: NDArray[np.int64],
+    k: NDArray[np.intp],
+    j: NDArray[np.intp],
+    i: NDArray[np.intp],
+    inside: NDArray[np.bool_],
+) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+    cell = np.empty(3, dtype=np.intp)
+    for q in range(points.shape[0]):
+        ok = True
+        for a in range(3):
+            f = np.floor((points[q, a] - lower[a]) / resolution)
+            if not np.isfinite(f):
+                ok = False
+                f = 0.0
+            elif not (f >= 0 and f < size[a]):
+                ok = False
+            cell[a] = np.intp(min(max(f, 0.0), np.float64(size[a] - 1)))
+        i[q], j[q], k[q] = cell[0], cell[1], cell[2]
+        inside[q] = ok
+
+
+def voxel_index(
+    points: NDArray[np.float64], lower: NDArray[np.float64], resolution: float, shape: tuple[int, int, int]
+) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp], NDArray[np.bool_]]:
+    """:meth:`gpomap.voxels.VoxelSpec.index_of` compiled: the voxel ``k, j, i`` of each point
+    (n, 3) (clipped to the grid) and whether it is inside, the same floors of the same quotients,
+    without the numpy path's (n, 3) temporaries."""
+    n = points.shape[0]
+    k, j, i = (np.empty(n, dtype=np.intp) for _ in range(3))
+    inside = np.empty(n, dtype=np.bool_)
+    nz, ny, nx = shape
+    _voxel_index(
+        np.ascontiguousarray(points, dtype=np.float64),
+        np.asarray(lower, dtype=np.float64),
+        float(resolution),
+        np.array([nx, ny, nz], dtype=np.int64),
+        k,
+        j,
+        i,
+        inside,
+    )
+    return k, j, i, inside

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from gpomap import _compiled_raycast
 from gpomap.grid import DEFAULT_THRESHOLDS, ternary
 
 __all__ = ["VoxelSpec", "VoxelMap"]
@@ -119,6 +120,8 @@ class VoxelSpec:
         Indices of points outside the grid (or non-finite) are clipped to it; use `inside`.
         """
         p = np.asarray(points, dtype=float).reshape(-1, 3)
+        if _compiled_raycast.ENABLED:
+            return _compiled_raycast.voxel_index(p, self.lower, self.resolution, self.shape)
         with np.errstate(invalid="ignore"):
             f = np.floor((p - self.lower) / self.resolution)
         nz, ny, nx = self.shape
