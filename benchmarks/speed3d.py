@@ -253,7 +253,12 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     threads = os.environ.get("OMP_NUM_THREADS", "unset")
     extra = " ".join(args.option)
-    print(f"# 3-D: gpomap map against OctoMap's insertion (commit {commit}, {os.cpu_count()} CPUs, OMP_NUM_THREADS {threads})")
+    import gpomap
+
+    print(
+        f"# 3-D: gpomap map against OctoMap's insertion (commit {commit}, gpomap from {Path(gpomap.__file__).parent}, "
+        f"{os.cpu_count()} CPUs, OMP_NUM_THREADS {threads})"
+    )
     results = []
     with tempfile.TemporaryDirectory(prefix="gpomap-speed3d-") as tmp:
         scratch = Path(tmp)
