@@ -7,6 +7,7 @@ import pytest
 from scipy.special import erf
 
 from gpomap.kernels import AreaKernel, Matern32, SquaredExponential
+from gpomap.kernels import box_points as bp
 from gpomap.kernels import closed_form as cf
 from gpomap.supports import Supports
 
@@ -31,17 +32,17 @@ def test_box_point_average_is_the_box_average_bit_for_bit(dim, grid, thin):
     lower, upper = _boxes(rng, 200, dim, thin)
     points = _points(rng, 300, dim, grid)
     reference, _ = cf.se_box_average(lower, upper, points, points, 1.3, 0.37)
-    np.testing.assert_array_equal(cf.se_box_point_average(lower, upper, points, 1.3, 0.37), reference)
+    np.testing.assert_array_equal(bp.se_box_point_average(lower, upper, points, 1.3, 0.37), reference)
 
 
 def test_box_point_average_by_hand():
     # A point at the centre of [-a, a]: (1 / 2a) * integral of exp(-s^2 / 2 l^2) = l sqrt(pi / 2) erf(a / (sqrt(2) l)) / a.
     a, l = 0.4, 0.3
     expected = l * np.sqrt(np.pi / 2) * erf(a / (np.sqrt(2) * l)) / a
-    K = cf.se_box_point_average(np.array([[-a]]), np.array([[a]]), np.array([[0.0]]), 1.0, l)
+    K = bp.se_box_point_average(np.array([[-a]]), np.array([[a]]), np.array([[0.0]]), 1.0, l)
     assert K[0, 0] == pytest.approx(expected, rel=1e-14)
     # A zero-width box is the point kernel.
-    K = cf.se_box_point_average(np.array([[0.5, 1.0]]), np.array([[0.5, 1.0]]), np.array([[0.2, 1.4]]), 2.0, l)
+    K = bp.se_box_point_average(np.array([[0.5, 1.0]]), np.array([[0.5, 1.0]]), np.array([[0.2, 1.4]]), 2.0, l)
     assert K[0, 0] == pytest.approx(2.0 * np.exp(-(0.3**2 + 0.4**2) / (2 * l * l)), rel=1e-14)
 
 
@@ -52,7 +53,7 @@ def test_box_point_average_matches_brute_force_integration():
     lower = rng.uniform(0.0, 2.0, (5, 2))
     upper = lower + rng.uniform(0.05, 1.2, (5, 2))
     points = rng.uniform(-0.5, 3.0, (6, 2))
-    K = cf.se_box_point_average(lower, upper, points, variance, l)
+    K = bp.se_box_point_average(lower, upper, points, variance, l)
     n = 400
     t = (np.arange(n) + 0.5) / n
     for i in range(5):
@@ -67,19 +68,19 @@ def test_box_point_average_matches_brute_force_integration():
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("grid", [False, True], ids=["scattered", "grid"])
-@pytest.mark.parametrize("table_limit", [cf.MAX_FACTOR_TABLE, 0], ids=["tabled", "per-block"])
+@pytest.mark.parametrize("table_limit", [bp.MAX_FACTOR_TABLE, 0], ids=["tabled", "per-block"])
 @pytest.mark.parametrize("thin", [True, False], ids=["thin-sides", "intervals"])
 def test_box_point_factors_blocks_are_the_box_point_average(dim, grid, table_limit, thin, monkeypatch):
-    monkeypatch.setattr(cf, "MAX_FACTOR_TABLE", table_limit)
+    monkeypatch.setattr(bp, "MAX_FACTOR_TABLE", table_limit)
     rng = np.random.default_rng(10 + dim)
     lower, upper = _boxes(rng, 250, dim, thin)
     points = _points(rng, 400, dim, grid)
-    factors = cf.BoxPointFactors(lower, upper, points, 0.8, 0.3)
+    factors = bp.BoxPointFactors(lower, upper, points, 0.8, 0.3)
     assert all((table is not None) == (grid and table_limit > 0) for *_, table, _ in factors.axes)
     for _ in range(3):
         rows = np.sort(rng.choice(250, 90, replace=False))
         cols = rng.choice(400, 120, replace=False)
-        expected = cf.se_box_point_average(lower[rows], upper[rows], points[cols], 0.8, 0.3)
+        expected = bp.se_box_point_average(lower[rows], upper[rows], points[cols], 0.8, 0.3)
         np.testing.assert_array_equal(factors.block(rows, cols), expected)
 
 

@@ -85,7 +85,7 @@ def _predict_on(
     ix, iy = np.flatnonzero(near_x), np.flatnonzero(near_y)
     if ix.size and iy.size:
         # The local prediction's blocks of the exact SE kernel table its factors once per grid
-        # row and column (gpomap.kernels.closed_form.BoxPointFactors).
+        # row and column (gpomap.kernels.box_points.BoxPointFactors).
         xx, yy = np.meshgrid(xs[ix], ys[iy])
         p, v = model.predict_proba(np.column_stack([xx.ravel(), yy.ravel()]), return_var=True)
         prob[np.ix_(iy, ix)] = p.reshape(iy.size, ix.size)

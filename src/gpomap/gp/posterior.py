@@ -19,7 +19,8 @@ from gpomap import _compiled_local
 from gpomap.config import MapConfig
 from gpomap.gp.linalg import cholesky_inverse, lower_product, triangular_inverse_for
 from gpomap.kernels.area import AreaKernel
-from gpomap.kernels.closed_form import POINT_WIDTH, BoxPointFactors
+from gpomap.kernels.box_points import BoxPointFactors
+from gpomap.kernels.closed_form import POINT_WIDTH
 from gpomap.lattice import column_bounds, stable_order
 from gpomap.squash import ProbitSquash
 from gpomap.supports import Supports

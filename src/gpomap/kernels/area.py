@@ -22,7 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.config import MapConfig
-from gpomap.kernels.closed_form import BoxPointFactors, se_box_average, se_box_gram, se_box_point_average, se_box_self_average
+from gpomap.kernels.box_points import BoxPointFactors, se_box_point_average
+from gpomap.kernels.closed_form import se_box_average, se_box_gram, se_box_self_average
 from gpomap.kernels.nodes import NodeSet, member_nodes, quadrature_nodes, weighted_gram, weighted_self
 from gpomap.kernels.point import PointKernel, SquaredExponential, make_point_kernel
 from gpomap.kernels.tensor import TensorDistances, tensor_distances, tensor_gram, tensor_gram_length_scale, tensor_self
@@ -231,7 +232,7 @@ class AreaKernel:
         ``point_blocks(A, points).block(rows, cols)`` is ``self(A', P')`` for the inputs
         ``A.lower[rows]``, ``A.upper[rows]`` (counts, no members) and the points ``points[cols]``,
         the same numbers; the exact kernel does the work common to all blocks once
-        (:class:`~gpomap.kernels.closed_form.BoxPointFactors`).
+        (:class:`~gpomap.kernels.box_points.BoxPointFactors`).
 
         Parameters
         ----------
