@@ -9,6 +9,7 @@ from gpomap import revisit as rv
 from gpomap.grid import CALIBRATED_THRESHOLDS
 from gpomap.heldout import calibration_points, holdout_stretches
 from gpomap.mapping import AreaGPOM
+from gpomap.observations import natural_subsample
 from gpomap.simulate import paper_room, simulate_scans
 
 
@@ -108,6 +109,21 @@ def test_later_visit_points_are_a_held_out_stretch_predicted_by_a_map_of_the_res
     label = {tuple(np.round(q, 9)): o for q, o in zip(pts, occ)}
     assert [label[tuple(np.round(q, 9))] for q in asked["points"]] == occupied.tolist()
     np.testing.assert_array_equal(p, np.linspace(0.1, 0.9, rv.POINTS))
+
+
+@pytest.mark.parametrize("memory", [0, 200_000, 1 << 40], ids=["made-again", "part-kept", "all-kept"])
+def test_the_points_drawn_a_scan_at_a_time_are_those_drawn_from_all(memory):
+    """Whether a scan's points are kept from the counting pass or made again, the draw is the
+    uniform draw from every held-out point concatenated in scan order."""
+    scans = _tour(rv.MIN_SCANS)
+    _, held = holdout_stretches(len(scans))
+    parts = [calibration_points(scans[i], no_return_cap=10.0) for i in held]
+    pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
+    keep = natural_subsample(occ.size, rv.POINTS, 3)
+    drawn = rv.drawn_points([scans[i] for i in held], 10.0, 3, memory=memory)
+    assert drawn is not None
+    np.testing.assert_array_equal(drawn[0], pts[keep])
+    np.testing.assert_array_equal(drawn[1], occ[keep])
 
 
 def test_short_logs_keep_the_identity():

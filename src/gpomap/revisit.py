@@ -38,6 +38,7 @@ from scipy.special import expit, log_expit, logit
 from gpomap.config import PROFILES, MapConfig
 from gpomap.heldout import calibration_points, holdout_stretches
 from gpomap.observations import data_dim, natural_subsample
+from gpomap.resources import POINT_MEMORY
 
 #: Width, in log-odds, of the band round 1/2 that the shift leaves alone (at logit p = +-WIDTH the
 #: shift is 39 % of its full value, at +-2 WIDTH 86 %).
@@ -179,10 +180,59 @@ def later_visit_points(
     if len(scans) < MIN_SCANS or not FIT_REVISIT.get(data_dim(scans), False):
         return *none, {"reason": f"{len(scans)} scans (fewer than {MIN_SCANS}) or not planar"}
     kept, held = holdout_stretches(len(scans))
-    parts = [calibration_points(scans[k], no_return_cap=no_return_cap) for k in held]
-    pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
-    if occ.all() or not occ.any():
+    drawn = drawn_points([scans[k] for k in held], no_return_cap, seed)
+    if drawn is None:
         return *none, {"reason": "the held-out stretch has no point of a class"}
-    keep = natural_subsample(occ.size, POINTS, seed)
-    pts, occ = pts[keep], occ[keep]
+    pts, occ = drawn
     return np.asarray(fit_rest([scans[i] for i in kept])(pts), dtype=float), occ, {"n_points": int(occ.size)}
+
+
+def drawn_points(
+    scans: Sequence[Any], no_return_cap: float | None, seed: int, memory: int = POINT_MEMORY
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]] | None:
+    """At most :data:`POINTS` of the scans' calibration points (:func:`gpomap.heldout.calibration_points`),
+    drawn uniformly (:func:`~gpomap.observations.natural_subsample`) from them all in scan order.
+
+    The points are made a scan at a time and kept while they take at most `memory` bytes; past
+    that a scan's are counted and let go, and made again for the few drawn from it, so a long
+    stretch's points (gigabytes over a building) are never all in memory. The points drawn are
+    the same either way.
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+    no_return_cap : float or None
+        As the map's.
+    seed : int
+        Seeds the draw.
+    memory : int
+        Bytes of points kept from the first pass.
+
+    Returns
+    -------
+    (points, occupied) : ndarray of shape (n, d) and bool ndarray of shape (n,), or None
+        None when the scans hold no point of one class.
+    """
+    sizes, n_occupied, kept_bytes = [], 0, 0
+    parts: list[tuple[NDArray[np.float64], NDArray[np.bool_]] | None] = []
+    for scan in scans:
+        points, occupied = calibration_points(scan, no_return_cap=no_return_cap)
+        sizes.append(occupied.size)
+        n_occupied += int(occupied.sum())
+        kept_bytes += points.nbytes + occupied.nbytes
+        parts.append((points, occupied) if kept_bytes <= memory else None)
+    total = sum(sizes)
+    if n_occupied in (0, total):
+        return None
+    keep = natural_subsample(total, POINTS, seed)  # sorted
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    picked_points, picked_occupied = [], []
+    for scan, part, start, stop in zip(scans, parts, starts[:-1], starts[1:], strict=True):
+        lo, hi = np.searchsorted(keep, [start, stop])
+        if lo == hi:
+            continue
+        points, occupied = part if part is not None else calibration_points(scan, no_return_cap=no_return_cap)
+        local = keep[lo:hi] - start
+        picked_points.append(points[local])
+        picked_occupied.append(occupied[local])
+    return np.concatenate(picked_points), np.concatenate(picked_occupied)
