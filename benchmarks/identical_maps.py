@@ -39,6 +39,7 @@ LOGS: dict[str, tuple[Path, list[str]]] = {
     # 3-D inputs, at the voxel maps' defaults: a point cloud directory and depth frames.
     "sim_structured": (DATA / "la3dm-sim" / "sim_structured", ["--max-range", "8"]),
     "3dmatch-stride4": (DATA / "3dmatch", ["--stride", "4"]),
+    "3dmatch": (DATA / "3dmatch", []),  # every pixel: 1.3 M rays, a minute or two
 }
 DEFAULT_LOGS = "intel,stage-arena"
 

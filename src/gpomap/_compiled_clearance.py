@@ -37,54 +37,67 @@ ENABLED: bool = compiled_by_default()
 #: clearance of a sample is in a neighbouring box despite the rounding of box indices.
 SIDE_MARGIN: float = 1e-6
 
-#: Boxes per clearance. A box's hits are skipped at once when their bounding box is a clearance
-#: away, and taken at once when its farthest corner is nearer, so only samples at about a
-#: clearance from a box's hits read them one by one; smaller boxes leave fewer such reads but
-#: more boxes to look up. Two was the fastest or near it on planar blocks, planar logs, 3-D
-#: scans and single scans (timings of 1, 2 and 3: docs/choices.md, "Measured for the code").
-BOXES_PER_CLEARANCE: int = 2
+#: Boxes per clearance: the coarsest, and finer ones taken where the hits are dense. A box's hits
+#: are skipped at once when their bounding box is a clearance away, and taken at once when its
+#: farthest corner is nearer, so only samples at about a clearance from a box's hits read them
+#: one by one; smaller boxes leave fewer such reads but more boxes round each sample, and more
+#: boxes to file. Two was the fastest or near it on planar blocks, planar logs, 3-D scans and
+#: single scans (timings of 1, 2 and 3: docs/choices.md, "Measured for the code"); with only the
+#: boxes that hold hits asked, finer boxes pay where a box of two per clearance holds more than
+#: :data:`DENSE_HITS` hits on average: 3DMatch's frames at every pixel (docs/benchmarks.md,
+#: "3-D against OctoMap").
+BOXES_PER_CLEARANCE: tuple[int, ...] = (2, 3, 4)
+
+#: Hits per box (of the coarsest boxes that hold any, on average) above which finer boxes are
+#: taken: a surface's hits per box fall with the square of the boxes' side.
+DENSE_HITS: float = 100.0
 
 
 @jit(cache=True, nogil=True)
 def _boxes_around(
-    per_box: NDArray[np.int64], shape: NDArray[np.int64], steps: NDArray[np.int64], pad: int
+    hit_boxes: NDArray[np.int64], n_boxes: int, shape: NDArray[np.int64], steps: NDArray[np.int64], pad: int
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:  # pragma: no cover - compiled
-    """For each box a sample can fall in (`pad` boxes from the lattice's faces), the boxes among
-    those `steps` away that hold hits, in the steps' order: where each box's list starts (one
-    past the last box's end at the end) and the lists, flat indices."""
+    """For each box a sample can fall in (`pad` boxes or more from the lattice's faces), the boxes
+    `steps` away from it that hold hits (`hit_boxes`, flat indices), in the steps' order: where
+    each box's list starts (the end of the last one at the end), and the lists."""
     dim = shape.shape[0]
-    n_boxes = per_box.shape[0]
     offset = np.zeros(steps.shape[0], dtype=np.int64)
     for s in range(steps.shape[0]):
         for a in range(dim):
             offset[s] = offset[s] * shape[a] + steps[s, a]
-    # Which boxes samples can fall in: `pad` boxes or more from every face.
-    interior = np.ones(n_boxes, dtype=np.bool_)
-    for b in range(n_boxes):
-        rest = b
+    index = np.empty((hit_boxes.shape[0], dim), dtype=np.int64)
+    for h in range(hit_boxes.shape[0]):
+        rest = hit_boxes[h]
         for a in range(dim - 1, -1, -1):
-            i = rest % shape[a]
+            index[h, a] = rest % shape[a]
             rest //= shape[a]
-            if i < pad or i > shape[a] - 1 - pad:
-                interior[b] = False
+    # Each hit box is in the list of every box a step from it where samples can fall; step by
+    # step, so that every list comes out in the steps' order.
     count = np.zeros(n_boxes + 1, dtype=np.int64)
-    total = 0
-    for b in range(n_boxes):
-        count[b] = total
-        if interior[b]:
-            for s in range(steps.shape[0]):
-                if per_box[b + offset[s]] > 0:
-                    total += 1
-    count[n_boxes] = total
-    around = np.empty(total, dtype=np.int64)
-    for b in range(n_boxes):
-        q = count[b]
-        if interior[b]:
-            for s in range(steps.shape[0]):
-                c = b + offset[s]
-                if per_box[c] > 0:
-                    around[q] = c
-                    q += 1
+    for rep in range(2):
+        if rep == 1:
+            total = 0
+            for b in range(n_boxes):
+                c = count[b]
+                count[b] = total
+                total += c
+            count[n_boxes] = total
+            fill = count[:-1].copy()
+            around = np.empty(total, dtype=np.int64)
+        for s in range(steps.shape[0]):
+            for h in range(hit_boxes.shape[0]):
+                interior = True
+                for a in range(dim):
+                    i = index[h, a] - steps[s, a]
+                    if i < pad or i > shape[a] - 1 - pad:
+                        interior = False
+                if interior:
+                    b = hit_boxes[h] - offset[s]
+                    if rep == 0:
+                        count[b] += 1
+                    else:
+                        around[fill[b]] = hit_boxes[h]
+                        fill[b] += 1
     return count, around
 
 
@@ -162,8 +175,9 @@ def near_hits(
     clearance : float
         Metres, > 0.
     max_boxes : int
-        Most boxes (of side ``clearance / BOXES_PER_CLEARANCE``) over the points' bounding box:
-        the table of where each box's hits start holds 8 bytes per box.
+        Most boxes (of side ``clearance / k``, k of :data:`BOXES_PER_CLEARANCE`) over the
+        points' bounding box: the tables of where each box's hits and list start hold 16 bytes
+        per box.
 
     Returns
     -------
@@ -173,15 +187,31 @@ def near_hits(
     dim = free_points.shape[1]
     (free_lo, free_hi), (hit_lo, hit_hi) = column_bounds(free_points), column_bounds(hit_points)
     lo, hi = np.minimum(free_lo, hit_lo).astype(float), np.maximum(free_hi, hit_hi).astype(float)
-    # Boxes per metre: BOXES_PER_CLEARANCE boxes a clearance, a little wider (SIDE_MARGIN).
-    scale = BOXES_PER_CLEARANCE / (clearance * (1.0 + SIDE_MARGIN))
-    # Empty boxes on either side of the occupied ones, so every neighbour of a box exists.
-    pad = BOXES_PER_CLEARANCE
-    shape = box_shape(lo, hi, scale, pad)
+    # Boxes per metre: so many boxes a clearance, a little wider (SIDE_MARGIN); empty boxes on
+    # either side of the occupied ones, so every neighbour of a box exists.
+    coarsest = BOXES_PER_CLEARANCE[0]
+    scale = coarsest / (clearance * (1.0 + SIDE_MARGIN))
+    shape = box_shape(lo, hi, scale, coarsest)
     if math.prod(shape) > max_boxes:
         return None
+    pad = coarsest
     hit_box = box_index(hit_points, lo, scale, shape, pad)
     per_box = np.bincount(hit_box, minlength=math.prod(shape))
+    # Finer boxes while a box that holds hits would hold more than DENSE_HITS on average (a
+    # surface's hits per box fall with the square of the side) and the lattice fits the budget.
+    dense = hit_points.shape[0] / max(int(np.count_nonzero(per_box)), 1)
+    per_clearance = coarsest
+    for finer in BOXES_PER_CLEARANCE[1:]:
+        if dense * (coarsest / per_clearance) ** (dim - 1) <= DENSE_HITS:
+            break
+        finer_scale = finer / (clearance * (1.0 + SIDE_MARGIN))
+        finer_shape = box_shape(lo, hi, finer_scale, finer)
+        if math.prod(finer_shape) > max_boxes:
+            break
+        per_clearance, scale, shape, pad = finer, finer_scale, finer_shape, finer
+    if per_clearance != coarsest:
+        hit_box = box_index(hit_points, lo, scale, shape, pad)
+        per_box = np.bincount(hit_box, minlength=math.prod(shape))
     order = np.argsort(hit_box, kind="stable")
     starts = np.zeros(math.prod(shape) + 1, dtype=np.int64)
     np.cumsum(per_box, out=starts[1:])
@@ -195,7 +225,11 @@ def near_hits(
     # The sample's own box first: most samples near a hit find it there.
     steps = sorted(itertools.product(range(-pad, pad + 1), repeat=dim), key=lambda s: sum(map(abs, s)))
     around_start, around = _boxes_around(
-        per_box.astype(np.int64), np.array(shape, dtype=np.int64), np.array(steps, dtype=np.int64), pad
+        np.flatnonzero(per_box).astype(np.int64),
+        math.prod(shape),
+        np.array(shape, dtype=np.int64),
+        np.array(steps, dtype=np.int64),
+        pad,
     )
     out = np.zeros(free_points.shape[0], dtype=bool)
     _mark_near(
