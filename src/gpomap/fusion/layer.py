@@ -42,7 +42,7 @@ from gpomap.lattice import (
     overlap,
 )
 from gpomap.observations import ScanData, data_dim
-from gpomap.revisit import RevisitCalibration
+from gpomap.revisit import RevisitCalibration, fit_revisit
 from gpomap.scans import Scan
 
 #: Whether the ternary map, per dimension of the data, never calls occupied a cell no beam ended in
@@ -281,6 +281,24 @@ class EvidenceLayer:
             arr = np.zeros(grown.shape, dtype=getattr(self, name).dtype)
             arr[block] = getattr(self, name)
             setattr(self, name, arr)
+
+    def fit_revisit(self, p_later: NDArray[np.float64], occupied_later: NDArray[np.bool_]) -> RevisitCalibration:
+        """Fit the later visit's recalibration (:func:`gpomap.revisit.fit_revisit`) on a held-out
+        stretch's points, as the map fitted without them gave them, and on this calibration's own
+        sample, half each; it is then applied to every probability this layer gives.
+
+        Parameters
+        ----------
+        p_later : ndarray of shape (m,)
+            The map of the other stretches' probability at the held-out stretch's points.
+        occupied_later : ndarray of bool, shape (m,)
+
+        Returns
+        -------
+        RevisitCalibration
+        """
+        self.revisit = fit_revisit(p_later, occupied_later, self.sample.probability, self.sample.occupied)
+        return self.revisit
 
     def recalibrate(self, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]) -> None:
         """Refit the calibration's five weights and surprise rate on the scans counted so far (see :func:`fit_calibration`).

@@ -370,14 +370,11 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         on the `later` points and the calibration's own; its report."""
         if later is None or self.evidence_ is None:
             return {"reason": "off" if not self.base.fit_revisit else "no ray evidence"}
-        from gpomap.revisit import fit_revisit
-
         p_later, occupied, report = later
         if "reason" in report:
             return report
-        sample = self.evidence_.sample
-        self.evidence_.revisit = fit_revisit(p_later, occupied, sample.probability, sample.occupied)
-        return {"slope": self.evidence_.revisit.slope, "shift": self.evidence_.revisit.shift, **report}
+        revisit = self.evidence_.fit_revisit(p_later, occupied)
+        return {"slope": revisit.slope, "shift": revisit.shift, **report}
 
     def _refit(self) -> Refit:
         """This map's tiles, settings and hyperparameters so far, to fit again on part of its data
