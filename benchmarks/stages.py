@@ -15,15 +15,11 @@ is held at the value that leaves the map as it was without it). Run from the rep
 
     .venv/bin/python benchmarks/stages.py                       # every stage, every dataset
     .venv/bin/python benchmarks/stages.py --stages base,revisit --datasets cave,intel:blocks
-
-A row whose description starts with "+" is a variant switched on instead (a candidate default),
-compared with ``base`` in the same run.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import importlib
 import json
 import subprocess
@@ -60,22 +56,6 @@ STAGES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
         {"gpomap.fusion.calibration.CALIBRATION_BOUNDS": "fixed"},
         {},
     ),
-    # A variant, not a stage switched off: measured against base in the same run.
-    "prior_decay": (
-        "+ the GP's weight falling with the cell's counts, n0 / (1 + c n), c fitted with the weights",
-        {"gpomap.fusion.calibration.FIT_PRIOR_DECAY": {2: True, 3: True}},
-        {},
-    ),
-    "cell_points": (
-        "+ the calibration's points each held-out scan's once per cell and class, as a plan's pixels",
-        {"gpomap.fusion.calibration.ONE_POINT_PER_CELL": {2: True, 3: True}},
-        {},
-    ),
-    "prior_floor": (
-        "+ the GP's weight searched down to 0.001 observations (its floor 0.1 otherwise)",
-        {"gpomap.fusion.calibration.CALIBRATION_BOUNDS": "prior_floor"},
-        {},
-    ),
 }
 TRUTH_WORLDS = ("stage-arena", "cave", "hospital_section", "room")
 HELD_OUT = ("intel:blocks", "intel:every", "fr079:blocks", "csail:blocks", "belgioioso:blocks")
@@ -86,9 +66,7 @@ def _bounds(kind: str) -> tuple[tuple[float, float], ...]:
     from gpomap.fusion.calibration import CALIBRATION_BOUNDS
 
     b = list(CALIBRATION_BOUNDS)
-    if kind == "prior_floor":
-        b[1] = (np.log(1e-3), b[1][1])
-    elif kind == "near":
+    if kind == "near":
         b[2] = (0.0, 0.0)
         b[3] = (b[3][0], b[3][0])
     else:  # the counting grid's: hit 1, prior 2, near miss a miss, no near hit, surface miss a miss
@@ -105,13 +83,6 @@ def _apply(patches: dict[str, Any]) -> None:
         if key.endswith("CALIBRATION_BOUNDS"):
             value = _bounds(value)
         setattr(target, attr, value)
-
-
-def _fitted(model: Any) -> dict[str, float]:
-    """The ray counts' fitted calibration of `model` (its weights, decay and surprise rate), by field."""
-    evidence = getattr(model, "evidence_", None)
-    cal = None if evidence is None else evidence.calibration
-    return {} if cal is None else {f"cal_{k}": float(v) for k, v in dataclasses.asdict(cal).items()}
 
 
 def child(stage: str, dataset: str) -> dict[str, Any]:
@@ -132,16 +103,14 @@ def child(stage: str, dataset: str) -> dict[str, Any]:
         model = make_model("msk", None, 0, 0.05, None, **options).fit(data.train)
         fit_cpu = time.process_time() - t
         scores = score(data.labels, lookup(written_grid(model, 0.05), data.points), {"boundary": data.masks["boundary"]})
-        scored = {k: scores[k] for k in ("log_loss", "brier", "ece", "auc", "boundary_auc")}
-        return {**scored, "fit_cpu": fit_cpu, **_fitted(model)}
+        return {**{k: scores[k] for k in ("log_loss", "brier", "ece", "auc", "boundary_auc")}, "fit_cpu": fit_cpu}
     scans, plan = quality.load(dataset)
     assert plan is not None, f"{dataset} has no true plan"
     model = make_model("msk", None, 0, 0.05, None, **options).fit(scans)
     fit_cpu = time.process_time() - t
     truth = TruthPoints.of(plan, scans)
     written = written_grid(model, 0.05)
-    scored = score_plan(truth, lookup(written, truth.points), lookup_occupied(written, truth.points))
-    return {**scored, "fit_cpu": fit_cpu, **_fitted(model)}
+    return {**score_plan(truth, lookup(written, truth.points), lookup_occupied(written, truth.points)), "fit_cpu": fit_cpu}
 
 
 def main(argv: list[str] | None = None) -> int:

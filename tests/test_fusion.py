@@ -18,7 +18,6 @@ from gpomap.fusion import (
     gp_sampling_factor,
     surface_misses,
 )
-from gpomap.fusion.calibration import DecayingCalibration
 from gpomap.grid import GridSpec, coarse_grid, interpolate_to
 from gpomap.heldout import calibration_points
 from gpomap.mapping import AreaGPOM
@@ -1007,81 +1006,3 @@ def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_
     for x, y in zip(short.grid_counts(grid), whole.grid_counts(grid), strict=True):
         np.testing.assert_array_equal(x, y)
     assert short.summary() == whole.summary()
-
-
-def test_prior_decay_by_hand() -> None:
-    # The GP weighs 2 / (1 + 0.5 * (2 + 2)) = 2 / 3 in a cell of 2 weighted hits and 2 weighted
-    # misses: (2 + 2/3 * 0.8) / (2 + 2 + 2/3) = (38 / 15) / (14 / 3) = 19 / 35.
-    cal = DecayingCalibration(prior_weight=2.0, prior_decay=0.5)
-    assert cal.prior(np.array([2.0]), np.array([2.0]))[0] == pytest.approx(2.0 / 3.0)
-    assert cal.posterior_mean(np.array([0.8]), np.array([2.0]), np.array([2.0]))[0] == pytest.approx(19.0 / 35.0)
-    # A hit-free cell crossed 10 times: 2 / 6 of the GP's 0.3 against 10 misses, 0.1 / 10.333...;
-    # without the decay the GP's weight is 2, 0.6 / 12.
-    assert cal.posterior_mean(np.array([0.3]), np.array([0.0]), np.array([10.0]))[0] == pytest.approx(0.1 / (10 + 1 / 3))
-    plain = EvidenceCalibration(prior_weight=2.0)
-    assert DecayingCalibration(prior_weight=2.0).prior(np.array([0.0]), np.array([10.0]))[0] == plain.prior_weight
-    assert plain.posterior_mean(np.array([0.3]), np.array([0.0]), np.array([10.0]))[0] == pytest.approx(0.05)
-    # With no counts the GP keeps its whole weight, and its probability.
-    assert cal.posterior_mean(np.array([0.8]), np.array([0.0]), np.array([0.0]))[0] == pytest.approx(0.8)
-
-
-def test_prior_decay_fit_matches_a_brute_force_fit(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Fitted with the weights (the exact gradient), the decay reaches the minimum a search on
-    finite differences of the plain loss finds."""
-    from scipy.optimize import minimize
-
-    from gpomap.fusion import calibration
-
-    monkeypatch.setattr(calibration, "FIT_PRIOR_DECAY", {2: True, 3: True})
-    scans, ev, grid = _room_scene()
-    fitted, _, _ = fit_calibration(scans, ev, grid, _p_gp, n_scans=len(scans), step=0.1)
-    pts, occ, h, m, n, sf = [], [], [], [], [], []
-    for k, s in enumerate(scans):
-        p, o = calibration_points(s, 0.1)
-        hits, misses, near = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
-        cell, inside = lattice.flat_index(grid, p)
-        block = next_to_hits(hits)
-        pts.append(p)
-        occ.append(o)
-        h.append(np.where(inside, hits.reshape(-1)[cell], 0))
-        m.append(np.where(inside, misses.reshape(-1)[cell], 0))
-        n.append(np.where(inside, near.reshape(-1)[cell], 0))
-        sf.append(np.where(inside & block.reshape(-1)[cell], (misses - near).reshape(-1)[cell], 0))
-    P, O, H, M, N, S = (np.concatenate(a) for a in (pts, occ, h, m, n, sf))
-    g = _p_gp(P)
-
-    def loss(theta: np.ndarray) -> float:
-        cal = DecayingCalibration(*np.exp(theta[:5]), prior_decay=float(np.exp(theta[5])))
-        p = cal(g, cal.hits(H, N), cal.misses(M, N, surface=S))
-        return float(-np.mean(np.where(O, np.log(p), np.log1p(-p))))
-
-    bounds = (*CALIBRATION_BOUNDS, calibration.PRIOR_DECAY_BOUNDS)
-    starts = (np.log([1.0, 2.0, 1.0, 1.0, 1.0, 1e-4]), np.log([1.0, 2.0, 1.0, 1.0, 1.0, 1.0]))
-    best = min(
-        (minimize(loss, x0, method="L-BFGS-B", bounds=bounds, options={"ftol": 1e-14, "gtol": 1e-10}) for x0 in starts),
-        key=lambda r: r.fun,
-    )
-    assert isinstance(fitted, DecayingCalibration)
-    got = [fitted.hit_weight, fitted.prior_weight, fitted.near_weight, fitted.near_hit_weight, fitted.surface_weight]
-    # The decay is a real degree of freedom here: fitted off its floor, and no worse a minimum.
-    assert fitted.prior_decay > 2 * np.exp(calibration.PRIOR_DECAY_BOUNDS[0])
-    assert loss(np.log([*got, fitted.prior_decay])) <= best.fun * (1 + 1e-5)
-    # Off (the default), the GP weighs alike in every cell: a plain calibration.
-    monkeypatch.setattr(calibration, "FIT_PRIOR_DECAY", {2: False, 3: False})
-    assert type(fit_calibration(scans, ev, grid, _p_gp, n_scans=len(scans), step=0.1)[0]) is EvidenceCalibration
-
-
-def test_one_point_per_cell_takes_each_scans_cells_once_per_class(monkeypatch: pytest.MonkeyPatch) -> None:
-    from gpomap.fusion import calibration
-
-    scans, ev, grid = _room_scene()
-    every = fit_calibration(scans, ev, grid, _p_gp, n_scans=len(scans), step=0.02)[1]["n_points"]
-    monkeypatch.setattr(calibration, "ONE_POINT_PER_CELL", {2: True, 3: True})
-    once = fit_calibration(scans, ev, grid, _p_gp, n_scans=len(scans), step=0.02)[1]["n_points"]
-    # Truth: the distinct (cell, class) pairs of each scan's points, every point off the lattice.
-    want = 0
-    for s in scans:
-        p, o = calibration_points(s, 0.02)
-        cell, inside = lattice.flat_index(grid, p)
-        want += len(set(zip(cell[inside].tolist(), o[inside].tolist(), strict=True))) + int((~inside).sum())
-    assert once == want < every

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -106,23 +106,6 @@ CALIBRATION_BOUNDS: tuple[tuple[float, float], ...] = (
     (np.log(1e-3), np.log(10.0)),
 )
 
-#: Search bounds (log space) of the prior's decay with the counts
-#: (:attr:`DecayingCalibration.prior_decay`), per weighted observation of the cell: from a GP that
-#: keeps nearly its whole weight under a thousand observations to one that halves it after a tenth
-#: of one.
-PRIOR_DECAY_BOUNDS: tuple[float, float] = (np.log(1e-4), np.log(10.0))
-
-#: Whether the calibration fits the prior's decay with the counts (:class:`DecayingCalibration`;
-#: else the GP weighs ``prior_weight`` in every cell), per dimension of the data. Off: measured
-#: against the plans and held out in docs/choices.md, "A prior weight that falls with the counts".
-FIT_PRIOR_DECAY: dict[int, bool] = {2: False, 3: False}
-
-#: Whether the calibration takes each held-out scan's points once per cell of the counted lattice
-#: and class (the first of a class a scan put in a cell), as a plan's pixels are each scored once,
-#: instead of every point along its beams, per dimension of the data. Off: measured against the
-#: plans and held out in docs/choices.md, "A prior weight that falls with the counts".
-ONE_POINT_PER_CELL: dict[int, bool] = {2: False, 3: False}
-
 #: Whether the calibration weighs surface misses apart (:attr:`EvidenceCalibration.surface_weight`),
 #: per dimension of the data; where not, a surface miss is a miss. Planar maps: measured on the
 #: shared and unseen logs (docs/choices.md). Not for point clouds, where it was not.
@@ -168,11 +151,6 @@ class EvidenceCalibration:
     surface_weight: float = 1.0
     surprise_rate: float = SURPRISE_RATE
 
-    def prior(self, hits: ArrayLike, misses: ArrayLike) -> NDArray[np.float64]:
-        """The GP's weight in cells of weighted hits and misses (:meth:`hits`, :meth:`misses`;
-        matching shapes): ``prior_weight`` in every cell."""
-        return np.full(np.broadcast(np.asarray(hits), np.asarray(misses)).shape, self.prior_weight)
-
     def hits(self, hits: ArrayLike, near: ArrayLike) -> NDArray[np.float64]:
         """Weighted hits of cells: each hit ``hit_weight``, each near miss ``near_hit_weight``
         (matching shapes)."""
@@ -194,40 +172,16 @@ class EvidenceCalibration:
 
     def posterior_mean(self, p_gp: ArrayLike, hits: ArrayLike, misses: ArrayLike) -> NDArray[np.float64]:
         """The Beta-binomial posterior mean from the GP's probability, the weighted hits
-        (:meth:`hits`) and the weighted misses (:meth:`misses`) (matching shapes), the GP weighing
-        :meth:`prior`, before :func:`with_surprises`."""
-        wh, wm = np.asarray(hits, dtype=float), np.asarray(misses, dtype=float)
-        n0 = self.prior(wh, wm)
-        return (wh + n0 * np.asarray(p_gp, dtype=float)) / (wh + wm + n0)
+        (:meth:`hits`) and the weighted misses (:meth:`misses`) (matching shapes), before
+        :func:`with_surprises`."""
+        wh = np.asarray(hits, dtype=float)
+        return (wh + self.prior_weight * np.asarray(p_gp, dtype=float)) / (
+            wh + np.asarray(misses, dtype=float) + self.prior_weight
+        )
 
     def __call__(self, p_gp: ArrayLike, hits: ArrayLike, misses: ArrayLike) -> NDArray[np.float64]:
         """Cell probability: :meth:`posterior_mean` mixed with the surprise rate (:func:`with_surprises`)."""
         return with_surprises(self.posterior_mean(p_gp, hits, misses), self.surprise_rate)
-
-
-@dataclass(frozen=True)
-class DecayingCalibration(EvidenceCalibration):
-    """:class:`EvidenceCalibration` whose GP weighs less as the cell's own evidence grows.
-
-    The prior weighs ``prior_weight / (1 + prior_decay * (weighted hits + weighted misses))``,
-    so that where beams are many the counts decide alone and where they are few the GP still
-    fills in. Fitted only where :data:`FIT_PRIOR_DECAY` asks: measured and not the default
-    (docs/choices.md, "A prior weight that falls with the counts"), so a map file does not hold it
-    (saving such a map fails: it is not among :func:`gpomap.io.mapfile.saved_classes`).
-
-    Parameters
-    ----------
-    prior_decay : float
-        How fast the GP's weight falls, per weighted observation of the cell (0: not at all).
-    """
-
-    prior_decay: float = 0.0
-
-    def prior(self, hits: ArrayLike, misses: ArrayLike) -> NDArray[np.float64]:
-        """The GP's weight in cells of weighted hits and misses (matching shapes):
-        ``prior_weight / (1 + prior_decay * (hits + misses))``."""
-        n = np.asarray(hits, dtype=float) + np.asarray(misses, dtype=float)
-        return self.prior_weight / (1.0 + self.prior_decay * n)
 
 
 def surface_misses(misses: ArrayLike, near: ArrayLike, at_surface: ArrayLike) -> NDArray[np.float64]:
@@ -269,9 +223,6 @@ def fit_calibration(
     gp_apart: GPApart | None = None,
 ) -> tuple[EvidenceCalibration, dict[str, float], CalibrationSample]:
     """Fit the hit, prior, near-miss (as a miss and as a surface) and surface-miss weights by leave-one-scan-out log likelihood, and the surprise rate.
-
-    Where :data:`FIT_PRIOR_DECAY` says so, the prior's decay with the counts is fitted with the
-    weights (a :class:`DecayingCalibration`).
 
     Parameters
     ----------
@@ -316,12 +267,6 @@ def fit_calibration(
         pts, occ = calibration_points(scans[k], step, no_return_cap)
         if pts.size == 0:
             continue
-        if ONE_POINT_PER_CELL.get(pts.shape[1], False):
-            cell, inside = flat_index(grid, pts)
-            # Each cell once per class; points off the lattice are each their own (never counted).
-            key = np.where(inside, 2 * cell + occ, -1 - np.arange(occ.size))
-            first = np.sort(np.unique(key, return_index=True)[1])
-            pts, occ = pts[first], occ[first]
         pts_all.append(pts)
         occ_all.append(occ)
         scan_all.append(np.full(occ.size, k, dtype=np.intp))
@@ -335,7 +280,6 @@ def fit_calibration(
     keep = natural_subsample(occ.size, CALIBRATION_POINTS, seed)
     pts, occ = pts[keep], occ[keep]
     fit_surface = FIT_SURFACE_WEIGHT.get(pts.shape[1], False)
-    fit_decay = FIT_PRIOR_DECAY.get(pts.shape[1], False)
     h, m, near, surface = _other_scans_counts(evidence, grid, whole, pts, scan_of[keep], fit_surface)
     # A point no other scan counted (no hit, no miss) has p = p_gp whatever the weights: a constant
     # of the loss, so the GP is not predicted there (most of a point cloud's points; docs/3d.md).
@@ -349,65 +293,40 @@ def fit_calibration(
     occ, h, m, near, surface = occ[counted], h[counted], m[counted], near[counted], surface[counted]
     p_gp = np.asarray(predict_gp(pts[counted]), dtype=float)
 
-    def calibration(theta: NDArray[np.float64]) -> EvidenceCalibration:
-        # theta: the five weights' logs, then the decay's where it is fitted.
-        weighed = EvidenceCalibration(*(float(v) for v in np.exp(theta[:5])))
-        return DecayingCalibration(**asdict(weighed), prior_decay=float(np.exp(theta[5]))) if fit_decay else weighed
-
     def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        cal = calibration(theta)
-        a, b, g = cal.near_weight, cal.near_hit_weight, cal.surface_weight
-        c = cal.prior_decay if isinstance(cal, DecayingCalibration) else 0.0
+        cal = EvidenceCalibration(*np.exp(theta))
+        n0, a, b, g = cal.prior_weight, cal.near_weight, cal.near_hit_weight, cal.surface_weight
         wh = cal.hit_weight * h
         hits, weighted = cal.hits(h, near), cal.misses(m, near, surface=surface)
-        n0 = cal.prior(hits, weighted)
         q = cal.posterior_mean(p_gp, hits, weighted)
         p = with_surprises(q)
         den = hits + weighted + n0
         value = float(-np.sum(np.where(occ, np.log(p), np.log1p(-p))) / n_points)
         # d loss / dq (dp / dq = 1 - SURPRISE_RATE); then dq / dlog w, dlog n0, dlog a, dlog b, dlog g.
         dq = np.where(occ, -1.0 / p, 1.0 / (1.0 - p)) * (1.0 - SURPRISE_RATE) / n_points
-        grad = [
-            dq @ (wh * (1.0 - q) / den),
-            dq @ (n0 * (p_gp - q) / den),
-            dq @ (-a * near * q / den),
-            dq @ (b * near * (1.0 - q) / den),
-            dq @ (-g * surface * q / den),
-        ]
-        if not fit_decay:
-            return value, np.array(grad)
-        # With the decay, each weighted observation also lowers the prior's weight: dq / dn0 times
-        # dn0 / d(hits + misses), then dq / dlog c.
-        fall = -(p_gp - q) / den * n0 * c / (1.0 + c * (hits + weighted))
-        grad[0] += dq @ (wh * fall)
-        grad[2] += dq @ (a * near * fall)
-        grad[3] += dq @ (b * near * fall)
-        grad[4] += dq @ (g * surface * fall)
-        grad.append(dq @ (-(p_gp - q) / den * n0 * c * (hits + weighted) / (1.0 + c * (hits + weighted))))
-        return value, np.array(grad)
+        grad = np.array(
+            [
+                dq @ (wh * (1.0 - q) / den),
+                dq @ (n0 * (p_gp - q) / den),
+                dq @ (-a * near * q / den),
+                dq @ (b * near * (1.0 - q) / den),
+                dq @ (-g * surface * q / den),
+            ]
+        )
+        return value, grad
 
     # The weights are fitted at the prior surprise rate (with_surprises' default), the rate after them.
     # The counting grid's weights, but for the near miss's hit weight: its floor (log space has no 0).
-    # The decay, where fitted, starts at its floor: the GP weighing nearly alike in every cell.
     x0 = np.log(
-        [
-            default.hit_weight,
-            default.prior_weight,
-            default.near_weight,
-            np.exp(CALIBRATION_BOUNDS[3][0]),
-            default.surface_weight,
-            *([np.exp(PRIOR_DECAY_BOUNDS[0])] if fit_decay else []),
-        ]
+        [default.hit_weight, default.prior_weight, default.near_weight, np.exp(CALIBRATION_BOUNDS[3][0]), default.surface_weight]
     )
     # Where surface misses are not weighed apart, their weight is held at a miss's.
     bounds = CALIBRATION_BOUNDS if fit_surface else (*CALIBRATION_BOUNDS[:4], (0.0, 0.0))
-    if fit_decay:
-        bounds = (*bounds, PRIOR_DECAY_BOUNDS)
     # With the exact gradient and a tight tolerance the weights are the optimum's, not where a
     # search on finite differences stopped, which moved with the GP's round-off (tile factors of
     # another BLAS thread count; docs/choices.md, "Measured for the code").
     res = minimize(loss, x0, jac=True, method="L-BFGS-B", bounds=bounds, options={"ftol": 1e-15, "gtol": 1e-10})
-    fitted = calibration(res.x)
+    fitted = EvidenceCalibration(*(float(v) for v in np.exp(res.x)))
     scale = n_points / occ.size  # from the sample's sum to the mean over the counted points
     report = {
         "n_points": n_points,
