@@ -23,8 +23,9 @@ from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan, cloud_from_points
 from gpomap.errors import GpomapError, InputFormatError
+from gpomap.io.bags import TF_TOPICS, choose_topic, frame_name, open_bag, read_tf, stamp_seconds, topics_text
 from gpomap.io.poses import pose_matrix, quaternion_matrix, transform_points
-from gpomap.io.rosbag import _TF_TOPICS, TfTree, _frame, _stamp, _topics_text, choose_topic, open_bag, read_tf
+from gpomap.io.tftree import TfTree
 
 __all__ = ["read_pointcloud2", "bag_has_pointclouds_only", "POINTCLOUD2"]
 
@@ -131,10 +132,10 @@ def read_pointcloud2(
     try:
         conns = reader.connections
         topic = choose_topic(conns, POINTCLOUD2, "PointCloud2", topic, spath)
-        tf_conns = [c for c in conns if c.topic in _TF_TOPICS]
+        tf_conns = [c for c in conns if c.topic in TF_TOPICS]
         if not tf_conns:
             raise InputFormatError(
-                f"no /tf or /tf_static messages to take the cloud poses from; topics in the bag: {_topics_text(conns)}",
+                f"no /tf or /tf_static messages to take the cloud poses from; topics in the bag: {topics_text(conns)}",
                 path=spath,
             )
         where = "reading /tf"
@@ -143,8 +144,8 @@ def read_pointcloud2(
             where = f"reading {topic}"
             for c, _, raw in reader.messages(connections=[c for c in conns if c.topic == topic]):
                 msg: Any = reader.deserialize(raw, c.msgtype)
-                stamps.append(_stamp(msg.header.stamp))
-                frames.append(_frame(msg.header.frame_id))
+                stamps.append(stamp_seconds(msg.header.stamp))
+                frames.append(frame_name(msg.header.frame_id))
                 points.append(_xyz(msg, topic, spath))
         except GpomapError:
             raise
@@ -158,7 +159,7 @@ def read_pointcloud2(
     if fixed_frame is None:
         known = tree.frames()
         fixed_frame = "map" if "map" in known and "odom" not in known else "odom"
-    fixed = _frame(fixed_frame)
+    fixed = frame_name(fixed_frame)
     t = np.asarray(stamps) + float(time_offset)
     poses = np.full((len(t), 7), np.nan)
     ok = np.zeros(len(t), dtype=bool)

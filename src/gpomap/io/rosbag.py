@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from gpomap.errors import GpomapError, InputFormatError
 from gpomap.io.bags import TF_TOPICS, choose_topic, frame_name, open_bag, read_tf, stamp_seconds, topics_text
 from gpomap.io.noreturn import decide_max_range
-from gpomap.io.tftree import TfEdge, TfTree, planar, planar_transform, slerp, up_component, yaw_from_quaternion
+from gpomap.io.tftree import TfEdge, TfTree, planar, planar_transform, up_component, yaw_from_quaternion
 from gpomap.scans import Scan
 
 __all__ = [
@@ -57,14 +57,6 @@ STAGE_TIME_OFFSET = 0.1
 
 _LASERSCAN = "sensor_msgs/msg/LaserScan"
 _ODOMETRY = "nav_msgs/msg/Odometry"
-
-# The names gpomap.io.pointcloud2 and gpomap.ros2.poses import from here, as they were called
-# before the tf tree and the bag opening moved to modules of their own.
-_TF_TOPICS = TF_TOPICS
-_frame = frame_name
-_stamp = stamp_seconds
-_topics_text = topics_text
-_slerp = slerp
 
 
 @dataclass

@@ -164,7 +164,7 @@ class PoseBuffer3D:
 
     def robot_pose(self, t: float) -> NDArray[np.float64] | None:
         """The robot's pose at `t` as (x, y, z, qx, qy, qz, qw), shape (7,); None outside the poses' time span."""
-        from gpomap.io.rosbag import _slerp
+        from gpomap.io.tftree import slerp
 
         with self._lock:
             if not self._t or t < self._t[0] - TIME_TOLERANCE or t > self._t[-1] + TIME_TOLERANCE:
@@ -175,7 +175,7 @@ class PoseBuffer3D:
             t0, t1 = self._t[i], self._t[i + 1]
             p0, p1 = self._p[i], self._p[i + 1]
         f = min(max((t - t0) / (t1 - t0), 0.0), 1.0)
-        q = _slerp(p0[None, 3:], p1[None, 3:], np.array([f]))[0]
+        q = slerp(p0[None, 3:], p1[None, 3:], np.array([f]))[0]
         return np.concatenate([p0[:3] + f * (p1[:3] - p0[:3]), q])
 
     def lookup(self, frame: str, t: float) -> NDArray[np.float64] | None:
