@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gpomap import simulate3d as s3
-from gpomap.apps.map3d import voxel_bounds
+from gpomap.apps.map3d import labelled_box, voxel_bounds
 from gpomap.cli import main
 from gpomap.grid import OCCUPIED
 from gpomap.io.voxel_outputs import load_voxels
@@ -19,6 +19,46 @@ def test_voxel_bounds_grow_the_data_box_by_two_voxels():
     # Given bounds are kept as they are.
     lo, hi = voxel_bounds(points, (0.0, 1.0, -0.5, 0.5), (0.1, 0.9), 0.1)
     assert lo.tolist() == [0.0, -0.5, 0.1] and hi.tolist() == [1.0, 0.5, 0.9]
+
+
+def _half_sphere_clouds(seed=3):
+    """Two clouds of rays in every direction of x >= 0, hits and no-returns between 0.2 and 3 m:
+    their free samples reach past the hits' box, and the clearance drops some of those."""
+    from gpomap.clouds import CloudScan
+
+    rng = np.random.default_rng(seed)
+    clouds = []
+    for origin in ([0.0, 0.0, 0.0], [0.5, -0.3, 0.2]):
+        d = rng.normal(size=(300, 3))
+        d /= np.linalg.norm(d, axis=1)[:, None]
+        d[:, 0] = np.abs(d[:, 0])
+        ends = np.array(origin) + d * rng.uniform(0.2, 3.0, 300)[:, None]
+        clouds.append(CloudScan(np.array(origin), ends, rng.uniform(size=300) > 0.2, 3.0))
+    return clouds
+
+
+@pytest.mark.parametrize("options", [{}, {"free_clearance": 0.0}, {"free_clearance": 0.4, "free_step": 0.07}])
+def test_labelled_box_is_the_labelled_points_box_to_the_bit(options):
+    # The extent gpomap map takes without making every labelled point is theirs exactly, where
+    # free samples widen the hits' box and where the clearance drops the farthest of them.
+    from gpomap.settings import MapSettings
+
+    frames = s3.render_frames(s3.office_scene(), s3.PinholeCamera.from_fov(48, 36, 60), s3.office_poses()[:3])
+    for clouds in (_half_sphere_clouds(), s3.frame_clouds(frames)):
+        points = MapSettings(**options).make_observations(clouds).points
+        np.testing.assert_array_equal(labelled_box(clouds, **options), [points.min(axis=0), points.max(axis=0)])
+    # The first case is one the hits' box, or the box before the clearance, would get wrong.
+    settings = MapSettings(**options)
+    obs, unclear = (
+        settings.make_observations(_half_sphere_clouds()),
+        settings.make_observations(_half_sphere_clouds(), clearance=False),
+    )
+    hits = obs.points[obs.occupied]
+    assert (obs.points.min(axis=0) < hits.min(axis=0)).any() or (obs.points.max(axis=0) > hits.max(axis=0)).any()
+    if settings.free_clearance > 0:
+        assert not np.array_equal(unclear.points.min(axis=0), obs.points.min(axis=0)) or not np.array_equal(
+            unclear.points.max(axis=0), obs.points.max(axis=0)
+        )
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from gpomap.clouds import CloudScan
 from gpomap.errors import GpomapError
 
-__all__ = ["is_cloud_input", "select_clouds", "read_selected_clouds", "voxel_bounds", "build_model"]
+__all__ = ["is_cloud_input", "select_clouds", "read_selected_clouds", "voxel_bounds", "labelled_box", "new_model", "build_model"]
 
 
 def is_cloud_input(path: str | os.PathLike[str]) -> bool:
@@ -149,6 +149,105 @@ def voxel_bounds(
     return lo, hi
 
 
+def labelled_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[np.float64]:
+    """The bounding box of the labelled points of `clouds` (hits and the free samples the
+    clearance keeps, :meth:`~gpomap.settings.MapSettings.make_observations`), without making them all.
+
+    The clearance drops only free samples, and only those outside the hits' box can widen it;
+    a sample's every coordinate is monotone along its ray (the same rounded products and sums as
+    :func:`gpomap.observations.ray_free_points`), so a ray's samples inside the hits' box are one
+    run of steps, checked at its two ends and skipped. The rest are asked about the clearance
+    against every hit, as the whole's are: the box is the whole's to the bit.
+
+    Parameters
+    ----------
+    clouds : sequence of CloudScan
+    **model_options
+        The map settings (:class:`~gpomap.settings.MapSettings`).
+
+    Returns
+    -------
+    ndarray of shape (2, 3)
+        The lowest and the highest coordinates.
+
+    Raises
+    ------
+    EmptyDataError
+        As :meth:`~gpomap.settings.MapSettings.make_observations`: no readings, or a class missing.
+    """
+    from gpomap.observations import Rays, free_near_hits
+    from gpomap.settings import MapSettings
+
+    settings = MapSettings(**model_options)
+    step = float(settings.free_step)
+    margin = 0.5 * step if settings.hit_margin is None else float(settings.hit_margin)
+    rays = [Rays.of(c) for c in clouds]
+    hits = [r.ends[r.hit] for r in rays]
+    counts = [
+        np.floor(np.maximum(r.free_lengths(margin, settings.no_return_cap), 0.0) / step + 1e-9).astype(np.intp) for r in rays
+    ]
+    n_hits = sum(len(h) for h in hits)
+    if n_hits == 0 or not any(c.any() for c in counts):
+        # make_observations' own error (a class missing, or no readings at all).
+        obs = settings.make_observations(list(clouds))
+        return np.array([obs.points.min(axis=0), obs.points.max(axis=0)])
+    all_hits = np.concatenate(hits)
+    box = np.array([all_hits.min(axis=0), all_hits.max(axis=0)])
+    outside = [_samples_outside(r.origin, r.directions, k, step, box) for r, k in zip(rays, counts, strict=True)]
+    free = np.concatenate(outside)
+    if free.shape[0] == 0:
+        return box
+    if settings.free_clearance > 0:
+        occupied = np.r_[np.zeros(free.shape[0], bool), np.ones(n_hits, bool)]
+        free = free[~free_near_hits(np.concatenate([free, all_hits]), occupied, settings.free_clearance)[: free.shape[0]]]
+    if free.shape[0]:
+        box = np.array([np.minimum(box[0], free.min(axis=0)), np.maximum(box[1], free.max(axis=0))])
+    return box
+
+
+def _samples_outside(
+    origin: NDArray[np.float64], directions: NDArray[np.float64], counts: NDArray[np.intp], step: float, box: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The free samples (at ``step, 2 step, ..., counts[r] step`` along each ray, shape (b, 3) of
+    `directions`) that may lie outside `box` (2, 3): each ray's but for a run, both of whose
+    ends are inside the box, so every sample between is (its coordinates are monotone along it).
+
+    Returns
+    -------
+    ndarray of shape (m, 3)
+        The samples as :func:`gpomap.observations.ray_free_points` computes them.
+    """
+    o = np.asarray(origin, dtype=float)
+    use = counts > 0
+    d, n = directions[use], counts[use].astype(np.int64)
+    # The steps where each ray is inside the box, estimated by the slab method, one step
+    # inside either way ...
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (box[0] - o) / d, (box[1] - o) / d
+        enter = np.nan_to_num(np.minimum(t0, t1), nan=-np.inf).max(axis=1)
+        leave = np.nan_to_num(np.maximum(t0, t1), nan=np.inf).min(axis=1)
+        first = np.clip(np.ceil(enter / step) + 1, 1, n + 1).astype(np.int64)
+        last = np.clip(np.floor(leave / step) - 1, 0, n).astype(np.int64)
+    # ... and skipped only where the samples at both ends are inside indeed.
+    ok = first <= last
+    for k in (first, last):
+        at = o + (k * step)[:, None] * d
+        ok &= ((at >= box[0]) & (at <= box[1])).all(axis=1)
+    first, last = np.where(ok, first, n + 1), np.where(ok, last, n)
+    before, m = first - 1, first - 1 + n - last  # steps 1..before, then last + 1..n
+    ray = np.repeat(np.arange(n.size), m)
+    j = np.arange(ray.size) - np.repeat(np.cumsum(m) - m, m)
+    k = np.where(j < before[ray], j + 1, last[ray] + 1 + j - before[ray])
+    return o + (k * step)[:, None] * d[ray]
+
+
+def new_model(tile_options: dict[str, Any] | None = None, **model_options: Any) -> Any:
+    """The unfitted 3-D model, :class:`~gpomap.mapping.AreaGPOM` with `tile_options` (tile_size, n_workers, ...) and the map settings."""
+    from gpomap.mapping import AreaGPOM
+
+    return AreaGPOM(**(tile_options or {}), **model_options)
+
+
 def build_model(
     clouds: Sequence[CloudScan], tile_options: dict[str, Any] | None = None, **model_options: Any
 ) -> tuple[Any, Any, Any]:
@@ -170,9 +269,8 @@ def build_model(
     cells : Cells
         The cell tree over them, as one block (for the memory checks; the fit cuts it per tile).
     """
-    from gpomap.mapping import AreaGPOM
     from gpomap.settings import MapSettings
 
     settings = MapSettings(**model_options)
     obs = settings.make_observations(list(clouds))
-    return AreaGPOM(**(tile_options or {}), **model_options), obs, settings.make_cells(obs)
+    return new_model(tile_options, **model_options), obs, settings.make_cells(obs)

@@ -6,8 +6,9 @@ holds 3-D scans. The steps mirror the 2-D command:
 1. the clouds are read (``--poses``, ``--max-range``, ``--stride``, ``--depth-scale``,
    ``--points-frame``, the bag options) and selected (``--range``, ``--scans``, ``--beams``: rays
    per cloud);
-2. before anything is fitted, the voxel grid and the GP are checked against the memory limit, and
-   the map is built by the local GPs of every map, in x, y columns of ``--tile-size``;
+2. before anything is fitted, the voxel grid is checked against the memory limit, and the map is
+   built by the local GPs of every map, in x, y columns of ``--tile-size`` (the fit checks its
+   tiles' GPs, and the voxel grid is checked again with its largest tile's cells);
 3. the voxel map at ``--resolution`` (the voxel profile's, :data:`gpomap.config.PROFILES`, when not given) is
    written as one output set by :func:`gpomap.io.voxel_outputs.write_voxel_outputs`, with the
    fitted map, ``map.gpom``.
@@ -22,7 +23,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from gpomap.apps.map3d import build_model, read_selected_clouds, voxel_bounds
+from gpomap.apps.map3d import build_model, labelled_box, new_model, read_selected_clouds, voxel_bounds
 from gpomap.cli.common import EXIT_OK, Run, bound_source, check_voxel_memory, print_map_summary, report_fit, status
 from gpomap.cli.options import cloud_reader_options, map_config, tiling_config
 from gpomap.clouds import CloudScan
@@ -62,19 +63,29 @@ def _check_options(args: argparse.Namespace) -> None:
 
 
 def _plan(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, Any, Any, int]:
-    """The model, the voxel map's corners (shape (3,) each) and the cell count, with the memory checked before fitting."""
-    from gpomap.resources import largest_tile_cells
-    from gpomap.tiles import DEFAULT_TILE_SIZE, tile_reach
+    """The unfitted model, the voxel map's corners (shape (3,) each) and the clouds' hits, with the
+    voxel grid's own memory checked before fitting.
 
-    model, obs, cells = model_from_args(args, clouds)
-    lo, hi = voxel_bounds(obs.points, args.extent, args.z_range, args.resolution)
+    The extent is the labelled points' box (:func:`gpomap.apps.map3d.labelled_box`), without
+    their cells: the fit refuses tiles too large for the memory itself, once its cells exist, and
+    the grid with its prediction chunks (sized by the largest tile) is checked again after it
+    (:func:`_check_grid_after_fit`).
+    """
+    import numpy as np
+
+    model_options = map_config(args).kwargs()
+    box = labelled_box(clouds, **model_options)
+    lo, hi = voxel_bounds(box, args.extent, args.z_range, args.resolution)
     check_voxel_memory(args, lo, hi, 0)
-    # The fit refuses tiles too large for the memory itself, once its cells exist; the voxel
-    # grid's prediction chunks are sized by the largest column too.
-    tile = args.tile_size if args.tile_size is not None else DEFAULT_TILE_SIZE[3]
-    per_tile = largest_tile_cells(0.5 * (cells.lower + cells.upper)[:, :2], tile, tile_reach(tile, model.length_scale))
-    check_voxel_memory(args, lo, hi, per_tile)
-    return model, lo, hi, len(cells)
+    n_hits = sum(int((c.valid() & np.asarray(c.hit, dtype=bool)).sum()) for c in clouds)
+    return new_model(tiling_config(args).kwargs(), **model_options), lo, hi, n_hits
+
+
+def _check_grid_after_fit(args: argparse.Namespace, model: Any, lo: Any, hi: Any) -> None:
+    """Refuse the voxel grid between `lo` and `hi` whose prediction, by the fitted `model`'s largest tile, needs more than ``--memory-limit``."""
+    from gpomap.tiles.store import light_tiles
+
+    check_voxel_memory(args, lo, hi, max((s.n_cells for s in light_tiles(model.tiles_)), default=0))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,12 +100,13 @@ def run(args: argparse.Namespace) -> int:
     clouds = load_clouds(args)
     n_rays = sum(c.n_points for c in clouds)
     status(args, f"  {len(clouds)} scans, {n_rays} rays")
-    model, lo, hi, n_cells = _plan(args, clouds)
-    status(args, f"fitting MSK-GPOM in 3-D ({args.kernel}, about {n_cells} cells)...")
+    model, lo, hi, n_hits = _plan(args, clouds)
+    status(args, f"fitting MSK-GPOM in 3-D ({args.kernel}, {n_hits} hits)...")
     t = time.perf_counter()
     model.fit(clouds)
     fit_s = time.perf_counter() - t
-    status(args, f"  fitted in {fit_s:.2f} s; predicting voxels of {args.resolution:g} m...")
+    _check_grid_after_fit(args, model, lo, hi)
+    status(args, f"  fitted {model.n_inputs_} cells in {fit_s:.2f} s; predicting voxels of {args.resolution:g} m...")
     t = time.perf_counter()
     voxel_map = model.grid(args.resolution, bounds_extent(lo, hi))
     grid_s = time.perf_counter() - t
