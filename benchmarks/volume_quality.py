@@ -380,7 +380,7 @@ def gpomap_factories(overrides: dict[str, Any] | None = None) -> dict[str, Facto
     label = "gpomap map" + "".join(f" {k}={v}" for k, v in (overrides or {}).items())
 
     def make(train: Sequence[CloudScan]) -> tuple[Any, float | None]:
-        return default_model(train, **(overrides or {}))
+        return default_model(**(overrides or {}))
 
     return {label: make}
 

@@ -75,12 +75,12 @@ def test_map_writes_the_3d_output_set_that_loads_back(room_pcds, tmp_path, capsy
 def test_default_model_is_the_commands(room_pcds):
     clouds = select_clouds(world3d.lidar_clouds(world3d.ORIGINS[:2], n_rays=100), n_rays=50)
     assert [c.n_points for c in clouds] == [50, 50]
-    model, resolution = default_model(clouds)
+    model, resolution = default_model()
     # The command's engine with its options: 3-D cells, tiles of the default size, every core.
     assert resolution == 0.1 and type(model).__name__ == "AreaGPOM"
     assert (model.max_cell, model.tile_size, model.n_workers) == (None, None, None)  # None: the 3-D default
     assert model.base.cell_sides(3) == (1.0, 1.0) and model.base.cell_sides(2) == (0.5, 0.5)
-    assert default_model(clouds, workers=1, tile_size=4.0)[0].get_params()["tile_size"] == 4.0
+    assert default_model(workers=1, tile_size=4.0)[0].get_params()["tile_size"] == 4.0
     assert is_cloud_input(room_pcds)
 
 
@@ -90,7 +90,7 @@ def test_the_library_applies_the_voxel_profile_as_the_command_does() -> None:
     from gpomap.mapping import AreaGPOM
 
     clouds = select_clouds(world3d.lidar_clouds(world3d.ORIGINS[:2], n_rays=300), n_rays=150)
-    command, _ = default_model(clouds, workers=1)
+    command, _ = default_model(workers=1)
     library = AreaGPOM(n_workers=1)
     command.fit(clouds)
     library.fit(clouds)

@@ -711,7 +711,7 @@ def test_the_live_map_of_clouds_finds_the_room_and_saves_the_voxel_set(tmp_path)
     from gpomap.cli.map import default_model
     from gpomap.lattice import bounds_extent
 
-    batch, resolution = default_model(clouds, workers=1)
+    batch, resolution = default_model(workers=1)
     assert resolution == settings.node.resolution
     batch_voxels = batch.fit(clouds).grid(resolution, bounds_extent(lo, hi))
     batch_taken = (batch_voxels.ternary == OCCUPIED).ravel()
@@ -901,7 +901,7 @@ def test_ros2_node_maps_pointclouds_in_3d_and_answers_its_services(ros2_env, sta
     live = LiveMap(None, 0.1, kind="cloud")
     for c in clouds:
         live._grow(c)
-    batch, resolution = default_model(clouds, workers=1)
+    batch, resolution = default_model(workers=1)
     voxels = batch.fit(clouds).grid(resolution, bounds_extent(*live.voxel_bounds()))
     batch_centres = voxels.spec.centres()[(voxels.ternary == OCCUPIED).ravel()]
     on_surface = occupied(table[:, :3], thickness=0.15).mean()

@@ -43,7 +43,6 @@ from gpomap.cli.options import (
     resolve_library_defaults,
     tiling_config,
 )
-from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
 from gpomap.errors import GpomapError
 
@@ -219,12 +218,12 @@ def _map_in_chunks(args: argparse.Namespace, scans: list[Any], title: str) -> in
     return EXIT_OK
 
 
-def default_model(clouds: list[CloudScan], **overrides: Any) -> tuple[Any, float]:
-    """The unfitted model ``gpomap map CLOUDS -o OUT`` builds with its defaults, and its resolution.
+def default_model(**overrides: Any) -> tuple[Any, float]:
+    """The unfitted model ``gpomap map CLOUDS -o OUT`` builds with its defaults, and its resolution
+    (the model is the same whatever the clouds: the voxel profile is applied when it is fitted).
 
     Parameters
     ----------
-    clouds : list of CloudScan
     **overrides
         Values of the command's options (by dest) replacing the defaults (``min_cell=1.0``,
         ``kernel="se"``, ``workers=1``).
@@ -247,4 +246,4 @@ def default_model(clouds: list[CloudScan], **overrides: Any) -> tuple[Any, float
         if not hasattr(args, name):
             raise ValueError(f"gpomap map has no option {name!r}")
         setattr(args, name, value)
-    return map3d.model_from_args(args, clouds)[0], float(args.resolution)
+    return map3d.unfitted_model(args), float(args.resolution)

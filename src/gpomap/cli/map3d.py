@@ -30,7 +30,7 @@ from gpomap.clouds import CloudScan
 from gpomap.config import PROFILES
 from gpomap.errors import GpomapError
 
-__all__ = ["apply_3d_defaults", "load_clouds", "model_from_args", "run"]
+__all__ = ["apply_3d_defaults", "load_clouds", "model_from_args", "unfitted_model", "run"]
 
 #: Options of ``gpomap map`` that only 2-D inputs take, refused on clouds with this reason.
 _TWO_D_ONLY = {
@@ -48,6 +48,11 @@ def apply_3d_defaults(args: argparse.Namespace) -> None:
 def load_clouds(args: argparse.Namespace) -> list[CloudScan]:
     """Read and select the clouds of ``args.input`` as ``gpomap map`` does (:func:`gpomap.apps.map3d.read_selected_clouds`)."""
     return read_selected_clouds(args.input, cloud_reader_options(args), args.scan_range, args.scans, args.beams)
+
+
+def unfitted_model(args: argparse.Namespace) -> Any:
+    """The unfitted model of a parsed ``gpomap map`` command line on 3-D input (:func:`gpomap.apps.map3d.new_model`)."""
+    return new_model(tiling_config(args).kwargs(), **map_config(args).kwargs())
 
 
 def model_from_args(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, Any, Any]:
