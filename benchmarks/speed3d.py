@@ -250,10 +250,13 @@ def main() -> None:
     unknown = [n for n in names if n not in CASES]
     if unknown:
         raise SystemExit(f"unknown case(s) {', '.join(unknown)}: --cases takes {', '.join(CASES)}")
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     threads = os.environ.get("OMP_NUM_THREADS", "unset")
     extra = " ".join(args.option)
     import gpomap
+
+    # The commit of the checkout gpomap is imported from (a worktree on PYTHONPATH, say), not of the directory run in.
+    where = Path(gpomap.__file__).parent
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=where).stdout.strip()
 
     print(
         f"# 3-D: gpomap map against OctoMap's insertion (commit {commit}, gpomap from {Path(gpomap.__file__).parent}, "
