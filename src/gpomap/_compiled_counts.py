@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap._compiled_raycast import most_crossings, walk_segment
+from gpomap._compiled_raycast import walk_scratch, walk_segment
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
 from gpomap.lattice import AnyGrid
 from gpomap.raycast import Segments
@@ -210,14 +210,7 @@ def _count_beams(
             break
     kept_rows = np.empty((5, kept_size), dtype=np.int64)
     n_kept = 0
-    _, longest = most_crossings(p0, p1)
-    t_cross = np.empty(longest, dtype=np.float64)
-    key_cross = np.empty(longest, dtype=np.float64)
-    work = np.empty((4, d), dtype=np.int64)
-    walked = np.empty((d, longest + 1), dtype=np.intp)
-    strides = np.ones(d, dtype=np.int64)
-    for a in range(d - 2, -1, -1):
-        strides[a] = strides[a + 1] * shape[a + 1]
+    t_cross, key_cross, work, walked, strides = walk_scratch(p0, p1, shape)
     size = 1 << 12
     cells = np.empty(size, dtype=np.int64)
     through = np.empty(size, dtype=np.int64)

@@ -23,7 +23,15 @@ from numpy.typing import NDArray
 
 from gpomap.compiled import NUMBA_AVAILABLE, compiled_by_default, jit
 
-__all__ = ["AVAILABLE", "ENABLED", "mark_crossed", "most_crossings", "traverse_chunk", "walk_segment"]
+__all__ = [
+    "AVAILABLE",
+    "ENABLED",
+    "mark_crossed",
+    "most_crossings",
+    "traverse_chunk",
+    "walk_scratch",
+    "walk_segment",
+]
 
 #: Whether numba imports here.
 AVAILABLE: bool = NUMBA_AVAILABLE
@@ -128,6 +136,29 @@ def most_crossings(p0: NDArray[np.float64], p1: NDArray[np.float64]) -> tuple[in
 
 
 @jit(cache=True, nogil=True)
+def walk_scratch(
+    p0: NDArray[np.float64], p1: NDArray[np.float64], shape: NDArray[np.int64]
+) -> tuple[
+    NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.intp], NDArray[np.int64]
+]:  # pragma: no cover - compiled
+    """What :func:`walk_segment` needs to walk any of the segments `p0` -> `p1` into one column
+    block: ``t_cross`` and ``key_cross`` for the longest's crossings, ``work`` (4, d), ``walked``
+    (d, longest + 1) for its cells, and the strides of a grid of `shape`'s flat index."""
+    d = p0.shape[1]
+    _, longest = most_crossings(p0, p1)
+    strides = np.ones(d, dtype=np.int64)
+    for a in range(d - 2, -1, -1):
+        strides[a] = strides[a + 1] * shape[a + 1]
+    return (
+        np.empty(longest, dtype=np.float64),
+        np.empty(longest, dtype=np.float64),
+        np.empty((4, d), dtype=np.int64),
+        np.empty((d, longest + 1), dtype=np.intp),
+        strides,
+    )
+
+
+@jit(cache=True, nogil=True)
 def _traverse(
     p0: NDArray[np.float64], p1: NDArray[np.float64], length: NDArray[np.float64], shape: NDArray[np.int64]
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], int]:  # pragma: no cover - compiled (the numpy path is the tests' reference)
@@ -181,20 +212,12 @@ def _mark_cells(
     shape: NDArray[np.int64],
     mark: NDArray[np.bool_],
 ) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
-    d = p0.shape[1]
-    _, longest = most_crossings(p0, p1)
-    t_cross = np.empty(longest, dtype=np.float64)
-    key_cross = np.empty(longest, dtype=np.float64)
-    work = np.empty((4, d), dtype=np.int64)
-    walked = np.empty((d, longest + 1), dtype=np.intp)
-    strides = np.ones(d, dtype=np.int64)
-    for a in range(d - 2, -1, -1):
-        strides[a] = strides[a + 1] * shape[a + 1]
+    t_cross, key_cross, work, walked, strides = walk_scratch(p0, p1, shape)
     for s in range(p0.shape[0]):
         n = walk_segment(p0, p1, s, place[s], length[s], shape, t_cross, key_cross, work, walked, 0)
         for e in range(n):
             c = np.int64(0)
-            for a in range(d):
+            for a in range(walked.shape[0]):
                 c += walked[a, e] * strides[a]
             mark[c] = True
 
