@@ -120,6 +120,23 @@ def test_compiled_tree_is_the_python_tree(monkeypatch, dim, box, sizes):
     assert slow.ambiguous.any() and not slow.ambiguous.all()  # both kinds of cell occur
 
 
+@pytest.mark.parametrize("limit", [1, 3, 40])
+def test_compiled_tree_below_a_cut_forced_top(monkeypatch, limit):
+    """The compiled tree sorts the points into its forced top's frontier in one pass; cut short
+    (a few frontier nodes still to split), the walk below it splits them as the Python tree does."""
+    import gpomap._compiled_cells as compiled_cells
+
+    if not compiled_cells.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(compiled_cells, "FORCED_NODES", limit)
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-2.0, 9.0, size=(4000, 3))
+    occ = rng.random(4000) < 0.3
+    fast, slow = _both_paths(monkeypatch, pts, occ, 1.0, 1.0, "node")
+    for name in FIELDS:
+        np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+
+
 def test_compiled_tree_on_degenerate_inputs(monkeypatch):
     import gpomap._compiled_cells as compiled_cells
 
