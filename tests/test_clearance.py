@@ -102,3 +102,21 @@ def test_compiled_clearance_at_every_box_size_on_a_dense_floor(dense_hits: float
     assert got is not None
     np.testing.assert_array_equal(got, cdist(free, hits).min(axis=1) < 0.3)
     assert got.any() and not got.all()
+
+
+@pytest.mark.skipif(not compiled_clearance.AVAILABLE, reason="numba is not installed")
+@pytest.mark.parametrize("dim", [2, 3])
+def test_compiled_clearance_asked_of_every_point_with_the_hits_skipped(dim: int) -> None:
+    # A block's points handed whole, its hits skipped: brute force's answer for its free points,
+    # False for its hits, whether the hits widen the lattice's box or not.
+    rng = np.random.default_rng(11 + dim)
+    pts = rng.uniform(-2.0, 5.0, size=(3000, dim))
+    pts[:5] = rng.uniform(-6.0, 9.0, size=(5, dim))  # some hits outside the free points' box
+    occupied = np.zeros(3000, dtype=bool)
+    occupied[:300] = True
+    got = compiled_clearance.near_hits(pts, pts[occupied], 0.3, max_boxes=10**7, skip=occupied)
+    assert got is not None
+    want = np.zeros(3000, dtype=bool)
+    want[~occupied] = cdist(pts[~occupied], pts[occupied]).min(axis=1) < 0.3
+    np.testing.assert_array_equal(got, want)
+    assert got.any() and not got[~occupied].all()

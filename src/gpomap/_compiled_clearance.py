@@ -115,6 +115,7 @@ def _mark_near(
     clearance: float,
     around_start: NDArray[np.int64],
     around: NDArray[np.int64],
+    skip: NDArray[np.bool_],
     out: NDArray[np.bool_],
 ) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
     n, dim = free_points.shape
@@ -123,6 +124,8 @@ def _mark_near(
     skip_beyond = c2 * (1.0 + 1e-9)
     take_within = c2 * (1.0 - 1e-9)
     for i in range(n):
+        if skip.size and skip[i]:
+            continue
         own = np.int64(0)
         for a in range(dim):
             own = own * shape[a] + min(np.int64((free_points[i, a] - lo[a]) * scale) + pad, shape[a] - 1 - pad)
@@ -163,7 +166,11 @@ def _mark_near(
 
 
 def near_hits(
-    free_points: NDArray[np.float64], hit_points: NDArray[np.float64], clearance: float, max_boxes: int
+    free_points: NDArray[np.float64],
+    hit_points: NDArray[np.float64],
+    clearance: float,
+    max_boxes: int,
+    skip: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.bool_] | None:
     """Which free points lie closer than `clearance` to a hit, or None when the boxes would exceed `max_boxes`.
 
@@ -178,6 +185,10 @@ def near_hits(
         Most boxes (of side ``clearance / k``, k of :data:`BOXES_PER_CLEARANCE`) over the
         points' bounding box: the tables of where each box's hits and list start hold 16 bytes
         per box.
+    skip : ndarray of bool, shape (n,), optional
+        Points not asked about (False in the answer): a block's hits among its points, which
+        are then handed whole instead of as a copy of their free ones. The lattice spans the
+        points and the hits alike, so the answer for the others is the same.
 
     Returns
     -------
@@ -245,6 +256,7 @@ def near_hits(
         float(clearance),
         around_start,
         around,
+        np.zeros(0, dtype=np.bool_) if skip is None else np.ascontiguousarray(skip, dtype=np.bool_),
         out,
     )
     return out

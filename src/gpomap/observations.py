@@ -197,12 +197,12 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     if clearance <= 0 or not occupied.any() or occupied.all():
         return out
     points = np.asarray(points, dtype=float)
-    free = np.flatnonzero(~occupied)
     if _compiled_clearance.ENABLED:
-        near = _compiled_clearance.near_hits(points[free], points[occupied], clearance, MAX_CLEARANCE_BOXES)
+        # Every point handed over, the hits skipped: no copy of the free ones (most of a block).
+        near = _compiled_clearance.near_hits(points, points[occupied], clearance, MAX_CLEARANCE_BOXES, skip=occupied)
         if near is not None:
-            out[free[near]] = True
-            return out
+            return near
+    free = np.flatnonzero(~occupied)
     # Boxes of side s = clearance / k: a point is within sqrt(d) s / 2 of its box's centre, so a
     # free point whose box centre is D boxes from the nearest hit box's centre is within
     # (D + sqrt(d)) s of a hit and farther than (D - sqrt(d)) s from every hit. Points sure
