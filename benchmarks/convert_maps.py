@@ -14,9 +14,10 @@
     the score (probability / interpolated occupancy) against true occupancy, and accuracy and IoU of
     occupied pixels with "occupied" = score > 0.5 (for the GP also = ternary occupied, p > 0.66).
     The other plans (the sim-worlds plans, the TurtleBot3 map's known pixels) are scored the same
-    way. The conversion is told how each coarse grid was made (``convert_grid(..., pooling=...)``,
-    "GP"); where the pooling it infers by itself (``pooling="auto"``, :func:`gpomap.convert.infer_pooling`)
-    differs, that conversion is scored too ("GP, auto").
+    way. The conversion is told how each coarse grid was made (``convert_grid(..., pooling=...,
+    pooling_factor=...)``, "GP"); where the pooling it infers by itself (``pooling="auto"``,
+    :func:`gpomap.convert.infer_pooling`) differs, that conversion is scored too ("GP, auto", still
+    told the factor).
 (c) The end-to-end time of converting the 384 x 384 map (read, fit, predict the whole grid).
 
 The summary ends with the line of targets: in how many cases the conversion beats both nearest
@@ -280,6 +281,8 @@ def bench_plans(plans: list[Plan], factors: list[int] | None, poolings: list[str
                 if "length_scale_px" in opts:
                     opts["length_scale"] = float(opts.pop("length_scale_px")) * plan.resolution * k
                 told = opts.pop("pooling", pooling)
+                # The factor is part of how the grid was made (``--option pooling_factor=null``: not told).
+                opts.setdefault("pooling_factor", k)
                 inferred = infer_pooling(coarse)
                 scores, times, results = {}, {}, {}
                 # Interpolation reads an unknown coarse pixel as 0.5.
@@ -412,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         metavar="NAME=VALUE",
         help="a convert_grid model option for (b), VALUE as JSON (optimise=true, occupied_fraction=1.0, length_scale_px=3, "
-        'pooling="auto")',
+        'pooling="auto", pooling_factor=null)',
     )
     args = ap.parse_args(argv)
     options = {}

@@ -328,6 +328,46 @@ def test_pooling_inferred_from_the_grid():
         convert_grid(_wall_map(), pooling="median")
 
 
+def test_any_pooled_ones_beside_unknown_space_read_with_the_factor():
+    # Three rows of 1 m pixels (row 0 lowest), an unknown column between free ones:
+    #   [0, ?, 1, 0, 0]
+    #   [0, ?, 1, 1, 0]
+    #   [0, ?, 1, 0, 0]
+    # Runs of 1s from an unknown pixel to a free one: the three rows' (1, 2 and 1 long); column
+    # 2's runs from the grid's outside end at its outside again, column 3's lies between free
+    # pixels. So 2 of 3 are one pixel long, and at a factor of 3 the walls are t = 1 + 3 / 3 = 2
+    # fine pixels thick; a wall front with a free strip of j = 0 or 1 fine pixels before it is
+    # 2 / 2 or 2 / 3 of its pixel's known part: share 5 / 6.
+    from gpomap.convert import OCCUPIED_FRACTION, boundary_wall_thickness, occluded_share, read_pixels
+
+    grid = np.array([[0, np.nan, 1, 0, 0], [0, np.nan, 1, 1, 0], [0, np.nan, 1, 0, 0]])
+    assert boundary_wall_thickness(grid, 3) == pytest.approx(2.0)
+    assert boundary_wall_thickness(grid, 6) == pytest.approx(3.0)
+    assert boundary_wall_thickness(np.zeros((3, 3)), 4) == 1.0  # no such wall: the thinnest
+    assert occluded_share(2.0, 3) == pytest.approx(5 / 6)
+    assert occluded_share(1.0, 2) == pytest.approx(0.75)
+    assert occluded_share(2.0, 2) == occluded_share(3.0, 2) == 1.0
+    rows, cols = np.nonzero(np.isfinite(grid))
+    points = np.column_stack([cols + 0.5, rows + 0.5])
+    value = grid[rows, cols]
+    reading = read_pixels(points, value, 1.0, "any", pooling_factor=3)
+    share = {(int(r), int(c)): s for r, c, s in zip(rows, cols, reading.share)}
+    # Column 2's 1s: beside the unknown column; rows 0 and 2 have a free side (wall fronts), row 1
+    # none (its wall came in from the 1 beside it, so all of its known part is occupied). The 1 at
+    # column 3 has no unknown side: the share of any 1.
+    assert share[0, 2] == share[2, 2] == pytest.approx(5 / 6)
+    assert share[1, 2] == 1.0
+    assert share[1, 3] == OCCUPIED_FRACTION
+    assert all(share[r, c] == 0.0 for r, c in share if grid[r, c] == 0.0)
+    untold = read_pixels(points, value, 1.0, "any")
+    np.testing.assert_array_equal(untold.share[value == 1.0], OCCUPIED_FRACTION)
+    # Other poolings do not use the factor.
+    majority = read_pixels(points, value, 1.0, "majority", pooling_factor=3)
+    np.testing.assert_array_equal(majority.share, read_pixels(points, value, 1.0, "majority").share)
+    with pytest.raises(ValueError, match="pooling_factor"):
+        read_pixels(points, value, 1.0, "any", pooling_factor=0)
+
+
 def test_model_defaults_are_area_gpom_arguments():
     # The CLI counts cells with AreaGPOM(**model_defaults(...)); the footprint padding is
     # convert_grid's own option, and pixel_pad=0 gives boxes round the pixel centres.

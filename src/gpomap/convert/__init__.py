@@ -27,7 +27,8 @@ Defaults (measured with benchmarks/convert_maps.py; see docs/convert.md)
 - each pixel read by how the grid was made from a finer one (``pooling="auto"``,
   :func:`read_pixels`, :func:`infer_pooling`): values between 0 and 1 are occupied shares (mean
   pooling); a grid of 0s and 1s is any-pixel pooled (a 0 wholly free, a 1 holding something,
-  taken as :data:`OCCUPIED_FRACTION` occupied) unless its walls are broken as majority pooling
+  taken as :data:`OCCUPIED_FRACTION` occupied, or, told the grid's ``pooling_factor``, a 1 beside
+  unknown space as the front of a wall whose back no sensor saw) unless its walls are broken as majority pooling
   breaks thin walls (a 1 more than half occupied, a 0 at most half, and a 0 beside a 1 taken as
   :data:`MAJORITY_NEIGHBOUR_SHARE` occupied); a grid read by its thresholds is any-pixel pooled;
 - wall-aware GP inputs (:func:`grid_cells`): pixels within 3 pixels of one holding anything
@@ -116,7 +117,9 @@ from gpomap.convert.pooling import (
     OCCUPIED_FRACTION,
     POOLINGS,
     PixelReading,
+    boundary_wall_thickness,
     infer_pooling,
+    occluded_share,
     pixel_lattice,
     read_pixels,
 )
@@ -139,6 +142,8 @@ __all__ = [
     "MAJORITY_REACH",
     "BROKEN_SHARE",
     "PixelReading",
+    "boundary_wall_thickness",
+    "occluded_share",
     "infer_pooling",
     "pixel_lattice",
     "read_pixels",

@@ -120,6 +120,9 @@ class GridGPOM(MapSettings, GPMapEstimator):
 
         So the map's occupied region, pooled again the way the grid was made, gives back the
         grid (to a sample's area).
+    pooling_factor : int, optional
+        Fine pixels per side of a pixel of the grid, when it was pooled from a finer one
+        (:func:`~gpomap.convert.pooling.read_pixels`); None: not known.
     **options
         :class:`~gpomap.settings.MapSettings` arguments (``min_cell`` is used only by the cell tree).
     """
@@ -136,6 +139,7 @@ class GridGPOM(MapSettings, GPMapEstimator):
         centre_noise: float | None = CENTRE_NOISE,
         occupied_fraction: float | None = None,
         pooling: str = "auto",
+        pooling_factor: int | None = None,
         **options: Any,
     ) -> None:
         super().__init__(**options)
@@ -147,13 +151,14 @@ class GridGPOM(MapSettings, GPMapEstimator):
         self.centre_noise = centre_noise
         self.occupied_fraction = None if occupied_fraction is None else float(occupied_fraction)
         self.pooling = pooling
+        self.pooling_factor = None if pooling_factor is None else int(pooling_factor)
 
     def __repr__(self) -> str:
         return f"GridGPOM(pixel_pad={self.pixel_pad}, wall_reach={self.wall_reach}, {MapSettings.__repr__(self)})"
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """The constructor arguments, by name (the map settings and the grid ones)."""
-        names = ("pixel_pad", "wall_reach", "edge_strip", "centre_noise", "occupied_fraction", "pooling")
+        names = ("pixel_pad", "wall_reach", "edge_strip", "centre_noise", "occupied_fraction", "pooling", "pooling_factor")
         own = {n: getattr(self, n) for n in names}
         return {**own, **MapSettings.get_params(self)}
 
@@ -352,6 +357,7 @@ class GridGPOM(MapSettings, GPMapEstimator):
                 self.centre_noise,
                 self.occupied_fraction,
                 pooling,
+                self.pooling_factor,
             )
         cells = MapSettings.make_cells(self, obs)
         if self.pixel_pad > 0:

@@ -132,10 +132,11 @@ def grid_cells(
     centre_noise: float | None = CENTRE_NOISE,
     occupied_fraction: float | None = None,
     pooling: str = "auto",
+    pooling_factor: int | None = None,
 ) -> GridCells:
     """Wall-aware GP inputs for the known pixels of a grid, each pixel read as an occupied share.
 
-    - Each pixel is read by :func:`read_pixels` (`pooling`, `occupied_fraction`): the share of it
+    - Each pixel is read by :func:`read_pixels` (`pooling`, `occupied_fraction`, `pooling_factor`): the share of it
       taken as occupied, or none where its value says too little to be evidence.
     - Every known pixel within `wall_reach` pixels (chessboard distance) of one holding anything
       occupied is a cell of its own, covering its square, its target the mean of the +-1
@@ -170,6 +171,8 @@ def grid_cells(
         The share taken for a 1 of a grid of 0s and 1s (:func:`read_pixels`), in (0, 1].
     pooling : {"auto", "any", "majority", "mean"}
         How the grid was made (:func:`read_pixels`).
+    pooling_factor : int, optional
+        Fine pixels per side of a pixel of the grid, when it was pooled from a finer one (:func:`read_pixels`).
 
     Returns
     -------
@@ -190,7 +193,7 @@ def grid_cells(
         raise ValueError(f"points must have shape (m, 2) with m > 0 and occupied (m,), got {pts.shape} and {frac.shape}")
     if not ((frac >= 0.0) & (frac <= 1.0)).all():
         raise ValueError("occupied fractions must lie in [0, 1]")
-    reading = read_pixels(pts, frac, pixel, pooling, occupied_fraction)
+    reading = read_pixels(pts, frac, pixel, pooling, occupied_fraction, pooling_factor)
     _, ij, all_index = pixel_lattice(pts, pixel)
     evidence = np.isfinite(reading.share)
     some = frac > 0.0  # anything occupied

@@ -10,6 +10,7 @@ bounds the map is held to); :func:`infer_pooling` tells the pooling from the gri
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +24,8 @@ __all__ = [
     "MAJORITY_REACH",
     "BROKEN_SHARE",
     "PixelReading",
+    "boundary_wall_thickness",
+    "occluded_share",
     "infer_pooling",
     "read_pixels",
     "pixel_lattice",
@@ -176,12 +179,75 @@ def infer_pooling(values: NDArray[np.float64]) -> str:
     return "majority" if broken.sum() > BROKEN_SHARE * occ.sum() else "any"
 
 
+def _unknown_beside(grid: NDArray[np.float64]) -> tuple[NDArray[np.float64], list[NDArray[np.float64]]]:
+    """`grid` (shape (ny, nx), NaN unknown) padded with one ring of unknown pixels, and each
+    pixel's four edge neighbours in it (left, right, below, above), each of shape (ny, nx)."""
+    pad = np.pad(np.asarray(grid, dtype=float), 1, constant_values=np.nan)
+    return pad, [pad[1:-1, :-2], pad[1:-1, 2:], pad[:-2, 1:-1], pad[2:, 1:-1]]
+
+
+def boundary_wall_thickness(grid: NDArray[np.float64], factor: int) -> float:
+    """The thickness, in fine pixels, of the walls of an any-pooled grid between free and unknown space.
+
+    A sensor sees a wall's front and nothing behind it, so a wall between free and unknown pixels
+    (the grid's outside being unknown too) is, across it, free fine pixels, the wall's t fine
+    pixels, then unseen ones. Pooled at `factor` fine pixels a side, its front lands on each of
+    the `factor` fine pixels of a coarse one alike, and it is one coarse pixel thick when its t
+    fine pixels fit in the rest: a share (factor - t + 1) / factor of such walls. So
+    t = 1 + factor (1 - p1), p1 the share of the grid's runs of occupied pixels along a row or
+    column from an unknown pixel to a free one that are one pixel long.
+
+    Parameters
+    ----------
+    grid : ndarray of shape (ny, nx)
+        An any-pooled grid of 0s and 1s, NaN unknown.
+    factor : int
+        Fine pixels per side of the grid's pixel.
+
+    Returns
+    -------
+    float
+        t, at least 1; 1 (a wall is at least a fine pixel) where the grid has no such run.
+    """
+    pad, _ = _unknown_beside(grid)
+    n_runs, n_single = 0, 0
+    for g in (pad, pad.T):
+        # Rows laid end to end, each closed by its unknown padding.
+        flat = g.ravel()
+        one = flat == 1.0
+        edges = np.diff(one.astype(np.int8))
+        starts, ends = np.flatnonzero(edges == 1) + 1, np.flatnonzero(edges == -1)  # the padding closes every run
+        before, after = flat[starts - 1], flat[ends + 1]
+        crossing = (np.isnan(before) & (after == 0.0)) | ((before == 0.0) & np.isnan(after))
+        n_runs += int(crossing.sum())
+        n_single += int((crossing & (ends == starts)).sum())
+    if n_runs == 0:
+        return 1.0
+    return 1.0 + factor * (1.0 - n_single / n_runs)
+
+
+def occluded_share(thickness: float, factor: int) -> float:
+    """The occupied share of the known part of an any-pooled 1 that holds a wall's front, its back
+    facing unseen space.
+
+    Across it lie j free fine pixels, the wall's `thickness` t, then unseen ones (not part of what
+    the pixel says): its known part is t / (j + t) occupied, j = 0, 1, ... as long as the wall
+    fits (j + t <= `factor`), each alike (:func:`boundary_wall_thickness`); 1 for a wall as thick
+    as the pixel.
+    """
+    if thickness >= factor:
+        return 1.0
+    j = np.arange(math.floor(factor - thickness + 1e-9) + 1)
+    return float(np.mean(thickness / (j + thickness)))
+
+
 def read_pixels(
     points: NDArray[np.float64],
     value: NDArray[np.float64],
     pixel: float,
     pooling: str = "auto",
     occupied_fraction: float | None = None,
+    pooling_factor: int | None = None,
 ) -> PixelReading:
     """What each known pixel says about its fine occupancy, given how the grid was made.
 
@@ -200,6 +266,13 @@ def read_pixels(
       its neighbours); farther 0s are free. Every 0 is bounded to [0, 0.5].
     - ``"mean"`` (the occupied share as the value): every value is exact, bounds included.
 
+    Told the `pooling_factor` of an any-pooled grid, its 1s beside unknown space (an unknown
+    pixel, or the grid's outside, at an edge) are read as walls a sensor saw the front of, their
+    backs facing unseen space: with no free side, the wall came in from an occupied neighbour and
+    all of the pixel's known part is occupied (share 1); with one, its known part is a free strip,
+    then the wall, and its share is :func:`occluded_share` of the walls' thickness
+    (:func:`boundary_wall_thickness`).
+
     Parameters
     ----------
     points : ndarray of shape (m, 2)
@@ -212,6 +285,9 @@ def read_pixels(
         ``"auto"``: :func:`infer_pooling` on the grid's values.
     occupied_fraction : float, optional
         The share taken for a 1 of an any- or majority-pooled grid, in (0, 1].
+    pooling_factor : int, optional
+        Fine pixels per side of a pixel of the grid, when it was pooled from a finer one; None:
+        not known (every 1 of an any-pooled grid is then taken as `occupied_fraction`).
 
     Returns
     -------
@@ -221,20 +297,26 @@ def read_pixels(
         raise ValueError(f"pooling must be one of {POOLINGS}, got {pooling!r}")
     if occupied_fraction is not None and not 0.0 < occupied_fraction <= 1.0:
         raise ValueError(f"occupied_fraction must be in (0, 1], got {occupied_fraction}")
+    if pooling_factor is not None and pooling_factor < 1:
+        raise ValueError(f"pooling_factor must be a whole number of fine pixels, at least 1, got {pooling_factor}")
     pts = np.asarray(points, dtype=float)
     v = np.asarray(value, dtype=float)
     origin, ij, index = pixel_lattice(pts, pixel)
-    if pooling == "auto":
-        grid = np.full(index.shape, np.nan)
-        grid[ij[:, 1], ij[:, 0]] = v
-        read = infer_pooling(grid)
-    else:
-        read = pooling
+    grid = np.full(index.shape, np.nan)
+    grid[ij[:, 1], ij[:, 0]] = v
+    read = infer_pooling(grid) if pooling == "auto" else pooling
     share, lower, upper = v.copy(), v.copy(), v.copy()  # mean pooling, and any value between 0 and 1
     ones, zeros = v == 1.0, v == 0.0
     if read == "any":
         share[ones] = OCCUPIED_FRACTION if occupied_fraction is None else occupied_fraction
         lower[ones] = 0.0
+        if pooling_factor is not None:
+            _, sides = _unknown_beside(grid)
+            unknown = np.any([np.isnan(n) for n in sides], axis=0)[ij[:, 1], ij[:, 0]]
+            free_side = np.any([n == 0.0 for n in sides], axis=0)[ij[:, 1], ij[:, 0]]
+            share[ones & unknown & ~free_side] = 1.0
+            front = occluded_share(boundary_wall_thickness(grid, pooling_factor), pooling_factor)
+            share[ones & unknown & free_side] = front
     elif read == "majority":
         share[ones] = OCCUPIED_FRACTION if occupied_fraction is None else occupied_fraction
         lower[ones] = 0.5
