@@ -87,14 +87,10 @@ def test_later_visit_points_are_a_held_out_stretch_predicted_by_a_map_of_the_res
     kept, held = holdout_stretches(len(scans))
     asked = {}
 
-    def fit_rest(rest):
+    def fit_rest(rest, points):
         asked["scans"] = rest
-
-        def predict(points):
-            asked["points"] = points
-            return np.linspace(0.1, 0.9, len(points))
-
-        return predict
+        asked["points"] = points
+        return np.linspace(0.1, 0.9, len(points))
 
     p, occupied, report = rv.later_visit_points(scans, fit_rest, seed=1)
     assert [id(s) for s in asked["scans"]] == [id(scans[i]) for i in kept]
@@ -128,7 +124,7 @@ def test_the_points_drawn_a_scan_at_a_time_are_those_drawn_from_all(memory):
 
 def test_short_logs_keep_the_identity():
     scans = _tour(rv.MIN_SCANS - 1)
-    p, occupied, report = rv.later_visit_points(scans, lambda rest: None)
+    p, occupied, report = rv.later_visit_points(scans, lambda rest, points: None)
     assert p.size == 0 and occupied.size == 0 and "reason" in report
 
 
@@ -171,7 +167,7 @@ def test_the_map_of_the_rest_is_this_map_on_fewer_scans(fitted_tour):
     rest._given_calibration = model.evidence_.calibration
     rest.fit([scans[i] for i in kept], hyperparameters=dict(model.hyperparameters_))
     assert rest.evidence_.calibration == model.evidence_.calibration and rest.evidence_.report == {"given": 1.0}
-    p, occupied, _ = rv.later_visit_points(scans, lambda s: rest.predict_proba, seed=model.base.seed)
+    p, occupied, _ = rv.later_visit_points(scans, lambda s, q: rest.predict_proba(q), seed=model.base.seed)
     sample = model.evidence_.sample
     got = rv.fit_revisit(p, occupied, sample.probability, sample.occupied)
     assert got.slope == pytest.approx(model.evidence_.revisit.slope, rel=1e-6)
@@ -193,11 +189,22 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     lazy._given_calibration = model.evidence_.calibration
     lazy.fit([scans[i] for i in kept], hyperparameters=fixed)
     args = (model.base.no_return_cap, model.base.seed)
-    p_eager, occ, _ = rv.later_visit_points(scans, lambda s: eager.predict_proba, *args)
-    p_lazy, occ_lazy, _ = rv.later_visit_points(scans, lambda s: lazy.predict_proba, *args)
+    p_eager, occ, _ = rv.later_visit_points(scans, lambda s, q: eager.predict_proba(q), *args)
+    p_lazy, occ_lazy, _ = rv.later_visit_points(scans, lambda s, q: lazy.predict_proba(q), *args)
     np.testing.assert_array_equal(p_lazy, p_eager)
     np.testing.assert_array_equal(occ_lazy, occ)
     assert len(eager.tiles_) == len(lazy.tiles_) + len(lazy._waiting)
+    # Counted only at the points asked: the same probabilities, without the lattice's arrays.
+    pts = rv.drawn_points([scans[i] for i in holdout_stretches(len(scans))[1]], *args)[0]
+    asked = model._refit().unfitted(fit_revisit=False)
+    asked._tiles_when_asked = True
+    asked._given_calibration = model.evidence_.calibration
+    asked._asked_at = pts
+    asked.fit([scans[i] for i in kept], hyperparameters=fixed)
+    np.testing.assert_array_equal(asked.predict_proba(pts), p_eager)
+    assert asked.evidence_._hits.size == 0 < eager.evidence_._hits.size
+    with pytest.raises(ValueError, match="only at the cells"):
+        asked.predict_proba(pts[:1] + 3.0)
     # What the map itself took for its recalibration.
     p_model, _, _ = model._later_visit_points()
     np.testing.assert_array_equal(p_model, p_eager)

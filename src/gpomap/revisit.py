@@ -147,7 +147,7 @@ def fit_revisit(
 
 def later_visit_points(
     scans: Sequence[Any],
-    fit_rest: Callable[[list[Any]], Callable[[NDArray[np.float64]], NDArray[np.float64]]],
+    fit_rest: Callable[[list[Any], NDArray[np.float64]], NDArray[np.float64]],
     no_return_cap: float | None = MapConfig.no_return_cap,
     seed: int = 0,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]]:
@@ -159,8 +159,8 @@ def later_visit_points(
     scans : sequence of Scan
         The map's scans, in log order.
     fit_rest : callable
-        Scans to the probability (points (m, d) to (m,)) of the same map fitted on them alone, its
-        hyperparameters held and without this recalibration.
+        ``fit_rest(scans, points)``: the probability at points (shape (m, d); returns (m,)) of the
+        same map fitted on `scans` alone, its hyperparameters held and without this recalibration.
     no_return_cap : float or None
         As the map's.
     seed : int
@@ -184,7 +184,7 @@ def later_visit_points(
     if drawn is None:
         return *none, {"reason": "the held-out stretch has no point of a class"}
     pts, occ = drawn
-    return np.asarray(fit_rest([scans[i] for i in kept])(pts), dtype=float), occ, {"n_points": int(occ.size)}
+    return np.asarray(fit_rest([scans[i] for i in kept], pts), dtype=float), occ, {"n_points": int(occ.size)}
 
 
 def drawn_points(

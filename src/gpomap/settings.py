@@ -197,14 +197,16 @@ class MapSettings(MapConfig):
         predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]],
         gp_apart: GPApart | None = None,
         calibration: EvidenceCalibration | None = None,
+        asked_at: NDArray[np.float64] | None = None,
     ) -> EvidenceLayer | None:
         """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off),
         with `gp_apart` the GP its surprise rate is fitted against with ``fit_surprise_rate``
-        (:func:`gpomap.fusion.fit_calibration`), or `calibration` taken as it is."""
+        (:func:`gpomap.fusion.fit_calibration`), or `calibration` taken as it is, its counts taken
+        only at the points `asked_at` when given (:class:`~gpomap.fusion.EvidenceLayer`)."""
         if not self.ray_evidence or isinstance(data, Observations):
             return None
         resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
         apart = gp_apart if self.fit_surprise_rate else None
         return EvidenceLayer(
-            data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, apart, calibration
+            data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, apart, calibration, asked_at
         )

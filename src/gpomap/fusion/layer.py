@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from gpomap.clouds import CloudScan
 from gpomap.config import PROFILES, MapConfig
+from gpomap.counted_cells import CellCounts, count_cells
 from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, next_to_hits, path_steps
 from gpomap.fusion.calibration import (
     SURPRISE_RATE,
@@ -129,6 +130,11 @@ class EvidenceLayer:
         surprise rate against (:func:`fit_calibration`); without it the rate is the prior.
     calibration : EvidenceCalibration, optional
         Taken as it is instead of fitted (a map of part of a log, calibrated as the whole log's).
+    asked_at : ndarray of shape (m, d), optional
+        With `calibration`: the only points the layer will be asked about (a map asked at a few
+        points). The counts are then taken at their cells alone, window by window
+        (:func:`gpomap.counted_cells.count_cells`), not over the whole lattice, and the layer
+        takes no further scans and gives no grids.
     """
 
     # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
@@ -144,8 +150,12 @@ class EvidenceLayer:
         seed: int = 0,
         gp_apart: GPApart | None = None,
         calibration: EvidenceCalibration | None = None,
+        asked_at: NDArray[np.float64] | None = None,
     ) -> None:
+        if asked_at is not None and calibration is None:
+            raise ValueError("a layer counted only at given points takes its calibration as given")
         self.resolution = float(resolution)
+        self._asked_at = None if asked_at is None else np.asarray(asked_at, dtype=float)
         self.gp_apart = gp_apart
         self._at_surface: NDArray[np.bool_] | None = None  # next_to_hits of the counts so far, when asked
         self.no_return_cap = no_return_cap
@@ -166,6 +176,7 @@ class EvidenceLayer:
         self._near_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
         self._path: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
         self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None = None
+        self._cells: CellCounts | None = None  # the counts of the asked points' cells alone (asked_at)
         self.add_scans(scans)
         if calibration is None:
             self.recalibrate(predict_gp)
@@ -210,6 +221,8 @@ class EvidenceLayer:
         scans = list(scans)
         if not scans:
             return
+        if self._asked_at is not None and self._scans:
+            raise ValueError("a layer counted only at given points takes its scans once")
         part = RayEvidence.from_scans(scans, self.no_return_cap)
         d = self._dim = data_dim(scans)
         if self._scans:
@@ -225,6 +238,14 @@ class EvidenceLayer:
         # The margin holds the robot's body round a path at the data's edge.
         margin = self.resolution + PATH_RADIUS
         local = lattice_grid(bounds_extent(*column_bounds(pts)), self.resolution, margin=margin)
+        if self._asked_at is not None:
+            # The lattice's cells without its arrays: only the asked points' cells are counted.
+            self.lattice = local
+            self._cells = count_cells(part, local, flat_index(local, self._asked_at)[0], COUNT_DTYPE)
+            self._scans.extend(scans)
+            self._parts.append(part)
+            self._joined = None
+            return
         self._cover(local, path_dtype(len(self._scans) + len(scans)))
         # The first scans' counts are on the lattice itself: the calibration's held-out scans keep
         # their cells, so their leave-one-scan-out counts need no second traversal.
@@ -337,8 +358,15 @@ class EvidenceLayer:
             n = np.asarray(points).shape[0]
             return np.zeros(n), np.zeros(n)
         cell, inside = flat_index(self.lattice, points)
-        hits, beam, near, path = (a.reshape(-1)[cell] for a in (self._hits, self._beam_misses, self._near_misses, self._path))
-        surface = surface_misses(beam, near, self.at_surface().reshape(-1)[cell]) if self._weighs_surface() else 0.0
+        at_surface: NDArray[np.bool_] | None
+        path: NDArray[np.integer[Any]]
+        if self._cells is not None:
+            hits, beam, near, path, at_surface = self._cells.at(cell, inside)
+        else:
+            hits, beam, near = (a.reshape(-1)[cell] for a in (self._hits, self._beam_misses, self._near_misses))
+            path = self._path.reshape(-1)[cell]
+            at_surface = self.at_surface().reshape(-1)[cell] if self._weighs_surface() else None
+        surface = surface_misses(beam, near, at_surface) if at_surface is not None and self._weighs_surface() else 0.0
         return np.where(inside, self.calibration.hits(hits, near), 0.0), np.where(
             inside, self.calibration.misses(beam, near, path, surface), 0.0
         )
@@ -373,6 +401,8 @@ class EvidenceLayer:
         if self.lattice is None:
             return np.ones(np.asarray(points).shape[0], dtype=bool)
         cell, inside = flat_index(self.lattice, points)
+        if self._cells is not None:
+            return ~inside | without_hits(self._cells.at(cell, inside)[0])
         return ~inside | without_hits(self._hits.reshape(-1)[cell])
 
     def grid_seen_through(self, grid: AnyGrid) -> NDArray[np.bool_] | None:

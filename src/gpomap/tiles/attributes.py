@@ -82,5 +82,8 @@ class TiledAttributes:
     _tiles_when_asked: bool = False
     #: The ray counts' calibration to take instead of fitting one (set on a map of part of a log).
     _given_calibration: EvidenceCalibration | None = None
+    #: The only points the map will be asked about, shape (m, d): its ray counts are taken at their
+    #: cells alone (set, with a given calibration, on a map asked at a few points).
+    _asked_at: NDArray[np.float64] | None = None
     #: The tasks of the tiles that wait to be asked, by tile (a map fitted with ``_tiles_when_asked``).
     _waiting: dict[tuple[int, int], tuple[TileFitTask]]

@@ -57,12 +57,16 @@ class Refit:
         """The GP's probability (before ray evidence) of the map fitted on `scans` alone."""
         return self.gp(scans).predict_proba_gp
 
-    def map_proba(self, scans: ScanData, calibration: EvidenceCalibration | None) -> Predict:
-        """The probability of the whole map fitted on `scans` alone, with its own ray counts
-        calibrated as `calibration` says and no later-visit recalibration of its own. Asked at a
-        few points, it fits only the tiles they need, when they are asked (the same tiles, so the
-        same answers)."""
+    def map_proba(
+        self, scans: ScanData, calibration: EvidenceCalibration | None, points: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """The probability at `points` (shape (m, d); returns (m,)) of the whole map fitted on
+        `scans` alone, with its own ray counts calibrated as `calibration` says and no later-visit
+        recalibration of its own. It fits only the tiles the points need, and counts the rays only
+        at their cells (the same tiles and counts, so the same answers as the whole map's)."""
         rest = self.unfitted(fit_revisit=False)
         rest._tiles_when_asked = True
         rest._given_calibration = calibration
-        return rest.fit(scans, hyperparameters=dict(self.hyperparameters)).predict_proba
+        if calibration is not None:
+            rest._asked_at = np.asarray(points, dtype=float)
+        return np.asarray(rest.fit(scans, hyperparameters=dict(self.hyperparameters)).predict_proba(points), dtype=float)

@@ -348,7 +348,9 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         """Ray counts over every scan so far, calibrated against the tiles' GP (see gpomap.fusion)."""
         if self._scans is None:
             return None
-        return self.base.make_evidence(self._scans, self._gp_map().predict_proba_gp, self._gp_apart, self._given_calibration)
+        return self.base.make_evidence(
+            self._scans, self._gp_map().predict_proba_gp, self._gp_apart, self._given_calibration, self._asked_at
+        )
 
     def _later_visit_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None:
         """This map's probabilities, fitted without them, at a held-out stretch's points
@@ -360,8 +362,8 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         refit = self._refit()
         calibration = None if self.evidence_ is None else self.evidence_.calibration
 
-        def fit_rest(scans: list[Any]) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
-            return refit.map_proba(scans, calibration)
+        def fit_rest(scans: list[Any], points: NDArray[np.float64]) -> NDArray[np.float64]:
+            return refit.map_proba(scans, calibration, points)
 
         return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
 

@@ -1,0 +1,145 @@
+"""Ray counts of a few cells of a lattice, counted window by window without the lattice's arrays.
+
+A map asked at a few points (the later visit's map of the other stretches, asked at a held-out
+stretch's points) needs the counts of the cells holding them, not of every cell of a building's
+lattice (tens of millions, each array of them hundreds of megabytes). :func:`count_cells` counts
+the beams and the robot's path on square windows of the lattice that hold asked cells, one window
+at a time, each grown by a cell so a cell at its edge knows whether a beam ended next to it
+(:func:`gpomap.evidence.next_to_hits`), and keeps only the asked cells' values.
+
+The windows are cells of the same lattice (:func:`gpomap.evidence.lattice_grid`), so each cell
+gets the counts the whole lattice gives it, but for a beam that ends on or runs along a cell
+border, which grids of different origins may round to either side.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from gpomap.evidence import RayEvidence, next_to_hits
+from gpomap.lattice import AnyGrid, grid_dim, make_grid
+
+#: Side of the counting windows, in cells: a window's counts and scratch take about 40 bytes a
+#: cell (42 MB), and beams longer than a window are walked once for each window they reach.
+WINDOW_CELLS: int = 1024
+
+
+@dataclass(frozen=True)
+class CellCounts:
+    """The counts of some cells of a lattice.
+
+    Attributes
+    ----------
+    lattice : GridSpec or VoxelSpec
+        The lattice the cells belong to.
+    cells : ndarray of int, shape (n,)
+        Their flat (row-major) indices, sorted and distinct.
+    hits, misses, near : ndarray of float, shape (n,)
+        Their counts (:class:`gpomap.evidence.RayCounts`).
+    path : ndarray of int, shape (n,)
+        The robot's path's passes (:meth:`gpomap.evidence.RayEvidence.path_passes`).
+    at_surface : ndarray of bool, shape (n,)
+        Whether a beam ended in the cell or a neighbour (:func:`gpomap.evidence.next_to_hits`).
+    """
+
+    lattice: AnyGrid
+    cells: NDArray[np.intp]
+    hits: NDArray[np.floating[Any]]
+    misses: NDArray[np.floating[Any]]
+    near: NDArray[np.floating[Any]]
+    path: NDArray[np.int64]
+    at_surface: NDArray[np.bool_]
+
+    def at(
+        self, cells: NDArray[np.intp], inside: NDArray[np.bool_]
+    ) -> tuple[
+        NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.int64], NDArray[np.bool_]
+    ]:
+        """Hits, misses, near misses, path passes and whether at a surface, of each of `cells`
+        (flat indices, shape (m,)) where `inside` (shape (m,)), 0 or False elsewhere.
+
+        Raises
+        ------
+        ValueError
+            If a cell inside was not counted.
+        """
+        wanted = np.asarray(cells, dtype=np.intp)[inside]
+        row = np.minimum(np.searchsorted(self.cells, wanted), max(self.cells.size - 1, 0))
+        if wanted.size and (self.cells.size == 0 or not np.array_equal(self.cells[row], wanted)):
+            raise ValueError("the ray counts were taken only at the cells of the points this map was made for")
+        values = (self.hits, self.misses, self.near, self.path, self.at_surface)
+        out = tuple(np.zeros(inside.shape, dtype=v.dtype) for v in values)
+        for whole, counted in zip(out, values, strict=True):
+            whole[inside] = counted[row]
+        hits, misses, near, path, at_surface = out
+        return hits, misses, near, path, at_surface
+
+
+def count_cells(
+    evidence: RayEvidence,
+    lattice: AnyGrid,
+    cells: NDArray[np.intp],
+    dtype: type[np.floating[Any]] = np.float64,
+    window: int = WINDOW_CELLS,
+) -> CellCounts:
+    """The counts of `cells` of `lattice`, window by window (see the module's docstring).
+
+    Parameters
+    ----------
+    evidence : RayEvidence
+        The beams and path to count.
+    lattice : GridSpec or VoxelSpec
+        A lattice of :func:`gpomap.evidence.lattice_grid` (its origin a whole number of cells).
+    cells : ndarray of int
+        Flat (row-major) indices of cells of `lattice`, any order, repeats allowed.
+    dtype : type
+        Of the counts returned (those of the lattice they stand for: its arithmetic is theirs).
+    window : int
+        Side of the windows, in cells.
+
+    Returns
+    -------
+    CellCounts
+    """
+    cells = np.unique(np.asarray(cells, dtype=np.intp))
+    n = cells.size
+    hits, misses, near = (np.zeros(n, dtype=dtype) for _ in range(3))
+    path, at_surface = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool)
+    if n == 0:
+        return CellCounts(lattice, cells, hits, misses, near, path, at_surface)
+    shape = np.array(lattice.shape)
+    index = np.stack(np.unravel_index(cells, lattice.shape), axis=1)  # array order, x last
+    tiles = index // window
+    tile_keys = np.ravel_multi_index(tiles.T, tuple(-(-shape // window)))
+    corner = np.round(np.asarray(lattice.origin, dtype=float) / lattice.resolution)  # x first
+    reach = _reach(evidence, lattice, corner)
+    for key in np.unique(tile_keys):
+        rows = np.flatnonzero(tile_keys == key)
+        lo = np.maximum(tiles[rows[0]] * window - 1, 0)
+        hi = np.minimum((tiles[rows[0]] + 1) * window + 1, shape)
+        # The window's corner as lattice_grid places one: a whole number of cells times the side.
+        grid = make_grid((corner + lo[::-1]) * lattice.resolution, lattice.resolution, (hi - lo)[::-1])
+        near_window = np.all((reach[0] <= hi[::-1]) & (reach[1] >= lo[::-1]), axis=1)
+        counts = _beams(evidence, near_window).counts(grid)
+        local = np.ravel_multi_index(tuple((index[rows] - lo).T), grid.shape)
+        hits[rows], misses[rows], near[rows] = (a.reshape(-1)[local] for a in counts)
+        at_surface[rows] = next_to_hits(counts.hits).reshape(-1)[local]
+        path[rows] = evidence.path_passes(grid).reshape(-1)[local]
+    return CellCounts(lattice, cells, hits, misses, near, path, at_surface)
+
+
+def _reach(evidence: RayEvidence, lattice: AnyGrid, corner: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Each beam's box in the lattice's cells (x first), grown by a cell: shapes (b, d) each."""
+    d = grid_dim(lattice)
+    start = np.floor(evidence.starts.reshape(-1, d) / lattice.resolution) - corner
+    end = np.floor(evidence.ends.reshape(-1, d) / lattice.resolution) - corner
+    return (np.minimum(start, end) - 1).astype(np.int64), (np.maximum(start, end) + 1).astype(np.int64)
+
+
+def _beams(evidence: RayEvidence, keep: NDArray[np.bool_]) -> RayEvidence:
+    """The beams of `evidence` at `keep`, with all of its path."""
+    return RayEvidence(evidence.starts[keep], evidence.ends[keep], evidence.hit[keep], evidence.scan[keep], evidence.path)
