@@ -542,15 +542,17 @@ class ScanPoints:
         hi = np.ravel(np.asarray(upper, dtype=float)) + grow
         k = lo.size
         meets = np.flatnonzero(np.all((self.scan_lower[:, :k] <= hi) & (self.scan_upper[:, :k] >= lo), axis=1))
-        parts = [p for p in self.parts(meets.tolist())] if meets.size else []
+        # Each part cut as it is made and let go: only what lies inside is held, never the scans' whole points.
+        cut: list[tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.integer[Any]]]] = []
+        for p in self.parts(meets.tolist()) if meets.size else ():
+            inside = in_box(p.points, lo, hi)
+            cut.append((p.points[inside], p.occupied[inside], p.scan_index[inside]))
+            del p, inside
         d = self.scan_lower.shape[1]
-        if not parts:
+        if not cut:
             return Observations(np.zeros((0, d)), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int32))
-        cut = [in_box(p.points, lo, hi) for p in parts]
         return Observations(
-            np.concatenate([p.points[c] for p, c in zip(parts, cut, strict=True)]),
-            np.concatenate([p.occupied[c] for p, c in zip(parts, cut, strict=True)]),
-            np.concatenate([p.scan_index[c] for p, c in zip(parts, cut, strict=True)]),
+            np.concatenate([c[0] for c in cut]), np.concatenate([c[1] for c in cut]), np.concatenate([c[2] for c in cut])
         )
 
 

@@ -73,10 +73,19 @@ class _BlockPoints:
 
     def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         if any(isinstance(p, _SpilledPart) for p in self._parts):
-            parts = [p.load() if isinstance(p, _SpilledPart) else p for p in self._parts]
-            if len(parts) == 1:
-                return parts[0]
-            return np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
+            if len(self._parts) == 1:
+                return self._parts[0].load()
+            # Each part read back into its place and let go: the block's points held once, not twice.
+            sizes = [p.shape[0] if isinstance(p, _SpilledPart) else p[1].size for p in self._parts]
+            dim = next(p.shape[1] if isinstance(p, _SpilledPart) else p[0].shape[1] for p in self._parts)
+            points, occupied = np.empty((sum(sizes), dim)), np.empty(sum(sizes), dtype=bool)
+            at = 0
+            for p, size in zip(self._parts, sizes, strict=True):
+                pts, occ = p.load() if isinstance(p, _SpilledPart) else p
+                points[at : at + size], occupied[at : at + size] = pts, occ
+                at += size
+                del pts, occ
+            return points, occupied
         if len(self._parts) > 1:
             self._parts = [(np.concatenate([p for p, _ in self._parts]), np.concatenate([o for _, o in self._parts]))]
         return self._parts[0]
