@@ -205,6 +205,11 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     assert asked.evidence_._hits.size == 0 < eager.evidence_._hits.size
     with pytest.raises(ValueError, match="only at the cells"):
         asked.predict_proba(pts[:1] + 3.0)
+    # A layer saved before layers could be counted at given points (neither attribute in its
+    # state) answers as before.
+    old = type(eager.evidence_).__new__(type(eager.evidence_))
+    old.__dict__.update({k: v for k, v in eager.evidence_.__dict__.items() if k not in ("_cells", "_asked_at")})
+    np.testing.assert_array_equal(old.counts_at(pts), eager.evidence_.counts_at(pts))
     # What the map itself took for its recalibration.
     p_model, _, _ = model._later_visit_points()
     np.testing.assert_array_equal(p_model, p_eager)

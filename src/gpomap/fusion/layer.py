@@ -139,6 +139,9 @@ class EvidenceLayer:
 
     # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
     __module__ = "gpomap.fusion"
+    # Unset in maps saved before a layer could be counted at given points only.
+    _asked_at: NDArray[np.float64] | None = None
+    _cells: CellCounts | None = None
 
     def __init__(
         self,
@@ -176,7 +179,7 @@ class EvidenceLayer:
         self._near_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
         self._path: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
         self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None = None
-        self._cells: CellCounts | None = None  # the counts of the asked points' cells alone (asked_at)
+        self._cells = None  # the counts of the asked points' cells alone (asked_at)
         self.add_scans(scans)
         if calibration is None:
             self.recalibrate(predict_gp)
