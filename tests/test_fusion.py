@@ -1006,3 +1006,41 @@ def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_
     for x, y in zip(short.grid_counts(grid), whole.grid_counts(grid), strict=True):
         np.testing.assert_array_equal(x, y)
     assert short.summary() == whole.summary()
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_calibration_sample_is_a_draw_from_every_held_out_point(monkeypatch: pytest.MonkeyPatch, dim: int) -> None:
+    # Only the points drawn are made (from their rays): they are those of the draw from every
+    # held-out scan's points made whole, in the same order.
+    import gpomap.fusion.calibration as calibration
+    from gpomap.fusion import _other_scans_counts
+    from gpomap.heldout import calibration_scans
+    from gpomap.observations import natural_subsample
+    from tests.world3d import ORIGINS, lidar_clouds
+
+    if dim == 2:
+        scans, ev, grid = _room_scene()
+    else:
+        scans = lidar_clouds(ORIGINS, n_rays=200)
+        ev = RayEvidence.from_scans(scans)
+        grid = lattice_grid((-1.0, 7.0, -1.0, 5.0, -1.0, 3.5), 0.1)
+    picked = calibration_scans(len(scans), 4)
+    parts = [calibration_points(scans[k], 0.1) for k in picked]
+    pts = np.concatenate([p for p, _ in parts])
+    occ = np.concatenate([o for _, o in parts])
+    scan_of = np.repeat(picked, [len(o) for _, o in parts])
+    n = len(pts) // 5
+    monkeypatch.setattr(calibration, "CALIBRATION_POINTS", n)
+    keep = natural_subsample(len(pts), n, 7)
+    asked: list[np.ndarray] = []
+
+    def predict_gp(points: np.ndarray) -> np.ndarray:
+        asked.append(points)
+        return _p_gp(points)
+
+    _, report, sample = fit_calibration(scans, ev, grid, predict_gp, n_scans=4, step=0.1, seed=7)
+    h, m, _, _ = _other_scans_counts(ev, grid, ev.counts(grid), pts[keep], scan_of[keep], False)
+    counted = (h > 0) | (m > 0)
+    assert report["n_points"] == n and 0 < counted.sum() < n
+    np.testing.assert_array_equal(asked[0], pts[keep][counted])
+    np.testing.assert_array_equal(sample.occupied, occ[keep][counted])

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
 from gpomap.errors import EmptyDataError
-from gpomap.observations import data_dim, observations_from_scans
+from gpomap.observations import Rays, data_dim, observations_from_scans, ray_free_points
 from gpomap.scans import Scan
 
 __all__ = [
@@ -23,6 +23,8 @@ __all__ = [
     "FOLD_STARTS",
     "HOLDOUT_EVERY",
     "N_STRETCHES",
+    "RUN_POINTS",
+    "CalibrationPoints",
     "calibration_points",
     "calibration_scans",
     "holdout_stretches",
@@ -94,3 +96,112 @@ def calibration_points(
     except EmptyDataError:
         return np.zeros((0, data_dim([scan]))), np.zeros(0, bool)
     return obs.points, obs.occupied
+
+
+#: Most points :meth:`CalibrationPoints.spans` puts in a run (whole rays, so a run of one long ray
+#: may hold more): about 24 MB of 3-D points, where one depth frame's are hundreds of megabytes.
+RUN_POINTS: int = 1 << 20
+
+
+class CalibrationPoints:
+    """One scan's calibration points (:func:`calibration_points`) without making them all at once.
+
+    Their number and classes are known from the rays alone; they are made a run of consecutive
+    points at a time (:meth:`between`, runs from :meth:`spans`) or only at given places
+    (:meth:`take`): the same numbers in the same order as :func:`calibration_points` gives, every
+    free point ray by ray, then the hits. A depth frame at every pixel gives about 10 million
+    (40 a ray), of which a calibration uses a few thousand.
+
+    Parameters
+    ----------
+    scan : Scan or CloudScan
+    step, no_return_cap : float
+        As :func:`calibration_points`'.
+
+    Attributes
+    ----------
+    size : int
+        Points of the scan.
+    n_free : int
+        Free points among them (the first `n_free`); the rest are hits.
+    """
+
+    def __init__(self, scan: Scan | CloudScan, step: float = 0.1, no_return_cap: float | None = MapConfig.no_return_cap) -> None:
+        rays = Rays.of(scan)
+        lengths = rays.free_lengths(CALIBRATION_HIT_MARGIN, no_return_cap)
+        use = lengths > 0
+        self.dim = data_dim([scan])
+        self.step = float(step)
+        self._origin = rays.origin
+        self._directions = rays.directions[use]
+        self._lengths = lengths[use]
+        # ray_free_points' count of samples on each ray (its rounding slack included).
+        counts = np.floor(np.maximum(self._lengths, 0.0) / self.step + 1e-9).astype(np.intp)
+        # first[r]: the place of ray r's first free point; first[-1] the number of free points.
+        self._first = np.concatenate([np.zeros(1, np.intp), np.cumsum(counts)])
+        self._hits = rays.ends[rays.hit]
+        self.n_free = int(self._first[-1])
+        self.size = self.n_free + len(self._hits)
+
+    @property
+    def n_occupied(self) -> int:
+        """Hits of the scan."""
+        return self.size - self.n_free
+
+    def _free(self, first_ray: int, stop_ray: int) -> NDArray[np.float64]:
+        """The free points of rays `first_ray` .. `stop_ray` - 1, shape (m, d)."""
+        directions = self._directions[first_ray:stop_ray]
+        origins = np.broadcast_to(self._origin, directions.shape)
+        return ray_free_points(origins, directions, self._lengths[first_ray:stop_ray], self.step)[0]
+
+    def spans(self, max_points: int | None = None) -> list[tuple[int, int]]:
+        """Consecutive runs (start, stop) covering the points, each of whole rays holding at most
+        `max_points` (default :data:`RUN_POINTS`) or of one ray, the hits in runs of `max_points`."""
+        max_points = RUN_POINTS if max_points is None else int(max_points)
+        out = []
+        first, n_rays = self._first, self._directions.shape[0]
+        r = 0
+        while r < n_rays:
+            end = max(r + 1, int(np.searchsorted(first, first[r] + max_points, side="right")) - 1)
+            end = min(end, n_rays)
+            if first[end] > first[r]:
+                out.append((int(first[r]), int(first[end])))
+            r = end
+        out += [(s, min(s + max_points, self.size)) for s in range(self.n_free, self.size, max_points)]
+        return out
+
+    def between(self, start: int, stop: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """Points `start` .. `stop` - 1 (shape (m, d)) and their classes (m,)."""
+        parts = []
+        if start < min(stop, self.n_free):
+            r0 = int(np.searchsorted(self._first, start, side="right")) - 1
+            r1 = int(np.searchsorted(self._first, min(stop, self.n_free), side="left"))
+            offset = start - int(self._first[r0])
+            parts.append(self._free(r0, r1)[offset : offset + min(stop, self.n_free) - start])
+        n_free = sum(len(p) for p in parts)
+        if stop > self.n_free:
+            parts.append(self._hits[max(start, self.n_free) - self.n_free : stop - self.n_free])
+        points = np.concatenate(parts, axis=0) if parts else np.zeros((0, self.dim))
+        return np.asarray(points, dtype=float), np.arange(len(points)) >= n_free
+
+    def take(self, index: NDArray[np.integer]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """The points at sorted places `index` (k,) and their classes: only the rays that hold
+        them are sampled.
+
+        Returns
+        -------
+        points : ndarray of shape (k, d)
+        occupied : ndarray of bool, shape (k,)
+        """
+        index = np.asarray(index, dtype=np.intp)
+        free = index[index < self.n_free]
+        ray = np.searchsorted(self._first, free, side="right") - 1
+        rays = np.unique(ray)
+        counts = self._first[rays + 1] - self._first[rays]
+        # Each needed ray's first point among the needed rays' points, then each point's place.
+        starts = np.cumsum(counts) - counts
+        at = starts[np.searchsorted(rays, ray)] + (free - self._first[ray])
+        directions = self._directions[rays]
+        made = ray_free_points(np.broadcast_to(self._origin, directions.shape), directions, self._lengths[rays], self.step)[0]
+        points = np.concatenate([made[at], self._hits[index[index >= self.n_free] - self.n_free]], axis=0)
+        return np.asarray(points, dtype=float), np.arange(len(index)) >= free.size

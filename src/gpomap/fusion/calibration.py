@@ -20,7 +20,7 @@ from scipy.optimize import brentq, minimize
 
 from gpomap.config import PROFILES, MapConfig
 from gpomap.evidence import RayCounts, RayEvidence
-from gpomap.heldout import calibration_points, calibration_scans
+from gpomap.heldout import CalibrationPoints, calibration_scans
 from gpomap.lattice import AnyGrid, flat_index
 from gpomap.observations import ScanData, natural_subsample
 
@@ -262,25 +262,33 @@ def fit_calibration(
     """
     whole = evidence.counts(grid) if counts is None else counts
     picked = calibration_scans(len(scans), n_scans)
+    # The sample is drawn from the held-out scans' points by number (known from their rays), and
+    # only the points drawn are made: a depth frame has about 10 million, the sample 40,000.
+    sizes, n_occupied = np.zeros(picked.size, dtype=np.intp), 0
+    for j, k in enumerate(picked):
+        points = CalibrationPoints(scans[k], step, no_return_cap)
+        sizes[j], n_occupied = points.size, n_occupied + points.n_occupied
+    default = EvidenceCalibration()
+    total = int(sizes.sum())
+    if total == 0:
+        return default, {"n_points": 0}, CalibrationSample()
+    if n_occupied in (0, total):
+        return default, {"n_points": total}, CalibrationSample()
+    # A uniform sample keeps each class's share (docs/choices.md); the counts are then looked up at the sample only.
+    keep = natural_subsample(total, CALIBRATION_POINTS, seed)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
     pts_all, occ_all, scan_all = [], [], []
-    for k in picked:
-        pts, occ = calibration_points(scans[k], step, no_return_cap)
-        if pts.size == 0:
+    for k, start, stop in zip(picked, starts[:-1], starts[1:], strict=True):
+        lo, hi = np.searchsorted(keep, [start, stop])
+        if lo == hi:
             continue
+        pts, occ = CalibrationPoints(scans[k], step, no_return_cap).take(keep[lo:hi] - start)
         pts_all.append(pts)
         occ_all.append(occ)
         scan_all.append(np.full(occ.size, k, dtype=np.intp))
-    default = EvidenceCalibration()
-    if not pts_all:
-        return default, {"n_points": 0}, CalibrationSample()
     pts, occ, scan_of = np.concatenate(pts_all), np.concatenate(occ_all), np.concatenate(scan_all)
-    if occ.all() or not occ.any():
-        return default, {"n_points": int(occ.size)}, CalibrationSample()
-    # A uniform sample keeps each class's share (docs/choices.md); the counts are then looked up at the sample only.
-    keep = natural_subsample(occ.size, CALIBRATION_POINTS, seed)
-    pts, occ = pts[keep], occ[keep]
     fit_surface = FIT_SURFACE_WEIGHT.get(pts.shape[1], False)
-    h, m, near, surface = _other_scans_counts(evidence, grid, whole, pts, scan_of[keep], fit_surface)
+    h, m, near, surface = _other_scans_counts(evidence, grid, whole, pts, scan_of, fit_surface)
     # A point no other scan counted (no hit, no miss) has p = p_gp whatever the weights: a constant
     # of the loss, so the GP is not predicted there (most of a point cloud's points; docs/3d.md).
     # The loss below is the whole sample's mean less that constant: the same minimiser, the same
