@@ -151,35 +151,123 @@ def test_region_observations_equal_the_kept_scans_observed_alone():
     assert len(inside_only) > len(got.points)
 
 
-def test_unseen_points_pass_over_only_scans_that_cannot_reach_the_square():
-    # Short beams (3 m) round the paper room, and a square round one pose: most scans cannot
-    # reach it, and skipping them changes nothing.
+def _unseen_by_hand(kept_scans, held_scans, lo, hi, margin, cap):
+    """The held-out scans' points in the square shrunk by `margin` where no kept beam went, every
+    point made whole: points and classes."""
     from gpomap.evidence import RayEvidence, lattice_grid
     from gpomap.heldout import calibration_points
     from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
-    from gpomap.observations import beams_reach
-    from gpomap.simulate import paper_room, simulate_scans
 
+    parts = [calibration_points(s, no_return_cap=cap) for s in held_scans]
+    pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
+    sel = in_box(pts, lo + margin, hi - margin)
+    pts, occ = pts[sel], occ[sel]
+    grid = lattice_grid(bounds_extent(*column_bounds(pts)), ex.UNSEEN_RESOLUTION[pts.shape[1]])
+    cell, ok = flat_index(grid, pts)
+    seen = ok & RayEvidence.from_scans(kept_scans, cap).seen(grid).reshape(-1)[cell]
+    return pts[~seen], occ[~seen]
+
+
+# (bytes of points kept between the two passes, points a run): all kept, none kept in runs of
+# whole rays shorter than a scan, some kept.
+BUDGETS = [(ex.POINT_MEMORY, None), (0, 50), (3000, 7)]
+
+
+@pytest.mark.parametrize(("memory", "run"), BUDGETS)
+def test_unseen_points_pass_over_only_scans_that_cannot_reach_the_square(monkeypatch, memory, run):
+    # Short beams (3 m) round the paper room, and a square round one pose: most scans cannot
+    # reach it, and skipping them changes nothing.
+    from gpomap.observations import beams_reach
+
+    if run is not None:
+        monkeypatch.setattr(heldout, "RUN_POINTS", run)
     world, poses = paper_room()
     scans = simulate_scans(world, poses, 90, max_range=3.0, seed=0)
     kept, held = heldout.holdout_stretches(len(scans))
     # A square round a held-out pose, most of the room away from it.
     lo, hi, margin = poses[held[0], :2] - 2.0, poses[held[0], :2] + 3.0, 0.25
     kept_scans, held_scans = [scans[i] for i in kept], [scans[i] for i in held]
-    got_pts, got_occ = ex._unseen_points(kept_scans, held_scans, lo, hi, margin, 10.0)
-    # By hand, every scan looked at.
-    parts = [calibration_points(s, no_return_cap=10.0) for s in held_scans]
-    pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
-    sel = in_box(pts, lo + margin, hi - margin)
-    pts, occ = pts[sel], occ[sel]
-    grid = lattice_grid(bounds_extent(*column_bounds(pts)), ex.UNSEEN_RESOLUTION[2])
-    cell, ok = flat_index(grid, pts)
-    seen = ok & RayEvidence.from_scans(kept_scans, 10.0).seen(grid).reshape(-1)[cell]
-    np.testing.assert_array_equal(got_pts, pts[~seen])
-    np.testing.assert_array_equal(got_occ, occ[~seen])
-    assert got_occ.any() and not got_occ.all()
+    unseen = ex._unseen_points(kept_scans, held_scans, lo, hi, margin, 10.0, memory=memory)
+    got_pts, got_occ = unseen.take(np.arange(unseen.size))
+    # By hand, every scan looked at, every point made at once.
+    pts, occ = _unseen_by_hand(kept_scans, held_scans, lo, hi, margin, 10.0)
+    np.testing.assert_array_equal(got_pts, pts)
+    np.testing.assert_array_equal(got_occ, occ)
+    assert unseen.n_occupied == occ.sum() and occ.any() and not occ.all()
+    # A draw of a few: those of the whole.
+    index = np.sort(np.random.default_rng(0).choice(unseen.size, 40, replace=False))
+    got_pts, got_occ = unseen.take(index)
+    np.testing.assert_array_equal(got_pts, pts[index])
+    np.testing.assert_array_equal(got_occ, occ[index])
     reach = [beams_reach(s, lo, hi, 10.0) for s in scans]
     assert any(reach) and not all(reach)  # the test passes some scans over
+
+
+@pytest.mark.parametrize(("memory", "run"), BUDGETS)
+def test_unseen_points_of_point_clouds(monkeypatch, memory, run):
+    from tests.world3d import ORIGINS, lidar_clouds
+
+    if run is not None:
+        monkeypatch.setattr(heldout, "RUN_POINTS", run)
+    clouds = lidar_clouds(np.tile(ORIGINS, (2, 1)), n_rays=150)
+    kept, held = heldout.holdout_stretches(len(clouds))
+    kept_scans, held_scans = [clouds[i] for i in kept], [clouds[i] for i in held]
+    lo, hi = np.array([0.5, 0.0]), np.array([5.0, 3.5])
+    unseen = ex._unseen_points(kept_scans, held_scans, lo, hi, 0.1, None, memory=memory)
+    pts, occ = _unseen_by_hand(kept_scans, held_scans, lo, hi, 0.1, None)
+    got_pts, got_occ = unseen.take(np.arange(unseen.size))
+    np.testing.assert_array_equal(got_pts, pts)
+    np.testing.assert_array_equal(got_occ, occ)
+    assert pts.shape[1] == 3 and occ.any() and not occ.all()
+
+
+@pytest.mark.parametrize(("memory", "run"), BUDGETS)
+def test_the_scale_is_fitted_on_a_draw_from_all_patterns_unseen_points(monkeypatch, memory, run):
+    # Each pattern's held-in GP is asked about its own points of one uniform draw from every
+    # pattern's unseen points in turn, as if all were made at once.
+    if run is not None:
+        monkeypatch.setattr(heldout, "RUN_POINTS", run)
+    unseen_points = ex._unseen_points
+    monkeypatch.setattr(ex, "_unseen_points", lambda *a: unseen_points(*a, memory=memory))
+    scans = _room_scans()
+    lo, hi = np.full(2, -50.0), np.full(2, 50.0)
+    by_hand = []
+    for first in heldout.FOLD_STARTS[:2]:
+        kept, held = heldout.holdout_stretches(len(scans), first)
+        by_hand.append(
+            _unseen_by_hand([scans[i] for i in kept], [scans[i] for i in held], lo, hi, 0.0, ex.MapConfig.no_return_cap)
+        )
+    # The first pattern alone holds too few of a class, the first two pooled enough: two GPs.
+    fewest = int(min(by_hand[0][1].sum(), (~by_hand[0][1]).sum()))
+    monkeypatch.setattr(ex, "MIN_POINTS_PER_CLASS", fewest + 1)
+    pts = np.concatenate([p for p, _ in by_hand])
+    occ = np.concatenate([o for _, o in by_hand])
+    assert min(occ.sum(), (~occ).sum()) > fewest + 1
+    monkeypatch.setattr(ex, "MAX_POINTS", len(pts) // 3)
+    asked = []
+
+    class Recorder(_Fixed):
+        def predict(self, points, return_var=False):
+            asked.append(points)
+            return np.zeros(len(points)), np.ones(len(points))
+
+    _, report = ex.fit_variance_scale(
+        scans,
+        {"alpha": 30.0, "beta": 0.0},
+        _points(scans),
+        SETTINGS.free_clearance,
+        Recorder(None).fit,
+        np.zeros(2),
+        50.0,
+        0.0,
+        seed=4,
+    )
+    assert report["n_patterns"] == 2 and report["n_points"] == len(pts) // 3
+    keep = observations.natural_subsample(len(pts), len(pts) // 3, 4)
+    fold_of = np.repeat([0, 1], [len(p) for p, _ in by_hand])[keep]
+    assert len(asked) == 2 and (fold_of == 0).any() and (fold_of == 1).any()
+    for k in (0, 1):
+        np.testing.assert_array_equal(asked[k], pts[keep][fold_of == k])
 
 
 def test_beams_reach_by_hand():

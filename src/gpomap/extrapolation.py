@@ -47,9 +47,10 @@ from scipy.special import log_ndtr
 from gpomap.config import PROFILES, MapConfig
 from gpomap.errors import EmptyDataError
 from gpomap.evidence import RayEvidence, lattice_grid
-from gpomap.heldout import FOLD_STARTS, HOLDOUT_EVERY, calibration_points, holdout_stretches
+from gpomap.heldout import FOLD_STARTS, HOLDOUT_EVERY, CalibrationPoints, holdout_stretches
 from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
 from gpomap.observations import Observations, ScanPoints, beams_reach, data_dim, free_near_hits, natural_subsample
+from gpomap.resources import POINT_MEMORY
 from gpomap.squash import unseen_probit
 
 #: Fewest held-out points of each class where no kept beam went for kappa to be fitted.
@@ -239,17 +240,19 @@ def fit_variance_scale(
     if n < MIN_POINTS_PER_CLASS:
         reason = f"{n} held-out points of a class where no kept beam went, in {len(folds)} patterns of held-out stretches"
         return 1.0, {"kappa": 1.0, "reason": reason}
-    pts = np.concatenate([f[1] for f in folds])
-    occ = np.concatenate([f[2] for f in folds])
-    fold_of = np.concatenate([np.full(f[2].size, k) for k, f in enumerate(folds)])
-    keep = natural_subsample(occ.size, MAX_POINTS, seed)
-    pts, occ, fold_of = pts[keep], occ[keep], fold_of[keep]
+    # The sample drawn from every pattern's unseen points in turn, only those drawn made.
+    starts = np.cumsum([0] + [f[1].size for f in folds])
+    keep = natural_subsample(int(starts[-1]), MAX_POINTS, seed)
+    cut = np.searchsorted(keep, starts)
+    drawn = [f[1].take(keep[a:b] - s) for f, a, b, s in zip(folds, cut[:-1], cut[1:], starts[:-1], strict=True)]
+    pts, occ = np.concatenate([d[0] for d in drawn]), np.concatenate([d[1] for d in drawn])
+    fold_of = np.concatenate([np.full(d[1].size, k) for k, d in enumerate(drawn)])
     # The region's points (grown by the clearance) cut once for every pattern: a whole log has
     # tens of millions.
     observations = source.square(lo, hi, free_clearance)
     # Each pattern's points are predicted by the GP of that pattern's kept scans.
     mu, var = np.empty(occ.size), np.empty(occ.size)
-    for k, (kept, _, _) in enumerate(folds):
+    for k, (kept, _) in enumerate(folds):
         sel = fold_of == k
         if not sel.any():
             continue
@@ -386,7 +389,7 @@ def _region_folds(
     margin: float,
     no_return_cap: float | None,
     observes: Callable[[NDArray[np.intp]], bool],
-) -> tuple[list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]], int]:
+) -> tuple[list[tuple[NDArray[np.intp], _UnseenPoints]], int]:
     """Per pattern of held-out stretches tried, the kept scans' indices and the held-out points in
     the square where none of them went (:func:`_unseen_points`); and the smaller class's count.
 
@@ -396,16 +399,16 @@ def _region_folds(
     whatever the variance scale (a robot that drove past the square once, in a stretch this
     pattern holds out, would otherwise keep the scale at 1).
     """
-    folds: list[tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]]] = []
+    folds: list[tuple[NDArray[np.intp], _UnseenPoints]] = []
     n = 0
     for first in FOLD_STARTS:
         kept, held = holdout_stretches(len(scans), first)
         if not observes(kept):
             continue
-        pts, occ = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
-        folds.append((kept, pts, occ))
-        n_occ = sum(int(f[2].sum()) for f in folds)
-        n = min(n_occ, sum(f[2].size for f in folds) - n_occ)
+        unseen = _unseen_points([scans[i] for i in kept], [scans[i] for i in held], lo, hi, margin, no_return_cap)
+        folds.append((kept, unseen))
+        n_occ = sum(f[1].n_occupied for f in folds)
+        n = min(n_occ, sum(f[1].size for f in folds) - n_occ)
         if n >= MIN_POINTS_PER_CLASS:
             break
     return folds, n
@@ -443,6 +446,57 @@ def fit_unseen_squash(
     return float(np.exp(res.x)), float(res.fun)
 
 
+class _UnseenPoints:
+    """Held-out scans' calibration points where no kept beam went (:func:`_unseen_points`), in
+    order: which of each run of a scan's points they are, a bit each, and those drawn made again
+    from their rays (:meth:`take`), so a depth frame's millions are never held at once.
+
+    Attributes
+    ----------
+    size : int
+        How many.
+    n_occupied : int
+        How many are hits.
+    """
+
+    def __init__(self, dim: int, no_return_cap: float | None) -> None:
+        self.dim = dim
+        self.no_return_cap = no_return_cap
+        self.size = self.n_occupied = 0
+        # Per run: its scan, its first and last + 1 point in the scan, the bits of those unseen,
+        # and how many are.
+        self._runs: list[tuple[Any, int, int, NDArray[np.uint8], int]] = []
+
+    def add(self, scan: Any, start: int, stop: int, unseen: NDArray[np.bool_], n_occupied: int) -> None:
+        """Mark which of the scan's points `start` .. `stop` - 1 are unseen (`unseen`, shape
+        (stop - start,)), `n_occupied` of them hits."""
+        n = int(np.count_nonzero(unseen))
+        if n:
+            self._runs.append((scan, start, stop, np.packbits(unseen), n))
+            self.size += n
+            self.n_occupied += int(n_occupied)
+
+    def take(self, index: NDArray[np.integer]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """The unseen points at sorted places `index` (k,) among them all: points (k, d), classes (k,)."""
+        index = np.asarray(index, dtype=np.intp)
+        points, occupied = [np.zeros((0, self.dim))], [np.zeros(0, dtype=bool)]
+        first = 0
+        held: CalibrationPoints | None = None
+        held_scan = None
+        for scan, start, stop, bits, n in self._runs:
+            lo, hi = np.searchsorted(index, [first, first + n])
+            if lo < hi:
+                if scan is not held_scan:
+                    held, held_scan = CalibrationPoints(scan, no_return_cap=self.no_return_cap), scan
+                assert held is not None
+                places = np.flatnonzero(np.unpackbits(bits, count=stop - start))[index[lo:hi] - first] + start
+                p, o = held.take(places)
+                points.append(p)
+                occupied.append(o)
+            first += n
+        return np.concatenate(points), np.concatenate(occupied)
+
+
 def _unseen_points(
     kept_scans: Sequence[Any],
     held_scans: Sequence[Any],
@@ -450,28 +504,55 @@ def _unseen_points(
     hi: NDArray[np.float64],
     margin: float,
     no_return_cap: float | None,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    memory: int = POINT_MEMORY,
+) -> _UnseenPoints:
     """The held-out scans' protocol points in the square `lo`..`hi` (x, y) shrunk by `margin`, where
-    no kept beam went: points (m, d) and classes (m,).
+    no kept beam went.
 
     Scans whose beams cannot reach the square are passed over (a whole log's scans mostly look
-    elsewhere, and would be most of the stage's time).
+    elsewhere, and would be most of the stage's time). The points are made a run of rays at a
+    time (:class:`~gpomap.heldout.CalibrationPoints`), twice: once for the box of those in the
+    square, on which "no kept beam went" is decided, then to decide it; those of the first pass
+    are kept for the second while they take at most `memory` bytes. What is unseen is kept as a
+    bit a point: the points themselves are made again only where drawn.
     """
-    pts_l, occ_l = [], []
+    unseen = _UnseenPoints(data_dim(held_scans), no_return_cap)
+    runs: list[tuple[Any, int, int, NDArray[np.uint8], tuple[NDArray[np.float64], NDArray[np.bool_]] | None]] = []
+    bounds: list[NDArray[np.float64]] = []
+    kept_bytes = 0
     for scan in held_scans:
         if not beams_reach(scan, lo, hi, no_return_cap):
             continue
-        p, o = calibration_points(scan, no_return_cap=no_return_cap)
-        sel = _in_square(p, lo, hi, -margin) if p.size else np.zeros(0, bool)
-        pts_l.append(p[sel])
-        occ_l.append(o[sel])
-    if not pts_l or sum(len(p) for p in pts_l) == 0:
-        return np.zeros((0, data_dim(held_scans))), np.zeros(0, bool)
-    pts, occ = np.concatenate(pts_l), np.concatenate(occ_l)
+        held = CalibrationPoints(scan, no_return_cap=no_return_cap)
+        for start, stop in held.spans():
+            p, o = held.between(start, stop)
+            inside = _in_square(p, lo, hi, -margin)
+            if not inside.any():
+                continue
+            p, o = p[inside], o[inside]
+            bounds += column_bounds(p)
+            kept_bytes += p.nbytes + o.nbytes
+            runs.append((scan, start, stop, np.packbits(inside), (p, o) if kept_bytes <= memory else None))
+    if not runs:
+        return unseen
     # Where no kept beam went: no hit and no miss on the evaluation's reference lattice.
-    box_lo, box_hi = column_bounds(pts)
+    box_lo, box_hi = np.min(bounds[0::2], axis=0), np.max(bounds[1::2], axis=0)
     rays = RayEvidence.from_scans([s for s in kept_scans if beams_reach(s, box_lo, box_hi, no_return_cap)], no_return_cap)
-    grid = lattice_grid(bounds_extent(box_lo, box_hi), UNSEEN_RESOLUTION[pts.shape[1]])
-    cell, ok = flat_index(grid, pts)
-    seen = ok & rays.seen(grid).reshape(-1)[cell]
-    return pts[~seen], occ[~seen]
+    grid = lattice_grid(bounds_extent(box_lo, box_hi), UNSEEN_RESOLUTION[box_lo.size])
+    seen_cells = rays.seen(grid).reshape(-1)
+    again: CalibrationPoints | None = None
+    again_scan = None
+    for scan, start, stop, bits, part in runs:
+        inside = np.unpackbits(bits, count=stop - start).view(bool)
+        if part is None:
+            if scan is not again_scan:
+                again, again_scan = CalibrationPoints(scan, no_return_cap=no_return_cap), scan
+            assert again is not None
+            p, o = again.between(start, stop)
+            part = p[inside], o[inside]
+        cell, ok = flat_index(grid, part[0])
+        new = ~(ok & seen_cells[cell])
+        marks = np.zeros(stop - start, dtype=bool)
+        marks[inside] = new
+        unseen.add(scan, start, stop, marks, int(np.count_nonzero(part[1] & new)))
+    return unseen
