@@ -109,6 +109,9 @@ def test_map_and_info_on_a_real_log(tmp_path, run):
         "0.5",
         "--no-return-cap",
         "5",
+        # Hardly a cell occupied: a written map the fit warns about.
+        "--thresholds",
+        "0.3,0.999",
     )
     assert r.returncode == 0, r.stderr
     assert "scans        30" in r.stdout
@@ -116,6 +119,15 @@ def test_map_and_info_on_a_real_log(tmp_path, run):
     assert "ray counts   against a miss in open space, a hit weighs" in r.stdout and "surprise rate 0.01\n" in r.stdout
     assert re.search(r"a miss beside a hit [0-9.e-]+, a near miss", r.stdout)
     assert (tmp_path / "map.pgm").read_bytes().startswith(b"P5")
+    # The fit's warnings, those about the written grid among them (taken before the grid is let
+    # go to save map.gpom), each once on stderr.
+    from gpomap.diagnostics import fit_warnings
+    from gpomap.io.mapfile import load_fitted_map
+    from gpomap.io.npz import load_map
+
+    expected = fit_warnings(load_fitted_map(tmp_path / "map.gpom"), load_map(tmp_path / "map.npz"))
+    assert any("almost all one class" in m for m in expected)
+    assert [line for line in r.stderr.splitlines() if line.startswith("warning: ")] == [f"warning: {m}" for m in expected]
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log not present")

@@ -25,8 +25,8 @@ from gpomap.cli.common import (
     load_scans,
     outputs,
     print_map_summary,
-    report_fit,
     status,
+    warn,
 )
 from gpomap.cli.options import (
     Default,
@@ -181,8 +181,10 @@ def fitted_model(args: argparse.Namespace, data: Any) -> Any:
 def write_map(args: argparse.Namespace, fitted: Any, title: str, extra: Callable[[Any], None] | None = None) -> list[Path]:
     """Predict the model's grid and replace the output set with it; returns the files written.
 
-    `extra`, if given, is called with the output set to add files of its own to it.
+    `extra`, if given, is called with the output set to add files of its own to it, once the grid
+    is written and let go (a building's grid is hundreds of megabytes beside the model).
     """
+    from gpomap.diagnostics import fit_warnings
     from gpomap.io.export import write_map_files
 
     t = time.perf_counter()
@@ -191,9 +193,12 @@ def write_map(args: argparse.Namespace, fitted: Any, title: str, extra: Callable
     status(args, f"  {nx} x {ny} cells predicted in {time.perf_counter() - t:.2f} s; writing {args.output}/")
     with outputs(args) as output:
         staged = write_map_files(occupancy_map, output.path, pgm_mode=args.pgm_mode, title=title)
+        warnings = fit_warnings(fitted, occupancy_map)
+        del occupancy_map
         if extra is not None:
             extra(output)
-    report_fit(fitted, occupancy_map)
+    for message in warnings:
+        warn(message)
     return [output.final(f) for f in staged]
 
 
