@@ -151,6 +151,40 @@ def test_region_observations_equal_the_kept_scans_observed_alone():
     assert len(inside_only) > len(got.points)
 
 
+@pytest.mark.parametrize("made", [False, True], ids=["held", "made again"])
+def test_the_kept_region_made_part_by_part_is_region_observations(monkeypatch, made):
+    # Each pattern's held-in points, cut from the scans' points made again a few scans at a
+    # time (or from the points held), are region_observations of every point at once.
+    from gpomap.observations import ScanPoints
+
+    monkeypatch.setattr(observations, "PART_POINTS", 500)
+    world, poses = paper_room()
+    scans = simulate_scans(world, poses, 90, max_range=3.0, seed=0)  # short beams: not all reach the square
+    settings = AreaGPOM().base
+    whole = settings.make_observations(scans, clearance=False)
+    how = (settings.free_step, settings.hit_margin, settings.no_return_cap)
+    source = ScanPoints(scans, *how) if made else ex._HeldPoints(whole)
+    lo, hi = poses[12, :2] - 2.0, poses[12, :2] + 3.0
+    answers = set()
+    for first in heldout.FOLD_STARTS:
+        kept, _ = heldout.holdout_stretches(len(scans), first)
+        got = ex._kept_region(source, kept, lo, hi, settings.free_clearance)
+        want = ex.region_observations(whole, kept, lo, hi, settings.free_clearance)
+        for a in ("points", "occupied", "scan_index"):
+            np.testing.assert_array_equal(getattr(got, a), getattr(want, a))
+        assert want.n_free > 0 and want.n_occupied > 0
+        # Which patterns' kept scans observed both classes in the square.
+        inside = np.all((whole.points >= lo) & (whole.points <= hi), axis=1)
+        for some in (kept, kept[:3], kept[-2:]):
+            occupied = whole.occupied[inside & np.isin(whole.scan_index, some)]
+            answers.add(ex._observes_both(source, len(scans), lo, hi)(some))
+            assert ex._observes_both(source, len(scans), lo, hi)(some) == (occupied.any() and not occupied.all())
+    assert answers == {True, False}
+    if made:
+        meets = np.all((source.scan_lower[:, :2] <= hi) & (source.scan_upper[:, :2] >= lo), axis=1)
+        assert meets.any() and not meets.all()
+
+
 def _unseen_by_hand(kept_scans, held_scans, lo, hi, margin, cap):
     """The held-out scans' points in the square shrunk by `margin` where no kept beam went, every
     point made whole: points and classes."""

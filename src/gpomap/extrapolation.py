@@ -34,7 +34,6 @@ all three (a short log, a robot that never left one room), kappa stays 1.
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
@@ -50,7 +49,7 @@ from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.heldout import FOLD_STARTS, HOLDOUT_EVERY, CalibrationPoints, holdout_stretches
 from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
 from gpomap.observations import Observations, ScanPoints, beams_reach, data_dim, free_near_hits, natural_subsample
-from gpomap.resources import POINT_MEMORY
+from gpomap.resources import POINT_MEMORY, release_freed_memory
 from gpomap.squash import unseen_probit
 
 #: Fewest held-out points of each class where no kept beam went for kappa to be fitted.
@@ -104,15 +103,12 @@ def _in_square(
 
 
 class _HeldPoints:
-    """Labelled points held in memory, asked as :class:`~gpomap.observations.ScanPoints` is."""
+    """Labelled points held in memory, asked as :class:`~gpomap.observations.ScanPoints` is (their
+    bounds, their parts)."""
 
     def __init__(self, obs: Observations) -> None:
         self.obs = obs
         self.lower, self.upper = column_bounds(obs.points)
-
-    def square(self, lo: NDArray[np.float64], hi: NDArray[np.float64], grow: float = 0.0) -> Observations:
-        inside = _in_square(self.obs.points, lo, hi, grow)
-        return Observations(self.obs.points[inside], self.obs.occupied[inside], self.obs.scan_index[inside])
 
     def parts(self) -> Iterator[Observations]:
         yield self.obs
@@ -147,9 +143,57 @@ def region_observations(
     Observations
     """
     grown = _from_kept(obs.scan_index, kept) & _in_square(obs.points, lo, hi, clearance)
-    points, occupied, scan_index = obs.points[grown], obs.occupied[grown], obs.scan_index[grown]
-    keep = ~free_near_hits(points, occupied, clearance) & _in_square(points, lo, hi)
-    return Observations(points[keep], occupied[keep], scan_index[keep])
+    return _cleared(Observations(obs.points[grown], obs.occupied[grown], obs.scan_index[grown]), lo, hi, clearance)
+
+
+def _cleared(grown: Observations, lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float) -> Observations:
+    """Of points in the square `lo`..`hi` grown by `clearance`, those in the square that the
+    clearance keeps (:func:`region_observations`)."""
+    keep = ~free_near_hits(grown.points, grown.occupied, clearance) & _in_square(grown.points, lo, hi)
+    return Observations(grown.points[keep], grown.occupied[keep], grown.scan_index[keep])
+
+
+def _square_parts(
+    source: ScanPoints | _HeldPoints,
+    lo: NDArray[np.float64],
+    hi: NDArray[np.float64],
+    grow: float = 0.0,
+    among: NDArray[np.intp] | None = None,
+) -> Iterator[Observations]:
+    """The points in the square `lo`..`hi` grown by `grow`, of every scan or of those `among`
+    (sorted indices), a part at a time in the log's order: what ``source.square`` cuts, never
+    all held at once."""
+    box_lo, box_hi = np.asarray(lo, dtype=float)[:2] - grow, np.asarray(hi, dtype=float)[:2] + grow
+    if isinstance(source, _HeldPoints):
+        obs = source.obs
+        inside = in_box(obs.points, box_lo, box_hi)
+        if among is not None:
+            inside &= _from_kept(obs.scan_index, among)
+        yield Observations(obs.points[inside], obs.occupied[inside], obs.scan_index[inside])
+        return
+    meets = np.all((source.scan_lower[:, :2] <= box_hi) & (source.scan_upper[:, :2] >= box_lo), axis=1)
+    scans = np.flatnonzero(meets) if among is None else among[meets[among]]
+    if scans.size == 0:
+        return
+    for part in source.parts(scans.tolist()):
+        inside = in_box(part.points, box_lo, box_hi)
+        yield Observations(part.points[inside], part.occupied[inside], part.scan_index[inside])
+
+
+def _kept_region(
+    source: ScanPoints | _HeldPoints, kept: NDArray[np.intp], lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float
+) -> Observations:
+    """:func:`region_observations` of the map's points, made again from the kept scans alone
+    (or cut from the points held): the other scans' points in the region are never made."""
+    cut = list(_square_parts(source, lo, hi, clearance, among=kept))
+    d = source.lower.size
+    grown = Observations(
+        np.concatenate([c.points for c in cut]) if cut else np.zeros((0, d)),
+        np.concatenate([c.occupied for c in cut]) if cut else np.zeros(0, dtype=bool),
+        np.concatenate([c.scan_index for c in cut]) if cut else np.zeros(0, dtype=np.int32),
+    )
+    del cut
+    return _cleared(grown, lo, hi, clearance)
 
 
 def fit_variance_scale(
@@ -229,9 +273,7 @@ def fit_variance_scale(
     tried: list[tuple[int, NDArray[np.float64], float, float, list[Any]]] = []
     for c, h, g in regions():
         lo, hi = c - h, c + h
-        inside = source.square(lo, hi)
-        observes = functools.partial(_observes_both, inside, np.ones(inside.occupied.size, dtype=bool))
-        folds, n = _region_folds(scans, lo, hi, g, no_return_cap, observes)
+        folds, n = _region_folds(scans, lo, hi, g, no_return_cap, _observes_both(source, len(scans), lo, hi))
         tried.append((n, c, h, g, folds))
         if n >= REGION_POINTS_PER_CLASS:
             break
@@ -247,16 +289,15 @@ def fit_variance_scale(
     drawn = [f[1].take(keep[a:b] - s) for f, a, b, s in zip(folds, cut[:-1], cut[1:], starts[:-1], strict=True)]
     pts, occ = np.concatenate([d[0] for d in drawn]), np.concatenate([d[1] for d in drawn])
     fold_of = np.concatenate([np.full(d[1].size, k) for k, d in enumerate(drawn)])
-    # The region's points (grown by the clearance) cut once for every pattern: a whole log has
-    # tens of millions.
-    observations = source.square(lo, hi, free_clearance)
-    # Each pattern's points are predicted by the GP of that pattern's kept scans.
+    # Each pattern's points are predicted by the GP of that pattern's kept scans, fitted on their
+    # points in the region: made again for each pattern, the other scans' never (a whole log
+    # has tens of millions of points, a depth frame ten).
     mu, var = np.empty(occ.size), np.empty(occ.size)
     for k, (kept, _) in enumerate(folds):
         sel = fold_of == k
         if not sel.any():
             continue
-        obs = region_observations(observations, kept, lo, hi, free_clearance)
+        obs = _kept_region(source, kept, lo, hi, free_clearance)
         if obs.n_occupied == 0 or obs.n_free == 0:  # every kept free point cleared (see _observes_both)
             return 1.0, {"kappa": 1.0, "reason": "no kept observations of a class in the region"}
         try:
@@ -264,6 +305,8 @@ def fit_variance_scale(
         except EmptyDataError as err:
             return 1.0, {"kappa": 1.0, "reason": str(err)}
         mu[sel], var[sel] = model.predict(pts[sel], return_var=True)
+        del obs, model
+        release_freed_memory()
     a, b = float(hyperparameters["alpha"]), float(hyperparameters["beta"])
     kappa, loss = fit_unseen_squash(mu, var, occ, a, b)
     return kappa, {
@@ -375,11 +418,21 @@ def _from_kept(scan_index: NDArray[np.integer], kept: NDArray[np.intp]) -> NDArr
     return is_kept[scan_index]
 
 
-def _observes_both(obs: Observations, in_square: NDArray[np.bool_], kept: NDArray[np.intp]) -> bool:
-    """Whether the kept scans have a hit and a free point among the points `in_square` (a mask
-    of `obs`), before the clearance (which could, in principle, clear every free point)."""
-    occupied = obs.occupied[in_square & _from_kept(obs.scan_index, kept)]
-    return bool(occupied.any() and not occupied.all())
+def _observes_both(
+    source: ScanPoints | _HeldPoints, n_scans: int, lo: NDArray[np.float64], hi: NDArray[np.float64]
+) -> Callable[[NDArray[np.intp]], bool]:
+    """Whether given kept scans have a hit and a free point in the square `lo`..`hi`, before the
+    clearance (which could, in principle, clear every free point): which scans have either there,
+    found a part at a time."""
+    hit, free = np.zeros(n_scans, dtype=bool), np.zeros(n_scans, dtype=bool)
+    for part in _square_parts(source, lo, hi):
+        hit[part.scan_index[part.occupied]] = True
+        free[part.scan_index[~part.occupied]] = True
+
+    def observes(kept: NDArray[np.intp]) -> bool:
+        return bool(hit[kept].any() and free[kept].any())
+
+    return observes
 
 
 def _region_folds(
