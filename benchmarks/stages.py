@@ -56,6 +56,11 @@ STAGES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
         {"gpomap.fusion.calibration.CALIBRATION_BOUNDS": "fixed"},
         {},
     ),
+    # Not stages: the GP's cells made finer. The tree splits a box on below max_cell (0.5 m) only
+    # while it holds both classes, so a smaller min_cell alone makes cells finer at surfaces only.
+    "min_cell_0.25": ("GP cells holding both classes split down to 0.25 m (pure ones stay 0.5 m)", {}, {"min_cell": 0.25}),
+    "min_cell_0.125": ("GP cells holding both classes split down to 0.125 m (pure ones stay 0.5 m)", {}, {"min_cell": 0.125}),
+    "cells_0.25": ("GP cells of 0.25 m everywhere", {}, {"min_cell": 0.25, "max_cell": 0.25}),
 }
 TRUTH_WORLDS = ("stage-arena", "cave", "hospital_section", "room")
 HELD_OUT = ("intel:blocks", "intel:every", "fr079:blocks", "csail:blocks", "belgioioso:blocks")
