@@ -9,7 +9,7 @@ import pytest
 
 from gpomap import _compiled_counts, fusion, lattice
 from gpomap.clouds import CloudScan
-from gpomap.evidence import NEAR_END, PATH_RADIUS, RayEvidence, lattice_grid, next_to_hits
+from gpomap.evidence import NEAR_END, RayEvidence, lattice_grid, next_to_hits
 from gpomap.fusion import (
     CALIBRATION_BOUNDS,
     SURPRISE_RATE,
@@ -21,6 +21,7 @@ from gpomap.fusion import (
 from gpomap.grid import GridSpec, coarse_grid, interpolate_to
 from gpomap.heldout import calibration_points
 from gpomap.mapping import AreaGPOM
+from gpomap.robot_path import PATH_RADIUS
 from gpomap.scans import Scan
 from gpomap.simulate import paper_room_scans
 from gpomap.voxels import VoxelSpec
@@ -349,7 +350,7 @@ def test_path_passes_cover_the_robots_body_once_per_step() -> None:
     """One 0.5 m step along row 10 of a 5 cm grid: the cells it crosses shifted by up to
     PATH_RADIUS (2 cells: 0 or +-1, +-2 along x in the row itself, 0, +-1 one row off, 0 two
     rows off), each once; two steps count where both pass, and add up."""
-    from gpomap.evidence import PATH_RADIUS
+    from gpomap.robot_path import PATH_RADIUS
 
     assert PATH_RADIUS == 0.1  # the cells below are worked out for it
     grid = GridSpec((0.0, 0.0), 0.05, (40, 40))

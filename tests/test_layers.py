@@ -51,7 +51,9 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         (
             "gpomap.observations",
             "gpomap.cells",
+            "gpomap.robot_path",
             "gpomap.evidence",
+            "gpomap.counted_cells",
             "gpomap.heldout",
             "gpomap._compiled_counts",
             "gpomap._compiled_clearance",

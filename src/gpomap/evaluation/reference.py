@@ -50,10 +50,10 @@ def path_points(scans: Sequence[Scan], step: float = PATH_STEP) -> NDArray[np.fl
     """Points every `step` along the robot's path through `scans` (in log order), shape (n, 2).
 
     The path joins consecutive scans' sensor positions where the map takes the robot to have
-    driven (:func:`gpomap.evidence.path_steps`); jumps in the log are left out.
+    driven (:func:`gpomap.robot_path.path_steps`); jumps in the log are left out.
     """
-    from gpomap.evidence import path_steps
     from gpomap.observations import sensor_positions
+    from gpomap.robot_path import path_steps
 
     if len(scans) == 0:
         return np.zeros((0, 2))

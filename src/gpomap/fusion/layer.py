@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from gpomap.clouds import CloudScan
 from gpomap.config import PROFILES, MapConfig
 from gpomap.counted_cells import CellCounts, count_cells
-from gpomap.evidence import PATH_RADIUS, RayCounts, RayEvidence, lattice_grid, next_to_hits, path_steps
+from gpomap.evidence import RayCounts, RayEvidence, lattice_grid, next_to_hits
 from gpomap.fusion.calibration import (
     SURPRISE_RATE,
     CalibrationSample,
@@ -44,6 +44,7 @@ from gpomap.lattice import (
 )
 from gpomap.observations import ScanData, data_dim
 from gpomap.revisit import RevisitCalibration, fit_revisit
+from gpomap.robot_path import PATH_RADIUS, path_steps
 from gpomap.scans import Scan
 
 #: Whether the ternary map, per dimension of the data, never calls occupied a cell no beam ended in
