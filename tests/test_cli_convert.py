@@ -93,3 +93,29 @@ def test_pooling_is_refused_for_an_octree(tmp_path, capsys):
     code, _, err = _run(["convert", str(tree), "-o", str(tmp_path / "out"), "--pooling", "majority", "-q"], capsys)
     assert code == 1
     assert "--pooling is for grids" in err
+
+
+def test_the_pooling_factor_reaches_the_conversion(tmp_path, capsys):
+    # An any-pooled room whose right wall borders unknown space: told (or, untold, taking) the
+    # factor of the output's resolution, its 1s beside unknown space are read as a wall's front.
+    v = _room()
+    v[:, 19] = np.nan
+    path = save_map(OccupancyMap(GridSpec((0.0, 0.0), PIXEL, (20, 20)), v), tmp_path / "half.npz")
+    k = round(PIXEL / FINE)
+    runs = {}
+    for name, extra in (("untold", []), ("told", ["--pooling-factor", str(k)]), ("other", ["--pooling-factor", "2"])):
+        argv = ["convert", str(path), "-o", str(tmp_path / name), "--resolution", str(FINE), "-q", "--json", *extra]
+        code, stdout, err = _run(argv, capsys)
+        assert code == 0, err
+        runs[name] = (json.loads(stdout.split("\nwrote")[0]), load_map(tmp_path / name / "map.npz").probability)
+    assert [runs[n][0]["pooling_factor"] for n in ("untold", "told", "other")] == [k, k, 2]
+    np.testing.assert_array_equal(runs["untold"][1], runs["told"][1])
+    library = convert_grid(path, resolution=FINE, pooling_factor=2).map.probability
+    np.testing.assert_allclose(runs["other"][1], library, rtol=0, atol=1e-12)
+    assert np.abs(runs["other"][1] - runs["told"][1]).max() > 1e-3
+    # No factor where the output's cell is not a whole part of the pixel.
+    code, stdout, err = _run(["convert", str(path), "-o", str(tmp_path / "odd"), "--resolution", "0.03", "-q", "--json"], capsys)
+    assert code == 0, err
+    assert json.loads(stdout.split("\nwrote")[0])["pooling_factor"] is None
+    code, _, err = _run(["convert", str(path), "-o", str(tmp_path / "bad"), "--pooling-factor", "0"], capsys)
+    assert code == 2 and "--pooling-factor" in err

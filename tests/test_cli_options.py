@@ -104,6 +104,7 @@ VALUES: dict[str, str] = {
     "resume": "state.gpom",
     "answers": "answers.npz",
     "occupied_fraction": "0.5",
+    "pooling_factor": "3",
 }
 
 #: Options the command uses itself, not handed to the library as a setting: why, by dest.

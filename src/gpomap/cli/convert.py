@@ -74,6 +74,15 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         "holds the map to (default: 0.7, which suits every pooling: 1.0 on majority-pooled grids beat "
         "interpolation in fewer of the measured cases, docs/convert.md). A mean-pooled grid's values are its shares",
     )
+    p.add_argument(
+        "--pooling-factor",
+        type=positive(int),
+        metavar="K",
+        help="grids pooled by any: the side of one of the grid's pixels in pixels of the finer grid it was made "
+        "from. Told it, a 1 beside unknown space is read as the front of a wall no sensor saw behind, its share "
+        "from the walls' thickness the grid shows (docs/convert.md). Default: the grid's pixel over --resolution "
+        "when that is a whole number of 2 or more (the map made continuous at the finer grid's pixel), else none",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     add_output_options(p, None)
     # The options of octrees only.
@@ -106,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
     spec = output_grid(source.grid, args.resolution, args.extent)
     if args.resolution is None:
         args.resolution = spec.resolution  # the source's pixel size (named in the messages)
+    if "pooling_factor" not in options and output_factor(source.grid.resolution, spec.resolution) is not None:
+        options["pooling_factor"] = output_factor(source.grid.resolution, spec.resolution)
     check_grid_memory(args, spec.shape, spec.extent, 0)
     # The converter's own inputs (wall-aware, several per wall pixel), not a plain cell tree's.
     n_cells = len(converter_for(source.grid.resolution, **options).make_cells(grid_to_observations(source, args.values)))
@@ -125,11 +136,21 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def output_factor(pixel: float, resolution: float) -> int | None:
+    """How many output cells a side of a grid's pixel spans, when a whole number of 2 or more
+    (within a millionth), else None: the pooling factor ``gpomap convert`` assumes untold."""
+    ratio = pixel / resolution
+    k = round(ratio)
+    return k if k >= 2 and abs(ratio - k) <= 1e-6 * ratio else None
+
+
 def convert_options(args: argparse.Namespace) -> dict[str, Any]:
     """The model options of ``gpomap convert`` (the rest are the converter's own, see gpomap.convert.model_defaults)."""
     options: dict[str, Any] = {"thresholds": args.thresholds}
     if args.pooling != "auto":
         options["pooling"] = args.pooling
+    if args.pooling_factor is not None:
+        options["pooling_factor"] = args.pooling_factor
     if args.kernel:
         options["kernel"] = args.kernel
     if args.occupied_fraction is not None:
@@ -147,6 +168,8 @@ def _convert_text(report: dict[str, Any]) -> str:
         [
             f"pixels       {px.get('free')} free, {px.get('occupied')} occupied, {px.get('unknown')} unknown",
             f"cells        {cells.get('n')}",
+            f"pooling      {report.get('pooling')}"
+            + (f", a pixel {report['pooling_factor']} finer pixels a side" if report.get("pooling_factor") else ""),
             "hyperparams  " + ", ".join(f"{k} {v:.4g}" for k, v in hp.items()),
             f"agreement    {100 * agree['ternary']:.2f} % of known pixels keep their label (AUC {agree['auc']:.4f})",
             "timings (s)  " + ", ".join(f"{k} {v:.2f}" for k, v in report["timings"].items() if isinstance(v, float)),
@@ -181,7 +204,7 @@ def _convert_octree(args: argparse.Namespace) -> int:
     from gpomap.io.octomap import read_octree
     from gpomap.io.voxel_outputs import write_voxel_outputs
 
-    for name in ("values", "pooling", "occupied_fraction"):
+    for name in ("values", "pooling", "occupied_fraction", "pooling_factor"):
         if getattr(args, name, None) not in (None, "auto"):
             raise GpomapError(f"--{name.replace('_', '-')} is for grids; {args.input} is an OctoMap tree")
     status(args, f"reading the octree {args.input}...")

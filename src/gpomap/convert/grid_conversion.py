@@ -210,6 +210,7 @@ def convert_grid(
             "max_cell": model.cell_sides(2)[1],
         },
         "pooling": model.reading_.pooling if model.reading_ is not None else None,
+        "pooling_factor": model.pooling_factor,
         "hyperparameters": dict(model.hyperparameters_),
         "agreement": agreement,
         "grid": {
@@ -229,6 +230,6 @@ def convert_grid(
     }
     info = dict(model.summary())
     info["source"] = "grid conversion"
-    info["conversion"] = {k: report[k] for k in ("pixels", "cells", "pooling", "agreement", "grid")}
+    info["conversion"] = {k: report[k] for k in ("pixels", "cells", "pooling", "pooling_factor", "agreement", "grid")}
     occupancy_map = OccupancyMap(spec, prob, variance=var, thresholds=model.thresholds_, info=info)
     return ConversionResult(map=occupancy_map, model=model, report=report)
