@@ -14,13 +14,17 @@ settings give the same file) and mapped as a user maps it:
   writes the same four files (``map.yaml``, ``map.pgm``, ``map.npz``, ``map.png``).
 
 Each process's CPU (user + system, every thread), wall time and peak RSS come from ``wait4``; the
-stage timings are those ``gpomap map`` records in ``map.npz``. Usage::
+stage timings are those ``gpomap map`` records in ``map.npz``. With ``--memory-phases`` (Linux),
+``gpomap map`` runs without ``-q`` and its resident set is read from ``/proc`` every 0.2 s, and
+the peak of each phase its progress lines mark is printed: reading the scans, the fit, the
+written grid's prediction, and writing the files (``map.gpom`` last). Usage::
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/large_building.py                      # both cases
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/large_building.py --cases hospital    # 400 x 260 m, ~7,000 scans
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/large_building.py --cases none --shared all --repeat 3  # the shared logs
     .venv/bin/python benchmarks/large_building.py --cases none --log-file robot.log.gz  # your own log
     .venv/bin/python benchmarks/large_building.py --write-log hospital /tmp/b.log.gz    # just the log
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/large_building.py --cases hospital-dense --methods gpomap --memory-phases
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -291,23 +296,83 @@ def _gpomap_command() -> list[str]:
     return [sys.executable, "-c", "import sys; from gpomap.cli import console; sys.exit(console())"]
 
 
-def timed_process(cmd: list[str], env: dict[str, str], scratch: Path) -> dict[str, Any]:
-    """Run `cmd` to the end; its CPU (user + system, every thread), wall and peak RSS, and its stdout."""
+#: The progress lines of ``gpomap map`` that start each phase after the first ("read").
+PHASES: tuple[tuple[str, str], ...] = (
+    ("fit", "fitting MSK-GPOM"),
+    ("grid", " cells in "),
+    ("write", " cells predicted in "),
+)
+
+
+def _resident_mb(pid: int) -> float | None:
+    """The resident set of process `pid` in MB (None once it is gone)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return next((int(line.split()[1]) / 1024.0 for line in f if line.startswith("VmRSS:")), None)
+    except OSError:
+        return None
+
+
+def timed_process(cmd: list[str], env: dict[str, str], scratch: Path, phases: bool = False) -> dict[str, Any]:
+    """Run `cmd` to the end; its CPU (user + system, every thread), wall and peak RSS, and its
+    stdout; with `phases`, also the peak resident set of each of :data:`PHASES` (its stderr read
+    as it comes, its resident set every 0.2 s)."""
+    samples: list[tuple[float, float]] = []
+    marks: list[tuple[float, str]] = []
     with open(scratch / "stdout", "w+") as out, open(scratch / "stderr", "w+") as err:
         t = time.perf_counter()
-        proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=err)
+        proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.PIPE if phases else err, text=True)
+        threads = []
+        if phases:
+
+            def read_stderr() -> None:
+                assert proc.stderr is not None
+                for line in proc.stderr:
+                    err.write(line)
+                    marks.append((time.perf_counter() - t, line))
+
+            def sample() -> None:
+                while proc.poll() is None:
+                    mb = _resident_mb(proc.pid)
+                    if mb is not None:
+                        samples.append((time.perf_counter() - t, mb))
+                    time.sleep(0.2)
+
+            threads = [threading.Thread(target=f, daemon=True) for f in (read_stderr, sample)]
+            for th in threads:
+                th.start()
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t
+        for th in threads:
+            th.join()
         code = os.waitstatus_to_exitcode(status)
         out.seek(0)
         err.seek(0)
         stdout, stderr = out.read(), err.read()
     if code != 0:
         raise SystemExit(f"{' '.join(cmd)} failed ({code}):\n{stderr[-4000:]}")
-    return {"cpu": usage.ru_utime + usage.ru_stime, "wall": wall, "peak_mb": usage.ru_maxrss / 1024.0, "stdout": stdout}
+    result = {"cpu": usage.ru_utime + usage.ru_stime, "wall": wall, "peak_mb": usage.ru_maxrss / 1024.0, "stdout": stdout}
+    if phases:
+        result["phase_peak_mb"] = phase_peaks(samples, marks)
+    return result
 
 
-def run_case(name: str, log: Path, scratch: Path, methods: list[str], repeat: int = 1) -> dict[str, Any]:
+def phase_peaks(samples: list[tuple[float, float]], marks: list[tuple[float, str]]) -> dict[str, float]:
+    """The largest resident set sampled in each phase: "read" until the first of :data:`PHASES`'
+    lines, then each phase until the next one's line (a phase whose line never came is left out)."""
+    starts = {"read": 0.0}
+    for name, text in PHASES:
+        starts[name] = next((at for at, line in marks if text in line and at >= max(starts.values())), float("inf"))
+    order = sorted(starts.items(), key=lambda kv: kv[1])
+    peaks: dict[str, float] = {}
+    for (name, begin), (_, end) in zip(order, [*order[1:], ("end", float("inf"))]):
+        inside = [mb for at, mb in samples if begin <= at < end]
+        if inside:
+            peaks[name] = max(inside)
+    return peaks
+
+
+def run_case(name: str, log: Path, scratch: Path, methods: list[str], repeat: int = 1, phases: bool = False) -> dict[str, Any]:
     """The counting grid and ``gpomap map`` on one log, each its own process, `repeat` times alternated."""
     env = dict(os.environ)
     out = scratch / "out"
@@ -319,8 +384,8 @@ def run_case(name: str, log: Path, scratch: Path, methods: list[str], repeat: in
             result["grid_runs"].append(r)
             print(f"done {name} counting grid: {r['cpu']:.1f} CPU s, {r['peak_mb']:.0f} MB", file=sys.stderr, flush=True)
         if "gpomap" in methods:
-            cmd = [*_gpomap_command(), "map", str(log), "-o", str(out), "--resolution", str(RESOLUTION), "-q"]
-            r = timed_process(cmd, env, scratch)
+            cmd = [*_gpomap_command(), "map", str(log), "-o", str(out), "--resolution", str(RESOLUTION)]
+            r = timed_process(cmd if phases else [*cmd, "-q"], env, scratch, phases)
             r.pop("stdout")
             with np.load(out / "map.npz") as z:
                 info = json.loads(str(z["info"]))
@@ -365,6 +430,9 @@ def print_table(results: list[dict[str, Any]]) -> None:
         if "gpomap" in r:
             stages = ", ".join(f"{k} {v:.2f}" for k, v in r["gpomap"]["timings"].items())
             print(f"{r['name']}: gpomap map, wall s per stage: {stages}")
+            if "phase_peak_mb" in r["gpomap"]:
+                peaks = ", ".join(f"{k} {v:.0f}" for k, v in r["gpomap"]["phase_peak_mb"].items())
+                print(f"{r['name']}: gpomap map, peak resident MB per phase: {peaks}")
 
 
 def main() -> None:
@@ -387,6 +455,9 @@ def main() -> None:
     parser.add_argument("--write-log", nargs=2, metavar=("CASE", "PATH"), help="only simulate CASE's log into PATH")
     parser.add_argument("--grid-child", nargs=2, metavar=("LOG", "OUT"), help=argparse.SUPPRESS)
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument(
+        "--memory-phases", action="store_true", help="also the peak resident set of each phase of gpomap map (Linux)"
+    )
     args = parser.parse_args()
     if args.grid_child:
         print(json.dumps(grid_child(*args.grid_child)))
@@ -412,7 +483,7 @@ def main() -> None:
     results = []
     for name, log in chosen:
         with tempfile.TemporaryDirectory(prefix="gpomap-large-building-") as scratch:
-            results.append(run_case(name, log, Path(scratch), methods, args.repeat))
+            results.append(run_case(name, log, Path(scratch), methods, args.repeat, args.memory_phases))
     print(f"\n## gpomap map LOG -o OUT --resolution {RESOLUTION} against the counting grid, whole processes")
     print_table(results)
     if args.json:
