@@ -493,3 +493,29 @@ def test_saving_takes_a_fitted_tiled_map(room, tmp_path):
     with pytest.raises(gpomap.errors.NotFittedError):
         save_fitted_map(TiledGPOM(), tmp_path / "x.gpom")
     assert mapfile.FILENAME == "map.gpom"
+
+
+def test_points_waiting_in_a_spill_file_are_counted_not_read_back_when_saved(room, tmp_path, monkeypatch):
+    # The file holds each block's number of points (its points are made again from the scans):
+    # those of parts in the spill file and in memory alike, none read back to count them.
+    import gpomap.tiles.points as tile_points
+    import gpomap.tiles.tiled as tiled_map
+
+    monkeypatch.setattr(tiled_map, "POINT_MEMORY", 1)
+    model = TiledGPOM(n_workers=1, **ROOM_OPTS).fit(room[:8])
+    # An update's points are appended in memory after the spilled ones.
+    model.update(room[8:10])
+    parts = [p for b in model._block_points.values() for p in b._parts]
+    assert any(isinstance(p, tile_points._SpilledPart) for p in parts) and not all(
+        isinstance(p, tile_points._SpilledPart) for p in parts
+    )
+    want = {k: b.arrays()[0].shape[0] for k, b in model._block_points.items()}
+    reads = []
+    load = tile_points._SpilledPart.load
+    monkeypatch.setattr(tile_points._SpilledPart, "load", lambda self: reads.append(self) or load(self))
+    path = save_fitted_map(model, tmp_path / "map.gpom")
+    assert reads == []
+    monkeypatch.undo()
+    loaded = load_fitted_map(path)  # refused if a block's count were not that of its points made again
+    assert {k: b.arrays()[0].shape[0] for k, b in loaded._block_points.items()} == want
+    assert_same(model, loaded)

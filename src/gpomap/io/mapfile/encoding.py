@@ -269,6 +269,7 @@ class _Writer:
         from gpomap.fusion import EvidenceLayer
         from gpomap.streaming import StreamingGPOM
         from gpomap.tiles import TiledGPOM, _BlockPoints
+        from gpomap.tiles.points import _SpilledPart
 
         skip = _not_saved(type(value))
         state: dict[str, Any] = {}
@@ -287,8 +288,9 @@ class _Writer:
                 elif isinstance(value, EvidenceLayer) and attr == "gp_apart":
                     state[attr] = self._gp_apart(v, w)
                 elif isinstance(value, _BlockPoints) and attr == "_parts" and self._points_from_scans():
-                    points, _ = value.arrays()
-                    state[attr] = {"$from_scans": int(points.shape[0])}
+                    # Only their number is written: counted by part, never read back from the spill file.
+                    n = sum(p.shape[0] if isinstance(p, _SpilledPart) else len(p[0]) for p in v)
+                    state[attr] = {"$from_scans": int(n)}
                 else:
                     state[attr] = self.encode(v, w)
         finally:
