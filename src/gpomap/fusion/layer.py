@@ -140,7 +140,7 @@ class EvidenceLayer:
 
     # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
     __module__ = "gpomap.fusion"
-    # Unset in maps saved before a layer could be counted at given points only.
+    # Set only on a layer counted at given points (asked_at), which no map file holds.
     _asked_at: NDArray[np.float64] | None = None
     _cells: CellCounts | None = None
 

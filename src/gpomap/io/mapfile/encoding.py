@@ -23,7 +23,8 @@ _HEADER = "header"
 #: to these values on loading (by class name). A map loaded runs its tiles locally (``scheduler``).
 NOT_SAVED: dict[str, dict[str, Any]] = {
     "gpomap.tiles.TiledGPOM": {"_client": None, "scheduler": None},
-    "gpomap.fusion.EvidenceLayer": {"_at_surface": None, "_joined": None, "_grid_cache": None},
+    # A layer counted only at given points (a map asked at a few points while fitting) is never saved.
+    "gpomap.fusion.EvidenceLayer": {"_at_surface": None, "_joined": None, "_grid_cache": None, "_asked_at": None, "_cells": None},
     "gpomap.gp.GPPosterior": {"precision": None},
 }
 
