@@ -203,6 +203,18 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     asked.fit([scans[i] for i in kept], hyperparameters=fixed)
     np.testing.assert_array_equal(asked.predict_proba(pts), p_eager)
     assert asked.evidence_._hits.size == 0 < eager.evidence_._hits.size
+    # Asked at a corner's points: only the tiles they need, and the blocks those gather cells
+    # from, are made; the same answers.
+    corner = pts[(pts[:, 0] < 6.0) & (pts[:, 1] < 6.0)]
+    near = model._refit().unfitted(fit_revisit=False)
+    near._tiles_when_asked = True
+    near._given_calibration = model.evidence_.calibration
+    near._asked_at = corner
+    near.fit([scans[i] for i in kept], hyperparameters=fixed)
+    np.testing.assert_array_equal(near.predict_proba(corner), eager.predict_proba(corner))
+    assert corner.shape[0] > 100
+    assert len(near._blocks) < len(eager._blocks)
+    assert len(near.tiles_) + len(near._waiting) < len(eager.tiles_) // 2
     with pytest.raises(ValueError, match="only at the cells"):
         asked.predict_proba(pts[:1] + 3.0)
     # A layer saved before layers could be counted at given points (neither attribute in its

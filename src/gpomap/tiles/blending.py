@@ -182,27 +182,20 @@ class TileBlending(TileFits):
                 size = cost
         return batches
 
-    def blended_moments(
-        self, points: NDArray[np.float64], variance: bool = True
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64], NDArray[np.float64] | None]:
-        """The tiles' calibrated latent moments at points, blended: alpha mu + beta, alpha^2 var, mu, var.
-
-        Each of shape (m,); the two variances None without `variance` (the mean costs a small
-        part of a prediction). :meth:`squash_moments` turns the first two into probabilities.
-        """
-        pts = as_points(points, self._dim)
+    def _tile_members(
+        self, pts: NDArray[np.float64], keys: list[tuple[int, int]]
+    ) -> tuple[dict[tuple[int, int], tuple[NDArray[np.intp], NDArray[np.float64]]], NDArray[np.float64]]:
+        """Which of the tiles `keys` (sorted) predict each of the points `pts` (m, d), and with
+        what blend weight: per tile, the points' indices and weights; and each point's weight sum,
+        shape (m,). A point no tile reaches is the nearest core's alone, at weight 1."""
         m = pts.shape[0]
         h = 0.5 * self.blend_
-        chunk = self.base.chunk_size
-        # Per tile: which points it predicts and with what weight.
         members: dict[tuple[int, int], tuple[NDArray[np.intp], NDArray[np.float64]]] = {}
         wsum = np.zeros(m)
         # Points bucketed once in squares of half a tile (a stable sort of integers), so each
         # tile scans only the few squares its blend region reaches: strips of x alone made each
         # tile of a tall map scan dozens of tiles' points (docs/choices.md, "Measured for the
         # code"). Squares as narrow as a short blend would be millions (a hard switch).
-        waiting = getattr(self, "_waiting", {})
-        keys = sorted([*self.tiles_, *waiting]) if waiting else sorted(self.tiles_)
         side = 0.5 * self.tile_size_
         regions = np.array([self._blend_region(k) for k in keys])
         lo = regions[:, [0, 2]].min(axis=0)
@@ -244,6 +237,21 @@ class TileBlending(TileFits):
                 else:
                     members[key] = (sel, np.ones(sel.size))
                 wsum[sel] = 1.0
+        return members, wsum
+
+    def blended_moments(
+        self, points: NDArray[np.float64], variance: bool = True
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64], NDArray[np.float64] | None]:
+        """The tiles' calibrated latent moments at points, blended: alpha mu + beta, alpha^2 var, mu, var.
+
+        Each of shape (m,); the two variances None without `variance` (the mean costs a small
+        part of a prediction). :meth:`squash_moments` turns the first two into probabilities.
+        """
+        pts = as_points(points, self._dim)
+        m = pts.shape[0]
+        chunk = self.base.chunk_size
+        waiting = getattr(self, "_waiting", {})
+        members, wsum = self._tile_members(pts, sorted([*self.tiles_, *waiting]) if waiting else sorted(self.tiles_))
         # A written map predicts the mean at every GP sample, then both moments at fewer: say which.
         desc = "predicting tiles" if variance else "predicting tile means"
         if waiting:

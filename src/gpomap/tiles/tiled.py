@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
 from gpomap.errors import EmptyDataError, NotFittedError
+from gpomap.fitted import as_points
 from gpomap.fusion import EvidenceLayer
 from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, ScanPoints, sensor_positions
@@ -231,7 +232,9 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         for part in held.parts():
             self._add_points(np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool), held.blocks_file)
         held.close()
-        self._build_blocks()
+        asked = self._asked_tiles(given)
+        seen = None if asked is None else {b for tile in asked for b in self._blocks_seen_by(tile)}
+        self._build_blocks(None if seen is None else sorted(seen & set(self._block_points)))
         timings["cells"] = time.perf_counter() - t
         start = hyperparameters.get("length_scale") if hyperparameters is not None else None
         self.check_fit_memory(self.base.length_scale if start is None else float(start))
@@ -259,8 +262,13 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         self._scans = None if isinstance(data, Observations) else list(data)
 
         t = time.perf_counter()
-        tiles = [self._decode(k) for k in sorted(self._tiles_with_points)]
+        tiles = [self._decode(k) for k in sorted(self._tiles_with_points)] if asked is None else asked
         jobs, gathered = self._fit_jobs(tiles)
+        if asked is not None and len(jobs) < len(asked):
+            # A tile asked for gathered no cells: which tile is nearest to a point no tile reaches
+            # is then not known from the tiles with points alone; every block and tile after all.
+            self._build_blocks([k for k in self._block_points if k not in self._blocks])
+            jobs, gathered = self._fit_jobs([self._decode(k) for k in sorted(self._tiles_with_points)])
         self.tiles_ = TileStore()
         if self._tiles_when_asked:
             # A map asked at a few points (the later visit's map of the other stretches): each
@@ -292,6 +300,19 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         self._stale = {}
         self._reused = set()  # tiles last fitted reusing covariances
         return self
+
+    def _asked_tiles(self, given: dict[str, float] | None) -> list[tuple[int, int]] | None:
+        """The tiles a map asked only at :attr:`_asked_at` will predict them with (the tiles
+        holding points, fitted when asked), or None for any other map. The hyperparameters given
+        set the tiles' reach, so they are known before any cell is built: only the blocks these
+        tiles gather cells from are built."""
+        if self._asked_at is None or given is None or not self._tiles_when_asked or not self._tiles_with_points:
+            return None
+        self.hyperparameters_ = given
+        self._set_geometry()
+        keys = [self._decode(k) for k in sorted(self._tiles_with_points)]
+        members, _ = self._tile_members(as_points(self._asked_at, self._dim), sorted(keys))
+        return sorted(members)
 
     def _fit_variance_scale(self, data: ScanData | Observations, obs: Observations | ScanPoints) -> dict[str, Any]:
         """The squash's variance scale from held-out stretches of the scans, and its report.
