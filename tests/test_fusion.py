@@ -777,6 +777,32 @@ def test_a_large_planar_written_grid_is_built_in_bands_and_is_the_same_map(
     assert np.ptp(whole.probability) > 0.9  # walls and free space, not a constant map
 
 
+def test_a_grid_put_together_later_is_the_grid_and_lets_its_map_go(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``FittedMap.grid_later``: the bands wait in their file, the map and its model can be let
+    go, and the grid put together afterwards is :meth:`grid`'s to the bit."""
+    import gc
+    import weakref
+
+    from gpomap import fusion
+
+    monkeypatch.setattr(fusion.written, "WRITTEN_BAND_CELLS", 5_000)
+    model = AreaGPOM(kernel="se", length_scale=0.4, optimise=False).fit(paper_room_scans()[::2])
+    extent = (-0.5, 10.5, -0.5, 8.3)
+    whole = model.grid(0.05, extent=extent)
+    later = model.map_.grid_later(0.05, extent=extent)
+    assert later.grid == whole.grid
+    gone = weakref.ref(model)
+    del model
+    gc.collect()
+    assert gone() is None  # nothing the later grid holds keeps the model
+    made = later()
+    np.testing.assert_array_equal(made.probability, whole.probability)
+    assert made.variance is not None and whole.variance is not None
+    np.testing.assert_array_equal(made.variance, whole.variance)
+    np.testing.assert_array_equal(made.ternary, whole.ternary)
+    assert made.thresholds == whole.thresholds and made.info["method"] == whole.info["method"]
+
+
 def test_grid_rows_are_a_band_of_the_same_cells() -> None:
     grid = GridSpec((1.0, -2.0), 0.1, (30, 7))
     band = grid.rows(10, 25)

@@ -257,10 +257,15 @@ def fit_warnings(model: Any, occupancy_map: Any = None, tolerance: float = BOUND
     list of str
         One sentence per finding, without a prefix.
     """
-    counted = getattr(model, "evidence_", None) is not None
-    # A variance scale left at 1 (too few held-out points where no beam went) tempers nothing.
-    tempered = "reason" not in (getattr(model, "extrapolation_", None) or {})
-    out = hyperparameter_warnings(model.hyperparameters_, search_bounds(model), tolerance, counted=counted, tempered=tempered)
+    out = model_warnings(model, tolerance)
     if occupancy_map is not None:
         out += map_warnings(occupancy_map.ternary)
     return out
+
+
+def model_warnings(model: Any, tolerance: float = BOUND_TOLERANCE) -> list[str]:
+    """:func:`fit_warnings` about the fitted model alone (its learnt values at their bounds), one sentence each."""
+    counted = getattr(model, "evidence_", None) is not None
+    # A variance scale left at 1 (too few held-out points where no beam went) tempers nothing.
+    tempered = "reason" not in (getattr(model, "extrapolation_", None) or {})
+    return hyperparameter_warnings(model.hyperparameters_, search_bounds(model), tolerance, counted=counted, tempered=tempered)

@@ -34,6 +34,26 @@ if TYPE_CHECKING:
 Moments = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
 
 
+@dataclass(frozen=True)
+class LaterGrid:
+    """A written grid predicted already and put together when called (:meth:`FittedMap.grid_later`).
+
+    Attributes
+    ----------
+    grid : GridSpec
+        Its cells.
+    make : callable
+        Puts it together (once).
+    """
+
+    grid: GridSpec
+    make: Callable[[], OccupancyMap]
+
+    def __call__(self) -> OccupancyMap:
+        """The OccupancyMap."""
+        return self.make()
+
+
 def as_points(points: NDArray[np.float64], dim: int = 2) -> NDArray[np.float64]:
     """`points` as a float ndarray of shape (m, dim), or a ValueError saying what was wrong."""
     p = np.asarray(points, dtype=float)
@@ -365,6 +385,46 @@ class FittedMap:
             info=self._summary(),
             seen_through=seen_through,
         )
+
+    def grid_later(self, resolution: float, extent: tuple[float, ...] | None = None) -> LaterGrid:
+        """:meth:`grid` of a planar map with ray evidence, predicted now and put together when
+        the function returned is called: a grid made in bands waits in a temporary file until
+        then, so the map (and its model) can be let go first. The function holds no reference to
+        the map; call it once.
+
+        Parameters
+        ----------
+        resolution : float
+        extent : (xmin, xmax, ymin, ymax), optional
+            As :meth:`grid`'s.
+
+        Returns
+        -------
+        LaterGrid
+            Called, the OccupancyMap :meth:`grid` gives.
+        """
+        from gpomap.fusion.written import SpilledGrid
+
+        if self.dim != 2:
+            raise ValueError("grid_later is for planar maps; a voxel map is voxels(resolution)")
+        if self.evidence is None:
+            made = self.grid(resolution, extent)
+            return LaterGrid(made.grid, lambda: made)
+        aligned = extent is None
+        if extent is None:
+            extent = self.default_extent(resolution)
+        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
+        field = self.field
+        with self._timed("grid"):
+            bands = self.evidence.written_bands(spec, field.hyperparameters.length_scale, field.gp_probabilities, field.blended)
+        field.grid_done()
+        thresholds, path, info = self.thresholds, self.path, self._summary()
+
+        def put_together() -> OccupancyMap:
+            probability, variance, seen_through = bands.read() if isinstance(bands, SpilledGrid) else bands
+            return OccupancyMap(spec, probability, variance, thresholds, path, info, seen_through)
+
+        return LaterGrid(spec, put_together)
 
     def voxels(self, resolution: float, extent: tuple[float, ...] | None = None) -> VoxelMap:
         """A 3-D map sampled on a voxel grid.

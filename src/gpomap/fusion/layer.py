@@ -28,7 +28,15 @@ from gpomap.fusion.calibration import (
     surface_misses,
     with_surprises,
 )
-from gpomap.fusion.written import BlendedMoments, GPPredict, band_rows, gp_samples, gp_sampling_factor, in_bands
+from gpomap.fusion.written import (
+    BlendedMoments,
+    GPPredict,
+    SpilledGrid,
+    band_rows,
+    gp_samples,
+    gp_sampling_factor,
+    in_bands,
+)
 from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS, GridSpec
 from gpomap.heldout import calibration_scans
 from gpomap.lattice import (
@@ -479,7 +487,20 @@ class EvidenceLayer:
         moments: BlendedMoments | None = None,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
         """Probability and latent variance per cell of `grid`, each of shape grid.shape, and the
-        cells beams saw through (:meth:`grid_seen_through`, or None).
+        cells beams saw through (:meth:`grid_seen_through`, or None): :meth:`written_bands`, read."""
+        made = self.written_bands(grid, length_scale, predict_gp, moments)
+        return made.read() if isinstance(made, SpilledGrid) else made
+
+    def written_bands(
+        self,
+        grid: AnyGrid,
+        length_scale: float,
+        predict_gp: GPPredict,
+        moments: BlendedMoments | None = None,
+    ) -> SpilledGrid | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
+        """:meth:`written_grid`'s arrays, or, for a grid made in bands, the bands waiting in a
+        temporary file (:class:`~gpomap.fusion.written.SpilledGrid`) to be read once this layer
+        and its map may be let go.
 
         The counts give each cell its detail; the smooth GP under them is sampled more coarsely
         (:func:`gp_sampling_factor`) and interpolated (bi- or trilinearly). A planar grid of more

@@ -158,8 +158,9 @@ def in_bands(
     moments: BlendedMoments | None,
     seen: bool,
     finished: Callable[[], None],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
-    """A planar written grid built in bands of :func:`band_rows` rows.
+) -> SpilledGrid:
+    """A planar written grid built in bands of :func:`band_rows` rows, each waiting in a
+    temporary file until read (:meth:`SpilledGrid.read`).
 
     Parameters
     ----------
@@ -179,9 +180,9 @@ def in_bands(
 
     Returns
     -------
-    probability, variance : ndarray of shape grid.shape
-    seen_through : ndarray of bool, shape grid.shape, or None
-        None unless `seen`.
+    SpilledGrid
+        Its :meth:`~SpilledGrid.read` gives the probability and variance, each of shape
+        grid.shape, and the cells beams saw through (None unless `seen`).
     """
     unit = factor * VARIANCE_STEP_SAMPLES
     # Each band's rows wait in a temporary file until the last band is done, so the whole
@@ -204,12 +205,43 @@ def in_bands(
         moments.forget_below(np.inf)
     finished()
     release_freed_memory()
-    probability, variance = np.empty(grid.shape), np.empty(grid.shape)
-    seen_through = np.zeros(grid.shape, dtype=bool) if seen else None
-    for start, stop, p_at, var_at, seen_at in bands:
-        done.read_into(p_at, probability[start:stop])
-        done.read_into(var_at, variance[start:stop])
-        if seen_through is not None and seen_at is not None:
-            done.read_into(seen_at, seen_through[start:stop])
-    done.close()
-    return probability, variance, seen_through
+    return SpilledGrid(grid.shape, seen, done, bands)
+
+
+class SpilledGrid:
+    """A written grid whose bands wait in a temporary file (:func:`in_bands`), read back whole
+    when asked: whatever made them (a building's map, gigabytes) can be let go first.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The grid's.
+    seen : bool
+        Whether the bands kept the cells beams saw through.
+    done : SpillFile
+        Where the bands wait.
+    bands : list
+        Each band's first and past-last rows and its arrays' places in `done`.
+    """
+
+    def __init__(
+        self,
+        shape: tuple[int, ...],
+        seen: bool,
+        done: SpillFile,
+        bands: list[tuple[int, int, tuple[int, int], tuple[int, int], tuple[int, int] | None]],
+    ) -> None:
+        self.shape, self.seen, self._done, self._bands = shape, seen, done, bands
+
+    def read(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
+        """Probability, latent variance (float64) and the cells beams saw through (or None), each
+        of the grid's shape; the file is then closed (a grid is read once)."""
+        probability, variance = np.empty(self.shape), np.empty(self.shape)
+        seen_through = np.zeros(self.shape, dtype=bool) if self.seen else None
+        for start, stop, p_at, var_at, seen_at in self._bands:
+            self._done.read_into(p_at, probability[start:stop])
+            self._done.read_into(var_at, variance[start:stop])
+            if seen_through is not None and seen_at is not None:
+                self._done.read_into(seen_at, seen_through[start:stop])
+        self._done.close()
+        return probability, variance, seen_through
