@@ -645,14 +645,6 @@ def test_a_log_whose_points_wait_in_a_file_maps_as_one_held_in_memory(monkeypatc
     a, b = held.grid(0.2), spilled.grid(0.2)
     np.testing.assert_array_equal(a.probability, b.probability)
     np.testing.assert_array_equal(a.variance, b.variance)
-    # Filed a few points at a time: more parts a block, the same points in the same order.
-    monkeypatch.setattr(tiled_map, "FILING_MEMORY", 400)
-    pieces = TiledGPOM(**opts).fit(scans)
-    assert max(len(p._parts) for p in pieces._block_points.values()) > max(len(p._parts) for p in spilled._block_points.values())
-    for k in held._blocks:
-        np.testing.assert_array_equal(pieces._blocks[k].lower, held._blocks[k].lower)
-        np.testing.assert_array_equal(pieces._blocks[k].counts, held._blocks[k].counts)
-    np.testing.assert_array_equal(pieces.grid(0.2).probability, a.probability)
     # An update appends points in memory to the blocks' parts in the file: the same again.
     more = simulate_scans(world, poses[::-7] + np.array([0.0, -4.0, 1.0]), 60, max_range=12.0, seed=2)
     held.update(more)

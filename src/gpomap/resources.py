@@ -46,7 +46,6 @@ __all__ = [
     "rss_mb",
     "SpillFile",
     "POINT_MEMORY",
-    "FILING_MEMORY",
     "TILE_MEMORY",
     "default_memory_limit",
     "fit_memory",
@@ -70,11 +69,6 @@ DEFAULT_MEMORY_FRACTION = 0.5
 #: files them under their blocks in a temporary file (:class:`SpillFile`), each block's read back
 #: while its cells are built (a building's log gives tens of millions, a gigabyte).
 POINT_MEMORY: int = 256 * 2**20
-
-#: Bytes of labelled points filed under their blocks at a time: the filing sorts them by block and
-#: copies each block's out, twice their size beside them, so a held part of :data:`POINT_MEMORY`
-#: is filed in pieces of this size.
-FILING_MEMORY: int = 32 * 2**20
 
 #: Bytes of fitted tiles' Cholesky factors (with the inverses prediction forms from them) a map
 #: keeps in memory; the least recently used beyond it wait in a temporary file

@@ -23,7 +23,7 @@ from gpomap.fitted import as_points
 from gpomap.fusion import EvidenceLayer
 from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, ScanPoints, sensor_positions
-from gpomap.resources import FILING_MEMORY, POINT_MEMORY, release_freed_memory
+from gpomap.resources import POINT_MEMORY, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
 from gpomap.tiles.executors import _blas_shared
@@ -230,12 +230,7 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
 
         t = time.perf_counter()
         for part in held.parts():
-            points, occupied = np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool)
-            # In pieces, in order: each block gets the same points in the same order as at once.
-            step = max(1, FILING_MEMORY // max(1, points.itemsize * points.shape[1] + occupied.itemsize))
-            for s in range(0, points.shape[0], step):
-                self._add_points(points[s : s + step], occupied[s : s + step], held.blocks_file)
-            del points, occupied
+            self._add_points(np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool), held.blocks_file)
         held.close()
         asked = self._asked_tiles(given)
         seen = None if asked is None else {b for tile in asked for b in self._blocks_seen_by(tile)}
