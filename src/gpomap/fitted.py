@@ -362,29 +362,16 @@ class FittedMap:
             return self.voxels(resolution, extent)
         if supersample < 1:
             raise ValueError(f"supersample must be a positive integer, got {supersample}")
-        aligned = extent is None
-        if extent is None:
-            extent = self.default_extent(resolution)
-        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
+        if self.evidence is not None:
+            return self.grid_later(resolution, extent)()
+        spec = self._planar_spec(resolution, extent)
         with self._timed("grid"):
-            if self.evidence is not None:
-                probability, variance, seen_through = self._written(spec)
-            elif supersample == 1:
+            if supersample == 1:
                 probability, variance = self._gp_grid(spec)
-                seen_through = None
             else:
                 probability, variance = self._supersampled(spec, int(supersample))
-                seen_through = None
         self.field.grid_done()
-        return OccupancyMap(
-            grid=spec,
-            probability=probability,
-            variance=variance,
-            thresholds=self.thresholds,
-            path=self.path,
-            info=self._summary(),
-            seen_through=seen_through,
-        )
+        return OccupancyMap(spec, probability, variance, self.thresholds, self.path, self._summary())
 
     def grid_later(self, resolution: float, extent: tuple[float, ...] | None = None) -> LaterGrid:
         """:meth:`grid` of a planar map with ray evidence, predicted now and put together when
@@ -403,28 +390,29 @@ class FittedMap:
         LaterGrid
             Called, the OccupancyMap :meth:`grid` gives.
         """
-        from gpomap.fusion.written import SpilledGrid
+        from gpomap.fusion.written import read_grid
 
         if self.dim != 2:
             raise ValueError("grid_later is for planar maps; a voxel map is voxels(resolution)")
         if self.evidence is None:
             made = self.grid(resolution, extent)
             return LaterGrid(made.grid, lambda: made)
-        aligned = extent is None
-        if extent is None:
-            extent = self.default_extent(resolution)
-        spec = GridSpec.from_extent((extent[0], extent[1], extent[2], extent[3]), resolution, align=aligned)
-        field = self.field
+        spec = self._planar_spec(resolution, extent)
         with self._timed("grid"):
-            bands = self.evidence.written_bands(spec, field.hyperparameters.length_scale, field.gp_probabilities, field.blended)
-        field.grid_done()
+            bands = self._written(spec)
+        self.field.grid_done()
         thresholds, path, info = self.thresholds, self.path, self._summary()
 
         def put_together() -> OccupancyMap:
-            probability, variance, seen_through = bands.read() if isinstance(bands, SpilledGrid) else bands
+            probability, variance, seen_through = read_grid(bands)
             return OccupancyMap(spec, probability, variance, thresholds, path, info, seen_through)
 
         return LaterGrid(spec, put_together)
+
+    def _planar_spec(self, resolution: float, extent: tuple[float, ...] | None) -> GridSpec:
+        """The planar grid of :meth:`grid`: `extent`'s, or :meth:`default_extent`'s aligned on the counts' cells."""
+        box = self.default_extent(resolution) if extent is None else extent
+        return GridSpec.from_extent((box[0], box[1], box[2], box[3]), resolution, align=extent is None)
 
     def voxels(self, resolution: float, extent: tuple[float, ...] | None = None) -> VoxelMap:
         """A 3-D map sampled on a voxel grid.
@@ -452,7 +440,9 @@ class FittedMap:
         spec = VoxelSpec.from_extent(lo, hi, resolution)
         with self._timed("grid"):
             if self.evidence is not None:
-                probability, variance, _ = self._written(spec)
+                from gpomap.fusion.written import read_grid
+
+                probability, variance, _ = read_grid(self._written(spec))
             else:
                 p, var, _ = self.field.gp_probabilities(spec.centres())
                 probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)
@@ -460,11 +450,13 @@ class FittedMap:
         observed = self.evidence.grid_observed(spec) if self.evidence is not None else None
         return VoxelMap(spec, probability, variance, thresholds=self.thresholds, info=self._summary(), observed=observed)
 
-    def _written(self, spec: GridSpec | VoxelSpec) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
-        """Probability, latent variance and the cells beams saw through, per cell of `spec`, with the ray counts."""
+    def _written(self, spec: GridSpec | VoxelSpec) -> Any:
+        """Probability, latent variance and the cells beams saw through, per cell of `spec`, with
+        the ray counts: :meth:`gpomap.fusion.EvidenceLayer.written_bands` (read them with
+        :func:`gpomap.fusion.written.read_grid`)."""
         assert self.evidence is not None
         field = self.field
-        return self.evidence.written_grid(spec, field.hyperparameters.length_scale, field.gp_probabilities, field.blended)
+        return self.evidence.written_bands(spec, field.hyperparameters.length_scale, field.gp_probabilities, field.blended)
 
     def _gp_grid(self, spec: GridSpec) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The GP's probability and latent variance at every cell centre of `spec`, each spec.shape;

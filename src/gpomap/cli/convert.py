@@ -115,8 +115,9 @@ def run(args: argparse.Namespace) -> int:
     spec = output_grid(source.grid, args.resolution, args.extent)
     if args.resolution is None:
         args.resolution = spec.resolution  # the source's pixel size (named in the messages)
-    if "pooling_factor" not in options and output_factor(source.grid.resolution, spec.resolution) is not None:
-        options["pooling_factor"] = output_factor(source.grid.resolution, spec.resolution)
+    factor = output_factor(source.grid.resolution, spec.resolution)
+    if "pooling_factor" not in options and factor is not None:
+        options["pooling_factor"] = factor
     check_grid_memory(args, spec.shape, spec.extent, 0)
     # The converter's own inputs (wall-aware, several per wall pixel), not a plain cell tree's.
     n_cells = len(converter_for(source.grid.resolution, **options).make_cells(grid_to_observations(source, args.values)))

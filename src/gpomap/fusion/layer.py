@@ -36,6 +36,7 @@ from gpomap.fusion.written import (
     gp_samples,
     gp_sampling_factor,
     in_bands,
+    read_grid,
 )
 from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS, GridSpec
 from gpomap.heldout import calibration_scans
@@ -488,8 +489,7 @@ class EvidenceLayer:
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
         """Probability and latent variance per cell of `grid`, each of shape grid.shape, and the
         cells beams saw through (:meth:`grid_seen_through`, or None): :meth:`written_bands`, read."""
-        made = self.written_bands(grid, length_scale, predict_gp, moments)
-        return made.read() if isinstance(made, SpilledGrid) else made
+        return read_grid(self.written_bands(grid, length_scale, predict_gp, moments))
 
     def written_bands(
         self,

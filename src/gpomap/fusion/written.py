@@ -208,6 +208,14 @@ def in_bands(
     return SpilledGrid(grid.shape, seen, done, bands)
 
 
+def read_grid(
+    made: SpilledGrid | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
+    """A written grid's arrays (:meth:`gpomap.fusion.EvidenceLayer.written_bands`): its bands
+    read back when it was made in bands, else as they are."""
+    return made.read() if isinstance(made, SpilledGrid) else made
+
+
 class SpilledGrid:
     """A written grid whose bands wait in a temporary file (:func:`in_bands`), read back whole
     when asked: whatever made them (a building's map, gigabytes) can be let go first.
