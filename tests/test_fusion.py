@@ -1071,3 +1071,22 @@ def test_the_calibration_sample_is_a_draw_from_every_held_out_point(monkeypatch:
     assert report["n_points"] == n and 0 < counted.sum() < n
     np.testing.assert_array_equal(asked[0], pts[keep][counted])
     np.testing.assert_array_equal(sample.occupied, occ[keep][counted])
+
+
+def test_a_layer_set_aside_holds_nothing_and_comes_back_the_same() -> None:
+    from gpomap.fusion import EvidenceLayer
+
+    scans, _, _ = _calibration_scene()
+    layer = EvidenceLayer(scans, 0.1, _p_gp, calibration_scans=len(scans))
+    names = ("_hits", "_beam_misses", "_near_misses", "_path")
+    before = {n: getattr(layer, n).copy() for n in names}
+    assert all(a.size for a in before.values())
+    P = np.random.default_rng(3).uniform(-1.0, 6.0, size=(500, 2))
+    p_before, surface = layer.proba(P, _p_gp(P)), layer.at_surface().copy()
+    with layer.set_aside():
+        assert all(getattr(layer, n).size == 0 for n in names)
+    for n in names:
+        after = getattr(layer, n)
+        assert after.dtype == before[n].dtype and np.array_equal(after, before[n])
+    assert np.array_equal(layer.proba(P, _p_gp(P)), p_before)
+    assert np.array_equal(layer.at_surface(), surface)

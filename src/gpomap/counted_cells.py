@@ -132,12 +132,23 @@ def count_cells(
     return CellCounts(lattice, cells, hits, misses, near, path, at_surface)
 
 
-def _reach(evidence: RayEvidence, lattice: AnyGrid, corner: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-    """Each beam's box in the lattice's cells (x first), grown by a cell: shapes (b, d) each."""
+def _reach(
+    evidence: RayEvidence, lattice: AnyGrid, corner: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Each beam's box in the lattice's cells (x first), grown by a cell: shapes (b, d) each,
+    whole numbers held as floats (two arrays the beams' size, made in place, not eight)."""
     d = grid_dim(lattice)
-    start = np.floor(evidence.starts.reshape(-1, d) / lattice.resolution) - corner
-    end = np.floor(evidence.ends.reshape(-1, d) / lattice.resolution) - corner
-    return (np.minimum(start, end) - 1).astype(np.int64), (np.maximum(start, end) + 1).astype(np.int64)
+    start = np.divide(evidence.starts.reshape(-1, d), lattice.resolution)
+    np.floor(start, out=start)
+    start -= corner
+    end = np.divide(evidence.ends.reshape(-1, d), lattice.resolution)
+    np.floor(end, out=end)
+    end -= corner
+    swap = start > end
+    start[swap], end[swap] = end[swap], start[swap]
+    start -= 1
+    end += 1
+    return start, end
 
 
 def _beams(evidence: RayEvidence, keep: NDArray[np.bool_]) -> RayEvidence:

@@ -9,7 +9,8 @@ turns the GP's probability at points or per cell of a grid into the map's (the f
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -52,6 +53,7 @@ from gpomap.lattice import (
     overlap,
 )
 from gpomap.observations import ScanData, data_dim
+from gpomap.resources import SpillFile, release_freed_memory
 from gpomap.revisit import RevisitCalibration, fit_revisit
 from gpomap.robot_path import PATH_RADIUS, path_steps
 from gpomap.scans import Scan
@@ -251,6 +253,7 @@ class EvidenceLayer:
         # The margin holds the robot's body round a path at the data's edge.
         margin = self.resolution + PATH_RADIUS
         local = lattice_grid(bounds_extent(*column_bounds(pts)), self.resolution, margin=margin)
+        del pts  # as large as the beams themselves, and not needed while they are counted
         if self._asked_at is not None:
             # The lattice's cells without its arrays: only the asked points' cells are counted.
             self.lattice = local
@@ -315,6 +318,32 @@ class EvidenceLayer:
             arr = np.zeros(grown.shape, dtype=getattr(self, name).dtype)
             arr[block] = getattr(self, name)
             setattr(self, name, arr)
+
+    @contextmanager
+    def set_aside(self) -> Iterator[None]:
+        """Hold the counted lattice's arrays in a temporary file while the block runs, and read
+        them back, the same to the bit, after it.
+
+        A fit that fits another map of part of its data (the later visit's map of the other
+        stretches) does so beside this layer, whose arrays are the building's size and unused
+        meanwhile. Nothing may ask this layer for counts inside the block.
+        """
+        names = ("_hits", "_beam_misses", "_near_misses", "_path")
+        spill = SpillFile()
+        held = {}
+        for name in names:
+            array = getattr(self, name)
+            held[name] = (spill.put(array), array.dtype, array.shape)
+            setattr(self, name, np.zeros((0,) * array.ndim, dtype=array.dtype))
+        del array
+        self._at_surface, self._grid_cache = None, None  # caches, made again when asked
+        release_freed_memory()
+        try:
+            yield
+        finally:
+            for name, (where, dtype, shape) in held.items():
+                setattr(self, name, spill.get(where, dtype, shape))
+            spill.close()
 
     def fit_revisit(self, p_later: NDArray[np.float64], occupied_later: NDArray[np.bool_]) -> RevisitCalibration:
         """Fit the later visit's recalibration (:func:`gpomap.revisit.fit_revisit`) on a held-out

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from contextlib import nullcontext
 from typing import Any
 
 import numpy as np
@@ -289,7 +290,8 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         # fits only the tiles the held-out stretches' points need (docs/choices.md, "The map's
         # probabilities for a later visit").
         t = time.perf_counter()
-        later = self._later_visit_points()
+        with self.evidence_.set_aside() if self.evidence_ is not None else nullcontext():
+            later = self._later_visit_points()
         self.revisit_ = self._fit_revisit(later)
         del later
         release_freed_memory()
