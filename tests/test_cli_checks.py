@@ -12,7 +12,8 @@ import pytest
 
 from gpomap import cli, resources
 from gpomap.cli.map import model as map_model
-from gpomap.cli.options import non_negative, number, positive, resolve_library_defaults, tiling_config
+from gpomap.cli.model_options import tiling_config
+from gpomap.cli.options import non_negative, number, positive, resolve_library_defaults
 from gpomap.errors import GpomapError
 from gpomap.resources import MemoryLimitError
 

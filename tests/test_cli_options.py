@@ -27,8 +27,10 @@ from gpomap.cli.benchmark import benchmark_arguments
 from gpomap.cli.common import load_scans
 from gpomap.cli.convert import convert_options
 from gpomap.cli.evaluate import evaluate_arguments, method_options
+from gpomap.cli.input_options import cloud_reader_options, reader_options
 from gpomap.cli.map import model as map_model
-from gpomap.cli.options import Default, cloud_reader_options, map_config, reader_options, resolve_library_defaults, tiling_config
+from gpomap.cli.model_options import map_config, tiling_config
+from gpomap.cli.options import Default, resolve_library_defaults
 from gpomap.cli.render import configure
 from gpomap.cli.stream import mapper_from_args
 from gpomap.config import PROFILES, MapConfig, MapProfile, TilingConfig

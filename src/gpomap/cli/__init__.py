@@ -5,9 +5,11 @@ Each command's module (:mod:`~gpomap.cli.map`, :mod:`~gpomap.cli.demo`, :mod:`~g
 :mod:`~gpomap.cli.stream`, :mod:`~gpomap.cli.render`, :mod:`~gpomap.cli.query`,
 :mod:`~gpomap.cli.update`) registers its options with ``add_parser(sub)`` and runs with
 ``run(args)``: it checks its options, calls the library (:mod:`gpomap.apps` holds the jobs only a
-command does) and prints a short summary. What they share is in :mod:`gpomap.cli.options` (argument
-types, defaults, option groups, the configs they make) and :mod:`gpomap.cli.common` (status lines,
-checks before work, output sets, summaries, error reporting). :func:`main` turns errors into one
+command does) and prints a short summary. What they share is in :mod:`gpomap.cli.options` (numeric
+argument types, defaults stated once), the option groups by what they set with the configs they make
+(:mod:`~gpomap.cli.input_options`: what is read; :mod:`~gpomap.cli.model_options`: the model and its
+tiles; :mod:`~gpomap.cli.output_options`: the written map) and :mod:`gpomap.cli.common` (status
+lines, checks before work, output sets, summaries, error reporting). :func:`main` turns errors into one
 line on stderr (``gpomap: error: ...``) with a non-zero exit code; ``--debug`` shows the traceback
 instead. No module outside this package imports it.
 """

@@ -175,7 +175,7 @@ def load_scans(args: argparse.Namespace) -> list[Any]:
     GpomapError
         ``--range`` selects no scan.
     """
-    from gpomap.cli.options import reader_options
+    from gpomap.cli.input_options import reader_options
     from gpomap.io import read_scans
     from gpomap.scans import select_scans
 

@@ -27,7 +27,9 @@ from gpomap.cli.common import (
     report_fit,
     status,
 )
-from gpomap.cli.options import Default, add_3d_output_options, add_output_options, check_2d_options, positive
+from gpomap.cli.input_options import check_2d_options
+from gpomap.cli.options import Default, positive
+from gpomap.cli.output_options import add_3d_output_options, add_output_options
 from gpomap.config import DEFAULT_MAX_CELLS
 from gpomap.errors import GpomapError
 

@@ -8,7 +8,9 @@ from typing import Any
 
 from gpomap.cli.common import EXIT_OK, bound_source, check_before_work, print_map_summary, status
 from gpomap.cli.map import fitted_model, plan_map, write_map
-from gpomap.cli.options import Default, add_model_options, add_output_options, add_tiling_options
+from gpomap.cli.model_options import add_model_options, add_tiling_options
+from gpomap.cli.options import Default
+from gpomap.cli.output_options import add_output_options
 
 __all__ = ["DEMO_RESOLUTION", "add_parser", "run"]
 
@@ -26,7 +28,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         epilog="example:\n  gpomap demo -o demo-output",
     )
     add_model_options(p)
-    add_tiling_options(p, chunks=False)
+    add_tiling_options(p)
     add_output_options(p, Default(DEMO_RESOLUTION))
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run)

@@ -16,19 +16,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from gpomap.cli.common import EXIT_OK, peak_memory, ray_counts, status, warn
-from gpomap.cli.options import (
-    add_model_options,
-    add_reader_options,
-    add_selection_options,
-    flag,
-    given,
-    map_config,
-    model_option_dests,
-    module_default,
-    positive,
-    reader_options,
-    signature_default,
-)
+from gpomap.cli.input_options import add_reader_options, add_selection_options, reader_options
+from gpomap.cli.model_options import add_model_options, map_config, model_option_dests
+from gpomap.cli.options import flag, given, module_default, positive, signature_default
 from gpomap.errors import GpomapError
 from gpomap.evaluation.methods import GP_METHODS, GRID_METHODS, METHODS, REGISTRY
 

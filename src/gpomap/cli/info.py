@@ -8,7 +8,7 @@ from typing import Any
 
 from gpomap.apps.map3d import is_cloud_input
 from gpomap.cli.common import EXIT_OK
-from gpomap.cli.options import (
+from gpomap.cli.input_options import (
     add_cloud_reader_options,
     add_reader_options,
     check_2d_options,

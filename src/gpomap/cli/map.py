@@ -28,21 +28,10 @@ from gpomap.cli.common import (
     status,
     warn,
 )
-from gpomap.cli.options import (
-    Default,
-    add_3d_output_options,
-    add_cloud_reader_options,
-    add_model_options,
-    add_output_options,
-    add_reader_options,
-    add_selection_options,
-    add_tiling_options,
-    check_2d_options,
-    map_config,
-    resolution_from_evidence,
-    resolve_library_defaults,
-    tiling_config,
-)
+from gpomap.cli.input_options import add_cloud_reader_options, add_reader_options, add_selection_options, check_2d_options
+from gpomap.cli.model_options import add_model_options, add_tiling_options, map_config, tiling_config
+from gpomap.cli.options import Default, positive, resolve_library_defaults
+from gpomap.cli.output_options import add_3d_output_options, add_output_options, resolution_from_evidence
 from gpomap.config import MapConfig
 from gpomap.errors import GpomapError
 
@@ -82,7 +71,12 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     # The written map's cells are the ray counts' cells unless asked otherwise: that is the map
     # the quality benchmark scores (a voxel map's default is gpomap.config.VOXEL_MAP_DEFAULTS').
     add_output_options(p, Default(MapConfig.evidence_resolution))
-    add_tiling_options(p)
+    add_tiling_options(p).add_argument(
+        "--chunk-scans",
+        type=positive(int),
+        metavar="K",
+        help="map incrementally, K scans at a time, rewriting the map after each chunk",
+    )
     add_3d_output_options(p)
     add_cloud_reader_options(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")

@@ -25,7 +25,8 @@ from typing import Any
 
 from gpomap.apps.map3d import build_model, labelled_box, new_model, read_selected_clouds, voxel_bounds
 from gpomap.cli.common import EXIT_OK, Run, bound_source, check_voxel_memory, print_map_summary, report_fit, status
-from gpomap.cli.options import cloud_reader_options, map_config, tiling_config
+from gpomap.cli.input_options import cloud_reader_options
+from gpomap.cli.model_options import map_config, tiling_config
 from gpomap.clouds import CloudScan
 from gpomap.config import PROFILES
 from gpomap.errors import GpomapError

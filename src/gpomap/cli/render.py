@@ -23,7 +23,8 @@ import numpy as np
 
 from gpomap.apps.render import check_not_replaced, map_header, padded_bounds, written_extent
 from gpomap.cli.common import EXIT_OK, Run, check_before_work, check_grid_memory, check_voxel_memory, outputs, status
-from gpomap.cli.options import add_3d_output_options, add_output_options, positive
+from gpomap.cli.options import positive
+from gpomap.cli.output_options import add_3d_output_options, add_output_options
 from gpomap.errors import GpomapError
 
 __all__ = [

@@ -22,20 +22,10 @@ import numpy as np
 
 from gpomap.apps.stream import ReplayResult, replay, replay_times, same_scan
 from gpomap.cli.common import EXIT_OK, check_before_work, check_grid_memory, load_scans, outputs, status
-from gpomap.cli.options import (
-    Default,
-    add_model_options,
-    add_output_options,
-    add_reader_options,
-    add_selection_options,
-    flag,
-    given,
-    map_config,
-    model_option_dests,
-    non_negative,
-    positive,
-    resolution_from_evidence,
-)
+from gpomap.cli.input_options import add_reader_options, add_selection_options
+from gpomap.cli.model_options import add_model_options, map_config, model_option_dests
+from gpomap.cli.options import Default, flag, given, non_negative, positive
+from gpomap.cli.output_options import add_output_options, resolution_from_evidence
 from gpomap.config import MapConfig
 from gpomap.errors import GpomapError
 from gpomap.scans import Scan, scan_extent

@@ -24,8 +24,8 @@ from gpomap.apps.map3d import is_cloud_input
 from gpomap.apps.render import map_header
 from gpomap.apps.update import bounds_with, repeated_scans, unfitted_like
 from gpomap.cli.common import EXIT_OK, check_before_work, load_scans, print_map_summary, report_fit, status, warn
+from gpomap.cli.input_options import add_cloud_reader_options, add_reader_options, add_selection_options, check_2d_options
 from gpomap.cli.map3d import load_clouds
-from gpomap.cli.options import add_cloud_reader_options, add_reader_options, add_selection_options, check_2d_options
 from gpomap.cli.render import (
     add_output_arguments,
     check_dimension_options,
