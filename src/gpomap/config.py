@@ -1,11 +1,13 @@
 """Every default of a map, stated once: typed, frozen settings for the model and the tiling.
 
-:class:`MapConfig` holds the map settings of :class:`~gpomap.mapping.AreaGPOM` (whose signature
-takes its defaults from here, through :class:`~gpomap.settings.MapSettings`), :class:`TilingConfig`
-its tiling arguments (those of :class:`~gpomap.tiles.TiledGPOM`). The ``gpomap`` command builds its
-options from these fields (their defaults are the options' defaults, shown in ``--help``) and
-builds one config from the parsed options; the library receives it as keyword arguments
-(:meth:`MapConfig.kwargs`), so a script and the command build the same model:
+:class:`MapConfig` holds the map settings of :class:`~gpomap.mapping.AreaGPOM` (and of
+:class:`~gpomap.settings.MapSettings`, which builds from them), :class:`TilingConfig` its tiling
+arguments (those of :class:`~gpomap.tiles.TiledGPOM`), and :class:`EstimatorConfig` both: its
+fields are the estimator's parameters, whose signature is derived from them and written nowhere
+else. The ``gpomap`` command builds its options from these fields (their defaults are the options'
+defaults, shown in ``--help``) and builds one config from the parsed options; the library receives
+it as keyword arguments (:meth:`MapConfig.kwargs`), so a script and the command build the same
+model:
 
     >>> config = MapConfig(kernel="se", free_step=0.1)
     >>> config.free_step, config.max_cell, PROFILES[2].max_cell
@@ -30,6 +32,7 @@ from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS
 __all__ = [
     "MapConfig",
     "TilingConfig",
+    "EstimatorConfig",
     "DEFAULT_MAX_CELLS",
     "DEFAULT_SCHEDULER_TIMEOUT",
     "CALIBRATED_THRESHOLDS",
@@ -153,12 +156,18 @@ class _Config:
 class MapConfig(_Config):
     """The settings of one MSK-GPOM map: the arguments of :class:`~gpomap.settings.MapSettings`.
 
-    The fields, their order and their meaning are MapSettings' (see its parameters); grouped here
-    as the pipeline runs: beams to points, points to cells, cells to a GP, the GP to a map. A field
-    left None that :class:`MapProfile` holds takes the profile of the data's dimension
-    (:data:`PROFILES`) when the map is fitted, so a planar log and point clouds each get theirs.
+    The fields, their order and their meaning are MapSettings' (see its parameters); the kernel
+    first, then grouped as the pipeline runs: beams to points, points to cells, cells to a GP, the
+    GP to a map. They are the first parameters of :class:`~gpomap.mapping.AreaGPOM`, in this order
+    (:class:`EstimatorConfig`). A field left None that :class:`MapProfile` holds takes the profile
+    of the data's dimension (:data:`PROFILES`) when the map is fitted, so a planar log and point
+    clouds each get theirs.
     """
 
+    # the kernel first (the estimator's first positional arguments), then as the pipeline runs
+    kernel: str = "matern32"
+    area: str | None = None
+    normalisation: str = "mean"
     # the points: beams to free points and hits
     free_step: float = 0.2
     hit_margin: float | None = None
@@ -168,10 +177,7 @@ class MapConfig(_Config):
     min_cell: float | None = None
     max_cell: float | None = None
     cell_box: str = "node"
-    # the GP and its hyperparameters
-    kernel: str = "matern32"
-    area: str | None = None
-    normalisation: str = "mean"
+    # the GP's hyperparameters
     variance: float = 1.0
     length_scale: float = 1.0
     noise: float = 0.1
@@ -199,26 +205,40 @@ class MapConfig(_Config):
 
 @dataclass(frozen=True)
 class TilingConfig(_Config):
-    """How a map is split into local GPs: the tiling arguments of :class:`~gpomap.tiles.TiledGPOM`.
+    """How a map is split into local GPs: the arguments of :class:`~gpomap.tiles.TiledGPOM` other
+    than the map settings, in the order of its signature (why each default was chosen is said there).
 
     Attributes
     ----------
     tile_size : float, optional
         Side of the square tiles, metres (default: 5 m for planar maps, 3 m for voxel maps,
         :data:`gpomap.tiles.DEFAULT_TILE_SIZE`).
+    overlap : float, optional
+        How far past its square each tile's GP sees, metres (default: 1.5 learnt length scales,
+        :data:`gpomap.tiles.OVERLAP_LENGTH_SCALES`, at most the block side).
+    blend : float, optional
+        Width of the blending ramp across each tile border, metres (default: half the smaller of
+        the overlap and the tile side, :data:`gpomap.tiles.BLEND_FRACTION`).
+    origin : (float, float), optional
+        Corner of tile (0, 0) and of block (0, 0) (default: set by the first fit from the data).
     n_workers : int, optional
         Local workers (default: the CPU count).
+    scheduler : str or distributed.Client, optional
+        Address of a Dask distributed scheduler that runs the tiles instead, or a client of one.
+    hyper_sample : int, optional
+        Most cells of the compact sample the hyperparameters are learnt on (default: the data's
+        profile, :attr:`MapProfile.hyper_sample`).
+    per_tile_hyperparameters : bool
+        Learn hyperparameters in every tile instead of once for the map.
     blas_threads : int, optional
         BLAS threads of each worker and of the map's stages in this process (default: the cores
         divided by the workers and by the BLAS libraries loaded, at least 1).
+    scheduler_timeout : float
+        Seconds to wait for the scheduler, and for its workers.
     worker_processes : bool
         Run the local workers as processes (a worker that dies, killed for its memory say, is
         retried) instead of threads of this process (the default: the tiles' factors are not
         copied to and from workers, and the GP's compiled and BLAS work runs without the GIL).
-    scheduler : str, optional
-        Address of a Dask distributed scheduler that runs the tiles instead.
-    scheduler_timeout : float
-        Seconds to wait for the scheduler, and for its workers.
     memory_limit : float, optional
         Gigabytes the fit may plan to use: once the cells are built, before the hyperparameters
         and the tiles, a fit whose largest tile's GP times the GPs fitted at once would need more
@@ -227,9 +247,32 @@ class TilingConfig(_Config):
     """
 
     tile_size: float | None = None
+    overlap: float | None = None
+    blend: float | None = None
+    origin: tuple[float, float] | None = None
     n_workers: int | None = None
+    # A distributed.Client is taken as well as an address; this module imports no Dask to name it.
+    scheduler: Any = None
+    hyper_sample: int | None = None
+    per_tile_hyperparameters: bool = False
     blas_threads: int | None = None
-    worker_processes: bool = False
-    scheduler: str | None = None
     scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT
+    worker_processes: bool = False
     memory_limit: float | None = None
+
+
+@dataclass(frozen=True)
+class EstimatorConfig(TilingConfig, MapConfig):
+    """The parameters of :class:`~gpomap.mapping.AreaGPOM`: :class:`MapConfig`'s fields, then
+    :class:`TilingConfig`'s. The estimator's signature is these fields (derived in
+    :mod:`gpomap.mapping`, so a type checker, ``help`` and ``get_params`` read the same names, types
+    and defaults), and one default is the estimator's own:
+
+    Attributes
+    ----------
+    n_workers : int or None
+        1: the estimator runs its tiles in this process unless told, like scikit-learn's
+        ``n_jobs`` (None uses every core, the ``gpomap`` command's default).
+    """
+
+    n_workers: int | None = 1

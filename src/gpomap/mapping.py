@@ -13,7 +13,8 @@ fall in one tile square is one GP over its cells. Afterwards the map can be aske
 
 :class:`AreaGPOM` is the local-GP engine :class:`~gpomap.tiles.TiledGPOM` with every setting
 named in its signature (``get_params`` / ``set_params``), one worker process by default (like
-scikit-learn's ``n_jobs``), and no other code path: a room and a building are mapped alike.
+scikit-learn's ``n_jobs``), and no other code path: a room and a building are mapped alike. Its
+signature is the fields of :class:`~gpomap.config.EstimatorConfig`, derived here, not written again.
 
 The same estimator maps in 3-D: fitted on point clouds (:class:`~gpomap.clouds.CloudScan`), the
 rays give 3-D points, the cells are cuboids, the tiles x, y columns, queries are (m, 3) points and
@@ -26,14 +27,62 @@ rays give 3-D points, the cells are cuboids, the tiles x, y columns, queries are
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Concatenate, ParamSpec, TypeVar
 
-from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
+from gpomap.config import EstimatorConfig, MapConfig, TilingConfig
 from gpomap.tiles import TiledGPOM
 
 #: The tiling arguments of :class:`AreaGPOM`: those :class:`~gpomap.tiles.TiledGPOM` names.
-TILING_PARAMETERS = tuple(p for p in inspect.signature(TiledGPOM.__init__).parameters if p not in ("self", "options"))
+TILING_PARAMETERS = tuple(f.name for f in dataclasses.fields(TilingConfig))
+#: The map settings of :class:`AreaGPOM`, in the order :class:`~gpomap.settings.MapSettings` keeps them.
+_SETTINGS = tuple(f.name for f in dataclasses.fields(MapConfig))
+
+_P = ParamSpec("_P")
+_S = TypeVar("_S")
+
+
+def _signature_of(
+    config: Callable[_P, EstimatorConfig],
+) -> Callable[[Callable[[_S, EstimatorConfig], None]], Callable[Concatenate[_S, _P], None]]:
+    """An ``__init__`` whose parameters are the fields of `config`, a frozen dataclass: the decorated
+    function is handed the arguments bound into one config, defaults applied.
+
+    A type checker reads the parameters from the dataclass's own ``__init__`` (the ParamSpec), and
+    ``inspect``, ``help`` and scikit-learn from ``__signature__``; so the names, types and defaults
+    are written once, as the config's fields. (A dataclass estimator inheriting the fields cannot
+    be: the config is frozen, the estimator is not.)
+    """
+    fields = inspect.signature(config, eval_str=True)
+    self = inspect.Parameter("self", inspect.Parameter.POSITIONAL_ONLY)
+    signature = fields.replace(parameters=[self, *fields.parameters.values()], return_annotation=None)
+
+    def decorate(configure: Callable[[_S, EstimatorConfig], None]) -> Callable[Concatenate[_S, _P], None]:
+        def __init__(self: _S, /, *args: _P.args, **kwargs: _P.kwargs) -> None:
+            try:
+                bound = fields.bind(*args, **kwargs)
+            except TypeError as exc:  # named as Python names a plain __init__'s wrong arguments
+                raise TypeError(f"{configure.__qualname__}() {exc}") from None
+            configure(self, config(*bound.args, **bound.kwargs))
+
+        for name in ("__module__", "__name__", "__qualname__", "__doc__"):
+            setattr(__init__, name, getattr(configure, name))
+        __init__.__signature__ = signature  # type: ignore[attr-defined]
+        return __init__
+
+    return decorate
+
+
+def _same(given: Any, kept: Any) -> bool:
+    """Whether `kept` (a parameter as TiledGPOM stores it) is `given` to the type and the value:
+    then the estimator keeps the object it was given."""
+    if type(given) is not type(kept):
+        return False
+    if isinstance(given, tuple):
+        return len(given) == len(kept) and all(_same(g, k) for g, k in zip(given, kept))
+    return bool(given == kept)
 
 
 class AreaGPOM(TiledGPOM):
@@ -50,69 +99,40 @@ class AreaGPOM(TiledGPOM):
         How its hyperparameters are learnt (:class:`~gpomap.settings.MapSettings`).
     thresholds, chunk_size, ray_evidence, evidence_resolution, calibration_scans, evidence_resolution_3d, fit_surprise_rate, fit_revisit
         The map on top of the GP (:class:`~gpomap.settings.MapSettings`).
-    tile_size, overlap, blend, origin, scheduler, hyper_sample, per_tile_hyperparameters, blas_threads, scheduler_timeout, worker_processes
+    tile_size, overlap, blend, origin, scheduler, hyper_sample, per_tile_hyperparameters, blas_threads, scheduler_timeout, worker_processes, memory_limit
         The local GPs: see :class:`~gpomap.tiles.TiledGPOM`.
     n_workers : int or None
         Local workers for the tiles (threads of this process, or processes with
         ``worker_processes``); 1 (default) runs them in this process, None uses every core.
+
+    Notes
+    -----
+    The names, types and defaults are the fields of :class:`~gpomap.config.EstimatorConfig`
+    (:class:`~gpomap.config.MapConfig`'s, then :class:`~gpomap.config.TilingConfig`'s): the
+    signature is derived from them. As in scikit-learn, the arguments are kept as given and read
+    back as attributes (``model.kernel``, ``model.tile_size``), ``get_params`` returns them,
+    ``set_params`` changes them and ``repr`` shows those that differ from their defaults.
     """
 
-    def __init__(
-        self,
-        kernel: str = MapConfig.kernel,
-        area: str | None = MapConfig.area,
-        normalisation: str = MapConfig.normalisation,
-        free_step: float = MapConfig.free_step,
-        hit_margin: float | None = MapConfig.hit_margin,
-        no_return_cap: float | None = MapConfig.no_return_cap,
-        free_clearance: float = MapConfig.free_clearance,
-        min_cell: float | None = MapConfig.min_cell,
-        max_cell: float | None = MapConfig.max_cell,
-        cell_box: str = MapConfig.cell_box,
-        variance: float = MapConfig.variance,
-        length_scale: float = MapConfig.length_scale,
-        noise: float = MapConfig.noise,
-        length_scale_bounds: tuple[float, float] = MapConfig.length_scale_bounds,
-        noise_bounds: tuple[float, float] = MapConfig.noise_bounds,
-        noise_model: str = MapConfig.noise_model,
-        objective: str = MapConfig.objective,
-        optimise: bool = MapConfig.optimise,
-        n_restarts: int = MapConfig.n_restarts,
-        hyper_subset: int | None = MapConfig.hyper_subset,
-        prior_std: float | None = MapConfig.prior_std,
-        class_weight: str | None = MapConfig.class_weight,
-        seed: int = MapConfig.seed,
-        quadrature_order: int = MapConfig.quadrature_order,
-        thresholds: tuple[float, float] | None = MapConfig.thresholds,
-        chunk_size: int = MapConfig.chunk_size,
-        ray_evidence: bool = MapConfig.ray_evidence,
-        evidence_resolution: float = MapConfig.evidence_resolution,
-        calibration_scans: int = MapConfig.calibration_scans,
-        evidence_resolution_3d: float = MapConfig.evidence_resolution_3d,
-        fit_surprise_rate: bool = MapConfig.fit_surprise_rate,
-        fit_revisit: bool = MapConfig.fit_revisit,
-        tile_size: float | None = TilingConfig.tile_size,
-        overlap: float | None = None,
-        blend: float | None = None,
-        origin: tuple[float, float] | None = None,
-        n_workers: int | None = 1,
-        scheduler: Any = None,
-        hyper_sample: int | None = None,
-        per_tile_hyperparameters: bool = False,
-        blas_threads: int | None = None,
-        scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
-        worker_processes: bool = TilingConfig.worker_processes,
-        memory_limit: float | None = TilingConfig.memory_limit,
-    ) -> None:
-        params = {name: value for name, value in locals().items() if name in _PARAMETERS}
-        self._configure(params)
+    @_signature_of(EstimatorConfig)
+    def __init__(self, params: EstimatorConfig) -> None:
+        """Keep the arguments (the fields of :class:`~gpomap.config.EstimatorConfig`); nothing is fitted."""
+        self._configure(params.kwargs())
 
     def _configure(self, params: dict[str, Any]) -> None:
         tiling = {n: params[n] for n in TILING_PARAMETERS}
-        TiledGPOM.__init__(self, **tiling, **{n: params[n] for n in MapConfig.__dataclass_fields__})
+        TiledGPOM.__init__(self, **tiling, **{n: params[n] for n in _SETTINGS})
+        # TiledGPOM stores some arguments converted (an origin as a new tuple of floats); an argument
+        # it stores unchanged in type and value is kept as the object given, as scikit-learn's
+        # clone asks (the parameter it hands over is the one read back).
+        for name, given in tiling.items():
+            if getattr(self, name) is not given and _same(given, getattr(self, name)):
+                setattr(self, name, given)
 
     def __repr__(self) -> str:
-        return f"AreaGPOM({self.base!r}, tile_size={self.tile_size})"
+        defaults = EstimatorConfig().kwargs()
+        changed = [f"{n}={v!r}" for n, v in self.get_params().items() if repr(v) != repr(defaults[n])]
+        return f"AreaGPOM({', '.join(changed)})"
 
     def get_params(self, deep: bool = True) -> dict[str, Any]:
         """The constructor arguments, by name."""
@@ -126,6 +146,3 @@ class AreaGPOM(TiledGPOM):
             raise ValueError(f"unknown parameter {unknown[0]!r} for AreaGPOM")
         self._configure({**current, **params})
         return self
-
-
-_PARAMETERS = frozenset(p for p in inspect.signature(AreaGPOM.__init__).parameters if p != "self")
