@@ -311,6 +311,56 @@ def test_map_in_one_go_and_in_chunks(tmp_path, run):
 
     a, b = load_map(tmp_path / "auto" / "map.npz"), load_map(tmp_path / "chunks" / "map.npz")
     assert a.grid == b.grid
+    # Both through the one writing path: the same files, the fitted map (map.gpom) among them.
+    for r, out in ((auto, "auto"), (chunks, "chunks")):
+        wrote = [line.split()[-1] for line in r.stdout.splitlines() if line.startswith("wrote")]
+        assert wrote == [str(tmp_path / out / n) for n in ("map.yaml", "map.pgm", "map.npz", "map.png", "map.gpom")]
+
+
+def test_write_map_lets_a_handed_over_model_go_before_the_grid_is_put_together(tmp_path, monkeypatch):
+    """``gpomap map``'s one writing path: the model's files written (map.gpom), the model handed
+    over let go, and only then the grid put together, which is the grid ``grid()`` gives."""
+    import weakref
+
+    from gpomap import cli, fitted
+    from gpomap.cli import map as map_command
+    from gpomap.cli.options import resolve_library_defaults
+    from gpomap.io.mapfile import load_fitted_map
+    from gpomap.io.npz import load_map
+    from gpomap.mapping import AreaGPOM
+    from gpomap.simulate import paper_room_scans
+
+    model = AreaGPOM(kernel="se", length_scale=0.4, optimise=False, n_workers=1).fit(paper_room_scans()[::2])
+    expected, n_cells = model.grid(0.5), model.n_inputs_
+    gone = weakref.ref(model)
+    seen: list[tuple[bool, list[str]]] = []
+    grid_later = fitted.FittedMap.grid_later
+
+    def watched(self, resolution, extent=None):
+        later = grid_later(self, resolution, extent)
+
+        def make():
+            seen.append((gone() is None, sorted(p.name for p in tmp_path.rglob("map.*"))))
+            return later()
+
+        return fitted.LaterGrid(later.grid, make)
+
+    monkeypatch.setattr(fitted.FittedMap, "grid_later", watched)
+    args = cli.build_parser().parse_args(["map", "x.log", "-o", str(tmp_path / "out"), "-q", "--resolution", "0.5"])
+    resolve_library_defaults(args)
+    holder = [model]
+    del model
+    files, summary, _ = map_command.write_map(args, holder, "title", [map_command.save_model])
+    assert holder == [] and seen == [(True, ["map.gpom"])]
+    assert [f.name for f in files] == ["map.yaml", "map.pgm", "map.npz", "map.png", "map.gpom"]
+    assert all(f.parent == tmp_path / "out" and f.exists() for f in files)
+    written = load_map(tmp_path / "out" / "map.npz")
+    assert written.grid == expected.grid
+    np.testing.assert_array_equal(written.probability, expected.probability)
+    np.testing.assert_array_equal(written.ternary, expected.ternary)
+    # The saved model is the one fitted: its grid is the same, read back from map.gpom.
+    np.testing.assert_array_equal(load_fitted_map(files[-1]).grid(0.5).probability, expected.probability)
+    assert summary["n_cells"] == n_cells  # the summary taken before the model was let go
 
 
 def test_every_help_example_parses():

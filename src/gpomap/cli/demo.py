@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from gpomap.cli.common import EXIT_OK, bound_source, check_before_work, print_map_summary, status
+from gpomap.cli.common import EXIT_OK, check_before_work, print_map_summary, status
 from gpomap.cli.map import fitted_model, plan_map, write_map
 from gpomap.cli.model_options import add_model_options, add_tiling_options
 from gpomap.cli.options import Default
@@ -39,7 +39,6 @@ def run(args: argparse.Namespace) -> int:
     """Run ``gpomap demo``: the map's files, and the cell tree as a figure beside them (cells.png)."""
     import numpy as np
 
-    from gpomap.io.atomic import file_written
     from gpomap.plot import plot_inputs, save_figure
     from gpomap.simulate import paper_room_scans
 
@@ -47,17 +46,15 @@ def run(args: argparse.Namespace) -> int:
     scans = paper_room_scans()
     status(args, f"simulated the paper's synthetic room: {len(scans)} poses x {scans[0].n_beams} beams over 360 degrees")
     plan_map(args, scans)
-    model = fitted_model(args, scans)
-    cells_png: list[Path] = []
 
-    def cell_figure(output: Any) -> None:
+    def cell_figure(model: Any, directory: Path) -> Path:
         # The cell tree as a figure too (the paper's Fig. 5a), in the same set of outputs.
         lower, upper, labels = model.cell_boxes()
         points, occupied = model.training_points()
         fig = plot_inputs(points, occupied, boxes=np.stack([lower, upper], axis=1), box_labels=labels)
-        cells_png.append(output.final(save_figure(fig, output.path / "cells.png")))
-        file_written()
+        return save_figure(fig, directory / "cells.png")
 
-    files = write_map(args, model, "gpomap demo: the paper's synthetic room", cell_figure)
-    print_map_summary(model.summary(), files + cells_png, bound_source(model))
+    # The model is handed over: cells.png is drawn from it before it is let go.
+    files, summary, bound = write_map(args, [fitted_model(args, scans)], "gpomap demo: the paper's synthetic room", [cell_figure])
+    print_map_summary(summary, files, bound)
     return EXIT_OK

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +35,7 @@ from gpomap.cli.output_options import add_3d_output_options, add_output_options,
 from gpomap.config import MapConfig
 from gpomap.errors import GpomapError
 
-__all__ = ["add_parser", "run", "model", "fitted_model", "write_map", "plan_map", "default_model"]
+__all__ = ["add_parser", "run", "model", "fitted_model", "write_map", "save_model", "plan_map", "default_model"]
 
 EPILOG = """examples:
   gpomap map ../shared/data/intel/intel-corrected.log.gz -o intel-map --scans 200 --beams 90
@@ -111,22 +111,50 @@ def run(args: argparse.Namespace) -> int:
     if args.chunk_scans is not None:
         return _map_in_chunks(args, data, title)
     # The model is handed over, not kept here: it is let go before the grid's files are written.
-    files, summary, bound = write_fitted_map(args, [fitted_model(args, data)], title)
+    files, summary, bound = write_map(args, [fitted_model(args, data)], title, [save_model])
     print_map_summary(summary, files, bound)
     return EXIT_OK
 
 
-def write_fitted_map(args: argparse.Namespace, holder: list[Any], title: str) -> tuple[list[Path], dict[str, Any], str | None]:
-    """Predict the grid of the model in `holder` (a list of one, emptied here), save the model
-    (``map.gpom``), let it go, and then put the grid together and write its files: a building's
-    grid (800 MB at 0.05 m over 400 x 260 m) and its model are never in memory together. The
-    output set is replaced as a whole. Returns the files written, the model's summary and its
-    "at bound" note.
+def write_map(
+    args: argparse.Namespace,
+    holder: list[Any],
+    title: str,
+    files_of_model: Sequence[Callable[[Any, Path], Path]] = (),
+) -> tuple[list[Path], dict[str, Any], str | None]:
+    """Write the planar map of the fitted model in `holder` as one output set, replacing the last.
+
+    The grid is predicted first (a grid made in bands waits in a temporary file), the files made
+    from the model are written, the model is let go, and only then is the grid put together and
+    its files written: a building's grid (800 MB at 0.05 m over 400 x 260 m) and its model are
+    never in memory together, unless the caller keeps the model (``--chunk-scans`` updates it).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options: ``resolution``, ``extent``, ``output``, ``pgm_mode``, ``quiet``.
+    holder : list
+        A list of one fitted AreaGPOM, emptied here, so that this function's reference is the
+        only one unless the caller kept its own.
+    title : str
+        The title of map.png.
+    files_of_model : sequence of callable
+        Each is called with the model and the staging directory, and returns the path of the
+        file it wrote there (:func:`save_model`: map.gpom), before the model is let go.
+
+    Returns
+    -------
+    files : list of Path
+        The final paths of the grid's files (map.yaml, map.pgm, map.npz, map.png), then those of
+        `files_of_model`, in their order.
+    summary : dict
+        The model's :meth:`~gpomap.mapping.AreaGPOM.summary`.
+    bound : str or None
+        Its "at bound" note (:func:`gpomap.cli.common.bound_source`).
     """
     from gpomap.diagnostics import map_warnings, model_warnings
     from gpomap.io.atomic import file_written
     from gpomap.io.export import write_map_files
-    from gpomap.io.mapfile import FILENAME, save_fitted_map
     from gpomap.resources import release_freed_memory
 
     fitted = holder.pop()
@@ -136,8 +164,10 @@ def write_fitted_map(args: argparse.Namespace, holder: list[Any], title: str) ->
     status(args, f"  {nx} x {ny} cells predicted in {time.perf_counter() - t:.2f} s; writing {args.output}/")
     summary, bound, warnings = fitted.summary(), bound_source(fitted), model_warnings(fitted)
     with outputs(args) as output:
-        saved = save_fitted_map(fitted, output.path / FILENAME)
-        file_written()
+        extra = []
+        for write in files_of_model:
+            extra.append(write(fitted, output.path))
+            file_written()
         del fitted
         release_freed_memory()
         occupancy_map = later()
@@ -145,7 +175,14 @@ def write_fitted_map(args: argparse.Namespace, holder: list[Any], title: str) ->
         warnings += map_warnings(occupancy_map.ternary)
     for message in warnings:
         warn(message)
-    return [output.final(f) for f in [*staged, saved]], summary, bound
+    return [output.final(f) for f in [*staged, *extra]], summary, bound
+
+
+def save_model(fitted: Any, directory: Path) -> Path:
+    """Write the fitted map itself, ``map.gpom`` (:mod:`gpomap.io.mapfile`), into `directory`; returns its path."""
+    from gpomap.io.mapfile import FILENAME, save_fitted_map
+
+    return save_fitted_map(fitted, directory / FILENAME)
 
 
 def plan_map(args: argparse.Namespace, data: Any) -> None:
@@ -166,19 +203,6 @@ def plan_map(args: argparse.Namespace, data: Any) -> None:
     else:
         extent = scan_extent(data, include_no_return=True, no_return_cap=map_config(args).no_return_cap)
     check_grid_memory(args, grid_shape(extent, args.resolution), extent, 0)
-
-
-def _fitted_map_file(fitted: Any, saved: list[Path]) -> Callable[[Any], None]:
-    """Adds the fitted map, ``map.gpom`` (:mod:`gpomap.io.mapfile`), to an output set; its final path to `saved`."""
-
-    def save(output: Any) -> None:
-        from gpomap.io.atomic import file_written
-        from gpomap.io.mapfile import FILENAME, save_fitted_map
-
-        saved[:] = [output.final(save_fitted_map(fitted, output.path / FILENAME))]
-        file_written()
-
-    return save
 
 
 def model(args: argparse.Namespace) -> Any:
@@ -203,36 +227,10 @@ def fitted_model(args: argparse.Namespace, data: Any) -> Any:
     return fitted
 
 
-def write_map(args: argparse.Namespace, fitted: Any, title: str, extra: Callable[[Any], None] | None = None) -> list[Path]:
-    """Predict the model's grid and replace the output set with it; returns the files written.
-
-    `extra`, if given, is called with the output set to add files of its own to it, once the grid
-    is written and let go (a building's grid is hundreds of megabytes beside the model).
-    """
-    from gpomap.diagnostics import fit_warnings
-    from gpomap.io.export import write_map_files
-
-    t = time.perf_counter()
-    occupancy_map = fitted.grid(args.resolution, args.extent)
-    ny, nx = occupancy_map.grid.shape
-    status(args, f"  {nx} x {ny} cells predicted in {time.perf_counter() - t:.2f} s; writing {args.output}/")
-    with outputs(args) as output:
-        staged = write_map_files(occupancy_map, output.path, pgm_mode=args.pgm_mode, title=title)
-        warnings = fit_warnings(fitted, occupancy_map)
-        del occupancy_map
-        if extra is not None:
-            extra(output)
-    for message in warnings:
-        warn(message)
-    return [output.final(f) for f in staged]
-
-
 def _map_in_chunks(args: argparse.Namespace, scans: list[Any], title: str) -> int:
     """Fit the first K scans, then add K at a time with ``update``, rewriting the map each time."""
     fitted = model(args)
     k = args.chunk_scans
-    files: list[Path] = []
-    saved: list[Path] = []
     for start in range(0, len(scans), k):
         chunk = scans[start : start + k]
         t = time.perf_counter()
@@ -243,8 +241,9 @@ def _map_in_chunks(args: argparse.Namespace, scans: list[Any], title: str) -> in
             fitted.update(chunk)
             refit = len(fitted.last_refit_)
         status(args, f"scans {start}..{start + len(chunk) - 1}: {refit} tile(s) fitted in {time.perf_counter() - t:.2f} s")
-        files = write_map(args, fitted, f"{title} ({start + len(chunk)} of {len(scans)} scans)", _fitted_map_file(fitted, saved))
-    print_map_summary(fitted.summary(), files + saved, bound_source(fitted))
+        # The model is kept (the next chunk updates it): handed over in a list of its own.
+        files, summary, bound = write_map(args, [fitted], f"{title} ({start + len(chunk)} of {len(scans)} scans)", [save_model])
+    print_map_summary(summary, files, bound)
     return EXIT_OK
 
 
