@@ -100,6 +100,47 @@ def test_tiles_weights_sum_to_one_and_empty_tiles_predict_the_prior(tmp_path):
     assert m.ternary[:, :, 12:14].min() == OCCUPIED
 
 
+def test_the_tiled_model_answers_through_its_fitted_map_in_one_pass_over_the_columns(tmp_path, monkeypatch):
+    # The slab of the test above in columns of 0.5 m: the conversion's voxels are the fitted map's
+    # voxels; the points scored beside them are predicted in the same pass, each column fitted
+    # once, as a pass for the points alone predicts them; and every answer is the fitted map's.
+    from gpomap.convert import ColumnsField, octree_tiling
+    from gpomap.fitted import FittedMap
+
+    spec = VoxelSpec((0.0, 0.0, 0.0), 0.1, (4, 10, 20))
+    x = spec.centres()[:, 0].reshape(spec.shape)
+    path = tmp_path / "slab.bt"
+    write_octree(VoxelMap(spec, np.where((x > 1.2) & (x < 1.4), 0.97, 0.12)), path)
+    box = ([0.0, 0.0, 0.0], [3.0, 1.0, 0.4])
+    res = convert_octree(read_octree(path), 0.1, *box, tile_size=0.5)
+    model = res.model
+    assert isinstance(model, TiledOctreeModel) and isinstance(model.map_.field, ColumnsField)
+    extent = (0.0, 3.0, 0.0, 1.0, 0.0, 0.4)
+    again = model.voxels(0.1, extent)
+    np.testing.assert_array_equal(again.probability, res.map.probability)
+    np.testing.assert_array_equal(again.variance, res.map.variance)
+    assert again.thresholds == res.map.thresholds == model.thresholds_
+
+    fitted_keys = []
+    fit = octree_tiling.fit_tile_task
+    monkeypatch.setattr(octree_tiling, "fit_tile_task", lambda task: fitted_keys.append(task.key) or fit(task))
+    pts = np.array([[1.25, 0.55, 0.15], [0.65, 0.45, 0.25], [2.05, 0.95, 0.05]])  # voxel centres
+    vm, p = model.map_.voxels_and_points(0.1, extent, pts)
+    assert len(fitted_keys) == len(set(fitted_keys)) == model.last_prediction_["tiles_fitted"] > 4
+    np.testing.assert_array_equal(vm.probability, res.map.probability)
+    np.testing.assert_allclose(p, model.predict_proba(pts), rtol=0, atol=1e-12)
+    # At voxel centres of a grid on the tree's pitch (the variance predicted there, not
+    # interpolated) the points are the grid's voxels.
+    np.testing.assert_allclose(p, vm.lookup(pts), rtol=0, atol=1e-12)
+    assert p[0] > 0.66 and p[1] < 0.33
+
+    def quarter(self, points, return_var=False):
+        return np.full(len(points), 0.25)
+
+    monkeypatch.setattr(FittedMap, "predict_proba", quarter)
+    np.testing.assert_array_equal(model.predict_proba(pts), [0.25, 0.25, 0.25])
+
+
 def test_a_column_denser_than_the_limit_is_refused(geb079):
     with pytest.raises(GpomapError, match=r"densest 0.5 m column .* more than one GP holds \(50\)"):
         convert_octree(geb079, 0.08, [5.0, -1.0, 0.0], [6.0, 0.0, 2.0], max_cells=50)

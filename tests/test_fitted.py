@@ -102,6 +102,47 @@ def test_a_voxel_map_is_the_field_at_each_voxel_centre() -> None:
         _map(SlopeField()).voxels(1.0)
 
 
+class PassField(SlopeField):
+    """A 3-D field that makes its voxels in a pass of its own: p = 0.3 and variance z there, the
+    points' p = 0.7 and variance 2 (not what :meth:`gp_probabilities` says anywhere)."""
+
+    def __init__(self) -> None:
+        super().__init__(dim=3)
+        self.passes: list[tuple[Any, int]] = []
+
+    def voxel_probabilities(
+        self, spec: Any, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        self.passes.append((spec, len(points)))
+        z = spec.centres()[:, 2].reshape(spec.shape)
+        return np.full(spec.shape, 0.3), z, np.full(len(points), 0.7), np.full(len(points), 2.0)
+
+
+def test_a_field_with_a_voxel_pass_makes_the_voxels_and_the_points_beside_them_in_it() -> None:
+    box = (0.0, 2.0, 0.0, 1.0, 0.0, 3.0)
+    pts = np.array([[0.5, 0.5, 0.5], [1.5, 0.5, 2.5]])
+    field = PassField()
+    assert isinstance(field, fitted.VoxelPass) and not isinstance(SlopeField(dim=3), fitted.VoxelPass)
+    m = _map(field)
+    vm, p = m.voxels_and_points(1.0, box, pts)
+    assert "grid" in m.timings and "prediction" not in m.timings
+    assert len(field.passes) == 1 and field.passes[0][1] == 2 and field.asked == 0
+    assert field.passes[0][0].shape == (3, 1, 2)
+    np.testing.assert_array_equal(vm.probability, np.full((3, 1, 2), 0.3))
+    np.testing.assert_array_equal(vm.variance, np.broadcast_to([[[0.5]], [[1.5]], [[2.5]]], (3, 1, 2)))
+    np.testing.assert_array_equal(p, [0.7, 0.7])
+    # voxels() is the same pass without points.
+    np.testing.assert_array_equal(_map(field).voxels(1.0, box).probability, vm.probability)
+    assert field.passes[-1][1] == 0 and field.asked == 0
+    # A field without one: the voxels at their centres, then the points by predict_proba.
+    plain = SlopeField(dim=3)
+    vm, p = _map(plain).voxels_and_points(1.0, box, pts)
+    np.testing.assert_allclose(vm.probability, np.broadcast_to([0.05, 0.15], (3, 1, 2)))
+    np.testing.assert_allclose(p, [0.05, 0.15])
+    assert plain.asked == 2
+    assert _map(plain).voxels_and_points(1.0, box)[1].shape == (0,)
+
+
 def test_points_ternary_and_thresholds() -> None:
     m = _map(SlopeField(), thresholds=(0.2, 0.7))
     pts = np.array([[1.0, 0.0], [5.0, 3.0], [9.0, 1.0]])

@@ -16,7 +16,7 @@ import contextlib
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal, Protocol, overload
+from typing import TYPE_CHECKING, Any, Literal, Protocol, overload, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -132,6 +132,21 @@ class LatentField(Protocol):
 
     def grid_done(self) -> None:
         """Called once a grid is made: the field may give back what the grid needed."""
+        ...
+
+
+@runtime_checkable
+class VoxelPass(Protocol):
+    """A field that makes a voxel grid in a pass of its own, as :meth:`FittedMap.voxels` asks it:
+    one fitted in pieces that are let go once they have answered (the octree conversion's columns,
+    :class:`gpomap.convert.octree_tiles.ColumnsField`), which answers points beside the grid in
+    the same pass, each piece fitted once."""
+
+    def voxel_probabilities(
+        self, spec: VoxelSpec, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The GP's probability and latent variance at every voxel of `spec`, each of shape
+        ``spec.shape``, and at `points` (m, 3), each (m,)."""
         ...
 
 
@@ -432,23 +447,54 @@ class FittedMap:
             evidence, each voxel's own counts update the GP's probability there, and the voxels
             no ray reached are marked unobserved.
         """
+        return self.voxels_and_points(resolution, extent)[0]
+
+    def voxels_and_points(
+        self, resolution: float, extent: tuple[float, ...] | None = None, points: NDArray[np.float64] | None = None
+    ) -> tuple[VoxelMap, NDArray[np.float64]]:
+        """:meth:`voxels`, and :meth:`predict_proba` at `points` (predicted there, not read off the voxels).
+
+        A field that makes its voxels in a pass of its own (:class:`VoxelPass`) answers both in
+        that pass; any other field answers the grid, then the points.
+
+        Parameters
+        ----------
+        resolution : float
+        extent : (xmin, xmax, ymin, ymax, zmin, zmax), optional
+            As :meth:`voxels`'.
+        points : ndarray of shape (m, 3), optional
+
+        Returns
+        -------
+        VoxelMap
+            :meth:`voxels`' map.
+        ndarray of shape (m,)
+            The probability at `points` (size 0 without them).
+        """
         from gpomap.voxels import VoxelMap, VoxelSpec
 
         if self.dim != 3:
             raise ValueError(f"voxels() is for 3-D maps; this map is {self.dim}-D: use grid()")
         lo, hi = extent_bounds(self.default_extent(resolution) if extent is None else extent)
         spec = VoxelSpec.from_extent(lo, hi, resolution)
+        pts = np.zeros((0, 3)) if points is None else as_points(points, 3)
+        at_points: NDArray[np.float64] | None = None
         with self._timed("grid"):
             if self.evidence is not None:
                 from gpomap.fusion.written import read_grid
 
                 probability, variance, _ = read_grid(self._written(spec))
+            elif isinstance(self.field, VoxelPass):
+                probability, variance, at_points, _ = self.field.voxel_probabilities(spec, pts)
             else:
                 p, var, _ = self.field.gp_probabilities(spec.centres())
                 probability, variance = p.reshape(spec.shape), var.reshape(spec.shape)
         self.field.grid_done()
         observed = self.evidence.grid_observed(spec) if self.evidence is not None else None
-        return VoxelMap(spec, probability, variance, thresholds=self.thresholds, info=self._summary(), observed=observed)
+        made = VoxelMap(spec, probability, variance, thresholds=self.thresholds, info=self._summary(), observed=observed)
+        if at_points is None:
+            at_points = self.predict_proba(pts) if len(pts) else np.zeros(0)
+        return made, at_points
 
     def _written(self, spec: GridSpec | VoxelSpec) -> Any:
         """Probability, latent variance and the cells beams saw through, per cell of `spec`, with

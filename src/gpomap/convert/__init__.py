@@ -67,7 +67,7 @@ Where each part lives
 - :mod:`~gpomap.convert.agreement`: how well a map keeps the source's labels;
 - :mod:`~gpomap.convert.octree`, :mod:`~gpomap.convert.octree_tiles` and
   :mod:`~gpomap.convert.octree_tiling`: an octree in 3-D (:func:`convert_octree`), in tiles when
-  one GP cannot hold it (:class:`TiledOctreeModel`).
+  one GP cannot hold it (:class:`TiledOctreeModel`, whose fitted map's field is :class:`ColumnsField`).
 
 Every public name of these modules is importable from :mod:`gpomap.convert`.
 """
@@ -109,7 +109,7 @@ from gpomap.convert.octree import (
     octree_to_observations,
     region,
 )
-from gpomap.convert.octree_tiles import BAND_LAYERS, TILE_SIDES, VARIANCE_STEP_SOURCE_VOXELS, TiledOctreeModel
+from gpomap.convert.octree_tiles import BAND_LAYERS, TILE_SIDES, VARIANCE_STEP_SOURCE_VOXELS, ColumnsField, TiledOctreeModel
 from gpomap.convert.pooling import (
     BROKEN_SHARE,
     MAJORITY_NEIGHBOUR_SHARE,
@@ -173,6 +173,7 @@ __all__ = [
     "OctreeSource",
     "OctreeConversion",
     "TiledOctreeModel",
+    "ColumnsField",
     "octree_to_observations",
     "convert_octree",
     "region",

@@ -75,8 +75,8 @@ class OctreeConversion:
     map : VoxelMap
         Probability and latent variance, ndarrays of shape (nz, ny, nx).
     model : GridGPOM or TiledOctreeModel
-        The fitted estimator, one GP or tiles fitted when asked (``predict_proba(points)``
-        anywhere, points of shape (m, 3)).
+        The fitted estimator, one GP or tiles fitted when asked; either answers through its
+        fitted map (``model.map_``: ``predict_proba(points)`` anywhere, points of shape (m, 3)).
     report : dict
         ``leaves`` (``n``, ``occupied``, ``free`` of the whole tree), ``voxels`` (known source
         voxels trained on: ``free``, ``occupied``), ``region`` (``lower``, ``upper`` of the
@@ -239,7 +239,7 @@ def convert_octree(
         if before_fit is not None:
             before_fit(model.largest_tile_cells_)
         t = time.perf_counter()
-        voxel_map, p_check = model.voxels(out, extent, obs.points[idx])
+        voxel_map, p_check = model.map_.voxels_and_points(out, extent, obs.points[idx])
         t_pred = time.perf_counter() - t
         t_agree = 0.0  # scored in the same pass over the tiles
     else:

@@ -1,12 +1,16 @@
 """An octree too large for one GP, converted in tiles: the cells and the hyperparameters once,
 then square columns fitted, predicted and let go one after another (:class:`TiledOctreeModel`).
+
+The blended columns are the GP under the model's fitted map (:class:`ColumnsField`, the model's
+``map_``), which makes every answer: points, voxel grids, the ternary map.
 """
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import fields
-from typing import Any, Literal, overload
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -15,12 +19,13 @@ from scipy.special import ndtr
 from gpomap.config import DEFAULT_MAX_CELLS  # most cells of the one GP of a conversion, as for maps
 from gpomap.convert.estimator import GridGPOM
 from gpomap.convert.octree_tiling import ColumnTiling, TileQueries, predict_tiles
-from gpomap.errors import GpomapError
-from gpomap.fusion import ternary_thresholds
+from gpomap.errors import GpomapError, NotFittedError
+from gpomap.fitted import FittedMap, GPHyperparameters, MapAnswers
 from gpomap.kernels.point import make_point_kernel
-from gpomap.lattice import coarse, extent_bounds, interpolate, interpolation_block
+from gpomap.lattice import coarse, interpolate, interpolation_block
 from gpomap.observations import Observations
 from gpomap.resources import largest_tile_cells, peak_rss_mb
+from gpomap.squash import ProbitSquash
 from gpomap.supports import Supports
 from gpomap.tiles import (
     BLEND_FRACTION,
@@ -32,9 +37,9 @@ from gpomap.tiles import (
     hyper_anchor_block,
     tile_reach,
 )
-from gpomap.voxels import VoxelMap, VoxelSpec
+from gpomap.voxels import VoxelSpec
 
-__all__ = ["TILE_SIDES", "VARIANCE_STEP_SOURCE_VOXELS", "BAND_LAYERS", "TiledOctreeModel"]
+__all__ = ["TILE_SIDES", "VARIANCE_STEP_SOURCE_VOXELS", "BAND_LAYERS", "ColumnsField", "TiledOctreeModel"]
 
 #: Tile sides tried for a tree too large for one GP, largest first (metres): the first whose
 #: densest column's GP holds at most ``max_cells`` cells. 3 m is a voxel map's tile
@@ -50,13 +55,14 @@ VARIANCE_STEP_SOURCE_VOXELS = 1
 BAND_LAYERS = 8
 
 
-class TiledOctreeModel:
+class TiledOctreeModel(MapAnswers):
     """The continuous map of an octree too large for one GP: tiles fitted when asked and let go.
 
     The cells of the whole tree are built once (:meth:`gpomap.convert.GridGPOM.make_cells`, as a
     single-GP conversion builds them), and the hyperparameters learnt once on a compact sample of
-    them, as :class:`~gpomap.tiles.TiledGPOM` learns a map's. A prediction (a voxel grid,
-    :meth:`voxels`, or points, :meth:`predict_proba`) then runs tile by tile over square
+    them, as :class:`~gpomap.tiles.TiledGPOM` learns a map's. Every answer is the fitted map's
+    (:attr:`map_`, over :class:`ColumnsField`). A prediction (a voxel grid, :meth:`voxels`, or
+    points, :meth:`predict_proba`) runs tile by tile over square
     columns of side :attr:`tile_size_` spanning every height: each tile's GP is fitted on the
     cells meeting its square grown by the overlap (:func:`gpomap.tiles.fit_tile_task`), predicts
     the queries within its blend region, with the smoothstep weights of
@@ -129,6 +135,7 @@ class TiledOctreeModel:
         self.labels_ = np.asarray(cells.labels, dtype=float)
         self.n_ambiguous_ = int(cells.ambiguous.sum())
         self.origin_ = (float(obs.points[:, 0].min()), float(obs.points[:, 1].min()))
+        self.data_lower_, self.data_upper_ = obs.points.min(axis=0), obs.points.max(axis=0)
         self.timings_: dict[str, float] = {"cells": time.perf_counter() - t0}
         t = time.perf_counter()
         if hyperparameters is None:
@@ -150,9 +157,14 @@ class TiledOctreeModel:
         return int(self.labels_.size)
 
     @property
-    def thresholds_(self) -> tuple[float, float]:
-        """The ternary map's (free below, occupied above) probabilities."""
-        return ternary_thresholds(self.base.thresholds, None)
+    def map_(self) -> FittedMap:
+        """The fitted map: the blended columns (:class:`ColumnsField`), every answer's maker
+        (raises :class:`~gpomap.errors.NotFittedError` before ``fit``)."""
+        if not hasattr(self, "tiling_"):
+            raise NotFittedError("this TiledOctreeModel is not fitted yet: call fit() first")
+        return FittedMap(
+            ColumnsField(self), None, self.base.thresholds, self.data_lower_, self.data_upper_, None, self.summary, self.timings_
+        )
 
     def _settings(self) -> TileSettings:
         b = self.base
@@ -228,74 +240,111 @@ class TiledOctreeModel:
         self.last_prediction_ = stats
         return mean, var, p_mean, p_var
 
+    def summary(self) -> dict[str, Any]:
+        """Tiles, cells, hyperparameters and where they came from, timings, peak memory."""
+        return {
+            "method": "msk-gpom",
+            "kernel": make_point_kernel(self.base.kernel).name,
+            "area": self.base.area_method,
+            "tiled": True,
+            "tile_size": self.tile_size_,
+            "tile_origin": list(self.origin_),
+            "overlap": self.overlap_,
+            "blend": self.blend_,
+            "largest_tile_cells": self.largest_tile_cells_,
+            "n_cells": self.n_inputs_,
+            "n_ambiguous_cells": self.n_ambiguous_,
+            "hyperparameters": dict(self.hyperparameters_),
+            "hyperparameter_source": dict(self.hyper_source_),
+            "last_prediction": dict(getattr(self, "last_prediction_", {})),
+            "thresholds": list(self.thresholds_),
+            "timings": dict(self.timings_),
+            "peak_memory": peak_rss_mb(),
+        }
+
+
+class ColumnsField:
+    """The tiled conversion's blended columns, as its fitted map asks them
+    (:class:`~gpomap.fitted.LatentField`, and :class:`~gpomap.fitted.VoxelPass` for its voxels):
+    every answer is one pass over the columns it needs, each fitted, asked and let go.
+
+    Parameters
+    ----------
+    model : TiledOctreeModel
+        Fitted.
+    """
+
+    def __init__(self, model: TiledOctreeModel) -> None:
+        self._model = model
+
+    @property
+    def dim(self) -> int:
+        """3: an octree's map is a voxel map."""
+        return 3
+
+    @property
+    def hyperparameters(self) -> GPHyperparameters:
+        """The hyperparameters every column's GP shares."""
+        return GPHyperparameters.from_mapping(self._model.hyperparameters_)
+
+    @property
+    def squash(self) -> ProbitSquash:
+        """The columns' probit (alpha, beta; the variance scale is 1: voxels are not rays)."""
+        h = self._model.hyperparameters_
+        return ProbitSquash(float(h["alpha"]), float(h["beta"]), float(h["variance_scale"]))
+
+    @property
+    def blended(self) -> None:
+        """None: the conversion has no ray counts, so no written grid asks for moments."""
+        return None
+
     def _squash(self, mean: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
-        a, b = self.hyperparameters_["alpha"], self.hyperparameters_["beta"]
+        """The probability of blended latent moments (any matching shapes)."""
+        h = self._model.hyperparameters_
+        a, b = h["alpha"], h["beta"]
         return np.asarray(ndtr((a * mean + b) / np.sqrt(1.0 + a * a * var)))
 
-    @overload
-    def predict_proba(self, points: NDArray[np.float64], return_var: Literal[False] = False) -> NDArray[np.float64]: ...
+    def latent(self, points: NDArray[np.float64], return_var: bool) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Blended latent mean and variance at points (m, 3), each (m,)."""
+        _, _, mean, var = self._model._predict(TileQueries(None, None, points), "predicting tiles")
+        return mean, var if return_var else None
 
-    @overload
-    def predict_proba(
-        self, points: NDArray[np.float64], return_var: Literal[True]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    @overload
-    def predict_proba(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]: ...
-
-    def predict_proba(
-        self, points: NDArray[np.float64], return_var: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Occupancy probability at points, blended across tiles (each fitted for it and let go).
-
-        Parameters
-        ----------
-        points : ndarray of shape (m, 3)
-        return_var : bool
-            Also return the blended latent variance.
-
-        Returns
-        -------
-        probability : ndarray of shape (m,)
-        var : ndarray of shape (m,), only with `return_var`
-        """
-        pts = np.asarray(points, dtype=float).reshape(-1, 3)
-        _, _, mean, var = self._predict(TileQueries(None, None, pts), "predicting tiles")
+    def gp_probabilities(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The probability, the latent variance, and the probability again (voxels are not rays:
+        no unseen space apart), each (m,)."""
+        mean, var = self.latent(points, True)
+        assert var is not None  # asked for
         p = self._squash(mean, var)
-        return (p, var) if return_var else p
+        return p, var, p
 
-    def voxels(
-        self, resolution: float, extent: tuple[float, ...], points: NDArray[np.float64] | None = None
-    ) -> tuple[VoxelMap, NDArray[np.float64]]:
-        """The map on a voxel grid, and the probability at `points`, in one pass over the tiles.
+    def voxel_probabilities(
+        self, spec: VoxelSpec, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The voxels of `spec` and the points, in one pass over the columns.
+
+        The latent mean is predicted at every voxel, the variance at the source's voxel pitch
+        (:data:`VARIANCE_STEP_SOURCE_VOXELS`) and interpolated trilinearly; points are predicted
+        exactly.
 
         Parameters
         ----------
-        resolution : float
-            Voxel side, metres.
-        extent : (xmin, xmax, ymin, ymax, zmin, zmax)
-            Voxel faces on multiples of `resolution` (as :meth:`gpomap.estimator.GPMapEstimator.voxels`).
-        points : ndarray of shape (m, 3), optional
-            Points whose probability is wanted too (predicted exactly, not interpolated).
+        spec : VoxelSpec
+        points : ndarray of shape (m, 3)
 
         Returns
         -------
-        VoxelMap
-            Probability and latent variance of shape (nz, ny, nx): the mean at every voxel, the
-            variance at the source's voxel pitch (:data:`VARIANCE_STEP_SOURCE_VOXELS`), interpolated.
-        ndarray of shape (m,)
-            The probability at `points`.
+        probability, variance : ndarray of shape ``spec.shape``
+        point_probability, point_variance : ndarray of shape (m,)
         """
-        lo, hi = extent_bounds(extent)
-        spec = VoxelSpec.from_extent(lo, hi, resolution)
-        source_pitch = 2.0 * self.base.pixel_pad
+        model = self._model
+        resolution = spec.resolution
+        source_pitch = 2.0 * model.base.pixel_pad
         step = max(1, round(VARIANCE_STEP_SOURCE_VOXELS * source_pitch / resolution)) if source_pitch > 0 else 1
         coarse_spec = coarse(spec, step)
         assert isinstance(coarse_spec, VoxelSpec)  # the coarse lattice of a voxel grid is one
-        pts = np.zeros((0, 3)) if points is None else np.asarray(points, dtype=float).reshape(-1, 3)
-        mean, var_c, p_mean, p_var = self._predict(TileQueries(spec, coarse_spec, pts), "converting tiles")
+        mean, var_c, p_mean, p_var = model._predict(TileQueries(spec, coarse_spec, points), "converting tiles")
         assert mean is not None and var_c is not None
         # The squash in bands of layers, the variance interpolated band by band: the mean's array
         # becomes the probability's, and the temporaries stay a band's.
@@ -320,27 +369,14 @@ class TiledOctreeModel:
             variance[k0:k1] = interpolate(var_c[src], sub, band)
             mean[k0:k1] = self._squash(mean[k0:k1], variance[k0:k1])
         del var_c
-        info = self.summary()
-        return VoxelMap(spec, mean, variance, thresholds=self.thresholds_, info=info), self._squash(p_mean, p_var)
+        return mean, variance, self._squash(p_mean, p_var), p_var
 
-    def summary(self) -> dict[str, Any]:
-        """Tiles, cells, hyperparameters and where they came from, timings, peak memory."""
-        return {
-            "method": "msk-gpom",
-            "kernel": make_point_kernel(self.base.kernel).name,
-            "area": self.base.area_method,
-            "tiled": True,
-            "tile_size": self.tile_size_,
-            "tile_origin": list(self.origin_),
-            "overlap": self.overlap_,
-            "blend": self.blend_,
-            "largest_tile_cells": self.largest_tile_cells_,
-            "n_cells": self.n_inputs_,
-            "n_ambiguous_cells": self.n_ambiguous_,
-            "hyperparameters": dict(self.hyperparameters_),
-            "hyperparameter_source": dict(self.hyper_source_),
-            "last_prediction": dict(getattr(self, "last_prediction_", {})),
-            "thresholds": list(self.thresholds_),
-            "timings": dict(self.timings_),
-            "peak_memory": peak_rss_mb(),
-        }
+    def limited(self) -> contextlib.AbstractContextManager[Any]:
+        """No limit: the columns run on this process's threads (``n_workers``) with its BLAS as it is."""
+        return contextlib.nullcontext()
+
+    def forget_below(self, y: float) -> None:
+        """Nothing to let go of: no column outlives the pass that fitted it."""
+
+    def grid_done(self) -> None:
+        """Nothing to give back."""
