@@ -62,12 +62,12 @@ class TiledOctreeModel(MapAnswers):
     single-GP conversion builds them), and the hyperparameters learnt once on a compact sample of
     them, as :class:`~gpomap.tiles.TiledGPOM` learns a map's. Every answer is the fitted map's
     (:attr:`map_`, over :class:`ColumnsField`). A prediction (a voxel grid, :meth:`voxels`, or
-    points, :meth:`predict_proba`) runs tile by tile over square
-    columns of side :attr:`tile_size_` spanning every height: each tile's GP is fitted on the
-    cells meeting its square grown by the overlap (:func:`gpomap.tiles.fit_tile_task`), predicts
-    the queries within its blend region, with the smoothstep weights of
-    :class:`~gpomap.tiles.TiledGPOM` (:func:`gpomap.tiles.taper`), and is let go. Memory is the
-    cells, the output, and the tiles in flight (``n_workers`` at most), whatever the tree's size.
+    points, :meth:`predict_proba`) runs tile by tile over square columns of side
+    :attr:`tile_size_` spanning every height: each tile's GP is fitted on the cells meeting its
+    square grown by the overlap (:func:`gpomap.tiles.fit_tile_task`), predicts the queries within
+    its blend region, with the smoothstep weights of :class:`~gpomap.tiles.TiledGPOM`
+    (:func:`gpomap.tiles.taper`), and is let go. Memory is the cells, the output, and the tiles in
+    flight (``n_workers`` at most), whatever the tree's size.
 
     Every tile of the lattice over the queries takes part, a tile with no cells in its reach
     predicting the GP prior (mean 0, the signal variance), so the weights sum to one everywhere.
