@@ -356,9 +356,9 @@ def test_defaults_are_the_configs(command):
 def test_library_signatures_are_the_configs():
     """The options' configs are the library's signatures, declared once: MapSettings' fields are
     MapConfig's, AreaGPOM's signature is EstimatorConfig's (MapConfig's fields, then TilingConfig's),
-    derived rather than written out (tests/test_estimator_params.py), and TiledGPOM takes
-    TilingConfig's names with its defaults."""
-    from gpomap.config import EstimatorConfig
+    derived rather than written out (tests/test_estimator_params.py), and TiledGPOM's is
+    TiledConfig's (TilingConfig's fields, then MapConfig's), derived the same way."""
+    from gpomap.config import EstimatorConfig, TiledConfig
     from gpomap.mapping import AreaGPOM
     from gpomap.settings import MapSettings
     from gpomap.tiles import TiledGPOM
@@ -370,8 +370,9 @@ def test_library_signatures_are_the_configs():
         **TilingConfig().kwargs(),
         "n_workers": 1,  # the estimator runs its tiles in this process unless told (as scikit-learn's n_jobs)
     }
+    assert inspect.signature(TiledGPOM) == inspect.signature(TiledConfig, eval_str=True)
     tiled = inspect.signature(TiledGPOM).parameters
-    assert {n: p.default for n, p in tiled.items() if p.kind is not p.VAR_KEYWORD} == TilingConfig().kwargs()
+    assert {n: p.default for n, p in tiled.items()} == {**TilingConfig().kwargs(), **MapConfig().kwargs()}
 
 
 def test_importing_the_config_stays_light():

@@ -2,9 +2,10 @@
 
 :class:`MapConfig` holds the map settings of :class:`~gpomap.mapping.AreaGPOM` (and of
 :class:`~gpomap.settings.MapSettings`, which builds from them), :class:`TilingConfig` its tiling
-arguments (those of :class:`~gpomap.tiles.TiledGPOM`), and :class:`EstimatorConfig` both: its
-fields are the estimator's parameters, whose signature is derived from them and written nowhere
-else. The ``gpomap`` command builds its options from these fields (their defaults are the options'
+arguments (those of :class:`~gpomap.tiles.TiledGPOM`), and :class:`EstimatorConfig` and
+:class:`TiledConfig` both: their fields are the parameters of AreaGPOM and of TiledGPOM, whose
+signatures are derived from them (:func:`gpomap.signature.init_from`) and written nowhere else.
+The ``gpomap`` command builds its options from these fields (their defaults are the options'
 defaults, shown in ``--help``) and builds one config from the parsed options; the library receives
 it as keyword arguments (:meth:`MapConfig.kwargs`), so a script and the command build the same
 model:
@@ -33,6 +34,7 @@ __all__ = [
     "MapConfig",
     "TilingConfig",
     "EstimatorConfig",
+    "TiledConfig",
     "DEFAULT_MAX_CELLS",
     "DEFAULT_SCHEDULER_TIMEOUT",
     "CALIBRATED_THRESHOLDS",
@@ -262,11 +264,20 @@ class TilingConfig(_Config):
 
 
 @dataclass(frozen=True)
+class TiledConfig(MapConfig, TilingConfig):
+    """The parameters of :class:`~gpomap.tiles.TiledGPOM`: :class:`TilingConfig`'s fields (the
+    first positional arguments, the tile side first), then :class:`MapConfig`'s, defaults
+    unchanged. Its signature is these fields (derived by :func:`gpomap.signature.init_from`, so a
+    type checker, ``help`` and ``get_params`` read the same names, types and defaults).
+    """
+
+
+@dataclass(frozen=True)
 class EstimatorConfig(TilingConfig, MapConfig):
-    """The parameters of :class:`~gpomap.mapping.AreaGPOM`: :class:`MapConfig`'s fields, then
-    :class:`TilingConfig`'s. The estimator's signature is these fields (derived in
-    :mod:`gpomap.mapping`, so a type checker, ``help`` and ``get_params`` read the same names, types
-    and defaults), and one default is the estimator's own:
+    """The parameters of :class:`~gpomap.mapping.AreaGPOM`: :class:`MapConfig`'s fields (the kernel
+    first), then :class:`TilingConfig`'s. The estimator's signature is these fields (derived by
+    :func:`gpomap.signature.init_from`, so a type checker, ``help`` and ``get_params`` read the
+    same names, types and defaults), and one default is the estimator's own:
 
     Attributes
     ----------

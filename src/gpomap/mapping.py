@@ -14,7 +14,8 @@ fall in one tile square is one GP over its cells. Afterwards the map can be aske
 :class:`AreaGPOM` is the local-GP engine :class:`~gpomap.tiles.TiledGPOM` with every setting
 named in its signature (``get_params`` / ``set_params``), one worker process by default (like
 scikit-learn's ``n_jobs``), and no other code path: a room and a building are mapped alike. Its
-signature is the fields of :class:`~gpomap.config.EstimatorConfig`, derived here, not written again.
+signature is the fields of :class:`~gpomap.config.EstimatorConfig` (the kernel first), derived by
+:func:`gpomap.signature.init_from` as TiledGPOM's is, not written again.
 
 The same estimator maps in 3-D: fitted on point clouds (:class:`~gpomap.clouds.CloudScan`), the
 rays give 3-D points, the cells are cuboids, the tiles x, y columns, queries are (m, 3) points and
@@ -27,62 +28,9 @@ rays give 3-D points, the cells are cuboids, the tiles x, y columns, queries are
 
 from __future__ import annotations
 
-import dataclasses
-import inspect
-from collections.abc import Callable
-from typing import Any, Concatenate, ParamSpec, TypeVar
-
-from gpomap.config import EstimatorConfig, MapConfig, TilingConfig
+from gpomap.config import EstimatorConfig, TiledConfig
+from gpomap.signature import init_from
 from gpomap.tiles import TiledGPOM
-
-#: The tiling arguments of :class:`AreaGPOM`: those :class:`~gpomap.tiles.TiledGPOM` names.
-TILING_PARAMETERS = tuple(f.name for f in dataclasses.fields(TilingConfig))
-#: The map settings of :class:`AreaGPOM`, in the order :class:`~gpomap.settings.MapSettings` keeps them.
-_SETTINGS = tuple(f.name for f in dataclasses.fields(MapConfig))
-
-_P = ParamSpec("_P")
-_S = TypeVar("_S")
-
-
-def _signature_of(
-    config: Callable[_P, EstimatorConfig],
-) -> Callable[[Callable[[_S, EstimatorConfig], None]], Callable[Concatenate[_S, _P], None]]:
-    """An ``__init__`` whose parameters are the fields of `config`, a frozen dataclass: the decorated
-    function is handed the arguments bound into one config, defaults applied.
-
-    A type checker reads the parameters from the dataclass's own ``__init__`` (the ParamSpec), and
-    ``inspect``, ``help`` and scikit-learn from ``__signature__``; so the names, types and defaults
-    are written once, as the config's fields. (A dataclass estimator inheriting the fields cannot
-    be: the config is frozen, the estimator is not.)
-    """
-    fields = inspect.signature(config, eval_str=True)
-    self = inspect.Parameter("self", inspect.Parameter.POSITIONAL_ONLY)
-    signature = fields.replace(parameters=[self, *fields.parameters.values()], return_annotation=None)
-
-    def decorate(configure: Callable[[_S, EstimatorConfig], None]) -> Callable[Concatenate[_S, _P], None]:
-        def __init__(self: _S, /, *args: _P.args, **kwargs: _P.kwargs) -> None:
-            try:
-                bound = fields.bind(*args, **kwargs)
-            except TypeError as exc:  # named as Python names a plain __init__'s wrong arguments
-                raise TypeError(f"{configure.__qualname__}() {exc}") from None
-            configure(self, config(*bound.args, **bound.kwargs))
-
-        for name in ("__module__", "__name__", "__qualname__", "__doc__"):
-            setattr(__init__, name, getattr(configure, name))
-        __init__.__signature__ = signature  # type: ignore[attr-defined]
-        return __init__
-
-    return decorate
-
-
-def _same(given: Any, kept: Any) -> bool:
-    """Whether `kept` (a parameter as TiledGPOM stores it) is `given` to the type and the value:
-    then the estimator keeps the object it was given."""
-    if type(given) is not type(kept):
-        return False
-    if isinstance(given, tuple):
-        return len(given) == len(kept) and all(_same(g, k) for g, k in zip(given, kept))
-    return bool(given == kept)
 
 
 class AreaGPOM(TiledGPOM):
@@ -114,35 +62,9 @@ class AreaGPOM(TiledGPOM):
     ``set_params`` changes them and ``repr`` shows those that differ from their defaults.
     """
 
-    @_signature_of(EstimatorConfig)
+    _parameters = EstimatorConfig
+
+    @init_from(EstimatorConfig)
     def __init__(self, params: EstimatorConfig) -> None:
         """Keep the arguments (the fields of :class:`~gpomap.config.EstimatorConfig`); nothing is fitted."""
-        self._configure(params.kwargs())
-
-    def _configure(self, params: dict[str, Any]) -> None:
-        tiling = {n: params[n] for n in TILING_PARAMETERS}
-        TiledGPOM.__init__(self, **tiling, **{n: params[n] for n in _SETTINGS})
-        # TiledGPOM stores some arguments converted (an origin as a new tuple of floats); an argument
-        # it stores unchanged in type and value is kept as the object given, as scikit-learn's
-        # clone asks (the parameter it hands over is the one read back).
-        for name, given in tiling.items():
-            if getattr(self, name) is not given and _same(given, getattr(self, name)):
-                setattr(self, name, given)
-
-    def __repr__(self) -> str:
-        defaults = EstimatorConfig().kwargs()
-        changed = [f"{n}={v!r}" for n, v in self.get_params().items() if repr(v) != repr(defaults[n])]
-        return f"AreaGPOM({', '.join(changed)})"
-
-    def get_params(self, deep: bool = True) -> dict[str, Any]:
-        """The constructor arguments, by name."""
-        return {**self.base.get_params(), **{n: getattr(self, n) for n in TILING_PARAMETERS}}
-
-    def set_params(self, **params: Any) -> AreaGPOM:
-        """Set constructor arguments by name (the fitted state, if any, is kept until the next fit); returns self."""
-        current = self.get_params()
-        unknown = sorted(set(params) - set(current))
-        if unknown:
-            raise ValueError(f"unknown parameter {unknown[0]!r} for AreaGPOM")
-        self._configure({**current, **params})
-        return self
+        self._configure(TiledConfig(**params.kwargs()))

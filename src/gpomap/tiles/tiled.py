@@ -13,12 +13,12 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from contextlib import nullcontext
-from typing import Any
+from typing import Any, ClassVar, Self
 
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.config import DEFAULT_SCHEDULER_TIMEOUT, MapConfig, TilingConfig
+from gpomap.config import MapConfig, TiledConfig, TilingConfig
 from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.fitted import as_points
 from gpomap.fusion import EvidenceLayer
@@ -27,6 +27,7 @@ from gpomap.observations import Observations, ScanData, ScanPoints, sensor_posit
 from gpomap.resources import POINT_MEMORY, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
+from gpomap.signature import init_from
 from gpomap.tiles.executors import _blas_shared
 from gpomap.tiles.geometry import DEFAULT_TILE_SIZE
 from gpomap.tiles.hyperparameters import HyperparameterSearch, given_hyperparameters
@@ -36,8 +37,21 @@ from gpomap.tiles.refit import Refit
 from gpomap.tiles.store import TileStore
 from gpomap.tiles.updates import TileUpdates
 
-#: The map settings a TiledGPOM answers as its own attributes (read from its ``base``).
-_SETTING_NAMES = frozenset(MapConfig.__dataclass_fields__)
+#: The map settings a TiledGPOM answers as its own attributes (read from its ``base``), in order.
+_SETTINGS = tuple(MapConfig.__dataclass_fields__)
+_SETTING_NAMES = frozenset(_SETTINGS)
+#: The tiling arguments, kept as the model's own attributes.
+_TILING = tuple(TilingConfig.__dataclass_fields__)
+
+
+def _same(given: Any, kept: Any) -> bool:
+    """Whether `kept` (an argument as TiledGPOM stores it) is `given` to the type and the value:
+    then the model keeps the object it was given."""
+    if type(given) is not type(kept):
+        return False
+    if isinstance(given, tuple):
+        return len(given) == len(kept) and all(_same(g, k) for g, k in zip(given, kept))
+    return bool(given == kept)
 
 
 class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
@@ -96,56 +110,82 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         the cells are built, before anything costlier, a fit whose largest tile's GP, times the
         GPs fitted at once, would need more raises :class:`~gpomap.resources.MemoryLimitError`
         (see :meth:`check_fit_memory`).
-    **options
-        :class:`~gpomap.settings.MapSettings` options (kernel, free_step, min_cell, max_cell,
-        length_scale, noise, optimise, ...). ``optimise=False`` keeps the given variance,
-        length scale and noise; alpha and beta are then still fitted once on the sample.
+    kernel, area, normalisation, free_step, ..., fit_revisit
+        The map settings, :class:`~gpomap.config.MapConfig`'s fields (see
+        :class:`~gpomap.settings.MapSettings`, kept as ``base``). ``optimise=False`` keeps the
+        given variance, length scale and noise; alpha and beta are then still fitted once on the
+        sample.
+
+    Notes
+    -----
+    The names, order, types and defaults are the fields of :class:`~gpomap.config.TiledConfig`
+    (:class:`~gpomap.config.TilingConfig`'s, then :class:`~gpomap.config.MapConfig`'s): the
+    signature is derived from them. As in scikit-learn, the arguments are kept as given and read
+    back as attributes (``model.tile_size``, ``model.kernel``), ``get_params`` returns them,
+    ``set_params`` changes them and ``repr`` shows those that differ from their defaults.
     """
 
     # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
     __module__ = "gpomap.tiles"
 
-    def __init__(
-        self,
-        tile_size: float | None = TilingConfig.tile_size,
-        overlap: float | None = None,
-        blend: float | None = None,
-        origin: tuple[float, float] | None = None,
-        n_workers: int | None = None,
-        scheduler: Any = None,
-        hyper_sample: int | None = None,
-        per_tile_hyperparameters: bool = False,
-        blas_threads: int | None = None,
-        scheduler_timeout: float = DEFAULT_SCHEDULER_TIMEOUT,
-        worker_processes: bool = TilingConfig.worker_processes,
-        memory_limit: float | None = TilingConfig.memory_limit,
-        **options: Any,
-    ) -> None:
+    #: The config whose fields are this class's parameters: its signature, get_params and repr.
+    _parameters: ClassVar[type[TilingConfig]] = TiledConfig
+
+    @init_from(TiledConfig)
+    def __init__(self, params: TiledConfig) -> None:
+        """Keep the arguments (the fields of :class:`~gpomap.config.TiledConfig`); nothing is fitted."""
+        self._configure(params)
+
+    def _configure(self, params: TiledConfig) -> None:
+        """Check and keep the arguments: the tiling as attributes, the map settings as ``base``."""
+        tile_size, scheduler_timeout, memory_limit = params.tile_size, params.scheduler_timeout, params.memory_limit
         if tile_size is not None and not tile_size > 0:
             raise ValueError(f"tile_size must be positive, got {tile_size}")
         self.tile_size = None if tile_size is None else float(tile_size)
-        self.overlap = overlap
-        self.blend = blend
-        self.origin = None if origin is None else (float(origin[0]), float(origin[1]))
-        self.n_workers = n_workers
-        self.scheduler = scheduler
-        self.hyper_sample = None if hyper_sample is None else int(hyper_sample)
-        self.per_tile_hyperparameters = bool(per_tile_hyperparameters)
-        self.blas_threads = None if blas_threads is None else int(blas_threads)
-        self.worker_processes = bool(worker_processes)
+        self.overlap = params.overlap
+        self.blend = params.blend
+        self.origin = None if params.origin is None else (float(params.origin[0]), float(params.origin[1]))
+        self.n_workers = params.n_workers
+        self.scheduler = params.scheduler
+        self.hyper_sample = None if params.hyper_sample is None else int(params.hyper_sample)
+        self.per_tile_hyperparameters = bool(params.per_tile_hyperparameters)
+        self.blas_threads = None if params.blas_threads is None else int(params.blas_threads)
+        self.worker_processes = bool(params.worker_processes)
         if not scheduler_timeout > 0:
             raise ValueError(f"scheduler_timeout must be positive seconds, got {scheduler_timeout}")
         self.scheduler_timeout = float(scheduler_timeout)
         if memory_limit is not None and not memory_limit > 0:
             raise ValueError(f"memory_limit must be positive gigabytes, got {memory_limit}")
         self.memory_limit = None if memory_limit is None else float(memory_limit)
+        # An argument stored converted but unchanged in type and value (an origin as a new tuple of
+        # floats) is kept as the object given, as scikit-learn's clone asks of the parameters read back.
+        for name in _TILING:
+            given = getattr(params, name)
+            if getattr(self, name) is not given and _same(given, getattr(self, name)):
+                setattr(self, name, given)
         self._client = None  # the distributed.Client of the stage running, if any
-        # The map's own settings (kernel, cells, evidence), with their defaults.
-        self.base = MapSettings(**options)
-        self.options = dict(options)
+        # The map's own settings (kernel, cells, evidence).
+        settings = {name: getattr(params, name) for name in _SETTINGS}
+        self.base = MapSettings(**settings)
+        self.options = settings
 
     def __repr__(self) -> str:
-        return f"TiledGPOM(tile_size={self.tile_size}, overlap={self.overlap}, {self.base!r})"
+        defaults = self._parameters().kwargs()
+        changed = [f"{n}={v!r}" for n, v in self.get_params().items() if repr(v) != repr(defaults[n])]
+        return f"{type(self).__name__}({', '.join(changed)})"
+
+    def get_params(self, deep: bool = True) -> dict[str, Any]:
+        """The constructor arguments, by name (the map settings read from ``base``)."""
+        return {name: getattr(self, name) for name in self._parameters.__dataclass_fields__}
+
+    def set_params(self, **params: Any) -> Self:
+        """Set constructor arguments by name (the fitted state, if any, is kept until the next fit); returns self."""
+        current = self.get_params()
+        unknown = sorted(set(params) - set(current))
+        if unknown:
+            raise ValueError(f"unknown parameter {unknown[0]!r} for {type(self).__name__}")
+        self._configure(TiledConfig(**{**current, **params}))
+        return self
 
     def __getattr__(self, name: str) -> Any:
         # The map's settings read as the model's own (model.kernel, model.thresholds, ...).
