@@ -308,3 +308,15 @@ def test_a_type_checker_reads_the_signature(tmp_path):
     assert 'Argument "length_scale" to "TiledGPOM" has incompatible type "str"; expected "float"' in out.stdout
     assert 'Argument 1 to "TiledGPOM" has incompatible type "str"; expected "float | None"' in out.stdout
     assert 'Argument "origin" to "TiledGPOM" has incompatible type "tuple[float, float, float]"' in out.stdout
+
+
+def test_the_package_ships_its_types():
+    """PEP 561: the wheel holds gpomap/py.typed (pyproject's package-data), so a user's type checker
+    reads the signatures above from an installed gpomap, not only from the source tree."""
+    import tomllib
+
+    import gpomap
+
+    assert (Path(gpomap.__file__).parent / "py.typed").is_file()
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+    assert "py.typed" in project["tool"]["setuptools"]["package-data"]["gpomap"]
