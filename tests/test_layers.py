@@ -71,6 +71,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.fusion",
             "gpomap.extrapolation",
             "gpomap.revisit",
+            "gpomap.stages",
             "gpomap.settings",
             "gpomap.baselines",
         ),

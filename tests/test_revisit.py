@@ -52,7 +52,7 @@ def test_fit_is_the_brute_force_optimum_of_both_halves():
     y_l = rng.uniform(size=p_l.size) < rv.RevisitCalibration(0.8, 1.0)(p_l)
     p_a = rng.uniform(0.01, 0.99, 3000)
     y_a = rng.uniform(size=p_a.size) < p_a
-    got = rv.fit_revisit(p_l, y_l, p_a, y_a)
+    got = rv.RevisitCalibration.fit(p_l, y_l, p_a, y_a)
     slopes, shifts = np.linspace(0.6, 1.4, 81), np.linspace(-0.5, 1.5, 81)
     losses = np.array([[_weighted_loss(a, b, p_l, y_l, p_a, y_a) for b in shifts] for a in slopes])
     i, j = np.unravel_index(np.argmin(losses), losses.shape)
@@ -66,8 +66,8 @@ def test_fit_is_the_brute_force_optimum_of_both_halves():
 def test_fit_is_the_identity_when_a_half_lacks_a_class():
     p = np.array([0.2, 0.7, 0.9])
     both, occupied = np.array([True, False, True]), np.ones(3, bool)
-    assert rv.fit_revisit(p, occupied, p, both).identity
-    assert rv.fit_revisit(p, both, p, ~occupied).identity
+    assert rv.RevisitCalibration.fit(p, occupied, p, both).identity
+    assert rv.RevisitCalibration.fit(p, both, p, ~occupied).identity
 
 
 def _tour(n: int, n_beams: int = 36):
@@ -169,7 +169,7 @@ def test_the_map_of_the_rest_is_this_map_on_fewer_scans(fitted_tour):
     assert rest.evidence_.calibration == model.evidence_.calibration and rest.evidence_.report == {"given": 1.0}
     p, occupied, _ = rv.later_visit_points(scans, lambda s, q: rest.predict_proba(q), seed=model.base.seed)
     sample = model.evidence_.sample
-    got = rv.fit_revisit(p, occupied, sample.probability, sample.occupied)
+    got = rv.RevisitCalibration.fit(p, occupied, sample.probability, sample.occupied)
     assert got.slope == pytest.approx(model.evidence_.revisit.slope, rel=1e-6)
     assert got.shift == pytest.approx(model.evidence_.revisit.shift, rel=1e-6, abs=1e-9)
 

@@ -30,18 +30,23 @@ the rest) are tried in turn and their points pooled, each with its own held-in G
 enters new space only once in its log is unseen in one pattern alone (the logs where each case
 arose: docs/choices.md, "Where no beam went" and its subsections). With too few points in
 all three (a short log, a robot that never left one room), kappa stays 1.
+
+The squash with its variance scale is the map's first fitted stage (:mod:`gpomap.stages`):
+:class:`VarianceScale`, fitted on the unseen points (:meth:`VarianceScale.fit`) and applied to the
+GP's calibrated moments (:meth:`VarianceScale.apply`), which a tiled map blends over its tiles.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize_scalar
 from scipy.spatial import cKDTree
-from scipy.special import log_ndtr
+from scipy.special import log_ndtr, ndtr
 
 from gpomap.config import PROFILES, MapConfig
 from gpomap.errors import EmptyDataError
@@ -51,6 +56,7 @@ from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
 from gpomap.observations import Observations, ScanPoints, beams_reach, data_dim, free_near_hits, natural_subsample
 from gpomap.resources import POINT_MEMORY, release_freed_memory
 from gpomap.squash import unseen_probit
+from gpomap.stages import CalibratedMoments, GPProbability
 
 #: Fewest held-out points of each class where no kept beam went for kappa to be fitted.
 MIN_POINTS_PER_CLASS: int = 50
@@ -308,7 +314,7 @@ def fit_variance_scale(
         del obs, model
         release_freed_memory()
     a, b = float(hyperparameters["alpha"]), float(hyperparameters["beta"])
-    kappa, loss = fit_unseen_squash(mu, var, occ, a, b)
+    kappa = VarianceScale.fit(mu, var, occ, a, b).kappa
     return kappa, {
         "kappa": kappa,
         "n_points": int(occ.size),
@@ -316,7 +322,7 @@ def fit_variance_scale(
         "region_centre": [float(v) for v in centre],
         "region_half": float(region_half),
         "log_loss_at_1": _nll(1.0, mu, var, occ, a, b),
-        "log_loss": loss,
+        "log_loss": _nll(kappa, mu, var, occ, a, b),
     }
 
 
@@ -467,36 +473,60 @@ def _region_folds(
     return folds, n
 
 
-def fit_unseen_squash(
-    mu: NDArray[np.float64], var: NDArray[np.float64], occupied: NDArray[np.bool_], alpha: float, beta: float
-) -> tuple[float, float]:
-    """The variance scale that maximises the likelihood of unseen points.
-
-    The probability of a point where no beam went is
-    ``Phi((alpha mu + beta) / sqrt(1 + alpha^2 kappa var))`` (before the map's cut of the lean
-    towards free, :func:`gpomap.squash.unseen_probit`).
+@dataclass(frozen=True)
+class VarianceScale:
+    """The squash stage (:class:`gpomap.stages.Stage`): the probit of the GP's calibrated moments,
+    its latent variance scaled by kappa where no beam went.
 
     Parameters
     ----------
-    mu, var : ndarray of shape (m,)
-        The held-in GP's latent mean and variance at the points.
-    occupied : ndarray of bool, shape (m,)
-        Their classes.
-    alpha, beta : float
-        The map's squash.
-
-    Returns
-    -------
-    kappa, log_loss : float
+    kappa : float
+        The factor on the latent variance for unseen space (1: the squash's own variance).
     """
-    res = minimize_scalar(
-        lambda t: _nll(float(np.exp(t)), mu, var, occupied, alpha, beta),
-        bounds=tuple(np.log(VARIANCE_SCALE_BOUNDS)),
-        method="bounded",
-        # Tight, so kappa is the optimum's and not moved by the last bits of the held-in maps.
-        options={"xatol": 1e-10},
-    )
-    return float(np.exp(res.x)), float(res.fun)
+
+    kappa: float = 1.0
+
+    @classmethod
+    def fit(
+        cls, mu: NDArray[np.float64], var: NDArray[np.float64], occupied: NDArray[np.bool_], alpha: float, beta: float
+    ) -> VarianceScale:
+        """The variance scale that maximises the likelihood of unseen points.
+
+        The probability of a point where no beam went is
+        ``Phi((alpha mu + beta) / sqrt(1 + alpha^2 kappa var))`` (before the map's cut of the lean
+        towards free, :func:`gpomap.squash.unseen_probit`).
+
+        Parameters
+        ----------
+        mu, var : ndarray of shape (m,)
+            The held-in GP's latent mean and variance at held-out points where no kept beam went,
+            drawn at their natural frequencies (:func:`fit_variance_scale`).
+        occupied : ndarray of bool, shape (m,)
+            Their classes.
+        alpha, beta : float
+            The map's squash.
+
+        Returns
+        -------
+        VarianceScale
+        """
+        res = minimize_scalar(
+            lambda t: _nll(float(np.exp(t)), mu, var, occupied, alpha, beta),
+            bounds=tuple(np.log(VARIANCE_SCALE_BOUNDS)),
+            method="bounded",
+            # Tight, so kappa is the optimum's and not moved by the last bits of the held-in maps.
+            options={"xatol": 1e-10},
+        )
+        return cls(float(np.exp(res.x)))
+
+    def apply(self, moments: CalibratedMoments) -> GPProbability:
+        """The GP's probability, and its probability for unseen space, from its calibrated moments
+        (any matching shapes)."""
+        num, den = moments
+        p = ndtr(num / np.sqrt(1.0 + den))
+        # Where no beam went the latent variance is scaled by kappa.
+        p_unseen = ndtr(unseen_probit(num, den, self.kappa))
+        return GPProbability(p, p_unseen)
 
 
 class _UnseenPoints:

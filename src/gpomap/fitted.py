@@ -4,8 +4,9 @@ A fit ends in two things: the GP under the map (a :class:`LatentField`: a tiled 
 blended without seams, or one dense GP) and, for maps built from scans, the ray evidence on top
 (:class:`~gpomap.fusion.EvidenceLayer`, with its fitted calibration and later-visit
 recalibration). :class:`FittedMap` holds both, with the fitted parameters of each stage as typed
-values, and is the only code that turns them into answers: probabilities and latent moments at
-points, the ternary map, planar grids and voxel maps. Every estimator's ``predict_proba``,
+values and their order (:attr:`FittedMap.stages`, :mod:`gpomap.stages`), and is the only code
+that turns them into answers: probabilities and latent moments at points, the ternary map,
+planar grids and voxel maps. Every estimator's ``predict_proba``,
 ``grid`` and the rest are this object's (``model.map_``), so a map fitted, streamed, converted
 or loaded from its file answers through the same lines.
 """
@@ -29,6 +30,7 @@ from gpomap.squash import ProbitSquash
 if TYPE_CHECKING:
     from gpomap.fusion import BlendedMoments, EvidenceCalibration, EvidenceLayer
     from gpomap.revisit import RevisitCalibration
+    from gpomap.stages import StageChain
     from gpomap.voxels import VoxelMap, VoxelSpec
 
 Moments = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
@@ -217,6 +219,17 @@ class FittedMap:
     def revisit(self) -> RevisitCalibration | None:
         """The later visit's recalibration; None without ray evidence."""
         return None if self.evidence is None else self.evidence.revisit
+
+    @property
+    def stages(self) -> StageChain:
+        """The map's fitted stages in order (:mod:`gpomap.stages`): the squash with its variance
+        scale, then, with ray evidence, the ray-count fusion and the later visit's recalibration.
+        Applied to the GP's calibrated moments and the cells' weighted counts
+        (:meth:`~gpomap.stages.StageChain.apply`), they give :meth:`predict_proba`."""
+        from gpomap.extrapolation import VarianceScale
+        from gpomap.stages import StageChain
+
+        return StageChain(VarianceScale(self.squash.variance_scale), self.calibration, self.revisit)
 
     @property
     def thresholds(self) -> tuple[float, float]:

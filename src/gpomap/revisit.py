@@ -21,6 +21,10 @@ logs (largest where later stretches meet people, doors and new ground), about 0 
 below 0 on simulations, where nothing moves and the map was under-confident (the fitted values:
 the same section). A map that grows online (:mod:`gpomap.streaming`) keeps the recalibration of
 its last whole fit.
+
+It is the map's last fitted stage (:mod:`gpomap.stages`): :class:`RevisitCalibration`, fitted on
+those points (:meth:`RevisitCalibration.fit`) and applied to the ray-count fusion's probabilities
+(:meth:`RevisitCalibration.apply`).
 """
 
 from __future__ import annotations
@@ -81,12 +85,60 @@ class RevisitCalibration:
         """Whether it leaves every probability as it is."""
         return self.slope == 1.0 and self.shift == 0.0
 
-    def __call__(self, p: ArrayLike) -> NDArray[np.float64]:
-        """The recalibrated probabilities, the shape of `p`."""
+    def apply(self, p: ArrayLike) -> NDArray[np.float64]:
+        """The later-visit stage (:class:`gpomap.stages.Stage`): the recalibrated probabilities,
+        the shape of `p`."""
         p = np.asarray(p, dtype=float)
         if self.identity:
             return p
         return expit(_log_odds(p, self.slope, self.shift))
+
+    def __call__(self, p: ArrayLike) -> NDArray[np.float64]:
+        """:meth:`apply`."""
+        return self.apply(p)
+
+    @classmethod
+    def fit(
+        cls, p_later: ArrayLike, occupied_later: ArrayLike, p_among: ArrayLike, occupied_among: ArrayLike
+    ) -> RevisitCalibration:
+        """The recalibration that maximises the likelihood of both halves, each weighing one half.
+
+        Parameters
+        ----------
+        p_later, occupied_later : array_like of shape (m,)
+            The map's probabilities at the points of a stretch it never saw (fitted without it,
+            :func:`later_visit_points`), and their classes.
+        p_among, occupied_among : array_like of shape (k,)
+            The same at points of scans held out one at a time (the calibration's own sample,
+            :class:`gpomap.fusion.CalibrationSample`), and their classes.
+
+        Returns
+        -------
+        RevisitCalibration
+            The identity when either half lacks a class.
+        """
+        p_l, y_l = np.asarray(p_later, dtype=float), np.asarray(occupied_later, dtype=bool)
+        p_a, y_a = np.asarray(p_among, dtype=float), np.asarray(occupied_among, dtype=bool)
+        if any(y.all() or not y.any() for y in (y_l, y_a)):
+            return cls()
+        p = np.concatenate([p_l, p_a])
+        sign = np.where(np.concatenate([y_l, y_a]), 1.0, -1.0)
+        weight = np.concatenate([np.full(p_l.size, 0.5 / p_l.size), np.full(p_a.size, 0.5 / p_a.size)])
+        z = _logit(p)
+        bump = _bump(z)
+
+        def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+            # theta = (slope, shift / slope): the ratio's bounds keep the map monotone.
+            slope, ratio = theta
+            t = sign * (slope * z + slope * ratio * bump)
+            # d/dt of -log sigmoid(t) is -(1 - sigmoid(t)) = -sigmoid(-t).
+            d = -weight * expit(-t) * sign
+            return float(-np.sum(weight * log_expit(t))), np.array([d @ (z + ratio * bump), slope * (d @ bump)])
+
+        res = minimize(
+            loss, np.array([1.0, 0.0]), jac=True, method="L-BFGS-B", bounds=[SLOPE_BOUNDS, (-MAX_SHIFT_RATIO, MAX_SHIFT_RATIO)]
+        )
+        return cls(float(res.x[0]), float(res.x[0] * res.x[1]))
 
 
 def _logit(p: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -103,48 +155,6 @@ def _log_odds(p: NDArray[np.float64], slope: float, shift: float) -> NDArray[np.
     return slope * z + shift * _bump(z)
 
 
-def fit_revisit(
-    p_later: ArrayLike, occupied_later: ArrayLike, p_among: ArrayLike, occupied_among: ArrayLike
-) -> RevisitCalibration:
-    """The recalibration that maximises the likelihood of both halves, each weighing one half.
-
-    Parameters
-    ----------
-    p_later, occupied_later : array_like of shape (m,)
-        The map's probabilities at the points of a stretch it never saw (fitted without it), and
-        their classes.
-    p_among, occupied_among : array_like of shape (k,)
-        The same at points of scans held out one at a time, and their classes.
-
-    Returns
-    -------
-    RevisitCalibration
-        The identity when either half lacks a class.
-    """
-    p_l, y_l = np.asarray(p_later, dtype=float), np.asarray(occupied_later, dtype=bool)
-    p_a, y_a = np.asarray(p_among, dtype=float), np.asarray(occupied_among, dtype=bool)
-    if any(y.all() or not y.any() for y in (y_l, y_a)):
-        return RevisitCalibration()
-    p = np.concatenate([p_l, p_a])
-    sign = np.where(np.concatenate([y_l, y_a]), 1.0, -1.0)
-    weight = np.concatenate([np.full(p_l.size, 0.5 / p_l.size), np.full(p_a.size, 0.5 / p_a.size)])
-    z = _logit(p)
-    bump = _bump(z)
-
-    def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        # theta = (slope, shift / slope): the ratio's bounds keep the map monotone.
-        slope, ratio = theta
-        t = sign * (slope * z + slope * ratio * bump)
-        # d/dt of -log sigmoid(t) is -(1 - sigmoid(t)) = -sigmoid(-t).
-        d = -weight * expit(-t) * sign
-        return float(-np.sum(weight * log_expit(t))), np.array([d @ (z + ratio * bump), slope * (d @ bump)])
-
-    res = minimize(
-        loss, np.array([1.0, 0.0]), jac=True, method="L-BFGS-B", bounds=[SLOPE_BOUNDS, (-MAX_SHIFT_RATIO, MAX_SHIFT_RATIO)]
-    )
-    return RevisitCalibration(float(res.x[0]), float(res.x[0] * res.x[1]))
-
-
 def later_visit_points(
     scans: Sequence[Any],
     fit_rest: Callable[[list[Any], NDArray[np.float64]], NDArray[np.float64]],
@@ -152,7 +162,7 @@ def later_visit_points(
     seed: int = 0,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]]:
     """A map's probabilities at the points of a stretch of its log it never saw (the first half of
-    :func:`fit_revisit`'s data; see the module docstring).
+    :meth:`RevisitCalibration.fit`'s data; see the module docstring).
 
     Parameters
     ----------

@@ -1,10 +1,12 @@
 """The calibration of the ray counts: how much a hit, a miss, a near miss, a surface miss and the GP weigh.
 
 :class:`EvidenceCalibration` turns a fine cell's counts and the GP's probability there into the
-cell's probability (the formula in :mod:`gpomap.fusion`); :func:`fit_calibration` fits its weights
-on the map's own scans held out one at a time, and the surprise rate (:func:`with_surprises`,
-:func:`fit_surprise_rate`) on a GP that never saw them. Why each weight, and what it was measured
-to be worth: docs/choices.md.
+cell's probability (the formula in :mod:`gpomap.fusion`): the map's fitted stage after the squash
+(:mod:`gpomap.stages`; :meth:`EvidenceCalibration.apply`). :func:`fit_calibration` draws points
+from the map's own scans held out one at a time, with the other scans' counts in their cells, and
+fits the weights on them (:meth:`EvidenceCalibration.fit`), then the surprise rate
+(:func:`with_surprises`, :func:`fit_surprise_rate`) on a GP that never saw them. Why each weight,
+and what it was measured to be worth: docs/choices.md.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from gpomap.evidence import RayCounts, RayEvidence
 from gpomap.heldout import CalibrationPoints, calibration_scans
 from gpomap.lattice import AnyGrid, flat_index
 from gpomap.observations import ScanData, natural_subsample
+from gpomap.stages import Counted
 
 #: The share of observations that are surprises the counts cannot foresee (a person standing where
 #: every scan saw free space, a door, a pose error), so a map's probabilities are
@@ -183,6 +186,140 @@ class EvidenceCalibration:
         """Cell probability: :meth:`posterior_mean` mixed with the surprise rate (:func:`with_surprises`)."""
         return with_surprises(self.posterior_mean(p_gp, hits, misses), self.surprise_rate)
 
+    def apply(self, counted: Counted) -> NDArray[np.float64]:
+        """The fusion stage (:class:`gpomap.stages.Stage`): the probability of each point's or
+        cell's (any matching shapes) from the GP's and its weighted counts; where the cell has no
+        count at all, the GP's probability for unseen space (when given) with the surprise rate.
+
+        Parameters
+        ----------
+        counted : Counted
+            The GP's probability and probability for unseen space, and the weighted hits and
+            misses (:meth:`hits`, :meth:`misses`).
+
+        Returns
+        -------
+        ndarray
+            The shape of ``counted.probability``.
+        """
+        p = self(counted.probability, counted.hits, counted.misses)
+        return _unseen_where_empty(p, counted.hits, counted.misses, counted.unseen, self.surprise_rate)
+
+    @classmethod
+    def fit(
+        cls,
+        p_gp: NDArray[np.float64],
+        hits: NDArray[np.float64],
+        misses: NDArray[np.float64],
+        near: NDArray[np.float64],
+        surface: NDArray[np.float64],
+        occupied: NDArray[np.bool_],
+        n_points: int | None = None,
+        fit_surface: bool = True,
+    ) -> EvidenceCalibration:
+        """The five weights that maximise the likelihood of points, at the prior surprise rate.
+
+        The points are a sample drawn at their natural frequencies from scans held out one at a
+        time (:func:`fit_calibration`), each with the counts that the other scans made in its
+        cell; a point of the sample no other scan counted has the GP's probability whatever the
+        weights, so it is left out and counted in `n_points` alone.
+
+        Parameters
+        ----------
+        p_gp : ndarray of shape (m,)
+            The GP's probability at the counted points.
+        hits, misses, near, surface : ndarray of shape (m,)
+            The other scans' hits, misses, near misses and surface misses (:func:`surface_misses`)
+            in each point's cell, unweighted.
+        occupied : ndarray of bool, shape (m,)
+        n_points : int, optional
+            The sample's size with the points left out (default m): the loss is summed over the
+            counted points and divided by it, the mean over the whole sample less a constant.
+        fit_surface : bool
+            Whether the surface miss's weight is fitted; else it is held at a miss's.
+
+        Returns
+        -------
+        EvidenceCalibration
+            Its surprise rate the prior's (:data:`SURPRISE_RATE`).
+        """
+        loss = _weights_loss(p_gp, hits, misses, near, surface, occupied, occupied.size if n_points is None else n_points)
+        # Where surface misses are not weighed apart, their weight is held at a miss's.
+        bounds = CALIBRATION_BOUNDS if fit_surface else (*CALIBRATION_BOUNDS[:4], (0.0, 0.0))
+        # With the exact gradient and a tight tolerance the weights are the optimum's, not where a
+        # search on finite differences stopped, which moved with the GP's round-off (tile factors of
+        # another BLAS thread count; docs/choices.md, "Measured for the code").
+        res = minimize(
+            lambda theta: loss(cls(*np.exp(theta))),
+            _log_start(),
+            jac=True,
+            method="L-BFGS-B",
+            bounds=bounds,
+            options={"ftol": 1e-15, "gtol": 1e-10},
+        )
+        return cls(*(float(v) for v in np.exp(res.x)))
+
+
+def _unseen_where_empty(
+    p: NDArray[np.float64],
+    hits: NDArray[np.float64],
+    misses: NDArray[np.float64],
+    p_unseen: NDArray[np.float64] | None,
+    surprise_rate: float = SURPRISE_RATE,
+) -> NDArray[np.float64]:
+    """`p`, with `p_unseen` (mixed with `surprise_rate`, as the counted cells are) where a cell has
+    no count at all (matching shapes): the GP's probability for unseen space as it is, near
+    surfaces too (see :mod:`gpomap.fusion`)."""
+    if p_unseen is None:
+        return p
+    return np.where((hits == 0) & (misses == 0), with_surprises(p_unseen, surprise_rate), p)
+
+
+def _log_start() -> NDArray[np.float64]:
+    """Where the search of :meth:`EvidenceCalibration.fit` starts, the log of each weight: the
+    counting grid's weights, but for the near miss's hit weight: its floor (log space has no 0)."""
+    default = EvidenceCalibration()
+    return np.log(
+        [default.hit_weight, default.prior_weight, default.near_weight, np.exp(CALIBRATION_BOUNDS[3][0]), default.surface_weight]
+    )
+
+
+def _weights_loss(
+    p_gp: NDArray[np.float64],
+    h: NDArray[np.float64],
+    m: NDArray[np.float64],
+    near: NDArray[np.float64],
+    surface: NDArray[np.float64],
+    occ: NDArray[np.bool_],
+    n_points: int,
+) -> Callable[[EvidenceCalibration], tuple[float, NDArray[np.float64]]]:
+    """The log loss of points (:meth:`EvidenceCalibration.fit`'s, the sum over them divided by
+    `n_points`) under a calibration, at the prior surprise rate, and its gradient in the log of
+    each of the five weights."""
+
+    def loss(cal: EvidenceCalibration) -> tuple[float, NDArray[np.float64]]:
+        n0, a, b, g = cal.prior_weight, cal.near_weight, cal.near_hit_weight, cal.surface_weight
+        wh = cal.hit_weight * h
+        hits, weighted = cal.hits(h, near), cal.misses(m, near, surface=surface)
+        q = cal.posterior_mean(p_gp, hits, weighted)
+        p = with_surprises(q)
+        den = hits + weighted + n0
+        value = float(-np.sum(np.where(occ, np.log(p), np.log1p(-p))) / n_points)
+        # d loss / dq (dp / dq = 1 - SURPRISE_RATE); then dq / dlog w, dlog n0, dlog a, dlog b, dlog g.
+        dq = np.where(occ, -1.0 / p, 1.0 / (1.0 - p)) * (1.0 - SURPRISE_RATE) / n_points
+        grad = np.array(
+            [
+                dq @ (wh * (1.0 - q) / den),
+                dq @ (n0 * (p_gp - q) / den),
+                dq @ (-a * near * q / den),
+                dq @ (b * near * (1.0 - q) / den),
+                dq @ (-g * surface * q / den),
+            ]
+        )
+        return value, grad
+
+    return loss
+
 
 def surface_misses(misses: ArrayLike, near: ArrayLike, at_surface: ArrayLike) -> NDArray[np.float64]:
     """Surface misses of cells (:attr:`EvidenceCalibration.surface_weight`): their far misses
@@ -300,47 +437,15 @@ def fit_calibration(
     sample_pts, sample_occ = pts, occ
     occ, h, m, near, surface = occ[counted], h[counted], m[counted], near[counted], surface[counted]
     p_gp = np.asarray(predict_gp(pts[counted]), dtype=float)
-
-    def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        cal = EvidenceCalibration(*np.exp(theta))
-        n0, a, b, g = cal.prior_weight, cal.near_weight, cal.near_hit_weight, cal.surface_weight
-        wh = cal.hit_weight * h
-        hits, weighted = cal.hits(h, near), cal.misses(m, near, surface=surface)
-        q = cal.posterior_mean(p_gp, hits, weighted)
-        p = with_surprises(q)
-        den = hits + weighted + n0
-        value = float(-np.sum(np.where(occ, np.log(p), np.log1p(-p))) / n_points)
-        # d loss / dq (dp / dq = 1 - SURPRISE_RATE); then dq / dlog w, dlog n0, dlog a, dlog b, dlog g.
-        dq = np.where(occ, -1.0 / p, 1.0 / (1.0 - p)) * (1.0 - SURPRISE_RATE) / n_points
-        grad = np.array(
-            [
-                dq @ (wh * (1.0 - q) / den),
-                dq @ (n0 * (p_gp - q) / den),
-                dq @ (-a * near * q / den),
-                dq @ (b * near * (1.0 - q) / den),
-                dq @ (-g * surface * q / den),
-            ]
-        )
-        return value, grad
-
     # The weights are fitted at the prior surprise rate (with_surprises' default), the rate after them.
-    # The counting grid's weights, but for the near miss's hit weight: its floor (log space has no 0).
-    x0 = np.log(
-        [default.hit_weight, default.prior_weight, default.near_weight, np.exp(CALIBRATION_BOUNDS[3][0]), default.surface_weight]
-    )
-    # Where surface misses are not weighed apart, their weight is held at a miss's.
-    bounds = CALIBRATION_BOUNDS if fit_surface else (*CALIBRATION_BOUNDS[:4], (0.0, 0.0))
-    # With the exact gradient and a tight tolerance the weights are the optimum's, not where a
-    # search on finite differences stopped, which moved with the GP's round-off (tile factors of
-    # another BLAS thread count; docs/choices.md, "Measured for the code").
-    res = minimize(loss, x0, jac=True, method="L-BFGS-B", bounds=bounds, options={"ftol": 1e-15, "gtol": 1e-10})
-    fitted = EvidenceCalibration(*(float(v) for v in np.exp(res.x)))
+    fitted = EvidenceCalibration.fit(p_gp, h, m, near, surface, occ, n_points, fit_surface)
+    loss = _weights_loss(p_gp, h, m, near, surface, occ, n_points)
     scale = n_points / occ.size  # from the sample's sum to the mean over the counted points
     report = {
         "n_points": n_points,
         "n_predicted": int(occ.size),
-        "log_loss_default": loss(x0)[0] * scale,
-        "log_loss": float(res.fun) * scale,
+        "log_loss_default": loss(EvidenceCalibration(*np.exp(_log_start())))[0] * scale,
+        "log_loss": loss(fitted)[0] * scale,
     }
     # A GP on fewer scans than were held out is not the map's GP: short logs keep the prior rate.
     if gp_apart is not None and FIT_SURPRISE_RATE.get(pts.shape[1], False) and len(scans) >= 2 * picked.size:

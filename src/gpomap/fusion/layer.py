@@ -21,14 +21,15 @@ from gpomap.config import PROFILES, MapConfig
 from gpomap.counted_cells import CellCounts, count_cells
 from gpomap.evidence import RayCounts, RayEvidence, lattice_grid, next_to_hits
 from gpomap.fusion.calibration import (
-    SURPRISE_RATE,
     CalibrationSample,
     EvidenceCalibration,
     GPApart,
     fit_calibration,
     surface_misses,
-    with_surprises,
 )
+
+# Named by gpomap.fusion from this module, its first home (the fusion stage's rule for cells without counts).
+from gpomap.fusion.calibration import _unseen_where_empty as _unseen_where_empty
 from gpomap.fusion.written import (
     BlendedMoments,
     GPPredict,
@@ -54,9 +55,10 @@ from gpomap.lattice import (
 )
 from gpomap.observations import ScanData, data_dim
 from gpomap.resources import SpillFile, release_freed_memory
-from gpomap.revisit import RevisitCalibration, fit_revisit
+from gpomap.revisit import RevisitCalibration
 from gpomap.robot_path import PATH_RADIUS, path_steps
 from gpomap.scans import Scan
+from gpomap.stages import Counted, StageChain
 
 #: Whether the ternary map, per dimension of the data, never calls occupied a cell no beam ended in
 #: (:func:`gpomap.grid.ternary`'s ``seen_through``), as neither occupancy grid would: one beams or
@@ -80,21 +82,6 @@ def ternary_thresholds(given: tuple[float, float] | None, evidence: EvidenceLaye
     if given is not None:
         return given
     return CALIBRATED_THRESHOLDS if evidence is not None else DEFAULT_THRESHOLDS
-
-
-def _unseen_where_empty(
-    p: NDArray[np.float64],
-    hits: NDArray[np.float64],
-    misses: NDArray[np.float64],
-    p_unseen: NDArray[np.float64] | None,
-    surprise_rate: float = SURPRISE_RATE,
-) -> NDArray[np.float64]:
-    """`p`, with `p_unseen` (mixed with `surprise_rate`, as the counted cells are) where a cell has
-    no count at all (matching shapes): the GP's probability for unseen space as it is, near
-    surfaces too (see :mod:`gpomap.fusion`)."""
-    if p_unseen is None:
-        return p
-    return np.where((hits == 0) & (misses == 0), with_surprises(p_unseen, surprise_rate), p)
 
 
 #: How far (metres) the counted lattice reaches beyond the beams when scans arrive outside it: the
@@ -346,9 +333,9 @@ class EvidenceLayer:
             spill.close()
 
     def fit_revisit(self, p_later: NDArray[np.float64], occupied_later: NDArray[np.bool_]) -> RevisitCalibration:
-        """Fit the later visit's recalibration (:func:`gpomap.revisit.fit_revisit`) on a held-out
-        stretch's points, as the map fitted without them gave them, and on this calibration's own
-        sample, half each; it is then applied to every probability this layer gives.
+        """Fit the later visit's recalibration (:meth:`gpomap.revisit.RevisitCalibration.fit`) on a
+        held-out stretch's points, as the map fitted without them gave them, and on this
+        calibration's own sample, half each; it is then applied to every probability this layer gives.
 
         Parameters
         ----------
@@ -360,7 +347,7 @@ class EvidenceLayer:
         -------
         RevisitCalibration
         """
-        self.revisit = fit_revisit(p_later, occupied_later, self.sample.probability, self.sample.occupied)
+        self.revisit = RevisitCalibration.fit(p_later, occupied_later, self.sample.probability, self.sample.occupied)
         return self.revisit
 
     def recalibrate(self, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]) -> None:
@@ -426,14 +413,15 @@ class EvidenceLayer:
     def proba(
         self, points: NDArray[np.float64], p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
     ) -> NDArray[np.float64]:
-        """Probability at points, ndarray of shape (m,), from the GP's probability there.
+        """Probability at points, ndarray of shape (m,), from the GP's probability there: the
+        map's stages after the squash (:meth:`gpomap.stages.StageChain.after_squash`) on each
+        point's cell's counts.
 
         `p_unseen`, the GP's probability for unseen space, is taken where no beam (and no step of
         the path) crossed the point's cell; default `p_gp`.
         """
         h, m = self.counts_at(points)
-        p = _unseen_where_empty(self.calibration(p_gp, h, m), h, m, p_unseen, self.calibration.surprise_rate)
-        return self.revisit(p)
+        return StageChain.after_squash(self.calibration, self.revisit, Counted(p_gp, p_unseen, h, m))
 
     def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
         """Whether no beam ended in the fine cell holding each point (True outside the counted
@@ -506,8 +494,8 @@ class EvidenceLayer:
         """Probability per cell of `grid`, shape grid.shape, from the GP's probabilities per cell (see :meth:`proba`)."""
         h, m = self.grid_counts(grid)
         unseen = None if p_unseen is None else np.asarray(p_unseen).reshape(grid.shape)
-        p = self.calibration(np.asarray(p_gp).reshape(grid.shape), h, m)
-        return self.revisit(_unseen_where_empty(p, h, m, unseen, self.calibration.surprise_rate))
+        counted = Counted(np.asarray(p_gp).reshape(grid.shape), unseen, h, m)
+        return StageChain.after_squash(self.calibration, self.revisit, counted)
 
     def written_grid(
         self,

@@ -14,12 +14,12 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtr
 
+from gpomap.extrapolation import VarianceScale
 from gpomap.fitted import as_points
 from gpomap.lattice import stable_order
 from gpomap.progress import progress
-from gpomap.squash import unseen_probit
+from gpomap.stages import CalibratedMoments
 from gpomap.tiles.fits import TileFits
 from gpomap.tiles.store import TileStore
 from gpomap.tiles.tasks import TileState, predict_tile_task
@@ -139,10 +139,7 @@ class TileBlending(TileFits):
         self, num: NDArray[np.float64], den: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Probability, and probability for unseen space, from :meth:`blended_moments`' calibrated moments, each (m,)."""
-        p = ndtr(num / np.sqrt(1.0 + den))
-        # Where no beam went the latent variance is scaled by kappa (gpomap.extrapolation).
-        p_unseen = ndtr(unseen_probit(num, den, self.hyperparameters_.get("variance_scale", 1.0)))
-        return p, p_unseen
+        return VarianceScale(self.hyperparameters_.get("variance_scale", 1.0)).apply(CalibratedMoments(num, den))
 
     def forget_below(self, y: float) -> None:
         """Drop the K^-1 that tiles whose blend region ends below `y` formed when they predicted.
