@@ -23,11 +23,12 @@ from gpomap.cli.common import (
     check_fit_memory,
     check_grid_memory,
     check_voxel_memory,
-    outputs,
     report_fit,
     status,
+    warn,
 )
 from gpomap.cli.input_options import check_2d_options
+from gpomap.cli.map import write_grid
 from gpomap.cli.options import Default, positive
 from gpomap.cli.output_options import add_3d_output_options, add_output_options
 from gpomap.config import DEFAULT_MAX_CELLS
@@ -102,7 +103,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     """Run ``gpomap convert``."""
     from gpomap.convert import convert_grid, converter_for, grid_to_observations, load_grid, output_grid
-    from gpomap.io.export import write_map_files
+    from gpomap.diagnostics import model_warnings
 
     check_before_work(args)
     if _is_octree_input(args.input):
@@ -126,12 +127,10 @@ def run(args: argparse.Namespace) -> int:
     check_fit_memory(args, n_cells, 1, f"one GP over the cells of {args.input}")
     check_grid_memory(args, spec.shape, spec.extent, n_cells)
     result = convert_grid(source, resolution=args.resolution, extent=args.extent, values=args.values, **options)
-    with outputs(args) as output:
-        staged = write_map_files(
-            result.map, output.path, pgm_mode=args.pgm_mode, title=f"gpomap convert: {Path(args.input).name}"
-        )
-    files = [output.final(f) for f in staged]
-    report_fit(result.model, result.map)
+    # gpomap map's writing path; the converter hands back its grid made whole beside its model.
+    files, warnings = write_grid(args, lambda: result.map, f"gpomap convert: {Path(args.input).name}")
+    for message in model_warnings(result.model) + warnings:
+        warn(message)
     r = result.report
     print(json.dumps(r, indent=2, default=str) if args.json else _convert_text(r))
     for f in files:

@@ -35,7 +35,7 @@ from gpomap.cli.output_options import add_3d_output_options, add_output_options,
 from gpomap.config import MapConfig
 from gpomap.errors import GpomapError
 
-__all__ = ["add_parser", "run", "model", "fitted_model", "write_map", "save_model", "plan_map", "default_model"]
+__all__ = ["add_parser", "run", "model", "fitted_model", "write_map", "write_grid", "save_model", "plan_map", "default_model"]
 
 EPILOG = """examples:
   gpomap map ../shared/data/intel/intel-corrected.log.gz -o intel-map --scans 200 --beams 90
@@ -121,13 +121,15 @@ def write_map(
     holder: list[Any],
     title: str,
     files_of_model: Sequence[Callable[[Any, Path], Path]] = (),
+    warn_fit: bool = True,
 ) -> tuple[list[Path], dict[str, Any], str | None]:
     """Write the planar map of the fitted model in `holder` as one output set, replacing the last.
 
-    The grid is predicted first (a grid made in bands waits in a temporary file), the files made
-    from the model are written, the model is let go, and only then is the grid put together and
-    its files written: a building's grid (800 MB at 0.05 m over 400 x 260 m) and its model are
-    never in memory together, unless the caller keeps the model (``--chunk-scans`` updates it).
+    The grid is predicted first (a grid made in bands waits in a temporary file), then written by
+    :func:`write_grid`: the files made from the model, the model let go, and only then the grid put
+    together and its files written: a building's grid (800 MB at 0.05 m over 400 x 260 m) and its
+    model are never in memory together, unless the caller keeps the model (``--chunk-scans``
+    updates it). ``gpomap map``, ``demo``, ``render`` and ``update`` write a planar map here.
 
     Parameters
     ----------
@@ -141,6 +143,9 @@ def write_map(
     files_of_model : sequence of callable
         Each is called with the model and the staging directory, and returns the path of the
         file it wrote there (:func:`save_model`: map.gpom), before the model is let go.
+    warn_fit : bool
+        Say the model's and the written map's warnings (:func:`gpomap.diagnostics.fit_warnings`);
+        ``gpomap render`` does not, as they were said when the map was fitted.
 
     Returns
     -------
@@ -152,10 +157,7 @@ def write_map(
     bound : str or None
         Its "at bound" note (:func:`gpomap.cli.common.bound_source`).
     """
-    from gpomap.diagnostics import map_warnings, model_warnings
-    from gpomap.io.atomic import file_written
-    from gpomap.io.export import write_map_files
-    from gpomap.resources import release_freed_memory
+    from gpomap.diagnostics import model_warnings
 
     fitted = holder.pop()
     t = time.perf_counter()
@@ -163,19 +165,69 @@ def write_map(
     ny, nx = later.grid.shape
     status(args, f"  {nx} x {ny} cells predicted in {time.perf_counter() - t:.2f} s; writing {args.output}/")
     summary, bound, warnings = fitted.summary(), bound_source(fitted), model_warnings(fitted)
+    handed = [fitted]
+    del fitted
+    files, map_warnings = write_grid(args, later, title, handed, files_of_model)
+    if warn_fit:
+        for message in warnings + map_warnings:
+            warn(message)
+    return files, summary, bound
+
+
+def write_grid(
+    args: argparse.Namespace,
+    later: Callable[[], Any],
+    title: str,
+    handed: list[Any] | None = None,
+    files_of_model: Sequence[Callable[[Any, Path], Path]] = (),
+) -> tuple[list[Path], list[str]]:
+    """Write a predicted planar grid, and the files of the model handed over, as one output set.
+
+    The one place a command writes a planar map's files (:func:`write_map`; ``gpomap stream``
+    and ``convert``, whose models are kept, call it with their grid). In the output set, the
+    files of the model in `handed` are written first, the model is let go, and only then is the
+    grid put together and its files written.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options: ``output``, ``pgm_mode``.
+    later : callable
+        Returns the OccupancyMap to write (a :class:`~gpomap.fitted.LaterGrid`, or a grid made
+        already); called once, after the model is let go.
+    title : str
+        The title of map.png.
+    handed : list, optional
+        A list of one fitted model, emptied here: no model when None or empty.
+    files_of_model : sequence of callable
+        As :func:`write_map`'s, called with the handed model.
+
+    Returns
+    -------
+    files : list of Path
+        The final paths of the grid's files (map.yaml, map.pgm, map.npz, map.png), then those of
+        `files_of_model`, in their order.
+    warnings : list of str
+        The written map's (:func:`gpomap.diagnostics.map_warnings`), not yet said.
+    """
+    from gpomap.diagnostics import map_warnings
+    from gpomap.io.atomic import file_written
+    from gpomap.io.export import write_map_files
+    from gpomap.resources import release_freed_memory
+
     with outputs(args) as output:
         extra = []
-        for write in files_of_model:
-            extra.append(write(fitted, output.path))
-            file_written()
-        del fitted
-        release_freed_memory()
+        if handed:
+            fitted = handed.pop()
+            for write in files_of_model:
+                extra.append(write(fitted, output.path))
+                file_written()
+            del fitted
+            release_freed_memory()
         occupancy_map = later()
         staged = write_map_files(occupancy_map, output.path, pgm_mode=args.pgm_mode, title=title)
-        warnings += map_warnings(occupancy_map.ternary)
-    for message in warnings:
-        warn(message)
-    return [output.final(f) for f in [*staged, *extra]], summary, bound
+        warnings = map_warnings(occupancy_map.ternary)
+    return [output.final(f) for f in [*staged, *extra]], warnings
 
 
 def save_model(fitted: Any, directory: Path) -> Path:

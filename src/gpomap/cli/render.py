@@ -3,9 +3,10 @@
 The map file (``map.gpom``, written by ``gpomap map``; :mod:`gpomap.io.mapfile`) holds the fitted
 model; its grid at ``--resolution`` over ``--extent`` (default: the data's, as ``gpomap map`` takes
 it) is written as ``gpomap map`` writes its own: ``map.yaml`` / ``map.pgm`` / ``map.npz`` /
-``map.png`` for a 2-D map, the voxel outputs for a 3-D one, as one output set. The grid is the
-loaded model's ``grid(resolution, extent)``: the live model's cells to the bit. Its memory is
-checked against ``--memory-limit`` from the file's header alone, before the map is loaded.
+``map.png`` for a 2-D map, through the same function (:func:`gpomap.cli.map.write_map`, the model
+let go before the grid is put together), the voxel outputs for a 3-D one, as one output set. The
+grid is the loaded model's ``grid(resolution, extent)``: the live model's cells to the bit. Its
+memory is checked against ``--memory-limit`` from the file's header alone, before the map is loaded.
 
 :func:`load_for_command`, :func:`check_map_memory`, :func:`write_outputs` and the option helpers
 here serve ``gpomap query`` and ``gpomap update`` too.
@@ -22,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from gpomap.apps.render import check_not_replaced, map_header, padded_bounds, written_extent
-from gpomap.cli.common import EXIT_OK, Run, check_before_work, check_grid_memory, check_voxel_memory, outputs, status
+from gpomap.cli.common import EXIT_OK, Run, check_before_work, check_grid_memory, check_voxel_memory, report_fit, status
 from gpomap.cli.options import positive
 from gpomap.cli.output_options import add_3d_output_options, add_output_options
 from gpomap.errors import GpomapError
@@ -81,10 +82,12 @@ def run(args: argparse.Namespace) -> int:
     check_not_replaced(args.mapfile, args.output)
     default_resolution(args, summary)
     check_map_memory(args, summary)
-    model = load_for_command(args, args.mapfile)
-    _, files = write_outputs(args, model, f"gpomap: {Path(args.mapfile).name} at {args.resolution:g} m")
+    # The model is handed over, not kept here: a planar map's is let go before its grid is put together.
+    holder = [load_for_command(args, args.mapfile)]
+    thresholds = holder[0].thresholds_
+    files, _ = write_outputs(args, holder, f"gpomap: {Path(args.mapfile).name} at {args.resolution:g} m")
     print(f"map          {Path(args.mapfile)}: {summary['dim']}-D, {summary['n_scans']} scans, {summary['n_tiles']} tiles")
-    print("ternary      free below {:.3f}, occupied above {:.3f}".format(*model.thresholds_))
+    print("ternary      free below {:.3f}, occupied above {:.3f}".format(*thresholds))
     print("\n".join(f"wrote        {f}" for f in files))
     return EXIT_OK
 
@@ -151,30 +154,40 @@ def check_map_memory(args: argparse.Namespace, summary: dict[str, Any]) -> None:
     check_voxel_memory(args, lo, hi, int(summary.get("largest_tile_cells", 0)))
 
 
-def write_outputs(args: argparse.Namespace, model: Any, title: str, save_model: bool = False) -> tuple[Any, list[Path]]:
-    """The model's grid at ``--resolution`` over the chosen extent, written as one output set
-    (with the model's map file too when `save_model`); returns the grid and the files."""
-    from gpomap.io.export import write_map_files
-    from gpomap.io.mapfile import FILENAME, save_fitted_map
+def write_outputs(
+    args: argparse.Namespace, holder: list[Any], title: str, save_model: bool = False, warn_fit: bool = False
+) -> tuple[list[Path], dict[str, Any]]:
+    """The grid of the model in `holder` (a list of one, emptied here) at ``--resolution`` over the
+    chosen extent, written as one output set (with the model's map file too when `save_model`).
 
-    summary = {"dim": model.dim_, "bounds": [list(model.bounds_[0]), list(model.bounds_[1])]}
+    A planar map is written through ``gpomap map``'s path (:func:`gpomap.cli.map.write_map`): the
+    model is let go before its grid is put together. A voxel map is written beside its model
+    (:func:`gpomap.io.voxel_outputs.write_voxel_outputs`). `warn_fit` says the fit's warnings
+    (``gpomap update``'s new fit). Returns the files written and the model's summary.
+    """
+    from gpomap.cli.map import save_model as save_map_file
+    from gpomap.cli.map import write_map
+
+    if holder[0].dim_ == 2:
+        files, summary, _ = write_map(args, holder, title, [save_map_file] if save_model else (), warn_fit=warn_fit)
+        return files, summary
+    from gpomap.io.mapfile import save_fitted_map
+    from gpomap.io.voxel_outputs import write_voxel_outputs
+
+    model = holder.pop()
+    box = {"dim": model.dim_, "bounds": [list(model.bounds_[0]), list(model.bounds_[1])]}
     t = time.perf_counter()
-    grid = model.grid(args.resolution, _extent(args, summary))
+    grid = model.grid(args.resolution, _extent(args, box))
     shape = "x".join(str(n) for n in reversed(grid.probability.shape))
     status(args, f"  {shape} cells of {args.resolution:g} m in {time.perf_counter() - t:.2f} s; writing {args.output}/")
     Run.outdir = args.output
-    if model.dim_ == 3:
-        from gpomap.io.voxel_outputs import write_voxel_outputs
-
-        return grid, write_voxel_outputs(
-            grid,
-            args.output,
-            heights=args.slices,
-            title=title,
-            save_model=functools.partial(save_fitted_map, model) if save_model else None,
-        )
-    with outputs(args) as output:
-        staged = write_map_files(grid, output.path, pgm_mode=args.pgm_mode, title=title)
-        if save_model:
-            staged.append(save_fitted_map(model, output.path / FILENAME))
-    return grid, [output.final(f) for f in staged]
+    files = write_voxel_outputs(
+        grid,
+        args.output,
+        heights=args.slices,
+        title=title,
+        save_model=functools.partial(save_fitted_map, model) if save_model else None,
+    )
+    if warn_fit:
+        report_fit(model, grid)
+    return files, model.summary()

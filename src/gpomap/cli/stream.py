@@ -21,8 +21,9 @@ from typing import Any
 import numpy as np
 
 from gpomap.apps.stream import ReplayResult, replay, replay_times, same_scan
-from gpomap.cli.common import EXIT_OK, check_before_work, check_grid_memory, load_scans, outputs, status
+from gpomap.cli.common import EXIT_OK, check_before_work, check_grid_memory, load_scans, status
 from gpomap.cli.input_options import add_reader_options, add_selection_options
+from gpomap.cli.map import write_grid
 from gpomap.cli.model_options import add_model_options, map_config, model_option_dests
 from gpomap.cli.options import Default, flag, given, non_negative, positive
 from gpomap.cli.output_options import add_output_options, resolution_from_evidence
@@ -201,7 +202,6 @@ def _check_state_path(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``gpomap stream``."""
-    from gpomap.io.export import write_map_files
     from gpomap.resources import grid_shape
 
     check_before_work(args)
@@ -236,12 +236,17 @@ def run(args: argparse.Namespace) -> int:
         ended.append(True)
 
     def write(n: int) -> list[Path]:
-        occupancy_map = mapper.model_.grid(args.resolution, args.extent) if ended else mapper.grid(args.resolution, args.extent)
-        with outputs(args) as output:
-            staged = write_map_files(
-                occupancy_map, output.path, pgm_mode=args.pgm_mode, title=f"{title} ({done + n} of {len(scans)} scans)"
-            )
-        return [output.final(f) for f in staged]
+        from gpomap.fitted import LaterGrid
+
+        # Through gpomap map's writing path, but no model handed over to be let go: the mapper
+        # keeps it, to map on (and --save-state and the summary read it).
+        if ended:
+            later = mapper.model_.map_.grid_later(args.resolution, args.extent)
+        else:
+            made = mapper.grid(args.resolution, args.extent)  # the mapper's refresh, its statistics in the map's info
+            later = LaterGrid(made.grid, lambda: made)
+        files, _ = write_grid(args, later, f"{title} ({done + n} of {len(scans)} scans)")
+        return files
 
     result = ReplayResult()
     try:

@@ -23,7 +23,7 @@ from typing import Any
 from gpomap.apps.map3d import is_cloud_input
 from gpomap.apps.render import map_header
 from gpomap.apps.update import bounds_with, repeated_scans, unfitted_like
-from gpomap.cli.common import EXIT_OK, check_before_work, load_scans, print_map_summary, report_fit, status, warn
+from gpomap.cli.common import EXIT_OK, check_before_work, load_scans, print_map_summary, status, warn
 from gpomap.cli.input_options import add_cloud_reader_options, add_reader_options, add_selection_options, check_2d_options
 from gpomap.cli.map3d import load_clouds
 from gpomap.cli.render import (
@@ -123,8 +123,12 @@ def run(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - t
     status(args, f"  done in {seconds:.2f} s")
     configure(args, model)
-    grid, files = write_outputs(args, model, f"gpomap: {Path(args.mapfile).name} + {Path(args.input).name}", save_model=True)
-    report_fit(model, grid)
+    # The model is handed over, not kept here (the scans with it): a planar map's is let go once
+    # map.gpom is written, before its grid is put together.
+    holder = [model]
+    del model, saved, new
+    title = f"gpomap: {Path(args.mapfile).name} + {Path(args.input).name}"
+    files, fitted_summary = write_outputs(args, holder, title, save_model=True, warn_fit=True)
     print(f"update       {how} in {seconds:.2f} s")
-    print_map_summary(model.summary(), files)
+    print_map_summary(fitted_summary, files)
     return EXIT_OK
