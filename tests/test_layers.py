@@ -28,6 +28,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.errors",
             "gpomap.extras",
             "gpomap.config",
+            "gpomap.signature",
             "gpomap.progress",
             "gpomap.protocol",
             "gpomap.resources",
