@@ -16,26 +16,10 @@ __all__ = ["unfitted_like", "repeated_scans", "bounds_with"]
 
 
 def unfitted_like(model: Any) -> Any:
-    """An unfitted map of `model`'s class with its settings (its tiling as given, not as resolved by its fit)."""
-    from gpomap.mapping import AreaGPOM
-    from gpomap.tiles import TiledGPOM
-
-    if isinstance(model, AreaGPOM):
-        return AreaGPOM(**model.get_params())
-    return TiledGPOM(
-        model.tile_size,
-        model.overlap,
-        model.blend,
-        model.origin,
-        n_workers=model.n_workers,
-        hyper_sample=model.hyper_sample,
-        per_tile_hyperparameters=model.per_tile_hyperparameters,
-        blas_threads=model.blas_threads,
-        scheduler_timeout=model.scheduler_timeout,
-        worker_processes=model.worker_processes,
-        memory_limit=model.memory_limit,
-        **model.options,
-    )
+    """An unfitted map of `model`'s class with its settings (its tiling as given, not as resolved
+    by its fit): its constructor arguments read back (``get_params``), as scikit-learn's clone
+    makes one, so no argument is named here."""
+    return type(model)(**model.get_params())
 
 
 def _scan_key(scan: Any) -> bytes:
