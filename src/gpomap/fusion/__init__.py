@@ -26,7 +26,10 @@ The package's rooms:
 - :mod:`~gpomap.fusion.calibration`: :class:`EvidenceCalibration` (the weights and the surprise
   rate), :func:`fit_calibration` on the map's own scans held out, :func:`fit_surprise_rate`.
 - :mod:`~gpomap.fusion.layer`: :class:`EvidenceLayer`, the counts on their lattice and the
-  calibration applied to points and grids; :func:`ternary_thresholds`.
+  calibration applied to points; :func:`ternary_thresholds`.
+- :mod:`~gpomap.fusion.grids`: the layer per cell of a grid (``LayerGrids``, a part of
+  :class:`EvidenceLayer`): the cells' counts, the map on them, the cells beams saw through
+  (:data:`SEEN_THROUGH_NOT_OCCUPIED`) and the written grid.
 - :mod:`~gpomap.fusion.written`: the written grid's GP sampled coarsely
   (:func:`gp_sampling_factor`) and a large planar grid built in bands of rows
   (:func:`~gpomap.fusion.written.in_bands`, over :class:`BlendedMoments`).
@@ -61,16 +64,14 @@ from gpomap.fusion.calibration import (
     surface_misses,
     with_surprises,
 )
+from gpomap.fusion.grids import COUNT_DTYPE, SEEN_THROUGH_NOT_OCCUPIED, without_hits
 from gpomap.fusion.layer import (
-    COUNT_DTYPE,
     LATTICE_GROWTH,
     NARROW_COUNT_SCANS,
-    SEEN_THROUGH_NOT_OCCUPIED,
     EvidenceLayer,
     _unseen_where_empty,
     path_dtype,
     ternary_thresholds,
-    without_hits,
 )
 from gpomap.fusion.written import (
     GP_SAMPLES_PER_LENGTH_SCALE,

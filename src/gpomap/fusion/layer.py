@@ -2,22 +2,21 @@
 
 :class:`EvidenceLayer` counts the beams and the robot's path of every scan on a lattice that
 grows as scans arrive, fits its calibration (:mod:`gpomap.fusion.calibration`) when asked, and
-turns the GP's probability at points or per cell of a grid into the map's (the formula in
-:mod:`gpomap.fusion`); written grids are built through :mod:`gpomap.fusion.written`.
+turns the GP's probability at points into the map's (the formula in :mod:`gpomap.fusion`); per
+cell of a grid, and the written grids, it answers through its part :class:`~gpomap.fusion.grids.LayerGrids`.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan
-from gpomap.config import PROFILES, MapConfig
+from gpomap.config import MapConfig
 from gpomap.counted_cells import CellCounts, count_cells
 from gpomap.evidence import RayCounts, RayEvidence, lattice_grid, next_to_hits
 from gpomap.fusion.calibration import (
@@ -30,49 +29,16 @@ from gpomap.fusion.calibration import (
 
 # Named by gpomap.fusion from this module, its first home (the fusion stage's rule for cells without counts).
 from gpomap.fusion.calibration import _unseen_where_empty as _unseen_where_empty
-from gpomap.fusion.written import (
-    BlendedMoments,
-    GPPredict,
-    SpilledGrid,
-    band_rows,
-    gp_samples,
-    gp_sampling_factor,
-    in_bands,
-    read_grid,
-)
-from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS, GridSpec
+from gpomap.fusion.grids import COUNT_DTYPE, SEEN_THROUGH_NOT_OCCUPIED, LayerGrids, without_hits
+from gpomap.grid import CALIBRATED_THRESHOLDS, DEFAULT_THRESHOLDS
 from gpomap.heldout import calibration_scans
-from gpomap.lattice import (
-    AnyGrid,
-    bounds_extent,
-    cell_offset,
-    column_bounds,
-    extent_bounds,
-    flat_index,
-    grid_extent,
-    interpolate,
-    overlap,
-)
+from gpomap.lattice import AnyGrid, bounds_extent, cell_offset, column_bounds, extent_bounds, flat_index, grid_extent
 from gpomap.observations import ScanData, data_dim
 from gpomap.resources import SpillFile, release_freed_memory
 from gpomap.revisit import RevisitCalibration
 from gpomap.robot_path import PATH_RADIUS, path_steps
 from gpomap.scans import Scan
 from gpomap.stages import Counted, StageChain
-
-#: Whether the ternary map, per dimension of the data, never calls occupied a cell no beam ended in
-#: (:func:`gpomap.grid.ternary`'s ``seen_through``), as neither occupancy grid would: one beams or
-#: the robot crossed, or one nothing reached, that the map thinks likely occupied (a surface beside
-#: it, the GP's guess) is unknown instead. Planar maps: grazing beams cross the cells in front of
-#: walls, and unexplored space round a building takes the GP's guess (docs/choices.md). Point clouds
-#: mark what no ray reached in their outputs instead (:attr:`gpomap.voxels.VoxelMap.observed`).
-SEEN_THROUGH_NOT_OCCUPIED: dict[int, bool] = {d: p.seen_through_not_occupied for d, p in PROFILES.items()}
-
-
-def without_hits(hits: ArrayLike) -> NDArray[np.bool_]:
-    """Cells no beam ended in (no `hits`), which the ternary map never calls occupied
-    (:data:`SEEN_THROUGH_NOT_OCCUPIED`; the shape of `hits`)."""
-    return np.asarray(hits) == 0
 
 
 def ternary_thresholds(given: tuple[float, float] | None, evidence: EvidenceLayer | None) -> tuple[float, float]:
@@ -94,16 +60,13 @@ LATTICE_GROWTH: float = 10.0
 #: long stream) widens them to 32 bits.
 NARROW_COUNT_SCANS: int = 2**16 - 1
 
-#: The type of the lattice's ray counts: shares of one update per scan (:func:`gpomap.evidence.scan_shares`).
-COUNT_DTYPE: type[np.floating[Any]] = np.float32
-
 
 def path_dtype(n_scans: int) -> type[np.integer[Any]]:
     """The lattice's path-pass type for `n_scans` scans: uint16 below :data:`NARROW_COUNT_SCANS`, else int32."""
     return np.uint16 if n_scans < NARROW_COUNT_SCANS else np.int32
 
 
-class EvidenceLayer:
+class EvidenceLayer(LayerGrids):
     """Ray counts and their calibration, applied on top of a fitted GP map.
 
     Counts add over scans, so new scans are counted on their own and added in
@@ -434,148 +397,6 @@ class EvidenceLayer:
         if self._cells is not None:
             return ~inside | without_hits(self._cells.at(cell, inside)[0])
         return ~inside | without_hits(self._hits.reshape(-1)[cell])
-
-    def grid_seen_through(self, grid: AnyGrid) -> NDArray[np.bool_] | None:
-        """:meth:`seen_through_at` per cell of `grid`, counted on its own cells (the counts of
-        :meth:`grid_counts`, cached), shape grid.shape; None where not used."""
-        if not SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False):
-            return None
-        if self._grid_cache is None or self._grid_cache[0] != grid:
-            self._grid_cache = (grid, *self._raw_grid_counts(grid))
-        _, counts, _, _ = self._grid_cache
-        return without_hits(counts.hits)
-
-    def _on_lattice(self, grid: AnyGrid) -> bool:
-        """Whether `grid`'s cells are cells of the counted lattice (same side, origin on a corner)."""
-        if self.lattice is None or not math.isclose(grid.resolution, self.resolution, rel_tol=1e-12):
-            return False
-        d = (np.asarray(grid.origin) - np.asarray(self.lattice.origin)) / self.resolution
-        return bool(np.all(np.abs(d - np.round(d)) < 1e-6))
-
-    def _raw_grid_counts(self, grid: AnyGrid) -> tuple[RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]]:
-        """The beams' counts, the path's passes and the cells at a surface
-        (:func:`gpomap.evidence.next_to_hits`) per cell of `grid`."""
-        if not self._on_lattice(grid):
-            counts = self.evidence.counts(grid)
-            at_surface = next_to_hits(counts.hits) if self._weighs_surface() else np.zeros(grid.shape, dtype=bool)
-            return counts, self.evidence.path_passes(grid), at_surface
-        # The grid's cells are lattice cells: read the running counts (zero beyond them), and
-        # whether a cell is at a surface from the whole lattice's hits, its window's edges too.
-        assert self.lattice is not None
-        out = [np.zeros(grid.shape, dtype=COUNT_DTYPE) for _ in range(3)]
-        path = np.zeros(grid.shape, dtype=np.int32)
-        at_surface = np.zeros(grid.shape, dtype=bool)
-        where = overlap(cell_offset(grid, self.lattice), grid.shape, self.lattice.shape)
-        if where is not None:
-            for o, a in zip((*out, path), (self._hits, self._beam_misses, self._near_misses, self._path), strict=True):
-                o[where[0]] = a[where[1]]
-            if self._weighs_surface():
-                at_surface[where[0]] = self.at_surface()[where[1]]
-        return RayCounts(*out), path, at_surface
-
-    def grid_observed(self, grid: AnyGrid) -> NDArray[np.bool_]:
-        """Cells of `grid` a ray crossed or ended in, or the robot's path passed, shape grid.shape."""
-        hits, misses = self.grid_counts(grid)
-        return np.asarray((hits + misses) > 0)
-
-    def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Weighted hits (:meth:`EvidenceCalibration.hits`) and weighted misses
-        (:meth:`EvidenceCalibration.misses`, path included) per cell of `grid`, counted on that
-        grid's own cells (the last is cached)."""
-        if self._grid_cache is None or self._grid_cache[0] != grid:
-            self._grid_cache = (grid, *self._raw_grid_counts(grid))
-        _, counts, path, at_surface = self._grid_cache
-        surface = surface_misses(counts.misses, counts.near, at_surface)
-        return self.calibration.hits(counts.hits, counts.near), self.calibration.misses(counts.misses, counts.near, path, surface)
-
-    def grid_proba(
-        self, grid: AnyGrid, p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
-    ) -> NDArray[np.float64]:
-        """Probability per cell of `grid`, shape grid.shape, from the GP's probabilities per cell (see :meth:`proba`)."""
-        h, m = self.grid_counts(grid)
-        unseen = None if p_unseen is None else np.asarray(p_unseen).reshape(grid.shape)
-        counted = Counted(np.asarray(p_gp).reshape(grid.shape), unseen, h, m)
-        return StageChain.after_squash(self.calibration, self.revisit, counted)
-
-    def written_grid(
-        self,
-        grid: AnyGrid,
-        length_scale: float,
-        predict_gp: GPPredict,
-        moments: BlendedMoments | None = None,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
-        """Probability and latent variance per cell of `grid`, each of shape grid.shape, and the
-        cells beams saw through (:meth:`grid_seen_through`, or None): :meth:`written_bands`, read."""
-        return read_grid(self.written_bands(grid, length_scale, predict_gp, moments))
-
-    def written_bands(
-        self,
-        grid: AnyGrid,
-        length_scale: float,
-        predict_gp: GPPredict,
-        moments: BlendedMoments | None = None,
-    ) -> SpilledGrid | tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
-        """:meth:`written_grid`'s arrays, or, for a grid made in bands, the bands waiting in a
-        temporary file (:class:`~gpomap.fusion.written.SpilledGrid`) to be read once this layer
-        and its map may be let go.
-
-        The counts give each cell its detail; the smooth GP under them is sampled more coarsely
-        (:func:`gp_sampling_factor`) and interpolated (bi- or trilinearly). A planar grid of more
-        than :data:`~gpomap.resources.WRITTEN_BAND_CELLS` cells is built in bands of rows
-        (:func:`~gpomap.fusion.written.in_bands`), each on the GP samples
-        the whole grid would take (the band's rows a whole number of variance samples): the
-        same map, up to the local prediction's tolerance and the round-off of the samples'
-        coordinates. That round-off can turn which of two tiles' cores is nearer to a sample
-        no tile reaches, when they are as near to it (the nearest predicts it alone), which moves
-        a few cells far from the data (docs/choices.md, "The written map in bands of rows").
-
-        Parameters
-        ----------
-        grid : GridSpec or VoxelSpec
-        length_scale : float
-            The GP's length scale, metres.
-        predict_gp : callable
-            Points of shape (m, d) to the GP's probability, its latent variance and its probability
-            for unseen space, each (m,).
-        moments : BlendedMoments, optional
-            The same GP's moments: a planar grid then takes the GP's variance
-            :data:`~gpomap.fusion.written.VARIANCE_STEP_SAMPLES` samples apart instead of
-            `predict_gp` at every sample.
-        """
-        factor = gp_sampling_factor(length_scale, grid.resolution)
-        if not isinstance(grid, GridSpec) or grid.shape[0] <= band_rows(grid, factor):
-            return self._written_block(grid, factor, predict_gp, moments)
-        # Cells off the counted lattice are counted afresh, a traversal of every beam: once for
-        # the whole grid (16 bytes a cell), not once per band.
-        whole = None if self._on_lattice(grid) else self._raw_grid_counts(grid)
-
-        def band(
-            start: int, stop: int, rows: GridSpec
-        ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
-            if whole is not None:
-                counts, path, at_surface = whole
-                self._grid_cache = (rows, RayCounts(*(c[start:stop] for c in counts)), path[start:stop], at_surface[start:stop])
-            return self._written_block(rows, factor, predict_gp, moments)
-
-        def finished() -> None:
-            nonlocal whole
-            self._grid_cache = None  # the last band's counts: of no use to the next grid
-            self._at_surface = None  # a bool a lattice cell, found again when asked
-            whole = None
-
-        return in_bands(grid, factor, band, moments, SEEN_THROUGH_NOT_OCCUPIED.get(self._dim, False), finished)
-
-    def _written_block(
-        self,
-        grid: AnyGrid,
-        factor: int,
-        predict_gp: GPPredict,
-        moments: BlendedMoments | None,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
-        """:meth:`written_grid` of a grid in one piece, its GP sampled every `factor` cells."""
-        sampled, p, var, p_unseen = gp_samples(grid, factor, predict_gp, moments)
-        probability = self.grid_proba(grid, interpolate(p, sampled, grid), interpolate(p_unseen, sampled, grid))
-        return probability, interpolate(var, sampled, grid), self.grid_seen_through(grid)
 
     def summary(self) -> dict[str, float]:
         """The calibration and how it was fitted."""
