@@ -50,6 +50,9 @@ The package's rooms, from the ground up (TiledGPOM is put together from the mixi
 - :mod:`~gpomap.tiles.prediction`: the tiles' blended GP as a fitted map's field (``TiledField``),
   and the map's :class:`~gpomap.fitted.FittedMap` (``MapPrediction.map_``), which answers.
 - :mod:`~gpomap.tiles.updates`: new scans absorbed, changed tiles refitted (``TileUpdates``).
+- :mod:`~gpomap.tiles.refit`: the map fitted again on part of its data (``Refit``).
+- :mod:`~gpomap.tiles.calibration`: the fit's stages that fit further maps of it: the variance
+  scale, the ray evidence and its calibration, the later visit (``CalibrationStages``).
 - :mod:`~gpomap.tiles.tiled`: :class:`TiledGPOM`, its arguments and its fit in order.
 
 The classes a map file names (:mod:`gpomap.io.mapfile`: :class:`TiledGPOM`, :class:`TileState`,

@@ -4,35 +4,33 @@ The stages of the fit run in :meth:`TiledGPOM._fit`, written once: observations,
 hyperparameters, variance scale, the later visit's points, the tile fits, the ray evidence; the
 later-visit recalibration last. The class puts together the parts of :mod:`gpomap.tiles` (each a
 mixin with one job); the stages that fit this map again on other data (the variance scale, the ray
-counts' calibration, the later visit) are here, with the fit, since they make further maps of
-this class.
+counts' calibration, the later visit) are :mod:`gpomap.tiles.calibration`'s, and ask
+:meth:`TiledGPOM._refit`, here since it names the class fitted again.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from contextlib import nullcontext
 from typing import Any, ClassVar, Self
 
 import numpy as np
-from numpy.typing import NDArray
 
 from gpomap.config import MapConfig, TiledConfig, TilingConfig
 from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.fitted import as_points
-from gpomap.fusion import EvidenceLayer
 from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, ScanPoints, sensor_positions
 from gpomap.resources import POINT_MEMORY, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
 from gpomap.signature import init_from
+from gpomap.tiles.calibration import CalibrationStages
 from gpomap.tiles.executors import _blas_shared
 from gpomap.tiles.geometry import DEFAULT_TILE_SIZE
 from gpomap.tiles.hyperparameters import HyperparameterSearch, given_hyperparameters
 from gpomap.tiles.points import _HeldParts
-from gpomap.tiles.prediction import MapPrediction
 from gpomap.tiles.refit import Refit
 from gpomap.tiles.store import TileStore
 from gpomap.tiles.updates import TileUpdates
@@ -54,7 +52,7 @@ def _same(given: Any, kept: Any) -> bool:
     return bool(given == kept)
 
 
-class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
+class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
     """MSK-GPOM over tiles, for maps larger than one GP can hold.
 
     Parameters
@@ -356,91 +354,6 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
         members, _ = self._tile_members(as_points(self._asked_at, self._dim), sorted(keys))
         return sorted(members)
 
-    def _fit_variance_scale(self, data: ScanData | Observations, obs: Observations | ScanPoints) -> dict[str, Any]:
-        """The squash's variance scale from held-out stretches of the scans, and its report.
-
-        See :mod:`gpomap.extrapolation`. The held-in GP covers the whole map when it is within a
-        block of its centre; a larger map, the square of two blocks' side round the hyperparameter
-        sample's centre (the median point when hyperparameters were given), or where that holds
-        too few unseen points, of four (or the whole map, if smaller), so its cost is bounded
-        whatever the map's size.
-        """
-        if isinstance(data, Observations):
-            return {"kappa": 1.0, "reason": "labelled points given, not scans"}
-        from gpomap.extrapolation import fit_variance_scale, whole_map_region
-
-        centre, half = whole_map_region(obs if isinstance(obs, ScanPoints) else obs.points)
-        margin = 0.0
-        wider: tuple[NDArray[np.float64], float, float] | None = None
-        if half > self.block_size_:
-            # Larger than the region: round the hyperparameter sample, off the region's edge; a
-            # region twice as wide (or the whole map) where that holds too few unseen points.
-            whole = (centre, half, 0.0)
-            source = getattr(self, "hyper_source_", {})
-            centre = np.asarray(source["sample_centre"]) if "sample_centre" in source else self._median_point(obs)
-            half, margin = self.block_size_, min(self.overlap_, 0.5 * self.block_size_)
-            wider = whole if whole[1] <= 2.0 * half else (centre, 2.0 * half, margin)
-        refit = self._refit()
-
-        def fit_held_in(held: Observations) -> TiledGPOM:
-            return refit.gp(held, variance_scale=1.0)
-
-        _, report = fit_variance_scale(
-            data,
-            self.hyperparameters_,
-            obs,  # the map's own points: the kept scans are not observed again
-            self._clearance,
-            fit_held_in,
-            centre=centre,
-            region_half=half,
-            margin=margin,
-            no_return_cap=self.base.no_return_cap,
-            seed=self.base.seed,
-            wider=wider,
-        )
-        return report
-
-    @staticmethod
-    def _median_point(obs: Observations | ScanPoints) -> NDArray[np.float64]:
-        """The median x, y of every point (made again, a part at a time, from scans)."""
-        if isinstance(obs, ScanPoints):
-            return np.median(np.concatenate([p.points[:, :2] for p in obs.parts()]), axis=0)
-        return np.median(obs.points[:, :2], axis=0)
-
-    def _make_evidence(self) -> EvidenceLayer | None:
-        """Ray counts over every scan so far, calibrated against the tiles' GP (see gpomap.fusion)."""
-        if self._scans is None:
-            return None
-        return self.base.make_evidence(
-            self._scans, self._gp_map().predict_proba_gp, self._gp_apart, self._given_calibration, self._asked_at
-        )
-
-    def _later_visit_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None:
-        """This map's probabilities, fitted without them, at a held-out stretch's points
-        (:func:`gpomap.revisit.later_visit_points`); None when the map does not recalibrate."""
-        if self._scans is None or not self.base.ray_evidence or not self.base.fit_revisit:
-            return None
-        from gpomap.revisit import later_visit_points
-
-        refit = self._refit()
-        calibration = None if self.evidence_ is None else self.evidence_.calibration
-
-        def fit_rest(scans: list[Any], points: NDArray[np.float64]) -> NDArray[np.float64]:
-            return refit.map_proba(scans, calibration, points)
-
-        return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
-
-    def _fit_revisit(self, later: tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None) -> dict[str, Any]:
-        """Fit the ray evidence's recalibration for a later visit (:func:`gpomap.revisit.fit_revisit`)
-        on the `later` points and the calibration's own; its report."""
-        if later is None or self.evidence_ is None:
-            return {"reason": "off" if not self.base.fit_revisit else "no ray evidence"}
-        p_later, occupied, report = later
-        if "reason" in report:
-            return report
-        revisit = self.evidence_.fit_revisit(p_later, occupied)
-        return {"slope": revisit.slope, "shift": revisit.shift, **report}
-
     def _refit(self) -> Refit:
         """This map's tiles, settings and hyperparameters so far, to fit again on part of its data
         (:class:`~gpomap.tiles.refit.Refit`), on local workers whatever the scheduler."""
@@ -456,13 +369,6 @@ class TiledGPOM(TileUpdates, MapPrediction, HyperparameterSearch):
             "memory_limit": self.memory_limit,
         }
         return Refit(TiledGPOM, tiling, dict(self.options), dict(self.hyperparameters_))
-
-    def _gp_apart(self, scans: ScanData) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
-        """This map's GP fitted on `scans` alone, its hyperparameters held: its
-        :meth:`predict_proba_gp`, which the ray-count calibration fits the surprise rate against
-        (:func:`gpomap.fusion.fit_calibration`; the evidence layer keeps it for later updates, and
-        a map file saves it as this method)."""
-        return self._refit().gp_proba(scans)
 
     @_blas_shared
     def update(self, scans: Sequence[Scan]) -> TiledGPOM:
