@@ -56,6 +56,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.evidence",
             "gpomap.counted_cells",
             "gpomap.heldout",
+            "gpomap.unseen",
             "gpomap._compiled_counts",
             "gpomap._compiled_clearance",
             "gpomap._compiled_cells",
