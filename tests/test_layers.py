@@ -69,6 +69,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         "maps",
         (
             "gpomap.fitted",
+            "gpomap.field",
             "gpomap.estimator",
             "gpomap.fusion",
             "gpomap.extrapolation",

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.extrapolation import VarianceScale
-from gpomap.fitted import as_points
+from gpomap.field import as_points
 from gpomap.lattice import stable_order
 from gpomap.progress import progress
 from gpomap.stages import CalibratedMoments

@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.fitted import FittedMap, GPHyperparameters, MapAnswers
+from gpomap.field import GPHyperparameters
+from gpomap.fitted import FittedMap, MapAnswers
 from gpomap.lapack import blas_limited
 from gpomap.squash import ProbitSquash
 from gpomap.tiles.blending import TileBlending
@@ -26,7 +27,7 @@ if TYPE_CHECKING:
 
 
 class TiledField:
-    """The tiles' blended GP, as a fitted map asks it (:class:`~gpomap.fitted.LatentField`).
+    """The tiles' blended GP, as a fitted map asks it (:class:`~gpomap.field.LatentField`).
 
     Parameters
     ----------

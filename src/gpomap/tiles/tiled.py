@@ -19,7 +19,7 @@ import numpy as np
 
 from gpomap.config import MapConfig, TiledConfig, TilingConfig
 from gpomap.errors import EmptyDataError, NotFittedError
-from gpomap.fitted import as_points
+from gpomap.field import as_points
 from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, ScanPoints, sensor_positions
 from gpomap.resources import POINT_MEMORY, release_freed_memory
