@@ -13,7 +13,7 @@ from gpomap.extrapolation import VarianceScale
 from gpomap.fusion import SURPRISE_RATE, EvidenceCalibration
 from gpomap.mapping import AreaGPOM
 from gpomap.revisit import MIN_SCANS, WIDTH, RevisitCalibration
-from gpomap.stages import CalibratedMoments, Counted, StageChain
+from gpomap.stages import CalibratedMoments, Counted, GPProbability, StageChain
 from tests.test_revisit import _tour
 
 
@@ -87,19 +87,107 @@ def test_each_stage_is_the_formula_it_documents(tour_map: AreaGPOM) -> None:
         assert got[k] == pytest.approx(want, rel=1e-9), k
 
 
-def test_the_squash_stage_is_a_dense_gps_own_squash() -> None:
-    """A dense GP squashes its latent moments through its ProbitSquash; the squash stage on the
-    same moments calibrated gives its probabilities to the bit."""
+def _phi(z: float) -> float:
+    return 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))
+
+
+@pytest.fixture
+def squashed(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """How many values each call of the squash stage's apply squashed, in order."""
+    sizes: list[int] = []
+    apply = VarianceScale.apply
+
+    def counted(self: VarianceScale, moments: CalibratedMoments) -> GPProbability:
+        sizes.append(np.size(moments.mean))
+        return apply(self, moments)
+
+    monkeypatch.setattr(VarianceScale, "apply", counted)
+    return sizes
+
+
+def test_a_dense_gp_squashes_through_the_squash_stage(squashed: list[int]) -> None:
+    """A dense GP's field squashes its latent moments, calibrated by its ProbitSquash, through the
+    squash stage: its probabilities are the probit's own call's to the bit, and the formula's."""
     from gpomap.baselines.gpom import GPOM
+    from gpomap.estimator import squash_latent
     from gpomap.simulate import paper_room_scans
+    from gpomap.squash import ProbitSquash
 
     model = GPOM(free_step=1.0).fit(paper_room_scans()[::8])
     pts = np.random.default_rng(1).uniform(-1.0, 11.0, (300, 2))
     mu, var = model.map_.predict(pts, return_var=True)
     sq = model.map_.squash
     moments = CalibratedMoments(sq.alpha * mu + sq.beta, sq.alpha**2 * var)
-    np.testing.assert_array_equal(model.map_.stages.apply(moments), model.predict_proba(pts))
+    squashed.clear()
+    p = model.predict_proba(pts)
+    assert sum(squashed) == pts.shape[0]
+    np.testing.assert_array_equal(p, sq(mu, var))
+    np.testing.assert_array_equal(model.map_.stages.apply(moments), p)
     np.testing.assert_array_equal(VarianceScale(sq.variance_scale).apply(moments).unseen, sq.unseen(mu, var))
+    for k in range(0, len(pts), 10):
+        z = (sq.alpha * mu[k] + sq.beta) / math.sqrt(1.0 + sq.alpha**2 * var[k])
+        assert p[k] == pytest.approx(_phi(z), rel=1e-12), k
+    # A dense GP's probit of a variance scale of its own (kappa 3), where no beam went.
+    scaled = ProbitSquash(sq.alpha, 0.2, 3.0)
+    gp = squash_latent(scaled, mu, var)
+    np.testing.assert_array_equal(gp.probability, scaled(mu, var))
+    np.testing.assert_array_equal(gp.unseen, scaled.unseen(mu, var))
+    for k in range(0, len(pts), 10):
+        z = (sq.alpha * mu[k] + 0.2) / math.sqrt(1.0 + 3.0 * sq.alpha**2 * var[k])
+        assert gp.unseen[k] == pytest.approx(_phi(z), rel=1e-12), k
+
+
+def test_a_grid_conversion_squashes_through_the_squash_stage(squashed: list[int]) -> None:
+    """A grid conversion's GP squashes through the squash stage too, in a known pixel at a pixel's
+    variance: its probability before it is held to the pixels is the probit's own call's to the
+    bit, and the formula's."""
+    from gpomap.convert import convert_grid
+    from tests.test_convert import _wall_map
+
+    model = convert_grid(_wall_map()).model
+    pts = np.random.default_rng(2).uniform(-0.5, 2.5, (200, 2))  # the 2 m map and beyond it
+    mu, var = model.predict(pts, return_var=True)
+    squashed.clear()
+    p, _, pixel = model._pixel_proba(pts)
+    assert sum(squashed) == pts.shape[0]
+    assert (pixel >= 0).any() and (pixel < 0).any()
+    v = np.where(pixel >= 0, model.pixel_variance_, var)
+    sq = model.gp_.squash
+    np.testing.assert_array_equal(p, sq(mu, v))
+    for k in range(0, len(pts), 10):
+        z = (sq.alpha * mu[k] + sq.beta) / math.sqrt(1.0 + sq.alpha**2 * v[k])
+        assert p[k] == pytest.approx(_phi(z), rel=1e-12), k
+
+
+def test_the_octree_columns_squash_through_the_squash_stage(tmp_path, squashed: list[int]) -> None:
+    """The tiled octree conversion squashes its blended moments through the squash stage at
+    variance scale 1, calibrated as the tiles calibrate theirs (alpha^2 as a * a): its voxels
+    and points are the stage's, each once, and the formula's."""
+    from gpomap.convert import convert_octree
+    from gpomap.io.octomap import read_octree, write_octree
+    from gpomap.voxels import VoxelMap, VoxelSpec
+
+    # A slab of 2 x 1 x 0.4 m with a wall at x 1.2..1.4, in columns of 0.5 m.
+    spec = VoxelSpec((0.0, 0.0, 0.0), 0.1, (4, 10, 20))
+    x = spec.centres()[:, 0].reshape(spec.shape)
+    write_octree(VoxelMap(spec, np.where((x > 1.2) & (x < 1.4), 0.97, 0.12)), tmp_path / "slab.bt")
+    res = convert_octree(read_octree(tmp_path / "slab.bt"), 0.1, [0.0, 0.0, 0.0], [3.0, 1.0, 0.4], tile_size=0.5)
+    model, field = res.model, res.model.map_.field
+    assert sum(squashed) >= res.map.probability.size
+    a, b = model.hyperparameters_["alpha"], model.hyperparameters_["beta"]
+    pts = np.random.default_rng(3).uniform([0.0, 0.0, 0.0], [3.0, 1.0, 0.4], (60, 3))
+    mean, var = field.latent(pts, True)
+    squashed.clear()
+    p, _, unseen = field.gp_probabilities(pts)
+    assert squashed == [len(pts)]
+    np.testing.assert_array_equal(unseen, p)  # voxels are not rays: no unseen space apart
+    np.testing.assert_array_equal(p, VarianceScale().apply(CalibratedMoments(a * mean + b, a * a * var)).probability)
+    for k in range(0, len(pts), 6):
+        assert p[k] == pytest.approx(_phi((a * mean[k] + b) / math.sqrt(1.0 + a * a * var[k])), rel=1e-12), k
+    squashed.clear()
+    again = model.voxels(0.1, (0.0, 3.0, 0.0, 1.0, 0.0, 0.4))
+    assert sum(squashed) == again.probability.size  # every voxel once, in bands of layers
+    np.testing.assert_array_equal(again.probability, res.map.probability)
 
 
 def test_a_chain_with_fusion_needs_the_counts() -> None:

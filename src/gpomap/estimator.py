@@ -19,17 +19,39 @@ from numpy.typing import NDArray
 
 from gpomap.config import MapConfig
 from gpomap.errors import NotFittedError
+from gpomap.extrapolation import VarianceScale
 from gpomap.fitted import FittedMap, GPHyperparameters, MapAnswers, as_points
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.point import make_point_kernel
 from gpomap.observations import Observations, labelled_observations
 from gpomap.squash import ProbitSquash
+from gpomap.stages import CalibratedMoments, GPProbability
 
 if TYPE_CHECKING:
     from gpomap.fusion import EvidenceLayer
 
-__all__ = ["DenseField", "GPMapEstimator", "as_points"]
+__all__ = ["DenseField", "GPMapEstimator", "as_points", "squash_latent"]
+
+
+def squash_latent(squash: ProbitSquash, mean: NDArray[np.float64], var: NDArray[np.float64]) -> GPProbability:
+    """One GP's probabilities from its latent moments, through the map's squash stage
+    (:class:`gpomap.extrapolation.VarianceScale`, at the squash's variance scale) on the moments
+    calibrated by its squash (:meth:`gpomap.squash.ProbitSquash.calibrated`).
+
+    Parameters
+    ----------
+    squash : ProbitSquash
+        The GP's.
+    mean, var : ndarray
+        Latent mean and variance, matching shapes.
+
+    Returns
+    -------
+    GPProbability
+        The probability and the probability for unseen space, each of the shape of `mean`.
+    """
+    return VarianceScale(squash.variance_scale).apply(CalibratedMoments(*squash.calibrated(mean, var)))
 
 
 class DenseField:
@@ -83,7 +105,8 @@ class DenseField:
         """The GP's probability, latent variance and probability for unseen space, each (m,)."""
         mean, var = self.latent(points, True)
         assert var is not None  # asked for
-        return self.gp.squash(mean, var), var, self.gp.squash.unseen(mean, var)
+        gp = squash_latent(self.gp.squash, mean, var)
+        return gp.probability, var, gp.unseen
 
     def limited(self) -> contextlib.AbstractContextManager[Any]:
         """No limit: a dense GP runs in this process with its BLAS as it is."""

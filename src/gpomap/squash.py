@@ -148,14 +148,20 @@ class ProbitSquash:
     beta: float = 0.0
     variance_scale: float = 1.0
 
+    def calibrated(self, mu: NDArray[np.float64], var: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The latent moments under this squash (any matching shapes): ``alpha mu + beta`` and
+        ``alpha^2 v``, what the map's squash stage takes (:class:`gpomap.stages.CalibratedMoments`)."""
+        return self.alpha * np.asarray(mu) + self.beta, self.alpha**2 * np.asarray(var)
+
     def __call__(self, mu: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
         """Occupancy probability from latent mean and variance (any matching shapes)."""
-        return ndtr((self.alpha * np.asarray(mu) + self.beta) / np.sqrt(1.0 + self.alpha**2 * np.asarray(var)))
+        num, den = self.calibrated(mu, var)
+        return ndtr(num / np.sqrt(1.0 + den))
 
     def unseen(self, mu: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
         """The probability where no beam went: the latent variance scaled by kappa (a tiled map
         also cuts its lean towards free, :meth:`gpomap.tiles.TiledGPOM.squash_moments`)."""
-        return ndtr(unseen_probit(self.alpha * np.asarray(mu) + self.beta, self.alpha**2 * np.asarray(var), self.variance_scale))
+        return ndtr(unseen_probit(*self.calibrated(mu, var), self.variance_scale))
 
     def fit(
         self,

@@ -17,7 +17,7 @@ from scipy import ndimage
 from gpomap.cells import Cells
 from gpomap.convert.inputs import CENTRE_NOISE, EDGE_STRIP_PIXELS, grid_cells
 from gpomap.convert.pooling import POOLINGS, PixelReading
-from gpomap.estimator import DenseField, GPMapEstimator
+from gpomap.estimator import DenseField, GPMapEstimator, squash_latent
 from gpomap.gp import SupportGP, inverse_diagonal
 from gpomap.observations import Observations
 from gpomap.settings import MapSettings
@@ -231,9 +231,9 @@ class GridGPOM(MapSettings, GPMapEstimator):
         mean, var = self.predict(points, return_var=True)
         reading, v_px = getattr(self, "reading_", None), getattr(self, "pixel_variance_", None)
         if reading is None or v_px is None:
-            return self.gp_.squash(mean, var), var, np.full(mean.shape, -1, dtype=np.intp)
+            return squash_latent(self.gp_.squash, mean, var).probability, var, np.full(mean.shape, -1, dtype=np.intp)
         k = reading.locate(points)
-        return self.gp_.squash(mean, np.where(k >= 0, v_px, var)), var, k
+        return squash_latent(self.gp_.squash, mean, np.where(k >= 0, v_px, var)).probability, var, k
 
     def _share_scales(self, reading: PixelReading) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The factor on the GP's probability and the occupied threshold in each known pixel, each

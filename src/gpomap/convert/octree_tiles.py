@@ -14,18 +14,19 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import ndtr
 
 from gpomap.config import DEFAULT_MAX_CELLS  # most cells of the one GP of a conversion, as for maps
 from gpomap.convert.estimator import GridGPOM
 from gpomap.convert.octree_tiling import ColumnTiling, TileQueries, predict_tiles
 from gpomap.errors import GpomapError, NotFittedError
+from gpomap.extrapolation import VarianceScale
 from gpomap.fitted import FittedMap, GPHyperparameters, MapAnswers
 from gpomap.kernels.point import make_point_kernel
 from gpomap.lattice import coarse, interpolate, interpolation_block
 from gpomap.observations import Observations
 from gpomap.resources import largest_tile_cells, peak_rss_mb
 from gpomap.squash import ProbitSquash
+from gpomap.stages import CalibratedMoments, GPProbability
 from gpomap.supports import Supports
 from gpomap.tiles import (
     BLEND_FRACTION,
@@ -298,11 +299,15 @@ class ColumnsField:
         """None: the conversion has no ray counts, so no written grid asks for moments."""
         return None
 
-    def _squash(self, mean: NDArray[np.float64], var: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The probability of blended latent moments (any matching shapes)."""
+    def _squash(self, mean: NDArray[np.float64], var: NDArray[np.float64]) -> GPProbability:
+        """The probabilities of blended latent moments (any matching shapes), through the map's
+        squash stage at variance scale 1 (voxels are not rays: the probability for unseen space
+        is the probability)."""
         h = self._model.hyperparameters_
         a, b = h["alpha"], h["beta"]
-        return np.asarray(ndtr((a * mean + b) / np.sqrt(1.0 + a * a * var)))
+        # Calibrated after the blend with the global alpha and beta, alpha^2 as a * a, as a tiled
+        # map's tiles calibrate theirs before it (gpomap.tiles.TiledGPOM.blended_moments).
+        return VarianceScale().apply(CalibratedMoments(a * mean + b, a * a * var))
 
     def latent(self, points: NDArray[np.float64], return_var: bool) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """Blended latent mean and variance at points (m, 3), each (m,)."""
@@ -316,8 +321,8 @@ class ColumnsField:
         no unseen space apart), each (m,)."""
         mean, var = self.latent(points, True)
         assert var is not None  # asked for
-        p = self._squash(mean, var)
-        return p, var, p
+        gp = self._squash(mean, var)
+        return gp.probability, var, gp.unseen
 
     def voxel_probabilities(
         self, spec: VoxelSpec, points: NDArray[np.float64]
@@ -367,9 +372,9 @@ class ColumnsField:
                 (sz.stop - sz.start, sy.stop - sy.start, sx.stop - sx.start),
             )
             variance[k0:k1] = interpolate(var_c[src], sub, band)
-            mean[k0:k1] = self._squash(mean[k0:k1], variance[k0:k1])
+            mean[k0:k1] = self._squash(mean[k0:k1], variance[k0:k1]).probability
         del var_c
-        return mean, variance, self._squash(p_mean, p_var), p_var
+        return mean, variance, self._squash(p_mean, p_var).probability, p_var
 
     def limited(self) -> contextlib.AbstractContextManager[Any]:
         """No limit: the columns run on this process's threads (``n_workers``) with its BLAS as it is."""
