@@ -1,9 +1,12 @@
+import io
+
 import numpy as np
 import pytest
 from PIL import Image
 
 from gpomap.grid import GridSpec, OccupancyMap
-from gpomap.plot import ScoreCurve, plot_evaluation, plot_inputs, plot_map, save_figure
+from gpomap.plot import ScoreCurve, figure_png, plot_3d, plot_evaluation, plot_inputs, plot_map, plot_slices, save_figure
+from gpomap.voxels import VoxelMap, VoxelSpec
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -103,6 +106,47 @@ def test_save_figure_failure_keeps_old_png(tmp_path, monkeypatch):
         save_figure(fig, out)
     assert out.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["fig.png"]
+
+
+def test_a_figure_is_rendered_to_png_bytes_and_written_as_those_bytes(tmp_path):
+    fig = plot_map(_map(), title="bytes")
+    png = figure_png(fig)
+    assert png[:8] == PNG_MAGIC
+    with Image.open(io.BytesIO(png)) as img:
+        # 150 dpi by default: the figure's size in inches times the dpi, in pixels.
+        assert img.size == tuple(round(v * 150) for v in fig.get_size_inches())
+    # Drawn again: one figure rendered twice need not give the same bytes (its layout is redone).
+    assert save_figure(plot_map(_map(), title="bytes"), tmp_path / "a.png").read_bytes() == png
+    with Image.open(io.BytesIO(figure_png(fig, dpi=50))) as small:
+        assert small.size == tuple(round(v * 50) for v in fig.get_size_inches())
+
+
+def _voxels():
+    """A 0.1 m slab: occupied at x > 0.5 m, free elsewhere."""
+    spec = VoxelSpec((0.0, 0.0, 0.0), 0.1, (4, 6, 10))
+    x = spec.centres()[:, 0].reshape(spec.shape)
+    return VoxelMap(spec, np.where(x > 0.5, 0.9, 0.1))
+
+
+def test_a_voxel_maps_slices_one_panel_a_height():
+    m = _voxels()
+    fig = plot_slices(m, heights=[0.05, 0.35], title="slices")
+    panels = [ax for ax in fig.axes if ax.get_title().startswith("z = ")]
+    assert [ax.get_title() for ax in panels] == ["z = 0.05 m", "z = 0.35 m"]
+    np.testing.assert_array_equal(panels[1].images[0].get_array(), m.probability[3])
+    assert panels[0].images[0].get_extent() == pytest.approx([0.0, 1.0, 0.0, 0.6])
+    assert figure_png(fig)[:8] == PNG_MAGIC
+
+
+def test_a_voxel_maps_occupied_voxels_in_3d():
+    m = _voxels()
+    fig = plot_3d(m)
+    [ax] = [a for a in fig.axes if a.name == "3d"]
+    occupied = int((m.probability > m.thresholds[1]).sum())
+    assert ax.get_title() == f"occupied voxels ({occupied:,} shown)"
+    thinned = plot_3d(m, max_points=occupied // 4)
+    [ax] = [a for a in thinned.axes if a.name == "3d"]
+    assert ax.get_title() == f"occupied voxels ({len(range(0, occupied, 4)):,} shown)"
 
 
 def _scores(with_roc=True):

@@ -1,9 +1,13 @@
-"""Figures: the paper's three-panel map view, the input/cell-tree view, and a scored map's ROC
-curves and reliability diagrams.
+"""Figures: the paper's three-panel map view, the input/cell-tree view, a scored map's ROC curves
+and reliability diagrams, and a voxel map's slices and occupied voxels.
 
 Everything draws on :class:`matplotlib.figure.Figure` objects rendered with the Agg canvas, never
 through ``pyplot``: no window is opened, no global backend is switched and no figure is kept alive by
 a figure manager, so the functions are safe on headless machines and in long-running processes.
+
+The figures know no reader or writer of maps: :func:`figure_png` renders one to PNG bytes, and
+:func:`save_figure` writes those as one file (:mod:`gpomap.atomic_files`); the output sets of
+:mod:`gpomap.io` draw their figures here and write them with their other files.
 """
 
 from __future__ import annotations
@@ -26,11 +30,23 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 from numpy.typing import ArrayLike, NDArray
 
-from gpomap.grid import OccupancyMap, ternary
-from gpomap.io.atomic import atomic_write
+from gpomap.atomic_files import atomic_write
+from gpomap.grid import OCCUPIED, OccupancyMap, ternary
 from gpomap.resources import figure_step
+from gpomap.voxels import VoxelMap
 
-__all__ = ["plot_map", "plot_inputs", "plot_evaluation", "ScoreCurve", "save_figure", "PROBABILITY_CMAP", "VARIANCE_CMAP"]
+__all__ = [
+    "plot_map",
+    "plot_inputs",
+    "plot_evaluation",
+    "plot_slices",
+    "plot_3d",
+    "ScoreCurve",
+    "figure_png",
+    "save_figure",
+    "PROBABILITY_CMAP",
+    "VARIANCE_CMAP",
+]
 
 #: Diverging blue (free) to red (occupied), white at p = 0.5, like the paper's probability maps.
 PROBABILITY_CMAP = "RdBu_r"
@@ -282,6 +298,68 @@ def plot_evaluation(
     return fig
 
 
+def plot_slices(voxel_map: VoxelMap, heights: Sequence[float] | None = None, title: str | None = None) -> Figure:
+    """Horizontal slices of the probability at `heights` (metres; default 4 evenly spread), as a figure."""
+    spec = voxel_map.spec
+    zs = list(heights) if heights is not None else list(np.linspace(spec.lower[2], spec.upper[2], 6)[1:-1])
+    fig = Figure(figsize=(4.2 * len(zs), 4.4), layout="constrained")
+    axes = fig.subplots(1, len(zs), squeeze=False)
+    lo, hi = spec.lower, spec.upper
+    image = None
+    for ax, z in zip(axes[0], zs):
+        k = spec.slice_index(z)
+        image = ax.imshow(
+            voxel_map.probability[k], origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="gray_r", vmin=0, vmax=1
+        )
+        ax.set_title(f"z = {spec.axis_centres('z')[k]:.2f} m")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+    if image is not None:
+        fig.colorbar(image, ax=axes[0].tolist(), label="occupancy probability", shrink=0.8)
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def plot_3d(voxel_map: VoxelMap, title: str | None = None, max_points: int = 60000) -> Figure:
+    """The occupied voxels (ternary OCCUPIED) as points coloured by height, in a 3-D view."""
+    occ = voxel_map.ternary.reshape(-1) == OCCUPIED
+    pts = voxel_map.spec.centres()[occ]
+    if len(pts) > max_points:  # a figure cannot show more; an even thinning keeps the shapes
+        pts = pts[:: int(np.ceil(len(pts) / max_points))]
+    fig = Figure(figsize=(8, 6.5), layout="constrained")
+    ax = fig.add_subplot(projection="3d")
+    sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=pts[:, 2], s=1.5, cmap="viridis", depthshade=False)
+    lo, hi = voxel_map.spec.lower, voxel_map.spec.upper
+    ax.set_box_aspect(tuple(np.maximum(hi - lo, 1e-6)))
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    fig.colorbar(sc, ax=ax, label="height (m)", shrink=0.6)
+    ax.set_title(title or f"occupied voxels ({len(pts):,} shown)")
+    return fig
+
+
+def figure_png(fig: Figure, dpi: int = 150) -> bytes:
+    """`fig` rendered as a PNG (with the Agg canvas, attached if it has another).
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+    dpi : int
+
+    Returns
+    -------
+    bytes
+        The PNG file's content.
+    """
+    if not isinstance(fig.canvas, FigureCanvasAgg):
+        FigureCanvasAgg(fig)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi)
+    return buffer.getvalue()
+
+
 def save_figure(fig: Figure, path: str | os.PathLike[str], dpi: int = 150) -> Path:
     """Write `fig` as a PNG, atomically (the old file stays if rendering fails).
 
@@ -296,12 +374,9 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], dpi: int = 150) -> Pa
     Path
         `path`.
     """
-    if not isinstance(fig.canvas, FigureCanvasAgg):
-        FigureCanvasAgg(fig)
-    # Render to memory first: a failing render then never even creates the temporary file.
-    buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=dpi)
+    # Rendered to memory first: a failing render then never even creates the temporary file.
+    png = figure_png(fig, dpi)
     target = Path(path)
     with atomic_write(target, "wb") as f:
-        f.write(buffer.getvalue())
+        f.write(png)
     return target

@@ -18,10 +18,10 @@ key                shape / dtype           meaning
 
 The mesh (:func:`write_mesh`) is the p = 0.5 iso-surface of the probability by marching cubes
 (scikit-image), vertices in map coordinates (voxel centres are the sample points), written as a
-binary PLY through plyfile. The figures: :func:`plot_slices` (horizontal slices at chosen
-heights, one panel each, metres on the axes, probability on a colour bar) and :func:`plot_3d`
-(the occupied voxels' centres coloured by height). :func:`write_voxel_outputs` writes them all
-as one output set (:func:`gpomap.io.atomic.output_set`).
+binary PLY through plyfile. The figures, drawn by :mod:`gpomap.plot`: :func:`~gpomap.plot.plot_slices`
+(horizontal slices at chosen heights, one panel each, metres on the axes, probability on a colour
+bar) and :func:`~gpomap.plot.plot_3d` (the occupied voxels' centres coloured by height).
+:func:`write_voxel_outputs` writes them all as one output set (:func:`gpomap.io.atomic.output_set`).
 """
 
 from __future__ import annotations
@@ -37,12 +37,11 @@ import numpy as np
 
 from gpomap.errors import InputFormatError
 from gpomap.extras import require
-from gpomap.grid import OCCUPIED
 from gpomap.io.atomic import atomic_write, file_written, output_set
 from gpomap.io.checks import load_npz, regular_file
 from gpomap.voxels import VoxelMap, VoxelSpec
 
-__all__ = ["save_voxels", "load_voxels", "write_mesh", "plot_slices", "plot_3d", "write_voxel_outputs", "FORMAT"]
+__all__ = ["save_voxels", "load_voxels", "write_mesh", "write_voxel_outputs", "FORMAT"]
 
 FORMAT = "gpomap-voxel-map"
 VERSION = 1
@@ -150,52 +149,6 @@ def write_mesh(voxel_map: VoxelMap, path: str | os.PathLike[str], level: float =
     return target, len(xyz), len(faces)
 
 
-def plot_slices(voxel_map: VoxelMap, heights: Sequence[float] | None = None, title: str | None = None) -> Any:
-    """Horizontal slices of the probability at `heights` (metres; default 4 evenly spread), as a figure."""
-    from matplotlib.figure import Figure  # no pyplot: no global figure state, no GUI backend
-
-    spec = voxel_map.spec
-    zs = list(heights) if heights is not None else list(np.linspace(spec.lower[2], spec.upper[2], 6)[1:-1])
-    fig = Figure(figsize=(4.2 * len(zs), 4.4), layout="constrained")
-    axes = fig.subplots(1, len(zs), squeeze=False)
-    lo, hi = spec.lower, spec.upper
-    image = None
-    for ax, z in zip(axes[0], zs):
-        k = spec.slice_index(z)
-        image = ax.imshow(
-            voxel_map.probability[k], origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="gray_r", vmin=0, vmax=1
-        )
-        ax.set_title(f"z = {spec.axis_centres('z')[k]:.2f} m")
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-    if image is not None:
-        fig.colorbar(image, ax=axes[0].tolist(), label="occupancy probability", shrink=0.8)
-    if title:
-        fig.suptitle(title)
-    return fig
-
-
-def plot_3d(voxel_map: VoxelMap, title: str | None = None, max_points: int = 60000) -> Any:
-    """The occupied voxels (ternary OCCUPIED) as points coloured by height, in a 3-D view."""
-    from matplotlib.figure import Figure
-
-    occ = voxel_map.ternary.reshape(-1) == OCCUPIED
-    pts = voxel_map.spec.centres()[occ]
-    if len(pts) > max_points:  # a figure cannot show more; an even thinning keeps the shapes
-        pts = pts[:: int(np.ceil(len(pts) / max_points))]
-    fig = Figure(figsize=(8, 6.5), layout="constrained")
-    ax = fig.add_subplot(projection="3d")
-    sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=pts[:, 2], s=1.5, cmap="viridis", depthshade=False)
-    lo, hi = voxel_map.spec.lower, voxel_map.spec.upper
-    ax.set_box_aspect(tuple(np.maximum(hi - lo, 1e-6)))
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_zlabel("z (m)")
-    fig.colorbar(sc, ax=ax, label="height (m)", shrink=0.6)
-    ax.set_title(title or f"occupied voxels ({len(pts):,} shown)")
-    return fig
-
-
 def write_voxel_outputs(
     voxel_map: VoxelMap,
     outdir: str | os.PathLike[str],
@@ -214,7 +167,7 @@ def write_voxel_outputs(
         The files written, in `outdir`.
     """
     from gpomap.io.octomap import write_octree
-    from gpomap.plot import save_figure
+    from gpomap.plot import plot_3d, plot_slices, save_figure  # matplotlib only when the figures are drawn
 
     with output_set(outdir) as outputs:
         out = outputs.path
