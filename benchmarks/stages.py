@@ -61,11 +61,11 @@ STAGES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
     "min_cell_0.25": ("GP cells holding both classes split down to 0.25 m (pure ones stay 0.5 m)", {}, {"min_cell": 0.25}),
     "min_cell_0.125": ("GP cells holding both classes split down to 0.125 m (pure ones stay 0.5 m)", {}, {"min_cell": 0.125}),
     "cells_0.25": ("GP cells of 0.25 m everywhere", {}, {"min_cell": 0.25, "max_cell": 0.25}),
-    # Free points are dropped within free_clearance (0.3 m) of a hit, so few boxes under 0.5 m hold
-    # both classes; with a 0.1 m clearance the boxes at surfaces do, and min_cell splits them.
-    "clearance_0.2": ("free points kept from 0.2 m of a hit (not 0.3 m)", {}, {"free_clearance": 0.2}),
-    "clearance_0.1": ("free points kept from 0.1 m of a hit (not 0.3 m)", {}, {"free_clearance": 0.1}),
-    "clearance_0.05": ("free points kept from 0.05 m of a hit (not 0.3 m)", {}, {"free_clearance": 0.05}),
+    # Free points are dropped within free_clearance of a hit (0.1 m in a plane), so the boxes at
+    # surfaces hold both classes, and min_cell splits them; a wider clearance leaves few such boxes.
+    "clearance_0.3": ("free points kept from 0.3 m of a hit (not 0.1 m)", {}, {"free_clearance": 0.3}),
+    "clearance_0.2": ("free points kept from 0.2 m of a hit (not 0.1 m)", {}, {"free_clearance": 0.2}),
+    "clearance_0.05": ("free points kept from 0.05 m of a hit (not 0.1 m)", {}, {"free_clearance": 0.05}),
     "surface_0.125": (
         "free points kept from 0.1 m of a hit, and cells holding both classes split down to 0.125 m",
         {},

@@ -56,7 +56,7 @@ def _fit(scans, stand_in):
     settings = AreaGPOM(ray_evidence=False).base
     points = settings.make_observations(scans, clearance=False)
     return ex.fit_variance_scale(
-        scans, {"alpha": 30.0, "beta": 0.0}, points, settings.free_clearance, stand_in.fit, np.zeros(2), 50.0, 0.0
+        scans, {"alpha": 30.0, "beta": 0.0}, points, settings.clearance(2), stand_in.fit, np.zeros(2), 50.0, 0.0
     )
 
 
@@ -105,6 +105,6 @@ def test_a_pattern_whose_kept_scans_never_saw_the_region_is_passed_over():
     stand_in = _Fixed(lambda p: (np.zeros(len(p)), np.ones(len(p))))
     centre = np.mean([s.pose[:2] for s in (scans[i] for i in away)], axis=0)
     kappa, report = ex.fit_variance_scale(
-        scans, {"alpha": 30.0, "beta": 0.0}, points, settings.free_clearance, stand_in.fit, centre, 15.0, 0.0
+        scans, {"alpha": 30.0, "beta": 0.0}, points, settings.clearance(2), stand_in.fit, centre, 15.0, 0.0
     )
     assert kappa == 1.0 and report["reason"].endswith("in 2 patterns of held-out stretches") and stand_in.fits == 0

@@ -55,7 +55,7 @@ def test_labelled_box_is_the_labelled_points_box_to_the_bit(options):
     )
     hits = obs.points[obs.occupied]
     assert (obs.points.min(axis=0) < hits.min(axis=0)).any() or (obs.points.max(axis=0) > hits.max(axis=0)).any()
-    if settings.free_clearance > 0:
+    if settings.clearance(3) > 0:
         assert not np.array_equal(unclear.points.min(axis=0), obs.points.min(axis=0)) or not np.array_equal(
             unclear.points.max(axis=0), obs.points.max(axis=0)
         )

@@ -67,6 +67,8 @@ class MapProfile:
     ----------
     min_cell, max_cell : float
         The cell tree's size thresholds, metres (:class:`MapConfig`).
+    free_clearance : float
+        Free points closer than this to a hit are dropped, metres (:class:`MapConfig`).
     resolution : float
         The side of the written map's cells, metres (``gpomap map --resolution``).
     tile_size : float
@@ -89,6 +91,7 @@ class MapProfile:
 
     min_cell: float
     max_cell: float
+    free_clearance: float
     resolution: float
     tile_size: float
     hyper_sample: int
@@ -104,11 +107,14 @@ class MapProfile:
 #: logs") written on the ray counts' 0.05 m cells. Voxel maps: cells of 1 m, since a cube holds 8
 #: times as many cells per volume at half the side where a square holds 4, for no gain across the
 #: 3-D cases of ``benchmarks/quality3d.py`` (docs/3d.md, "3-D defaults"); voxels of 0.1 m, OctoMap's
-#: usual. The calibration stages that were measured only on planar logs are off for voxel maps.
+#: usual. Free points are kept from 0.1 m of a hit in a plane, where the ray counts draw the walls
+#: (docs/choices.md, "Free clearance: 0.1 m in a plane"), and from 0.3 m in 3-D. The calibration
+#: stages that were measured only on planar logs are off for voxel maps.
 PROFILES: dict[int, MapProfile] = {
     2: MapProfile(
         min_cell=0.5,
         max_cell=0.5,
+        free_clearance=0.1,
         resolution=0.05,
         tile_size=5.0,
         hyper_sample=800,
@@ -122,6 +128,7 @@ PROFILES: dict[int, MapProfile] = {
     3: MapProfile(
         min_cell=1.0,
         max_cell=1.0,
+        free_clearance=0.3,
         resolution=0.1,
         tile_size=3.0,
         hyper_sample=300,
@@ -174,7 +181,7 @@ class MapConfig(_Config):
     free_step: float = 0.2
     hit_margin: float | None = None
     no_return_cap: float | None = 10.0
-    free_clearance: float = 0.3
+    free_clearance: float | None = None
     # the cells
     min_cell: float | None = None
     max_cell: float | None = None

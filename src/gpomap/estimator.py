@@ -148,7 +148,7 @@ class GPMapEstimator(MapAnswers):
     hyper_subset: int | None = None
     prior_std: float | None = MapConfig.prior_std
     class_weight: str | None = MapConfig.class_weight
-    free_clearance: float = 0.0
+    free_clearance: float | None = 0.0
     # The baselines' searches minimise the objective's sum (see SupportGP's objective_per_input).
     objective_per_input: bool = False
     # What a subclass's fit sets (no ray evidence unless it builds some).
@@ -228,7 +228,7 @@ class GPMapEstimator(MapAnswers):
         """Labelled points from scans (this estimator's ``free_step``, ``hit_margin``,
         ``no_return_cap`` and ``free_clearance``), or `data` itself when it already is (given
         points are taken as they are); both classes are required."""
-        return labelled_observations(data, self.free_step, self.hit_margin, self.no_return_cap, self.free_clearance)
+        return labelled_observations(data, self.free_step, self.hit_margin, self.no_return_cap, self.free_clearance or 0.0)
 
     def _queries(self, points: NDArray[np.float64]) -> Any:
         raise NotImplementedError

@@ -51,13 +51,13 @@ class MapSettings(MapConfig):
         max range). 10 m by default: laser logs record no-return at their far code (tens of
         metres), and trusting free space that far fills a huge square around a building for no
         gain in held-out AUC (docs/choices.md, "Measured for the code").
-    free_clearance : float
+    free_clearance : float or None
         Free points closer than this (metres) to any hit are dropped, so beams grazing a wall do
         not mark the wall free (see :func:`gpomap.observations.free_near_hits`); applies to scans,
-        not to labelled points given to ``fit``. 0.3 m by default, the best held-out AUC on
-        windows of real logs (docs/choices.md, "Measured on more logs"); it helps in 3-D too,
-        though there it drops over half the free points (rays grazing the floor; docs/choices.md,
-        "Measured for the code").
+        not to labelled points given to ``fit``. None takes the data's profile
+        (:data:`gpomap.config.PROFILES`, :meth:`clearance`): 0.1 m in a plane, where the ray
+        counts draw the walls and a wider clearance leaves the GP a band round each wall with
+        hits alone (docs/choices.md, "Free clearance: 0.1 m in a plane"); 0.3 m in 3-D.
     min_cell, max_cell : float or None
         Cell-tree size thresholds (see :func:`gpomap.cells.build_cells`); None takes the data
         dimension's profile (:meth:`cell_sides`, :data:`gpomap.config.PROFILES`): 0.5 m for planar
@@ -170,9 +170,13 @@ class MapSettings(MapConfig):
         EmptyDataError
             When either class is missing.
         """
-        return labelled_observations(
-            data, self.free_step, self.hit_margin, self.no_return_cap, self.free_clearance if clearance else 0.0
-        )
+        cut = self.clearance(data_dim(data)) if clearance and not isinstance(data, Observations) and len(data) else 0.0
+        return labelled_observations(data, self.free_step, self.hit_margin, self.no_return_cap, cut)
+
+    def clearance(self, dim: int) -> float:
+        """``free_clearance`` for data of dimension `dim`: the one given, or the dimension's
+        profile's (:data:`gpomap.config.PROFILES`)."""
+        return PROFILES[dim].free_clearance if self.free_clearance is None else float(self.free_clearance)
 
     def cell_sides(self, dim: int) -> tuple[float, float]:
         """``(min_cell, max_cell)`` for data of dimension `dim`: those given, the rest from the

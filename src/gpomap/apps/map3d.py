@@ -197,9 +197,10 @@ def labelled_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[n
     free = np.concatenate(outside)
     if free.shape[0] == 0:
         return box
-    if settings.free_clearance > 0:
+    clearance = settings.clearance(3)
+    if clearance > 0:
         occupied = np.r_[np.zeros(free.shape[0], bool), np.ones(n_hits, bool)]
-        free = free[~free_near_hits(np.concatenate([free, all_hits]), occupied, settings.free_clearance)[: free.shape[0]]]
+        free = free[~free_near_hits(np.concatenate([free, all_hits]), occupied, clearance)[: free.shape[0]]]
     if free.shape[0]:
         box = np.array([np.minimum(box[0], free.min(axis=0)), np.maximum(box[1], free.max(axis=0))])
     return box

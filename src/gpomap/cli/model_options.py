@@ -57,7 +57,8 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
         type=non_negative(float),
         default=Default(d.free_clearance),
         metavar="M",
-        help="drop free points closer than M metres to a hit (beams grazing walls; default: %(default)s; 0 keeps all)",
+        help="drop free points closer than M metres to a hit (beams grazing walls; default: "
+        f"{PROFILES[2].free_clearance:g} for scans, {PROFILES[3].free_clearance:g} for point clouds; 0 keeps all)",
     )
     g.add_argument(
         "--no-return-cap",

@@ -251,7 +251,7 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
             if n_occupied == 0 or n_free == 0:
                 raise EmptyDataError(f"need both free and occupied observations, got {n_free} free and {n_occupied} occupied")
         # The clearance applies to points sampled from scans, not to given points.
-        self._clearance = 0.0 if isinstance(data, Observations) else float(self.base.free_clearance)
+        self._clearance = 0.0 if isinstance(data, Observations) else self.base.clearance(held.dim)
         self._block_points = {}
         self._blocks = {}
         self._tiles_with_points = set()
