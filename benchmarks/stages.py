@@ -66,6 +66,10 @@ STAGES: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
     "clearance_0.3": ("free points kept from 0.3 m of a hit (not 0.1 m)", {}, {"free_clearance": 0.3}),
     "clearance_0.2": ("free points kept from 0.2 m of a hit (not 0.1 m)", {}, {"free_clearance": 0.2}),
     "clearance_0.05": ("free points kept from 0.05 m of a hit (not 0.1 m)", {}, {"free_clearance": 0.05}),
+    # A second draw of the map's own randomness (its hyperparameter sample, its calibration points),
+    # to tell a variant's gain from one fit's luck.
+    "seed_1": ("the map's seed 1 (not 0)", {}, {"seed": 1}),
+    "clearance_0.3_seed_1": ("free points kept from 0.3 m of a hit, the map's seed 1", {}, {"free_clearance": 0.3, "seed": 1}),
     "surface_0.125": (
         "free points kept from 0.1 m of a hit, and cells holding both classes split down to 0.125 m",
         {},
