@@ -106,8 +106,10 @@ def _apply(patches: dict[str, Any]) -> None:
 
 def child(stage: str, dataset: str) -> dict[str, Any]:
     """Score one dataset with one stage off (in this process)."""
-    _, patches, options = STAGES[stage]
+    _, patches, given = STAGES[stage]
     _apply(patches)
+    options = dict(given)
+    seed = int(options.pop("seed", 0))  # make_model's own argument
     from gpomap.evaluation import lookup, lookup_occupied, make_model, prepare, score, written_grid
     from gpomap.truth import TruthPoints, score_plan
 
@@ -119,13 +121,13 @@ def child(stage: str, dataset: str) -> dict[str, Any]:
         log, split = dataset.split(":")
         scans, _ = quality.load(log)
         data = prepare(scans, split, scan_step=quality.LOGS[log].get("scan_step", 1), seed=0, max_test_points=TEST_POINTS)
-        model = make_model("msk", None, 0, 0.05, None, **options).fit(data.train)
+        model = make_model("msk", None, seed, 0.05, None, **options).fit(data.train)
         fit_cpu = time.process_time() - t
         scores = score(data.labels, lookup(written_grid(model, 0.05), data.points), {"boundary": data.masks["boundary"]})
         return {**{k: scores[k] for k in ("log_loss", "brier", "ece", "auc", "boundary_auc")}, "fit_cpu": fit_cpu}
     scans, plan = quality.load(dataset)
     assert plan is not None, f"{dataset} has no true plan"
-    model = make_model("msk", None, 0, 0.05, None, **options).fit(scans)
+    model = make_model("msk", None, seed, 0.05, None, **options).fit(scans)
     fit_cpu = time.process_time() - t
     truth = TruthPoints.of(plan, scans)
     written = written_grid(model, 0.05)
