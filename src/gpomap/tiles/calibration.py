@@ -106,7 +106,8 @@ class CalibrationStages(MapPrediction):
         return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
 
     def _fit_revisit(self, later: tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None) -> dict[str, Any]:
-        """Fit the ray evidence's recalibration for a later visit (:func:`gpomap.revisit.fit_revisit`)
+        """Fit the ray evidence's recalibration for a later visit (:meth:`gpomap.revisit.RevisitCalibration.fit`, through
+        :meth:`~gpomap.fusion.EvidenceLayer.fit_revisit`)
         on the `later` points and the calibration's own; its report."""
         if later is None or self.evidence_ is None:
             return {"reason": "off" if not self.base.fit_revisit else "no ray evidence"}
