@@ -133,9 +133,9 @@ def test_memory_estimates_by_hand():
     assert resources.grid_memory((100, 200)) == 20_000 * 272
     # K = 2: four samples of 40 bytes per cell; plus one chunk of 4096 queries x 1000 cells x 3 float64 arrays.
     assert resources.grid_memory((100, 200), supersample=2, n_cells=1000) == 20_000 * (272 + 160) + 3 * 4096 * 1000 * 8
-    # 6,000 x 6,000 cells (the Freiburg campus log at 0.05 m): 2^21 cells a band, every 3rd row
+    # 6,000 x 6,000 cells (the Freiburg campus log at 0.05 m): 2^20 cells a band, every 3rd row
     # and column drawn (2,000 x 2,000).
-    assert resources.grid_memory((6000, 6000)) == 36_000_000 * 50 + 2**21 * 150 + 4_000_000 * 72
+    assert resources.grid_memory((6000, 6000)) == 36_000_000 * 50 + 2**20 * 150 + 4_000_000 * 72
     # A map a million cells wide: a band is 8 rows of it, the figure 1 x 2,045 cells (every 489th).
     assert resources.grid_memory((100, 1_000_000)) == 100_000_000 * 50 + 8_000_000 * 150 + 2045 * 72
     # 3,000 cells: 4 matrices of 3000^2 float64 = 288 MB; two workers, twice.

@@ -81,7 +81,7 @@ TILE_MEMORY: int = 128 * 2**20
 #: (:meth:`gpomap.fusion.EvidenceLayer.written_grid`): its temporaries (GP samples, counts,
 #: distances to hits, :data:`BYTES_PER_BAND_CELL`) then follow the band, not the map: a campus
 #: map at 0.05 m has tens of millions of cells (docs/choices.md, "The written map in bands").
-WRITTEN_BAND_CELLS: int = 2**21
+WRITTEN_BAND_CELLS: int = 2**20
 
 #: A map's figure draws at most this many cells a side: every k-th row and column of a larger
 #: map (:func:`gpomap.plot.plot_map`). A panel is about 600 pixels wide (4 inches at 150 dpi)
