@@ -873,7 +873,10 @@ def test_a_calibrated_map_calls_occupied_what_is_more_likely_occupied_than_not()
     from gpomap.simulate import paper_room_scans
 
     scans = paper_room_scans(n_beams=36, noise_std=0.02)
-    model = AreaGPOM().fit(scans)
+    # A 0.3 m clearance: on these 31 thin scans the planar 0.1 m learns a 4 m length scale and
+    # fits 14x slower (docs/choices.md, "Free clearance"); the thresholds are the subject here.
+    clear = {"free_clearance": 0.3}
+    model = AreaGPOM(**clear).fit(scans)
     fitted = CALIBRATED_THRESHOLDS[1]
     assert model.thresholds_ == CALIBRATED_THRESHOLDS == (0.196, 0.5)
     assert model.grid(0.5).thresholds == model.thresholds_
@@ -887,7 +890,7 @@ def test_a_calibrated_map_calls_occupied_what_is_more_likely_occupied_than_not()
     # the threshold (cells in front of the walls, beside their hits). By hand from the counts of a
     # grid off the counted lattice (the room's walls lie on cell borders of the lattice itself),
     # with a low occupied threshold a user may give, which some such cells pass.
-    model = AreaGPOM(thresholds=(0.1, 0.2)).fit(scans)
+    model = AreaGPOM(thresholds=(0.1, 0.2), **clear).fit(scans)
     fitted = 0.2
     m = model.grid(0.05, extent=(-0.487, 10.513, -0.479, 8.521))
     hits, _, _ = model.evidence_.evidence.counts(m.grid)
@@ -905,8 +908,8 @@ def test_a_calibrated_map_calls_occupied_what_is_more_likely_occupied_than_not()
     np.testing.assert_array_equal(seen_at, on.seen_through.ravel())
     np.testing.assert_array_equal(model.predict_ternary(centres) == 1, (model.predict_proba(centres) > fitted) & ~seen_at)
     # Given thresholds are kept; without ray evidence the GP alone is not calibrated: the paper's.
-    assert AreaGPOM(thresholds=(0.2, 0.7)).fit(scans).thresholds_ == (0.2, 0.7)
-    assert AreaGPOM(ray_evidence=False).fit(scans).thresholds_ == DEFAULT_THRESHOLDS
+    assert AreaGPOM(thresholds=(0.2, 0.7), **clear).fit(scans).thresholds_ == (0.2, 0.7)
+    assert AreaGPOM(ray_evidence=False, **clear).fit(scans).thresholds_ == DEFAULT_THRESHOLDS
 
 
 def test_surprise_rate_by_hand():
