@@ -57,8 +57,7 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
         type=non_negative(float),
         default=Default(d.free_clearance),
         metavar="M",
-        help="drop free points closer than M metres to a hit (beams grazing walls; default: "
-        f"{PROFILES[2].free_clearance:g} for scans, {PROFILES[3].free_clearance:g} for point clouds; 0 keeps all)",
+        help=f"drop free points closer than M metres to a hit (beams grazing walls; default: {by_profile('free_clearance')}; 0 keeps all)",
     )
     g.add_argument(
         "--no-return-cap",
@@ -71,13 +70,13 @@ def add_model_options(p: argparse.ArgumentParser) -> None:
         "--min-cell",
         type=positive(float),
         default=Default(d.min_cell),
-        help=f"smallest cell side, m (default: {PROFILES[2].min_cell:g} for scans, {PROFILES[3].min_cell:g} for point clouds)",
+        help=f"smallest cell side, m (default: {by_profile('min_cell')})",
     )
     g.add_argument(
         "--max-cell",
         type=positive(float),
         default=Default(d.max_cell),
-        help=f"largest pure cell side, m (default: {PROFILES[2].max_cell:g} for scans, {PROFILES[3].max_cell:g} for point clouds)",
+        help=f"largest pure cell side, m (default: {by_profile('max_cell')})",
     )
     g.add_argument(
         "--length-scale",
@@ -150,9 +149,14 @@ def map_config(args: argparse.Namespace) -> MapConfig:
     return MapConfig(**fields)
 
 
+def by_profile(field: str) -> str:
+    """A :class:`~gpomap.config.MapProfile` field's planar and voxel defaults, for ``--help``."""
+    return f"{getattr(PROFILES[2], field):g} for scans, {getattr(PROFILES[3], field):g} for point clouds"
+
+
 def _tile_sizes(_: None) -> str:
     """The default tile sides by the data's profile, for ``--help``."""
-    return f"{PROFILES[2].tile_size:g} for scans, {PROFILES[3].tile_size:g} for point clouds"
+    return by_profile("tile_size")
 
 
 def add_tiling_options(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
