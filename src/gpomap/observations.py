@@ -268,17 +268,21 @@ class Rays:
             length = np.sqrt((vec * vec).sum(axis=1))
             hit = np.asarray(scan.hit, dtype=bool)[valid]
             return cls(scan.origin, vec / length[:, None], length, scan.points[valid], hit, np.inf, int((~valid).sum()))
+        # Scan.valid's, endpoints' and no_return's numbers, each worked out once: a fit asks for
+        # every scan's rays in several passes.
         valid = scan.valid()
-        a = scan.world_angles()[valid]
+        r = scan.ranges[valid]
+        a = scan.pose[2] + scan.angles[valid]
+        cos, sin = np.cos(a), np.sin(a)
         # Directions from the angles (not from the endpoints) keep the planar samples exact.
         return cls(
             scan.pose[:2],
-            np.column_stack([np.cos(a), np.sin(a)]),
-            scan.ranges[valid],
-            scan.endpoints()[valid],
-            ~scan.no_return()[valid],
+            np.column_stack([cos, sin]),
+            r,
+            np.column_stack([scan.pose[0] + r * cos, scan.pose[1] + r * sin]),
+            ~(r >= scan.max_range),
             scan.max_range,
-            int((~valid).sum()),
+            int(valid.size - np.count_nonzero(valid)),
         )
 
     def free_lengths(self, hit_margin: float, no_return_cap: float | None) -> NDArray[np.float64]:
