@@ -623,9 +623,22 @@ def test_a_map_whose_tiles_wait_in_a_file_is_the_map_kept_in_memory(room, refere
     assert spilled.summary()["cells_per_tile"] == whole.summary()["cells_per_tile"]
 
 
-def test_a_log_whose_points_wait_in_a_file_maps_as_one_held_in_memory(monkeypatch):
+def _recording(add_points, filed):
+    """TiledGPOM._add_points, noting whether each call files in a spill file."""
+
+    def add(self, points, occupied, spill=None):
+        filed.append(spill is not None)
+        return add_points(self, points, occupied, spill)
+
+    return add
+
+
+@pytest.mark.parametrize("budget", [1, 100_000])
+def test_a_log_whose_points_wait_in_a_file_maps_as_one_held_in_memory(monkeypatch, budget):
     # Points made a part at a time (a few scans each) and filed under their blocks in a temporary
-    # file: the same cells, variance scale and map as the whole log's points held in memory.
+    # file: the same cells, variance scale and map as the whole log's points held in memory. With
+    # the larger budget the first parts are filed in memory (the log is wider than a block from
+    # its first part) and go to the file when a later part passes the budget.
     import gpomap.observations as observations
 
     world = World(outlines=[[(0.0, 0.0), (24.0, 0.0), (24.0, 14.0), (0.0, 14.0)]], segments=[(12.0, 0.0, 12.0, 9.0)])
@@ -634,9 +647,14 @@ def test_a_log_whose_points_wait_in_a_file_maps_as_one_held_in_memory(monkeypatc
     scans = simulate_scans(world, poses, 60, max_range=12.0, noise_std=0.01, seed=1)
     opts = dict(kernel="se", free_step=0.4, min_cell=0.5, max_cell=2.0, n_workers=1, calibration_scans=5)
     held = TiledGPOM(**opts).fit(scans)
-    monkeypatch.setattr(tiled_map, "POINT_MEMORY", 1)
+    monkeypatch.setattr(tiled_map, "POINT_MEMORY", budget)
     monkeypatch.setattr(observations, "PART_POINTS", 2000)
+    filed = []
+    monkeypatch.setattr(TiledGPOM, "_add_points", _recording(TiledGPOM._add_points, filed))
     spilled = TiledGPOM(**opts).fit(scans)
+    # Filed part by part as the points came: in memory before the budget was passed, not after.
+    assert len(filed) > 3 and filed[0] is (budget == 1)
+    assert all(filed[filed.index(True) :]) and not any(filed[: filed.index(True)])
     assert all(isinstance(p, tile_points._SpilledPart) for b in spilled._block_points.values() for p in b._parts)
     assert spilled.extrapolation_ == held.extrapolation_ and spilled.hyperparameters_ == held.hyperparameters_
     for k in held._blocks:

@@ -142,6 +142,16 @@ class TileGrid(TiledAttributes):
                 return float(corner[0]), float(corner[1])
         return (0.0, 0.0)
 
+    def _settled_origin(self, lower: NDArray[np.float64], upper: NDArray[np.float64]) -> tuple[float, float] | None:
+        """The origin of tile (0, 0) as soon as more points cannot change it, for points so far
+        within `lower`..`upper` (x, y at least): the one given, or :meth:`_default_origin`'s once
+        their extent outgrows a block (it only grows); None before."""
+        if self.origin is not None:
+            return (float(self.origin[0]), float(self.origin[1]))
+        if np.all(np.asarray(upper)[:2] - np.asarray(lower)[:2] < self.block_size_):
+            return None
+        return self._default_origin(lower, upper)
+
     @overload
     @staticmethod
     def _decode(key: int) -> tuple[int, int]: ...

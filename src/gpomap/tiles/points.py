@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, free_near_hits
 from gpomap.resources import SpillFile
 
@@ -71,6 +72,10 @@ class _BlockPoints:
     def append(self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None) -> None:
         self._parts.append(points if isinstance(points, _SpilledPart) else (points, occupied))
 
+    def spill(self, file: SpillFile) -> None:
+        """Move the parts held in memory to `file`, in their places."""
+        self._parts = [p if isinstance(p, _SpilledPart) else _SpilledPart.put(file, *p) for p in self._parts]
+
     def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         if any(isinstance(p, _SpilledPart) for p in self._parts):
             if len(self._parts) == 1:
@@ -127,7 +132,8 @@ class _HeldParts:
 
     In memory while they come within `budget` bytes; past it every part waits in a temporary
     file instead, and the blocks they are filed under keep theirs in another
-    (:attr:`blocks_file`), so that a building's points are never all in memory.
+    (:attr:`blocks_file`), so that a building's points are never all in memory. Once the grid is
+    known the parts are taken (:meth:`take`) as they come, and never wait in the first file.
     """
 
     def __init__(self, budget: int) -> None:
@@ -137,23 +143,41 @@ class _HeldParts:
         self._file: SpillFile | None = None
         self.blocks_file: SpillFile | None = None
         self.dim = 2
+        # Bounds of every point so far, x and y (the grid of blocks is known from them).
+        self.lower = np.full(2, np.inf)
+        self.upper = np.full(2, -np.inf)
 
-    def add(self, part: Observations) -> None:
+    def count(self, part: Observations) -> bool:
+        """Count `part` in (its bounds and bytes) without holding it; whether its bytes took the
+        points past the budget (the files made now, the parts held so far moved to the first)."""
+        if part.occupied.size == 0:
+            return False
+        self.dim = int(part.points.shape[1])
+        lo, hi = column_bounds(part.points[:, :2])
+        self.lower, self.upper = np.minimum(self.lower, lo), np.maximum(self.upper, hi)
+        self._bytes += int(part.points.nbytes + part.occupied.nbytes)
+        if self._file is not None or self._bytes <= self.budget:
+            return False
+        self._file, self.blocks_file = SpillFile(), SpillFile()
+        self._parts = [_SpilledPart.put(self._file, p, o) for p, o in self._parts]
+        return True
+
+    def hold(self, part: Observations) -> None:
+        """Hold `part` (counted already) until it is taken: in the first file past the budget."""
         if part.occupied.size == 0:
             return
-        self.dim = int(part.points.shape[1])
-        self._bytes += int(part.points.nbytes + part.occupied.nbytes)
-        if self._file is None and self._bytes > self.budget:
-            self._file, self.blocks_file = SpillFile(), SpillFile()
-            self._parts = [_SpilledPart.put(self._file, p, o) for p, o in self._parts]
         self._parts.append(
             _SpilledPart.put(self._file, part.points, part.occupied) if self._file is not None else (part.points, part.occupied)
         )
 
-    def parts(self) -> Iterator[Observations]:
-        """The parts in order, each read back (if it waited in the file) as it is asked."""
-        for p in self._parts:
+    def take(self) -> Iterator[Observations]:
+        """The parts held, in order, each read back (if it waited in the file) as it is asked and
+        let go."""
+        parts, self._parts = self._parts, []
+        while parts:
+            p = parts.pop(0)
             points, occupied = p.load() if isinstance(p, _SpilledPart) else p
+            del p
             yield Observations(points, occupied, np.zeros(0, dtype=np.int32))
 
     def close(self) -> None:

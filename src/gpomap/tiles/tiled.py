@@ -22,7 +22,7 @@ from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.field import as_points
 from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, ScanPoints, sensor_positions
-from gpomap.resources import POINT_MEMORY, release_freed_memory
+from gpomap.resources import POINT_MEMORY, SpillFile, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
 from gpomap.signature import init_from
@@ -231,18 +231,43 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
         t = t0
         # No clearance here: it is applied per block (see _observations). Scans' points are made
         # a part at a time and counted, held (in memory, or a temporary file for a large log)
-        # until the grid of blocks is known, then filed; never all in memory at once.
+        # until the grid of blocks is known, then filed as they come; never all in memory at once.
         held = _HeldParts(POINT_MEMORY)
+        filing = started = False
+
+        def take(part: Observations) -> None:
+            nonlocal filing, started
+            crossed = held.count(part)
+            if filing:
+                if crossed:
+                    # Past the budget the points filed so far join the others in the file.
+                    assert held.blocks_file is not None
+                    for block in self._block_points.values():
+                        block.spill(held.blocks_file)
+                self._file_part(part, held.blocks_file)
+                return
+            held.hold(part)
+            if part.occupied.size == 0:
+                return
+            if not started:
+                self._start_blocks(held.dim)
+                started = True
+            origin = self._settled_origin(held.lower, held.upper)
+            if origin is not None:
+                self.origin_, filing = origin, True
+                for p in held.take():
+                    self._file_part(p, held.blocks_file)
+
         source: Observations | ScanPoints
         if isinstance(data, Observations):
             source = self.base.make_observations(data, clearance=False)
-            held.add(source)
+            take(source)
             n_free, n_occupied, n_scans = source.n_free, source.n_occupied, source.scan_index.max(initial=-1) + 1
             lower, upper = column_bounds(source.points) if source.occupied.size else (None, None)
             n_invalid, n_no_return = source.n_invalid, source.n_no_return
         else:
             b = self.base
-            source = ScanPoints(data, b.free_step, b.hit_margin, b.no_return_cap, each_part=held.add)
+            source = ScanPoints(data, b.free_step, b.hit_margin, b.no_return_cap, each_part=take)
             n_free, n_occupied, n_scans = source.n_free, source.n_occupied, source.n_scans
             lower, upper = source.lower, source.upper
             n_invalid, n_no_return = source.n_invalid, source.n_no_return
@@ -250,17 +275,14 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
                 raise EmptyDataError(f"no usable readings in {len(data)} scan(s) ({n_invalid} invalid): nothing to map")
             if n_occupied == 0 or n_free == 0:
                 raise EmptyDataError(f"need both free and occupied observations, got {n_free} free and {n_occupied} occupied")
+        if not filing:
+            self._start_blocks(held.dim)
+            self.origin_ = self.origin if self.origin is not None else self._default_origin(lower, upper)
+            for p in held.take():
+                self._file_part(p, held.blocks_file)
+        held.close()
         # The clearance applies to points sampled from scans, not to given points.
         self._clearance = 0.0 if isinstance(data, Observations) else self.base.clearance(held.dim)
-        self._block_points = {}
-        self._blocks = {}
-        self._tiles_with_points = set()
-        self._lower = None
-        self._upper = None
-        self._n_points = self._n_occupied_points = 0
-        self._dim = held.dim
-        self.tile_size_ = self.tile_size if self.tile_size is not None else DEFAULT_TILE_SIZE[self._dim]
-        self.origin_ = self.origin if self.origin is not None else self._default_origin(lower, upper)
         self._dirty = set()
         self._n_scans = int(n_scans)
         self._n_invalid, self._n_no_return = n_invalid, n_no_return
@@ -268,9 +290,6 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
         timings["observations"] = time.perf_counter() - t
 
         t = time.perf_counter()
-        for part in held.parts():
-            self._add_points(np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool), held.blocks_file)
-        held.close()
         asked = self._asked_tiles(given)
         seen = None if asked is None else {b for tile in asked for b in self._blocks_seen_by(tile)}
         self._build_blocks(None if seen is None else sorted(seen & set(self._block_points)))
@@ -340,6 +359,22 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
         self._stale = {}
         self._reused = set()  # tiles last fitted reusing covariances
         return self
+
+    def _file_part(self, part: Observations, spill: SpillFile | None) -> None:
+        """File a part's points under their blocks (:meth:`_add_points`), in `spill` when given."""
+        if part.occupied.size:
+            self._add_points(np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool), spill)
+
+    def _start_blocks(self, dim: int) -> None:
+        """No points filed yet, for data of `dim` dimensions: the tile side set, the origin not."""
+        self._block_points = {}
+        self._blocks = {}
+        self._tiles_with_points = set()
+        self._lower = None
+        self._upper = None
+        self._n_points = self._n_occupied_points = 0
+        self._dim = dim
+        self.tile_size_ = self.tile_size if self.tile_size is not None else DEFAULT_TILE_SIZE[dim]
 
     def _asked_tiles(self, given: dict[str, float] | None) -> list[tuple[int, int]] | None:
         """The tiles a map asked only at :attr:`_asked_at` will predict them with (the tiles
