@@ -991,18 +991,21 @@ def test_a_map_fits_its_surprise_rate_when_asked_against_its_gp_fitted_on_the_ot
     from gpomap.simulate import paper_room_scans
 
     scans = paper_room_scans(n_beams=36, noise_std=0.02)
+    # A 0.3 m clearance, as in the test above: at the planar 0.1 m these thin scans learn a 4 m
+    # length scale and the three fits take 40 s instead of 3; the GP apart is the subject here.
+    clear = {"free_clearance": 0.3}
     # By default the prior: no GP apart, no rate fitted.
-    plain = AreaGPOM(n_workers=1, calibration_scans=10).fit(scans)
+    plain = AreaGPOM(n_workers=1, calibration_scans=10, **clear).fit(scans)
     assert plain.evidence_.gp_apart is None and plain.evidence_.calibration.surprise_rate == SURPRISE_RATE
     assert "surprise_rate" not in plain.evidence_.report
-    # Asked, with 10 of the 31 scans held out (the GP apart fitted on the other 21): a rate, at
-    # least the prior, that every probability of the map is mixed with.
-    model = AreaGPOM(n_workers=1, calibration_scans=10, fit_surprise_rate=True).fit(scans)
+    # Asked, with 10 of the 31 scans held out (the GP apart fitted on the other 21): a rate that
+    # every probability of the map is mixed with, above the prior on these noisy scans.
+    model = AreaGPOM(n_workers=1, calibration_scans=10, fit_surprise_rate=True, **clear).fit(scans)
     rate = model.evidence_.report["surprise_rate"]
-    assert model.evidence_.calibration.surprise_rate == rate >= SURPRISE_RATE
+    assert model.evidence_.calibration.surprise_rate == rate > SURPRISE_RATE
     assert model.get_params()["fit_surprise_rate"] is True
     kept = scans[::2]
-    held = AreaGPOM(n_workers=1).fit(kept, hyperparameters=model.hyperparameters_)
+    held = AreaGPOM(n_workers=1, **clear).fit(kept, hyperparameters=model.hyperparameters_)
     q = np.array([[1.0, 1.0], [5.0, 5.0], [8.0, 2.0], [3.0, 6.5]])
     np.testing.assert_allclose(model.evidence_.gp_apart(kept)(q), held.predict_proba_gp(q), rtol=1e-12)
     # And it is not the map's own GP, which saw the other scans too.
