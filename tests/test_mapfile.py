@@ -93,7 +93,10 @@ def assert_same(a, b, where="model", ignore=frozenset()):
             assert_same(x, y, f"{where}.{name}")
         assert_same(a._near, b._near, f"{where}._near")
         assert_same(a._n_checked, b._n_checked, f"{where}._n_checked")
-        assert set(vars(a)) == set(vars(b)) == {"_parts", "_near", "_n_checked"}, where
+        assert set(vars(a)) == set(vars(b)) == {"_parts", "_runs", "_near", "_n_checked"}, where
+        # Each point's scan, however the points were split into parts.
+        scans = [None if p._runs is None else np.repeat(*map(np.concatenate, zip(*p._runs))) for p in (a, b)]
+        assert_same(*scans, f"{where}._runs")
     elif dataclasses.is_dataclass(a):
         for f in dataclasses.fields(a):
             if f.compare:

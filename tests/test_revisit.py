@@ -234,3 +234,42 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     whole = model._refit().unfitted(fit_revisit=False, ray_evidence=False).fit(scans, hyperparameters=fixed)
     np.testing.assert_array_equal(gp.predict_proba(point), whole.predict_proba(point))
     assert 1 <= len(gp.tiles_) <= 4 < len(whole.tiles_)
+
+
+@pytest.mark.parametrize("updated", [False, True])
+def test_the_map_of_the_rest_takes_this_maps_points_as_making_them_again_would(fitted_tour, updated):
+    # The map of the other stretches files the fitted map's block points without the held-out
+    # scans' (each block knows its points' scans), instead of making them from the scans: the
+    # same points in the same order, so the same blocks, tiles, bounds and answers. A map updated
+    # with later scans knows its new points' scans too.
+    model = fitted_tour
+    scans = model._scans
+    if updated:
+        model = AreaGPOM(**model.get_params()).fit(scans[:30]).update(scans[30:])
+    kept, held = holdout_stretches(len(scans))
+    rest = [scans[i] for i in kept]
+    given = model._kept_points_of(rest)
+    assert given is not None and np.array_equal(given.dropped, held)
+    # Not this map's held-out stretches' others: made from the scans.
+    assert model._kept_points_of(rest[1:]) is None and model._kept_points_of(rest[::-1]) is None
+    fixed = dict(model.hyperparameters_)
+    made, taken = (model._refit().unfitted(fit_revisit=False) for _ in range(2))
+    taken._kept_points = given
+    for m in (made, taken):
+        m._given_calibration = model.evidence_.calibration
+        m.fit(rest, hyperparameters=fixed)
+    assert sorted(made._block_points) == sorted(taken._block_points)
+    for k, block in made._block_points.items():
+        for a, b in zip(block.arrays(), taken._block_points[k].arrays(), strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert made._tiles_with_points == taken._tiles_with_points and sorted(made.tiles_) == sorted(taken.tiles_)
+    np.testing.assert_array_equal(made._lower, taken._lower)
+    np.testing.assert_array_equal(made._upper, taken._upper)
+    untimed = [{k: v for k, v in m.summary().items() if k not in ("timings", "tile_fit_seconds")} for m in (made, taken)]
+    assert untimed[0] == untimed[1]
+    pts = np.random.default_rng(3).uniform([0.0, 0.0], [20.0, 16.0], (2000, 2))
+    np.testing.assert_array_equal(made.predict_proba(pts), taken.predict_proba(pts))
+    # What the map took for its recalibration is the map of the rest made from the scans.
+    p_model, _, _ = model._later_visit_points()
+    p_made, _, _ = rv.later_visit_points(scans, lambda s, q: made.predict_proba(q), model.base.no_return_cap, model.base.seed)
+    np.testing.assert_array_equal(p_model, p_made)

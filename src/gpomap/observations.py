@@ -582,6 +582,16 @@ def natural_subsample(n_points: int, n: int, seed: int) -> NDArray[np.intp]:
     return np.sort(np.random.default_rng(seed).choice(n_points, n, replace=False))
 
 
+def reading_counts(scans: ScanData) -> tuple[int, int]:
+    """The invalid readings and the no-return ones of `scans`, as :class:`ScanPoints` counts them."""
+    n_invalid = n_no_return = 0
+    for scan in scans:
+        rays = Rays.of(scan)
+        n_invalid += rays.n_invalid
+        n_no_return += int(rays.hit.size - np.count_nonzero(rays.hit))
+    return n_invalid, n_no_return
+
+
 def sensor_positions(scans: ScanData) -> NDArray[np.float64]:
     """Where the sensor was for each scan, ndarray of shape (k, d): a planar pose's (x, y), a cloud's origin."""
     return np.array([s.origin if isinstance(s, CloudScan) else s.pose[:2] for s in scans], dtype=float)

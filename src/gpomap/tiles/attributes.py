@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from gpomap.fusion import EvidenceCalibration, EvidenceLayer
 from gpomap.settings import MapSettings
-from gpomap.tiles.points import _BlockCells, _BlockPoints
+from gpomap.tiles.points import KeptPoints, _BlockCells, _BlockPoints
 from gpomap.tiles.tasks import TileFitTask, TileState
 
 
@@ -85,5 +85,8 @@ class TiledAttributes:
     #: The only points the map will be asked about, shape (m, d): its ray counts are taken at their
     #: cells alone (set, with a given calibration, on a map asked at a few points).
     _asked_at: NDArray[np.float64] | None = None
+    #: Another map's points, which this map of some of its scans takes as its own instead of
+    #: making them again (set, with given hyperparameters and origin, on a map of part of a log).
+    _kept_points: KeptPoints | None = None
     #: The tasks of the tiles that wait to be asked, by tile (a map fitted with ``_tiles_when_asked``).
     _waiting: dict[tuple[int, int], tuple[TileFitTask]]

@@ -17,7 +17,7 @@ from gpomap.lattice import column_bounds
 from gpomap.resources import SpillFile
 from gpomap.supports import Supports
 from gpomap.tiles.geometry import _KEY_CHUNK, TileGrid, _box_offset
-from gpomap.tiles.points import _BlockCells, _BlockPoints, _SpilledPart
+from gpomap.tiles.points import _BlockCells, _BlockPoints, _SpilledPart, scan_runs
 from gpomap.tiles.tasks import TileCells
 
 
@@ -41,10 +41,18 @@ class BlockCells(TileGrid):
             member_offsets=c.member_offsets if summed else None,
         )
 
-    def _add_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_], spill: SpillFile | None = None) -> set[int]:
+    def _add_points(
+        self,
+        points: NDArray[np.float64],
+        occupied: NDArray[np.bool_],
+        spill: SpillFile | None = None,
+        scans: NDArray[np.integer[Any]] | None = None,
+    ) -> set[int]:
         """File points under their blocks (in observation order within each) and note their tiles; returns the blocks touched.
 
-        With `spill`, each block's new points wait in that file (:class:`_SpilledPart`) instead of in memory."""
+        With `spill`, each block's new points wait in that file (:class:`_SpilledPart`) instead of
+        in memory. With `scans` (each point's scan, shape (n,), non-decreasing), each block keeps
+        its new points' runs (:func:`~gpomap.tiles.points.scan_runs`)."""
         # Keys per chunk of points, blocks then numbered 0..b-1 in key order: a whole log's int64
         # keys and their sorted copy would be hundreds of megabytes.
         chunks = range(0, points.shape[0], _KEY_CHUNK)
@@ -81,10 +89,11 @@ class BlockCells(TileGrid):
                 continue
             filed: Any = _SpilledPart.put(spill, points[grp], occupied[grp]) if spill is not None else points[grp]
             labels = None if spill is not None else occupied[grp]
+            runs = None if scans is None else scan_runs(scans[grp])
             if k in self._block_points:
-                self._block_points[k].append(filed, labels)
+                self._block_points[k].append(filed, labels, runs)
             else:
-                self._block_points[k] = _BlockPoints(filed, labels)
+                self._block_points[k] = _BlockPoints(filed, labels, runs)
             touched.add(k)
         if points.shape[0]:
             lo, hi = column_bounds(points)

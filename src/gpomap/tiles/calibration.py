@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from gpomap.fusion import EvidenceLayer
 from gpomap.observations import Observations, ScanData, ScanPoints
+from gpomap.tiles.points import KeptPoints
 from gpomap.tiles.prediction import MapPrediction
 from gpomap.tiles.refit import Refit
 
@@ -101,9 +102,22 @@ class CalibrationStages(MapPrediction):
         calibration = None if self.evidence_ is None else self.evidence_.calibration
 
         def fit_rest(scans: list[Any], points: NDArray[np.float64]) -> NDArray[np.float64]:
-            return refit.map_proba(scans, calibration, points)
+            return refit.map_proba(scans, calibration, points, self._kept_points_of(scans))
 
         return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
+
+    def _kept_points_of(self, scans: list[Any]) -> KeptPoints | None:
+        """This map's points without those of the scans not in `scans` (:class:`~gpomap.tiles.points.KeptPoints`),
+        when `scans` are this map's held-out stretches' others (:func:`gpomap.heldout.holdout_stretches`)
+        and every block knows its points' scans; else None."""
+        from gpomap.heldout import holdout_stretches
+
+        if self._scans is None or not all(b._runs is not None for b in self._block_points.values()):
+            return None
+        kept, held = holdout_stretches(len(self._scans))
+        if len(scans) != kept.size or any(s is not self._scans[i] for s, i in zip(scans, kept.tolist(), strict=True)):
+            return None
+        return KeptPoints(self._block_points, held, kept, self._dim)
 
     def _fit_revisit(self, later: tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None) -> dict[str, Any]:
         """Fit the ray evidence's recalibration for a later visit (:meth:`gpomap.revisit.RevisitCalibration.fit`, through

@@ -56,21 +56,58 @@ class _SpilledPart:
         return self.file.get(self.points, np.float64, self.shape), self.file.get(self.occupied, np.bool_, (self.shape[0],))
 
 
+#: The scans a part of a block's points came from, in their order: each run's scan (its index in
+#: the map's scans) and its number of points, two int64 arrays of shape (r,).
+Runs = tuple[NDArray[np.int64], NDArray[np.int64]]
+
+
+def scan_runs(scans: NDArray[np.integer[Any]]) -> Runs:
+    """The runs (:data:`Runs`) of points whose scans are `scans`, shape (n,), non-decreasing."""
+    if scans.size == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    first = np.flatnonzero(np.concatenate([[True], scans[1:] != scans[:-1]]))
+    return scans[first].astype(np.int64), np.diff(np.append(first, scans.size)).astype(np.int64)
+
+
 class _BlockPoints:
     """The observation points of one block in arrival order; updates append, reads join them once
-    (points waiting in a spill file are read back at each read instead, and let go after)."""
+    (points waiting in a spill file are read back at each read instead, and let go after).
+
+    Where every part came with its scans' runs (:data:`Runs`), the block also gives its points
+    without some scans' (:meth:`without`): those a map fitted on the other scans files here.
+    """
 
     # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
     __module__ = "gpomap.tiles"
 
-    def __init__(self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None) -> None:
+    def __init__(
+        self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None, runs: Runs | None = None
+    ) -> None:
         self._parts: list[Any] = [points if isinstance(points, _SpilledPart) else (points, occupied)]
+        # Each part's runs, or None once a part came without them (updates, labelled points given).
+        self._runs: list[Runs] | None = None if runs is None else [runs]
         # Which of the first `_n_checked` points are free within the clearance of a hit among them.
         self._near = np.zeros(0, dtype=bool)
         self._n_checked = 0
 
-    def append(self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None) -> None:
+    def append(
+        self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None, runs: Runs | None = None
+    ) -> None:
+        # A block read back from a map file starts without parts; its runs come with them again.
+        known = runs is not None and (self._runs is not None or not self._parts)
         self._parts.append(points if isinstance(points, _SpilledPart) else (points, occupied))
+        self._runs = [*(self._runs or []), runs] if known and runs is not None else None
+
+    def without(self, scans: NDArray[np.integer[Any]]) -> tuple[NDArray[np.float64], NDArray[np.bool_]] | None:
+        """The block's points and labels but those of `scans` (indices in the map's scans), in
+        their order; None when a part came without its runs."""
+        points, occupied = self.arrays()
+        if self._runs is None:
+            return None
+        ids = np.concatenate([r[0] for r in self._runs])
+        counts = np.concatenate([r[1] for r in self._runs])
+        keep = np.repeat(~np.isin(ids, scans), counts)
+        return points[keep], occupied[keep]
 
     def spill(self, file: SpillFile) -> None:
         """Move the parts held in memory to `file`, in their places."""
@@ -93,6 +130,8 @@ class _BlockPoints:
             return points, occupied
         if len(self._parts) > 1:
             self._parts = [(np.concatenate([p for p, _ in self._parts]), np.concatenate([o for _, o in self._parts]))]
+            if self._runs is not None:
+                self._runs = [(np.concatenate([r[0] for r in self._runs]), np.concatenate([r[1] for r in self._runs]))]
         return self._parts[0]
 
     @property
@@ -127,6 +166,56 @@ class _BlockPoints:
         return near
 
 
+class _KeptBlock(_BlockPoints):
+    """A block's points without some scans' (:meth:`_BlockPoints.without`), read from the block at
+    each read: the block of a map fitted on the other scans, which holds no points of its own."""
+
+    def __init__(self, block: _BlockPoints, dropped: NDArray[np.integer[Any]]) -> None:
+        self._block, self._dropped = block, dropped
+        self._parts, self._runs = [], None
+        self._near = np.zeros(0, dtype=bool)
+        self._n_checked = 0
+
+    def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        kept = self._block.without(self._dropped)
+        if kept is None:
+            raise ValueError("the block's points came without their scans")
+        return kept
+
+    def append(self, points: Any, occupied: Any = None, runs: Runs | None = None) -> None:
+        raise TypeError("a block of another map's points takes no points of its own")
+
+    def last_scan(self) -> int:
+        """The last scan kept with a point here (an index in the other map's scans), -1 for none."""
+        runs = self._block._runs or []
+        ids = np.concatenate([r[0] for r in runs]) if runs else np.zeros(0, dtype=np.int64)
+        ids = ids[~np.isin(ids, self._dropped)]
+        return int(ids.max()) if ids.size else -1
+
+
+@dataclass(frozen=True)
+class KeptPoints:
+    """A fitted map's points but those of some of its scans, by block: what the same map fitted
+    on the other scans files, in the same order, without making them again from the scans.
+
+    Attributes
+    ----------
+    blocks : dict
+        The fitted map's blocks (:class:`_BlockPoints`) by key, each with its scans' runs.
+    dropped : ndarray of int, shape (h,)
+        The scans left out, as indices in the fitted map's scans.
+    kept : ndarray of int, shape (k,)
+        The scans kept, in the same numbering, in order: the other map's scans.
+    dim : int
+        Of the points.
+    """
+
+    blocks: dict[int, _BlockPoints]
+    dropped: NDArray[np.intp]
+    kept: NDArray[np.intp]
+    dim: int
+
+
 class _HeldParts:
     """A log's labelled points, a part at a time, held until the grid of blocks is known.
 
@@ -136,8 +225,10 @@ class _HeldParts:
     known the parts are taken (:meth:`take`) as they come, and never wait in the first file.
     """
 
-    def __init__(self, budget: int) -> None:
+    def __init__(self, budget: int, with_scans: bool = True) -> None:
         self.budget = int(budget)
+        # Whether the parts' scans are held too (points made from scans, in scan order).
+        self.with_scans = with_scans
         self._parts: list[Any] = []
         self._bytes = 0
         self._file: SpillFile | None = None
@@ -159,26 +250,30 @@ class _HeldParts:
         if self._file is not None or self._bytes <= self.budget:
             return False
         self._file, self.blocks_file = SpillFile(), SpillFile()
-        self._parts = [_SpilledPart.put(self._file, p, o) for p, o in self._parts]
+        self._parts = [(_SpilledPart.put(self._file, p, o), None, runs) for p, o, runs in self._parts]
         return True
 
     def hold(self, part: Observations) -> None:
-        """Hold `part` (counted already) until it is taken: in the first file past the budget."""
+        """Hold `part` (counted already) until it is taken: in the first file past the budget.
+        Its scans are held as runs (:func:`scan_runs`)."""
         if part.occupied.size == 0:
             return
-        self._parts.append(
-            _SpilledPart.put(self._file, part.points, part.occupied) if self._file is not None else (part.points, part.occupied)
-        )
+        runs = scan_runs(np.asarray(part.scan_index)) if self.with_scans else None
+        if self._file is not None:
+            self._parts.append((_SpilledPart.put(self._file, part.points, part.occupied), None, runs))
+        else:
+            self._parts.append((part.points, part.occupied, runs))
 
     def take(self) -> Iterator[Observations]:
         """The parts held, in order, each read back (if it waited in the file) as it is asked and
         let go."""
         parts, self._parts = self._parts, []
         while parts:
-            p = parts.pop(0)
-            points, occupied = p.load() if isinstance(p, _SpilledPart) else p
-            del p
-            yield Observations(points, occupied, np.zeros(0, dtype=np.int32))
+            p, o, runs = parts.pop(0)
+            points, occupied = p.load() if isinstance(p, _SpilledPart) else (p, o)
+            del p, o
+            scans = np.zeros(0, dtype=np.int32) if runs is None else np.repeat(runs[0], runs[1]).astype(np.int32)
+            yield Observations(points, occupied, scans)
 
     def close(self) -> None:
         self._parts = []

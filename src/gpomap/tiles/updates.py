@@ -57,7 +57,11 @@ class TileUpdates(TileFits, MapReport):
         except EmptyDataError:  # scans with no usable beam add a pose to the path and nothing else
             obs = None
         if obs is not None:
-            self._dirty |= self._add_points(np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool))
+            # Each point's scan, numbered as the map's scans (those kept): a block then knows them.
+            numbered = None if self._scans is None else np.asarray(obs.scan_index) + len(self._scans)
+            self._dirty |= self._add_points(
+                np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool), scans=numbered
+            )
             self._n_invalid += obs.n_invalid
             self._n_no_return += obs.n_no_return
         self._n_scans += len(scans)

@@ -26,6 +26,8 @@ NOT_SAVED: dict[str, dict[str, Any]] = {
     # A layer counted only at given points (a map asked at a few points while fitting) is never saved.
     "gpomap.fusion.EvidenceLayer": {"_at_surface": None, "_joined": None, "_grid_cache": None, "_asked_at": None, "_cells": None},
     "gpomap.gp.GPPosterior": {"precision": None},
+    # Block points made again from the scans are filed with their runs again (_restore_points).
+    "gpomap.tiles._BlockPoints": {"_runs": None},
 }
 
 
@@ -496,9 +498,10 @@ def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:
     try:
         obs = observations_from_scans(model._scans, b.free_step, b.hit_margin, b.no_return_cap)
         points, occupied = np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool)
+        scans = np.asarray(obs.scan_index)
     except EmptyDataError:
-        points, occupied = np.zeros((0, model._dim)), np.zeros(0, dtype=bool)
-    model._add_points(points, occupied)
+        points, occupied, scans = np.zeros((0, model._dim)), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int32)
+    model._add_points(points, occupied, scans=scans)
     model._lower, model._upper = lower, upper
     now = (model._n_points, model._n_occupied_points, set(model._tiles_with_points), len(model._block_points))
     if now != saved or any(bp.arrays()[0].shape[0] != n for bp, n in blocks):
