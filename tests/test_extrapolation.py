@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
 import gpomap.extrapolation as ex
@@ -73,10 +74,12 @@ def _room_scans():
 
 
 def _truth(scans):
-    hits = np.concatenate([s.hits() for s in scans])
+    hits = cKDTree(np.concatenate([s.hits() for s in scans]))
 
     def occupied(points):
-        d = np.sqrt(((points[:, None, :] - hits[None, :, :]) ** 2).sum(axis=2)).min(axis=1)
+        # Each point's distance to its nearest hit, by a k-d tree: all pairs at once took most of
+        # these tests' time (8 s of one test's 11).
+        d, _ = hits.query(points, distance_upper_bound=1e-6)
         return d < 1e-9
 
     return occupied
