@@ -188,9 +188,9 @@ def test_stream_writes_each_map_through_the_shared_path(tmp_path, writes):
     from gpomap.cli.stream import mapper_from_args
 
     out = tmp_path / "live"
-    line = ["stream", str(INTEL), "--range", "0:23", "--warmup", "20", "--rate", "0", "--every", "0", "--resolution", "0.5"]
+    line = ["stream", str(INTEL), "--range", "0:13", "--warmup", "10", "--rate", "0", "--every", "0", "--resolution", "0.5"]
     assert main([*line, "-o", str(out), *FAST]) == 0
-    # After each scan once warmed up (20, 21, 22, 23), and the map of all 23 fitted again at the end.
+    # After each scan once warmed up (10, 11, 12, 13), and the map of all 13 fitted again at the end.
     assert len(writes) == 5 and all(caller == SHARED_PATH for caller, _ in writes)
     # The same replay, each map the streaming mapper's grid written directly.
     args = build_parser().parse_args([*line, "-o", str(out), *FAST])
@@ -204,7 +204,7 @@ def test_stream_writes_each_map_through_the_shared_path(tmp_path, writes):
             grids.append((n, mapper.grid(0.5)))
     mapper.relearn()
     grids.append((len(scans), mapper.model_.grid(0.5)))
-    assert [n for n, _ in grids] == [20, 21, 22, 23, 23]
+    assert [n for n, _ in grids] == [10, 11, 12, 13, 13]
     for i, ((n, grid), (_, files)) in enumerate(zip(grids, writes, strict=True)):
         title = f"gpomap stream: {INTEL.name} ({n} of {len(scans)} scans)"
         same_files(files, expected_files(grid, tmp_path / f"expected-{i}", title))
