@@ -900,13 +900,18 @@ def test_a_calibrated_map_calls_occupied_what_is_more_likely_occupied_than_not()
     assert (above & seen).any() and (above & ~seen).any()
     np.testing.assert_array_equal(m.ternary == 1, above & ~seen)
     np.testing.assert_array_equal(m.ternary[above & seen], -1)
-    # The same at points: those of the map written on the counted lattice, at its cell centres.
+    # The same at points: those of the map written on the counted lattice, at its cell centres;
+    # predicted at those the map puts above the threshold and every 9th of the others (all 133,000
+    # took half the test's time).
     on = model.grid(0.05)
     centres = on.grid.centres()
     seen_at = model.evidence_.seen_through_at(centres)
     assert on.seen_through is not None and seen_at is not None
     np.testing.assert_array_equal(seen_at, on.seen_through.ravel())
-    np.testing.assert_array_equal(model.predict_ternary(centres) == 1, (model.predict_proba(centres) > fitted) & ~seen_at)
+    pick = (on.probability.ravel() > fitted) | (np.arange(len(centres)) % 9 == 0)
+    p_at, occupied_at = model.predict_proba(centres[pick]), model.predict_ternary(centres[pick]) == 1
+    assert occupied_at.any() and ((p_at > fitted) & seen_at[pick]).any()  # both cases among them
+    np.testing.assert_array_equal(occupied_at, (p_at > fitted) & ~seen_at[pick])
     # Given thresholds are kept; without ray evidence the GP alone is not calibrated: the paper's.
     assert AreaGPOM(thresholds=(0.2, 0.7), **clear).fit(scans).thresholds_ == (0.2, 0.7)
     assert AreaGPOM(ray_evidence=False, **clear).fit(scans).thresholds_ == DEFAULT_THRESHOLDS
