@@ -66,6 +66,8 @@ def walk_segment(
     (:class:`gpomap.raycast.Segments`); `t_cross`, `key_cross` hold at least its crossings;
     `work` is scratch of shape (4, d)."""
     d = p0.shape[1]
+    if d == 2:
+        return _walk_plane(p0, p1, s, place, length, shape, out, at)
     count, run, pos, cell = work[0], work[1], work[2], work[3]
     # Each axis's crossings in travel order, as the numpy path computes them: the lines are
     # whole numbers, exact whichever way they are summed.
@@ -116,6 +118,71 @@ def walk_segment(
             if inside:
                 for a in range(d):
                     out[a, at + n] = cell[a]
+                n += 1
+        prev = t
+    return n
+
+
+@jit(cache=True, nogil=True)
+def _walk_plane(
+    p0: NDArray[np.float64],
+    p1: NDArray[np.float64],
+    s: int,
+    place: int,
+    length: float,
+    shape: NDArray[np.int64],
+    out: NDArray[np.intp],
+    at: int,
+) -> int:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+    """:func:`walk_segment` of a planar segment: the same arithmetic in the same order, each
+    axis's next crossing held in scalars and computed when the last is taken, instead of listed
+    and merged through arrays (which kept the generic walk's state out of registers)."""
+    x0, y0, x1, y1 = p0[s, 0], p0[s, 1], p1[s, 0], p1[s, 1]
+    fx = math.floor(min(x0, x1)) + 1.0
+    nx = max(int(math.ceil(max(x0, x1)) - fx), 0)
+    fy = math.floor(min(y0, y1)) + 1.0
+    ny = max(int(math.ceil(max(y0, y1)) - fy), 0)
+    down_x, down_y = x1 < x0, y1 < y0
+    base = 4.0 * np.float64(place)
+    jx = jy = 0
+    tx = kx = ty = ky = 0.0
+    if nx > 0:
+        line = (fx + np.float64(nx) - 1.0) if down_x else fx
+        tx = (line - x0) / (x1 - x0)
+        kx = base + 2.0 * tx
+    if ny > 0:
+        line = (fy + np.float64(ny) - 1.0) if down_y else fy
+        ty = (line - y0) / (y1 - y0)
+        ky = base + 2.0 * ty
+    n = 0
+    prev = 0.0
+    m = nx + ny
+    for step in range(m + 1):
+        if step < m:
+            # The smaller key first, ties to x (the lower axis), as the generic merge takes them.
+            if jx < nx and (jy >= ny or not ky < kx):
+                t = tx
+                jx += 1
+                if jx < nx:
+                    line = (fx + np.float64(nx) - 1.0) - np.float64(jx) if down_x else fx + np.float64(jx)
+                    tx = (line - x0) / (x1 - x0)
+                    kx = base + 2.0 * tx
+            else:
+                t = ty
+                jy += 1
+                if jy < ny:
+                    line = (fy + np.float64(ny) - 1.0) - np.float64(jy) if down_y else fy + np.float64(jy)
+                    ty = (line - y0) / (y1 - y0)
+                    ky = base + 2.0 * ty
+        else:
+            t = 1.0
+        if (t - prev) * length > 1e-9 or length == 0:
+            tm = 0.5 * (prev + t)
+            iy = np.intp(math.floor(y0 + tm * (y1 - y0)))
+            ix = np.intp(math.floor(x0 + tm * (x1 - x0)))
+            if iy >= 0 and iy < shape[0] and ix >= 0 and ix < shape[1]:
+                out[0, at + n] = iy
+                out[1, at + n] = ix
                 n += 1
         prev = t
     return n
