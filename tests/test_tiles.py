@@ -360,11 +360,13 @@ def test_pool_workers_share_the_cores_for_blas(room, reference, monkeypatch, wor
     opts = {"tile_size": 6.0, "overlap": 2.5, "n_workers": 2, "worker_processes": worker_processes, **OPTS}
     before = threadpoolctl.threadpool_info()
     # As if on 4 or 2 cores with one or two BLAS libraries (both are counted in gpomap.lapack):
-    # 2 workers get the cores shared out among them and the libraries.
+    # 2 workers get the cores shared out among them and the libraries. The room's first 6 scans
+    # (13 tiles, shared by both workers) are enough: each fit is only asked its threads.
     for cores, libraries, threads in ((4, 1, 2), (4, 2, 1), (2, 1, 1)):
         monkeypatch.setattr(lapack, "available_cores", lambda c=cores: c)
         monkeypatch.setattr(lapack, "blas_libraries", lambda n=libraries: n)
-        model = TiledGPOM(**opts).fit(room, hyperparameters=hyp)
+        model = TiledGPOM(**opts).fit(room[:6], hyperparameters=hyp)
+        assert len(model.tiles_) > 2
         assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {threads}
     assert threadpoolctl.threadpool_info() == before  # this process keeps its own
 
@@ -375,12 +377,12 @@ def test_stages_in_this_process_share_the_cores_for_blas(room, reference, monkey
     hyp, _ = reference
     monkeypatch.setattr(tile_fits, "fit_tile_task", _blas_threads_fit)
     before = threadpoolctl.threadpool_info()
-    # The room's first 6 scans (13 tiles): up to 4 BLAS threads on the 2 cores the tests run on
+    # The room's first 3 scans (11 tiles): up to 4 BLAS threads on the 2 cores the tests run on
     # make the whole room's fit 6x slower than the pool's.
     for libraries, threads in ((1, 4), (2, 2)):
         monkeypatch.setattr(lapack, "available_cores", lambda: 4)
         monkeypatch.setattr(lapack, "blas_libraries", lambda n=libraries: n)
-        model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS).fit(room[:6], hyperparameters=hyp)
+        model = TiledGPOM(tile_size=6.0, overlap=2.5, n_workers=1, **OPTS).fit(room[:3], hyperparameters=hyp)
         assert len(model.tiles_) > 1
         assert {s.hyperparameters["blas_threads"] for s in model.tiles_.values()} == {threads}
     assert threadpoolctl.threadpool_info() == before
