@@ -19,38 +19,41 @@ from pathlib import Path
 
 import pytest
 
-#: Files taking more than about 3 s, longest first (measured per file with -n 2: CPU seconds, and
-#: the waits of the files that run real processes, roscore and rosbag play, signals, a replay at
-#: the recorded rate). A file not listed runs after these, in its usual order.
+#: Files taking more than about 4 s, longest first (measured per file in the whole suite under
+#: -n 2: the two files that run ROS processes first, for their waits, then by seconds). A file not
+#: listed runs after these, in its usual order.
 LONGEST_FIRST = [
     "test_ros_node.py",
     "test_ros2_node.py",
     "test_cli.py",
     "test_tiles.py",
-    "test_mapping.py",
+    "test_comparison.py",
+    "test_cli_writing.py",
     "test_distributed.py",
-    "test_local_prediction.py",
-    "test_outputs_atomic.py",
-    "test_convert.py",
     "test_mapfile_cli.py",
+    "test_mapping.py",
+    "test_fusion.py",
     "test_mapfile.py",
     "test_stream_cli.py",
-    "test_streaming.py",
-    "test_fusion.py",
-    "test_map3d_cli.py",
-    "test_readme.py",
-    "test_tensor_kernel.py",
-    "test_kernels.py",
-    "test_protocol.py",
-    "test_ros_messages.py",
     "test_extrapolation.py",
-    "test_ogm.py",
-    "test_plot.py",
-    "test_io_carmen.py",
-    "test_fuzz_readers.py",
+    "test_outputs_atomic.py",
+    "test_revisit.py",
+    "test_convert.py",
+    "test_local_prediction.py",
+    "test_cli_convert.py",
+    "test_stages.py",
+    "test_truth_map.py",
     "test_benchmark.py",
+    "test_estimator_params.py",
     "test_cli_checks.py",
-    "test_gp.py",
+    "test_clearance.py",
+    "test_io_carmen.py",
+    "test_compiled_cache.py",
+    "test_voxels_map3d.py",
+    "test_streaming.py",
+    "test_fitted.py",
+    "test_tensor_compiled.py",
+    "test_protocol.py",
 ]
 _RANK = {name: i for i, name in enumerate(LONGEST_FIRST)}
 _BLAS_LIMIT = []
