@@ -5,18 +5,17 @@ from __future__ import annotations
 import json
 import os
 import zipfile
-import zlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
 
 from gpomap.errors import GpomapError, InputFormatError
 from gpomap.io.atomic import atomic_write
 from gpomap.io.checks import MAX_NPZ_ARRAY_BYTES, load_npz, regular_file
 from gpomap.io.mapfile.encoding import _HEADER, _name, _Reader, _StateError, _Writer
+from gpomap.io.members import write_member
 
 FORMAT = "gpomap-fitted-map"
 #: Raised whenever what a map file holds changes; a file of another version is refused.
@@ -49,41 +48,13 @@ def _summary(model: Any) -> dict[str, Any]:
     }
 
 
-#: Bytes of an array deflate is tried on before the whole array is (:func:`_deflates`): a building's
-#: map file holds tens of thousands of arrays (each tile's factor, cells and weights).
-_DEFLATE_SAMPLE = 1 << 13
-
-
-#: zlib's level for the members deflated: the fastest. A map's counts and flags shrink nearly as
-#: much as at zlib's default, in a fraction of its time (docs/choices.md, "Measured for the code").
-DEFLATE_LEVEL: int = 1
-
-
-def _deflates(array: NDArray[Any]) -> bool:
-    """Whether to deflate `array`'s member: when its first bytes shrink by a fifth at least (ray
-    counts, flags, offsets, beam angles repeated scan after scan, the header). Cholesky factors and
-    ranges barely shrink, and deflating them would cost more time than it saves bytes."""
-    raw = np.ascontiguousarray(array).view(np.uint8).reshape(-1)[:_DEFLATE_SAMPLE].tobytes()
-    return len(raw) < 1024 or len(zlib.compress(raw, 1)) < 0.8 * len(raw)
-
-
-def _write_member(zf: zipfile.ZipFile, key: str, array: NDArray[Any]) -> None:
-    """One array as the member ``KEY.npy``, deflated where that pays (:func:`_deflates`)."""
-    info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-    info.compress_type = zipfile.ZIP_DEFLATED if _deflates(array) else zipfile.ZIP_STORED
-    # zipfile reads a member's level from its ZipInfo: compress_level from Python 3.13, _compresslevel before.
-    setattr(info, "compress_level" if hasattr(info, "compress_level") else "_compresslevel", DEFLATE_LEVEL)
-    with zf.open(info, "w", force_zip64=array.nbytes > (1 << 30)) as member:
-        np.lib.format.write_array(member, array, allow_pickle=False)
-
-
 def _write(path: str | os.PathLike[str], obj: Any, where: str, header: Callable[[Any], dict[str, Any]]) -> Path:
     """The archive of `obj`: every array as the state is encoded, then the header (``header(state)``)."""
     target = Path(path)
     with atomic_write(target, "wb") as f, zipfile.ZipFile(f, "w", allowZip64=True) as zf:
-        state = _Writer(lambda key, array: _write_member(zf, key, array)).encode(obj, where)
+        state = _Writer(lambda key, array: write_member(zf, key, array)).encode(obj, where)
         text = json.dumps(header(state), allow_nan=True, separators=(",", ":"))
-        _write_member(zf, _HEADER, np.array(text))
+        write_member(zf, _HEADER, np.array(text))
     return target
 
 
