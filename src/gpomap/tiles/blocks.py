@@ -14,10 +14,11 @@ from numpy.typing import NDArray
 
 from gpomap.cells import build_cells
 from gpomap.lattice import column_bounds
+from gpomap.observations import Observations
 from gpomap.resources import SpillFile
 from gpomap.supports import Supports
-from gpomap.tiles.geometry import _KEY_CHUNK, TileGrid, _box_offset
-from gpomap.tiles.points import _BlockCells, _BlockPoints, _SpilledPart, scan_runs
+from gpomap.tiles.geometry import _KEY_CHUNK, DEFAULT_TILE_SIZE, TileGrid, _box_offset
+from gpomap.tiles.points import KeptPoints, _BlockCells, _BlockPoints, _HeldParts, _KeptBlock, _SpilledPart, scan_runs
 from gpomap.tiles.tasks import TileCells
 
 
@@ -103,6 +104,52 @@ class BlockCells(TileGrid):
         self._n_occupied_points += int(occupied.sum())
         return touched
 
+    def _file_part(self, part: Observations, spill: SpillFile | None, with_scans: bool) -> None:
+        """File a part's points under their blocks (:meth:`_add_points`), in `spill` when given;
+        `with_scans`, with their scans' runs (points made from scans: a map of some of the scans
+        reuses them)."""
+        if part.occupied.size:
+            scans = np.asarray(part.scan_index) if with_scans else None
+            self._add_points(np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool), spill, scans)
+
+    def _file_kept(self, kept: KeptPoints) -> tuple[int, int, int, NDArray[np.float64] | None, NDArray[np.float64] | None]:
+        """Take a fitted map's blocks without the scans it leaves out (:class:`~gpomap.tiles.points.KeptPoints`)
+        as this map's, fitted on the others with the fitted map's origin: the points, blocks and
+        tiles that making the points again from those scans would file. Returns the free and
+        occupied points, one past the last scan with a point, and the points' bounds."""
+        if self.origin is None:
+            raise ValueError("a map of another map's points takes its origin")
+        self._start_blocks(kept.dim)
+        self.origin_ = (float(self.origin[0]), float(self.origin[1]))
+        last = -1
+        for key, block in kept.blocks.items():
+            own = _KeptBlock(block, kept.dropped)
+            points, occupied = own.arrays()
+            if occupied.size == 0:
+                continue
+            self._block_points[key] = own
+            self._tiles_with_points.update(self._present_keys(points, self.tile_size_).tolist())
+            lo, hi = column_bounds(points)
+            self._lower = lo if self._lower is None else np.minimum(self._lower, lo)
+            self._upper = hi if self._upper is None else np.maximum(self._upper, hi)
+            self._n_points += int(occupied.size)
+            self._n_occupied_points += int(occupied.sum())
+            last = max(last, own.last_scan())
+        n_scans = int(np.searchsorted(kept.kept, last)) + 1 if last >= 0 else 0
+        n_occupied = self._n_occupied_points
+        return self._n_points - n_occupied, n_occupied, n_scans, self._lower, self._upper
+
+    def _start_blocks(self, dim: int) -> None:
+        """No points filed yet, for data of `dim` dimensions: the tile side set, the origin not."""
+        self._block_points = {}
+        self._blocks = {}
+        self._tiles_with_points = set()
+        self._lower = None
+        self._upper = None
+        self._n_points = self._n_occupied_points = 0
+        self._dim = dim
+        self.tile_size_ = self.tile_size if self.tile_size is not None else DEFAULT_TILE_SIZE[dim]
+
     def _build_blocks(self, keys: Sequence[int] | None = None) -> None:
         """(Re)build the cell trees of the given blocks (all when None)."""
         if keys is None:
@@ -157,3 +204,52 @@ class BlockCells(TileGrid):
         cnt = np.concatenate([self._blocks[k].counts for k in keys])
         lab = np.concatenate([np.where(self._blocks[k].occupied, 1.0, -1.0) for k in keys])
         return lo, hi, cnt, lab, keys
+
+
+class PointFiling:
+    """A log's points, a part at a time as they are made, filed under a map's blocks
+    (:meth:`BlockCells._add_points`) as soon as the grid of blocks is settled
+    (:meth:`~gpomap.tiles.geometry.TileGrid._settled_origin`), held in `held` until then.
+
+    Past `held`'s budget the blocks keep their points in its spill file, those filed in memory
+    before included; so a large log's points are written once, under their blocks.
+    """
+
+    def __init__(self, blocks: BlockCells, held: _HeldParts) -> None:
+        self.blocks, self.held = blocks, held
+        self.filing = False
+        self._started = False
+
+    def __call__(self, part: Observations) -> None:
+        """Take the next part."""
+        held, blocks = self.held, self.blocks
+        crossed = held.count(part)
+        if self.filing:
+            if crossed:
+                assert held.blocks_file is not None
+                for block in blocks._block_points.values():
+                    block.spill(held.blocks_file)
+            blocks._file_part(part, held.blocks_file, held.with_scans)
+            return
+        held.hold(part)
+        if part.occupied.size == 0:
+            return
+        if not self._started:
+            blocks._start_blocks(held.dim)
+            self._started = True
+        origin = blocks._settled_origin(held.lower, held.upper)
+        if origin is not None:
+            blocks.origin_, self.filing = origin, True
+            for p in held.take():
+                blocks._file_part(p, held.blocks_file, held.with_scans)
+
+    def finish(self, lower: NDArray[np.float64] | None, upper: NDArray[np.float64] | None) -> None:
+        """After the last part: file what still waits, on the origin of every point's bounds
+        `lower`..`upper` (shape (d,) each; None without points)."""
+        if self.filing:
+            return
+        blocks = self.blocks
+        blocks._start_blocks(self.held.dim)
+        blocks.origin_ = blocks.origin if blocks.origin is not None else blocks._default_origin(lower, upper)
+        for p in self.held.take():
+            blocks._file_part(p, self.held.blocks_file, self.held.with_scans)

@@ -15,23 +15,20 @@ from collections.abc import Sequence
 from contextlib import nullcontext
 from typing import Any, ClassVar, Self
 
-import numpy as np
-from numpy.typing import NDArray
-
 from gpomap.config import MapConfig, TiledConfig, TilingConfig
 from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.field import as_points
 from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, ScanData, ScanPoints, reading_counts, sensor_positions
-from gpomap.resources import POINT_MEMORY, SpillFile, release_freed_memory
+from gpomap.resources import POINT_MEMORY, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
 from gpomap.signature import init_from
+from gpomap.tiles.blocks import PointFiling
 from gpomap.tiles.calibration import CalibrationStages
 from gpomap.tiles.executors import _blas_shared
-from gpomap.tiles.geometry import DEFAULT_TILE_SIZE
 from gpomap.tiles.hyperparameters import HyperparameterSearch, given_hyperparameters
-from gpomap.tiles.points import KeptPoints, _HeldParts, _KeptBlock
+from gpomap.tiles.points import _HeldParts
 from gpomap.tiles.refit import Refit
 from gpomap.tiles.store import TileStore
 from gpomap.tiles.updates import TileUpdates
@@ -234,47 +231,23 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
         # a part at a time and counted, held (in memory, or a temporary file for a large log)
         # until the grid of blocks is known, then filed as they come; never all in memory at once.
         held = _HeldParts(POINT_MEMORY, with_scans=not isinstance(data, Observations))
-        filing = started = False
-
-        def take(part: Observations) -> None:
-            nonlocal filing, started
-            crossed = held.count(part)
-            if filing:
-                if crossed:
-                    # Past the budget the points filed so far join the others in the file.
-                    assert held.blocks_file is not None
-                    for block in self._block_points.values():
-                        block.spill(held.blocks_file)
-                self._file_part(part, held.blocks_file, held.with_scans)
-                return
-            held.hold(part)
-            if part.occupied.size == 0:
-                return
-            if not started:
-                self._start_blocks(held.dim)
-                started = True
-            origin = self._settled_origin(held.lower, held.upper)
-            if origin is not None:
-                self.origin_, filing = origin, True
-                for p in held.take():
-                    self._file_part(p, held.blocks_file, held.with_scans)
-
+        filing = PointFiling(self, held)
         source: Observations | ScanPoints | None
         kept = self._kept_points
         if kept is not None and not isinstance(data, Observations) and given is not None and "variance_scale" in given:
-            # A map of some of a fitted map's scans: its points are the fitted map's but theirs.
+            # A map of some of a fitted map's scans: its points are the fitted map's without the others'.
             n_free, n_occupied, n_scans, lower, upper = self._file_kept(kept)
             n_invalid, n_no_return = reading_counts(data)
-            source, filing = None, True
+            source = None
         elif isinstance(data, Observations):
             source = self.base.make_observations(data, clearance=False)
-            take(source)
+            filing(source)
             n_free, n_occupied, n_scans = source.n_free, source.n_occupied, source.scan_index.max(initial=-1) + 1
             lower, upper = column_bounds(source.points) if source.occupied.size else (None, None)
             n_invalid, n_no_return = source.n_invalid, source.n_no_return
         else:
             b = self.base
-            source = ScanPoints(data, b.free_step, b.hit_margin, b.no_return_cap, each_part=take)
+            source = ScanPoints(data, b.free_step, b.hit_margin, b.no_return_cap, each_part=filing)
             n_free, n_occupied, n_scans = source.n_free, source.n_occupied, source.n_scans
             lower, upper = source.lower, source.upper
             n_invalid, n_no_return = source.n_invalid, source.n_no_return
@@ -283,11 +256,8 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
                 raise EmptyDataError(f"no usable readings in {len(data)} scan(s) ({n_invalid} invalid): nothing to map")
             if n_occupied == 0 or n_free == 0:
                 raise EmptyDataError(f"need both free and occupied observations, got {n_free} free and {n_occupied} occupied")
-        if not filing:
-            self._start_blocks(held.dim)
-            self.origin_ = self.origin if self.origin is not None else self._default_origin(lower, upper)
-            for p in held.take():
-                self._file_part(p, held.blocks_file, held.with_scans)
+        if source is not None:
+            filing.finish(lower, upper)
         held.close()
         # The clearance applies to points sampled from scans, not to given points.
         self._clearance = 0.0 if isinstance(data, Observations) else self.base.clearance(self._dim)
@@ -367,52 +337,6 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
         self._stale = {}
         self._reused = set()  # tiles last fitted reusing covariances
         return self
-
-    def _file_part(self, part: Observations, spill: SpillFile | None, with_scans: bool) -> None:
-        """File a part's points under their blocks (:meth:`_add_points`), in `spill` when given;
-        `with_scans`, with their scans' runs (points made from scans: a map of some of the scans
-        reuses them)."""
-        if part.occupied.size:
-            scans = np.asarray(part.scan_index) if with_scans else None
-            self._add_points(np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool), spill, scans)
-
-    def _file_kept(self, kept: KeptPoints) -> tuple[int, int, int, NDArray[np.float64] | None, NDArray[np.float64] | None]:
-        """Take a fitted map's blocks without the scans it leaves out (:class:`~gpomap.tiles.points.KeptPoints`)
-        as this map's, fitted on the others with the fitted map's origin: the points, blocks and
-        tiles that making the points again from those scans would file. Returns the free and
-        occupied points, one past the last scan with a point, and the points' bounds."""
-        if self.origin is None:
-            raise ValueError("a map of another map's points takes its origin")
-        self._start_blocks(kept.dim)
-        self.origin_ = (float(self.origin[0]), float(self.origin[1]))
-        last = -1
-        for key, block in kept.blocks.items():
-            own = _KeptBlock(block, kept.dropped)
-            points, occupied = own.arrays()
-            if occupied.size == 0:
-                continue
-            self._block_points[key] = own
-            self._tiles_with_points.update(self._present_keys(points, self.tile_size_).tolist())
-            lo, hi = column_bounds(points)
-            self._lower = lo if self._lower is None else np.minimum(self._lower, lo)
-            self._upper = hi if self._upper is None else np.maximum(self._upper, hi)
-            self._n_points += int(occupied.size)
-            self._n_occupied_points += int(occupied.sum())
-            last = max(last, own.last_scan())
-        n_scans = int(np.searchsorted(kept.kept, last)) + 1 if last >= 0 else 0
-        n_occupied = self._n_occupied_points
-        return self._n_points - n_occupied, n_occupied, n_scans, self._lower, self._upper
-
-    def _start_blocks(self, dim: int) -> None:
-        """No points filed yet, for data of `dim` dimensions: the tile side set, the origin not."""
-        self._block_points = {}
-        self._blocks = {}
-        self._tiles_with_points = set()
-        self._lower = None
-        self._upper = None
-        self._n_points = self._n_occupied_points = 0
-        self._dim = dim
-        self.tile_size_ = self.tile_size if self.tile_size is not None else DEFAULT_TILE_SIZE[dim]
 
     def _asked_tiles(self, given: dict[str, float] | None) -> list[tuple[int, int]] | None:
         """The tiles a map asked only at :attr:`_asked_at` will predict them with (the tiles
