@@ -1,8 +1,9 @@
 """The ROS 2 node for real: ``python -m gpomap.ros2``, a player and a client, three rclpy processes on loopback.
 
-The player replays the Stage arena bag: its ``/base_scan`` LaserScan messages and, as
-``nav_msgs/Odometry``, its tf edge odom -> base_footprint (the laser sits 0.225 m ahead of it:
-the node's ``sensor_pose``). The client records every message on ``/map``, ``/map_probability``,
+The player replays the first 20 s of the Stage arena bag (its first 200 scans): its ``/base_scan``
+LaserScan messages and, as ``nav_msgs/Odometry``, its tf edge odom -> base_footprint (the laser
+sits 0.225 m ahead of it: the node's ``sensor_pose``), the odometry ending at the last scan's stamp
+as the bag's does. The client records every message on ``/map``, ``/map_probability``,
 ``/map_variance`` and ``/gpomap/status``; once the node has used every scan it calls
 ``/gpomap/save_map``, ``/gpomap/render`` (five requests) and ``/gpomap/query``, and writes what it
 got as JSON. The test checks the node used the scans the batch reader uses; the messages are well
@@ -37,8 +38,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 ARENA = ROOT.parent / "shared" / "data" / "stage-arena"
 BAG = ARENA / "robot1.bag"
-#: LaserScan messages on /base_scan in the bag.
-N_MESSAGES = 433
+#: LaserScan messages replayed: the bag's first 200 of 433 on /base_scan (20 s of its 43 s).
+N_MESSAGES = 200
 RESOLUTION = 0.05
 #: base_footprint -> base_link -> base_laser_link in the bag's tf: the laser 0.225 m ahead, level.
 SENSOR_POSE = [0.225, 0.0, 0.0]
@@ -58,7 +59,8 @@ _SKIP = _why_skip()
 needs_ros2 = pytest.mark.skipif(_SKIP is not None, reason=_SKIP or "")
 needs_bag = pytest.mark.skipif(not BAG.exists(), reason=f"shared Stage arena bag not present ({BAG})")
 
-# Replays the bag's scans and odometry at 10x once the node listens; exits when all are acknowledged.
+# Replays the bag's first N scans and the odometry up to the last one's stamp at 10x once the client
+# is ready (the file it names exists) and the node listens; exits when all are acknowledged.
 PLAYER = r"""
 import sys, time
 import rclpy
@@ -70,7 +72,7 @@ from builtin_interfaces.msg import Time
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import LaserScan
 
-bag, rate = Path(sys.argv[1]), 10.0
+bag, n_scans, ready, rate = Path(sys.argv[1]), int(sys.argv[2]), Path(sys.argv[3]), 10.0
 events = []
 with AnyReader([bag]) as reader:
     for c, t, raw in reader.messages(connections=[c for c in reader.connections if c.topic in ("/base_scan", "/tf")]):
@@ -81,7 +83,7 @@ with AnyReader([bag]) as reader:
                             range_max=float(m.range_max), ranges=[float(r) for r in m.ranges])
             msg.header.stamp = Time(sec=m.header.stamp.sec, nanosec=m.header.stamp.nanosec)
             msg.header.frame_id = m.header.frame_id.lstrip("/")
-            events.append((t, "scan", msg))
+            events.append((t, "scan", msg, (m.header.stamp.sec, m.header.stamp.nanosec)))
             continue
         for tr in m.transforms:
             if (tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/")) != ("odom", "base_footprint"):
@@ -93,23 +95,31 @@ with AnyReader([bag]) as reader:
             msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = p.x, p.y, p.z
             o = msg.pose.pose.orientation
             o.x, o.y, o.z, o.w = q.x, q.y, q.z, q.w
-            events.append((t, "odom", msg))
+            events.append((t, "odom", msg, (tr.header.stamp.sec, tr.header.stamp.nanosec)))
 
+# The stretch ends as the bag does: no odometry after the last scan's stamp, so that scan (its pose
+# looked up 0.1 s later) has none and the node drops it.
+end = [stamp for _, kind, _, stamp in events if kind == "scan"][n_scans - 1]
+events = [e for e in events if e[3] <= end]
 rclpy.init()
 node = rclpy.create_node("gpomap_test_player")
 qos = QoSProfile(depth=5000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 pubs = {"scan": node.create_publisher(LaserScan, "/base_scan", qos), "odom": node.create_publisher(Odometry, "/odom", qos)}
+deadline = time.monotonic() + 90
+while not ready.exists():
+    assert time.monotonic() < deadline, "the client never got ready"
+    time.sleep(0.05)
 deadline = time.monotonic() + 60
 while any(p.get_subscription_count() == 0 for p in pubs.values()):
     assert time.monotonic() < deadline, "the node never subscribed"
     time.sleep(0.05)
 start, t0 = time.monotonic(), events[0][0]
-for t, kind, msg in events:
+for t, kind, msg, _ in events:
     time.sleep(max(0.0, start + (t - t0) * 1e-9 / rate - time.monotonic()))
     pubs[kind].publish(msg)
 for p in pubs.values():
     assert p.wait_for_all_acked(Duration(seconds=60)), "messages not acknowledged"
-print(sum(k == "scan" for _, k, _ in events), "scans", sum(k == "odom" for _, k, _ in events), "odometry")
+print(sum(e[1] == "scan" for e in events), "scans", sum(e[1] == "odom" for e in events), "odometry")
 node.destroy_node()
 rclpy.shutdown()
 """
@@ -166,7 +176,11 @@ deadline = time.monotonic() + 240
 while not settled():
     assert time.monotonic() < deadline, f"no final map; last status {statuses[-1:]}"
     rclpy.spin_once(node, timeout_sec=0.1)
-for _ in range(10):  # the last grids may trail their status by a few callbacks
+# The last map's grids may trail its status by a few callbacks: wait for those of its stamp.
+last = statuses[-1]["stamp"]
+deadline = time.monotonic() + 60
+while not all(any(g["topic"] == t and abs(g["stamp"] - last) < 1e-6 for g in grids) for t in ("/map", "/map_probability", "/map_variance")):
+    assert time.monotonic() < deadline, f"the grids of the last map (stamp {last}) never came"
     rclpy.spin_once(node, timeout_sec=0.1)
 
 def call(client, request):
@@ -262,7 +276,9 @@ def _wait(what: str, condition: Callable[[], Any], timeout: float, procs: tuple[
             return value
         for p in procs:
             if p.poll() is not None:
-                log = "".join((logs / f"{n}.log").read_text()[-3000:] for n in ("node", "client") if (logs / f"{n}.log").exists())
+                log = "".join(
+                    (logs / f"{n}.log").read_text()[-3000:] for n in ("node", "client", "player") if (logs / f"{n}.log").exists()
+                )
                 raise AssertionError(f"{p.args[:3]} exited with {p.returncode} while waiting for {what}:\n{log}")
         time.sleep(0.2)
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
@@ -338,26 +354,19 @@ def test_ros2_node_maps_the_stage_arena_and_answers_its_services(ros2_env, start
     client_args = [str(out), str(ready), str(N_MESSAGES), json.dumps(requests), str(tmp_path / "points.npy")]
     (tmp_path / "client.py").write_text(CLIENT)
     client = start("client", [sys.executable, str(tmp_path / "client.py"), *client_args], ros2_env)
-    _wait("the client's subscriptions", ready.exists, 90, (node, client), tmp_path)
-
+    # The player reads the bag and finds the node while the client starts; it plays once the client is ready.
     (tmp_path / "player.py").write_text(PLAYER)
-    play = subprocess.run(
-        [sys.executable, str(tmp_path / "player.py"), str(BAG)],
-        env=ros2_env,
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    assert play.returncode == 0, play.stdout + play.stderr[-3000:]
+    player = start("player", [sys.executable, str(tmp_path / "player.py"), str(BAG), str(N_MESSAGES), str(ready)], ros2_env)
+    _wait("the client's subscriptions", ready.exists, 90, (node, client, player), tmp_path)
+    assert player.wait(300) == 0, (tmp_path / "player.log").read_text()[-3000:]
     _wait("the client's report", lambda: client.poll() is not None, 300, (node,), tmp_path)
     assert client.returncode == 0, (tmp_path / "client.log").read_text()[-3000:]
     report = json.loads(out.read_text())
 
-    # The scans: every one the batch reader gives, and the last (no later pose) dropped after its wait.
+    # The scans: every one the batch reader gives of the stretch, and the last (no later pose) dropped after its wait.
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the batch reader warns about that last scan too
-        scans = read_rosbag(BAG, topic="/base_scan", time_offset=STAGE_TIME_OFFSET)
+        warnings.simplefilter("ignore")  # the batch reader warns about the bag's last scan
+        scans = read_rosbag(BAG, topic="/base_scan", time_offset=STAGE_TIME_OFFSET)[: N_MESSAGES - 1]
     status = report["statuses"][-1]
     assert status["n_used"] == len(scans) == N_MESSAGES - 1
     assert status["n_dropped_no_pose"] == 1 and status["n_rejected"] == 0
