@@ -1,0 +1,50 @@
+"""Arrays written as zip members (gpomap.io.members): deflated where that pays, read back exactly."""
+
+import io
+import zipfile
+import zlib
+
+import numpy as np
+
+from gpomap.io.members import SPREAD_FROM, deflates, write_member
+
+
+def _whole_ratio(array):
+    raw = np.ascontiguousarray(array).tobytes()
+    return len(zlib.compress(raw, 1)) / len(raw)
+
+
+def test_a_large_array_is_deflated_when_the_whole_of_it_shrinks():
+    rng = np.random.default_rng(0)
+    # A map plane: a corner of unknown space (its first bytes deflate), then values that do not.
+    plane = rng.random(SPREAD_FROM // 8 + 4096)
+    plane[:50_000] = 0.5
+    # Counts over a building's lattice: zero but where beams went.
+    counts = np.zeros(SPREAD_FROM // 4 * 2, dtype=np.float32)
+    counts[rng.integers(0, counts.size, 20_000)] = rng.integers(1, 9, 20_000) / 256
+    for array in (plane, counts):
+        assert array.nbytes >= SPREAD_FROM
+        assert deflates(array) == (_whole_ratio(array) < 0.8)
+    assert not deflates(plane) and deflates(counts)
+
+
+def test_members_read_back_exactly_stored_or_deflated():
+    rng = np.random.default_rng(1)
+    arrays = {
+        "plane": rng.random((1500, 1500)),
+        "flags": rng.random((1500, 1500)) < 0.01,
+        "tiny": np.array(3.5),
+        "text": np.array('{"a": 1}'),
+    }
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as zf:
+        for key, array in arrays.items():
+            write_member(zf, key, array)
+    with zipfile.ZipFile(buffer) as zf:
+        kinds = {i.filename: i.compress_type for i in zf.infolist()}
+    assert kinds["plane.npy"] == zipfile.ZIP_STORED and kinds["flags.npy"] == zipfile.ZIP_DEFLATED
+    buffer.seek(0)
+    loaded = np.load(buffer)
+    for key, array in arrays.items():
+        assert loaded[key].dtype == array.dtype
+        np.testing.assert_array_equal(loaded[key], array)
