@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import importlib.util
 import json
 import os
 import shutil
@@ -112,9 +113,15 @@ def ros_python() -> str:
     key = hashlib.sha256((ROOT / "pyproject.toml").read_bytes()).hexdigest()
     if not (python.exists() and stamp.exists() and stamp.read_text() == key):
         venv.parent.mkdir(parents=True, exist_ok=True)
-        subprocess.run([SYSTEM_PYTHON, "-m", "venv", "--clear", "--system-site-packages", str(venv)], check=True)
+        # This Python's pip installs into the venv (``pip --python``), without compiling every module
+        # of the dependencies ahead: no pip of its own to put in the venv, and the install about a
+        # third of the CPU time. Only a Python without pip installs with the venv's own.
+        own_pip = importlib.util.find_spec("pip") is None
+        make = [SYSTEM_PYTHON, "-m", "venv", "--clear", "--system-site-packages", str(venv)]
+        subprocess.run(make if own_pip else [*make, "--without-pip"], check=True)
+        pip = [str(python), "-m", "pip"] if own_pip else [sys.executable, "-m", "pip", "--python", str(python)]
         r = subprocess.run(
-            [str(python), "-m", "pip", "install", "--quiet", "--disable-pip-version-check", "-e", str(ROOT)],
+            [*pip, "install", "--quiet", "--disable-pip-version-check", "--no-compile", "-e", str(ROOT)],
             capture_output=True,
             text=True,
             timeout=1800,
