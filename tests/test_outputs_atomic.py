@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -140,14 +141,21 @@ def start(args, env_extra):
     )
 
 
-def wait_for(condition, proc, timeout=60.0):
+def wait_for_each(moments, procs, sig, timeout=60.0):
+    """Send ``sig[name]`` to ``procs[name]`` once ``moments[name]()`` is true, polling all the runs at once."""
     t0 = time.monotonic()
-    while not condition():
-        if proc.poll() is not None:
-            raise AssertionError(f"the run ended before the moment to signal it: {proc.communicate()}")
-        if time.monotonic() - t0 > timeout:
-            proc.kill()
-            raise AssertionError("timed out waiting for the run to reach the moment to signal it")
+    waiting = dict(procs)
+    while waiting:
+        for name, proc in list(waiting.items()):
+            if moments[name]():
+                proc.send_signal(sig[name])
+                del waiting[name]
+            elif proc.poll() is not None:
+                raise AssertionError(f"the {name} run ended before the moment to signal it: {proc.communicate()}")
+        if waiting and time.monotonic() - t0 > timeout:
+            for proc in waiting.values():
+                proc.kill()
+            raise AssertionError(f"timed out waiting for the {', '.join(waiting)} runs to reach the moment to signal them")
         time.sleep(0.02)
 
 
@@ -162,11 +170,17 @@ def test_signals_mid_write_leave_the_previous_set_byte_for_byte(tmp_path):
     xy = rng.uniform(0, 6, size=(300, 2))
     occ = (xy[:, 0] > 4.5).astype(int)
     points.write_text("x,y,occupied\n" + "".join(f"{x:.3f},{y:.3f},{o}\n" for (x, y), o in zip(xy, occ)))
+    # One previous set, written by gpomap, copied byte for byte to each run's directory.
+    first = tmp_path / "previous"
+    previous_set(first)
     runs = {}
     for name in ["sigint", "sigterm", "sigkill", "commit"]:
         out = tmp_path / name
-        runs[name] = [out, previous_set(out)]
-    slow = {atomic.WRITE_DELAY_ENV: "1.0"}
+        shutil.copytree(first, out)
+        runs[name] = [out, snapshot(out)]
+    # Half a second after each file (and between the commit's renames): each run is signalled within
+    # the test's 20 ms poll of reaching its moment, and its next step is at least that far away.
+    slow = {atomic.WRITE_DELAY_ENV: "0.5"}
     cli = [
         "-m",
         "gpomap.cli",
@@ -189,18 +203,16 @@ def test_signals_mid_write_leave_the_previous_set_byte_for_byte(tmp_path):
         "sigint": start([*cli, str(runs["sigint"][0])], slow),
         "sigterm": start([*cli, str(runs["sigterm"][0])], slow),
         "sigkill": start(["-c", HELPER, str(runs["sigkill"][0]), "0.5"], slow),
-        "commit": start(["-c", HELPER, str(runs["commit"][0]), "0.5"], {atomic.COMMIT_DELAY_ENV: "1.0"}),
+        "commit": start(["-c", HELPER, str(runs["commit"][0]), "0.5"], {atomic.COMMIT_DELAY_ENV: "0.5"}),
     }
     sig = {"sigint": signal.SIGINT, "sigterm": signal.SIGTERM, "sigkill": signal.SIGKILL, "commit": signal.SIGKILL}
-    for name, proc in procs.items():
-        out = runs[name][0]
-        if name == "commit":
-            # Killed between the renames of the commit: map.npz (first in order) is already new.
-            old_npz = runs[name][1]["map.npz"]
-            wait_for(lambda out=out, old_npz=old_npz: (out / "map.npz").read_bytes() != old_npz, proc)
-        else:
-            wait_for(staged_file(out, "map.npz"), proc)  # map.yaml and map.pgm written, the rest not
-        proc.send_signal(sig[name])
+    # map.yaml and map.pgm written, the rest not.
+    moments = {name: staged_file(runs[name][0], "map.npz") for name in ["sigint", "sigterm", "sigkill"]}
+    # Killed between the renames of the commit: map.npz (first in order) is already new.
+    out, old_npz = runs["commit"][0], runs["commit"][1]["map.npz"]
+    moments["commit"] = lambda: (out / "map.npz").read_bytes() != old_npz
+    # Each run is signalled as soon as it reaches its moment, whichever comes first.
+    wait_for_each(moments, procs, sig)
     results = {name: (proc.wait(timeout=60), *proc.communicate()) for name, proc in procs.items()}
 
     for name in ["sigint", "sigterm"]:
