@@ -89,7 +89,8 @@ def test_stream_at_rate_one_takes_the_recorded_time(tmp_path, capsys):
 @needs_bag
 def test_ctrl_c_stops_the_replay_and_keeps_the_last_complete_map(tmp_path):
     out = tmp_path / "live"
-    cmd = [sys.executable, "-m", "gpomap.cli", "stream", *ARENA, "-o", str(out), "--rate", "1", "--every", "0.5"]
+    # Twice as fast as recorded: the warm-up's 30 scans in 1.5 s, the whole log in 22 s.
+    cmd = [sys.executable, "-m", "gpomap.cli", "stream", *ARENA, "-o", str(out), "--rate", "2", "--every", "0.5"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     proc = subprocess.Popen(
         cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=as_from_a_terminal
@@ -100,7 +101,16 @@ def test_ctrl_c_stops_the_replay_and_keeps_the_last_complete_map(tmp_path):
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, "no map written"
             time.sleep(0.1)
-        time.sleep(1.0)  # past the first write, likely inside another one
+
+        # Past the first write, inside another one: a staging directory other than the first's is there.
+        def staging() -> set[str]:
+            return {p.name for p in tmp_path.iterdir() if "gpomap-staging" in p.name}
+
+        first = staging()
+        while not staging() - first:
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "no second write"
+            time.sleep(0.01)
         proc.send_signal(signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=60)
     finally:
