@@ -755,9 +755,10 @@ def test_ros2_settings_in_3d_take_six_numbers_and_keep_what_is_set():
         ros2_settings(lambda n, d: {"cloud_topic": "p", "sensor_pose": [0, 0, 0, 0, "a", 0]}.get(n, d))
 
 
-# Publishes the simulated room's six lidar clouds (sensor frame, FLOAT32 with an intensity) and their odometry.
+# Publishes the simulated room's six lidar clouds (sensor frame, FLOAT32 with an intensity) and their
+# odometry once the client is ready (the file it names exists) and the node listens.
 PLAYER_3D = r"""
-import sys, time
+import os, sys, time
 import numpy as np
 import rclpy
 from rclpy.duration import Duration
@@ -769,12 +770,16 @@ from sensor_msgs.msg import PointCloud2, PointField
 sys.path.insert(0, sys.argv[1])
 from tests.world3d import ORIGINS, lidar_clouds
 
-yaw = float(sys.argv[2])
+yaw, ready = float(sys.argv[2]), sys.argv[3]
 rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
 rclpy.init()
 node = rclpy.create_node("gpomap_test_cloud_player")
 qos = QoSProfile(depth=100, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
 odom, points = node.create_publisher(Odometry, "/odom", qos), node.create_publisher(PointCloud2, "/points", qos)
+deadline = time.monotonic() + 90
+while not os.path.exists(ready):
+    assert time.monotonic() < deadline, "the client never got ready"
+    time.sleep(0.05)
 deadline = time.monotonic() + 60
 while odom.get_subscription_count() == 0 or points.get_subscription_count() == 0:
     assert time.monotonic() < deadline, "the node never subscribed"
@@ -817,8 +822,9 @@ latched = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE, durabilit
 clouds, statuses, answers = [], [], {}
 
 def cloud(m):
-    return {"frame_id": m.header.frame_id, "fields": [(f.name, f.offset, f.datatype) for f in m.fields],
-            "point_step": m.point_step, "width": m.width, "data": base64.b64encode(bytes(m.data)).decode()}
+    return {"frame_id": m.header.frame_id, "stamp": m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec,
+            "fields": [(f.name, f.offset, f.datatype) for f in m.fields], "point_step": m.point_step, "width": m.width,
+            "data": base64.b64encode(bytes(m.data)).decode()}
 
 subs = [node.create_subscription(PointCloud2, "/map_cloud", lambda m: clouds.append(cloud(m)), latched),
         node.create_subscription(String, "/gpomap/status", lambda m: statuses.append(json.loads(m.data)), latched),
@@ -833,7 +839,10 @@ deadline = time.monotonic() + 120
 while not (statuses and statuses[-1]["n_used"] == n_clouds and "n_occupied_voxels" in statuses[-1]):
     assert time.monotonic() < deadline, f"no final map; last status {statuses[-1:]}"
     rclpy.spin_once(node, timeout_sec=0.1)
-for _ in range(10):  # the map may trail its status by a few callbacks
+# The last map may trail its status by a few callbacks: wait for the cloud of its stamp.
+last = statuses[-1]["stamp"]
+while not any(abs(c["stamp"] - last) < 1e-6 for c in clouds):
+    assert time.monotonic() < deadline, f"the map cloud of the last map (stamp {last}) never came"
     rclpy.spin_once(node, timeout_sec=0.1)
 client = node.create_client(Trigger, "/gpomap/save_map")
 assert client.wait_for_service(timeout_sec=30)
@@ -882,17 +891,11 @@ def test_ros2_node_maps_pointclouds_in_3d_and_answers_its_services(ros2_env, sta
     (tmp_path / "client.py").write_text(CLIENT_3D)
     client_args = [str(out), str(ready), str(len(ORIGINS)), json.dumps(pts)]
     client = start("client", [sys.executable, str(tmp_path / "client.py"), *client_args], ros2_env)
-    _wait("the client's subscriptions", ready.exists, 90, (node, client), tmp_path)
+    # The player starts and finds the node while the client starts; it plays once the client is ready.
     (tmp_path / "player.py").write_text(PLAYER_3D)
-    play = subprocess.run(
-        [sys.executable, str(tmp_path / "player.py"), str(ROOT), repr(yaw)],
-        env=ros2_env,
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert play.returncode == 0, play.stdout + play.stderr[-3000:]
+    player = start("player", [sys.executable, str(tmp_path / "player.py"), str(ROOT), repr(yaw), str(ready)], ros2_env)
+    _wait("the client's subscriptions", ready.exists, 90, (node, client, player), tmp_path)
+    assert player.wait(120) == 0, (tmp_path / "player.log").read_text()[-3000:]
     _wait("the client's report", lambda: client.poll() is not None, 180, (node,), tmp_path)
     assert client.returncode == 0, (tmp_path / "client.log").read_text()[-3000:]
     report = json.loads(out.read_text())
