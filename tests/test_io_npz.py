@@ -119,18 +119,24 @@ def test_interrupted_save_keeps_previous_file(tmp_path, monkeypatch):
     target = save_map(_full_map(), tmp_path / "map.npz")
     before = target.read_bytes()
 
-    # Fail after part of the archive went to the temporary file.
-    real_savez = np.savez_compressed
+    # Fail after part of the archive went to the temporary file: its first member written whole.
+    import gpomap.io.npz as npz_module
 
-    def savez_then_fail(f, **arrays):
-        f.write(b"PK\x03\x04 partial archive")
-        raise OSError("simulated failure midway")
+    real_write = npz_module.write_member
+    written = []
 
-    monkeypatch.setattr(np, "savez_compressed", savez_then_fail)
+    def write_then_fail(zf, key, array):
+        if written:
+            raise OSError("simulated failure midway")
+        written.append(key)
+        real_write(zf, key, array)
+
+    monkeypatch.setattr(npz_module, "write_member", write_then_fail)
     bigger = OccupancyMap(GridSpec((0, 0), 0.5, (30, 30)), np.zeros((30, 30)))
     with pytest.raises(OSError, match="midway"):
         save_map(bigger, target)
-    monkeypatch.setattr(np, "savez_compressed", real_savez)
+    monkeypatch.setattr(npz_module, "write_member", real_write)
+    assert written
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["map.npz"]
     assert load_map(target).grid.shape == (6, 8)
