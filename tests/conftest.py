@@ -20,13 +20,14 @@ from pathlib import Path
 import pytest
 
 #: Files taking more than about 4 s, longest first (measured per file in the whole suite under
-#: -n 2: the two files that run ROS processes first, for their waits, then by seconds). A file not
-#: listed runs after these, in its usual order.
+#: -n 2: the two files that run ROS processes right after the two that compile most of numba's
+#: code, so the nodes load it from the cache instead of compiling it again; then by seconds). A
+#: file not listed runs after these, in its usual order.
 LONGEST_FIRST = [
-    "test_ros_node.py",
-    "test_ros2_node.py",
     "test_cli.py",
     "test_tiles.py",
+    "test_ros_node.py",
+    "test_ros2_node.py",
     "test_comparison.py",
     "test_cli_writing.py",
     "test_distributed.py",
