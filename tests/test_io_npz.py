@@ -120,9 +120,9 @@ def test_interrupted_save_keeps_previous_file(tmp_path, monkeypatch):
     before = target.read_bytes()
 
     # Fail after part of the archive went to the temporary file: its first member written whole.
-    import gpomap.io.npz as npz_module
+    import gpomap.io.members as members
 
-    real_write = npz_module.write_member
+    real_write = members.write_member
     written = []
 
     def write_then_fail(zf, key, array):
@@ -131,11 +131,11 @@ def test_interrupted_save_keeps_previous_file(tmp_path, monkeypatch):
         written.append(key)
         real_write(zf, key, array)
 
-    monkeypatch.setattr(npz_module, "write_member", write_then_fail)
+    monkeypatch.setattr(members, "write_member", write_then_fail)
     bigger = OccupancyMap(GridSpec((0, 0), 0.5, (30, 30)), np.zeros((30, 30)))
     with pytest.raises(OSError, match="midway"):
         save_map(bigger, target)
-    monkeypatch.setattr(npz_module, "write_member", real_write)
+    monkeypatch.setattr(members, "write_member", real_write)
     assert written
     assert target.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["map.npz"]

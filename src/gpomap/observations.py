@@ -285,6 +285,11 @@ class Rays:
             int(valid.size - np.count_nonzero(valid)),
         )
 
+    @property
+    def n_no_return(self) -> int:
+        """Rays that gave no return."""
+        return int(self.hit.size - np.count_nonzero(self.hit))
+
     def free_lengths(self, hit_margin: float, no_return_cap: float | None) -> NDArray[np.float64]:
         """How far along each ray free space is taken: `hit_margin` short of a hit; a no-return
         ray to `no_return_cap` (None: to its default limit), never beyond its recorded range."""
@@ -415,7 +420,7 @@ def _scan_points(
     use = free_len > 0
     origins = np.broadcast_to(rays.origin, (int(use.sum()), rays.origin.size))
     fp, _ = ray_free_points(origins, rays.directions[use], free_len[use], free_step)
-    return fp, rays.ends[rays.hit], rays.n_invalid, int((~rays.hit).sum())
+    return fp, rays.ends[rays.hit], rays.n_invalid, rays.n_no_return
 
 
 #: Most points a part of :func:`observation_parts` holds (whole scans are added until it is
@@ -588,7 +593,7 @@ def reading_counts(scans: ScanData) -> tuple[int, int]:
     for scan in scans:
         rays = Rays.of(scan)
         n_invalid += rays.n_invalid
-        n_no_return += int(rays.hit.size - np.count_nonzero(rays.hit))
+        n_no_return += rays.n_no_return
     return n_invalid, n_no_return
 
 

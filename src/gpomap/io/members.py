@@ -7,6 +7,7 @@ deflating them costs more time than it saves bytes. :func:`numpy.load` reads eit
 
 from __future__ import annotations
 
+import os
 import zipfile
 import zlib
 from typing import Any
@@ -14,7 +15,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["DEFLATE_LEVEL", "deflates", "write_member"]
+from gpomap.io.atomic import atomic_write
+
+__all__ = ["DEFLATE_LEVEL", "deflates", "write_member", "write_npz"]
 
 #: zlib's level for the members deflated: the fastest. A map's counts and flags shrink nearly as
 #: much as at zlib's default, in a fraction of its time (docs/choices.md, "Measured for the code").
@@ -55,3 +58,11 @@ def write_member(zf: zipfile.ZipFile, key: str, array: NDArray[Any]) -> None:
     setattr(info, "compress_level" if hasattr(info, "compress_level") else "_compresslevel", DEFLATE_LEVEL)
     with zf.open(info, "w", force_zip64=array.nbytes > (1 << 30)) as member:
         np.lib.format.write_array(member, array, allow_pickle=False)
+
+
+def write_npz(path: str | os.PathLike[str], arrays: dict[str, Any]) -> None:
+    """`arrays` (array-likes by key) as an ``.npz`` at `path`, each through :func:`write_member`,
+    written atomically (no suffix is appended)."""
+    with atomic_write(path, "wb") as f, zipfile.ZipFile(f, "w", allowZip64=True) as zf:
+        for key, array in arrays.items():
+            write_member(zf, key, np.asarray(array))

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import os
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -31,9 +30,8 @@ import numpy as np
 
 from gpomap.errors import InputFormatError
 from gpomap.grid import GridSpec, OccupancyMap
-from gpomap.io.atomic import atomic_write
 from gpomap.io.checks import load_npz, regular_file
-from gpomap.io.members import write_member
+from gpomap.io.members import write_npz
 
 __all__ = ["save_map", "load_map"]
 
@@ -97,10 +95,7 @@ def save_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str]) -> Path:
     if m.path is not None:
         arrays["path"] = np.asarray(m.path, dtype=np.float64)
     target = Path(path)
-    # Each array deflated only where that pays: a map's probabilities and variances barely shrink.
-    with atomic_write(target, "wb") as f, zipfile.ZipFile(f, "w", allowZip64=True) as zf:
-        for key, array in arrays.items():
-            write_member(zf, key, np.asarray(array))
+    write_npz(target, arrays)
     return target
 
 

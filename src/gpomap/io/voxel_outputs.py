@@ -29,7 +29,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import zipfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -40,7 +39,7 @@ from gpomap.errors import InputFormatError
 from gpomap.extras import require
 from gpomap.io.atomic import atomic_write, file_written, output_set
 from gpomap.io.checks import load_npz, regular_file
-from gpomap.io.members import write_member
+from gpomap.io.members import write_npz
 from gpomap.voxels import VoxelMap, VoxelSpec
 
 __all__ = ["save_voxels", "load_voxels", "write_mesh", "write_voxel_outputs", "FORMAT"]
@@ -67,9 +66,7 @@ def save_voxels(voxel_map: VoxelMap, path: str | os.PathLike[str]) -> Path:
     if m.variance is not None:
         arrays["variance"] = m.variance
     target = Path(path)
-    with atomic_write(target, "wb") as f, zipfile.ZipFile(f, "w", allowZip64=True) as zf:
-        for key, array in arrays.items():
-            write_member(zf, key, np.asarray(array))
+    write_npz(target, arrays)
     return target
 
 

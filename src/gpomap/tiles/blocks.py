@@ -96,13 +96,17 @@ class BlockCells(TileGrid):
             else:
                 self._block_points[k] = _BlockPoints(filed, labels, runs)
             touched.add(k)
+        self._count_points(points, occupied)
+        return touched
+
+    def _count_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
+        """Add points filed (shape (n, d), labels (n,)) to the map's extent and counts."""
         if points.shape[0]:
             lo, hi = column_bounds(points)
             self._lower = lo if self._lower is None else np.minimum(self._lower, lo)
             self._upper = hi if self._upper is None else np.maximum(self._upper, hi)
         self._n_points += int(points.shape[0])
         self._n_occupied_points += int(occupied.sum())
-        return touched
 
     def _file_part(self, part: Observations, spill: SpillFile | None, with_scans: bool) -> None:
         """File a part's points under their blocks (:meth:`_add_points`), in `spill` when given;
@@ -129,11 +133,7 @@ class BlockCells(TileGrid):
                 continue
             self._block_points[key] = own
             self._tiles_with_points.update(self._present_keys(points, self.tile_size_).tolist())
-            lo, hi = column_bounds(points)
-            self._lower = lo if self._lower is None else np.minimum(self._lower, lo)
-            self._upper = hi if self._upper is None else np.maximum(self._upper, hi)
-            self._n_points += int(occupied.size)
-            self._n_occupied_points += int(occupied.sum())
+            self._count_points(points, occupied)
             last = max(last, own.last_scan())
         n_scans = int(np.searchsorted(kept.kept, last)) + 1 if last >= 0 else 0
         n_occupied = self._n_occupied_points
