@@ -63,8 +63,8 @@ from gpomap.squash import unseen_probit
 from gpomap.stages import CalibratedMoments, GPProbability
 from gpomap.unseen import NEW_HIT_DISTANCE as NEW_HIT_DISTANCE
 from gpomap.unseen import UNSEEN_RESOLUTION as UNSEEN_RESOLUTION
+from gpomap.unseen import PointSource, _kept_region, _observes_both, _source, _unseen_points, _UnseenPoints, new_ground_centre
 from gpomap.unseen import _HeldPoints as _HeldPoints
-from gpomap.unseen import _kept_region, _observes_both, _source, _unseen_points, _UnseenPoints, new_ground_centre
 from gpomap.unseen import _SquareLattice as _SquareLattice
 from gpomap.unseen import region_observations as region_observations
 
@@ -107,7 +107,7 @@ def whole_map_region(points: NDArray[np.float64] | ScanPoints) -> tuple[NDArray[
 def fit_variance_scale(
     scans: Sequence[Any],
     hyperparameters: dict[str, float],
-    observations: Observations | ScanPoints,
+    observations: Observations | ScanPoints | PointSource,
     free_clearance: float,
     fit_held_in: Callable[[Observations], Any],
     centre: NDArray[np.float64],
@@ -125,10 +125,11 @@ def fit_variance_scale(
         The map's scans, in log order.
     hyperparameters : dict
         The map's variance, length_scale, noise, alpha and beta (kept fixed).
-    observations : Observations or ScanPoints
-        The map's labelled points from `scans` (its free step, ...), before the clearance, or
-        what makes them again a square at a time; each pattern's held-in points are cut from
-        them (:func:`region_observations`).
+    observations : Observations, ScanPoints or PointSource
+        The map's labelled points from `scans` (its free step, ...), before the clearance, what
+        makes them again a square at a time, or the points as a map filed them
+        (:class:`gpomap.unseen.PointSource`); each pattern's held-in points are cut from them
+        (:func:`region_observations`).
     free_clearance : float
         The map's free clearance, metres.
     fit_held_in : callable

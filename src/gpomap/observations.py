@@ -465,12 +465,12 @@ def observation_parts(
             held += len(fp) + len(hp)
         if held >= PART_POINTS or (i == len(scans) - 1 and (parts or n_invalid or n_no_return)):
             d = parts[0][0].shape[1] if parts else (3 if isinstance(scan, CloudScan) else 2)
+            # Each scan's free points, then its hits: the labels and scans repeated run by run.
+            runs = np.array([(len(fp), len(hp)) for fp, hp, _ in parts], dtype=np.int64).reshape(-1, 2)
             yield Observations(
                 np.concatenate([a for fp, hp, _ in parts for a in (fp, hp)], axis=0) if parts else np.zeros((0, d)),
-                np.concatenate([np.arange(len(fp) + len(hp)) >= len(fp) for fp, hp, _ in parts]) if parts else np.zeros(0, bool),
-                np.concatenate([np.full(len(fp) + len(hp), k, dtype=np.int32) for fp, hp, k in parts])
-                if parts
-                else np.zeros(0, np.int32),
+                np.repeat(np.tile(np.array([False, True]), len(parts)), runs.reshape(-1)),
+                np.repeat(np.array([k for _, _, k in parts], dtype=np.int32), runs.sum(axis=1)),
                 n_invalid,
                 n_no_return,
             )

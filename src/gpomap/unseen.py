@@ -21,7 +21,7 @@ at a time:
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,9 +50,27 @@ def _in_square(
     return in_box(points, np.asarray(lo)[:2] - grow, np.asarray(hi)[:2] + grow)
 
 
+class PointSource(Protocol):
+    """A map's labelled points as this module asks them: their bounds, all of them a part at a
+    time, and those in a box. Every point once, each with its scan (``scan_index``)."""
+
+    lower: NDArray[np.float64]
+    upper: NDArray[np.float64]
+
+    def parts(self) -> Iterator[Observations]:
+        """Every point, a part at a time."""
+        ...
+
+    def square_parts(
+        self, box_lo: NDArray[np.float64], box_hi: NDArray[np.float64], among: NDArray[np.intp] | None
+    ) -> Iterator[Observations]:
+        """The points in the box `box_lo`..`box_hi` (x, y), of every scan or of those `among`
+        (sorted indices), a part at a time; within a part, in the log's order."""
+        ...
+
+
 class _HeldPoints:
-    """Labelled points held in memory, asked as :class:`~gpomap.observations.ScanPoints` is (their
-    bounds, their parts)."""
+    """Labelled points held in memory (:class:`PointSource`)."""
 
     def __init__(self, obs: Observations) -> None:
         self.obs = obs
@@ -61,9 +79,44 @@ class _HeldPoints:
     def parts(self) -> Iterator[Observations]:
         yield self.obs
 
+    def square_parts(
+        self, box_lo: NDArray[np.float64], box_hi: NDArray[np.float64], among: NDArray[np.intp] | None
+    ) -> Iterator[Observations]:
+        obs = self.obs
+        inside = in_box(obs.points, box_lo, box_hi)
+        if among is not None:
+            inside &= _from_kept(obs.scan_index, among)
+        yield Observations(obs.points[inside], obs.occupied[inside], obs.scan_index[inside])
 
-def _source(observations: Observations | ScanPoints) -> ScanPoints | _HeldPoints:
-    return observations if isinstance(observations, ScanPoints) else _HeldPoints(observations)
+
+class _MadePoints:
+    """A log's points made again from its scans where asked (:class:`PointSource` over
+    :class:`~gpomap.observations.ScanPoints`): only the scans that reach a box are made."""
+
+    def __init__(self, points: ScanPoints) -> None:
+        self.points = points
+        self.lower, self.upper = points.lower, points.upper
+
+    def parts(self) -> Iterator[Observations]:
+        return self.points.parts()
+
+    def square_parts(
+        self, box_lo: NDArray[np.float64], box_hi: NDArray[np.float64], among: NDArray[np.intp] | None
+    ) -> Iterator[Observations]:
+        source = self.points
+        meets = np.all((source.scan_lower[:, :2] <= box_hi) & (source.scan_upper[:, :2] >= box_lo), axis=1)
+        scans = np.flatnonzero(meets) if among is None else among[meets[among]]
+        if scans.size == 0:
+            return
+        for part in source.parts(scans.tolist()):
+            inside = in_box(part.points, box_lo, box_hi)
+            yield Observations(part.points[inside], part.occupied[inside], part.scan_index[inside])
+
+
+def _source(observations: Observations | ScanPoints | PointSource) -> PointSource:
+    if isinstance(observations, ScanPoints):
+        return _MadePoints(observations)
+    return _HeldPoints(observations) if isinstance(observations, Observations) else observations
 
 
 def region_observations(
@@ -102,37 +155,26 @@ def _cleared(grown: Observations, lo: NDArray[np.float64], hi: NDArray[np.float6
 
 
 def _square_parts(
-    source: ScanPoints | _HeldPoints,
+    source: PointSource | ScanPoints,
     lo: NDArray[np.float64],
     hi: NDArray[np.float64],
     grow: float = 0.0,
     among: NDArray[np.intp] | None = None,
 ) -> Iterator[Observations]:
     """The points in the square `lo`..`hi` grown by `grow`, of every scan or of those `among`
-    (sorted indices), a part at a time in the log's order: what ``source.square`` cuts, never
-    all held at once."""
+    (sorted indices), a part at a time: what ``source.square`` cuts, never all held at once."""
     box_lo, box_hi = np.asarray(lo, dtype=float)[:2] - grow, np.asarray(hi, dtype=float)[:2] + grow
-    if isinstance(source, _HeldPoints):
-        obs = source.obs
-        inside = in_box(obs.points, box_lo, box_hi)
-        if among is not None:
-            inside &= _from_kept(obs.scan_index, among)
-        yield Observations(obs.points[inside], obs.occupied[inside], obs.scan_index[inside])
-        return
-    meets = np.all((source.scan_lower[:, :2] <= box_hi) & (source.scan_upper[:, :2] >= box_lo), axis=1)
-    scans = np.flatnonzero(meets) if among is None else among[meets[among]]
-    if scans.size == 0:
-        return
-    for part in source.parts(scans.tolist()):
-        inside = in_box(part.points, box_lo, box_hi)
-        yield Observations(part.points[inside], part.occupied[inside], part.scan_index[inside])
+    return _source(source).square_parts(box_lo, box_hi, among)
 
 
 def _kept_region(
-    source: ScanPoints | _HeldPoints, kept: NDArray[np.intp], lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float
+    source: PointSource | ScanPoints, kept: NDArray[np.intp], lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float
 ) -> Observations:
     """:func:`region_observations` of the map's points, made again from the kept scans alone
-    (or cut from the points held): the other scans' points in the region are never made."""
+    (or cut from the points held or filed): the other scans' points in the region are never made.
+
+    A held-in GP files the points under the same blocks, each block's in the order they come,
+    so the parts may come block by block: each block's points are still in the log's order."""
     cut = list(_square_parts(source, lo, hi, clearance, among=kept))
     d = source.lower.size
     grown = Observations(
@@ -145,7 +187,7 @@ def _kept_region(
 
 
 def new_ground_centre(
-    observations: Observations | ScanPoints | _HeldPoints, n_scans: int, side: float
+    observations: Observations | ScanPoints | PointSource, n_scans: int, side: float
 ) -> NDArray[np.float64] | None:
     """Where the first pattern's held-out stretches saw most that its kept stretches did not.
 
@@ -156,9 +198,9 @@ def new_ground_centre(
 
     Parameters
     ----------
-    observations : Observations or ScanPoints
-        The map's labelled points (or what makes them again, a part at a time); ``scan_index``
-        numbers the scans.
+    observations : Observations, ScanPoints or PointSource
+        The map's labelled points (or what makes them again, a part at a time, or gives them
+        as filed); ``scan_index`` numbers the scans.
     n_scans : int
         Scans in the log.
     side : float
@@ -168,7 +210,7 @@ def new_ground_centre(
     -------
     ndarray of shape (2,) or None
     """
-    source = observations if isinstance(observations, (ScanPoints, _HeldPoints)) else _HeldPoints(observations)
+    source = _source(observations)
     kept = holdout_stretches(n_scans, FOLD_STARTS[0])[0]
     squares = _SquareLattice(np.vstack([source.lower[:2], source.upper[:2]]), side)
     # The hits, and the squares of the kept free points, a part of the log at a time.
@@ -243,7 +285,7 @@ def _from_kept(scan_index: NDArray[np.integer], kept: NDArray[np.intp]) -> NDArr
 
 
 def _observes_both(
-    source: ScanPoints | _HeldPoints, n_scans: int, lo: NDArray[np.float64], hi: NDArray[np.float64]
+    source: PointSource | ScanPoints, n_scans: int, lo: NDArray[np.float64], hi: NDArray[np.float64]
 ) -> Callable[[NDArray[np.intp]], bool]:
     """Whether given kept scans have a hit and a free point in the square `lo`..`hi`, before the
     clearance (which could, in principle, clear every free point): which scans have either there,

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from gpomap.fusion import EvidenceLayer
 from gpomap.observations import Observations, ScanData, ScanPoints
-from gpomap.tiles.points import KeptPoints
+from gpomap.tiles.points import FiledPoints, KeptPoints
 from gpomap.tiles.prediction import MapPrediction
 from gpomap.tiles.refit import Refit
 
@@ -64,7 +64,7 @@ class CalibrationStages(MapPrediction):
         _, report = fit_variance_scale(
             data,
             self.hyperparameters_,
-            obs,  # the map's own points: the kept scans are not observed again
+            self._filed_points(obs),  # the map's own points: the kept scans are not observed again
             self._clearance,
             fit_held_in,
             centre=centre,
@@ -75,6 +75,19 @@ class CalibrationStages(MapPrediction):
             wider=wider,
         )
         return report
+
+    def _filed_points(self, obs: Observations | ScanPoints) -> Observations | ScanPoints | FiledPoints:
+        """The map's points as its blocks hold them (:class:`~gpomap.tiles.points.FiledPoints`),
+        when made from scans and every block knows its points' scans; else `obs`."""
+        if not isinstance(obs, ScanPoints) or not all(b._runs is not None for b in self._block_points.values()):
+            return obs
+        side = self.block_size_
+
+        def meeting(lo: NDArray[np.float64], hi: NDArray[np.float64]) -> list[int]:
+            squares = self._meeting((float(lo[0]), float(lo[1])), (float(hi[0]), float(hi[1])), side)
+            return [self._encode(ix, iy) for ix, iy in squares]
+
+        return FiledPoints(self._block_points, meeting, obs.lower, obs.upper)
 
     @staticmethod
     def _median_point(obs: Observations | ScanPoints) -> NDArray[np.float64]:

@@ -14,6 +14,7 @@ from typing import Any, overload
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap import _compiled_squares
 from gpomap.config import PROFILES
 from gpomap.lattice import column_bounds
 from gpomap.tiles.attributes import TiledAttributes
@@ -98,6 +99,8 @@ class TileGrid(TiledAttributes):
 
     def _square_indices(self, points: NDArray[np.float64], side: float) -> NDArray[np.int64]:
         """Integer (ix, iy) of the square of `side` on the tile grid's origin holding each point, shape (n, 2)."""
+        if _compiled_squares.ENABLED:
+            return _compiled_squares.square_indices(points, self.origin_, side)
         return np.floor((points[:, :2] - np.asarray(self.origin_)) / side).astype(np.int64)
 
     def _present_keys(self, points: NDArray[np.float64], side: float) -> NDArray[np.int64]:

@@ -7,14 +7,14 @@ would not fit in memory they wait in a :class:`~gpomap.resources.SpillFile`.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.lattice import column_bounds
+from gpomap.lattice import column_bounds, in_box
 from gpomap.observations import Observations, free_near_hits
 from gpomap.resources import SpillFile
 
@@ -108,6 +108,14 @@ class _BlockPoints:
         counts = np.concatenate([r[1] for r in self._runs])
         keep = np.repeat(~np.isin(ids, scans), counts)
         return points[keep], occupied[keep]
+
+    def scans(self) -> NDArray[np.int32] | None:
+        """Each point's scan (an index in the map's scans), shape (n,) in the points' order; None
+        when a part came without its runs."""
+        if self._runs is None:
+            return None
+        ids = np.concatenate([r[0] for r in self._runs])
+        return np.repeat(ids.astype(np.int32), np.concatenate([r[1] for r in self._runs]))
 
     def spill(self, file: SpillFile) -> None:
         """Move the parts held in memory to `file`, in their places."""
@@ -214,6 +222,64 @@ class KeptPoints:
     dropped: NDArray[np.intp]
     kept: NDArray[np.intp]
     dim: int
+
+
+class FiledPoints:
+    """A fitted map's points as filed under its blocks, each with its scan: a
+    :class:`gpomap.unseen.PointSource`, so its variance scale cuts its held-in squares from the
+    blocks instead of making the scans' points again.
+
+    Parameters
+    ----------
+    blocks : dict
+        The map's blocks (:class:`_BlockPoints`) by key, each with its scans' runs.
+    meeting : callable
+        ``meeting(lo, hi)``: the keys of the blocks that may hold points of the box `lo`..`hi` (x, y).
+    lower, upper : ndarray of shape (d,)
+        Bounds of every point.
+    """
+
+    def __init__(
+        self,
+        blocks: dict[int, _BlockPoints],
+        meeting: Callable[[NDArray[np.float64], NDArray[np.float64]], list[int]],
+        lower: NDArray[np.float64],
+        upper: NDArray[np.float64],
+    ) -> None:
+        if any(b._runs is None for b in blocks.values()):
+            raise ValueError("every block's points must come with their scans")
+        self._blocks, self._meeting = blocks, meeting
+        self.lower, self.upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+
+    def _observations(
+        self,
+        block: _BlockPoints,
+        box: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+        among: NDArray[np.intp] | None = None,
+    ) -> Observations:
+        points, occupied = block.arrays()
+        scans = block.scans()
+        assert scans is not None  # checked when made
+        if box is None and among is None:
+            return Observations(points, occupied, scans)
+        keep = np.ones(occupied.size, dtype=bool) if box is None else in_box(points, *box)
+        if among is not None:
+            keep &= np.isin(scans, among)
+        return Observations(points[keep], occupied[keep], scans[keep])
+
+    def parts(self) -> Iterator[Observations]:
+        """Every block's points, block by block."""
+        for block in self._blocks.values():
+            yield self._observations(block)
+
+    def square_parts(
+        self, box_lo: NDArray[np.float64], box_hi: NDArray[np.float64], among: NDArray[np.intp] | None
+    ) -> Iterator[Observations]:
+        """The points in the box (x, y), of every scan or those `among`, block by block."""
+        for key in self._meeting(box_lo, box_hi):
+            block = self._blocks.get(key)
+            if block is not None:
+                yield self._observations(block, (box_lo, box_hi), among)
 
 
 class _HeldParts:
