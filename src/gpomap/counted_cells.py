@@ -132,6 +132,153 @@ def count_cells(
     return CellCounts(lattice, cells, hits, misses, near, path, at_surface)
 
 
+#: Largest count a cell may hold for counts to be taken out of it exactly: shares are whole
+#: 256ths (:data:`gpomap.evidence.SHARE_UNITS`), exact in float32 below 2^24 of them.
+EXACT_BELOW: float = float(2**16)
+# Cells are keyed by their place on the lattice of every lattice (whole multiples of the side).
+_KEY_OFFSET, _KEY_SPAN = 1 << 30, 1 << 31
+
+
+def _keys(lattice: AnyGrid, rows: NDArray[np.intp], cols: NDArray[np.intp]) -> NDArray[np.int64]:
+    """Keys of the cells (rows, cols) of a planar `lattice`, the same for a cell on any lattice."""
+    corner = np.round(np.asarray(lattice.origin, dtype=float) / lattice.resolution).astype(np.int64)
+    return (cols.astype(np.int64) + corner[0] + _KEY_OFFSET) * _KEY_SPAN + (rows.astype(np.int64) + corner[1] + _KEY_OFFSET)
+
+
+@dataclass(frozen=True)
+class CountsNear:
+    """A planar lattice's counts at the cells round some points, known by their place on any
+    lattice of the same side: a map of some of its scans takes its counts there from these,
+    less the other scans' (:func:`count_cells_without`).
+
+    Attributes
+    ----------
+    lattice : GridSpec
+        The lattice the counts were taken on.
+    keys : ndarray of int64, shape (n,)
+        The cells, sorted and distinct (:func:`_keys`).
+    hits, misses, near : ndarray of float, shape (n,)
+        Their counts.
+    """
+
+    lattice: AnyGrid
+    keys: NDArray[np.int64]
+    hits: NDArray[np.floating[Any]]
+    misses: NDArray[np.floating[Any]]
+    near: NDArray[np.floating[Any]]
+
+    #: Cells either side of a point's own: a lattice of another origin may round a point on a
+    #: border into the next cell, whose neighbours are then asked too.
+    REACH = 2
+
+    @classmethod
+    def of(
+        cls,
+        lattice: AnyGrid,
+        counts: tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]],
+        points: NDArray[np.float64],
+    ) -> CountsNear:
+        """The counts (hits, misses, near misses, each of shape lattice.shape) of the cells within
+        :attr:`REACH` cells of each of `points` (shape (m, 2)) on the planar `lattice`."""
+        *index, inside = lattice.index_of(np.asarray(points, dtype=float))
+        rows, cols = index  # a planar lattice
+        steps = np.arange(-cls.REACH, cls.REACH + 1)
+        r, c = (
+            a.ravel()
+            for a in np.broadcast_arrays(
+                rows[inside][:, None, None] + steps[None, :, None], cols[inside][:, None, None] + steps[None, None, :]
+            )
+        )
+        ok = (r >= 0) & (r < lattice.shape[0]) & (c >= 0) & (c < lattice.shape[1])
+        flat = np.unique(np.ravel_multi_index((r[ok], c[ok]), lattice.shape))
+        r, c = np.unravel_index(flat, lattice.shape)
+        keys = _keys(lattice, r, c)
+        order = np.argsort(keys)
+        hits, misses, near = (np.asarray(a).reshape(-1)[flat][order] for a in counts)
+        return cls(lattice, keys[order], hits, misses, near)
+
+    def at(self, keys: NDArray[np.int64]) -> tuple[NDArray[np.floating[Any]], ...] | None:
+        """Hits, misses and near misses at the cells `keys`, or None when one is not held or
+        holds too many to take counts out of exactly (:data:`EXACT_BELOW`)."""
+        row = np.minimum(np.searchsorted(self.keys, keys), max(self.keys.size - 1, 0))
+        if keys.size and (self.keys.size == 0 or not np.array_equal(self.keys[row], keys)):
+            return None
+        values = tuple(a[row] for a in (self.hits, self.misses, self.near))
+        if any(v.size and float(v.max()) >= EXACT_BELOW for v in values):
+            return None
+        return values
+
+
+def count_cells_without(
+    whole: CountsNear,
+    left_out: RayEvidence,
+    kept: RayEvidence,
+    lattice: AnyGrid,
+    cells: NDArray[np.intp],
+    dtype: type[np.floating[Any]] = np.float64,
+) -> CellCounts | None:
+    """:func:`count_cells` of the kept scans' beams, as the counts of every scan (`whole`) less
+    those of the scans left out, counted on `whole`'s lattice: counts on one lattice add over
+    scans, and in whole shares below :data:`EXACT_BELOW` the difference is exact, so only the
+    beams left out are walked. The cells are `whole`'s lattice's, and so is the rounding of a
+    beam that ends on or runs along a cell border (:func:`count_cells`).
+
+    Parameters
+    ----------
+    whole : CountsNear
+        The counts of every scan round the asked points.
+    left_out : RayEvidence
+        The beams of the scans left out.
+    kept : RayEvidence
+        The kept scans' beams and path (the path is counted as it is: the kept scans' path
+        steps over the stretches left out).
+    lattice, cells, dtype
+        As :func:`count_cells`'; `lattice` is planar, on `whole`'s side.
+
+    Returns
+    -------
+    CellCounts or None
+        None when `whole` lacks a cell it needs or a count too large to take from exactly.
+    """
+    cells = np.unique(np.asarray(cells, dtype=np.intp))
+    own = whole.lattice
+    if grid_dim(lattice) != 2 or grid_dim(own) != 2 or lattice.resolution != own.resolution:
+        return None
+    rows, cols = np.unravel_index(cells, lattice.shape)
+    # Each cell and the cells next to it on this lattice (next_to_hits' 3 x 3).
+    r = rows[:, None] + np.repeat(np.arange(-1, 2), 3)[None, :]
+    c = cols[:, None] + np.tile(np.arange(-1, 2), 3)[None, :]
+    inside = (r >= 0) & (r < lattice.shape[0]) & (c >= 0) & (c < lattice.shape[1])
+    clipped = (np.clip(r, 0, lattice.shape[0] - 1), np.clip(c, 0, lattice.shape[1] - 1))
+    around = np.where(inside, np.ravel_multi_index(clipped, lattice.shape), 0)
+    wanted = np.unique(around[inside])
+    wr, wc = np.unravel_index(wanted, lattice.shape)
+    keys = _keys(lattice, wr, wc)
+    order = np.argsort(keys)
+    found = whole.at(keys[order])
+    if found is None:
+        return None
+    totals = [np.empty_like(v) for v in found]
+    for total, v in zip(totals, found, strict=True):
+        total[order] = v
+    # The same cells on whole's lattice, where the scans left out are counted.
+    shift = np.round((np.asarray(lattice.origin, dtype=float) - np.asarray(own.origin, dtype=float)) / own.resolution).astype(
+        np.intp
+    )
+    there = np.ravel_multi_index((wr + shift[1], wc + shift[0]), own.shape)
+    out = count_cells(left_out, own, there, dtype=whole.hits.dtype.type)
+    at = np.searchsorted(out.cells, there)
+    hits, misses, near = (t - o[at] for t, o in zip(totals, (out.hits, out.misses, out.near), strict=True))
+    if any(v.size and float(v.min()) < 0.0 for v in (hits, misses, near)):
+        return None  # not counted on one lattice after all
+    hits, misses, near = (np.asarray(v, dtype=dtype) for v in (hits, misses, near))
+    at_cell = np.searchsorted(wanted, around)
+    at_surface = np.any(inside & (hits[np.minimum(at_cell, wanted.size - 1)] > 0), axis=1)
+    place = np.searchsorted(wanted, cells)
+    path = count_cells(_beams(kept, np.zeros(kept.hit.size, dtype=bool)), lattice, cells, dtype).path
+    return CellCounts(lattice, cells, hits[place], misses[place], near[place], path, at_surface)
+
+
 def _reach(
     evidence: RayEvidence, lattice: AnyGrid, corner: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

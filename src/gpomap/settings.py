@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from gpomap.cells import Cells, build_cells
 from gpomap.config import PROFILES, MapConfig
+from gpomap.counted_cells import CountsNear
 from gpomap.fusion import EvidenceCalibration, EvidenceLayer, GPApart
 from gpomap.kernels.area import AreaKernel
 from gpomap.kernels.point import make_point_kernel
@@ -202,15 +203,26 @@ class MapSettings(MapConfig):
         gp_apart: GPApart | None = None,
         calibration: EvidenceCalibration | None = None,
         asked_at: NDArray[np.float64] | None = None,
+        counted_without: tuple[CountsNear, ScanData] | None = None,
     ) -> EvidenceLayer | None:
         """The ray-evidence layer for `data` on top of a fitted GP (None without scans or when off),
         with `gp_apart` the GP its surprise rate is fitted against with ``fit_surprise_rate``
         (:func:`gpomap.fusion.fit_calibration`), or `calibration` taken as it is, its counts taken
-        only at the points `asked_at` when given (:class:`~gpomap.fusion.EvidenceLayer`)."""
+        only at the points `asked_at` when given, from another layer's less some scans' with
+        `counted_without` (:class:`~gpomap.fusion.EvidenceLayer`)."""
         if not self.ray_evidence or isinstance(data, Observations):
             return None
         resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
         apart = gp_apart if self.fit_surprise_rate else None
         return EvidenceLayer(
-            data, resolution, predict_gp, self.no_return_cap, self.calibration_scans, self.seed, apart, calibration, asked_at
+            data,
+            resolution,
+            predict_gp,
+            self.no_return_cap,
+            self.calibration_scans,
+            self.seed,
+            apart,
+            calibration,
+            asked_at,
+            counted_without,
         )

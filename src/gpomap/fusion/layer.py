@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
-from gpomap.counted_cells import CellCounts, count_cells
+from gpomap.counted_cells import CellCounts, CountsNear, count_cells, count_cells_without
 from gpomap.evidence import RayCounts, RayEvidence, lattice_grid, next_to_hits
 from gpomap.fusion.calibration import (
     CalibrationSample,
@@ -97,6 +97,10 @@ class EvidenceLayer(LayerGrids):
         points). The counts are then taken at their cells alone, window by window
         (:func:`gpomap.counted_cells.count_cells`), not over the whole lattice, and the layer
         takes no further scans and gives no grids.
+    counted_without : (CountsNear, scans), optional
+        With `asked_at`, when `scans` are some of another layer's: that layer's counts round the
+        asked points and its other scans. The counts are then that layer's less the other scans'
+        (:func:`gpomap.counted_cells.count_cells_without`), only their beams walked.
     """
 
     # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
@@ -104,6 +108,10 @@ class EvidenceLayer(LayerGrids):
     # Set only on a layer counted at given points (asked_at), which no map file holds.
     _asked_at: NDArray[np.float64] | None = None
     _cells: CellCounts | None = None
+    # Whether every count on the lattice was taken on the lattice itself, at once (not added
+    # from scans counted on another lattice): then some scans' counts can be taken out of it
+    # exactly (counts_near). Unknown (None) for a layer read from a map file.
+    _counted_in_place: bool | None = None
 
     def __init__(
         self,
@@ -116,6 +124,7 @@ class EvidenceLayer(LayerGrids):
         gp_apart: GPApart | None = None,
         calibration: EvidenceCalibration | None = None,
         asked_at: NDArray[np.float64] | None = None,
+        counted_without: tuple[CountsNear, ScanData] | None = None,
     ) -> None:
         if asked_at is not None and calibration is None:
             raise ValueError("a layer counted only at given points takes its calibration as given")
@@ -142,7 +151,7 @@ class EvidenceLayer(LayerGrids):
         self._path: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
         self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None = None
         self._cells = None  # the counts of the asked points' cells alone (asked_at)
-        self.add_scans(scans)
+        self._add_scans(scans, counted_without)
         if calibration is None:
             self.recalibrate(predict_gp)
         else:
@@ -183,6 +192,10 @@ class EvidenceLayer(LayerGrids):
         scans : sequence of Scan
             Scans that follow those counted so far, in order.
         """
+        self._add_scans(scans)
+
+    def _add_scans(self, scans: ScanData, counted_without: tuple[CountsNear, ScanData] | None = None) -> None:
+        """:meth:`add_scans`; a layer asked at a few points counts them as `counted_without` says (see the class)."""
         scans = list(scans)
         if not scans:
             return
@@ -207,7 +220,14 @@ class EvidenceLayer(LayerGrids):
         if self._asked_at is not None:
             # The lattice's cells without its arrays: only the asked points' cells are counted.
             self.lattice = local
-            self._cells = count_cells(part, local, flat_index(local, self._asked_at)[0], COUNT_DTYPE)
+            cells, inside = flat_index(local, self._asked_at)
+            counted = None
+            if counted_without is not None:
+                # Only the cells of points inside: those outside are never looked up (CellCounts.at).
+                whole, others = counted_without
+                left_out = RayEvidence.from_scans(list(others), self.no_return_cap)
+                counted = count_cells_without(whole, left_out, part, local, cells[inside], COUNT_DTYPE)
+            self._cells = counted if counted is not None else count_cells(part, local, cells, COUNT_DTYPE)
             self._scans.extend(scans)
             self._parts.append(part)
             self._joined = None
@@ -223,7 +243,9 @@ class EvidenceLayer(LayerGrids):
             # lattice is tens of millions of cells, each array of them hundreds of megabytes).
             part.counts(local, keep=keep, out=RayCounts(self._hits, self._beam_misses, self._near_misses))
             part.path_passes(local, out=self._path)
+            self._counted_in_place = not self._scans
         else:
+            self._counted_in_place = False
             counts = part.counts(local, keep=keep)
             for total, new in zip((self._hits, self._beam_misses, self._near_misses), counts, strict=True):
                 window = total[block]
@@ -268,6 +290,14 @@ class EvidenceLayer(LayerGrids):
             arr = np.zeros(grown.shape, dtype=getattr(self, name).dtype)
             arr[block] = getattr(self, name)
             setattr(self, name, arr)
+
+    def counts_near(self, points: NDArray[np.float64]) -> CountsNear | None:
+        """The counts round `points` (shape (m, 2)) that a map of some of these scans asked at
+        them takes its own from (the `counted_without` of its layer); None for a layer without
+        a planar lattice of counts, or whose counts were added from other lattices (updates)."""
+        if not self._counted_in_place or self.lattice is None or self._asked_at is not None or self._dim != 2:
+            return None
+        return CountsNear.of(self.lattice, (self._hits, self._beam_misses, self._near_misses), points)
 
     @contextmanager
     def set_aside(self) -> Iterator[None]:

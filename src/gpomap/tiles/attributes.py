@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.counted_cells import CountsNear
 from gpomap.fusion import EvidenceCalibration, EvidenceLayer
 from gpomap.settings import MapSettings
 from gpomap.tiles.points import KeptPoints, _BlockCells, _BlockPoints
@@ -88,5 +89,8 @@ class TiledAttributes:
     #: Another map's points, which this map of some of its scans takes as its own instead of
     #: making them again (set, with given hyperparameters and origin, on a map of part of a log).
     _kept_points: KeptPoints | None = None
+    #: Another map's counts round the asked points and the scans it has besides this map's: the
+    #: ray counts are taken as its less theirs (set, with `_asked_at`, on a map of part of a log).
+    _counted_without: tuple[CountsNear, list[Any]] | None = None
     #: The tasks of the tiles that wait to be asked, by tile (a map fitted with ``_tiles_when_asked``).
     _waiting: dict[tuple[int, int], tuple[TileFitTask]]

@@ -12,6 +12,7 @@ runs them in the order :meth:`TiledGPOM.fit <gpomap.tiles.TiledGPOM.fit>` asks.
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import nullcontext
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -101,7 +102,12 @@ class CalibrationStages(MapPrediction):
         if self._scans is None:
             return None
         return self.base.make_evidence(
-            self._scans, self._gp_map().predict_proba_gp, self._gp_apart, self._given_calibration, self._asked_at
+            self._scans,
+            self._gp_map().predict_proba_gp,
+            self._gp_apart,
+            self._given_calibration,
+            self._asked_at,
+            self._counted_without,
         )
 
     def _later_visit_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None:
@@ -109,15 +115,23 @@ class CalibrationStages(MapPrediction):
         (:func:`gpomap.revisit.later_visit_points`); None when the map does not recalibrate."""
         if self._scans is None or not self.base.ray_evidence or not self.base.fit_revisit:
             return None
-        from gpomap.revisit import later_visit_points
+        from gpomap.revisit import later_visit_sample
 
-        refit = self._refit()
-        calibration = None if self.evidence_ is None else self.evidence_.calibration
-
-        def fit_rest(scans: list[Any], points: NDArray[np.float64]) -> NDArray[np.float64]:
-            return refit.map_proba(scans, calibration, points, self._kept_points_of(scans))
-
-        return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
+        sample = later_visit_sample(self._scans, self.base.no_return_cap, self.base.seed)
+        if isinstance(sample, dict):
+            return np.zeros(0), np.zeros(0, dtype=bool), sample
+        kept, held, points, occupied = sample
+        layer = self.evidence_
+        scans = [self._scans[i] for i in kept]
+        # This map's counts round the points, taken before its lattice is set aside: the map of
+        # the other stretches counts only the held-out stretches' beams, and takes them out.
+        near = None if layer is None else layer.counts_near(points)
+        without = None if near is None else (near, [self._scans[i] for i in held])
+        with layer.set_aside() if layer is not None else nullcontext():
+            p = self._refit().map_proba(
+                scans, None if layer is None else layer.calibration, points, self._kept_points_of(scans), without
+            )
+        return np.asarray(p, dtype=float), occupied, {"n_points": int(occupied.size)}
 
     def _kept_points_of(self, scans: list[Any]) -> KeptPoints | None:
         """This map's points without those of the scans not in `scans` (:class:`~gpomap.tiles.points.KeptPoints`),

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap.counted_cells import CountsNear
 from gpomap.fusion import EvidenceCalibration
 from gpomap.observations import Observations, ScanData
 from gpomap.tiles.points import KeptPoints
@@ -64,17 +65,21 @@ class Refit:
         calibration: EvidenceCalibration | None,
         points: NDArray[np.float64],
         kept_points: KeptPoints | None = None,
+        counted_without: tuple[CountsNear, list[Any]] | None = None,
     ) -> NDArray[np.float64]:
         """The probability at `points` (shape (m, d); returns (m,)) of the whole map fitted on
         `scans` alone, with its own ray counts calibrated as `calibration` says and no later-visit
         recalibration of its own. It fits only the tiles the points need, and counts the rays only
         at their cells (the same tiles and counts, so the same answers as the whole map's). With
         `kept_points` (the fitted map's points without the scans left out), it files those
-        instead of making the scans' points again: the same points in the same order."""
+        instead of making the scans' points again: the same points in the same order. With
+        `counted_without` (the fitted map's counts round `points` and its scans not in `scans`),
+        its ray counts are those less the others' (:func:`gpomap.counted_cells.count_cells_without`)."""
         rest = self.unfitted(fit_revisit=False)
         rest._tiles_when_asked = True
         rest._given_calibration = calibration
         rest._kept_points = kept_points
+        rest._counted_without = counted_without
         if calibration is not None:
             rest._asked_at = np.asarray(points, dtype=float)
         return np.asarray(rest.fit(scans, hyperparameters=dict(self.hyperparameters)).predict_proba(points), dtype=float)

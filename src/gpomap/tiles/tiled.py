@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from contextlib import nullcontext
 from typing import Any, ClassVar, Self
 
 from gpomap.config import MapConfig, TiledConfig, TilingConfig
@@ -325,8 +324,7 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
         # fits only the tiles the held-out stretches' points need (docs/choices.md, "The map's
         # probabilities for a later visit").
         t = time.perf_counter()
-        with self.evidence_.set_aside() if self.evidence_ is not None else nullcontext():
-            later = self._later_visit_points()
+        later = self._later_visit_points()  # with this map's counts set aside while it fits another
         self.revisit_ = self._fit_revisit(later)
         del later
         release_freed_memory()

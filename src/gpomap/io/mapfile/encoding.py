@@ -24,7 +24,14 @@ _HEADER = "header"
 NOT_SAVED: dict[str, dict[str, Any]] = {
     "gpomap.tiles.TiledGPOM": {"_client": None, "scheduler": None},
     # A layer counted only at given points (a map asked at a few points while fitting) is never saved.
-    "gpomap.fusion.EvidenceLayer": {"_at_surface": None, "_joined": None, "_grid_cache": None, "_asked_at": None, "_cells": None},
+    "gpomap.fusion.EvidenceLayer": {
+        "_at_surface": None,
+        "_joined": None,
+        "_grid_cache": None,
+        "_asked_at": None,
+        "_cells": None,
+        "_counted_in_place": None,
+    },
     "gpomap.gp.GPPosterior": {"precision": None},
     # Block points made again from the scans are filed with their runs again (_restore_points).
     "gpomap.tiles._BlockPoints": {"_runs": None},
