@@ -30,16 +30,8 @@ FAST = [*READ, "--length-scale", "1"]
 SHARED_PATH = ("gpomap.cli.map", "write_grid")
 
 
-@pytest.fixture(scope="module")
-def mapped(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("intel") / "map"
-    assert main(["map", str(INTEL), "--range", "0:30", "--resolution", "0.25", "-o", str(out), *FAST]) == 0
-    return out
-
-
-@pytest.fixture
-def writes(monkeypatch) -> list[tuple[tuple[str, str], dict[str, bytes]]]:
-    """Each set of planar-map files a command writes: the function that wrote it, and its files' bytes."""
+def record_writes(monkeypatch: pytest.MonkeyPatch) -> list[tuple[tuple[str, str], dict[str, bytes]]]:
+    """Each set of planar-map files a command writes from now on: the function that wrote it, and its files' bytes."""
     from gpomap.io import export
 
     sets: list[tuple[tuple[str, str], dict[str, bytes]]] = []
@@ -52,6 +44,27 @@ def writes(monkeypatch) -> list[tuple[tuple[str, str], dict[str, bytes]]]:
 
     monkeypatch.setattr(export, "write_map_files", recorded)
     return sets
+
+
+@pytest.fixture(scope="module")
+def mapped_run(tmp_path_factory) -> tuple[Path, list[tuple[tuple[str, str], dict[str, bytes]]]]:
+    """``gpomap map`` of the log's first 30 scans at 0.25 m: its output directory and the sets it wrote."""
+    out = tmp_path_factory.mktemp("intel") / "map"
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        sets = record_writes(monkeypatch)
+        assert main(["map", str(INTEL), "--range", "0:30", "--resolution", "0.25", "-o", str(out), *FAST]) == 0
+    return out, sets
+
+
+@pytest.fixture(scope="module")
+def mapped(mapped_run) -> Path:
+    return mapped_run[0]
+
+
+@pytest.fixture
+def writes(monkeypatch) -> list[tuple[tuple[str, str], dict[str, bytes]]]:
+    """Each set of planar-map files a command writes: the function that wrote it, and its files' bytes."""
+    return record_writes(monkeypatch)
 
 
 @pytest.fixture
@@ -111,12 +124,12 @@ def in_directory(out: Path, files: dict[str, bytes]) -> None:
         assert (out / name).read_bytes() == data, name
 
 
-def test_map_writes_through_the_shared_path(tmp_path, writes):
-    out = tmp_path / "map"
-    assert main(["map", str(INTEL), "--range", "0:30", "--resolution", "0.5", "-o", str(out), *FAST]) == 0
+def test_map_writes_through_the_shared_path(mapped_run, tmp_path):
+    # The module's run of gpomap map, its writes recorded as the other commands' are below.
+    out, writes = mapped_run
     [(caller, files)] = writes
     assert caller == SHARED_PATH
-    expected = gpomap.load_map(out / "map.gpom").grid(0.5)
+    expected = gpomap.load_map(out / "map.gpom").grid(0.25)
     same_files(files, expected_files(expected, tmp_path / "expected", f"gpomap: {INTEL.name}"))
     in_directory(out, files)
 
@@ -188,10 +201,10 @@ def test_stream_writes_each_map_through_the_shared_path(tmp_path, writes):
     from gpomap.cli.stream import mapper_from_args
 
     out = tmp_path / "live"
-    line = ["stream", str(INTEL), "--range", "0:13", "--warmup", "10", "--rate", "0", "--every", "0", "--resolution", "0.5"]
+    line = ["stream", str(INTEL), "--range", "0:11", "--warmup", "10", "--rate", "0", "--every", "0", "--resolution", "0.5"]
     assert main([*line, "-o", str(out), *FAST]) == 0
-    # After each scan once warmed up (10, 11, 12, 13), and the map of all 13 fitted again at the end.
-    assert len(writes) == 5 and all(caller == SHARED_PATH for caller, _ in writes)
+    # After each scan once warmed up (10, 11), and the map of all 11 fitted again at the end.
+    assert len(writes) == 3 and all(caller == SHARED_PATH for caller, _ in writes)
     # The same replay, each map the streaming mapper's grid written directly.
     args = build_parser().parse_args([*line, "-o", str(out), *FAST])
     resolve_library_defaults(args)
@@ -204,7 +217,7 @@ def test_stream_writes_each_map_through_the_shared_path(tmp_path, writes):
             grids.append((n, mapper.grid(0.5)))
     mapper.relearn()
     grids.append((len(scans), mapper.model_.grid(0.5)))
-    assert [n for n, _ in grids] == [10, 11, 12, 13, 13]
+    assert [n for n, _ in grids] == [10, 11, 11]
     for i, ((n, grid), (_, files)) in enumerate(zip(grids, writes, strict=True)):
         title = f"gpomap stream: {INTEL.name} ({n} of {len(scans)} scans)"
         same_files(files, expected_files(grid, tmp_path / f"expected-{i}", title))

@@ -162,10 +162,11 @@ def test_a_method_run_apart_raises_what_it_raised() -> None:
 def test_evaluate_compare_prints_each_split_and_the_targets(capsys, tmp_path):
     from gpomap.cli import main
 
-    # gpomap's written map at 0.1 m and a 0.3 m free clearance: at the defaults (0.05 m, the planar
-    # 0.1 m clearance) each split takes 27 s instead of 9, mostly in predicting the room's truth
-    # cells; the plumbing of --compare is the subject here, and the options reach gpomap's fit.
-    options = ["--workers", "1", "-q", "--grid-resolution", "0.1", "--free-clearance", "0.3"]
+    # gpomap's written map at 0.2 m and a 0.3 m free clearance: at the defaults (0.05 m, the planar
+    # 0.1 m clearance) each split takes 27 s instead of 6, mostly in predicting the room's truth
+    # cells (one per written cell); the plumbing of --compare is the subject here, and the options
+    # reach gpomap's fit.
+    options = ["--workers", "1", "-q", "--grid-resolution", "0.2", "--free-clearance", "0.3"]
     assert main(["evaluate", "--demo", "--compare", *options, "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert [s["split"] for s in out["splits"]] == ["blocks:40:5", "every:10"]  # both of the protocol's by default
@@ -175,7 +176,7 @@ def test_evaluate_compare_prints_each_split_and_the_targets(capsys, tmp_path):
         assert run["met"] == sum(t["met"] is True for t in run["targets"])
         assert run["checked"] == len(TARGET_NAMES)  # the room has a truth: every target is checked
         mine = run["results"][0]["settings"]
-        assert mine["grid_resolution"] == 0.1 and mine["method_options"]["free_clearance"] == 0.3
+        assert mine["grid_resolution"] == 0.2 and mine["method_options"]["free_clearance"] == 0.3
     assert out["met"] == sum(run["met"] for run in out["splits"])
 
     figure = tmp_path / "compare.png"
@@ -188,7 +189,7 @@ def test_evaluate_compare_prints_each_split_and_the_targets(capsys, tmp_path):
     every = out["splits"][1]
     assert f"targets met by gpomap's written map: {every['met']} of {every['checked']}" in text
     # The same split and seed give the same scores as the JSON.
-    auc = float(text.split("| MSK-GPOM | grid 0.1 |")[1].split("|")[0].strip().rstrip("*"))
+    auc = float(text.split("| MSK-GPOM | grid 0.2 |")[1].split("|")[0].strip().rstrip("*"))
     assert auc == pytest.approx(every["results"][0]["grid"]["auc"], abs=5e-4)
     if can_run_apart():  # the method's own peak memory, not "-"
         assert text.split("| MSK-GPOM | points |")[1].split("\n")[0].rstrip(" |").endswith(" at start)")
