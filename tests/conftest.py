@@ -64,40 +64,46 @@ WITHOUT_COMPILING = [
     "test_progress.py",
 ]
 
-#: Files taking more than about 4 s, longest first (measured per file in the whole suite under
-#: -n 2), after those above: the two files that run ROS processes first (the ROS 1 node's starts
-#: by installing gpomap in a venv of its own on a fresh checkout, and their nodes load numba's code
-#: from the cache by the time they map); then by seconds. A file not listed runs after these, in
-#: its usual order.
+#: Files taking more than about 2.5 s, longest first (measured per file, in the whole suite under
+#: -n 2 and alone), after those above: the two files that run ROS processes first (the ROS 1 node's
+#: starts by installing gpomap in a venv of its own on a fresh checkout, and their nodes load
+#: numba's code from the cache by the time they map); then by seconds. A file not listed runs after
+#: these, in its usual order.
 LONGEST_FIRST = [
     "test_ros_node.py",
     "test_ros2_node.py",
     "test_tiles.py",
     "test_comparison.py",
     "test_cli_writing.py",
+    "test_mapfile.py",
     "test_distributed.py",
     "test_mapfile_cli.py",
-    "test_mapping.py",
     "test_fusion.py",
-    "test_mapfile.py",
     "test_stream_cli.py",
-    "test_extrapolation.py",
     "test_outputs_atomic.py",
-    "test_revisit.py",
+    "test_mapping.py",
     "test_convert.py",
-    "test_local_prediction.py",
-    "test_cli_convert.py",
-    "test_stages.py",
-    "test_truth_map.py",
-    "test_benchmark.py",
-    "test_estimator_params.py",
-    "test_cli_checks.py",
-    "test_clearance.py",
-    "test_voxels_map3d.py",
+    "test_revisit.py",
     "test_streaming.py",
+    "test_stages.py",
+    "test_cli_convert.py",
+    "test_map3d_cli.py",
+    "test_cli_checks.py",
+    "test_local_prediction.py",
+    "test_truth_map.py",
+    "test_ros_messages.py",
+    "test_estimator_params.py",
+    "test_tensor_kernel.py",
+    "test_voxels_map3d.py",
+    "test_benchmark.py",
+    "test_extrapolation.py",
+    "test_clearance.py",
     "test_fitted.py",
-    "test_tensor_compiled.py",
+    "test_convert3d.py",
     "test_protocol.py",
+    "test_compiled_raycast.py",
+    "test_kernels.py",
+    "test_tensor_compiled.py",
 ]
 _ORDER = [*COMPILES_FIRST, *WITHOUT_COMPILING, *LONGEST_FIRST]
 _RANK = {name: i for i, name in enumerate(_ORDER)}
