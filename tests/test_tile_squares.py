@@ -1,4 +1,4 @@
-"""The squares of the tile and block grids holding points: the compiled pass against the numpy
+"""Points filed under blocks. The squares of the tile and block grids holding points: the compiled pass against the numpy
 expression, and the blocks points are filed under against each point's block found by hand."""
 
 from __future__ import annotations
@@ -111,3 +111,27 @@ def test_a_held_in_square_cut_from_the_blocks_is_the_one_made_from_the_scans():
     # A block whose points came without their scans: the points are made again from the scans.
     model._block_points[next(iter(model._block_points))]._runs = None
     assert model._filed_points(made) is made
+
+
+@pytest.mark.parametrize("same_clearance", [True, False])
+def test_a_kept_block_finds_free_points_near_kept_hits_as_a_block_of_its_own_would(same_clearance):
+    # The block of a map of some scans takes which free points are near a hit from the fitted
+    # map's block (near a hit there, asked again about the kept hits alone): the answer of the
+    # clearance over the kept points, some near dropped hits only among them.
+    from gpomap.observations import free_near_hits
+    from gpomap.tiles.points import _BlockPoints, _KeptBlock, scan_runs
+
+    rng = np.random.default_rng(4)
+    scans = np.sort(rng.integers(0, 12, 4000))
+    points = rng.uniform(0.0, 3.0, size=(4000, 2))
+    occupied = rng.random(4000) < 0.05
+    block = _BlockPoints(points, occupied, scan_runs(scans))
+    block.free_near_hits(0.1)
+    dropped = np.array([2, 5, 6])
+    kept = ~np.isin(scans, dropped)
+    own = _KeptBlock(block, dropped, 0.1 if same_clearance else 0.2)
+    got = own.free_near_hits(0.1)
+    want = free_near_hits(points[kept], occupied[kept], 0.1)
+    np.testing.assert_array_equal(got, want)
+    # Some free points were near a hit of the dropped scans only.
+    assert np.count_nonzero(block._near[kept] & ~want) > 0 and want.any()

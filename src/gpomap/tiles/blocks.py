@@ -127,7 +127,7 @@ class BlockCells(TileGrid):
         self.origin_ = (float(self.origin[0]), float(self.origin[1]))
         last = -1
         for key, block in kept.blocks.items():
-            own = _KeptBlock(block, kept.dropped)
+            own = _KeptBlock(block, kept.dropped, kept.clearance)
             points, occupied = own.arrays()
             if occupied.size == 0:
                 continue

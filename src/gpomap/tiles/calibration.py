@@ -144,7 +144,7 @@ class CalibrationStages(MapPrediction):
         kept, held = holdout_stretches(len(self._scans))
         if len(scans) != kept.size or any(s is not self._scans[i] for s, i in zip(scans, kept.tolist(), strict=True)):
             return None
-        return KeptPoints(self._block_points, held, kept, self._dim)
+        return KeptPoints(self._block_points, held, kept, self._dim, self._clearance)
 
     def _fit_revisit(self, later: tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None) -> dict[str, Any]:
         """Fit the ray evidence's recalibration for a later visit (:meth:`gpomap.revisit.RevisitCalibration.fit`, through

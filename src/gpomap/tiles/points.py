@@ -102,12 +102,18 @@ class _BlockPoints:
         """The block's points and labels but those of `scans` (indices in the map's scans), in
         their order; None when a part came without its runs."""
         points, occupied = self.arrays()
+        keep = self.kept_mask(scans)
+        if keep is None:
+            return None
+        return points[keep], occupied[keep]
+
+    def kept_mask(self, scans: NDArray[np.integer[Any]]) -> NDArray[np.bool_] | None:
+        """Which of the block's points are not of `scans`, shape (n,); None when a part came without its runs."""
         if self._runs is None:
             return None
         ids = np.concatenate([r[0] for r in self._runs])
         counts = np.concatenate([r[1] for r in self._runs])
-        keep = np.repeat(~np.isin(ids, scans), counts)
-        return points[keep], occupied[keep]
+        return np.repeat(~np.isin(ids, scans), counts)
 
     def scans(self) -> NDArray[np.int32] | None:
         """Each point's scan (an index in the map's scans), shape (n,) in the points' order; None
@@ -178,8 +184,8 @@ class _KeptBlock(_BlockPoints):
     """A block's points without some scans' (:meth:`_BlockPoints.without`), read from the block at
     each read: the block of a map fitted on the other scans, which holds no points of its own."""
 
-    def __init__(self, block: _BlockPoints, dropped: NDArray[np.integer[Any]]) -> None:
-        self._block, self._dropped = block, dropped
+    def __init__(self, block: _BlockPoints, dropped: NDArray[np.integer[Any]], clearance: float | None = None) -> None:
+        self._block, self._dropped, self._clearance = block, dropped, clearance
         self._parts, self._runs = [], None
         self._near = np.zeros(0, dtype=bool)
         self._n_checked = 0
@@ -189,6 +195,27 @@ class _KeptBlock(_BlockPoints):
         if kept is None:
             raise ValueError("the block's points came without their scans")
         return kept
+
+    def free_near_hits(
+        self, clearance: float, arrays: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None
+    ) -> NDArray[np.bool_]:
+        """:meth:`_BlockPoints.free_near_hits` of the points kept. Where the block has checked all
+        its points at the same clearance, only the free points it found near a hit are asked
+        again, about the kept hits: with fewer hits, no other free point can be near one."""
+        block = self._block
+        whole = block._near
+        if self._clearance != clearance or block._n_checked != whole.size or self._n_checked:
+            return super().free_near_hits(clearance, arrays)
+        points, occupied = self.arrays() if arrays is None else arrays
+        kept = block.kept_mask(self._dropped)
+        if kept is None or kept.size != whole.size or int(kept.sum()) != occupied.size:
+            return super().free_near_hits(clearance, arrays)
+        near = whole[kept]
+        ask = np.flatnonzero(near)
+        if ask.size:
+            near[ask] = _near_any(points[ask], points[occupied], clearance)
+        self._near, self._n_checked = near, int(occupied.size)
+        return near
 
     def append(self, points: Any, occupied: Any = None, runs: Runs | None = None) -> None:
         raise TypeError("a block of another map's points takes no points of its own")
@@ -216,12 +243,16 @@ class KeptPoints:
         The scans kept, in the same numbering, in order: the other map's scans.
     dim : int
         Of the points.
+    clearance : float, optional
+        The fitted map's clearance: where the other map's is the same, its blocks take which
+        free points are near a hit from the fitted map's (:meth:`_KeptBlock.free_near_hits`).
     """
 
     blocks: dict[int, _BlockPoints]
     dropped: NDArray[np.intp]
     kept: NDArray[np.intp]
     dim: int
+    clearance: float | None = None
 
 
 class FiledPoints:
