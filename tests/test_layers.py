@@ -82,7 +82,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.baselines",
         ),
     ),
-    ("tiling", ("gpomap.tiles", "gpomap.mapping", "gpomap.streaming")),
+    ("tiling", ("gpomap.tiles", "gpomap._compiled_squares", "gpomap.mapping", "gpomap.streaming")),
     ("figures", ("gpomap.plot",)),
     ("io", ("gpomap.io",)),
     (
