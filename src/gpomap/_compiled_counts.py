@@ -49,7 +49,10 @@ def _add_scan(
         c = cells[k]
         slot[c] = -1
         t = max(through[k], ended[k])
-        if shared:
+        if shared and ended[k] == 0 and close[k] == 0:
+            # Most rows: a plain miss, the whole update (adding the zero shares changes nothing).
+            misses[c] += 1.0
+        elif shared:
             # Whole units, as gpomap.evidence.scan_shares rounds them.
             h = np.floor(ended[k] / t * units + 0.5)
             h = max(h, 1.0) if ended[k] > 0 else h
