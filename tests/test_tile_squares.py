@@ -1,5 +1,6 @@
-"""Points filed under blocks. The squares of the tile and block grids holding points: the compiled pass against the numpy
-expression, and the blocks points are filed under against each point's block found by hand."""
+"""Points filed under blocks: the squares holding them (the compiled pass against the numpy
+expression), the block each is filed under (found by hand), and what a fit takes from the blocks
+instead of the scans (held-in squares, a kept block's clearance)."""
 
 from __future__ import annotations
 
