@@ -186,41 +186,15 @@ def later_visit_points(
         ``"n_points"`` (n), or ``"reason"`` when there are none (a log under :data:`MIN_SCANS`
         scans, point clouds, a held-out stretch without a class).
     """
-    sample = later_visit_sample(scans, no_return_cap, seed)
-    if isinstance(sample, dict):
-        return np.zeros(0), np.zeros(0, dtype=bool), sample
-    kept, _, pts, occ = sample
-    return np.asarray(fit_rest([scans[i] for i in kept], pts), dtype=float), occ, {"n_points": int(occ.size)}
-
-
-def later_visit_sample(
-    scans: Sequence[Any], no_return_cap: float | None = MapConfig.no_return_cap, seed: int = 0
-) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64], NDArray[np.bool_]] | dict[str, Any]:
-    """The held-out stretch's points :func:`later_visit_points` asks the map of the others about.
-
-    Parameters
-    ----------
-    scans : sequence of Scan
-        The map's scans, in log order.
-    no_return_cap : float or None
-        As the map's.
-    seed : int
-        Seeds the uniform subsample.
-
-    Returns
-    -------
-    (kept, held, points, occupied) or dict
-        The kept and held-out scans' indices (:func:`gpomap.heldout.holdout_stretches`), the
-        points (shape (n, d)) and their classes (n,); or a report with the ``"reason"`` there
-        are none.
-    """
+    none = np.zeros(0), np.zeros(0, dtype=bool)
     if len(scans) < MIN_SCANS or not FIT_REVISIT.get(data_dim(scans), False):
-        return {"reason": f"{len(scans)} scans (fewer than {MIN_SCANS}) or not planar"}
+        return *none, {"reason": f"{len(scans)} scans (fewer than {MIN_SCANS}) or not planar"}
     kept, held = holdout_stretches(len(scans))
     drawn = drawn_points([scans[k] for k in held], no_return_cap, seed)
     if drawn is None:
-        return {"reason": "the held-out stretch has no point of a class"}
-    return kept, held, drawn[0], drawn[1]
+        return *none, {"reason": "the held-out stretch has no point of a class"}
+    pts, occ = drawn
+    return np.asarray(fit_rest([scans[i] for i in kept], pts), dtype=float), occ, {"n_points": int(occ.size)}
 
 
 def drawn_points(

@@ -80,7 +80,7 @@ class CalibrationStages(MapPrediction):
     def _filed_points(self, obs: Observations | ScanPoints) -> Observations | ScanPoints | FiledPoints:
         """The map's points as its blocks hold them (:class:`~gpomap.tiles.points.FiledPoints`),
         when made from scans and every block knows its points' scans; else `obs`."""
-        if not isinstance(obs, ScanPoints) or not all(b._runs is not None for b in self._block_points.values()):
+        if not isinstance(obs, ScanPoints) or not self._blocks_know_their_scans():
             return obs
         side = self.block_size_
 
@@ -115,35 +115,47 @@ class CalibrationStages(MapPrediction):
         (:func:`gpomap.revisit.later_visit_points`); None when the map does not recalibrate."""
         if self._scans is None or not self.base.ray_evidence or not self.base.fit_revisit:
             return None
-        from gpomap.revisit import later_visit_sample
+        from gpomap.revisit import later_visit_points
 
-        sample = later_visit_sample(self._scans, self.base.no_return_cap, self.base.seed)
-        if isinstance(sample, dict):
-            return np.zeros(0), np.zeros(0, dtype=bool), sample
-        kept, held, points, occupied = sample
-        layer = self.evidence_
-        scans = [self._scans[i] for i in kept]
-        # This map's counts round the points, taken before its lattice is set aside: the map of
-        # the other stretches counts only the held-out stretches' beams, and takes them out.
-        near = None if layer is None else layer.counts_near(points)
-        without = None if near is None else (near, [self._scans[i] for i in held])
-        with layer.set_aside() if layer is not None else nullcontext():
-            p = self._refit().map_proba(
-                scans, None if layer is None else layer.calibration, points, self._kept_points_of(scans), without
-            )
-        return np.asarray(p, dtype=float), occupied, {"n_points": int(occupied.size)}
+        refit, layer = self._refit(), self.evidence_
 
-    def _kept_points_of(self, scans: list[Any]) -> KeptPoints | None:
-        """This map's points without those of the scans not in `scans` (:class:`~gpomap.tiles.points.KeptPoints`),
-        when `scans` are this map's held-out stretches' others (:func:`gpomap.heldout.holdout_stretches`)
-        and every block knows its points' scans; else None."""
+        def fit_rest(scans: list[Any], points: NDArray[np.float64]) -> NDArray[np.float64]:
+            # This map's counts round the points, taken before its lattice is set aside: the map
+            # of the other stretches counts only the held-out stretches' beams, and takes them out.
+            split = self._left_out_of(scans)
+            near = None if layer is None or split is None else layer.counts_near(points)
+            assert self._scans is not None
+            without = None if near is None or split is None else (near, [self._scans[i] for i in split[1]])
+            with layer.set_aside() if layer is not None else nullcontext():
+                calibration = None if layer is None else layer.calibration
+                return refit.map_proba(scans, calibration, points, self._kept_points_of(scans), without)
+
+        return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
+
+    def _left_out_of(self, scans: list[Any]) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
+        """The kept and the held-out stretches' scans (indices in this map's), when `scans` are the
+        kept ones (:func:`gpomap.heldout.holdout_stretches`); else None."""
         from gpomap.heldout import holdout_stretches
 
-        if self._scans is None or not all(b._runs is not None for b in self._block_points.values()):
+        if self._scans is None:
             return None
         kept, held = holdout_stretches(len(self._scans))
         if len(scans) != kept.size or any(s is not self._scans[i] for s, i in zip(scans, kept.tolist(), strict=True)):
             return None
+        return kept, held
+
+    def _blocks_know_their_scans(self) -> bool:
+        """Whether every block's points came with their scans' runs."""
+        return all(b._runs is not None for b in self._block_points.values())
+
+    def _kept_points_of(self, scans: list[Any]) -> KeptPoints | None:
+        """This map's points without those of the scans not in `scans` (:class:`~gpomap.tiles.points.KeptPoints`),
+        when `scans` are this map's held-out stretches' others (:meth:`_left_out_of`) and every
+        block knows its points' scans; else None."""
+        split = self._left_out_of(scans)
+        if split is None or not self._blocks_know_their_scans():
+            return None
+        kept, held = split
         return KeptPoints(self._block_points, held, kept, self._dim, self._clearance)
 
     def _fit_revisit(self, later: tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None) -> dict[str, Any]:
