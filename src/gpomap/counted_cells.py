@@ -182,15 +182,8 @@ class CountsNear:
         :attr:`REACH` cells of each of `points` (shape (m, 2)) on the planar `lattice`."""
         *index, inside = lattice.index_of(np.asarray(points, dtype=float))
         rows, cols = index  # a planar lattice
-        steps = np.arange(-cls.REACH, cls.REACH + 1)
-        r, c = (
-            a.ravel()
-            for a in np.broadcast_arrays(
-                rows[inside][:, None, None] + steps[None, :, None], cols[inside][:, None, None] + steps[None, None, :]
-            )
-        )
-        ok = (r >= 0) & (r < lattice.shape[0]) & (c >= 0) & (c < lattice.shape[1])
-        flat = np.unique(np.ravel_multi_index((r[ok], c[ok]), lattice.shape))
+        around, ok = _around(rows[inside], cols[inside], cls.REACH, lattice.shape)
+        flat = np.unique(around[ok])
         r, c = np.unravel_index(flat, lattice.shape)
         keys = _keys(lattice, r, c)
         order = np.argsort(keys)
@@ -207,6 +200,20 @@ class CountsNear:
         if any(v.size and float(v.max()) >= EXACT_BELOW for v in values):
             return None
         return values
+
+
+def _around(
+    rows: NDArray[np.intp], cols: NDArray[np.intp], reach: int, shape: tuple[int, ...]
+) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
+    """The flat indices of the cells within `reach` cells (a square) of each cell (rows, cols)
+    of a planar lattice of `shape`, shape (n, (2 reach + 1)^2), and which of them lie inside it
+    (those outside hold 0)."""
+    steps = np.arange(-reach, reach + 1)
+    r = (rows[:, None] + np.repeat(steps, steps.size)[None, :]).astype(np.intp)
+    c = (cols[:, None] + np.tile(steps, steps.size)[None, :]).astype(np.intp)
+    inside = (r >= 0) & (r < shape[0]) & (c >= 0) & (c < shape[1])
+    clipped = (np.clip(r, 0, shape[0] - 1), np.clip(c, 0, shape[1] - 1))
+    return np.where(inside, np.ravel_multi_index(clipped, shape), 0), inside
 
 
 def count_cells_without(
@@ -246,11 +253,7 @@ def count_cells_without(
         return None
     rows, cols = np.unravel_index(cells, lattice.shape)
     # Each cell and the cells next to it on this lattice (next_to_hits' 3 x 3).
-    r = rows[:, None] + np.repeat(np.arange(-1, 2), 3)[None, :]
-    c = cols[:, None] + np.tile(np.arange(-1, 2), 3)[None, :]
-    inside = (r >= 0) & (r < lattice.shape[0]) & (c >= 0) & (c < lattice.shape[1])
-    clipped = (np.clip(r, 0, lattice.shape[0] - 1), np.clip(c, 0, lattice.shape[1] - 1))
-    around = np.where(inside, np.ravel_multi_index(clipped, lattice.shape), 0)
+    around, inside = _around(rows, cols, 1, lattice.shape)
     wanted = np.unique(around[inside])
     wr, wc = np.unravel_index(wanted, lattice.shape)
     keys = _keys(lattice, wr, wc)

@@ -82,11 +82,18 @@ class _HeldPoints:
     def square_parts(
         self, box_lo: NDArray[np.float64], box_hi: NDArray[np.float64], among: NDArray[np.intp] | None
     ) -> Iterator[Observations]:
-        obs = self.obs
-        inside = in_box(obs.points, box_lo, box_hi)
-        if among is not None:
-            inside &= _from_kept(obs.scan_index, among)
-        yield Observations(obs.points[inside], obs.occupied[inside], obs.scan_index[inside])
+        yield cut_square(self.obs, box_lo, box_hi, among)
+
+
+def cut_square(
+    obs: Observations, box_lo: NDArray[np.float64], box_hi: NDArray[np.float64], among: NDArray[np.intp] | None
+) -> Observations:
+    """The points of `obs` in the box `box_lo`..`box_hi` (x, y), of every scan or of those `among`
+    (:meth:`PointSource.square_parts` of points held), in their order."""
+    inside = in_box(obs.points, box_lo, box_hi)
+    if among is not None:
+        inside &= _from_kept(obs.scan_index, among)
+    return Observations(obs.points[inside], obs.occupied[inside], obs.scan_index[inside])
 
 
 class _MadePoints:

@@ -14,9 +14,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.lattice import column_bounds, in_box
+from gpomap.lattice import column_bounds
 from gpomap.observations import Observations, free_near_hits
 from gpomap.resources import SpillFile
+from gpomap.unseen import cut_square
 
 
 @dataclass
@@ -107,21 +108,24 @@ class _BlockPoints:
             return None
         return points[keep], occupied[keep]
 
-    def kept_mask(self, scans: NDArray[np.integer[Any]]) -> NDArray[np.bool_] | None:
-        """Which of the block's points are not of `scans`, shape (n,); None when a part came without its runs."""
+    def runs(self) -> Runs | None:
+        """Every part's runs (:data:`Runs`) joined, in the points' order; None when a part came without them."""
         if self._runs is None:
             return None
-        ids = np.concatenate([r[0] for r in self._runs])
-        counts = np.concatenate([r[1] for r in self._runs])
-        return np.repeat(~np.isin(ids, scans), counts)
+        if not self._runs:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        return np.concatenate([r[0] for r in self._runs]), np.concatenate([r[1] for r in self._runs])
+
+    def kept_mask(self, scans: NDArray[np.integer[Any]]) -> NDArray[np.bool_] | None:
+        """Which of the block's points are not of `scans`, shape (n,); None when a part came without its runs."""
+        runs = self.runs()
+        return None if runs is None else np.repeat(~np.isin(runs[0], scans), runs[1])
 
     def scans(self) -> NDArray[np.int32] | None:
         """Each point's scan (an index in the map's scans), shape (n,) in the points' order; None
         when a part came without its runs."""
-        if self._runs is None:
-            return None
-        ids = np.concatenate([r[0] for r in self._runs])
-        return np.repeat(ids.astype(np.int32), np.concatenate([r[1] for r in self._runs]))
+        runs = self.runs()
+        return None if runs is None else np.repeat(runs[0].astype(np.int32), runs[1])
 
     def spill(self, file: SpillFile) -> None:
         """Move the parts held in memory to `file`, in their places."""
@@ -222,8 +226,8 @@ class _KeptBlock(_BlockPoints):
 
     def last_scan(self) -> int:
         """The last scan kept with a point here (an index in the other map's scans), -1 for none."""
-        runs = self._block._runs or []
-        ids = np.concatenate([r[0] for r in runs]) if runs else np.zeros(0, dtype=np.int64)
+        runs = self._block.runs()
+        ids = runs[0] if runs is not None else np.zeros(0, dtype=np.int64)
         ids = ids[~np.isin(ids, self._dropped)]
         return int(ids.max()) if ids.size else -1
 
@@ -282,21 +286,12 @@ class FiledPoints:
         self._blocks, self._meeting = blocks, meeting
         self.lower, self.upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
 
-    def _observations(
-        self,
-        block: _BlockPoints,
-        box: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
-        among: NDArray[np.intp] | None = None,
-    ) -> Observations:
+    @staticmethod
+    def _observations(block: _BlockPoints) -> Observations:
         points, occupied = block.arrays()
         scans = block.scans()
         assert scans is not None  # checked when made
-        if box is None and among is None:
-            return Observations(points, occupied, scans)
-        keep = np.ones(occupied.size, dtype=bool) if box is None else in_box(points, *box)
-        if among is not None:
-            keep &= np.isin(scans, among)
-        return Observations(points[keep], occupied[keep], scans[keep])
+        return Observations(points, occupied, scans)
 
     def parts(self) -> Iterator[Observations]:
         """Every block's points, block by block."""
@@ -310,7 +305,7 @@ class FiledPoints:
         for key in self._meeting(box_lo, box_hi):
             block = self._blocks.get(key)
             if block is not None:
-                yield self._observations(block, (box_lo, box_hi), among)
+                yield cut_square(self._observations(block), box_lo, box_hi, among)
 
 
 class _HeldParts:
