@@ -103,7 +103,7 @@ def _count_entries(
         through = np.zeros(size, dtype=np.int64)
         ended = np.zeros(size, dtype=np.int64)
         close = np.zeros(size, dtype=np.int64)
-        rows = 0
+        rows = np.int64(0)  # not a literal 0, which numba would compile _add_scan for once more
         for b in range(first, last):
             c = beam_end[b]
             if c >= 0:
@@ -219,7 +219,8 @@ def _count_beams(
     through = np.empty(size, dtype=np.int64)
     ended = np.empty(size, dtype=np.int64)
     close = np.empty(size, dtype=np.int64)
-    j = 0  # the next kept segment
+    # Counters start as int64, not literal 0s: numba would compile each callee once more for a literal.
+    j = np.int64(0)  # the next kept segment
     first = 0
     while first < n_beams:
         s = beam_scan[first]
@@ -227,7 +228,7 @@ def _count_beams(
         while last < n_beams and beam_scan[last] == s:
             last += 1
         # The scan's table: a row per cell its beams touched.
-        rows = 0
+        rows = np.int64(0)
         for b in range(first, last):
             if rows + 1 > size:
                 size *= 2
@@ -246,7 +247,7 @@ def _count_beams(
                 ended[k] += 1
         while j < kept.size and kept[j] < last:
             b = kept[j]
-            n = walk_segment(p0, p1, j, place[j], length[j], shape, t_cross, key_cross, work, walked, 0)
+            n = walk_segment(p0, p1, j, place[j], length[j], shape, t_cross, key_cross, work, walked, np.int64(0))
             j += 1
             if rows + n > size:
                 while rows + n > size:

@@ -64,7 +64,8 @@ def walk_segment(
     """The cells segment `s` of `p0` -> `p1` crosses inside the grid, written as columns of `out`
     (d, n) from `at` (array order, x last); how many. `place` is its index within its chunk
     (:class:`gpomap.raycast.Segments`); `t_cross`, `key_cross` hold at least its crossings;
-    `work` is scratch of shape (4, d)."""
+    `work` is scratch of shape (4, d). Callers pass int64 (``np.int64(0)``, never a bare 0):
+    numba compiles this, and its caller again, for every argument type, a literal among them."""
     d = p0.shape[1]
     if d == 2:
         return _walk_plane(p0, p1, s, place, length, shape, out, at)
@@ -236,7 +237,7 @@ def _traverse(
     t_cross = np.empty(longest, dtype=np.float64)
     key_cross = np.empty(longest, dtype=np.float64)
     work = np.empty((4, d), dtype=np.int64)
-    n_out = 0
+    n_out = np.int64(0)  # int64, as walk_segment is called everywhere
     for s in range(b):
         n = walk_segment(p0, p1, s, s, length[s], shape, t_cross, key_cross, work, idx_out, n_out)
         for j in range(n_out, n_out + n):
@@ -281,7 +282,7 @@ def _mark_cells(
 ) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
     t_cross, key_cross, work, walked, strides = walk_scratch(p0, p1, shape)
     for s in range(p0.shape[0]):
-        n = walk_segment(p0, p1, s, place[s], length[s], shape, t_cross, key_cross, work, walked, 0)
+        n = walk_segment(p0, p1, s, place[s], length[s], shape, t_cross, key_cross, work, walked, np.int64(0))
         for e in range(n):
             c = np.int64(0)
             for a in range(walked.shape[0]):
@@ -334,7 +335,8 @@ def free_samples(
     points : ndarray of shape (counts.sum(), d)
     ray : ndarray of int, shape (counts.sum(),)
     """
-    origins = np.ascontiguousarray(np.broadcast_to(origins, directions.shape), dtype=np.float64)
+    # Writeable as well as C order: a read-only array (a broadcast) would compile _samples again.
+    origins = np.require(np.broadcast_to(origins, directions.shape), np.float64, ["C", "W"])
     counts = np.ascontiguousarray(counts, dtype=np.intp)
     total = int(counts.sum())
     points = np.empty((total, directions.shape[1]), dtype=np.float64)

@@ -79,8 +79,9 @@ class Segments:
         """The segments `starts` -> `ends` (shape (b, d), map frame) on `grid`."""
         d = grid_dim(grid)
         origin = np.asarray(grid.origin, dtype=float)
-        p0 = (np.asarray(starts, dtype=float).reshape(-1, d) - origin) / grid.resolution
-        p1 = (np.asarray(ends, dtype=float).reshape(-1, d) - origin) / grid.resolution
+        # C order whatever the inputs' (a transposed array's F order would compile the walks again).
+        p0 = np.ascontiguousarray((np.asarray(starts, dtype=float).reshape(-1, d) - origin) / grid.resolution)
+        p1 = np.ascontiguousarray((np.asarray(ends, dtype=float).reshape(-1, d) - origin) / grid.resolution)
         # Segments that never come near the grid visit none of its cells: left out before the
         # walk (a region's grid among a whole log's beams).
         near = _near_box(p0, p1, grid.shape)
