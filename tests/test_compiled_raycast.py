@@ -142,3 +142,34 @@ def test_compiled_voxel_index_equals_numpys(monkeypatch: pytest.MonkeyPatch) -> 
     for a, b in zip(got[False], got[True], strict=True):
         assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
+
+
+def test_the_walks_compile_for_c_ordered_writeable_arrays_only() -> None:
+    # Every path into the walks, with F-ordered beams and read-only origins as callers hand them:
+    # numba compiles a kernel again for each new argument type, the walks it calls with it (seconds
+    # of a first run each).
+    from numba import types
+
+    # All inside the grid (none left out, which would copy them), in F order.
+    rng = np.random.default_rng(3)
+    starts, ends = (np.asfortranarray(rng.uniform([-2.0, -1.5], [3.0, 2.5], (390, 2))) for _ in range(2))
+    grid = _grid(2)
+    ev = RayEvidence(starts, ends, np.ones(len(starts), bool), np.repeat(np.arange(10), 39))
+    ev.seen(grid)
+    ev.counts(grid, keep=np.array([1]))
+    ev.counts(grid, out=evidence.RayCounts(*(np.zeros(grid.shape, np.float32) for _ in range(3))))
+    raycast.traverse(grid, starts, ends)
+    origins = np.zeros((5, 2))
+    origins.flags.writeable = False
+    _compiled_raycast.free_samples(origins, np.tile([1.0, 0.0], (5, 1)), np.full(5, 3), 0.1)
+    kernels = (
+        _compiled_raycast._mark_cells,
+        _compiled_raycast._traverse,
+        _compiled_raycast._samples,
+        _compiled_counts._count_beams,
+    )
+    for kernel in kernels:
+        assert kernel.signatures, kernel
+        for signature in kernel.signatures:
+            arrays = [t for t in signature if isinstance(t, types.Array)]
+            assert all(t.layout == "C" and t.mutable for t in arrays), (kernel, signature)
