@@ -243,7 +243,7 @@ def _traverse(
         for j in range(n_out, n_out + n):
             seg_out[j] = s
         n_out += n
-    return seg_out, idx_out, n_out
+    return seg_out, idx_out, int(n_out)
 
 
 def traverse_chunk(p0: NDArray[np.float64], p1: NDArray[np.float64], shape: tuple[int, ...]) -> tuple[NDArray[np.intp], ...]:
