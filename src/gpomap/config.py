@@ -87,6 +87,9 @@ class MapProfile:
         The ternary map never calls occupied a cell no beam ended in.
     fit_revisit : bool
         The map is recalibrated for a later visit (when ``fit_revisit`` asks).
+    fit_variance_scale : bool
+        The GP's variance where no beam went is scaled by a factor fitted on held-out stretches
+        (otherwise the GP's own).
     """
 
     min_cell: float
@@ -101,6 +104,7 @@ class MapProfile:
     surprise_rate_fitted: bool
     seen_through_not_occupied: bool
     fit_revisit: bool
+    fit_variance_scale: bool
 
 
 #: The profile of each data dimension. Planar maps: 0.5 m cells (docs/choices.md, "Measured on more
@@ -109,7 +113,9 @@ class MapProfile:
 #: 3-D cases of ``benchmarks/quality3d.py`` (docs/3d.md, "3-D defaults"); voxels of 0.1 m, OctoMap's
 #: usual. Free points are kept from 0.1 m of a hit in a plane, where the ray counts draw the walls
 #: (docs/choices.md, "Free clearance: 0.1 m in a plane"), and from 0.3 m in 3-D. The calibration
-#: stages that were measured only on planar logs are off for voxel maps.
+#: stages that were measured only on planar logs are off for voxel maps, and so is the variance
+#: scale: fitted on a few frames' held-out stretches it cost ranking on every 3-D case (docs/3d.md,
+#: "The variance scale switched off").
 PROFILES: dict[int, MapProfile] = {
     2: MapProfile(
         min_cell=0.5,
@@ -124,6 +130,7 @@ PROFILES: dict[int, MapProfile] = {
         surprise_rate_fitted=True,
         seen_through_not_occupied=True,
         fit_revisit=True,
+        fit_variance_scale=True,
     ),
     3: MapProfile(
         min_cell=1.0,
@@ -138,6 +145,7 @@ PROFILES: dict[int, MapProfile] = {
         surprise_rate_fitted=False,
         seen_through_not_occupied=False,
         fit_revisit=False,
+        fit_variance_scale=False,
     ),
 }
 

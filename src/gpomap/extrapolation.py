@@ -29,9 +29,10 @@ stretches finds too few such points of a class, the other two patterns (the stre
 the rest) are tried in turn and their points pooled, each with its own held-in GP: a robot that
 enters new space only once in its log is unseen in one pattern alone (the logs where each case
 arose: docs/choices.md, "Where no beam went" and its subsections). With too few points in
-all three (a short log, a robot that never left one room), kappa stays 1. The points themselves
-(the held-out points where no kept beam went, the kept scans' points in a square, where new ground
-was seen) are made by :mod:`gpomap.unseen`; this module fits kappa on them.
+all three (a short log, a robot that never left one room), kappa stays 1; so it does for voxel
+maps (:data:`FIT_VARIANCE_SCALE`), whose few frames' held-out stretches fitted it to their cost.
+The points themselves (the held-out points where no kept beam went, the kept scans' points in a
+square, where new ground was seen) are made by :mod:`gpomap.unseen`; this module fits kappa on them.
 
 The squash with its variance scale is the map's first fitted stage (:mod:`gpomap.stages`):
 :class:`VarianceScale`, fitted on the unseen points (:meth:`VarianceScale.fit`) and applied to the
@@ -49,7 +50,7 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize_scalar
 from scipy.special import log_ndtr, ndtr
 
-from gpomap.config import MapConfig
+from gpomap.config import PROFILES, MapConfig
 from gpomap.errors import EmptyDataError
 from gpomap.heldout import FOLD_STARTS, HOLDOUT_EVERY, holdout_stretches
 from gpomap.lattice import column_bounds
@@ -68,6 +69,8 @@ from gpomap.unseen import _HeldPoints as _HeldPoints
 from gpomap.unseen import _SquareLattice as _SquareLattice
 from gpomap.unseen import region_observations as region_observations
 
+#: Whether a map of this dimension fits kappa (voxel maps keep the GP's own variance, kappa = 1).
+FIT_VARIANCE_SCALE: dict[int, bool] = {d: p.fit_variance_scale for d, p in PROFILES.items()}
 #: Fewest held-out points of each class where no kept beam went for kappa to be fitted.
 MIN_POINTS_PER_CLASS: int = 50
 #: Most points used, drawn uniformly so each class keeps its share (the held-in GP's prediction at

@@ -44,7 +44,10 @@ class CalibrationStages(MapPrediction):
         """
         if isinstance(data, Observations):
             return {"kappa": 1.0, "reason": "labelled points given, not scans"}
-        from gpomap.extrapolation import fit_variance_scale, whole_map_region
+        from gpomap.extrapolation import FIT_VARIANCE_SCALE, fit_variance_scale, whole_map_region
+
+        if not FIT_VARIANCE_SCALE[self._dim]:
+            return {"kappa": 1.0, "reason": "not fitted for voxel maps (the GP's own variance)"}
 
         centre, half = whole_map_region(obs if isinstance(obs, ScanPoints) else obs.points)
         margin = 0.0
