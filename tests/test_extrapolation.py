@@ -401,6 +401,20 @@ def test_point_clouds_fit_the_variance_scale() -> None:
     assert report["n_points"] >= ex.MIN_POINTS_PER_CLASS
 
 
+def test_a_voxel_map_keeps_the_gps_own_variance(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The clouds the test above fits kappa on: a voxel map does not, and its unseen voxels take the
+    # GP's own probit; asked to (the profile's flag), the same map fits it.
+    from tests.world3d import ORIGINS, lidar_clouds
+
+    clouds = lidar_clouds(np.tile(ORIGINS, (4, 1)), n_rays=300)
+    model = AreaGPOM(n_workers=1).fit(clouds)
+    assert model.hyperparameters_["variance_scale"] == 1.0
+    assert "voxel maps" in model.extrapolation_["reason"]
+    monkeypatch.setitem(ex.FIT_VARIANCE_SCALE, 3, True)
+    fitted = AreaGPOM(n_workers=1).fit(clouds).extrapolation_
+    assert "reason" not in fitted and fitted["n_points"] >= ex.MIN_POINTS_PER_CLASS
+
+
 def test_a_region_with_too_few_unseen_points_gives_way_to_the_wider_one(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(ex, "REGION_POINTS_PER_CLASS", 200)  # the whole room holds 384 a class
     scans = _room_scans()
