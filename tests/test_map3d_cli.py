@@ -51,6 +51,7 @@ def test_map_writes_the_3d_output_set_that_loads_back(room_pcds, tmp_path, capsy
     # gpomap map writes the fitted map too (map.gpom, gpomap.io.mapfile); gpomap convert does not.
     assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == sorted([*OUTPUTS, "map.gpom"])
     assert "scans        3" in printed and "voxels" in printed and "hyperparams" in printed
+    assert "unseen space the GP's own variance (voxel maps do not fit it)" in printed
     for name in [*OUTPUTS, "map.gpom"]:
         assert f"wrote        {out / name}" in printed
     m = load_voxels(out / "map.npz")

@@ -242,6 +242,10 @@ def print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: st
         + f" ({source or summary['hyperparameter_source'].get('how', '')})",
         "ternary      free below {:.3f}, occupied above {:.3f}".format(*summary["thresholds"]),
     ]
+    kappa = summary.get("variance_scale_fit") or {}
+    if "reason" in kappa and kappa.get("kappa") == 1.0:
+        # Not learnt, whatever the line above says of the others: say why.
+        lines.insert(-1, f"unseen space the GP's own variance ({kappa['reason']})")
     if summary.get("evidence"):
         lines.append("ray counts   " + ray_counts(summary["evidence"]))
     later = summary.get("revisit") or {}

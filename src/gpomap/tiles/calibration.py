@@ -47,7 +47,7 @@ class CalibrationStages(MapPrediction):
         from gpomap.extrapolation import FIT_VARIANCE_SCALE, fit_variance_scale, whole_map_region
 
         if not FIT_VARIANCE_SCALE[self._dim]:
-            return {"kappa": 1.0, "reason": "not fitted for voxel maps (the GP's own variance)"}
+            return {"kappa": 1.0, "reason": "voxel maps do not fit it"}
 
         centre, half = whole_map_region(obs if isinstance(obs, ScanPoints) else obs.points)
         margin = 0.0
