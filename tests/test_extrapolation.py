@@ -402,8 +402,8 @@ def test_point_clouds_fit_the_variance_scale() -> None:
 
 
 def test_a_voxel_map_keeps_the_gps_own_variance(monkeypatch: pytest.MonkeyPatch) -> None:
-    # The clouds the test above fits kappa on: a voxel map does not, and its unseen voxels take the
-    # GP's own probit; asked to (the profile's flag), the same map fits it.
+    # The clouds the test above fits kappa on: a voxel map leaves it at 1 (the GP's own variance);
+    # asked to (the profile's flag), the same map fits it.
     from tests.world3d import ORIGINS, lidar_clouds
 
     clouds = lidar_clouds(np.tile(ORIGINS, (4, 1)), n_rays=300)
