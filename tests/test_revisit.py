@@ -107,16 +107,15 @@ def test_later_visit_points_are_a_held_out_stretch_predicted_by_a_map_of_the_res
     np.testing.assert_array_equal(p, np.linspace(0.1, 0.9, rv.POINTS))
 
 
-@pytest.mark.parametrize("memory", [0, 200_000, 1 << 40], ids=["made-again", "part-kept", "all-kept"])
-def test_the_points_drawn_a_scan_at_a_time_are_those_drawn_from_all(memory):
-    """Whether a scan's points are kept from the counting pass or made again, the draw is the
-    uniform draw from every held-out point concatenated in scan order."""
+def test_the_points_drawn_by_number_are_those_drawn_from_all():
+    """Only the points drawn are made, and they are the uniform draw from every held-out point
+    concatenated in scan order."""
     scans = _tour(rv.MIN_SCANS)
     _, held = holdout_stretches(len(scans))
     parts = [calibration_points(scans[i], no_return_cap=10.0) for i in held]
     pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
     keep = natural_subsample(occ.size, rv.POINTS, 3)
-    drawn = rv.drawn_points([scans[i] for i in held], 10.0, 3, memory=memory)
+    drawn = rv.drawn_points([scans[i] for i in held], 10.0, 3)
     assert drawn is not None
     np.testing.assert_array_equal(drawn[0], pts[keep])
     np.testing.assert_array_equal(drawn[1], occ[keep])

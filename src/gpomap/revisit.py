@@ -40,9 +40,8 @@ from scipy.optimize import minimize
 from scipy.special import expit, log_expit, logit
 
 from gpomap.config import PROFILES, MapConfig
-from gpomap.heldout import calibration_points, holdout_stretches
+from gpomap.heldout import CalibrationPoints, holdout_stretches
 from gpomap.observations import data_dim, natural_subsample
-from gpomap.resources import POINT_MEMORY
 
 #: Width, in log-odds, of the band round 1/2 that the shift leaves alone (at logit p = +-WIDTH the
 #: shift is 39 % of its full value, at +-2 WIDTH 86 %).
@@ -198,15 +197,13 @@ def later_visit_points(
 
 
 def drawn_points(
-    scans: Sequence[Any], no_return_cap: float | None, seed: int, memory: int = POINT_MEMORY
+    scans: Sequence[Any], no_return_cap: float | None, seed: int
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]] | None:
     """At most :data:`POINTS` of the scans' calibration points (:func:`gpomap.heldout.calibration_points`),
     drawn uniformly (:func:`~gpomap.observations.natural_subsample`) from them all in scan order.
 
-    The points are made a scan at a time and kept while they take at most `memory` bytes; past
-    that a scan's are counted and let go, and made again for the few drawn from it, so a long
-    stretch's points (gigabytes over a building) are never all in memory. The points drawn are
-    the same either way.
+    The points are counted from each scan's rays (:class:`gpomap.heldout.CalibrationPoints`) and
+    only those drawn are made: a long stretch's points (gigabytes over a building) never are.
 
     Parameters
     ----------
@@ -215,34 +212,21 @@ def drawn_points(
         As the map's.
     seed : int
         Seeds the draw.
-    memory : int
-        Bytes of points kept from the first pass.
 
     Returns
     -------
     (points, occupied) : ndarray of shape (n, d) and bool ndarray of shape (n,), or None
         None when the scans hold no point of one class.
     """
-    sizes, n_occupied, kept_bytes = [], 0, 0
-    parts: list[tuple[NDArray[np.float64], NDArray[np.bool_]] | None] = []
-    for scan in scans:
-        points, occupied = calibration_points(scan, no_return_cap=no_return_cap)
-        sizes.append(occupied.size)
-        n_occupied += int(occupied.sum())
-        kept_bytes += points.nbytes + occupied.nbytes
-        parts.append((points, occupied) if kept_bytes <= memory else None)
-    total = sum(sizes)
+    held = [CalibrationPoints(scan, no_return_cap=no_return_cap) for scan in scans]
+    total, n_occupied = sum(h.size for h in held), sum(h.n_occupied for h in held)
     if n_occupied in (0, total):
         return None
     keep = natural_subsample(total, POINTS, seed)  # sorted
-    starts = np.concatenate([[0], np.cumsum(sizes)])
-    picked_points, picked_occupied = [], []
-    for scan, part, start, stop in zip(scans, parts, starts[:-1], starts[1:], strict=True):
-        lo, hi = np.searchsorted(keep, [start, stop])
-        if lo == hi:
-            continue
-        points, occupied = part if part is not None else calibration_points(scan, no_return_cap=no_return_cap)
-        local = keep[lo:hi] - start
-        picked_points.append(points[local])
-        picked_occupied.append(occupied[local])
-    return np.concatenate(picked_points), np.concatenate(picked_occupied)
+    starts = np.cumsum([0] + [h.size for h in held])
+    picked = [
+        h.take(keep[lo:hi] - start)
+        for h, start, (lo, hi) in zip(held, starts[:-1], np.searchsorted(keep, np.c_[starts[:-1], starts[1:]]), strict=True)
+        if hi > lo
+    ]
+    return np.concatenate([p for p, _ in picked]), np.concatenate([o for _, o in picked])
