@@ -224,9 +224,10 @@ def drawn_points(
         return None
     keep = natural_subsample(total, POINTS, seed)  # sorted
     starts = np.cumsum([0] + [h.size for h in held])
+    bounds = np.searchsorted(keep, starts)  # each scan's drawn points: keep[bounds[j]:bounds[j + 1]]
     picked = [
         h.take(keep[lo:hi] - start)
-        for h, start, (lo, hi) in zip(held, starts[:-1], np.searchsorted(keep, np.c_[starts[:-1], starts[1:]]), strict=True)
+        for h, start, lo, hi in zip(held, starts[:-1].tolist(), bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)
         if hi > lo
     ]
     return np.concatenate([p for p, _ in picked]), np.concatenate([o for _, o in picked])
