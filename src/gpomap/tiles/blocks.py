@@ -30,7 +30,9 @@ class BlockCells(TileGrid):
         block = self._block_points[key]
         points, occupied = block.arrays()
         keep = ~block.free_near_hits(self._clearance, (points, occupied))
-        c = build_cells(points[keep], occupied[keep], *b.cell_sides(points.shape[1]), b.cell_box)
+        # Rebound, so that a spilled block's points read back are let go before the tree's copies.
+        points, occupied = points[keep], occupied[keep]
+        c = build_cells(points, occupied, *b.cell_sides(points.shape[1]), b.cell_box)
         summed = b.area_method == "summed"
         return _BlockCells(
             lower=c.lower,
