@@ -1,4 +1,5 @@
 import io
+import itertools
 
 import numpy as np
 import pytest
@@ -44,6 +45,30 @@ def test_plot_map_three_panels_and_png(tmp_path):
         assert len(ax.get_lines()) == 2  # the robot path and its start marker
     assert fig.axes[0].images[0].get_array().shape == (12, 20)
     _assert_png(out)
+
+
+@pytest.mark.parametrize(
+    ("origin", "shape", "title"),
+    [((-1.0, -0.5), (12, 20), "test map"), ((-1234.5, -5678.0), (900, 200), None), ((0.0, 0.0), (40, 400), "wide")],
+    ids=["small", "tall-far-from-origin", "wide"],
+)
+def test_plot_maps_panels_labels_and_colour_bars_fit_the_figure_apart(origin, shape, title):
+    # The fixed margins (no layout engine) against what was drawn: every panel with its tick
+    # labels, axis labels and colour bar inside the figure, and no two panels' drawings overlapping.
+    grid = GridSpec(origin, 0.1, shape)
+    xs, ys = np.meshgrid(grid.x_centres(), grid.y_centres())
+    m = OccupancyMap(grid, np.clip(0.5 + 0.5 * np.sin(xs) * np.cos(ys), 0, 1), variance=1e-5 * np.abs(np.sin(xs)))
+    fig = plot_map(m, title=title)
+    figure_png(fig)  # drawn, so the texts have their extents
+    renderer = fig.canvas.get_renderer()
+    boxes = [ax.get_tightbbox(renderer) for ax in fig.axes]  # a panel with its colour bar (a child)
+    frame = fig.bbox
+    for b in boxes:
+        assert frame.x0 <= b.x0 and b.x1 <= frame.x1 and frame.y0 <= b.y0 and b.y1 <= frame.y1, (b, frame)
+    for left, right in itertools.pairwise(boxes):
+        assert left.x1 < right.x0
+    if title:
+        assert fig._suptitle.get_window_extent(renderer).y0 > max(b.y1 for b in boxes) - 1
 
 
 def test_a_map_larger_than_a_panel_draws_every_kth_cell(monkeypatch):
@@ -115,7 +140,7 @@ def test_a_figure_is_rendered_to_png_bytes_and_written_as_those_bytes(tmp_path):
     with Image.open(io.BytesIO(png)) as img:
         # 150 dpi by default: the figure's size in inches times the dpi, in pixels.
         assert img.size == tuple(round(v * 150) for v in fig.get_size_inches())
-    # Drawn again: one figure rendered twice need not give the same bytes (its layout is redone).
+    # Drawn again, the same map gives the same bytes.
     assert save_figure(plot_map(_map(), title="bytes"), tmp_path / "a.png").read_bytes() == png
     with Image.open(io.BytesIO(figure_png(fig, dpi=50))) as small:
         assert small.size == tuple(round(v * 50) for v in fig.get_size_inches())

@@ -65,8 +65,8 @@ def _shown(values: NDArray, step: int) -> NDArray:
     return values[::step, ::step] if step > 1 else values
 
 
-def _new_figure(width: float, height: float) -> Figure:
-    fig = Figure(figsize=(width, height), layout="constrained")
+def _new_figure(width: float, height: float, constrained: bool = True) -> Figure:
+    fig = Figure(figsize=(width, height), layout="constrained" if constrained else None)
     FigureCanvasAgg(fig)  # attaches itself as fig.canvas
     return fig
 
@@ -110,7 +110,15 @@ def plot_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str] | None = 
     # Panel size follows the map's aspect ratio, within limits that keep labels readable.
     aspect = min(max(ny / nx, 0.4), 2.5)
     panel = 4.0
-    fig = _new_figure(3 * (panel + 1.1), panel * aspect + (0.9 if title else 0.6))
+    width, height = 3 * (panel + 1.1), panel * aspect + (0.9 if title else 0.6)
+    fig = _new_figure(width, height, constrained=False)
+    # Fixed margins in inches (the y labels left, a colour bar and its labels right of each panel):
+    # a layout engine measures every label in extra passes, most of the figure's time.
+    left, right, gap, bottom, top = 0.75, 1.05, 1.25, 0.5, 0.3 + (0.35 if title else 0.0)
+    panel_width = (width - left - right - 2 * gap) / 3
+    fig.subplots_adjust(
+        left=left / width, right=1 - right / width, bottom=bottom / height, top=1 - top / height, wspace=gap / panel_width
+    )
     axes = fig.subplots(1, 3, sharex=True, sharey=True)
 
     imshow = {"extent": extent, "origin": "lower", "interpolation": "nearest", "aspect": "equal"}
