@@ -59,15 +59,21 @@ def test_plot_maps_panels_labels_and_colour_bars_fit_the_figure_apart(origin, sh
     xs, ys = np.meshgrid(grid.x_centres(), grid.y_centres())
     m = OccupancyMap(grid, np.clip(0.5 + 0.5 * np.sin(xs) * np.cos(ys), 0, 1), variance=1e-5 * np.abs(np.sin(xs)))
     fig = plot_map(m, title=title)
+    _assert_laid_out(fig, fig.axes)  # each panel with its colour bar (a child axes)
+
+
+def _assert_laid_out(fig, parts):
+    """Every part of `fig` (axes, left to right), its tick labels, axis labels and children
+    included, lies inside the figure and apart from the next, and the title above them all."""
     figure_png(fig)  # drawn, so the texts have their extents
     renderer = fig.canvas.get_renderer()
-    boxes = [ax.get_tightbbox(renderer) for ax in fig.axes]  # a panel with its colour bar (a child)
+    boxes = [ax.get_tightbbox(renderer) for ax in parts]
     frame = fig.bbox
     for b in boxes:
         assert frame.x0 <= b.x0 and b.x1 <= frame.x1 and frame.y0 <= b.y0 and b.y1 <= frame.y1, (b, frame)
     for left, right in itertools.pairwise(boxes):
         assert left.x1 < right.x0
-    if title:
+    if fig._suptitle is not None:
         assert fig._suptitle.get_window_extent(renderer).y0 > max(b.y1 for b in boxes) - 1
 
 
@@ -161,6 +167,10 @@ def test_a_voxel_maps_slices_one_panel_a_height():
     np.testing.assert_array_equal(panels[1].images[0].get_array(), m.probability[3])
     assert panels[0].images[0].get_extent() == pytest.approx([0.0, 1.0, 0.0, 0.6])
     assert figure_png(fig)[:8] == PNG_MAGIC
+    # The panels, then the colour bar in the right margin.
+    _assert_laid_out(fig, [*panels, *(ax for ax in fig.axes if ax not in panels)])
+    plain = plot_slices(m)
+    _assert_laid_out(plain, plain.axes)
 
 
 def test_a_voxel_maps_occupied_voxels_in_3d():
@@ -172,6 +182,7 @@ def test_a_voxel_maps_occupied_voxels_in_3d():
     thinned = plot_3d(m, max_points=occupied // 4)
     [ax] = [a for a in thinned.axes if a.name == "3d"]
     assert ax.get_title() == f"occupied voxels ({len(range(0, occupied, 4)):,} shown)"
+    _assert_laid_out(fig, fig.axes)  # the view, then its colour bar
 
 
 def _scores(with_roc=True):

@@ -310,7 +310,14 @@ def plot_slices(voxel_map: VoxelMap, heights: Sequence[float] | None = None, tit
     """Horizontal slices of the probability at `heights` (metres; default 4 evenly spread), as a figure."""
     spec = voxel_map.spec
     zs = list(heights) if heights is not None else list(np.linspace(spec.lower[2], spec.upper[2], 6)[1:-1])
-    fig = Figure(figsize=(4.2 * len(zs), 4.4), layout="constrained")
+    width, height = 4.2 * len(zs) + 0.6, 4.4 + (0.35 if title else 0.0)
+    fig = _new_figure(width, height, constrained=False)
+    # Fixed margins in inches, as plot_map's; the colour bar in the right margin.
+    left, right, gap, bottom, top = 0.7, 1.2, 0.8, 0.55, 0.35 + (0.35 if title else 0.0)
+    panel_width = (width - left - right - (len(zs) - 1) * gap) / len(zs)
+    fig.subplots_adjust(
+        left=left / width, right=1 - right / width, bottom=bottom / height, top=1 - top / height, wspace=gap / panel_width
+    )
     axes = fig.subplots(1, len(zs), squeeze=False)
     lo, hi = spec.lower, spec.upper
     image = None
@@ -323,7 +330,9 @@ def plot_slices(voxel_map: VoxelMap, heights: Sequence[float] | None = None, tit
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
     if image is not None:
-        fig.colorbar(image, ax=axes[0].tolist(), label="occupancy probability", shrink=0.8)
+        span = (height - bottom - top) / height
+        cax = fig.add_axes(((width - right + 0.2) / width, bottom / height + 0.1 * span, 0.15 / width, 0.8 * span))
+        fig.colorbar(image, cax=cax, label="occupancy probability")
     if title:
         fig.suptitle(title)
     return fig
@@ -335,15 +344,16 @@ def plot_3d(voxel_map: VoxelMap, title: str | None = None, max_points: int = 600
     pts = voxel_map.spec.centres()[occ]
     if len(pts) > max_points:  # a figure cannot show more; an even thinning keeps the shapes
         pts = pts[:: int(np.ceil(len(pts) / max_points))]
-    fig = Figure(figsize=(8, 6.5), layout="constrained")
-    ax = fig.add_subplot(projection="3d")
+    fig = _new_figure(8, 6.5, constrained=False)
+    # Fixed places, as plot_map's margins: the view, and the colour bar at its right.
+    ax = fig.add_axes((0.0, 0.02, 0.8, 0.9), projection="3d")
     sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=pts[:, 2], s=1.5, cmap="viridis", depthshade=False)
     lo, hi = voxel_map.spec.lower, voxel_map.spec.upper
     ax.set_box_aspect(tuple(np.maximum(hi - lo, 1e-6)))
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_zlabel("z (m)")
-    fig.colorbar(sc, ax=ax, label="height (m)", shrink=0.6)
+    fig.colorbar(sc, cax=fig.add_axes((0.87, 0.2, 0.025, 0.6)), label="height (m)")
     ax.set_title(title or f"occupied voxels ({len(pts):,} shown)")
     return fig
 
