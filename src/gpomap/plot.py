@@ -346,7 +346,8 @@ def plot_3d(voxel_map: VoxelMap, title: str | None = None, max_points: int = 600
         pts = pts[:: int(np.ceil(len(pts) / max_points))]
     fig = _new_figure(8, 6.5, constrained=False)
     # Fixed places, as plot_map's margins: the view, and the colour bar at its right.
-    ax = fig.add_axes((0.0, 0.02, 0.8, 0.9), projection="3d")
+    ax = fig.add_subplot(projection="3d")
+    ax.set_position((0.0, 0.02, 0.8, 0.9))
     sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=pts[:, 2], s=1.5, cmap="viridis", depthshade=False)
     lo, hi = voxel_map.spec.lower, voxel_map.spec.upper
     ax.set_box_aspect(tuple(np.maximum(hi - lo, 1e-6)))
