@@ -71,6 +71,16 @@ def _new_figure(width: float, height: float, constrained: bool = True) -> Figure
     return fig
 
 
+def _fixed_margins(fig: Figure, n: int, left: float, right: float, gap: float, bottom: float, top: float) -> None:
+    """Place `fig`'s row of `n` panels by margins in inches, instead of a layout engine, which
+    measures every label in extra passes (most of a figure's time)."""
+    width, height = fig.get_size_inches()
+    panel_width = (width - left - right - (n - 1) * gap) / n
+    fig.subplots_adjust(
+        left=left / width, right=1 - right / width, bottom=bottom / height, top=1 - top / height, wspace=gap / panel_width
+    )
+
+
 def _colorbar(fig: Figure, ax: Axes, mappable: ScalarMappable, label: str) -> Colorbar:
     """A colour bar in an inset beside `ax`, so that ``fig.axes`` holds only the panels."""
     cax = ax.inset_axes((1.03, 0.0, 0.045, 1.0))
@@ -110,15 +120,9 @@ def plot_map(occupancy_map: OccupancyMap, path: str | os.PathLike[str] | None = 
     # Panel size follows the map's aspect ratio, within limits that keep labels readable.
     aspect = min(max(ny / nx, 0.4), 2.5)
     panel = 4.0
-    width, height = 3 * (panel + 1.1), panel * aspect + (0.9 if title else 0.6)
-    fig = _new_figure(width, height, constrained=False)
-    # Fixed margins in inches (the y labels left, a colour bar and its labels right of each panel):
-    # a layout engine measures every label in extra passes, most of the figure's time.
-    left, right, gap, bottom, top = 0.75, 1.05, 1.25, 0.5, 0.3 + (0.35 if title else 0.0)
-    panel_width = (width - left - right - 2 * gap) / 3
-    fig.subplots_adjust(
-        left=left / width, right=1 - right / width, bottom=bottom / height, top=1 - top / height, wspace=gap / panel_width
-    )
+    fig = _new_figure(3 * (panel + 1.1), panel * aspect + (0.9 if title else 0.6), constrained=False)
+    # The y labels left, a colour bar and its labels right of each panel.
+    _fixed_margins(fig, 3, left=0.75, right=1.05, gap=1.25, bottom=0.5, top=0.3 + (0.35 if title else 0.0))
     axes = fig.subplots(1, 3, sharex=True, sharey=True)
 
     imshow = {"extent": extent, "origin": "lower", "interpolation": "nearest", "aspect": "equal"}
@@ -312,12 +316,8 @@ def plot_slices(voxel_map: VoxelMap, heights: Sequence[float] | None = None, tit
     zs = list(heights) if heights is not None else list(np.linspace(spec.lower[2], spec.upper[2], 6)[1:-1])
     width, height = 4.2 * len(zs) + 0.6, 4.4 + (0.35 if title else 0.0)
     fig = _new_figure(width, height, constrained=False)
-    # Fixed margins in inches, as plot_map's; the colour bar in the right margin.
-    left, right, gap, bottom, top = 0.7, 1.2, 0.8, 0.55, 0.35 + (0.35 if title else 0.0)
-    panel_width = (width - left - right - (len(zs) - 1) * gap) / len(zs)
-    fig.subplots_adjust(
-        left=left / width, right=1 - right / width, bottom=bottom / height, top=1 - top / height, wspace=gap / panel_width
-    )
+    right, bottom, top = 1.2, 0.55, 0.35 + (0.35 if title else 0.0)  # the colour bar in the right margin
+    _fixed_margins(fig, len(zs), left=0.7, right=right, gap=0.8, bottom=bottom, top=top)
     axes = fig.subplots(1, len(zs), squeeze=False)
     lo, hi = spec.lower, spec.upper
     image = None
@@ -345,7 +345,7 @@ def plot_3d(voxel_map: VoxelMap, title: str | None = None, max_points: int = 600
     if len(pts) > max_points:  # a figure cannot show more; an even thinning keeps the shapes
         pts = pts[:: int(np.ceil(len(pts) / max_points))]
     fig = _new_figure(8, 6.5, constrained=False)
-    # Fixed places, as plot_map's margins: the view, and the colour bar at its right.
+    # Fixed places (no layout engine, as _fixed_margins): the view, and the colour bar at its right.
     ax = fig.add_subplot(projection="3d")
     ax.set_position((0.0, 0.02, 0.8, 0.9))
     sc = ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], c=pts[:, 2], s=1.5, cmap="viridis", depthshade=False)
