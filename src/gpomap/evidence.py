@@ -52,6 +52,8 @@ SHARED_UPDATES: bool = True
 #: A scan's update of a cell is shared in whole parts of this many (:func:`scan_shares`): sums of
 #: them stay exact in float32 up to 2**24 / SHARE_UNITS updates of a cell.
 SHARE_UNITS: int = 256
+#: The type ray counts are tallied in, a map's lattice held in: shares of one update per scan.
+COUNT_DTYPE: type[np.floating[Any]] = np.float32
 
 
 class RayCounts(NamedTuple):
@@ -259,8 +261,11 @@ class RayEvidence:
         -------
         RayCounts
         """
+        widen = out is None
         if out is None:
-            counts = RayCounts(*(np.zeros(grid_size(grid)) for _ in range(3)))
+            # Tallied as a map's lattice is (one compiled tally for both) and widened at the end:
+            # the same numbers below 2**24 / SHARE_UNITS updates of a cell.
+            counts = RayCounts(*(np.zeros(grid_size(grid), dtype=COUNT_DTYPE) for _ in range(3)))
         else:
             if any(a.dtype not in (np.float32, np.float64) or a.shape != grid.shape or not a.flags.c_contiguous for a in out):
                 raise ValueError(f"counts are added into C-contiguous float32 or float64 arrays of the grid's shape {grid.shape}")
@@ -270,7 +275,7 @@ class RayEvidence:
         select = np.ones(self.scan.size, bool) if scans is None else np.isin(self.scan, scans)
         idx = np.flatnonzero(select)
         if idx.size == 0:
-            return RayCounts(*(a.reshape(grid.shape) for a in counts))
+            return _shaped(counts, grid.shape, widen)
         # Batches of whole scans whose traversals stay under the entry budget.
         cells_per_beam = (
             np.abs(np.floor(self.ends[idx] / grid.resolution) - np.floor(self.starts[idx] / grid.resolution)).sum(axis=1) + 2
@@ -287,7 +292,7 @@ class RayEvidence:
                 hi = boundary if boundary > lo else int(np.searchsorted(scan_of, scan_of[lo], side="right"))
             self._accumulate(grid, idx[lo:hi], counts, keep, slot)
             lo = hi
-        return RayCounts(*(a.reshape(grid.shape) for a in counts))
+        return _shaped(counts, grid.shape, widen)
 
     def forget(self) -> None:
         """Drop the updates :meth:`counts` kept for :meth:`scan_counts_at` (their memory)."""
@@ -467,6 +472,11 @@ def _near_tail(grid: AnyGrid) -> int:
     takes at least one of the d axes a step further."""
     d = grid_dim(grid)
     return d * (int(np.ceil(NEAR_END / grid.resolution + np.sqrt(d) / 2)) + 1)
+
+
+def _shaped(counts: RayCounts, shape: tuple[int, ...], widen: bool) -> RayCounts:
+    """`counts` (flat) in the grid's `shape`, as float64 when `widen`."""
+    return RayCounts(*(a.reshape(shape).astype(np.float64) if widen else a.reshape(shape) for a in counts))
 
 
 def _batches(grid: AnyGrid, starts: NDArray[np.float64], ends: NDArray[np.float64]) -> list[tuple[int, int]]:

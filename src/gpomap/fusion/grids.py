@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gpomap.config import PROFILES
-from gpomap.evidence import RayCounts, RayEvidence, next_to_hits
+from gpomap.evidence import COUNT_DTYPE, RayCounts, RayEvidence, next_to_hits
 from gpomap.fusion.calibration import EvidenceCalibration, surface_misses
 from gpomap.fusion.written import (
     BlendedMoments,
@@ -46,10 +46,6 @@ def without_hits(hits: ArrayLike) -> NDArray[np.bool_]:
     """Cells no beam ended in (no `hits`), which the ternary map never calls occupied
     (:data:`SEEN_THROUGH_NOT_OCCUPIED`; the shape of `hits`)."""
     return np.asarray(hits) == 0
-
-
-#: The type of the lattice's ray counts: shares of one update per scan (:func:`gpomap.evidence.scan_shares`).
-COUNT_DTYPE: type[np.floating[Any]] = np.float32
 
 
 class LayerGrids:
