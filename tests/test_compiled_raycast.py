@@ -173,3 +173,5 @@ def test_the_walks_compile_for_c_ordered_writeable_arrays_only() -> None:
         for signature in kernel.signatures:
             arrays = [t for t in signature if isinstance(t, types.Array)]
             assert all(t.layout == "C" and t.mutable for t in arrays), (kernel, signature)
+    # Counts tallied in one type, with a lattice given or not: one compile of the tally.
+    assert {str(sig[15].dtype) for sig in _compiled_counts._count_beams.signatures} == {"float32"}
