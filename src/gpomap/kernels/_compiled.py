@@ -162,8 +162,6 @@ def _value(u2: float, profile: int) -> float:  # pragma: no cover - compiled
     return _exp(u2 * -0.5)
 
 
-# nogil: a Dask worker runs its tasks (tiles) in threads by default; numpy's passes released the GIL too.
-@_jit(cache=True, fastmath=_FASTMATH, nogil=True)
 def group_gram(
     ca: NDArray[np.float64],
     cb: NDArray[np.float64],
@@ -176,7 +174,7 @@ def group_gram(
     symmetric: bool,
     mirror: bool,
     profile: int,
-) -> None:  # pragma: no cover - compiled
+) -> None:
     """The averaged kernel between two groups of inputs, written at ``K[rows, cols]`` (:func:`~gpomap.kernels.tensor._group_gram`).
 
     Parameters
@@ -204,11 +202,72 @@ def group_gram(
     profile : int
         :data:`MATERN32` or :data:`SQUARED_EXPONENTIAL`.
     """
+    # One compiled function per dimension: a first run compiles the loops of its own alone.
+    gram = _plane_gram if ca.shape[0] == 2 else _space_gram
+    gram(ca, cb, w, rows, cols, K, dL, gradient, symmetric, mirror, profile)
+
+
+@_jit(cache=True, fastmath=_FASTMATH, inline="always")
+def _squared_differences(
+    ca: NDArray[np.float64], cb: NDArray[np.float64], i: int, j0: int, nj: int, diff: NDArray[np.float64]
+) -> None:  # pragma: no cover - compiled
+    """``diff[k, p, q, jj]``: the squared difference along axis k of row input i's node p and
+    column input j0 + jj's node q; every inner loop runs over the chunk's columns, contiguous, and vectorises."""
+    d, oa, _ = ca.shape
+    ob = cb.shape[1]
+    for k in range(d):
+        for p in range(oa):
+            x = ca[k, p, i]
+            for q in range(ob):
+                for jj in range(nj):
+                    t = x - cb[k, q, j0 + jj]
+                    diff[k, p, q, jj] = t * t
+
+
+@_jit(cache=True, fastmath=_FASTMATH, inline="always")
+def _store(
+    K: NDArray[np.float64],
+    dL: NDArray[np.float64],
+    ri: int,
+    cols: NDArray[np.intp],
+    j0: int,
+    nj: int,
+    acc: NDArray[np.float64],
+    gacc: NDArray[np.float64],
+    gradient: bool,
+    mirror: bool,
+) -> None:  # pragma: no cover - compiled
+    """One row input's sums against a chunk of columns, written at ``K[ri, cols]`` (and mirrored)."""
+    for jj in range(nj):
+        cj = cols[j0 + jj]
+        K[ri, cj] = acc[jj]
+        if mirror:
+            K[cj, ri] = acc[jj]
+        if gradient:
+            dL[ri, cj] = gacc[jj]
+            if mirror:
+                dL[cj, ri] = gacc[jj]
+
+
+# nogil: a Dask worker runs its tasks (tiles) in threads by default; numpy's passes released the GIL too.
+@_jit(cache=True, fastmath=_FASTMATH, nogil=True)
+def _plane_gram(
+    ca: NDArray[np.float64],
+    cb: NDArray[np.float64],
+    w: NDArray[np.float64],
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    K: NDArray[np.float64],
+    dL: NDArray[np.float64],
+    gradient: bool,
+    symmetric: bool,
+    mirror: bool,
+    profile: int,
+) -> None:  # pragma: no cover - compiled
+    """:func:`group_gram` of planar inputs (d = 2)."""
     d, oa, n = ca.shape
     ob, m = cb.shape[1], cb.shape[2]
     pb = ob**d
-    # One row input against a chunk of column inputs at a time; every inner loop runs over the
-    # chunk's columns, contiguous, and vectorises.
     diff = np.empty((d, oa, ob, CHUNK_COLUMNS))
     acc = np.empty(CHUNK_COLUMNS)
     gacc = np.empty(CHUNK_COLUMNS)
@@ -216,55 +275,70 @@ def group_gram(
         ri = rows[i]
         for j0 in range(i if symmetric else 0, m, CHUNK_COLUMNS):
             nj = min(m, j0 + CHUNK_COLUMNS) - j0
-            for k in range(d):
-                for p in range(oa):
-                    x = ca[k, p, i]
-                    for q in range(ob):
-                        for jj in range(nj):
-                            t = x - cb[k, q, j0 + jj]
-                            diff[k, p, q, jj] = t * t
+            _squared_differences(ca, cb, i, j0, nj, diff)
             acc[:nj] = 0.0
             gacc[:nj] = 0.0
             # Node pairs in the weights' order; the squared distance summed over the axes in
             # order, from the first (as tensor._squared_distances).
-            if d == 2:
-                for p0 in range(oa):
-                    for p1 in range(oa):
+            for p0 in range(oa):
+                for p1 in range(oa):
+                    for q0 in range(ob):
+                        for q1 in range(ob):
+                            wp = w[(p0 * oa + p1) * pb + q0 * ob + q1]
+                            if gradient:
+                                for jj in range(nj):
+                                    v, g = _unit(diff[0, p0, q0, jj] + diff[1, p1, q1, jj], profile)
+                                    acc[jj] += wp * v
+                                    gacc[jj] += wp * g
+                            else:
+                                for jj in range(nj):
+                                    acc[jj] += wp * _value(diff[0, p0, q0, jj] + diff[1, p1, q1, jj], profile)
+            _store(K, dL, ri, cols, j0, nj, acc, gacc, gradient, mirror)
+
+
+@_jit(cache=True, fastmath=_FASTMATH, nogil=True)
+def _space_gram(
+    ca: NDArray[np.float64],
+    cb: NDArray[np.float64],
+    w: NDArray[np.float64],
+    rows: NDArray[np.intp],
+    cols: NDArray[np.intp],
+    K: NDArray[np.float64],
+    dL: NDArray[np.float64],
+    gradient: bool,
+    symmetric: bool,
+    mirror: bool,
+    profile: int,
+) -> None:  # pragma: no cover - compiled
+    """:func:`group_gram` of inputs in space (d = 3, :data:`gpomap.kernels.area.TENSOR_DIMS`)."""
+    d, oa, n = ca.shape
+    ob, m = cb.shape[1], cb.shape[2]
+    pb = ob**d
+    diff = np.empty((d, oa, ob, CHUNK_COLUMNS))
+    acc = np.empty(CHUNK_COLUMNS)
+    gacc = np.empty(CHUNK_COLUMNS)
+    for i in range(n):
+        ri = rows[i]
+        for j0 in range(i if symmetric else 0, m, CHUNK_COLUMNS):
+            nj = min(m, j0 + CHUNK_COLUMNS) - j0
+            _squared_differences(ca, cb, i, j0, nj, diff)
+            acc[:nj] = 0.0
+            gacc[:nj] = 0.0
+            for p0 in range(oa):
+                for p1 in range(oa):
+                    for p2 in range(oa):
                         for q0 in range(ob):
                             for q1 in range(ob):
-                                wp = w[(p0 * oa + p1) * pb + q0 * ob + q1]
-                                if gradient:
-                                    for jj in range(nj):
-                                        v, g = _unit(diff[0, p0, q0, jj] + diff[1, p1, q1, jj], profile)
-                                        acc[jj] += wp * v
-                                        gacc[jj] += wp * g
-                                else:
-                                    for jj in range(nj):
-                                        acc[jj] += wp * _value(diff[0, p0, q0, jj] + diff[1, p1, q1, jj], profile)
-            else:  # d == 3 (area.TENSOR_DIMS)
-                for p0 in range(oa):
-                    for p1 in range(oa):
-                        for p2 in range(oa):
-                            for q0 in range(ob):
-                                for q1 in range(ob):
-                                    for q2 in range(ob):
-                                        wp = w[((p0 * oa + p1) * oa + p2) * pb + (q0 * ob + q1) * ob + q2]
-                                        if gradient:
-                                            for jj in range(nj):
-                                                s = (diff[0, p0, q0, jj] + diff[1, p1, q1, jj]) + diff[2, p2, q2, jj]
-                                                v, g = _unit(s, profile)
-                                                acc[jj] += wp * v
-                                                gacc[jj] += wp * g
-                                        else:
-                                            for jj in range(nj):
-                                                s = (diff[0, p0, q0, jj] + diff[1, p1, q1, jj]) + diff[2, p2, q2, jj]
-                                                acc[jj] += wp * _value(s, profile)
-            for jj in range(nj):
-                cj = cols[j0 + jj]
-                K[ri, cj] = acc[jj]
-                if mirror:
-                    K[cj, ri] = acc[jj]
-                if gradient:
-                    dL[ri, cj] = gacc[jj]
-                    if mirror:
-                        dL[cj, ri] = gacc[jj]
+                                for q2 in range(ob):
+                                    wp = w[((p0 * oa + p1) * oa + p2) * pb + (q0 * ob + q1) * ob + q2]
+                                    if gradient:
+                                        for jj in range(nj):
+                                            s = (diff[0, p0, q0, jj] + diff[1, p1, q1, jj]) + diff[2, p2, q2, jj]
+                                            v, g = _unit(s, profile)
+                                            acc[jj] += wp * v
+                                            gacc[jj] += wp * g
+                                    else:
+                                        for jj in range(nj):
+                                            s = (diff[0, p0, q0, jj] + diff[1, p1, q1, jj]) + diff[2, p2, q2, jj]
+                                            acc[jj] += wp * _value(s, profile)
+            _store(K, dL, ri, cols, j0, nj, acc, gacc, gradient, mirror)
