@@ -182,19 +182,19 @@ def _frontier_of(
 def _tree(
     pts: NDArray[np.float64],
     occ: NDArray[np.bool_],
-    lo0: NDArray[np.float64],
-    hi0: NDArray[np.float64],
     min_cell: float,
     max_cell: float,
     tight: bool,
-    limit: int,
+    split_nodes: NDArray[np.intp],
+    mids: NDArray[np.float64],
+    front: NDArray[np.float64],
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64], NDArray[np.int8]]:  # pragma: no cover - compiled
     # (the Python tree is the tests' reference)
     n, d = pts.shape
     # The nodes whose longest side is above max_cell split whatever their points hold (neither
     # pure and small enough nor below min_cell): the stable partitions down to their frontier
-    # are one stable sort by frontier node, made in one pass instead of one a level.
-    split_nodes, mids, front = _forced_top(lo0, hi0, max_cell, limit)
+    # (split_nodes, mids, front: :func:`_forced_top`'s) are one stable sort by frontier node,
+    # made in one pass instead of one a level.
     n_front = front.shape[0]
     starts = np.zeros(n_front + 1, dtype=np.intp)
     where = np.empty(n, dtype=np.int32)
@@ -341,15 +341,18 @@ def cell_tree(
     """
     pts = np.ascontiguousarray(points, dtype=np.float64)
     d = pts.shape[1]
+    lo0, hi0 = np.asarray(root_lower, dtype=np.float64), np.asarray(root_upper, dtype=np.float64)
+    # Called from here, not from _tree: a compiled caller compiles its callees' code again with its own.
+    split_nodes, mids, front = _forced_top(lo0, hi0, float(max_cell), FORCED_NODES)
     order, ranges, boxes, flags = _tree(
         pts,
         np.ascontiguousarray(occupied, dtype=np.bool_),
-        np.asarray(root_lower, dtype=np.float64),
-        np.asarray(root_upper, dtype=np.float64),
         float(min_cell),
         float(max_cell),
         bool(tight),
-        FORCED_NODES,
+        split_nodes,
+        mids,
+        front,
     )
     # Every point is in one cell, and the cells' ranges of `order` follow one another in the
     # order they were emitted (left halves first): `order` is the members, cell by cell.
