@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import gpomap.heldout as heldout
 from gpomap.clouds import CloudScan
-from gpomap.heldout import CALIBRATION_HIT_MARGIN, CalibrationPoints, calibration_points
-from gpomap.observations import Rays, ray_free_points
+from gpomap.heldout import CALIBRATION_HIT_MARGIN, CalibrationPoints, calibration_points, draw_calibration_points
+from gpomap.observations import Rays, natural_subsample, ray_free_points
 from gpomap.scans import Scan
 from gpomap.simulate import paper_room_scans
 from tests.world3d import ORIGINS, lidar_clouds
@@ -83,3 +84,20 @@ def test_runs_hold_whole_rays_of_at_most_so_many_points() -> None:
                 assert b - a <= max_points or ray[a] == ray[b - 1]
             else:
                 assert a >= held.n_free and b - a <= max_points
+
+
+@pytest.mark.parametrize("run_points", [10**9, 100], ids=["counted-kept", "made-again"])
+def test_points_drawn_by_number_are_those_drawn_from_all(run_points: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whether the counted scans are kept for the draw or made again, the draw is the uniform draw
+    from every scan's points concatenated in scan order, each point with its scan."""
+    monkeypatch.setattr(heldout, "RUN_POINTS", run_points)
+    scans = paper_room_scans(n_beams=90, seed=0)[:6]
+    parts = [calibration_points(s, 0.1, 2.0) for s in scans]
+    pts, occ = np.concatenate([p for p, _ in parts]), np.concatenate([o for _, o in parts])
+    scan = np.repeat(np.arange(len(scans)), [o.size for _, o in parts])
+    keep = natural_subsample(occ.size, 300, 4)
+    drawn = draw_calibration_points(scans, 300, 4, 0.1, 2.0)
+    assert (drawn.total, drawn.n_occupied) == (occ.size, int(occ.sum())) and keep.size == 300
+    np.testing.assert_array_equal(drawn.points, pts[keep])
+    np.testing.assert_array_equal(drawn.occupied, occ[keep])
+    np.testing.assert_array_equal(drawn.scan, scan[keep])

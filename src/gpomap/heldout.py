@@ -9,13 +9,16 @@ their natural frequencies.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
 from gpomap.errors import EmptyDataError
-from gpomap.observations import Rays, data_dim, observations_from_scans, ray_free_points
+from gpomap.observations import Rays, data_dim, natural_subsample, observations_from_scans, ray_free_points
 from gpomap.scans import Scan
 
 __all__ = [
@@ -25,7 +28,9 @@ __all__ = [
     "N_STRETCHES",
     "RUN_POINTS",
     "CalibrationPoints",
+    "DrawnPoints",
     "calibration_points",
+    "draw_calibration_points",
     "calibration_scans",
     "holdout_stretches",
 ]
@@ -148,6 +153,11 @@ class CalibrationPoints:
         """Hits of the scan."""
         return self.size - self.n_free
 
+    @property
+    def n_rays(self) -> int:
+        """Rays that hold free points: what this holds is a few numbers each."""
+        return int(self._directions.shape[0])
+
     def _free(self, first_ray: int, stop_ray: int) -> NDArray[np.float64]:
         """The free points of rays `first_ray` .. `stop_ray` - 1, shape (m, d)."""
         directions = self._directions[first_ray:stop_ray]
@@ -205,3 +215,69 @@ class CalibrationPoints:
         made = ray_free_points(np.broadcast_to(self._origin, directions.shape), directions, self._lengths[rays], self.step)[0]
         points = np.concatenate([made[at], self._hits[index[index >= self.n_free] - self.n_free]], axis=0)
         return np.asarray(points, dtype=float), np.arange(len(index)) >= free.size
+
+
+@dataclass(frozen=True)
+class DrawnPoints:
+    """Calibration points drawn uniformly from several scans' (:func:`draw_calibration_points`).
+
+    Attributes
+    ----------
+    points : ndarray of shape (k, d)
+    occupied : ndarray of bool, shape (k,)
+    scan : ndarray of int, shape (k,)
+        Each point's scan, as its place in the scans given.
+    total, n_occupied : int
+        The scans' points and hits, all of them, drawn or not.
+    """
+
+    points: NDArray[np.float64]
+    occupied: NDArray[np.bool_]
+    scan: NDArray[np.intp]
+    total: int
+    n_occupied: int
+
+
+def draw_calibration_points(
+    scans: Sequence[Scan | CloudScan],
+    n: int,
+    seed: int,
+    step: float = 0.1,
+    no_return_cap: float | None = MapConfig.no_return_cap,
+) -> DrawnPoints:
+    """At most `n` of the scans' calibration points (:func:`calibration_points`), drawn uniformly
+    (:func:`~gpomap.observations.natural_subsample`) from them all in scan order.
+
+    They are counted from each scan's rays (:class:`CalibrationPoints`) and only those drawn are
+    made, a scan at a time: a depth frame has about 10 million, a long stretch of a log's scans
+    gigabytes of them. Nothing is drawn when the scans hold no point of one class.
+
+    Returns
+    -------
+    DrawnPoints
+    """
+    sizes, n_occupied, n_rays = np.zeros(len(scans), dtype=np.intp), 0, 0
+    # The counted scans are kept for the draw while they hold at most RUN_POINTS rays between
+    # them (a planar stretch's); past that each is made again where drawn (depth frames).
+    held: list[CalibrationPoints | None] = []
+    for j, scan in enumerate(scans):
+        counted = CalibrationPoints(scan, step, no_return_cap)
+        sizes[j], n_occupied, n_rays = counted.size, n_occupied + counted.n_occupied, n_rays + counted.n_rays
+        held.append(counted if n_rays <= RUN_POINTS else None)
+    total = int(sizes.sum())
+    if n_occupied in (0, total):
+        d = data_dim(scans) if len(scans) else 2
+        return DrawnPoints(np.zeros((0, d)), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.intp), total, n_occupied)
+    keep = natural_subsample(total, n, seed)  # sorted
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    bounds = np.searchsorted(keep, starts)  # scan j's drawn points: keep[bounds[j]:bounds[j + 1]]
+    points, occupied, scan_of = [], [], []
+    for j, (scan, kept) in enumerate(zip(scans, held, strict=True)):
+        lo, hi = int(bounds[j]), int(bounds[j + 1])
+        if hi > lo:
+            made = kept if kept is not None else CalibrationPoints(scan, step, no_return_cap)
+            p, o = made.take(keep[lo:hi] - starts[j])
+            points.append(p)
+            occupied.append(o)
+            scan_of.append(np.full(o.size, j, dtype=np.intp))
+    return DrawnPoints(np.concatenate(points), np.concatenate(occupied), np.concatenate(scan_of), total, n_occupied)

@@ -40,8 +40,8 @@ from scipy.optimize import minimize
 from scipy.special import expit, log_expit, logit
 
 from gpomap.config import PROFILES, MapConfig
-from gpomap.heldout import CalibrationPoints, holdout_stretches
-from gpomap.observations import data_dim, natural_subsample
+from gpomap.heldout import draw_calibration_points, holdout_stretches
+from gpomap.observations import data_dim
 
 #: Width, in log-odds, of the band round 1/2 that the shift leaves alone (at logit p = +-WIDTH the
 #: shift is 39 % of its full value, at +-2 WIDTH 86 %).
@@ -202,8 +202,8 @@ def drawn_points(
     """At most :data:`POINTS` of the scans' calibration points (:func:`gpomap.heldout.calibration_points`),
     drawn uniformly (:func:`~gpomap.observations.natural_subsample`) from them all in scan order.
 
-    The points are counted from each scan's rays (:class:`gpomap.heldout.CalibrationPoints`) and
-    only those drawn are made: a long stretch's points (gigabytes over a building) never are.
+    Only the points drawn are made (:func:`gpomap.heldout.draw_calibration_points`): a long
+    stretch's points (gigabytes over a building) never are.
 
     Parameters
     ----------
@@ -218,16 +218,7 @@ def drawn_points(
     (points, occupied) : ndarray of shape (n, d) and bool ndarray of shape (n,), or None
         None when the scans hold no point of one class.
     """
-    held = [CalibrationPoints(scan, no_return_cap=no_return_cap) for scan in scans]
-    total, n_occupied = sum(h.size for h in held), sum(h.n_occupied for h in held)
-    if n_occupied in (0, total):
+    drawn = draw_calibration_points(scans, POINTS, seed, no_return_cap=no_return_cap)
+    if drawn.n_occupied in (0, drawn.total):
         return None
-    keep = natural_subsample(total, POINTS, seed)  # sorted
-    starts = np.cumsum([0] + [h.size for h in held])
-    bounds = np.searchsorted(keep, starts)  # each scan's drawn points: keep[bounds[j]:bounds[j + 1]]
-    picked = [
-        h.take(keep[lo:hi] - start)
-        for h, start, lo, hi in zip(held, starts[:-1].tolist(), bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)
-        if hi > lo
-    ]
-    return np.concatenate([p for p, _ in picked]), np.concatenate([o for _, o in picked])
+    return drawn.points, drawn.occupied

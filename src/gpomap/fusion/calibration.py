@@ -22,9 +22,9 @@ from scipy.optimize import brentq, minimize
 
 from gpomap.config import PROFILES, MapConfig
 from gpomap.evidence import RayCounts, RayEvidence
-from gpomap.heldout import CalibrationPoints, calibration_scans
+from gpomap.heldout import calibration_scans, draw_calibration_points
 from gpomap.lattice import AnyGrid, flat_index
-from gpomap.observations import ScanData, natural_subsample
+from gpomap.observations import ScanData
 from gpomap.stages import Counted
 
 #: The share of observations that are surprises the counts cannot foresee (a person standing where
@@ -399,31 +399,15 @@ def fit_calibration(
     """
     whole = evidence.counts(grid) if counts is None else counts
     picked = calibration_scans(len(scans), n_scans)
-    # The sample is drawn from the held-out scans' points by number (known from their rays), and
-    # only the points drawn are made: a depth frame has about 10 million, the sample 40,000.
-    sizes, n_occupied = np.zeros(picked.size, dtype=np.intp), 0
-    for j, k in enumerate(picked):
-        points = CalibrationPoints(scans[k], step, no_return_cap)
-        sizes[j], n_occupied = points.size, n_occupied + points.n_occupied
+    # A uniform sample keeps each class's share (docs/choices.md), drawn from the held-out scans'
+    # points by number and made only where drawn; the counts are then looked up at the sample only.
+    drawn = draw_calibration_points([scans[k] for k in picked], CALIBRATION_POINTS, seed, step, no_return_cap)
     default = EvidenceCalibration()
-    total = int(sizes.sum())
-    if total == 0:
+    if drawn.total == 0:
         return default, {"n_points": 0}, CalibrationSample()
-    if n_occupied in (0, total):
-        return default, {"n_points": total}, CalibrationSample()
-    # A uniform sample keeps each class's share (docs/choices.md); the counts are then looked up at the sample only.
-    keep = natural_subsample(total, CALIBRATION_POINTS, seed)
-    starts = np.concatenate([[0], np.cumsum(sizes)])
-    pts_all, occ_all, scan_all = [], [], []
-    for k, start, stop in zip(picked, starts[:-1], starts[1:], strict=True):
-        lo, hi = np.searchsorted(keep, [start, stop])
-        if lo == hi:
-            continue
-        pts, occ = CalibrationPoints(scans[k], step, no_return_cap).take(keep[lo:hi] - start)
-        pts_all.append(pts)
-        occ_all.append(occ)
-        scan_all.append(np.full(occ.size, k, dtype=np.intp))
-    pts, occ, scan_of = np.concatenate(pts_all), np.concatenate(occ_all), np.concatenate(scan_all)
+    if drawn.n_occupied in (0, drawn.total):
+        return default, {"n_points": drawn.total}, CalibrationSample()
+    pts, occ, scan_of = drawn.points, drawn.occupied, picked[drawn.scan]
     fit_surface = FIT_SURFACE_WEIGHT.get(pts.shape[1], False)
     h, m, near, surface = _other_scans_counts(evidence, grid, whole, pts, scan_of, fit_surface)
     # A point no other scan counted (no hit, no miss) has p = p_gp whatever the weights: a constant
