@@ -121,12 +121,13 @@ def map_child(command: list[str], out: str) -> dict[str, Any]:
         return clouds
 
     def planned(args: argparse.Namespace, clouds: Any) -> Any:
-        model, lo, hi, n_cells = timed("fit", plan)(args, clouds)
+        planned = timed("fit", plan)(args, clouds)  # the unfitted model first, with what the checks need
+        model = planned[0]
         # The command calls each once on the model it planned; the timed method is let go after
         # its call, so the map saved (map.gpom) holds the model's own state only.
         for method, phase in (("fit", "fit"), ("grid", "voxels")):
             setattr(model, method, _once(model, method, timed(phase, getattr(model, method))))
-        return model, lo, hi, n_cells
+        return planned
 
     map3d.load_clouds = load_clouds
     map3d._plan = planned

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from gpomap import simulate3d as s3
-from gpomap.apps.map3d import labelled_box, voxel_bounds
+from gpomap.apps.map3d import enclosing_box, labelled_box, voxel_bounds
 from gpomap.cli import main
 from gpomap.grid import OCCUPIED
 from gpomap.io.voxel_outputs import load_voxels
@@ -59,6 +59,54 @@ def test_labelled_box_is_the_labelled_points_box_to_the_bit(options):
         assert not np.array_equal(unclear.points.min(axis=0), obs.points.min(axis=0)) or not np.array_equal(
             unclear.points.max(axis=0), obs.points.max(axis=0)
         )
+
+
+@pytest.mark.parametrize("options", [{}, {"free_clearance": 0.4, "free_step": 0.07}])
+def test_the_enclosing_box_holds_every_free_sample_within_a_step(options):
+    # The box gpomap map checks the voxel grid's memory over before fitting: round every sample
+    # the clearance might keep, and at most a step wider than all of them (the origin and a
+    # ray's far end are within a step of its first and last samples).
+    from gpomap.settings import MapSettings
+
+    settings = MapSettings(**options)
+    step = settings.free_step
+    frames = s3.render_frames(s3.office_scene(), s3.PinholeCamera.from_fov(48, 36, 60), s3.office_poses()[:3])
+    for clouds in (_half_sphere_clouds(), s3.frame_clouds(frames)):
+        box = enclosing_box(clouds, **options)
+        every = settings.make_observations(clouds, clearance=False).points
+        lo, hi = every.min(axis=0), every.max(axis=0)
+        assert (box[0] <= lo).all() and (box[1] >= hi).all()
+        assert (box[0] >= lo - step - 1e-9).all() and (box[1] <= hi + step + 1e-9).all()
+        exact = labelled_box(clouds, **options)
+        assert (box[0] <= exact[0]).all() and (box[1] >= exact[1]).all()
+
+
+def test_a_fitted_voxel_maps_kept_bounds_are_its_labelled_points_box(tmp_path):
+    # The voxel map's extent after the fit: the labelled points without those the clearance
+    # dropped, as the whole computation finds them; a map read from its file finds them again.
+    from gpomap.apps.map3d import new_model
+    from gpomap.io.mapfile import load_fitted_map, save_fitted_map
+
+    clouds = _half_sphere_clouds()
+    options = {"kernel": "se", "min_cell": 1.0, "max_cell": 1.0}
+    model = new_model({"n_workers": 1}, **options).fit(clouds)
+    np.testing.assert_array_equal(np.array(model.kept_bounds_), labelled_box(clouds, **options))
+    save_fitted_map(model, tmp_path / "map.gpom")
+    np.testing.assert_array_equal(np.array(load_fitted_map(tmp_path / "map.gpom").kept_bounds_), labelled_box(clouds, **options))
+
+
+def test_the_exact_box_decides_where_the_enclosing_one_is_over_the_memory_limit(office_frames, tmp_path, monkeypatch):
+    # A box round the rays too large for --memory-limit is not the map's: the labelled points'
+    # box is asked, and the map is written over it as it would be without the larger box.
+    import gpomap.cli.map3d as cli3d
+
+    args = ["--kernel", "se", "--min-cell", "1.0", "--max-cell", "1.0", "--memory-limit", "0.5", "-q"]
+    assert main(["map", str(office_frames), "-o", str(tmp_path / "a"), *args]) == 0
+    monkeypatch.setattr(cli3d, "enclosing_box", lambda clouds, **options: np.array([[-1e4] * 3, [1e4] * 3]))
+    assert main(["map", str(office_frames), "-o", str(tmp_path / "b"), *args]) == 0
+    a, b = load_voxels(tmp_path / "a" / "map.npz"), load_voxels(tmp_path / "b" / "map.npz")
+    assert a.spec == b.spec
+    np.testing.assert_array_equal(a.probability, b.probability)
 
 
 @pytest.fixture(scope="module")

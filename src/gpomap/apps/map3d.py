@@ -16,8 +16,18 @@ from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import GpomapError
+from gpomap.lattice import column_bounds
 
-__all__ = ["is_cloud_input", "select_clouds", "read_selected_clouds", "voxel_bounds", "labelled_box", "new_model", "build_model"]
+__all__ = [
+    "is_cloud_input",
+    "select_clouds",
+    "read_selected_clouds",
+    "voxel_bounds",
+    "enclosing_box",
+    "labelled_box",
+    "new_model",
+    "build_model",
+]
 
 
 def is_cloud_input(path: str | os.PathLike[str]) -> bool:
@@ -147,6 +157,55 @@ def voxel_bounds(
     if z_range is not None:
         lo[2], hi[2] = z_range
     return lo, hi
+
+
+def enclosing_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[np.float64]:
+    """A box round every labelled point of `clouds` (:func:`labelled_box`'s or larger), from the
+    rays alone: their hits, and the origin and the far end of each ray's free samples.
+
+    The free samples of a ray lie on the segment between those two, so the box holds them all,
+    whatever the clearance drops; working it out costs one pass over the rays, where the exact
+    box asks every sample outside the hits' box about the clearance.
+
+    Parameters
+    ----------
+    clouds : sequence of CloudScan
+    **model_options
+        The map settings (:class:`~gpomap.settings.MapSettings`).
+
+    Returns
+    -------
+    ndarray of shape (2, 3)
+        The lowest and the highest coordinates.
+
+    Raises
+    ------
+    EmptyDataError
+        As :func:`labelled_box`: no readings, or a class missing.
+    """
+    from gpomap.observations import Rays
+    from gpomap.settings import MapSettings
+
+    settings = MapSettings(**model_options)
+    step = float(settings.free_step)
+    margin = 0.5 * step if settings.hit_margin is None else float(settings.hit_margin)
+    corners: list[NDArray[np.float64]] = []
+    n_hits = n_free = 0
+    for cloud in clouds:
+        rays = Rays.of(cloud)
+        hits = rays.ends[rays.hit]
+        reach = rays.free_lengths(margin, settings.no_return_cap)
+        sampled = np.maximum(reach, 0.0) / step + 1e-9 >= 1.0  # a free sample, at one step or more, as labelled_box counts
+        n_hits, n_free = n_hits + hits.shape[0], n_free + int(sampled.sum())
+        far = rays.origin + reach[sampled, None] * rays.directions[sampled]
+        for part in (hits, far):
+            if part.shape[0]:
+                corners.extend(column_bounds(part))
+        if sampled.any():
+            corners.append(np.asarray(rays.origin, dtype=float))
+    if n_hits == 0 or n_free == 0:
+        return labelled_box(clouds, **model_options)  # its error: a class missing, or no readings
+    return np.array([np.min(corners, axis=0), np.max(corners, axis=0)])
 
 
 def labelled_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[np.float64]:

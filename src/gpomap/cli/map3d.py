@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from gpomap.apps.map3d import build_model, labelled_box, new_model, read_selected_clouds, voxel_bounds
+from gpomap.apps.map3d import build_model, enclosing_box, labelled_box, new_model, read_selected_clouds, voxel_bounds
 from gpomap.cli.common import EXIT_OK, Run, bound_source, check_voxel_memory, print_map_summary, report_fit, status
 from gpomap.cli.input_options import cloud_reader_options
 from gpomap.cli.model_options import map_config, tiling_config
@@ -68,23 +68,29 @@ def _check_options(args: argparse.Namespace) -> None:
             raise GpomapError(f"{option} is for 2-D inputs ({why}); {args.input} holds 3-D scans")
 
 
-def _plan(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, Any, Any, int]:
-    """The unfitted model, the voxel map's corners (shape (3,) each) and the clouds' hits, with the
-    voxel grid's own memory checked before fitting.
+def _plan(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, int]:
+    """The unfitted model and the clouds' hits, with the voxel grid's own memory checked before fitting.
 
-    The extent is the labelled points' box (:func:`gpomap.apps.map3d.labelled_box`), without
-    their cells: the fit refuses tiles too large for the memory itself, once its cells exist, and
-    the grid with its prediction chunks (sized by the largest tile) is checked again after it
-    (:func:`_check_grid_after_fit`).
+    The grid is checked over a box round the rays (:func:`gpomap.apps.map3d.enclosing_box`), and
+    only where that is too large over the labelled points' exact box
+    (:func:`gpomap.apps.map3d.labelled_box`), which the fit works out anyway; the fit refuses
+    tiles too large for the memory itself, once its cells exist, and the grid with its prediction
+    chunks (sized by the largest tile) is checked again after it (:func:`_check_grid_after_fit`).
     """
     import numpy as np
 
+    from gpomap.resources import MemoryLimitError
+
     model_options = map_config(args).kwargs()
-    box = labelled_box(clouds, **model_options)
-    lo, hi = voxel_bounds(box, args.extent, args.z_range, args.resolution)
-    check_voxel_memory(args, lo, hi, 0)
+    try:
+        check_voxel_memory(
+            args, *voxel_bounds(enclosing_box(clouds, **model_options), args.extent, args.z_range, args.resolution), 0
+        )
+    except MemoryLimitError:
+        box = labelled_box(clouds, **model_options)
+        check_voxel_memory(args, *voxel_bounds(box, args.extent, args.z_range, args.resolution), 0)
     n_hits = sum(int((c.valid() & np.asarray(c.hit, dtype=bool)).sum()) for c in clouds)
-    return new_model(tiling_config(args).kwargs(), **model_options), lo, hi, n_hits
+    return new_model(tiling_config(args).kwargs(), **model_options), n_hits
 
 
 def _check_grid_after_fit(args: argparse.Namespace, model: Any, lo: Any, hi: Any) -> None:
@@ -96,6 +102,8 @@ def _check_grid_after_fit(args: argparse.Namespace, model: Any, lo: Any, hi: Any
 
 def run(args: argparse.Namespace) -> int:
     """Run ``gpomap map`` on a 3-D input (the output directory is checked already)."""
+    import numpy as np
+
     from gpomap.io.mapfile import save_fitted_map
     from gpomap.io.voxel_outputs import write_voxel_outputs
     from gpomap.lattice import bounds_extent
@@ -106,11 +114,12 @@ def run(args: argparse.Namespace) -> int:
     clouds = load_clouds(args)
     n_rays = sum(c.n_points for c in clouds)
     status(args, f"  {len(clouds)} scans, {n_rays} rays")
-    model, lo, hi, n_hits = _plan(args, clouds)
+    model, n_hits = _plan(args, clouds)
     status(args, f"fitting MSK-GPOM in 3-D ({args.kernel}, {n_hits} hits)...")
     t = time.perf_counter()
     model.fit(clouds)
     fit_s = time.perf_counter() - t
+    lo, hi = voxel_bounds(np.array(model.kept_bounds_), args.extent, args.z_range, args.resolution)
     _check_grid_after_fit(args, model, lo, hi)
     status(args, f"  fitted {model.n_inputs_} cells in {fit_s:.2f} s; predicting voxels of {args.resolution:g} m...")
     t = time.perf_counter()

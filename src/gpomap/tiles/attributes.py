@@ -53,6 +53,8 @@ class TiledAttributes:
     _tiles_with_points: set[int]
     _lower: NDArray[np.float64] | None
     _upper: NDArray[np.float64] | None
+    #: Each built block's points' bounds once the clearance is applied (not saved: made again on asking).
+    _kept_bounds: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] | None
     _n_points: int
     _n_occupied_points: int
     _n_scans: int

@@ -27,11 +27,7 @@ class BlockCells(TileGrid):
 
     def _build_block(self, key: int) -> _BlockCells:
         b = self.base
-        block = self._block_points[key]
-        points, occupied = block.arrays()
-        keep = ~block.free_near_hits(self._clearance, (points, occupied))
-        # Rebound, so that a spilled block's points read back are let go before the tree's copies.
-        points, occupied = points[keep], occupied[keep]
+        points, occupied = self._kept_arrays(key)
         c = build_cells(points, occupied, *b.cell_sides(points.shape[1]), b.cell_box)
         summed = b.area_method == "summed"
         return _BlockCells(
@@ -43,6 +39,20 @@ class BlockCells(TileGrid):
             member_points=c.points[c.member_order] if summed else None,
             member_offsets=c.member_offsets if summed else None,
         )
+
+    def _kept_arrays(self, key: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """A block's points (shape (n, d)) and labels (n,) without the free ones near its hits
+        (the points its cells grow from); their bounds noted in :attr:`_kept_bounds`."""
+        block = self._block_points[key]
+        points, occupied = block.arrays()
+        keep = ~block.free_near_hits(self._clearance, (points, occupied))
+        # Rebound, so that a spilled block's points read back are let go before the tree's copies.
+        points, occupied = points[keep], occupied[keep]
+        if getattr(self, "_kept_bounds", None) is None:  # a map read from its file keeps none
+            self._kept_bounds = {}
+        assert self._kept_bounds is not None
+        self._kept_bounds[key] = column_bounds(points)
+        return points, occupied
 
     def _add_points(
         self,
@@ -148,6 +158,7 @@ class BlockCells(TileGrid):
         self._tiles_with_points = set()
         self._lower = None
         self._upper = None
+        self._kept_bounds = {}
         self._n_points = self._n_occupied_points = 0
         self._dim = dim
         self.tile_size_ = self.tile_size if self.tile_size is not None else DEFAULT_TILE_SIZE[dim]
@@ -156,6 +167,7 @@ class BlockCells(TileGrid):
         """(Re)build the cell trees of the given blocks (all when None)."""
         if keys is None:
             self._blocks = {}
+            self._kept_bounds = {}
             keys = list(self._block_points)
         for k in keys:
             self._blocks[int(k)] = self._build_block(int(k))

@@ -22,7 +22,7 @@ _HEADER = "header"
 #: Attributes that are caches or belong to the running process, not to the map: not saved, and set
 #: to these values on loading (by class name). A map loaded runs its tiles locally (``scheduler``).
 NOT_SAVED: dict[str, dict[str, Any]] = {
-    "gpomap.tiles.TiledGPOM": {"_client": None, "scheduler": None},
+    "gpomap.tiles.TiledGPOM": {"_client": None, "scheduler": None, "_kept_bounds": None},
     # A layer counted only at given points (a map asked at a few points while fitting) is never saved.
     "gpomap.fusion.EvidenceLayer": {
         "_at_surface": None,
