@@ -75,6 +75,13 @@ class BlockCells(TileGrid):
             self._tiles_with_points.update(self._present_keys(part, self.tile_size_).tolist())
             found.append(self._present_keys(part, self.block_size_))
         block_keys = np.unique(np.concatenate(found))
+        if block_keys.size == 1:
+            # One block (a room's depth frames, a small log): every point in order, unsorted, and
+            # copied only to be held (the caller's arrays are theirs).
+            held = (points, occupied) if spill is not None else (points.copy(), occupied.copy())
+            self._file_block(int(block_keys[0]), *held, spill, scans)
+            self._count_points(points, occupied)
+            return {int(block_keys[0])}
         ids = np.empty(points.shape[0], dtype=np.int16 if block_keys.size <= np.iinfo(np.int16).max else np.int32)
         # Each block's id looked up in a table over the blocks' index box (a search per point
         # where that box is too large for a table).
@@ -100,16 +107,28 @@ class BlockCells(TileGrid):
         for k, grp in zip(block_keys.tolist(), np.split(order, cuts)):
             if grp.size == 0:
                 continue
-            filed: Any = _SpilledPart.put(spill, points[grp], occupied[grp]) if spill is not None else points[grp]
-            labels = None if spill is not None else occupied[grp]
-            runs = None if scans is None else scan_runs(scans[grp])
-            if k in self._block_points:
-                self._block_points[k].append(filed, labels, runs)
-            else:
-                self._block_points[k] = _BlockPoints(filed, labels, runs)
+            self._file_block(k, points[grp], occupied[grp], spill, None if scans is None else scans[grp])
             touched.add(k)
         self._count_points(points, occupied)
         return touched
+
+    def _file_block(
+        self,
+        key: int,
+        points: NDArray[np.float64],
+        occupied: NDArray[np.bool_],
+        spill: SpillFile | None,
+        scans: NDArray[np.integer[Any]] | None,
+    ) -> None:
+        """Append a block's new points (shape (n, d), labels (n,), in observation order) to it,
+        in `spill` when given, with their scans' runs when `scans` (shape (n,)) is."""
+        filed: Any = _SpilledPart.put(spill, points, occupied) if spill is not None else points
+        labels = None if spill is not None else occupied
+        runs = None if scans is None else scan_runs(scans)
+        if key in self._block_points:
+            self._block_points[key].append(filed, labels, runs)
+        else:
+            self._block_points[key] = _BlockPoints(filed, labels, runs)
 
     def _count_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
         """Add points filed (shape (n, d), labels (n,)) to the map's extent and counts."""
