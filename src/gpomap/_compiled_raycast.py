@@ -127,6 +127,20 @@ def walk_segment(
 
 
 @jit(cache=True, nogil=True)
+def _lines_within(u0: float, u1: float, cells: int) -> tuple[float, int]:  # pragma: no cover - compiled
+    """The whole-number lines an axis's coordinate crosses going from u0 to u1 (the lowest, and how
+    many), of those within the grid's 0..`cells` only.
+
+    A line outside bounds no interval inside the grid: the intervals it would cut apart lie
+    outside on that axis either way, so leaving it out changes no cell the walk writes, and a
+    long beam across a small grid crosses only the lines within it."""
+    first = math.floor(min(u0, u1)) + 1.0
+    last = min(first + np.float64(max(int(math.ceil(max(u0, u1)) - first), 0)) - 1.0, np.float64(cells))
+    first = max(first, 0.0)
+    return first, max(int(last - first) + 1, 0)
+
+
+@jit(cache=True, nogil=True)
 def _walk_plane(
     p0: NDArray[np.float64],
     p1: NDArray[np.float64],
@@ -141,10 +155,8 @@ def _walk_plane(
     axis's next crossing held in scalars and computed when the last is taken, instead of listed
     and merged through arrays (which kept the generic walk's state out of registers)."""
     x0, y0, x1, y1 = p0[s, 0], p0[s, 1], p1[s, 0], p1[s, 1]
-    fx = math.floor(min(x0, x1)) + 1.0
-    nx = max(int(math.ceil(max(x0, x1)) - fx), 0)
-    fy = math.floor(min(y0, y1)) + 1.0
-    ny = max(int(math.ceil(max(y0, y1)) - fy), 0)
+    fx, nx = _lines_within(x0, x1, shape[1])
+    fy, ny = _lines_within(y0, y1, shape[0])
     down_x, down_y = x1 < x0, y1 < y0
     base = 4.0 * np.float64(place)
     jx = jy = 0
@@ -212,12 +224,9 @@ def _walk_space(
     """:func:`walk_segment` of a segment in space: :func:`_walk_plane`'s scalars for three axes
     (the same arithmetic in the same order as the generic walk)."""
     x0, y0, z0, x1, y1, z1 = p0[s, 0], p0[s, 1], p0[s, 2], p1[s, 0], p1[s, 1], p1[s, 2]
-    fx = math.floor(min(x0, x1)) + 1.0
-    nx = max(int(math.ceil(max(x0, x1)) - fx), 0)
-    fy = math.floor(min(y0, y1)) + 1.0
-    ny = max(int(math.ceil(max(y0, y1)) - fy), 0)
-    fz = math.floor(min(z0, z1)) + 1.0
-    nz = max(int(math.ceil(max(z0, z1)) - fz), 0)
+    fx, nx = _lines_within(x0, x1, shape[2])
+    fy, ny = _lines_within(y0, y1, shape[1])
+    fz, nz = _lines_within(z0, z1, shape[0])
     down_x, down_y, down_z = x1 < x0, y1 < y0, z1 < z0
     base = 4.0 * np.float64(place)
     jx = jy = jz = 0
