@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -17,6 +17,10 @@ from numpy.typing import NDArray
 from gpomap.clouds import CloudScan
 from gpomap.errors import GpomapError
 from gpomap.lattice import column_bounds
+
+if TYPE_CHECKING:
+    from gpomap.observations import Rays
+    from gpomap.settings import MapSettings
 
 __all__ = [
     "is_cloud_input",
@@ -187,15 +191,13 @@ def enclosing_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[
     from gpomap.settings import MapSettings
 
     settings = MapSettings(**model_options)
-    step = float(settings.free_step)
-    margin = 0.5 * step if settings.hit_margin is None else float(settings.hit_margin)
     corners: list[NDArray[np.float64]] = []
     n_hits = n_free = 0
     for cloud in clouds:
         rays = Rays.of(cloud)
         hits = rays.ends[rays.hit]
-        reach = rays.free_lengths(margin, settings.no_return_cap)
-        sampled = np.maximum(reach, 0.0) / step + 1e-9 >= 1.0  # a free sample, at one step or more, as labelled_box counts
+        reach, counts = _free_samples_along(rays, settings)
+        sampled = counts > 0
         n_hits, n_free = n_hits + hits.shape[0], n_free + int(sampled.sum())
         far = rays.origin + reach[sampled, None] * rays.directions[sampled]
         for part in (hits, far):
@@ -206,6 +208,15 @@ def enclosing_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[
     if n_hits == 0 or n_free == 0:
         return labelled_box(clouds, **model_options)  # its error: a class missing, or no readings
     return np.array([np.min(corners, axis=0), np.max(corners, axis=0)])
+
+
+def _free_samples_along(rays: Rays, settings: MapSettings) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """How far along each ray its free samples may go (at least 0) and how many it holds (those at
+    a step, two, ...: :func:`gpomap.observations.ray_free_points`' count), each shape (b,)."""
+    step = float(settings.free_step)
+    margin = 0.5 * step if settings.hit_margin is None else float(settings.hit_margin)
+    reach = np.maximum(rays.free_lengths(margin, settings.no_return_cap), 0.0)
+    return reach, np.floor(reach / step + 1e-9).astype(np.intp)
 
 
 def labelled_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[np.float64]:
@@ -239,12 +250,9 @@ def labelled_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[n
 
     settings = MapSettings(**model_options)
     step = float(settings.free_step)
-    margin = 0.5 * step if settings.hit_margin is None else float(settings.hit_margin)
     rays = [Rays.of(c) for c in clouds]
     hits = [r.ends[r.hit] for r in rays]
-    counts = [
-        np.floor(np.maximum(r.free_lengths(margin, settings.no_return_cap), 0.0) / step + 1e-9).astype(np.intp) for r in rays
-    ]
+    counts = [_free_samples_along(r, settings)[1] for r in rays]
     n_hits = sum(len(h) for h in hits)
     if n_hits == 0 or not any(c.any() for c in counts):
         # make_observations' own error (a class missing, or no readings at all).

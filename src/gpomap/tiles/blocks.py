@@ -48,9 +48,8 @@ class BlockCells(TileGrid):
         keep = ~block.free_near_hits(self._clearance, (points, occupied))
         # Rebound, so that a spilled block's points read back are let go before the tree's copies.
         points, occupied = points[keep], occupied[keep]
-        if getattr(self, "_kept_bounds", None) is None:  # a map read from its file keeps none
+        if self._kept_bounds is None:  # a map read from its file keeps none
             self._kept_bounds = {}
-        assert self._kept_bounds is not None
         self._kept_bounds[key] = column_bounds(points)
         return points, occupied
 

@@ -36,12 +36,9 @@ class MapReport(BlockCells, TileExecutors):
         """Lower and upper corners of the points the cells were grown from, each (d,): the
         labelled points without the free ones the clearance dropped (a voxel map's default extent)."""
         self._check_fitted()
-        if getattr(self, "_kept_bounds", None) is None:
-            self._kept_bounds = {}
-        assert self._kept_bounds is not None
-        for key in self._block_points.keys() - self._kept_bounds.keys():
+        for key in self._block_points.keys() - (self._kept_bounds or {}).keys():
             self._kept_arrays(key)  # a block not built since the map was read
-        bounds = list(self._kept_bounds.values())
+        bounds = list((self._kept_bounds or {}).values())
         return np.min([lo for lo, _ in bounds], axis=0), np.max([hi for _, hi in bounds], axis=0)
 
     @property
