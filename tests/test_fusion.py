@@ -652,6 +652,53 @@ def test_written_grid_takes_the_variance_two_samples_apart(half_room: tuple[Area
     assert (hits + misses).max() > 0 and np.ptp(den) > 0  # counts and a variance that varies
 
 
+def test_lattice_corners_by_hand() -> None:
+    nodes, corner, weight = lattice.lattice_corners(np.array([[0.25, 0.5], [1.0, 0.0]]), 1.0)
+    # The first point's cell has corners (0, 0), (0, 1), (1, 0), (1, 1), weighted by the opposite areas.
+    got = {tuple(nodes[c]): w for c, w in zip(corner[0], weight[0])}
+    assert got == {(0.0, 0.0): 0.375, (0.0, 1.0): 0.375, (1.0, 0.0): 0.125, (1.0, 1.0): 0.125}
+    # A point on a node is that node's value alone; every node once.
+    assert weight[1].max() == 1.0 and tuple(nodes[corner[1][weight[1].argmax()]]) == (1.0, 0.0)
+    assert len({tuple(n) for n in nodes}) == len(nodes)
+    # Multilinear interpolation is exact on a plane, in 3-D too.
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-3.0, 3.0, size=(50, 3))
+    nodes, corner, weight = lattice.lattice_corners(pts, 0.4)
+    plane = lambda p: 0.3 + 2.0 * p[:, 0] - 0.7 * p[:, 1] + 1.1 * p[:, 2]  # noqa: E731
+    np.testing.assert_allclose((weight * plane(nodes)[corner]).sum(axis=1), plane(pts), atol=1e-12)
+
+
+def test_calibrations_take_the_gp_with_its_variance_as_a_written_map_does(half_room: tuple[AreaGPOM, list[Scan]]) -> None:
+    """The GP the calibrations fit: its mean at each point, its variance interpolated from the
+    corners of the point's cell of a lattice two GP samples apart (checked against scipy's
+    interpolator and the squash worked out here); on a node, the GP's own probability."""
+    from scipy.interpolate import RegularGridInterpolator
+    from scipy.special import ndtr
+
+    model, _ = half_room
+    step = fusion.variance_step(model.hyperparameters_["length_scale"], model.base.evidence_resolution)
+    assert step == pytest.approx(0.2)  # the GP sampled every 2 cells of 0.05 m, its variance every 2 samples
+    pts = np.random.default_rng(3).uniform([0.5, 0.5], [9.5, 7.5], size=(400, 2))
+    p, p_unseen = model._gp_proba_as_written(pts)
+    # The tiles predict locally, leaving out covariances below 1e-6 of the variance, so another
+    # set of queries moves a value by that much.
+    xs, ys = (np.arange(np.floor(pts[:, k].min() / step) - 1, np.ceil(pts[:, k].max() / step) + 2) * step for k in (0, 1))
+    nodes = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    _, den_nodes, _, _ = model.blended_moments(nodes)
+    den = RegularGridInterpolator((xs, ys), den_nodes.reshape(xs.size, ys.size))(pts)
+    num, _, _, _ = model.blended_moments(pts, variance=False)
+    kappa = model.hyperparameters_["variance_scale"]
+    np.testing.assert_allclose(p, ndtr(num / np.sqrt(1.0 + den)), atol=1e-6)
+    np.testing.assert_allclose(p_unseen, ndtr(num / np.sqrt(1.0 + kappa * den)), atol=1e-6)
+    assert np.ptp(den) > 0  # a variance that varies
+    exact, _, exact_unseen = model._gp_probabilities(nodes)
+    on_node = model._gp_proba_as_written(nodes)
+    np.testing.assert_allclose(on_node[0], exact, atol=1e-6)
+    np.testing.assert_allclose(on_node[1], exact_unseen, atol=1e-6)
+    # Between nodes it moves the map's probability little.
+    assert np.abs(model._proba_as_written(pts) - model.predict_proba(pts)).mean() < 0.01
+
+
 def test_other_scans_counts_are_the_counts_without_each_points_own_scan() -> None:
     """The calibration's per-point counts equal the counts of every scan but the point's own, taken
     afresh (``counts(grid, scans=others)``) and read at the point's cell (0 off the grid)."""
@@ -1022,9 +1069,9 @@ def test_a_map_fits_its_surprise_rate_when_asked_against_its_gp_fitted_on_the_ot
     kept = scans[::2]
     held = AreaGPOM(n_workers=1, **clear).fit(kept, hyperparameters=model.hyperparameters_)
     q = np.array([[1.0, 1.0], [5.0, 5.0], [8.0, 2.0], [3.0, 6.5]])
-    np.testing.assert_allclose(model.evidence_.gp_apart(kept)(q), held.predict_proba_gp(q), rtol=1e-12)
+    np.testing.assert_allclose(model.evidence_.gp_apart(kept)(q), held._gp_proba_written(q), rtol=1e-12)
     # And it is not the map's own GP, which saw the other scans too.
-    assert not np.allclose(model.evidence_.gp_apart(kept)(q), model.predict_proba_gp(q))
+    assert not np.allclose(model.evidence_.gp_apart(kept)(q), model._gp_proba_written(q))
 
 
 def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_add_up(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -166,7 +166,7 @@ def test_the_map_of_the_rest_is_this_map_on_fewer_scans(fitted_tour):
     rest._given_calibration = model.evidence_.calibration
     rest.fit([scans[i] for i in kept], hyperparameters=dict(model.hyperparameters_))
     assert rest.evidence_.calibration == model.evidence_.calibration and rest.evidence_.report == {"given": 1.0}
-    p, occupied, _ = rv.later_visit_points(scans, lambda s, q: rest.predict_proba(q), seed=model.base.seed)
+    p, occupied, _ = rv.later_visit_points(scans, lambda s, q: rest._proba_as_written(q), seed=model.base.seed)
     sample = model.evidence_.sample
     got = rv.RevisitCalibration.fit(p, occupied, sample.probability, sample.occupied)
     assert got.slope == pytest.approx(model.evidence_.revisit.slope, rel=1e-6)
@@ -188,8 +188,8 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     lazy._given_calibration = model.evidence_.calibration
     lazy.fit([scans[i] for i in kept], hyperparameters=fixed)
     args = (model.base.no_return_cap, model.base.seed)
-    p_eager, occ, _ = rv.later_visit_points(scans, lambda s, q: eager.predict_proba(q), *args)
-    p_lazy, occ_lazy, _ = rv.later_visit_points(scans, lambda s, q: lazy.predict_proba(q), *args)
+    p_eager, occ, _ = rv.later_visit_points(scans, lambda s, q: eager._proba_as_written(q), *args)
+    p_lazy, occ_lazy, _ = rv.later_visit_points(scans, lambda s, q: lazy._proba_as_written(q), *args)
     np.testing.assert_array_equal(p_lazy, p_eager)
     np.testing.assert_array_equal(occ_lazy, occ)
     assert len(eager.tiles_) == len(lazy.tiles_) + len(lazy._waiting)
@@ -200,7 +200,7 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     asked._given_calibration = model.evidence_.calibration
     asked._asked_at = pts
     asked.fit([scans[i] for i in kept], hyperparameters=fixed)
-    np.testing.assert_array_equal(asked.predict_proba(pts), p_eager)
+    np.testing.assert_array_equal(asked._proba_as_written(pts), p_eager)
     assert asked.evidence_._hits.size == 0 < eager.evidence_._hits.size
     # Asked at a corner's points: only the tiles they need, and the blocks those gather cells
     # from, are made; the same answers.
@@ -210,7 +210,7 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     near._given_calibration = model.evidence_.calibration
     near._asked_at = corner
     near.fit([scans[i] for i in kept], hyperparameters=fixed)
-    np.testing.assert_array_equal(near.predict_proba(corner), eager.predict_proba(corner))
+    np.testing.assert_array_equal(near._proba_as_written(corner), eager._proba_as_written(corner))
     assert corner.shape[0] > 100
     assert len(near._blocks) < len(eager._blocks)
     assert len(near.tiles_) + len(near._waiting) < len(eager.tiles_) // 2
@@ -270,5 +270,5 @@ def test_the_map_of_the_rest_takes_this_maps_points_as_making_them_again_would(f
     np.testing.assert_array_equal(made.predict_proba(pts), taken.predict_proba(pts))
     # What the map took for its recalibration is the map of the rest made from the scans.
     p_model, _, _ = model._later_visit_points()
-    p_made, _, _ = rv.later_visit_points(scans, lambda s, q: made.predict_proba(q), model.base.no_return_cap, model.base.seed)
+    p_made, _, _ = rv.later_visit_points(scans, lambda s, q: made._proba_as_written(q), model.base.no_return_cap, model.base.seed)
     np.testing.assert_array_equal(p_model, p_made)

@@ -10,6 +10,7 @@ with the GP are written once for every dimension.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
@@ -214,6 +215,39 @@ def interpolate(values: ArrayLike, source: AnyGrid, target: AnyGrid) -> NDArray[
         a, b = np.take(v, lo, axis=axis), np.take(v, hi, axis=axis)
         v = a + w * (b - a)
     return v
+
+
+def lattice_corners(points: ArrayLike, step: float) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]]:
+    """The corners of the cells of a lattice `step` apart, on the origin, that hold `points`, and
+    each point's multilinear weights on its cell's corners.
+
+    Parameters
+    ----------
+    points : array_like of shape (m, d)
+    step : float
+        The lattice's spacing; its nodes lie at integer multiples of it.
+
+    Returns
+    -------
+    nodes : ndarray of shape (k, d)
+        Every corner of a cell holding a point, once.
+    corner : ndarray of shape (m, 2^d)
+        Each point's cell's corners, as rows of `nodes`.
+    weight : ndarray of shape (m, 2^d)
+        Their weights: ``(weight * values[corner]).sum(axis=1)`` interpolates values at `nodes`.
+    """
+    pts = np.asarray(points, dtype=float)
+    m, d = pts.shape
+    scaled = pts / step
+    base = np.floor(scaled)
+    frac = scaled - base
+    offsets = np.array(list(itertools.product((0, 1), repeat=d)), dtype=np.int64)  # (2^d, d)
+    keys = base.astype(np.int64)[:, None, :] + offsets[None]
+    weight = np.prod(np.where(offsets[None] == 1, frac[:, None, :], 1.0 - frac[:, None, :]), axis=2)
+    if m == 0:
+        return np.zeros((0, d)), np.zeros((0, offsets.shape[0]), dtype=np.intp), weight
+    unique, inverse = np.unique(keys.reshape(-1, d), axis=0, return_inverse=True)
+    return unique * step, inverse.reshape(m, offsets.shape[0]).astype(np.intp), weight
 
 
 def interpolation_block(source: AnyGrid, target: AnyGrid) -> tuple[slice, ...]:

@@ -218,7 +218,7 @@ class StreamingGPOM:
         model = self._model()
         self._calibrated_scans = self.n_scans_
         if model.evidence_ is not None:
-            model.evidence_.recalibrate(model.predict_proba_gp)
+            model.evidence_.recalibrate(model._gp_proba_written)
             self._record_change(self._whole_extent())
 
     def relearn(self) -> dict[str, float]:

@@ -79,6 +79,7 @@ from gpomap.fusion.written import (
     VARIANCE_STEP_SAMPLES,
     BlendedMoments,
     gp_sampling_factor,
+    variance_step,
 )
 
 __all__ = [
@@ -109,6 +110,7 @@ __all__ = [
     "path_dtype",
     "surface_misses",
     "ternary_thresholds",
+    "variance_step",
     "with_surprises",
     "without_hits",
 ]

@@ -40,6 +40,11 @@ def gp_sampling_factor(length_scale: float, resolution: float) -> int:
 VARIANCE_STEP_SAMPLES: int = 2
 
 
+def variance_step(length_scale: float, resolution: float) -> float:
+    """Metres between a planar written map's variance samples, whose cells are `resolution` apart."""
+    return gp_sampling_factor(length_scale, resolution) * VARIANCE_STEP_SAMPLES * resolution
+
+
 class BlendedMoments(Protocol):
     """A GP map's calibrated latent moments and their squash (:class:`gpomap.tiles.TiledGPOM`)."""
 

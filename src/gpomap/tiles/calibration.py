@@ -106,7 +106,7 @@ class CalibrationStages(MapPrediction):
             return None
         return self.base.make_evidence(
             self._scans,
-            self._gp_map().predict_proba_gp,
+            self._gp_proba_written,
             self._gp_apart,
             self._given_calibration,
             self._asked_at,

@@ -9,14 +9,17 @@ the bands have passed letting go of what they formed) and voxel maps.
 from __future__ import annotations
 
 import contextlib
+import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.field import GPHyperparameters
+from gpomap.field import GPHyperparameters, as_points
 from gpomap.fitted import FittedMap, MapAnswers
+from gpomap.fusion.written import variance_step
 from gpomap.lapack import blas_limited
+from gpomap.lattice import lattice_corners
 from gpomap.squash import ProbitSquash
 from gpomap.tiles.blending import TileBlending
 from gpomap.tiles.report import MapReport
@@ -119,3 +122,57 @@ class MapPrediction(MapAnswers, TileBlending, MapReport):
         """The blended GP's probability, latent variance and probability for unseen space, each (m,)."""
         p, _, var, p_unseen = self._predict_blended(points)
         return p, var, p_unseen
+
+    def _gp_proba_as_written(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The blended GP's probability and probability for unseen space at points, each (m,), with
+        the variance a planar written map takes: the mean at each point, the variance at the
+        corners of its cell of a lattice :func:`~gpomap.fusion.variance_step` apart, interpolated.
+
+        What the calibrations fit is then the GP of the map a user gets, and its variance, the
+        costly part of a prediction, is asked at a few corners instead of at every point. A voxel
+        map's written grid samples both moments alike: there the GP is asked at the points.
+        """
+        pts = as_points(points, self._dim)
+        # Timed and held to a worker's BLAS threads as the fitted map's own predictions are.
+        t = time.perf_counter()
+        with TiledField(self).limited():
+            lattice = self._variance_corners(pts)
+            if lattice is None:
+                p, _, p_unseen = self._gp_probabilities(pts)
+            else:
+                nodes, corner, weight = lattice
+                num, _, _, _ = self.blended_moments(pts, variance=False)
+                _, den_nodes, _, _ = self.blended_moments(nodes)
+                assert den_nodes is not None  # asked with the variance
+                p, p_unseen = self.squash_moments(num, np.einsum("ij,ij->i", weight, den_nodes[corner]))
+        self.timings_["prediction"] = time.perf_counter() - t
+        return p, p_unseen
+
+    def _variance_corners(
+        self, points: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]] | None:
+        """Where :meth:`_gp_proba_as_written` asks the variance for `points` (m, 2): the corners
+        (k, 2), each point's (m, 4) and their weights (m, 4) (:func:`~gpomap.lattice.lattice_corners`);
+        None for a voxel map, asked at the points."""
+        if self._dim != 2:
+            return None
+        step = variance_step(float(self.hyperparameters_["length_scale"]), self.base.evidence_resolution)
+        return lattice_corners(points, step)
+
+    def _gp_queries(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Every point :meth:`_gp_proba_as_written` asks the GP at for `points` (m, d): them,
+        and the corners that give them its variance."""
+        corners = self._variance_corners(points)
+        return points if corners is None else np.concatenate([points, corners[0]])
+
+    def _gp_proba_written(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The GP's probability at points, shape (m,), as :meth:`_gp_proba_as_written` takes it:
+        what the ray counts' calibration fits against."""
+        return self._gp_proba_as_written(points)[0]
+
+    def _proba_as_written(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The map's probability at points, shape (m,): the ray counts over the GP as
+        :meth:`_gp_proba_as_written` takes it (what the later visit's recalibration fits)."""
+        pts = as_points(points, self._dim)
+        p, p_unseen = self._gp_proba_as_written(pts)
+        return p if self.evidence_ is None else self.evidence_.proba(pts, p, p_unseen)

@@ -56,8 +56,9 @@ class Refit:
         return self.unfitted(ray_evidence=False).fit(data, hyperparameters={**self.hyperparameters, **hyperparameters})
 
     def gp_proba(self, scans: ScanData) -> Predict:
-        """The GP's probability (before ray evidence) of the map fitted on `scans` alone."""
-        return self.gp(scans).predict_proba_gp
+        """The GP's probability (before ray evidence) of the map fitted on `scans` alone, as the
+        calibrations take it (:meth:`~gpomap.tiles.prediction.MapPrediction._gp_proba_written`)."""
+        return self.gp(scans)._gp_proba_written
 
     def map_proba(
         self,
@@ -82,4 +83,5 @@ class Refit:
         rest._counted_without = counted_without
         if calibration is not None:
             rest._asked_at = np.asarray(points, dtype=float)
-        return np.asarray(rest.fit(scans, hyperparameters=dict(self.hyperparameters)).predict_proba(points), dtype=float)
+        fitted = rest.fit(scans, hyperparameters=dict(self.hyperparameters))
+        return np.asarray(fitted._proba_as_written(points), dtype=float)

@@ -346,7 +346,7 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
         self.hyperparameters_ = given
         self._set_geometry()
         keys = [self._decode(k) for k in sorted(self._tiles_with_points)]
-        members, _ = self._tile_members(as_points(self._asked_at, self._dim), sorted(keys))
+        members, _ = self._tile_members(self._gp_queries(as_points(self._asked_at, self._dim)), sorted(keys))
         return sorted(members)
 
     def _refit(self) -> Refit:
@@ -388,6 +388,6 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
             self._refresh(None, exact=True)
             if self.evidence_ is not None:
                 t = time.perf_counter()
-                self.evidence_.recalibrate(self.predict_proba_gp)
+                self.evidence_.recalibrate(self._gp_proba_written)
                 self.timings_["update_calibration"] = time.perf_counter() - t
             return self
