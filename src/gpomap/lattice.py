@@ -246,7 +246,13 @@ def lattice_corners(points: ArrayLike, step: float) -> tuple[NDArray[np.float64]
     weight = np.prod(np.where(offsets[None] == 1, frac[:, None, :], 1.0 - frac[:, None, :]), axis=2)
     if m == 0:
         return np.zeros((0, d)), np.zeros((0, offsets.shape[0]), dtype=np.intp), weight
-    unique, inverse = np.unique(keys.reshape(-1, d), axis=0, return_inverse=True)
+    # One integer a node (row-major over the keys' box), uniqued as numbers: in the rows' order,
+    # several times faster than unique rows.
+    flat = keys.reshape(-1, d)
+    low = flat.min(axis=0)
+    span = tuple(int(v) for v in flat.max(axis=0) - low + 1)
+    codes, inverse = np.unique(np.ravel_multi_index(tuple((flat - low).T), span), return_inverse=True)
+    unique = np.column_stack(np.unravel_index(codes, span)) + low
     return unique * step, inverse.reshape(m, offsets.shape[0]).astype(np.intp), weight
 
 
