@@ -33,7 +33,10 @@ class _Fixed:
 
     def fit(self, obs):
         self.fits += 1
-        return self.moments
+        return self
+
+    def predict(self, points, return_var=False):
+        return self.moments(points)
 
 
 def _only_one_stretch_moves():

@@ -112,7 +112,7 @@ def fit_variance_scale(
     hyperparameters: dict[str, float],
     observations: Observations | ScanPoints | PointSource,
     free_clearance: float,
-    fit_held_in: Callable[[Observations], Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]]],
+    fit_held_in: Callable[[Observations], Any],
     centre: NDArray[np.float64],
     region_half: float,
     margin: float,
@@ -137,8 +137,8 @@ def fit_variance_scale(
         The map's free clearance, metres.
     fit_held_in : callable
         The kept scans' points in the region to a GP fitted on them with `hyperparameters` (the
-        map's engine, no ray evidence), as a function from points (m, d) to its latent mean and
-        variance, each (m,), taken as the map's written grid takes them.
+        map's engine, no ray evidence), whose ``predict(points, return_var=True)`` gives the
+        latent mean and variance.
     centre : ndarray of shape (2,)
         Centre of the square region (x, y); in 3-D the region is a column.
     region_half : float
@@ -213,11 +213,11 @@ def fit_variance_scale(
         if obs.n_occupied == 0 or obs.n_free == 0:  # every kept free point cleared (see _observes_both)
             return 1.0, {"kappa": 1.0, "reason": "no kept observations of a class in the region"}
         try:
-            latent = fit_held_in(obs)
+            model = fit_held_in(obs)
         except EmptyDataError as err:
             return 1.0, {"kappa": 1.0, "reason": str(err)}
-        mu[sel], var[sel] = latent(pts[sel])
-        del obs, latent
+        mu[sel], var[sel] = model.predict(pts[sel], return_var=True)
+        del obs, model
         release_freed_memory()
     a, b = float(hyperparameters["alpha"]), float(hyperparameters["beta"])
     kappa = VarianceScale.fit(mu, var, occ, a, b).kappa

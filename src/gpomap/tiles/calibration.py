@@ -63,7 +63,7 @@ class CalibrationStages(MapPrediction):
         refit = self._refit()
 
         def fit_held_in(held: Observations) -> Any:
-            return refit.gp(held, variance_scale=1.0)._latent_as_written
+            return refit.gp(held, variance_scale=1.0)
 
         _, report = fit_variance_scale(
             data,

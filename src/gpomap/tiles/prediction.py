@@ -123,10 +123,8 @@ class MapPrediction(MapAnswers, TileBlending, MapReport):
         p, _, var, p_unseen = self._predict_blended(points)
         return p, var, p_unseen
 
-    def _moments_as_written(
-        self, points: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """:meth:`blended_moments` at points (alpha mu + beta, alpha^2 var, mu, var; each (m,)) with
+    def _gp_proba_as_written(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The blended GP's probability and probability for unseen space at points, each (m,), with
         the variance a planar written map takes: the mean at each point, the variance at the
         corners of its cell of a lattice :func:`~gpomap.fusion.variance_step` apart, interpolated.
 
@@ -140,33 +138,20 @@ class MapPrediction(MapAnswers, TileBlending, MapReport):
         with TiledField(self).limited():
             lattice = self._variance_corners(pts)
             if lattice is None:
-                num, den, mean, var = self.blended_moments(pts)
+                p, _, p_unseen = self._gp_probabilities(pts)
             else:
                 nodes, corner, weight = lattice
-                num, _, mean, _ = self.blended_moments(pts, variance=False)
-                _, den_at, _, var_at = self.blended_moments(nodes)
-                assert den_at is not None and var_at is not None  # asked with the variance
-                den, var = (np.einsum("ij,ij->i", weight, v[corner]) for v in (den_at, var_at))
+                num, _, _, _ = self.blended_moments(pts, variance=False)
+                _, den_nodes, _, _ = self.blended_moments(nodes)
+                assert den_nodes is not None  # asked with the variance
+                p, p_unseen = self.squash_moments(num, np.einsum("ij,ij->i", weight, den_nodes[corner]))
         self.timings_["prediction"] = time.perf_counter() - t
-        assert den is not None and var is not None  # asked with the variance
-        return num, den, mean, var
-
-    def _gp_proba_as_written(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The GP's probability and probability for unseen space at points, each (m,), with the
-        variance as :meth:`_moments_as_written` takes it."""
-        num, den, _, _ = self._moments_as_written(points)
-        return self.squash_moments(num, den)
-
-    def _latent_as_written(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The GP's latent mean and variance at points, each (m,), as :meth:`_moments_as_written`
-        takes them: what the variance scale is fitted on."""
-        _, _, mean, var = self._moments_as_written(points)
-        return mean, var
+        return p, p_unseen
 
     def _variance_corners(
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]] | None:
-        """Where :meth:`_moments_as_written` asks the variance for `points` (m, 2): the corners
+        """Where :meth:`_gp_proba_as_written` asks the variance for `points` (m, 2): the corners
         (k, 2), each point's (m, 4) and their weights (m, 4) (:func:`~gpomap.lattice.lattice_corners`);
         None for a voxel map, asked at the points."""
         if self._dim != 2:
@@ -175,7 +160,7 @@ class MapPrediction(MapAnswers, TileBlending, MapReport):
         return lattice_corners(points, step)
 
     def _gp_queries(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Every point :meth:`_moments_as_written` asks the GP at for `points` (m, d): them,
+        """Every point :meth:`_gp_proba_as_written` asks the GP at for `points` (m, d): them,
         and the corners that give them its variance."""
         corners = self._variance_corners(points)
         return points if corners is None else np.concatenate([points, corners[0]])
