@@ -35,7 +35,7 @@ SPREAD_FROM: int = 1 << 20
 SPREAD_PIECES: int = 8
 
 #: A member is deflated when its sample shrinks below this share of its size. A written map's
-#: probability and variance planes shrink only to 0.73-0.88 of theirs, at about 25 ns a byte: more
+#: probability and variance planes shrink only to 0.73-0.88 of theirs, at about 20 ns a byte: more
 #: time than the bytes saved are worth. Counts, flags and offsets shrink to a few percent.
 DEFLATE_BELOW: float = 2.0 / 3.0
 

@@ -126,7 +126,8 @@ class MapPrediction(MapAnswers, TileBlending, MapReport):
     def _gp_proba_as_written(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The blended GP's probability and probability for unseen space at points, each (m,), with
         the variance a planar written map takes: the mean at each point, the variance at the
-        corners of its cell of a lattice :func:`~gpomap.fusion.variance_step` apart, interpolated.
+        corners of its cell of a lattice :func:`~gpomap.fusion.variance_step` apart (for a map
+        written on the ray counts' cells, its default), interpolated.
 
         What the calibrations fit is then the GP of the map a user gets, and its variance, the
         costly part of a prediction, is asked at a few corners instead of at every point. A voxel
