@@ -678,7 +678,8 @@ def test_calibrations_take_the_gp_with_its_variance_as_a_written_map_does(half_r
     model, _ = half_room
     step = fusion.variance_step(model.hyperparameters_["length_scale"], model.base.evidence_resolution)
     assert step == pytest.approx(0.2)  # the GP sampled every 2 cells of 0.05 m, its variance every 2 samples
-    pts = np.random.default_rng(3).uniform([0.5, 0.5], [9.5, 7.5], size=(400, 2))
+    pts = np.random.default_rng(3).uniform([1.0, 1.0], [5.5, 4.5], size=(1500, 2))
+    assert model._variance_corners(pts) is not None  # points that share corners
     p, p_unseen = model._gp_proba_as_written(pts)
     # The tiles predict locally, leaving out covariances below 1e-6 of the variance, so another
     # set of queries moves a value by that much.
@@ -697,6 +698,10 @@ def test_calibrations_take_the_gp_with_its_variance_as_a_written_map_does(half_r
     np.testing.assert_allclose(on_node[1], exact_unseen, atol=1e-6)
     # Between nodes it moves the map's probability little.
     assert np.abs(model._proba_as_written(pts) - model.predict_proba(pts)).mean() < 0.01
+    # Points too sparse to share corners (each its own cell's four) are asked as they are.
+    sparse = pts[:50] * 0.0 + np.arange(50)[:, None] * np.array([[0.17, 0.13]]) + 0.5
+    assert model._variance_corners(sparse) is None
+    np.testing.assert_allclose(model._gp_proba_as_written(sparse)[0], model._gp_probabilities(sparse)[0], atol=1e-6)
 
 
 def test_other_scans_counts_are_the_counts_without_each_points_own_scan() -> None:

@@ -131,7 +131,9 @@ class MapPrediction(MapAnswers, TileBlending, MapReport):
 
         What the calibrations fit is then the GP of the map a user gets, and its variance, the
         costly part of a prediction, is asked at a few corners instead of at every point. A voxel
-        map's written grid samples both moments alike: there the GP is asked at the points.
+        map's written grid samples both moments alike, and points too sparse to share corners
+        would ask more corners than points: there the GP is asked at the points
+        (:meth:`_variance_corners`).
         """
         pts = as_points(points, self._dim)
         # Timed and held to a worker's BLAS threads as the fitted map's own predictions are.
@@ -154,11 +156,13 @@ class MapPrediction(MapAnswers, TileBlending, MapReport):
     ) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]] | None:
         """Where :meth:`_gp_proba_as_written` asks the variance for `points` (m, 2): the corners
         (k, 2), each point's (m, 4) and their weights (m, 4) (:func:`~gpomap.lattice.lattice_corners`);
-        None for a voxel map, asked at the points."""
+        None where it asks at the points: a voxel map, and points too sparse for their cells to
+        share corners (k >= m: a building's later visit), where the corners would cost more."""
         if self._dim != 2:
             return None
         step = variance_step(float(self.hyperparameters_["length_scale"]), self.base.evidence_resolution)
-        return lattice_corners(points, step)
+        corners = lattice_corners(points, step)
+        return corners if corners[0].shape[0] < points.shape[0] else None
 
     def _gp_queries(self, points: NDArray[np.float64]) -> NDArray[np.float64]:
         """Every point :meth:`_gp_proba_as_written` asks the GP at for `points` (m, d): them,
