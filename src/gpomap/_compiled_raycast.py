@@ -83,8 +83,7 @@ def walk_segment(
         pos[k] = 0
         down = u1 < u0
         for j in range(count[k]):
-            line = (first + np.float64(count[k]) - 1.0) - np.float64(j) if down else first + np.float64(j)
-            t_cross[m] = (line - u0) / (u1 - u0)
+            t_cross[m] = _next_crossing(first, count[k], j, down, u0, u1)
             m += 1
     # Merged by the key 4 place + 2 t, ties to the earlier list, as the numpy path's stable sort
     # leaves them: the start (t = 0, the smallest key) first, the end (t = 1: a crossing's t never
@@ -141,6 +140,13 @@ def _lines_within(u0: float, u1: float, cells: int) -> tuple[float, int]:  # pra
 
 
 @jit(cache=True, nogil=True)
+def _next_crossing(first: float, count: int, j: int, down: bool, u0: float, u1: float) -> float:  # pragma: no cover - compiled
+    """The `j`-th of an axis's `count` crossings in travel order (lines from `first`), as the t along u0 -> u1."""
+    line = (first + np.float64(count) - 1.0) - np.float64(j) if down else first + np.float64(j)
+    return (line - u0) / (u1 - u0)
+
+
+@jit(cache=True, nogil=True)
 def _walk_plane(
     p0: NDArray[np.float64],
     p1: NDArray[np.float64],
@@ -162,12 +168,10 @@ def _walk_plane(
     jx = jy = 0
     tx = kx = ty = ky = 0.0
     if nx > 0:
-        line = (fx + np.float64(nx) - 1.0) if down_x else fx
-        tx = (line - x0) / (x1 - x0)
+        tx = _next_crossing(fx, nx, 0, down_x, x0, x1)
         kx = base + 2.0 * tx
     if ny > 0:
-        line = (fy + np.float64(ny) - 1.0) if down_y else fy
-        ty = (line - y0) / (y1 - y0)
+        ty = _next_crossing(fy, ny, 0, down_y, y0, y1)
         ky = base + 2.0 * ty
     n = 0
     prev = 0.0
@@ -179,15 +183,13 @@ def _walk_plane(
                 t = tx
                 jx += 1
                 if jx < nx:
-                    line = (fx + np.float64(nx) - 1.0) - np.float64(jx) if down_x else fx + np.float64(jx)
-                    tx = (line - x0) / (x1 - x0)
+                    tx = _next_crossing(fx, nx, jx, down_x, x0, x1)
                     kx = base + 2.0 * tx
             else:
                 t = ty
                 jy += 1
                 if jy < ny:
-                    line = (fy + np.float64(ny) - 1.0) - np.float64(jy) if down_y else fy + np.float64(jy)
-                    ty = (line - y0) / (y1 - y0)
+                    ty = _next_crossing(fy, ny, jy, down_y, y0, y1)
                     ky = base + 2.0 * ty
         else:
             t = 1.0
@@ -201,13 +203,6 @@ def _walk_plane(
                 n += 1
         prev = t
     return n
-
-
-@jit(cache=True, nogil=True)
-def _next_crossing(first: float, count: int, j: int, down: bool, u0: float, u1: float) -> float:  # pragma: no cover - compiled
-    """The `j`-th of an axis's `count` crossings in travel order (lines from `first`), as the t along u0 -> u1."""
-    line = (first + np.float64(count) - 1.0) - np.float64(j) if down else first + np.float64(j)
-    return (line - u0) / (u1 - u0)
 
 
 @jit(cache=True, nogil=True)
