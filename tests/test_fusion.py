@@ -699,7 +699,7 @@ def test_calibrations_take_the_gp_with_its_variance_as_a_written_map_does(half_r
     # Between nodes it moves the map's probability little.
     assert np.abs(model._proba_as_written(pts) - model.predict_proba(pts)).mean() < 0.01
     # Points too sparse to share corners (each its own cell's four) are asked as they are.
-    sparse = pts[:50] * 0.0 + np.arange(50)[:, None] * np.array([[0.17, 0.13]]) + 0.5
+    sparse = 0.5 + np.arange(50)[:, None] * np.array([[0.17, 0.13]])
     assert model._variance_corners(sparse) is None
     np.testing.assert_allclose(model._gp_proba_as_written(sparse)[0], model._gp_probabilities(sparse)[0], atol=1e-6)
 
