@@ -83,6 +83,29 @@ def test_column_bounds_are_the_least_and_greatest_of_each_column():
         lattice.column_bounds(np.zeros((0, 2)))
 
 
+def test_rows_selects_what_indexing_selects():
+    # Masks and indices (repeated, negative, unordered, none), on points of two and three
+    # columns, a single column's array and an integer array: the rows numpy's indexing gives.
+    rng = np.random.default_rng(4)
+    for a in (rng.normal(size=(1000, 2)), rng.integers(-50, 50, size=(777, 3)), rng.normal(size=500)):
+        n = a.shape[0]
+        for which in (
+            rng.random(n) < 0.3,
+            np.zeros(n, dtype=bool),
+            rng.integers(-n, n, size=300),
+            rng.permutation(n),
+            np.zeros(0, dtype=np.intp),
+        ):
+            got = lattice.rows(a, which)
+            np.testing.assert_array_equal(got, a[which])
+            assert got.dtype == a.dtype and got.shape == a[which].shape
+    # A mask of another length is refused, as indexing refuses it (np.compress would cut it short).
+    with pytest.raises(IndexError):
+        lattice.rows(np.zeros((5, 2)), np.ones(4, dtype=bool))
+    with pytest.raises(IndexError):
+        lattice.rows(np.zeros((5, 2)), np.array([5]))
+
+
 def test_in_box_is_the_closed_box_test_of_every_axis_it_gives():
     rng = np.random.default_rng(3)
     pts = rng.uniform(-2.0, 3.0, size=(5000, 3))

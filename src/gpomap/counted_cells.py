@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.evidence import RayEvidence, next_to_hits
-from gpomap.lattice import AnyGrid, grid_dim, make_grid
+from gpomap.lattice import AnyGrid, grid_dim, make_grid, rows
 
 #: Side of the counting windows, in cells: a window's counts and scratch take about 40 bytes a
 #: cell (42 MB), and beams longer than a window are walked once for each window they reach.
@@ -303,4 +303,6 @@ def _reach(
 
 def _beams(evidence: RayEvidence, keep: NDArray[np.bool_]) -> RayEvidence:
     """The beams of `evidence` at `keep`, with all of its path."""
-    return RayEvidence(evidence.starts[keep], evidence.ends[keep], evidence.hit[keep], evidence.scan[keep], evidence.path)
+    return RayEvidence(
+        rows(evidence.starts, keep), rows(evidence.ends, keep), evidence.hit[keep], evidence.scan[keep], evidence.path
+    )

@@ -33,7 +33,7 @@ from scipy.ndimage import binary_dilation
 
 from gpomap import _compiled_counts, _compiled_raycast
 from gpomap.config import MapConfig
-from gpomap.lattice import AnyGrid, bounds_extent, column_bounds, extent_bounds, flat_index, grid_dim, grid_size, make_grid
+from gpomap.lattice import AnyGrid, bounds_extent, column_bounds, extent_bounds, flat_index, grid_dim, grid_size, make_grid, rows
 from gpomap.observations import Rays, ScanData
 from gpomap.raycast import Segments, traverse
 from gpomap.robot_path import PATH_RADIUS, path_steps
@@ -277,9 +277,9 @@ class RayEvidence:
         if idx.size == 0:
             return _shaped(counts, grid.shape, widen)
         # Batches of whole scans whose traversals stay under the entry budget.
-        cells_per_beam = (
-            np.abs(np.floor(self.ends[idx] / grid.resolution) - np.floor(self.starts[idx] / grid.resolution)).sum(axis=1) + 2
-        )
+        ends, starts = rows(self.ends, idx), rows(self.starts, idx)
+        cells_per_beam = np.abs(np.floor(ends / grid.resolution) - np.floor(starts / grid.resolution)).sum(axis=1) + 2
+        del ends, starts
         cost = np.cumsum(cells_per_beam)
         scan_of = self.scan[idx]
         lo = 0
@@ -427,13 +427,14 @@ class RayEvidence:
         scan = self.scan[beams]
         mine = np.zeros(scan.size, dtype=bool) if keep is None else np.isin(scan, keep)
         if slot is not None:
-            end_cell, inside = flat_index(grid, self.ends[beams])
+            ends = rows(self.ends, beams)
+            end_cell, inside = flat_index(grid, ends)
             # Each beam's cells tallied as they are walked, never listed; the kept scans' tallies
             # as well, which the numpy path below gives as their sorted keys.
             k_scan, k_cell, k_through, k_ended, k_near = _compiled_counts.count_beams(
                 grid,
-                self.starts[beams],
-                self.ends[beams],
+                rows(self.starts, beams),
+                ends,
                 self.hit[beams],
                 scan,
                 np.where(inside & self.hit[beams], end_cell, -1),

@@ -39,6 +39,24 @@ def column_bounds(points: ArrayLike) -> tuple[NDArray[Any], NDArray[Any]]:
     return lo, hi
 
 
+def rows(a: NDArray[Any], which: ArrayLike) -> NDArray[Any]:
+    """``a[which]`` of an array of points (n, d) by a mask of shape (n,) or indices of shape (k,): the same rows.
+
+    Taken along the first axis by ``np.compress`` or ``np.take``: numpy's indexing of an array of
+    a few columns by a mask or by indices is several times slower (docs/choices.md, "Measured for
+    the code"), and a log's points are selected so in many places. A one-dimensional `a` is
+    indexed as it is. A mask of the wrong length raises IndexError, as indexing does.
+    """
+    w = np.asarray(which)
+    if a.ndim < 2:
+        return a[w]
+    if w.dtype == np.bool_:
+        if w.shape != a.shape[:1]:
+            raise IndexError(f"a mask of shape {w.shape} cannot select rows of an array of shape {a.shape}")
+        return np.compress(w, a, axis=0)
+    return np.take(a, w, axis=0)
+
+
 def stable_order(keys: NDArray[np.integer[Any]]) -> NDArray[np.intp]:
     """``np.argsort(keys, kind="stable")`` of non-negative integers (-1 allowed), ndarray of shape (n,).
 

@@ -25,7 +25,7 @@ from gpomap import _compiled_clearance, _compiled_raycast
 from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
 from gpomap.errors import EmptyDataError
-from gpomap.lattice import box_index, box_shape, column_bounds, in_box
+from gpomap.lattice import box_index, box_shape, column_bounds, in_box, rows
 from gpomap.scans import Scan
 
 #: What the map is made from: planar scans (2-D) or point clouds (3-D), one kind at a time.
@@ -199,7 +199,7 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     points = np.asarray(points, dtype=float)
     if _compiled_clearance.ENABLED:
         # Every point handed over, the hits skipped: no copy of the free ones (most of a block).
-        near = _compiled_clearance.near_hits(points, points[occupied], clearance, MAX_CLEARANCE_BOXES, skip=occupied)
+        near = _compiled_clearance.near_hits(points, rows(points, occupied), clearance, MAX_CLEARANCE_BOXES, skip=occupied)
         if near is not None:
             return near
     free = np.flatnonzero(~occupied)
@@ -223,7 +223,7 @@ def free_near_hits(points: NDArray[np.float64], occupied: NDArray[np.bool_], cle
     else:
         candidates = free  # a sparse, very wide map: ask the tree about every free point
     if candidates.size:
-        dist, _ = cKDTree(points[occupied]).query(points[candidates], distance_upper_bound=clearance)
+        dist, _ = cKDTree(rows(points, occupied)).query(rows(points, candidates), distance_upper_bound=clearance)
         out[candidates[dist < clearance]] = True
     return out
 
@@ -264,10 +264,11 @@ class Rays:
         """The rays of a planar scan or of a point cloud."""
         if isinstance(scan, CloudScan):
             valid = scan.valid()
-            vec = scan.points[valid] - scan.origin
+            ends = rows(scan.points, valid)
+            vec = ends - scan.origin
             length = np.sqrt((vec * vec).sum(axis=1))
             hit = np.asarray(scan.hit, dtype=bool)[valid]
-            return cls(scan.origin, vec / length[:, None], length, scan.points[valid], hit, np.inf, int((~valid).sum()))
+            return cls(scan.origin, vec / length[:, None], length, ends, hit, np.inf, int((~valid).sum()))
         # Scan.valid's, endpoints' and no_return's numbers, each worked out once: a fit asks for
         # every scan's rays in several passes.
         valid = scan.valid()
@@ -397,7 +398,7 @@ def observations_from_scans(
     n_cleared = int(keep.size - keep.sum())
     if n_cleared:
         # Only then a copy: a whole log's points are hundreds of megabytes.
-        points, occupied, scan_index = points[keep], occupied[keep], scan_index[keep]
+        points, occupied, scan_index = rows(points, keep), occupied[keep], scan_index[keep]
     return Observations(
         points=points,
         occupied=occupied,
@@ -419,8 +420,8 @@ def _scan_points(
     free_len = rays.free_lengths(hit_margin, no_return_cap)
     use = free_len > 0
     origins = np.broadcast_to(rays.origin, (int(use.sum()), rays.origin.size))
-    fp, _ = ray_free_points(origins, rays.directions[use], free_len[use], free_step)
-    return fp, rays.ends[rays.hit], rays.n_invalid, rays.n_no_return
+    fp, _ = ray_free_points(origins, rows(rays.directions, use), free_len[use], free_step)
+    return fp, rows(rays.ends, rays.hit), rays.n_invalid, rays.n_no_return
 
 
 #: Most points a part of :func:`observation_parts` holds (whole scans are added until it is
@@ -555,7 +556,7 @@ class ScanPoints:
         cut: list[tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.integer[Any]]]] = []
         for p in self.parts(meets.tolist()) if meets.size else ():
             inside = in_box(p.points, lo, hi)
-            cut.append((p.points[inside], p.occupied[inside], p.scan_index[inside]))
+            cut.append((rows(p.points, inside), p.occupied[inside], p.scan_index[inside]))
             del p, inside
         d = self.scan_lower.shape[1]
         if not cut:

@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from gpomap.config import PROFILES
 from gpomap.evidence import RayEvidence, lattice_grid
 from gpomap.heldout import FOLD_STARTS, CalibrationPoints, holdout_stretches
-from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box
+from gpomap.lattice import bounds_extent, column_bounds, flat_index, in_box, rows
 from gpomap.observations import Observations, ScanPoints, beams_reach, data_dim, free_near_hits
 from gpomap.resources import POINT_MEMORY
 
@@ -93,7 +93,7 @@ def cut_square(
     inside = in_box(obs.points, box_lo, box_hi)
     if among is not None:
         inside &= _from_kept(obs.scan_index, among)
-    return Observations(obs.points[inside], obs.occupied[inside], obs.scan_index[inside])
+    return Observations(rows(obs.points, inside), obs.occupied[inside], obs.scan_index[inside])
 
 
 class _MadePoints:
@@ -117,7 +117,7 @@ class _MadePoints:
             return
         for part in source.parts(scans.tolist()):
             inside = in_box(part.points, box_lo, box_hi)
-            yield Observations(part.points[inside], part.occupied[inside], part.scan_index[inside])
+            yield Observations(rows(part.points, inside), part.occupied[inside], part.scan_index[inside])
 
 
 def _source(observations: Observations | ScanPoints | PointSource) -> PointSource:
@@ -151,14 +151,14 @@ def region_observations(
     Observations
     """
     grown = _from_kept(obs.scan_index, kept) & _in_square(obs.points, lo, hi, clearance)
-    return _cleared(Observations(obs.points[grown], obs.occupied[grown], obs.scan_index[grown]), lo, hi, clearance)
+    return _cleared(Observations(rows(obs.points, grown), obs.occupied[grown], obs.scan_index[grown]), lo, hi, clearance)
 
 
 def _cleared(grown: Observations, lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float) -> Observations:
     """Of points in the square `lo`..`hi` grown by `clearance`, those in the square that the
     clearance keeps (:func:`region_observations`)."""
     keep = ~free_near_hits(grown.points, grown.occupied, clearance) & _in_square(grown.points, lo, hi)
-    return Observations(grown.points[keep], grown.occupied[keep], grown.scan_index[keep])
+    return Observations(rows(grown.points, keep), grown.occupied[keep], grown.scan_index[keep])
 
 
 def _square_parts(
@@ -270,7 +270,7 @@ class _SquareLattice:
         for start in range(0, len(points), self.CHUNK):
             part = points[start : start + self.CHUNK]
             if mask is not None:
-                part = part[mask[start : start + self.CHUNK]]
+                part = rows(part, mask[start : start + self.CHUNK])
             marked[self.index(part)] = True
         return marked
 
@@ -391,7 +391,7 @@ def _unseen_points(
             inside = _in_square(p, lo, hi, -margin)
             if not inside.any():
                 continue
-            p, o = p[inside], o[inside]
+            p, o = rows(p, inside), o[inside]
             bounds += column_bounds(p)
             kept_bytes += p.nbytes + o.nbytes
             runs.append((scan, start, stop, np.packbits(inside), (p, o) if kept_bytes <= memory else None))
@@ -411,7 +411,7 @@ def _unseen_points(
                 again, again_scan = CalibrationPoints(scan, no_return_cap=no_return_cap), scan
             assert again is not None
             p, o = again.between(start, stop)
-            part = p[inside], o[inside]
+            part = rows(p, inside), o[inside]
         cell, ok = flat_index(grid, part[0])
         new = ~(ok & seen_cells[cell])
         marks = np.zeros(stop - start, dtype=bool)

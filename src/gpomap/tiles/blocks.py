@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.cells import build_cells
-from gpomap.lattice import column_bounds
+from gpomap.lattice import column_bounds, rows
 from gpomap.observations import Observations
 from gpomap.resources import SpillFile
 from gpomap.supports import Supports
@@ -47,7 +47,7 @@ class BlockCells(TileGrid):
         points, occupied = block.arrays()
         keep = ~block.free_near_hits(self._clearance, (points, occupied))
         # Rebound, so that a spilled block's points read back are let go before the tree's copies.
-        points, occupied = points[keep], occupied[keep]
+        points, occupied = rows(points, keep), occupied[keep]
         if self._kept_bounds is None:  # a map read from its file keeps none
             self._kept_bounds = {}
         self._kept_bounds[key] = column_bounds(points)
@@ -106,7 +106,7 @@ class BlockCells(TileGrid):
         for k, grp in zip(block_keys.tolist(), np.split(order, cuts)):
             if grp.size == 0:
                 continue
-            self._file_block(k, points[grp], occupied[grp], spill, None if scans is None else scans[grp])
+            self._file_block(k, rows(points, grp), occupied[grp], spill, None if scans is None else scans[grp])
             touched.add(k)
         self._count_points(points, occupied)
         return touched

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.lattice import column_bounds
+from gpomap.lattice import column_bounds, rows
 from gpomap.observations import Observations, free_near_hits
 from gpomap.resources import SpillFile
 from gpomap.unseen import cut_square
@@ -106,7 +106,7 @@ class _BlockPoints:
         keep = self.kept_mask(scans)
         if keep is None:
             return None
-        return points[keep], occupied[keep]
+        return rows(points, keep), occupied[keep]
 
     def runs(self) -> Runs | None:
         """Every part's runs (:data:`Runs`) joined, in the points' order; None when a part came without them."""
@@ -174,12 +174,12 @@ class _BlockPoints:
         else:
             near = np.zeros(occupied.shape, dtype=bool)
             near[:n0] = self._near
-            new_hits = points[n0:][occupied[n0:]]
+            new_hits = rows(points[n0:], occupied[n0:])
             if new_hits.size:
                 old_free = np.flatnonzero(~occupied[:n0] & ~self._near)
-                near[old_free] = _near_any(points[old_free], new_hits, clearance)
+                near[old_free] = _near_any(rows(points, old_free), new_hits, clearance)
             new_free = n0 + np.flatnonzero(~occupied[n0:])
-            near[new_free] = _near_any(points[new_free], points[occupied], clearance)
+            near[new_free] = _near_any(rows(points, new_free), rows(points, occupied), clearance)
         self._near, self._n_checked = near, int(occupied.size)
         return near
 
@@ -217,7 +217,7 @@ class _KeptBlock(_BlockPoints):
         near = whole[kept]
         ask = np.flatnonzero(near)
         if ask.size:
-            near[ask] = _near_any(points[ask], points[occupied], clearance)
+            near[ask] = _near_any(rows(points, ask), rows(points, occupied), clearance)
         self._near, self._n_checked = near, int(occupied.size)
         return near
 
