@@ -145,3 +145,40 @@ def test_points_made_a_part_at_a_time_are_the_whole_logs(monkeypatch):
     inside = in_box(whole.points, lo - 0.3, hi + 0.3)
     for name in ("points", "occupied", "scan_index"):
         assert getattr(square, name).tobytes() == getattr(whole, name)[inside].tobytes()
+
+
+def test_planar_beams_are_each_scans_rays_joined_to_the_bit():
+    # Invalid readings (NaN, inf, 0, negative), no-returns at and past the maximum range, a scan
+    # with no usable beam and scans of different beam counts and maximum ranges: the beams of all
+    # scans at once are Rays.of of each, in order, and from_scans' ray evidence is built from them.
+    from gpomap.evidence import RayEvidence
+    from gpomap.observations import PlanarBeams, Rays
+
+    rng = np.random.default_rng(5)
+    scans = []
+    for k, n in enumerate((181, 7, 360, 5)):
+        ranges = rng.uniform(0.2, 12.0, n)
+        if k == 1:
+            ranges[:] = np.nan
+        else:
+            ranges[:4] = [np.nan, np.inf, 0.0, -1.0]
+            ranges[4] = 10.0 if k != 2 else 8.0
+        angles = np.linspace(-np.pi / 2, np.pi / 2, n)
+        scans.append(Scan(rng.uniform(-5, 5, 3), angles, ranges, 10.0 if k != 2 else 8.0))
+    beams = PlanarBeams.of(scans)
+    rays = [Rays.of(s) for s in scans]
+    assert rays[1].hit.size == 0 and np.any(~rays[0].hit)
+    for name in ("directions", "lengths", "ends", "hit"):
+        np.testing.assert_array_equal(getattr(beams, name), np.concatenate([getattr(r, name) for r in rays]))
+    np.testing.assert_array_equal(beams.origins, np.concatenate([np.tile(r.origin, (r.hit.size, 1)) for r in rays]))
+    np.testing.assert_array_equal(beams.scan, np.repeat(np.arange(4), [r.hit.size for r in rays]))
+    evidence = RayEvidence.from_scans(scans, no_return_cap=3.0)
+    capped = [np.where(r.hit, r.lengths, np.minimum(r.lengths, 3.0)) for r in rays]
+    np.testing.assert_array_equal(
+        evidence.ends,
+        np.concatenate(
+            [np.where((c == r.lengths)[:, None], r.ends, r.origin + c[:, None] * r.directions) for r, c in zip(rays, capped)]
+        ),
+    )
+    np.testing.assert_array_equal(evidence.scan, beams.scan)
+    np.testing.assert_array_equal(evidence.hit, beams.hit)

@@ -34,9 +34,10 @@ from scipy.ndimage import binary_dilation
 from gpomap import _compiled_counts, _compiled_raycast
 from gpomap.config import MapConfig
 from gpomap.lattice import AnyGrid, bounds_extent, column_bounds, extent_bounds, flat_index, grid_dim, grid_size, make_grid, rows
-from gpomap.observations import Rays, ScanData
+from gpomap.observations import PlanarBeams, Rays, ScanData
 from gpomap.raycast import Segments, traverse
 from gpomap.robot_path import PATH_RADIUS, path_steps
+from gpomap.scans import Scan
 
 #: A miss whose cell centre lies within this distance (metres) of its beam's returned end is a
 #: near miss (see the module's docstring): about the range noise and footprint of a 2-D or 3-D
@@ -174,6 +175,15 @@ class RayEvidence:
             No-return beams clear free space this far (None: to the recorded range); they never
             give a hit.
         """
+        planar = [s for s in scans if isinstance(s, Scan)]
+        if planar and len(planar) == len(scans):
+            beams = PlanarBeams.of(planar)
+            length = beams.lengths
+            if no_return_cap is not None:
+                length = np.where(beams.hit, length, np.minimum(length, no_return_cap))
+            # As scan by scan below, in one pass over the log's beams.
+            reach = np.where((length == beams.lengths)[:, None], beams.ends, beams.origins + length[:, None] * beams.directions)
+            return cls(beams.origins, reach, beams.hit, beams.scan, path_steps(scans))
         starts, ends, hit, scan = [], [], [], []
         for i, s in enumerate(scans):
             rays = Rays.of(s)

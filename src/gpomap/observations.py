@@ -273,17 +273,9 @@ class Rays:
         # every scan's rays in several passes.
         valid = scan.valid()
         r = scan.ranges[valid]
-        a = scan.pose[2] + scan.angles[valid]
-        cos, sin = np.cos(a), np.sin(a)
-        # Directions from the angles (not from the endpoints) keep the planar samples exact.
+        directions, ends = _beam_geometry(scan.pose[0], scan.pose[1], scan.pose[2] + scan.angles[valid], r)
         return cls(
-            scan.pose[:2],
-            np.column_stack([cos, sin]),
-            r,
-            np.column_stack([scan.pose[0] + r * cos, scan.pose[1] + r * sin]),
-            ~(r >= scan.max_range),
-            scan.max_range,
-            int(valid.size - np.count_nonzero(valid)),
+            scan.pose[:2], directions, r, ends, ~(r >= scan.max_range), scan.max_range, int(valid.size - np.count_nonzero(valid))
         )
 
     @property
@@ -296,6 +288,55 @@ class Rays:
         ray to `no_return_cap` (None: to its default limit), never beyond its recorded range."""
         cap = self.no_return_limit if no_return_cap is None else float(no_return_cap)
         return np.where(self.hit, self.lengths - hit_margin, np.minimum(np.minimum(cap, self.no_return_limit), self.lengths))
+
+
+def _beam_geometry(
+    x: float | NDArray[np.float64], y: float | NDArray[np.float64], heading: NDArray[np.float64], r: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Unit directions (b, 2) and endpoints (b, 2) of planar beams from (`x`, `y`) at world angles
+    `heading` (b,) and ranges `r` (b,). Directions from the angles (not from the endpoints) keep
+    the planar samples exact."""
+    cos, sin = np.cos(heading), np.sin(heading)
+    return np.column_stack([cos, sin]), np.column_stack([x + r * cos, y + r * sin])
+
+
+@dataclass(frozen=True)
+class PlanarBeams:
+    """The usable beams of many planar scans at once: :meth:`Rays.of` of each scan, joined in order.
+
+    Attributes
+    ----------
+    origins, directions, ends : ndarray of shape (b, 2)
+        Each beam's sensor position, unit direction and endpoint.
+    lengths : ndarray of shape (b,)
+    hit : ndarray of bool, shape (b,)
+    scan : ndarray of int, shape (b,)
+        The place of each beam's scan in the scans given, non-decreasing.
+    """
+
+    origins: NDArray[np.float64]
+    directions: NDArray[np.float64]
+    lengths: NDArray[np.float64]
+    ends: NDArray[np.float64]
+    hit: NDArray[np.bool_]
+    scan: NDArray[np.intp]
+
+    @classmethod
+    def of(cls, scans: Sequence[Scan]) -> PlanarBeams:
+        """Every usable beam of `scans`, worked out in one pass over the log's beams instead of a
+        pass per scan (the same numbers: the same arithmetic on each beam)."""
+        sizes = np.array([s.ranges.size for s in scans], dtype=np.intp)
+        poses = np.array([s.pose for s in scans], dtype=float).reshape(-1, 3)
+        ranges = np.concatenate([s.ranges for s in scans]) if scans else np.zeros(0)
+        angles = np.concatenate([s.angles for s in scans]) if scans else np.zeros(0)
+        with np.errstate(invalid="ignore"):
+            valid = np.isfinite(ranges) & (ranges > 0)
+        scan = np.repeat(np.arange(len(scans), dtype=np.intp), sizes)[valid]
+        r = ranges[valid]
+        x, y, theta = (poses[:, k][scan] for k in range(3))
+        directions, ends = _beam_geometry(x, y, theta + angles[valid], r)
+        hit = ~(r >= np.array([s.max_range for s in scans], dtype=float)[scan])
+        return cls(np.column_stack([x, y]), directions, r, ends, hit, scan)
 
 
 def beams_reach(scan: Scan | CloudScan, lower: ArrayLike, upper: ArrayLike, no_return_cap: float | None = None) -> bool:
