@@ -83,6 +83,27 @@ def test_column_bounds_are_the_least_and_greatest_of_each_column():
         lattice.column_bounds(np.zeros((0, 2)))
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_column_bounds_of_many_points_on_either_path(monkeypatch, compiled):
+    # Enough planar and 3-D points for the compiled pass, a NaN among them (propagated, as
+    # numpy's minimum does), a strided view and integers (numpy's path): numpy's bounds exactly.
+    from gpomap import _compiled_bounds
+
+    monkeypatch.setattr(_compiled_bounds, "ENABLED", compiled)
+    rng = np.random.default_rng(6)
+    many = _compiled_bounds.MIN_ROWS * 3
+    with_nan = rng.normal(size=(many, 3))
+    with_nan[many // 2, 1] = np.nan
+    wide = rng.normal(size=(many, 4))
+    for a in (rng.normal(size=(many, 2)), rng.uniform(-1e6, 1e6, size=(many, 3)), with_nan, wide[:, 1:], wide[:, :2].astype(int)):
+        lo, hi = lattice.column_bounds(a)
+        np.testing.assert_array_equal(lo, np.min(a, axis=0))
+        np.testing.assert_array_equal(hi, np.max(a, axis=0))
+    if compiled:
+        assert _compiled_bounds.bounds(with_nan) is None and _compiled_bounds.bounds(wide[:, 1:]) is None
+        assert _compiled_bounds.bounds(np.ones((many, 2))) is not None
+
+
 def test_rows_selects_what_indexing_selects():
     # Masks and indices (repeated, negative, unordered, none), on points of two and three
     # columns, a single column's array and an integer array: the rows numpy's indexing gives.

@@ -46,6 +46,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.diagnostics",
             "gpomap.raycast",
             "gpomap._compiled_raycast",
+            "gpomap._compiled_bounds",
             "gpomap.compiled",
             "gpomap.lapack",
         ),

@@ -3,7 +3,7 @@ import pytest
 
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError, InputFormatError
-from gpomap.observations import free_near_hits, observations_from_scans, sensor_positions
+from gpomap.observations import free_near_hits, observations_from_scans, reading_counts, sensor_positions
 from gpomap.scans import Scan, evenly_spaced, select_scans
 from tests.world3d import ORIGINS, lidar_clouds
 
@@ -182,3 +182,6 @@ def test_planar_beams_are_each_scans_rays_joined_to_the_bit():
     )
     np.testing.assert_array_equal(evidence.scan, beams.scan)
     np.testing.assert_array_equal(evidence.hit, beams.hit)
+    # The readings counted from the ranges alone: 4 invalid in each of three scans and all 7 of
+    # the second; a no-return at the maximum range in three.
+    assert reading_counts(scans) == (19, sum(r.n_no_return for r in rays)) and sum(r.n_no_return for r in rays) >= 3

@@ -633,6 +633,12 @@ def reading_counts(scans: ScanData) -> tuple[int, int]:
     """The invalid readings and the no-return ones of `scans`, as :class:`ScanPoints` counts them."""
     n_invalid = n_no_return = 0
     for scan in scans:
+        if isinstance(scan, Scan):
+            # From the ranges alone, as Rays.of counts them.
+            valid = scan.valid()
+            n_invalid += int(valid.size - np.count_nonzero(valid))
+            n_no_return += int(np.count_nonzero(scan.ranges[valid] >= scan.max_range))
+            continue
         rays = Rays.of(scan)
         n_invalid += rays.n_invalid
         n_no_return += rays.n_no_return
