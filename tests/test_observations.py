@@ -147,7 +147,7 @@ def test_points_made_a_part_at_a_time_are_the_whole_logs(monkeypatch):
         assert getattr(square, name).tobytes() == getattr(whole, name)[inside].tobytes()
 
 
-def test_planar_beams_are_each_scans_rays_joined_to_the_bit():
+def test_planar_beams_are_each_scans_rays_joined_to_the_bit(monkeypatch):
     # Invalid readings (NaN, inf, 0, negative), no-returns at and past the maximum range, a scan
     # with no usable beam and scans of different beam counts and maximum ranges: the beams of all
     # scans at once are Rays.of of each, in order, and from_scans' ray evidence is built from them.
@@ -182,6 +182,14 @@ def test_planar_beams_are_each_scans_rays_joined_to_the_bit():
     )
     np.testing.assert_array_equal(evidence.scan, beams.scan)
     np.testing.assert_array_equal(evidence.hit, beams.hit)
+    # A few scans' beams at a time: the same beams (runs of scans cut at 200 beams, the scan
+    # without a usable beam among them).
+    import gpomap.evidence
+
+    monkeypatch.setattr(gpomap.evidence, "BEAMS_AT_ONCE", 200)
+    in_runs = RayEvidence.from_scans(scans, no_return_cap=3.0)
+    for name in ("starts", "ends", "hit", "scan"):
+        np.testing.assert_array_equal(getattr(in_runs, name), getattr(evidence, name))
     # The readings counted from the ranges alone: 4 invalid in each of three scans and all 7 of
     # the second; a no-return at the maximum range in three.
     assert reading_counts(scans) == (19, sum(r.n_no_return for r in rays)) and sum(r.n_no_return for r in rays) >= 3

@@ -39,6 +39,10 @@ from gpomap.raycast import Segments, traverse
 from gpomap.robot_path import PATH_RADIUS, path_steps
 from gpomap.scans import Scan
 
+#: Beams :meth:`RayEvidence.from_scans` works out at once from planar scans: a pass over many scans
+#: costs less than a pass a scan, and about 130 bytes a beam of temporaries are held meanwhile.
+BEAMS_AT_ONCE: int = 1 << 20
+
 #: A miss whose cell centre lies within this distance (metres) of its beam's returned end is a
 #: near miss (see the module's docstring): about the range noise and footprint of a 2-D or 3-D
 #: lidar's return at a few metres, a few cells of the count lattices. Chosen with
@@ -177,13 +181,7 @@ class RayEvidence:
         """
         planar = [s for s in scans if isinstance(s, Scan)]
         if planar and len(planar) == len(scans):
-            beams = PlanarBeams.of(planar)
-            length = beams.lengths
-            if no_return_cap is not None:
-                length = np.where(beams.hit, length, np.minimum(length, no_return_cap))
-            # As scan by scan below, in one pass over the log's beams.
-            reach = np.where((length == beams.lengths)[:, None], beams.ends, beams.origins + length[:, None] * beams.directions)
-            return cls(beams.origins, reach, beams.hit, beams.scan, path_steps(scans))
+            return cls(*cls._planar_beams(planar, no_return_cap), path_steps(scans))
         starts, ends, hit, scan = [], [], [], []
         for i, s in enumerate(scans):
             rays = Rays.of(s)
@@ -200,6 +198,31 @@ class RayEvidence:
             empty = np.zeros((0, 2))
             return cls(empty, empty.copy(), np.zeros(0, bool), np.zeros(0, np.intp))
         return cls(np.concatenate(starts), np.concatenate(ends), np.concatenate(hit), np.concatenate(scan), path_steps(scans))
+
+    @staticmethod
+    def _planar_beams(
+        scans: list[Scan], no_return_cap: float | None
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.intp]]:
+        """:meth:`from_scans`' starts, ends, hit and scan of planar scans, as scan by scan, worked
+        out a run of scans of about :data:`BEAMS_AT_ONCE` beams at a time
+        (:class:`~gpomap.observations.PlanarBeams`): one pass for many scans, and a building's
+        temporaries never all at once."""
+        sizes = np.array([s.ranges.size for s in scans], dtype=np.int64)
+        cuts = np.searchsorted(np.cumsum(sizes), np.arange(BEAMS_AT_ONCE, int(sizes.sum()), BEAMS_AT_ONCE), side="right")
+        parts = []
+        for first, last in zip([0, *cuts.tolist()], [*cuts.tolist(), len(scans)], strict=True):
+            if last <= first:
+                continue
+            beams = PlanarBeams.of(scans[first:last])
+            length = beams.lengths
+            if no_return_cap is not None:
+                length = np.where(beams.hit, length, np.minimum(length, no_return_cap))
+            # Uncapped rays keep their recorded endpoints exactly.
+            reach = np.where((length == beams.lengths)[:, None], beams.ends, beams.origins + length[:, None] * beams.directions)
+            parts.append((beams.origins, reach, beams.hit, beams.scan + first))
+            del beams, length
+        starts, ends, hit, scan = (np.concatenate([p[k] for p in parts]) for k in range(4))
+        return starts, ends, hit, scan
 
     @property
     def dim(self) -> int:
