@@ -41,7 +41,7 @@ from gpomap.scans import Scan
 
 #: Beams :meth:`RayEvidence.from_scans` works out at once from planar scans: a pass over many scans
 #: costs less than a pass a scan, and about 130 bytes a beam of temporaries are held meanwhile.
-BEAMS_AT_ONCE: int = 1 << 20
+BEAMS_AT_ONCE: int = 1 << 18
 
 #: A miss whose cell centre lies within this distance (metres) of its beam's returned end is a
 #: near miss (see the module's docstring): about the range noise and footprint of a 2-D or 3-D
