@@ -209,19 +209,24 @@ class RayEvidence:
         temporaries never all at once."""
         sizes = np.array([s.ranges.size for s in scans], dtype=np.int64)
         cuts = np.searchsorted(np.cumsum(sizes), np.arange(BEAMS_AT_ONCE, int(sizes.sum()), BEAMS_AT_ONCE), side="right")
-        parts = []
-        for first, last in zip([0, *cuts.tolist()], [*cuts.tolist(), len(scans)], strict=True):
-            if last <= first:
-                continue
+        runs = [(a, b) for a, b in zip([0, *cuts.tolist()], [*cuts.tolist(), len(scans)], strict=True) if b > a]
+        # Written into their places: the runs' arrays are never held beside the whole's.
+        n = sum(int(np.count_nonzero(s.valid())) for s in scans)
+        starts, ends = np.empty((n, 2)), np.empty((n, 2))
+        hit, scan = np.empty(n, dtype=bool), np.empty(n, dtype=np.intp)
+        at = 0
+        for first, last in runs:
             beams = PlanarBeams.of(scans[first:last])
             length = beams.lengths
             if no_return_cap is not None:
                 length = np.where(beams.hit, length, np.minimum(length, no_return_cap))
+            stop = at + length.size
             # Uncapped rays keep their recorded endpoints exactly.
-            reach = np.where((length == beams.lengths)[:, None], beams.ends, beams.origins + length[:, None] * beams.directions)
-            parts.append((beams.origins, reach, beams.hit, beams.scan + first))
-            del beams, length
-        starts, ends, hit, scan = (np.concatenate([p[k] for p in parts]) for k in range(4))
+            ends[at:stop] = np.where(
+                (length == beams.lengths)[:, None], beams.ends, beams.origins + length[:, None] * beams.directions
+            )
+            starts[at:stop], hit[at:stop], scan[at:stop] = beams.origins, beams.hit, beams.scan + first
+            at = stop
         return starts, ends, hit, scan
 
     @property
@@ -310,9 +315,17 @@ class RayEvidence:
         if idx.size == 0:
             return _shaped(counts, grid.shape, widen)
         # Batches of whole scans whose traversals stay under the entry budget.
-        ends, starts = rows(self.ends, idx), rows(self.starts, idx)
-        cells_per_beam = np.abs(np.floor(ends / grid.resolution) - np.floor(starts / grid.resolution)).sum(axis=1) + 2
-        del ends, starts
+        # In place: a building's beams are hundreds of megabytes a copy.
+        span = rows(self.ends, idx)
+        span /= grid.resolution
+        np.floor(span, out=span)
+        first = rows(self.starts, idx)
+        first /= grid.resolution
+        np.floor(first, out=first)
+        span -= first
+        del first
+        cells_per_beam = np.abs(span, out=span).sum(axis=1) + 2
+        del span
         cost = np.cumsum(cells_per_beam)
         scan_of = self.scan[idx]
         lo = 0
