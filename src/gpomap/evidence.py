@@ -140,6 +140,21 @@ def next_to_hits(hits: NDArray[np.number[Any]]) -> NDArray[np.bool_]:
 _ENTRIES_PER_BATCH: int = 1 << 22
 
 
+def _beam_reach(
+    origins: NDArray[np.float64],
+    directions: NDArray[np.float64],
+    lengths: NDArray[np.float64],
+    ends: NDArray[np.float64],
+    hit: NDArray[np.bool_],
+    no_return_cap: float | None,
+) -> NDArray[np.float64]:
+    """Where each of b beams ends for the counts, shape (b, d): a no-return beam at most
+    `no_return_cap` along (None: at its recorded range); a beam not shortened keeps its recorded
+    endpoint exactly. `origins` of shape (d,) or (b, d); `directions` and `ends` (b, d)."""
+    length = lengths if no_return_cap is None else np.where(hit, lengths, np.minimum(lengths, no_return_cap))
+    return np.where((length == lengths)[:, None], ends, origins + length[:, None] * directions)
+
+
 @dataclass(frozen=True)
 class RayEvidence:
     """The beams of a set of scans, ready to be counted on any grid.
@@ -185,13 +200,9 @@ class RayEvidence:
         starts, ends, hit, scan = [], [], [], []
         for i, s in enumerate(scans):
             rays = Rays.of(s)
-            length = rays.lengths
-            if no_return_cap is not None:
-                length = np.where(rays.hit, length, np.minimum(length, no_return_cap))
             n = rays.hit.size
             starts.append(np.broadcast_to(rays.origin, (n, rays.origin.size)))
-            # Uncapped rays keep their recorded endpoints exactly.
-            ends.append(np.where((length == rays.lengths)[:, None], rays.ends, rays.origin + length[:, None] * rays.directions))
+            ends.append(_beam_reach(rays.origin, rays.directions, rays.lengths, rays.ends, rays.hit, no_return_cap))
             hit.append(rays.hit)
             scan.append(np.full(n, i, dtype=np.intp))
         if not starts:
@@ -217,14 +228,8 @@ class RayEvidence:
         at = 0
         for first, last in runs:
             beams = PlanarBeams.of(scans[first:last])
-            length = beams.lengths
-            if no_return_cap is not None:
-                length = np.where(beams.hit, length, np.minimum(length, no_return_cap))
-            stop = at + length.size
-            # Uncapped rays keep their recorded endpoints exactly.
-            ends[at:stop] = np.where(
-                (length == beams.lengths)[:, None], beams.ends, beams.origins + length[:, None] * beams.directions
-            )
+            stop = at + beams.hit.size
+            ends[at:stop] = _beam_reach(beams.origins, beams.directions, beams.lengths, beams.ends, beams.hit, no_return_cap)
             starts[at:stop], hit[at:stop], scan[at:stop] = beams.origins, beams.hit, beams.scan + first
             at = stop
         return starts, ends, hit, scan
