@@ -634,10 +634,9 @@ def reading_counts(scans: ScanData) -> tuple[int, int]:
     n_invalid = n_no_return = 0
     for scan in scans:
         if isinstance(scan, Scan):
-            # From the ranges alone, as Rays.of counts them.
-            valid = scan.valid()
-            n_invalid += int(valid.size - np.count_nonzero(valid))
-            n_no_return += int(np.count_nonzero(scan.ranges[valid] >= scan.max_range))
+            # From the ranges alone (Scan's own rules, as Rays.of counts them).
+            n_invalid += int(scan.n_beams - np.count_nonzero(scan.valid()))
+            n_no_return += int(np.count_nonzero(scan.no_return()))
             continue
         rays = Rays.of(scan)
         n_invalid += rays.n_invalid
