@@ -631,9 +631,9 @@ def test_a_map_whose_tiles_wait_in_a_file_is_the_map_kept_in_memory(room, refere
 def _recording(add_points, filed):
     """TiledGPOM._add_points, noting whether each call files in a spill file."""
 
-    def add(self, points, occupied, spill=None, scans=None):
+    def add(self, points, occupied, spill=None, scans=None, weights=None):
         filed.append(spill is not None)
-        return add_points(self, points, occupied, spill, scans)
+        return add_points(self, points, occupied, spill, scans, weights)
 
     return add
 

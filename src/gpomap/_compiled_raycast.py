@@ -478,3 +478,96 @@ def voxel_index(
         inside,
     )
     return k, j, i, inside
+
+
+#: Offset of a cube's index on each axis in a packed key (21 bits an axis): a scan's cubes lie
+#: within this many of its first ray's origin.
+_CUBE_OFFSET = 1 << 20
+
+
+@jit(cache=True, nogil=True)
+def _merged_samples(
+    origins: NDArray[np.float64], directions: NDArray[np.float64], counts: NDArray[np.intp], step: float, cube: float
+) -> tuple[NDArray[np.float64], NDArray[np.int32], int]:  # pragma: no cover - compiled (the numpy path is the tests' reference)
+    d = origins.shape[1]
+    size = 1 << 12
+    points = np.empty((size, d), dtype=np.float64)
+    weight = np.empty(size, dtype=np.int32)
+    # Open addressing over packed cube keys: each cube's row in `points`, -1 for an empty slot.
+    bits = 14
+    keys = np.full(1 << bits, -1, dtype=np.int64)
+    slots = np.empty(1 << bits, dtype=np.int64)
+    n = 0
+    sample = np.empty(d, dtype=np.float64)
+    for r in range(counts.size):
+        for k in range(1, counts[r] + 1):
+            dist = np.float64(k) * step
+            key = np.int64(0)
+            for a in range(d):
+                # The sample as _samples writes it, then its cube's index.
+                sample[a] = origins[r, a] + dist * directions[r, a]
+                q = np.int64(math.floor((sample[a] - origins[0, a]) / cube)) + _CUBE_OFFSET
+                key = (key << 21) | q
+            h = (key * np.int64(-7046029254386353131)) >> (64 - bits) & ((1 << bits) - 1)
+            while keys[h] != -1 and keys[h] != key:
+                h = (h + 1) & ((1 << bits) - 1)
+            if keys[h] == key:
+                weight[slots[h]] += 1
+                continue
+            if n == size:
+                size *= 2
+                more_points = np.empty((size, d), dtype=np.float64)
+                more_points[:n] = points[:n]
+                more_weight = np.empty(size, dtype=np.int32)
+                more_weight[:n] = weight[:n]
+                points, weight = more_points, more_weight
+            keys[h] = key
+            slots[h] = n
+            points[n] = sample
+            weight[n] = 1
+            n += 1
+            if 2 * n > (1 << bits):
+                # Half full: every key placed again in a table twice the size.
+                old_keys, old_slots = keys, slots
+                bits += 1
+                keys = np.full(1 << bits, -1, dtype=np.int64)
+                slots = np.empty(1 << bits, dtype=np.int64)
+                for s in range(old_keys.size):
+                    if old_keys[s] != -1:
+                        g = (old_keys[s] * np.int64(-7046029254386353131)) >> (64 - bits) & ((1 << bits) - 1)
+                        while keys[g] != -1:
+                            g = (g + 1) & ((1 << bits) - 1)
+                        keys[g] = old_keys[s]
+                        slots[g] = old_slots[s]
+    return points, weight, n
+
+
+def merged_free_samples(
+    origins: NDArray[np.float64], directions: NDArray[np.float64], counts: NDArray[np.intp], step: float, cube: float
+) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
+    """:func:`free_samples` merged by cube: the first sample in each cube of side `cube` (a
+    lattice through the first ray's origin), in the samples' order, with how many samples fell
+    in that cube (:func:`gpomap.observations.merge_by_cube`'s, never listing the samples).
+
+    Parameters
+    ----------
+    origins, directions : ndarray of shape (b, d)
+    counts : ndarray of int, shape (b,)
+    step, cube : float
+        The samples' spacing along a ray and the cubes' side; every sample within
+        ``2**20 - 1`` cubes of the first origin (the caller checks).
+
+    Returns
+    -------
+    points : ndarray of shape (u, d)
+    weight : ndarray of int32, shape (u,)
+    """
+    origins = np.require(np.broadcast_to(origins, directions.shape), np.float64, ["C", "W"])
+    points, weight, n = _merged_samples(
+        origins,
+        np.ascontiguousarray(directions, dtype=np.float64),
+        np.ascontiguousarray(counts, dtype=np.intp),
+        float(step),
+        float(cube),
+    )
+    return points[:n].copy(), weight[:n].copy()

@@ -50,6 +50,9 @@ class Cells:
         Indices into the observation points, grouped by cell.
     points : ndarray of shape (m, d)
         The observation points the cells were built from.
+    weights : ndarray of int32, shape (m,), optional
+        How many samples each point stands for (merged free samples,
+        :attr:`gpomap.observations.Observations.weight`); None: one each.
     """
 
     lower: NDArray[np.float64]
@@ -61,14 +64,18 @@ class Cells:
     member_offsets: NDArray[np.intp]
     member_order: NDArray[np.intp]
     points: NDArray[np.float64]
+    weights: NDArray[np.int32] | None = None
 
     def __len__(self) -> int:
         return int(self.occupied.size)
 
     @property
     def counts(self) -> NDArray[np.intp]:
-        """Number of member points per cell, ndarray of shape (n,)."""
-        return np.diff(self.member_offsets)
+        """Number of samples per cell, ndarray of shape (n,): its member points, or the samples
+        they stand for where they are weighted."""
+        if self.weights is None:
+            return np.diff(self.member_offsets)
+        return np.add.reduceat(self.weights[self.member_order].astype(np.intp), self.member_offsets[:-1])
 
     @property
     def labels(self) -> NDArray[np.float64]:
@@ -107,6 +114,7 @@ def build_cells(
     min_cell: float = 0.5,
     max_cell: float = 3.0,
     box: str = "node",
+    weights: NDArray[np.int32] | None = None,
 ) -> Cells:
     """Group labelled points into cells with the longest-axis cell tree.
 
@@ -123,6 +131,9 @@ def build_cells(
     box : {"node", "tight"}
         The box a cell is given: the tree node's ("node", the paper's choice) or the bounding box
         of its own points ("tight"). Ambiguous halves always get the bounding box of their points.
+    weights : ndarray of int32, shape (m,), optional
+        How many samples each point stands for (:attr:`Cells.weights`): the tree is the points'
+        alone, the cells' counts the samples'.
 
     Returns
     -------
@@ -138,6 +149,8 @@ def build_cells(
         raise ValueError(f"need 0 < min_cell <= max_cell, got min_cell={min_cell}, max_cell={max_cell}")
     if box not in BOX_MODES:
         raise ValueError(f"box must be one of {BOX_MODES}, got {box!r}")
+    if weights is not None and np.shape(weights) != (pts.shape[0],):
+        raise ValueError(f"weights must have shape ({pts.shape[0]},), got {np.shape(weights)}")
 
     lo0, hi0 = column_bounds(pts)
     # A degenerate root (all points on a line or a plane) still needs an extent to split.
@@ -157,6 +170,7 @@ def build_cells(
             member_offsets=offsets,
             member_order=order,
             points=pts,
+            weights=weights,
         )
 
     # Boxes as tuples of Python floats: a node's few numbers cost less so than as small arrays,
@@ -227,4 +241,5 @@ def build_cells(
         member_offsets=offsets,
         member_order=np.concatenate(out_members).astype(np.intp),
         points=pts,
+        weights=weights,
     )

@@ -69,6 +69,9 @@ class MapProfile:
         The cell tree's size thresholds, metres (:class:`MapConfig`).
     free_clearance : float
         Free points closer than this to a hit are dropped, metres (:class:`MapConfig`).
+    merge_free : bool
+        A scan's free samples in one cube of half the free step are merged into one point that
+        stands for them all (:func:`gpomap.observations.merged_ray_free_points`).
     resolution : float
         The side of the written map's cells, metres (``gpomap map --resolution``).
     tile_size : float
@@ -95,6 +98,7 @@ class MapProfile:
     min_cell: float
     max_cell: float
     free_clearance: float
+    merge_free: bool
     resolution: float
     tile_size: float
     hyper_sample: int
@@ -112,7 +116,9 @@ class MapProfile:
 #: times as many cells per volume at half the side where a square holds 4, for no gain across the
 #: 3-D cases of ``benchmarks/quality3d.py`` (docs/3d.md, "3-D defaults"); voxels of 0.1 m, OctoMap's
 #: usual. Free points are kept from 0.1 m of a hit in a plane, where the ray counts draw the walls
-#: (docs/choices.md, "Free clearance: 0.1 m in a plane"), and from 0.3 m in 3-D. The calibration
+#: (docs/choices.md, "Free clearance: 0.1 m in a plane"), and from 0.3 m in 3-D, where a scan's free
+#: samples sharing a cube are merged: a depth camera's rays crowd near the sensor, and the cells
+#: need only how many samples each holds (docs/3d.md, "Free samples merged by cube"). The calibration
 #: stages that were measured only on planar logs are off for voxel maps, and so is the variance
 #: scale: fitted on a few frames' held-out stretches it cost ranking on every 3-D case (docs/3d.md,
 #: "The variance scale switched off").
@@ -121,6 +127,7 @@ PROFILES: dict[int, MapProfile] = {
         min_cell=0.5,
         max_cell=0.5,
         free_clearance=0.1,
+        merge_free=False,
         resolution=0.05,
         tile_size=5.0,
         hyper_sample=800,
@@ -136,6 +143,7 @@ PROFILES: dict[int, MapProfile] = {
         min_cell=1.0,
         max_cell=1.0,
         free_clearance=0.3,
+        merge_free=True,
         resolution=0.1,
         tile_size=3.0,
         hyper_sample=300,

@@ -11,6 +11,7 @@ through one sampler (:func:`ray_free_points`), in their own dimension.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -52,6 +53,9 @@ class Observations:
         Valid readings at or beyond max range (free space only, never a hit).
     n_cleared : int
         Free samples dropped for lying too close to a hit (``free_clearance``).
+    weight : ndarray of int32, shape (n,), optional
+        How many samples each point stands for, where a scan's free samples were merged by cube
+        (:func:`merged_ray_free_points`); None: one each.
     """
 
     points: NDArray[np.float64]
@@ -60,6 +64,7 @@ class Observations:
     n_invalid: int = 0
     n_no_return: int = 0
     n_cleared: int = 0
+    weight: NDArray[np.int32] | None = None
 
     @property
     def dim(self) -> int:
@@ -80,6 +85,17 @@ class Observations:
     def labels(self) -> NDArray[np.float64]:
         """GP targets: +1 for occupied, -1 for free, ndarray of shape (n,)."""
         return np.where(self.occupied, 1.0, -1.0)
+
+    def selected(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> Observations:
+        """The points `keep` selects (a mask of shape (n,) or indices), with their labels, scans
+        and weights; the reading counts kept."""
+        return dataclasses.replace(
+            self,
+            points=rows(self.points, keep),
+            occupied=self.occupied[keep],
+            scan_index=self.scan_index[keep],
+            weight=None if self.weight is None else self.weight[keep],
+        )
 
 
 def beam_free_points(
@@ -153,6 +169,64 @@ def ray_free_points(
     u = np.asarray(directions, dtype=float)[ray]
     o = np.asarray(origins, dtype=float)[ray]
     return o + dist[:, None] * u, ray
+
+
+def merge_by_cube(
+    points: NDArray[np.float64], cube: float, reference: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
+    """The first of `points` in each cube of side `cube` (a lattice through `reference`), in
+    their order, and how many of them fell in that cube.
+
+    Parameters
+    ----------
+    points : ndarray of shape (m, d)
+    cube : float
+    reference : ndarray of shape (d,)
+
+    Returns
+    -------
+    points : ndarray of shape (u, d)
+    weight : ndarray of int32, shape (u,)
+    """
+    index = np.floor((points - reference) / cube).astype(np.int64)
+    _, first, inverse = np.unique(index, axis=0, return_index=True, return_inverse=True)
+    weight = np.bincount(inverse.ravel(), minlength=first.size)
+    order = np.argsort(first)
+    return rows(points, first[order]), weight[order].astype(np.int32)
+
+
+def merged_ray_free_points(
+    origins: NDArray[np.float64], directions: NDArray[np.float64], lengths: NDArray[np.float64], step: float, cube: float
+) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
+    """:func:`ray_free_points` of one scan's rays merged by cube (:func:`merge_by_cube`, on a
+    lattice through the first ray's origin): each kept point stands for the samples in its cube.
+
+    With a cube of at most ``step / sqrt(d)``, one ray's own samples never share a cube: only where
+    rays crowd (a depth camera's, near the sensor) are samples merged. Rays reaching over
+    ``2**20 - 1`` cubes keep every sample (each of weight 1).
+
+    Parameters
+    ----------
+    origins, directions, lengths, step
+        As :func:`ray_free_points`'.
+    cube : float
+        Side of the cubes, metres.
+
+    Returns
+    -------
+    points : ndarray of shape (u, d)
+    weight : ndarray of int32, shape (u,)
+    """
+    lengths = np.maximum(np.asarray(lengths, dtype=float), 0.0)
+    origins = np.broadcast_to(np.asarray(origins, dtype=float), np.shape(directions))
+    if lengths.size == 0 or float(lengths.max()) / cube >= _compiled_raycast._CUBE_OFFSET - 1:
+        points, _ = ray_free_points(origins, directions, lengths, step)
+        return points, np.ones(points.shape[0], dtype=np.int32)
+    if _compiled_raycast.ENABLED:
+        counts = np.floor(lengths / step + 1e-9).astype(np.intp)
+        return _compiled_raycast.merged_free_samples(origins, np.asarray(directions, dtype=float), counts, step, cube)
+    points, _ = ray_free_points(origins, directions, lengths, step)
+    return merge_by_cube(points, cube, origins[0])
 
 
 #: Most boxes of the lattice :func:`free_near_hits` lays over the points (its distance
@@ -370,6 +444,7 @@ def labelled_observations(
     hit_margin: float | None,
     no_return_cap: float | None,
     free_clearance: float = 0.0,
+    free_cube: float | None = None,
 ) -> Observations:
     """:func:`observations_from_scans` of scans, or `data` itself when it already is labelled points.
 
@@ -384,7 +459,7 @@ def labelled_observations(
     obs = (
         data
         if isinstance(data, Observations)
-        else observations_from_scans(data, free_step, hit_margin, no_return_cap, free_clearance)
+        else observations_from_scans(data, free_step, hit_margin, no_return_cap, free_clearance, free_cube)
     )
     if obs.n_occupied == 0 or obs.n_free == 0:
         raise EmptyDataError(f"need both free and occupied observations, got {obs.n_free} free and {obs.n_occupied} occupied")
@@ -397,6 +472,7 @@ def observations_from_scans(
     hit_margin: float | None = None,
     no_return_cap: float | None = None,
     free_clearance: float = 0.0,
+    free_cube: float | None = None,
 ) -> Observations:
     """Free and occupied points from planar scans (2-D points) or point clouds (3-D points).
 
@@ -414,6 +490,9 @@ def observations_from_scans(
     free_clearance : float
         Free samples closer than this to any hit of these scans are dropped (see
         :func:`free_near_hits`); 0 keeps them all.
+    free_cube : float, optional
+        Each scan's free samples merged by cubes of this side (:func:`merged_ray_free_points`),
+        the points weighted; None keeps every sample.
 
     Returns
     -------
@@ -422,24 +501,29 @@ def observations_from_scans(
     pts_all: list[NDArray[np.float64]] = []
     occ_all: list[NDArray[np.bool_]] = []
     idx_all: list[NDArray[np.int32]] = []
+    weight_all: list[NDArray[np.int32]] = []
     n_invalid = 0
     n_no_return = 0
     for i, scan in enumerate(scans):
-        fp, hp, invalid, no_return = _scan_points(scan, free_step, hit_margin, no_return_cap)
+        fp, fw, hp, invalid, no_return = _scan_points(scan, free_step, hit_margin, no_return_cap, free_cube)
         n_invalid += invalid
         n_no_return += no_return
         pts_all += [fp, hp]
         occ_all += [np.zeros(len(fp), bool), np.ones(len(hp), bool)]
         idx_all.append(np.full(len(fp) + len(hp), i, dtype=np.int32))
+        if fw is not None:
+            weight_all += [fw, np.ones(len(hp), dtype=np.int32)]
     if not pts_all or sum(len(p) for p in pts_all) == 0:
         raise EmptyDataError(f"no usable readings in {len(scans)} scan(s) ({n_invalid} invalid): nothing to map")
     points, occupied, scan_index = np.concatenate(pts_all, axis=0), np.concatenate(occ_all), np.concatenate(idx_all)
-    del pts_all, occ_all, idx_all
+    weight = np.concatenate(weight_all) if free_cube is not None else None
+    del pts_all, occ_all, idx_all, weight_all
     keep = ~free_near_hits(points, occupied, free_clearance)
     n_cleared = int(keep.size - keep.sum())
     if n_cleared:
         # Only then a copy: a whole log's points are hundreds of megabytes.
         points, occupied, scan_index = rows(points, keep), occupied[keep], scan_index[keep]
+        weight = None if weight is None else weight[keep]
     return Observations(
         points=points,
         occupied=occupied,
@@ -447,22 +531,27 @@ def observations_from_scans(
         n_invalid=n_invalid,
         n_no_return=n_no_return,
         n_cleared=n_cleared,
+        weight=weight,
     )
 
 
 def _scan_points(
-    scan: Scan | CloudScan, free_step: float, hit_margin: float | None, no_return_cap: float | None
-) -> tuple[NDArray[np.float64], NDArray[np.float64], int, int]:
-    """One scan's free points and hits (:func:`observations_from_scans`' per scan), its invalid
-    readings and its no-return ones."""
+    scan: Scan | CloudScan, free_step: float, hit_margin: float | None, no_return_cap: float | None, free_cube: float | None
+) -> tuple[NDArray[np.float64], NDArray[np.int32] | None, NDArray[np.float64], int, int]:
+    """One scan's free points and their weights (None unless merged by `free_cube`), its hits
+    (:func:`observations_from_scans`' per scan), its invalid readings and its no-return ones."""
     if hit_margin is None:
         hit_margin = 0.5 * free_step
     rays = Rays.of(scan)
     free_len = rays.free_lengths(hit_margin, no_return_cap)
     use = free_len > 0
     origins = np.broadcast_to(rays.origin, (int(use.sum()), rays.origin.size))
-    fp, _ = ray_free_points(origins, rows(rays.directions, use), free_len[use], free_step)
-    return fp, rows(rays.ends, rays.hit), rays.n_invalid, rays.n_no_return
+    fw: NDArray[np.int32] | None = None
+    if free_cube is None:
+        fp, _ = ray_free_points(origins, rows(rays.directions, use), free_len[use], free_step)
+    else:
+        fp, fw = merged_ray_free_points(origins, rows(rays.directions, use), free_len[use], free_step, free_cube)
+    return fp, fw, rows(rays.ends, rays.hit), rays.n_invalid, rays.n_no_return
 
 
 #: Most points a part of :func:`observation_parts` holds (whole scans are added until it is
@@ -476,6 +565,7 @@ def observation_parts(
     hit_margin: float | None = None,
     no_return_cap: float | None = None,
     indices: Sequence[int] | None = None,
+    free_cube: float | None = None,
 ) -> Iterator[Observations]:
     """:func:`observations_from_scans` (without a clearance) a part at a time, never all at once.
 
@@ -490,31 +580,38 @@ def observation_parts(
         As :func:`observations_from_scans`'.
     indices : sequence of int, optional
         The number each scan's points take as ``scan_index`` (default: its place in `scans`).
+    free_cube : float, optional
+        As :func:`observations_from_scans`'.
 
     Yields
     ------
     Observations
         With its scans' ``n_invalid`` and ``n_no_return``.
     """
-    parts: list[tuple[NDArray[np.float64], NDArray[np.float64], int]] = []
+    parts: list[tuple[NDArray[np.float64], NDArray[np.int32] | None, NDArray[np.float64], int]] = []
     held = n_invalid = n_no_return = 0
     for i, scan in enumerate(scans):
-        fp, hp, invalid, no_return = _scan_points(scan, free_step, hit_margin, no_return_cap)
+        fp, fw, hp, invalid, no_return = _scan_points(scan, free_step, hit_margin, no_return_cap, free_cube)
         n_invalid += invalid
         n_no_return += no_return
         if len(fp) + len(hp):
-            parts.append((fp, hp, i if indices is None else int(indices[i])))
+            parts.append((fp, fw, hp, i if indices is None else int(indices[i])))
             held += len(fp) + len(hp)
         if held >= PART_POINTS or (i == len(scans) - 1 and (parts or n_invalid or n_no_return)):
             d = parts[0][0].shape[1] if parts else (3 if isinstance(scan, CloudScan) else 2)
             # Each scan's free points, then its hits: the labels and scans repeated run by run.
-            runs = np.array([(len(fp), len(hp)) for fp, hp, _ in parts], dtype=np.int64).reshape(-1, 2)
+            runs = np.array([(len(fp), len(hp)) for fp, _, hp, _ in parts], dtype=np.int64).reshape(-1, 2)
+            weight = None
+            if free_cube is not None:
+                ones = np.ones(0, dtype=np.int32)
+                weight = np.concatenate([ones, *(a for fp, fw, hp, _ in parts for a in (fw, np.ones(len(hp), np.int32)))])
             yield Observations(
-                np.concatenate([a for fp, hp, _ in parts for a in (fp, hp)], axis=0) if parts else np.zeros((0, d)),
+                np.concatenate([a for fp, _, hp, _ in parts for a in (fp, hp)], axis=0) if parts else np.zeros((0, d)),
                 np.repeat(np.tile(np.array([False, True]), len(parts)), runs.reshape(-1)),
-                np.repeat(np.array([k for _, _, k in parts], dtype=np.int32), runs.sum(axis=1)),
+                np.repeat(np.array([k for _, _, _, k in parts], dtype=np.int32), runs.sum(axis=1)),
                 n_invalid,
                 n_no_return,
+                weight=weight,
             )
             parts, held, n_invalid, n_no_return = [], 0, 0, 0
 
@@ -536,6 +633,8 @@ class ScanPoints:
         As :func:`observations_from_scans`'.
     each_part : callable, optional
         Called with every part of the first pass, in order.
+    free_cube : float, optional
+        As :func:`observations_from_scans`'.
 
     Attributes
     ----------
@@ -555,9 +654,11 @@ class ScanPoints:
         hit_margin: float | None,
         no_return_cap: float | None,
         each_part: Callable[[Observations], None] | None = None,
+        free_cube: float | None = None,
     ) -> None:
         self.scans = scans
         self._how = (free_step, hit_margin, no_return_cap)
+        self._free_cube = free_cube
         d = data_dim(scans) if len(scans) else 2
         self.scan_lower = np.full((len(scans), d), np.inf)
         self.scan_upper = np.full((len(scans), d), -np.inf)
@@ -584,7 +685,7 @@ class ScanPoints:
     def parts(self, indices: Sequence[int] | None = None) -> Iterator[Observations]:
         """The points of every scan (or of the scans at `indices`, in their order), a part at a time."""
         scans = self.scans if indices is None else [self.scans[i] for i in indices]
-        return observation_parts(scans, *self._how, indices=indices)
+        return observation_parts(scans, *self._how, indices=indices, free_cube=self._free_cube)
 
     def square(self, lower: ArrayLike, upper: ArrayLike, grow: float = 0.0) -> Observations:
         """The points inside the box `lower`..`upper` (its first axes; x, y for a square) grown by
@@ -594,16 +695,20 @@ class ScanPoints:
         k = lo.size
         meets = np.flatnonzero(np.all((self.scan_lower[:, :k] <= hi) & (self.scan_upper[:, :k] >= lo), axis=1))
         # Each part cut as it is made and let go: only what lies inside is held, never the scans' whole points.
-        cut: list[tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.integer[Any]]]] = []
+        cut: list[Observations] = []
         for p in self.parts(meets.tolist()) if meets.size else ():
             inside = in_box(p.points, lo, hi)
-            cut.append((rows(p.points, inside), p.occupied[inside], p.scan_index[inside]))
+            cut.append(p.selected(inside))
             del p, inside
         d = self.scan_lower.shape[1]
         if not cut:
             return Observations(np.zeros((0, d)), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int32))
+        weights = [c.weight for c in cut]
         return Observations(
-            np.concatenate([c[0] for c in cut]), np.concatenate([c[1] for c in cut]), np.concatenate([c[2] for c in cut])
+            np.concatenate([c.points for c in cut]),
+            np.concatenate([c.occupied for c in cut]),
+            np.concatenate([c.scan_index for c in cut]),
+            weight=None if any(w is None for w in weights) else np.concatenate(weights),  # type: ignore[arg-type]
         )
 
 

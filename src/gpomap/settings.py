@@ -171,13 +171,22 @@ class MapSettings(MapConfig):
         EmptyDataError
             When either class is missing.
         """
-        cut = self.clearance(data_dim(data)) if clearance and not isinstance(data, Observations) and len(data) else 0.0
-        return labelled_observations(data, self.free_step, self.hit_margin, self.no_return_cap, cut)
+        if isinstance(data, Observations) or not len(data):
+            return labelled_observations(data, self.free_step, self.hit_margin, self.no_return_cap)
+        dim = data_dim(data)
+        cut = self.clearance(dim) if clearance else 0.0
+        return labelled_observations(data, self.free_step, self.hit_margin, self.no_return_cap, cut, self.free_cube(dim))
 
     def clearance(self, dim: int) -> float:
         """``free_clearance`` for data of dimension `dim`: the one given, or the dimension's
         profile's (:data:`gpomap.config.PROFILES`)."""
         return PROFILES[dim].free_clearance if self.free_clearance is None else float(self.free_clearance)
+
+    def free_cube(self, dim: int) -> float | None:
+        """Side of the cubes a scan's free samples are merged by for data of dimension `dim`: half
+        the free step where the dimension's profile merges them (:data:`gpomap.config.PROFILES`),
+        else None (every sample kept)."""
+        return 0.5 * float(self.free_step) if PROFILES[dim].merge_free else None
 
     def cell_sides(self, dim: int) -> tuple[float, float]:
         """``(min_cell, max_cell)`` for data of dimension `dim`: those given, the rest from the
@@ -194,7 +203,7 @@ class MapSettings(MapConfig):
 
     def make_cells(self, obs: Observations) -> Cells:
         """The GP's inputs: the cell tree over `obs` with these settings."""
-        return build_cells(obs.points, obs.occupied, *self.cell_sides(obs.points.shape[1]), self.cell_box)
+        return build_cells(obs.points, obs.occupied, *self.cell_sides(obs.points.shape[1]), self.cell_box, obs.weight)
 
     def make_evidence(
         self,

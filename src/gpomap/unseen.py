@@ -93,7 +93,7 @@ def cut_square(
     inside = in_box(obs.points, box_lo, box_hi)
     if among is not None:
         inside &= _from_kept(obs.scan_index, among)
-    return Observations(rows(obs.points, inside), obs.occupied[inside], obs.scan_index[inside])
+    return obs.selected(inside)
 
 
 class _MadePoints:

@@ -18,7 +18,16 @@ from gpomap.observations import Observations
 from gpomap.resources import SpillFile
 from gpomap.supports import Supports
 from gpomap.tiles.geometry import _KEY_CHUNK, DEFAULT_TILE_SIZE, TileGrid, _box_offset
-from gpomap.tiles.points import KeptPoints, _BlockCells, _BlockPoints, _HeldParts, _KeptBlock, _SpilledPart, scan_runs
+from gpomap.tiles.points import (
+    KeptPoints,
+    Part,
+    _BlockCells,
+    _BlockPoints,
+    _HeldParts,
+    _KeptBlock,
+    _SpilledPart,
+    scan_runs,
+)
 from gpomap.tiles.tasks import TileCells
 
 
@@ -27,8 +36,8 @@ class BlockCells(TileGrid):
 
     def _build_block(self, key: int) -> _BlockCells:
         b = self.base
-        points, occupied = self._kept_arrays(key)
-        c = build_cells(points, occupied, *b.cell_sides(points.shape[1]), b.cell_box)
+        points, occupied, weights = self._kept_arrays(key)
+        c = build_cells(points, occupied, *b.cell_sides(points.shape[1]), b.cell_box, weights)
         summed = b.area_method == "summed"
         return _BlockCells(
             lower=c.lower,
@@ -40,18 +49,19 @@ class BlockCells(TileGrid):
             member_offsets=c.member_offsets if summed else None,
         )
 
-    def _kept_arrays(self, key: int) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        """A block's points (shape (n, d)) and labels (n,) without the free ones near its hits
-        (the points its cells grow from); their bounds noted in :attr:`_kept_bounds`."""
+    def _kept_arrays(self, key: int) -> Part:
+        """A block's points (shape (n, d)), labels (n,) and weights (n,; None: one each) without
+        the free ones near its hits (the points its cells grow from); their bounds noted in
+        :attr:`_kept_bounds`."""
         block = self._block_points[key]
-        points, occupied = block.arrays()
+        points, occupied, weights = block.weighted_arrays()
         keep = ~block.free_near_hits(self._clearance, (points, occupied))
         # Rebound, so that a spilled block's points read back are let go before the tree's copies.
-        points, occupied = rows(points, keep), occupied[keep]
+        points, occupied, weights = rows(points, keep), occupied[keep], None if weights is None else weights[keep]
         if self._kept_bounds is None:  # a map read from its file keeps none
             self._kept_bounds = {}
         self._kept_bounds[key] = column_bounds(points)
-        return points, occupied
+        return points, occupied, weights
 
     def _add_points(
         self,
@@ -59,12 +69,14 @@ class BlockCells(TileGrid):
         occupied: NDArray[np.bool_],
         spill: SpillFile | None = None,
         scans: NDArray[np.integer[Any]] | None = None,
+        weights: NDArray[np.int32] | None = None,
     ) -> set[int]:
         """File points under their blocks (in observation order within each) and note their tiles; returns the blocks touched.
 
         With `spill`, each block's new points wait in that file (:class:`_SpilledPart`) instead of
         in memory. With `scans` (each point's scan, shape (n,), non-decreasing), each block keeps
-        its new points' runs (:func:`~gpomap.tiles.points.scan_runs`)."""
+        its new points' runs (:func:`~gpomap.tiles.points.scan_runs`). With `weights` (shape (n,)),
+        how many samples each point stands for."""
         # Keys per chunk of points, blocks then numbered 0..b-1 in key order: a whole log's int64
         # keys and their sorted copy would be hundreds of megabytes.
         chunks = range(0, points.shape[0], _KEY_CHUNK)
@@ -77,7 +89,9 @@ class BlockCells(TileGrid):
         if block_keys.size == 1:
             # One block (a room's depth frames, a small log): every point in order, unsorted, and
             # copied only to be held (the caller's arrays are theirs).
-            held = (points, occupied) if spill is not None else (points.copy(), occupied.copy())
+            held = (points, occupied, weights)
+            if spill is None:
+                held = (points.copy(), occupied.copy(), None if weights is None else weights.copy())
             self._file_block(int(block_keys[0]), *held, spill, scans)
             self._count_points(points, occupied)
             return {int(block_keys[0])}
@@ -106,7 +120,8 @@ class BlockCells(TileGrid):
         for k, grp in zip(block_keys.tolist(), np.split(order, cuts)):
             if grp.size == 0:
                 continue
-            self._file_block(k, rows(points, grp), occupied[grp], spill, None if scans is None else scans[grp])
+            part_weights = None if weights is None else weights[grp]
+            self._file_block(k, rows(points, grp), occupied[grp], part_weights, spill, None if scans is None else scans[grp])
             touched.add(k)
         self._count_points(points, occupied)
         return touched
@@ -116,18 +131,20 @@ class BlockCells(TileGrid):
         key: int,
         points: NDArray[np.float64],
         occupied: NDArray[np.bool_],
+        weights: NDArray[np.int32] | None,
         spill: SpillFile | None,
         scans: NDArray[np.integer[Any]] | None,
     ) -> None:
-        """Append a block's new points (shape (n, d), labels (n,), in observation order) to it,
-        in `spill` when given, with their scans' runs when `scans` (shape (n,)) is."""
-        filed: Any = _SpilledPart.put(spill, points, occupied) if spill is not None else points
-        labels = None if spill is not None else occupied
+        """Append a block's new points (shape (n, d), labels (n,), weights (n,) or None, in
+        observation order) to it, in `spill` when given, with their scans' runs when `scans`
+        (shape (n,)) is."""
+        filed: Any = _SpilledPart.put(spill, points, occupied, weights) if spill is not None else points
+        labels, held_weights = (None, None) if spill is not None else (occupied, weights)
         runs = None if scans is None else scan_runs(scans)
         if key in self._block_points:
-            self._block_points[key].append(filed, labels, runs)
+            self._block_points[key].append(filed, labels, runs, held_weights)
         else:
-            self._block_points[key] = _BlockPoints(filed, labels, runs)
+            self._block_points[key] = _BlockPoints(filed, labels, runs, held_weights)
 
     def _count_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
         """Add points filed (shape (n, d), labels (n,)) to the map's extent and counts."""
@@ -144,7 +161,8 @@ class BlockCells(TileGrid):
         reuses them)."""
         if part.occupied.size:
             scans = np.asarray(part.scan_index) if with_scans else None
-            self._add_points(np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool), spill, scans)
+            points, occupied = np.asarray(part.points, dtype=float), np.asarray(part.occupied, dtype=bool)
+            self._add_points(points, occupied, spill, scans, part.weight)
 
     def _file_kept(self, kept: KeptPoints) -> tuple[int, int, int, NDArray[np.float64] | None, NDArray[np.float64] | None]:
         """Take a fitted map's blocks without the scans it leaves out (:class:`~gpomap.tiles.points.KeptPoints`)

@@ -45,16 +45,48 @@ class _SpilledPart:
     points: tuple[int, int]
     occupied: tuple[int, int]
     shape: tuple[int, int]
+    weight: tuple[int, int] | None = None
 
     @classmethod
-    def put(cls, file: SpillFile, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> _SpilledPart:
+    def put(
+        cls, file: SpillFile, points: NDArray[np.float64], occupied: NDArray[np.bool_], weight: NDArray[np.int32] | None = None
+    ) -> _SpilledPart:
         pts = np.ascontiguousarray(points, dtype=np.float64)
         return cls(
-            file, file.put(pts), file.put(np.ascontiguousarray(occupied, dtype=bool)), (int(pts.shape[0]), int(pts.shape[1]))
+            file,
+            file.put(pts),
+            file.put(np.ascontiguousarray(occupied, dtype=bool)),
+            (int(pts.shape[0]), int(pts.shape[1])),
+            None if weight is None else file.put(np.ascontiguousarray(weight, dtype=np.int32)),
         )
 
-    def load(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-        return self.file.get(self.points, np.float64, self.shape), self.file.get(self.occupied, np.bool_, (self.shape[0],))
+    def load(self) -> Part:
+        weight = None if self.weight is None else self.file.get(self.weight, np.int32, (self.shape[0],))
+        return (
+            self.file.get(self.points, np.float64, self.shape),
+            self.file.get(self.occupied, np.bool_, (self.shape[0],)),
+            weight,
+        )
+
+
+#: Points of a block held in memory: the points (n, d), their labels (n,) and how many samples
+#: each stands for (int32, (n,); None: one each, :attr:`gpomap.observations.Observations.weight`).
+Part = tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.int32] | None]
+
+
+def _part(p: Any) -> Part:
+    """A block's part as :data:`Part`: read back from its spill file, or held (a map file
+    written before points were weighted holds pairs)."""
+    if isinstance(p, _SpilledPart):
+        return p.load()
+    return (p[0], p[1], p[2] if len(p) > 2 else None)
+
+
+def _joined_weights(parts: list[Part]) -> NDArray[np.int32] | None:
+    """The parts' weights joined, ones for a part without; None when no part has any."""
+    if all(w is None for _, _, w in parts):
+        return None
+    return np.concatenate([np.ones(o.size, dtype=np.int32) if w is None else w for _, o, w in parts])
 
 
 #: The scans a part of a block's points came from, in their order: each run's scan (its index in
@@ -82,9 +114,13 @@ class _BlockPoints:
     __module__ = "gpomap.tiles"
 
     def __init__(
-        self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None, runs: Runs | None = None
+        self,
+        points: NDArray[np.float64] | _SpilledPart,
+        occupied: NDArray[np.bool_] | None = None,
+        runs: Runs | None = None,
+        weight: NDArray[np.int32] | None = None,
     ) -> None:
-        self._parts: list[Any] = [points if isinstance(points, _SpilledPart) else (points, occupied)]
+        self._parts: list[Any] = [points if isinstance(points, _SpilledPart) else (points, occupied, weight)]
         # Each part's runs, or None once a part came without them (updates, labelled points given).
         self._runs: list[Runs] | None = None if runs is None else [runs]
         # Which of the first `_n_checked` points are free within the clearance of a hit among them.
@@ -92,21 +128,25 @@ class _BlockPoints:
         self._n_checked = 0
 
     def append(
-        self, points: NDArray[np.float64] | _SpilledPart, occupied: NDArray[np.bool_] | None = None, runs: Runs | None = None
+        self,
+        points: NDArray[np.float64] | _SpilledPart,
+        occupied: NDArray[np.bool_] | None = None,
+        runs: Runs | None = None,
+        weight: NDArray[np.int32] | None = None,
     ) -> None:
         # A block read back from a map file starts without parts; its runs come with them again.
         known = runs is not None and (self._runs is not None or not self._parts)
-        self._parts.append(points if isinstance(points, _SpilledPart) else (points, occupied))
+        self._parts.append(points if isinstance(points, _SpilledPart) else (points, occupied, weight))
         self._runs = [*(self._runs or []), runs] if known and runs is not None else None
 
-    def without(self, scans: NDArray[np.integer[Any]]) -> tuple[NDArray[np.float64], NDArray[np.bool_]] | None:
-        """The block's points and labels but those of `scans` (indices in the map's scans), in
-        their order; None when a part came without its runs."""
-        points, occupied = self.arrays()
+    def without(self, scans: NDArray[np.integer[Any]]) -> Part | None:
+        """The block's points, labels and weights (:data:`Part`) but those of `scans` (indices in
+        the map's scans), in their order; None when a part came without its runs."""
+        points, occupied, weight = self.weighted_arrays()
         keep = self.kept_mask(scans)
         if keep is None:
             return None
-        return rows(points, keep), occupied[keep]
+        return rows(points, keep), occupied[keep], None if weight is None else weight[keep]
 
     def runs(self) -> Runs | None:
         """Every part's runs (:data:`Runs`) joined, in the points' order; None when a part came without them."""
@@ -129,28 +169,44 @@ class _BlockPoints:
 
     def spill(self, file: SpillFile) -> None:
         """Move the parts held in memory to `file`, in their places."""
-        self._parts = [p if isinstance(p, _SpilledPart) else _SpilledPart.put(file, *p) for p in self._parts]
+        self._parts = [p if isinstance(p, _SpilledPart) else _SpilledPart.put(file, *_part(p)) for p in self._parts]
 
     def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """The block's points, shape (n, d), and labels, shape (n,), in arrival order."""
+        points, occupied, _ = self.weighted_arrays()
+        return points, occupied
+
+    def weights(self) -> NDArray[np.int32] | None:
+        """How many samples each of the block's points stands for, shape (n,); None: one each."""
+        return self.weighted_arrays()[2]
+
+    def weighted_arrays(self) -> Part:
+        """The block's points, their labels and weights (:data:`Part`), in arrival order."""
         if any(isinstance(p, _SpilledPart) for p in self._parts):
             if len(self._parts) == 1:
-                return self._parts[0].load()
+                return _part(self._parts[0])
             # Each part read back into its place and let go: the block's points held once, not twice.
             sizes = [p.shape[0] if isinstance(p, _SpilledPart) else p[1].size for p in self._parts]
             dim = next(p.shape[1] if isinstance(p, _SpilledPart) else p[0].shape[1] for p in self._parts)
             points, occupied = np.empty((sum(sizes), dim)), np.empty(sum(sizes), dtype=bool)
+            weighted = any((p.weight if isinstance(p, _SpilledPart) else _part(p)[2]) is not None for p in self._parts)
+            weight = np.ones(sum(sizes), dtype=np.int32) if weighted else None
             at = 0
             for p, size in zip(self._parts, sizes, strict=True):
-                pts, occ = p.load() if isinstance(p, _SpilledPart) else p
+                pts, occ, w = _part(p)
                 points[at : at + size], occupied[at : at + size] = pts, occ
+                if weight is not None and w is not None:
+                    weight[at : at + size] = w
                 at += size
-                del pts, occ
-            return points, occupied
-        if len(self._parts) > 1:
-            self._parts = [(np.concatenate([p for p, _ in self._parts]), np.concatenate([o for _, o in self._parts]))]
+                del pts, occ, w
+            return points, occupied, weight
+        parts = [_part(p) for p in self._parts]
+        if len(parts) > 1:
+            parts = [(np.concatenate([p for p, _, _ in parts]), np.concatenate([o for _, o, _ in parts]), _joined_weights(parts))]
             if self._runs is not None:
                 self._runs = [(np.concatenate([r[0] for r in self._runs]), np.concatenate([r[1] for r in self._runs]))]
-        return self._parts[0]
+        self._parts = parts
+        return parts[0]
 
     @property
     def n_cleared(self) -> int:
@@ -194,7 +250,7 @@ class _KeptBlock(_BlockPoints):
         self._near = np.zeros(0, dtype=bool)
         self._n_checked = 0
 
-    def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    def weighted_arrays(self) -> Part:
         kept = self._block.without(self._dropped)
         if kept is None:
             raise ValueError("the block's points came without their scans")
@@ -221,7 +277,7 @@ class _KeptBlock(_BlockPoints):
         self._near, self._n_checked = near, int(occupied.size)
         return near
 
-    def append(self, points: Any, occupied: Any = None, runs: Runs | None = None) -> None:
+    def append(self, points: Any, occupied: Any = None, runs: Runs | None = None, weight: Any = None) -> None:
         raise TypeError("a block of another map's points takes no points of its own")
 
     def last_scan(self) -> int:
@@ -288,10 +344,10 @@ class FiledPoints:
 
     @staticmethod
     def _observations(block: _BlockPoints) -> Observations:
-        points, occupied = block.arrays()
+        points, occupied, weight = block.weighted_arrays()
         scans = block.scans()
         assert scans is not None  # checked when made
-        return Observations(points, occupied, scans)
+        return Observations(points, occupied, scans, weight=weight)
 
     def parts(self) -> Iterator[Observations]:
         """Every block's points, block by block."""
@@ -338,11 +394,11 @@ class _HeldParts:
         self.dim = int(part.points.shape[1])
         lo, hi = column_bounds(part.points[:, :2])
         self.lower, self.upper = np.minimum(self.lower, lo), np.maximum(self.upper, hi)
-        self._bytes += int(part.points.nbytes + part.occupied.nbytes)
+        self._bytes += int(part.points.nbytes + part.occupied.nbytes + (0 if part.weight is None else part.weight.nbytes))
         if self._file is not None or self._bytes <= self.budget:
             return False
         self._file, self.blocks_file = SpillFile(), SpillFile()
-        self._parts = [(_SpilledPart.put(self._file, p, o), None, runs) for p, o, runs in self._parts]
+        self._parts = [(_SpilledPart.put(self._file, *_part(p)), runs) for p, runs in self._parts]
         return True
 
     def hold(self, part: Observations) -> None:
@@ -351,21 +407,19 @@ class _HeldParts:
         if part.occupied.size == 0:
             return
         runs = scan_runs(np.asarray(part.scan_index)) if self.with_scans else None
-        if self._file is not None:
-            self._parts.append((_SpilledPart.put(self._file, part.points, part.occupied), None, runs))
-        else:
-            self._parts.append((part.points, part.occupied, runs))
+        held = (part.points, part.occupied, part.weight)
+        self._parts.append((_SpilledPart.put(self._file, *held) if self._file is not None else held, runs))
 
     def take(self) -> Iterator[Observations]:
         """The parts held, in order, each read back (if it waited in the file) as it is asked and
         let go."""
         parts, self._parts = self._parts, []
         while parts:
-            p, o, runs = parts.pop(0)
-            points, occupied = p.load() if isinstance(p, _SpilledPart) else (p, o)
-            del p, o
+            p, runs = parts.pop(0)
+            points, occupied, weight = _part(p)
+            del p
             scans = np.zeros(0, dtype=np.int32) if runs is None else np.repeat(runs[0], runs[1]).astype(np.int32)
-            yield Observations(points, occupied, scans)
+            yield Observations(points, occupied, scans, weight=weight)
 
     def close(self) -> None:
         self._parts = []

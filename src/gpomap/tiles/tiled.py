@@ -18,7 +18,7 @@ from gpomap.config import MapConfig, TiledConfig, TilingConfig
 from gpomap.errors import EmptyDataError, NotFittedError
 from gpomap.field import as_points
 from gpomap.lattice import column_bounds
-from gpomap.observations import Observations, ScanData, ScanPoints, reading_counts, sensor_positions
+from gpomap.observations import Observations, ScanData, ScanPoints, data_dim, reading_counts, sensor_positions
 from gpomap.resources import POINT_MEMORY, release_freed_memory
 from gpomap.scans import Scan
 from gpomap.settings import MapSettings
@@ -246,7 +246,8 @@ class TiledGPOM(TileUpdates, CalibrationStages, HyperparameterSearch):
             n_invalid, n_no_return = source.n_invalid, source.n_no_return
         else:
             b = self.base
-            source = ScanPoints(data, b.free_step, b.hit_margin, b.no_return_cap, each_part=filing)
+            free_cube = b.free_cube(data_dim(data)) if len(data) else None
+            source = ScanPoints(data, b.free_step, b.hit_margin, b.no_return_cap, each_part=filing, free_cube=free_cube)
             n_free, n_occupied, n_scans = source.n_free, source.n_occupied, source.n_scans
             lower, upper = source.lower, source.upper
             n_invalid, n_no_return = source.n_invalid, source.n_no_return

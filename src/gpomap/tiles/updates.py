@@ -25,7 +25,7 @@ class TileUpdates(TileFits, MapReport):
         # No free_clearance here: it is applied per block when the cells are built, so a hit
         # that arrives in a later update clears the free points near it just as a batch fit would.
         b = self.base
-        return observations_from_scans(scans, b.free_step, b.hit_margin, b.no_return_cap)
+        return observations_from_scans(scans, b.free_step, b.hit_margin, b.no_return_cap, free_cube=b.free_cube(self._dim))
 
     def absorb(self, scans: ScanData) -> set[tuple[int, int]]:
         """Take in scans at a cost proportional to them: their points are filed under their
@@ -60,7 +60,7 @@ class TileUpdates(TileFits, MapReport):
             # Each point's scan, numbered as the map's scans (those kept): a block then knows them.
             numbered = None if self._scans is None else np.asarray(obs.scan_index) + len(self._scans)
             self._dirty |= self._add_points(
-                np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool), scans=numbered
+                np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool), scans=numbered, weights=obs.weight
             )
             self._n_invalid += obs.n_invalid
             self._n_no_return += obs.n_no_return

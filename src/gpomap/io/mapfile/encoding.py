@@ -503,12 +503,13 @@ def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:
     lower, upper = model._lower, model._upper
     model._n_points = model._n_occupied_points = 0
     try:
-        obs = observations_from_scans(model._scans, b.free_step, b.hit_margin, b.no_return_cap)
+        obs = observations_from_scans(model._scans, b.free_step, b.hit_margin, b.no_return_cap, free_cube=b.free_cube(model._dim))
         points, occupied = np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool)
-        scans = np.asarray(obs.scan_index)
+        scans, weights = np.asarray(obs.scan_index), obs.weight
     except EmptyDataError:
         points, occupied, scans = np.zeros((0, model._dim)), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int32)
-    model._add_points(points, occupied, scans=scans)
+        weights = None
+    model._add_points(points, occupied, scans=scans, weights=weights)
     model._lower, model._upper = lower, upper
     now = (model._n_points, model._n_occupied_points, set(model._tiles_with_points), len(model._block_points))
     if now != saved or any(bp.arrays()[0].shape[0] != n for bp, n in blocks):
