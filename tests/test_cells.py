@@ -153,3 +153,25 @@ def test_compiled_tree_on_degenerate_inputs(monkeypatch):
         fast, slow = _both_paths(monkeypatch, pts, occ, 0.5, 3.0, "node")
         for name in FIELDS:
             np.testing.assert_array_equal(getattr(fast, name), getattr(slow, name), err_msg=name)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_weighted_points_give_the_points_cells_counting_the_samples_they_stand_for(monkeypatch, compiled):
+    from gpomap import _compiled_cells
+
+    monkeypatch.setattr(_compiled_cells, "ENABLED", compiled)
+    rng = np.random.default_rng(5)
+    points = rng.uniform(0.0, 4.0, (600, 3))
+    occupied = points[:, 0] > 3.2
+    weights = rng.integers(1, 6, 600).astype(np.int32)
+    plain = build_cells(points, occupied, 0.5, 1.0)
+    weighted = build_cells(points, occupied, 0.5, 1.0, weights=weights)
+    np.testing.assert_array_equal(weighted.lower, plain.lower)
+    np.testing.assert_array_equal(weighted.member_order, plain.member_order)
+    by_hand = [
+        sum(int(weights[j]) for j in plain.member_order[a:b]) for a, b in zip(plain.member_offsets[:-1], plain.member_offsets[1:])
+    ]
+    np.testing.assert_array_equal(weighted.counts, by_hand)
+    np.testing.assert_array_equal(weighted.to_supports().counts, np.array(by_hand, dtype=float))
+    with pytest.raises(ValueError, match="weights must have shape"):
+        build_cells(points, occupied, 0.5, 1.0, weights=weights[:-1])

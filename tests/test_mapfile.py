@@ -245,9 +245,10 @@ def _rewrite_header(path, change):
             zf.writestr(name, data)
 
 
-#: What a map file of format version 2 holds of each class (its attributes, or a dataclass's fields).
-#: Version 2 kept version 1's layout; its ray counts are a scan's shared updates (float32).
-LAYOUT_V2 = {
+#: What a map file of format version 3 holds of each class (its attributes, or a dataclass's fields).
+#: Versions 2 and 3 kept version 1's layout: version 2's ray counts are a scan's shared updates
+#: (float32); version 3's voxel maps make their blocks' points again with free samples merged by cube.
+LAYOUT_V3 = {
     "gpomap.mapping.AreaGPOM": {
         "tile_size", "overlap", "blend", "origin", "n_workers", "hyper_sample", "per_tile_hyperparameters",
         "blas_threads", "worker_processes", "scheduler_timeout", "memory_limit", "base", "options", "_clearance",
@@ -294,8 +295,8 @@ def test_the_saved_layout_is_the_format_versions(room, tmp_path):
     with np.load(path, allow_pickle=False) as archive:
         layout = _layout(json.loads(str(archive["header"]))["state"])
     assert model.evidence_._hits.dtype == np.float32
-    assert VERSION == 2
-    for name, names in LAYOUT_V2.items():
+    assert VERSION == 3
+    for name, names in LAYOUT_V3.items():
         assert layout[name] == names, f"{name}: {sorted(layout[name] ^ names)} changed: raise the format VERSION"
 
 

@@ -276,5 +276,5 @@ def test_bad_map_files_are_one_line_errors(mapped, tmp_path, capsys, command):
         tail = {"render": ["-o", str(tmp_path / "o")], "query": [str(points)], "update": [*ARENA, "-o", str(tmp_path / "o")]}
         err = one_line_error(capsys, main([command, str(path), *tail[command]]))
         assert f"gpomap: error: {path}: " in err and message in err, err
-        assert "expected" in err or "this gpomap reads version 2" in err, err
+        assert "expected" in err or "this gpomap reads version 3" in err, err
     assert not (tmp_path / "o").exists()

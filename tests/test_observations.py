@@ -193,3 +193,62 @@ def test_planar_beams_are_each_scans_rays_joined_to_the_bit(monkeypatch):
     # The readings counted from the ranges alone: 4 invalid in each of three scans and all 7 of
     # the second; a no-return at the maximum range in three.
     assert reading_counts(scans) == (19, sum(r.n_no_return for r in rays)) and sum(r.n_no_return for r in rays) >= 3
+
+
+def _by_cube(samples, origin, cube):
+    """Brute force: each cube's first sample (in order) and how many samples it holds, by a dict."""
+    first, count = {}, {}
+    for i, p in enumerate(samples):
+        key = tuple(np.floor((p - origin) / cube).astype(int).tolist())
+        first.setdefault(key, i)
+        count[key] = count.get(key, 0) + 1
+    keys = sorted(first, key=first.get)
+    return samples[[first[k] for k in keys]], np.array([count[k] for k in keys])
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_merged_free_points_are_the_first_sample_of_each_cube_weighted_by_its_samples(monkeypatch, dim, compiled):
+    from gpomap import _compiled_raycast
+    from gpomap.observations import merged_ray_free_points, ray_free_points
+
+    rng = np.random.default_rng(dim)
+    directions = rng.normal(size=(300, dim))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    origin = rng.normal(size=dim)
+    lengths = rng.uniform(0.0, 3.0, 300)
+    samples, _ = ray_free_points(np.broadcast_to(origin, directions.shape), directions, lengths, 0.2)
+    want_points, want_weight = _by_cube(samples, origin, 0.1)
+    monkeypatch.setattr(_compiled_raycast, "ENABLED", compiled)
+    points, weight = merged_ray_free_points(origin, directions, lengths, 0.2, 0.1)
+    np.testing.assert_array_equal(points, want_points)
+    np.testing.assert_array_equal(weight, want_weight)
+    assert weight.dtype == np.int32 and weight.sum() == samples.shape[0] and points.shape[0] < samples.shape[0]
+
+
+def test_one_rays_samples_never_share_a_cube_of_half_the_step_and_far_reaching_rays_are_kept_whole():
+    from gpomap.observations import merged_ray_free_points, ray_free_points
+
+    direction = np.array([[1.0, 1.0, 1.0]]) / np.sqrt(3.0)
+    points, weight = merged_ray_free_points(np.zeros(3), direction, np.array([5.0]), 0.2, 0.1)
+    np.testing.assert_array_equal(points, ray_free_points(np.zeros((1, 3)), direction, np.array([5.0]), 0.2)[0])
+    assert np.all(weight == 1)
+    # Two rays along the same line: every sample shared, each point weighing two.
+    points, weight = merged_ray_free_points(np.zeros(3), np.repeat(direction, 2, axis=0), np.array([5.0, 5.0]), 0.2, 0.1)
+    assert points.shape == (25, 3) and np.all(weight == 2)
+    # Cubes too small to index from the origin: every sample kept, one each.
+    points, weight = merged_ray_free_points(np.zeros(3), np.repeat(direction, 2, axis=0), np.array([5.0, 5.0]), 0.2, 1e-7)
+    assert points.shape == (50, 3) and np.all(weight == 1)
+
+
+def test_voxel_maps_merge_free_samples_and_planar_maps_keep_them():
+    from gpomap.settings import MapSettings
+
+    settings = MapSettings()
+    clouds = lidar_clouds(ORIGINS[:2], n_rays=400)
+    merged = settings.make_observations(clouds, clearance=False)
+    whole = observations_from_scans(clouds, settings.free_step)
+    assert merged.weight is not None and merged.n_occupied == whole.n_occupied
+    assert int(merged.weight[~merged.occupied].sum()) == whole.n_free and merged.n_free < whole.n_free
+    assert np.all(merged.weight[merged.occupied] == 1)
+    assert settings.free_cube(3) == pytest.approx(0.5 * settings.free_step) and settings.free_cube(2) is None

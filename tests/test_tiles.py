@@ -515,6 +515,28 @@ def test_update_equals_batch_in_3d():
     assert np.isfinite(report["log_loss"]) and report["log_loss"] < report["log_loss_default"]
 
 
+def test_merged_3d_points_waiting_in_a_file_map_as_those_held_in_memory(monkeypatch):
+    """A voxel map's merged free points keep their weights through the spill file: the same
+    cells, counts and map as held in memory, and the cells count the samples, not the points."""
+    from tests.world3d import ORIGINS, lidar_clouds
+
+    clouds = lidar_clouds(ORIGINS, n_rays=300)
+    opts = {**OPTS, "length_scale": 0.6}
+    held = TiledGPOM(tile_size=2.0, n_workers=1, **opts).fit(clouds)
+    monkeypatch.setattr(tiled_map, "POINT_MEMORY", 1)
+    spilled = TiledGPOM(tile_size=2.0, n_workers=1, **opts).fit(clouds)
+    assert all(isinstance(p, tile_points._SpilledPart) for b in spilled._block_points.values() for p in b._parts)
+    assert sorted(spilled._blocks) == sorted(held._blocks)
+    for k in held._blocks:
+        np.testing.assert_array_equal(spilled._blocks[k].lower, held._blocks[k].lower)
+        np.testing.assert_array_equal(spilled._blocks[k].counts, held._blocks[k].counts)
+        weights = held._block_points[k].weights()
+        assert weights is not None and weights.max() > 1
+    assert sum(b.counts.sum() for b in held._blocks.values()) > held._n_points
+    pts = np.random.default_rng(3).uniform([0.0, 0.0, 0.0], [6.0, 4.0, 2.5], (300, 3))
+    np.testing.assert_array_equal(spilled.predict_proba_gp(pts), held.predict_proba_gp(pts))
+
+
 def test_square_keys_decode_to_their_indices_for_arrays_and_scalars():
     rng = np.random.default_rng(4)
     ix, iy = rng.integers(-5000, 5000, 200), rng.integers(-5000, 5000, 200)
