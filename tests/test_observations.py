@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+import gpomap.observations as observations
 from gpomap.clouds import CloudScan
 from gpomap.errors import EmptyDataError, InputFormatError
 from gpomap.observations import free_near_hits, observations_from_scans, reading_counts, sensor_positions
@@ -220,15 +221,17 @@ def test_merged_free_points_are_the_first_sample_of_each_cube_weighted_by_its_sa
     samples, _ = ray_free_points(np.broadcast_to(origin, directions.shape), directions, lengths, 0.2)
     want_points, want_weight = _by_cube(samples, origin, 0.1)
     monkeypatch.setattr(_compiled_raycast, "ENABLED", compiled)
+    monkeypatch.setattr(observations, "MERGE_MIN_SAMPLES", samples.shape[0])
     points, weight = merged_ray_free_points(origin, directions, lengths, 0.2, 0.1)
     np.testing.assert_array_equal(points, want_points)
     np.testing.assert_array_equal(weight, want_weight)
     assert weight.dtype == np.int32 and weight.sum() == samples.shape[0] and points.shape[0] < samples.shape[0]
 
 
-def test_one_rays_samples_never_share_a_cube_of_half_the_step_and_far_reaching_rays_are_kept_whole():
+def test_one_rays_samples_never_share_a_cube_of_half_the_step_and_far_reaching_rays_are_kept_whole(monkeypatch):
     from gpomap.observations import merged_ray_free_points, ray_free_points
 
+    monkeypatch.setattr(observations, "MERGE_MIN_SAMPLES", 0)
     direction = np.array([[1.0, 1.0, 1.0]]) / np.sqrt(3.0)
     points, weight = merged_ray_free_points(np.zeros(3), direction, np.array([5.0]), 0.2, 0.1)
     np.testing.assert_array_equal(points, ray_free_points(np.zeros((1, 3)), direction, np.array([5.0]), 0.2)[0])
@@ -239,11 +242,16 @@ def test_one_rays_samples_never_share_a_cube_of_half_the_step_and_far_reaching_r
     # Cubes too small to index from the origin: every sample kept, one each.
     points, weight = merged_ray_free_points(np.zeros(3), np.repeat(direction, 2, axis=0), np.array([5.0, 5.0]), 0.2, 1e-7)
     assert points.shape == (50, 3) and np.all(weight == 1)
+    # A scan of fewer samples than MERGE_MIN_SAMPLES: every sample kept, one each.
+    monkeypatch.setattr(observations, "MERGE_MIN_SAMPLES", 51)
+    points, weight = merged_ray_free_points(np.zeros(3), np.repeat(direction, 2, axis=0), np.array([5.0, 5.0]), 0.2, 0.1)
+    assert points.shape == (50, 3) and np.all(weight == 1)
 
 
-def test_voxel_maps_merge_free_samples_and_planar_maps_keep_them():
+def test_voxel_maps_merge_free_samples_and_planar_maps_keep_them(monkeypatch):
     from gpomap.settings import MapSettings
 
+    monkeypatch.setattr(observations, "MERGE_MIN_SAMPLES", 0)
     settings = MapSettings()
     clouds = lidar_clouds(ORIGINS[:2], n_rays=400)
     merged = settings.make_observations(clouds, clearance=False)

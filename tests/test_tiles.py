@@ -518,8 +518,10 @@ def test_update_equals_batch_in_3d():
 def test_merged_3d_points_waiting_in_a_file_map_as_those_held_in_memory(monkeypatch):
     """A voxel map's merged free points keep their weights through the spill file: the same
     cells, counts and map as held in memory, and the cells count the samples, not the points."""
+    import gpomap.observations as observations
     from tests.world3d import ORIGINS, lidar_clouds
 
+    monkeypatch.setattr(observations, "MERGE_MIN_SAMPLES", 0)
     clouds = lidar_clouds(ORIGINS, n_rays=300)
     opts = {**OPTS, "length_scale": 0.6}
     held = TiledGPOM(tile_size=2.0, n_workers=1, **opts).fit(clouds)

@@ -195,6 +195,13 @@ def merge_by_cube(
     return rows(points, first[order]), weight[order].astype(np.int32)
 
 
+#: Fewest free samples a scan must make for :func:`merged_ray_free_points` to merge them: a depth
+#: frame's (millions, its rays crowding near the camera). Below it the exact samples cost little,
+#: and merged they moved the maps of sparse lidar scans more than those of depth frames
+#: (docs/3d.md, "Free samples merged by cube").
+MERGE_MIN_SAMPLES: int = 1 << 20
+
+
 def merged_ray_free_points(
     origins: NDArray[np.float64], directions: NDArray[np.float64], lengths: NDArray[np.float64], step: float, cube: float
 ) -> tuple[NDArray[np.float64], NDArray[np.int32]]:
@@ -202,8 +209,9 @@ def merged_ray_free_points(
     lattice through the first ray's origin): each kept point stands for the samples in its cube.
 
     With a cube of at most ``step / sqrt(d)``, one ray's own samples never share a cube: only where
-    rays crowd (a depth camera's, near the sensor) are samples merged. Rays reaching over
-    ``2**20 - 1`` cubes keep every sample (each of weight 1).
+    rays crowd (a depth camera's, near the sensor) are samples merged. A scan of fewer than
+    :data:`MERGE_MIN_SAMPLES` samples, and rays reaching over ``2**20 - 1`` cubes, keep every
+    sample (each of weight 1).
 
     Parameters
     ----------
@@ -219,11 +227,13 @@ def merged_ray_free_points(
     """
     lengths = np.maximum(np.asarray(lengths, dtype=float), 0.0)
     origins = np.broadcast_to(np.asarray(origins, dtype=float), np.shape(directions))
-    if lengths.size == 0 or float(lengths.max()) / cube >= _compiled_raycast._CUBE_OFFSET - 1:
+    # The samples per ray, as ray_free_points counts them.
+    counts = np.floor(lengths / step + 1e-9).astype(np.intp)
+    few = int(counts.sum()) < MERGE_MIN_SAMPLES
+    if few or float(lengths.max()) / cube >= _compiled_raycast._CUBE_OFFSET - 1:
         points, _ = ray_free_points(origins, directions, lengths, step)
         return points, np.ones(points.shape[0], dtype=np.int32)
     if _compiled_raycast.ENABLED:
-        counts = np.floor(lengths / step + 1e-9).astype(np.intp)
         return _compiled_raycast.merged_free_samples(origins, np.asarray(directions, dtype=float), counts, step, cube)
     points, _ = ray_free_points(origins, directions, lengths, step)
     return merge_by_cube(points, cube, origins[0])
