@@ -90,14 +90,15 @@ def test_compiled_clearance_on_a_wall_scanned_again_and_again() -> None:
 @pytest.mark.skipif(not compiled_clearance.AVAILABLE, reason="numba is not installed")
 @pytest.mark.parametrize("dense_hits", [np.inf, 0.0, 100.0])  # the coarsest boxes, the finest, as dense as the hits say
 def test_compiled_clearance_at_every_box_size_on_a_dense_floor(dense_hits: float, monkeypatch) -> None:
-    # A floor and a wall of a depth frame's density (thousands of hits per coarse box), free
-    # samples at all distances above and beside them: every box size gives brute force's answer.
+    # A floor and a wall of a depth frame's density, free samples at all distances above and
+    # beside them, more of them than hits (finer boxes are taken only then): every box size gives
+    # brute force's answer.
     monkeypatch.setattr(compiled_clearance, "DENSE_HITS", dense_hits)
     rng = np.random.default_rng(8)
-    floor = np.column_stack([rng.uniform(0.0, 1.2, 15000), rng.uniform(0.0, 1.2, 15000), rng.normal(0.0, 0.005, 15000)])
-    wall = np.column_stack([rng.uniform(0.0, 1.2, 5000), rng.normal(1.2, 0.005, 5000), rng.uniform(0.0, 1.0, 5000)])
+    floor = np.column_stack([rng.uniform(0.0, 1.2, 3000), rng.uniform(0.0, 1.2, 3000), rng.normal(0.0, 0.005, 3000)])
+    wall = np.column_stack([rng.uniform(0.0, 1.2, 1000), rng.normal(1.2, 0.005, 1000), rng.uniform(0.0, 1.0, 1000)])
     hits = np.vstack([floor, wall])
-    free = rng.uniform([-0.4, -0.4, -0.5], [1.6, 1.6, 1.2], size=(4000, 3))
+    free = rng.uniform([-0.4, -0.4, -0.5], [1.6, 1.6, 1.2], size=(6000, 3))
     got = compiled_clearance.near_hits(free, hits, 0.3, max_boxes=10**7)
     assert got is not None
     np.testing.assert_array_equal(got, cdist(free, hits).min(axis=1) < 0.3)
