@@ -7,7 +7,9 @@ Two kinds of case:
   inside the office (three rooms joined by doorways, furnished; 10 frames) and the store room
   (aisles of shelves and an office; 8 frames), noise-free, and the office again with a depth
   camera's noise (Kinect-like axial noise, 1 % dropped pixels, 1 cm / 0.005 rad pose error,
-  :class:`gpomap.simulate3d.DepthNoise`). The frames are written as ``gpomap map`` reads depth
+  :class:`gpomap.simulate3d.DepthNoise`), and the office at a depth camera's full resolution
+  (``office-vga``: 640 x 480 pixels, whose free samples ``gpomap map`` merges by cube,
+  :data:`gpomap.observations.MERGE_MIN_SAMPLES`). The frames are written as ``gpomap map`` reads depth
   frames (16-bit millimetre PNGs, intrinsics, camera-to-world poses) and read back by the CLI's
   own reader. Every map is built from all frames and scored on the truth lattice (0.025 m) where
   the rays went (:func:`gpomap.simulate3d.truth_points`: a point within 0.05 m of a lattice cell a
@@ -15,7 +17,7 @@ Two kinds of case:
   ``--max-truth`` points).
 - **Held out** (the shared 3-D data): la3dm ``sim_structured`` and ``sim_unstructured`` (12 scans,
   ``--max-range 8``; every 4th scan held out), 3DMatch's five frames (``--stride 4``; the 4th,
-  ``frame-000116``, held out) and a 16-beam lidar simulated at 12 poses in OctoMap's ``geb079.bt``
+  ``frame-000116``, held out; ``3dmatch-full``: every pixel, the free samples merged) and a 16-beam lidar simulated at 12 poses in OctoMap's ``geb079.bt``
   (``benchmarks/volume_quality.py``'s; every 4th held out). Test points are the held-out rays' hits
   and free points every 0.1 m along them to 0.1 m short of the hit
   (:func:`gpomap.evaluation.test_points`), drawn uniformly (at most ``--max-test``): natural
@@ -94,8 +96,11 @@ DATA = Path("..") / "shared" / "data"
 RESOLUTION: float = 0.1
 #: Every held-out case holds out every 4th scan (the 4th, 8th, ...).
 HOLDOUT_PERIOD: int = 4
-SIM_CASES = ("office", "office-noisy", "storeroom")
-HELD_OUT_CASES = ("sim_structured", "sim_unstructured", "3dmatch", "geb079")
+SIM_CASES = ("office", "office-noisy", "storeroom", "office-vga")
+HELD_OUT_CASES = ("sim_structured", "sim_unstructured", "3dmatch", "3dmatch-full", "geb079")
+#: Pixels of the simulated scenes' frames: the usual cases', a depth camera's full resolution.
+IMAGE = (160, 120)
+VGA_IMAGE = (640, 480)
 QUICK_CASES = ("office", "sim_structured", "3dmatch")
 METHODS = ("gpomap", "octomap", "counting")
 #: gpomap's options changed by ``--set NAME=VALUE`` (a field of :class:`gpomap.config.MapConfig` or
@@ -164,7 +169,8 @@ def sim_case(name: str, workdir: Path, resolution: float, max_truth: int, quick:
     from gpomap import simulate3d as s3
 
     scene, poses = (s3.storeroom_scene(), s3.storeroom_poses()) if name == "storeroom" else (s3.office_scene(), s3.office_poses())
-    camera = s3.PinholeCamera.from_fov(80, 60, 60) if quick else s3.PinholeCamera.from_fov(160, 120, 60)
+    width, height = (80, 60) if quick else VGA_IMAGE if name == "office-vga" else IMAGE
+    camera = s3.PinholeCamera.from_fov(width, height, 60)
     noise = s3.DepthNoise() if name.endswith("-noisy") else None
     frames = s3.render_frames(scene, camera, poses, min_depth=0.3, max_depth=6.0, noise=noise, seed=1)
     folder = s3.write_depth_frames(frames, workdir / name)
@@ -214,9 +220,9 @@ def la3dm_case(world: str, resolution: float, max_test: int) -> Case:
     return held_out_case(world, command, read_as_cli(command, resolution), max_test, 8.0, {})
 
 
-def match_case(resolution: float, max_test: int) -> Case:
-    command = [str(DATA / "3dmatch"), "--stride", "4"]
-    return held_out_case("3dmatch", command, read_as_cli(command, resolution), max_test, None, {})
+def match_case(name: str, resolution: float, max_test: int) -> Case:
+    command = [str(DATA / "3dmatch"), "--stride", "1" if name == "3dmatch-full" else "4"]
+    return held_out_case(name, command, read_as_cli(command, resolution), max_test, None, {})
 
 
 def geb079_case(max_test: int, workdir: Path) -> Case:
@@ -533,8 +539,8 @@ def make_cases(names: Sequence[str], workdir: Path, resolution: float, max_truth
             case = sim_case(name, workdir, resolution, max_truth, quick)
         elif name in ("sim_structured", "sim_unstructured"):
             case = la3dm_case(name, resolution, max_test)
-        elif name == "3dmatch":
-            case = match_case(resolution, max_test)
+        elif name in ("3dmatch", "3dmatch-full"):
+            case = match_case(name, resolution, max_test)
         elif name == "geb079":
             case = geb079_case(max_test, workdir)
         else:

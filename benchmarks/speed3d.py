@@ -24,9 +24,10 @@ peak memory ratio (target at most 4x) is of the whole processes. Both processes 
 command-line reader; "base MB" is each one's resident set once its clouds are read, before
 fitting or inserting.
 
-numba's cache is a fresh directory (``NUMBA_CACHE_DIR``) filled by one untimed ``gpomap map``
-run on the first case before the timed ones, so every timed run loads compiled code as a user's
-second run does (``benchmarks/compile_cache.py`` measures the first run's compiling).
+numba's cache is a fresh directory (``NUMBA_CACHE_DIR``) filled by an untimed ``gpomap map`` run
+on each case before its timed ones (the cases take different paths: a depth frame's free samples
+are merged, a lidar scan's are not), so every timed run loads compiled code as a user's second
+run does (``benchmarks/compile_cache.py`` measures the first run's compiling).
 
 Usage, from the repository's root::
 
@@ -267,11 +268,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="gpomap-speed3d-") as tmp:
         scratch = Path(tmp)
         env = dict(os.environ, NUMBA_CACHE_DIR=str(scratch / "numba-cache"))
-        first = [*CASES[names[0]], *args.option]
-        warm = _timed_process([*_gpomap_command(), "map", *first, "-o", str(scratch / "warm"), "-q"], env, scratch)
-        print(f"numba's cache filled by an untimed gpomap map on {names[0]} ({warm['cpu']:.1f} CPU s)", file=sys.stderr)
         for name in names:
-            results.append(case_runs(name, [*CASES[name], *args.option], args.repeat, scratch, env))
+            command = [*CASES[name], *args.option]
+            warm = _timed_process([*_gpomap_command(), "map", *command, "-o", str(scratch / f"warm-{name}"), "-q"], env, scratch)
+            print(f"numba's cache filled by an untimed gpomap map on {name} ({warm['cpu']:.1f} CPU s)", file=sys.stderr)
+            results.append(case_runs(name, command, args.repeat, scratch, env))
     print(f"\n## gpomap map INPUT -o OUT -q {extra} (defaults) against OctoMap's insertion, whole processes".replace("  ", " "))
     print_tables(results, args.repeat)
     if args.json:
