@@ -242,7 +242,9 @@ def test_one_rays_samples_never_share_a_cube_of_half_the_step_and_far_reaching_r
     # Cubes too small to index from the origin: every sample kept, one each.
     points, weight = merged_ray_free_points(np.zeros(3), np.repeat(direction, 2, axis=0), np.array([5.0, 5.0]), 0.2, 1e-7)
     assert points.shape == (50, 3) and np.all(weight == 1)
-    # A scan of fewer samples than MERGE_MIN_SAMPLES: every sample kept, one each.
+    # No ray at all, and a scan of fewer samples than MERGE_MIN_SAMPLES: every sample kept, one each.
+    points, weight = merged_ray_free_points(np.zeros(3), np.zeros((0, 3)), np.zeros(0), 0.2, 0.1)
+    assert points.shape == (0, 3) and weight.shape == (0,)
     monkeypatch.setattr(observations, "MERGE_MIN_SAMPLES", 51)
     points, weight = merged_ray_free_points(np.zeros(3), np.repeat(direction, 2, axis=0), np.array([5.0, 5.0]), 0.2, 0.1)
     assert points.shape == (50, 3) and np.all(weight == 1)

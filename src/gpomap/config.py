@@ -70,8 +70,9 @@ class MapProfile:
     free_clearance : float
         Free points closer than this to a hit are dropped, metres (:class:`MapConfig`).
     merge_free : bool
-        A scan's free samples in one cube of half the free step are merged into one point that
-        stands for them all (:func:`gpomap.observations.merged_ray_free_points`).
+        A scan of many free samples (:data:`gpomap.observations.MERGE_MIN_SAMPLES`, a depth
+        frame's) has those in one cube of half the free step merged into one point that stands
+        for them all (:func:`gpomap.observations.merged_ray_free_points`).
     resolution : float
         The side of the written map's cells, metres (``gpomap map --resolution``).
     tile_size : float

@@ -229,7 +229,7 @@ def merged_ray_free_points(
     origins = np.broadcast_to(np.asarray(origins, dtype=float), np.shape(directions))
     # The samples per ray, as ray_free_points counts them.
     counts = np.floor(lengths / step + 1e-9).astype(np.intp)
-    few = int(counts.sum()) < MERGE_MIN_SAMPLES
+    few = lengths.size == 0 or int(counts.sum()) < MERGE_MIN_SAMPLES
     if few or float(lengths.max()) / cube >= _compiled_raycast._CUBE_OFFSET - 1:
         points, _ = ray_free_points(origins, directions, lengths, step)
         return points, np.ones(points.shape[0], dtype=np.int32)

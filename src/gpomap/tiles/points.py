@@ -75,11 +75,10 @@ Part = tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.int32] | None]
 
 
 def _part(p: Any) -> Part:
-    """A block's part as :data:`Part`: read back from its spill file, or held (a map file
-    written before points were weighted holds pairs)."""
+    """A block's part as :data:`Part`: read back from its spill file, or held."""
     if isinstance(p, _SpilledPart):
         return p.load()
-    return (p[0], p[1], p[2] if len(p) > 2 else None)
+    return p[0], p[1], p[2]
 
 
 def _joined_weights(parts: list[Part]) -> NDArray[np.int32] | None:
