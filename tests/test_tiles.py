@@ -489,10 +489,16 @@ def test_each_tile_sees_the_cells_meeting_its_square_grown_by_its_reach(dim):
         assert got == want
 
 
-def test_update_equals_batch_in_3d():
-    """Point clouds added in two batches give the GP map of all of them fitted at once; the ray
-    evidence's lattice grows under the second batch and its calibration is still fitted."""
+@pytest.mark.parametrize("merged", [False, True])
+def test_update_equals_batch_in_3d(monkeypatch, merged):
+    """Point clouds added in two batches give the GP map of all of them fitted at once, their
+    free samples merged by cube or not; the ray evidence's lattice grows under the second batch
+    and its calibration is still fitted."""
+    import gpomap.observations as observations
     from tests.world3d import ORIGINS, lidar_clouds
+
+    if merged:
+        monkeypatch.setattr(observations, "MERGE_MIN_SAMPLES", 0)
 
     clouds = lidar_clouds(ORIGINS, n_rays=200)
     opts = {**OPTS, "length_scale": 0.6}
@@ -504,6 +510,10 @@ def test_update_equals_batch_in_3d():
     batch = TiledGPOM(tile_size=2.0, origin=inc.origin_, n_workers=1, **opts)
     batch.fit(clouds, hyperparameters=inc.hyperparameters_)
     assert sorted(batch.tiles_) == sorted(inc.tiles_)
+    for k in batch._blocks:
+        np.testing.assert_array_equal(inc._blocks[k].counts, batch._blocks[k].counts)
+    heaviest = max(int(block.weights().max()) for block in batch._block_points.values())
+    assert (heaviest > 1) == merged
     pts = np.random.default_rng(3).uniform([0.0, 0.0, 0.0], [6.0, 4.0, 2.5], (500, 3))
     np.testing.assert_allclose(inc.predict_proba_gp(pts), batch.predict_proba_gp(pts), rtol=0, atol=1e-10)
     # The world's walls lie on voxel borders, so some beams end exactly on one; recounted on the
