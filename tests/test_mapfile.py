@@ -203,12 +203,21 @@ def test_a_map_of_labelled_points_keeps_its_points(room, tmp_path):
     assert_same_predictions(model, loaded, obs.points[::7], [(0.2, None)])
 
 
-def test_a_3d_map_loads_as_the_model_that_was_saved(tmp_path):
+@pytest.mark.parametrize("merged", [False, True])
+def test_a_3d_map_loads_as_the_model_that_was_saved(tmp_path, monkeypatch, merged):
+    # Merged or not, its blocks' points are made again from its scans, with their weights.
+    import gpomap.observations as observations
+
+    if merged:
+        monkeypatch.setattr(observations, "MERGE_MIN_SAMPLES", 0)
     clouds = world3d.lidar_clouds(world3d.ORIGINS[:3], n_rays=400, max_range=4.0)
     model = AreaGPOM(kernel="se", min_cell=1.0, max_cell=1.0).fit(clouds)
     loaded = roundtrip(model, tmp_path)
     assert loaded.dim_ == 3
     assert_same(model, loaded)
+    for key, block in model._block_points.items():
+        np.testing.assert_array_equal(loaded._block_points[key].weights(), block.weights())
+        assert (int(block.weights().max()) > 1) == merged
     points = np.random.default_rng(2).uniform([-1, -1, -1], [7, 5, 3.5], size=(4000, 3))
     assert_same_predictions(model, loaded, points)
     for resolution, extent in [(0.25, None), (0.1, (2.0, 4.0, 1.0, 3.0, 0.5, 1.5))]:
