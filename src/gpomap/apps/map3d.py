@@ -227,7 +227,9 @@ def labelled_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[n
     a sample's every coordinate is monotone along its ray (the same rounded products and sums as
     :func:`gpomap.observations.ray_free_points`), so a ray's samples inside the hits' box are one
     run of steps, checked at its two ends and skipped. The rest are asked about the clearance
-    against every hit, as the whole's are: the box is the whole's to the bit.
+    against every hit, as the whole's are: the box is the whole's to the bit. Where a scan's free
+    samples are merged by cube (a depth frame's), each kept point is one of the samples the
+    clearance keeps, so the box holds the merged points too, and may be wider by part of a cube.
 
     Parameters
     ----------
