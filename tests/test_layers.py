@@ -47,6 +47,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "gpomap.raycast",
             "gpomap._compiled_raycast",
             "gpomap._compiled_bounds",
+            "gpomap._compiled_clouds",
             "gpomap.compiled",
             "gpomap.lapack",
         ),

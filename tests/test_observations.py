@@ -262,3 +262,26 @@ def test_voxel_maps_merge_free_samples_and_planar_maps_keep_them(monkeypatch):
     assert int(merged.weight[~merged.occupied].sum()) == whole.n_free and merged.n_free < whole.n_free
     assert np.all(merged.weight[merged.occupied] == 1)
     assert settings.free_cube(3) == pytest.approx(0.5 * settings.free_step) and settings.free_cube(2) is None
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_clouds_valid_rays_are_its_finite_endpoints_away_from_the_origin(monkeypatch, compiled):
+    # Checked ray by ray against the rule, both paths: NaN and infinite coordinates, endpoints
+    # at the origin, and one a distance whose square underflows (numpy's norm is 0 there too).
+    from gpomap import _compiled_clouds
+
+    monkeypatch.setattr(_compiled_clouds, "ENABLED", compiled)
+    rng = np.random.default_rng(4)
+    origin = np.array([0.0, -2.0, 0.5])
+    n = 3 * _compiled_clouds.MIN_ROWS
+    points = origin + rng.normal(size=(n, 3))
+    points[rng.choice(n, 300, replace=False), rng.integers(0, 3, 300)] = np.nan
+    points[rng.choice(n, 300, replace=False), rng.integers(0, 3, 300)] = -np.inf
+    points[rng.choice(n, 300, replace=False)] = origin
+    points[7] = origin + np.array([1e-170, 0.0, 0.0])
+    want = [bool(np.isfinite(p).all() and float(np.sum((p - origin) ** 2)) > 0.0) for p in points]
+    np.testing.assert_array_equal(CloudScan(origin, points).valid(), want)
+    assert points[7, 0] != origin[0] and not want[7] and sum(want) < n - 600
+    if compiled:
+        assert _compiled_clouds.valid_rays(points, origin) is not None
+        assert _compiled_clouds.valid_rays(points[:10], origin) is None  # a few rays: numpy's answer

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from gpomap import _compiled_clouds
 from gpomap.errors import InputFormatError
 
 
@@ -69,6 +70,10 @@ class CloudScan:
 
     def valid(self) -> NDArray[np.bool_]:
         """Mask of rays with finite endpoints away from the origin, shape (n,)."""
+        if _compiled_clouds.ENABLED:
+            found = _compiled_clouds.valid_rays(self.points, self.origin)
+            if found is not None:
+                return found
         finite: NDArray[np.bool_] = np.asarray(np.isfinite(self.points).all(axis=1))
         with np.errstate(invalid="ignore"):
             away = np.linalg.norm(np.where(finite[:, None], self.points - self.origin, 0.0), axis=1) > 0
