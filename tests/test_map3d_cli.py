@@ -199,3 +199,22 @@ def test_evaluate_on_3d_scans_says_in_one_line_it_scores_planar_maps(capsys):
     assert main(["evaluate", str(clouds), "--method", "msk"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "gpomap evaluate scores planar maps only" in err[0] and "quality3d.py" in err[0]
+
+
+@pytest.mark.parametrize("merged", [False, True])
+def test_the_summary_counts_the_free_samples_merged_points_stand_for(room_pcds, tmp_path, capsys, monkeypatch, merged):
+    # Every free sample of the scans (made again here, none merged) is counted once, whether the
+    # points stand for one each or were merged by cube.
+    import gpomap.observations as observations
+    from gpomap.apps.map3d import read_selected_clouds
+
+    monkeypatch.setattr(observations, "MERGE_MIN_SAMPLES", 0 if merged else observations.MERGE_MIN_SAMPLES)
+    assert main(["map", str(room_pcds), "-o", str(tmp_path / "out"), "--max-range", "4", *FAST]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("points "))
+    clouds = read_selected_clouds(str(room_pcds), {"poses": None, "max_range": 4.0})
+    samples = observations.observations_from_scans(clouds, 0.2).n_free
+    if merged:
+        n_free = int(line.split()[1])
+        assert n_free < samples and f"{n_free} free (standing for {samples} samples, merged by cube)" in line
+    else:
+        assert line.startswith(f"points       {samples} free, ") and "standing for" not in line

@@ -255,13 +255,14 @@ def _rewrite_header(path, change):
 
 
 #: What a map file of format version 3 holds of each class (its attributes, or a dataclass's fields).
-#: Versions 2 and 3 kept version 1's layout: version 2's ray counts are a scan's shared updates
-#: (float32); version 3's voxel maps make their blocks' points again with free samples merged by cube.
+#: Version 2 kept version 1's layout, its ray counts a scan's shared updates (float32); version 3's
+#: voxel maps make their blocks' points again with free samples merged by cube, and a map counts the
+#: free samples its points stand for (``_n_free_samples``).
 LAYOUT_V3 = {
     "gpomap.mapping.AreaGPOM": {
         "tile_size", "overlap", "blend", "origin", "n_workers", "hyper_sample", "per_tile_hyperparameters",
         "blas_threads", "worker_processes", "scheduler_timeout", "memory_limit", "base", "options", "_clearance",
-        "_block_points", "_blocks", "_tiles_with_points", "_lower", "_upper", "_n_points", "_n_occupied_points",
+        "_block_points", "_blocks", "_tiles_with_points", "_lower", "_upper", "_n_points", "_n_occupied_points", "_n_free_samples",
         "_dim", "tile_size_", "origin_", "_dirty", "_n_scans", "_n_invalid", "_n_no_return", "path_",
         "hyper_source_", "hyperparameters_", "overlap_", "blend_", "extrapolation_", "_scans", "tiles_",
         "_signatures", "timings_", "evidence_", "revisit_", "last_refit_", "_stale", "_reused",

@@ -228,12 +228,19 @@ def bound_source(model: Any) -> str | None:
     return source if source.startswith("at bound") else None
 
 
+def _free_points(summary: dict[str, Any]) -> str:
+    """The summary's free points, with the samples they stand for where a scan's were merged by cube."""
+    n_free = summary["n_points"] - summary["n_occupied_points"]
+    samples = summary.get("n_free_samples", n_free)
+    return f"{n_free} free" if samples == n_free else f"{n_free} free (standing for {samples} samples, merged by cube)"
+
+
 def print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: str | None = None) -> None:
     """The summary a fitted map's command prints: data, tiles, model, hyperparameters, calibration, timings, files."""
     per = summary["cells_per_tile"]
     lines = [
         f"scans        {summary['n_scans']}",
-        f"points       {summary['n_points'] - summary['n_occupied_points']} free, {summary['n_occupied_points']} occupied",
+        f"points       {_free_points(summary)}, {summary['n_occupied_points']} occupied",
         f"tiles        {summary['n_tiles']} of {summary['tile_size']:g} m (overlap {summary['overlap']:.2f} m), "
         f"{summary['n_cells']} cells, {per['min']}/{per['median']:.0f}/{per['max']} per tile (min/median/max), {summary['executor']}",
         f"model        {summary['kernel']} kernel, {summary['area']} area kernel",

@@ -57,6 +57,8 @@ class TiledAttributes:
     _kept_bounds: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] | None
     _n_points: int
     _n_occupied_points: int
+    #: The free samples the free points stand for (more than the points where a scan's were merged by cube).
+    _n_free_samples: int
     _n_scans: int
     _n_invalid: int
     _n_no_return: int

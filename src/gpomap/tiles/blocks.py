@@ -93,7 +93,7 @@ class BlockCells(TileGrid):
             if spill is None:
                 held = (points.copy(), occupied.copy(), None if weights is None else weights.copy())
             self._file_block(int(block_keys[0]), *held, spill, scans)
-            self._count_points(points, occupied)
+            self._count_points(points, occupied, weights)
             return {int(block_keys[0])}
         ids = np.empty(points.shape[0], dtype=np.int16 if block_keys.size <= np.iinfo(np.int16).max else np.int32)
         # Each block's id looked up in a table over the blocks' index box (a search per point
@@ -123,7 +123,7 @@ class BlockCells(TileGrid):
             part_weights = None if weights is None else weights[grp]
             self._file_block(k, rows(points, grp), occupied[grp], part_weights, spill, None if scans is None else scans[grp])
             touched.add(k)
-        self._count_points(points, occupied)
+        self._count_points(points, occupied, weights)
         return touched
 
     def _file_block(
@@ -146,14 +146,18 @@ class BlockCells(TileGrid):
         else:
             self._block_points[key] = _BlockPoints(filed, labels, runs, held_weights)
 
-    def _count_points(self, points: NDArray[np.float64], occupied: NDArray[np.bool_]) -> None:
-        """Add points filed (shape (n, d), labels (n,)) to the map's extent and counts."""
+    def _count_points(
+        self, points: NDArray[np.float64], occupied: NDArray[np.bool_], weights: NDArray[np.int32] | None = None
+    ) -> None:
+        """Add points filed (shape (n, d), labels (n,), weights (n,) or None) to the map's extent and counts."""
         if points.shape[0]:
             lo, hi = column_bounds(points)
             self._lower = lo if self._lower is None else np.minimum(self._lower, lo)
             self._upper = hi if self._upper is None else np.maximum(self._upper, hi)
         self._n_points += int(points.shape[0])
         self._n_occupied_points += int(occupied.sum())
+        free = ~occupied
+        self._n_free_samples += int(np.count_nonzero(free)) if weights is None else int(weights[free].sum(dtype=np.int64))
 
     def _file_part(self, part: Observations, spill: SpillFile | None, with_scans: bool) -> None:
         """File a part's points under their blocks (:meth:`_add_points`), in `spill` when given;
@@ -176,12 +180,12 @@ class BlockCells(TileGrid):
         last = -1
         for key, block in kept.blocks.items():
             own = _KeptBlock(block, kept.dropped, kept.clearance)
-            points, occupied = own.arrays()
+            points, occupied, weights = own.weighted_arrays()
             if occupied.size == 0:
                 continue
             self._block_points[key] = own
             self._tiles_with_points.update(self._present_keys(points, self.tile_size_).tolist())
-            self._count_points(points, occupied)
+            self._count_points(points, occupied, weights)
             last = max(last, own.last_scan())
         n_scans = int(np.searchsorted(kept.kept, last)) + 1 if last >= 0 else 0
         n_occupied = self._n_occupied_points
@@ -195,7 +199,7 @@ class BlockCells(TileGrid):
         self._lower = None
         self._upper = None
         self._kept_bounds = {}
-        self._n_points = self._n_occupied_points = 0
+        self._n_points = self._n_occupied_points = self._n_free_samples = 0
         self._dim = dim
         self.tile_size_ = self.tile_size if self.tile_size is not None else DEFAULT_TILE_SIZE[dim]
 

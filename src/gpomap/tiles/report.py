@@ -110,6 +110,7 @@ class MapReport(BlockCells, TileExecutors):
             },
             "n_points": self._n_points,
             "n_occupied_points": self._n_occupied_points,
+            "n_free_samples": self._n_free_samples,
             "n_scans": self._n_scans,
             "n_invalid_readings": self._n_invalid,
             "n_no_return_readings": self._n_no_return,

@@ -499,9 +499,15 @@ def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:
     from gpomap.observations import observations_from_scans
 
     b = model.base
-    saved = (model._n_points, model._n_occupied_points, set(model._tiles_with_points), len(model._block_points))
+    saved = (
+        model._n_points,
+        model._n_occupied_points,
+        set(model._tiles_with_points),
+        len(model._block_points),
+        model._n_free_samples,
+    )
     lower, upper = model._lower, model._upper
-    model._n_points = model._n_occupied_points = 0
+    model._n_points = model._n_occupied_points = model._n_free_samples = 0
     try:
         obs = observations_from_scans(model._scans, b.free_step, b.hit_margin, b.no_return_cap, free_cube=b.free_cube(model._dim))
         points, occupied = np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool)
@@ -511,7 +517,13 @@ def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:
         weights = None
     model._add_points(points, occupied, scans=scans, weights=weights)
     model._lower, model._upper = lower, upper
-    now = (model._n_points, model._n_occupied_points, set(model._tiles_with_points), len(model._block_points))
+    now = (
+        model._n_points,
+        model._n_occupied_points,
+        set(model._tiles_with_points),
+        len(model._block_points),
+        model._n_free_samples,
+    )
     if now != saved or any(bp.arrays()[0].shape[0] != n for bp, n in blocks):
         raise _StateError(
             f"the scans saved give {now[0]} labelled points in {now[3]} blocks; the map was fitted on {saved[0]} in {saved[3]}"
