@@ -18,7 +18,8 @@ Two kinds of case:
 - **Held out** (the shared 3-D data): la3dm ``sim_structured`` and ``sim_unstructured`` (12 scans,
   ``--max-range 8``; every 4th scan held out), 3DMatch's five frames (``--stride 4``; the 4th,
   ``frame-000116``, held out; ``3dmatch-full``: every pixel, the free samples merged) and a 16-beam lidar simulated at 12 poses in OctoMap's ``geb079.bt``
-  (``benchmarks/volume_quality.py``'s; every 4th held out). Test points are the held-out rays' hits
+  (``benchmarks/volume_quality.py``'s; every 4th held out; ``geb079-dense``: a 128-beam lidar, 1024
+  azimuths, whose free samples are merged). Test points are the held-out rays' hits
   and free points every 0.1 m along them to 0.1 m short of the hit
   (:func:`gpomap.evaluation.test_points`), drawn uniformly (at most ``--max-test``): natural
   frequencies, never class-balanced. Boundary points lie within 0.5 m of a held-out hit.
@@ -97,7 +98,7 @@ RESOLUTION: float = 0.1
 #: Every held-out case holds out every 4th scan (the 4th, 8th, ...).
 HOLDOUT_PERIOD: int = 4
 SIM_CASES = ("office", "office-noisy", "storeroom", "office-vga")
-HELD_OUT_CASES = ("sim_structured", "sim_unstructured", "3dmatch", "3dmatch-full", "geb079")
+HELD_OUT_CASES = ("sim_structured", "sim_unstructured", "3dmatch", "3dmatch-full", "geb079", "geb079-dense")
 #: Pixels of the simulated scenes' frames: the usual cases', a depth camera's full resolution.
 IMAGE = (160, 120)
 VGA_IMAGE = (640, 480)
@@ -225,16 +226,26 @@ def match_case(name: str, resolution: float, max_test: int) -> Case:
     return held_out_case(name, command, read_as_cli(command, resolution), max_test, None, {})
 
 
-def geb079_case(max_test: int, workdir: Path) -> Case:
-    """The simulated lidar in geb079.bt (``benchmarks/volume_quality.py``'s), as in-memory clouds:
-    no file format holds them, so the command line only sets the options (``--max-range 10``)."""
+#: The dense lidar of ``geb079-dense``: azimuths, beams and half the vertical field of view
+#: (degrees) of a 128-beam sensor, whose sweeps make millions of free samples and are merged.
+DENSE_LIDAR = (1024, 128, 22.5)
+
+
+def geb079_case(max_test: int, workdir: Path, dense: bool = False) -> Case:
+    """The simulated lidar in geb079.bt (``benchmarks/volume_quality.py``'s; with `dense`, a
+    128-beam one, :data:`DENSE_LIDAR`), as in-memory clouds: no file format holds them, so the
+    command line only sets the options (``--max-range 10``)."""
     sys.path.insert(0, str(Path(__file__).parent))
     from gpomap.io.octomap import load_pyoctomap_tree
     from volume_quality import corridor_poses, simulate_lidar
 
     tree, _, _ = load_pyoctomap_tree(DATA / "octomap" / "geb079.bt")
-    clouds = [simulate_lidar(tree, p) for p in corridor_poses(tree)]
-    return held_out_case("geb079", [str(workdir), "--max-range", "10"], clouds, max_test, 10.0, {"lidar": "360 x 16 beams, 10 m"})
+    n_az, n_el, fov = DENSE_LIDAR if dense else (360, 16, 15.0)
+    clouds = [simulate_lidar(tree, p, n_az, n_el, fov) for p in corridor_poses(tree)]
+    name = "geb079-dense" if dense else "geb079"
+    return held_out_case(
+        name, [str(workdir), "--max-range", "10"], clouds, max_test, 10.0, {"lidar": f"{n_az} x {n_el} beams, 10 m"}
+    )
 
 
 # --------------------------------------------------------------------------- the maps
@@ -541,8 +552,8 @@ def make_cases(names: Sequence[str], workdir: Path, resolution: float, max_truth
             case = la3dm_case(name, resolution, max_test)
         elif name in ("3dmatch", "3dmatch-full"):
             case = match_case(name, resolution, max_test)
-        elif name == "geb079":
-            case = geb079_case(max_test, workdir)
+        elif name in ("geb079", "geb079-dense"):
+            case = geb079_case(max_test, workdir, dense=name == "geb079-dense")
         else:
             raise SystemExit(f"unknown case {name!r}; the cases are {', '.join(SIM_CASES + HELD_OUT_CASES)}")
         case.info["prepare_s"] = time.perf_counter() - t
