@@ -508,6 +508,8 @@ def _merged_samples(
                 sample[a] = origins[r, a] + dist * directions[r, a]
                 q = np.int64(math.floor((sample[a] - origins[0, a]) / cube)) + _CUBE_OFFSET
                 key = (key << 21) | q
+            # Fibonacci hashing: the key times 2^64 / golden ratio, its top bits (neighbouring
+            # cubes' keys differ in their low bits, which a plain mask would keep together).
             h = (key * np.int64(-7046029254386353131)) >> (64 - bits) & ((1 << bits) - 1)
             while keys[h] != -1 and keys[h] != key:
                 h = (h + 1) & ((1 << bits) - 1)
