@@ -285,3 +285,25 @@ def test_a_clouds_valid_rays_are_its_finite_endpoints_away_from_the_origin(monke
     if compiled:
         assert _compiled_clouds.valid_rays(points, origin) is not None
         assert _compiled_clouds.valid_rays(points[:10], origin) is None  # a few rays: numpy's answer
+
+
+def test_observations_selected_and_joined_keep_labels_scans_and_weights():
+    from gpomap.observations import Observations
+
+    pts = np.arange(12.0).reshape(6, 2)
+    a = Observations(
+        pts, np.array([0, 1, 0, 0, 1, 0], bool), np.array([0, 0, 1, 1, 2, 2]), 3, 1, weight=np.arange(1, 7, dtype=np.int32)
+    )
+    part = a.selected(np.array([True, False, True, True, False, False]))
+    np.testing.assert_array_equal(part.points, pts[[0, 2, 3]])
+    np.testing.assert_array_equal(part.weight, [1, 3, 4])
+    np.testing.assert_array_equal(part.scan_index, [0, 1, 1])
+    assert part.n_invalid == 3 and part.n_no_return == 1
+    both = Observations.joined([part, a.selected(np.array([5]))], 2)
+    np.testing.assert_array_equal(both.points, pts[[0, 2, 3, 5]])
+    np.testing.assert_array_equal(both.weight, [1, 3, 4, 6])
+    np.testing.assert_array_equal(both.occupied, [False, False, False, False])
+    unweighted = Observations(pts[:1], np.array([True]), np.array([7]))
+    assert Observations.joined([part, unweighted], 2).weight is None
+    empty = Observations.joined([], 3)
+    assert empty.points.shape == (0, 3) and empty.weight is None

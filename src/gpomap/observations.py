@@ -86,6 +86,20 @@ class Observations:
         """GP targets: +1 for occupied, -1 for free, ndarray of shape (n,)."""
         return np.where(self.occupied, 1.0, -1.0)
 
+    @classmethod
+    def joined(cls, parts: Sequence[Observations], dim: int) -> Observations:
+        """The points of `parts` one after another, with their labels, scans and weights (none
+        unless every part has them); empty points of `dim` dimensions without parts."""
+        if not parts:
+            return cls(np.zeros((0, dim)), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int32))
+        weights = [p.weight for p in parts]
+        return cls(
+            np.concatenate([p.points for p in parts]),
+            np.concatenate([p.occupied for p in parts]),
+            np.concatenate([p.scan_index for p in parts]),
+            weight=None if any(w is None for w in weights) else np.concatenate(weights),  # type: ignore[arg-type]
+        )
+
     def selected(self, keep: NDArray[np.bool_] | NDArray[np.intp]) -> Observations:
         """The points `keep` selects (a mask of shape (n,) or indices), with their labels, scans
         and weights; the reading counts kept."""
@@ -710,16 +724,7 @@ class ScanPoints:
             inside = in_box(p.points, lo, hi)
             cut.append(p.selected(inside))
             del p, inside
-        d = self.scan_lower.shape[1]
-        if not cut:
-            return Observations(np.zeros((0, d)), np.zeros(0, dtype=bool), np.zeros(0, dtype=np.int32))
-        weights = [c.weight for c in cut]
-        return Observations(
-            np.concatenate([c.points for c in cut]),
-            np.concatenate([c.occupied for c in cut]),
-            np.concatenate([c.scan_index for c in cut]),
-            weight=None if any(w is None for w in weights) else np.concatenate(weights),  # type: ignore[arg-type]
-        )
+        return Observations.joined(cut, self.scan_lower.shape[1])
 
 
 def natural_subsample(n_points: int, n: int, seed: int) -> NDArray[np.intp]:

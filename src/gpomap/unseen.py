@@ -117,7 +117,7 @@ class _MadePoints:
             return
         for part in source.parts(scans.tolist()):
             inside = in_box(part.points, box_lo, box_hi)
-            yield Observations(rows(part.points, inside), part.occupied[inside], part.scan_index[inside])
+            yield part.selected(inside)
 
 
 def _source(observations: Observations | ScanPoints | PointSource) -> PointSource:
@@ -151,14 +151,14 @@ def region_observations(
     Observations
     """
     grown = _from_kept(obs.scan_index, kept) & _in_square(obs.points, lo, hi, clearance)
-    return _cleared(Observations(rows(obs.points, grown), obs.occupied[grown], obs.scan_index[grown]), lo, hi, clearance)
+    return _cleared(obs.selected(grown), lo, hi, clearance)
 
 
 def _cleared(grown: Observations, lo: NDArray[np.float64], hi: NDArray[np.float64], clearance: float) -> Observations:
     """Of points in the square `lo`..`hi` grown by `clearance`, those in the square that the
     clearance keeps (:func:`region_observations`)."""
     keep = ~free_near_hits(grown.points, grown.occupied, clearance) & _in_square(grown.points, lo, hi)
-    return Observations(rows(grown.points, keep), grown.occupied[keep], grown.scan_index[keep])
+    return grown.selected(keep)
 
 
 def _square_parts(
@@ -183,12 +183,7 @@ def _kept_region(
     A held-in GP files the points under the same blocks, each block's in the order they come,
     so the parts may come block by block: each block's points are still in the log's order."""
     cut = list(_square_parts(source, lo, hi, clearance, among=kept))
-    d = source.lower.size
-    grown = Observations(
-        np.concatenate([c.points for c in cut]) if cut else np.zeros((0, d)),
-        np.concatenate([c.occupied for c in cut]) if cut else np.zeros(0, dtype=bool),
-        np.concatenate([c.scan_index for c in cut]) if cut else np.zeros(0, dtype=np.int32),
-    )
+    grown = Observations.joined(cut, source.lower.size)
     del cut
     return _cleared(grown, lo, hi, clearance)
 
