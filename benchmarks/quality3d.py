@@ -27,8 +27,8 @@ Two kinds of case:
 Maps, each at ``--resolution`` (0.1 m, ``gpomap map``'s default), from the same training scans:
 
 - ``gpomap``: read and built exactly as ``gpomap map INPUT -o OUT [options]`` does
-  (:func:`gpomap.cli.map3d.load_clouds`, :func:`~gpomap.cli.map3d.model_from_args`, its
-  defaults), and the voxel map it writes over the data's extent (``map.npz``), looked up at the
+  (:func:`gpomap.cli.map3d.load_clouds`, :func:`~gpomap.cli.map3d.unfitted_model`, its
+  defaults), and the voxel map it writes over the fitted blocks' kept points (``map.npz``), looked up at the
   scored points: the map a user gets, not exact-point predictions. Its ternary map is the one
   ``map.bt`` holds: occupied where the ternary layer says so and a ray went
   (:attr:`gpomap.voxels.VoxelMap.observed`);
@@ -263,19 +263,21 @@ def _voxel_lookup(voxel_map: Any, occupied: NDArray[np.bool_]) -> Lookup:
 
 
 def build_gpomap(case: Case, resolution: float) -> tuple[Lookup, dict[str, Any]]:
-    """The map ``gpomap map`` writes from the case's training scans (as ``cmd_map3d`` builds it)."""
+    """The map ``gpomap map`` writes from the case's training scans, built as it builds it
+    (:func:`gpomap.cli.map3d.run`: the model of its options, fitted, its voxel grid over the
+    fitted blocks' kept points)."""
     from gpomap.apps.map3d import voxel_bounds
-    from gpomap.cli.map3d import model_from_args
+    from gpomap.cli.map3d import unfitted_model
     from gpomap.compiled import compile_time
     from gpomap.lattice import bounds_extent
 
     args = cli_args(case.command, resolution)
     with compile_time() as compiling:
         t0 = time.perf_counter()
-        model, obs, _ = model_from_args(args, case.train)
-        lo, hi = voxel_bounds(obs.points, args.extent, args.z_range, args.resolution)
+        model = unfitted_model(args)
         model.fit(case.train)
         t1 = time.perf_counter()
+        lo, hi = voxel_bounds(np.array(model.kept_bounds_), args.extent, args.z_range, args.resolution)
         voxel_map = model.grid(args.resolution, bounds_extent(lo, hi))
         t2 = time.perf_counter()
     occupied = (voxel_map.ternary == OCCUPIED) & voxel_map.seen

@@ -1,8 +1,8 @@
 """3-D scans for a map: which inputs hold them, reading and thinning clouds, the model and its voxel bounds.
 
 ``gpomap map`` on point clouds and depth frames (:mod:`gpomap.cli.map3d`) builds its model with
-:func:`build_model`, and benchmarks build theirs with it too, so that both are the very model the
-command fits.
+:func:`new_model`, and benchmarks build theirs through the command's own options
+(:func:`gpomap.cli.map3d.unfitted_model`), so that both are the very model the command fits.
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ __all__ = [
     "enclosing_box",
     "labelled_box",
     "new_model",
-    "build_model",
 ]
 
 
@@ -316,31 +315,3 @@ def new_model(tile_options: dict[str, Any] | None = None, **model_options: Any) 
     from gpomap.mapping import AreaGPOM
 
     return AreaGPOM(**(tile_options or {}), **model_options)
-
-
-def build_model(
-    clouds: Sequence[CloudScan], tile_options: dict[str, Any] | None = None, **model_options: Any
-) -> tuple[Any, Any, Any]:
-    """The unfitted 3-D model for `clouds` (local GPs in x, y columns of tiles), with what the checks need.
-
-    Parameters
-    ----------
-    clouds : sequence of CloudScan
-    tile_options : dict, optional
-        Tiling arguments of :class:`~gpomap.mapping.AreaGPOM` (tile_size, n_workers, ...).
-    **model_options
-        Its map settings (:class:`~gpomap.settings.MapSettings`).
-
-    Returns
-    -------
-    model : AreaGPOM
-    observations : Observations
-        The labelled points of the clouds (for the extent and the memory checks).
-    cells : Cells
-        The cell tree over them, as one block (for the memory checks; the fit cuts it per tile).
-    """
-    from gpomap.settings import MapSettings
-
-    settings = MapSettings(**model_options)
-    obs = settings.make_observations(list(clouds))
-    return new_model(tile_options, **model_options), obs, settings.make_cells(obs)

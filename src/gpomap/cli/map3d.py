@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from gpomap.apps.map3d import build_model, enclosing_box, labelled_box, new_model, read_selected_clouds, voxel_bounds
+from gpomap.apps.map3d import enclosing_box, labelled_box, new_model, read_selected_clouds, voxel_bounds
 from gpomap.cli.common import EXIT_OK, Run, bound_source, check_voxel_memory, print_map_summary, report_fit, status
 from gpomap.cli.input_options import cloud_reader_options
 from gpomap.cli.model_options import map_config, tiling_config
@@ -31,7 +31,7 @@ from gpomap.clouds import CloudScan
 from gpomap.config import PROFILES
 from gpomap.errors import GpomapError
 
-__all__ = ["apply_3d_defaults", "load_clouds", "model_from_args", "unfitted_model", "run"]
+__all__ = ["apply_3d_defaults", "load_clouds", "unfitted_model", "run"]
 
 #: Options of ``gpomap map`` that only 2-D inputs take, refused on clouds with this reason.
 _TWO_D_ONLY = {
@@ -54,11 +54,6 @@ def load_clouds(args: argparse.Namespace) -> list[CloudScan]:
 def unfitted_model(args: argparse.Namespace) -> Any:
     """The unfitted model of a parsed ``gpomap map`` command line on 3-D input (:func:`gpomap.apps.map3d.new_model`)."""
     return new_model(tiling_config(args).kwargs(), **map_config(args).kwargs())
-
-
-def model_from_args(args: argparse.Namespace, clouds: Sequence[CloudScan]) -> tuple[Any, Any, Any]:
-    """:func:`gpomap.apps.map3d.build_model` with the options of a parsed ``gpomap map`` command line."""
-    return build_model(clouds, tiling_config(args).kwargs(), **map_config(args).kwargs())
 
 
 def _check_options(args: argparse.Namespace) -> None:
