@@ -141,6 +141,14 @@ def beam_free_points(
     return ray_free_points(origins, np.column_stack([np.cos(a), np.sin(a)]), lengths, step)
 
 
+def sample_counts(lengths: ArrayLike, step: float) -> NDArray[np.intp]:
+    """How many free samples each ray holds: those at ``step, 2 step, ...`` up to its length,
+    shape (b,) of `lengths` (b,); a negative length holds none.
+
+    A tiny slack keeps a sample that lands exactly on the limit despite rounding."""
+    return np.floor(np.maximum(np.asarray(lengths, dtype=float), 0.0) / step + 1e-9).astype(np.intp)
+
+
 def ray_free_points(
     origins: NDArray[np.float64],
     directions: NDArray[np.float64],
@@ -169,9 +177,7 @@ def ray_free_points(
     if not step > 0:
         raise ValueError(f"free-point step must be positive, got {step}")
     lengths = np.maximum(np.asarray(lengths, dtype=float), 0.0)
-    # Points at step, 2 step, ..., floor(length / step) * step; a tiny slack keeps a
-    # sample that lands exactly on the limit despite rounding.
-    counts = np.floor(lengths / step + 1e-9).astype(np.intp)
+    counts = sample_counts(lengths, step)
     if _compiled_raycast.ENABLED:
         return _compiled_raycast.free_samples(np.asarray(origins, dtype=float), np.asarray(directions, dtype=float), counts, step)
     total = int(counts.sum())
@@ -241,8 +247,7 @@ def merged_ray_free_points(
     """
     lengths = np.maximum(np.asarray(lengths, dtype=float), 0.0)
     origins = np.broadcast_to(np.asarray(origins, dtype=float), np.shape(directions))
-    # The samples per ray, as ray_free_points counts them.
-    counts = np.floor(lengths / step + 1e-9).astype(np.intp)
+    counts = sample_counts(lengths, step)
     few = lengths.size == 0 or int(counts.sum()) < MERGE_MIN_SAMPLES
     if few or float(lengths.max()) / cube >= _compiled_raycast._CUBE_OFFSET - 1:
         points, _ = ray_free_points(origins, directions, lengths, step)

@@ -211,11 +211,13 @@ def enclosing_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[
 
 def _free_samples_along(rays: Rays, settings: MapSettings) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
     """How far along each ray its free samples may go (at least 0) and how many it holds (those at
-    a step, two, ...: :func:`gpomap.observations.ray_free_points`' count), each shape (b,)."""
+    a step, two, ...: :func:`gpomap.observations.sample_counts`), each shape (b,)."""
+    from gpomap.observations import sample_counts
+
     step = float(settings.free_step)
     margin = 0.5 * step if settings.hit_margin is None else float(settings.hit_margin)
     reach = np.maximum(rays.free_lengths(margin, settings.no_return_cap), 0.0)
-    return reach, np.floor(reach / step + 1e-9).astype(np.intp)
+    return reach, sample_counts(reach, step)
 
 
 def labelled_box(clouds: Sequence[CloudScan], **model_options: Any) -> NDArray[np.float64]:
