@@ -27,7 +27,7 @@ from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
 from gpomap.errors import EmptyDataError
 from gpomap.lattice import box_index, box_shape, column_bounds, in_box, rows
-from gpomap.scans import Scan
+from gpomap.scans import Scan, beyond_range, usable_ranges
 
 #: What the map is made from: planar scans (2-D) or point clouds (3-D), one kind at a time.
 ScanData = Sequence[Scan | CloudScan]
@@ -378,7 +378,13 @@ class Rays:
         r = scan.ranges[valid]
         directions, ends = _beam_geometry(scan.pose[0], scan.pose[1], scan.pose[2] + scan.angles[valid], r)
         return cls(
-            scan.pose[:2], directions, r, ends, ~(r >= scan.max_range), scan.max_range, int(valid.size - np.count_nonzero(valid))
+            scan.pose[:2],
+            directions,
+            r,
+            ends,
+            ~beyond_range(r, scan.max_range),
+            scan.max_range,
+            int(valid.size - np.count_nonzero(valid)),
         )
 
     @property
@@ -432,13 +438,12 @@ class PlanarBeams:
         poses = np.array([s.pose for s in scans], dtype=float).reshape(-1, 3)
         ranges = np.concatenate([s.ranges for s in scans]) if scans else np.zeros(0)
         angles = np.concatenate([s.angles for s in scans]) if scans else np.zeros(0)
-        with np.errstate(invalid="ignore"):
-            valid = np.isfinite(ranges) & (ranges > 0)
+        valid = usable_ranges(ranges)
         scan = np.repeat(np.arange(len(scans), dtype=np.intp), sizes)[valid]
         r = ranges[valid]
         x, y, theta = (poses[:, k][scan] for k in range(3))
         directions, ends = _beam_geometry(x, y, theta + angles[valid], r)
-        hit = ~(r >= np.array([s.max_range for s in scans], dtype=float)[scan])
+        hit = ~beyond_range(r, np.array([s.max_range for s in scans], dtype=float)[scan])
         return cls(np.column_stack([x, y]), directions, r, ends, hit, scan)
 
 

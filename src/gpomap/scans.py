@@ -16,6 +16,20 @@ from numpy.typing import NDArray
 from gpomap.errors import InputFormatError
 
 
+def usable_ranges(ranges: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Which readings are usable at all (finite and positive), of any shape: :meth:`Scan.valid`'s
+    rule, for one scan's ranges or many scans' joined."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(ranges) & (ranges > 0)
+
+
+def beyond_range(ranges: NDArray[np.float64], max_range: float | NDArray[np.float64]) -> NDArray[np.bool_]:
+    """Which readings lie at or beyond the maximum range (no return), of any shape; `max_range`
+    a number or one per reading: :meth:`Scan.no_return`'s rule before the validity test."""
+    with np.errstate(invalid="ignore"):
+        return ranges >= max_range
+
+
 @dataclass(frozen=True)
 class Scan:
     """One planar laser scan.
@@ -70,14 +84,11 @@ class Scan:
 
     def valid(self) -> NDArray[np.bool_]:
         """Mask of readings that are usable at all (finite and positive), shape (n,)."""
-        r = self.ranges
-        with np.errstate(invalid="ignore"):
-            return np.isfinite(r) & (r > 0)
+        return usable_ranges(self.ranges)
 
     def no_return(self) -> NDArray[np.bool_]:
         """Mask of valid readings at or beyond the maximum range, shape (n,)."""
-        with np.errstate(invalid="ignore"):
-            return self.valid() & (self.ranges >= self.max_range)
+        return self.valid() & beyond_range(self.ranges, self.max_range)
 
     def endpoints(self) -> NDArray[np.float64]:
         """Beam end points in the map frame for every beam, ndarray of shape (n, 2).

@@ -30,6 +30,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from gpomap.scans import usable_ranges
+
 __all__ = ["NoReturnCode", "NoReturnDecision", "detect_no_return_code", "decide_max_range", "TOLERANCE"]
 
 #: Readings at or above ``code - TOLERANCE`` (metres) are no-return once a code is found.
@@ -139,8 +141,7 @@ class NoReturnDecision:
 
 def _valid(ranges: ArrayLike) -> NDArray[np.float64]:
     r = np.asarray(ranges, dtype=float).reshape(-1)
-    with np.errstate(invalid="ignore"):
-        return r[np.isfinite(r) & (r > 0)]
+    return r[usable_ranges(r)]
 
 
 def _rounded(r: NDArray[np.float64]) -> NDArray[np.float64]:
