@@ -512,7 +512,7 @@ def test_update_equals_batch_in_3d(monkeypatch, merged):
     assert sorted(batch.tiles_) == sorted(inc.tiles_)
     for k in batch._blocks:
         np.testing.assert_array_equal(inc._blocks[k].counts, batch._blocks[k].counts)
-    heaviest = max(int(block.weights().max()) for block in batch._block_points.values())
+    heaviest = max(int(block.weighted_arrays()[2].max()) for block in batch._block_points.values())
     assert (heaviest > 1) == merged
     pts = np.random.default_rng(3).uniform([0.0, 0.0, 0.0], [6.0, 4.0, 2.5], (500, 3))
     np.testing.assert_allclose(inc.predict_proba_gp(pts), batch.predict_proba_gp(pts), rtol=0, atol=1e-10)
@@ -542,7 +542,7 @@ def test_merged_3d_points_waiting_in_a_file_map_as_those_held_in_memory(monkeypa
     for k in held._blocks:
         np.testing.assert_array_equal(spilled._blocks[k].lower, held._blocks[k].lower)
         np.testing.assert_array_equal(spilled._blocks[k].counts, held._blocks[k].counts)
-        weights = held._block_points[k].weights()
+        weights = held._block_points[k].weighted_arrays()[2]
         assert weights is not None and weights.max() > 1
     assert sum(b.counts.sum() for b in held._blocks.values()) > held._n_points
     pts = np.random.default_rng(3).uniform([0.0, 0.0, 0.0], [6.0, 4.0, 2.5], (300, 3))

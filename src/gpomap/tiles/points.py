@@ -175,10 +175,6 @@ class _BlockPoints:
         points, occupied, _ = self.weighted_arrays()
         return points, occupied
 
-    def weights(self) -> NDArray[np.int32] | None:
-        """How many samples each of the block's points stands for, shape (n,); None: one each."""
-        return self.weighted_arrays()[2]
-
     def weighted_arrays(self) -> Part:
         """The block's points, their labels and weights (:data:`Part`), in arrival order."""
         if any(isinstance(p, _SpilledPart) for p in self._parts):
