@@ -499,13 +499,17 @@ def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:
     from gpomap.observations import observations_from_scans
 
     b = model.base
-    saved = (
-        model._n_points,
-        model._n_occupied_points,
-        set(model._tiles_with_points),
-        len(model._block_points),
-        model._n_free_samples,
-    )
+
+    def filed() -> tuple[int, int, set[int], int, int]:
+        return (
+            model._n_points,
+            model._n_occupied_points,
+            set(model._tiles_with_points),
+            len(model._block_points),
+            model._n_free_samples,
+        )
+
+    saved = filed()
     lower, upper = model._lower, model._upper
     model._n_points = model._n_occupied_points = model._n_free_samples = 0
     try:
@@ -517,13 +521,7 @@ def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:
         weights = None
     model._add_points(points, occupied, scans=scans, weights=weights)
     model._lower, model._upper = lower, upper
-    now = (
-        model._n_points,
-        model._n_occupied_points,
-        set(model._tiles_with_points),
-        len(model._block_points),
-        model._n_free_samples,
-    )
+    now = filed()
     if now != saved or any(bp.arrays()[0].shape[0] != n for bp, n in blocks):
         raise _StateError(
             f"the scans saved give {now[0]} labelled points in {now[3]} blocks; the map was fitted on {saved[0]} in {saved[3]}"
