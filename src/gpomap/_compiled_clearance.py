@@ -209,13 +209,14 @@ def near_hits(
     pad = coarsest
     hit_box = box_index(hit_points, lo, scale, shape, pad)
     per_box = np.bincount(hit_box, minlength=math.prod(shape))
-    # Finer boxes while a box that holds hits would hold more than DENSE_HITS on average (a
-    # surface's hits per box fall with the square of the side) and the lattice fits the budget.
+    # Finer boxes, where the samples asked outnumber the hits, while a box that holds hits would
+    # hold more than DENSE_HITS on average (a surface's hits per box fall with the square of the
+    # side) and the lattice fits the budget.
     dense = hit_points.shape[0] / max(int(np.count_nonzero(per_box)), 1)
     asked = free_points.shape[0] - (0 if skip is None else int(np.count_nonzero(skip)))
     per_clearance = coarsest
-    for finer in BOXES_PER_CLEARANCE[1:]:
-        if dense * (coarsest / per_clearance) ** (dim - 1) <= DENSE_HITS or asked < hit_points.shape[0]:
+    for finer in BOXES_PER_CLEARANCE[1:] if asked >= hit_points.shape[0] else ():
+        if dense * (coarsest / per_clearance) ** (dim - 1) <= DENSE_HITS:
             break
         finer_scale = finer / (clearance * (1.0 + SIDE_MARGIN))
         finer_shape = box_shape(lo, hi, finer_scale, finer)
