@@ -94,12 +94,15 @@ def child(experiment: str, method: str, kernel: str, size: str, threads: int, re
     """Fit and predict one case in this process; timings of each run, on the compiled path and the reference."""
     from threadpoolctl import threadpool_limits
 
-    threadpool_limits(limits=threads)
     from gpomap import _compiled_line
     from gpomap.benchmark import ROOMS_RANGE, WARMUP_SCANS, _belgioioso, _synthetic
     from gpomap.evaluation import make_model, test_points
     from gpomap.io import read_scans
     from gpomap.metrics import roc_auc
+
+    # After the imports: a cap reaches only the libraries loaded when it is set, and scipy's
+    # OpenBLAS comes with gpomap's imports.
+    threadpool_limits(limits=threads)
 
     if experiment == "synthetic":
         train, test, _, _ = _synthetic(0)

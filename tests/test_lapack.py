@@ -94,3 +94,49 @@ def test_threads_factorising_at_once_get_the_factors_of_one_thread():
         t.join()
     for a, b in zip(alone, together):
         np.testing.assert_array_equal(a, b)
+
+
+def _blas_threads():
+    """{library path: threads} of this process's BLAS libraries, as threadpoolctl reads them now."""
+    controller = lapack.blas_controller()
+    return {lib.filepath: lib.num_threads for lib in controller.select(user_api="blas").lib_controllers}
+
+
+def _two_libraries():
+    """numpy's and scipy's BLAS library paths where the wheels brought one each, else skip."""
+    pytest.importorskip("threadpoolctl")
+    paths = list(_blas_threads())
+    numpy_own = [p for p in paths if lapack._belongs_to(p, "numpy")]
+    scipy_own = [p for p in paths if lapack._belongs_to(p, "scipy")]
+    if len(numpy_own) != 1 or len(scipy_own) != 1:
+        pytest.skip("numpy and scipy do not each bring a BLAS library of their own here")
+    return numpy_own[0], scipy_own[0]
+
+
+def test_blas_on_gives_the_threads_to_one_library_and_one_to_the_other():
+    numpy_lib, scipy_lib = _two_libraries()
+    controller = lapack.blas_controller()
+    with controller.limit(limits=2):
+        before = _blas_threads()
+        threads = min(2, lapack.available_cores())
+        with lapack.blas_on("scipy"):
+            assert _blas_threads() == {scipy_lib: threads, numpy_lib: 1}
+        assert _blas_threads() == before
+        with lapack.blas_on("numpy"):
+            assert _blas_threads() == {numpy_lib: threads, scipy_lib: 1}
+        assert _blas_threads() == before
+
+
+def test_blas_on_keeps_a_cap_of_one_thread():
+    # OMP_NUM_THREADS=1 or a worker's limit: neither library gets more than it had.
+    numpy_lib, scipy_lib = _two_libraries()
+    with lapack.blas_controller().limit(limits=1), lapack.blas_on("scipy"):
+        assert _blas_threads() == {scipy_lib: 1, numpy_lib: 1}
+
+
+def test_a_library_is_told_by_the_package_that_brought_it(tmp_path):
+    numpy_dirs = lapack._package_dirs("numpy")
+    assert lapack._belongs_to(str(numpy_dirs[1] / "libopenblas.so"), "numpy")
+    assert lapack._belongs_to(str(numpy_dirs[0] / "_core" / "x.so"), "numpy")
+    assert not lapack._belongs_to(str(tmp_path / "libopenblas.so"), "numpy")
+    assert not lapack._belongs_to(str(lapack._package_dirs("scipy")[1] / "libopenblas.so"), "numpy")

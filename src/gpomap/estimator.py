@@ -24,6 +24,7 @@ from gpomap.fitted import FittedMap, GPHyperparameters, MapAnswers, as_points
 from gpomap.gp import SupportGP
 from gpomap.grid import DEFAULT_THRESHOLDS
 from gpomap.kernels.point import make_point_kernel
+from gpomap.lapack import blas_on
 from gpomap.observations import Observations, labelled_observations
 from gpomap.squash import ProbitSquash
 from gpomap.stages import CalibratedMoments, GPProbability
@@ -109,8 +110,9 @@ class DenseField:
         return gp.probability, var, gp.unseen
 
     def limited(self) -> contextlib.AbstractContextManager[Any]:
-        """No limit: a dense GP runs in this process with its BLAS as it is."""
-        return contextlib.nullcontext()
+        """The BLAS threads to numpy's library, whose products are most of a dense GP's prediction
+        (:func:`gpomap.lapack.blas_on`)."""
+        return blas_on("numpy")
 
     def forget_below(self, y: float) -> None:
         """Nothing to let go of: the GP's factor is its whole state."""
@@ -219,6 +221,13 @@ class GPMapEstimator(MapAnswers):
             class_weight=self.class_weight,
             objective_per_input=self.objective_per_input,
         )
+
+    @staticmethod
+    def _fit_gp(gp: SupportGP, X: Any, y: NDArray[np.float64]) -> None:
+        """Fit the dense GP on inputs `X` (n of them) and targets `y` (n,), the BLAS threads on the
+        library its factorisations run in (:func:`gpomap.lapack.blas_on`)."""
+        with blas_on("scipy"):
+            gp.fit(X, y)
 
     def _field(self) -> DenseField:
         """The GP under the fitted map (a subclass that answers otherwise gives its own field)."""

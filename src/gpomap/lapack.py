@@ -8,7 +8,7 @@ called through :mod:`ctypes`, which lets go of the GIL for the call: the same nu
 as scipy's wrappers give (``tests/test_lapack.py``).
 
 Also here: how many threads BLAS runs (:func:`blas_limited`), so that a process's threads times
-BLAS's never exceed the cores.
+BLAS's never exceed the cores, and which of numpy's and scipy's BLAS gets them (:func:`blas_on`).
 
 Every routine works in place on Fortran-ordered arrays (a symmetric C-ordered matrix passes as its
 own transpose) and returns LAPACK's ``info``; the lower triangle is the one read and written.
@@ -18,9 +18,11 @@ from __future__ import annotations
 
 import ctypes
 import functools
+import importlib.util
 import os
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -192,4 +194,55 @@ def blas_limited(n: int) -> Iterator[None]:
         yield
         return
     with controller.limit(limits=max(1, int(n))):
+        yield
+
+
+@functools.lru_cache(maxsize=None)
+def _package_dirs(package: str) -> tuple[Path, ...]:
+    """Where `package`'s own shared libraries lie: its folder, and the ``<package>.libs`` beside
+    it where its wheels keep the OpenBLAS they bring."""
+    spec = importlib.util.find_spec(package)
+    if spec is None or spec.origin is None:
+        return ()
+    root = Path(spec.origin).resolve().parent
+    return root, root.parent / f"{package}.libs"
+
+
+def _belongs_to(filepath: str, package: str) -> bool:
+    """Whether the library at `filepath` is one `package` brought with it."""
+    path = Path(filepath).resolve()
+    return any(path.is_relative_to(d) for d in _package_dirs(package))
+
+
+@contextmanager
+def blas_on(package: str) -> Iterator[None]:
+    """Within the block, the BLAS threads go to the library `package` ("numpy" or "scipy") calls,
+    and every other BLAS library runs one thread.
+
+    A dense GP's work runs in one library at a time: its factorisations in scipy's (the routines
+    of this module), its predictions' products in numpy's. With both libraries at their default
+    threads each one's pool spins while the other works; with both at one thread a core idles.
+    The threads given are the most any BLAS library runs on entry, at most the cores, so a cap the
+    user set (``OMP_NUM_THREADS=1``, :func:`limit_blas_threads`) holds. With one BLAS library
+    (numpy and scipy linked to the same), or where `package`'s cannot be told apart, nothing
+    changes.
+
+    Parameters
+    ----------
+    package : {"numpy", "scipy"}
+    """
+    controller = blas_controller()
+    if controller is None:
+        yield
+        return
+    libraries = controller.select(user_api="blas").lib_controllers
+    own = [lib.filepath for lib in libraries if _belongs_to(lib.filepath, package)]
+    others = [lib.filepath for lib in libraries if lib.filepath not in own]
+    if not own or not others:
+        yield
+        return
+    threads = min(available_cores(), max(lib.num_threads for lib in libraries))
+    with ExitStack() as stack:
+        stack.enter_context(controller.select(filepath=own).limit(limits=threads))
+        stack.enter_context(controller.select(filepath=others).limit(limits=1))
         yield

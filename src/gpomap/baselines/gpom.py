@@ -145,7 +145,7 @@ class GPOM(GPMapEstimator):
         y = obs.labels[keep]
         timings["observations"] = time.perf_counter() - t
         gp = self._make_gp(self.make_kernel())
-        gp.fit(X, y)
+        self._fit_gp(gp, X, y)
         timings.update(gp.timings_)
         self.observations_ = obs
         self.kept_ = keep

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -296,7 +296,7 @@ class GPOMIK(GPMapEstimator):
         gp = self._make_gp(self.make_kernel())
         # Segments offer what SupportGP uses of its inputs (len, counts, subset); GPOMIK never
         # samples inputs for its hyperparameters, which would need cell centres.
-        gp.fit(cast("Supports", X), y)
+        self._fit_gp(gp, X, y)
         timings.update(gp.timings_)
         self.segments_ = free
         self.hits_ = hits

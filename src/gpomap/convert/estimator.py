@@ -181,7 +181,7 @@ class GridGPOM(MapSettings, GPMapEstimator):
         timings["cells"] = time.perf_counter() - t
         gp = self._make_gp(self.make_kernel())
         y = cells.labels
-        gp.fit(cells.to_supports(), y)
+        self._fit_gp(gp, cells.to_supports(), y)
         if not np.all(np.abs(y) == 1.0):
             t = time.perf_counter()
             _fit_soft_squash(gp, y, self.class_weight)
