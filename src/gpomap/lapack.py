@@ -197,7 +197,7 @@ def blas_limited(n: int) -> Iterator[None]:
         yield
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _package_dirs(package: str) -> tuple[Path, ...]:
     """Where `package`'s own shared libraries lie: its folder, and the ``<package>.libs`` beside
     it where its wheels keep the OpenBLAS they bring."""

@@ -30,7 +30,6 @@ from gpomap.kernels._compiled import MATERN32, profile_id
 from gpomap.kernels.line import PARALLEL_SIN, POINT_LENGTH, LineKernel, Segments, as_segments, concatenate_segments
 from gpomap.kernels.point import make_point_kernel
 from gpomap.scans import Scan, evenly_spaced
-from gpomap.supports import Supports
 
 #: Default quadrature per kernel: (nodes per panel, longest panel in metres). The SE needs GL
 #: along one segment only (the other is closed form); Matern along both, so fewer nodes.
