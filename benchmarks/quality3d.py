@@ -165,8 +165,11 @@ def holdout(n: int, period: int = HOLDOUT_PERIOD) -> tuple[list[int], list[int]]
 
 
 # --------------------------------------------------------------------------- cases
-def sim_case(name: str, workdir: Path, resolution: float, max_truth: int, quick: bool) -> Case:
-    """A simulated scene rendered to depth frames, written, read back as ``gpomap map`` reads them, with its truth."""
+def rendered_frames(name: str, workdir: Path, quick: bool = False) -> tuple[Any, Any, Any, Path]:
+    """A simulated scene's depth frames rendered and written as ``gpomap map`` reads a depth folder.
+
+    Returns the scene, the camera, whether the frames are noisy, and the folder (``workdir / name``).
+    """
     from gpomap import simulate3d as s3
 
     scene, poses = (s3.storeroom_scene(), s3.storeroom_poses()) if name == "storeroom" else (s3.office_scene(), s3.office_poses())
@@ -174,7 +177,14 @@ def sim_case(name: str, workdir: Path, resolution: float, max_truth: int, quick:
     camera = s3.PinholeCamera.from_fov(width, height, 60)
     noise = s3.DepthNoise() if name.endswith("-noisy") else None
     frames = s3.render_frames(scene, camera, poses, min_depth=0.3, max_depth=6.0, noise=noise, seed=1)
-    folder = s3.write_depth_frames(frames, workdir / name)
+    return scene, camera, noise, s3.write_depth_frames(frames, workdir / name)
+
+
+def sim_case(name: str, workdir: Path, resolution: float, max_truth: int, quick: bool) -> Case:
+    """A simulated scene rendered to depth frames, written, read back as ``gpomap map`` reads them, with its truth."""
+    from gpomap import simulate3d as s3
+
+    scene, camera, noise, folder = rendered_frames(name, workdir, quick)
     command = [str(folder)]
     clouds = read_as_cli(command, resolution)
     truth = s3.truth_points(scene, clouds, max_points=max_truth, seed=0)

@@ -1,7 +1,9 @@
 """3-D speed: ``gpomap map`` on the shared 3-D data against OctoMap's insertion of the same points.
 
 For each case (la3dm ``sim_structured`` and ``sim_unstructured`` with ``--max-range 8``; the five
-3DMatch depth frames at full pixel resolution, 640 x 480, and every 4th pixel, ``--stride 4``),
+3DMatch depth frames at full pixel resolution, 640 x 480, and every 4th pixel, ``--stride 4``;
+the simulated office's ten depth frames rendered at 640 x 480 and 160 x 120, ``office-vga`` and
+``office``, written to a depth folder first, as ``benchmarks/quality3d.py`` renders them),
 two kinds of fresh process, alternated, ``--repeat`` times each:
 
 - **gpomap**: the command itself, ``gpomap map INPUT -o OUT -q [options]`` with every default
@@ -62,7 +64,12 @@ CASES: dict[str, list[str]] = {
     "sim_unstructured": [str(DATA / "la3dm-sim" / "sim_unstructured"), "--max-range", "8"],
     "3dmatch": [str(DATA / "3dmatch")],
     "3dmatch-stride4": [str(DATA / "3dmatch"), "--stride", "4"],
+    "office-vga": [],
+    "office": [],
 }
+#: The cases whose input is a simulated scene's depth frames, rendered into the run's scratch
+#: folder first (:func:`quality3d.rendered_frames`); their command is that folder.
+RENDERED = ("office-vga", "office")
 TARGET_CPU = 3.0
 TARGET_MEMORY = 4.0
 
@@ -269,7 +276,13 @@ def main() -> None:
         scratch = Path(tmp)
         env = dict(os.environ, NUMBA_CACHE_DIR=str(scratch / "numba-cache"))
         for name in names:
-            command = [*CASES[name], *args.option]
+            if name in RENDERED:
+                from quality3d import rendered_frames  # the children never import it: their bases stay the same
+
+                source = [str(rendered_frames(name, scratch)[3])]
+            else:
+                source = CASES[name]
+            command = [*source, *args.option]
             warm = _timed_process([*_gpomap_command(), "map", *command, "-o", str(scratch / f"warm-{name}"), "-q"], env, scratch)
             print(f"numba's cache filled by an untimed gpomap map on {name} ({warm['cpu']:.1f} CPU s)", file=sys.stderr)
             results.append(case_runs(name, command, args.repeat, scratch, env))
