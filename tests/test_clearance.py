@@ -121,3 +121,16 @@ def test_compiled_clearance_asked_of_every_point_with_the_hits_skipped(dim: int)
     want[~occupied] = cdist(pts[~occupied], pts[occupied]).min(axis=1) < 0.3
     np.testing.assert_array_equal(got, want)
     assert got.any() and not got[~occupied].all()
+
+
+def test_hits_filed_by_box_keep_a_stable_argsorts_order() -> None:
+    # The counting sort against numpy's stable argsort: boxes in any order, many hits a box,
+    # boxes left empty.
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(5000, 3))
+    box = rng.integers(0, 40, 5000) * 3  # every third box only
+    starts = np.zeros(121, dtype=np.int64)
+    np.cumsum(np.bincount(box, minlength=120), out=starts[1:])
+    out = np.empty_like(points)
+    compiled_clearance._filed_by_box(points, box.astype(np.int64), starts, out)
+    np.testing.assert_array_equal(out, points[np.argsort(box, kind="stable")])

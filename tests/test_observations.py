@@ -287,6 +287,39 @@ def test_a_clouds_valid_rays_are_its_finite_endpoints_away_from_the_origin(monke
         assert _compiled_clouds.valid_rays(points[:10], origin) is None  # a few rays: numpy's answer
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_clouds_rays_are_its_valid_endpoints_their_directions_and_lengths(monkeypatch, compiled):
+    # Checked ray by ray against the geometry written out (math.hypot-free: the squares summed x
+    # first, as both paths do), on a cloud with invalid rows between the valid ones: both paths
+    # give the same bits.
+    import math
+
+    from gpomap import _compiled_clouds
+    from gpomap.observations import Rays
+
+    monkeypatch.setattr(_compiled_clouds, "ENABLED", compiled)
+    rng = np.random.default_rng(5)
+    origin = np.array([0.5, -1.0, 1.5])
+    n = 2 * _compiled_clouds.MIN_ROWS
+    points = origin + 3.0 * rng.normal(size=(n, 3))
+    points[rng.choice(n, 200, replace=False), 1] = np.nan
+    points[rng.choice(n, 200, replace=False)] = origin
+    hit = rng.random(n) < 0.9
+    rays = Rays.of(CloudScan(origin, points, hit))
+    valid = [i for i, p in enumerate(points) if np.isfinite(p).all() and np.any(p != origin)]
+    assert rays.lengths.size == len(valid) and rays.n_invalid == n - len(valid)
+    for i in valid[::97]:
+        j = valid.index(i)
+        d = [float(points[i, a] - origin[a]) for a in range(3)]
+        length = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        assert rays.lengths[j] == length
+        assert list(rays.directions[j]) == [v / length for v in d]
+        assert list(rays.ends[j]) == list(points[i]) and rays.hit[j] == hit[i]
+    if compiled:
+        assert _compiled_clouds.ray_geometry(points, origin, CloudScan(origin, points).valid()) is not None
+        assert _compiled_clouds.ray_geometry(points[:10], origin, np.ones(10, bool)) is None  # numpy's answer
+
+
 def test_observations_selected_and_joined_keep_labels_scans_and_weights():
     from gpomap.observations import Observations
 

@@ -166,6 +166,21 @@ def _mark_near(
         out[i] = found
 
 
+@jit(cache=True, nogil=True)
+def _filed_by_box(
+    points: NDArray[np.float64], box: NDArray[np.int64], starts: NDArray[np.int64], out: NDArray[np.float64]
+) -> None:  # pragma: no cover - compiled
+    """`points` (n, d) written into `out` box by box, each box's in their order (a stable counting
+    sort: the order of a stable argsort of `box`, in one pass); `starts` (boxes + 1,): where each
+    box's rows begin."""
+    at = starts[:-1].copy()
+    for i in range(points.shape[0]):
+        k = at[box[i]]
+        at[box[i]] = k + 1
+        for a in range(points.shape[1]):
+            out[k, a] = points[i, a]
+
+
 def near_hits(
     free_points: NDArray[np.float64],
     hit_points: NDArray[np.float64],
@@ -226,10 +241,10 @@ def near_hits(
     if per_clearance != coarsest:
         hit_box = box_index(hit_points, lo, scale, shape, pad)
         per_box = np.bincount(hit_box, minlength=math.prod(shape))
-    order = np.argsort(hit_box, kind="stable")
     starts = np.zeros(math.prod(shape) + 1, dtype=np.int64)
     np.cumsum(per_box, out=starts[1:])
-    hits = np.ascontiguousarray(hit_points[order], dtype=float)
+    hits = np.empty((hit_points.shape[0], dim))
+    _filed_by_box(np.ascontiguousarray(hit_points, dtype=float), hit_box, starts, hits)
     # Each box's bounding box of its hits, at the row of its first hit.
     first = starts[:-1][per_box > 0]
     hits_lo, hits_hi = np.empty_like(hits), np.empty_like(hits)

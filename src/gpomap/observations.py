@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
-from gpomap import _compiled_clearance, _compiled_raycast
+from gpomap import _compiled_clearance, _compiled_clouds, _compiled_raycast
 from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
 from gpomap.errors import EmptyDataError
@@ -367,11 +367,15 @@ class Rays:
         """The rays of a planar scan or of a point cloud."""
         if isinstance(scan, CloudScan):
             valid = scan.valid()
-            ends = rows(scan.points, valid)
-            vec = ends - scan.origin
-            length = np.sqrt((vec * vec).sum(axis=1))
             hit = np.asarray(scan.hit, dtype=bool)[valid]
-            return cls(scan.origin, vec / length[:, None], length, ends, hit, np.inf, int((~valid).sum()))
+            made = _compiled_clouds.ray_geometry(scan.points, scan.origin, valid) if _compiled_clouds.ENABLED else None
+            if made is None:
+                ends = rows(scan.points, valid)
+                vec = ends - scan.origin
+                length = np.sqrt((vec * vec).sum(axis=1))
+                made = ends, vec / length[:, None], length
+            ends, directions, length = made
+            return cls(scan.origin, directions, length, ends, hit, np.inf, int((~valid).sum()))
         # Scan.valid's, endpoints' and no_return's numbers, each worked out once: a fit asks for
         # every scan's rays in several passes.
         valid = scan.valid()
