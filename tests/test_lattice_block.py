@@ -120,6 +120,21 @@ def test_rows_selects_what_indexing_selects():
             got = lattice.rows(a, which)
             np.testing.assert_array_equal(got, a[which])
             assert got.dtype == a.dtype and got.shape == a[which].shape
+    # Runs of rows, copied as slices: a run, the whole array, a run of one row short of the
+    # end, and near-runs (a gap, a repeat, the right span but out of order, past the end).
+    a = rng.normal(size=(5000, 3))
+    run = lattice.RUN_ROWS
+    gap = np.arange(10, 10 + run + 1)
+    gap[5] = gap[4]
+    swapped = np.arange(run + 1)
+    swapped[[3, 4]] = swapped[[4, 3]]
+    for which in (np.arange(100, 100 + run), np.arange(5000), np.arange(5000 - run - 1, 4999), gap, swapped):
+        got = lattice.rows(a, which)
+        np.testing.assert_array_equal(got, a[which])
+        got[0] = np.nan  # a copy: the points are untouched
+        assert np.all(np.isfinite(a))
+    with pytest.raises(IndexError):
+        lattice.rows(a, np.arange(5000 - run + 1, 5001))
     # A mask of another length is refused, as indexing refuses it (np.compress would cut it short).
     with pytest.raises(IndexError):
         lattice.rows(np.zeros((5, 2)), np.ones(4, dtype=bool))
