@@ -499,6 +499,14 @@ def _merged_samples(
     slots = np.empty(1 << bits, dtype=np.int64)
     n = 0
     sample = np.empty(d, dtype=np.float64)
+    # The cube and row of the last ray's k-th sample: a frame's neighbouring pixels are
+    # neighbouring rays, whose samples at one distance mostly share a cube, found here without
+    # the table.
+    longest = 0
+    for r in range(counts.size):
+        longest = max(longest, counts[r])
+    last_key = np.full(longest + 1, -1, dtype=np.int64)
+    last_slot = np.empty(longest + 1, dtype=np.int64)
     for r in range(counts.size):
         for k in range(1, counts[r] + 1):
             dist = np.float64(k) * step
@@ -508,6 +516,9 @@ def _merged_samples(
                 sample[a] = origins[r, a] + dist * directions[r, a]
                 q = np.int64(math.floor((sample[a] - origins[0, a]) / cube)) + _CUBE_OFFSET
                 key = (key << 21) | q
+            if last_key[k] == key:
+                weight[last_slot[k]] += 1
+                continue
             # Fibonacci hashing: the key times 2^64 / golden ratio, its top bits (neighbouring
             # cubes' keys differ in their low bits, which a plain mask would keep together).
             h = (key * np.int64(-7046029254386353131)) >> (64 - bits) & ((1 << bits) - 1)
@@ -515,6 +526,7 @@ def _merged_samples(
                 h = (h + 1) & ((1 << bits) - 1)
             if keys[h] == key:
                 weight[slots[h]] += 1
+                last_key[k], last_slot[k] = key, slots[h]
                 continue
             if n == size:
                 size *= 2
@@ -525,6 +537,7 @@ def _merged_samples(
                 points, weight = more_points, more_weight
             keys[h] = key
             slots[h] = n
+            last_key[k], last_slot[k] = key, n
             points[n] = sample
             weight[n] = 1
             n += 1
