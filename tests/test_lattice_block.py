@@ -177,3 +177,11 @@ def test_stable_order_is_a_stable_argsort(high):
     keys = np.random.default_rng(3).integers(-1, high, 5000)
     np.testing.assert_array_equal(lattice.stable_order(keys), np.argsort(keys, kind="stable"))
     assert lattice.stable_order(np.zeros(0, dtype=np.int64)).size == 0
+
+
+def test_row_sums_are_numpys_sums_of_each_row_to_the_bit():
+    # Columns of very different sizes, where the order of the additions shows in the last bit.
+    rng = np.random.default_rng(8)
+    for d in (1, 2, 3):
+        v = rng.normal(size=(20000, d)) ** 2 * 10.0 ** rng.integers(-8, 8, size=(20000, d))
+        np.testing.assert_array_equal(lattice.row_sums(v), v.sum(axis=1))

@@ -308,8 +308,8 @@ def test_a_clouds_rays_are_its_valid_endpoints_their_directions_and_lengths(monk
     rays = Rays.of(CloudScan(origin, points, hit))
     valid = [i for i, p in enumerate(points) if np.isfinite(p).all() and np.any(p != origin)]
     assert rays.lengths.size == len(valid) and rays.n_invalid == n - len(valid)
-    for i in valid[::97]:
-        j = valid.index(i)
+    for j in range(0, len(valid), 97):
+        i = valid[j]
         d = [float(points[i, a] - origin[a]) for a in range(3)]
         length = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         assert rays.lengths[j] == length

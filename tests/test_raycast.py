@@ -104,13 +104,3 @@ def test_segments_far_from_the_grid_are_left_out_and_the_rest_walk_as_before(dim
         got = list(zip(*(j[beam == i].tolist() for j in idx), strict=True))
         assert got == exact_cells(starts[i], ends[i], shape), (i, starts[i], ends[i])
         assert near[i] or not got
-
-
-def test_row_sums_are_numpys_sums_of_each_row_to_the_bit():
-    # Columns of very different sizes, where the order of the additions shows in the last bit.
-    from gpomap.raycast import _row_sums
-
-    rng = np.random.default_rng(8)
-    for d in (1, 2, 3):
-        v = rng.normal(size=(20000, d)) ** 2 * 10.0 ** rng.integers(-8, 8, size=(20000, d))
-        np.testing.assert_array_equal(_row_sums(v), v.sum(axis=1))

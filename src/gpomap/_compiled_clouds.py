@@ -39,6 +39,12 @@ ENABLED: bool = compiled_by_default()
 MIN_ROWS: int = 4096
 
 
+def _pays(points: NDArray[np.float64]) -> bool:
+    """Whether a compiled pass over the cloud `points` (n, 3) pays and takes them as they are:
+    :data:`MIN_ROWS` rays or more, C-ordered float64."""
+    return points.shape[0] >= MIN_ROWS and points.dtype == np.float64 and bool(points.flags.c_contiguous)
+
+
 @jit(cache=True, nogil=True)
 def _valid(
     points: NDArray[np.float64], origin: NDArray[np.float64], out: NDArray[np.bool_]
@@ -57,7 +63,7 @@ def valid_rays(points: NDArray[np.float64], origin: NDArray[np.float64]) -> NDAr
     """Which rays from `origin` (3,) to `points` (n, 3) have a finite endpoint away from the
     origin, shape (n,), in one compiled pass where it pays (:data:`MIN_ROWS` rays or more, C-ordered
     float64); else None."""
-    if points.shape[0] < MIN_ROWS or points.dtype != np.float64 or not points.flags.c_contiguous:
+    if not _pays(points):
         return None
     out = np.empty(points.shape[0], dtype=np.bool_)
     _valid(points, np.ascontiguousarray(origin, dtype=np.float64), out)
@@ -91,7 +97,7 @@ def ray_geometry(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None:
     """The `valid` rays' (mask of shape (n,)) endpoints (m, 3), unit directions from `origin` (m, 3)
     and lengths (m,), in one compiled pass where it pays (as :func:`valid_rays`); else None."""
-    if points.shape[0] < MIN_ROWS or points.dtype != np.float64 or not points.flags.c_contiguous:
+    if not _pays(points):
         return None
     m = int(np.count_nonzero(valid))
     ends, directions, lengths = np.empty((m, 3)), np.empty((m, 3)), np.empty(m)

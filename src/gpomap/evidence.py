@@ -33,7 +33,18 @@ from scipy.ndimage import binary_dilation
 
 from gpomap import _compiled_counts, _compiled_raycast
 from gpomap.config import MapConfig
-from gpomap.lattice import AnyGrid, bounds_extent, column_bounds, extent_bounds, flat_index, grid_dim, grid_size, make_grid, rows
+from gpomap.lattice import (
+    AnyGrid,
+    bounds_extent,
+    column_bounds,
+    extent_bounds,
+    flat_index,
+    grid_dim,
+    grid_size,
+    make_grid,
+    row_sums,
+    rows,
+)
 from gpomap.observations import PlanarBeams, Rays, ScanData
 from gpomap.raycast import Segments, traverse
 from gpomap.robot_path import PATH_RADIUS, path_steps
@@ -329,7 +340,7 @@ class RayEvidence:
         np.floor(first, out=first)
         span -= first
         del first
-        cells_per_beam = np.abs(span, out=span).sum(axis=1) + 2
+        cells_per_beam = row_sums(np.abs(span, out=span)) + 2
         del span
         cost = np.cumsum(cells_per_beam)
         scan_of = self.scan[idx]
