@@ -704,6 +704,28 @@ def test_calibrations_take_the_gp_with_its_variance_as_a_written_map_does(half_r
     np.testing.assert_allclose(model._gp_proba_as_written(sparse)[0], model._gp_probabilities(sparse)[0], atol=1e-6)
 
 
+def test_a_voxel_maps_calibrations_take_the_gp_as_its_written_map_does_too() -> None:
+    """In 3-D too: the mean at each point, the variance interpolated trilinearly from the corners
+    of a lattice two GP samples apart on the voxels (checked against scipy's interpolator)."""
+    from scipy.interpolate import RegularGridInterpolator
+    from scipy.special import ndtr
+
+    from tests.world3d import ORIGINS, lidar_clouds
+
+    model = AreaGPOM(n_workers=1).fit(lidar_clouds(ORIGINS, n_rays=300))
+    step = fusion.variance_step(model.hyperparameters_["length_scale"], model.base.evidence_resolution_3d)
+    pts = np.random.default_rng(4).uniform([1.0, 1.0, 0.5], [5.0, 3.0, 2.0], size=(3000, 3))
+    assert model._variance_corners(pts) is not None
+    p, _ = model._gp_proba_as_written(pts)
+    axes = [np.arange(np.floor(pts[:, k].min() / step) - 1, np.ceil(pts[:, k].max() / step) + 2) * step for k in range(3)]
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    _, den_nodes, _, _ = model.blended_moments(nodes)
+    den = RegularGridInterpolator(axes, den_nodes.reshape([a.size for a in axes]))(pts)
+    num, _, _, _ = model.blended_moments(pts, variance=False)
+    np.testing.assert_allclose(p, ndtr(num / np.sqrt(1.0 + den)), atol=1e-6)
+    assert np.ptp(den) > 0
+
+
 def test_other_scans_counts_are_the_counts_without_each_points_own_scan() -> None:
     """The calibration's per-point counts equal the counts of every scan but the point's own, taken
     afresh (``counts(grid, scans=others)``) and read at the point's cell (0 off the grid)."""

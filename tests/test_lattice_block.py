@@ -72,6 +72,67 @@ def test_written_voxel_grid_predicts_the_gp_only_where_it_is_read() -> None:
     assert asked[0] == np.prod([s.stop - s.start for s in block]) < asked[1] == np.prod(sampled.shape)
 
 
+def test_written_voxel_grid_takes_the_variance_two_samples_apart() -> None:
+    """With the GP's moments, a voxel map's GP samples take the mean at every sample that is read
+    and the variance two samples apart, interpolated trilinearly (checked against scipy's
+    interpolator and a squash worked out here)."""
+    from scipy.interpolate import RegularGridInterpolator
+    from scipy.special import ndtr
+
+    from gpomap.fusion import VARIANCE_STEP_SAMPLES
+
+    rng = np.random.default_rng(1)
+    o = np.array([0.5, 0.5, 0.5])
+    ends = o + rng.normal(0.0, 0.6, (200, 3))
+    scans = [CloudScan(o, ends, hit=np.ones(len(ends), bool), max_range=3.0)]
+
+    def mean(points: np.ndarray) -> np.ndarray:
+        return np.sin(3 * points[:, 0]) + points[:, 1] * points[:, 2]
+
+    def latent_variance(points: np.ndarray) -> np.ndarray:
+        return 0.2 + 0.5 * np.cos(points[:, 0]) ** 2 + 0.3 * points[:, 2] ** 2
+
+    asked = {"mean": 0, "variance": 0}
+
+    class Moments:
+        def blended_moments(self, points: np.ndarray, variance: bool = True) -> tuple:
+            asked["variance" if variance else "mean"] += len(points)
+            v = latent_variance(points) if variance else None
+            return 2.0 * mean(points), None if v is None else 4.0 * v, mean(points), v
+
+        def squash_moments(self, num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return ndtr(num / np.sqrt(1.0 + den)), ndtr(num / np.sqrt(1.0 + 3.0 * den))
+
+        def forget_below(self, y: float) -> None:
+            pass
+
+    def never(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        raise AssertionError("the moments answer a grid")
+
+    layer = EvidenceLayer(scans, 0.1, lambda p: 1.0 / (1.0 + np.exp(-mean(p))))
+    grid = VoxelSpec.from_extent(ends.min(axis=0), ends.max(axis=0), 0.1)
+    got = layer.written_grid(grid, 1.2, never, Moments())  # 4 cells between GP samples
+    # Truth: at the samples interpolation reads, the mean there and the variance interpolated
+    # from a lattice twice as coarse; the others take the nearest read sample's values.
+    sampled = lattice.coarse(grid, 4)
+    block = lattice.interpolation_block(sampled, grid)
+    centres = lattice.grid_centres(sampled).reshape(*sampled.shape, 3)[block]
+    read = centres.reshape(-1, 3)
+    step = sampled.resolution * VARIANCE_STEP_SAMPLES
+    axes = [np.arange(read[:, k].min() - step, read[:, k].max() + 1.5 * step, step) for k in range(3)]
+    nodes = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    den = RegularGridInterpolator(axes, 4.0 * latent_variance(nodes).reshape([a.size for a in axes]))(read)
+    var = RegularGridInterpolator(axes, latent_variance(nodes).reshape([a.size for a in axes]))(read)
+    p, p_unseen = Moments().squash_moments(2.0 * mean(read), den)
+    pad = [(b.start, n - b.stop) for b, n in zip(block, sampled.shape, strict=True)]
+    spread = [np.pad(v.reshape(centres.shape[:3]), pad, mode="edge") for v in (p, var, p_unseen)]
+    want_p = layer.grid_proba(grid, lattice.interpolate(spread[0], sampled, grid), lattice.interpolate(spread[2], sampled, grid))
+    np.testing.assert_allclose(got[0], want_p, atol=1e-12)
+    np.testing.assert_allclose(got[1], lattice.interpolate(spread[1], sampled, grid), atol=1e-12)
+    assert asked["mean"] == len(read) > 2 * asked["variance"] > 0
+    assert np.ptp(den) > 0
+
+
 def test_column_bounds_are_the_least_and_greatest_of_each_column():
     rng = np.random.default_rng(2)
     for a in (rng.normal(size=(1000, 2)), rng.integers(-50, 50, size=(777, 3)), rng.normal(size=(1, 1))):

@@ -205,6 +205,10 @@ class MapSettings(MapConfig):
         """The GP's inputs: the cell tree over `obs` with these settings."""
         return build_cells(obs.points, obs.occupied, *self.cell_sides(obs.points.shape[1]), self.cell_box, obs.weight)
 
+    def counted_resolution(self, dim: int) -> float:
+        """Side of the ray counts' fine cells of a `dim`-D map, metres: the written map's default cell."""
+        return self.evidence_resolution_3d if dim == 3 else self.evidence_resolution
+
     def make_evidence(
         self,
         data: ScanData | Observations,
@@ -221,7 +225,7 @@ class MapSettings(MapConfig):
         `counted_without` (:class:`~gpomap.fusion.EvidenceLayer`)."""
         if not self.ray_evidence or isinstance(data, Observations):
             return None
-        resolution = self.evidence_resolution_3d if data_dim(data) == 3 else self.evidence_resolution
+        resolution = self.counted_resolution(data_dim(data))
         apart = gp_apart if self.fit_surprise_rate else None
         return EvidenceLayer(
             data,

@@ -178,7 +178,7 @@ class LayerGrids:
             Points of shape (m, d) to the GP's probability, its latent variance and its probability
             for unseen space, each (m,).
         moments : BlendedMoments, optional
-            The same GP's moments: a planar grid then takes the GP's variance
+            The same GP's moments: the grid then takes the GP's variance
             :data:`~gpomap.fusion.written.VARIANCE_STEP_SAMPLES` samples apart instead of
             `predict_gp` at every sample.
         """

@@ -16,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.grid import GridSpec, row_bands
-from gpomap.lattice import AnyGrid, coarse, grid_centres, grid_dim, interpolate, interpolation_block
+from gpomap.lattice import AnyGrid, coarse, grid_centres, grid_dim, interpolate, interpolation_block, make_grid
 from gpomap.resources import WRITTEN_BAND_CELLS, SpillFile, release_freed_memory
 
 #: Where ray counts give a written grid its detail, the GP under them is sampled this many times
@@ -33,15 +33,15 @@ def gp_sampling_factor(length_scale: float, resolution: float) -> int:
     return int(min(MAX_GP_STEP_CELLS, max(1, np.floor(step / resolution + 1e-9))))
 
 
-#: A planar written map's GP variance is predicted this many GP samples apart and interpolated;
-#: its mean at every sample. The variance is what a tile's prediction costs (the whitened
+#: A written map's GP variance is predicted this many GP samples apart and interpolated; its
+#: mean at every sample. The variance is what a tile's prediction costs (the whitened
 #: cross-covariances, n^2 per point against n for the mean), and it varies over the distance to
 #: the data, not over the walls' detail that the mean and the counts carry.
 VARIANCE_STEP_SAMPLES: int = 2
 
 
 def variance_step(length_scale: float, resolution: float) -> float:
-    """Metres between a planar written map's variance samples, whose cells are `resolution` apart."""
+    """Metres between a written map's variance samples, whose cells are `resolution` apart."""
     return gp_sampling_factor(length_scale, resolution) * VARIANCE_STEP_SAMPLES * resolution
 
 
@@ -72,12 +72,11 @@ def _variance_apart(moments: BlendedMoments, sampled: AnyGrid) -> tuple[NDArray[
 
 
 def _predict_block(
-    predict_gp: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], ...]],
-    centres: NDArray[np.float64],
+    predict_gp: Callable[[AnyGrid], tuple[NDArray[np.float64], ...]],
     sampled: AnyGrid,
     block: tuple[slice, ...],
 ) -> tuple[NDArray[np.float64], ...]:
-    """`predict_gp` at the centres of `block` of `sampled` only, each result of shape sampled.shape.
+    """`predict_gp` on `block` of `sampled` only, each result of shape sampled.shape.
 
     The cells outside the block (the :func:`~gpomap.lattice.coarse` lattice's outer samples,
     which the interpolation reads with weight 0 or not at all; their share is in docs/3d.md)
@@ -87,16 +86,15 @@ def _predict_block(
     Parameters
     ----------
     predict_gp : callable
-        Points (m, d) to arrays of shape (m,).
-    centres : ndarray of shape (sampled size, d)
-        `sampled`'s cell centres in row-major order (:func:`~gpomap.lattice.grid_centres`).
+        The block's cells as a grid of their own to arrays of shape (its size,), one value per
+        cell in row-major order.
     sampled : GridSpec or VoxelSpec
     block : tuple of slice
         One per array axis (:func:`~gpomap.lattice.interpolation_block`).
     """
-    d = centres.shape[1]
-    inner = centres.reshape(*sampled.shape, d)[block].reshape(-1, d)
+    first = [s.start for s in block][::-1]  # array order is coordinate order reversed (x last)
     shape = tuple(s.stop - s.start for s in block)
+    inner = make_grid(np.asarray(sampled.origin) + sampled.resolution * np.asarray(first), sampled.resolution, shape[::-1])
     pad = [(s.start, n - s.stop) for s, n in zip(block, sampled.shape, strict=True)]
     return tuple(np.pad(np.asarray(v, dtype=float).reshape(shape), pad, mode="edge").reshape(-1) for v in predict_gp(inner))
 
@@ -124,7 +122,7 @@ def gp_samples(
         Points of shape (m, d) to the GP's probability, its latent variance and its probability
         for unseen space, each (m,).
     moments : BlendedMoments, optional
-        The same GP's moments: a planar grid then takes the variance :data:`VARIANCE_STEP_SAMPLES`
+        The same GP's moments: the grid then takes the variance :data:`VARIANCE_STEP_SAMPLES`
         samples apart.
 
     Returns
@@ -137,7 +135,13 @@ def gp_samples(
     sampled = coarse(grid, factor)
     block = interpolation_block(sampled, grid)
     if grid_dim(grid) == 3 and all(s.stop > s.start for s in block):
-        p, var, p_unseen = _predict_block(predict_gp, grid_centres(sampled), sampled, block)
+        by_grid: Callable[[AnyGrid], tuple[NDArray[np.float64], ...]]
+        if moments is None:
+            d, centres = grid_dim(grid), grid_centres(sampled)
+            by_grid = lambda inner: predict_gp(centres.reshape(*sampled.shape, d)[block].reshape(-1, d))  # noqa: E731
+        else:
+            by_grid = lambda inner: _variance_apart(moments, inner)  # noqa: E731
+        p, var, p_unseen = _predict_block(by_grid, sampled, block)
     elif moments is not None and grid_dim(grid) == 2:
         p, var, p_unseen = _variance_apart(moments, sampled)
     else:

@@ -125,15 +125,14 @@ class MapPrediction(MapAnswers, TileBlending, MapReport):
 
     def _gp_proba_as_written(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The blended GP's probability and probability for unseen space at points, each (m,), with
-        the variance a planar written map takes: the mean at each point, the variance at the
-        corners of its cell of a lattice :func:`~gpomap.fusion.variance_step` apart (for a map
-        written on the ray counts' cells, its default), interpolated.
+        the variance a written map takes: the mean at each point, the variance at the corners of
+        its cell of a lattice :func:`~gpomap.fusion.variance_step` apart (for a map written on
+        the ray counts' cells, its default), interpolated.
 
         What the calibrations fit is then the GP of the map a user gets, and its variance, the
-        costly part of a prediction, is asked at a few corners instead of at every point. A voxel
-        map's written grid samples both moments alike, and points too sparse to share corners
-        would ask more corners than points: there the GP is asked at the points
-        (:meth:`_variance_corners`).
+        costly part of a prediction, is asked at a few corners instead of at every point. Points
+        too sparse to share corners would ask more corners than points: there the GP is asked at
+        the points (:meth:`_variance_corners`).
         """
         pts = as_points(points, self._dim)
         # Timed and held to a worker's BLAS threads as the fitted map's own predictions are.
@@ -154,13 +153,12 @@ class MapPrediction(MapAnswers, TileBlending, MapReport):
     def _variance_corners(
         self, points: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.float64]] | None:
-        """Where :meth:`_gp_proba_as_written` asks the variance for `points` (m, 2): the corners
-        (k, 2), each point's (m, 4) and their weights (m, 4) (:func:`~gpomap.lattice.lattice_corners`);
-        None where it asks at the points: a voxel map, and points too sparse for their cells to
-        share corners (k >= m: a building's later visit), where the corners would cost more."""
-        if self._dim != 2:
-            return None
-        step = variance_step(float(self.hyperparameters_["length_scale"]), self.base.evidence_resolution)
+        """Where :meth:`_gp_proba_as_written` asks the variance for `points` (m, d): the corners
+        (k, d), each point's (m, 2^d) and their weights (m, 2^d)
+        (:func:`~gpomap.lattice.lattice_corners`); None where it asks at the points, too sparse
+        for their cells to share corners (k >= m: a building's later visit), where the corners
+        would cost more."""
+        step = variance_step(float(self.hyperparameters_["length_scale"]), self.base.counted_resolution(self._dim))
         corners = lattice_corners(points, step)
         return corners if corners[0].shape[0] < points.shape[0] else None
 
