@@ -75,7 +75,6 @@ import ast
 import concurrent.futures as cf
 import json
 import multiprocessing
-import resource
 import sys
 import tempfile
 import time
@@ -89,8 +88,10 @@ from numpy.typing import NDArray
 
 from gpomap.clouds import CloudScan
 from gpomap.grid import OCCUPIED, ternary
-from gpomap.resources import release_freed_memory, rss_mb
 from gpomap.truth import MAP_SERVER_THRESHOLDS, TruthPoints, score_plan
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from child_memory import fresh_peak, peak_mb
 
 DATA = Path("..") / "shared" / "data"
 #: The voxel side of ``gpomap map`` (and of the grids beside it), metres.
@@ -245,7 +246,6 @@ def geb079_case(max_test: int, workdir: Path, dense: bool = False) -> Case:
     """The simulated lidar in geb079.bt (``benchmarks/volume_quality.py``'s; with `dense`, a
     128-beam one, :data:`DENSE_LIDAR`), as in-memory clouds: no file format holds them, so the
     command line only sets the options (``--max-range 10``)."""
-    sys.path.insert(0, str(Path(__file__).parent))
     from gpomap.io.octomap import load_pyoctomap_tree
     from volume_quality import corridor_poses, simulate_lidar
 
@@ -364,36 +364,9 @@ def false_surfaces(scene: Any, lookup: Lookup, resolution: float) -> dict[str, A
     return {"occupied_in_scene": n, "false_surface_share": float(np.mean(~holds[occupied])) if n else 0.0}
 
 
-def _fresh_peak() -> float:
-    """This process's resident MiB, its peak reset to it where Linux lets it be (else the peak so far).
-
-    The parent's freed heap (the cases' frames rendered and dropped) is resident in a fork, and
-    its high-water mark comes with it: handed back first, the map's own arrays show in the peak.
-    """
-    release_freed_memory()
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-    except OSError:
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    return rss_mb() or 0.0
-
-
-def _peak_mb() -> float:
-    """This process's peak resident MiB since :func:`_fresh_peak` (VmHWM where Linux gives it)."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def _method_in_child(method: str, case: Case, resolution: float) -> dict[str, Any]:
     """Build one map and look it up at the case's points and sensor positions (in a forked child)."""
-    start = _fresh_peak()
+    start = fresh_peak()
     lookup, stats = BUILDERS[method](case, resolution)
     t = time.perf_counter()
     p, occupied = lookup(case.points)
@@ -402,7 +375,7 @@ def _method_in_child(method: str, case: Case, resolution: float) -> dict[str, An
     stats["sensors_occupied"] = int(lookup(origins)[1].sum())
     if case.scene is not None:
         stats.update(false_surfaces(case.scene, lookup, resolution))
-    stats["peak_mb"] = _peak_mb() - start
+    stats["peak_mb"] = peak_mb() - start
     return {"p": p, "occupied": occupied, **stats}
 
 

@@ -28,7 +28,8 @@ resolution (0.1 m), looked up at each test point. ``--set KEY=VALUE`` changes a 
 Metrics (:func:`gpomap.evaluation.score`): ROC AUC, boundary AUC (test points within 0.5 m of a
 held-out hit), log loss, ECE; fit and predict wall times (for the voxel grid, predict is the
 grid's prediction) and the peak resident memory of the process that ran the method (each method
-runs in a forked child, so the number is its own, plus the data read before the fork). The JSON
+runs in a forked child, so the number is its own, plus the data read before the fork;
+:mod:`child_memory`). The JSON
 rows of gpomap also hold the ray evidence's calibration (``evidence``) and the fit's stage times
 (``fit_stages``: the model's ``timings_``), printed
 after the table with each fit's time over OctoMap's on the same case, and the fit and prediction at
@@ -54,7 +55,6 @@ import argparse
 import concurrent.futures as cf
 import json
 import multiprocessing
-import resource
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -72,6 +72,9 @@ from gpomap.clouds import CloudScan
 from gpomap.evaluation import BOUNDARY_RADIUS, TEST_FREE_STEP, TEST_HIT_MARGIN, near, score
 from gpomap.io import read_clouds
 from gpomap.io.octomap import load_pyoctomap_tree
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from child_memory import fresh_peak, peak_mb
 
 DATA = Path("../shared/data")
 WORLDS = ("sim_structured", "sim_unstructured")
@@ -144,15 +147,11 @@ class CsvVoxels:
         return np.where(self.keys[i] == k, self.p[i], 0.5)
 
 
-def _peak_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def _scored(
     row: dict[str, Any], labels: NDArray[np.bool_], p: NDArray[np.float64], boundary: NDArray[np.bool_]
 ) -> dict[str, Any]:
     s = score(labels, p, {"boundary": boundary})
-    row.update(auc=s["auc"], boundary_auc=s["boundary_auc"], log_loss=s["log_loss"], ece=s["ece"], peak_mb=_peak_mb())
+    row.update(auc=s["auc"], boundary_auc=s["boundary_auc"], log_loss=s["log_loss"], ece=s["ece"], peak_mb=peak_mb())
     return row
 
 
@@ -170,6 +169,7 @@ def _fit_predict(
     """Fit (once untimed, then `repeats` times or more, the fastest's time and stages kept), predict and
     score one method (and its written voxel grid); errors are rows saying why."""
     row: dict[str, Any] = {"dataset": dataset, "method": name}
+    fresh_peak()  # the parent's freed heap handed back, so this child's own arrays show in its peak
     try:
         model.fit(train)  # the warm-up
 
