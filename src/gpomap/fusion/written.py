@@ -137,6 +137,7 @@ def gp_samples(
     if grid_dim(grid) == 3 and all(s.stop > s.start for s in block):
         by_grid: Callable[[AnyGrid], tuple[NDArray[np.float64], ...]]
         if moments is None:
+            # The block's centres as the whole lattice has them, to the bit.
             d, centres = grid_dim(grid), grid_centres(sampled)
             by_grid = lambda inner: predict_gp(centres.reshape(*sampled.shape, d)[block].reshape(-1, d))  # noqa: E731
         else:
