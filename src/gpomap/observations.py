@@ -558,11 +558,7 @@ def observations_from_scans(
     del pts_all, occ_all, idx_all, weight_all
     keep = ~free_near_hits(points, occupied, free_clearance)
     n_cleared = int(keep.size - keep.sum())
-    if n_cleared:
-        # Only then a copy: a whole log's points are hundreds of megabytes.
-        points, occupied, scan_index = rows(points, keep), occupied[keep], scan_index[keep]
-        weight = None if weight is None else weight[keep]
-    return Observations(
+    obs = Observations(
         points=points,
         occupied=occupied,
         scan_index=scan_index,
@@ -571,6 +567,8 @@ def observations_from_scans(
         n_cleared=n_cleared,
         weight=weight,
     )
+    # Only then a copy: a whole log's points are hundreds of megabytes.
+    return obs.selected(keep) if n_cleared else obs
 
 
 def _scan_points(

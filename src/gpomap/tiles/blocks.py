@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.cells import build_cells
-from gpomap.lattice import column_bounds, rows
+from gpomap.lattice import column_bounds
 from gpomap.observations import Observations
 from gpomap.resources import SpillFile
 from gpomap.supports import Supports
@@ -26,6 +26,7 @@ from gpomap.tiles.points import (
     _HeldParts,
     _KeptBlock,
     _SpilledPart,
+    part_rows,
     scan_runs,
 )
 from gpomap.tiles.tasks import TileCells
@@ -57,7 +58,7 @@ class BlockCells(TileGrid):
         points, occupied, weights = block.weighted_arrays()
         keep = ~block.free_near_hits(self._clearance, (points, occupied))
         # Rebound, so that a spilled block's points read back are let go before the tree's copies.
-        points, occupied, weights = rows(points, keep), occupied[keep], None if weights is None else weights[keep]
+        points, occupied, weights = part_rows((points, occupied, weights), keep)
         if self._kept_bounds is None:  # a map read from its file keeps none
             self._kept_bounds = {}
         self._kept_bounds[key] = column_bounds(points)
@@ -120,8 +121,7 @@ class BlockCells(TileGrid):
         for k, grp in zip(block_keys.tolist(), np.split(order, cuts)):
             if grp.size == 0:
                 continue
-            part_weights = None if weights is None else weights[grp]
-            self._file_block(k, rows(points, grp), occupied[grp], part_weights, spill, None if scans is None else scans[grp])
+            self._file_block(k, *part_rows((points, occupied, weights), grp), spill, None if scans is None else scans[grp])
             touched.add(k)
         self._count_points(points, occupied, weights)
         return touched

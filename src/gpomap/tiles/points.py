@@ -81,6 +81,12 @@ def _part(p: Any) -> Part:
     return p[0], p[1], p[2]
 
 
+def part_rows(part: Part, keep: NDArray[np.bool_] | NDArray[np.intp]) -> Part:
+    """The rows of `part` that `keep` (a mask of shape (n,) or indices) selects."""
+    points, occupied, weight = part
+    return rows(points, keep), occupied[keep], None if weight is None else weight[keep]
+
+
 def _joined_weights(parts: list[Part]) -> NDArray[np.int32] | None:
     """The parts' weights joined, ones for a part without; None when no part has any."""
     if all(w is None for _, _, w in parts):
@@ -141,11 +147,11 @@ class _BlockPoints:
     def without(self, scans: NDArray[np.integer[Any]]) -> Part | None:
         """The block's points, labels and weights (:data:`Part`) but those of `scans` (indices in
         the map's scans), in their order; None when a part came without its runs."""
-        points, occupied, weight = self.weighted_arrays()
+        part = self.weighted_arrays()
         keep = self.kept_mask(scans)
         if keep is None:
             return None
-        return rows(points, keep), occupied[keep], None if weight is None else weight[keep]
+        return part_rows(part, keep)
 
     def runs(self) -> Runs | None:
         """Every part's runs (:data:`Runs`) joined, in the points' order; None when a part came without them."""
