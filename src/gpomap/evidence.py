@@ -544,7 +544,7 @@ def _shaped(counts: RayCounts, shape: tuple[int, ...], widen: bool) -> RayCounts
 
 def _batches(grid: AnyGrid, starts: NDArray[np.float64], ends: NDArray[np.float64]) -> list[tuple[int, int]]:
     """Consecutive ranges [first, last) of beams whose traversals stay under the entry budget (at least one beam each)."""
-    cost = np.cumsum(np.abs(np.floor(ends / grid.resolution) - np.floor(starts / grid.resolution)).sum(axis=1) + 2)
+    cost = np.cumsum(row_sums(np.abs(np.floor(ends / grid.resolution) - np.floor(starts / grid.resolution))) + 2)
     out, first = [], 0
     while first < cost.size:
         base = cost[first - 1] if first > 0 else 0.0
