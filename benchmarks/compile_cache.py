@@ -25,6 +25,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from module_bytecode import write_bytecode
+
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 DEFAULT_LOG = DATA / "belgioioso" / "belgioioso-corrected.log.gz"
 
@@ -75,6 +78,7 @@ def main() -> None:
         print(json.dumps(child(*args.child, args.map_option)))
         return
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    write_bytecode()
     import gpomap
 
     print(

@@ -14,7 +14,8 @@ settings give the same file) and mapped as a user maps it:
   writes the same four files (``map.yaml``, ``map.pgm``, ``map.npz``, ``map.png``).
 
 Each process's CPU (user + system, every thread), wall time and peak RSS come from ``wait4``; the
-stage timings are those ``gpomap map`` records in ``map.npz``. With ``--memory-phases`` (Linux),
+stage timings are those ``gpomap map`` records in ``map.npz``; gpomap's modules are compiled to
+bytecode first, as an install leaves them (:mod:`module_bytecode`). With ``--memory-phases`` (Linux),
 ``gpomap map`` runs without ``-q`` and its resident set is read from ``/proc`` every 0.2 s, and
 the peak of each phase its progress lines mark is printed: reading the scans, the fit, the
 written grid's prediction, and writing the files (``map.gpom`` last). Usage::
@@ -44,6 +45,9 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from module_bytecode import write_bytecode
 
 RESOLUTION = 0.05
 
@@ -472,6 +476,7 @@ def main() -> None:
         raise SystemExit(f"unknown case(s) {', '.join(unknown)}: --cases takes {', '.join(CASES)} or none")
     methods = args.methods.split(",")
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    write_bytecode()
     print(
         f"# Whole buildings (commit {commit}, {os.cpu_count()} CPUs, OMP_NUM_THREADS {os.environ.get('OMP_NUM_THREADS', 'unset')})"
     )

@@ -29,7 +29,8 @@ fitting or inserting.
 numba's cache is a fresh directory (``NUMBA_CACHE_DIR``) filled by an untimed ``gpomap map`` run
 on each case before its timed ones (the cases take different paths: a depth frame's free samples
 are merged, a lidar scan's are not), so every timed run loads compiled code as a user's second
-run does (``benchmarks/compile_cache.py`` measures the first run's compiling).
+run does (``benchmarks/compile_cache.py`` measures the first run's compiling); gpomap's modules
+are compiled to bytecode first, as an install leaves them (:mod:`module_bytecode`).
 
 Usage, from the repository's root::
 
@@ -56,6 +57,7 @@ from typing import Any
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from module_bytecode import write_bytecode
 from whole_logs import DATA, _gpomap_command, _map_info, _timed_process
 
 #: Each case: the input and the ``gpomap map`` options it needs beyond the defaults.
@@ -266,6 +268,7 @@ def main() -> None:
     # The commit of the checkout gpomap is imported from (a worktree on PYTHONPATH, say), not of the directory run in.
     where = Path(gpomap.__file__).parent
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=where).stdout.strip()
+    write_bytecode()
 
     print(
         f"# 3-D: gpomap map against OctoMap's insertion (commit {commit}, gpomap from {Path(gpomap.__file__).parent}, "

@@ -11,7 +11,8 @@ Two tables, each case in fresh processes (so each peak RSS and CPU figure is its
   with that cache filled, alternating with the grid's runs; the ratio is the median of the warm
   runs' CPU over the median of the grid's, from the same sitting, with the spread (min-max) beside.
   CPU seconds are the process's user + system time, every thread included; the stage timings are
-  the wall seconds ``gpomap map`` records in ``map.npz``.
+  the wall seconds ``gpomap map`` records in ``map.npz``. gpomap's modules are compiled to bytecode
+  first, as an install leaves them (:mod:`module_bytecode`).
 - **fit**: MSK-GPOM with the defaults of ``gpomap map LOG -o OUT --resolution 0.05 --workers W``
   (the model the command builds from those options, fitted and sampled at 0.05 m) against OctoMap's
   log-odds grid at 0.05 m: each process reads the log, fits and builds the map it would write; the
@@ -39,6 +40,9 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from module_bytecode import write_bytecode
 
 # The shared data sits beside the project: ../shared/data from the repository's root.
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -354,6 +358,7 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown log(s) {', '.join(unknown)}: --logs takes {', '.join(LOGS)} or none")
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    write_bytecode()
     threads = os.environ.get("OMP_NUM_THREADS", "unset")
     print(f"# Whole logs (commit {commit}, {os.cpu_count()} CPUs, OMP_NUM_THREADS {threads})")
     chosen = [(n, LOGS[n]) for n in names] + [(p.name, p) for p in args.log_file]
