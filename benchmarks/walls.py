@@ -8,7 +8,9 @@ looked up at every plan pixel the log observed (:mod:`gpomap.truth`, as ``benchm
 and ``benchmarks/stages.py`` score a plan). The pixels are sorted by the counting grid's cell:
 
 - **no count**: no beam crossed or ended in it;
-- **misses only**: beams crossed it, none ended in it;
+- **misses only**: beams crossed it, none ended in it; split into cells that only beams with no
+  return crossed (taken free to 10 m by both maps, as ``gpomap map`` and the truth's rule take
+  them) and cells a beam that returned crossed too;
 - **hits only**: beams ended in it, none crossed it;
 - **hits and misses**: both.
 
@@ -45,14 +47,18 @@ from quality import load
 from stages import TRUTH_WORLDS
 
 RESOLUTION = 0.05
-KINDS = ("no count", "misses only", "hits only", "hits and misses")
+KINDS = ("no count", "misses only", "of them, no-return beams only", "hits only", "hits and misses")
 
 
-def _kinds(hits: NDArray[np.int64], misses: NDArray[np.int64]) -> dict[str, NDArray[np.bool_]]:
-    """Each kind of counting-grid cell as a mask over the pixels (matching shapes)."""
+def _kinds(
+    hits: NDArray[np.int64], misses: NDArray[np.int64], returned_misses: NDArray[np.int64]
+) -> dict[str, NDArray[np.bool_]]:
+    """Each kind of counting-grid cell as a mask over the pixels (matching shapes);
+    `returned_misses` counts only the beams that returned."""
     return {
         "no count": (hits == 0) & (misses == 0),
         "misses only": (hits == 0) & (misses > 0),
+        "of them, no-return beams only": (hits == 0) & (misses > 0) & (returned_misses == 0),
         "hits only": (hits > 0) & (misses == 0),
         "hits and misses": (hits > 0) & (misses > 0),
     }
@@ -76,13 +82,17 @@ def child(world: str) -> dict[str, Any]:
     grid_map = written_grid(counting, RESOLUTION)  # its own grid, that of its counts
     assert grid_map.probability.shape == counting.hits_.shape
     p_grid = lookup(grid_map, truth.points)
+    # The same counts on the same grid without the beams that returned nothing.
+    returned = make_model("ogm-counting", None, 0, RESOLUTION, None, max_range_free=0.0, extent=counting.grid_).fit(scans)
+    assert isinstance(returned, OccupancyGridMapper)
     rows, cols, inside = grid_map.grid.index_of(truth.points)
-    hits, misses = (np.zeros(len(p_map), dtype=np.int64) for _ in range(2))
+    hits, misses, returned_misses = (np.zeros(len(p_map), dtype=np.int64) for _ in range(3))
     hits[inside] = counting.hits_[rows[inside], cols[inside]]
     misses[inside] = counting.misses_[rows[inside], cols[inside]]
+    returned_misses[inside] = returned.misses_[rows[inside], cols[inside]]
     y, boundary, n = truth.occupied, truth.boundary, len(p_map)
     kinds: dict[str, Any] = {}
-    for name, mask in _kinds(hits, misses).items():
+    for name, mask in _kinds(hits, misses, returned_misses).items():
         on_boundary = mask & boundary
         kinds[name] = {
             "share": float(mask.mean()),
@@ -92,7 +102,7 @@ def child(world: str) -> dict[str, Any]:
         for label, p in (("map", p_map), ("grid", p_grid)):
             kinds[name][label] = {
                 "mean_p": float(p[mask].mean()) if mask.any() else None,
-                # The kind's part of the log loss over every pixel, so the parts add up to it.
+                # The kind's part of the log loss over every pixel: the four kinds' parts add up to it.
                 "log_loss_part": log_loss(y[mask], p[mask]) * mask.sum() / n if mask.any() else 0.0,
                 "boundary_auc": _auc(y[on_boundary], p[on_boundary]),
             }
