@@ -1,11 +1,14 @@
-"""Where a written map's walls lose ranking against a true plan: the plan's pixels by what the
+"""Where a written map's walls lose ranking against a true plan: the scored points by what the
 counting grid's cell saw.
 
 For each simulated world with a true plan (the Stage arena, the sim-worlds cave and hospital
 section, the synthetic room), gpomap's written map (``gpomap map``'s defaults, 0.05 m) and the
 counting grid ``(hits + 1) / (hits + misses + 2)`` at 0.05 m are fitted on the whole log and
 looked up at every plan pixel the log observed (:mod:`gpomap.truth`, as ``benchmarks/quality.py``
-and ``benchmarks/stages.py`` score a plan). The pixels are sorted by the counting grid's cell:
+and ``benchmarks/stages.py`` score a plan). A held-out dataset (``log:split``, as
+``benchmarks/stages.py`` names them) fits both on the split's training scans and looks them up at
+``benchmarks/quality.py``'s held-out test points, at their natural frequencies (boundary: within
+0.5 m of a held-out hit). The points are sorted by the counting grid's cell:
 
 - **no count**: no beam crossed or ended in it;
 - **misses only**: beams crossed it, none ended in it; split into cells that only beams with no
@@ -14,15 +17,17 @@ and ``benchmarks/stages.py`` score a plan). The pixels are sorted by the countin
 - **hits only**: beams ended in it, none crossed it;
 - **hits and misses**: both.
 
-Two tables per world: for each kind, its share of the pixels and of the boundary pixels (within
-0.1 m of a true wall), the occupied share, each map's mean probability, its part of the log loss
-and its boundary AUC within the kind; then the map's truth AUC and boundary AUC with the counting
-grid's probability taken in place of its own in one kind of cell at a time (how much of the gap to
-the grid each kind holds). Each world is fitted in a process of its own. Usage, from the
-repository's root::
+Three tables per dataset: for each kind, its share of the points and of the boundary points
+(against a plan: within 0.1 m of a true wall), the occupied share, each map's mean probability,
+its part of the log loss and its boundary AUC within the kind; then the map's AUC and boundary AUC
+with the counting grid's probability taken in place of its own in one kind of cell at a time (how
+much of the gap to the grid each kind holds); then the map's log loss and AUC with one constant
+probability in the cells that only beams without a return crossed (what a rate fitted for those
+cells could give). Each dataset is fitted in a process of its own. Usage, from the repository's
+root::
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/walls.py                       # every world
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/walls.py --worlds hospital_section
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/walls.py --datasets hospital_section,intel:blocks
 """
 
 from __future__ import annotations
@@ -38,16 +43,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.baselines.ogm import OccupancyGridMapper
-from gpomap.evaluation import lookup, make_model, written_grid
+from gpomap.evaluation import lookup, make_model, prepare, written_grid
 from gpomap.metrics import log_loss, roc_auc
 from gpomap.truth import TruthPoints
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from quality import load
-from stages import TRUTH_WORLDS
+from quality import LOGS, load
+from stages import HELD_OUT, TEST_POINTS, TRUTH_WORLDS
 
 RESOLUTION = 0.05
 KINDS = ("no count", "misses only", "of them, no-return beams only", "hits only", "hits and misses")
+NO_RETURN_ONLY = "of them, no-return beams only"
+#: Constant probabilities tried in the cells only beams without a return crossed.
+CONSTANTS = (0.01, 0.02, 0.04, 0.08)
 
 
 def _kinds(
@@ -58,7 +66,7 @@ def _kinds(
     return {
         "no count": (hits == 0) & (misses == 0),
         "misses only": (hits == 0) & (misses > 0),
-        "of them, no-return beams only": (hits == 0) & (misses > 0) & (returned_misses == 0),
+        NO_RETURN_ONLY: (hits == 0) & (misses > 0) & (returned_misses == 0),
         "hits only": (hits > 0) & (misses == 0),
         "hits and misses": (hits > 0) & (misses > 0),
     }
@@ -69,30 +77,43 @@ def _auc(labels: NDArray[np.bool_], scores: NDArray[np.float64]) -> float | None
     return roc_auc(labels, scores) if 0 < labels.sum() < labels.size else None
 
 
-def child(world: str) -> dict[str, Any]:
-    """Both maps of one world at its plan's observed pixels, and the breakdown (in this process)."""
-    scans, plan = load(world)
+def _scored(dataset: str) -> tuple[list[Any], NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
+    """The scans both maps are fitted on, and the scored points (n, 2), their labels and
+    boundary mask (n,): a world's observed plan pixels, or a held-out split's test points."""
+    if ":" in dataset:
+        log, split = dataset.split(":")
+        scans, _ = load(log)
+        data = prepare(scans, split, scan_step=LOGS[log].get("scan_step", 1), seed=0, max_test_points=TEST_POINTS)
+        return list(data.train), data.points, np.asarray(data.labels, dtype=bool), data.masks["boundary"]
+    scans, plan = load(dataset)
     if plan is None:
-        raise SystemExit(f"{world} has no true plan")
+        raise SystemExit(f"{dataset} has no true plan")
     truth = TruthPoints.of(plan, scans)
+    return scans, truth.points, truth.occupied, truth.boundary
+
+
+def child(dataset: str) -> dict[str, Any]:
+    """Both maps of one dataset at its scored points, and the breakdown (in this process)."""
+    scans, points, y, boundary = _scored(dataset)
     gpomap_map = written_grid(make_model("msk", None, 0, RESOLUTION, None).fit(scans), RESOLUTION)
     counting = make_model("ogm-counting", None, 0, RESOLUTION, None).fit(scans)
     assert isinstance(counting, OccupancyGridMapper)
-    p_map = lookup(gpomap_map, truth.points)
+    p_map = lookup(gpomap_map, points)
     grid_map = written_grid(counting, RESOLUTION)  # its own grid, that of its counts
     assert grid_map.probability.shape == counting.hits_.shape
-    p_grid = lookup(grid_map, truth.points)
+    p_grid = lookup(grid_map, points)
     # The same counts on the same grid without the beams that returned nothing.
     returned = make_model("ogm-counting", None, 0, RESOLUTION, None, max_range_free=0.0, extent=counting.grid_).fit(scans)
     assert isinstance(returned, OccupancyGridMapper)
-    rows, cols, inside = grid_map.grid.index_of(truth.points)
+    rows, cols, inside = grid_map.grid.index_of(points)
     hits, misses, returned_misses = (np.zeros(len(p_map), dtype=np.int64) for _ in range(3))
     hits[inside] = counting.hits_[rows[inside], cols[inside]]
     misses[inside] = counting.misses_[rows[inside], cols[inside]]
     returned_misses[inside] = returned.misses_[rows[inside], cols[inside]]
-    y, boundary, n = truth.occupied, truth.boundary, len(p_map)
+    n = len(p_map)
     kinds: dict[str, Any] = {}
-    for name, mask in _kinds(hits, misses, returned_misses).items():
+    masks = _kinds(hits, misses, returned_misses)
+    for name, mask in masks.items():
         on_boundary = mask & boundary
         kinds[name] = {
             "share": float(mask.mean()),
@@ -112,23 +133,29 @@ def child(world: str) -> dict[str, Any]:
         label: {"auc": roc_auc(y, p), "boundary_auc": roc_auc(y[boundary], p[boundary]), "log_loss": log_loss(y, p)}
         for label, p in (("map", p_map), ("grid", p_grid))
     }
-    return {"pixels": n, "scores": scores, "kinds": kinds}
+    constants = {}
+    for c in CONSTANTS:
+        p = np.where(masks[NO_RETURN_ONLY], c, p_map)
+        constants[str(c)] = {"log_loss": log_loss(y, p), "auc": roc_auc(y, p), "boundary_auc": roc_auc(y[boundary], p[boundary])}
+    what = "test points" if ":" in dataset else "pixels"
+    return {"points": n, "what": what, "scores": scores, "kinds": kinds, "constants": constants}
 
 
 def _f(x: float | None, digits: int = 3) -> str:
     return "-" if x is None else f"{x:.{digits}f}"
 
 
-def print_world(world: str, r: dict[str, Any]) -> None:
-    """The two tables of one world."""
-    s = r["scores"]
+def print_dataset(dataset: str, r: dict[str, Any]) -> None:
+    """The three tables of one dataset."""
+    s, what = r["scores"], r["what"]
+    against = "truth" if what == "pixels" else "held out"
     print(
-        f"\n### {world}: {r['pixels']} pixels; truth AUC / boundary AUC / log loss: gpomap "
+        f"\n### {dataset}: {r['points']} {what}; {against} AUC / boundary AUC / log loss: gpomap "
         f"{s['map']['auc']:.4f} / {s['map']['boundary_auc']:.4f} / {s['map']['log_loss']:.4f}, counting grid "
         f"{s['grid']['auc']:.4f} / {s['grid']['boundary_auc']:.4f} / {s['grid']['log_loss']:.4f}\n"
     )
     print(
-        "| counting grid's cell | share of pixels / of boundary pixels | occupied | mean p gpomap / grid "
+        f"| counting grid's cell | share of {what} / of boundary {what} | occupied | mean p gpomap / grid "
         "| log loss part gpomap / grid | boundary AUC within, gpomap / grid |"
     )
     print("|---|---|---|---|---|---|")
@@ -139,39 +166,61 @@ def print_world(world: str, r: dict[str, Any]) -> None:
             f"{_f(m['mean_p'])} / {_f(g['mean_p'])} | {m['log_loss_part']:.4f} / {g['log_loss_part']:.4f} | "
             f"{_f(m['boundary_auc'])} / {_f(g['boundary_auc'])} |"
         )
-    print("\n| gpomap with the grid's p in | truth AUC | boundary AUC |\n|---|---|---|")
+    print("\n| gpomap with the grid's p in | AUC | boundary AUC |\n|---|---|---|")
     print(f"| (no cell: gpomap as it is) | {s['map']['auc']:.4f} | {s['map']['boundary_auc']:.4f} |")
     for name in KINDS:
         w = r["kinds"][name]["swapped"]
         print(f"| {name} | {w['auc']:.4f} | {w['boundary_auc']:.4f} |")
+    print(
+        "\n| gpomap with p in the cells only beams without a return crossed | log loss | AUC | boundary AUC |\n|---|---|---|---|"
+    )
+    print(f"| (as it is) | {s['map']['log_loss']:.4f} | {s['map']['auc']:.4f} | {s['map']['boundary_auc']:.4f} |")
+    for c, v in r["constants"].items():
+        print(f"| {c} | {v['log_loss']:.4f} | {v['auc']:.4f} | {v['boundary_auc']:.4f} |")
+
+
+def _known(dataset: str) -> bool:
+    """A world with a true plan, or ``log:split`` of a log ``benchmarks/quality.py`` reads."""
+    if ":" not in dataset:
+        return dataset in TRUTH_WORLDS
+    log, split = dataset.split(":", 1)
+    return log in LOGS and split in ("blocks", "every")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--worlds", default=",".join(TRUTH_WORLDS), help="comma-separated (default: %(default)s)")
+    ap.add_argument(
+        "--datasets",
+        default=",".join(TRUTH_WORLDS + HELD_OUT),
+        help="comma-separated worlds and log:split (blocks or every) (default: %(default)s)",
+    )
     ap.add_argument("--json", type=Path, help="also write the results here")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
         print(json.dumps(child(args.child)))
         return 0
-    worlds = [w for w in args.worlds.split(",") if w]
-    unknown = sorted(set(worlds) - set(TRUTH_WORLDS))
+    datasets = [d for d in args.datasets.split(",") if d]
+    unknown = [d for d in datasets if not _known(d)]
     if unknown:
-        ap.error(f"unknown world(s) {', '.join(unknown)}; expected some of {', '.join(TRUTH_WORLDS)}")
+        ap.error(
+            f"unknown dataset(s) {', '.join(unknown)}; expected worlds of {', '.join(TRUTH_WORLDS)} or log:split of {', '.join(LOGS)}"
+        )
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    print(f"# Walls against the true plans (commit {commit}; gpomap map's defaults and the counting grid, {RESOLUTION} m)")
+    print(
+        f"# Walls, by what the counting grid's cell saw (commit {commit}; gpomap map's defaults and the counting grid, {RESOLUTION} m)"
+    )
     results: dict[str, Any] = {}
-    for world in worlds:
-        out = subprocess.run([sys.executable, __file__, "--child", world], capture_output=True, text=True)
+    for dataset in datasets:
+        out = subprocess.run([sys.executable, __file__, "--child", dataset], capture_output=True, text=True)
         if out.returncode != 0:
-            print(f"{world} failed:\n{out.stderr[-2000:]}", file=sys.stderr)
+            print(f"{dataset} failed:\n{out.stderr[-2000:]}", file=sys.stderr)
             continue
-        results[world] = json.loads(out.stdout.strip().splitlines()[-1])
-        print_world(world, results[world])
+        results[dataset] = json.loads(out.stdout.strip().splitlines()[-1])
+        print_dataset(dataset, results[dataset])
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
-    return 0 if len(results) == len(worlds) else 1
+    return 0 if len(results) == len(datasets) else 1
 
 
 if __name__ == "__main__":
