@@ -26,7 +26,7 @@ probability in the cells that only beams without a return crossed (what a rate f
 cells could give). Each dataset is fitted in a process of its own. Usage, from the repository's
 root::
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/walls.py                       # every world
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/walls.py       # every world, and benchmarks/stages.py's held-out splits
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/walls.py --datasets hospital_section,intel:blocks
 """
 
@@ -52,8 +52,8 @@ from quality import LOGS, load
 from stages import HELD_OUT, TEST_POINTS, TRUTH_WORLDS
 
 RESOLUTION = 0.05
-KINDS = ("no count", "misses only", "of them, no-return beams only", "hits only", "hits and misses")
 NO_RETURN_ONLY = "of them, no-return beams only"
+KINDS = ("no count", "misses only", NO_RETURN_ONLY, "hits only", "hits and misses")
 #: Constant probabilities tried in the cells only beams without a return crossed.
 CONSTANTS = (0.01, 0.02, 0.04, 0.08)
 
@@ -61,7 +61,7 @@ CONSTANTS = (0.01, 0.02, 0.04, 0.08)
 def _kinds(
     hits: NDArray[np.int64], misses: NDArray[np.int64], returned_misses: NDArray[np.int64]
 ) -> dict[str, NDArray[np.bool_]]:
-    """Each kind of counting-grid cell as a mask over the pixels (matching shapes);
+    """Each kind of counting-grid cell as a mask over the scored points (matching shapes);
     `returned_misses` counts only the beams that returned."""
     return {
         "no count": (hits == 0) & (misses == 0),
