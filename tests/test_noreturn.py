@@ -304,6 +304,23 @@ def test_info_prints_code_count_and_contradiction(tmp_path: Path, capsys: pytest
     assert "decided by      user" in capsys.readouterr().out
 
 
+def test_map_says_how_many_readings_returned_nothing(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # The summary's count is the log's readings at the no-return code, counted here from the ranges written.
+    rng = np.random.default_rng(12)
+    ranges = _with_codes(rng, _real_ranges(rng, N_SCANS * N_BEAMS, high=8.0), [50.0])
+    path = _flaser_log(tmp_path / "map.log", ranges)
+    fast = ["--kernel", "se", "--min-cell", "1.0", "--max-cell", "1.0", "--resolution", "0.25", "--length-scale", "1"]
+    assert main(["map", str(path), "-o", str(tmp_path / "out"), *fast]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("points "))
+    n = _count_at_or_above(ranges, 50.0)
+    assert n > 0 and line.endswith(f"occupied; {n} readings without a return (free space only, to --no-return-cap)")
+    # A log whose every beam returned says nothing of them.
+    path = _flaser_log(tmp_path / "all.log", _real_ranges(rng, N_SCANS * N_BEAMS, high=8.0))
+    assert main(["map", str(path), "-o", str(tmp_path / "all"), *fast]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("points "))
+    assert line.endswith(" occupied")
+
+
 def test_a_reading_near_the_float_limit_leaks_no_overflow_warning() -> None:
     import warnings
 

@@ -235,12 +235,19 @@ def _free_points(summary: dict[str, Any]) -> str:
     return f"{n_free} free" if samples == n_free else f"{n_free} free (standing for {samples} samples, merged by cube)"
 
 
+def _no_return(summary: dict[str, Any]) -> str:
+    """The readings that returned nothing, where there were any: they say free space only, up to
+    ``--no-return-cap``, so a reader sees how much of the map rests on them."""
+    n = summary.get("n_no_return_readings", 0)
+    return f"; {n} readings without a return (free space only, to --no-return-cap)" if n else ""
+
+
 def print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: str | None = None) -> None:
     """The summary a fitted map's command prints: data, tiles, model, hyperparameters, calibration, timings, files."""
     per = summary["cells_per_tile"]
     lines = [
         f"scans        {summary['n_scans']}",
-        f"points       {_free_points(summary)}, {summary['n_occupied_points']} occupied",
+        f"points       {_free_points(summary)}, {summary['n_occupied_points']} occupied{_no_return(summary)}",
         f"tiles        {summary['n_tiles']} of {summary['tile_size']:g} m (overlap {summary['overlap']:.2f} m), "
         f"{summary['n_cells']} cells, {per['min']}/{per['median']:.0f}/{per['max']} per tile (min/median/max), {summary['executor']}",
         f"model        {summary['kernel']} kernel, {summary['area']} area kernel",
