@@ -113,13 +113,27 @@ def _apply(patches: dict[str, Any]) -> None:
         setattr(target, attr, value)
 
 
+def held_out_split(dataset: str) -> Any:
+    """The split a held-out dataset ``log:split`` names, its training scans and test points, as
+    ``benchmarks/quality.py`` makes it (:class:`gpomap.evaluation.EvalData`). Imports gpomap, so a
+    stage's patches go first."""
+    from gpomap.evaluation import prepare
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import quality
+
+    log, split = dataset.split(":")
+    scans, _ = quality.load(log)
+    return prepare(scans, split, scan_step=quality.LOGS[log].get("scan_step", 1), seed=0, max_test_points=TEST_POINTS)
+
+
 def child(stage: str, dataset: str) -> dict[str, Any]:
     """Score one dataset with one stage off (in this process)."""
     _, patches, given = STAGES[stage]
     _apply(patches)
     options = dict(given)
     seed = int(options.pop("seed", 0))  # make_model's own argument
-    from gpomap.evaluation import lookup, lookup_occupied, make_model, prepare, score, written_grid
+    from gpomap.evaluation import lookup, lookup_occupied, make_model, score, written_grid
     from gpomap.truth import TruthPoints, score_plan
 
     sys.path.insert(0, str(Path(__file__).parent))
@@ -127,9 +141,7 @@ def child(stage: str, dataset: str) -> dict[str, Any]:
 
     t = time.process_time()
     if ":" in dataset:
-        log, split = dataset.split(":")
-        scans, _ = quality.load(log)
-        data = prepare(scans, split, scan_step=quality.LOGS[log].get("scan_step", 1), seed=0, max_test_points=TEST_POINTS)
+        data = held_out_split(dataset)
         model = make_model("msk", None, seed, 0.05, None, **options).fit(data.train)
         fit_cpu = time.process_time() - t
         scores = score(data.labels, lookup(written_grid(model, 0.05), data.points), {"boundary": data.masks["boundary"]})

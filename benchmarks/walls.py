@@ -43,13 +43,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from gpomap.baselines.ogm import OccupancyGridMapper
-from gpomap.evaluation import lookup, make_model, prepare, written_grid
+from gpomap.evaluation import lookup, make_model, written_grid
 from gpomap.metrics import log_loss, roc_auc
 from gpomap.truth import TruthPoints
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from quality import LOGS, load
-from stages import HELD_OUT, TEST_POINTS, TRUTH_WORLDS
+from stages import HELD_OUT, TRUTH_WORLDS, held_out_split
 
 RESOLUTION = 0.05
 NO_RETURN_ONLY = "of them, no-return beams only"
@@ -81,9 +81,7 @@ def _scored(dataset: str) -> tuple[list[Any], NDArray[np.float64], NDArray[np.bo
     """The scans both maps are fitted on, and the scored points (n, 2), their labels and
     boundary mask (n,): a world's observed plan pixels, or a held-out split's test points."""
     if ":" in dataset:
-        log, split = dataset.split(":")
-        scans, _ = load(log)
-        data = prepare(scans, split, scan_step=LOGS[log].get("scan_step", 1), seed=0, max_test_points=TEST_POINTS)
+        data = held_out_split(dataset)
         return list(data.train), data.points, np.asarray(data.labels, dtype=bool), data.masks["boundary"]
     scans, plan = load(dataset)
     if plan is None:
