@@ -15,22 +15,26 @@ from gpomap import compiled
 
 pytestmark = pytest.mark.skipif(not compiled.NUMBA_AVAILABLE, reason="numba is not installed")
 
-# One scan of two beams on a grid of four cells: beam 0 crosses cell 0, then cell 1 near its end, and
-# ends in cell 2; beam 1 returned nothing and crosses cells 1, 2 and 3. By hand, the scan's one update
+# One scan of two beams on a row of four 1 m cells: beam 0 from x = 0.5 crosses cell 0, then cell 1
+# (its centre 1 m from the end, within the near distance of 1.5 m), and returns in cell 2; beam 1
+# returned nothing and runs from x = 1.5 through cells 1, 2 and 3. By hand, the scan's one update
 # per cell shared among its beams there: cell 2 half a hit (beam 0) and half a miss (beam 1); cells
-# 0, 1 and 3 a whole miss, half of cell 1's near (beam 0's, not beam 1's).
+# 0, 1 and 3 a whole miss, half of cell 1's near (beam 0's, not beam 1's); cell 3 silent, the only
+# one beam 1 had to itself.
 CHILD = textwrap.dedent(
     """
     import json
     import numpy as np
     from gpomap import _compiled_counts
+    from gpomap.lattice import make_grid
 
-    counts = tuple(np.zeros(4) for _ in range(3))
-    _compiled_counts.count_entries(
-        np.array([0, 0, 0, 1, 1, 1]), np.array([0, 1, 2, 1, 2, 3]), np.array([False, True, True, False, False, False]),
-        np.array([0, 0]), np.array([2, -1]), counts, np.full(4, -1, dtype=np.int32),
+    grid = make_grid((0.0, 0.0), 1.0, (4, 1))
+    counts = tuple(np.zeros(4) for _ in range(4))
+    _compiled_counts.count_beams(
+        grid, np.array([[0.5, 0.5], [1.5, 0.5]]), np.array([[2.5, 0.5], [3.5, 0.5]]), np.array([True, False]),
+        np.array([0, 0]), np.array([2, -1]), 1.5, 3, counts, np.full(4, -1, dtype=np.int32),
     )
-    stats = _compiled_counts._count_entries.stats
+    stats = _compiled_counts._count_beams.stats
     print(json.dumps({
         "hits": sum(stats.cache_hits.values()),
         "misses": sum(stats.cache_misses.values()),
@@ -39,7 +43,7 @@ CHILD = textwrap.dedent(
     }))
     """
 )
-EXPECTED = [[0, 0, 0.5, 0], [1, 1, 0.5, 1], [0, 0.5, 0, 0]]
+EXPECTED = [[0, 0, 0.5, 0], [1, 1, 0.5, 1], [0, 0.5, 0, 0], [0, 0, 0, 1]]
 
 
 def _run(env: dict[str, str]) -> dict:

@@ -157,7 +157,7 @@ def test_the_walks_compile_for_c_ordered_writeable_arrays_only() -> None:
     ev = RayEvidence(starts, ends, np.ones(len(starts), bool), np.repeat(np.arange(10), 39))
     ev.seen(grid)
     ev.counts(grid, keep=np.array([1]))
-    ev.counts(grid, out=evidence.RayCounts(*(np.zeros(grid.shape, np.float32) for _ in range(3))))
+    ev.counts(grid, out=evidence.RayCounts(*(np.zeros(grid.shape, np.float32) for _ in evidence.RayCounts._fields)))
     raycast.traverse(grid, starts, ends)
     origins = np.zeros((5, 2))
     origins.flags.writeable = False

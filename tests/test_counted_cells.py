@@ -35,7 +35,7 @@ def test_counted_cells_equal_the_whole_lattice_at_those_cells(window):
     cells = cells[(cells >= 0) & (cells < size)]
     got = count_cells(evidence, lattice, cells, window=window)
     np.testing.assert_array_equal(got.cells, np.unique(cells))
-    for counted, full in zip((got.hits, got.misses, got.near), whole, strict=True):
+    for counted, full in zip((got.hits, got.misses, got.near, got.silent), whole, strict=True):
         np.testing.assert_array_equal(counted, full.reshape(-1)[got.cells])
     np.testing.assert_array_equal(got.path, passes.reshape(-1)[got.cells])
     np.testing.assert_array_equal(got.at_surface, surface.reshape(-1)[got.cells])
@@ -68,6 +68,6 @@ def test_counted_voxels_equal_the_whole_lattice():
     size = int(np.prod(lattice.shape))
     cells = rng.integers(0, size, 300)
     got = count_cells(evidence, lattice, cells, window=6)
-    for counted, full in zip((got.hits, got.misses, got.near), whole, strict=True):
+    for counted, full in zip((got.hits, got.misses, got.near, got.silent), whole, strict=True):
         np.testing.assert_array_equal(counted, full.reshape(-1)[got.cells])
     np.testing.assert_array_equal(got.at_surface, next_to_hits(whole.hits).reshape(-1)[got.cells])

@@ -47,7 +47,7 @@ def test_every_scans_counts_less_the_others_are_the_kept_scans_own():
     # The left-out scans did count here: the difference is not the whole.
     assert np.any(near.at(np.sort(near.keys))[0] > 0)
     # Counts too large to take from exactly, or a cell the whole's counts were not taken at: None.
-    large = CountsNear(near.lattice, near.keys, near.hits + EXACT_BELOW, near.misses, near.near)
+    large = CountsNear(near.lattice, near.keys, near.hits + EXACT_BELOW, near.misses, near.near, near.silent)
     assert count_cells_without(large, left_out, own, rest, cells[inside], np.float32) is None
     far = np.ravel_multi_index((np.array([rest.shape[0] - 1]), np.array([rest.shape[1] - 1])), rest.shape)
     assert count_cells_without(near, left_out, own, rest, far, np.float32) is None

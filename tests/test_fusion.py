@@ -62,7 +62,8 @@ def _row(a: np.ndarray, dim: int) -> np.ndarray:
 @pytest.mark.parametrize("dim", [2, 3])
 def test_counts_along_one_beam_by_hand(dim: int, counting: str) -> None:
     # From the centre of cell 0 along +x to x = 1.07: crosses cells 0..9 of the row, ends in 10.
-    hits, misses, near = RayEvidence.from_scans([_along_x(dim, [1.02])]).counts(GRID if dim == 2 else VOXELS)
+    hits, misses, near, silent = RayEvidence.from_scans([_along_x(dim, [1.02])]).counts(GRID if dim == 2 else VOXELS)
+    assert silent.sum() == 0  # its beam returned
     assert hits.sum() == 1 and _row(hits, dim)[10] == 1
     assert _row(misses, dim)[:10].tolist() == [1] * 10 and misses.sum() == 10
     # Near misses: cells whose centres lie within NEAR_END (0.2 m) of the end: cell 9 (centre
@@ -77,12 +78,12 @@ def test_a_scans_near_share_is_its_beams_that_end_near(dim: int, counting: str) 
     # (centre 0.45) is within 0.2 m of both ends, so a whole near miss; cell 3 (0.35) of neither;
     # cell 5 is half the first beam's hit, half the second's near miss.
     grid = GRID if dim == 2 else VOXELS
-    hits, misses, near = RayEvidence.from_scans([_along_x(dim, [0.52, 0.59])]).counts(grid)
+    hits, misses, near, _ = RayEvidence.from_scans([_along_x(dim, [0.52, 0.59])]).counts(grid)
     assert np.flatnonzero(_row(near, dim)).tolist() == [4, 5] and _row(near, dim)[[4, 5]].tolist() == [1.0, 0.5]
     assert _row(hits, dim)[[5, 6]].tolist() == [0.5, 1.0] and _row(misses, dim)[[3, 4, 5]].tolist() == [1.0, 1.0, 0.5]
     # A third beam of the same scan going on to x = 1.57 sees through cells 4 to 6: a third of each
     # of cells 4 and 5's updates is a far miss; cell 14 is near its own end only.
-    hits, misses, near = RayEvidence.from_scans([_along_x(dim, [0.52, 0.59, 1.52])]).counts(grid)
+    hits, misses, near, _ = RayEvidence.from_scans([_along_x(dim, [0.52, 0.59, 1.52])]).counts(grid)
     # (Shares are whole 256ths: a third is 85 of them.)
     np.testing.assert_array_equal(_row(hits, dim)[[4, 5, 6, 15]], [0, 85 / 256, 1 / 2, 1])
     np.testing.assert_array_equal(_row(misses, dim)[[4, 5, 6, 14]], [1, 171 / 256, 1 / 2, 1])
@@ -96,28 +97,54 @@ def test_one_update_per_cell_per_scan_shared_among_its_beams(dim: int, counting:
     # Two beams of one scan: one ends in cell 5, the other passes through it to cell 12.
     s = _along_x(dim, [0.5, 1.2])
     grid = GRID if dim == 2 else VOXELS
-    hits, misses, _ = RayEvidence.from_scans([s]).counts(grid)
+    hits, misses, *_ = RayEvidence.from_scans([s]).counts(grid)
     assert _row(hits, dim)[5] == 0.5 and _row(misses, dim)[5] == 0.5  # one beam of two ended there
     assert _row(hits, dim)[12] == 1
     assert _row(misses, dim)[0:5].tolist() == [1] * 5  # crossed by both beams, counted once
     np.testing.assert_array_equal((hits + misses)[(hits + misses) > 0], 1.0)  # one update a cell
     # The same scan twice: every count doubles.
-    h2, m2, _ = RayEvidence.from_scans([s, s]).counts(grid)
+    h2, m2, *_ = RayEvidence.from_scans([s, s]).counts(grid)
     np.testing.assert_array_equal(h2, 2 * hits)
     np.testing.assert_array_equal(m2, 2 * misses)
     # OctoMap's rule: the hit wins the whole update over the same scan's miss.
     monkeypatch.setattr(evidence, "SHARED_UPDATES", False)
-    hits, misses, _ = RayEvidence.from_scans([s]).counts(grid)
+    hits, misses, *_ = RayEvidence.from_scans([s]).counts(grid)
     assert _row(hits, dim)[5] == 1 and _row(misses, dim)[5] == 0 and _row(misses, dim)[0:5].tolist() == [1] * 5
 
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_no_return_beam_gives_misses_to_the_cap_and_no_hit(dim: int, counting: str) -> None:
     s = _along_x(dim, [5.0], max_range=5.0)
-    hits, misses, near = RayEvidence.from_scans([s], no_return_cap=0.7).counts(GRID if dim == 2 else VOXELS)
+    hits, misses, near, silent = RayEvidence.from_scans([s], no_return_cap=0.7).counts(GRID if dim == 2 else VOXELS)
     assert hits.sum() == 0
     assert _row(misses, dim)[:8].tolist() == [1] * 8 and misses.sum() == 8
     assert near.sum() == 0  # a beam that did not return has no end to be near
+    np.testing.assert_array_equal(silent, misses)  # and every update it made is a silent one
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_silent_update_is_a_scans_whose_beams_there_all_returned_nothing(dim: int, counting: str) -> None:
+    from gpomap.fusion import only_silent
+
+    grid = GRID if dim == 2 else VOXELS
+    # Scan 1: a beam returned at x = 0.57 (cells 0 to 4 crossed, a hit in 5) and one returned
+    # nothing, free to the cap 0.98 from x = 0.05 (cells 0 to 10). Scan 2: one beam returned at
+    # x = 0.87 (cells 0 to 7 crossed, a hit in 8).
+    first = _along_x(dim, [0.52, 5.0], max_range=5.0)
+    second = _along_x(dim, [0.82])
+    *_, silent = RayEvidence.from_scans([first], no_return_cap=0.98).counts(grid)
+    # Cells 0 to 5 held the returned beam too; 6 to 10 the silent beam alone.
+    assert _row(silent, dim)[:12].tolist() == [0] * 6 + [1] * 5 + [0] and silent.sum() == 5
+    hits, misses, _, silent = RayEvidence.from_scans([first, second], no_return_cap=0.98).counts(grid)
+    assert _row(silent, dim)[:12].tolist() == [0] * 6 + [1] * 5 + [0]
+    # Cells 6 and 7 were crossed and cell 8 ended in by the second scan's returned beam: of the
+    # silent cells only 9 and 10 are left to the silent beam alone.
+    cells = _row(only_silent(hits, misses, silent), dim)
+    assert np.flatnonzero(cells).tolist() == [9, 10]
+    # The robot's path through a cell rules it out too.
+    path = np.zeros(grid.shape, dtype=int)
+    _row(path, dim)[9] = 1
+    assert np.flatnonzero(_row(only_silent(hits, misses, silent, path), dim)).tolist() == [10]
 
 
 def test_counts_add_over_scans_and_batches(monkeypatch: pytest.MonkeyPatch, counting: str) -> None:
@@ -127,7 +154,7 @@ def test_counts_add_over_scans_and_batches(monkeypatch: pytest.MonkeyPatch, coun
     whole = ev.counts(grid)
     parts = [ev.counts(grid, scans=np.array([k])) for k in range(len(scans))]
     assert 0 < whole.near.sum() < whole.misses.sum() and np.all(whole.near <= whole.misses)
-    for j in range(3):
+    for j in range(len(whole)):
         np.testing.assert_array_equal(whole[j], sum(p[j] for p in parts))
     # Tiny batches (one scan each) give the same counts as one batch.
     import gpomap.evidence as evidence
@@ -294,7 +321,7 @@ def test_written_grid_uses_its_own_cells_counts(half_room: tuple[AreaGPOM, list[
     # Half the room's scans: the GP is still sampled coarsely (factor 2) and interpolated.
     model, _ = half_room
     om = model.grid(0.05, extent=(0.0, 10.0, 0.0, 8.0))  # a corner of the room, walls included
-    hits, misses = model.evidence_.grid_counts(om.grid)
+    hits, misses, _ = model.evidence_.grid_counts(om.grid)
     p_gp, _, p_unseen = (a.reshape(om.grid.shape) for a in model._gp_probabilities(om.grid.centres()))
     factor = gp_sampling_factor(model.hyperparameters_["length_scale"], 0.05)
     assert factor > 1  # the GP was sampled coarsely and interpolated
@@ -456,7 +483,7 @@ def test_calibration_predicts_only_counted_points_and_matches_the_whole_sample_f
     pts, occ, h, m, n, sf = [], [], [], [], [], []
     for k, s in enumerate(scans):
         p, o = calibration_points(s, 0.1)
-        hits, misses, near = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
+        hits, misses, near, _ = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
         cell, inside = lattice.flat_index(grid, p)
         padded = np.pad(hits > 0, 1)
         block = np.zeros(hits.shape, bool)
@@ -549,7 +576,7 @@ def test_seen_cells_and_one_scans_counts_at_cells_equal_the_whole_grid_counts(
             scans.append(CloudScan(o, ends, hit=np.linalg.norm(ends - o, axis=1) < 1.5, max_range=1.5))
     ev = RayEvidence.from_scans(scans)
     # Whether any scan counted a cell, against the whole counts (one batch and many).
-    hits, misses, _ = ev.counts(grid)
+    hits, misses, *_ = ev.counts(grid)
     assert 0 < np.count_nonzero(hits + misses) < hits.size
     for budget in (1 << 22, 50):
         monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", budget)
@@ -563,7 +590,7 @@ def test_seen_cells_and_one_scans_counts_at_cells_equal_the_whole_grid_counts(
         for budget in (1 << 22, 50):  # one batch, and a few beams a batch
             monkeypatch.setattr(evidence, "_ENTRIES_PER_BATCH", budget)
             got = ev.scan_counts_at(grid, k, cells)
-            for j in range(3):
+            for j in range(len(want)):
                 np.testing.assert_array_equal(got[j], want[j])
         # The scan's update by brute force, beam by beam: each cell's share of hits is the scan's
         # beams that returned and ended in it over all its beams there, its near share those that
@@ -643,7 +670,7 @@ def test_written_grid_takes_the_variance_two_samples_apart(half_room: tuple[Area
     # Unseen space: the variance scaled by kappa.
     z = num / np.sqrt(1.0 + hp["variance_scale"] * den)
     p_gp, p_unseen = ndtr(num / np.sqrt(1.0 + den)), ndtr(z)
-    hits, misses = model.evidence_.grid_counts(om.grid)
+    hits, misses, _ = model.evidence_.grid_counts(om.grid)
     want = model.evidence_.grid_proba(
         om.grid, lattice.interpolate(p_gp, sampled, om.grid), lattice.interpolate(p_unseen, sampled, om.grid)
     )
@@ -749,7 +776,7 @@ def test_other_scans_counts_are_the_counts_without_each_points_own_scan() -> Non
     for k in range(len(scans)):
         others = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
         sel = scan_of == k
-        for mine, theirs in zip(got[:3], others, strict=True):
+        for mine, theirs in zip((*got[:3], got[4]), others, strict=True):
             np.testing.assert_array_equal(mine[sel], np.where(inside[sel], theirs.reshape(-1)[cell[sel]], 0))
         # Surface misses: the far misses of cells with one of the other scans' hits in their 3 x 3 block.
         padded = np.pad(others.hits > 0, 1)
@@ -970,7 +997,7 @@ def test_a_calibrated_map_calls_occupied_what_is_more_likely_occupied_than_not()
     assert model.thresholds_ == (0.1, 0.2)  # given thresholds are kept
     fitted = 0.2
     m = model.grid(0.05, extent=(-0.487, 10.513, -0.479, 8.521))
-    hits, _, _ = model.evidence_.evidence.counts(m.grid)
+    hits, *_ = model.evidence_.evidence.counts(m.grid)
     seen = hits == 0  # beams or the path crossed it, or nothing reached it: no beam ended there
     np.testing.assert_array_equal(m.seen_through, seen)
     above = m.probability > fitted
@@ -1054,7 +1081,7 @@ def test_calibration_fits_the_surprise_rate_against_a_gp_that_never_saw_the_held
     pts, occ, h, m, n = [], [], [], [], []
     for k in held:
         pk, ok = calibration_points(scans[k], 0.1)
-        hits, misses, near = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
+        hits, misses, near, _ = ev.counts(grid, scans=np.array([j for j in range(len(scans)) if j != k]))
         cell, inside = lattice.flat_index(grid, pk)
         pts.append(pk)
         occ.append(ok)
@@ -1161,7 +1188,7 @@ def test_the_calibration_sample_is_a_draw_from_every_held_out_point(monkeypatch:
         return _p_gp(points)
 
     _, report, sample = fit_calibration(scans, ev, grid, predict_gp, n_scans=4, step=0.1, seed=7)
-    h, m, _, _ = _other_scans_counts(ev, grid, ev.counts(grid), pts[keep], scan_of[keep], False)
+    h, m, *_ = _other_scans_counts(ev, grid, ev.counts(grid), pts[keep], scan_of[keep], False)
     counted = (h > 0) | (m > 0)
     assert report["n_points"] == n and 0 < counted.sum() < n
     np.testing.assert_array_equal(asked[0], pts[keep][counted])
@@ -1185,3 +1212,28 @@ def test_a_layer_set_aside_holds_nothing_and_comes_back_the_same() -> None:
         assert after.dtype == before[n].dtype and np.array_equal(after, before[n])
     assert np.array_equal(layer.proba(P, _p_gp(P)), p_before)
     assert np.array_equal(layer.at_surface(), surface)
+
+
+def test_the_silent_rate_is_the_likelihoods_maximum_found_by_brute_force() -> None:
+    """fit_silent_rate against a search of the whole (mix, rate) square: a map's probabilities
+    that say nothing of these cells' classes (drawn apart from them) are mixed towards their share."""
+    from gpomap.fusion import SILENT_FIT_POINTS, fit_silent_rate
+
+    rng = np.random.default_rng(3)
+    n = 2000
+    occupied = rng.random(n) < 0.15
+    p = rng.uniform(0.0, 0.1, n)
+
+    def loss(mix: float, rate: float) -> float:
+        q = (1.0 - mix) * p + mix * rate
+        return float(-np.mean(np.where(occupied, np.log(q), np.log1p(-q))))
+
+    rate, mix = fit_silent_rate(p, occupied)
+    mixes, rates = np.linspace(0.0, 1.0, 201), np.linspace(0.005, 0.5, 199)
+    best = min(loss(m, r) for m in mixes for r in rates)
+    assert loss(mix, rate) <= best + 1e-6
+    # Probabilities drawn apart from the classes are worth nothing: all the rate, and the rate the
+    # points' share of hits (a constant's likelihood is largest at the share).
+    assert mix == pytest.approx(1.0, abs=1e-3) and rate == pytest.approx(occupied.mean(), abs=1e-3)
+    # Too few points to fit: the probabilities as they are.
+    assert fit_silent_rate(p[: SILENT_FIT_POINTS - 1], occupied[: SILENT_FIT_POINTS - 1]) == (0.0, 0.0)

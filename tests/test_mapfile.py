@@ -255,11 +255,12 @@ def _rewrite_header(path, change):
             zf.writestr(name, data)
 
 
-#: What a map file of format version 3 holds of each class (its attributes, or a dataclass's fields).
+#: What a map file of format version 4 holds of each class (its attributes, or a dataclass's fields).
 #: Version 2 kept version 1's layout, its ray counts a scan's shared updates (float32); version 3's
 #: voxel maps make their blocks' points again with free samples merged by cube, and a map counts the
-#: free samples its points stand for (``_n_free_samples``).
-LAYOUT_V3 = {
+#: free samples its points stand for (``_n_free_samples``); version 4's evidence layer counts the
+#: silent updates (``_silent``) and its calibration holds their rate (``silent_rate``, ``silent_mix``).
+LAYOUT_V4 = {
     "gpomap.mapping.AreaGPOM": {
         "tile_size", "overlap", "blend", "origin", "n_workers", "hyper_sample", "per_tile_hyperparameters",
         "blas_threads", "worker_processes", "scheduler_timeout", "memory_limit", "base", "options", "_clearance",
@@ -270,10 +271,12 @@ LAYOUT_V3 = {
     },
     "gpomap.fusion.EvidenceLayer": {
         "resolution", "gp_apart", "no_return_cap", "calibration_scans", "seed", "calibration", "report",
-        "sample", "revisit", "_scans", "_parts", "_dim", "lattice", "_hits", "_beam_misses", "_near_misses", "_path",
+        "sample", "revisit", "_scans", "_parts", "_dim", "lattice", "_hits", "_beam_misses", "_near_misses", "_silent",
+        "_path",
     },
     "gpomap.fusion.EvidenceCalibration": {
         "hit_weight", "prior_weight", "near_weight", "near_hit_weight", "surface_weight", "surprise_rate",
+        "silent_rate", "silent_mix",
     },
     "gpomap.revisit.RevisitCalibration": {"slope", "shift"},
     "gpomap.tiles.TileState": {"key", "posterior", "hyperparameters", "seconds"},
@@ -306,8 +309,8 @@ def test_the_saved_layout_is_the_format_versions(room, tmp_path):
     with np.load(path, allow_pickle=False) as archive:
         layout = _layout(json.loads(str(archive["header"]))["state"])
     assert model.evidence_._hits.dtype == np.float32
-    assert VERSION == 3
-    for name, names in LAYOUT_V3.items():
+    assert VERSION == 4
+    for name, names in LAYOUT_V4.items():
         assert layout[name] == names, f"{name}: {sorted(layout[name] ^ names)} changed: raise the format VERSION"
 
 
@@ -366,10 +369,11 @@ def test_a_loaded_map_updates_as_the_live_one(arena, tmp_path):
     np.testing.assert_allclose(loaded.predict_proba_gp(points), batch.predict_proba_gp(points), rtol=0, atol=1e-9)
     a, b = loaded.evidence_, batch.evidence_
     (i, j), (ny, nx) = cell_offset(b.lattice, a.lattice), b.lattice.shape
-    for name in ("_hits", "_beam_misses", "_near_misses"):
+    for name in ("_hits", "_beam_misses", "_near_misses", "_silent"):
         grown, whole = getattr(a, name), getattr(b, name)
         np.testing.assert_array_equal(grown[i : i + ny, j : j + nx], whole)
-        assert grown.sum() == whole.sum() > 0  # nothing counted outside the batch's lattice
+        assert grown.sum() == whole.sum()  # nothing counted outside the batch's lattice
+    assert a._hits.sum() > 0 and a._near_misses.sum() > 0
 
 
 def test_an_updated_map_is_the_batch_map_with_the_saved_hyperparameters(room, tmp_path):

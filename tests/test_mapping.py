@@ -74,7 +74,7 @@ def test_grid_and_ternary(fitted):
     assert (m.ternary == FREE).sum() > (m.ternary == OCCUPIED).sum() > 0
     # The grid is the GP at the cell centres updated by each grid cell's own ray counts.
     # Cells with counts (those without any take the GP's probability for unseen space).
-    hits, misses = fitted.evidence_.grid_counts(m.grid)
+    hits, misses, _ = fitted.evidence_.grid_counts(m.grid)
     counted = np.flatnonzero((hits + misses).ravel() > 0)[:50]
     p, v = fitted.predict_proba_gp(m.grid.centres()[counted], return_var=True)
     fused = fitted.evidence_.calibration(p, hits.ravel()[counted], misses.ravel()[counted])

@@ -1,11 +1,13 @@
 """The recalibration for a later visit: its map of probabilities, its fit, its held-out stretch, and a map that uses it."""
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from gpomap import revisit as rv
+from gpomap.fusion import fit_silent_rate
 from gpomap.grid import CALIBRATED_THRESHOLDS
 from gpomap.heldout import calibration_points, holdout_stretches
 from gpomap.mapping import AreaGPOM
@@ -163,12 +165,18 @@ def test_the_map_of_the_rest_is_this_map_on_fewer_scans(fitted_tour):
     scans = model._scans
     kept, _ = holdout_stretches(len(scans))
     rest = AreaGPOM(**{**model.get_params(), "fit_revisit": False, "tile_size": model.tile_size_, "origin": model.origin_})
-    rest._given_calibration = model.evidence_.calibration
+    # Without a silent rate: it is fitted on these points.
+    calibration = model.evidence_.calibration
+    rest._given_calibration = replace(calibration, silent_rate=0.0, silent_mix=0.0)
     rest.fit([scans[i] for i in kept], hyperparameters=dict(model.hyperparameters_))
-    assert rest.evidence_.calibration == model.evidence_.calibration and rest.evidence_.report == {"given": 1.0}
+    assert rest.evidence_.calibration == rest._given_calibration and rest.evidence_.report == {"given": 1.0}
     p, occupied, _ = rv.later_visit_points(scans, lambda s, q: rest._proba_as_written(q), seed=model.base.seed)
+    points = rv.drawn_points([scans[i] for i in holdout_stretches(len(scans))[1]], model.base.no_return_cap, model.base.seed)[0]
+    silent = rest.evidence_.counts_at(points)[2]
+    assert (calibration.silent_rate, calibration.silent_mix) == fit_silent_rate(p[silent], occupied[silent])
     sample = model.evidence_.sample
-    got = rv.RevisitCalibration.fit(p, occupied, sample.probability, sample.occupied)
+    among = calibration.with_silent(sample.probability, sample.silent)
+    got = rv.RevisitCalibration.fit(calibration.with_silent(p, silent), occupied, among, sample.occupied)
     assert got.slope == pytest.approx(model.evidence_.revisit.slope, rel=1e-6)
     assert got.shift == pytest.approx(model.evidence_.revisit.shift, rel=1e-6, abs=1e-9)
 
@@ -222,7 +230,7 @@ def test_the_map_of_the_rest_fits_only_the_tiles_asked_and_answers_as_with_all(f
     old.__dict__.update({k: v for k, v in eager.evidence_.__dict__.items() if k not in ("_cells", "_asked_at")})
     np.testing.assert_array_equal(old.counts_at(pts), eager.evidence_.counts_at(pts))
     # What the map itself took for its recalibration.
-    p_model, _, _ = model._later_visit_points()
+    p_model, *_ = model._later_visit_points()
     np.testing.assert_array_equal(p_model, p_eager)
     # Without ray counts nothing is predicted while fitting: no tile is fitted until asked.
     gp = model._refit().unfitted(fit_revisit=False, ray_evidence=False)
@@ -269,6 +277,6 @@ def test_the_map_of_the_rest_takes_this_maps_points_as_making_them_again_would(f
     pts = np.random.default_rng(3).uniform([0.0, 0.0], [20.0, 16.0], (2000, 2))
     np.testing.assert_array_equal(made.predict_proba(pts), taken.predict_proba(pts))
     # What the map took for its recalibration is the map of the rest made from the scans.
-    p_model, _, _ = model._later_visit_points()
+    p_model, *_ = model._later_visit_points()
     p_made, _, _ = rv.later_visit_points(scans, lambda s, q: made._proba_as_written(q), model.base.no_return_cap, model.base.seed)
     np.testing.assert_array_equal(p_model, p_made)

@@ -40,12 +40,12 @@ def test_the_chain_applied_stage_by_stage_is_the_maps_prediction(tour_map: AreaG
     num, den, _, _ = model.blended_moments(pts)
     assert den is not None
     gp = chain.squash.apply(CalibratedMoments(num, den))
-    hits, misses = model.evidence_.counts_at(pts)
-    fused = chain.fusion.apply(Counted(gp.probability, gp.unseen, hits, misses))
+    hits, misses, silent = model.evidence_.counts_at(pts)
+    fused = chain.fusion.apply(Counted(gp.probability, gp.unseen, hits, misses, silent))
     final = chain.revisit.apply(fused)
     # To the bit: the map's own prediction, and the chain applied at once.
     np.testing.assert_array_equal(final, model.predict_proba(pts))
-    np.testing.assert_array_equal(chain.apply(CalibratedMoments(num, den), (hits, misses)), final)
+    np.testing.assert_array_equal(chain.apply(CalibratedMoments(num, den), (hits, misses, silent)), final)
     np.testing.assert_array_equal(gp.probability, model.predict_proba_gp(pts))
     # Each stage moves the probabilities: counted cells and cells no count reached, and the recalibration.
     counted = (hits > 0) | (misses > 0)
@@ -61,7 +61,7 @@ def test_the_chain_applied_stage_by_stage_is_the_maps_prediction(tour_map: AreaG
 def test_each_stage_is_the_formula_it_documents(tour_map: AreaGPOM) -> None:
     """Point by point in plain floats: Phi of the calibrated moments, the Beta update of the counts
     (the GP's probability for unseen space where a cell has none) mixed with the surprise rate,
-    and the recalibration in log-odds."""
+    the silent rate where only beams without a return went, and the recalibration in log-odds."""
     model = tour_map
     chain = model.map_.stages
     cal, rev = model.evidence_.calibration, model.evidence_.revisit
@@ -69,8 +69,8 @@ def test_each_stage_is_the_formula_it_documents(tour_map: AreaGPOM) -> None:
     pts = _points(model)[::15]
     num, den, _, _ = model.blended_moments(pts)
     assert den is not None
-    hits, misses = model.evidence_.counts_at(pts)
-    got = chain.apply(CalibratedMoments(num, den), (hits, misses))
+    hits, misses, silent = model.evidence_.counts_at(pts)
+    got = chain.apply(CalibratedMoments(num, den), (hits, misses, silent))
 
     def phi(z: float) -> float:
         return 0.5 * (1.0 + math.erf(z / math.sqrt(2.0)))
@@ -82,6 +82,8 @@ def test_each_stage_is_the_formula_it_documents(tour_map: AreaGPOM) -> None:
         beta_update = (hits[k] + cal.prior_weight * p_gp) / (hits[k] + misses[k] + cal.prior_weight)
         q = p_unseen if hits[k] == 0 and misses[k] == 0 else beta_update
         p = cal.surprise_rate / 2 + (1.0 - cal.surprise_rate) * q
+        if silent[k]:
+            p = (1.0 - cal.silent_mix) * p + cal.silent_mix * cal.silent_rate
         z = math.log(p / (1.0 - p))
         want = 1.0 / (1.0 + math.exp(-(rev.slope * z + rev.shift * (1.0 - math.exp(-0.5 * (z / WIDTH) ** 2)))))
         assert got[k] == pytest.approx(want, rel=1e-9), k

@@ -52,7 +52,7 @@ def test_ray_counts_added_scan_by_scan_equal_counting_them_at_once(room):
         np.testing.assert_array_equal(a, b)
     # A grid on the lattice reads the running counts: the same as traversing its own cells.
     on = GridSpec((x0 + 0.5, y0 + 0.25), 0.05, (120, 150))
-    hits, misses, near = inc.evidence.counts(on)
+    hits, misses, near, _ = inc.evidence.counts(on)
     np.testing.assert_array_equal(inc.grid_counts(on)[0], inc.calibration.hits(hits, near))
     # Its surface misses are found from the hits of the cells round it as well (a grid one cell wider).
     wider = GridSpec((on.origin[0] - 0.05, on.origin[1] - 0.05), 0.05, (122, 152))

@@ -2,9 +2,9 @@
 
 :meth:`gpomap.evidence.RayEvidence.counts` turns the cells every beam crossed into one update
 per cell per scan (:func:`gpomap.evidence.scan_shares`). The numpy path sorts keys
-``scan * cells + cell`` of every traversal entry; here one compiled pass over the entries, scan by
-scan, tallies each touched cell in a small table (a slot per cell, reset after the scan), in time
-linear in the entries. The counts are the numpy path's (``tests/test_fusion.py`` compares the two).
+``scan * cells + cell`` of every traversal entry; here one compiled pass walks the beams, scan by
+scan, and tallies each touched cell in a small table (a slot per cell, reset after the scan), in
+time linear in the cells walked. The counts are the numpy path's (``tests/test_fusion.py`` compares the two).
 
 ``ENABLED``: the counts take this path (:func:`gpomap.compiled.compiled_by_default` at import;
 tests switch it).
@@ -35,10 +35,12 @@ def _add_scan(
     through: NDArray[np.int64],
     ended: NDArray[np.int64],
     close: NDArray[np.int64],
+    quiet: NDArray[np.int64],
     rows: int,
     hits: Any,
     misses: Any,
     near: Any,
+    silent: Any,
     slot: NDArray[np.int32],
     shared: bool,
     units: int,
@@ -49,6 +51,8 @@ def _add_scan(
         c = cells[k]
         slot[c] = -1
         t = max(through[k], ended[k])
+        if quiet[k] == t and ended[k] == 0:
+            silent[c] += 1.0
         if shared and ended[k] == 0 and close[k] == 0:
             # Most rows: a plain miss, the whole update (adding the zero shares changes nothing).
             misses[c] += 1.0
@@ -72,111 +76,6 @@ def _add_scan(
 
 
 @jit(cache=True, nogil=True)
-def _count_entries(
-    entry_beam: NDArray[np.intp],
-    entry_cell: NDArray[np.int64],
-    entry_near: NDArray[np.bool_],
-    beam_scan: NDArray[np.intp],
-    beam_end: NDArray[np.int64],
-    hits: Any,
-    misses: Any,
-    near: Any,
-    slot: NDArray[np.int32],
-    shared: bool,
-    units: int,
-) -> None:  # pragma: no cover - compiled (the numpy path is the tests' reference)
-    n_beams = beam_scan.size
-    n_entries = entry_beam.size
-    e = 0
-    first = 0
-    while first < n_beams:
-        s = beam_scan[first]
-        last = first
-        while last < n_beams and beam_scan[last] == s:
-            last += 1
-        stop = e
-        while stop < n_entries and entry_beam[stop] < last:
-            stop += 1
-        # The scan's table: a row per cell its beams touched.
-        size = (stop - e) + (last - first)
-        cells = np.empty(size, dtype=np.int64)
-        through = np.zeros(size, dtype=np.int64)
-        ended = np.zeros(size, dtype=np.int64)
-        close = np.zeros(size, dtype=np.int64)
-        rows = np.int64(0)  # not a literal 0, which numba would compile _add_scan for once more
-        for b in range(first, last):
-            c = beam_end[b]
-            if c >= 0:
-                k = slot[c]
-                if k < 0:
-                    k = rows
-                    slot[c] = k
-                    cells[k] = c
-                    rows += 1
-                ended[k] += 1
-        while e < stop:
-            c = entry_cell[e]
-            k = slot[c]
-            if k < 0:
-                k = rows
-                slot[c] = k
-                cells[k] = c
-                rows += 1
-            through[k] += 1
-            if entry_near[e] and c != beam_end[entry_beam[e]]:
-                close[k] += 1
-            e += 1
-        _add_scan(cells, through, ended, close, rows, hits, misses, near, slot, shared, units)
-        first = last
-
-
-def count_entries(
-    entry_beam: NDArray[np.intp],
-    entry_cell: NDArray[np.int64],
-    entry_near: NDArray[np.bool_],
-    beam_scan: NDArray[np.intp],
-    beam_end: NDArray[np.int64],
-    counts: tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]],
-    slot: NDArray[np.int32],
-    shared: bool = True,
-    units: int = 256,
-) -> None:
-    """Add a batch of beams' hits, misses and near misses into `counts` (flat arrays), in place.
-
-    Parameters
-    ----------
-    entry_beam : ndarray of int, shape (m,)
-        Beam of each traversal entry, non-decreasing.
-    entry_cell : ndarray of int64, shape (m,)
-        Flat index of each entry's cell.
-    entry_near : ndarray of bool, shape (m,)
-        Whether the entry's cell is within :data:`gpomap.evidence.NEAR_END` of its beam's returned end.
-    beam_scan : ndarray of int, shape (b,)
-        Scan of each beam, non-decreasing; a scan's beams all in this batch.
-    beam_end : ndarray of int64, shape (b,)
-        Flat index of each returned beam's end cell, -1 for beams that did not return or end outside.
-    counts : (hits, misses, near), each ndarray of float32 or float64 of the grid's size
-    slot : ndarray of int32 of the grid's size
-        Scratch, -1 everywhere (and so again after each call).
-    shared : bool
-        :data:`gpomap.evidence.SHARED_UPDATES`.
-    units : int
-        :data:`gpomap.evidence.SHARE_UNITS`.
-    """
-    _count_entries(
-        np.ascontiguousarray(entry_beam, dtype=np.intp),
-        np.ascontiguousarray(entry_cell, dtype=np.int64),
-        np.ascontiguousarray(entry_near, dtype=np.bool_),
-        np.ascontiguousarray(beam_scan, dtype=np.intp),
-        np.ascontiguousarray(beam_end, dtype=np.int64),
-        *counts,
-        slot,
-        bool(shared),
-        int(units),
-    )
-
-
-@jit(cache=True, nogil=True)
 def _count_beams(
     p0: NDArray[np.float64],
     p1: NDArray[np.float64],
@@ -196,22 +95,23 @@ def _count_beams(
     hits: Any,
     misses: Any,
     near: Any,
+    silent: Any,
     slot: NDArray[np.int32],
     shared: bool,
     units: int,
 ) -> tuple[
-    NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], int
+    NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], int
 ]:  # pragma: no cover
     # (compiled; the numpy path is the tests' reference)
     n_beams = beam_scan.size
     d = p0.shape[1]
-    # The kept scans' tables, one after another: scan, cell, through, ended, close.
+    # The kept scans' tables, one after another: scan, cell, through, ended, close, quiet.
     kept_size = 0
     for b in range(n_beams):
         if beam_kept[b]:
             kept_size = 1 << 12
             break
-    kept_rows = np.empty((5, kept_size), dtype=np.int64)
+    kept_rows = np.empty((6, kept_size), dtype=np.int64)
     n_kept = 0
     t_cross, key_cross, work, walked, strides = walk_scratch(p0, p1, shape)
     size = 1 << 12
@@ -219,6 +119,7 @@ def _count_beams(
     through = np.empty(size, dtype=np.int64)
     ended = np.empty(size, dtype=np.int64)
     close = np.empty(size, dtype=np.int64)
+    quiet = np.empty(size, dtype=np.int64)
     # Counters start as int64, not literal 0s: numba would compile each callee once more for a literal.
     j = np.int64(0)  # the next kept segment
     first = 0
@@ -232,7 +133,7 @@ def _count_beams(
         for b in range(first, last):
             if rows + 1 > size:
                 size *= 2
-                cells, through, ended, close = _grown(cells, through, ended, close, rows, size)
+                cells, through, ended, close, quiet = _grown(cells, through, ended, close, quiet, rows, size)
             c = beam_end[b]
             if c >= 0:
                 k = slot[c]
@@ -243,6 +144,7 @@ def _count_beams(
                     through[k] = 0
                     ended[k] = 0
                     close[k] = 0
+                    quiet[k] = 0
                     rows += 1
                 ended[k] += 1
         while j < kept.size and kept[j] < last:
@@ -252,7 +154,7 @@ def _count_beams(
             if rows + n > size:
                 while rows + n > size:
                     size *= 2
-                cells, through, ended, close = _grown(cells, through, ended, close, rows, size)
+                cells, through, ended, close, quiet = _grown(cells, through, ended, close, quiet, rows, size)
             for e in range(n):
                 c = np.int64(0)
                 for a in range(d):
@@ -265,8 +167,11 @@ def _count_beams(
                     through[k] = 0
                     ended[k] = 0
                     close[k] = 0
+                    quiet[k] = 0
                     rows += 1
                 through[k] += 1
+                if not beam_hit[b]:
+                    quiet[k] += 1
                 # Only a returned beam's last `tail` cells can lie within the near distance of
                 # its end (the centre's squared distance summed x first, as the numpy path does).
                 if beam_hit[b] and e >= n - tail and c != beam_end[b]:
@@ -280,8 +185,8 @@ def _count_beams(
             if n_kept + rows > kept_size:
                 while n_kept + rows > kept_size:
                     kept_size *= 2
-                more = np.empty((5, kept_size), dtype=np.int64)
-                for q in range(5):
+                more = np.empty((6, kept_size), dtype=np.int64)
+                for q in range(6):
                     for k in range(n_kept):
                         more[q, k] = kept_rows[q, k]
                 kept_rows = more
@@ -291,23 +196,37 @@ def _count_beams(
                 kept_rows[2, n_kept] = through[k]
                 kept_rows[3, n_kept] = ended[k]
                 kept_rows[4, n_kept] = close[k]
+                kept_rows[5, n_kept] = quiet[k]
                 n_kept += 1
-        _add_scan(cells, through, ended, close, rows, hits, misses, near, slot, shared, units)
+        _add_scan(cells, through, ended, close, quiet, rows, hits, misses, near, silent, slot, shared, units)
         first = last
-    return kept_rows[0], kept_rows[1], kept_rows[2], kept_rows[3], kept_rows[4], n_kept
+    return kept_rows[0], kept_rows[1], kept_rows[2], kept_rows[3], kept_rows[4], kept_rows[5], n_kept
 
 
 @jit(cache=True, nogil=True)
 def _grown(
-    cells: NDArray[np.int64], through: NDArray[np.int64], ended: NDArray[np.int64], close: NDArray[np.int64], rows: int, size: int
-) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:  # pragma: no cover - compiled
-    """The table's arrays of `size` rows, the first `rows` kept."""
-    out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size, np.int64))
+    cells: NDArray[np.int64],
+    through: NDArray[np.int64],
+    ended: NDArray[np.int64],
+    close: NDArray[np.int64],
+    quiet: NDArray[np.int64],
+    rows: int,
+    size: int,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:  # pragma: no cover
+    """The table's arrays of `size` rows, the first `rows` kept (compiled)."""
+    out = (
+        np.empty(size, np.int64),
+        np.empty(size, np.int64),
+        np.empty(size, np.int64),
+        np.empty(size, np.int64),
+        np.empty(size, np.int64),
+    )
     for k in range(rows):
         out[0][k] = cells[k]
         out[1][k] = through[k]
         out[2][k] = ended[k]
         out[3][k] = close[k]
+        out[4][k] = quiet[k]
     return out
 
 
@@ -320,15 +239,16 @@ def count_beams(
     beam_end: NDArray[np.int64],
     near_end: float,
     tail: int,
-    counts: tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]],
+    counts: tuple[NDArray[np.floating[Any]], ...],
     slot: NDArray[np.int32],
     shared: bool = True,
     units: int = 256,
     kept: NDArray[np.bool_] | None = None,
 ) -> tuple[NDArray[np.int64], ...]:
-    """:func:`count_entries` of beams walked here: each beam's cells found
-    (:func:`gpomap.raycast.traverse`'s, by :func:`gpomap._compiled_raycast.walk_segment`) and
-    tallied as they are found, never listed; and the tallies of the scans whose beams are `kept`.
+    """Add a batch of beams' hits, misses, near misses and silent updates into `counts` (flat
+    arrays), in place: each beam's cells found (:func:`gpomap.raycast.traverse`'s, by
+    :func:`gpomap._compiled_raycast.walk_segment`) and tallied as they are found, never listed;
+    and return the tallies of the scans whose beams are `kept`.
 
     Parameters
     ----------
@@ -337,23 +257,33 @@ def count_beams(
         The beams, map frame.
     hit : ndarray of bool, shape (b,)
         Whether each beam returned.
-    beam_scan, beam_end, counts, slot, shared, units
-        As :func:`count_entries`'.
+    beam_scan : ndarray of int, shape (b,)
+        Scan of each beam, non-decreasing; a scan's beams all in this batch.
+    beam_end : ndarray of int64, shape (b,)
+        Flat index of each returned beam's end cell, -1 for beams that did not return or end outside.
     near_end : float
         :data:`gpomap.evidence.NEAR_END`: a cell whose centre is closer to a returned beam's end
         (and not its end's cell) is a near miss.
     tail : int
         How many of a returned beam's last cells can be that close (the numpy path's bound).
+    counts : (hits, misses, near, silent), each ndarray of float32 or float64 of the grid's size
+        (:class:`gpomap.evidence.RayCounts`).
+    slot : ndarray of int32 of the grid's size
+        Scratch, -1 everywhere (and so again after the call).
+    shared : bool
+        :data:`gpomap.evidence.SHARED_UPDATES`.
+    units : int
+        :data:`gpomap.evidence.SHARE_UNITS`.
     kept : ndarray of bool, shape (b,), optional
         Beams whose scans' tallies are returned (all of a scan's beams alike).
 
     Returns
     -------
-    scan, cell, through, ended, near : ndarray of int64, shape (r,)
+    scan, cell, through, ended, near, quiet : ndarray of int64, shape (r,)
         Per cell a kept scan touched (grouped by scan, in the order of the beams, the cells of a
         scan in no order): how many of its beams crossed or ended in the cell, how many returned
-        and ended there, and how many crossed it near their returned end without ending there
-        (:meth:`gpomap.evidence.RayEvidence._tallies`' counts).
+        and ended there, how many crossed it near their returned end without ending there, and
+        how many of them returned nothing (:meth:`gpomap.evidence.RayEvidence._tallies`' counts).
     """
     walk = Segments.of(grid, starts, ends)
     keep = np.zeros(len(beam_scan), dtype=np.bool_) if kept is None else np.ascontiguousarray(kept, dtype=np.bool_)

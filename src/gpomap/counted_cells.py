@@ -38,7 +38,7 @@ class CellCounts:
         The lattice the cells belong to.
     cells : ndarray of int, shape (n,)
         Their flat (row-major) indices, sorted and distinct.
-    hits, misses, near : ndarray of float, shape (n,)
+    hits, misses, near, silent : ndarray of float, shape (n,)
         Their counts (:class:`gpomap.evidence.RayCounts`).
     path : ndarray of int, shape (n,)
         The robot's path's passes (:meth:`gpomap.evidence.RayEvidence.path_passes`).
@@ -51,15 +51,12 @@ class CellCounts:
     hits: NDArray[np.floating[Any]]
     misses: NDArray[np.floating[Any]]
     near: NDArray[np.floating[Any]]
+    silent: NDArray[np.floating[Any]]
     path: NDArray[np.int64]
     at_surface: NDArray[np.bool_]
 
-    def at(
-        self, cells: NDArray[np.intp], inside: NDArray[np.bool_]
-    ) -> tuple[
-        NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.int64], NDArray[np.bool_]
-    ]:
-        """Hits, misses, near misses, path passes and whether at a surface, of each of `cells`
+    def at(self, cells: NDArray[np.intp], inside: NDArray[np.bool_]) -> tuple[NDArray[Any], ...]:
+        """Hits, misses, near misses, silent updates, path passes and whether at a surface, of each of `cells`
         (flat indices, shape (m,)) where `inside` (shape (m,)), 0 or False elsewhere.
 
         Raises
@@ -71,12 +68,11 @@ class CellCounts:
         row = np.minimum(np.searchsorted(self.cells, wanted), max(self.cells.size - 1, 0))
         if wanted.size and (self.cells.size == 0 or not np.array_equal(self.cells[row], wanted)):
             raise ValueError("the ray counts were taken only at the cells of the points this map was made for")
-        values = (self.hits, self.misses, self.near, self.path, self.at_surface)
+        values = (self.hits, self.misses, self.near, self.silent, self.path, self.at_surface)
         out = tuple(np.zeros(inside.shape, dtype=v.dtype) for v in values)
         for whole, counted in zip(out, values, strict=True):
             whole[inside] = counted[row]
-        hits, misses, near, path, at_surface = out
-        return hits, misses, near, path, at_surface
+        return out
 
 
 def count_cells(
@@ -107,10 +103,10 @@ def count_cells(
     """
     cells = np.unique(np.asarray(cells, dtype=np.intp))
     n = cells.size
-    hits, misses, near = (np.zeros(n, dtype=dtype) for _ in range(3))
+    hits, misses, near, silent = (np.zeros(n, dtype=dtype) for _ in range(4))
     path, at_surface = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=bool)
     if n == 0:
-        return CellCounts(lattice, cells, hits, misses, near, path, at_surface)
+        return CellCounts(lattice, cells, hits, misses, near, silent, path, at_surface)
     shape = np.array(lattice.shape)
     index = np.stack(np.unravel_index(cells, lattice.shape), axis=1)  # array order, x last
     tiles = index // window
@@ -126,10 +122,10 @@ def count_cells(
         near_window = np.all((reach[0] <= hi[::-1]) & (reach[1] >= lo[::-1]), axis=1)
         counts = _beams(evidence, near_window).counts(grid)
         local = np.ravel_multi_index(tuple((index[rows] - lo).T), grid.shape)
-        hits[rows], misses[rows], near[rows] = (a.reshape(-1)[local] for a in counts)
+        hits[rows], misses[rows], near[rows], silent[rows] = (a.reshape(-1)[local] for a in counts)
         at_surface[rows] = next_to_hits(counts.hits).reshape(-1)[local]
         path[rows] = evidence.path_passes(grid).reshape(-1)[local]
-    return CellCounts(lattice, cells, hits, misses, near, path, at_surface)
+    return CellCounts(lattice, cells, hits, misses, near, silent, path, at_surface)
 
 
 #: Largest count a cell may hold for counts to be taken out of it exactly: shares are whole
@@ -157,8 +153,8 @@ class CountsNear:
         The lattice the counts were taken on.
     keys : ndarray of int64, shape (n,)
         The cells, sorted and distinct (:func:`_keys`).
-    hits, misses, near : ndarray of float, shape (n,)
-        Their counts.
+    hits, misses, near, silent : ndarray of float, shape (n,)
+        Their counts (:class:`gpomap.evidence.RayCounts`).
     """
 
     lattice: AnyGrid
@@ -166,6 +162,7 @@ class CountsNear:
     hits: NDArray[np.floating[Any]]
     misses: NDArray[np.floating[Any]]
     near: NDArray[np.floating[Any]]
+    silent: NDArray[np.floating[Any]]
 
     #: Cells either side of a point's own: a lattice of another origin may round a point on a
     #: border into the next cell, whose neighbours are then asked too.
@@ -175,10 +172,10 @@ class CountsNear:
     def of(
         cls,
         lattice: AnyGrid,
-        counts: tuple[NDArray[np.floating[Any]], NDArray[np.floating[Any]], NDArray[np.floating[Any]]],
+        counts: tuple[NDArray[np.floating[Any]], ...],
         points: NDArray[np.float64],
     ) -> CountsNear:
-        """The counts (hits, misses, near misses, each of shape lattice.shape) of the cells within
+        """The counts (hits, misses, near misses, silent updates, each of shape lattice.shape) of the cells within
         :attr:`REACH` cells of each of `points` (shape (m, 2)) on the planar `lattice`."""
         *index, inside = lattice.index_of(np.asarray(points, dtype=float))
         rows, cols = index  # a planar lattice
@@ -187,16 +184,16 @@ class CountsNear:
         r, c = np.unravel_index(flat, lattice.shape)
         keys = _keys(lattice, r, c)
         order = np.argsort(keys)
-        hits, misses, near = (np.asarray(a).reshape(-1)[flat][order] for a in counts)
-        return cls(lattice, keys[order], hits, misses, near)
+        hits, misses, near, silent = (np.asarray(a).reshape(-1)[flat][order] for a in counts)
+        return cls(lattice, keys[order], hits, misses, near, silent)
 
     def at(self, keys: NDArray[np.int64]) -> tuple[NDArray[np.floating[Any]], ...] | None:
-        """Hits, misses and near misses at the cells `keys`, or None when one is not held or
+        """Hits, misses, near misses and silent updates at the cells `keys`, or None when one is not held or
         holds too many to take counts out of exactly (:data:`EXACT_BELOW`)."""
         row = np.minimum(np.searchsorted(self.keys, keys), max(self.keys.size - 1, 0))
         if keys.size and (self.keys.size == 0 or not np.array_equal(self.keys[row], keys)):
             return None
-        values = tuple(a[row] for a in (self.hits, self.misses, self.near))
+        values = tuple(a[row] for a in (self.hits, self.misses, self.near, self.silent))
         if any(v.size and float(v.max()) >= EXACT_BELOW for v in values):
             return None
         return values
@@ -271,15 +268,15 @@ def count_cells_without(
     there = np.ravel_multi_index((wr + shift[1], wc + shift[0]), own.shape)
     out = count_cells(left_out, own, there, dtype=whole.hits.dtype.type)
     at = np.searchsorted(out.cells, there)
-    hits, misses, near = (t - o[at] for t, o in zip(totals, (out.hits, out.misses, out.near), strict=True))
-    if any(v.size and float(v.min()) < 0.0 for v in (hits, misses, near)):
+    left = (out.hits, out.misses, out.near, out.silent)
+    hits, misses, near, silent = (np.asarray(t - o[at], dtype=dtype) for t, o in zip(totals, left, strict=True))
+    if any(v.size and float(v.min()) < 0.0 for v in (hits, misses, near, silent)):
         return None  # not counted on one lattice after all
-    hits, misses, near = (np.asarray(v, dtype=dtype) for v in (hits, misses, near))
     at_cell = np.searchsorted(wanted, around)
     at_surface = np.any(inside & (hits[np.minimum(at_cell, wanted.size - 1)] > 0), axis=1)
     place = np.searchsorted(wanted, cells)
     path = count_cells(_beams(kept, np.zeros(kept.hit.size, dtype=bool)), lattice, cells, dtype).path
-    return CellCounts(lattice, cells, hits[place], misses[place], near[place], path, at_surface)
+    return CellCounts(lattice, cells, hits[place], misses[place], near[place], silent[place], path, at_surface)
 
 
 def _reach(

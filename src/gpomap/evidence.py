@@ -86,16 +86,24 @@ class RayCounts(NamedTuple):
         The scans' shares of beams that crossed the cell without ending there (the near ones included).
     near : ndarray
         The part of `misses` from beams that ended their return within :data:`NEAR_END` of the cell.
+    silent : ndarray
+        The whole updates among `misses` of scans whose every beam in the cell returned nothing
+        (no-return beams, free to the cap): where they are all a cell's updates, no beam that
+        saw a surface reached it, and beams that return nothing cross walls as well as free space.
     """
 
     hits: NDArray[np.floating[Any]]
     misses: NDArray[np.floating[Any]]
     near: NDArray[np.floating[Any]]
+    silent: NDArray[np.floating[Any]]
 
 
 def scan_shares(
-    through: NDArray[np.integer[Any]], ended: NDArray[np.integer[Any]], near: NDArray[np.integer[Any]]
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    through: NDArray[np.integer[Any]],
+    ended: NDArray[np.integer[Any]],
+    near: NDArray[np.integer[Any]],
+    quiet: NDArray[np.integer[Any]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """One scan's update of cells from its beams there (:data:`SHARED_UPDATES`), each of the inputs' shape.
 
     A share is a whole number of :data:`SHARE_UNITS`-ths of the update, at least one where any beam
@@ -110,25 +118,29 @@ def scan_shares(
         Those that returned and ended in it.
     near : ndarray of int
         Those that crossed it, did not end in it and ended their return within :data:`NEAR_END`.
+    quiet : ndarray of int
+        Those that crossed it and returned nothing.
 
     Returns
     -------
-    hits, misses, near : ndarray of float64
-        Shares of one update (0 where no beam touched the cell).
+    hits, misses, near, silent : ndarray of float64
+        Shares of one update (0 where no beam touched the cell); `silent` is the whole update
+        where every beam there returned nothing (:attr:`RayCounts.silent`).
     """
     through = np.maximum(through, ended)
     touched = through > 0
+    silent = (touched & (ended == 0) & (quiet == through)).astype(np.float64)
     if not SHARED_UPDATES:
         hit = ended > 0
         miss = touched & ~hit
-        return hit.astype(np.float64), miss.astype(np.float64), (miss & (near == through)).astype(np.float64)
+        return hit.astype(np.float64), miss.astype(np.float64), (miss & (near == through)).astype(np.float64), silent
     total = np.where(touched, through, 1)
     hit_units = np.clip(
         np.floor(ended / total * SHARE_UNITS + 0.5), ended > 0, np.where(through > ended, SHARE_UNITS - 1, SHARE_UNITS)
     )
     miss_units = np.where(touched, SHARE_UNITS - hit_units, 0)
     near_units = np.clip(np.floor(near / total * SHARE_UNITS + 0.5), near > 0, miss_units)
-    return hit_units / SHARE_UNITS, miss_units / SHARE_UNITS, near_units / SHARE_UNITS
+    return hit_units / SHARE_UNITS, miss_units / SHARE_UNITS, near_units / SHARE_UNITS, silent
 
 
 def next_to_hits(hits: NDArray[np.number[Any]]) -> NDArray[np.bool_]:
@@ -189,9 +201,9 @@ class RayEvidence:
     scan: NDArray[np.intp]
     path: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)))
     #: Updates that :meth:`counts` saw some scans make, kept for :meth:`scan_counts_at` (``keep``):
-    #: ``{(grid, scan): (cells, hits, misses, near)}``, the cells sorted distinct flat indices.
-    _kept: dict[tuple[AnyGrid, int], tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] = (
-        field(default_factory=dict, init=False, repr=False, compare=False)
+    #: ``{(grid, scan): (cells, hits, misses, near, silent)}``, the cells sorted distinct flat indices.
+    _kept: dict[tuple[AnyGrid, int], tuple[NDArray[Any], ...]] = field(
+        default_factory=dict, init=False, repr=False, compare=False
     )
 
     @classmethod
@@ -294,7 +306,7 @@ class RayEvidence:
         keep: NDArray[np.intp] | None = None,
         out: RayCounts | None = None,
     ) -> RayCounts:
-        """Hits, misses and near misses per cell of `grid`, one update per cell per scan (:func:`scan_shares`).
+        """Hits, misses, near misses and silent updates per cell of `grid`, one update per cell per scan (:func:`scan_shares`).
 
         Parameters
         ----------
@@ -319,7 +331,7 @@ class RayEvidence:
         if out is None:
             # Tallied as a map's lattice is (one compiled tally for both) and widened at the end:
             # the same numbers below 2**24 / SHARE_UNITS updates of a cell.
-            counts = RayCounts(*(np.zeros(grid_size(grid), dtype=COUNT_DTYPE) for _ in range(3)))
+            counts = RayCounts(*(np.zeros(grid_size(grid), dtype=COUNT_DTYPE) for _ in RayCounts._fields))
         else:
             if any(a.dtype not in (np.float32, np.float64) or a.shape != grid.shape or not a.flags.c_contiguous for a in out):
                 raise ValueError(f"counts are added into C-contiguous float32 or float64 arrays of the grid's shape {grid.shape}")
@@ -380,7 +392,7 @@ class RayEvidence:
 
     def scan_counts_at(
         self, grid: AnyGrid, scan: int, cells: NDArray[np.intp]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """What one scan alone counts at some cells: ``counts(grid, scans=[scan])`` read at `cells`.
 
         Without arrays of the grid's size: the cells asked for are looked up (a binary search
@@ -399,24 +411,24 @@ class RayEvidence:
 
         Returns
         -------
-        hits, misses, near : ndarray of float64, shape cells.shape
+        hits, misses, near, silent : ndarray of float64, shape cells.shape
             The scan's update of each cell (:func:`scan_shares`); 0 where it touched none.
         """
         cells = np.asarray(cells, dtype=np.intp)
         kept = self._kept.get((grid, int(scan)))
         touched, *shares = self._scan_updates(grid, int(scan)) if kept is None else kept
         if touched.size == 0:
-            return np.zeros(cells.shape), np.zeros(cells.shape), np.zeros(cells.shape)
+            return np.zeros(cells.shape), np.zeros(cells.shape), np.zeros(cells.shape), np.zeros(cells.shape)
         at = np.minimum(np.searchsorted(touched, cells), touched.size - 1)
         found = touched[at] == cells
-        hits, misses, near = (np.where(found, share[at], 0.0) for share in shares)
-        return hits, misses, near
+        hits, misses, near, silent = (np.where(found, share[at], 0.0) for share in shares)
+        return hits, misses, near, silent
 
     def _scan_updates(
         self, grid: AnyGrid, scan: int
-    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """The cells one scan touched (sorted distinct flat indices) and its hits, misses and near
-        misses there (:func:`scan_shares`)."""
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """The cells one scan touched (sorted distinct flat indices) and its hits, misses, near
+        misses and silent updates there (:func:`scan_shares`)."""
         lo, hi = np.searchsorted(self.scan, [scan, scan + 1])
         parts = [
             self._tallies(grid, np.arange(lo + first, lo + last))
@@ -424,21 +436,23 @@ class RayEvidence:
         ]
         if not parts:
             empty = np.zeros(0, dtype=np.int64)
-            return empty, np.zeros(0), np.zeros(0), np.zeros(0)
+            return empty, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0)
         # A cell's beams may fall in more than one batch: their tallies add before the shares.
         keys = np.concatenate([p[0] for p in parts]) % grid_size(grid)
         cells, row = np.unique(keys, return_inverse=True)
-        through, ended, near = (
-            np.bincount(row, weights=np.concatenate([p[k] for p in parts]), minlength=cells.size) for k in (1, 2, 3)
+        through, ended, near, quiet = (
+            np.bincount(row, weights=np.concatenate([p[k] for p in parts]), minlength=cells.size).astype(np.int64)
+            for k in (1, 2, 3, 4)
         )
-        return (cells.astype(np.int64), *scan_shares(through.astype(np.int64), ended.astype(np.int64), near.astype(np.int64)))
+        return (cells.astype(np.int64), *scan_shares(through, ended, near, quiet))
 
     def _tallies(
         self, grid: AnyGrid, beams: NDArray[np.intp]
-    ) -> tuple[NDArray[np.int64], NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+    ) -> tuple[NDArray[np.int64], NDArray[np.intp], NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
         """Per distinct key ``scan * cells + cell`` that `beams` touched (sorted): how many of them
-        crossed or ended in the cell, how many returned and ended there, and how many crossed it
-        near their returned end (:data:`NEAR_END`) without ending there."""
+        crossed or ended in the cell, how many returned and ended there, how many crossed it
+        near their returned end (:data:`NEAR_END`) without ending there, and how many crossed it
+        and returned nothing."""
         ncell = grid_size(grid)
         scan = self.scan[beams].astype(np.int64)
         end_cell, inside = flat_index(grid, self.ends[beams])
@@ -451,7 +465,8 @@ class RayEvidence:
         through = np.bincount(np.searchsorted(keys, entry_keys), minlength=keys.size)
         n_ended = np.bincount(np.searchsorted(keys, end_keys), minlength=keys.size)
         near = np.bincount(np.searchsorted(keys, entry_keys[near_entry & ~own_end]), minlength=keys.size)
-        return keys, through, n_ended, near
+        quiet = np.bincount(np.searchsorted(keys, entry_keys[~self.hit[beams][b]]), minlength=keys.size)
+        return keys, through, n_ended, near, quiet
 
     def _entries(self, grid: AnyGrid, beams: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.int64], NDArray[np.bool_]]:
         """Every cell `beams` crossed (:func:`~gpomap.raycast.traverse`): the entry's beam (index
@@ -484,7 +499,7 @@ class RayEvidence:
         slot: NDArray[np.int32] | None = None,
     ) -> None:
         """Add the updates of `beams` (whole scans) into `counts`; with `slot` (the compiled path's
-        scratch, see :func:`gpomap._compiled_counts.count_entries`) in one compiled pass."""
+        scratch, see :func:`gpomap._compiled_counts.count_beams`) in one compiled pass."""
         ncell = grid_size(grid)
         scan = self.scan[beams]
         mine = np.zeros(scan.size, dtype=bool) if keep is None else np.isin(scan, keep)
@@ -493,7 +508,7 @@ class RayEvidence:
             end_cell, inside = flat_index(grid, ends)
             # Each beam's cells tallied as they are walked, never listed; the kept scans' tallies
             # as well, which the numpy path below gives as their sorted keys.
-            k_scan, k_cell, k_through, k_ended, k_near = _compiled_counts.count_beams(
+            k_scan, k_cell, k_through, k_ended, k_near, k_quiet = _compiled_counts.count_beams(
                 grid,
                 rows(self.starts, beams),
                 ends,
@@ -502,7 +517,7 @@ class RayEvidence:
                 np.where(inside & self.hit[beams], end_cell, -1),
                 NEAR_END,
                 _near_tail(grid),
-                (counts.hits, counts.misses, counts.near),
+                tuple(counts),
                 slot,
                 SHARED_UPDATES,
                 SHARE_UNITS,
@@ -512,10 +527,10 @@ class RayEvidence:
                 return
             order = np.lexsort((k_cell, k_scan))
             keys = k_scan[order] * ncell + k_cell[order]
-            through, ended, near = k_through[order], k_ended[order], k_near[order]
+            through, ended, near, quiet = k_through[order], k_ended[order], k_near[order], k_quiet[order]
         else:
-            keys, through, ended, near = self._tallies(grid, beams)
-        shares = scan_shares(through, ended, near)
+            keys, through, ended, near, quiet = self._tallies(grid, beams)
+        shares = scan_shares(through, ended, near, quiet)
         if slot is None:
             cell = keys % ncell
             for total, share in zip(counts, shares, strict=True):
@@ -525,8 +540,7 @@ class RayEvidence:
             # so the batch's arrays are not kept alive).
             for k in np.intersect1d(keep, scan):
                 lo, hi = np.searchsorted(keys, [int(k) * ncell, (int(k) + 1) * ncell])
-                kept_hits, kept_misses, kept_near = (s[lo:hi].copy() for s in shares)
-                self._kept[(grid, int(k))] = (keys[lo:hi] - int(k) * ncell, kept_hits, kept_misses, kept_near)
+                self._kept[(grid, int(k))] = (keys[lo:hi] - int(k) * ncell, *(s[lo:hi].copy() for s in shares))
 
 
 def _near_tail(grid: AnyGrid) -> int:

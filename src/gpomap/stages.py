@@ -28,7 +28,7 @@ probabilities are interpolated from coarser samples between the squash and the f
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple, Protocol, TypeVar
+from typing import Any, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -91,12 +91,16 @@ class Counted(NamedTuple):
         fusion's value from `probability` there too.
     hits, misses : ndarray
         The weighted hits and misses.
+    silent : ndarray of bool or None
+        Cells that only beams that returned nothing reached
+        (:func:`gpomap.fusion.calibration.only_silent`); None: none are.
     """
 
     probability: NDArray[np.float64]
     unseen: NDArray[np.float64] | None
     hits: NDArray[np.float64]
     misses: NDArray[np.float64]
+    silent: NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True)
@@ -120,18 +124,17 @@ class StageChain:
     fusion: Stage[Counted, NDArray[np.float64]] | None = None
     revisit: Stage[NDArray[np.float64], NDArray[np.float64]] | None = None
 
-    def apply(
-        self, moments: CalibratedMoments, counts: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
-    ) -> NDArray[np.float64]:
+    def apply(self, moments: CalibratedMoments, counts: tuple[NDArray[Any], ...] | None = None) -> NDArray[np.float64]:
         """The map's probability from the GP's calibrated moments and the cells' weighted counts.
 
         Parameters
         ----------
         moments : CalibratedMoments
             At m points, each of shape (m,).
-        counts : (hits, misses), optional
-            The weighted counts of each point's cell, each (m,)
-            (:meth:`gpomap.fusion.EvidenceLayer.counts_at`); needed when the chain has a fusion.
+        counts : (hits, misses) or (hits, misses, silent), optional
+            The weighted counts of each point's cell and whether only beams that returned nothing
+            reached it, each (m,) (:meth:`gpomap.fusion.EvidenceLayer.counts_at`); needed when the
+            chain has a fusion.
 
         Returns
         -------

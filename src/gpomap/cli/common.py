@@ -213,11 +213,17 @@ def peak_memory(peak: dict[str, float]) -> str:
 
 def ray_counts(evidence: dict[str, float]) -> str:
     """What a map's ray-count calibration weighs (:meth:`gpomap.fusion.EvidenceLayer.summary`), in a line."""
-    return (
+    line = (
         f"against a miss in open space, a hit weighs {evidence['hit_weight']:.3g}, a miss beside a hit "
         f"{evidence['surface_weight']:.3g}, a near miss {evidence['near_weight']:.3g} (and {evidence['near_hit_weight']:.3g} "
         f"hits), the GP {evidence['prior_weight']:.3g}; surprise rate {evidence['surprise_rate']:.3g}"
     )
+    if evidence.get("silent_mix", 0.0) > 0.0:
+        line += (
+            f"; where only beams without a return went, {evidence['silent_mix']:.0%} of the probability "
+            f"is their rate of surfaces, {evidence['silent_rate']:.3g}"
+        )
+    return line
 
 
 def bound_source(model: Any) -> str | None:

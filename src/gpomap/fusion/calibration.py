@@ -5,8 +5,10 @@ cell's probability (the formula in :mod:`gpomap.fusion`): the map's fitted stage
 (:mod:`gpomap.stages`; :meth:`EvidenceCalibration.apply`). :func:`fit_calibration` draws points
 from the map's own scans held out one at a time, with the other scans' counts in their cells, and
 fits the weights on them (:meth:`EvidenceCalibration.fit`), then the surprise rate
-(:func:`with_surprises`, :func:`fit_surprise_rate`) on a GP that never saw them. Why each weight,
-and what it was measured to be worth: docs/choices.md.
+(:func:`with_surprises`, :func:`fit_surprise_rate`) on a GP that never saw them. The rate of
+cells only beams that returned nothing reached (:func:`only_silent`, :func:`fit_silent_rate`) is
+fitted with the later visit's points, by :meth:`gpomap.fusion.EvidenceLayer.fit_revisit`. Why
+each weight, and what it was measured to be worth: docs/choices.md.
 """
 
 from __future__ import annotations
@@ -87,6 +89,58 @@ def fit_surprise_rate(
     return float(brentq(slope, lo, hi, xtol=1e-12))
 
 
+#: Fewest held-out points in cells only beams that returned nothing reached (:func:`only_silent`)
+#: for their rate to be fitted (:func:`fit_silent_rate`); with fewer the map's probability stays.
+#: Of the later visit's 20,000 points (:mod:`gpomap.revisit`) that is half a per cent.
+SILENT_FIT_POINTS: int = 100
+
+
+def only_silent(hits: ArrayLike, misses: ArrayLike, silent: ArrayLike, path: ArrayLike = 0) -> NDArray[np.bool_]:
+    """Cells only beams that returned nothing reached (matching shapes): no hit, no step of the
+    robot's path, and every update a silent one (:attr:`gpomap.evidence.RayCounts.silent`).
+
+    Such a beam is taken as free to the no-return cap, through whatever it passed: glass, a dark
+    or distant wall, a dropped return. No beam that saw a surface says anything of these cells,
+    and the GP's probability there is learnt from their own misses.
+    """
+    m = np.asarray(misses)
+    return (np.asarray(hits) == 0) & (m > 0) & (np.asarray(silent) >= m) & (np.asarray(path) == 0)
+
+
+def fit_silent_rate(p: ArrayLike, occupied: ArrayLike) -> tuple[float, float]:
+    """The rate and its weight that, mixed into probabilities as ``(1 - mix) p + mix rate``,
+    maximise the likelihood of held-out points (see :attr:`EvidenceCalibration.silent_rate`).
+
+    Parameters
+    ----------
+    p : array_like of shape (n,)
+        The points' probabilities before the mix.
+    occupied : array_like of bool, shape (n,)
+
+    Returns
+    -------
+    rate, mix : float
+        ``(0.0, 0.0)``, the probabilities as they are, for fewer than :data:`SILENT_FIT_POINTS` points.
+    """
+    q = np.asarray(p, dtype=float).ravel()
+    y = np.asarray(occupied, dtype=bool).ravel()
+    if q.size < SILENT_FIT_POINTS:
+        return 0.0, 0.0
+
+    def loss(theta: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        mix, rate = theta
+        mixed = np.clip((1.0 - mix) * q + mix * rate, 1e-12, 1.0 - 1e-12)
+        dq = np.where(y, -1.0 / mixed, 1.0 / (1.0 - mixed)) / q.size
+        value = float(-np.mean(np.where(y, np.log(mixed), np.log1p(-mixed))))
+        return value, np.array([dq @ (rate - q), dq.sum() * mix])
+
+    # The rate's floor keeps a later hit there from costing more than a surprise would.
+    start = np.array([0.5, min(max(float(y.mean()), SURPRISE_RATE), 0.5)])
+    res = minimize(loss, start, jac=True, method="L-BFGS-B", bounds=((0.0, 1.0), (SURPRISE_RATE / 2, 0.5)))
+    mix, rate = (float(v) for v in res.x)
+    return (rate, mix) if mix > 0.0 else (0.0, 0.0)
+
+
 #: Hits one step of the robot's path through a cell outweighs (as misses, :meth:`EvidenceCalibration.misses`).
 #: The robot's body was there, which no beam can say; but a pose error or a cell shared with a
 #: wall's edge should not be cleared outright. One hit's worth left the path cells that held a
@@ -142,6 +196,12 @@ class EvidenceCalibration:
         cell in front of it, which a beam from elsewhere ends in.
     surprise_rate : float
         Share of observations the counts cannot foresee (:func:`with_surprises`).
+    silent_rate, silent_mix : float
+        In cells only beams that returned nothing reached (:func:`only_silent`), the probability
+        is ``(1 - silent_mix) p + silent_mix * silent_rate``: how often such cells held a surface
+        on held-out scans, mixed in as far as it beat the map there (:func:`fit_silent_rate`).
+        Such beams cross walls as well as free space, and their misses alone cannot tell the two
+        apart. A mix of 0 leaves the map as it is.
     """
 
     # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
@@ -153,6 +213,8 @@ class EvidenceCalibration:
     near_hit_weight: float = 0.0
     surface_weight: float = 1.0
     surprise_rate: float = SURPRISE_RATE
+    silent_rate: float = 0.0
+    silent_mix: float = 0.0
 
     def hits(self, hits: ArrayLike, near: ArrayLike) -> NDArray[np.float64]:
         """Weighted hits of cells: each hit ``hit_weight``, each near miss ``near_hit_weight``
@@ -194,16 +256,23 @@ class EvidenceCalibration:
         Parameters
         ----------
         counted : Counted
-            The GP's probability and probability for unseen space, and the weighted hits and
-            misses (:meth:`hits`, :meth:`misses`).
+            The GP's probability and probability for unseen space, the weighted hits and
+            misses (:meth:`hits`, :meth:`misses`) and the cells only beams that returned nothing
+            reached.
 
         Returns
         -------
         ndarray
             The shape of ``counted.probability``.
         """
-        p = self(counted.probability, counted.hits, counted.misses)
+        p = self.with_silent(self(counted.probability, counted.hits, counted.misses), counted.silent)
         return _unseen_where_empty(p, counted.hits, counted.misses, counted.unseen, self.surprise_rate)
+
+    def with_silent(self, p: NDArray[np.float64], silent: ArrayLike | None) -> NDArray[np.float64]:
+        """`p` with the silent rate mixed in where `silent` (:attr:`silent_rate`; matching shapes)."""
+        if silent is None or self.silent_mix == 0.0:
+            return p
+        return np.where(np.asarray(silent, dtype=bool), (1.0 - self.silent_mix) * p + self.silent_mix * self.silent_rate, p)
 
     @classmethod
     def fit(
@@ -331,10 +400,12 @@ def surface_misses(misses: ArrayLike, near: ArrayLike, at_surface: ArrayLike) ->
 
 class CalibrationSample(NamedTuple):
     """A calibration's leave-one-scan-out points that other scans counted: the fitted
-    calibration's probability at each, and its class (each of shape (m,))."""
+    calibration's probability at each (before any silent rate), its class, and whether only
+    beams that returned nothing reached its cell (:func:`only_silent`) (each of shape (m,))."""
 
     probability: NDArray[np.float64] = np.zeros(0)
     occupied: NDArray[np.bool_] = np.zeros(0, dtype=bool)
+    silent: NDArray[np.bool_] = np.zeros(0, dtype=bool)
 
 
 # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name
@@ -395,7 +466,9 @@ def fit_calibration(
         with `gp_apart`, the ``"surprise_rate"``.
     sample : CalibrationSample
         The fitted calibration's probabilities at the sample's points that other scans counted,
-        and their classes (empty when nothing was fitted).
+        their classes, and whether only the other scans' beams that returned nothing reached their
+        cells (empty when nothing was fitted). The silent rate is not fitted here
+        (:meth:`gpomap.fusion.EvidenceLayer.fit_revisit`).
     """
     whole = evidence.counts(grid) if counts is None else counts
     picked = calibration_scans(len(scans), n_scans)
@@ -409,7 +482,8 @@ def fit_calibration(
         return default, {"n_points": drawn.total}, CalibrationSample()
     pts, occ, scan_of = drawn.points, drawn.occupied, picked[drawn.scan]
     fit_surface = FIT_SURFACE_WEIGHT.get(pts.shape[1], False)
-    h, m, near, surface = _other_scans_counts(evidence, grid, whole, pts, scan_of, fit_surface)
+    h, m, near, surface, quiet = _other_scans_counts(evidence, grid, whole, pts, scan_of, fit_surface)
+    silent = only_silent(h, m, quiet)
     # A point no other scan counted (no hit, no miss) has p = p_gp whatever the weights: a constant
     # of the loss, so the GP is not predicted there (most of a point cloud's points; docs/3d.md).
     # The loss below is the whole sample's mean less that constant: the same minimiser, the same
@@ -419,7 +493,8 @@ def fit_calibration(
     if not counted.any():
         return default, {"n_points": n_points, "n_predicted": 0}, CalibrationSample()
     sample_pts, sample_occ = pts, occ
-    occ, h, m, near, surface = occ[counted], h[counted], m[counted], near[counted], surface[counted]
+    occ, silent = occ[counted], silent[counted]
+    h, m, near, surface = h[counted], m[counted], near[counted], surface[counted]
     p_gp = np.asarray(predict_gp(pts[counted]), dtype=float)
     # The weights are fitted at the prior surprise rate (with_surprises' default), the rate after them.
     fitted = EvidenceCalibration.fit(p_gp, h, m, near, surface, occ, n_points, fit_surface)
@@ -440,7 +515,7 @@ def fit_calibration(
         fitted = replace(fitted, surprise_rate=fit_surprise_rate(p_apart, sample_occ))
         report["surprise_rate"] = fitted.surprise_rate
     p = fitted(p_gp, fitted.hits(h, near), fitted.misses(m, near, surface=surface))
-    return fitted, report, CalibrationSample(p, occ)
+    return fitted, report, CalibrationSample(p, occ, silent)
 
 
 def _other_scans_counts(
@@ -450,8 +525,8 @@ def _other_scans_counts(
     points: NDArray[np.float64],
     scan_of: NDArray[np.intp],
     surface: bool = True,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Hits, misses, near misses and surface misses that the scans other than each point's own counted in its cell.
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Hits, misses, near misses, surface misses and silent updates that the scans other than each point's own counted in its cell.
 
     Parameters
     ----------
@@ -467,7 +542,7 @@ def _other_scans_counts(
 
     Returns
     -------
-    hits, misses, near, surface : ndarray of shape (n,)
+    hits, misses, near, surface, silent : ndarray of shape (n,)
         0 outside `grid`. Never below zero: a scan counted before the lattice grew can fall one
         cell apart when recounted on the grown one, for a beam ending exactly on a cell border
         (the two origins round differently), and a negative count would make the calibration's
@@ -477,13 +552,13 @@ def _other_scans_counts(
     """
     cell, inside = flat_index(grid, points)
     n = points.shape[0]
-    hits, misses, near, surface_count = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    hits, misses, near, surface_count, silent = (np.zeros(n) for _ in range(5))
     index = np.unravel_index(cell, grid.shape)
     whole_hits = whole.hits.reshape(-1)
     for k in np.unique(scan_of):
         sel = np.flatnonzero(scan_of == k)
         own = evidence.scan_counts_at(grid, int(k), cell[sel])
-        for total, mine, dest in zip(whole, own, (hits, misses, near), strict=True):
+        for total, mine, dest in zip(whole, own, (hits, misses, near, silent), strict=True):
             dest[sel] = np.where(inside[sel], np.maximum(total.reshape(-1)[cell[sel]] - mine, 0), 0)
         if not surface:
             continue
@@ -496,4 +571,4 @@ def _other_scans_counts(
             others = whole_hits[flat] - evidence.scan_counts_at(grid, int(k), flat)[0]
             at_surface |= ok & (others > 0)
         surface_count[sel] = surface_misses(misses[sel], near[sel], at_surface)
-    return hits, misses, near, surface_count
+    return hits, misses, near, surface_count, silent

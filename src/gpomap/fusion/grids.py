@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from gpomap.config import PROFILES
 from gpomap.evidence import COUNT_DTYPE, RayCounts, RayEvidence, next_to_hits
-from gpomap.fusion.calibration import EvidenceCalibration, surface_misses
+from gpomap.fusion.calibration import EvidenceCalibration, only_silent, surface_misses
 from gpomap.fusion.written import (
     BlendedMoments,
     GPPredict,
@@ -62,6 +62,7 @@ class LayerGrids:
     _hits: NDArray[np.floating[Any]]
     _beam_misses: NDArray[np.floating[Any]]
     _near_misses: NDArray[np.floating[Any]]
+    _silent: NDArray[np.floating[Any]]
     _path: NDArray[np.integer[Any]]
     _at_surface: NDArray[np.bool_] | None
     _grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None
@@ -102,12 +103,13 @@ class LayerGrids:
         # The grid's cells are lattice cells: read the running counts (zero beyond them), and
         # whether a cell is at a surface from the whole lattice's hits, its window's edges too.
         assert self.lattice is not None
-        out = [np.zeros(grid.shape, dtype=COUNT_DTYPE) for _ in range(3)]
+        out = [np.zeros(grid.shape, dtype=COUNT_DTYPE) for _ in RayCounts._fields]
         path = np.zeros(grid.shape, dtype=np.int32)
         at_surface = np.zeros(grid.shape, dtype=bool)
         where = overlap(cell_offset(grid, self.lattice), grid.shape, self.lattice.shape)
         if where is not None:
-            for o, a in zip((*out, path), (self._hits, self._beam_misses, self._near_misses, self._path), strict=True):
+            lattice = (self._hits, self._beam_misses, self._near_misses, self._silent, self._path)
+            for o, a in zip((*out, path), lattice, strict=True):
                 o[where[0]] = a[where[1]]
             if self._weighs_surface():
                 at_surface[where[0]] = self.at_surface()[where[1]]
@@ -115,26 +117,31 @@ class LayerGrids:
 
     def grid_observed(self, grid: AnyGrid) -> NDArray[np.bool_]:
         """Cells of `grid` a ray crossed or ended in, or the robot's path passed, shape grid.shape."""
-        hits, misses = self.grid_counts(grid)
+        hits, misses, _ = self.grid_counts(grid)
         return np.asarray((hits + misses) > 0)
 
-    def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def grid_counts(self, grid: AnyGrid) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
         """Weighted hits (:meth:`EvidenceCalibration.hits`) and weighted misses
         (:meth:`EvidenceCalibration.misses`, path included) per cell of `grid`, counted on that
-        grid's own cells (the last is cached)."""
+        grid's own cells (the last is cached), and the cells only beams that returned nothing
+        reached (:func:`~gpomap.fusion.calibration.only_silent`), each of shape grid.shape."""
         if self._grid_cache is None or self._grid_cache[0] != grid:
             self._grid_cache = (grid, *self._raw_grid_counts(grid))
         _, counts, path, at_surface = self._grid_cache
         surface = surface_misses(counts.misses, counts.near, at_surface)
-        return self.calibration.hits(counts.hits, counts.near), self.calibration.misses(counts.misses, counts.near, path, surface)
+        return (
+            self.calibration.hits(counts.hits, counts.near),
+            self.calibration.misses(counts.misses, counts.near, path, surface),
+            only_silent(counts.hits, counts.misses, counts.silent, path),
+        )
 
     def grid_proba(
         self, grid: AnyGrid, p_gp: NDArray[np.float64], p_unseen: NDArray[np.float64] | None = None
     ) -> NDArray[np.float64]:
         """Probability per cell of `grid`, shape grid.shape, from the GP's probabilities per cell (see :meth:`~gpomap.fusion.EvidenceLayer.proba`)."""
-        h, m = self.grid_counts(grid)
+        h, m, silent = self.grid_counts(grid)
         unseen = None if p_unseen is None else np.asarray(p_unseen).reshape(grid.shape)
-        counted = Counted(np.asarray(p_gp).reshape(grid.shape), unseen, h, m)
+        counted = Counted(np.asarray(p_gp).reshape(grid.shape), unseen, h, m, silent)
         return StageChain.after_squash(self.calibration, self.revisit, counted)
 
     def written_grid(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -24,6 +25,8 @@ from gpomap.fusion.calibration import (
     EvidenceCalibration,
     GPApart,
     fit_calibration,
+    fit_silent_rate,
+    only_silent,
     surface_misses,
 )
 
@@ -148,6 +151,7 @@ class EvidenceLayer(LayerGrids):
         self._hits: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
         self._beam_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
         self._near_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
+        self._silent: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
         self._path: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
         self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None = None
         self._cells = None  # the counts of the asked points' cells alone (asked_at)
@@ -241,13 +245,13 @@ class EvidenceLayer(LayerGrids):
         if local.shape == self.lattice.shape and all(b.start == 0 for b in block):
             # The lattice is the new scans' own: counted into it, not beside it (a building's
             # lattice is tens of millions of cells, each array of them hundreds of megabytes).
-            part.counts(local, keep=keep, out=RayCounts(self._hits, self._beam_misses, self._near_misses))
+            part.counts(local, keep=keep, out=self._counts())
             part.path_passes(local, out=self._path)
             self._counted_in_place = not self._scans
         else:
             self._counted_in_place = False
             counts = part.counts(local, keep=keep)
-            for total, new in zip((self._hits, self._beam_misses, self._near_misses), counts, strict=True):
+            for total, new in zip(self._counts(), counts, strict=True):
                 window = total[block]
                 np.add(window, new, out=window, casting="unsafe")
             del counts
@@ -258,6 +262,10 @@ class EvidenceLayer(LayerGrids):
         self._joined = None
         self._grid_cache = None
         self._at_surface = None
+
+    def _counts(self) -> RayCounts:
+        """The counted lattice's arrays, as :class:`~gpomap.evidence.RayCounts` (not copied)."""
+        return RayCounts(self._hits, self._beam_misses, self._near_misses, self._silent)
 
     def _block(self, grid: AnyGrid) -> tuple[slice, ...]:
         """The slices of the lattice's arrays that `grid` (on the same cell lattice) covers."""
@@ -272,6 +280,7 @@ class EvidenceLayer(LayerGrids):
             self._hits = np.zeros(local.shape, dtype=COUNT_DTYPE)
             self._beam_misses = np.zeros(local.shape, dtype=COUNT_DTYPE)
             self._near_misses = np.zeros(local.shape, dtype=COUNT_DTYPE)
+            self._silent = np.zeros(local.shape, dtype=COUNT_DTYPE)
             self._path = np.zeros(local.shape, dtype=path)
             return
         if np.iinfo(path).max > np.iinfo(self._path.dtype).max:
@@ -286,7 +295,7 @@ class EvidenceLayer(LayerGrids):
         old = self.lattice
         self.lattice = grown
         block = self._block(old)
-        for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
+        for name in ("_hits", "_beam_misses", "_near_misses", "_silent", "_path"):
             arr = np.zeros(grown.shape, dtype=getattr(self, name).dtype)
             arr[block] = getattr(self, name)
             setattr(self, name, arr)
@@ -297,7 +306,7 @@ class EvidenceLayer(LayerGrids):
         a planar lattice of counts, or whose counts were added from other lattices (updates)."""
         if not self._counted_in_place or self.lattice is None or self._asked_at is not None or self._dim != 2:
             return None
-        return CountsNear.of(self.lattice, (self._hits, self._beam_misses, self._near_misses), points)
+        return CountsNear.of(self.lattice, self._counts(), points)
 
     @contextmanager
     def set_aside(self) -> Iterator[None]:
@@ -308,7 +317,7 @@ class EvidenceLayer(LayerGrids):
         stretches) does so beside this layer, whose arrays are the building's size and unused
         meanwhile. Nothing may ask this layer for counts inside the block.
         """
-        names = ("_hits", "_beam_misses", "_near_misses", "_path")
+        names = ("_hits", "_beam_misses", "_near_misses", "_silent", "_path")
         spill = SpillFile()
         held = {}
         for name in names:
@@ -325,26 +334,51 @@ class EvidenceLayer(LayerGrids):
                 setattr(self, name, spill.get(where, dtype, shape))
             spill.close()
 
-    def fit_revisit(self, p_later: NDArray[np.float64], occupied_later: NDArray[np.bool_]) -> RevisitCalibration:
-        """Fit the later visit's recalibration (:meth:`gpomap.revisit.RevisitCalibration.fit`) on a
-        held-out stretch's points, as the map fitted without them gave them, and on this
-        calibration's own sample, half each; it is then applied to every probability this layer gives.
+    def fit_revisit(
+        self,
+        p_later: NDArray[np.float64],
+        occupied_later: NDArray[np.bool_],
+        silent_later: NDArray[np.bool_] | None = None,
+    ) -> RevisitCalibration:
+        """Fit the silent rate and the later visit's recalibration on a held-out stretch's points,
+        as the map fitted without them gave them; both are then applied to every probability
+        this layer gives.
+
+        The silent rate (:attr:`EvidenceCalibration.silent_rate`, :func:`fit_silent_rate`) is
+        fitted on the points whose cells only that map's beams without a return reached: a
+        stretch held out shows how often such cells hold a surface, where scans held out one at a
+        time see few of them and the map's GP has learnt their own points. The recalibration
+        (:meth:`gpomap.revisit.RevisitCalibration.fit`) follows, on the held-out points and on
+        this calibration's own sample, half each, the silent rate applied to both.
 
         Parameters
         ----------
         p_later : ndarray of shape (m,)
-            The map of the other stretches' probability at the held-out stretch's points.
+            The map of the other stretches' probability at the held-out stretch's points, with
+            this layer's calibration and no silent rate.
         occupied_later : ndarray of bool, shape (m,)
+        silent_later : ndarray of bool, shape (m,), optional
+            Whether only that map's beams without a return reached each point's cell; without it
+            the silent rate is not fitted.
 
         Returns
         -------
         RevisitCalibration
         """
-        self.revisit = RevisitCalibration.fit(p_later, occupied_later, self.sample.probability, self.sample.occupied)
+        if silent_later is not None:
+            rate, mix = fit_silent_rate(p_later[silent_later], occupied_later[silent_later])
+            self.calibration = replace(self.calibration, silent_rate=rate, silent_mix=mix)
+            self.report["silent_points"] = float(np.count_nonzero(silent_later))
+            p_later = self.calibration.with_silent(p_later, silent_later)
+        sample = self.sample
+        p_among = self.calibration.with_silent(sample.probability, sample.silent if sample.silent.size else None)
+        self.revisit = RevisitCalibration.fit(p_later, occupied_later, p_among, sample.occupied)
         return self.revisit
 
     def recalibrate(self, predict_gp: Callable[[NDArray[np.float64]], NDArray[np.float64]]) -> None:
-        """Refit the calibration's five weights and surprise rate on the scans counted so far (see :func:`fit_calibration`).
+        """Refit the calibration's five weights and surprise rate on the scans counted so far (see
+        :func:`fit_calibration`). The silent rate stays as the last :meth:`fit_revisit` fitted it,
+        as the recalibration does.
 
         Parameters
         ----------
@@ -354,7 +388,8 @@ class EvidenceLayer(LayerGrids):
         if self.lattice is None:
             self.calibration, self.report, self.sample = EvidenceCalibration(), {"n_points": 0}, CalibrationSample()
             return
-        self.calibration, self.report, self.sample = fit_calibration(
+        silent = {"silent_rate": self.calibration.silent_rate, "silent_mix": self.calibration.silent_mix}
+        fitted, self.report, self.sample = fit_calibration(
             self._scans,
             self.evidence,
             self.lattice,
@@ -363,34 +398,38 @@ class EvidenceLayer(LayerGrids):
             2 * self.resolution,
             self.no_return_cap,
             self.seed,
-            counts=RayCounts(self._hits, self._beam_misses, self._near_misses),
+            counts=self._counts(),
             gp_apart=self.gp_apart,
         )
+        self.calibration = replace(fitted, **silent)
         # A cached grid's surface cells were found (or not) for the calibration before.
         self._grid_cache = None
         for part in self._parts:
             part.forget()
 
     # ------------------------------------------------------------------ applying
-    def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def counts_at(self, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
         """Weighted hits (:meth:`EvidenceCalibration.hits`) and weighted misses
         (:meth:`EvidenceCalibration.misses`, path included) of the fine cell holding each point (0
-        outside the counted area)."""
+        outside the counted area), and whether only beams that returned nothing reached it
+        (:func:`~gpomap.fusion.calibration.only_silent`), each of shape (m,)."""
+        n = np.asarray(points).shape[0]
         if self.lattice is None:
-            n = np.asarray(points).shape[0]
-            return np.zeros(n), np.zeros(n)
+            return np.zeros(n), np.zeros(n), np.zeros(n, dtype=bool)
         cell, inside = flat_index(self.lattice, points)
         at_surface: NDArray[np.bool_] | None
         path: NDArray[np.integer[Any]]
         if self._cells is not None:
-            hits, beam, near, path, at_surface = self._cells.at(cell, inside)
+            hits, beam, near, silent, path, at_surface = self._cells.at(cell, inside)
         else:
-            hits, beam, near = (a.reshape(-1)[cell] for a in (self._hits, self._beam_misses, self._near_misses))
+            hits, beam, near, silent = (a.reshape(-1)[cell] for a in self._counts())
             path = self._path.reshape(-1)[cell]
             at_surface = self.at_surface().reshape(-1)[cell] if self._weighs_surface() else None
         surface = surface_misses(beam, near, at_surface) if at_surface is not None and self._weighs_surface() else 0.0
-        return np.where(inside, self.calibration.hits(hits, near), 0.0), np.where(
-            inside, self.calibration.misses(beam, near, path, surface), 0.0
+        return (
+            np.where(inside, self.calibration.hits(hits, near), 0.0),
+            np.where(inside, self.calibration.misses(beam, near, path, surface), 0.0),
+            inside & only_silent(hits, beam, silent, path),
         )
 
     def _weighs_surface(self) -> bool:
@@ -413,8 +452,8 @@ class EvidenceLayer(LayerGrids):
         `p_unseen`, the GP's probability for unseen space, is taken where no beam (and no step of
         the path) crossed the point's cell; default `p_gp`.
         """
-        h, m = self.counts_at(points)
-        return StageChain.after_squash(self.calibration, self.revisit, Counted(p_gp, p_unseen, h, m))
+        h, m, silent = self.counts_at(points)
+        return StageChain.after_squash(self.calibration, self.revisit, Counted(p_gp, p_unseen, h, m, silent))
 
     def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
         """Whether no beam ended in the fine cell holding each point (True outside the counted
@@ -439,6 +478,8 @@ class EvidenceLayer(LayerGrids):
             "surface_weight": c.surface_weight,
             **self.report,
             "surprise_rate": c.surprise_rate,
+            "silent_rate": c.silent_rate,
+            "silent_mix": c.silent_mix,
             "revisit_slope": self.revisit.slope,
             "revisit_shift": self.revisit.shift,
         }

@@ -113,14 +113,21 @@ class CalibrationStages(MapPrediction):
             self._counted_without,
         )
 
-    def _later_visit_points(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None:
+    def _later_visit_points(
+        self,
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_] | None, dict[str, Any]] | None:
         """This map's probabilities, fitted without them, at a held-out stretch's points
-        (:func:`gpomap.revisit.later_visit_points`); None when the map does not recalibrate."""
+        (:func:`gpomap.revisit.later_visit_points`), their classes, and whether only that map's
+        beams without a return reached their cells (None when it was not fitted); None when the
+        map does not recalibrate."""
         if self._scans is None or not self.base.ray_evidence or not self.base.fit_revisit:
             return None
+        from dataclasses import replace
+
         from gpomap.revisit import later_visit_points
 
         refit, layer = self._refit(), self.evidence_
+        silent: list[NDArray[np.bool_]] = []
 
         def fit_rest(scans: list[Any], points: NDArray[np.float64]) -> NDArray[np.float64]:
             # This map's counts round the points, taken before its lattice is set aside: the map
@@ -130,10 +137,14 @@ class CalibrationStages(MapPrediction):
             assert self._scans is not None
             without = None if near is None or split is None else (near, [self._scans[i] for i in split[1]])
             with layer.set_aside() if layer is not None else nullcontext():
-                calibration = None if layer is None else layer.calibration
-                return refit.map_proba(scans, calibration, points, self._kept_points_of(scans), without)
+                # The silent rate is fitted on these points: the map of the others is without one.
+                calibration = None if layer is None else replace(layer.calibration, silent_rate=0.0, silent_mix=0.0)
+                p, reached = refit.map_proba(scans, calibration, points, self._kept_points_of(scans), without)
+            silent.append(reached)
+            return p
 
-        return later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
+        p, occupied, report = later_visit_points(self._scans, fit_rest, self.base.no_return_cap, self.base.seed)
+        return p, occupied, silent[0] if silent else None, report
 
     def _left_out_of(self, scans: list[Any]) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
         """The kept and the held-out stretches' scans (indices in this map's), when `scans` are the
@@ -161,17 +172,26 @@ class CalibrationStages(MapPrediction):
         kept, held = split
         return KeptPoints(self._block_points, held, kept, self._dim, self._clearance)
 
-    def _fit_revisit(self, later: tuple[NDArray[np.float64], NDArray[np.bool_], dict[str, Any]] | None) -> dict[str, Any]:
-        """Fit the ray evidence's recalibration for a later visit (:meth:`gpomap.revisit.RevisitCalibration.fit`, through
-        :meth:`~gpomap.fusion.EvidenceLayer.fit_revisit`)
-        on the `later` points and the calibration's own; its report."""
+    def _fit_revisit(
+        self, later: tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_] | None, dict[str, Any]] | None
+    ) -> dict[str, Any]:
+        """Fit the ray evidence's silent rate and recalibration for a later visit
+        (:meth:`~gpomap.fusion.EvidenceLayer.fit_revisit`) on the `later` points
+        (:meth:`_later_visit_points`) and the calibration's own; its report."""
         if later is None or self.evidence_ is None:
             return {"reason": "off" if not self.base.fit_revisit else "no ray evidence"}
-        p_later, occupied, report = later
+        p_later, occupied, silent, report = later
         if "reason" in report:
             return report
-        revisit = self.evidence_.fit_revisit(p_later, occupied)
-        return {"slope": revisit.slope, "shift": revisit.shift, **report}
+        revisit = self.evidence_.fit_revisit(p_later, occupied, silent)
+        calibration = self.evidence_.calibration
+        return {
+            "slope": revisit.slope,
+            "shift": revisit.shift,
+            "silent_rate": calibration.silent_rate,
+            "silent_mix": calibration.silent_mix,
+            **report,
+        }
 
     def _gp_apart(self, scans: ScanData) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
         """This map's GP fitted on `scans` alone, its hyperparameters held: its

@@ -67,10 +67,11 @@ class Refit:
         points: NDArray[np.float64],
         kept_points: KeptPoints | None = None,
         counted_without: tuple[CountsNear, list[Any]] | None = None,
-    ) -> NDArray[np.float64]:
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """The probability at `points` (shape (m, d); returns (m,)) of the whole map fitted on
         `scans` alone, with its own ray counts calibrated as `calibration` says and no later-visit
-        recalibration of its own. It fits only the tiles the points need, and counts the rays only
+        recalibration of its own, and whether only its beams without a return reached each point's
+        cell (:func:`gpomap.fusion.only_silent`; shape (m,)). It fits only the tiles the points need, and counts the rays only
         at their cells (the same tiles and counts, so the same answers as the whole map's). With
         `kept_points` (the fitted map's points without the scans left out), it files those
         instead of making the scans' points again: the same points in the same order. With
@@ -84,4 +85,6 @@ class Refit:
         if calibration is not None:
             rest._asked_at = np.asarray(points, dtype=float)
         fitted = rest.fit(scans, hyperparameters=dict(self.hyperparameters))
-        return np.asarray(fitted._proba_as_written(points), dtype=float)
+        p = np.asarray(fitted._proba_as_written(points), dtype=float)
+        layer = fitted.evidence_
+        return p, np.zeros(p.shape, dtype=bool) if layer is None else layer.counts_at(points)[2]

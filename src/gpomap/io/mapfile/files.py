@@ -19,7 +19,7 @@ from gpomap.io.members import write_member
 
 FORMAT = "gpomap-fitted-map"
 #: Raised whenever what a map file holds changes; a file of another version is refused.
-VERSION = 3
+VERSION = 4
 #: The map file ``gpomap map`` writes beside its grids: ``.gpom``, not ``.npz``, so that it is never
 #: taken for the written grid ``map.npz`` (though both are zip archives of NumPy arrays).
 FILENAME = "map.gpom"
