@@ -219,10 +219,8 @@ def ray_counts(evidence: dict[str, float]) -> str:
         f"hits), the GP {evidence['prior_weight']:.3g}; surprise rate {evidence['surprise_rate']:.3g}"
     )
     if evidence.get("silent_mix", 0.0) > 0.0:
-        line += (
-            f"; where only beams without a return went, {evidence['silent_mix']:.0%} of the probability "
-            f"is their rate of surfaces, {evidence['silent_rate']:.3g}"
-        )
+        mix, rate = evidence["silent_mix"], evidence["silent_rate"]
+        line += f"; where only beams without a return went, p -> {1.0 - mix:.3g} p + {mix * rate:.3g}"
     return line
 
 

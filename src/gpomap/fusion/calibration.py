@@ -198,10 +198,11 @@ class EvidenceCalibration:
         Share of observations the counts cannot foresee (:func:`with_surprises`).
     silent_rate, silent_mix : float
         In cells only beams that returned nothing reached (:func:`only_silent`), the probability
-        is ``(1 - silent_mix) p + silent_mix * silent_rate``: how often such cells held a surface
-        on held-out scans, mixed in as far as it beat the map there (:func:`fit_silent_rate`).
-        Such beams cross walls as well as free space, and their misses alone cannot tell the two
-        apart. A mix of 0 leaves the map as it is.
+        is ``(1 - silent_mix) p + silent_mix * silent_rate``, fitted on held-out points
+        (:func:`fit_silent_rate`): such beams cross walls as well as free space, and their misses
+        alone cannot tell the two apart. The fit often puts the rate at its bound of 1/2, where
+        the mix is a floor added to a map whose ranking there it keeps. A mix of 0 leaves the map
+        as it is.
     """
 
     # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
