@@ -12,8 +12,10 @@ its weighted hits and misses (:class:`EvidenceCalibration`):
 the far misses here those that are not surface misses (:func:`surface_misses`); each step of the
 robot's path through a cell adds :data:`PATH_HITS` hits' worth of misses. Where no beam went, p
 is the GP's probability for unseen space (:mod:`gpomap.extrapolation`); far from all data, 0.5.
-Every probability is then mixed with a surprise rate (:func:`with_surprises`) and mapped
-through a later visit's recalibration (:mod:`gpomap.revisit`).
+Every probability is then mixed with a surprise rate (:func:`with_surprises`), in cells that only
+beams without a return reached with a rate of their own (:func:`only_silent`,
+:func:`fit_silent_rate`, fitted on the later visit's held-out stretch), and mapped through a later
+visit's recalibration (:mod:`gpomap.revisit`).
 
 The weights are fitted on the map's own scans, a sample of them held out in turn from the
 counts (exact: counts add over scans), never on a test set (:func:`fit_calibration`). The GP's
