@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import numpy as np
@@ -1129,20 +1130,25 @@ def test_a_map_fits_its_surprise_rate_when_asked_against_its_gp_fitted_on_the_ot
 
 
 def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_add_up(monkeypatch: pytest.MonkeyPatch) -> None:
-    # The lattice's path passes by path_dtype: 16-bit for a log under NARROW_COUNT_SCANS scans,
-    # widened to 32 bits when added scans reach it; every count the same as 32-bit ones from the start.
-    room = paper_room_scans(n_beams=72)
+    # The lattice's path passes and silent updates by path_dtype: 16-bit for a log under
+    # NARROW_COUNT_SCANS scans, widened to 32 bits when added scans reach it; every count the same
+    # as 32-bit ones from the start. Every 7th beam's return dropped, so that there are silent updates.
+    room = []
+    for scan in paper_room_scans(n_beams=72):
+        ranges = scan.ranges.copy()
+        ranges[::7] = scan.max_range
+        room.append(dataclasses.replace(scan, ranges=ranges))
     monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 0)  # 32-bit throughout: the reference
     wide = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
     wide.add_scans(room[10:])
     monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 12)
     narrow = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
-    assert narrow._path.dtype == np.uint16 and narrow._hits.dtype == fusion.COUNT_DTYPE
+    assert narrow._path.dtype == narrow._silent.dtype == np.uint16 and narrow._hits.dtype == fusion.COUNT_DTYPE
     narrow.add_scans(room[10:])  # 31 scans: past 12
-    assert narrow._path.dtype == wide._path.dtype == np.int32
-    for name in ("_hits", "_beam_misses", "_near_misses", "_path"):
+    assert narrow._path.dtype == wide._path.dtype == narrow._silent.dtype == np.int32
+    for name in ("_hits", "_beam_misses", "_near_misses", "_silent", "_path"):
         np.testing.assert_array_equal(getattr(narrow, name), getattr(wide, name))
-    assert wide._hits.max() > 1 and wide._path.max() > 0
+    assert wide._hits.max() > 1 and wide._path.max() > 0 and wide._silent.max() > 1
     pts = np.random.default_rng(0).uniform((0.0, 0.0), (20.0, 16.0), (4000, 2))
     grid = GridSpec.from_extent((0.0, 20.0, 0.0, 16.0), 0.1)
     monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 0)
@@ -1150,7 +1156,7 @@ def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_
     whole = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
     monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 2**16 - 1)
     short = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
-    assert short._path.dtype == np.uint16 and whole._path.dtype == np.int32
+    assert short._path.dtype == short._silent.dtype == np.uint16 and whole._path.dtype == np.int32
     np.testing.assert_array_equal(short.proba(pts, _p_gp(pts)), whole.proba(pts, _p_gp(pts)))
     for x, y in zip(short.grid_counts(grid), whole.grid_counts(grid), strict=True):
         np.testing.assert_array_equal(x, y)

@@ -52,7 +52,7 @@ def _add_scan(
         slot[c] = -1
         t = max(through[k], ended[k])
         if quiet[k] == t and ended[k] == 0:
-            silent[c] += 1.0
+            silent[c] += 1
         if shared and ended[k] == 0 and close[k] == 0:
             # Most rows: a plain miss, the whole update (adding the zero shares changes nothing).
             misses[c] += 1.0
@@ -239,7 +239,7 @@ def count_beams(
     beam_end: NDArray[np.int64],
     near_end: float,
     tail: int,
-    counts: tuple[NDArray[np.floating[Any]], ...],
+    counts: tuple[NDArray[Any], ...],
     slot: NDArray[np.int32],
     shared: bool = True,
     units: int = 256,
@@ -266,8 +266,9 @@ def count_beams(
         (and not its end's cell) is a near miss.
     tail : int
         How many of a returned beam's last cells can be that close (the numpy path's bound).
-    counts : (hits, misses, near, silent), each ndarray of float32 or float64 of the grid's size
-        (:class:`gpomap.evidence.RayCounts`).
+    counts : (hits, misses, near, silent), each ndarray of the grid's size
+        (:class:`gpomap.evidence.RayCounts`): float32 or float64; `silent` may be 16- or 32-bit
+        integers too, its updates being whole.
     slot : ndarray of int32 of the grid's size
         Scratch, -1 everywhere (and so again after the call).
     shared : bool

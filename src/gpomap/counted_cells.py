@@ -172,7 +172,7 @@ class CountsNear:
     def of(
         cls,
         lattice: AnyGrid,
-        counts: tuple[NDArray[np.floating[Any]], ...],
+        counts: tuple[NDArray[Any], ...],
         points: NDArray[np.float64],
     ) -> CountsNear:
         """The counts (hits, misses, near misses, silent updates, each of shape lattice.shape) of the cells within

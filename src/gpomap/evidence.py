@@ -73,10 +73,11 @@ COUNT_DTYPE: type[np.floating[Any]] = np.float32
 
 
 class RayCounts(NamedTuple):
-    """Counts per cell of a grid, each ndarray of float64 (float32: a map's lattice) of shape grid.shape.
+    """Counts per cell of a grid, each ndarray of float64 (float32: a map's lattice; its silent
+    updates uint16 or int32) of shape grid.shape.
 
-    Each scan adds at most one update to a cell (:func:`scan_shares`), so the three add up to the
-    number of scans that touched it.
+    Each scan adds at most one update to a cell (:func:`scan_shares`), so hits and misses add up
+    to the number of scans that touched it.
 
     Attributes
     ----------
@@ -90,12 +91,13 @@ class RayCounts(NamedTuple):
         The whole updates among `misses` of scans whose every beam in the cell returned nothing
         (no-return beams, free to the cap): where they are all a cell's updates, no beam that
         saw a surface reached it, and beams that return nothing cross walls as well as free space.
+        Whole numbers: a map's lattice holds them in 16-bit integers while it can.
     """
 
-    hits: NDArray[np.floating[Any]]
-    misses: NDArray[np.floating[Any]]
-    near: NDArray[np.floating[Any]]
-    silent: NDArray[np.floating[Any]]
+    hits: NDArray[Any]
+    misses: NDArray[Any]
+    near: NDArray[Any]
+    silent: NDArray[Any]
 
 
 def scan_shares(
@@ -321,7 +323,8 @@ class RayEvidence:
             the whole counts); :meth:`forget` drops them.
         out : RayCounts, optional
             Arrays of float32 or float64 of `grid`'s shape, C-contiguous, the counts are added
-            into, and returned: a lattice over a building is counted in place instead of beside a copy.
+            into, and returned: a lattice over a building is counted in place instead of beside a
+            copy. The silent updates' array may be of uint16 or int32 too (whole updates).
 
         Returns
         -------
@@ -333,8 +336,14 @@ class RayEvidence:
             # the same numbers below 2**24 / SHARE_UNITS updates of a cell.
             counts = RayCounts(*(np.zeros(grid_size(grid), dtype=COUNT_DTYPE) for _ in RayCounts._fields))
         else:
-            if any(a.dtype not in (np.float32, np.float64) or a.shape != grid.shape or not a.flags.c_contiguous for a in out):
-                raise ValueError(f"counts are added into C-contiguous float32 or float64 arrays of the grid's shape {grid.shape}")
+            kinds = [(np.float32, np.float64)] * 3 + [(np.float32, np.float64, np.uint16, np.int32)]
+            if any(
+                a.dtype not in k or a.shape != grid.shape or not a.flags.c_contiguous for a, k in zip(out, kinds, strict=True)
+            ):
+                raise ValueError(
+                    f"counts are added into C-contiguous float32 or float64 arrays of the grid's shape {grid.shape} "
+                    "(the silent updates' into uint16 or int32 too)"
+                )
             counts = RayCounts(*(a.reshape(-1) for a in out))
         # The compiled path's scratch: each cell's row in the scan's table, -1 between scans.
         slot = np.full(grid_size(grid), -1, dtype=np.int32) if _compiled_counts.ENABLED else None

@@ -62,7 +62,7 @@ class LayerGrids:
     _hits: NDArray[np.floating[Any]]
     _beam_misses: NDArray[np.floating[Any]]
     _near_misses: NDArray[np.floating[Any]]
-    _silent: NDArray[np.floating[Any]]
+    _silent: NDArray[np.number[Any]]
     _path: NDArray[np.integer[Any]]
     _at_surface: NDArray[np.bool_] | None
     _grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None

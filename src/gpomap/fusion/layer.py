@@ -57,15 +57,15 @@ def ternary_thresholds(given: tuple[float, float] | None, evidence: EvidenceLaye
 #: counts are copied into a larger array then, so a margin keeps that rare as the robot drives on.
 LATTICE_GROWTH: float = 10.0
 
-#: The robot's path passes per lattice cell are 16-bit while fewer scans than this are counted: a
-#: cell is passed at most once per step of the path, so none can overflow, and a building's lattice
-#: (tens of millions of cells) takes half the memory of 32-bit counts. A log that grows past it (a
-#: long stream) widens them to 32 bits.
+#: The robot's path passes and the silent updates per lattice cell are 16-bit while fewer scans
+#: than this are counted: a cell is passed at most once per step of the path and updated at most
+#: once a scan, so none can overflow, and a building's lattice (tens of millions of cells) takes
+#: half the memory of 32-bit counts. A log that grows past it (a long stream) widens them to 32 bits.
 NARROW_COUNT_SCANS: int = 2**16 - 1
 
 
 def path_dtype(n_scans: int) -> type[np.integer[Any]]:
-    """The lattice's path-pass type for `n_scans` scans: uint16 below :data:`NARROW_COUNT_SCANS`, else int32."""
+    """The lattice's path-pass and silent-update type for `n_scans` scans: uint16 below :data:`NARROW_COUNT_SCANS`, else int32."""
     return np.uint16 if n_scans < NARROW_COUNT_SCANS else np.int32
 
 
@@ -151,7 +151,7 @@ class EvidenceLayer(LayerGrids):
         self._hits: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
         self._beam_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
         self._near_misses: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
-        self._silent: NDArray[np.floating[Any]] = np.zeros((0, 0), dtype=COUNT_DTYPE)
+        self._silent: NDArray[np.number[Any]] = np.zeros((0, 0), dtype=np.int32)
         self._path: NDArray[np.integer[Any]] = np.zeros((0, 0), dtype=np.int32)
         self._grid_cache: tuple[AnyGrid, RayCounts, NDArray[np.integer[Any]], NDArray[np.bool_]] | None = None
         self._cells = None  # the counts of the asked points' cells alone (asked_at)
@@ -280,11 +280,13 @@ class EvidenceLayer(LayerGrids):
             self._hits = np.zeros(local.shape, dtype=COUNT_DTYPE)
             self._beam_misses = np.zeros(local.shape, dtype=COUNT_DTYPE)
             self._near_misses = np.zeros(local.shape, dtype=COUNT_DTYPE)
-            self._silent = np.zeros(local.shape, dtype=COUNT_DTYPE)
+            # Whole updates, one a scan at most: as narrow as the path's passes.
+            self._silent = np.zeros(local.shape, dtype=path)
             self._path = np.zeros(local.shape, dtype=path)
             return
         if np.iinfo(path).max > np.iinfo(self._path.dtype).max:
             self._path = self._path.astype(path)
+            self._silent = self._silent.astype(path)
         offset = cell_offset(local, self.lattice)
         if all(o >= 0 and o + n <= m for o, n, m in zip(offset, local.shape, self.lattice.shape, strict=True)):
             return
