@@ -1133,15 +1133,17 @@ def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_
     # The lattice's path passes and silent updates by path_dtype: 16-bit for a log under
     # NARROW_COUNT_SCANS scans, widened to 32 bits when added scans reach it; every count the same
     # as 32-bit ones from the start. Every 7th beam's return dropped, so that there are silent updates.
+    from gpomap import evidence
+
     room = []
     for scan in paper_room_scans(n_beams=72):
         ranges = scan.ranges.copy()
         ranges[::7] = scan.max_range
         room.append(dataclasses.replace(scan, ranges=ranges))
-    monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 0)  # 32-bit throughout: the reference
+    monkeypatch.setattr(evidence, "NARROW_COUNT_SCANS", 0)  # 32-bit throughout: the reference
     wide = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
     wide.add_scans(room[10:])
-    monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 12)
+    monkeypatch.setattr(evidence, "NARROW_COUNT_SCANS", 12)
     narrow = fusion.EvidenceLayer(room[:10], 0.1, _p_gp, calibration_scans=3)
     assert narrow._path.dtype == narrow._silent.dtype == np.uint16 and narrow._hits.dtype == fusion.COUNT_DTYPE
     narrow.add_scans(room[10:])  # 31 scans: past 12
@@ -1151,10 +1153,10 @@ def test_sixteen_bit_path_passes_are_the_thirty_two_bit_ones_and_widen_as_scans_
     assert wide._hits.max() > 1 and wide._path.max() > 0 and wide._silent.max() > 1
     pts = np.random.default_rng(0).uniform((0.0, 0.0), (20.0, 16.0), (4000, 2))
     grid = GridSpec.from_extent((0.0, 20.0, 0.0, 16.0), 0.1)
-    monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 0)
+    monkeypatch.setattr(evidence, "NARROW_COUNT_SCANS", 0)
     # A whole log at once, its calibration fitted with 16-bit passes: the 32-bit layer's numbers.
     whole = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
-    monkeypatch.setattr(fusion.layer, "NARROW_COUNT_SCANS", 2**16 - 1)
+    monkeypatch.setattr(evidence, "NARROW_COUNT_SCANS", 2**16 - 1)
     short = fusion.EvidenceLayer(room, 0.1, _p_gp, calibration_scans=3)
     assert short._path.dtype == short._silent.dtype == np.uint16 and whole._path.dtype == np.int32
     np.testing.assert_array_equal(short.proba(pts, _p_gp(pts)), whole.proba(pts, _p_gp(pts)))

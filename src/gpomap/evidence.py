@@ -71,6 +71,19 @@ SHARE_UNITS: int = 256
 #: The type ray counts are tallied in, a map's lattice held in: shares of one update per scan.
 COUNT_DTYPE: type[np.floating[Any]] = np.float32
 
+#: Whole counts per cell (the robot's path's passes, the silent updates) are 16-bit while fewer
+#: scans than this are counted: a cell is passed at most once per step of the path and updated at
+#: most once a scan, so none can overflow, and a building's lattice (tens of millions of cells)
+#: takes half the memory of 32-bit counts. A log that grows past it (a long stream) widens them to
+#: 32 bits. The silent updates of any count take this type too, so the compiled tally is compiled
+#: for one set of types.
+NARROW_COUNT_SCANS: int = 2**16 - 1
+
+
+def path_dtype(n_scans: int) -> type[np.integer[Any]]:
+    """The type of whole counts per cell for `n_scans` scans: uint16 below :data:`NARROW_COUNT_SCANS`, else int32."""
+    return np.uint16 if n_scans < NARROW_COUNT_SCANS else np.int32
+
 
 class RayCounts(NamedTuple):
     """Counts per cell of a grid, each ndarray of float64 (float32: a map's lattice; its silent
@@ -334,7 +347,9 @@ class RayEvidence:
         if out is None:
             # Tallied as a map's lattice is (one compiled tally for both) and widened at the end:
             # the same numbers below 2**24 / SHARE_UNITS updates of a cell.
-            counts = RayCounts(*(np.zeros(grid_size(grid), dtype=COUNT_DTYPE) for _ in RayCounts._fields))
+            size = grid_size(grid)
+            hits, misses, near = (np.zeros(size, dtype=COUNT_DTYPE) for _ in range(3))
+            counts = RayCounts(hits, misses, near, np.zeros(size, dtype=path_dtype(self.n_scans)))
         else:
             kinds = [(np.float32, np.float64)] * 3 + [(np.float32, np.float64, np.uint16, np.int32)]
             if any(

@@ -49,6 +49,7 @@ visit"; for point clouds, docs/3d.md.
 
 from __future__ import annotations
 
+from gpomap.evidence import NARROW_COUNT_SCANS, path_dtype
 from gpomap.fusion.calibration import (
     CALIBRATION_BOUNDS,
     CALIBRATION_POINTS,
@@ -72,10 +73,8 @@ from gpomap.fusion.calibration import (
 from gpomap.fusion.grids import COUNT_DTYPE, SEEN_THROUGH_NOT_OCCUPIED, without_hits
 from gpomap.fusion.layer import (
     LATTICE_GROWTH,
-    NARROW_COUNT_SCANS,
     EvidenceLayer,
     _unseen_where_empty,
-    path_dtype,
     ternary_thresholds,
 )
 from gpomap.fusion.written import (

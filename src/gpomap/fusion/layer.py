@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from gpomap.clouds import CloudScan
 from gpomap.config import MapConfig
 from gpomap.counted_cells import CellCounts, CountsNear, count_cells, count_cells_without
-from gpomap.evidence import RayCounts, RayEvidence, lattice_grid, next_to_hits
+from gpomap.evidence import RayCounts, RayEvidence, lattice_grid, next_to_hits, path_dtype
 from gpomap.fusion.calibration import (
     CalibrationSample,
     EvidenceCalibration,
@@ -56,17 +56,6 @@ def ternary_thresholds(given: tuple[float, float] | None, evidence: EvidenceLaye
 #: How far (metres) the counted lattice reaches beyond the beams when scans arrive outside it: the
 #: counts are copied into a larger array then, so a margin keeps that rare as the robot drives on.
 LATTICE_GROWTH: float = 10.0
-
-#: The robot's path passes and the silent updates per lattice cell are 16-bit while fewer scans
-#: than this are counted: a cell is passed at most once per step of the path and updated at most
-#: once a scan, so none can overflow, and a building's lattice (tens of millions of cells) takes
-#: half the memory of 32-bit counts. A log that grows past it (a long stream) widens them to 32 bits.
-NARROW_COUNT_SCANS: int = 2**16 - 1
-
-
-def path_dtype(n_scans: int) -> type[np.integer[Any]]:
-    """The lattice's path-pass and silent-update type for `n_scans` scans: uint16 below :data:`NARROW_COUNT_SCANS`, else int32."""
-    return np.uint16 if n_scans < NARROW_COUNT_SCANS else np.int32
 
 
 class EvidenceLayer(LayerGrids):
