@@ -321,6 +321,16 @@ def test_map_says_how_many_readings_returned_nothing(tmp_path: Path, capsys: pyt
     assert line.endswith(" occupied")
 
 
+def test_the_ray_counts_line_states_the_silent_rule_when_it_moves_the_map() -> None:
+    from gpomap.cli.common import ray_counts
+
+    weights = {"hit_weight": 0.82, "surface_weight": 0.46, "near_weight": 0.35, "near_hit_weight": 0.001}
+    summary = {**weights, "prior_weight": 0.22, "surprise_rate": 0.01, "silent_rate": 0.5, "silent_mix": 0.063}
+    # (1 - 0.063) p + 0.063 * 0.5, by hand.
+    assert ray_counts(summary).endswith("; where only beams without a return went, p -> 0.937 p + 0.0315")
+    assert ray_counts({**summary, "silent_mix": 0.0}).endswith("surprise rate 0.01")
+
+
 def test_a_reading_near_the_float_limit_leaks_no_overflow_warning() -> None:
     import warnings
 
