@@ -51,7 +51,7 @@ class CellCounts:
     hits: NDArray[np.floating[Any]]
     misses: NDArray[np.floating[Any]]
     near: NDArray[np.floating[Any]]
-    silent: NDArray[np.floating[Any]]
+    silent: NDArray[np.number[Any]]
     path: NDArray[np.int64]
     at_surface: NDArray[np.bool_]
 
@@ -162,7 +162,7 @@ class CountsNear:
     hits: NDArray[np.floating[Any]]
     misses: NDArray[np.floating[Any]]
     near: NDArray[np.floating[Any]]
-    silent: NDArray[np.floating[Any]]
+    silent: NDArray[np.number[Any]]
 
     #: Cells either side of a point's own: a lattice of another origin may round a point on a
     #: border into the next cell, whose neighbours are then asked too.
@@ -187,7 +187,7 @@ class CountsNear:
         hits, misses, near, silent = (np.asarray(a).reshape(-1)[flat][order] for a in counts)
         return cls(lattice, keys[order], hits, misses, near, silent)
 
-    def at(self, keys: NDArray[np.int64]) -> tuple[NDArray[np.floating[Any]], ...] | None:
+    def at(self, keys: NDArray[np.int64]) -> tuple[NDArray[np.number[Any]], ...] | None:
         """Hits, misses, near misses and silent updates at the cells `keys`, or None when one is not held or
         holds too many to take counts out of exactly (:data:`EXACT_BELOW`)."""
         row = np.minimum(np.searchsorted(self.keys, keys), max(self.keys.size - 1, 0))

@@ -362,7 +362,7 @@ class EvidenceLayer(LayerGrids):
             self.report["silent_points"] = float(np.count_nonzero(silent_later))
             p_later = self.calibration.with_silent(p_later, silent_later)
         sample = self.sample
-        p_among = self.calibration.with_silent(sample.probability, sample.silent if sample.silent.size else None)
+        p_among = self.calibration.with_silent(sample.probability, sample.silent)
         self.revisit = RevisitCalibration.fit(p_later, occupied_later, p_among, sample.occupied)
         return self.revisit
 

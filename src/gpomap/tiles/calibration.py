@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from contextlib import nullcontext
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -122,8 +123,6 @@ class CalibrationStages(MapPrediction):
         map does not recalibrate."""
         if self._scans is None or not self.base.ray_evidence or not self.base.fit_revisit:
             return None
-        from dataclasses import replace
-
         from gpomap.revisit import later_visit_points
 
         refit, layer = self._refit(), self.evidence_
@@ -184,14 +183,7 @@ class CalibrationStages(MapPrediction):
         if "reason" in report:
             return report
         revisit = self.evidence_.fit_revisit(p_later, occupied, silent)
-        calibration = self.evidence_.calibration
-        return {
-            "slope": revisit.slope,
-            "shift": revisit.shift,
-            "silent_rate": calibration.silent_rate,
-            "silent_mix": calibration.silent_mix,
-            **report,
-        }
+        return {"slope": revisit.slope, "shift": revisit.shift, **report}
 
     def _gp_apart(self, scans: ScanData) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
         """This map's GP fitted on `scans` alone, its hyperparameters held: its

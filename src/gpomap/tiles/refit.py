@@ -71,10 +71,11 @@ class Refit:
         """The probability at `points` (shape (m, d); returns (m,)) of the whole map fitted on
         `scans` alone, with its own ray counts calibrated as `calibration` says and no later-visit
         recalibration of its own, and whether only its beams without a return reached each point's
-        cell (:func:`gpomap.fusion.only_silent`; shape (m,)). It fits only the tiles the points need, and counts the rays only
-        at their cells (the same tiles and counts, so the same answers as the whole map's). With
-        `kept_points` (the fitted map's points without the scans left out), it files those
-        instead of making the scans' points again: the same points in the same order. With
+        cell (:func:`gpomap.fusion.only_silent`; shape (m,)). It fits only the tiles the points
+        need, and counts the rays only at their cells (the same tiles and counts, so the same
+        answers as the whole map's). With `kept_points` (the fitted map's points without the scans
+        left out), it files those instead of making the scans' points again: the same points in
+        the same order. With
         `counted_without` (the fitted map's counts round `points` and its scans not in `scans`),
         its ray counts are those less the others' (:func:`gpomap.counted_cells.count_cells_without`)."""
         rest = self.unfitted(fit_revisit=False)
