@@ -30,17 +30,56 @@ def test_peak_counts_an_array_just_touched() -> None:
 
 @pytest.mark.skipif(resources._malloc_trim() is None, reason="glibc's malloc_trim is not there")
 def test_freed_heap_blocks_are_handed_back() -> None:
-    # 256 MiB in 64 KiB arrays: below glibc's mmap threshold, so they come from the heap; one
-    # array allocated after them keeps the heap's top in use, so freeing them returns nothing.
-    blocks = [np.ones(8192) for _ in range(4096)]
+    # 384 MiB in 64 KiB arrays (above TRIM_FREE_BYTES): below glibc's mmap threshold, so they come
+    # from the heap; one array allocated after them keeps the heap's top in use, so freeing them
+    # returns nothing.
+    blocks = [np.ones(8192) for _ in range(6144)]
     top = np.ones(8192)
     del blocks
     before = resources.rss_mb()
     assert before is not None
     assert resources.release_freed_memory()
     after = resources.rss_mb()
-    assert after is not None and after < before - 128
+    assert after is not None and after < before - 256
     assert top.sum() == top.size
+
+
+@pytest.mark.skipif(resources._mallinfo2() is None, reason="glibc's mallinfo2 is not there")
+def test_heap_free_bytes_counts_arrays_just_freed() -> None:
+    # 64 MiB in 64 KiB arrays from the heap, kept in use by one allocated after them: freed, the
+    # allocator's free chunks grow by their size (each array's 64 KiB and its chunk header).
+    blocks = [np.ones(8192) for _ in range(1024)]
+    top = np.ones(8192)
+    before = resources._heap_free_bytes()
+    del blocks
+    after = resources._heap_free_bytes()
+    assert before is not None and after is not None
+    assert 64 * 2**20 <= after - before < 66 * 2**20
+    assert top.sum() == top.size
+
+
+class _Trim:
+    """A stand-in for ``malloc_trim`` that records its calls."""
+
+    def __init__(self) -> None:
+        self.calls: list[int] = []
+
+    def __call__(self, pad: int) -> int:
+        self.calls.append(pad)
+        return 1
+
+
+@pytest.mark.parametrize(
+    ("free", "asked"), [(resources.TRIM_FREE_BYTES - 1, False), (resources.TRIM_FREE_BYTES, True), (None, True)]
+)
+def test_system_asked_only_when_enough_is_free(monkeypatch: pytest.MonkeyPatch, free: int | None, asked: bool) -> None:
+    # Below the threshold the pages would be faulted in again by the next stage; where the C
+    # library cannot say how much is free (None), it is asked as before.
+    trim = _Trim()
+    monkeypatch.setattr(resources, "_malloc_trim", lambda: trim)
+    monkeypatch.setattr(resources, "_heap_free_bytes", lambda: free)
+    assert resources.release_freed_memory() is asked
+    assert trim.calls == ([0] if asked else [])
 
 
 def test_release_is_a_no_op_without_malloc_trim(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -43,6 +43,7 @@ __all__ = [
     "memory_limit",
     "peak_rss_mb",
     "release_freed_memory",
+    "TRIM_FREE_BYTES",
     "rss_mb",
     "SpillFile",
     "POINT_MEMORY",
@@ -182,30 +183,72 @@ def peak_rss_mb() -> dict[str, float]:
 
 
 def release_freed_memory() -> bool:
-    """Hand the memory this process has freed back to the system; whether it could be asked.
+    """Hand the memory this process has freed back to the system, when it holds at least
+    :data:`TRIM_FREE_BYTES` of it; whether the system was asked.
 
     glibc's allocator raises its mmap threshold each time a large block is freed, so the arrays of
     one stage that come after (tens of MB each) are carved from the heap, and freed they stay in
     it: gigabytes on a campus log (docs/choices.md, "The map's probabilities for a later
-    visit"). ``malloc_trim``
-    returns them. A no-op (False) where the C library has no such call (macOS, Windows, musl).
+    visit"). ``malloc_trim`` returns them. A no-op (False) where the C library has no such call
+    (macOS, Windows, musl); where it cannot say how much is free (glibc before 2.33), it is
+    always asked.
     """
     trim = _malloc_trim()
     if trim is None:
+        return False
+    free = _heap_free_bytes()
+    if free is not None and free < TRIM_FREE_BYTES:
         return False
     trim(0)
     return True
 
 
+#: :func:`release_freed_memory` asks the system only when the allocator holds at least this
+#: many bytes free. Pages handed back are faulted in again when the next stage allocates: on a
+#: log of a few thousand scans, which frees a hundred MB or two between stages, trimming cost
+#: more system time than it saved memory (docs/benchmarks.md, "Trimming the heap").
+TRIM_FREE_BYTES: int = 256 * 2**20
+
+
+class _MallInfo2(ctypes.Structure):
+    """glibc's ``struct mallinfo2`` (every field a ``size_t``; ``fordblks``: bytes in free chunks)."""
+
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")
+    ]
+
+
+def _heap_free_bytes() -> int | None:
+    """Bytes the allocator holds in free chunks, every arena (glibc's ``mallinfo2``); None where unknown."""
+    info = _mallinfo2()
+    return None if info is None else int(info().fordblks)
+
+
 @functools.cache
-def _malloc_trim() -> Any:
-    """glibc's ``malloc_trim``, or None where it is not there."""
+def _libc() -> Any:
+    """glibc, or None where it is not there."""
     if not sys.platform.startswith("linux"):
         return None
     try:
-        return ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
+        return ctypes.CDLL("libc.so.6")
+    except OSError:
         return None
+
+
+@functools.cache
+def _malloc_trim() -> Any:
+    """glibc's ``malloc_trim``, or None where it is not there."""
+    return getattr(_libc(), "malloc_trim", None)
+
+
+@functools.cache
+def _mallinfo2() -> Any:
+    """glibc's ``mallinfo2`` (2.33 and later), returning :class:`_MallInfo2`; None where it is not there."""
+    info = getattr(_libc(), "mallinfo2", None)
+    if info is not None:
+        info.restype = _MallInfo2
+    return info
 
 
 class SpillFile:
