@@ -85,12 +85,26 @@ def test_prior_probability_by_hand():
 
 
 def test_map_classes():
-    t = np.zeros((10, 10), dtype=np.int8)
-    t[5:, :] = -1
-    t[0, 0] = 1  # 49 of 50 free: 98 %
-    assert d.map_warnings(t) == ["the map is almost all one class: 98.0 % of its 50 known cells are free"]
-    t[0, :5] = 1  # 45 of 50 free: 90 %
+    # 1000 known cells: the band's edges, one wall cell in a thousand and half of them, pass.
+    t = np.zeros((20, 100), dtype=np.int8)
+    t[10:, :] = -1
+    t[0, 0] = 1
     assert d.map_warnings(t) == []
+    t[0, 0] = 0  # no wall cell at all
+    assert d.map_warnings(t) == [
+        "the map is almost all free: 0 of its 1000 known cells (0 %) are occupied; the walls the scans hit are mostly missing"
+    ]
+    t[:5, :] = 1  # 500 of 1000
+    assert d.map_warnings(t) == []
+    t[5, 0] = 1  # 501 of 1000
+    assert d.map_warnings(t) == [
+        "the map is mostly occupied: 50.1 % of its 1000 known cells; the space the beams crossed is not free in it"
+    ]
+    small = np.zeros(4000, dtype=np.int8)
+    small[:3] = 1  # 3 in 4000: 0.075 %
+    assert d.map_warnings(small) == [
+        "the map is almost all free: 3 of its 4000 known cells (0.075 %) are occupied; the walls the scans hit are mostly missing"
+    ]
     assert d.map_warnings(np.full((3, 3), -1)) == [
         "no cell of the 9-cell map is known (all between the thresholds): the map says nothing"
     ]

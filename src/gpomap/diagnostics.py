@@ -5,7 +5,7 @@ search (the data did not pin it down, or wanted a value the search does not allo
 slope at its cap (the classes separate perfectly and a map of the GP alone turns hard 0 / 1;
 not a warning for a map of ray counts, whose GP is only their prior), a map whose
 probability away from the data is far from 0.5 (unexplored space then looks free or occupied
-instead of unknown), or a map that is almost all one class. The command line prints these as
+instead of unknown), or a written map with hardly a wall, or more wall than free space. The command line prints these as
 ``warning: ...`` lines after a fit; :func:`fit_warnings` is the one entry point.
 """
 
@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 __all__ = [
     "BOUND_TOLERANCE",
-    "ONE_CLASS_FRACTION",
+    "OCCUPIED_SHARE_BAND",
     "PRIOR_BAND",
     "at_bounds",
     "fit_warnings",
@@ -36,8 +36,11 @@ __all__ = [
 BOUND_TOLERANCE = 0.05
 #: The probability far from the data should be within this band (0.5 +- 0.1): "unknown".
 PRIOR_BAND = (0.4, 0.6)
-#: Above this fraction of known cells in one class the map is reported as almost all one class.
-ONE_CLASS_FRACTION = 0.95
+#: The share of a written map's known cells that are occupied, outside of which the map is
+#: reported. A map of range data is mostly free space, the beams' way to the walls: the shared
+#: logs' maps at 0.05 m hold 2-10 % wall cells. Below the band the walls the scans hit are
+#: missing; above it the space the beams crossed is not free in the map.
+OCCUPIED_SHARE_BAND = (0.001, 0.5)
 
 _WHY = {
     "length_scale": "the data did not pin the length scale down; give --length-scale (metres) to fix it, or a --min-cell "
@@ -197,15 +200,15 @@ def hyperparameter_warnings(
     return out
 
 
-def map_warnings(ternary: NDArray[np.integer], fraction: float = ONE_CLASS_FRACTION) -> list[str]:
+def map_warnings(ternary: NDArray[np.integer], band: tuple[float, float] = OCCUPIED_SHARE_BAND) -> list[str]:
     """Warnings about the written map's classes.
 
     Parameters
     ----------
     ternary : ndarray of int
         0 free, 1 occupied, -1 unknown.
-    fraction : float
-        More than this fraction of the known cells in one class is reported.
+    band : (float, float)
+        An occupied share of the known cells outside [low, high] is reported.
 
     Returns
     -------
@@ -218,9 +221,17 @@ def map_warnings(ternary: NDArray[np.integer], fraction: float = ONE_CLASS_FRACT
     if known == 0:
         return [f"no cell of the {t.size}-cell map is known (all between the thresholds): the map says nothing"]
     n_occ = int(np.count_nonzero(t == 1))
-    for name, n in (("occupied", n_occ), ("free", known - n_occ)):
-        if n > fraction * known:
-            return [f"the map is almost all one class: {100 * n / known:.1f} % of its {known} known cells are {name}"]
+    share = n_occ / known
+    if share < band[0]:
+        return [
+            f"the map is almost all free: {n_occ} of its {known} known cells ({100 * share:.2g} %) are occupied; "
+            "the walls the scans hit are mostly missing"
+        ]
+    if share > band[1]:
+        return [
+            f"the map is mostly occupied: {100 * share:.1f} % of its {known} known cells; "
+            "the space the beams crossed is not free in it"
+        ]
     return []
 
 
@@ -248,7 +259,7 @@ def fit_warnings(model: Any, occupancy_map: Any = None, tolerance: float = BOUND
     model : AreaGPOM, TiledGPOM or GridGPOM
         Fitted.
     occupancy_map : OccupancyMap, optional
-        The map written from it; checked for being almost all one class.
+        The map written from it; checked for its share of occupied cells (:func:`map_warnings`).
     tolerance : float
         See :func:`at_bounds`.
 
