@@ -279,3 +279,63 @@ def test_bad_map_files_are_one_line_errors(mapped, tmp_path, capsys, command):
         assert f"gpomap: error: {path}: " in err and message in err, err
         assert "expected" in err or f"this gpomap reads version {VERSION}" in err, err
     assert not (tmp_path / "o").exists()
+
+
+def test_info_describes_a_fitted_map_from_its_header(mapped, capsys):
+    path = mapped / "map.gpom"
+    assert main(["info", str(path)]) == 0
+    lines = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
+    model = gpomap.load_map(path)
+    assert lines["format"] == f"gpomap fitted map (map.gpom, version {VERSION})" and lines["kind"] == "map"
+    assert lines["model"] == "AreaGPOM, 2-D" and lines["n_scans"] == "40" and lines["scans_kept"] == "True"
+    assert int(lines["n_cells"]) == model.n_inputs_ and int(lines["n_tiles"]) == len(model.tiles_)
+    (x0, y0), (x1, y1) = model.bounds_
+    assert lines["extent"] == f"{x0:.3f}, {x1:.3f}, {y0:.3f}, {y1:.3f}"
+    assert lines["ray_counts"] == "on 0.05 m cells" and lines["thresholds"] == "0.196, 0.500"
+    said = dict(pair.rsplit(" ", 1) for pair in lines["hyperparameters"].split(", "))
+    assert {k: float(v) for k, v in said.items()} == pytest.approx(model.hyperparameters_, rel=5e-4)
+    assert main(["info", str(path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["n_cells"] == model.n_inputs_
+
+
+def test_info_on_a_map_file_it_cannot_read_is_one_line(mapped, tmp_path, capsys):
+    old = tmp_path / "old.gpom"
+    shutil.copy(mapped / "map.gpom", old)
+    _rewrite_header(old, lambda h: h.update(version=VERSION - 1))
+    assert f"map file format version {VERSION - 1}" in one_line_error(capsys, main(["info", str(old)]))
+    cut = tmp_path / "cut.gpom"
+    cut.write_bytes((mapped / "map.gpom").read_bytes()[:5000])
+    assert "truncated or corrupt" in one_line_error(capsys, main(["info", str(cut)]))
+
+
+def test_info_counts_a_written_grids_classes(tmp_path, capsys):
+    from gpomap.grid import GridSpec, OccupancyMap
+    from gpomap.io.npz import save_map
+
+    # 4 x 5 cells of 0.1 m from (1, -2): 3 occupied (p > 0.5), 15 free (p < 0.196), 2 unknown.
+    p = np.full((4, 5), 0.05)
+    p[0, :3] = 0.9
+    p[3, 3:] = 0.3
+    save_map(OccupancyMap(GridSpec((1.0, -2.0), 0.1, (4, 5)), p, thresholds=(0.196, 0.5)), tmp_path / "map.npz")
+    assert main(["info", str(tmp_path / "map.npz")]) == 0
+    lines = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
+    assert lines["format"] == "gpomap written grid (map.npz)" and lines["cells"] == "5 x 4"
+    assert lines["extent"] == "1.000, 1.500, -2.000, -1.600"
+    assert (lines["free"], lines["occupied"], lines["unknown"]) == ("15 (75.0 %)", "3 (15.0 %)", "2 (10.0 %)")
+    assert lines["probability"] == "0.050, 0.900" and lines["thresholds"] == "0.196, 0.500"
+    assert lines["variance"] == "False" and lines["robot_path"] == "none"
+
+
+def test_info_counts_a_written_voxel_maps_classes(tmp_path, capsys):
+    from gpomap.io.voxel_outputs import save_voxels
+    from gpomap.voxels import VoxelMap, VoxelSpec
+
+    # 2 x 3 x 4 voxels of 0.25 m from (0, 0, -1): 6 occupied, 18 free, none unknown.
+    p = np.full((2, 3, 4), 0.1)
+    p[1, :, :2] = 0.8
+    save_voxels(VoxelMap(VoxelSpec((0.0, 0.0, -1.0), 0.25, (2, 3, 4)), p), tmp_path / "map.npz")
+    assert main(["info", str(tmp_path / "map.npz")]) == 0
+    lines = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
+    assert lines["format"] == "gpomap written voxel map (map.npz)" and lines["cells"] == "4 x 3 x 2"
+    assert lines["extent"] == "0.000, 1.000, 0.000, 0.750, -1.000, -0.500"
+    assert (lines["free"], lines["occupied"], lines["unknown"]) == ("18 (75.0 %)", "6 (25.0 %)", "0 (0.0 %)")
