@@ -4,12 +4,14 @@ For each log, the map ``gpomap map LOG`` fits (its defaults; ``--workers`` local
 default) is fitted, saved to ``map.gpom`` and loaded back; then the loaded map's grid is taken at
 ``--resolution`` (over the whole map, as ``gpomap render MAP.gpom --resolution R`` does) and its
 files written. Prints the fit's seconds, the file's size (and what takes it: the tiles' factors,
-the scans, the rest), save and load seconds, the grid's cells and seconds (each the least of
-``--repeat`` runs: the machine may be shared), and checks that the loaded map predicts as the live
-one to the bit.
+the scans, the rest), save and load seconds, the grid's cells and seconds, the seconds a loaded
+map takes to make its labelled points from its scans when first read (as ``gpomap update`` reads
+them; a render or query never does), each the least of ``--repeat`` runs (the machine may be
+shared), and checks that the loaded map predicts as the live one to the bit.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/mapfile.py --log stage-arena --resolution 0.01
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/mapfile.py --log intel --resolution 0.05
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/mapfile.py --log fr079 --resolution 0.05
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ LOGS = {
     "stage-arena": (DATA / "stage-arena" / "robot1.bag", ["--topic", "/base_scan", "--time-offset", "0.1"]),
     "intel": (DATA / "intel" / "intel-corrected.log.gz", []),
     "belgioioso": (DATA / "belgioioso" / "belgioioso-corrected.log.gz", []),
+    "fr079": (DATA / "fr079" / "freiburg-079-corrected.log.gz", []),
 }
 
 
@@ -89,10 +92,18 @@ def run(name: str, resolution: float, workers: int, repeat: int, directory: Path
         fresh = load_fitted_map(path)
         grid, grid_wall, grid_cpu = _timed(lambda m=fresh: m.grid(resolution))
         _, write_wall, write_cpu = _timed(lambda g=grid: write_map_files(g, out))
-        runs.append((load_wall, load_cpu, query_wall, query_cpu, grid_wall, grid_cpu, write_wall, write_cpu))
-    load_wall, load_cpu, query_wall, query_cpu, grid_wall, grid_cpu, write_wall, write_cpu = np.min(runs, axis=0)
+        shape = grid.grid.shape
+        del fresh, grid
+        _, points_wall, points_cpu = _timed(lambda m=loaded: m.training_points())
+        runs.append(
+            (load_wall, load_cpu, query_wall, query_cpu, grid_wall, grid_cpu, write_wall, write_cpu, points_wall, points_cpu)
+        )
+        del loaded
+    load_wall, load_cpu, query_wall, query_cpu, grid_wall, grid_cpu, write_wall, write_cpu, points_wall, points_cpu = np.min(
+        runs, axis=0
+    )
     same = bool(np.array_equal(p1, p2) and np.array_equal(v1, v2))
-    ny, nx = grid.grid.shape
+    ny, nx = shape
     parts = ", ".join(f"{k} {v / 1e6:.2f}" for k, v in _sizes(path).items())
     print(f"{name}: {len(scans)} scans, {len(model.tiles_)} tiles, {model.n_inputs_} cells, {workers} worker(s)")
     print(f"  fit                  {fit_wall:.2f} s wall, {fit_cpu:.2f} s CPU")
@@ -104,6 +115,7 @@ def run(name: str, resolution: float, workers: int, repeat: int, directory: Path
         f"  grid at {resolution:g} m        {nx} x {ny} cells ({nx * ny / 1e6:.2f} M) in {grid_wall:.2f} s wall, "
         f"{grid_cpu:.2f} s CPU; its files written in {write_wall:.2f} s wall, {write_cpu:.2f} s CPU"
     )
+    print(f"  points from scans    {points_wall:.2f} s wall, {points_cpu:.2f} s CPU (when first read, as by an update)")
     total = (load_wall + grid_wall + write_wall, load_cpu + grid_cpu + write_cpu)
     print(
         f"  load + grid + files  {total[0]:.2f} s wall, {total[1]:.2f} s CPU; the fit: {fit_wall:.2f} s wall, {fit_cpu:.2f} s CPU"

@@ -93,7 +93,10 @@ def assert_same(a, b, where="model", ignore=frozenset()):
             assert_same(x, y, f"{where}.{name}")
         assert_same(a._near, b._near, f"{where}._near")
         assert_same(a._n_checked, b._n_checked, f"{where}._n_checked")
-        assert set(vars(a)) == set(vars(b)) == {"_parts", "_runs", "_near", "_n_checked"}, where
+        # A loaded block's points are made from the scans when first read (above): no wait is left.
+        assert a._restore is None and b._restore is None, where
+        waits = {"_restore", "_restore_count"}
+        assert set(vars(a)) - waits == set(vars(b)) - waits == {"_parts", "_runs", "_near", "_n_checked"}, where
         # Each point's scan, however the points were split into parts.
         scans = [None if p._runs is None else np.repeat(*map(np.concatenate, zip(*p._runs))) for p in (a, b)]
         assert_same(*scans, f"{where}._runs")
@@ -538,3 +541,41 @@ def test_points_waiting_in_a_spill_file_are_counted_not_read_back_when_saved(roo
     loaded = load_fitted_map(path)  # refused if a block's count were not that of its points made again
     assert {k: b.arrays()[0].shape[0] for k, b in loaded._block_points.items()} == want
     assert_same(model, loaded)
+
+
+def test_a_loaded_maps_points_are_made_from_its_scans_only_when_read(saved, room):
+    live = TiledGPOM(n_workers=1, **ROOM_OPTS).fit(room[:8])
+    loaded = load_fitted_map(saved)
+    blocks = list(loaded._block_points.values())
+    assert blocks and all(b._restore is not None and b._parts == [] for b in blocks)
+    # Predicting reads none of them: the map's answers are the live map's, every block still waiting.
+    lo, hi = live.bounds_
+    points = np.random.default_rng(3).uniform(lo - 1.0, hi + 1.0, size=(500, 2))
+    np.testing.assert_array_equal(loaded.predict_proba(points), live.predict_proba(points))
+    assert all(b._restore is not None for b in blocks)
+    # The first read fills every block at once, with the live map's points.
+    (p, o), (p_live, o_live) = loaded.training_points(), live.training_points()
+    assert all(b._restore is None for b in blocks)
+    order, order_live = np.lexsort((p[:, 1], p[:, 0], o)), np.lexsort((p_live[:, 1], p_live[:, 0], o_live))
+    np.testing.assert_array_equal(p[order], p_live[order_live])
+    np.testing.assert_array_equal(o[order], o_live[order_live])
+
+
+def test_points_the_scans_do_not_give_are_refused_when_first_read(saved, tmp_path):
+    def one_more_point(node: object) -> bool:
+        """Add a point to the first block whose points are made from the scans."""
+        if isinstance(node, dict):
+            if "$from_scans" in node:
+                node["$from_scans"] += 1
+                return True
+            return any(one_more_point(v) for v in node.values())
+        return isinstance(node, list) and any(one_more_point(v) for v in node)
+
+    path = tmp_path / "altered.gpom"
+    path.write_bytes(Path(saved).read_bytes())
+    _rewrite_header(path, lambda header: one_more_point(header["state"]))
+    loaded = load_fitted_map(path)  # its predictions never read the points
+    with pytest.raises(InputFormatError) as err:
+        loaded.training_points()
+    message = str(err.value)
+    assert message.startswith(str(path)) and "\n" not in message and "labelled points" in message

@@ -42,9 +42,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``gpomap info``: the description of :func:`gpomap.io.describe` (of
-    :func:`gpomap.io.own_files.describe_own_file` for a file gpomap wrote), as text or JSON."""
+    :func:`gpomap.apps.own_files.describe_own_file` for a file gpomap wrote), as text or JSON."""
+    from gpomap.apps.own_files import describe_own_file, own_format
     from gpomap.io import describe
-    from gpomap.io.own_files import describe_own_file, own_format
 
     own = own_format(args.input)
     if own is not None:

@@ -78,6 +78,8 @@ class BlockCells(TileGrid):
         in memory. With `scans` (each point's scan, shape (n,), non-decreasing), each block keeps
         its new points' runs (:func:`~gpomap.tiles.points.scan_runs`). With `weights` (shape (n,)),
         how many samples each point stands for."""
+        for block in self._block_points.values():
+            block.made()  # a map read from its file: its own points first, then those added
         # Keys per chunk of points, blocks then numbered 0..b-1 in key order: a whole log's int64
         # keys and their sorted copy would be hundreds of megabytes.
         chunks = range(0, points.shape[0], _KEY_CHUNK)

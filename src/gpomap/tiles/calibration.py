@@ -159,7 +159,7 @@ class CalibrationStages(MapPrediction):
 
     def _blocks_know_their_scans(self) -> bool:
         """Whether every block's points came with their scans' runs."""
-        return all(b._runs is not None for b in self._block_points.values())
+        return all(b.knows_its_scans() for b in self._block_points.values())
 
     def _kept_points_of(self, scans: list[Any]) -> KeptPoints | None:
         """This map's points without those of the scans not in `scans` (:class:`~gpomap.tiles.points.KeptPoints`),

@@ -118,6 +118,12 @@ class _BlockPoints:
     # The map file names this class by its package (gpomap.io.mapfile), where it is found by that name.
     __module__ = "gpomap.tiles"
 
+    # A block read back from a map file is filled from the map's scans when first read or added
+    # to (gpomap.io.mapfile): what fills every such block of the map at once, and how many points
+    # it will file here. Rendering or querying a map never reads its points.
+    _restore: Callable[[], None] | None = None
+    _restore_count: int | None = None
+
     def __init__(
         self,
         points: NDArray[np.float64] | _SpilledPart,
@@ -139,6 +145,7 @@ class _BlockPoints:
         runs: Runs | None = None,
         weight: NDArray[np.int32] | None = None,
     ) -> None:
+        self.made()
         # A block read back from a map file starts without parts; its runs come with them again.
         known = runs is not None and (self._runs is not None or not self._parts)
         self._parts.append(points if isinstance(points, _SpilledPart) else (points, occupied, weight))
@@ -153,8 +160,19 @@ class _BlockPoints:
             return None
         return part_rows(part, keep)
 
+    def made(self) -> None:
+        """Fill the block from its map's scans if it waits for them (a map read from its file)."""
+        if self._restore is not None:
+            self._restore()
+
+    def knows_its_scans(self) -> bool:
+        """Whether every part came with its scans' runs (:meth:`without` can leave scans out)."""
+        self.made()
+        return self._runs is not None
+
     def runs(self) -> Runs | None:
         """Every part's runs (:data:`Runs`) joined, in the points' order; None when a part came without them."""
+        self.made()
         if self._runs is None:
             return None
         if not self._runs:
@@ -174,6 +192,7 @@ class _BlockPoints:
 
     def spill(self, file: SpillFile) -> None:
         """Move the parts held in memory to `file`, in their places."""
+        self.made()
         self._parts = [p if isinstance(p, _SpilledPart) else _SpilledPart.put(file, *_part(p)) for p in self._parts]
 
     def arrays(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
@@ -183,6 +202,7 @@ class _BlockPoints:
 
     def weighted_arrays(self) -> Part:
         """The block's points, their labels and weights (:data:`Part`), in arrival order."""
+        self.made()
         if any(isinstance(p, _SpilledPart) for p in self._parts):
             if len(self._parts) == 1:
                 return _part(self._parts[0])

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import weakref
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -33,8 +34,9 @@ NOT_SAVED: dict[str, dict[str, Any]] = {
         "_counted_in_place": None,
     },
     "gpomap.gp.GPPosterior": {"precision": None},
-    # Block points made again from the scans are filed with their runs again (_restore_points).
-    "gpomap.tiles._BlockPoints": {"_runs": None},
+    # Block points made again from the scans are filed with their runs again (_restore_points),
+    # when first read (_PointsFromScans).
+    "gpomap.tiles._BlockPoints": {"_runs": None, "_restore": None, "_restore_count": None},
 }
 
 
@@ -298,8 +300,11 @@ class _Writer:
                 elif isinstance(value, EvidenceLayer) and attr == "gp_apart":
                     state[attr] = self._gp_apart(v, w)
                 elif isinstance(value, _BlockPoints) and attr == "_parts" and self._points_from_scans():
-                    # Only their number is written: counted by part, never read back from the spill file.
-                    n = sum(p.shape[0] if isinstance(p, _SpilledPart) else len(p[0]) for p in v)
+                    # Only their number is written: counted by part, never read back from the spill file
+                    # (nor made from the scans, for a block of a map read from its file and not yet read).
+                    n = value._restore_count if value._restore is not None else None
+                    if n is None:
+                        n = sum(p.shape[0] if isinstance(p, _SpilledPart) else len(p[0]) for p in v)
                     state[attr] = {"$from_scans": int(n)}
                 else:
                     state[attr] = self.encode(v, w)
@@ -348,8 +353,9 @@ class _StateError(Exception):
 
 
 class _Reader:
-    def __init__(self, arrays: dict[str, NDArray[Any]]) -> None:
+    def __init__(self, arrays: dict[str, NDArray[Any]], path: str = "") -> None:
         self.arrays = arrays
+        self.path = path  # the file's, named by the errors of points made again later
         self._classes = saved_classes()
         self._scans: dict[str, list[Any]] = {}
         self._models: list[Any] = []
@@ -460,7 +466,7 @@ class _Reader:
             if isinstance(obj, TiledGPOM):
                 if isinstance(values.get("tiles_"), dict):
                     obj.tiles_ = TileStore(tiles=values["tiles_"])  # saved as a dict of its states
-                _restore_points(obj, [(bp, n) for m, bp, n in self._points if m is obj])
+                _PointsFromScans.wait(obj, [(bp, n) for m, bp, n in self._points if m is obj], self.path)
                 self._points = [p for p in self._points if p[0] is not obj]
         finally:
             if isinstance(obj, TiledGPOM):
@@ -489,6 +495,43 @@ def _restore_rays(layer: Any, enc: dict[str, Any], reader: _Reader) -> None:
     if full.hit.size != int(enc["n_beams"]) or scan.shape != full.hit.shape:
         raise _StateError(f"the ray counts' {int(enc['n_beams'])} beams are not the {full.hit.size} of the scans saved with them")
     layer._parts = [RayEvidence(full.starts, full.ends, full.hit, scan, path)]
+
+
+class _PointsFromScans:
+    """Makes a map's labelled points again from its scans and files them under its blocks
+    (:func:`_restore_points`), once, when one of its blocks is first read or added to.
+
+    A map read to be rendered or queried never reads its points: on a log of a few thousand scans
+    they are tens of millions, most of the time and memory a load took.
+    """
+
+    def __init__(self, model: Any, path: str) -> None:
+        # Weakly: the model holds its blocks, which hold this; a map let go must go at once, not at
+        # the next garbage collection (a written map's grid is put together after its model goes).
+        self.model, self.path = weakref.ref(model), path
+
+    @classmethod
+    def wait(cls, model: Any, blocks: list[tuple[Any, int]], path: str) -> None:
+        """Leave `blocks` (each with its saved count of points) to be filled when first read."""
+        if not blocks:
+            return
+        restore = cls(model, path)
+        for block, n in blocks:
+            block._restore, block._restore_count = restore, n
+
+    def __call__(self) -> None:
+        from gpomap.errors import InputFormatError
+
+        model = self.model()
+        if model is None:
+            raise RuntimeError("the map these block points belong to is gone")
+        blocks = [(b, int(b._restore_count)) for b in model._block_points.values() if b._restore is self]
+        for block, _ in blocks:
+            block._restore = block._restore_count = None  # filled below, once
+        try:
+            _restore_points(model, blocks)
+        except _StateError as exc:
+            raise InputFormatError(f"map file state: {exc}", path=self.path) from None
 
 
 def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:

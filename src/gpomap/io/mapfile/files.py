@@ -226,7 +226,7 @@ def _load_state(path: str | os.PathLike[str], header: dict[str, Any]) -> Any:
     arrays = load_npz(path, _WHAT)
     arrays.pop(_HEADER, None)
     try:
-        return _Reader(arrays).decode(header["state"])
+        return _Reader(arrays, str(path)).decode(header["state"])
     except _StateError as exc:
         raise InputFormatError(f"map file state: {exc}", path=str(path)) from None
     except (GpomapError, KeyError, TypeError, ValueError, AttributeError, IndexError, ArithmeticError, RecursionError) as exc:
