@@ -579,3 +579,26 @@ def test_points_the_scans_do_not_give_are_refused_when_first_read(saved, tmp_pat
         loaded.training_points()
     message = str(err.value)
     assert message.startswith(str(path)) and "\n" not in message and "labelled points" in message
+
+
+def test_a_loaded_maps_points_are_made_a_run_of_scans_at_a_time_past_the_budget_in_a_file(saved, room, monkeypatch):
+    import gpomap.observations as observations
+    from gpomap.io.mapfile import encoding
+    from gpomap.tiles.points import _SpilledPart
+
+    made = observations.observations_from_scans
+    runs: list[int] = []
+
+    def counted(scans, *args, **kwargs):
+        runs.append(len(scans))
+        return made(scans, *args, **kwargs)
+
+    monkeypatch.setattr(observations, "observations_from_scans", counted)
+    monkeypatch.setattr(encoding, "RESTORE_PART_BYTES", 1)  # one scan a run
+    monkeypatch.setattr(encoding, "POINT_MEMORY", 1)  # in the spill file from the first run on
+    loaded = load_fitted_map(saved)
+    live = TiledGPOM(n_workers=1, **ROOM_OPTS).fit(room[:8])
+    runs.clear()
+    assert_same(live, loaded, ignore={"seconds", "timings_"})  # each block's points and their scans, made when first read
+    assert runs == [1] * 8
+    assert all(isinstance(p, _SpilledPart) for b in loaded._block_points.values() for p in b._parts)
