@@ -82,18 +82,14 @@ def describe_own_file(path: str | os.PathLike[str], fmt: str) -> dict[str, Any]:
 
         grid = load_map(path)
         info["format"] = "gpomap written grid (map.npz)"
-        info.update(_cells(grid.probability, grid.ternary, grid.grid.resolution, np.asarray(grid.grid.origin)))
-        info["thresholds"] = tuple(float(t) for t in grid.thresholds)
-        info["variance"] = grid.variance is not None
+        info.update(_cells(grid, grid.grid.resolution, np.asarray(grid.grid.origin)))
         info["robot_path"] = "none" if grid.path is None else f"{len(grid.path)} poses"
     elif fmt == VOXELS:
         from gpomap.io.voxel_outputs import load_voxels
 
         voxels = load_voxels(path)
         info["format"] = "gpomap written voxel map (map.npz)"
-        info.update(_cells(voxels.probability, voxels.ternary, voxels.spec.resolution, np.asarray(voxels.spec.origin)))
-        info["thresholds"] = tuple(float(t) for t in voxels.thresholds)
-        info["variance"] = voxels.variance is not None
+        info.update(_cells(voxels, voxels.spec.resolution, np.asarray(voxels.spec.origin)))
     else:
         raise ValueError(f"not one of gpomap's own formats: {fmt!r}")
     info["file_size"] = size
@@ -131,10 +127,11 @@ def _fitted_map(path: str | os.PathLike[str]) -> dict[str, Any]:
     return out
 
 
-def _cells(
-    probability: NDArray[np.float64], ternary: NDArray[np.int8], resolution: float, origin: NDArray[np.float64]
-) -> dict[str, Any]:
-    """A written map's cells: shape, resolution, extent, classes and probability range."""
+def _cells(written: Any, resolution: float, origin: NDArray[np.float64]) -> dict[str, Any]:
+    """A written map's (:class:`~gpomap.grid.OccupancyMap` or :class:`~gpomap.voxels.VoxelMap`)
+    cells: shape, resolution, extent, classes, probability range, thresholds and whether it holds
+    a variance."""
+    probability, ternary = written.probability, written.ternary
     shape = probability.shape  # (ny, nx) or (nz, ny, nx)
     upper = origin + resolution * np.array(shape[::-1], dtype=float)
     n = max(int(ternary.size), 1)
@@ -148,4 +145,6 @@ def _cells(
         out[name] = f"{count} ({100 * count / n:.1f} %)"
     finite = probability[np.isfinite(probability)]
     out["probability"] = (float(finite.min()), float(finite.max())) if finite.size else None
+    out["thresholds"] = tuple(float(t) for t in written.thresholds)
+    out["variance"] = written.variance is not None
     return out
