@@ -136,3 +136,23 @@ def test_a_real_tiny_fit():
     p0 = d.prior_probability(hyper)
     assert (any("far from the data" in w for w in warnings)) == (not 0.4 <= p0 <= 0.6)
     assert math.isfinite(p0)
+
+
+def test_a_variance_scale_at_its_bound_is_named_not_warned():
+    from gpomap.extrapolation import VARIANCE_SCALE_BOUNDS
+    from gpomap.simulate import paper_room_scans
+
+    # Forty scans of the room predict its held-out stretches' unseen points so well that the
+    # variance scale runs to the lower end of its search.
+    model = AreaGPOM(kernel="se", min_cell=1.0, max_cell=2.0, free_step=0.5, hyper_subset=100).fit(paper_room_scans()[:40])
+    assert "reason" not in model.extrapolation_
+    assert d.search_bounds(model)["variance_scale"] == tuple(VARIANCE_SCALE_BOUNDS)
+    kappa = model.hyperparameters_["variance_scale"]
+    assert kappa == pytest.approx(VARIANCE_SCALE_BOUNDS[0], rel=1e-3)
+    assert "variance_scale" in d.hyperparameter_source(model)
+    assert not any("variance_scale" in w for w in d.fit_warnings(model))
+    # Given to the fit, it is not searched: no bound to be at.
+    given = AreaGPOM(kernel="se", min_cell=1.0, max_cell=2.0, free_step=0.5).fit(
+        paper_room_scans()[:40], hyperparameters=model.hyperparameters_
+    )
+    assert "variance_scale" not in d.search_bounds(given)

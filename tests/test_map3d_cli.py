@@ -52,6 +52,9 @@ def test_map_writes_the_3d_output_set_that_loads_back(room_pcds, tmp_path, capsy
     assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == sorted([*OUTPUTS, "map.gpom"])
     assert "scans        3" in printed and "voxels" in printed and "hyperparams" in printed
     assert "unseen space the GP's own variance (voxel maps do not fit it)" in printed
+    # Not searched, so not listed with the learnt hyperparameters.
+    hyper_line = next(line for line in printed.splitlines() if line.startswith("hyperparams"))
+    assert "variance_scale" not in hyper_line and "length_scale" in hyper_line
     for name in [*OUTPUTS, "map.gpom"]:
         assert f"wrote        {out / name}" in printed
     m = load_voxels(out / "map.npz")

@@ -72,7 +72,8 @@ def search_bounds(model: Any) -> dict[str, tuple[float, float]]:
     dict
         ``name -> (low, high)`` for the hyperparameters the fit searched: length scale and noise
         when they are learnt (the signal variance too with the marginal-likelihood objective),
-        and always the probit's alpha and shift = beta / alpha.
+        always the probit's alpha and shift = beta / alpha, and the variance scale for unseen
+        space when the fit searched it.
     """
     from gpomap.squash import SQUASH_BOUNDS
 
@@ -87,6 +88,10 @@ def search_bounds(model: Any) -> dict[str, tuple[float, float]]:
     (log_alpha_lo, log_alpha_hi), shift = SQUASH_BOUNDS
     bounds["alpha"] = (float(math.exp(log_alpha_lo)), float(math.exp(log_alpha_hi)))
     bounds["shift"] = (float(shift[0]), float(shift[1]))
+    # The variance scale's search, where the fit made one (it reports its bounds).
+    variance_scale = (getattr(model, "extrapolation_", None) or {}).get("bounds")
+    if variance_scale is not None:
+        bounds["variance_scale"] = (float(variance_scale[0]), float(variance_scale[1]))
     return bounds
 
 
@@ -185,6 +190,10 @@ def hyperparameter_warnings(
     out = []
     for name, (v, side, bound) in at_bounds(hyperparameters, bounds, tolerance).items():
         if counted and tempered and name == "alpha" and side == "upper":
+            continue
+        if name == "variance_scale":
+            # Either end is a map the held-out stretches asked for (as sure as the GP's mean, or
+            # 1/2 where no beam went), nothing to act on: the summary's source line names it.
             continue
         label = "beta / alpha" if name == "shift" else name
         cap = " (its cap)" if name == "alpha" and side == "upper" else ""

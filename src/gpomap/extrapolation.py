@@ -162,7 +162,7 @@ def fit_variance_scale(
     report : dict
         ``"kappa"``, ``"n_points"`` (in the sample), ``"n_patterns"``, ``"region_centre"`` and ``"region_half"``
         (the square used), ``"log_loss_at_1"`` and ``"log_loss"`` (at kappa = 1 and
-        at the fit), or ``"reason"`` when kappa stays 1.
+        at the fit) and ``"bounds"`` (of the search), or ``"reason"`` when kappa stays 1.
     """
     if len(scans) < HOLDOUT_EVERY:
         return 1.0, {"kappa": 1.0, "reason": f"only {len(scans)} scans"}
@@ -229,6 +229,7 @@ def fit_variance_scale(
         "region_half": float(region_half),
         "log_loss_at_1": _nll(1.0, mu, var, occ, a, b),
         "log_loss": _nll(kappa, mu, var, occ, a, b),
+        "bounds": [float(v) for v in VARIANCE_SCALE_BOUNDS],
     }
 
 

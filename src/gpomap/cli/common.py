@@ -249,6 +249,10 @@ def _no_return(summary: dict[str, Any]) -> str:
 def print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: str | None = None) -> None:
     """The summary a fitted map's command prints: data, tiles, model, hyperparameters, calibration, timings, files."""
     per = summary["cells_per_tile"]
+    kappa = summary.get("variance_scale_fit") or {}
+    # A variance scale left at 1 unsearched has its own line, saying why, not the learnt ones'.
+    unsearched = "reason" in kappa and kappa.get("kappa") == 1.0
+    hyperparameters = {k: v for k, v in summary["hyperparameters"].items() if not (unsearched and k == "variance_scale")}
     lines = [
         f"scans        {summary['n_scans']}",
         f"points       {_free_points(summary)}, {summary['n_occupied_points']} occupied{_no_return(summary)}",
@@ -256,12 +260,11 @@ def print_map_summary(summary: dict[str, Any], files: Sequence[Path], source: st
         f"{summary['n_cells']} cells, {per['min']}/{per['median']:.0f}/{per['max']} per tile (min/median/max), {summary['executor']}",
         f"model        {summary['kernel']} kernel, {summary['area']} area kernel",
         "hyperparams  "
-        + ", ".join(f"{k} {v:.4g}" for k, v in summary["hyperparameters"].items())
+        + ", ".join(f"{k} {v:.4g}" for k, v in hyperparameters.items())
         + f" ({source or summary['hyperparameter_source'].get('how', '')})",
         "ternary      free below {:.3f}, occupied above {:.3f}".format(*summary["thresholds"]),
     ]
-    kappa = summary.get("variance_scale_fit") or {}
-    if "reason" in kappa and kappa.get("kappa") == 1.0:
+    if unsearched:
         # Not learnt, whatever the line above says of the others: say why.
         lines.insert(-1, f"unseen space the GP's own variance ({kappa['reason']})")
     if summary.get("evidence"):
