@@ -62,7 +62,7 @@ def test_demo_writes_every_output(tmp_path, run):
     # One worker: the tiles in this process (a pool's start-up is test_tiles').
     r = run("demo", "-o", tmp_path / "out", "--kernel", "se", "--workers", "1")
     assert r.returncode == 0, r.stderr
-    for name in ["map.yaml", "map.pgm", "map.npz", "map.png", "cells.png"]:
+    for name in ["map.yaml", "map.pgm", "map.npz", "map.png", "cells.png", "map.gpom"]:
         assert (tmp_path / "out" / name).stat().st_size > 0, name
     assert "cells" in r.stdout and "hyperparams" in r.stdout and "timings" in r.stdout
     from gpomap.io.npz import load_map
@@ -82,6 +82,12 @@ def test_demo_writes_every_output(tmp_path, run):
         assert inside.all() and np.mean(m.ternary[rows, cols] == 1) > 0.6, wall[0]
     ros = read_rosmap(tmp_path / "out" / "map.yaml")
     np.testing.assert_array_equal(ros.occupied, m.ternary == 1)
+    # The fitted map kept beside them writes the same grid again (what gpomap render does).
+    import gpomap
+
+    again = gpomap.load_map(tmp_path / "out" / "map.gpom").grid(m.grid.resolution, m.grid.extent)
+    assert again.grid == m.grid
+    np.testing.assert_array_equal(again.probability, m.probability)
 
 
 @pytest.mark.skipif(not INTEL.exists(), reason="shared Intel log not present")

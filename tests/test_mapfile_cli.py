@@ -133,6 +133,12 @@ def test_query_prints_or_writes_probability_and_variance(mapped, tmp_path, capsy
         np.testing.assert_array_equal(answers["probability"], p)
         np.testing.assert_array_equal(answers["variance"], v)
         np.testing.assert_array_equal(answers["points"], points)
+    # Points written out on the command line, mixed with a file, in the order given (after --,
+    # as one begins with a minus sign).
+    written = [f"{float(x)!r},{float(y)!r}" for x, y in points[2:]]
+    assert main(["query", str(mapped / "map.gpom"), "-q", "--", written[0], str(npz), written[1]]) == 0
+    mixed = capsys.readouterr().out.splitlines()
+    assert mixed[0] == lines[0] and mixed[1:] == [lines[3], *lines[1:], lines[4]]
 
 
 def test_query_points_of_the_wrong_dimension_or_not_numbers_are_one_line_errors(mapped, tmp_path, capsys):
@@ -145,6 +151,11 @@ def test_query_points_of_the_wrong_dimension_or_not_numbers_are_one_line_errors(
     bad.write_text("1,2\n3,oops\n")
     err = one_line_error(capsys, main(["query", str(mapped / "map.gpom"), str(bad)]))
     assert f"{bad}, line 2: expected numbers separated by commas" in err
+    err = one_line_error(capsys, main(["query", str(mapped / "map.gpom"), "1,2,3"]))
+    assert f"point '1,2,3' has 3 coordinates; {mapped / 'map.gpom'} is a 2-D map: expected x,y" in err
+    assert "is not finite" in one_line_error(capsys, main(["query", str(mapped / "map.gpom"), "1,inf"]))
+    err = one_line_error(capsys, main(["query", str(mapped / "map.gpom"), "1;2"]))
+    assert "1;2: file not found" in err and "or a point written out as x,y" in err
     with pytest.raises(SystemExit) as usage:
         main(["query", str(mapped / "map.gpom"), str(bad), "-o", str(tmp_path / "answers.txt")])
     assert usage.value.code == 2 and "must end in .csv or .npz" in capsys.readouterr().err

@@ -1,7 +1,8 @@
-"""The points a saved map is asked about, read from a file, and its answers as CSV (``gpomap query``).
+"""The points a saved map is asked about, from files or the command line, and its answers as CSV (``gpomap query``).
 
-POINTS is a CSV file of ``x,y`` (``x,y,z`` for a 3-D map) per line, a header line optional, or an
-NPZ holding one array of shape (m, 2) or (m, 3) (named ``points`` when it holds several). The answer,
+Each POINTS argument is a CSV file of ``x,y`` (``x,y,z`` for a 3-D map) per line, a header line
+optional, an NPZ holding one array of shape (m, 2) or (m, 3) (named ``points`` when it holds
+several), or one point written out, ``x,y`` or ``x,y,z``. The answer,
 per point, is the loaded map's ``predict_proba(points, return_var=True)``: the occupancy probability
 and the GP's latent variance, the live model's to the bit. A point far from the data gets what the
 map says there, the prior: the probability the squash gives the prior mean (1/2 unless it has an
@@ -10,12 +11,14 @@ offset) and the kernel's variance. ``gpomap query`` prints the answers as CSV
 exactly), or writes them with ``-o`` to a CSV or an NPZ (``points``, ``probability``,
 ``variance``), atomically.
 
-:func:`read_query_points` reads POINTS; :func:`answers_csv` writes the answers; the command is :mod:`gpomap.cli.query`.
+:func:`query_points` reads the POINTS arguments (:func:`read_query_points` a file);
+:func:`answers_csv` writes the answers; the command is :mod:`gpomap.cli.query`.
 """
 
 from __future__ import annotations
 
 import io
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -23,13 +26,52 @@ from numpy.typing import NDArray
 
 from gpomap.errors import InputFormatError
 
-__all__ = ["read_query_points", "answers_csv"]
+__all__ = ["answers_csv", "query_points", "read_query_points"]
 
 _AXES = "xyz"
 
 
 def _columns(dim: int) -> str:
     return ",".join(_AXES[:dim])
+
+
+def query_points(arguments: Sequence[str], dim: int, mapfile: str = "the map") -> NDArray[np.float64]:
+    """The points asked, shape (m, `dim`), in the order given: each argument a points file
+    (:func:`read_query_points`) or one point written out, ``x,y[,z]``.
+
+    An argument that names an existing file is read as one, whatever it looks like.
+
+    Raises
+    ------
+    InputFormatError
+        One line: a file's (see :func:`read_query_points`), or a point written out with the wrong
+        number of coordinates or a non-finite one.
+    """
+    parts = []
+    for text in arguments:
+        values = None if Path(text).exists() else _written_point(text)
+        if values is None:
+            parts.append(read_query_points(text, dim, mapfile))
+            continue
+        if len(values) != dim:
+            raise InputFormatError(
+                f"point {text!r} has {len(values)} coordinates; {mapfile} is a {dim}-D map: expected {_columns(dim)}"
+            )
+        if not np.isfinite(values).all():
+            raise InputFormatError(f"point {text!r} is not finite; expected {_columns(dim)} as real numbers")
+        parts.append(np.array([values], dtype=float))
+    return np.concatenate(parts)
+
+
+def _written_point(text: str) -> list[float] | None:
+    """The coordinates of `text` when it is numbers separated by commas, at least two; else None."""
+    fields = text.split(",")
+    if len(fields) < 2:
+        return None
+    try:
+        return [float(f) for f in fields]
+    except ValueError:
+        return None
 
 
 def read_query_points(path: str, dim: int, mapfile: str = "the map") -> NDArray[np.float64]:
@@ -43,7 +85,7 @@ def read_query_points(path: str, dim: int, mapfile: str = "the map") -> NDArray[
     """
     from gpomap.io.checks import load_npz, regular_file
 
-    p = regular_file(path, f"points file (CSV of {_columns(dim)}, or NPZ)")
+    p = regular_file(path, f"points file (CSV of {_columns(dim)}, or NPZ), or a point written out as {_columns(dim)}")
     if p.suffix.lower() == ".npz":
         arrays = load_npz(p, "NumPy .npz of points")
         if "points" in arrays:

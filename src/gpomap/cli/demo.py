@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from gpomap.cli.common import EXIT_OK, check_before_work, print_map_summary, status
-from gpomap.cli.map import fitted_model, plan_map, write_map
+from gpomap.cli.map import fitted_model, plan_map, save_model, write_map
 from gpomap.cli.model_options import add_model_options, add_tiling_options
 from gpomap.cli.options import Default
 from gpomap.cli.output_options import add_output_options
@@ -36,7 +36,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``gpomap demo``: the map's files, and the cell tree as a figure beside them (cells.png)."""
+    """Run ``gpomap demo``: the map's files, the cell tree as a figure beside them (cells.png) and the fitted map (map.gpom)."""
     import numpy as np
 
     from gpomap.plot import plot_inputs, save_figure
@@ -54,7 +54,10 @@ def run(args: argparse.Namespace) -> int:
         fig = plot_inputs(points, occupied, boxes=np.stack([lower, upper], axis=1), box_labels=labels)
         return save_figure(fig, directory / "cells.png")
 
-    # The model is handed over: cells.png is drawn from it before it is let go.
-    files, summary, bound = write_map(args, [fitted_model(args, scans)], "gpomap demo: the paper's synthetic room", [cell_figure])
+    # The model is handed over: cells.png is drawn from it and map.gpom written (for gpomap render,
+    # query and update) before it is let go.
+    files, summary, bound = write_map(
+        args, [fitted_model(args, scans)], "gpomap demo: the paper's synthetic room", [cell_figure, save_model]
+    )
     print_map_summary(summary, files, bound)
     return EXIT_OK

@@ -53,7 +53,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     """Register ``gpomap map`` on the subparsers of :func:`gpomap.cli.build_parser`."""
     p: argparse.ArgumentParser = sub.add_parser(
         "map",
-        help="map a CARMEN log, ROS bag or labelled points",
+        help="map a CARMEN log, ROS bag, labelled points, point clouds or depth frames",
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Fit MSK-GPOM to range data and write map.yaml/.pgm (ROS map_server), map.npz and map.png; "

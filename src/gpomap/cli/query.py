@@ -1,6 +1,6 @@
-"""``gpomap query MAPFILE POINTS``: the saved map's probability and variance at given points.
+"""``gpomap query MAPFILE POINTS...``: the saved map's probability and variance at given points.
 
-The points are read by :func:`gpomap.apps.query.read_query_points`; the answers are the loaded
+The points, files or written out, are read by :func:`gpomap.apps.query.query_points`; the answers are the loaded
 map's ``predict_proba(points, return_var=True)``, printed as CSV or written with ``-o`` to a CSV or
 an NPZ, atomically.
 """
@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from gpomap.apps.query import answers_csv, read_query_points
+from gpomap.apps.query import answers_csv, query_points
 from gpomap.apps.render import map_header
 from gpomap.cli.common import EXIT_OK, status
 from gpomap.cli.options import positive
@@ -26,6 +26,8 @@ __all__ = ["add_parser", "run"]
 EPILOG = """examples:
   gpomap query arena/map.gpom points.csv
   gpomap query arena/map.gpom points.npz -o answers.npz
+  gpomap query arena/map.gpom 1.5,2 0.2,2.5
+  gpomap query arena/map.gpom -- -1.5,2      (after --, a point whose x is negative)
 """
 
 
@@ -45,11 +47,13 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Load a fitted map written by gpomap map (map.gpom) and print, for each point of POINTS (a CSV of "
-        "x,y or x,y,z per line, a header optional, or an NPZ of one (m, d) array), its occupancy probability and "
-        "latent variance, or write them with -o.",
+        "x,y or x,y,z per line, a header optional, an NPZ of one (m, d) array, or points written out as x,y[,z]), its "
+        "occupancy probability and latent variance, or write them with -o.",
     )
     p.add_argument("mapfile", metavar="MAPFILE", help="a fitted map file (map.gpom, written by gpomap map)")
-    p.add_argument("points", metavar="POINTS", help="CSV (x,y[,z] per line) or NPZ of points")
+    p.add_argument(
+        "points", metavar="POINTS", nargs="+", help="CSV (x,y[,z] per line) or NPZ of points, or a point x,y[,z]; one or more"
+    )
     p.add_argument(
         "-o",
         "--output",
@@ -69,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from gpomap.io.atomic import atomic_write
 
     summary = map_header(args.mapfile)["summary"]
-    points = read_query_points(args.points, int(summary["dim"]), args.mapfile)
+    points = query_points(args.points, int(summary["dim"]), args.mapfile)
     if args.answers is not None and args.answers.is_dir():
         raise GpomapError(f"-o {args.answers}: is a directory; expected a .csv or .npz file to write")
     model = load_for_command(args, args.mapfile)
