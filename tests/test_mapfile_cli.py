@@ -335,6 +335,11 @@ def test_info_counts_a_written_grids_classes(tmp_path, capsys):
     assert (lines["free"], lines["occupied"], lines["unknown"]) == ("15 (75.0 %)", "3 (15.0 %)", "2 (10.0 %)")
     assert lines["probability"] == "0.050, 0.900" and lines["thresholds"] == "0.196, 0.500"
     assert lines["variance"] == "False" and lines["robot_path"] == "none"
+    # An origin a hair below zero (arithmetic on the data's box) prints as 0, not -0.
+    save_map(OccupancyMap(GridSpec((-1e-13, -0.5), 0.1, (4, 5)), p), tmp_path / "map.npz")
+    assert main(["info", str(tmp_path / "map.npz")]) == 0
+    lines = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
+    assert lines["extent"] == "0.000, 0.500, -0.500, -0.100"
 
 
 def test_info_counts_a_written_voxel_maps_classes(tmp_path, capsys):

@@ -84,6 +84,7 @@ def _print(info: dict[str, Any], as_json: bool) -> int:
     width = max([16, *(len(k) + 1 for k in info)])  # a long key keeps a space before its value
     for key, value in info.items():
         if isinstance(value, (tuple, list)) and value and all(isinstance(v, float) for v in value):
-            value = ", ".join(f"{v:.3f}" for v in value)
+            # Rounded before formatting, so a value a hair below zero does not print as -0.000.
+            value = ", ".join(f"{round(v, 3) + 0.0:.3f}" for v in value)
         print(f"{key:<{width}}{value}")
     return EXIT_OK
