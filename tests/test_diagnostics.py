@@ -110,6 +110,28 @@ def test_map_classes():
     ]
 
 
+def test_a_voxel_maps_classes_are_counted_where_rays_went():
+    from gpomap.voxels import VoxelMap, VoxelSpec
+
+    # 10 x 10 x 10 voxels: rays went to the first two layers (150 free, 50 occupied: 25 %); the
+    # GP calls the 800 voxels behind them occupied, which the OctoMap file leaves out.
+    p = np.full((10, 10, 10), 0.9)
+    p[:2] = 0.05
+    p[1, :5, :] = 0.9
+    observed = np.zeros(p.shape, dtype=bool)
+    observed[:2] = True
+    voxels = VoxelMap(VoxelSpec((0.0, 0.0, 0.0), 0.1, p.shape), p, observed=observed)
+    assert d.map_warnings(voxels.ternary) == [
+        "the map is mostly occupied: 85.0 % of its 1000 known cells; the space the beams crossed is not free in it"
+    ]
+    assert d.map_warnings(voxels.ternary, observed=voxels.observed) == []
+    p[1, 5:, :] = 0.9  # 100 of the 200 where rays went
+    p[0, 0, 0] = 0.9
+    assert d.map_warnings(VoxelMap(voxels.spec, p, observed=observed).ternary, observed=observed) == [
+        "the map is mostly occupied: 50.5 % of its 200 known cells rays went to; the space the beams crossed is not free in it"
+    ]
+
+
 def test_search_bounds_follow_the_estimator():
     model = AreaGPOM(length_scale_bounds=(0.1, 5.0), noise_bounds=(1e-3, 1.0))
     b = d.search_bounds(model)

@@ -209,7 +209,9 @@ def hyperparameter_warnings(
     return out
 
 
-def map_warnings(ternary: NDArray[np.integer], band: tuple[float, float] = OCCUPIED_SHARE_BAND) -> list[str]:
+def map_warnings(
+    ternary: NDArray[np.integer], band: tuple[float, float] = OCCUPIED_SHARE_BAND, observed: NDArray[np.bool_] | None = None
+) -> list[str]:
     """Warnings about the written map's classes.
 
     Parameters
@@ -218,12 +220,19 @@ def map_warnings(ternary: NDArray[np.integer], band: tuple[float, float] = OCCUP
         0 free, 1 occupied, -1 unknown.
     band : (float, float)
         An occupied share of the known cells outside [low, high] is reported.
+    observed : ndarray of bool, optional
+        Same shape: the cells rays went to (a voxel map's), where the classes are counted. A voxel
+        map's GP reaches behind the surfaces, where no ray went and its OctoMap file holds nothing;
+        counted there, a map of a few depth frames reads as mostly occupied.
 
     Returns
     -------
     list of str
     """
     t = np.asarray(ternary)
+    cells = "cells"
+    if observed is not None:
+        t, cells = t[np.asarray(observed, dtype=bool)], "cells rays went to"
     known = int(np.count_nonzero(t >= 0))
     if t.size == 0:
         return []
@@ -233,12 +242,12 @@ def map_warnings(ternary: NDArray[np.integer], band: tuple[float, float] = OCCUP
     share = n_occ / known
     if share < band[0]:
         return [
-            f"the map is almost all free: {n_occ} of its {known} known cells ({100 * share:.2g} %) are occupied; "
+            f"the map is almost all free: {n_occ} of its {known} known {cells} ({100 * share:.2g} %) are occupied; "
             "the walls the scans hit are mostly missing"
         ]
     if share > band[1]:
         return [
-            f"the map is mostly occupied: {100 * share:.1f} % of its {known} known cells; "
+            f"the map is mostly occupied: {100 * share:.1f} % of its {known} known {cells}; "
             "the space the beams crossed is not free in it"
         ]
     return []
@@ -279,7 +288,7 @@ def fit_warnings(model: Any, occupancy_map: Any = None, tolerance: float = BOUND
     """
     out = model_warnings(model, tolerance)
     if occupancy_map is not None:
-        out += map_warnings(occupancy_map.ternary)
+        out += map_warnings(occupancy_map.ternary, observed=getattr(occupancy_map, "observed", None))
     return out
 
 
