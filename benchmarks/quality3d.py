@@ -290,8 +290,10 @@ def build_gpomap(case: Case, resolution: float) -> tuple[Lookup, dict[str, Any]]
         lo, hi = voxel_bounds(np.array(model.kept_bounds_), args.extent, args.z_range, args.resolution)
         voxel_map = model.grid(args.resolution, bounds_extent(lo, hi))
         t2 = time.perf_counter()
-    occupied = (voxel_map.ternary == OCCUPIED) & voxel_map.seen
-    n_occ = int((voxel_map.ternary == OCCUPIED).sum())
+    # The ternary layer calls occupied only where a ray went (map.bt's voxels); the GP's own
+    # classes reach behind the surfaces too.
+    occupied = voxel_map.ternary == OCCUPIED
+    n_occ = int((voxel_map.probability > voxel_map.thresholds[1]).sum())
     summary = model.summary()
     stats = {
         "fit_s": t1 - t0 - compiling[0],

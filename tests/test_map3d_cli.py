@@ -72,6 +72,11 @@ def test_map_writes_the_3d_output_set_that_loads_back(room_pcds, tmp_path, capsy
     assert tree.n_leaves > 0 and np.mean(label == tree.occupied) > 0.99
     seen_occupied = ((t == OCCUPIED) & m.seen.reshape(-1)).sum()  # map.bt holds the voxels rays went to
     assert tree.occupied.sum() == pytest.approx(seen_occupied, rel=0.5)  # pruning merges some
+    # The ternary layer, as map.bt, calls occupied only where rays went; the GP's guess behind the
+    # walls is counted apart in the summary.
+    guessed = int(((m.probability > m.thresholds[1]) & ~m.seen).sum())
+    assert (t == OCCUPIED).sum() == seen_occupied and guessed > 0
+    assert f"{seen_occupied} occupied, " in printed and f"({guessed} of them above the occupied threshold" in printed
     mesh = PlyData.read(str(out / "map.ply"))
     assert len(mesh["vertex"]) > 0 and len(mesh["face"]) > 0
 

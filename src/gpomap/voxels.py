@@ -17,7 +17,8 @@ Conventions:
   resolution share voxels one for one (:meth:`VoxelSpec.from_extent` aligns so by default).
 
 The ternary layer uses :data:`gpomap.grid.FREE` (0), :data:`~gpomap.grid.OCCUPIED` (1) and
-:data:`~gpomap.grid.UNKNOWN` (-1) with the map's thresholds, as the 2-D map does.
+:data:`~gpomap.grid.UNKNOWN` (-1) with the map's thresholds, as the 2-D map does, and as there
+never calls occupied a voxel no ray went to (the 2-D map's ``seen_through``).
 """
 
 from __future__ import annotations
@@ -153,7 +154,8 @@ class VoxelMap:
         What made the map (method, settings), written with it.
     observed : ndarray of bool, shape (nz, ny, nx), optional
         Voxels a ray crossed or ended in (None: not known, every voxel taken as observed). The
-        others hold the GP's guess only: an OctoMap tree and a mesh leave them out.
+        others hold the GP's guess only: an OctoMap tree and a mesh leave them out, and the
+        ternary layer never calls them occupied.
     """
 
     spec: VoxelSpec
@@ -187,8 +189,10 @@ class VoxelMap:
 
     @property
     def ternary(self) -> NDArray[np.int8]:
-        """FREE (0) / OCCUPIED (1) / UNKNOWN (-1) per voxel, shape (nz, ny, nx)."""
-        return ternary(self.probability, self.thresholds)
+        """FREE (0) / OCCUPIED (1) / UNKNOWN (-1) per voxel, shape (nz, ny, nx); a voxel no ray
+        went to is UNKNOWN where its probability is above the occupied threshold (the GP reaches
+        behind surfaces, where nothing was seen)."""
+        return ternary(self.probability, self.thresholds, None if self.observed is None else ~self.observed)
 
     def lookup(self, points: ArrayLike) -> NDArray[np.float64]:
         """Probability of the voxel holding each point (n, 3); 0.5 outside the grid. Shape (n,)."""

@@ -146,9 +146,10 @@ def _voxel_line(voxel_map: Any, grid_s: float, write_s: float) -> str:
     t = voxel_map.ternary
     nz, ny, nx = voxel_map.spec.shape
     n_occ, n_free = int((t == OCCUPIED).sum()), int((t == FREE).sum())
-    seen_occ = int(((t == OCCUPIED) & voxel_map.seen).sum())
+    # The GP's guess behind the surfaces: above the occupied threshold where no ray went.
+    guessed = int(((voxel_map.probability > voxel_map.thresholds[1]) & ~voxel_map.seen).sum())
     return (
-        f"voxels       {nx} x {ny} x {nz} of {voxel_map.spec.resolution:g} m: {n_occ} occupied ({seen_occ} where rays went; "
-        f"map.bt and map.ply hold only those), {n_free} free, {t.size - n_occ - n_free} unknown; "
+        f"voxels       {nx} x {ny} x {nz} of {voxel_map.spec.resolution:g} m: {n_occ} occupied, {n_free} free, "
+        f"{t.size - n_occ - n_free} unknown ({guessed} of them above the occupied threshold where no ray went); "
         f"predicted in {grid_s:.2f} s, written in {write_s:.2f} s"
     )
