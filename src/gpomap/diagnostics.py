@@ -221,9 +221,9 @@ def map_warnings(
     band : (float, float)
         An occupied share of the known cells outside [low, high] is reported.
     observed : ndarray of bool, optional
-        Same shape: the cells rays went to (a voxel map's), where the classes are counted. A voxel
-        map's GP reaches behind the surfaces, where no ray went and its OctoMap file holds nothing;
-        counted there, a map of a few depth frames reads as mostly occupied.
+        Same shape: the cells rays went to (a voxel map's), where the classes are counted, as its
+        OctoMap file holds them. Elsewhere a voxel map's classes are the GP's guess, which reaches
+        far into the space round a few depth frames.
 
     Returns
     -------
