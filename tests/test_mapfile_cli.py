@@ -182,9 +182,20 @@ def test_update_adds_the_new_scans_to_the_saved_map(mapped, scans, tmp_path, cap
     own = tmp_path / "own"
     shutil.copytree(mapped, own)
     assert main(["update", str(own / "map.gpom"), *ARENA, "--range", "37:45", "-o", str(own), "-q"]) == 0
-    warned = re.search(r"warning: (\d+) of the 8 new scans are already in .*own/map.gpom", capsys.readouterr().err)
+    err = capsys.readouterr().err
+    warned = re.search(r"warning: (\d+) of the 8 new scans are already in .*own/map.gpom", err)
     assert warned and int(warned.group(1)) >= 3  # 37, 38 and 39 at least (the simulated robot also stands still)
-    assert gpomap.load_map(own / "map.gpom")._n_scans == 48
+    assert "laser" not in err and gpomap.load_map(own / "map.gpom")._n_scans == 48
+    # New scans of another laser (here the same one thinned to 90 beams) are said to be so.
+    laser = (
+        f"{scans[0].angles.size} beams over {np.degrees(np.ptp(scans[0].angles)):.1f} degrees, max range {scans[0].max_range:g} m"
+    )
+    assert (
+        main(["update", str(mapped / "map.gpom"), *ARENA, "--range", "50:52", "--beams", "90", "-o", str(tmp_path / "o"), "-q"])
+        == 0
+    )
+    err = capsys.readouterr().err
+    assert "warning: the new scans' laser (90 beams over " in err and f"is not the one of {mapped / 'map.gpom'} ({laser})" in err
 
 
 def test_update_relearn_is_gpomap_map_of_every_scan(mapped, tmp_path):

@@ -1,4 +1,4 @@
-"""A saved map and new scans: the unfitted map of the same settings, and which new scans it holds already.
+"""A saved map and new scans: the unfitted map of the same settings, which new scans it holds already, and whether a new laser is not the map's.
 
 ``gpomap update`` (:mod:`gpomap.cli.update`) adds a new log's scans to a saved map with these; what
 the updated map is, against a batch fit of all the scans, is in docs/mapfile.md.
@@ -6,13 +6,15 @@ the updated map is, against a batch fit of all the scans, is in docs/mapfile.md.
 
 from __future__ import annotations
 
+import math
+from collections import Counter
 from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["unfitted_like", "repeated_scans", "bounds_with"]
+__all__ = ["unfitted_like", "repeated_scans", "other_laser", "bounds_with"]
 
 
 def unfitted_like(model: Any) -> Any:
@@ -34,6 +36,25 @@ def repeated_scans(saved: Sequence[Any], new: Sequence[Any]) -> int:
     """How many of the `new` scans are already among the `saved` ones (the same pose and readings)."""
     keys = {_scan_key(s) for s in saved}
     return sum(_scan_key(s) in keys for s in new)
+
+
+def _laser(scan: Any) -> str:
+    """A planar scan's laser in words: its beams, their span and its maximum range."""
+    span = math.degrees(float(scan.angles.max() - scan.angles.min())) if scan.angles.size > 1 else 0.0
+    return f"{scan.angles.size} beams over {span:.1f} degrees, max range {scan.max_range:g} m"
+
+
+def other_laser(saved: Sequence[Any], new: Sequence[Any]) -> tuple[str, str] | None:
+    """A laser among the `new` planar scans that none of the `saved` ones has, and the saved
+    scans' most common one, in words (:func:`_laser`); None when every new laser is a saved one,
+    or the scans are clouds (whose points vary from scan to scan)."""
+    from gpomap.clouds import CloudScan
+
+    if any(isinstance(s, CloudScan) for s in (*saved, *new)):
+        return None
+    known = Counter(_laser(s) for s in saved)
+    other = next((d for d in (_laser(s) for s in new) if d not in known), None)
+    return None if other is None else (other, known.most_common(1)[0][0])
 
 
 def bounds_with(

@@ -22,7 +22,7 @@ from typing import Any
 
 from gpomap.apps.map3d import is_cloud_input
 from gpomap.apps.render import map_header
-from gpomap.apps.update import bounds_with, repeated_scans, unfitted_like
+from gpomap.apps.update import bounds_with, other_laser, repeated_scans, unfitted_like
 from gpomap.cli.common import EXIT_OK, check_before_work, load_scans, print_map_summary, status, warn
 from gpomap.cli.input_options import add_cloud_reader_options, add_reader_options, add_selection_options, check_2d_options
 from gpomap.cli.map3d import load_clouds
@@ -110,6 +110,13 @@ def run(args: argparse.Namespace) -> int:
     if repeated:
         warn(
             f"{repeated} of the {len(new)} new scans are already in {args.mapfile} (the same pose and readings): they count twice"
+        )
+    laser = other_laser(saved, new) if saved else None
+    if laser is not None:
+        # Another robot's log, or the same one thinned otherwise: its poses must be in the map's frame.
+        warn(
+            f"the new scans' laser ({laser[0]}) is not the one of {args.mapfile} ({laser[1]}): another sensor or "
+            "another --beams; they are added as they are, their poses taken in the map's frame"
         )
     t = time.perf_counter()
     if args.relearn:
