@@ -171,6 +171,15 @@ def test_a_voxel_maps_slices_one_panel_a_height():
     _assert_laid_out(fig, [*panels, *(ax for ax in fig.axes if ax not in panels)])
     plain = plot_slices(m)
     _assert_laid_out(plain, plain.axes)
+    # Where the map knows which voxels rays went to, the others are tinted over the probability.
+    observed = np.zeros(m.spec.shape, dtype=bool)
+    observed[:, :, :4] = True
+    seen = plot_slices(VoxelMap(m.spec, m.probability, observed=observed), heights=[0.05])
+    [panel] = [ax for ax in seen.axes if ax.get_title().startswith("z = ")]
+    tint = np.asarray(panel.images[1].get_array())
+    np.testing.assert_array_equal(tint[..., 3] > 0, ~observed[0])
+    assert [t.get_text() for t in panel.get_legend().get_texts()] == ["no ray went there"]
+    assert len(panels[0].images) == 1 and panels[0].get_legend() is None  # no mask known: no tint
 
 
 def test_a_voxel_maps_occupied_voxels_in_3d():

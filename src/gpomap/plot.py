@@ -310,8 +310,15 @@ def plot_evaluation(
     return fig
 
 
+#: The tint over a slice's voxels no ray went to (the GP's guess there), RGBA.
+UNOBSERVED_TINT = (0.35, 0.55, 0.85, 0.45)
+
+
 def plot_slices(voxel_map: VoxelMap, heights: Sequence[float] | None = None, title: str | None = None) -> Figure:
-    """Horizontal slices of the probability at `heights` (metres; default 4 evenly spread), as a figure."""
+    """Horizontal slices of the probability at `heights` (metres; default 4 evenly spread), as a
+    figure; where the map knows which voxels rays went to, the others are tinted
+    (:data:`UNOBSERVED_TINT`): their probability is the GP's guess, which reaches behind the
+    surfaces and far into space no ray saw."""
     spec = voxel_map.spec
     zs = list(heights) if heights is not None else list(np.linspace(spec.lower[2], spec.upper[2], 6)[1:-1])
     width, height = 4.2 * len(zs) + 0.6, 4.4 + (0.35 if title else 0.0)
@@ -323,9 +330,12 @@ def plot_slices(voxel_map: VoxelMap, heights: Sequence[float] | None = None, tit
     image = None
     for ax, z in zip(axes[0], zs):
         k = spec.slice_index(z)
-        image = ax.imshow(
-            voxel_map.probability[k], origin="lower", extent=(lo[0], hi[0], lo[1], hi[1]), cmap="gray_r", vmin=0, vmax=1
-        )
+        extent = (lo[0], hi[0], lo[1], hi[1])
+        image = ax.imshow(voxel_map.probability[k], origin="lower", extent=extent, cmap="gray_r", vmin=0, vmax=1)
+        if voxel_map.observed is not None:
+            tint = np.zeros((*voxel_map.observed[k].shape, 4))
+            tint[~voxel_map.observed[k]] = UNOBSERVED_TINT
+            ax.imshow(tint, origin="lower", extent=extent)
         ax.set_title(f"z = {spec.axis_centres('z')[k]:.2f} m")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
@@ -333,6 +343,13 @@ def plot_slices(voxel_map: VoxelMap, heights: Sequence[float] | None = None, tit
         span = (height - bottom - top) / height
         cax = fig.add_axes(((width - right + 0.2) / width, bottom / height + 0.1 * span, 0.15 / width, 0.8 * span))
         fig.colorbar(image, cax=cax, label="occupancy probability")
+    if voxel_map.observed is not None:
+        axes[0][0].legend(
+            handles=[Rectangle((0, 0), 1, 1, color=UNOBSERVED_TINT, label="no ray went there")],
+            loc="upper right",
+            fontsize="small",
+            framealpha=0.85,
+        )
     if title:
         fig.suptitle(title)
     return fig
