@@ -754,6 +754,27 @@ def test_a_voxel_maps_calibrations_take_the_gp_as_its_written_map_does_too() -> 
     assert np.ptp(den) > 0
 
 
+def test_a_voxel_maps_ternary_at_points_follows_its_written_rule() -> None:
+    """In 3-D the map's ternary call at points follows its voxel map's rule: never occupied in a
+    voxel no ray went to (the GP's guess behind the walls), whatever the probability there."""
+    from tests.world3d import ORIGINS, lidar_clouds
+
+    model = AreaGPOM(n_workers=1).fit(lidar_clouds(ORIGINS[:3], n_rays=200))
+    voxels = model.grid(model.base.evidence_resolution_3d)  # on the counted lattice
+    assert voxels.observed is not None
+    # The voxels the written map puts above the threshold and every 10th of the others.
+    pick = (voxels.probability.reshape(-1) > 0.4) | (np.arange(voxels.probability.size) % 10 == 0)
+    centres = voxels.spec.centres()[pick]
+    observed = voxels.observed.reshape(-1)[pick]
+    p = model.predict_proba(centres)
+    above = p > voxels.thresholds[1]
+    assert (above & observed).any() and (above & ~observed).any()  # both cases among them
+    called = model.predict_ternary(centres)
+    np.testing.assert_array_equal(called == 1, above & observed)
+    np.testing.assert_array_equal(called[above & ~observed], -1)
+    np.testing.assert_array_equal(called == 0, p < voxels.thresholds[0])
+
+
 def test_other_scans_counts_are_the_counts_without_each_points_own_scan() -> None:
     """The calibration's per-point counts equal the counts of every scan but the point's own, taken
     afresh (``counts(grid, scans=others)``) and read at the point's cell (0 off the grid)."""

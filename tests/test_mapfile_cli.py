@@ -116,9 +116,11 @@ def test_query_prints_or_writes_probability_and_variance(mapped, tmp_path, capsy
     csv.write_text("x,y\n" + "\n".join(f"{float(x)!r},{float(y)!r}" for x, y in points) + "\n")
     assert main(["query", str(mapped / "map.gpom"), str(csv), "-q"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0] == "x,y,probability,variance" and len(lines) == 5
+    assert lines[0] == "x,y,probability,variance,ternary" and len(lines) == 5
     table = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
-    np.testing.assert_array_equal(table, np.column_stack([points, p, v]))  # exact: 17 significant digits
+    t = model.predict_ternary(points)
+    assert t[-1] == -1  # the prior's 1/2 is neither free nor occupied
+    np.testing.assert_array_equal(table, np.column_stack([points, p, v, t]))  # exact: 17 significant digits
     # No header, and an NPZ in and out.
     bare = tmp_path / "bare.csv"
     bare.write_text("\n".join(f"{float(x)!r}, {float(y)!r}" for x, y in points))
@@ -133,6 +135,7 @@ def test_query_prints_or_writes_probability_and_variance(mapped, tmp_path, capsy
         np.testing.assert_array_equal(answers["probability"], p)
         np.testing.assert_array_equal(answers["variance"], v)
         np.testing.assert_array_equal(answers["points"], points)
+        np.testing.assert_array_equal(answers["ternary"], t)
     # Points written out on the command line, mixed with a file, in the order given (after --,
     # as one begins with a minus sign).
     written = [f"{float(x)!r},{float(y)!r}" for x, y in points[2:]]
@@ -274,6 +277,9 @@ def test_a_3d_map_is_rendered_and_queried(voxel_map, tmp_path, capsys):
     p = model.predict_proba(np.array([[1, 1, 1], [3.9, 1.9, 1.0]]))
     np.testing.assert_array_equal(table[:, 3], p)
     assert table[1, 3] > 0.5 > table[0, 3]  # in the pillar; in the open room
+    # Free in the open room; inside the pillar, where no ray went, unknown whatever the GP says
+    # (the written voxel map's rule, and OctoMap's: only voxels rays reached are known).
+    np.testing.assert_array_equal(table[:, 5], [0, -1])
     flat = tmp_path / "xy.csv"
     flat.write_text("1,1\n")
     err = one_line_error(capsys, main(["query", str(voxel_map / "map.gpom"), str(flat)]))

@@ -262,9 +262,16 @@ class FittedMap:
 
     def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,); never occupied
-        in a cell beams saw through (:meth:`gpomap.fusion.EvidenceLayer.seen_through_at`)."""
-        seen = self.evidence.seen_through_at(points) if self.evidence is not None else None
-        return ternary(self.predict_proba(points), self.thresholds, seen)
+        in a cell beams saw through (:meth:`gpomap.fusion.EvidenceLayer.seen_through_at`), or, in
+        3-D, in a voxel no ray went to (as :attr:`gpomap.voxels.VoxelMap.ternary`)."""
+        pts = as_points(points, self.dim)
+        hidden = None
+        if self.evidence is not None:
+            hidden = self.evidence.seen_through_at(pts)
+            if hidden is None:
+                hits, misses, _ = self.evidence.counts_at(pts)
+                hidden = (hits + misses) == 0  # no ray crossed or ended in its cell
+        return ternary(self.predict_proba(pts), self.thresholds, hidden)
 
     def default_extent(self, resolution: float) -> tuple[float, ...]:
         """The box of the data grown by two cells of `resolution`, on multiples of it:

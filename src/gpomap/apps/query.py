@@ -4,12 +4,14 @@ Each POINTS argument is a CSV file of ``x,y`` (``x,y,z`` for a 3-D map) per line
 optional, an NPZ holding one array of shape (m, 2) or (m, 3) (named ``points`` when it holds
 several), or one point written out, ``x,y`` or ``x,y,z``. The answer,
 per point, is the loaded map's ``predict_proba(points, return_var=True)``: the occupancy probability
-and the GP's latent variance, the live model's to the bit. A point far from the data gets what the
-map says there, the prior: the probability the squash gives the prior mean (1/2 unless it has an
-offset) and the kernel's variance. ``gpomap query`` prints the answers as CSV
-(``x,y[,z],probability,variance``, each number the shortest decimal that reads back to it
-exactly), or writes them with ``-o`` to a CSV or an NPZ (``points``, ``probability``,
-``variance``), atomically.
+and the GP's latent variance, the live model's to the bit, and its ``predict_ternary(points)``:
+free (0), unknown (-1) or occupied (1), the written map's rule (never occupied where no beam
+ended, in 3-D where no ray went: the GP's guess behind a wall is unknown, whatever its
+probability). A point far from the data gets what the map says there, the prior: the probability
+the squash gives the prior mean (1/2 unless it has an offset) and the kernel's variance.
+``gpomap query`` prints the answers as CSV (``x,y[,z],probability,variance,ternary``, each number
+the shortest decimal that reads back to it exactly), or writes them with ``-o`` to a CSV or an NPZ
+(``points``, ``probability``, ``variance``, ``ternary``), atomically.
 
 :func:`query_points` reads the POINTS arguments (:func:`read_query_points` a file);
 :func:`answers_csv` writes the answers; the command is :mod:`gpomap.cli.query`.
@@ -142,12 +144,15 @@ def _read_csv(p: Path, path: str) -> NDArray[np.float64]:
     return np.array(rows, dtype=float).reshape(-1, width or 0)
 
 
-def answers_csv(points: NDArray[np.float64], probability: NDArray[np.float64], variance: NDArray[np.float64]) -> str:
-    """The answers as CSV text: a header, then ``x,y[,z],probability,variance`` per point (points of shape (m, dim), the rest (m,))."""
+def answers_csv(
+    points: NDArray[np.float64], probability: NDArray[np.float64], variance: NDArray[np.float64], ternary: NDArray[np.int8]
+) -> str:
+    """The answers as CSV text: a header, then ``x,y[,z],probability,variance,ternary`` per point
+    (points of shape (m, dim), the rest (m,))."""
     dim = points.shape[1]
     out = io.StringIO()
-    out.write(f"{_columns(dim)},probability,variance\n")
-    # Each number as its shortest decimal that reads back to the same float.
-    for row in np.column_stack([points, probability, variance]).tolist():
-        out.write(",".join(map(repr, row)) + "\n")
+    out.write(f"{_columns(dim)},probability,variance,ternary\n")
+    # Each number as its shortest decimal that reads back to the same float; the label as an integer.
+    for row, label in zip(np.column_stack([points, probability, variance]).tolist(), ternary.tolist(), strict=True):
+        out.write(",".join(map(repr, row)) + f",{label}\n")
     return out.getvalue()

@@ -1,8 +1,8 @@
 """``gpomap query MAPFILE POINTS...``: the saved map's probability and variance at given points.
 
 The points, files or written out, are read by :func:`gpomap.apps.query.query_points`; the answers are the loaded
-map's ``predict_proba(points, return_var=True)``, printed as CSV or written with ``-o`` to a CSV or
-an NPZ, atomically.
+map's ``predict_proba(points, return_var=True)`` and ``predict_ternary(points)``, printed as CSV or
+written with ``-o`` to a CSV or an NPZ, atomically.
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         description="Load a fitted map written by gpomap map (map.gpom) and print, for each point of POINTS (a CSV of "
         "x,y or x,y,z per line, a header optional, an NPZ of one (m, d) array, or points written out as x,y[,z]), its "
-        "occupancy probability and latent variance, or write them with -o.",
+        "occupancy probability, latent variance and ternary label (0 free, -1 unknown, 1 occupied, as the written map "
+        "calls it), or write them with -o.",
     )
     p.add_argument("mapfile", metavar="MAPFILE", help="a fitted map file (map.gpom, written by gpomap map)")
     p.add_argument(
@@ -60,7 +61,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
         dest="answers",
         type=_output_kind,
         metavar="OUT.csv|OUT.npz",
-        help="write the answers here (CSV: x,y[,z],probability,variance; NPZ: points, probability, variance) instead of printing them",
+        help="write the answers here (CSV: x,y[,z],probability,variance,ternary; NPZ: points, probability, variance, "
+        "ternary) instead of printing them",
     )
     p.add_argument("--workers", type=positive(int), help="local workers for the tiles (default: the map's own)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages")
@@ -78,14 +80,15 @@ def run(args: argparse.Namespace) -> int:
         raise GpomapError(f"-o {args.answers}: is a directory; expected a .csv or .npz file to write")
     model = load_for_command(args, args.mapfile)
     probability, variance = model.predict_proba(points, return_var=True)
+    ternary = model.predict_ternary(points)
     if args.answers is None:
-        sys.stdout.write(answers_csv(points, probability, variance))
+        sys.stdout.write(answers_csv(points, probability, variance, ternary))
         return EXIT_OK
     if args.answers.suffix.lower() == ".npz":
         with atomic_write(args.answers, "wb") as f:
-            np.savez(f, points=points, probability=probability, variance=variance)
+            np.savez(f, points=points, probability=probability, variance=variance, ternary=ternary)
     else:
         with atomic_write(args.answers, "w") as f:
-            f.write(answers_csv(points, probability, variance))
+            f.write(answers_csv(points, probability, variance, ternary))
     status(args, f"wrote {args.answers}: {points.shape[0]} points")
     return EXIT_OK
