@@ -417,13 +417,14 @@ def test_ros2_node_maps_the_stage_arena_and_answers_its_services(ros2_env, start
 
     # ~/query: one answer per point, under the request's header; outside the map the prior.
     answer = report["answers"]["1"]
-    assert answer["frame_id"] == "odom" and answer["width"] == len(points) and answer["point_step"] == 32
-    assert [f[0] for f in answer["fields"]] == ["x", "y", "probability", "variance"]
-    table = np.frombuffer(base64.b64decode(answer["data"]), dtype="<f8").reshape(-1, 4)
+    assert answer["frame_id"] == "odom" and answer["width"] == len(points) and answer["point_step"] == 40
+    assert [f[0] for f in answer["fields"]] == ["x", "y", "probability", "variance", "ternary"]
+    table = np.frombuffer(base64.b64decode(answer["data"]), dtype="<f8").reshape(-1, 5)
     assert np.allclose(table[:, :2], points.astype(np.float32), atol=0)
     assert ((table[:, 2] >= 0) & (table[:, 2] <= 1)).all() and (table[:, 3] > 0).all()
-    far = np.frombuffer(base64.b64decode(report["answers"]["2"]["data"]), dtype="<f8").reshape(-1, 4)
+    far = np.frombuffer(base64.b64decode(report["answers"]["2"]["data"]), dtype="<f8").reshape(-1, 5)
     assert np.array_equal(far[:, 2], [0.5, 0.5]) and far[0, 3] == far[1, 3] >= table[:, 3].max()
+    assert np.array_equal(far[:, 4], [-1, -1])  # the prior: unknown
 
     # The saved map file is the node's model: it answers the queries as the node did, to the bit.
     from gpomap.io.mapfile import load_fitted_map
@@ -431,6 +432,7 @@ def test_ros2_node_maps_the_stage_arena_and_answers_its_services(ros2_env, start
     loaded = load_fitted_map(saved / "map.gpom")
     probability, variance = loaded.predict_proba(table[:, :2], return_var=True)
     assert np.array_equal(probability, table[:, 2]) and np.array_equal(variance, table[:, 3])
+    assert np.array_equal(loaded.predict_ternary(table[:, :2]), table[:, 4])
     # ... and the fine render is its map on that grid, in percent.
     fine_map = loaded.grid(FINE, (xmin, xmax, ymin, ymax))
     assert fine_map.grid.shape == fine_grid.shape and np.allclose(fine_map.grid.origin, fine_grid.origin)
@@ -585,10 +587,14 @@ def test_query_clouds_are_read_whatever_their_layout_and_answered_as_a_table():
     short.data = short.data[:-1]
     with pytest.raises(InputFormatError, match="63 data bytes"):
         points_from_cloud(short)
-    data = result_cloud_data(xy, np.array([0.1, 0.2, 0.5, 0.9]), np.array([1.0, 0.5, 0.25, 0.125]))
-    assert len(data) == 4 * RESULT_POINT_STEP and [f for f, _ in RESULT_FIELDS] == ["x", "y", "probability", "variance"]
-    back = np.frombuffer(data, "<f8").reshape(4, 4)
+    data = result_cloud_data(
+        xy, np.array([0.1, 0.2, 0.5, 0.9]), np.array([1.0, 0.5, 0.25, 0.125]), np.array([0, 0, -1, 1], dtype=np.int8)
+    )
+    fields = [f for f, _ in RESULT_FIELDS]
+    assert len(data) == 4 * RESULT_POINT_STEP and fields == ["x", "y", "probability", "variance", "ternary"]
+    back = np.frombuffer(data, "<f8").reshape(4, 5)
     assert np.array_equal(back[:, :2], xy) and np.array_equal(back[:, 3], [1.0, 0.5, 0.25, 0.125])
+    assert np.array_equal(back[:, 4], [0, 0, -1, 1])
 
 
 def test_a_render_over_the_memory_limit_is_refused_before_any_prediction():
@@ -728,8 +734,9 @@ def test_the_live_map_of_clouds_finds_the_room_and_saves_the_voxel_set(tmp_path)
     assert on_surface > 0.8 and on_surface >= occupied(centres[batch_taken], thickness=0.15).mean() - 0.05
     # Queries in 3-D, and the saved map file answers them as the live map does.
     pts = np.array([[3.0, 2.0, 1.2], [0.0, 2.0, 1.2], [5.9, 3.9, 2.4]])
-    probability, variance = live.query(pts)
+    probability, variance, ternary = live.query(pts)
     assert probability[0] < 0.5 and variance.shape == (3,)
+    assert np.array_equal(ternary, live.mapper.model_.predict_ternary(pts))
     files = {f.name for f in live.save(tmp_path / "saved")}
     assert {"map.npz", "map.bt", "map.ply", "map.gpom"} <= files
     np.testing.assert_allclose(gpomap.load_map(tmp_path / "saved" / "map.gpom").predict_proba(pts), probability, atol=1e-12)
@@ -926,10 +933,13 @@ def test_ros2_node_maps_pointclouds_in_3d_and_answers_its_services(ros2_env, sta
     assert report["save"]["success"], report["save"]["message"]
     assert {"map.npz", "map.bt", "map.ply", "map.gpom"} <= {p.name for p in saved.iterdir()}
     answer = report["answer"]
-    assert [f[0] for f in answer["fields"]] == ["x", "y", "z", "probability", "variance"] and answer["width"] == len(pts)
-    result = np.frombuffer(base64.b64decode(answer["data"]), dtype="<f8").reshape(-1, 5)
+    fields = ["x", "y", "z", "probability", "variance", "ternary"]
+    assert [f[0] for f in answer["fields"]] == fields and answer["width"] == len(pts)
+    result = np.frombuffer(base64.b64decode(answer["data"]), dtype="<f8").reshape(-1, 6)
     np.testing.assert_array_equal(result[:, :3], pts)
-    np.testing.assert_allclose(gpomap.load_map(saved / "map.gpom").predict_proba(np.array(pts)), result[:, 3], rtol=0, atol=1e-12)
-    assert result[3, 3] == 0.5  # far outside: the prior
+    saved_map = gpomap.load_map(saved / "map.gpom")
+    np.testing.assert_allclose(saved_map.predict_proba(np.array(pts)), result[:, 3], rtol=0, atol=1e-12)
+    assert result[3, 3] == 0.5 and result[3, 5] == -1  # far outside: the prior, unknown
+    assert np.array_equal(saved_map.predict_ternary(np.array(pts)), result[:, 5])
     # A planar render of a 3-D map is refused with LoadMap's undefined-failure code.
     assert report["render"] == 255

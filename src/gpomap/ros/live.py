@@ -235,8 +235,8 @@ class LiveMap:
         self.mapper.refresh()
         return self.mapper.model_.grid(self.resolution, bounds_extent(lo, hi))
 
-    def query(self, points: Any) -> tuple[Any, Any]:
-        """Occupancy probability and latent variance at points, from the current map.
+    def query(self, points: Any) -> tuple[Any, Any, Any]:
+        """Occupancy probability, latent variance and ternary label at points, from the current map.
 
         Parameters
         ----------
@@ -247,6 +247,8 @@ class LiveMap:
         -------
         probability, variance : ndarray of shape (m,)
             Outside the observed region the map's prior: 0.5 and the prior variance.
+        ternary : ndarray of int8, shape (m,)
+            The written map's call: 0 free, -1 unknown, 1 occupied (never where no beam ended).
 
         Raises
         ------
@@ -257,7 +259,8 @@ class LiveMap:
         with self._lock:
             self._require_ready()
             probability, variance = self.mapper.predict_proba(pts, return_var=True)
-        return np.asarray(probability, dtype=float), np.asarray(variance, dtype=float)
+            ternary = self.mapper.predict_ternary(pts, refresh=False)
+        return np.asarray(probability, dtype=float), np.asarray(variance, dtype=float), ternary
 
     def render(
         self, resolution: float, extent: tuple[float, float, float, float] | None = None, memory_limit: int | None = None

@@ -17,7 +17,8 @@ Topics (relative names, remap them as usual):
   ``map_variance`` (latent variance in percent of the prior variance, 100 = nothing known), and
   ``~/status`` (``std_msgs/String``, JSON: scans used, dropped, latency);
 - ``~/query_result`` (``sensor_msgs/PointCloud2``): the answer to each ``~/query`` message, under
-  its header, fields x, y, probability, variance (FLOAT64; NaN before the first map).
+  its header, fields x, y, probability, variance, ternary (FLOAT64; the ternary is the written map's
+  call, 0 free, -1 unknown, 1 occupied; NaN probability and variance, unknown, before the first map).
 
 Services: ``~/save_map`` (``std_srvs/Trigger``) writes ``map.yaml`` + ``map.pgm``, ``map.npz``,
 ``map.png`` and the fitted map ``map.gpom`` into ``save_directory`` as one set; ``~/render`` (``nav_msgs/LoadMap``) returns the map
@@ -30,7 +31,7 @@ instead of the scans, takes the odometry's full 6-DoF pose (:class:`gpomap.ros2.
 ``gpomap map`` (:data:`gpomap.config.VOXEL_MAP_DEFAULTS` where a parameter is unset, 3-D tiles),
 and publishes the occupied voxel centres on ``map_cloud`` (``sensor_msgs/PointCloud2``, FLOAT32
 x, y, z, probability) in place of the grids; ``~/save_map`` writes the voxel output set,
-``~/query`` takes x, y, z and answers x, y, z, probability, variance; ``~/render`` is refused.
+``~/query`` takes x, y, z and answers x, y, z, probability, variance, ternary; ``~/render`` is refused.
 
 Parameters: those of the ROS 1 node (:func:`gpomap.ros.node.settings_from_params`, checked by the
 same code) and :data:`ROS2_DEFAULTS`; AreaGPOM options as ``model.<option>``.
@@ -428,9 +429,13 @@ class Ros2Node:
             self.node.get_logger().warning(str(exc))
             points = np.empty((0, self.live.dim))
         try:
-            probability, variance = self.live.query(points) if len(points) else (np.empty(0), np.empty(0))
+            if len(points):
+                probability, variance, ternary = self.live.query(points)
+            else:
+                probability, variance, ternary = np.empty(0), np.empty(0), np.empty(0, dtype=np.int8)
         except NotFittedError:
             probability = variance = np.full(len(points), np.nan)
+            ternary = np.full(len(points), -1, dtype=np.int8)
         out = self._cloud_type()
         out.header = msg.header
         out.height, out.width = 1, len(points)
@@ -440,7 +445,7 @@ class Ros2Node:
         out.is_bigendian = False
         out.point_step = step
         out.row_step = step * len(points)
-        out.data = array.array("B", result_cloud_data(points, probability, variance))
+        out.data = array.array("B", result_cloud_data(points, probability, variance, ternary))
         out.is_dense = bool(np.isfinite(probability).all())
         self.query_publisher.publish(out)
 

@@ -6,8 +6,8 @@ types from the PyPI message packages:
 - render: ``nav_msgs/srv/LoadMap``, whose response is an ``OccupancyGrid``; its request's one
   field, ``map_url``, carries the region as text (:func:`parse_render_request`);
 - query: a topic pair of ``sensor_msgs/PointCloud2``: points (fields x, y) in, the same points with
-  ``probability`` and ``variance`` out, under the request's header (:func:`points_from_cloud`,
-  :func:`result_cloud_data`).
+  ``probability``, ``variance`` and ``ternary`` (the written map's call: 0 free, -1 unknown, 1
+  occupied) out, under the request's header (:func:`points_from_cloud`, :func:`result_cloud_data`).
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ LAYERS = ("probability", "trinary", "variance")
 
 #: ``sensor_msgs/PointField`` datatypes: FLOAT32 and FLOAT64.
 _FLOAT_TYPES = {7: "f4", 8: "f8"}
-#: The result cloud's fields: (name, byte offset); all FLOAT64, little-endian, 32 bytes a point.
-RESULT_FIELDS = (("x", 0), ("y", 8), ("probability", 16), ("variance", 24))
-RESULT_POINT_STEP = 32
+#: The result cloud's fields: (name, byte offset); all FLOAT64, little-endian, 40 bytes a point.
+RESULT_FIELDS = (("x", 0), ("y", 8), ("probability", 16), ("variance", 24), ("ternary", 32))
+RESULT_POINT_STEP = 40
 
 
 @dataclass(frozen=True)
@@ -168,13 +168,17 @@ def points_from_cloud(msg: Any, source: str = "query", dim: int = 2) -> NDArray[
     return np.column_stack([pts[k] for k in axes]).astype(float)
 
 
-def result_cloud_data(points: NDArray[np.float64], probability: NDArray[np.float64], variance: NDArray[np.float64]) -> bytes:
-    """The data bytes of the query result cloud: :data:`RESULT_FIELDS`, one point of 32 bytes each.
+def result_cloud_data(
+    points: NDArray[np.float64], probability: NDArray[np.float64], variance: NDArray[np.float64], ternary: NDArray[np.int8]
+) -> bytes:
+    """The data bytes of the query result cloud: :data:`RESULT_FIELDS`, one point of 40 bytes each.
 
     Parameters
     ----------
     points : ndarray of shape (m, 2), or (m, 3) for a 3-D map (then z follows y and every field moves 8 bytes on)
     probability, variance : ndarray of shape (m,)
+    ternary : ndarray of int, shape (m,)
+        0 free, -1 unknown, 1 occupied; written as float64 like the other fields.
 
     Returns
     -------
@@ -183,5 +187,5 @@ def result_cloud_data(points: NDArray[np.float64], probability: NDArray[np.float
     """
     pts = np.asarray(points, float)
     pts = pts.reshape(-1, pts.shape[-1] if pts.ndim == 2 else 2)
-    table = np.column_stack([pts, np.ravel(probability), np.ravel(variance)])
+    table = np.column_stack([pts, np.ravel(probability), np.ravel(variance), np.ravel(ternary)])
     return np.ascontiguousarray(table, dtype="<f8").tobytes()
