@@ -248,7 +248,7 @@ class LiveMap:
         probability, variance : ndarray of shape (m,)
             Outside the observed region the map's prior: 0.5 and the prior variance.
         ternary : ndarray of int8, shape (m,)
-            The written map's call: 0 free, -1 unknown, 1 occupied (never where no beam ended).
+            The written map's call: 0 free, -1 unknown, 1 occupied (:meth:`gpomap.fitted.FittedMap.predict_ternary`).
 
         Raises
         ------
