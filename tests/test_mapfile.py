@@ -586,15 +586,16 @@ def test_a_loaded_maps_points_are_made_a_run_of_scans_at_a_time_past_the_budget_
     from gpomap.io.mapfile import encoding
     from gpomap.tiles.points import _SpilledPart
 
-    made = observations.observations_from_scans
+    made = observations.observation_parts
     runs: list[int] = []
 
-    def counted(scans, *args, **kwargs):
-        runs.append(len(scans))
-        return made(scans, *args, **kwargs)
+    def counted(*args, **kwargs):
+        for part in made(*args, **kwargs):
+            runs.append(len(np.unique(part.scan_index)))  # the scans in this run
+            yield part
 
-    monkeypatch.setattr(observations, "observations_from_scans", counted)
-    monkeypatch.setattr(encoding, "RESTORE_PART_BYTES", 1)  # one scan a run
+    monkeypatch.setattr(observations, "observation_parts", counted)
+    monkeypatch.setattr(observations, "PART_POINTS", 1)  # one scan a run
     monkeypatch.setattr(encoding, "POINT_MEMORY", 1)  # in the spill file from the first run on
     loaded = load_fitted_map(saved)
     live = TiledGPOM(n_workers=1, **ROOM_OPTS).fit(room[:8])

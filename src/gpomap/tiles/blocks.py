@@ -268,12 +268,14 @@ class PointFiling:
     (:meth:`~gpomap.tiles.geometry.TileGrid._settled_origin`), held in `held` until then.
 
     Past `held`'s budget the blocks keep their points in its spill file, those filed in memory
-    before included; so a large log's points are written once, under their blocks.
+    before included; so a large log's points are written once, under their blocks. With
+    `settled`, the blocks' grid is known already (a map read from its file, its points made
+    again): every part is filed as it comes.
     """
 
-    def __init__(self, blocks: BlockCells, held: _HeldParts) -> None:
+    def __init__(self, blocks: BlockCells, held: _HeldParts, settled: bool = False) -> None:
         self.blocks, self.held = blocks, held
-        self.filing = False
+        self.filing = settled
         self._started = False
 
     def __call__(self, part: Observations) -> None:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from gpomap.resources import POINT_MEMORY, SpillFile
+from gpomap.resources import POINT_MEMORY
 
 #: The archive member that holds the JSON header (no array of the state takes this name).
 _HEADER = "header"
@@ -536,17 +536,13 @@ class _PointsFromScans:
             raise InputFormatError(f"map file state: {exc}", path=self.path) from None
 
 
-#: Bytes of labelled points :func:`_restore_points` makes at a time (an estimate from the map's
-#: points per scan).
-RESTORE_PART_BYTES: int = POINT_MEMORY // 8
-
-
 def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:
     """The labelled points of a map fitted on scans, recomputed from them and filed as the fit filed them."""
     if not blocks:
         return
-    from gpomap.errors import EmptyDataError
-    from gpomap.observations import observations_from_scans
+    from gpomap.observations import observation_parts
+    from gpomap.tiles.blocks import PointFiling
+    from gpomap.tiles.points import _HeldParts
 
     b = model.base
 
@@ -562,27 +558,13 @@ def _restore_points(model: Any, blocks: list[tuple[Any, int]]) -> None:
     saved = filed()
     lower, upper = model._lower, model._upper
     model._n_points = model._n_occupied_points = model._n_free_samples = 0
-    # A run of scans at a time (each scan's points are its own), past POINT_MEMORY in a spill
-    # file as the fit keeps them: a log of thousands of scans gives tens of millions of points.
-    per_scan = max(saved[0] / max(len(model._scans), 1), 1.0) * (8 * model._dim + 5)
-    step = max(int(RESTORE_PART_BYTES / per_scan), 1)
-    spill: SpillFile | None = None
-    held = 0
-    for first in range(0, len(model._scans), step):
-        try:
-            obs = observations_from_scans(
-                model._scans[first : first + step], b.free_step, b.hit_margin, b.no_return_cap, free_cube=b.free_cube(model._dim)
-            )
-        except EmptyDataError:
-            continue
-        points, occupied = np.asarray(obs.points, dtype=float), np.asarray(obs.occupied, dtype=bool)
-        held += points.nbytes + occupied.nbytes
-        if spill is None and held > POINT_MEMORY:
-            spill = SpillFile()
-            for block in model._block_points.values():
-                block.spill(spill)
-        model._add_points(points, occupied, spill, scans=np.asarray(obs.scan_index) + first, weights=obs.weight)
-        del obs, points, occupied
+    # Made a part at a time and filed as the fit files them, past POINT_MEMORY in a spill file: a
+    # log of thousands of scans gives tens of millions of points.
+    held = _HeldParts(POINT_MEMORY)
+    filing = PointFiling(model, held, settled=True)
+    for part in observation_parts(model._scans, b.free_step, b.hit_margin, b.no_return_cap, free_cube=b.free_cube(model._dim)):
+        filing(part)
+    held.close()
     model._lower, model._upper = lower, upper
     now = filed()
     if now != saved or any(bp.arrays()[0].shape[0] != n for bp, n in blocks):
