@@ -260,10 +260,11 @@ class FittedMap:
         p, var, _ = self._gp(as_points(points, self.dim))
         return (p, var) if return_var else p
 
-    def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
+    def predict_ternary(self, points: NDArray[np.float64], probability: NDArray[np.float64] | None = None) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) at points, ndarray of shape (m,); never occupied
         in a cell beams saw through (:meth:`gpomap.fusion.EvidenceLayer.seen_through_at`), or, in
-        3-D, in a voxel no ray went to (as :attr:`gpomap.voxels.VoxelMap.ternary`)."""
+        3-D, in a voxel no ray went to (as :attr:`gpomap.voxels.VoxelMap.ternary`). `probability`,
+        shape (m,): :meth:`predict_proba`'s at the same points when the caller has it already."""
         pts = as_points(points, self.dim)
         hidden = None
         if self.evidence is not None:
@@ -271,7 +272,7 @@ class FittedMap:
             if hidden is None:
                 hits, misses, _ = self.evidence.counts_at(pts)
                 hidden = (hits + misses) == 0  # no ray crossed or ended in its cell
-        return ternary(self.predict_proba(pts), self.thresholds, hidden)
+        return ternary(self.predict_proba(pts) if probability is None else probability, self.thresholds, hidden)
 
     def default_extent(self, resolution: float) -> tuple[float, ...]:
         """The box of the data grown by two cells of `resolution`, on multiples of it:
@@ -531,9 +532,9 @@ class MapAnswers:
         """The GP's own probability at points, before any ray evidence (:meth:`FittedMap.predict_proba_gp`)."""
         return self.map_.predict_proba_gp(points, return_var)
 
-    def predict_ternary(self, points: NDArray[np.float64]) -> NDArray[np.int8]:
+    def predict_ternary(self, points: NDArray[np.float64], probability: NDArray[np.float64] | None = None) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) at points, shape (m,) (:meth:`FittedMap.predict_ternary`)."""
-        return self.map_.predict_ternary(points)
+        return self.map_.predict_ternary(points, probability)
 
     def grid(self, resolution: float, extent: tuple[float, ...] | None = None, supersample: int = 1) -> Any:
         """The map on a regular grid: an OccupancyMap in 2-D, a VoxelMap in 3-D (:meth:`FittedMap.grid`)."""

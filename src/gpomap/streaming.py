@@ -322,7 +322,9 @@ class StreamingGPOM:
             self.refresh()
         return model.predict_proba(points, return_var=return_var)
 
-    def predict_ternary(self, points: NDArray[np.float64], refresh: bool = True) -> NDArray[np.int8]:
+    def predict_ternary(
+        self, points: NDArray[np.float64], refresh: bool = True, probability: NDArray[np.float64] | None = None
+    ) -> NDArray[np.int8]:
         """Free (0) / unknown (-1) / occupied (1) at points, shape (m,): the written map's call
         (:meth:`gpomap.fitted.FittedMap.predict_ternary`).
 
@@ -331,11 +333,13 @@ class StreamingGPOM:
         points : ndarray of shape (m, 2)
         refresh : bool
             Refresh the GP first (at most `max_refits` tiles).
+        probability : ndarray of shape (m,), optional
+            :meth:`predict_proba`'s at the same points, when the caller has it already.
         """
         model = self._model()
         if refresh:
             self.refresh()
-        return np.asarray(model.predict_ternary(points), dtype=np.int8)
+        return np.asarray(model.predict_ternary(points, probability), dtype=np.int8)
 
     def default_grid(self, resolution: float | None = None) -> GridSpec:
         """The grid covering every observation, on the ray-count lattice when the resolutions match."""

@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         raise GpomapError(f"-o {args.answers}: is a directory; expected a .csv or .npz file to write")
     model = load_for_command(args, args.mapfile)
     probability, variance = model.predict_proba(points, return_var=True)
-    ternary = model.predict_ternary(points)
+    ternary = model.predict_ternary(points, probability)
     if args.answers is None:
         sys.stdout.write(answers_csv(points, probability, variance, ternary))
         return EXIT_OK

@@ -259,7 +259,7 @@ class LiveMap:
         with self._lock:
             self._require_ready()
             probability, variance = self.mapper.predict_proba(pts, return_var=True)
-            ternary = self.mapper.predict_ternary(pts, refresh=False)
+            ternary = self.mapper.predict_ternary(pts, refresh=False, probability=probability)
         return np.asarray(probability, dtype=float), np.asarray(variance, dtype=float), ternary
 
     def render(
