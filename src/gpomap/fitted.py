@@ -270,8 +270,7 @@ class FittedMap:
         if self.evidence is not None:
             hidden = self.evidence.seen_through_at(pts)
             if hidden is None:
-                hits, misses, _ = self.evidence.counts_at(pts)
-                hidden = (hits + misses) == 0  # no ray crossed or ended in its cell
+                hidden = ~self.evidence.observed_at(pts)
         return ternary(self.predict_proba(pts) if probability is None else probability, self.thresholds, hidden)
 
     def default_extent(self, resolution: float) -> tuple[float, ...]:

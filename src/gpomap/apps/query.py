@@ -65,15 +65,18 @@ def query_points(arguments: Sequence[str], dim: int, mapfile: str = "the map") -
     return np.concatenate(parts)
 
 
-def _written_point(text: str) -> list[float] | None:
-    """The coordinates of `text` when it is numbers separated by commas, at least two; else None."""
-    fields = text.split(",")
-    if len(fields) < 2:
-        return None
+def _numbers(text: str) -> list[float] | None:
+    """The numbers of `text`, separated by commas (spaces round them allowed); None when one is not a number."""
     try:
-        return [float(f) for f in fields]
+        return [float(f) for f in text.split(",")]
     except ValueError:
         return None
+
+
+def _written_point(text: str) -> list[float] | None:
+    """The coordinates of `text` when it is numbers separated by commas, at least two; else None."""
+    values = _numbers(text)
+    return values if values is not None and len(values) >= 2 else None
 
 
 def read_query_points(path: str, dim: int, mapfile: str = "the map") -> NDArray[np.float64]:
@@ -127,16 +130,12 @@ def _read_csv(p: Path, path: str) -> NDArray[np.float64]:
         stripped = line.strip()
         if not stripped or stripped.startswith("#"):
             continue
-        fields = [f.strip() for f in stripped.split(",")]
-        try:
-            values = [float(f) for f in fields]
-        except ValueError:
+        values = _numbers(stripped)
+        if values is None:
             if not rows and not header:  # the header line
                 header = True
                 continue
-            raise InputFormatError(
-                f"expected numbers separated by commas, got {stripped[:80]!r}", path=path, line=number
-            ) from None
+            raise InputFormatError(f"expected numbers separated by commas, got {stripped[:80]!r}", path=path, line=number)
         if width is not None and len(values) != width:
             raise InputFormatError(f"{len(values)} values; the rows above have {width}", path=path, line=number)
         width = len(values)

@@ -446,6 +446,12 @@ class EvidenceLayer(LayerGrids):
         h, m, silent = self.counts_at(points)
         return StageChain.after_squash(self.calibration, self.revisit, Counted(p_gp, p_unseen, h, m, silent))
 
+    def observed_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """Whether a ray crossed or ended in the fine cell holding each point, or the robot's path
+        passed it (:meth:`grid_observed`'s rule at points), shape (m,)."""
+        hits, misses, _ = self.counts_at(points)
+        return np.asarray((hits + misses) > 0)
+
     def seen_through_at(self, points: NDArray[np.float64]) -> NDArray[np.bool_] | None:
         """Whether no beam ended in the fine cell holding each point (True outside the counted
         area), shape (m,); None where the ternary map does not use it (:data:`SEEN_THROUGH_NOT_OCCUPIED`)."""
